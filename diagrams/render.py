@@ -1,0 +1,52 @@
+"""Render wing-camera images at arbitrary states with one reused Context."""
+
+import numpy as np
+from pydrake.systems.framework import DiagramBuilder
+
+from reachwatch.systems import CameraConfig, Environment
+
+from .world import add_world
+
+
+def check_state(state) -> np.ndarray:
+    """``state`` as a float array ``[px m, py m, theta rad]``; raises on bad shape or NaN."""
+    x = np.asarray(state, dtype=float)
+    if x.shape != (3,):
+        raise ValueError(f"a plant state is [px m, py m, theta rad], got shape {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"plant state must be finite, got {x}")
+    return x
+
+
+class StateRenderer:
+    """Renders the wing camera of ``environment`` at any plant state.
+
+    Builds the world diagram once; every `render` sets the plant state in the same
+    Context and evaluates the camera's colour port (drake-notes.md, section 1).
+    """
+
+    def __init__(self, *, environment: Environment, camera: CameraConfig = None,
+                 shadows: bool = False):
+        builder = DiagramBuilder()
+        self._world = add_world(builder, environment=environment, camera=camera,
+                                shadows=shadows)
+        builder.ExportInput(self._world.plant.get_steering_angle_input_port(), "steering_angle")
+        builder.ExportInput(self._world.plant.get_speed_input_port(), "speed")
+        self._diagram = builder.Build()
+        self._context = self._diagram.CreateDefaultContext()
+        self._plant_context = self._world.plant.GetMyMutableContextFromRoot(self._context)
+        self._camera_context = self._world.camera.GetMyContextFromRoot(self._context)
+
+    @property
+    def world(self):
+        return self._world
+
+    @property
+    def diagram(self):
+        return self._diagram
+
+    def render(self, state) -> np.ndarray:
+        """RGB image (H, W, 3) uint8 at ``state = [px m, py m, theta rad]`` (a copy)."""
+        self._plant_context.SetContinuousState(check_state(state))
+        image = self._world.camera.color_image_output_port().Eval(self._camera_context)
+        return image.data[..., :3].copy()

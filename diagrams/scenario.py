@@ -1,0 +1,108 @@
+"""`Scenario`: what to build and run, loaded from YAML with `pydrake.common.yaml`.
+
+Drake's loader reports an unknown field without saying where, and silently turns
+``200.0`` into an int; `load_scenario` checks the raw YAML against the dataclass
+schema first, so every error names the field's full path.
+"""
+
+import dataclasses as dc
+import typing
+from pathlib import Path
+from typing import List
+
+from pydrake.common.yaml import yaml_dump_typed, yaml_load_data, yaml_load_typed
+
+from reachwatch.systems import CameraConfig, Environment
+
+
+@dc.dataclass
+class InitialState:
+    """Start state in the units configs speak: px m, py m, theta deg."""
+    px: float = 0.0
+    py: float = 110.0
+    theta_deg: float = 0.0
+
+
+@dc.dataclass
+class Scenario:
+    """One run: environment, camera, start state, duration (s), seed."""
+    environment: Environment = dc.field(default_factory=Environment)
+    camera: CameraConfig = dc.field(default_factory=CameraConfig)
+    initial_state: InitialState = dc.field(default_factory=InitialState)
+    duration: float = 10.0
+    seed: int = 0
+    shadows: bool = False
+
+    def validate(self):
+        """Raise ValueError naming the first bad field; return self."""
+        self.environment.validate()
+        self.camera.validate()
+        if not self.duration > 0:
+            raise ValueError(f"duration must be > 0 s, got {self.duration}")
+        return self
+
+
+class ScenarioError(ValueError):
+    """A scenario file that does not match the schema; the message names the field."""
+
+
+def _type_name(t):
+    return getattr(t, "__name__", str(t))
+
+
+def _check(value, schema, path):
+    """Compare raw YAML data with a type from the schema; raise ScenarioError."""
+    origin = typing.get_origin(schema)
+    if origin is typing.Union:                      # Optional[T]
+        args = [a for a in typing.get_args(schema) if a is not type(None)]
+        if value is None:
+            return
+        return _check(value, args[0], path)
+    if dc.is_dataclass(schema):
+        if not isinstance(value, dict):
+            raise ScenarioError(f"{path}: expected a mapping of {schema.__name__} fields, "
+                                f"got {type(value).__name__} {value!r}")
+        fields = {f.name: f for f in dc.fields(schema)}
+        hints = typing.get_type_hints(schema)
+        for key, item in value.items():
+            if key not in fields:
+                raise ScenarioError(f"{path}.{key}: unknown field of {schema.__name__}; "
+                                    f"known fields: {', '.join(fields)}")
+            _check(item, hints[key], f"{path}.{key}")
+        return
+    if origin in (list, List):
+        if not isinstance(value, list):
+            raise ScenarioError(f"{path}: expected a list, got {type(value).__name__} "
+                                f"{value!r}")
+        (item_type,) = typing.get_args(schema)
+        for i, item in enumerate(value):
+            _check(item, item_type, f"{path}[{i}]")
+        return
+    ok = {bool: lambda v: isinstance(v, bool),
+          int: lambda v: isinstance(v, int) and not isinstance(v, bool),
+          float: lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+          str: lambda v: isinstance(v, str)}.get(schema, lambda v: True)
+    if not ok(value):
+        raise ScenarioError(f"{path}: expected {_type_name(schema)}, got "
+                            f"{type(value).__name__} {value!r}")
+
+
+def load_scenario(filename=None, *, data=None, schema=Scenario):
+    """Load and validate a scenario (``schema`` instance) from a YAML file or string."""
+    where = str(filename) if filename is not None else "<yaml>"
+    if filename is not None:
+        if not Path(filename).is_file():
+            raise ScenarioError(f"scenario file not found: {filename}")
+        data = Path(filename).read_text()
+    raw = yaml_load_data(data) if data.strip() else {}
+    _check(raw if raw is not None else {}, schema, "scenario")
+    scenario = yaml_load_typed(schema=schema, data=data) if raw else schema()
+    try:
+        return scenario.validate()
+    except ValueError as e:
+        raise ScenarioError(f"{where}: {e}") from None
+
+
+def dump_scenario(scenario) -> str:
+    """YAML text of ``scenario`` (round-trips through `load_scenario`)."""
+    return yaml_dump_typed(scenario)

@@ -1,0 +1,120 @@
+"""The aircraft's geometry frame and the wing camera (Drake `RgbdSensor`)."""
+
+import dataclasses as dc
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.geometry import (ClippingRange, ColorRenderCamera, DepthRange,
+                              DepthRenderCamera, FramePoseVector, GeometryFrame,
+                              RenderCameraCore, SceneGraph)
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.systems.framework import LeafSystem
+from pydrake.systems.sensors import CameraInfo, RgbdSensor
+
+
+@dc.dataclass
+class CameraConfig:
+    """The right-wing camera of the authors' X-Plane setup (facts.md, section 4).
+
+    Offsets are from the aircraft reference point, which sits ``reference_height``
+    above the ground; ``yaw_out_deg`` turns the camera outward (right), and
+    ``pitch_down_deg`` tilts it down. Image size in pixels, FOV horizontal.
+    """
+    width: int = 360
+    height: int = 200
+    fov_x_deg: float = 80.0
+    right: float = 2.17
+    up: float = 0.42
+    forward: float = 0.0
+    reference_height: float = 1.5
+    yaw_out_deg: float = 5.0
+    pitch_down_deg: float = 5.0
+    near: float = 0.5
+    far: float = 3000.0
+
+    def validate(self):
+        if not (isinstance(self.width, int) and isinstance(self.height, int)
+                and 8 <= self.width <= 4096 and 8 <= self.height <= 4096):
+            raise ValueError(f"camera width/height must be integers in [8, 4096], got "
+                             f"{self.width}x{self.height}")
+        if not 1.0 <= self.fov_x_deg <= 170.0:
+            raise ValueError(f"camera.fov_x_deg must be in [1, 170], got {self.fov_x_deg}")
+        if not 0 < self.near < self.far:
+            raise ValueError(f"camera needs 0 < near < far, got {self.near}, {self.far}")
+        return self
+
+    @property
+    def fov_y_rad(self) -> float:
+        """Vertical FOV (rad), what Drake's `CameraInfo` takes."""
+        half_x = np.deg2rad(self.fov_x_deg) / 2
+        return 2.0 * np.arctan(np.tan(half_x) * self.height / self.width)
+
+    def X_BC(self) -> RigidTransform:
+        """Camera pose in the aircraft body frame (x forward, y left, z up).
+
+        Drake's camera frame looks along +z with +x right and +y down."""
+        look_forward = RotationMatrix(np.array([[0.0, 0.0, 1.0],
+                                                [-1.0, 0.0, 0.0],
+                                                [0.0, -1.0, 0.0]]))
+        R = (RotationMatrix.MakeZRotation(-np.deg2rad(self.yaw_out_deg)) @ look_forward
+             @ RotationMatrix.MakeXRotation(-np.deg2rad(self.pitch_down_deg)))
+        return RigidTransform(R, [self.forward, -self.right, self.reference_height + self.up])
+
+
+class AircraftGeometry(LeafSystem):
+    """Poses the aircraft's body frame in a `SceneGraph` from the plant state.
+
+    .. pydrake_system::
+
+        name: AircraftGeometry
+        input_ports:
+        - state
+        output_ports:
+        - geometry_pose
+
+    ``state = [px m, py m, theta rad]`` puts the body origin at world
+    ``(py, px, 0)`` yawed by theta (world: x downtrack, y left, z up).
+    """
+
+    def __init__(self, *, scene_graph: SceneGraph, name: str = "aircraft"):
+        super().__init__()
+        self._source_id = scene_graph.RegisterSource(name)
+        self._frame_id = scene_graph.RegisterFrame(self._source_id,
+                                                   GeometryFrame(f"{name}_body"))
+        self._state_port = self.DeclareVectorInputPort("state", 3)
+        self._pose_port = self.DeclareAbstractOutputPort(
+            "geometry_pose", lambda: AbstractValue.Make(FramePoseVector()), self._calc_pose)
+
+    @property
+    def source_id(self):
+        return self._source_id
+
+    @property
+    def frame_id(self):
+        return self._frame_id
+
+    def get_state_input_port(self):
+        return self._state_port
+
+    def get_geometry_pose_output_port(self):
+        return self._pose_port
+
+    def _calc_pose(self, context, output):
+        px, py, theta = self._state_port.Eval(context)
+        poses = output.get_mutable_value()
+        poses.clear()
+        poses.set_value(self._frame_id,
+                        RigidTransform(RotationMatrix.MakeZRotation(theta), [py, px, 0.0]))
+
+
+def make_wing_camera(*, frame_id, config: CameraConfig, renderer_name: str) -> RgbdSensor:
+    """Drake `RgbdSensor` on the aircraft frame; only its colour port is meant to be
+    evaluated (ports are lazy, so depth is never rendered unless asked for)."""
+    config.validate()
+    core = RenderCameraCore(renderer_name,
+                            CameraInfo(config.width, config.height, config.fov_y_rad),
+                            ClippingRange(config.near, config.far), RigidTransform())
+    depth = DepthRenderCamera(core, DepthRange(config.near + 0.01, 60.0))
+    sensor = RgbdSensor(frame_id, config.X_BC(), ColorRenderCamera(core, False), depth)
+    sensor.set_name("wing_camera")
+    return sensor

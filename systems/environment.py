@@ -1,0 +1,69 @@
+"""An environment = runway x hour x sky, and the paper's train/test split."""
+
+import copy
+import dataclasses as dc
+from typing import Optional
+
+from .runway import RUNWAYS, RunwaySpec
+
+SKIES = ("clear", "overcast")
+
+
+@dc.dataclass
+class Environment:
+    """Where and when the aircraft taxis.
+
+    ``runway`` names a catalog runway (KMWH, KATL, PAEI, KSFO, KEWR) unless
+    ``runway_spec`` describes one of the user's own; ``hour`` is local time in
+    [0, 24); ``sky`` is clear or overcast.
+    """
+    runway: str = "KMWH"
+    hour: float = 9.0
+    sky: str = "clear"
+    runway_spec: Optional[RunwaySpec] = None
+
+    def validate(self):
+        """Raise ValueError naming the first bad field; return self."""
+        if self.runway_spec is None and self.runway not in RUNWAYS:
+            raise ValueError(
+                f"environment.runway: unknown runway '{self.runway}'; the catalog has "
+                f"{sorted(RUNWAYS)}, or describe your own under environment.runway_spec")
+        if not 0.0 <= self.hour < 24.0:
+            raise ValueError(f"environment.hour must be in [0, 24), got {self.hour}")
+        if self.sky not in SKIES:
+            raise ValueError(f"environment.sky must be one of {SKIES}, got '{self.sky}'")
+        self.spec()
+        return self
+
+    def spec(self) -> RunwaySpec:
+        """The runway description (a copy; catalog entries are never mutated)."""
+        if self.runway_spec is not None:
+            return copy.deepcopy(self.runway_spec).validate()
+        return copy.deepcopy(RUNWAYS[self.runway])
+
+    @property
+    def name(self) -> str:
+        """A short id such as ``KMWH_9h_clear``."""
+        runway = self.runway_spec.name if self.runway_spec is not None else self.runway
+        hour = f"{self.hour:g}".replace(".", "p")
+        return f"{runway}_{hour}h_{self.sky}"
+
+    @property
+    def half_width(self) -> float:
+        """B (m): the aircraft fails when ``|px| >= B``."""
+        return self.spec().half_width
+
+
+def training_environments():
+    """The paper's 12 training environments: {KMWH, KATL, PAEI} x {9, 21} x skies."""
+    return [Environment(r, h, s) for r in ("KMWH", "KATL", "PAEI")
+            for h in (9.0, 21.0) for s in SKIES]
+
+
+def test_environments():
+    """The paper's held-out environments: hour 17 on the training runways, and
+    KSFO and KEWR at every condition."""
+    envs = [Environment(r, 17.0, s) for r in ("KMWH", "KATL", "PAEI") for s in SKIES]
+    envs += [Environment(r, h, s) for r in ("KSFO", "KEWR")
+             for h in (9.0, 17.0, 21.0) for s in SKIES]
+    return envs
