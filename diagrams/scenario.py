@@ -94,7 +94,10 @@ def load_scenario(filename=None, *, data=None, schema=Scenario):
         if not Path(filename).is_file():
             raise ScenarioError(f"scenario file not found: {filename}")
         data = Path(filename).read_text()
-    raw = yaml_load_data(data) if data.strip() else {}
+    try:
+        raw = yaml_load_data(data) if data.strip() else {}
+    except Exception as e:  # PyYAML's or Drake's parser error
+        raise ScenarioError(f"{where}: not valid YAML: {e}") from None
     _check(raw if raw is not None else {}, schema, "scenario")
     scenario = yaml_load_typed(schema=schema, data=data) if raw else schema()
     try:

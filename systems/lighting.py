@@ -57,7 +57,8 @@ def lighting_for(environment) -> Lighting:
     warmth = float(np.clip((35.0 - elevation) / 18.0, 0.0, 1.0))    # low sun is warm
     overcast = environment.sky == "overcast"
     sun_rgb = _mix([1.0, 0.97, 0.92], [1.0, 0.62, 0.36], warmth)
-    if overcast:
+    if overcast:   # no direct sun: brightness follows the sun's height, colour stays grey
+        daylight *= 0.65 + 0.35 * float(np.clip(elevation / 35.0, 0.0, 1.0))
         sky = _mix([0.05, 0.05, 0.06], [0.66, 0.68, 0.70], daylight)
     else:
         sky = _mix([0.02, 0.03, 0.07], _mix([0.50, 0.68, 0.92], [0.93, 0.64, 0.45], warmth),

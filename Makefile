@@ -1,0 +1,35 @@
+# Set-up on a fresh machine is `make demo` or `make test`: both create .venv once and
+# reuse it; pip runs again only when pyproject.toml changes.
+
+PYTHON ?= $(shell for p in python3.12 python3 python; do \
+	command -v $$p >/dev/null 2>&1 && $$p -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' 2>/dev/null \
+	&& echo $$p && break; done)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+OUT ?= out/demo
+
+.PHONY: test demo bench clean-venv
+
+$(STAMP): pyproject.toml
+	@test -n "$(PYTHON)" || { echo "error: Python 3.12 not found (drake 1.58 wheels need it); install it, e.g. 'pyenv install 3.12' (the repo's .python-version selects it)"; exit 1; }
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --upgrade pip
+	$(BIN)/python -m pip install -e ".[dev]"
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+demo: $(STAMP)
+	@echo "make demo: for now this renders the environment contact sheet and the diagram graph;"
+	@echo "the offline + online pipeline joins it as the reachability and detector stages land."
+	$(BIN)/reachwatch render --contact-sheet --out $(OUT)
+	$(BIN)/reachwatch graph --out $(OUT)
+	@echo "demo outputs in $(OUT)/"
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/render.py
+
+clean-venv:
+	rm -rf $(VENV)

@@ -1,0 +1,45 @@
+"""Implementations of the ``reachwatch`` subcommands (argparse namespaces in, files out)."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from reachwatch.diagrams import (Scenario, StateRenderer, export_graph,
+                                 initial_state_vector, load_scenario, make_world_diagram)
+from reachwatch.diagrams.contact_sheet import contact_sheet
+from reachwatch.systems.files import atomic_write_bytes
+
+
+def _scenario(args) -> Scenario:
+    return load_scenario(args.scenario) if args.scenario else Scenario().validate()
+
+
+def write_png(path, rgb: np.ndarray) -> Path:
+    """Write an RGB uint8 image atomically."""
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
+    if not ok:
+        raise RuntimeError(f"could not encode {path}")
+    return atomic_write_bytes(path, data.tobytes())
+
+
+def render(args):
+    scenario = _scenario(args)
+    out = Path(args.out)
+    state = initial_state_vector(scenario.initial_state)
+    if args.contact_sheet:
+        sheet = contact_sheet(state=state, camera=scenario.camera,
+                              progress=lambda it: tqdm(it, desc="contact sheet"))
+        print(write_png(out / "contact_sheet.png", sheet))
+        return
+    image = StateRenderer(environment=scenario.environment, camera=scenario.camera,
+                          shadows=scenario.shadows).render(state)
+    print(write_png(out / f"{scenario.environment.name}.png", image))
+
+
+def graph(args):
+    scenario = _scenario(args)
+    diagram = make_world_diagram(scenario)
+    for path in export_graph(diagram, Path(args.out) / "world", max_depth=args.max_depth):
+        print(path)
