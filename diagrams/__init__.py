@@ -1,10 +1,17 @@
 """Diagrams built from a `Scenario`, simulation helpers and graph export."""
 
+from .checkpoints import (REFERENCE_TAXINET, CheckpointError, file_hash, load_checkpoint,
+                          load_taxinet, save_checkpoint)
+from .closed_loop import (CONTROL_PORT, ESTIMATE_PORT, PLANT, Trajectory,
+                          add_taxinet_controller, make_closed_loop_diagram, simulate)
 from .graph import GraphvizMissing, export_graph
 from .render import StateRenderer, check_state
-from .scenario import InitialState, Scenario, ScenarioError, dump_scenario, load_scenario
+from .scenario import ControllerConfig, InitialState, Scenario, ScenarioError, dump_scenario, load_scenario
 from .world import World, add_world, initial_state_vector, make_world_diagram
 
-__all__ = ["GraphvizMissing", "export_graph", "StateRenderer", "check_state",
+__all__ = ["REFERENCE_TAXINET", "CheckpointError", "file_hash", "load_checkpoint",
+           "load_taxinet", "save_checkpoint", "CONTROL_PORT", "ESTIMATE_PORT", "PLANT",
+           "Trajectory", "add_taxinet_controller", "make_closed_loop_diagram", "simulate",
+           "ControllerConfig", "GraphvizMissing", "export_graph", "StateRenderer", "check_state",
            "InitialState", "Scenario", "ScenarioError", "dump_scenario", "load_scenario",
            "World", "add_world", "initial_state_vector", "make_world_diagram"]

@@ -24,11 +24,32 @@ class InitialState:
 
 
 @dc.dataclass
+class ControllerConfig:
+    """The controller under test. ``checkpoint`` empty = the shipped reference
+    TaxiNet; gains in deg per m and deg per deg; ``period`` s; ``speed`` m/s."""
+    checkpoint: str = ""
+    px_gain: float = -0.74
+    theta_gain: float = -0.44
+    period: float = 0.05
+    speed: float = 5.0
+
+    def validate(self):
+        if not self.period > 0:
+            raise ValueError(f"controller.period must be > 0 s, got {self.period}")
+        if not self.speed >= 0:
+            raise ValueError(f"controller.speed must be >= 0 m/s, got {self.speed}")
+        if self.checkpoint and not Path(self.checkpoint).is_file():
+            raise ValueError(f"controller.checkpoint: file not found: {self.checkpoint}")
+        return self
+
+
+@dc.dataclass
 class Scenario:
-    """One run: environment, camera, start state, duration (s), seed."""
+    """One run: environment, camera, start state, controller, duration (s), seed."""
     environment: Environment = dc.field(default_factory=Environment)
     camera: CameraConfig = dc.field(default_factory=CameraConfig)
     initial_state: InitialState = dc.field(default_factory=InitialState)
+    controller: ControllerConfig = dc.field(default_factory=ControllerConfig)
     duration: float = 10.0
     seed: int = 0
     shadows: bool = False
@@ -37,6 +58,7 @@ class Scenario:
         """Raise ValueError naming the first bad field; return self."""
         self.environment.validate()
         self.camera.validate()
+        self.controller.validate()
         if not self.duration > 0:
             raise ValueError(f"duration must be > 0 s, got {self.duration}")
         return self

@@ -3,7 +3,7 @@
 import argparse
 import sys
 
-from . import commands
+from . import commands, taxinet_commands
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,6 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
     graph.add_argument("--out", required=True, help="output folder")
     graph.add_argument("--max-depth", type=int, default=2, help="Graphviz nesting depth")
     graph.set_defaults(func=commands.graph)
+
+    taxinet_commands.add_parsers(sub)
     return parser
 
 
@@ -35,7 +37,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args) or 0
-    except (ValueError, FileNotFoundError) as e:
+    except (ValueError, FileNotFoundError) as e:  # bad input: say what, exit 2
         print(f"reachwatch {args.command}: error: {e}", file=sys.stderr)
         return 2
 

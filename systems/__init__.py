@@ -1,17 +1,30 @@
 """Drake `LeafSystem`s and scene pieces of the closed loop. Nothing here knows about
 grids, datasets or files beyond the generated texture cache."""
 
+# torch imports triton lazily (e.g. when an optimizer is built). triton bundles its own
+# LLVM, and so does Mesa's llvmpipe, which loads at Drake's first render; loading triton
+# second segfaults, so load it first. Render with pydrake only after importing reachwatch.
+try:
+    import triton  # noqa: F401
+except ImportError:
+    pass
+
 from .camera import AircraftGeometry, CameraConfig, make_wing_camera
 from .environment import SKIES, Environment, test_environments, training_environments
 from .lighting import Lighting, lighting_for, render_engine_params, sun_elevation_deg
+from .models import (ESTIMATE_UNITS, PreprocessConfig, SmallTaxiCNN, TaxiNetConfig,
+                     TinyTaxiNet, build_taxinet, preprocess)
 from .plant import NOMINAL_SPEED_MPS, WHEELBASE_M, TaxiPlant, taxi_dynamics
 from .runway import RUNWAYS, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, TaxiwayLine
 from .scene import add_runway_scene
+from .taxinet import PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, TaxiNet
 
 __all__ = [
     "AircraftGeometry", "CameraConfig", "make_wing_camera", "SKIES", "Environment",
     "test_environments", "training_environments", "Lighting", "lighting_for",
     "render_engine_params", "sun_elevation_deg", "NOMINAL_SPEED_MPS", "WHEELBASE_M",
     "TaxiPlant", "taxi_dynamics", "RUNWAYS", "LightsSpec", "MarkingsSpec", "RunwaySpec",
-    "SurfaceSpec", "TaxiwayLine", "add_runway_scene",
+    "SurfaceSpec", "TaxiwayLine", "add_runway_scene", "ESTIMATE_UNITS", "PreprocessConfig",
+    "SmallTaxiCNN", "TaxiNetConfig", "TinyTaxiNet", "build_taxinet", "preprocess",
+    "PX_GAIN_DEG_PER_M", "THETA_GAIN", "ProportionalController", "TaxiNet",
 ]

@@ -83,9 +83,12 @@ def lighting_for(environment) -> Lighting:
     lamps_lit = daylight < 0.5 and spec.lights.enabled
     if daylight < 1.0:
         night = 1.0 - daylight
-        lights.append(LightParameter(type="directional", frame="world",     # moon
-                                     direction=[0.3, -0.2, -1.0],
-                                     color=Rgba(0.6, 0.7, 1.0), intensity=0.10 * night))
+        if overcast:    # no moon; low cloud reflects the airfield's glow
+            sky = np.maximum(sky, [0.10, 0.09, 0.08])
+        else:
+            lights.append(LightParameter(type="directional", frame="world",     # moon
+                                         direction=[0.3, -0.2, -1.0],
+                                         color=Rgba(0.6, 0.7, 1.0), intensity=0.10 * night))
         lights.append(LightParameter(type="spot", frame="camera",           # taxi light
                                      position=[0.0, 0.0, 0.0], direction=[0.0, 0.25, 1.0],
                                      color=Rgba(1.0, 0.95, 0.85), intensity=2.0 * night,

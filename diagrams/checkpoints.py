@@ -1,0 +1,98 @@
+"""Checkpoints: ``state_dict`` + model config + preprocessing config + metadata.
+
+Saved with `torch.save`, loaded with ``torch.load(weights_only=True)``, so a file holds
+only tensors and plain Python values. Written atomically.
+"""
+
+import dataclasses as dc
+import hashlib
+import io
+import json
+from pathlib import Path
+
+import torch
+
+from reachwatch.systems import PreprocessConfig, TaxiNetConfig, build_taxinet
+from reachwatch.systems.files import atomic_write_bytes
+
+FORMAT = "reachwatch.checkpoint"
+VERSION = 1
+#: The reference TaxiNet shipped with the package (see `reachwatch taxinet train`).
+REFERENCE_TAXINET = Path(__file__).parent / "checkpoints" / "taxinet_tiny.pt"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file that is missing, corrupt, or not what was asked for."""
+
+
+def save_checkpoint(path, *, kind: str, model: torch.nn.Module, model_config,
+                    preprocess_config, metadata: dict) -> Path:
+    """Write a checkpoint of ``kind`` (e.g. ``taxinet``) atomically; returns the path."""
+    payload = {"format": FORMAT, "version": VERSION, "kind": kind,
+               "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+               "model_config": dc.asdict(model_config),
+               "preprocess": dc.asdict(preprocess_config),
+               "metadata": _plain(metadata)}
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    return atomic_write_bytes(path, buffer.getvalue())
+
+
+def _plain(metadata: dict) -> dict:
+    """Metadata as plain JSON values, so ``weights_only`` loading accepts it."""
+    try:
+        return json.loads(json.dumps(metadata, default=lambda v: v.item() if hasattr(v, "item")
+                                     else str(v)))
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"checkpoint metadata must be JSON-like: {e}") from None
+
+
+def load_checkpoint(path, *, kind: str) -> dict:
+    """The raw checkpoint dict of ``kind``; raises `CheckpointError` saying what is wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises several types for truncated/foreign files
+        raise CheckpointError(f"{path} is not a readable checkpoint (corrupt, truncated or "
+                              f"not written by reachwatch): {type(e).__name__}: "
+                              f"{str(e)[:200]}") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is a torch file but not a reachwatch checkpoint")
+    if payload.get("version") != VERSION:
+        raise CheckpointError(f"{path} has checkpoint version {payload.get('version')}, "
+                              f"this reachwatch reads version {VERSION}")
+    if payload.get("kind") != kind:
+        raise CheckpointError(f"{path} holds a '{payload.get('kind')}' model, not a "
+                              f"'{kind}' model")
+    missing = {"state_dict", "model_config", "preprocess", "metadata"} - set(payload)
+    if missing:
+        raise CheckpointError(f"{path} lacks {sorted(missing)}")
+    return payload
+
+
+def _config(cls, data, path, what):
+    try:
+        return cls(**data)
+    except TypeError as e:
+        raise CheckpointError(f"{path}: {what} does not match this reachwatch: {e}") from None
+
+
+def load_taxinet(path=REFERENCE_TAXINET):
+    """``(model, preprocess_config, metadata)`` from a TaxiNet checkpoint (eval mode)."""
+    payload = load_checkpoint(path, kind="taxinet")
+    config = _config(TaxiNetConfig, payload["model_config"], path, "model_config")
+    preprocess_config = _config(PreprocessConfig, payload["preprocess"], path, "preprocess")
+    model = build_taxinet(config, preprocess_config)
+    try:
+        model.load_state_dict(payload["state_dict"])
+    except RuntimeError as e:
+        raise CheckpointError(f"{path}: weights do not fit the {config.arch} TaxiNet its "
+                              f"config describes: {str(e)[:300]}") from None
+    return model.eval(), preprocess_config, payload["metadata"]
+
+
+def file_hash(path) -> str:
+    """SHA-256 (hex, first 16) of a file's bytes: the cache key of a checkpoint."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]

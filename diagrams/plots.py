@@ -1,0 +1,44 @@
+"""Figures of runs on the runway (matplotlib, headless)."""
+
+import io
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from reachwatch.systems.files import atomic_write_bytes  # noqa: E402
+
+
+def save_figure(fig, path):
+    """Save ``fig`` atomically (format from the suffix) and close it."""
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format=str(path).rsplit(".", 1)[-1], dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return atomic_write_bytes(path, buffer.getvalue())
+
+
+def plot_runway_top_view(trajectories, *, half_width: float, path, title=""):
+    """Top view of ``trajectories`` (`Trajectory`, label) on the runway: downtrack
+    py along x, crosstrack px up (left of the centreline), edges at +-B, the failure
+    region shaded, failures marked with a cross."""
+    fig, ax = plt.subplots(figsize=(9, 3.6))
+    ys = np.concatenate([t.state[:, 1] for t, _ in trajectories])
+    lo, hi = ys.min() - 5, ys.max() + 5
+    for sign in (-1, 1):
+        ax.axhline(sign * half_width, color="k", lw=1.5)
+        ax.axhspan(sign * half_width, sign * (half_width + 3), color="tab:red", alpha=0.12)
+    ax.axhline(0.0, color="0.6", lw=1, ls=(0, (8, 6)))
+    for trajectory, label in trajectories:
+        px, py = trajectory.state[:, 0], trajectory.state[:, 1]
+        ax.plot(py, px, lw=2, label=label)
+        if trajectory.failed:
+            ax.plot(py[-1], px[-1], "x", color="tab:red", ms=10, mew=2)
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(-(half_width + 3), half_width + 3)
+    ax.set_xlabel("downtrack py (m)")
+    ax.set_ylabel("crosstrack px (m, left +)")
+    ax.set_title(title or f"runway top view, B = {half_width:g} m")
+    ax.legend(loc="upper right", fontsize=8)
+    return save_figure(fig, path)

@@ -1,0 +1,48 @@
+"""Closed-loop dynamics on a grid: ``f(x, u(x))`` with ``u`` a swept control table.
+
+A `Dynamics` maps states ``(..., n)`` and controls ``(..., m)`` to derivatives; the
+solver and the rollouts use nothing else, so any plant can be dropped in."""
+
+import torch
+
+from reachwatch.systems import NOMINAL_SPEED_MPS, WHEELBASE_M
+
+
+class Dynamics:
+    """Interface: ``vector_field(x, u)`` (torch, broadcasting) and the failure margin
+    ``target(x)`` (``l(x) <= 0`` is failure)."""
+
+    state_dim = 3
+    control_dim = 1
+
+    def vector_field(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def target(self, x: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def hamiltonian(self, grad_value: torch.Tensor, x, u) -> torch.Tensor:
+        """Closed-loop Hamiltonian ``<grad V, f(x, u)>`` (``grad_value`` like ``x``)."""
+        return (grad_value * self.vector_field(x, u)).sum(-1)
+
+    def partial_max_magnitudes(self, x, u) -> torch.Tensor:
+        """``|dH/dp_i| = |f_i|`` per state dimension (for the CFL condition)."""
+        return self.vector_field(x, u).abs()
+
+
+class TaxiDynamics(Dynamics):
+    """``px' = v sin(theta)``, ``py' = v cos(theta)``, ``theta' = (v/L) tan(phi)``;
+    failure ``|px| >= half_width``, so ``l(x) = half_width - |px|`` (m)."""
+
+    def __init__(self, *, half_width: float, speed: float = NOMINAL_SPEED_MPS,
+                 wheelbase: float = WHEELBASE_M):
+        self.half_width, self.speed, self.wheelbase = float(half_width), float(speed), float(wheelbase)
+
+    def vector_field(self, x, u):
+        theta = x[..., 2]
+        phi = u[..., 0]
+        return torch.stack([self.speed * torch.sin(theta), self.speed * torch.cos(theta),
+                            self.speed / self.wheelbase * torch.tan(phi)], dim=-1)
+
+    def target(self, x):
+        return self.half_width - x[..., 0].abs()

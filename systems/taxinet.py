@@ -1,0 +1,104 @@
+"""The vision-based controller under test: `TaxiNet` (image -> estimate) followed by
+the `ProportionalController` (estimate -> steering angle)."""
+
+import numpy as np
+import torch
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+from pydrake.systems.sensors import ImageRgba8U
+
+from .models import PreprocessConfig, preprocess_batched
+
+#: The authors' P-controller gains: phi_deg = -0.74 * px_hat - 0.44 * theta_hat_deg.
+PX_GAIN_DEG_PER_M = -0.74
+THETA_GAIN = -0.44
+
+
+class TaxiNet(LeafSystem):
+    """Estimates crosstrack and heading error from the wing-camera image.
+
+    .. pydrake_system::
+
+        name: TaxiNet
+        input_ports:
+        - color_image
+        output_ports:
+        - estimate
+
+    ``color_image`` is Drake's `ImageRgba8U`; ``estimate`` is
+    ``[px_hat m, theta_hat deg]``. ``image_size = (height, width)``, when given,
+    is enforced: a checkpoint trained on one size is not silently fed another.
+    """
+
+    def __init__(self, *, model: torch.nn.Module, preprocess_config: PreprocessConfig,
+                 image_size=None):
+        super().__init__()
+        self._model = model.eval()
+        self._preprocess = preprocess_config.validate()
+        self._image_size = tuple(image_size) if image_size is not None else None
+        self._image_port = self.DeclareAbstractInputPort(
+            "color_image", AbstractValue.Make(ImageRgba8U()))
+        self._estimate_port = self.DeclareVectorOutputPort("estimate", 2,
+                                                           self._calc_estimate)
+
+    def get_color_image_input_port(self):
+        return self._image_port
+
+    def get_estimate_output_port(self):
+        return self._estimate_port
+
+    @torch.no_grad()
+    def estimate(self, images_rgb: np.ndarray) -> np.ndarray:
+        """``(N, H, W, 3)`` uint8 RGB -> ``(N, 2)`` [px_hat m, theta_hat deg]."""
+        x = preprocess_batched(images_rgb, self._preprocess)
+        return self._model(x).double().numpy()
+
+    def _calc_estimate(self, context, output):
+        image = self._image_port.Eval(context)
+        rgba = image.data
+        if self._image_size is not None and rgba.shape[:2] != self._image_size:
+            raise ValueError(
+                f"TaxiNet: input port 'color_image' got a {rgba.shape[0]}x{rgba.shape[1]} "
+                f"image, but this model was trained on {self._image_size[0]}x"
+                f"{self._image_size[1]} (height x width); set the camera size to match")
+        output.SetFromVector(self.estimate(rgba[None, ..., :3])[0])
+
+
+class ProportionalController(LeafSystem):
+    """The authors' P-controller on the estimate (degrees inside, radians out).
+
+    .. pydrake_system::
+
+        name: ProportionalController
+        input_ports:
+        - estimate
+        output_ports:
+        - steering_angle
+
+    ``phi_deg = px_gain * px_hat + theta_gain * theta_hat_deg``; ``steering_angle`` is
+    ``phi`` in rad. No saturation unless ``max_steering_deg`` is given (the authors
+    had none).
+    """
+
+    def __init__(self, *, px_gain=PX_GAIN_DEG_PER_M, theta_gain=THETA_GAIN,
+                 max_steering_deg=None):
+        super().__init__()
+        self._gains = np.array([px_gain, theta_gain], dtype=float)
+        self._limit = None if max_steering_deg is None else float(max_steering_deg)
+        self._estimate_port = self.DeclareVectorInputPort("estimate", 2)
+        self._steering_port = self.DeclareVectorOutputPort("steering_angle", 1,
+                                                           self._calc_steering)
+
+    def get_estimate_input_port(self):
+        return self._estimate_port
+
+    def get_steering_angle_output_port(self):
+        return self._steering_port
+
+    def steering_deg(self, estimate) -> np.ndarray:
+        """phi (deg) for ``estimate = [..., 2]`` [px_hat m, theta_hat deg]."""
+        phi = np.asarray(estimate, dtype=float) @ self._gains
+        return phi if self._limit is None else np.clip(phi, -self._limit, self._limit)
+
+    def _calc_steering(self, context, output):
+        output.SetAtIndex(0, np.deg2rad(self.steering_deg(self._estimate_port.Eval(context))))

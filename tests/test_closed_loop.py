@@ -1,0 +1,92 @@
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import (CONTROL_PORT, PLANT, REFERENCE_TAXINET, ScenarioError,
+                                 load_scenario, make_closed_loop_diagram, simulate)
+from reachwatch.pipeline.cli import main
+from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet
+from reachwatch.diagrams import load_taxinet
+from reachwatch.systems import CameraConfig
+
+
+@pytest.fixture(scope="module")
+def nominal_loop():
+    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    return scenario, make_closed_loop_diagram(scenario)
+
+
+def test_reference_checkpoint_is_shipped():
+    model, preprocess_config, metadata = load_taxinet(REFERENCE_TAXINET)
+    assert metadata["image_size"] == [200, 360]
+    assert metadata["environment"] == "KMWH_9h_clear"
+    # good at the nominal condition (measured on held-out renders at training time)
+    assert metadata["validation"]["px_mean_m"] < 2.0
+
+
+def test_closed_loop_structure(nominal_loop):
+    _, diagram = nominal_loop
+    names = {diagram.GetSubsystemByName(n).get_name() for n in
+             ["taxi_plant", "taxinet", "p_controller", "steering_hold", "speed", "state_log",
+              "estimate_log"]}
+    assert len(names) == 7
+    system, port = CONTROL_PORT.split(".")
+    assert diagram.GetSubsystemByName(system).GetOutputPort(port).size() == 1
+    assert diagram.GetSubsystemByName(PLANT).num_continuous_states() == 3
+
+
+def test_centreline_start_stays_on_runway_nominal(nominal_loop):
+    scenario, diagram = nominal_loop
+    trajectory = simulate(diagram, initial_state=[0.0, 110.0, 0.0], duration=3.0,
+                          half_width=10.0)
+    assert not trajectory.failed
+    assert np.abs(trajectory.state[:, 0]).max() < 4.0
+    assert len(trajectory.time) == 61                        # one log per 0.05 s tick
+    np.testing.assert_allclose(np.diff(trajectory.time), 0.05, atol=1e-9)
+    assert trajectory.state[-1, 1] == pytest.approx(125.0, abs=0.5)   # 5 m/s
+
+
+def test_steering_is_held_between_ticks(nominal_loop):
+    """The camera renders and TaxiNet acts once per tick: within a tick theta moves
+    at the constant rate tan(phi) of the steering sampled at the tick's start."""
+    _, diagram = nominal_loop
+    trajectory = simulate(diagram, initial_state=[4.0, 110.0, 0.0], duration=0.1,
+                          half_width=10.0)
+    phi0 = np.deg2rad(-0.74 * trajectory.estimate[0, 0] - 0.44 * trajectory.estimate[0, 1])
+    assert trajectory.state[1, 2] == pytest.approx(0.05 * np.tan(phi0), rel=1e-4, abs=1e-7)
+
+
+def test_failure_stops_the_run(nominal_loop):
+    _, diagram = nominal_loop
+    trajectory = simulate(diagram, initial_state=[9.9, 110.0, np.deg2rad(28.0)],
+                          duration=8.0, half_width=10.0)
+    assert trajectory.failed and trajectory.failure_time < 1.0
+    assert trajectory.time[-1] < 1.0
+
+
+def test_missing_controller_checkpoint_named():
+    with pytest.raises(ScenarioError, match="controller.checkpoint"):
+        load_scenario(data="controller: {checkpoint: /nonexistent/x.pt}\n")
+
+
+def test_training_is_seeded_and_loadable(tmp_path):
+    config = TaxiNetTrainConfig(camera=CameraConfig(width=90, height=50), samples=48,
+                                epochs=3, batch_size=16, seed=7)
+    meta_a = train_taxinet(config, tmp_path / "a.pt")
+    meta_b = train_taxinet(config, tmp_path / "b.pt")
+    a, _, _ = load_taxinet(tmp_path / "a.pt")
+    b, _, _ = load_taxinet(tmp_path / "b.pt")
+    for (name, pa), (_, pb) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert np.array_equal(pa.numpy(), pb.numpy()), name
+    assert meta_a["image_size"] == [50, 90] and meta_a["final_train_loss"] == \
+        meta_b["final_train_loss"]
+
+
+def test_cli_simulate_writes_trajectory_and_plot(tmp_path):
+    scenario = tmp_path / "s.yaml"
+    scenario.write_text("duration: 1.0\ninitial_state: {px: 2.0, py: 120.0}\n")
+    assert main(["simulate", "--scenario", str(scenario), "--out", str(tmp_path)]) == 0
+    rows = np.loadtxt(tmp_path / "KMWH_9h_clear_trajectory.csv", delimiter=",", skiprows=1)
+    assert rows.shape == (21, 6) and rows[0, 1] == pytest.approx(2.0)
+    assert (tmp_path / "KMWH_9h_clear_trajectory.png").stat().st_size > 1000
+    data = np.load(tmp_path / "KMWH_9h_clear_trajectory.npz")
+    assert data["state"].shape == (21, 3)

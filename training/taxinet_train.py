@@ -1,0 +1,97 @@
+"""Train TaxiNet on the nominal condition (KMWH, 9 h, clear, as the authors' was)."""
+
+import dataclasses as dc
+import time
+
+import numpy as np
+import torch
+from torch import nn
+
+from reachwatch.diagrams import StateRenderer, save_checkpoint
+from reachwatch.systems import (CameraConfig, Environment, PreprocessConfig, TaxiNetConfig,
+                                build_taxinet)
+from reachwatch.systems.models import preprocess_batched
+
+from .taxinet_data import render_states, sample_states, targets
+
+
+@dc.dataclass
+class TaxiNetTrainConfig:
+    """Everything that determines a trained TaxiNet (same config + seed = same weights)."""
+    environment: Environment = dc.field(default_factory=Environment)   # KMWH 9 h clear
+    camera: CameraConfig = dc.field(default_factory=CameraConfig)
+    model: TaxiNetConfig = dc.field(default_factory=TaxiNetConfig)
+    preprocess: PreprocessConfig = dc.field(default_factory=PreprocessConfig)
+    samples: int = 8000
+    validation_fraction: float = 0.1
+    epochs: int = 200
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    seed: int = 0
+
+
+def seed_everything(seed: int):
+    """Seed numpy's and torch's generators; returns a numpy Generator."""
+    torch.manual_seed(seed)
+    return np.random.default_rng(seed)
+
+
+def fit_regressor(model, inputs, outputs, *, epochs, batch_size, learning_rate, seed,
+                  scale, progress=None):
+    """MSE + Adam (amsgrad) on ``outputs / scale``; returns per-epoch train losses."""
+    generator = torch.Generator().manual_seed(seed)
+    optimizer = torch.optim.Adam(model.parameters(), lr=learning_rate, amsgrad=True)
+    loss_fn, losses = nn.MSELoss(), []
+    scale = torch.as_tensor(scale, dtype=torch.float32)
+    epochs_iter = progress(range(epochs)) if progress else range(epochs)
+    for _ in epochs_iter:
+        model.train()
+        order = torch.randperm(len(inputs), generator=generator)
+        total = 0.0
+        for start in range(0, len(inputs), batch_size):
+            idx = order[start:start + batch_size]
+            optimizer.zero_grad()
+            loss = loss_fn(model(inputs[idx]) / scale, outputs[idx] / scale)
+            loss.backward()
+            optimizer.step()
+            total += loss.item() * len(idx)
+        losses.append(total / len(inputs))
+    return losses
+
+
+@torch.no_grad()
+def estimation_errors(model, inputs, outputs) -> dict:
+    """Mean and 95th-percentile absolute errors in px (m) and theta (deg)."""
+    model.eval()
+    err = (model(inputs) - outputs).abs().numpy()
+    return {"px_mean_m": float(err[:, 0].mean()), "px_p95_m": float(np.percentile(err[:, 0], 95)),
+            "theta_mean_deg": float(err[:, 1].mean()),
+            "theta_p95_deg": float(np.percentile(err[:, 1], 95))}
+
+
+def train_taxinet(config: TaxiNetTrainConfig, out_path, progress=None):
+    """Render a labelled set, train, and write a checkpoint; returns its metadata."""
+    started = time.time()
+    rng = seed_everything(config.seed)
+    states = sample_states(config.samples, rng)
+    renderer = StateRenderer(environment=config.environment, camera=config.camera)
+    images = render_states(renderer, states,
+                           progress=(lambda it: progress(it, desc="render")) if progress else None)
+    x = preprocess_batched(images, config.preprocess.validate())
+    y = torch.from_numpy(targets(states))
+    n_val = int(round(config.validation_fraction * len(x)))
+    model = build_taxinet(config.model, config.preprocess)
+    losses = fit_regressor(model, x[n_val:], y[n_val:], epochs=config.epochs,
+                           batch_size=config.batch_size, learning_rate=config.learning_rate,
+                           seed=config.seed, scale=config.model.output_scale,
+                           progress=(lambda it: progress(it, desc="train")) if progress else None)
+    metadata = {
+        "image_size": [config.camera.height, config.camera.width],
+        "environment": config.environment.name, "samples": config.samples,
+        "epochs": config.epochs, "seed": config.seed, "final_train_loss": losses[-1],
+        "validation": estimation_errors(model, x[:n_val], y[:n_val]) if n_val else {},
+        "train_seconds": round(time.time() - started, 1), "torch": torch.__version__,
+    }
+    save_checkpoint(out_path, kind="taxinet", model=model, model_config=config.model,
+                    preprocess_config=config.preprocess, metadata=metadata)
+    return metadata
