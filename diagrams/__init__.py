@@ -1,9 +1,12 @@
 """Diagrams built from a `Scenario`, simulation helpers and graph export."""
 
+import reachwatch.systems  # noqa: F401  (first: sets process-wide settings before torch loads)
+
 from .checkpoints import (REFERENCE_TAXINET, CheckpointError, file_hash, load_checkpoint,
                           load_taxinet, save_checkpoint)
 from .closed_loop import (CONTROL_PORT, ESTIMATE_PORT, PLANT, Trajectory,
-                          add_taxinet_controller, make_closed_loop_diagram, simulate)
+                          add_taxinet_controller, make_closed_loop_diagram,
+                          make_state_feedback_diagram, simulate)
 from .graph import GraphvizMissing, export_graph
 from .render import StateRenderer, check_state
 from .scenario import ControllerConfig, InitialState, Scenario, ScenarioError, dump_scenario, load_scenario
@@ -11,7 +14,8 @@ from .world import World, add_world, initial_state_vector, make_world_diagram
 
 __all__ = ["REFERENCE_TAXINET", "CheckpointError", "file_hash", "load_checkpoint",
            "load_taxinet", "save_checkpoint", "CONTROL_PORT", "ESTIMATE_PORT", "PLANT",
-           "Trajectory", "add_taxinet_controller", "make_closed_loop_diagram", "simulate",
+           "Trajectory", "add_taxinet_controller", "make_closed_loop_diagram",
+           "make_state_feedback_diagram", "simulate",
            "ControllerConfig", "GraphvizMissing", "export_graph", "StateRenderer", "check_state",
            "InitialState", "Scenario", "ScenarioError", "dump_scenario", "load_scenario",
            "World", "add_world", "initial_state_vector", "make_world_diagram"]

@@ -9,7 +9,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, ZeroOrderHold
 
-from reachwatch.systems import ProportionalController, TaxiNet
+from reachwatch.systems import ProportionalController, TaxiNet, TaxiPlant, TrueStateEstimator
 
 from .checkpoints import REFERENCE_TAXINET, load_taxinet
 from .world import add_world, initial_state_vector
@@ -69,6 +69,34 @@ def make_closed_loop_diagram(scenario) -> Diagram:
                     controller.period).set_name("estimate_log")
     diagram = builder.Build()
     diagram.set_name("taxinet_closed_loop")
+    return diagram
+
+
+def make_state_feedback_diagram(scenario) -> Diagram:
+    """The P-controller on the *true* state (no camera): privileged, for comparison
+    and as the smallest example of a user closed loop the sweep accepts.
+
+    Subsystems: ``taxi_plant``, ``state_estimator``, ``p_controller``,
+    ``steering_hold``, ``speed``, ``state_log``, ``estimate_log``."""
+    controller = scenario.controller
+    builder = DiagramBuilder()
+    plant = builder.AddNamedSystem(PLANT, TaxiPlant(
+        initial_state=initial_state_vector(scenario.initial_state)))
+    estimator = builder.AddNamedSystem("state_estimator", TrueStateEstimator())
+    p_controller = builder.AddNamedSystem("p_controller", ProportionalController(
+        px_gain=controller.px_gain, theta_gain=controller.theta_gain))
+    hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(controller.period, 1))
+    speed = builder.AddNamedSystem("speed", ConstantVectorSource([controller.speed]))
+    builder.Connect(plant.get_state_output_port(), estimator.get_state_input_port())
+    builder.Connect(estimator.get_estimate_output_port(), p_controller.get_estimate_input_port())
+    builder.Connect(p_controller.get_steering_angle_output_port(), hold.get_input_port())
+    builder.Connect(hold.get_output_port(), plant.get_steering_angle_input_port())
+    builder.Connect(speed.get_output_port(), plant.get_speed_input_port())
+    LogVectorOutput(plant.get_state_output_port(), builder, controller.period).set_name("state_log")
+    LogVectorOutput(estimator.get_estimate_output_port(), builder,
+                    controller.period).set_name("estimate_log")
+    diagram = builder.Build()
+    diagram.set_name("state_feedback_closed_loop")
     return diagram
 
 

@@ -3,7 +3,7 @@
 import argparse
 import sys
 
-from . import commands, taxinet_commands
+from . import commands, reach_commands, taxinet_commands
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -30,6 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     graph.set_defaults(func=commands.graph)
 
     taxinet_commands.add_parsers(sub)
+    reach_commands.add_parsers(sub)
     return parser
 
 

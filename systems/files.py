@@ -5,6 +5,12 @@ import tempfile
 from pathlib import Path
 
 
+def cache_root() -> Path:
+    """Where reachwatch caches generated assets and sweeps: ``$REACHWATCH_CACHE`` or
+    ``~/.cache/reachwatch``."""
+    return Path(os.environ.get("REACHWATCH_CACHE", Path.home() / ".cache" / "reachwatch"))
+
+
 def atomic_write_bytes(path, data: bytes) -> Path:
     """Write ``data`` to ``path`` via a temporary file in the same folder + rename."""
     path = Path(path)

@@ -6,12 +6,17 @@ fractions of the image so one checkpoint states what it needs.
 """
 
 import dataclasses as dc
+import warnings
 from typing import List
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+# Frames from Drake are read-only views; preprocessing only reads them (its first
+# float conversion copies), so torch's warning about non-writable arrays is noise.
+warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
 
 #: Output units of every TaxiNet: [px_hat m, theta_hat deg].
 ESTIMATE_UNITS = ("m", "deg")
@@ -55,11 +60,12 @@ class PreprocessConfig:
         return 1 if self.grayscale else 3
 
 
-def _crop(x, crop):
-    h, w = x.shape[-2:]
+def _crop(images, crop):
+    """Crop ``(N, H, W, C)`` by fractions (a view: no pixels copied)."""
+    h, w = images.shape[1:3]
     l, t, r, b = crop
-    return x[..., round(t * h):max(round(b * h), round(t * h) + 1),
-             round(l * w):max(round(r * w), round(l * w) + 1)]
+    return images[:, round(t * h):max(round(b * h), round(t * h) + 1),
+                  round(l * w):max(round(r * w), round(l * w) + 1)]
 
 
 def preprocess(images: torch.Tensor, config: PreprocessConfig) -> torch.Tensor:
@@ -69,10 +75,9 @@ def preprocess(images: torch.Tensor, config: PreprocessConfig) -> torch.Tensor:
     if images.dim() != 4 or images.shape[-1] != 3:
         raise ValueError(f"TaxiNet expects RGB images shaped (N, H, W, 3), got "
                          f"{tuple(images.shape)}")
-    x = images.permute(0, 3, 1, 2).float() / 255.0
+    x = _crop(images, config.crop).permute(0, 3, 1, 2).float() / 255.0   # crop first
     if config.grayscale:
         x = (0.299 * x[:, 0:1] + 0.587 * x[:, 1:2] + 0.114 * x[:, 2:3])
-    x = _crop(x, config.crop)
     if config.kind == "blockmax":
         x = F.interpolate(x, size=(config.height * 16, config.width * 16), mode="bilinear",
                           align_corners=False, antialias=True)
@@ -96,8 +101,8 @@ def preprocess_batched(images, config: PreprocessConfig, batch: int = 256) -> to
     images = np.asarray(images)
     if len(images) == 0:
         raise ValueError("no images to preprocess")
-    return torch.cat([preprocess(torch.from_numpy(np.ascontiguousarray(images[i:i + batch])),
-                                 config) for i in range(0, len(images), batch)])
+    return torch.cat([preprocess(torch.from_numpy(images[i:i + batch]), config)
+                      for i in range(0, len(images), batch)])
 
 
 @dc.dataclass

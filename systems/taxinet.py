@@ -102,3 +102,32 @@ class ProportionalController(LeafSystem):
 
     def _calc_steering(self, context, output):
         output.SetAtIndex(0, np.deg2rad(self.steering_deg(self._estimate_port.Eval(context))))
+
+
+class TrueStateEstimator(LeafSystem):
+    """A perfect "estimator": the plant state as ``[px m, theta deg]``. Privileged
+    information (no camera): for comparisons, tests and controllers without vision.
+
+    .. pydrake_system::
+
+        name: TrueStateEstimator
+        input_ports:
+        - state
+        output_ports:
+        - estimate
+    """
+
+    def __init__(self):
+        super().__init__()
+        self._state_port = self.DeclareVectorInputPort("state", 3)
+        self._estimate_port = self.DeclareVectorOutputPort("estimate", 2, self._calc_estimate)
+
+    def get_state_input_port(self):
+        return self._state_port
+
+    def get_estimate_output_port(self):
+        return self._estimate_port
+
+    def _calc_estimate(self, context, output):
+        px, _, theta = self._state_port.Eval(context)
+        output.SetFromVector([px, np.rad2deg(theta)])

@@ -5,19 +5,17 @@ textured surface is an OBJ with one quad per tile, each with UVs 0..1.
 """
 
 import hashlib
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .files import atomic_write_bytes
+from .files import atomic_write_bytes, cache_root
 
 
 def cache_dir() -> Path:
-    """Where generated assets live: ``$REACHWATCH_CACHE`` or ``~/.cache/reachwatch``."""
-    root = Path(os.environ.get("REACHWATCH_CACHE", Path.home() / ".cache" / "reachwatch"))
-    path = root / "assets"
+    """Where generated textures and meshes live (under `cache_root`)."""
+    path = cache_root() / "assets"
     path.mkdir(parents=True, exist_ok=True)
     return path
 

@@ -1,1 +1,3 @@
 """training layer."""
+
+import reachwatch.systems  # noqa: F401,E402  (first: process-wide settings before torch)

@@ -1,0 +1,100 @@
+"""``reachwatch sweep`` and ``reachwatch brt``."""
+
+import io
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from reachwatch.diagrams import Scenario, load_scenario
+from reachwatch.reach import (ACCURACIES, Grid, drake_agreement, min_target_along_rollouts,
+                              sign_agreement, solve_brt, sweep_closed_loop, taxi_dynamics)
+from reachwatch.reach.plots import plot_brt_slices
+from reachwatch.systems.files import atomic_write_bytes, cache_root
+
+from .executors import make_executor
+
+
+def _grid_args(parser):
+    parser.add_argument("--scenario", help="scenario YAML (environment, camera, controller)")
+    parser.add_argument("--shape", type=int, nargs=3, default=[41, 41, 41],
+                        metavar=("NPX", "NPY", "NTHETA"),
+                        help="grid nodes over the paper box (paper: 101 101 101)")
+    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT")
+    parser.add_argument("--cache", default=None, help="sweep cache folder "
+                        "(default: $REACHWATCH_CACHE/sweeps or ~/.cache/reachwatch/sweeps)")
+    parser.add_argument("--chunk-size", type=int, default=1024)
+
+
+def add_parsers(sub):
+    s = sub.add_parser("sweep", help="evaluate the closed loop's steering (and TaxiNet "
+                       "estimate) at every grid state; cached and resumable")
+    _grid_args(s)
+    s.set_defaults(func=sweep_command)
+    b = sub.add_parser("brt", help="sweep, solve the HJB-VI, write the value function and "
+                       "slice plots, print BRT volume and agreement with rollouts")
+    _grid_args(b)
+    b.add_argument("--accuracy", choices=sorted(ACCURACIES), default="semi_lagrangian")
+    b.add_argument("--horizon", type=float, default=8.0, help="s")
+    b.add_argument("--drake-starts", type=int, default=50,
+                   help="random starts run through the real Drake loop (0 skips)")
+    b.add_argument("--seed", type=int, default=0)
+    b.set_defaults(func=brt_command)
+
+
+def _sweep(args):
+    scenario = load_scenario(args.scenario) if args.scenario else Scenario().validate()
+    grid = Grid.paper(scenario.environment.half_width, tuple(args.shape))
+    executor, close = make_executor(args.executor)
+    started = time.time()
+    try:
+        table = sweep_closed_loop(scenario, grid, cache_dir=args.cache or cache_root() / "sweeps",
+                                  executor=executor, chunk_size=args.chunk_size)
+    finally:
+        close()
+    return scenario, grid, table, time.time() - started
+
+
+def sweep_command(args):
+    scenario, grid, table, seconds = _sweep(args)
+    buffer = io.BytesIO()
+    np.savez(buffer, lo=grid.lo, hi=grid.hi, shape=grid.shape,
+             steering_angle=table["p_controller.steering_angle"][..., 0],
+             estimate=table["taxinet.estimate"])
+    path = atomic_write_bytes(Path(args.out) / f"sweep_{table.key}.npz", buffer.getvalue())
+    print(f"{grid.size} states in {seconds:.1f} s ({grid.size / max(seconds, 1e-9):.1f} "
+          f"states/s, cached chunks count as done); wrote {path}")
+
+
+def brt_command(args):
+    scenario, grid, table, _ = _sweep(args)
+    dynamics = taxi_dynamics(scenario)
+    control = table["p_controller.steering_angle"]
+    started = time.time()
+    vf = solve_brt(grid, dynamics, control, horizon=args.horizon, accuracy=args.accuracy,
+                   period=scenario.controller.period)
+    solve_s = time.time() - started
+    out = Path(args.out)
+    name = scenario.environment.name
+    vf.metadata.update(environment=name, sweep_key=table.key, solve_seconds=solve_s)
+    vf.save(out / f"value_{name}.npz")
+    lowest = min_target_along_rollouts(grid, dynamics, control, grid.states(),
+                                       horizon=args.horizon, progress=None)
+    print(f"{name}: grid {list(grid.shape)}, accuracy {args.accuracy}, solve {solve_s:.1f} s")
+    print(f"BRT volume: {100 * vf.brt_fraction:.2f}% of the grid")
+    print(f"sign agreement with RK4 rollouts (dt 0.01 s, interpolated control) from every "
+          f"node: {100 * sign_agreement(vf.values.ravel(), lowest):.2f}%")
+    if args.drake_starts:
+        rng = np.random.default_rng(args.seed)
+        starts = grid.lo + rng.uniform(size=(args.drake_starts, 3)) * (grid.hi - grid.lo)
+        agreement, failed, predicted = drake_agreement(
+            scenario, vf, starts, progress=lambda it: tqdm(it, desc="drake rollouts",
+                                                           leave=False))
+        print(f"agreement with the real Drake closed loop from {len(starts)} random starts: "
+              f"{100 * agreement:.1f}% ({failed.sum()} failed, {predicted.sum()} predicted)")
+    for py in (100.0, 175.0, 250.0):
+        plot_brt_slices({name: vf}, py=py, path=out / f"brt_{name}_py{py:.0f}.png",
+                        half_width=scenario.environment.half_width)
+    print(f"wrote {out / f'value_{name}.npz'} and slice plots brt_{name}_py*.png")

@@ -1,0 +1,229 @@
+import concurrent.futures as cf
+import functools
+
+import numpy as np
+import pytest
+import torch
+
+from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram,
+                                 make_state_feedback_diagram, save_checkpoint, load_taxinet)
+from reachwatch.reach import (Grid, GridSpec, InlineExecutor, Probe, TaxiDynamics,
+                              ValueFunction, min_target_along_rollouts, sign_agreement,
+                              solve_brt, sweep, sweep_key)
+from reachwatch.systems import PreprocessConfig, TaxiNet, TaxiNetConfig, build_taxinet
+
+B = 10.0
+FEEDBACK = Probe(extra_ports=("state_estimator.estimate",))
+
+
+def _feedback_factory():
+    return functools.partial(make_state_feedback_diagram, load_scenario(data=""))
+
+
+# --- grid -------------------------------------------------------------------------
+
+def test_paper_grid_preset():
+    g = Grid.paper(10.0)
+    assert g.shape == (101, 101, 101)
+    np.testing.assert_allclose(g.lo, [-11.0, 100.0, np.deg2rad(-28)])
+    np.testing.assert_allclose(g.hi, [11.0, 250.0, np.deg2rad(28)])
+    assert GridSpec().to_grid() == g
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(lo=[1, 0, 0], hi=[0, 1, 1], shape=[3, 3, 3]), "axis px: lower bound"),
+    (dict(lo=[0, 0, 0], hi=[1, 1, np.inf], shape=[3, 3, 3]), "axis theta"),
+    (dict(lo=[0, 0, 0], hi=[1, 1, 1], shape=[3, 1, 3]), "axis py: needs at least 2"),
+    (dict(lo=[0, 0], hi=[1, 1], shape=[3, 3]), "3 lower bounds"),
+])
+def test_bad_grids_rejected(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        Grid(**kwargs)
+
+
+def test_interpolation_exact_for_linear_and_outside_named():
+    g = Grid(lo=[-1, 0, -0.5], hi=[1, 2, 0.5], shape=[5, 4, 3])
+    px, py, th = g.mesh()
+    values = 2 * px - 3 * py + 5 * th + 1
+    x = np.array([[0.3, 1.1, 0.2], [-0.95, 1.99, -0.49]])
+    np.testing.assert_allclose(g.interpolate(values, x), 2 * x[:, 0] - 3 * x[:, 1] + 5 * x[:, 2] + 1)
+    with pytest.raises(ValueError, match="px=2.000 m.*outside the grid"):
+        g.interpolate(values, [2.0, 1.0, 0.0])
+    assert np.isnan(g.interpolate(values, [[2.0, 1.0, 0.0]], outside="nan")[0])
+
+
+# --- solver ------------------------------------------------------------------------
+
+@pytest.mark.parametrize("accuracy", ["semi_lagrangian", "low", "high", "very_high"])
+def test_constant_heading_brt_matches_analytic_within_a_cell(accuracy):
+    """No steering: px(t) = px0 + v t sin(theta); V = min(B - |px0|, B - |px0 + vT sin theta|)."""
+    T = 2.0
+    g = Grid.paper(B, (45, 5, 41))
+    px, _, th = g.mesh()
+    exact = np.minimum(B - np.abs(px), B - np.abs(px + 5.0 * T * np.sin(th)))
+    vf = solve_brt(g, TaxiDynamics(half_width=B), np.zeros(g.shape), horizon=T,
+                   accuracy=accuracy, device="cpu")
+    wrong = (vf.values <= 0) != (exact <= 0)
+    # every disagreement lies within one cell of the true boundary (|grad V| <= 1 + vT)
+    cell = np.max(g.spacing * [1.0, 0.0, 5.0 * T])
+    assert np.all(np.abs(exact[wrong]) <= cell)
+    assert abs(vf.brt_fraction - np.mean(exact <= 0)) < 0.01
+    inside = np.abs(px) < B - 1
+    tol = 0.6 if accuracy == "semi_lagrangian" else 0.2
+    assert np.abs(vf.values - exact)[inside & (exact > -1)].max() < tol
+
+
+def _p_table(grid, bias_deg=0.0):
+    px, _, th = grid.mesh()
+    return np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th) + bias_deg)
+
+
+@pytest.mark.parametrize("accuracy, hold", [("very_high", None), ("semi_lagrangian", 0.05)])
+def test_solver_agrees_with_rollouts_small_grid(accuracy, hold):
+    g = Grid.paper(B, (31, 5, 31))
+    dyn = TaxiDynamics(half_width=B)
+    table = _p_table(g, bias_deg=6.0)           # a biased controller: a lopsided BRT
+    vf = solve_brt(g, dyn, table, horizon=4.0, accuracy=accuracy, device="cpu")
+    lowest = min_target_along_rollouts(g, dyn, table, g.states(), horizon=4.0, hold=hold)
+    assert 0.05 < vf.brt_fraction < 0.6
+    assert sign_agreement(vf.values.ravel(), lowest) > 0.97
+
+
+def test_solver_input_errors():
+    g = Grid.paper(B, (5, 5, 5))
+    dyn = TaxiDynamics(half_width=B)
+    with pytest.raises(ValueError, match="does not match grid"):
+        solve_brt(g, dyn, np.zeros((5, 5, 4)))
+    with pytest.raises(ValueError, match="accuracy"):
+        solve_brt(g, dyn, np.zeros(g.shape), accuracy="ultra")
+    with pytest.raises(ValueError, match="non-finite"):
+        solve_brt(g, dyn, np.full(g.shape, np.nan))
+
+
+def test_value_function_round_trip_and_queries(tmp_path):
+    g = Grid.paper(B, (9, 3, 9))
+    vf = solve_brt(g, TaxiDynamics(half_width=B), _p_table(g), horizon=1.0, device="cpu")
+    path = vf.save(tmp_path / "v.npz")
+    back = ValueFunction.load(path)
+    np.testing.assert_allclose(back.values, vf.values, atol=1e-6)
+    assert back.grid == g and back.in_brt([[10.5, 150.0, 0.0]])[0]
+    assert not back.in_brt([[0.0, 150.0, 0.0]])[0]
+    (tmp_path / "bad.npz").write_bytes(b"junk")
+    with pytest.raises(ValueError, match="not a readable value function"):
+        ValueFunction.load(tmp_path / "bad.npz")
+
+
+# --- sweep -------------------------------------------------------------------------
+
+def test_sweep_of_a_user_diagram_matches_the_controller(tmp_path):
+    g = Grid.paper(B, (5, 3, 4))
+    table = sweep(_feedback_factory(), g, key="feedback", cache_dir=tmp_path, probe=FEEDBACK,
+                  chunk_size=7, executor=InlineExecutor(), progress=False)
+    px, _, th = g.mesh()
+    np.testing.assert_allclose(table["p_controller.steering_angle"][..., 0], _p_table(g),
+                               atol=1e-12)
+    np.testing.assert_allclose(table["state_estimator.estimate"][..., 1], np.rad2deg(th))
+
+
+class _Interrupted(cf.Executor):
+    """Runs ``limit`` chunks, then fails like a killed worker."""
+
+    def __init__(self, limit):
+        self.limit = limit
+
+    def submit(self, fn, *args):
+        future = cf.Future()
+        if self.limit > 0:
+            self.limit -= 1
+            future.set_result(fn(*args))
+        else:
+            future.set_exception(RuntimeError("worker killed"))
+        return future
+
+
+def test_sweep_resumes_after_interruption(tmp_path):
+    g = Grid.paper(B, (6, 3, 5))
+    kwargs = dict(key="k", probe=FEEDBACK, chunk_size=8, progress=False)
+    with pytest.raises(RuntimeError, match="killed"):
+        sweep(_feedback_factory(), g, cache_dir=tmp_path / "a",
+              executor=_Interrupted(3), **kwargs)
+    done = sorted((tmp_path / "a" / "k").glob("chunk_*.npz"))
+    assert len(done) == 3
+    (tmp_path / "a" / "k" / "chunk_000001.npz").write_bytes(b"truncated")   # a torn write
+    calls = []
+
+    class Counting(InlineExecutor):
+        def submit(self, fn, *args):
+            calls.append(args[4])
+            return super().submit(fn, *args)
+
+    resumed = sweep(_feedback_factory(), g, cache_dir=tmp_path / "a", executor=Counting(),
+                    **kwargs)
+    assert len(calls) == int(np.ceil(g.size / 8)) - 2       # only missing/corrupt chunks
+    clean = sweep(_feedback_factory(), g, cache_dir=tmp_path / "b", executor=InlineExecutor(),
+                  **kwargs)
+    for port in FEEDBACK.ports:
+        assert np.array_equal(resumed[port], clean[port])
+    calls.clear()
+    sweep(_feedback_factory(), g, cache_dir=tmp_path / "a", executor=Counting(), **kwargs)
+    assert calls == []                                       # repeated sweep costs nothing
+
+
+def test_sweep_key_changes_with_checkpoint_grid_and_environment(tmp_path):
+    torch.manual_seed(0)
+    paths = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        paths.append(save_checkpoint(
+            tmp_path / f"c{seed}.pt", kind="taxinet",
+            model=build_taxinet(TaxiNetConfig(), PreprocessConfig()),
+            model_config=TaxiNetConfig(), preprocess_config=PreprocessConfig(),
+            metadata={"image_size": [200, 360]}))
+    s0 = load_scenario(data=f"controller: {{checkpoint: {paths[0]}}}\n")
+    s1 = load_scenario(data=f"controller: {{checkpoint: {paths[1]}}}\n")
+    s2 = load_scenario(data=f"controller: {{checkpoint: {paths[0]}}}\n"
+                            "environment: {hour: 17.0}\n")
+    g = Grid.paper(B, (5, 5, 5))
+    keys = {sweep_key(s0, g), sweep_key(s1, g), sweep_key(s2, g),
+            sweep_key(s0, Grid.paper(B, (5, 5, 7)))}
+    assert len(keys) == 4 and sweep_key(s0, g) == sweep_key(s0, g)
+
+
+def test_taxinet_sweep_equals_taxinet_on_rendered_image(tmp_path):
+    """The sweep evaluates the same diagram the simulator runs."""
+    scenario = load_scenario(data="")
+    g = Grid.paper(B, (2, 2, 2))
+    table = sweep(functools.partial(make_closed_loop_diagram, scenario), g, key="taxinet",
+                  cache_dir=tmp_path, executor=InlineExecutor(), progress=False)
+    from reachwatch.diagrams import StateRenderer
+    model, pre, _ = load_taxinet()
+    renderer = StateRenderer(environment=scenario.environment, camera=scenario.camera)
+    images = np.stack([renderer.render(x) for x in g.states()])
+    expected = TaxiNet(model=model, preprocess_config=pre).estimate(images)
+    np.testing.assert_allclose(table["taxinet.estimate"].reshape(-1, 2), expected, atol=1e-4)
+
+
+def test_sweep_on_dask_local_cluster(tmp_path):
+    distributed = pytest.importorskip("dask.distributed")
+    g = Grid.paper(B, (4, 3, 3))
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  host="127.0.0.1", dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        table = sweep(_feedback_factory(), g, key="dask", cache_dir=tmp_path, probe=FEEDBACK,
+                      chunk_size=10, executor=client.get_executor(), progress=False)
+    np.testing.assert_allclose(table["p_controller.steering_angle"][..., 0], _p_table(g),
+                               atol=1e-12)
+
+
+@pytest.mark.parametrize("scheme, order", [("weno5", 5), ("first_order", 1)])
+def test_upwind_derivatives_converge_at_their_order(scheme, order):
+    from reachwatch.reach.levelset import upwind_derivative
+    errors = []
+    for n in (41, 81):
+        x = torch.linspace(0, 2, n, dtype=torch.float64)
+        v = torch.sin(3 * x)
+        for velocity in (1.0, -1.0):
+            d = upwind_derivative(v, 0, float(x[1] - x[0]), torch.full_like(v, velocity), scheme)
+            errors.append((d - 3 * torch.cos(3 * x)).abs()[3:-3].max().item())
+    rate = np.log2(max(errors[:2]) / max(errors[2:]))
+    assert rate > order - 0.5
