@@ -3,7 +3,7 @@
 import reachwatch.systems  # noqa: F401  (first: sets process-wide settings before torch loads)
 
 from .checkpoints import (REFERENCE_TAXINET, CheckpointError, file_hash, load_checkpoint,
-                          load_taxinet, save_checkpoint)
+                          load_detector, load_taxinet, save_checkpoint)
 from .closed_loop import (CONTROL_PORT, ESTIMATE_PORT, PLANT, Trajectory,
                           add_taxinet_controller, make_closed_loop_diagram,
                           make_state_feedback_diagram, simulate)
@@ -13,7 +13,7 @@ from .scenario import ControllerConfig, InitialState, Scenario, ScenarioError, d
 from .world import World, add_world, initial_state_vector, make_world_diagram
 
 __all__ = ["REFERENCE_TAXINET", "CheckpointError", "file_hash", "load_checkpoint",
-           "load_taxinet", "save_checkpoint", "CONTROL_PORT", "ESTIMATE_PORT", "PLANT",
+           "load_detector", "load_taxinet", "save_checkpoint", "CONTROL_PORT", "ESTIMATE_PORT", "PLANT",
            "Trajectory", "add_taxinet_controller", "make_closed_loop_diagram",
            "make_state_feedback_diagram", "simulate",
            "ControllerConfig", "GraphvizMissing", "export_graph", "StateRenderer", "check_state",

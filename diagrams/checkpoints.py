@@ -12,7 +12,8 @@ from pathlib import Path
 
 import torch
 
-from reachwatch.systems import PreprocessConfig, TaxiNetConfig, build_taxinet
+from reachwatch.systems import (DetectorConfig, PreprocessConfig, TaxiNetConfig,
+                                build_detector, build_taxinet)
 from reachwatch.systems.files import atomic_write_bytes
 
 FORMAT = "reachwatch.checkpoint"
@@ -31,7 +32,7 @@ def save_checkpoint(path, *, kind: str, model: torch.nn.Module, model_config,
     payload = {"format": FORMAT, "version": VERSION, "kind": kind,
                "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
                "model_config": dc.asdict(model_config),
-               "preprocess": dc.asdict(preprocess_config),
+               "preprocess": dc.asdict(preprocess_config) if preprocess_config else {},
                "metadata": _plain(metadata)}
     buffer = io.BytesIO()
     torch.save(payload, buffer)
@@ -91,6 +92,19 @@ def load_taxinet(path=REFERENCE_TAXINET):
         raise CheckpointError(f"{path}: weights do not fit the {config.arch} TaxiNet its "
                               f"config describes: {str(e)[:300]}") from None
     return model.eval(), preprocess_config, payload["metadata"]
+
+
+def load_detector(path):
+    """``(model, detector_config, metadata)`` from an anomaly-detector checkpoint."""
+    payload = load_checkpoint(path, kind="detector")
+    config = _config(DetectorConfig, payload["model_config"], path, "model_config")
+    model = build_detector(config)
+    try:
+        model.load_state_dict(payload["state_dict"])
+    except RuntimeError as e:
+        raise CheckpointError(f"{path}: weights do not fit the {config.arch} detector its "
+                              f"config describes: {str(e)[:300]}") from None
+    return model.eval(), config, payload["metadata"]
 
 
 def file_hash(path) -> str:

@@ -47,29 +47,34 @@ def add_taxinet_controller(builder, world, controller):
     return taxinet, p_controller
 
 
+def close_loop(builder, *, plant, estimate_port, p_controller, controller, name):
+    """Holds the P-controller's steering for one control period, feeds the plant a
+    constant speed, logs state and estimate once per tick, and builds the diagram."""
+    hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(controller.period, 1))
+    speed = builder.AddNamedSystem("speed", ConstantVectorSource([controller.speed]))
+    builder.Connect(p_controller.get_steering_angle_output_port(), hold.get_input_port())
+    builder.Connect(hold.get_output_port(), plant.get_steering_angle_input_port())
+    builder.Connect(speed.get_output_port(), plant.get_speed_input_port())
+    LogVectorOutput(plant.get_state_output_port(), builder, controller.period).set_name("state_log")
+    LogVectorOutput(estimate_port, builder, controller.period).set_name("estimate_log")
+    diagram = builder.Build()
+    diagram.set_name(name)
+    return diagram
+
+
 def make_closed_loop_diagram(scenario) -> Diagram:
     """Plant + camera + TaxiNet + P-controller at ``scenario.controller.period``.
 
     Subsystems: ``taxi_plant``, ``taxinet``, ``p_controller``, ``steering_hold``
     (zero-order hold), ``speed``, ``state_log``, ``estimate_log``."""
-    controller = scenario.controller
     builder = DiagramBuilder()
     world = add_world(builder, environment=scenario.environment, camera=scenario.camera,
                       shadows=scenario.shadows,
                       initial_state=initial_state_vector(scenario.initial_state))
-    taxinet, p_controller = add_taxinet_controller(builder, world, controller)
-    hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(controller.period, 1))
-    speed = builder.AddNamedSystem("speed", ConstantVectorSource([controller.speed]))
-    builder.Connect(p_controller.get_steering_angle_output_port(), hold.get_input_port())
-    builder.Connect(hold.get_output_port(), world.plant.get_steering_angle_input_port())
-    builder.Connect(speed.get_output_port(), world.plant.get_speed_input_port())
-    LogVectorOutput(world.plant.get_state_output_port(), builder,
-                    controller.period).set_name("state_log")
-    LogVectorOutput(taxinet.get_estimate_output_port(), builder,
-                    controller.period).set_name("estimate_log")
-    diagram = builder.Build()
-    diagram.set_name("taxinet_closed_loop")
-    return diagram
+    taxinet, p_controller = add_taxinet_controller(builder, world, scenario.controller)
+    return close_loop(builder, plant=world.plant, estimate_port=taxinet.get_estimate_output_port(),
+                      p_controller=p_controller, controller=scenario.controller,
+                      name="taxinet_closed_loop")
 
 
 def make_state_feedback_diagram(scenario) -> Diagram:
@@ -85,19 +90,11 @@ def make_state_feedback_diagram(scenario) -> Diagram:
     estimator = builder.AddNamedSystem("state_estimator", TrueStateEstimator())
     p_controller = builder.AddNamedSystem("p_controller", ProportionalController(
         px_gain=controller.px_gain, theta_gain=controller.theta_gain))
-    hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(controller.period, 1))
-    speed = builder.AddNamedSystem("speed", ConstantVectorSource([controller.speed]))
     builder.Connect(plant.get_state_output_port(), estimator.get_state_input_port())
     builder.Connect(estimator.get_estimate_output_port(), p_controller.get_estimate_input_port())
-    builder.Connect(p_controller.get_steering_angle_output_port(), hold.get_input_port())
-    builder.Connect(hold.get_output_port(), plant.get_steering_angle_input_port())
-    builder.Connect(speed.get_output_port(), plant.get_speed_input_port())
-    LogVectorOutput(plant.get_state_output_port(), builder, controller.period).set_name("state_log")
-    LogVectorOutput(estimator.get_estimate_output_port(), builder,
-                    controller.period).set_name("estimate_log")
-    diagram = builder.Build()
-    diagram.set_name("state_feedback_closed_loop")
-    return diagram
+    return close_loop(builder, plant=plant, estimate_port=estimator.get_estimate_output_port(),
+                      p_controller=p_controller, controller=controller,
+                      name="state_feedback_closed_loop")
 
 
 def simulate(diagram: Diagram, *, initial_state, duration: float, half_width: float,

@@ -29,11 +29,13 @@ def plot_brt_slices(value_functions, *, py: float, path, half_width=None, title=
                 ax.axvline(s * half_width, color="tab:red", ls="--", lw=1)
         for name, states, style in points or []:
             states = np.asarray(states)
-            near = np.abs(states[:, 1] - vf.grid.axes[1][j]) <= 0.5 * (vf.grid.spacing[1] + 1e-9) \
-                if len(states) else np.zeros(0, bool)
+            states = states.reshape(-1, 3)
+            near = np.abs(states[:, 1] - vf.grid.axes[1][j]) <= max(0.5 * vf.grid.spacing[1], 10.0)
             ax.plot(states[near, 0], np.rad2deg(states[near, 2]), style, ms=3, label=name)
         ax.set_title(f"{label}: py = {vf.grid.axes[1][j]:.0f} m, BRT {100 * vf.brt_fraction:.1f}%",
                      fontsize=9)
+        if points:
+            ax.legend(fontsize=6, loc="lower right")
         ax.set_xlabel("px (m)")
         ax.set_ylabel("theta (deg)")
     if title:

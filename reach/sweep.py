@@ -114,8 +114,8 @@ def _chunk_ok(path: Path, start: int, stop: int) -> bool:
 
 
 def sweep(factory: Callable, grid: Grid, *, key: str, cache_dir, probe: Probe = Probe(),
-          chunk_size: int = 1024, executor: cf.Executor = None, progress: bool = True
-          ) -> SweepTable:
+          chunk_size: int = 1024, executor: cf.Executor = None, progress: bool = True,
+          max_in_flight: int = 8) -> SweepTable:
     """Evaluate ``probe.ports`` of ``factory()``'s diagram at every node of ``grid``.
 
     ``factory`` must be picklable when ``executor`` runs elsewhere (e.g.
@@ -130,13 +130,22 @@ def sweep(factory: Callable, grid: Grid, *, key: str, cache_dir, probe: Probe = 
                desc=f"sweep {key[:24]}", unit="state", disable=not progress)
     owned = executor is None and todo
     executor = executor or (default_executor() if todo else None)
-    try:
-        futures = {executor.submit(run_chunk, factory, probe, key, grid, i, s, e, str(folder)):
-                   (s, e) for i, s, e in todo}
-        for future in cf.as_completed(futures):
-            future.result()
-            s, e = futures[future]
+    pending = {}
+
+    def finish(done):
+        for future in done:
+            future.result()                      # re-raises a worker's error
+            s, e = pending.pop(future)
             bar.update(e - s)
+
+    try:   # a bounded window of chunks in flight: progress shows, an abort stops soon
+        for i, s, e in todo:
+            pending[executor.submit(run_chunk, factory, probe, key, grid, i, s, e,
+                                    str(folder))] = (s, e)
+            finish([f for f in pending if f.done()])
+            if len(pending) >= max_in_flight:
+                finish(cf.wait(pending, return_when=cf.FIRST_COMPLETED).done)
+        finish(list(cf.as_completed(list(pending))))
     finally:
         bar.close()
         if owned:

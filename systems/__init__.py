@@ -17,6 +17,8 @@ except ImportError:
     pass
 
 from .camera import AircraftGeometry, CameraConfig, make_wing_camera
+from .detector import (AnomalyDetector, DetectorConfig, SmallDetectorCNN, build_detector,
+                       detector_input)
 from .environment import SKIES, Environment, test_environments, training_environments
 from .lighting import Lighting, lighting_for, render_engine_params, sun_elevation_deg
 from .models import (ESTIMATE_UNITS, PreprocessConfig, SmallTaxiCNN, TaxiNetConfig,
@@ -34,5 +36,6 @@ __all__ = [
     "TaxiPlant", "taxi_dynamics", "RUNWAYS", "LightsSpec", "MarkingsSpec", "RunwaySpec",
     "SurfaceSpec", "TaxiwayLine", "add_runway_scene", "ESTIMATE_UNITS", "PreprocessConfig",
     "SmallTaxiCNN", "TaxiNetConfig", "TinyTaxiNet", "build_taxinet", "preprocess",
-    "PX_GAIN_DEG_PER_M", "THETA_GAIN", "ProportionalController", "TaxiNet", "TrueStateEstimator",
+    "PX_GAIN_DEG_PER_M", "THETA_GAIN", "ProportionalController", "TaxiNet", "TrueStateEstimator", "AnomalyDetector",
+    "DetectorConfig", "SmallDetectorCNN", "build_detector", "detector_input",
 ]

@@ -30,12 +30,6 @@ class TaxiNetTrainConfig:
     seed: int = 0
 
 
-def seed_everything(seed: int):
-    """Seed numpy's and torch's generators; returns a numpy Generator."""
-    torch.manual_seed(seed)
-    return np.random.default_rng(seed)
-
-
 def fit_regressor(model, inputs, outputs, *, epochs, batch_size, learning_rate, seed,
                   scale, progress=None):
     """MSE + Adam (amsgrad) on ``outputs / scale``; returns per-epoch train losses."""
@@ -69,29 +63,57 @@ def estimation_errors(model, inputs, outputs) -> dict:
             "theta_p95_deg": float(np.percentile(err[:, 1], 95))}
 
 
-def train_taxinet(config: TaxiNetTrainConfig, out_path, progress=None):
-    """Render a labelled set, train, and write a checkpoint; returns its metadata."""
-    started = time.time()
-    rng = seed_everything(config.seed)
+def render_training_set(config: TaxiNetTrainConfig, progress=None):
+    """Network inputs and targets of ``config.samples`` nominal-condition states."""
+    rng = np.random.default_rng(config.seed)
     states = sample_states(config.samples, rng)
     renderer = StateRenderer(environment=config.environment, camera=config.camera)
     images = render_states(renderer, states,
                            progress=(lambda it: progress(it, desc="render")) if progress else None)
-    x = preprocess_batched(images, config.preprocess.validate())
-    y = torch.from_numpy(targets(states))
+    return preprocess_batched(images, config.preprocess.validate()), torch.from_numpy(targets(states))
+
+
+def fit_taxinet(config: TaxiNetTrainConfig, x, y, out_path, *, seed=None, progress=None,
+                started=None) -> dict:
+    """Train one TaxiNet on prepared ``x, y`` (first ``validation_fraction`` held out)
+    with ``seed`` (default ``config.seed``); writes the checkpoint, returns metadata."""
+    started = started or time.time()
+    seed = config.seed if seed is None else seed
+    torch.manual_seed(seed)
     n_val = int(round(config.validation_fraction * len(x)))
     model = build_taxinet(config.model, config.preprocess)
     losses = fit_regressor(model, x[n_val:], y[n_val:], epochs=config.epochs,
                            batch_size=config.batch_size, learning_rate=config.learning_rate,
-                           seed=config.seed, scale=config.model.output_scale,
+                           seed=seed, scale=config.model.output_scale,
                            progress=(lambda it: progress(it, desc="train")) if progress else None)
     metadata = {
         "image_size": [config.camera.height, config.camera.width],
         "environment": config.environment.name, "samples": config.samples,
-        "epochs": config.epochs, "seed": config.seed, "final_train_loss": losses[-1],
+        "epochs": config.epochs, "seed": seed, "data_seed": config.seed,
+        "final_train_loss": losses[-1],
         "validation": estimation_errors(model, x[:n_val], y[:n_val]) if n_val else {},
-        "train_seconds": round(time.time() - started, 1), "torch": torch.__version__,
+        "train_seconds": round(time.time() - started, 1), "torch": str(torch.__version__),
     }
     save_checkpoint(out_path, kind="taxinet", model=model, model_config=config.model,
                     preprocess_config=config.preprocess, metadata=metadata)
     return metadata
+
+
+def train_taxinet(config: TaxiNetTrainConfig, out_path, progress=None) -> dict:
+    """Render a labelled set, train, and write a checkpoint; returns its metadata."""
+    started = time.time()
+    x, y = render_training_set(config, progress)
+    return fit_taxinet(config, x, y, out_path, progress=progress, started=started)
+
+
+def train_taxinet_ensemble(config: TaxiNetTrainConfig, folder, seeds=(1, 2, 3, 4, 5),
+                           progress=None):
+    """The ensemble baseline: TaxiNets differing only in their training seed (same
+    rendered data); returns the checkpoint paths."""
+    x, y = render_training_set(config, progress)
+    paths = []
+    for seed in seeds:
+        path = f"{folder}/taxinet_seed{seed}.pt"
+        fit_taxinet(config, x, y, path, seed=seed, progress=progress)
+        paths.append(path)
+    return paths

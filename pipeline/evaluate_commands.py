@@ -1,0 +1,75 @@
+"""``reachwatch evaluate``: the paper's Table 2 with baselines."""
+
+import dataclasses as dc
+
+from tqdm import tqdm
+
+from reachwatch.diagrams import Scenario, load_scenario
+from reachwatch.systems import DetectorConfig, Environment, test_environments, training_environments
+from reachwatch.training.dataset import DatasetSpec
+from reachwatch.training.detector_train import DetectorTrainConfig
+from reachwatch.training.evaluation import markdown_table
+from reachwatch.training.study import StudyConfig, run_study
+
+from .executors import make_executor
+
+
+def parse_environment(text: str) -> Environment:
+    """``RUNWAY:HOUR:SKY`` (e.g. ``KSFO:17:overcast``) -> a validated `Environment`."""
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise ValueError(f"environment '{text}' must read RUNWAY:HOUR:SKY, e.g. KMWH:9:clear")
+    try:
+        hour = float(parts[1])
+    except ValueError:
+        raise ValueError(f"environment '{text}': hour '{parts[1]}' is not a number") from None
+    return Environment(parts[0], hour, parts[2]).validate()
+
+
+def _names(envs):
+    return [f"{e.runway}:{e.hour:g}:{e.sky}" for e in envs]
+
+
+def add_parsers(sub):
+    p = sub.add_parser("evaluate", help="BRTs, BRT-labelled datasets, the anomaly detector, "
+                       "baselines and the paper's Table 2 on held-out environments")
+    p.add_argument("--scenario", help="scenario YAML for camera/controller settings")
+    p.add_argument("--train", nargs="+", default=_names(training_environments()),
+                   help="training environments RUNWAY:HOUR:SKY (default: the paper's 12)")
+    p.add_argument("--test", nargs="+", default=_names(test_environments()),
+                   help="held-out environments (default: the paper's 12)")
+    p.add_argument("--shape", type=int, nargs=3, default=[21, 21, 21], help="BRT grid")
+    p.add_argument("--samples", type=int, default=DatasetSpec.samples, help="images per environment")
+    p.add_argument("--arch", choices=["small_cnn", "efficientnet_b0"], default="small_cnn")
+    p.add_argument("--input-size", type=int, nargs=2, default=[96, 160], metavar=("H", "W"))
+    p.add_argument("--pretrained", default="", help="local EfficientNet-B0 ImageNet state_dict "
+                   "file (never downloaded)")
+    p.add_argument("--epochs", type=int, default=DetectorTrainConfig.epochs)
+    p.add_argument("--threshold", type=float, default=0.5)
+    p.add_argument("--ensemble", type=int, default=5, help="TaxiNets in the ensemble baseline")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--executor", default="inline", help="local | inline | dask://HOST:PORT")
+    p.add_argument("--out", required=True, help="output folder (reused: finished work is skipped)")
+    p.set_defaults(func=evaluate_command)
+
+
+def evaluate_command(args):
+    base = load_scenario(args.scenario) if args.scenario else Scenario().validate()
+    height, width = args.input_size
+    detector = DetectorConfig(arch=args.arch, height=height, width=width)
+    config = StudyConfig(
+        train=[parse_environment(t) for t in args.train],
+        test=[parse_environment(t) for t in args.test], grid_shape=args.shape,
+        dataset=DatasetSpec(samples=args.samples, seed=args.seed, height=height, width=width),
+        detector=DetectorTrainConfig(detector=detector, epochs=args.epochs, seed=args.seed,
+                                     threshold=args.threshold, pretrained_path=args.pretrained),
+        ensemble_seeds=list(range(1, args.ensemble + 1)) if args.ensemble >= 2 else [])
+    executor, close = make_executor(args.executor)
+    try:
+        rows = run_study(base, config, args.out, executor=executor,
+                         progress=lambda it, **kw: tqdm(it, **kw))
+    finally:
+        close()
+    print(markdown_table(rows))
+    print(f"wrote {args.out}/table2.md, table2.csv and figures/ "
+          f"(configuration: {dc.asdict(config.dataset)}, detector {dc.asdict(detector)})")

@@ -1,0 +1,156 @@
+"""The image anomaly detector: models (a CPU-sized CNN, or the paper's EfficientNet-B0)
+and the `AnomalyDetector` LeafSystem. Class 1 = anomalous (leads to failure)."""
+
+import dataclasses as dc
+from typing import List
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+from pydrake.systems.sensors import ImageRgba8U
+from torch import nn
+
+
+@dc.dataclass
+class DetectorConfig:
+    """Architecture and input size (pixels). ``small_cnn`` is the CPU default;
+    `DetectorConfig.paper()` is EfficientNet-B0 at 224x224 (the paper)."""
+    arch: str = "small_cnn"
+    height: int = 96
+    width: int = 160
+    channels: List[int] = dc.field(default_factory=lambda: [16, 32, 64, 96])
+
+    @classmethod
+    def paper(cls) -> "DetectorConfig":
+        return cls(arch="efficientnet_b0", height=224, width=224)
+
+    def validate(self):
+        if self.arch not in ("small_cnn", "efficientnet_b0"):
+            raise ValueError(f"detector arch must be small_cnn or efficientnet_b0, got "
+                             f"'{self.arch}'")
+        if not (16 <= self.height <= 1024 and 16 <= self.width <= 1024):
+            raise ValueError(f"detector input must be 16..1024 pixels a side, got "
+                             f"{self.height}x{self.width}")
+        return self
+
+
+def detector_input(images: torch.Tensor, config: DetectorConfig) -> torch.Tensor:
+    """uint8 ``(N, H, W, 3)`` RGB -> float ``(N, 3, height, width)``, normalised with
+    mean = std = 0.5 (the authors' transform)."""
+    if images.dim() != 4 or images.shape[-1] != 3:
+        raise ValueError(f"the detector expects RGB images shaped (N, H, W, 3), got "
+                         f"{tuple(images.shape)}")
+    x = images.permute(0, 3, 1, 2).float() / 255.0
+    if tuple(x.shape[-2:]) != (config.height, config.width):
+        x = F.interpolate(x, size=(config.height, config.width), mode="bilinear",
+                          align_corners=False, antialias=True)
+    return (x - 0.5) / 0.5
+
+
+class SmallDetectorCNN(nn.Module):
+    """Conv-BN-ReLU-pool stacks, global average pool, 2-way linear head."""
+
+    def __init__(self, config: DetectorConfig):
+        super().__init__()
+        layers, c = [], 3
+        for out in config.channels:
+            layers += [nn.Conv2d(c, out, 3, padding=1, bias=False), nn.BatchNorm2d(out),
+                       nn.ReLU(inplace=True), nn.MaxPool2d(2)]
+            c = out
+        self.features = nn.Sequential(*layers)
+        self.head = nn.Sequential(nn.Dropout(0.2), nn.Linear(c, 2))
+
+    def forward(self, x):
+        return self.head(self.features(x).mean(dim=(2, 3)))
+
+
+def build_detector(config: DetectorConfig, pretrained_path: str = "") -> nn.Module:
+    """A detector returning logits ``(N, 2)``. For EfficientNet-B0, ImageNet weights
+    load from ``pretrained_path`` (a torchvision ``state_dict`` file) when given;
+    nothing is ever downloaded."""
+    config.validate()
+    if config.arch == "small_cnn":
+        if pretrained_path:
+            raise ValueError("pretrained weights apply to efficientnet_b0 only")
+        return SmallDetectorCNN(config)
+    from torchvision.models import efficientnet_b0
+    model = efficientnet_b0(weights=None)
+    if pretrained_path:
+        try:
+            state = torch.load(pretrained_path, map_location="cpu", weights_only=True)
+            model.load_state_dict(state)
+        except Exception as e:
+            raise ValueError(f"could not load EfficientNet-B0 ImageNet weights from "
+                             f"{pretrained_path}: {type(e).__name__}: {str(e)[:200]}") from None
+    model.classifier[1] = nn.Linear(model.classifier[1].in_features, 2)
+    return model
+
+
+class AnomalyDetector(LeafSystem):
+    """Flags camera images that lead to system failure.
+
+    .. pydrake_system::
+
+        name: AnomalyDetector
+        input_ports:
+        - color_image
+        output_ports:
+        - anomaly
+        - score
+
+    ``score`` is the probability of class 1 (anomalous); ``anomaly`` is 1.0 when
+    ``score >= threshold``, else 0.0. ``image_size = (height, width)``, when given, is
+    enforced.
+    """
+
+    def __init__(self, *, model: nn.Module, config: DetectorConfig, threshold: float = 0.5,
+                 image_size=None):
+        super().__init__()
+        if not 0.0 <= threshold <= 1.0:
+            raise ValueError(f"AnomalyDetector: threshold must be in [0, 1], got {threshold}")
+        self._model = model.eval()
+        self._config = config.validate()
+        self._threshold = float(threshold)
+        self._image_size = tuple(image_size) if image_size is not None else None
+        self._image_port = self.DeclareAbstractInputPort(
+            "color_image", AbstractValue.Make(ImageRgba8U()))
+        self._anomaly_port = self.DeclareVectorOutputPort("anomaly", 1, self._calc_anomaly)
+        self._score_port = self.DeclareVectorOutputPort("score", 1, self._calc_score)
+
+    @property
+    def threshold(self) -> float:
+        return self._threshold
+
+    def get_color_image_input_port(self):
+        return self._image_port
+
+    def get_anomaly_output_port(self):
+        return self._anomaly_port
+
+    def get_score_output_port(self):
+        return self._score_port
+
+    @torch.no_grad()
+    def scores(self, images_rgb: np.ndarray, batch: int = 64) -> np.ndarray:
+        """Anomaly probabilities of uint8 RGB images ``(N, H, W, 3)``."""
+        out = []
+        for i in range(0, len(images_rgb), batch):
+            x = detector_input(torch.from_numpy(np.ascontiguousarray(images_rgb[i:i + batch])),
+                               self._config)
+            out.append(torch.softmax(self._model(x), dim=1)[:, 1].double().numpy())
+        return np.concatenate(out) if out else np.zeros(0)
+
+    def _calc_score(self, context, output):
+        rgba = self._image_port.Eval(context).data
+        if self._image_size is not None and rgba.shape[:2] != self._image_size:
+            raise ValueError(
+                f"AnomalyDetector: input port 'color_image' got a {rgba.shape[0]}x"
+                f"{rgba.shape[1]} image, but this detector was trained on "
+                f"{self._image_size[0]}x{self._image_size[1]} (height x width)")
+        output.SetAtIndex(0, self.scores(rgba[None, ..., :3])[0])
+
+    def _calc_anomaly(self, context, output):
+        score = self._score_port.Eval(context)[0]
+        output.SetAtIndex(0, 1.0 if score >= self._threshold else 0.0)

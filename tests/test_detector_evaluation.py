@@ -1,0 +1,149 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+from pydrake.systems.sensors import ImageRgba8U
+
+from reachwatch.diagrams import CheckpointError, load_detector, load_scenario, save_checkpoint
+from reachwatch.reach import Grid, TaxiDynamics, solve_brt
+from reachwatch.systems import AnomalyDetector, DetectorConfig, Environment, build_detector
+from reachwatch.training.baselines import ensemble_variance, prediction_error
+from reachwatch.training.dataset import DatasetSpec, build_dataset, load_dataset
+from reachwatch.training.detector_train import DetectorTrainConfig
+from reachwatch.training.metrics import auroc, best_threshold, binary_metrics
+from reachwatch.training.study import StudyConfig, run_study
+
+TINY = DetectorConfig(height=24, width=40, channels=[4, 8])
+
+
+# --- metrics -----------------------------------------------------------------------
+
+def test_metrics_on_a_hand_made_confusion_matrix():
+    labels = np.array([1, 1, 1, 1, 0, 0, 0, 0, 0, 0])
+    preds = np.array([1, 1, 1, 0, 1, 0, 0, 0, 0, 0])
+    m = binary_metrics(labels, preds)
+    assert (m.tp, m.fn, m.fp, m.tn) == (3, 1, 1, 5)
+    assert m.recall == pytest.approx(0.75) and m.precision == pytest.approx(0.75)
+    assert m.accuracy == pytest.approx(0.8) and m.f1 == pytest.approx(0.75)
+    assert np.isnan(binary_metrics([0, 0], [0, 1]).recall)
+
+
+def test_auroc_and_best_threshold():
+    labels = np.array([0, 0, 1, 1])
+    assert auroc(labels, [0.1, 0.2, 0.8, 0.9]) == 1.0
+    assert auroc(labels, [0.9, 0.8, 0.2, 0.1]) == 0.0
+    assert auroc(labels, [0.5, 0.5, 0.5, 0.5]) == 0.5
+    t, m = best_threshold(labels, np.array([0.1, 0.2, 0.8, 0.9]))
+    assert 0.2 < t <= 0.8 and m.f1 == 1.0
+
+
+def test_baseline_scores():
+    states = np.array([[1.0, 150.0, np.deg2rad(10.0)]])
+    assert prediction_error(states, [[1.0, 10.0]])[0] == pytest.approx(0.0)
+    assert prediction_error(states, [[11.0, 10.0]])[0] == pytest.approx(1.0)
+    same = np.ones((3, 4, 2))
+    np.testing.assert_allclose(ensemble_variance(same), 0.0)
+    with pytest.raises(ValueError, match=">= 2 members"):
+        ensemble_variance(np.ones((3, 1, 2)))
+
+
+# --- detector system -----------------------------------------------------------------
+
+def _image(h, w, value):
+    image = ImageRgba8U(w, h)
+    image.mutable_data[:] = value
+    return image
+
+
+def test_detector_system_ports_threshold_and_size():
+    torch.manual_seed(0)
+    model = build_detector(TINY)
+    for threshold, expected in [(0.0, 1.0), (1.0, 0.0)]:
+        system = AnomalyDetector(model=model, config=TINY, threshold=threshold,
+                                 image_size=(50, 90))
+        context = system.CreateDefaultContext()
+        system.get_color_image_input_port().FixValue(context, _image(50, 90, 120))
+        score = system.get_score_output_port().Eval(context)[0]
+        assert 0.0 < score < 1.0
+        assert system.get_anomaly_output_port().Eval(context)[0] == expected
+    assert [system.get_output_port(i).get_name() for i in range(2)] == ["anomaly", "score"]
+    system.get_color_image_input_port().FixValue(context, _image(40, 90, 0))
+    with pytest.raises(ValueError, match="40x90.*50x90"):
+        system.get_score_output_port().Eval(context)
+    with pytest.raises(ValueError, match="threshold"):
+        AnomalyDetector(model=model, config=TINY, threshold=1.5)
+
+
+def test_detector_checkpoint_round_trip_and_errors(tmp_path):
+    model = build_detector(TINY)
+    save_checkpoint(tmp_path / "d.pt", kind="detector", model=model, model_config=TINY,
+                    preprocess_config=None, metadata={"image_size": [50, 90]})
+    loaded, config, meta = load_detector(tmp_path / "d.pt")
+    assert config == TINY and meta["image_size"] == [50, 90]
+    x = torch.rand(2, 3, 24, 40)
+    model.eval()
+    torch.testing.assert_close(loaded(x), model(x))
+    with pytest.raises(CheckpointError, match="'detector' model, not a 'taxinet'"):
+        from reachwatch.diagrams import load_taxinet
+        load_taxinet(tmp_path / "d.pt")
+    with pytest.raises(ValueError, match="could not load EfficientNet"):
+        build_detector(DetectorConfig.paper(), pretrained_path=str(tmp_path / "missing.pt"))
+
+
+# --- dataset -------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def tiny_brt():
+    grid = Grid.paper(10.0, (9, 3, 9))
+    px, _, th = grid.mesh()
+    table = np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th) + 8.0)     # a biased controller
+    return solve_brt(grid, TaxiDynamics(half_width=10.0), table, horizon=4.0, device="cpu")
+
+
+def test_dataset_labels_follow_the_value_sign_and_resume(tmp_path, tiny_brt):
+    scenario = load_scenario(data="")
+    spec = DatasetSpec(samples=24, seed=3, height=20, width=36, chunk_size=10)
+    folder = build_dataset(tmp_path, scenario, tiny_brt, spec, progress=False)
+    data = load_dataset(folder)
+    assert data.images.shape == (24, 20, 36, 3) and data.estimates.shape == (24, 2)
+    np.testing.assert_array_equal(data.labels, tiny_brt.at(data.states) <= 0)
+    assert np.all(tiny_brt.grid.contains(data.states))
+    assert 0 < data.labels.sum() < 24
+    first = np.array(data.images)
+    # an interrupted build: the manifest lost its last chunk and the images were wiped
+    manifest = json.loads((folder / "manifest.json").read_text())
+    manifest["chunks_done"] = manifest["chunks_done"][:1]
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ValueError, match="incomplete"):
+        load_dataset(folder)
+    images = np.load(folder / "images.npy", mmap_mode="r+")
+    images[10:] = 0
+    images.flush()
+    del images
+    assert build_dataset(tmp_path, scenario, tiny_brt, spec, progress=False) == folder
+    np.testing.assert_array_equal(load_dataset(folder).images, first)
+
+
+# --- the whole evaluation, tiny --------------------------------------------------------
+
+def test_study_end_to_end_tiny(tmp_path):
+    config = StudyConfig(
+        train=[Environment("KMWH", 9.0, "clear")], test=[Environment("KSFO", 17.0, "clear")],
+        grid_shape=[5, 3, 5], horizon=4.0,
+        dataset=DatasetSpec(samples=30, height=24, width=40, chunk_size=16),
+        detector=DetectorTrainConfig(detector=TINY, epochs=1, batch_size=8, device="cpu"),
+        ensemble_seeds=[1, 2], ensemble_samples=48, ensemble_epochs=2)
+    rows = run_study(load_scenario(data=""), config, tmp_path)
+    methods = [r["method"] for r in rows]
+    assert methods[0] == "detector (BRT labels)"
+    assert any("prediction-error labels" in m for m in methods)
+    assert any(m.startswith("TaxiNet prediction error") for m in methods)
+    assert any(m.startswith("ensemble of 2") for m in methods)
+    assert all(r["environment"] == "KSFO_17h_clear" and r["n"] == 30 for r in rows)
+    assert (tmp_path / "table2.md").read_text().count("KSFO_17h_clear") == len(rows)
+    assert (tmp_path / "figures" / "error_vs_margin_KSFO_17h_clear.png").exists()
+    assert len(list((tmp_path / "figures").glob("overlay_*.png"))) == len(rows)
+    mtime = (tmp_path / "detector.pt").stat().st_mtime
+    run_study(load_scenario(data=""), config, tmp_path)          # re-run reuses artifacts
+    assert (tmp_path / "detector.pt").stat().st_mtime == mtime

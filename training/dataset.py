@@ -1,0 +1,147 @@
+"""BRT-labelled image datasets: uniform states of the grid box, their wing-camera
+images, TaxiNet's (and an ensemble's) estimates, V(x) and the label ``V <= 0``.
+
+On disk, one folder per (environment, BRT, sampling, image size, controllers):
+``manifest.json`` plus ``.npy`` arrays (``images.npy`` is a uint8 memmap
+``(N, H, W, 3)``; ``states.npy`` [px m, py m, theta rad]; ``values.npy`` m;
+``labels.npy`` uint8, 1 = anomalous; ``estimates.npy`` [px_hat m, theta_hat deg];
+``ensemble.npy`` ``(N, K, 2)``). Filled chunk by chunk; the manifest records finished
+chunks and is replaced atomically, so an interrupted build resumes."""
+
+import dataclasses as dc
+import hashlib
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from reachwatch.diagrams import StateRenderer, file_hash, load_taxinet
+from reachwatch.reach import resolved
+from reachwatch.systems import TaxiNet
+from reachwatch.systems.files import atomic_write_bytes
+
+FORMAT = "reachwatch.dataset/1"
+
+
+@dc.dataclass
+class DatasetSpec:
+    """How many states, which seed, and the stored image size (the detector's input)."""
+    samples: int = 2000
+    seed: int = 0
+    height: int = 96
+    width: int = 160
+    chunk_size: int = 256
+
+
+def _value_hash(value_function) -> str:
+    return hashlib.sha256(np.ascontiguousarray(value_function.values, np.float32)
+                          .tobytes()).hexdigest()[:16]
+
+
+def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=()) -> Path:
+    """The content-addressed folder of a dataset under ``root``."""
+    scenario = resolved(scenario)
+    parts = {"format": FORMAT, "env": dc.asdict(scenario.environment),
+             "brt": _value_hash(value_function), "spec": dc.asdict(spec),
+             "camera": [scenario.camera.height, scenario.camera.width],
+             "taxinet": file_hash(scenario.controller.checkpoint),
+             "ensemble": [file_hash(p) for p in ensemble]}
+    digest = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
+    return Path(root) / f"{scenario.environment.name}_{spec.samples}_{digest}"
+
+
+def _write_manifest(folder, manifest):
+    atomic_write_bytes(folder / "manifest.json", json.dumps(manifest, indent=1).encode())
+
+
+def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpec(), *,
+                  ensemble=(), progress=True) -> Path:
+    """Render, estimate and label ``spec.samples`` states of ``scenario``'s environment;
+    returns the dataset folder (reused or resumed when it already exists)."""
+    scenario = resolved(scenario)
+    folder = dataset_folder(root, scenario, value_function, spec, ensemble)
+    folder.mkdir(parents=True, exist_ok=True)
+    grid, n = value_function.grid, spec.samples
+    manifest_path = folder / "manifest.json"
+    if manifest_path.exists():
+        manifest = json.loads(manifest_path.read_text())
+        arrays = {k: np.load(folder / f"{k}.npy", mmap_mode="r+")
+                  for k in ("images", "estimates", "ensemble")}
+    else:
+        rng = np.random.default_rng(spec.seed)
+        states = grid.lo + rng.uniform(size=(n, 3)) * (grid.hi - grid.lo)
+        values = value_function.at(states)
+        np.save(folder / "states.npy", states)
+        np.save(folder / "values.npy", values)
+        np.save(folder / "labels.npy", (values <= 0).astype(np.uint8))
+        open_mm = np.lib.format.open_memmap
+        arrays = {"images": open_mm(folder / "images.npy", "w+", np.uint8,
+                                    (n, spec.height, spec.width, 3)),
+                  "estimates": open_mm(folder / "estimates.npy", "w+", np.float64, (n, 2)),
+                  "ensemble": open_mm(folder / "ensemble.npy", "w+", np.float64,
+                                      (n, len(ensemble), 2))}
+        manifest = {"format": FORMAT, "environment": scenario.environment.name,
+                    "environment_spec": dc.asdict(scenario.environment),
+                    "grid": grid.key(), "brt_hash": _value_hash(value_function),
+                    "brt_fraction_of_samples": float(np.mean(values <= 0)),
+                    "image_size": [spec.height, spec.width],
+                    "camera_size": [scenario.camera.height, scenario.camera.width],
+                    "spec": dc.asdict(spec), "taxinet": scenario.controller.checkpoint,
+                    "ensemble": [str(p) for p in ensemble], "chunks_done": []}
+        _write_manifest(folder, manifest)
+    states = np.load(folder / "states.npy")
+    chunks = [(s, min(s + spec.chunk_size, n)) for s in range(0, n, spec.chunk_size)]
+    todo = [c for c in chunks if c[0] not in manifest["chunks_done"]]
+    if todo:
+        renderer = StateRenderer(environment=scenario.environment, camera=scenario.camera)
+        nets = [TaxiNet(model=m, preprocess_config=p) for m, p, _ in
+                (load_taxinet(c) for c in [scenario.controller.checkpoint, *ensemble])]
+        bar = tqdm(total=n, initial=n - sum(e - s for s, e in todo), unit="image",
+                   desc=f"dataset {scenario.environment.name}", disable=not progress)
+        for s, e in todo:
+            full = np.stack([renderer.render(x) for x in states[s:e]])
+            arrays["estimates"][s:e] = nets[0].estimate(full)
+            for k, net in enumerate(nets[1:]):
+                arrays["ensemble"][s:e, k] = net.estimate(full)
+            arrays["images"][s:e] = [cv2.resize(im, (spec.width, spec.height),
+                                                interpolation=cv2.INTER_AREA) for im in full]
+            for a in arrays.values():
+                a.flush()
+            manifest["chunks_done"].append(s)
+            _write_manifest(folder, manifest)
+            bar.update(e - s)
+        bar.close()
+    return folder
+
+
+@dc.dataclass
+class LabelledData:
+    """A dataset folder's arrays (images memory-mapped)."""
+    folder: Path
+    manifest: dict
+    images: np.ndarray
+    states: np.ndarray
+    values: np.ndarray
+    labels: np.ndarray
+    estimates: np.ndarray
+    ensemble: np.ndarray
+
+
+def load_dataset(folder) -> LabelledData:
+    """Open a finished dataset; raises ValueError if it is incomplete or foreign."""
+    folder = Path(folder)
+    try:
+        manifest = json.loads((folder / "manifest.json").read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{folder} is not a reachwatch dataset: {e}") from None
+    if manifest.get("format") != FORMAT:
+        raise ValueError(f"{folder}: unknown dataset format {manifest.get('format')}")
+    spec = DatasetSpec(**manifest["spec"])
+    if len(manifest["chunks_done"]) < -(-spec.samples // spec.chunk_size):
+        raise ValueError(f"{folder} is incomplete ({len(manifest['chunks_done'])} chunks); "
+                         f"run build_dataset again to resume it")
+    load = lambda k, mm=None: np.load(folder / f"{k}.npy", mmap_mode=mm)   # noqa: E731
+    return LabelledData(folder, manifest, load("images", "r"), load("states"), load("values"),
+                        load("labels"), load("estimates"), load("ensemble"))

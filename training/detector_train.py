@@ -1,0 +1,103 @@
+"""Train the anomaly detector on BRT-labelled datasets (cross-entropy, Adam 3e-4)."""
+
+import dataclasses as dc
+import time
+
+import numpy as np
+import torch
+from torch import nn
+
+from reachwatch.diagrams import save_checkpoint
+from reachwatch.systems import DetectorConfig, build_detector, detector_input
+
+from .metrics import binary_metrics
+
+
+@dc.dataclass
+class DetectorTrainConfig:
+    """Everything that determines a trained detector (same config + data = same weights)."""
+    detector: DetectorConfig = dc.field(default_factory=DetectorConfig)
+    epochs: int = 6
+    batch_size: int = 64
+    learning_rate: float = 3e-4
+    validation_fraction: float = 0.2
+    seed: int = 0
+    threshold: float = 0.5
+    pretrained_path: str = ""
+    device: str = ""                        # "" = CUDA when present, else CPU
+
+
+def _device(name):
+    return torch.device(name or ("cuda" if torch.cuda.is_available() else "cpu"))
+
+
+def _batches(datasets, index, batch_size, config, device):
+    """Yield (inputs, dataset-local rows) for global ``index`` rows, in order."""
+    offsets = np.cumsum([0] + [len(d.labels) for d in datasets])
+    for start in range(0, len(index), batch_size):
+        rows = index[start:start + batch_size]
+        which = np.searchsorted(offsets, rows, side="right") - 1
+        images = np.stack([datasets[w].images[r - offsets[w]] for w, r in zip(which, rows)])
+        yield detector_input(torch.from_numpy(images), config).to(device), rows
+
+
+@torch.no_grad()
+def detector_scores(model, config: DetectorConfig, images, *, batch_size=128, device="") -> np.ndarray:
+    """Anomaly probabilities for uint8 ``(N, H, W, 3)`` images (memmaps welcome)."""
+    device = _device(device)
+    model = model.to(device).eval()
+    out = []
+    for start in range(0, len(images), batch_size):
+        x = detector_input(torch.from_numpy(np.asarray(images[start:start + batch_size])), config)
+        out.append(torch.softmax(model(x.to(device)), dim=1)[:, 1].cpu().double().numpy())
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=None,
+                   progress=None) -> dict:
+    """Train on the concatenated ``datasets`` (`LabelledData`), with their BRT labels or
+    the given per-dataset ``labels`` (for baselines); writes a checkpoint."""
+    started = time.time()
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    device = _device(config.device)
+    y_all = np.concatenate(labels if labels is not None else [d.labels for d in datasets])
+    y_all = torch.as_tensor(y_all.astype(np.int64))
+    order = rng.permutation(len(y_all))
+    n_val = int(round(config.validation_fraction * len(order)))
+    val, train = np.sort(order[:n_val]), order[n_val:]
+    model = build_detector(config.detector, config.pretrained_path).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
+    loss_fn, losses = nn.CrossEntropyLoss(), []
+    epochs = progress(range(config.epochs), desc="train detector") if progress else range(config.epochs)
+    for _ in epochs:
+        model.train()
+        shuffled = train[rng.permutation(len(train))]
+        total = 0.0
+        for x, rows in _batches(datasets, shuffled, config.batch_size, config.detector, device):
+            optimizer.zero_grad()
+            loss = loss_fn(model(x), y_all[rows].to(device))
+            loss.backward()
+            optimizer.step()
+            total += loss.item() * len(rows)
+        losses.append(total / max(1, len(train)))
+    model.eval()
+    metadata = {"image_size": datasets[0].manifest["camera_size"],
+                "input_size": [config.detector.height, config.detector.width],
+                "threshold": config.threshold,
+                "environments": [d.manifest["environment"] for d in datasets],
+                "samples": int(len(y_all)), "positives": int(y_all.sum()),
+                "epochs": config.epochs, "seed": config.seed, "train_losses": losses,
+                "pretrained": bool(config.pretrained_path),
+                "train_seconds": round(time.time() - started, 1)}
+    if n_val:
+        scores = []
+        with torch.no_grad():
+            for x, _ in _batches(datasets, val, 128, config.detector, device):
+                scores.append(torch.softmax(model(x), 1)[:, 1].cpu().numpy())
+        scores = np.concatenate(scores)
+        metadata["validation"] = binary_metrics(y_all[val].numpy(), scores >= config.threshold,
+                                                scores).row()
+    save_checkpoint(out_path, kind="detector", model=model.cpu(), model_config=config.detector,
+                    preprocess_config=None, metadata=metadata)
+    return metadata

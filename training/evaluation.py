@@ -1,0 +1,73 @@
+"""The paper's Table 2 and its baselines: per held-out environment, recall, accuracy,
+precision, F1 and AUROC of each method against the BRT labels."""
+
+import dataclasses as dc
+import io
+
+import numpy as np
+
+from .baselines import ensemble_variance, prediction_error
+from .detector_train import detector_scores
+from .metrics import best_threshold, binary_metrics
+
+COLUMNS = ("environment", "method", "n", "positives", "recall", "accuracy", "precision",
+           "f1", "auroc", "threshold")
+
+
+@dc.dataclass
+class Detector:
+    """A trained detector to evaluate: model, `DetectorConfig`, decision threshold."""
+    name: str
+    model: object
+    config: object
+    threshold: float = 0.5
+
+
+def evaluate_environment(data, detectors, *, device="") -> list:
+    """Rows (dicts with `COLUMNS`) for one `LabelledData`: each detector at its own
+    threshold, then the baselines at the threshold maximising F1 on this same data
+    (oracle-tuned, i.e. as generous to them as possible)."""
+    env, labels, rows = data.manifest["environment"], data.labels, []
+    scores = {}
+    for det in detectors:
+        s = detector_scores(det.model, det.config, data.images, device=device)
+        scores[det.name] = s
+        rows.append({"environment": env, "method": det.name, "threshold": det.threshold,
+                     **binary_metrics(labels, s >= det.threshold, s).row()})
+    baselines = {"TaxiNet prediction error (best threshold)":
+                 prediction_error(data.states, data.estimates)}
+    if data.ensemble.shape[1] >= 2:
+        baselines[f"ensemble of {data.ensemble.shape[1]} variance (best threshold)"] = \
+            ensemble_variance(data.ensemble)
+    for name, s in baselines.items():
+        threshold, metrics = best_threshold(labels, s)
+        scores[name] = s
+        rows.append({"environment": env, "method": name, "threshold": float(threshold),
+                     **metrics.row()})
+    return rows, scores
+
+
+def _fmt(value, key):
+    if isinstance(value, str):
+        return value
+    if key in ("n", "positives"):
+        return str(int(value))
+    if value is None or (isinstance(value, float) and np.isnan(value)):
+        return "-"
+    return f"{100 * value:.1f}" if key in ("recall", "accuracy", "precision", "f1", "auroc") \
+        else f"{value:.3g}"
+
+
+def markdown_table(rows) -> str:
+    """Rows as a Markdown table (rates in %)."""
+    head = "| " + " | ".join(COLUMNS) + " |\n|" + "---|" * len(COLUMNS) + "\n"
+    return head + "\n".join("| " + " | ".join(_fmt(r.get(k), k) for k in COLUMNS) + " |"
+                            for r in rows) + "\n"
+
+
+def csv_table(rows) -> str:
+    out = io.StringIO()
+    out.write(",".join(COLUMNS) + "\n")
+    for r in rows:
+        out.write(",".join(str(r.get(k, "")) for k in COLUMNS) + "\n")
+    return out.getvalue()
