@@ -30,6 +30,8 @@ class Trajectory:
     half_width: float
     failed: bool
     failure_time: float = float("nan")
+    speed: np.ndarray = None          # m/s per tick (guarded pipeline only)
+    anomaly: np.ndarray = None        # detector flag per tick (guarded pipeline only)
 
 
 def add_taxinet_controller(builder, world, controller):
@@ -104,12 +106,14 @@ def simulate(diagram: Diagram, *, initial_state, duration: float, half_width: fl
     plant = diagram.GetSubsystemByName(PLANT)
     simulator = Simulator(diagram, context) if context is not None else Simulator(diagram)
     context = simulator.get_mutable_context()
+    diagram.SetDefaultContext(context)        # a reused context starts afresh (holds, speed)
     context.SetTime(0.0)
     plant.GetMyMutableContextFromRoot(context).SetContinuousState(
         np.asarray(initial_state, float))
     logs = [diagram.GetSubsystemByName(n) for n in ("state_log", "estimate_log")]
-    for log in logs:
-        log.FindMutableLog(context).Clear()
+    for name in ("state_log", "estimate_log", "speed_log", "anomaly_log"):
+        if diagram.HasSubsystemNamed(name):
+            diagram.GetSubsystemByName(name).FindMutableLog(context).Clear()
     state = plant.get_state_output_port()
     failure = {}
 
@@ -130,6 +134,10 @@ def simulate(diagram: Diagram, *, initial_state, duration: float, half_width: fl
     t_fail = failure.get("t", float("nan"))
     if failed and np.isnan(t_fail):
         t_fail = float(state_log.sample_times()[np.argmax(np.abs(x[:, 0]) >= half_width)])
+    extra = {}
+    for name, field in [("speed_log", "speed"), ("anomaly_log", "anomaly")]:
+        if diagram.HasSubsystemNamed(name):
+            extra[field] = diagram.GetSubsystemByName(name).FindLog(context).data()[0, :n]
     return Trajectory(time=state_log.sample_times()[:n], state=x,
                       estimate=estimate_log.data().T[:n], half_width=half_width,
-                      failed=failed, failure_time=t_fail)
+                      failed=failed, failure_time=t_fail, **extra)

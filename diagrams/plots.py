@@ -42,3 +42,29 @@ def plot_runway_top_view(trajectories, *, half_width: float, path, title=""):
     ax.set_title(title or f"runway top view, B = {half_width:g} m")
     ax.legend(loc="upper right", fontsize=8)
     return save_figure(fig, path)
+
+
+def plot_guarded_run(nominal, guarded, *, half_width: float, path, title=""):
+    """The paper's Fig. 6: the nominal run dashed, the guarded run coloured by speed
+    (m/s), flagged ticks ringed, runway edges drawn."""
+    fig, ax = plt.subplots(figsize=(9, 3.8))
+    for sign in (-1, 1):
+        ax.axhline(sign * half_width, color="k", lw=1.5)
+        ax.axhspan(sign * half_width, sign * (half_width + 3), color="tab:red", alpha=0.12)
+    ax.plot(nominal.state[:, 1], nominal.state[:, 0], "k--", lw=1.5,
+            label="TaxiNet alone" + (" (fails)" if nominal.failed else ""))
+    points = ax.scatter(guarded.state[:, 1], guarded.state[:, 0], c=guarded.speed, s=10,
+                        cmap="viridis", vmin=0.0, vmax=max(5.0, float(np.max(guarded.speed))),
+                        label="guarded" + (" (fails)" if guarded.failed else ""))
+    flagged = np.asarray(guarded.anomaly) >= 0.5
+    ax.plot(guarded.state[flagged, 1], guarded.state[flagged, 0], "o", mfc="none",
+            mec="tab:red", ms=6, mew=0.6, label="flagged by the detector")
+    fig.colorbar(points, ax=ax, label="speed (m/s)")
+    ys = np.concatenate([nominal.state[:, 1], guarded.state[:, 1]])
+    ax.set_xlim(ys.min() - 5, ys.max() + 5)
+    ax.set_ylim(-(half_width + 3), half_width + 3)
+    ax.set_xlabel("downtrack py (m)")
+    ax.set_ylabel("crosstrack px (m, left +)")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
+    return save_figure(fig, path)

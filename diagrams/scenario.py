@@ -44,12 +44,39 @@ class ControllerConfig:
 
 
 @dc.dataclass
+class PipelineConfig:
+    """The safety pipeline: detector checkpoint and threshold, fallback strategy
+    (``slow_down`` | ``brake``), steering while flagged (``taxinet`` | ``oracle``,
+    privileged), brake deceleration (m/s^2)."""
+    detector: str = ""
+    threshold: float = 0.5
+    strategy: str = "slow_down"
+    steering: str = "taxinet"
+    brake_deceleration: float = 1.0
+
+    def validate(self):
+        from reachwatch.systems import STEERING, STRATEGIES
+        if self.strategy not in STRATEGIES:
+            raise ValueError(f"pipeline.strategy must be one of {STRATEGIES}, got "
+                             f"'{self.strategy}'")
+        if self.steering not in STEERING:
+            raise ValueError(f"pipeline.steering must be one of {STEERING}, got "
+                             f"'{self.steering}'")
+        if not 0.0 <= self.threshold <= 1.0:
+            raise ValueError(f"pipeline.threshold must be in [0, 1], got {self.threshold}")
+        if self.detector and not Path(self.detector).is_file():
+            raise ValueError(f"pipeline.detector: file not found: {self.detector}")
+        return self
+
+
+@dc.dataclass
 class Scenario:
     """One run: environment, camera, start state, controller, duration (s), seed."""
     environment: Environment = dc.field(default_factory=Environment)
     camera: CameraConfig = dc.field(default_factory=CameraConfig)
     initial_state: InitialState = dc.field(default_factory=InitialState)
     controller: ControllerConfig = dc.field(default_factory=ControllerConfig)
+    pipeline: PipelineConfig = dc.field(default_factory=PipelineConfig)
     duration: float = 10.0
     seed: int = 0
     shadows: bool = False
@@ -59,6 +86,7 @@ class Scenario:
         self.environment.validate()
         self.camera.validate()
         self.controller.validate()
+        self.pipeline.validate()
         if not self.duration > 0:
             raise ValueError(f"duration must be > 0 s, got {self.duration}")
         return self

@@ -3,7 +3,7 @@
 import argparse
 import sys
 
-from . import commands, evaluate_commands, reach_commands, taxinet_commands
+from . import commands, evaluate_commands, guard_commands, reach_commands, taxinet_commands
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,6 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     taxinet_commands.add_parsers(sub)
     reach_commands.add_parsers(sub)
     evaluate_commands.add_parsers(sub)
+    guard_commands.add_parsers(sub)
     return parser
 
 

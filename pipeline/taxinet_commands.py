@@ -51,6 +51,11 @@ def add_parsers(sub):
                          "state; write the trajectory (CSV, NPZ) and a top-view plot")
     sim.add_argument("--scenario", help="scenario YAML (default: built-in defaults)")
     sim.add_argument("--out", required=True, help="output folder")
+    sim.add_argument("--pipeline", choices=["nominal", "guarded"], default="nominal",
+                     help="guarded: also run the detector + fallback switch (needs "
+                          "pipeline.detector in the scenario); writes a Fig.-6 plot and a "
+                          "Meshcat replay (.html)")
+    sim.add_argument("--no-meshcat", action="store_true", help="skip the HTML replay")
     sim.set_defaults(func=simulate_command)
 
 
@@ -80,6 +85,15 @@ def evaluate_command(args):
 def simulate_command(args):
     scenario = _scenario(args)
     out = Path(args.out)
+    if args.pipeline == "guarded":
+        from .guard_commands import simulate_guarded
+        nominal, guarded, paths = simulate_guarded(scenario, out,
+                                                   meshcat_html=not args.no_meshcat)
+        print(f"TaxiNet alone {'failed' if nominal.failed else 'stayed on the runway'}; "
+              f"guarded {'failed' if guarded.failed else 'stayed on the runway'} "
+              f"(min speed {guarded.speed.min():.2f} m/s, {int(guarded.anomaly.sum())} "
+              f"flagged ticks); wrote {', '.join(map(str, paths))}")
+        return
     diagram = make_closed_loop_diagram(scenario)
     trajectory = simulate(diagram, initial_state=initial_state_vector(scenario.initial_state),
                           duration=scenario.duration,

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from reachwatch.diagrams import (REFERENCE_TAXINET, file_hash, make_closed_loop_diagram,
-                                 simulate)
+from reachwatch.diagrams import (DETECTOR, REFERENCE_TAXINET, file_hash,
+                                 make_closed_loop_diagram, make_guarded_diagram, simulate)
 
 from .dynamics import TaxiDynamics
 from .grid import Grid
@@ -24,6 +24,8 @@ def resolved(scenario):
     scenario = copy.deepcopy(scenario)
     scenario.controller.checkpoint = str(Path(scenario.controller.checkpoint
                                               or REFERENCE_TAXINET).resolve())
+    if scenario.pipeline.detector:
+        scenario.pipeline.detector = str(Path(scenario.pipeline.detector).resolve())
     return scenario
 
 
@@ -38,6 +40,8 @@ def sweep_key(scenario, grid: Grid, probe: Probe = Probe()) -> str:
              "camera": dc.asdict(scenario.camera), "shadows": scenario.shadows,
              "gains": [scenario.controller.px_gain, scenario.controller.theta_gain],
              "probe": dc.asdict(probe)}
+    if any(port.startswith(DETECTOR + ".") for port in probe.ports):
+        parts["detector"] = file_hash(scenario.pipeline.detector)
     digest = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:20]
     return f"{scenario.environment.name}_{'x'.join(map(str, grid.shape))}_{digest}"
 
@@ -49,6 +53,20 @@ def sweep_closed_loop(scenario, grid: Grid, *, cache_dir, executor=None, chunk_s
     return sweep(functools.partial(make_closed_loop_diagram, scenario), grid,
                  key=sweep_key(scenario, grid), cache_dir=cache_dir, executor=executor,
                  chunk_size=chunk_size, progress=progress)
+
+
+#: What the guarded sweep reads: steering, TaxiNet estimate and detector score.
+GUARDED_PROBE = Probe(extra_ports=("taxinet.estimate", f"{DETECTOR}.score"))
+
+
+def sweep_guarded(scenario, grid: Grid, *, cache_dir, executor=None, chunk_size=1024,
+                  progress=True) -> SweepTable:
+    """Steering, estimate and detector score at every node (one render per node)."""
+    scenario = resolved(scenario)
+    return sweep(functools.partial(make_guarded_diagram, scenario), grid,
+                 key=sweep_key(scenario, grid, GUARDED_PROBE), cache_dir=cache_dir,
+                 probe=GUARDED_PROBE, executor=executor, chunk_size=chunk_size,
+                 progress=progress)
 
 
 def taxi_dynamics(scenario) -> TaxiDynamics:

@@ -38,11 +38,14 @@ class TaxiDynamics(Dynamics):
                  wheelbase: float = WHEELBASE_M):
         self.half_width, self.speed, self.wheelbase = float(half_width), float(speed), float(wheelbase)
 
-    def vector_field(self, x, u):
+    def vector_field(self, x, u, speed=None):
+        """``speed`` (m/s, tensor broadcasting with ``x[..., 0]``) overrides the
+        nominal one, for the fallback pipeline whose speed is a state."""
+        v = self.speed if speed is None else speed
         theta = x[..., 2]
         phi = u[..., 0]
-        return torch.stack([self.speed * torch.sin(theta), self.speed * torch.cos(theta),
-                            self.speed / self.wheelbase * torch.tan(phi)], dim=-1)
+        return torch.stack([v * torch.sin(theta), v * torch.cos(theta),
+                            v / self.wheelbase * torch.tan(phi)], dim=-1)
 
     def target(self, x):
         return self.half_width - x[..., 0].abs()

@@ -26,6 +26,7 @@ from .models import (ESTIMATE_UNITS, PreprocessConfig, SmallTaxiCNN, TaxiNetConf
 from .plant import NOMINAL_SPEED_MPS, WHEELBASE_M, TaxiPlant, taxi_dynamics
 from .runway import RUNWAYS, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, TaxiwayLine
 from .scene import add_runway_scene
+from .switch import STEERING, STRATEGIES, FallbackSwitch, next_speed
 from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, TaxiNet,
                       TrueStateEstimator)
 
@@ -37,5 +38,6 @@ __all__ = [
     "SurfaceSpec", "TaxiwayLine", "add_runway_scene", "ESTIMATE_UNITS", "PreprocessConfig",
     "SmallTaxiCNN", "TaxiNetConfig", "TinyTaxiNet", "build_taxinet", "preprocess",
     "PX_GAIN_DEG_PER_M", "THETA_GAIN", "ProportionalController", "TaxiNet", "TrueStateEstimator", "AnomalyDetector",
-    "DetectorConfig", "SmallDetectorCNN", "build_detector", "detector_input",
+    "DetectorConfig", "SmallDetectorCNN", "build_detector", "detector_input", "STEERING", "STRATEGIES", "FallbackSwitch",
+    "next_speed",
 ]

@@ -1,0 +1,109 @@
+"""``reachwatch guard`` (failure sets with and without the fallback) and the guarded
+``reachwatch simulate --pipeline guarded``."""
+
+import copy
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from reachwatch.diagrams import (Scenario, initial_state_vector, load_scenario,
+                                 make_closed_loop_diagram, make_guarded_diagram, simulate)
+from reachwatch.diagrams.plots import plot_guarded_run
+from reachwatch.reach import (Grid, ValueFunction, pipeline_failures, sweep_guarded,
+                              taxi_dynamics)
+from reachwatch.reach.plots import plot_brt_slices
+from reachwatch.systems import STRATEGIES
+from reachwatch.systems.files import atomic_write_bytes, cache_root
+
+from .executors import make_executor
+
+
+def add_parsers(sub):
+    g = sub.add_parser("guard", help="failure sets (fraction of grid starts that leave the "
+                       "runway within the horizon) under TaxiNet alone and under each "
+                       "fallback strategy, from one sweep of the guarded diagram")
+    g.add_argument("--scenario", required=True, help="scenario YAML with pipeline.detector")
+    g.add_argument("--shape", type=int, nargs=3, default=[41, 41, 41])
+    g.add_argument("--horizon", type=float, default=8.0)
+    g.add_argument("--out", required=True)
+    g.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT")
+    g.add_argument("--cache", default=None)
+    g.set_defaults(func=guard_command)
+
+
+def failure_volumes(scenario, grid, tables, horizon):
+    """{name: boolean failures per node} for TaxiNet alone and each strategy."""
+    dynamics = taxi_dynamics(scenario)
+    steering = tables["p_controller.steering_angle"]
+    score = tables["anomaly_detector.score"]
+    kw = dict(horizon=horizon, period=scenario.controller.period)
+    out = {"TaxiNet alone": pipeline_failures(grid, dynamics, steering, None, **kw)[0]}
+    for strategy in STRATEGIES:
+        out[f"guarded, {strategy}"] = pipeline_failures(
+            grid, dynamics, steering, score, threshold=scenario.pipeline.threshold,
+            strategy=strategy, brake_deceleration=scenario.pipeline.brake_deceleration, **kw)[0]
+    return out
+
+
+def guard_command(args):
+    scenario = load_scenario(args.scenario)
+    grid = Grid.paper(scenario.environment.half_width, tuple(args.shape))
+    executor, close = make_executor(args.executor)
+    try:
+        tables = sweep_guarded(scenario, grid, cache_dir=args.cache or cache_root() / "sweeps",
+                               executor=executor)
+    finally:
+        close()
+    started = time.time()
+    failures = failure_volumes(scenario, grid, tables, args.horizon)
+    out = Path(args.out)
+    name = scenario.environment.name
+    volumes = {k: float(v.mean()) for k, v in failures.items()}
+    print(f"{name}, grid {list(grid.shape)}, horizon {args.horizon:g} s, detector "
+          f"{scenario.pipeline.detector} (threshold {scenario.pipeline.threshold}); "
+          f"rollouts {time.time() - started:.1f} s")
+    for k, v in volumes.items():
+        print(f"  failure set ({k}): {100 * v:.2f}% of the grid")
+    atomic_write_bytes(out / f"guard_{name}.json", json.dumps(volumes, indent=1).encode())
+    sets = {k: ValueFunction(grid, np.where(v.reshape(grid.shape), -1.0, 1.0), args.horizon,
+                             "rollouts") for k, v in failures.items()}
+    plot_brt_slices(sets, py=175.0, path=out / f"guard_{name}.png",
+                    half_width=scenario.environment.half_width,
+                    title=f"{name}: failing start states (grey)")
+    print(f"wrote {out / f'guard_{name}.json'} and .png")
+
+
+def simulate_guarded(scenario: Scenario, out: Path, *, meshcat_html=True):
+    """Nominal and guarded runs from the scenario's start; Fig.-6 plot, trajectories
+    (.npz) and a standalone Meshcat replay (.html) of the guarded run."""
+    x0 = initial_state_vector(scenario.initial_state)
+    B = scenario.environment.half_width
+    nominal = simulate(make_closed_loop_diagram(scenario), initial_state=x0,
+                       duration=scenario.duration, half_width=B)
+    meshcat = visualizer = None
+    if meshcat_html:
+        from pydrake.geometry import Meshcat, MeshcatParams
+        meshcat = Meshcat(MeshcatParams(host="localhost"))
+    diagram = make_guarded_diagram(scenario, meshcat=meshcat)
+    if meshcat is not None:
+        from pydrake.geometry import MeshcatVisualizer
+        visualizer = next(s for s in diagram.GetSystems() if isinstance(s, MeshcatVisualizer))
+        visualizer.StartRecording(set_transforms_while_recording=False)
+    guarded = simulate(diagram, initial_state=x0, duration=scenario.duration, half_width=B)
+    name = f"{scenario.environment.name}_{scenario.pipeline.strategy}"
+    paths = [plot_guarded_run(nominal, guarded, half_width=B, path=out / f"guarded_{name}.png",
+                              title=f"{scenario.environment.name}: TaxiNet alone "
+                                    f"{'fails' if nominal.failed else 'stays on'}; guarded "
+                                    f"({scenario.pipeline.strategy}) "
+                                    f"{'fails' if guarded.failed else 'stays on'}")]
+    np.savez(out / f"guarded_{name}.npz", nominal_state=nominal.state, state=guarded.state,
+             speed=guarded.speed, anomaly=guarded.anomaly, time=guarded.time)
+    paths.append(out / f"guarded_{name}.npz")
+    if visualizer is not None:
+        visualizer.StopRecording()
+        visualizer.PublishRecording()
+        paths.append(atomic_write_bytes(out / f"guarded_{name}.html",
+                                        meshcat.StaticHtml().encode()))
+    return nominal, guarded, paths

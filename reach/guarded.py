@@ -1,0 +1,47 @@
+"""Failure sets of the safety pipeline, where speed becomes a state.
+
+The image does not depend on speed, so the swept tables of steering and detector
+score on the 3-D grid are enough: from every grid node at the nominal speed, the
+sampled-data loop is rolled out tick by tick (steering and flag read from the tables,
+speed updated by the fallback strategy, dynamics integrated with RK4 over the tick),
+and a node fails if ``|px| >= B`` within the horizon."""
+
+import numpy as np
+import torch
+
+from reachwatch.systems import next_speed
+
+from .interpolate import GridInterpolator
+
+
+@torch.no_grad()
+def pipeline_failures(grid, dynamics, steering_table, score_table=None, *, threshold=0.5,
+                      strategy="slow_down", horizon=8.0, period=0.05, substeps=2,
+                      starts=None, **strategy_params):
+    """Boolean failure per start (default: every grid node, C order) and the speed
+    history's minimum per start. ``score_table=None`` = no detector (TaxiNet alone)."""
+    as_t = lambda a: torch.as_tensor(np.asarray(a, float), dtype=torch.float64)   # noqa: E731
+    x = as_t(grid.states() if starts is None else starts).reshape(-1, 3)
+    steer = as_t(steering_table).reshape(grid.shape)
+    score = None if score_table is None else as_t(score_table).reshape(grid.shape)
+    nominal = dynamics.speed
+    v = torch.full((len(x),), nominal, dtype=torch.float64)
+    lowest, slowest = dynamics.target(x), v.clone()
+    h = period / substeps
+    for _ in range(int(round(horizon / period))):
+        interpolate = GridInterpolator(grid, x)
+        u = interpolate(steer)[:, None]
+        if score is not None:
+            flagged = interpolate(score).numpy() >= threshold
+            v = torch.as_tensor(next_speed(v.numpy(), flagged, strategy=strategy,
+                                           nominal=nominal, period=period, **strategy_params))
+        for _ in range(substeps):
+            f = lambda y: dynamics.vector_field(y, u, speed=v)      # noqa: E731
+            k1 = f(x)
+            k2 = f(x + 0.5 * h * k1)
+            k3 = f(x + 0.5 * h * k2)
+            k4 = f(x + h * k3)
+            x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        lowest = torch.minimum(lowest, dynamics.target(x))
+        slowest = torch.minimum(slowest, v)
+    return (lowest <= 0).numpy(), slowest.numpy()

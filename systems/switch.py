@@ -1,0 +1,101 @@
+"""The fallback switch: when the detector flags the image, trade speed for safety."""
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from .plant import NOMINAL_SPEED_MPS
+
+STRATEGIES = ("slow_down", "brake")
+STEERING = ("taxinet", "oracle")
+
+
+def next_speed(speed, flagged, *, strategy="slow_down", nominal=NOMINAL_SPEED_MPS,
+               slow_down_step=0.01, brake_deceleration=1.0, period=0.05):
+    """Speed (m/s) for the next tick. ``slow_down`` (the paper): -0.01 m/s per tick
+    while flagged; ``brake``: -``brake_deceleration`` m/s^2 while flagged. Both stop at
+    0 and return to ``nominal`` at once when the image is clear. Works on arrays."""
+    speed, flagged = np.asarray(speed, float), np.asarray(flagged, bool)
+    step = slow_down_step if strategy == "slow_down" else brake_deceleration * period
+    return np.where(flagged, np.maximum(speed - step, 0.0), nominal)
+
+
+class FallbackSwitch(LeafSystem):
+    """Hands control to the fallback while the anomaly detector flags the image.
+
+    .. pydrake_system::
+
+        name: FallbackSwitch
+        input_ports:
+        - steering_angle
+        - anomaly
+        - fallback_steering_angle (optional)
+        output_ports:
+        - steering_angle
+        - speed
+
+    ``speed`` (m/s) is discrete state, updated once per ``period`` s from ``anomaly``
+    (1 = flagged) by `next_speed`. Steering passes the nominal (TaxiNet) steering
+    through, except with ``steering="oracle"``, which steers with
+    ``fallback_steering_angle`` while flagged: the authors' P-controller on the *true*
+    state, privileged information, for comparison only.
+    """
+
+    def __init__(self, *, strategy="slow_down", steering="taxinet", period=0.05,
+                 nominal_speed=NOMINAL_SPEED_MPS, slow_down_step=0.01, brake_deceleration=1.0):
+        super().__init__()
+        if strategy not in STRATEGIES:
+            raise ValueError(f"FallbackSwitch: strategy must be one of {STRATEGIES}, got "
+                             f"'{strategy}'")
+        if steering not in STEERING:
+            raise ValueError(f"FallbackSwitch: steering must be one of {STEERING}, got "
+                             f"'{steering}'")
+        if not period > 0:
+            raise ValueError(f"FallbackSwitch: period must be > 0 s, got {period}")
+        self._params = dict(strategy=strategy, nominal=float(nominal_speed),
+                            slow_down_step=float(slow_down_step),
+                            brake_deceleration=float(brake_deceleration), period=float(period))
+        self._steering_mode = steering
+        self._steering_in = self.DeclareVectorInputPort("steering_angle", 1)
+        self._anomaly_in = self.DeclareVectorInputPort("anomaly", 1)
+        self._fallback_in = self.DeclareVectorInputPort("fallback_steering_angle", 1)
+        self._speed_index = self.DeclareDiscreteState(BasicVector([float(nominal_speed)]))
+        self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update_speed)
+        self._steering_out = self.DeclareVectorOutputPort("steering_angle", 1,
+                                                          self._calc_steering)
+        self._speed_out = self.DeclareStateOutputPort("speed", self._speed_index)
+
+    @property
+    def strategy(self):
+        return self._params["strategy"]
+
+    def get_steering_angle_input_port(self):
+        return self._steering_in
+
+    def get_anomaly_input_port(self):
+        return self._anomaly_in
+
+    def get_fallback_steering_angle_input_port(self):
+        return self._fallback_in
+
+    def get_steering_angle_output_port(self):
+        return self._steering_out
+
+    def get_speed_output_port(self):
+        return self._speed_out
+
+    def _flagged(self, context):
+        return self._anomaly_in.Eval(context)[0] >= 0.5
+
+    def _update_speed(self, context, discrete_state):
+        speed = context.get_discrete_state(self._speed_index).GetAtIndex(0)
+        discrete_state.get_mutable_vector(self._speed_index).SetAtIndex(
+            0, float(next_speed(speed, self._flagged(context), **self._params)))
+
+    def _calc_steering(self, context, output):
+        if self._steering_mode == "oracle" and self._flagged(context):
+            if not self._fallback_in.HasValue(context):
+                raise ValueError("FallbackSwitch: steering='oracle' needs the "
+                                 "'fallback_steering_angle' input connected")
+            output.SetFromVector(self._fallback_in.Eval(context))
+        else:
+            output.SetFromVector(self._steering_in.Eval(context))

@@ -1,0 +1,128 @@
+import numpy as np
+import pytest
+import torch
+
+from reachwatch.diagrams import (DETECTOR, SWITCH, load_scenario, make_closed_loop_diagram,
+                                 make_guarded_diagram, save_checkpoint, simulate)
+from reachwatch.pipeline.cli import main
+from reachwatch.reach import Grid, InlineExecutor, pipeline_failures, sweep_guarded, taxi_dynamics
+from reachwatch.systems import DetectorConfig, FallbackSwitch, build_detector, next_speed
+
+TINY = DetectorConfig(height=24, width=40, channels=[4, 8])
+
+
+def _switch_ticks(flags, **kwargs):
+    """Speed after each 0.05 s tick of a FallbackSwitch simulated alone."""
+    from pydrake.systems.analysis import Simulator
+    switch = FallbackSwitch(**kwargs)
+    simulator = Simulator(switch)
+    context = simulator.get_mutable_context()
+    switch.get_steering_angle_input_port().FixValue(context, [0.1])
+    switch.get_anomaly_input_port().FixValue(context, [0.0])
+    simulator.Initialize()
+    speeds = []
+    for k, flag in enumerate(flags):
+        switch.get_anomaly_input_port().FixValue(context, [float(flag)])
+        simulator.AdvanceTo((k + 1) * 0.05)        # the update at t = k * 0.05 reads `flag`
+        speeds.append(switch.get_speed_output_port().Eval(context)[0])
+    return np.array(speeds)
+
+
+def test_slow_down_schedule_tick_by_tick():
+    speeds = _switch_ticks([1, 1, 1, 0, 1])
+    np.testing.assert_allclose(speeds, [4.99, 4.98, 4.97, 5.0, 4.99])   # reset when clear
+
+
+def test_brake_schedule_and_floor():
+    speeds = _switch_ticks([1] * 120, strategy="brake", brake_deceleration=1.0)
+    np.testing.assert_allclose(speeds[:3], [4.95, 4.90, 4.85])
+    assert speeds.min() == 0.0 and np.all(np.diff(speeds) <= 0)
+    np.testing.assert_allclose(next_speed(np.array([0.005, 3.0]), [True, False]), [0.0, 5.0])
+
+
+def test_switch_steering_modes_and_errors():
+    switch = FallbackSwitch(steering="oracle")
+    context = switch.CreateDefaultContext()
+    switch.get_steering_angle_input_port().FixValue(context, [0.1])
+    switch.get_anomaly_input_port().FixValue(context, [1.0])
+    with pytest.raises(ValueError, match="fallback_steering_angle"):
+        switch.get_steering_angle_output_port().Eval(context)
+    switch.get_fallback_steering_angle_input_port().FixValue(context, [-0.2])
+    assert switch.get_steering_angle_output_port().Eval(context)[0] == pytest.approx(-0.2)
+    switch.get_anomaly_input_port().FixValue(context, [0.0])
+    assert switch.get_steering_angle_output_port().Eval(context)[0] == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="strategy"):
+        FallbackSwitch(strategy="teleport")
+
+
+@pytest.fixture(scope="module")
+def detector_path(tmp_path_factory):
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("det") / "detector.pt"
+    save_checkpoint(path, kind="detector", model=build_detector(TINY), model_config=TINY,
+                    preprocess_config=None, metadata={"image_size": [200, 360]})
+    return path
+
+
+def _scenario(detector_path, threshold, strategy="brake"):
+    return load_scenario(data=f"pipeline: {{detector: {detector_path}, threshold: {threshold},"
+                              f" strategy: {strategy}, brake_deceleration: 4.0}}\n"
+                              "duration: 8.0\n")
+
+
+def test_guarded_diagram_structure(detector_path):
+    diagram = make_guarded_diagram(_scenario(detector_path, 0.5))
+    switch = diagram.GetSubsystemByName(SWITCH)
+    detector = diagram.GetSubsystemByName(DETECTOR)
+    assert [detector.get_output_port(i).get_name() for i in range(2)] == ["anomaly", "score"]
+    assert [switch.get_output_port(i).get_name() for i in range(2)] == ["steering_angle", "speed"]
+    for name in ["taxi_plant", "taxinet", "p_controller", "steering_hold", "speed_log",
+                 "anomaly_log"]:
+        assert diagram.HasSubsystemNamed(name)
+    with pytest.raises(ValueError, match="pipeline.detector"):
+        make_guarded_diagram(load_scenario(data=""))
+
+
+def test_guarded_run_survives_where_nominal_fails(detector_path, tmp_path):
+    """Pick, from swept tables, a start that TaxiNet alone fails from and the braking
+    pipeline saves; then check both verdicts in the real Drake loops."""
+    scenario = _scenario(detector_path, 0.0)           # threshold 0: every image flagged
+    grid = Grid.paper(10.0, (12, 2, 9))
+    tables = sweep_guarded(scenario, grid, cache_dir=tmp_path, executor=InlineExecutor(),
+                           progress=False)
+    dynamics = taxi_dynamics(scenario)
+    steer, score = tables["p_controller.steering_angle"], tables[f"{DETECTOR}.score"]
+    nominal_fail, _ = pipeline_failures(grid, dynamics, steer, None)
+    guarded_fail, slowest = pipeline_failures(grid, dynamics, steer, score, threshold=0.0,
+                                              strategy="brake", brake_deceleration=4.0)
+    saved = np.flatnonzero(nominal_fail & ~guarded_fail)
+    assert len(saved) > 0 and slowest.min() == 0.0
+    x0 = grid.states([saved[len(saved) // 2]])[0]
+    nominal = simulate(make_closed_loop_diagram(scenario), initial_state=x0, duration=8.0,
+                       half_width=10.0)
+    guarded = simulate(make_guarded_diagram(scenario), initial_state=x0, duration=8.0,
+                       half_width=10.0)
+    assert nominal.failed and not guarded.failed
+    assert guarded.anomaly.min() == 1.0 and guarded.speed[-1] == 0.0
+
+
+def test_never_flagging_pipeline_equals_taxinet_alone(detector_path):
+    scenario = _scenario(detector_path, 1.0)           # threshold 1: nothing flagged
+    x0 = [2.0, 120.0, np.deg2rad(-10.0)]
+    a = simulate(make_closed_loop_diagram(scenario), initial_state=x0, duration=2.0,
+                 half_width=10.0)
+    b = simulate(make_guarded_diagram(scenario), initial_state=x0, duration=2.0,
+                 half_width=10.0)
+    np.testing.assert_allclose(a.state, b.state, atol=1e-9)
+    assert np.all(b.speed == 5.0)
+
+
+def test_cli_simulate_guarded_writes_plot_and_replay(detector_path, tmp_path):
+    path = tmp_path / "s.yaml"
+    path.write_text(f"pipeline: {{detector: {detector_path}, threshold: 0.0, strategy: brake}}\n"
+                    "duration: 1.0\n")
+    assert main(["simulate", "--pipeline", "guarded", "--scenario", str(path),
+                 "--out", str(tmp_path)]) == 0
+    html = (tmp_path / "guarded_KMWH_9h_clear_brake.html").read_text()
+    assert "<html" in html.lower() and len(html) > 10000
+    assert (tmp_path / "guarded_KMWH_9h_clear_brake.png").stat().st_size > 1000
