@@ -80,31 +80,31 @@ def _config(cls, data, path, what):
         raise CheckpointError(f"{path}: {what} does not match this reachwatch: {e}") from None
 
 
-def load_taxinet(path=REFERENCE_TAXINET):
-    """``(model, preprocess_config, metadata)`` from a TaxiNet checkpoint (eval mode)."""
-    payload = load_checkpoint(path, kind="taxinet")
-    config = _config(TaxiNetConfig, payload["model_config"], path, "model_config")
-    preprocess_config = _config(PreprocessConfig, payload["preprocess"], path, "preprocess")
-    model = build_taxinet(config, preprocess_config)
+def _load_model(path, kind, config_cls, build, preprocess_cls=None):
+    payload = load_checkpoint(path, kind=kind)
+    config = _config(config_cls, payload["model_config"], path, "model_config")
+    preprocess_config = (_config(preprocess_cls, payload["preprocess"], path, "preprocess")
+                         if preprocess_cls else None)
+    model = build(config, preprocess_config) if preprocess_cls else build(config)
     try:
         model.load_state_dict(payload["state_dict"])
     except RuntimeError as e:
-        raise CheckpointError(f"{path}: weights do not fit the {config.arch} TaxiNet its "
+        raise CheckpointError(f"{path}: weights do not fit the {config.arch} {kind} its "
                               f"config describes: {str(e)[:300]}") from None
-    return model.eval(), preprocess_config, payload["metadata"]
+    return model.eval(), config, preprocess_config, payload["metadata"]
+
+
+def load_taxinet(path=REFERENCE_TAXINET):
+    """``(model, preprocess_config, metadata)`` from a TaxiNet checkpoint (eval mode)."""
+    model, _, preprocess_config, metadata = _load_model(
+        path, "taxinet", TaxiNetConfig, build_taxinet, PreprocessConfig)
+    return model, preprocess_config, metadata
 
 
 def load_detector(path):
     """``(model, detector_config, metadata)`` from an anomaly-detector checkpoint."""
-    payload = load_checkpoint(path, kind="detector")
-    config = _config(DetectorConfig, payload["model_config"], path, "model_config")
-    model = build_detector(config)
-    try:
-        model.load_state_dict(payload["state_dict"])
-    except RuntimeError as e:
-        raise CheckpointError(f"{path}: weights do not fit the {config.arch} detector its "
-                              f"config describes: {str(e)[:300]}") from None
-    return model.eval(), config, payload["metadata"]
+    model, config, _, metadata = _load_model(path, "detector", DetectorConfig, build_detector)
+    return model, config, metadata
 
 
 def file_hash(path) -> str:

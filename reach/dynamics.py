@@ -8,6 +8,15 @@ import torch
 from reachwatch.systems import NOMINAL_SPEED_MPS, WHEELBASE_M
 
 
+def rk4_step(f, x, h):
+    """One classical Runge-Kutta step of ``x' = f(x)`` with step ``h``."""
+    k1 = f(x)
+    k2 = f(x + 0.5 * h * k1)
+    k3 = f(x + 0.5 * h * k2)
+    k4 = f(x + h * k3)
+    return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
 class Dynamics:
     """Interface: ``vector_field(x, u)`` (torch, broadcasting) and the failure margin
     ``target(x)`` (``l(x) <= 0`` is failure)."""

@@ -11,6 +11,7 @@ import torch
 
 from reachwatch.systems import next_speed
 
+from .dynamics import rk4_step
 from .interpolate import GridInterpolator
 
 
@@ -36,12 +37,7 @@ def pipeline_failures(grid, dynamics, steering_table, score_table=None, *, thres
             v = torch.as_tensor(next_speed(v.numpy(), flagged, strategy=strategy,
                                            nominal=nominal, period=period, **strategy_params))
         for _ in range(substeps):
-            f = lambda y: dynamics.vector_field(y, u, speed=v)      # noqa: E731
-            k1 = f(x)
-            k2 = f(x + 0.5 * h * k1)
-            k3 = f(x + 0.5 * h * k2)
-            k4 = f(x + h * k3)
-            x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            x = rk4_step(lambda y: dynamics.vector_field(y, u, speed=v), x, h)
         lowest = torch.minimum(lowest, dynamics.target(x))
         slowest = torch.minimum(slowest, v)
     return (lowest <= 0).numpy(), slowest.numpy()

@@ -4,6 +4,7 @@ states) and take the minimum of the target along each path."""
 import numpy as np
 import torch
 
+from .dynamics import rk4_step
 from .interpolate import GridInterpolator
 
 
@@ -43,11 +44,7 @@ def min_target_along_rollouts(grid, dynamics, control_table, starts, *, horizon=
                 if k % per_hold == 0:
                     u = control(x)
                 f = lambda y, u=u: dynamics.vector_field(y, u)     # noqa: E731
-            k1 = f(x)
-            k2 = f(x + 0.5 * dt * k1)
-            k3 = f(x + 0.5 * dt * k2)
-            k4 = f(x + dt * k3)
-            x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            x = rk4_step(f, x, dt)
             lowest = torch.minimum(lowest, dynamics.target(x))
         out.append(lowest.cpu().numpy())
     return np.concatenate(out)

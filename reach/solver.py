@@ -19,6 +19,7 @@ grid (the swept controller output). Accuracy names:
 import numpy as np
 import torch
 
+from .dynamics import rk4_step
 from .grid import Grid
 from .interpolate import GridInterpolator
 from .levelset import hamiltonian_rate, rk_step
@@ -36,13 +37,8 @@ def _device(device):
 
 def _held_flow(dynamics, x, u, period, substeps):
     """State after ``period`` s from ``x`` with the control ``u`` held (RK4)."""
-    h = period / substeps
     for _ in range(substeps):
-        k1 = dynamics.vector_field(x, u)
-        k2 = dynamics.vector_field(x + 0.5 * h * k1, u)
-        k3 = dynamics.vector_field(x + 0.5 * h * k2, u)
-        k4 = dynamics.vector_field(x + h * k3, u)
-        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        x = rk4_step(lambda y: dynamics.vector_field(y, u), x, period / substeps)
     return x
 
 
