@@ -79,3 +79,9 @@ def test_file_and_empty(tmp_path):
 def test_malformed_yaml():
     with pytest.raises(ScenarioError, match="not valid YAML"):
         load_scenario(data="camera: {width: 64\n")
+
+
+@pytest.mark.parametrize("path", sorted(
+    __import__("pathlib").Path(__file__).parents[1].glob("scenarios/*.yaml")))
+def test_shipped_scenarios_load(path):
+    assert load_scenario(path).validate()
