@@ -7,6 +7,7 @@ atomically under ``cache_dir/key/``, so a killed sweep resumes and a repeated on
 costs nothing. Chunks run on any `concurrent.futures.Executor`."""
 
 import concurrent.futures as cf
+import concurrent.futures.process  # noqa: F401  (BrokenProcessPool)
 import dataclasses as dc
 import io
 import multiprocessing
@@ -146,6 +147,11 @@ def sweep(factory: Callable, grid: Grid, *, key: str, cache_dir, probe: Probe = 
             if len(pending) >= max_in_flight:
                 finish(cf.wait(pending, return_when=cf.FIRST_COMPLETED).done)
         finish(list(cf.as_completed(list(pending))))
+    except cf.process.BrokenProcessPool as e:
+        raise RuntimeError(
+            "a sweep worker process died; finished chunks are kept and a re-run resumes. "
+            "Workers are spawned: a script calling sweep must guard its top level with "
+            "`if __name__ == '__main__':` (or pass executor=InlineExecutor())") from e
     finally:
         bar.close()
         if owned:
