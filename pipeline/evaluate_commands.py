@@ -45,7 +45,11 @@ def add_parsers(sub):
     p.add_argument("--pretrained", default="", help="local EfficientNet-B0 ImageNet state_dict "
                    "file (never downloaded)")
     p.add_argument("--epochs", type=int, default=DetectorTrainConfig.epochs)
-    p.add_argument("--threshold", type=float, default=0.5)
+    p.add_argument("--threshold", type=float, default=0.5,
+                   help="decision threshold when --target-recall is 0")
+    p.add_argument("--target-recall", type=float, default=0.95,
+                   help="operate at the highest threshold reaching this recall on the "
+                        "training validation split (0: use --threshold)")
     p.add_argument("--ensemble", type=int, default=5, help="TaxiNets in the ensemble baseline")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--executor", default="inline", help="local | inline | dask://HOST:PORT")
@@ -62,7 +66,8 @@ def evaluate_command(args):
         test=[parse_environment(t) for t in args.test], grid_shape=args.shape,
         dataset=DatasetSpec(samples=args.samples, seed=args.seed, height=height, width=width),
         detector=DetectorTrainConfig(detector=detector, epochs=args.epochs, seed=args.seed,
-                                     threshold=args.threshold, pretrained_path=args.pretrained),
+                                     threshold=args.threshold, target_recall=args.target_recall,
+                                     pretrained_path=args.pretrained),
         ensemble_seeds=list(range(1, args.ensemble + 1)) if args.ensemble >= 2 else [])
     executor, close = make_executor(args.executor)
     try:

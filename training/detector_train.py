@@ -23,6 +23,9 @@ class DetectorTrainConfig:
     validation_fraction: float = 0.2
     seed: int = 0
     threshold: float = 0.5
+    #: > 0: operate at the highest threshold whose recall on the validation split is at
+    #: least this (safety first: a missed anomaly costs more than a false alarm).
+    target_recall: float = 0.95
     pretrained_path: str = ""
     device: str = ""                        # "" = CUDA when present, else CPU
 
@@ -53,6 +56,31 @@ def detector_scores(model, config: DetectorConfig, images, *, batch_size=128, de
     return np.concatenate(out) if out else np.zeros(0)
 
 
+def _split(n, config, rng):
+    order = rng.permutation(n)
+    n_val = int(round(config.validation_fraction * n))
+    return np.sort(order[:n_val]), order[n_val:]
+
+
+def operating_threshold(model, datasets, config: DetectorTrainConfig, labels=None) -> float:
+    """The decision threshold: ``config.threshold``, or with ``target_recall > 0`` the
+    highest threshold reaching that recall on the training run's validation split
+    (re-drawn from the same seed)."""
+    if not config.target_recall:
+        return config.threshold
+    y = np.concatenate(labels if labels is not None else [d.labels for d in datasets])
+    val, _ = _split(len(y), config, np.random.default_rng(config.seed))
+    offsets = np.cumsum([0] + [len(d.labels) for d in datasets])
+    which = np.searchsorted(offsets, val, side="right") - 1
+    images = np.stack([datasets[w].images[r - offsets[w]] for w, r in zip(which, val)])
+    scores = detector_scores(model, config.detector, images, device=config.device)
+    positives = np.sort(scores[y[val] == 1])
+    if len(positives) == 0:
+        return config.threshold
+    k = int(np.floor((1.0 - config.target_recall) * len(positives)))
+    return float(positives[k])
+
+
 def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=None,
                    progress=None) -> dict:
     """Train on the concatenated ``datasets`` (`LabelledData`), with their BRT labels or
@@ -63,9 +91,7 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
     device = _device(config.device)
     y_all = np.concatenate(labels if labels is not None else [d.labels for d in datasets])
     y_all = torch.as_tensor(y_all.astype(np.int64))
-    order = rng.permutation(len(y_all))
-    n_val = int(round(config.validation_fraction * len(order)))
-    val, train = np.sort(order[:n_val]), order[n_val:]
+    val, train = _split(len(y_all), config, rng)
     model = build_detector(config.detector, config.pretrained_path).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
     loss_fn, losses = nn.CrossEntropyLoss(), []
@@ -82,9 +108,10 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
             total += loss.item() * len(rows)
         losses.append(total / max(1, len(train)))
     model.eval()
+    threshold = operating_threshold(model, datasets, config, labels)
     metadata = {"image_size": datasets[0].manifest["camera_size"],
                 "input_size": [config.detector.height, config.detector.width],
-                "threshold": config.threshold,
+                "threshold": threshold, "target_recall": config.target_recall,
                 "environments": [d.manifest["environment"] for d in datasets],
                 "samples": int(len(y_all)), "positives": int(y_all.sum()),
                 "epochs": config.epochs, "seed": config.seed, "train_losses": losses,
@@ -96,7 +123,7 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
             for x, _ in _batches(datasets, val, 128, config.detector, device):
                 scores.append(torch.softmax(model(x), 1)[:, 1].cpu().numpy())
         scores = np.concatenate(scores)
-        metadata["validation"] = binary_metrics(y_all[val].numpy(), scores >= config.threshold,
+        metadata["validation"] = binary_metrics(y_all[val].numpy(), scores >= threshold,
                                                 scores).row()
     save_checkpoint(out_path, kind="detector", model=model.cpu(), model_config=config.detector,
                     preprocess_config=None, metadata=metadata)

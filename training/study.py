@@ -20,7 +20,7 @@ from reachwatch.systems.files import atomic_write_bytes, cache_root
 
 from .baselines import prediction_error, prediction_error_labels
 from .dataset import DatasetSpec, build_dataset, load_dataset
-from .detector_train import DetectorTrainConfig, train_detector
+from .detector_train import DetectorTrainConfig, operating_threshold, train_detector
 from .evaluation import Detector, csv_table, evaluate_environment, markdown_table
 from .figures import plot_error_vs_margin, plot_overlay
 from .metrics import best_threshold
@@ -81,7 +81,8 @@ def run_study(base_scenario, config: StudyConfig, out, *, executor=None, progres
     if not path.exists():
         train_detector(train_data, config.detector, path, progress=progress)
     model, det_config, meta = load_detector(path)
-    detectors.append(Detector("detector (BRT labels)", model, det_config, config.detector.threshold))
+    threshold_brt = operating_threshold(model, train_data, config.detector)
+    detectors.append(Detector("detector (BRT labels)", model, det_config, threshold_brt))
     # Baseline (a) as training labels: the error threshold that best matches the BRT
     # labels on the training environments, then the same detector trained on them.
     errors = np.concatenate([prediction_error(d.states, d.estimates) for d in train_data])
@@ -92,7 +93,9 @@ def run_study(base_scenario, config: StudyConfig, out, *, executor=None, progres
                        labels=[prediction_error_labels(d, threshold) for d in train_data])
     model, det_config, _ = load_detector(path)
     detectors.append(Detector(f"detector (prediction-error labels, error > {threshold:.3f})",
-                              model, det_config, config.detector.threshold))
+                              model, det_config, operating_threshold(
+                                  model, train_data, config.detector,
+                                  [prediction_error_labels(d, threshold) for d in train_data])))
     rows, figures = [], out / "figures"
     for env in config.test:
         env_rows, scores = evaluate_environment(data[env.name], detectors,
@@ -108,5 +111,6 @@ def run_study(base_scenario, config: StudyConfig, out, *, executor=None, progres
                          title=f"{env.name}: {method[:40]}")
     atomic_write_bytes(out / "table2.md", markdown_table(rows).encode())
     atomic_write_bytes(out / "table2.csv", csv_table(rows).encode())
+    meta["operating_threshold"] = threshold_brt
     atomic_write_bytes(out / "detector_metadata.json", json.dumps(meta, indent=1).encode())
     return rows
