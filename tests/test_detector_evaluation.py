@@ -142,6 +142,9 @@ def test_study_end_to_end_tiny(tmp_path):
     assert any(m.startswith("ensemble of 2") for m in methods)
     assert all(r["environment"] == "KSFO_17h_clear" and r["n"] == 30 for r in rows)
     assert (tmp_path / "table2.md").read_text().count("KSFO_17h_clear") == len(rows)
+    import csv
+    parsed = list(csv.DictReader(open(tmp_path / "table2.csv")))
+    assert [r["method"] for r in parsed] == methods and parsed[0]["n"] == "30"
     assert (tmp_path / "figures" / "error_vs_margin_KSFO_17h_clear.png").exists()
     assert len(list((tmp_path / "figures").glob("overlay_*.png"))) == len(rows)
     mtime = (tmp_path / "detector.pt").stat().st_mtime

@@ -117,7 +117,7 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
                 "epochs": config.epochs, "seed": config.seed, "train_losses": losses,
                 "pretrained": bool(config.pretrained_path),
                 "train_seconds": round(time.time() - started, 1)}
-    if n_val:
+    if len(val):
         scores = []
         with torch.no_grad():
             for x, _ in _batches(datasets, val, 128, config.detector, device):

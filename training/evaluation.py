@@ -1,6 +1,7 @@
 """The paper's Table 2 and its baselines: per held-out environment, recall, accuracy,
 precision, F1 and AUROC of each method against the BRT labels."""
 
+import csv
 import dataclasses as dc
 import io
 
@@ -66,8 +67,10 @@ def markdown_table(rows) -> str:
 
 
 def csv_table(rows) -> str:
+    """Rows as CSV (rates as fractions; method names quoted when they hold commas)."""
     out = io.StringIO()
-    out.write(",".join(COLUMNS) + "\n")
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(COLUMNS)
     for r in rows:
-        out.write(",".join(str(r.get(k, "")) for k in COLUMNS) + "\n")
+        writer.writerow([r.get(k, "") for k in COLUMNS])
     return out.getvalue()
