@@ -66,5 +66,5 @@ def plot_guarded_run(nominal, guarded, *, half_width: float, path, title=""):
     ax.set_xlabel("downtrack py (m)")
     ax.set_ylabel("crosstrack px (m, left +)")
     ax.set_title(title, fontsize=9)
-    ax.legend(loc="upper right", fontsize=7)
+    ax.legend(loc="best", fontsize=7)
     return save_figure(fig, path)

@@ -147,6 +147,7 @@ def test_study_end_to_end_tiny(tmp_path):
     assert [r["method"] for r in parsed] == methods and parsed[0]["n"] == "30"
     assert (tmp_path / "figures" / "error_vs_margin_KSFO_17h_clear.png").exists()
     assert len(list((tmp_path / "figures").glob("overlay_*.png"))) == len(rows)
-    mtime = (tmp_path / "detector.pt").stat().st_mtime
+    (detector,) = tmp_path.glob("detector_??????????.pt")
+    mtime = detector.stat().st_mtime
     run_study(load_scenario(data=""), config, tmp_path)          # re-run reuses artifacts
-    assert (tmp_path / "detector.pt").stat().st_mtime == mtime
+    assert detector.stat().st_mtime == mtime

@@ -27,6 +27,9 @@ class DetectorTrainConfig:
     #: least this (safety first: a missed anomaly costs more than a false alarm).
     target_recall: float = 0.95
     pretrained_path: str = ""
+    #: Random per-image colour gains, brightness and contrast in training, so lighting
+    #: the training environments lack (e.g. a warm low sun) does not shift the scores.
+    augment: bool = True
     device: str = ""                        # "" = CUDA when present, else CPU
 
 
@@ -34,14 +37,31 @@ def _device(name):
     return torch.device(name or ("cuda" if torch.cuda.is_available() else "cpu"))
 
 
-def _batches(datasets, index, batch_size, config, device):
-    """Yield (inputs, dataset-local rows) for global ``index`` rows, in order."""
+def colour_jitter(x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """Per-image random channel gains (0.7-1.3), brightness (0.5-1.3) and contrast
+    (0.7-1.3) on normalised inputs (mean = std = 0.5 convention)."""
+    n = x.shape[0]
+    u = lambda lo, hi, *shape: lo + (hi - lo) * torch.rand(n, *shape, 1, 1,  # noqa: E731
+                                                             generator=generator)
+    img = x * 0.5 + 0.5
+    img = img * u(0.7, 1.3, 3) * u(0.5, 1.3, 1)
+    mean = img.mean(dim=(1, 2, 3), keepdim=True)
+    img = (img - mean) * u(0.7, 1.3, 1) + mean
+    return (img.clamp(0.0, 1.0) - 0.5) / 0.5
+
+
+def _batches(datasets, index, batch_size, config, device, generator=None):
+    """Yield (inputs, dataset-local rows) for global ``index`` rows, in order; with a
+    ``generator``, colour-jittered."""
     offsets = np.cumsum([0] + [len(d.labels) for d in datasets])
     for start in range(0, len(index), batch_size):
         rows = index[start:start + batch_size]
         which = np.searchsorted(offsets, rows, side="right") - 1
         images = np.stack([datasets[w].images[r - offsets[w]] for w, r in zip(which, rows)])
-        yield detector_input(torch.from_numpy(images), config).to(device), rows
+        x = detector_input(torch.from_numpy(images), config)
+        if generator is not None:
+            x = colour_jitter(x, generator)
+        yield x.to(device), rows
 
 
 @torch.no_grad()
@@ -92,6 +112,7 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
     y_all = np.concatenate(labels if labels is not None else [d.labels for d in datasets])
     y_all = torch.as_tensor(y_all.astype(np.int64))
     val, train = _split(len(y_all), config, rng)
+    jitter = torch.Generator().manual_seed(config.seed) if config.augment else None
     model = build_detector(config.detector, config.pretrained_path).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
     loss_fn, losses = nn.CrossEntropyLoss(), []
@@ -100,7 +121,8 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
         model.train()
         shuffled = train[rng.permutation(len(train))]
         total = 0.0
-        for x, rows in _batches(datasets, shuffled, config.batch_size, config.detector, device):
+        for x, rows in _batches(datasets, shuffled, config.batch_size, config.detector, device,
+                                jitter):
             optimizer.zero_grad()
             loss = loss_fn(model(x), y_all[rows].to(device))
             loss.backward()

@@ -6,6 +6,7 @@ when present, so a re-run skips finished work and an interrupted one resumes."""
 
 import copy
 import dataclasses as dc
+import hashlib
 import json
 from pathlib import Path
 from typing import List
@@ -77,7 +78,9 @@ def run_study(base_scenario, config: StudyConfig, out, *, executor=None, progres
                                                     config.dataset, ensemble=ensemble))
     train_data = [data[e.name] for e in config.train]
     detectors = []
-    path = out / "detector.pt"
+    tag = hashlib.sha256(json.dumps(dc.asdict(config.detector), sort_keys=True).encode()
+                         ).hexdigest()[:10]      # a changed training config retrains
+    path = out / f"detector_{tag}.pt"
     if not path.exists():
         train_detector(train_data, config.detector, path, progress=progress)
     model, det_config, meta = load_detector(path)
@@ -87,7 +90,7 @@ def run_study(base_scenario, config: StudyConfig, out, *, executor=None, progres
     # labels on the training environments, then the same detector trained on them.
     errors = np.concatenate([prediction_error(d.states, d.estimates) for d in train_data])
     threshold, _ = best_threshold(np.concatenate([d.labels for d in train_data]), errors)
-    path = out / "detector_prediction_error_labels.pt"
+    path = out / f"detector_prediction_error_labels_{tag}.pt"
     if not path.exists():
         train_detector(train_data, config.detector, path, progress=progress,
                        labels=[prediction_error_labels(d, threshold) for d in train_data])
