@@ -67,7 +67,6 @@ def make_world_diagram(scenario) -> Diagram:
         - state
         - color_image
     """
-    from .scenario import Scenario  # noqa: F401  (documentation of the argument type)
     builder = DiagramBuilder()
     world = add_world(builder, environment=scenario.environment, camera=scenario.camera,
                       shadows=scenario.shadows,

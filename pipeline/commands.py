@@ -12,7 +12,8 @@ from reachwatch.diagrams.contact_sheet import contact_sheet
 from reachwatch.systems.files import atomic_write_bytes
 
 
-def _scenario(args) -> Scenario:
+def scenario_from_args(args) -> Scenario:
+    """The ``--scenario`` file, or the built-in defaults when none is given."""
     return load_scenario(args.scenario) if args.scenario else Scenario().validate()
 
 
@@ -25,7 +26,7 @@ def write_png(path, rgb: np.ndarray) -> Path:
 
 
 def render(args):
-    scenario = _scenario(args)
+    scenario = scenario_from_args(args)
     out = Path(args.out)
     state = initial_state_vector(scenario.initial_state)
     if args.contact_sheet:
@@ -39,7 +40,7 @@ def render(args):
 
 
 def graph(args):
-    scenario = _scenario(args)
+    scenario = scenario_from_args(args)
     diagram = make_world_diagram(scenario)
     for path in export_graph(diagram, Path(args.out) / "world", max_depth=args.max_depth):
         print(path)

@@ -4,13 +4,13 @@ import dataclasses as dc
 
 from tqdm import tqdm
 
-from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.systems import DetectorConfig, Environment, test_environments, training_environments
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.evaluation import markdown_table
 from reachwatch.training.study import StudyConfig, run_study
 
+from .commands import scenario_from_args
 from .executors import make_executor
 
 
@@ -58,7 +58,7 @@ def add_parsers(sub):
 
 
 def evaluate_command(args):
-    base = load_scenario(args.scenario) if args.scenario else Scenario().validate()
+    base = scenario_from_args(args)
     height, width = args.input_size
     detector = DetectorConfig(arch=args.arch, height=height, width=width)
     config = StudyConfig(

@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.reach import (ACCURACIES, Grid, drake_agreement, min_target_along_rollouts,
                               sign_agreement, solve_brt, sweep_closed_loop, taxi_dynamics)
 from reachwatch.reach.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 
+from .commands import scenario_from_args
 from .executors import make_executor
 
 
@@ -45,7 +45,7 @@ def add_parsers(sub):
 
 
 def _sweep(args):
-    scenario = load_scenario(args.scenario) if args.scenario else Scenario().validate()
+    scenario = scenario_from_args(args)
     grid = Grid.paper(scenario.environment.half_width, tuple(args.shape))
     executor, close = make_executor(args.executor)
     started = time.time()

@@ -7,17 +7,15 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from reachwatch.diagrams import (REFERENCE_TAXINET, Scenario, initial_state_vector,
-                                 load_scenario, make_closed_loop_diagram, simulate)
+from reachwatch.diagrams import (REFERENCE_TAXINET, initial_state_vector,
+                                 make_closed_loop_diagram, simulate)
 from reachwatch.diagrams.plots import plot_runway_top_view
 from reachwatch.systems import SKIES, RUNWAYS, Environment
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.taxinet_eval import evaluate_taxinet, format_reports
 from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet
 
-
-def _scenario(args) -> Scenario:
-    return load_scenario(args.scenario) if args.scenario else Scenario().validate()
+from .commands import scenario_from_args
 
 
 def add_parsers(sub):
@@ -71,7 +69,7 @@ def train_command(args):
 
 
 def evaluate_command(args):
-    base = _scenario(args)
+    base = scenario_from_args(args)
     environments = [Environment(r, h, s) for r in args.runways for h in args.hours for s in SKIES]
     reports = evaluate_taxinet(base, environments, checkpoint=args.checkpoint,
                                samples=args.samples, starts=args.starts, seed=args.seed,
@@ -83,7 +81,7 @@ def evaluate_command(args):
 
 
 def simulate_command(args):
-    scenario = _scenario(args)
+    scenario = scenario_from_args(args)
     out = Path(args.out)
     if args.pipeline == "guarded":
         from .guard_commands import simulate_guarded
