@@ -22,11 +22,8 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 demo: $(STAMP)
-	@echo "make demo: for now this renders the environment contact sheet and the diagram graph;"
-	@echo "the offline + online pipeline joins it as the reachability and detector stages land."
-	$(BIN)/reachwatch render --contact-sheet --out $(OUT)
-	$(BIN)/reachwatch graph --out $(OUT)
-	@echo "demo outputs in $(OUT)/"
+	$(BIN)/reachwatch run --scenario scenarios/demo.yaml --out $(OUT)
+	@echo "open $(OUT)/report.html (or read $(OUT)/report.md)"
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/render.py

@@ -137,8 +137,9 @@ def _check(value, schema, path):
                             f"{type(value).__name__} {value!r}")
 
 
-def load_scenario(filename=None, *, data=None, schema=Scenario):
-    """Load and validate a scenario (``schema`` instance) from a YAML file or string."""
+def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario"):
+    """Load and validate a scenario (``schema`` instance) from a YAML file or string;
+    errors name fields as ``root.field.subfield``."""
     where = str(filename) if filename is not None else "<yaml>"
     if filename is not None:
         if not Path(filename).is_file():
@@ -148,7 +149,7 @@ def load_scenario(filename=None, *, data=None, schema=Scenario):
         raw = yaml_load_data(data) if data.strip() else {}
     except Exception as e:  # PyYAML's or Drake's parser error
         raise ScenarioError(f"{where}: not valid YAML: {e}") from None
-    _check(raw if raw is not None else {}, schema, "scenario")
+    _check(raw if raw is not None else {}, schema, root)
     scenario = yaml_load_typed(schema=schema, data=data) if raw else schema()
     try:
         return scenario.validate()

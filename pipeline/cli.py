@@ -3,7 +3,7 @@
 import argparse
 import sys
 
-from . import commands, evaluate_commands, guard_commands, reach_commands, taxinet_commands
+from . import commands, evaluate_commands, guard_commands, reach_commands, run, taxinet_commands
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -33,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     reach_commands.add_parsers(sub)
     evaluate_commands.add_parsers(sub)
     guard_commands.add_parsers(sub)
+    run.add_parsers(sub)
     return parser
 
 

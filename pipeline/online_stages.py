@@ -1,0 +1,177 @@
+"""The online stages of ``reachwatch run``: guard (the safety pipeline's failure
+sets, a real nominal-vs-guarded run, the online rate) and incremental (TaxiNet
+fine-tuned on mined anomalies, the held-out BRT recomputed)."""
+
+import time
+
+import numpy as np
+from scipy.ndimage import uniform_filter
+
+from reachwatch.diagrams import (file_hash, initial_state_vector, load_taxinet,
+                                 make_closed_loop_diagram, make_guarded_diagram, simulate)
+from reachwatch.diagrams.plots import plot_runway_top_view
+from reachwatch.diagrams.scenario import InitialState
+from reachwatch.reach import ValueFunction, pipeline_failures, resolved, sweep_guarded, taxi_dynamics
+from reachwatch.reach.plots import plot_brt_slices
+from reachwatch.training.incremental import fine_tune_taxinet, mine_anomalies
+
+from .guard_commands import simulate_guarded
+from .spec import digest
+from .stages import Run, solve_env, sweep_env
+
+
+def robust_starts(mask, grid, limit):
+    """Up to ``limit`` node indices where ``mask`` holds, those whose 3x3x3
+    neighbourhood agrees most first (ties: nearest the centreline)."""
+    mask = mask.reshape(grid.shape)
+    support = uniform_filter(mask.astype(float), size=3, mode="nearest").ravel()
+    index = np.flatnonzero(mask.ravel())
+    px = np.abs(grid.states(index)[:, 0])
+    return index[np.lexsort((px, -support[index]))][:limit]
+
+
+def _state(x):
+    return InitialState(px=float(x[0]), py=float(x[1]), theta_deg=float(np.rad2deg(x[2])))
+
+
+def ticks_per_second(diagram, seconds, x0=(0.0, 110.0, 0.0), runs=2):
+    """Closed-loop control ticks per wall second (best of ``runs``)."""
+    context, best = diagram.CreateDefaultContext(), 0.0
+    for _ in range(runs):
+        started = time.perf_counter()
+        trajectory = simulate(diagram, initial_state=x0, duration=seconds, half_width=1e9,
+                              context=context)
+        best = max(best, (len(trajectory.time) - 1) / (time.perf_counter() - started))
+    return best
+
+
+def guard_environment(run: Run, env) -> dict:
+    spec, trained = run.spec, run.outputs["train"]
+    scenario = run.scenario_for(env)
+    scenario.pipeline.detector = str(run.path(trained["detector"]))
+    scenario.pipeline.threshold = float(trained["threshold"])
+    scenario.duration = spec.horizon
+    scenario = resolved(scenario)
+    grid = run.grid_for(env)
+    tables = sweep_guarded(scenario, grid, cache_dir=run.path("sweeps"), executor=run.executor,
+                           progress=run.progress)
+    kw = dict(horizon=spec.horizon, period=scenario.controller.period)
+    dynamics, steering = taxi_dynamics(scenario), tables["p_controller.steering_angle"]
+    failures = {"TaxiNet alone": pipeline_failures(grid, dynamics, steering, None, **kw)[0]}
+    for strategy in spec.guard.strategies:
+        failures[strategy] = pipeline_failures(
+            grid, dynamics, steering, tables["anomaly_detector.score"],
+            threshold=scenario.pipeline.threshold, strategy=strategy,
+            brake_deceleration=scenario.pipeline.brake_deceleration, **kw)[0]
+    volumes = {k: float(v.mean()) for k, v in failures.items()}
+    sets = {k: ValueFunction(grid, np.where(v.reshape(grid.shape), -1.0, 1.0), spec.horizon,
+                             "rollouts") for k, v in failures.items()}
+    slices = plot_brt_slices(sets, py=spec.slice_py, half_width=env.half_width,
+                             path=run.path(f"figures/guard_{env.name}.png"),
+                             title=f"{env.name}: failing start states (grey), detector at "
+                                   f"threshold {scenario.pipeline.threshold:.3g}")
+    # A start the tables say the guard saves, checked in the real Drake loops.
+    best = min(spec.guard.strategies, key=lambda s: volumes[s]) if spec.guard.strategies else None
+    tried, chosen = [], None
+    if best is not None:
+        scenario.pipeline.strategy = best
+        nominal_diagram, guarded_diagram = (make_closed_loop_diagram(scenario),
+                                            make_guarded_diagram(scenario))
+        contexts = [d.CreateDefaultContext() for d in (nominal_diagram, guarded_diagram)]
+        for node in robust_starts(failures["TaxiNet alone"] & ~failures[best], grid,
+                                  spec.guard.candidates):
+            x0 = grid.states([node])[0]
+            runs = [simulate(d, initial_state=x0, duration=spec.horizon,
+                             half_width=env.half_width, context=c)
+                    for d, c in zip((nominal_diagram, guarded_diagram), contexts)]
+            tried.append({"start": [float(v) for v in x0], "nominal_fails": runs[0].failed,
+                          "guarded_fails": runs[1].failed})
+            if runs[0].failed and not runs[1].failed:
+                chosen = x0
+                break
+    run_record = {"strategy": best, "tried": tried, "confirmed": chosen is not None}
+    if tried:
+        scenario.initial_state = _state(chosen if chosen is not None else tried[0]["start"])
+        nominal, guarded, paths = simulate_guarded(scenario, run.path("figures"),
+                                                   meshcat_html=spec.guard.meshcat_html)
+        run_record.update(start=[float(v) for v in initial_state_vector(scenario.initial_state)],
+                          nominal_fails=nominal.failed, guarded_fails=guarded.failed,
+                          lowest_speed=float(np.min(guarded.speed)),
+                          flagged_ticks=int(np.sum(np.asarray(guarded.anomaly) >= 0.5)),
+                          files=[run.rel(p) for p in paths])
+    alone = guarded_rate = 0.0
+    nominal_diagram, guarded_diagram = (make_closed_loop_diagram(scenario),
+                                        make_guarded_diagram(scenario))
+    for _ in range(2):                       # interleaved, best of each: the VM is noisy
+        alone = max(alone, ticks_per_second(nominal_diagram, spec.guard.online_seconds))
+        guarded_rate = max(guarded_rate, ticks_per_second(guarded_diagram,
+                                                          spec.guard.online_seconds))
+    return {"threshold": scenario.pipeline.threshold, "volumes": volumes,
+            "figure": run.rel(slices), "run": run_record,
+            "online": {"alone_ticks_per_s": alone, "guarded_ticks_per_s": guarded_rate,
+                       "ratio": guarded_rate / alone,
+                       "image": [scenario.camera.height, scenario.camera.width]}}
+
+
+def stage_guard(run: Run) -> dict:
+    out = {}
+    for env in run.spec.guard_environments():
+        key = digest(run.outputs["train"], run.records[f"solve_{env.name}"]["key"],
+                     run.spec.guard, run.spec.scenario.pipeline, run.spec.horizon)
+        out[env.name] = run.stage(f"guard_{env.name}", key,
+                                  lambda env=env: guard_environment(run, env))
+    return out
+
+
+def incremental(run: Run) -> dict:
+    spec, config = run.spec, run.spec.incremental
+    env = config.environment
+    progress = (lambda it, **kw: __import__("tqdm").tqdm(it, **kw)) if run.progress else None
+    mined = mine_anomalies(list(zip(spec.train, run.datasets(spec.train))), config.anomalies,
+                           np.random.default_rng(config.seed))
+    base = resolved(run.scenario_for(env)).controller.checkpoint
+    path = run.path(f"incremental/taxinet_{digest(config, run.outputs['dataset'], file_hash(base))}.pt")
+    if not path.exists():
+        fine_tune_taxinet(base, mined, config, spec.scenario.camera, path, progress=progress)
+    meta = load_taxinet(path)[2]
+    after = {**sweep_env(run, env, checkpoint=path),
+             **solve_env(run, env, checkpoint=path, label=" fine-tuned")}
+    before_vf, after_vf = run.value_function(env.name), ValueFunction.load(run.path(after["value"]))
+    grid = before_vf.grid
+    saved = (before_vf.values.ravel() <= 0) & (after_vf.values.ravel() > 0)
+    star = grid.states(robust_starts(saved, grid, 1))
+    figure = plot_brt_slices({"vanilla TaxiNet": before_vf, "fine-tuned TaxiNet": after_vf},
+                             py=spec.slice_py, half_width=env.half_width,
+                             path=run.path(f"figures/incremental_{env.name}.png"),
+                             points=[("start (saved by fine-tuning)", star, "m*")] if len(star)
+                             else None)
+    result = {"environment": env.name, "checkpoint": run.rel(path),
+              "before": run.outputs["solve"][env.name]["brt_fraction"],
+              "after": after["brt_fraction"], "after_record": after, "figure": run.rel(figure),
+              "fine_tune": {k: meta.get(k) for k in ("mined_states", "replayed_states",
+                                                      "mined_per_environment",
+                                                      "mined_error_before", "mined_error_after",
+                                                      "fine_tune_seconds")}}
+    if len(star):
+        trajectories = []
+        for label, checkpoint in (("vanilla TaxiNet", base), ("fine-tuned TaxiNet", path)):
+            scenario = run.scenario_for(env, checkpoint)
+            t = simulate(make_closed_loop_diagram(scenario), initial_state=star[0],
+                         duration=spec.horizon, half_width=env.half_width)
+            trajectories.append((t, f"{label}{' (fails)' if t.failed else ''}"))
+        result["star"] = {"start": [float(v) for v in star[0]],
+                          "vanilla_fails": trajectories[0][0].failed,
+                          "fine_tuned_fails": trajectories[1][0].failed,
+                          "figure": run.rel(plot_runway_top_view(
+                              trajectories, half_width=env.half_width,
+                              path=run.path(f"figures/incremental_run_{env.name}.png"),
+                              title=f"{env.name}: from the starred start"))}
+    return result
+
+
+def stage_incremental(run: Run) -> dict:
+    config = run.spec.incremental
+    if not config.enabled:
+        return {}
+    key = digest(config, run.outputs["dataset"], run.records[f"solve_{config.environment.name}"]["key"])
+    return run.stage("incremental", key, lambda: incremental(run))

@@ -1,0 +1,193 @@
+"""The run report: one static HTML page (``report.html``) and the same tables as
+Markdown (``report.md``), built from the stage records; figures are linked by
+relative path, so the run directory can be moved or served as it is."""
+
+import html
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from reachwatch.diagrams import StateRenderer, export_graph, make_closed_loop_diagram, make_guarded_diagram
+from reachwatch.systems.files import atomic_write_bytes
+from reachwatch.training.evaluation import COLUMNS, _fmt
+
+from .stages import Run
+
+CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;
+color:#222}h1{border-bottom:2px solid #444}h2{margin-top:2em;border-bottom:1px solid #ccc}
+table{border-collapse:collapse;font-size:13px;margin:.5em 0}td,th{border:1px solid #ccc;
+padding:3px 7px;text-align:right}th{background:#f0f0f0}td:first-child,td:nth-child(2){
+text-align:left}img{max-width:100%;border:1px solid #ddd;margin:4px 0}.row{display:flex;
+flex-wrap:wrap;gap:8px}.row img{max-width:48%}pre{background:#f6f6f6;padding:1em;
+overflow:auto;font-size:12px}.note{color:#555;font-size:13px}"""
+
+
+class Page:
+    """HTML and Markdown written side by side."""
+
+    def __init__(self, title):
+        self.html = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>"
+                     f"{html.escape(title)}</title><style>{CSS}</style></head><body>",
+                     f"<h1>{html.escape(title)}</h1>"]
+        self.md = [f"# {title}\n"]
+
+    def section(self, title, anchor):
+        self.html.append(f"<h2 id='{anchor}'>{html.escape(title)}</h2>")
+        self.md.append(f"\n## {title}\n")
+
+    def text(self, text):
+        self.html.append(f"<p class='note'>{html.escape(text)}</p>")
+        self.md.append(f"{text}\n")
+
+    def table(self, header, rows):
+        cells = lambda r, t: "".join(f"<{t}>{html.escape(str(c))}</{t}>" for c in r)  # noqa: E731
+        self.html.append("<table><tr>" + cells(header, "th") + "</tr>" +
+                         "".join("<tr>" + cells(r, "td") + "</tr>" for r in rows) + "</table>")
+        self.md.append("| " + " | ".join(map(str, header)) + " |\n|" + "---|" * len(header) +
+                       "\n" + "".join("| " + " | ".join(map(str, r)) + " |\n" for r in rows))
+
+    def images(self, paths, caption="", wide=False):
+        paths = [p for p in paths if p]
+        self.html.append(("<div>" if wide else "<div class='row'>") + "".join(
+            f"<a href='{html.escape(p)}'><img src='{html.escape(p)}' alt='{html.escape(p)}'></a>"
+            for p in paths) + "</div>")
+        self.md.append("".join(f"![{caption or p}]({p})\n" for p in paths))
+
+    def link(self, path, text):
+        self.html.append(f"<p><a href='{html.escape(path)}'>{html.escape(text)}</a></p>")
+        self.md.append(f"[{text}]({path})\n")
+
+    def pre(self, text):
+        self.html.append(f"<pre>{html.escape(text)}</pre>")
+        self.md.append(f"```yaml\n{text}```\n")
+
+    def done(self):
+        return "\n".join(self.html) + "</body></html>\n", "\n".join(self.md)
+
+
+def environment_sheet(run: Run, path, state=(0.0, 150.0, 0.0), per_row=4):
+    """The wing-camera view of each environment of the run, captioned, in one PNG."""
+    tiles = []
+    for env in run.environments():
+        tile = np.ascontiguousarray(StateRenderer(environment=env, camera=run.spec.scenario.camera)
+                                    .render(state))
+        cv2.putText(tile, env.name, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 0, 255), 1,
+                    cv2.LINE_AA)
+        tiles.append(tile)
+    tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % per_row)
+    sheet = np.vstack([np.hstack(tiles[i:i + per_row]) for i in range(0, len(tiles), per_row)])
+    ok, data = cv2.imencode(".png", sheet[..., ::-1])
+    return atomic_write_bytes(path, data.tobytes())
+
+
+def _pct(x):
+    return f"{100 * x:.2f}" if x is not None else "-"
+
+
+def graphs(run: Run):
+    """SVG/PNG (or only .dot without graphviz) of the nominal and guarded diagrams."""
+    scenario = run.scenario_for(run.spec.test[0])
+    scenario.pipeline.detector = str(run.path(run.outputs["train"]["detector"]))
+    out = {}
+    for name, diagram in (("closed_loop", make_closed_loop_diagram(scenario)),
+                          ("guarded", make_guarded_diagram(scenario))):
+        written = export_graph(diagram, run.path(f"figures/diagram_{name}"), formats=("dot", "svg"))
+        out[name] = run.rel(written[-1])
+    return out
+
+
+def write_report(run: Run) -> dict:
+    """Write ``report.html`` and ``report.md``; returns their paths (relative)."""
+    spec, o = run.spec, run.outputs
+    page = Page(f"reachwatch run '{spec.name}'")
+    page.text("Stage records (OUT/stages/*.json); a re-run skips a stage whose key is "
+              "unchanged, and keeps the time of the run that produced it.")
+    page.table(["stage", "key", "seconds", "finished"],
+               [[n, r["key"], f"{r['seconds']:.1f}", r["finished"]] for n, r in run.records.items()])
+    page.section("Environments", "environments")
+    sheet = environment_sheet(run, run.path("figures/environments.png"))
+    page.text("Training: " + ", ".join(e.name for e in spec.train) + ". Held out: " +
+              ", ".join(e.name for e in spec.test) + ".")
+    page.images([run.rel(sheet)])
+    page.section("Diagrams", "diagrams")
+    for name, path in graphs(run).items():
+        if path.endswith(".dot"):
+            page.link(path, f"{name} diagram (Graphviz .dot; install graphviz for SVG)")
+        else:
+            page.images([path], f"{name} diagram", wide=True)
+    page.section("Backward reachable tubes", "brts")
+    page.text(f"Grid {spec.grid} over the paper's box, horizon {spec.horizon:g} s, solver "
+              f"{spec.accuracy}; agreement = sign agreement with RK4 rollouts of the swept "
+              f"loop from every node; slices at py = {spec.slice_py:g} m.")
+    roles = {**{e.name: "test" for e in spec.test}, **{e.name: "train" for e in spec.train}}
+    page.table(["environment", "role", "states", "BRT %", "rollout agreement %", "sweep s",
+                "states/s", "solve s"],
+               [[n, roles.get(n, "extra"), r["states"], _pct(r["brt_fraction"]),
+                 _pct(r["rollout_agreement"]), r["sweep_seconds"],
+                 f"{r['states'] / max(r['sweep_seconds'], 1e-9):.0f}", r["solve_seconds"]]
+                for n, r in o["solve"].items()])
+    page.images([r["figure"] for r in o["solve"].values()])
+    page.section("BRT labels and the detector", "labels")
+    page.text(f"{spec.dataset.samples} uniform states per environment, labelled anomalous "
+              f"iff V(x) <= 0; positives per environment: " + ", ".join(
+                  f"{n} {_pct(p)}%" for n, p in o["dataset"]["positives"].items()) +
+              f". Detector {spec.detector.detector.arch} "
+              f"{spec.detector.detector.height}x{spec.detector.detector.width}, "
+              f"{spec.detector.epochs} epochs, operating threshold "
+              f"{o['train']['threshold']:.3g} (target recall {spec.detector.target_recall}).")
+    page.images([f["overlay"] for f in o["evaluate"]["figures"].values()])
+    page.section("Table 2: detector and baselines on held-out environments", "table2")
+    page.table(COLUMNS, [[_fmt(r.get(k), k) for k in COLUMNS] for r in o["evaluate"]["rows"]])
+    page.link("table2.csv", "table2.csv")
+    page.section("Failure modes: error rate against distance to the BRT boundary", "margin")
+    page.images([f["error_vs_margin"] for f in o["evaluate"]["figures"].values()])
+    page.section("Safety pipeline", "guard")
+    for env, g in o["guard"].items():
+        page.text(f"{env}: fraction of grid starts that leave the runway within "
+                  f"{spec.horizon:g} s (detector threshold {g['threshold']:.3g}).")
+        page.table(["closed loop", "failure set %"], [[k, _pct(v)] for k, v in g["volumes"].items()])
+        page.images([g["figure"]])
+        r = g["run"]
+        if not r.get("files"):
+            page.text("No grid start where the tables say TaxiNet alone fails and the "
+                      "guarded loop survives, so no nominal-vs-guarded run to show.")
+        else:
+            verdict = ("confirmed in the real Drake loops" if r["confirmed"] else
+                       "NOT confirmed in the real Drake loops (the tables are coarse)")
+            page.text(f"Nominal vs guarded ({r['strategy']}) from the start {np.round(r['start'], 2)} "
+                      f"[px m, py m, theta rad], chosen from the tables ({len(r['tried'])} "
+                      f"tried), {verdict}: TaxiNet alone "
+                      f"{'fails' if r['nominal_fails'] else 'stays on'}, guarded "
+                      f"{'fails' if r['guarded_fails'] else 'stays on'}; lowest speed "
+                      f"{r['lowest_speed']:.2f} m/s, {r['flagged_ticks']} flagged ticks.")
+            page.images([p for p in r["files"] if p.endswith(".png")])
+            for p in r["files"]:
+                if p.endswith(".html"):
+                    page.link(p, "Meshcat replay of the guarded run (standalone HTML)")
+    if o.get("incremental"):
+        inc = o["incremental"]
+        page.section("Incremental training", "incremental")
+        page.text(f"TaxiNet fine-tuned on {inc['fine_tune']['mined_states']} anomalous "
+                  f"on-runway states mined from the training datasets plus "
+                  f"{inc['fine_tune']['replayed_states']} nominal frames; BRT of {inc['environment']} "
+                  f"(held out): {_pct(inc['before'])}% before, {_pct(inc['after'])}% after.")
+        page.images([inc["figure"], inc.get("star", {}).get("figure")])
+    page.section("Benchmarks measured in this run", "benchmarks")
+    rows = [[f"sweep {n}", f"{r['states'] / max(r['sweep_seconds'], 1e-9):.0f} states/s"]
+            for n, r in o["solve"].items() if r["sweep_seconds"] > 0]
+    for env, g in o["guard"].items():
+        on = g["online"]
+        rows.append([f"online {env} {on['image'][0]}x{on['image'][1]}",
+                     f"alone {on['alone_ticks_per_s']:.1f} ticks/s, guarded "
+                     f"{on['guarded_ticks_per_s']:.1f} ticks/s, ratio {on['ratio']:.2f}"])
+    page.table(["what", "figure"], rows)
+    page.section("Configuration", "configuration")
+    page.pre((run.root / "run.yaml").read_text())
+    text_html, text_md = page.done()
+    return {"html": run.rel(atomic_write_bytes(run.path("report.html"), text_html.encode())),
+            "md": run.rel(atomic_write_bytes(run.path("report.md"), text_md.encode()))}
+
+
+def report_path(root) -> Path:
+    return Path(root) / "report.html"

@@ -1,0 +1,73 @@
+"""``reachwatch run``: scenario file to report in one command.
+
+Stages run in order sweep -> solve -> dataset -> train -> evaluate -> guard ->
+incremental -> report; each is skipped when its record in ``OUT/stages/`` has the
+same key (a digest of its inputs), and resumes its chunked work when it was killed."""
+
+import time
+
+from tqdm import tqdm
+
+from .executors import make_executor
+from .online_stages import stage_guard, stage_incremental
+from .report import write_report
+from .spec import RunSpec, digest, load_run_spec
+from .stages import Run, stage_dataset, stage_evaluate, stage_solve, stage_sweep, stage_train
+
+STAGES = ("sweep", "solve", "dataset", "train", "evaluate", "guard", "incremental", "report")
+REPORT_FORMAT = 1
+
+
+def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=True,
+                 log=print) -> Run:
+    """Run (or resume) every stage up to ``until``; returns the `Run` with its records."""
+    if until not in STAGES:
+        raise ValueError(f"until must be one of {STAGES}, got '{until}'")
+    spec.validate()
+    run = Run(spec, out, executor=executor, progress=progress, log=log)
+    steps = {
+        "sweep": lambda: stage_sweep(run),
+        "solve": lambda: stage_solve(run),
+        "dataset": lambda: run.stage("dataset", digest(
+            {n: r["value"] for n, r in run.outputs["solve"].items()}, spec.dataset,
+            spec.ensemble, spec.scenario.camera), lambda: stage_dataset(run)),
+        "train": lambda: run.stage("train", digest(run.outputs["dataset"], spec.detector),
+                                   lambda: stage_train(run)),
+        "evaluate": lambda: run.stage("evaluate", digest(run.outputs["train"], spec.slice_py),
+                                      lambda: stage_evaluate(run)),
+        "guard": lambda: stage_guard(run),
+        "incremental": lambda: stage_incremental(run),
+        "report": lambda: run.stage("report", digest(
+            REPORT_FORMAT, {k: r["key"] for k, r in run.records.items()}),
+            lambda: write_report(run)),
+    }
+    for name in STAGES[:STAGES.index(until) + 1]:
+        run.outputs[name] = steps[name]()
+    return run
+
+
+def add_parsers(sub):
+    p = sub.add_parser("run", help="the whole study from a run file: sweeps, BRTs, labelled "
+                       "datasets, detector, Table 2, safety pipeline, incremental training, "
+                       "report (re-runs skip finished stages; killed runs resume)")
+    p.add_argument("--scenario", required=True, help="run file (e.g. scenarios/demo.yaml)")
+    p.add_argument("--out", required=True, help="run directory (reused)")
+    p.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT "
+                   "(a Dask cluster must see the run directory at the same path)")
+    p.add_argument("--until", choices=STAGES, default="report", help="last stage to run")
+    p.set_defaults(func=run_command)
+
+
+def run_command(args):
+    spec = load_run_spec(args.scenario)
+    started = time.time()
+    executor, close = make_executor(args.executor)
+    try:
+        run = run_pipeline(spec, args.out, executor=executor, until=args.until,
+                           log=lambda m: tqdm.write(f"{time.time() - started:7.1f} s  {m}"))
+    finally:
+        close()
+    print(f"run '{spec.name}' up to {args.until} finished in {time.time() - started:.0f} s")
+    if "report" in run.outputs and run.outputs["report"]:
+        print(f"report: {run.path(run.outputs['report']['html'])} "
+              f"(and {run.path(run.outputs['report']['md'])})")

@@ -1,0 +1,115 @@
+"""`RunSpec`: everything ``reachwatch run`` does, as one YAML file (loaded with
+`pydrake.common.yaml`; an unknown or mistyped field is reported by its full path,
+e.g. ``run.detector.epoch: unknown field``)."""
+
+import dataclasses as dc
+import hashlib
+import json
+from typing import List
+
+from reachwatch.diagrams import Scenario, load_scenario
+from reachwatch.diagrams.scenario import dump_scenario
+from reachwatch.reach import ACCURACIES
+from reachwatch.systems import STRATEGIES, Environment
+from reachwatch.training.dataset import DatasetSpec
+from reachwatch.training.detector_train import DetectorTrainConfig
+from reachwatch.training.incremental import IncrementalConfig
+
+
+@dc.dataclass
+class EnsembleSpec:
+    """The ensemble-variance baseline: TaxiNets differing only in their seed."""
+    seeds: List[int] = dc.field(default_factory=lambda: [1, 2, 3, 4, 5])
+    samples: int = 4000
+    epochs: int = 400
+
+
+@dc.dataclass
+class GuardSpec:
+    """The safety pipeline on held-out environments (default: the first test one):
+    failure sets per strategy, a nominal-vs-guarded run, the online rate."""
+    environments: List[Environment] = dc.field(default_factory=list)
+    strategies: List[str] = dc.field(default_factory=lambda: list(STRATEGIES))
+    candidates: int = 5            # table-chosen starts tried in the real Drake loop
+    online_seconds: float = 2.0    # simulated seconds per online-rate measurement
+    meshcat_html: bool = True
+
+
+@dc.dataclass
+class RunSpec:
+    """A whole study. ``scenario`` holds camera, controller and fallback settings
+    (its environment and start are ignored); grids are ``[n_px, n_py, n_theta]``
+    over the paper's box; ``horizon`` s."""
+    name: str = "run"
+    scenario: Scenario = dc.field(default_factory=Scenario)
+    train: List[Environment] = dc.field(default_factory=list)
+    test: List[Environment] = dc.field(default_factory=list)
+    grid: List[int] = dc.field(default_factory=lambda: [21, 11, 21])
+    horizon: float = 8.0
+    accuracy: str = "semi_lagrangian"
+    slice_py: float = 175.0
+    dataset: DatasetSpec = dc.field(default_factory=DatasetSpec)
+    detector: DetectorTrainConfig = dc.field(default_factory=DetectorTrainConfig)
+    ensemble: EnsembleSpec = dc.field(default_factory=EnsembleSpec)
+    guard: GuardSpec = dc.field(default_factory=GuardSpec)
+    incremental: IncrementalConfig = dc.field(default_factory=IncrementalConfig)
+
+    def validate(self):
+        """Raise ValueError naming the first bad field; return self."""
+        self.scenario.validate()
+        if not self.train:
+            raise ValueError("train: list at least one training environment")
+        if not self.test:
+            raise ValueError("test: list at least one held-out environment")
+        for where in ("train", "test"):
+            for i, env in enumerate(getattr(self, where)):
+                try:
+                    env.validate()
+                except ValueError as e:
+                    raise ValueError(f"{where}[{i}]: {e}") from None
+        names = [e.name for e in self.train + self.test]
+        if len(set(names)) != len(names):
+            raise ValueError(f"train/test: an environment is listed twice: {names}")
+        if len(self.grid) != 3 or min(self.grid) < 3:
+            raise ValueError(f"grid must be 3 sizes [n_px, n_py, n_theta], each >= 3, "
+                             f"got {self.grid}")
+        if not self.horizon > 0:
+            raise ValueError(f"horizon must be > 0 s, got {self.horizon}")
+        if self.accuracy not in ACCURACIES:
+            raise ValueError(f"accuracy must be one of {sorted(ACCURACIES)}, got "
+                             f"'{self.accuracy}'")
+        if self.dataset.samples < 10:
+            raise ValueError(f"dataset.samples must be >= 10, got {self.dataset.samples}")
+        if [self.dataset.height, self.dataset.width] != [self.detector.detector.height,
+                                                         self.detector.detector.width]:
+            raise ValueError(f"dataset image size {[self.dataset.height, self.dataset.width]} "
+                             f"must equal the detector input size "
+                             f"{[self.detector.detector.height, self.detector.detector.width]}")
+        if len(self.ensemble.seeds) == 1:
+            raise ValueError("ensemble.seeds: an ensemble needs >= 2 seeds (or [] for none)")
+        for i, s in enumerate(self.guard.strategies):
+            if s not in STRATEGIES:
+                raise ValueError(f"guard.strategies[{i}]: '{s}' is not one of {STRATEGIES}")
+        for i, env in enumerate(self.guard.environments):
+            env.validate()
+        self.incremental.validate()
+        return self
+
+    def guard_environments(self) -> List[Environment]:
+        return self.guard.environments or self.test[:1]
+
+
+def load_run_spec(filename=None, *, data=None) -> RunSpec:
+    """Load and validate a run specification (YAML file or string)."""
+    return load_scenario(filename, data=data, schema=RunSpec, root="run")
+
+
+def dump_run_spec(spec: RunSpec) -> str:
+    return dump_scenario(spec)
+
+
+def digest(*parts) -> str:
+    """A short content key of JSON-able parts (dataclasses are expanded)."""
+    plain = [dc.asdict(p) if dc.is_dataclass(p) else p for p in parts]
+    return hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()
+                          ).hexdigest()[:16]

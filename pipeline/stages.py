@@ -1,0 +1,249 @@
+"""The offline stages of ``reachwatch run``: sweep -> solve -> dataset -> train ->
+evaluate. Each reads the records of the stages before it and returns JSON-able
+outputs (paths relative to the run directory); `Run.stage` skips a stage whose key
+(a digest of its inputs) matches its record. The heavy work inside a stage is
+itself chunked and cached by content, so a killed stage resumes where it stopped."""
+
+import copy
+import datetime
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from reachwatch.diagrams import load_detector
+from reachwatch.reach import (Grid, InlineExecutor, ValueFunction, min_target_along_rollouts,
+                              sign_agreement, solve_brt, sweep_closed_loop, sweep_key,
+                              taxi_dynamics)
+from reachwatch.reach.plots import plot_brt_slices
+from reachwatch.systems.files import atomic_write_bytes
+from reachwatch.training.baselines import prediction_error, prediction_error_labels
+from reachwatch.training.dataset import build_dataset, load_dataset
+from reachwatch.training.detector_train import operating_threshold, train_detector
+from reachwatch.training.evaluation import Detector, csv_table, evaluate_environment, markdown_table
+from reachwatch.training.figures import plot_error_vs_margin, plot_overlay
+from reachwatch.training.metrics import best_threshold
+from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
+
+from .spec import RunSpec, digest, dump_run_spec
+
+
+def _plain(value):
+    return value.item() if hasattr(value, "item") else str(value)
+
+
+class Run:
+    """A run directory: the spec (``run.yaml``), artifacts, and one record per
+    finished stage (``stages/NAME.json``: key, seconds, outputs)."""
+
+    def __init__(self, spec: RunSpec, root, *, executor=None, progress=True, log=print):
+        self.spec, self.root = spec, Path(root)
+        self.executor = executor or InlineExecutor()
+        self.progress, self.log = progress, log
+        self.outputs, self.records = {}, {}
+        self.root.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(self.root / "run.yaml", dump_run_spec(spec).encode())
+
+    def path(self, relative) -> Path:
+        return self.root / relative
+
+    def rel(self, path) -> str:
+        return str(Path(path).resolve().relative_to(self.root.resolve()))
+
+    def stage(self, name, key, fn) -> dict:
+        """``fn()``'s outputs, or the recorded ones when the key is unchanged."""
+        record_path = self.root / "stages" / f"{name}.json"
+        record = None
+        if record_path.exists():
+            try:
+                record = json.loads(record_path.read_text())
+            except ValueError:
+                self.log(f"[{name}] record {record_path} is corrupt; running the stage again")
+        if record and record.get("key") == key:
+            self.log(f"[{name}] up to date (key {key}, took {record['seconds']:.0f} s), skipped")
+        else:
+            self.log(f"[{name}] running (key {key})")
+            started = time.time()
+            outputs = fn()
+            record = {"stage": name, "key": key, "seconds": round(time.time() - started, 1),
+                      "finished": datetime.datetime.now().isoformat(timespec="seconds"),
+                      "outputs": outputs}
+            atomic_write_bytes(record_path, json.dumps(record, indent=1, default=_plain).encode())
+            record = json.loads(record_path.read_text())     # exactly what a re-run reads
+            self.log(f"[{name}] done in {record['seconds']:.0f} s")
+        self.outputs[name], self.records[name] = record["outputs"], record
+        return record["outputs"]
+
+    # --- shared helpers ----------------------------------------------------------
+    def scenario_for(self, env, checkpoint=None):
+        scenario = copy.deepcopy(self.spec.scenario)
+        scenario.environment = env
+        if checkpoint is not None:
+            scenario.controller.checkpoint = str(checkpoint)
+        return scenario
+
+    def grid_for(self, env) -> Grid:
+        return Grid.paper(env.half_width, tuple(self.spec.grid))
+
+    def environments(self):
+        """Every environment whose BRT the run needs (train, test, guard, incremental)."""
+        envs, seen = [], set()
+        extra = self.spec.guard_environments() + (
+            [self.spec.incremental.environment] if self.spec.incremental.enabled else [])
+        for env in self.spec.train + self.spec.test + extra:
+            if env.name not in seen:
+                seen.add(env.name)
+                envs.append(env)
+        return envs
+
+    def value_function(self, name) -> ValueFunction:
+        return ValueFunction.load(self.path(self.outputs["solve"][name]["value"]))
+
+    def datasets(self, envs):
+        return [load_dataset(self.path(self.outputs["dataset"]["folders"][e.name])) for e in envs]
+
+
+def sweep_env(run: Run, env, *, checkpoint=None) -> dict:
+    """Sweep ``env``'s closed loop over the grid (chunks cached in ``sweeps/``)."""
+    scenario, grid = run.scenario_for(env, checkpoint), run.grid_for(env)
+    started = time.time()
+    sweep_closed_loop(scenario, grid, cache_dir=run.path("sweeps"), executor=run.executor,
+                      progress=run.progress)
+    return {"sweep": sweep_key(scenario, grid), "states": int(grid.size),
+            "sweep_seconds": round(time.time() - started, 1)}
+
+
+def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
+    """Solve ``env``'s BRT from its (cached) sweep, check it against RK4 rollouts of
+    the swept loop from every node, plot a slice."""
+    spec = run.spec
+    scenario, grid = run.scenario_for(env, checkpoint), run.grid_for(env)
+    table = sweep_closed_loop(scenario, grid, cache_dir=run.path("sweeps"),
+                              executor=run.executor, progress=False)
+    steering, dynamics = table["p_controller.steering_angle"], taxi_dynamics(scenario)
+    started = time.time()
+    vf = solve_brt(grid, dynamics, steering, horizon=spec.horizon, accuracy=spec.accuracy,
+                   period=scenario.controller.period)
+    solved = time.time() - started
+    key = sweep_key(scenario, grid)
+    vf.metadata.update(environment=env.name, sweep=key)
+    path = vf.save(run.path(f"brt/value_{key}_{spec.horizon:g}s_{spec.accuracy}.npz"))
+    reference = min_target_along_rollouts(grid, dynamics, steering, grid.states(),
+                                          horizon=spec.horizon, hold=scenario.controller.period)
+    figure = plot_brt_slices({f"{env.name}{label}": vf}, py=spec.slice_py,
+                             path=run.path(f"figures/brt_{env.name}{label.replace(' ', '_')}.png"),
+                             half_width=env.half_width)
+    return {"value": run.rel(path), "brt_fraction": vf.brt_fraction,
+            "rollout_agreement": sign_agreement(vf.values.ravel(), reference),
+            "solve_seconds": round(solved, 2), "figure": run.rel(figure)}
+
+
+def stage_sweep(run: Run) -> dict:
+    """Sweep every environment the run needs (one record each, keyed by content)."""
+    out = {}
+    for env in run.environments():
+        key = sweep_key(run.scenario_for(env), run.grid_for(env))
+        out[env.name] = run.stage(f"sweep_{env.name}", key, lambda env=env: sweep_env(run, env))
+    return out
+
+
+def stage_solve(run: Run) -> dict:
+    """The BRT of every environment the run needs, from its sweep."""
+    out = {}
+    for env in run.environments():
+        key = digest(run.records[f"sweep_{env.name}"]["key"], run.spec.horizon,
+                     run.spec.accuracy, run.spec.slice_py)
+        out[env.name] = {**run.outputs[f"sweep_{env.name}"], **run.stage(
+            f"solve_{env.name}", key, lambda env=env: solve_env(run, env))}
+    return out
+
+
+def _ensemble(run: Run):
+    spec = run.spec.ensemble
+    if not spec.seeds:
+        return []
+    config = TaxiNetTrainConfig(camera=run.spec.scenario.camera, samples=spec.samples,
+                                epochs=spec.epochs)
+    folder = run.path(f"ensemble/{digest(config, spec.seeds)}")
+    paths = [folder / f"taxinet_seed{s}.pt" for s in spec.seeds]
+    if not all(p.exists() for p in paths):
+        progress = (lambda it, **kw: __import__("tqdm").tqdm(it, **kw)) if run.progress else None
+        train_taxinet_ensemble(config, folder, spec.seeds, progress=progress)
+    return paths
+
+
+def _build(root, scenario, value_path, spec, ensemble, progress):
+    """One dataset (module-level so a process pool or Dask worker can run it)."""
+    return str(build_dataset(root, scenario, ValueFunction.load(value_path), spec,
+                             ensemble=ensemble, progress=progress))
+
+
+def stage_dataset(run: Run) -> dict:
+    """The ensemble baseline's TaxiNets, then one BRT-labelled dataset per train/test
+    environment, built on the run's executor."""
+    ensemble = _ensemble(run)
+    envs = run.spec.train + run.spec.test
+    futures = {e.name: run.executor.submit(
+        _build, str(run.path("datasets")), run.scenario_for(e),
+        str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset,
+        [str(p) for p in ensemble], run.progress) for e in envs}
+    folders = {name: run.rel(f.result()) for name, f in futures.items()}
+    return {"ensemble": [run.rel(p) for p in ensemble], "folders": folders,
+            "positives": {name: float(load_dataset(run.path(f)).labels.mean())
+                          for name, f in folders.items()}}
+
+
+def stage_train(run: Run) -> dict:
+    """The detector on BRT labels, and the same detector on prediction-error labels
+    (baseline a), each with its operating threshold."""
+    spec, config = run.spec, run.spec.detector
+    data = run.datasets(spec.train)
+    progress = (lambda it, **kw: __import__("tqdm").tqdm(it, **kw)) if run.progress else None
+    tag = digest(config, run.outputs["dataset"]["folders"])
+    brt_path = run.path(f"detectors/detector_brt_{tag}.pt")
+    if not brt_path.exists():
+        train_detector(data, config, brt_path, progress=progress)
+    model, _, meta = load_detector(brt_path)
+    threshold = float(operating_threshold(model, data, config))
+    errors = np.concatenate([prediction_error(d.states, d.estimates) for d in data])
+    error_threshold, _ = best_threshold(np.concatenate([d.labels for d in data]), errors)
+    labels = [prediction_error_labels(d, error_threshold) for d in data]
+    error_path = run.path(f"detectors/detector_prediction_error_{tag}.pt")
+    if not error_path.exists():
+        train_detector(data, config, error_path, progress=progress, labels=labels)
+    model, _, _ = load_detector(error_path)
+    return {"detector": run.rel(brt_path), "threshold": threshold,
+            "validation": meta.get("validation", {}), "train_seconds": meta.get("train_seconds"),
+            "prediction_error_detector": run.rel(error_path),
+            "prediction_error_threshold": float(error_threshold),
+            "prediction_error_detector_threshold": operating_threshold(model, data, config, labels)}
+
+
+def stage_evaluate(run: Run) -> dict:
+    """Table 2 on the held-out environments, error-vs-margin and overlay figures."""
+    spec, trained = run.spec, run.outputs["train"]
+    detectors = []
+    for name, path, threshold in [
+            ("detector (BRT labels)", trained["detector"], trained["threshold"]),
+            (f"detector (prediction-error labels, error > "
+             f"{trained['prediction_error_threshold']:.3f})",
+             trained["prediction_error_detector"], trained["prediction_error_detector_threshold"])]:
+        model, config, _ = load_detector(run.path(path))
+        detectors.append(Detector(name, model, config, threshold))
+    rows, figures = [], {}
+    for env, d in zip(spec.test, run.datasets(spec.test)):
+        env_rows, scores = evaluate_environment(d, detectors, device=spec.detector.device)
+        rows += env_rows
+        predictions = {r["method"]: scores[r["method"]] >= r["threshold"] for r in env_rows}
+        margin = plot_error_vs_margin({m: (d.values, d.labels, p) for m, p in predictions.items()},
+                                      run.path(f"figures/error_vs_margin_{env.name}.png"))
+        overlay = plot_overlay(run.value_function(env.name), d.states, d.labels,
+                               predictions[detectors[0].name], py=spec.slice_py,
+                               half_width=env.half_width,
+                               path=run.path(f"figures/overlay_{env.name}.png"),
+                               title=f"{env.name}: {detectors[0].name}")
+        figures[env.name] = {"error_vs_margin": run.rel(margin), "overlay": run.rel(overlay)}
+    atomic_write_bytes(run.path("table2.md"), markdown_table(rows).encode())
+    atomic_write_bytes(run.path("table2.csv"), csv_table(rows).encode())
+    return {"rows": rows, "figures": figures, "table_md": "table2.md", "table_csv": "table2.csv"}

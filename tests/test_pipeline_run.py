@@ -1,0 +1,159 @@
+"""``reachwatch run``: spec validation, a tiny end-to-end run with every report
+section, stage skipping, downstream-only re-runs, resume after a failure, Dask."""
+
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from reachwatch.pipeline.run import STAGES, run_pipeline
+from reachwatch.pipeline.spec import load_run_spec
+from reachwatch.diagrams import ScenarioError
+
+TINY = """
+name: tiny
+train: [{runway: KMWH, hour: 9.0, sky: clear}]
+test: [{runway: KSFO, hour: 17.0, sky: clear}]
+grid: [5, 3, 5]
+horizon: 4.0
+dataset: {samples: 40, height: 24, width: 40, chunk_size: 16}
+detector:
+  detector: {height: 24, width: 40, channels: [4, 8]}
+  epochs: 1
+  batch_size: 8
+  device: cpu
+ensemble: {seeds: [1, 2], samples: 48, epochs: 2}
+guard: {candidates: 2, online_seconds: 0.2, meshcat_html: true}
+incremental:
+  environment: {runway: KMWH, hour: 17.0, sky: clear}
+  anomalies: 20
+  replay: 20
+  epochs: 2
+"""
+SECTIONS = ("environments", "diagrams", "brts", "labels", "table2", "margin", "guard",
+            "incremental", "benchmarks", "configuration")
+
+
+def _run(out, text=TINY, **kw):
+    log = []
+    run = run_pipeline(load_run_spec(data=text), out, progress=False, log=log.append, **kw)
+    return run, log
+
+
+def _ran(log):
+    return {re.match(r"\[(\S+)\]", m).group(1) for m in log if "] running" in m}
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("epochs: 1", "epoch: 1"), "run.detector.epoch: unknown field"),
+    (("horizon: 4.0", "horizon: soon"), "run.horizon: expected float"),
+    (("train: [{runway: KMWH, hour: 9.0, sky: clear}]", "train: []"), "train: list at least one"),
+    (("runway: KSFO", "runway: XXXX"), "unknown runway 'XXXX'"),
+    (("grid: [5, 3, 5]", "grid: [5, 3]"), "grid must be 3 sizes"),
+    (("{samples: 40, height: 24", "{samples: 40, height: 32"), "must equal the detector input"),
+    (("guard: {candidates: 2", "guard: {strategies: [stop], candidates: 2"),
+     "guard.strategies[0]: 'stop'"),
+])
+def test_run_spec_errors_name_the_field(edit, message):
+    with pytest.raises(ScenarioError, match=re.escape(message)):
+        load_run_spec(data=TINY.replace(*edit))
+
+
+def test_run_spec_file_errors(tmp_path):
+    with pytest.raises(ScenarioError, match="not found"):
+        load_run_spec(tmp_path / "missing.yaml")
+    (tmp_path / "bad.yaml").write_text("train: [")
+    with pytest.raises(ScenarioError, match="not valid YAML"):
+        load_run_spec(tmp_path / "bad.yaml")
+
+
+def test_shipped_run_files_load():
+    root = Path(__file__).resolve().parents[1] / "scenarios"
+    demo, paper = load_run_spec(root / "demo.yaml"), load_run_spec(root / "paper.yaml")
+    assert len(paper.train) == 12 and len(paper.test) == 18 and paper.grid == [101] * 3
+    assert paper.dataset.samples == 20000 and paper.detector.detector.arch == "efficientnet_b0"
+    assert len(demo.train) < len(paper.train)
+
+
+def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_path):
+    run, log = _run(tmp_path)
+    html = (tmp_path / "report.html").read_text()
+    md = (tmp_path / "report.md").read_text()
+    for anchor in SECTIONS:
+        assert f"id='{anchor}'" in html, anchor
+    for src in re.findall(r"src='([^']+)'", html):
+        assert (tmp_path / src).is_file(), src
+    for src in re.findall(r"\]\(([^)]+)\)", md):
+        assert (tmp_path / src).is_file(), src
+    rows = run.outputs["evaluate"]["rows"]
+    assert [r["environment"] for r in rows] == ["KSFO_17h_clear"] * 4
+    for r in rows:
+        assert f"| KSFO_17h_clear | {r['method']} | 40 |" in md
+    guard = run.outputs["guard"]["KSFO_17h_clear"]
+    assert set(guard["volumes"]) == {"TaxiNet alone", "slow_down", "brake"}
+    assert guard["volumes"]["brake"] <= guard["volumes"]["TaxiNet alone"]
+    assert guard["online"]["alone_ticks_per_s"] > 0 and guard["online"]["guarded_ticks_per_s"] > 0
+    inc = run.outputs["incremental"]
+    assert inc["environment"] == "KMWH_17h_clear" and 0 <= inc["after"] <= 1
+    assert (tmp_path / inc["checkpoint"]).is_file()
+    assert _ran(log) >= {"dataset", "train", "evaluate", "incremental", "report",
+                         "sweep_KMWH_9h_clear", "solve_KSFO_17h_clear", "guard_KSFO_17h_clear"}
+    records = {p.name: p.stat().st_mtime for p in (tmp_path / "stages").iterdir()}
+
+    _, log = _run(tmp_path)                                    # nothing changed: all skipped
+    assert _ran(log) == set()
+    assert {p.name: p.stat().st_mtime for p in (tmp_path / "stages").iterdir()} == records
+
+    _, log = _run(tmp_path, TINY.replace("epochs: 1", "epochs: 2"))   # detector changed
+    assert _ran(log) == {"train", "evaluate", "guard_KSFO_17h_clear", "report"}
+    assert not any("sweep_" in m and "running" in m for m in log)
+
+
+def test_killed_run_resumes_at_the_failed_stage(tmp_path, monkeypatch):
+    from reachwatch.pipeline import stages
+    calls = []
+
+    def broken(*args, **kw):
+        calls.append(1)
+        raise KeyboardInterrupt("killed")
+    monkeypatch.setattr(stages, "train_detector", broken)
+    with pytest.raises(KeyboardInterrupt):
+        _run(tmp_path, until="evaluate")
+    assert calls and not (tmp_path / "stages" / "train.json").exists()
+    monkeypatch.undo()
+    (tmp_path / "stages" / "dataset.json").write_text("{ truncated")   # a torn record
+    _, log = _run(tmp_path, until="evaluate")
+    assert _ran(log) == {"dataset", "train", "evaluate"}
+    assert any("corrupt" in m for m in log)
+
+
+def test_until_stops_and_dask_executor_runs_the_heavy_stages(tmp_path):
+    distributed = pytest.importorskip("dask.distributed")
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  host="127.0.0.1", dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        run, _ = _run(tmp_path, until="dataset", executor=client.get_executor())
+    assert set(run.outputs) >= {"sweep", "solve", "dataset"} and "train" not in run.outputs
+    assert sorted(json.loads(p.read_text())["stage"] for p in (tmp_path / "stages").iterdir()) \
+        == sorted(["dataset"] + [f"{s}_{e}" for s in ("sweep", "solve") for e in
+                                 ("KMWH_9h_clear", "KSFO_17h_clear", "KMWH_17h_clear")])
+    with pytest.raises(ValueError, match="until must be one of"):
+        _run(tmp_path, until="deploy")
+    assert STAGES[-1] == "report"
+
+
+@pytest.mark.slow
+def test_report_renders_in_headless_chromium(tmp_path):
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("chromium is not installed (apt-get install chromium)")
+    _run(tmp_path)
+    shot = tmp_path / "shot.png"
+    subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu",
+                    f"--screenshot={shot}", "--window-size=1280,2400",
+                    (tmp_path / "report.html").as_uri()], check=True, capture_output=True,
+                   timeout=120)
+    assert shot.stat().st_size > 20_000
