@@ -18,7 +18,7 @@ except ImportError:
 
 from .camera import AircraftGeometry, CameraConfig, make_wing_camera
 from .detector import (AnomalyDetector, DetectorConfig, SmallDetectorCNN, build_detector,
-                       detector_input)
+                       detector_input, resize_for_detector)
 from .environment import SKIES, Environment, test_environments, training_environments
 from .lighting import Lighting, lighting_for, render_engine_params, sun_elevation_deg
 from .models import (ESTIMATE_UNITS, PreprocessConfig, SmallTaxiCNN, TaxiNetConfig,
@@ -38,6 +38,6 @@ __all__ = [
     "SurfaceSpec", "TaxiwayLine", "add_runway_scene", "ESTIMATE_UNITS", "PreprocessConfig",
     "SmallTaxiCNN", "TaxiNetConfig", "TinyTaxiNet", "build_taxinet", "preprocess",
     "PX_GAIN_DEG_PER_M", "THETA_GAIN", "ProportionalController", "TaxiNet", "TrueStateEstimator", "AnomalyDetector",
-    "DetectorConfig", "SmallDetectorCNN", "build_detector", "detector_input", "STEERING", "STRATEGIES", "FallbackSwitch",
+    "DetectorConfig", "SmallDetectorCNN", "build_detector", "detector_input", "resize_for_detector", "STEERING", "STRATEGIES", "FallbackSwitch",
     "next_speed",
 ]

@@ -4,6 +4,7 @@ and the `AnomalyDetector` LeafSystem. Class 1 = anomalous (leads to failure)."""
 import dataclasses as dc
 from typing import List
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -34,6 +35,20 @@ class DetectorConfig:
             raise ValueError(f"detector input must be 16..1024 pixels a side, got "
                              f"{self.height}x{self.width}")
         return self
+
+
+def resize_for_detector(images_rgb: np.ndarray, config: DetectorConfig) -> np.ndarray:
+    """uint8 ``(N, H, W, 3)`` -> ``(N, height, width, 3)`` with OpenCV's area filter:
+    how datasets store their images, so training and the online loop see the same
+    pixels (and it costs ~0.1 ms a frame, a fraction of a float resize)."""
+    images_rgb = np.asarray(images_rgb)
+    if images_rgb.ndim != 4 or images_rgb.shape[-1] != 3:
+        raise ValueError(f"the detector expects RGB images shaped (N, H, W, 3), got "
+                         f"{images_rgb.shape}")
+    if images_rgb.shape[1:3] == (config.height, config.width):
+        return np.ascontiguousarray(images_rgb)
+    return np.stack([cv2.resize(np.ascontiguousarray(im), (config.width, config.height),
+                                interpolation=cv2.INTER_AREA) for im in images_rgb])
 
 
 def detector_input(images: torch.Tensor, config: DetectorConfig) -> torch.Tensor:
@@ -137,7 +152,8 @@ class AnomalyDetector(LeafSystem):
         """Anomaly probabilities of uint8 RGB images ``(N, H, W, 3)``."""
         out = []
         for i in range(0, len(images_rgb), batch):
-            x = detector_input(torch.from_numpy(np.ascontiguousarray(images_rgb[i:i + batch])),
+            x = detector_input(torch.from_numpy(resize_for_detector(images_rgb[i:i + batch],
+                                                                     self._config)),
                                self._config)
             out.append(torch.softmax(self._model(x), dim=1)[:, 1].double().numpy())
         return np.concatenate(out) if out else np.zeros(0)

@@ -151,3 +151,17 @@ def test_study_end_to_end_tiny(tmp_path):
     mtime = detector.stat().st_mtime
     run_study(load_scenario(data=""), config, tmp_path)          # re-run reuses artifacts
     assert detector.stat().st_mtime == mtime
+
+
+def test_online_detector_sees_the_pixels_the_dataset_stored():
+    """The system resizes camera frames exactly as datasets store them (area filter)."""
+    from reachwatch.systems import resize_for_detector
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (3, 200, 360, 3), dtype=np.uint8)
+    small = resize_for_detector(frames, TINY)
+    assert small.shape == (3, TINY.height, TINY.width, 3) and small.dtype == np.uint8
+    model = build_detector(TINY).eval()
+    system = AnomalyDetector(model=model, config=TINY)
+    np.testing.assert_allclose(system.scores(frames), system.scores(small), rtol=1e-6)
+    with pytest.raises(ValueError, match=r"\(N, H, W, 3\)"):
+        resize_for_detector(frames[..., :2], TINY)

@@ -13,13 +13,12 @@ import hashlib
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
 from reachwatch.diagrams import StateRenderer, file_hash, load_taxinet
 from reachwatch.reach import resolved
-from reachwatch.systems import TaxiNet
+from reachwatch.systems import TaxiNet, resize_for_detector
 from reachwatch.systems.files import atomic_write_bytes
 
 FORMAT = "reachwatch.dataset/1"
@@ -105,8 +104,7 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
             arrays["estimates"][s:e] = nets[0].estimate(full)
             for k, net in enumerate(nets[1:]):
                 arrays["ensemble"][s:e, k] = net.estimate(full)
-            arrays["images"][s:e] = [cv2.resize(im, (spec.width, spec.height),
-                                                interpolation=cv2.INTER_AREA) for im in full]
+            arrays["images"][s:e] = resize_for_detector(full, spec)    # as the detector system does
             for a in arrays.values():
                 a.flush()
             manifest["chunks_done"].append(s)
