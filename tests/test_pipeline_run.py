@@ -157,3 +157,12 @@ def test_report_renders_in_headless_chromium(tmp_path):
                     (tmp_path / "report.html").as_uri()], check=True, capture_output=True,
                    timeout=120)
     assert shot.stat().st_size > 20_000
+
+
+def test_run_command_reports_a_bad_run_file_and_exits_2(tmp_path, capsys):
+    from reachwatch.pipeline.cli import main
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(TINY.replace("grid: [5, 3, 5]", "grids: [5, 3, 5]"))
+    assert main(["run", "--scenario", str(bad), "--out", str(tmp_path / "out")]) == 2
+    assert "run.grids: unknown field of RunSpec" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()          # nothing written for a bad file
