@@ -1,4 +1,5 @@
-"""``reachwatch evaluate``: the paper's Table 2 with baselines."""
+"""``reachwatch evaluate``: the paper's Table 2 with baselines (``reachwatch run`` up
+to its evaluate stage, configured from the command line)."""
 
 import dataclasses as dc
 
@@ -8,10 +9,12 @@ from reachwatch.systems import DetectorConfig, Environment, test_environments, t
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.evaluation import markdown_table
-from reachwatch.training.study import StudyConfig, run_study
+from reachwatch.training.incremental import IncrementalConfig
 
 from .commands import scenario_from_args
 from .executors import make_executor
+from .run import run_pipeline
+from .spec import EnsembleSpec, RunSpec
 
 
 def parse_environment(text: str) -> Environment:
@@ -58,23 +61,25 @@ def add_parsers(sub):
 
 
 def evaluate_command(args):
-    base = scenario_from_args(args)
     height, width = args.input_size
     detector = DetectorConfig(arch=args.arch, height=height, width=width)
-    config = StudyConfig(
+    spec = RunSpec(
+        name="evaluate", scenario=scenario_from_args(args),
         train=[parse_environment(t) for t in args.train],
-        test=[parse_environment(t) for t in args.test], grid_shape=args.shape,
+        test=[parse_environment(t) for t in args.test], grid=list(args.shape),
         dataset=DatasetSpec(samples=args.samples, seed=args.seed, height=height, width=width),
         detector=DetectorTrainConfig(detector=detector, epochs=args.epochs, seed=args.seed,
                                      threshold=args.threshold, target_recall=args.target_recall,
                                      pretrained_path=args.pretrained),
-        ensemble_seeds=list(range(1, args.ensemble + 1)) if args.ensemble >= 2 else [])
+        ensemble=EnsembleSpec(seeds=list(range(1, args.ensemble + 1)) if args.ensemble >= 2
+                              else []),
+        incremental=IncrementalConfig(enabled=False))
     executor, close = make_executor(args.executor)
     try:
-        rows = run_study(base, config, args.out, executor=executor,
-                         progress=lambda it, **kw: tqdm(it, **kw))
+        run = run_pipeline(spec, args.out, executor=executor, until="evaluate",
+                           log=tqdm.write)
     finally:
         close()
-    print(markdown_table(rows))
+    print(markdown_table(run.outputs["evaluate"]["rows"]))
     print(f"wrote {args.out}/table2.md, table2.csv and figures/ "
-          f"(configuration: {dc.asdict(config.dataset)}, detector {dc.asdict(detector)})")
+          f"(configuration: {dc.asdict(spec.dataset)}, detector {dc.asdict(detector)})")

@@ -1,7 +1,6 @@
 """``reachwatch guard`` (failure sets with and without the fallback) and the guarded
 ``reachwatch simulate --pipeline guarded``."""
 
-import copy
 import json
 import time
 from pathlib import Path
@@ -33,18 +32,26 @@ def add_parsers(sub):
     g.set_defaults(func=guard_command)
 
 
-def failure_volumes(scenario, grid, tables, horizon):
-    """{name: boolean failures per node} for TaxiNet alone and each strategy."""
+def failure_sets(scenario, grid, tables, horizon, strategies=STRATEGIES):
+    """{"TaxiNet alone" | strategy: boolean failure per grid node (C order)} from the
+    swept tables of the guarded diagram."""
     dynamics = taxi_dynamics(scenario)
     steering = tables["p_controller.steering_angle"]
     score = tables["anomaly_detector.score"]
     kw = dict(horizon=horizon, period=scenario.controller.period)
     out = {"TaxiNet alone": pipeline_failures(grid, dynamics, steering, None, **kw)[0]}
-    for strategy in STRATEGIES:
-        out[f"guarded, {strategy}"] = pipeline_failures(
+    for strategy in strategies:
+        out[strategy] = pipeline_failures(
             grid, dynamics, steering, score, threshold=scenario.pipeline.threshold,
             strategy=strategy, brake_deceleration=scenario.pipeline.brake_deceleration, **kw)[0]
     return out
+
+
+def plot_failure_sets(failures, grid, horizon, *, py, path, half_width, title):
+    """One BRT-style slice panel per failure set (failing starts grey)."""
+    sets = {k: ValueFunction(grid, np.where(v.reshape(grid.shape), -1.0, 1.0), horizon,
+                             "rollouts") for k, v in failures.items()}
+    return plot_brt_slices(sets, py=py, path=path, half_width=half_width, title=title)
 
 
 def guard_command(args):
@@ -57,7 +64,7 @@ def guard_command(args):
     finally:
         close()
     started = time.time()
-    failures = failure_volumes(scenario, grid, tables, args.horizon)
+    failures = failure_sets(scenario, grid, tables, args.horizon)
     out = Path(args.out)
     name = scenario.environment.name
     volumes = {k: float(v.mean()) for k, v in failures.items()}
@@ -67,11 +74,9 @@ def guard_command(args):
     for k, v in volumes.items():
         print(f"  failure set ({k}): {100 * v:.2f}% of the grid")
     atomic_write_bytes(out / f"guard_{name}.json", json.dumps(volumes, indent=1).encode())
-    sets = {k: ValueFunction(grid, np.where(v.reshape(grid.shape), -1.0, 1.0), args.horizon,
-                             "rollouts") for k, v in failures.items()}
-    plot_brt_slices(sets, py=175.0, path=out / f"guard_{name}.png",
-                    half_width=scenario.environment.half_width,
-                    title=f"{name}: failing start states (grey)")
+    plot_failure_sets(failures, grid, args.horizon, py=175.0, path=out / f"guard_{name}.png",
+                      half_width=scenario.environment.half_width,
+                      title=f"{name}: failing start states (grey)")
     print(f"wrote {out / f'guard_{name}.json'} and .png")
 
 

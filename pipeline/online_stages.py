@@ -11,11 +11,11 @@ from reachwatch.diagrams import (file_hash, initial_state_vector, load_taxinet,
                                  make_closed_loop_diagram, make_guarded_diagram, simulate)
 from reachwatch.diagrams.plots import plot_runway_top_view
 from reachwatch.diagrams.scenario import InitialState
-from reachwatch.reach import ValueFunction, pipeline_failures, resolved, sweep_guarded, taxi_dynamics
+from reachwatch.reach import ValueFunction, resolved, sweep_guarded
 from reachwatch.reach.plots import plot_brt_slices
 from reachwatch.training.incremental import fine_tune_taxinet, mine_anomalies
 
-from .guard_commands import simulate_guarded
+from .guard_commands import failure_sets, plot_failure_sets, simulate_guarded
 from .spec import digest
 from .stages import Run, solve_env, sweep_env
 
@@ -55,21 +55,13 @@ def guard_environment(run: Run, env) -> dict:
     grid = run.grid_for(env)
     tables = sweep_guarded(scenario, grid, cache_dir=run.path("sweeps"), executor=run.executor,
                            progress=run.progress)
-    kw = dict(horizon=spec.horizon, period=scenario.controller.period)
-    dynamics, steering = taxi_dynamics(scenario), tables["p_controller.steering_angle"]
-    failures = {"TaxiNet alone": pipeline_failures(grid, dynamics, steering, None, **kw)[0]}
-    for strategy in spec.guard.strategies:
-        failures[strategy] = pipeline_failures(
-            grid, dynamics, steering, tables["anomaly_detector.score"],
-            threshold=scenario.pipeline.threshold, strategy=strategy,
-            brake_deceleration=scenario.pipeline.brake_deceleration, **kw)[0]
+    failures = failure_sets(scenario, grid, tables, spec.horizon, spec.guard.strategies)
     volumes = {k: float(v.mean()) for k, v in failures.items()}
-    sets = {k: ValueFunction(grid, np.where(v.reshape(grid.shape), -1.0, 1.0), spec.horizon,
-                             "rollouts") for k, v in failures.items()}
-    slices = plot_brt_slices(sets, py=spec.slice_py, half_width=env.half_width,
-                             path=run.path(f"figures/guard_{env.name}.png"),
-                             title=f"{env.name}: failing start states (grey), detector at "
-                                   f"threshold {scenario.pipeline.threshold:.3g}")
+    slices = plot_failure_sets(failures, grid, spec.horizon, py=spec.slice_py,
+                               half_width=env.half_width,
+                               path=run.path(f"figures/guard_{env.name}.png"),
+                               title=f"{env.name}: failing start states (grey), detector at "
+                                     f"threshold {scenario.pipeline.threshold:.3g}")
     # A start the tables say the guard saves, checked in the real Drake loops.
     best = min(spec.guard.strategies, key=lambda s: volumes[s]) if spec.guard.strategies else None
     tried, chosen = [], None

@@ -7,12 +7,10 @@ from pydrake.systems.sensors import ImageRgba8U
 
 from reachwatch.diagrams import CheckpointError, load_detector, load_scenario, save_checkpoint
 from reachwatch.reach import Grid, TaxiDynamics, solve_brt
-from reachwatch.systems import AnomalyDetector, DetectorConfig, Environment, build_detector
+from reachwatch.systems import AnomalyDetector, DetectorConfig, build_detector
 from reachwatch.training.baselines import ensemble_variance, prediction_error
 from reachwatch.training.dataset import DatasetSpec, build_dataset, load_dataset
-from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.metrics import auroc, best_threshold, binary_metrics
-from reachwatch.training.study import StudyConfig, run_study
 
 TINY = DetectorConfig(height=24, width=40, channels=[4, 8])
 
@@ -123,34 +121,6 @@ def test_dataset_labels_follow_the_value_sign_and_resume(tmp_path, tiny_brt):
     del images
     assert build_dataset(tmp_path, scenario, tiny_brt, spec, progress=False) == folder
     np.testing.assert_array_equal(load_dataset(folder).images, first)
-
-
-# --- the whole evaluation, tiny --------------------------------------------------------
-
-def test_study_end_to_end_tiny(tmp_path):
-    config = StudyConfig(
-        train=[Environment("KMWH", 9.0, "clear")], test=[Environment("KSFO", 17.0, "clear")],
-        grid_shape=[5, 3, 5], horizon=4.0,
-        dataset=DatasetSpec(samples=30, height=24, width=40, chunk_size=16),
-        detector=DetectorTrainConfig(detector=TINY, epochs=1, batch_size=8, device="cpu"),
-        ensemble_seeds=[1, 2], ensemble_samples=48, ensemble_epochs=2)
-    rows = run_study(load_scenario(data=""), config, tmp_path)
-    methods = [r["method"] for r in rows]
-    assert methods[0] == "detector (BRT labels)"
-    assert any("prediction-error labels" in m for m in methods)
-    assert any(m.startswith("TaxiNet prediction error") for m in methods)
-    assert any(m.startswith("ensemble of 2") for m in methods)
-    assert all(r["environment"] == "KSFO_17h_clear" and r["n"] == 30 for r in rows)
-    assert (tmp_path / "table2.md").read_text().count("KSFO_17h_clear") == len(rows)
-    import csv
-    parsed = list(csv.DictReader(open(tmp_path / "table2.csv")))
-    assert [r["method"] for r in parsed] == methods and parsed[0]["n"] == "30"
-    assert (tmp_path / "figures" / "error_vs_margin_KSFO_17h_clear.png").exists()
-    assert len(list((tmp_path / "figures").glob("overlay_*.png"))) == len(rows)
-    (detector,) = tmp_path.glob("detector_??????????.pt")
-    mtime = detector.stat().st_mtime
-    run_study(load_scenario(data=""), config, tmp_path)          # re-run reuses artifacts
-    assert detector.stat().st_mtime == mtime
 
 
 def test_online_detector_sees_the_pixels_the_dataset_stored():

@@ -166,3 +166,14 @@ def test_run_command_reports_a_bad_run_file_and_exits_2(tmp_path, capsys):
     assert main(["run", "--scenario", str(bad), "--out", str(tmp_path / "out")]) == 2
     assert "run.grids: unknown field of RunSpec" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()          # nothing written for a bad file
+
+
+def test_evaluate_command_is_the_run_up_to_evaluate(tmp_path, capsys):
+    from reachwatch.pipeline.cli import main
+    assert main(["evaluate", "--train", "KMWH:9:clear", "--test", "KSFO:17:clear",
+                 "--shape", "5", "3", "5", "--samples", "20", "--input-size", "24", "40",
+                 "--epochs", "1", "--ensemble", "0", "--executor", "inline",
+                 "--out", str(tmp_path)]) == 0
+    assert "| KSFO_17h_clear | detector (BRT labels) | 20 |" in capsys.readouterr().out
+    assert (tmp_path / "table2.csv").is_file() and (tmp_path / "stages" / "evaluate.json").is_file()
+    assert not (tmp_path / "stages" / "guard_KSFO_17h_clear.json").exists()

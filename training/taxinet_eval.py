@@ -5,7 +5,6 @@ import copy
 import dataclasses as dc
 
 import numpy as np
-import torch
 
 from reachwatch.diagrams import (StateRenderer, load_taxinet, make_closed_loop_diagram,
                                  simulate)
