@@ -10,7 +10,7 @@ import numpy as np
 
 from reachwatch.diagrams import StateRenderer, export_graph, make_closed_loop_diagram, make_guarded_diagram
 from reachwatch.systems.files import atomic_write_bytes
-from reachwatch.training.evaluation import COLUMNS, _fmt
+from reachwatch.training.evaluation import COLUMNS, format_cell
 
 from .stages import Run
 
@@ -138,7 +138,7 @@ def write_report(run: Run) -> dict:
               f"{o['train']['threshold']:.3g} (target recall {spec.detector.target_recall}).")
     page.images([f["overlay"] for f in o["evaluate"]["figures"].values()])
     page.section("Table 2: detector and baselines on held-out environments", "table2")
-    page.table(COLUMNS, [[_fmt(r.get(k), k) for k in COLUMNS] for r in o["evaluate"]["rows"]])
+    page.table(COLUMNS, [[format_cell(r.get(k), k) for k in COLUMNS] for r in o["evaluate"]["rows"]])
     page.link("table2.csv", "table2.csv")
     page.section("Failure modes: error rate against distance to the BRT boundary", "margin")
     page.images([f["error_vs_margin"] for f in o["evaluate"]["figures"].values()])

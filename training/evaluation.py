@@ -48,7 +48,8 @@ def evaluate_environment(data, detectors, *, device="") -> list:
     return rows, scores
 
 
-def _fmt(value, key):
+def format_cell(value, key) -> str:
+    """One Table-2 cell as text: rates in %, counts as integers, missing as -."""
     if isinstance(value, str):
         return value
     if key in ("n", "positives"):
@@ -62,7 +63,7 @@ def _fmt(value, key):
 def markdown_table(rows) -> str:
     """Rows as a Markdown table (rates in %)."""
     head = "| " + " | ".join(COLUMNS) + " |\n|" + "---|" * len(COLUMNS) + "\n"
-    return head + "\n".join("| " + " | ".join(_fmt(r.get(k), k) for k in COLUMNS) + " |"
+    return head + "\n".join("| " + " | ".join(format_cell(r.get(k), k) for k in COLUMNS) + " |"
                             for r in rows) + "\n"
 
 
