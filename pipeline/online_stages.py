@@ -53,7 +53,7 @@ def guard_environment(run: Run, env) -> dict:
     scenario.duration = spec.horizon
     scenario = resolved(scenario)
     grid = run.grid_for(env)
-    tables = sweep_guarded(scenario, grid, cache_dir=run.path("sweeps"), executor=run.executor,
+    tables = sweep_guarded(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
                            progress=run.progress)
     failures = failure_sets(scenario, grid, tables, spec.horizon, spec.guard.strategies)
     volumes = {k: float(v.mean()) for k, v in failures.items()}

@@ -19,12 +19,12 @@ REPORT_FORMAT = 1
 
 
 def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=True,
-                 log=print) -> Run:
+                 log=print, sweep_cache=None) -> Run:
     """Run (or resume) every stage up to ``until``; returns the `Run` with its records."""
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got '{until}'")
     spec.validate()
-    run = Run(spec, out, executor=executor, progress=progress, log=log)
+    run = Run(spec, out, executor=executor, progress=progress, log=log, sweep_cache=sweep_cache)
     steps = {
         "sweep": lambda: stage_sweep(run),
         "solve": lambda: stage_solve(run),
@@ -55,6 +55,8 @@ def add_parsers(sub):
     p.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT "
                    "(a Dask cluster must see the run directory at the same path)")
     p.add_argument("--until", choices=STAGES, default="report", help="last stage to run")
+    p.add_argument("--sweep-cache", help="folder of sweep chunks shared between runs "
+                   "(keyed by content; default OUT/sweeps)")
     p.set_defaults(func=run_command)
 
 
@@ -64,6 +66,7 @@ def run_command(args):
     executor, close = make_executor(args.executor)
     try:
         run = run_pipeline(spec, args.out, executor=executor, until=args.until,
+                           sweep_cache=args.sweep_cache,
                            log=lambda m: tqdm.write(f"{time.time() - started:7.1f} s  {m}"))
     finally:
         close()

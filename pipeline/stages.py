@@ -37,8 +37,11 @@ class Run:
     """A run directory: the spec (``run.yaml``), artifacts, and one record per
     finished stage (``stages/NAME.json``: key, seconds, outputs)."""
 
-    def __init__(self, spec: RunSpec, root, *, executor=None, progress=True, log=print):
+    def __init__(self, spec: RunSpec, root, *, executor=None, progress=True, log=print,
+                 sweep_cache=None):
         self.spec, self.root = spec, Path(root)
+        # Sweeps are keyed by content, so runs may share one cache folder.
+        self.sweep_cache = Path(sweep_cache) if sweep_cache else self.root / "sweeps"
         self.executor = executor or InlineExecutor()
         self.progress, self.log = progress, log
         self.outputs, self.records = {}, {}
@@ -108,7 +111,7 @@ def sweep_env(run: Run, env, *, checkpoint=None) -> dict:
     """Sweep ``env``'s closed loop over the grid (chunks cached in ``sweeps/``)."""
     scenario, grid = run.scenario_for(env, checkpoint), run.grid_for(env)
     started = time.time()
-    sweep_closed_loop(scenario, grid, cache_dir=run.path("sweeps"), executor=run.executor,
+    sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
                       progress=run.progress)
     return {"sweep": sweep_key(scenario, grid), "states": int(grid.size),
             "sweep_seconds": round(time.time() - started, 1)}
@@ -119,7 +122,7 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     the swept loop from every node, plot a slice."""
     spec = run.spec
     scenario, grid = run.scenario_for(env, checkpoint), run.grid_for(env)
-    table = sweep_closed_loop(scenario, grid, cache_dir=run.path("sweeps"),
+    table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache,
                               executor=run.executor, progress=False)
     steering, dynamics = table["p_controller.steering_angle"], taxi_dynamics(scenario)
     started = time.time()

@@ -142,6 +142,13 @@ def test_until_stops_and_dask_executor_runs_the_heavy_stages(tmp_path):
                                  ("KMWH_9h_clear", "KSFO_17h_clear", "KMWH_17h_clear")])
     with pytest.raises(ValueError, match="until must be one of"):
         _run(tmp_path, until="deploy")
+    # A second run directory sharing the sweep cache sweeps nothing again.
+    other = tmp_path / "other"
+    chunks = {p: p.stat().st_mtime for p in (tmp_path / "sweeps").rglob("*") if p.is_file()}
+    _run(other, until="sweep", sweep_cache=tmp_path / "sweeps")
+    assert not (other / "sweeps").exists() and len(list((other / "stages").iterdir())) == 3
+    assert {p: p.stat().st_mtime for p in (tmp_path / "sweeps").rglob("*") if p.is_file()} \
+        == chunks
     assert STAGES[-1] == "report"
 
 
