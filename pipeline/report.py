@@ -180,7 +180,8 @@ def write_report(run: Run) -> dict:
         on = g["online"]
         rows.append([f"online {env} {on['image'][0]}x{on['image'][1]}",
                      f"alone {on['alone_ticks_per_s']:.1f} ticks/s, guarded "
-                     f"{on['guarded_ticks_per_s']:.1f} ticks/s, ratio {on['ratio']:.2f}"])
+                     f"{on['guarded_ticks_per_s']:.1f} ticks/s (best of 3 interleaved rounds), "
+                     f"median per-round ratio {on['ratio']:.2f}"])
     page.table(["what", "figure"], rows)
     page.section("Configuration", "configuration")
     page.pre((run.root / "run.yaml").read_text())
