@@ -10,19 +10,31 @@ from .render import StateRenderer
 DEFAULT_HOURS = (9.0, 17.0, 21.0)
 
 
+def environment_sheet(environments, *, per_row: int, state=(0.0, 150.0, 0.0),
+                      camera: CameraConfig = None, captions=None, progress=None) -> np.ndarray:
+    """RGB uint8 grid of the camera view of each `Environment` at ``state``
+    [px m, py m, theta rad], ``per_row`` tiles a row (the last row padded black), each
+    captioned (default: the environment's name); ``progress`` wraps the iterable."""
+    environments = list(environments)
+    captions = captions or [e.name for e in environments]
+    tiles = []
+    for env, caption in (progress(list(zip(environments, captions))) if progress
+                         else zip(environments, captions)):
+        tile = np.ascontiguousarray(StateRenderer(environment=env, camera=camera).render(state))
+        cv2.putText(tile, caption, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 0, 255), 1,
+                    cv2.LINE_AA)
+        tiles.append(tile)
+    tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % per_row)
+    return np.vstack([np.hstack(tiles[i:i + per_row]) for i in range(0, len(tiles), per_row)])
+
+
 def contact_sheet(*, state=(0.0, 150.0, 0.0), camera: CameraConfig = None,
                   runways=tuple(RUNWAYS), hours=DEFAULT_HOURS, skies=SKIES,
                   progress=None) -> np.ndarray:
     """RGB uint8 grid: one row per runway, one column per (hour, sky), each tile
     captioned. ``state = [px m, py m, theta rad]``; ``progress`` wraps the iterable."""
-    tiles, combos = [], [(h, s) for h in hours for s in skies]
-    jobs = [(r, h, s) for r in runways for h, s in combos]
-    for runway, hour, sky in (progress(jobs) if progress else jobs):
-        env = Environment(runway, hour, sky)
-        image = StateRenderer(environment=env, camera=camera).render(state)
-        tile = np.ascontiguousarray(image)
-        cv2.putText(tile, f"{runway} {hour:g}h {sky}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX,
-                    0.4, (255, 0, 255), 1, cv2.LINE_AA)
-        tiles.append(tile)
-    rows = [np.hstack(tiles[i:i + len(combos)]) for i in range(0, len(tiles), len(combos))]
-    return np.vstack(rows)
+    combos = [(h, s) for h in hours for s in skies]
+    envs = [Environment(r, h, s) for r in runways for h, s in combos]
+    return environment_sheet(envs, per_row=len(combos), state=state, camera=camera,
+                             captions=[f"{e.runway} {e.hour:g}h {e.sky}" for e in envs],
+                             progress=progress)

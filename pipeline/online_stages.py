@@ -116,7 +116,7 @@ def stage_guard(run: Run) -> dict:
 def incremental(run: Run) -> dict:
     spec, config = run.spec, run.spec.incremental
     env = config.environment
-    progress = (lambda it, **kw: __import__("tqdm").tqdm(it, **kw)) if run.progress else None
+    progress = run.bar()
     mined = mine_anomalies(list(zip(spec.train, run.datasets(spec.train))), config.anomalies,
                            np.random.default_rng(config.seed))
     base = resolved(run.scenario_for(env)).controller.checkpoint

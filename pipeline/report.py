@@ -3,15 +3,15 @@ Markdown (``report.md``), built from the stage records; figures are linked by
 relative path, so the run directory can be moved or served as it is."""
 
 import html
-from pathlib import Path
 
-import cv2
 import numpy as np
 
-from reachwatch.diagrams import StateRenderer, export_graph, make_closed_loop_diagram, make_guarded_diagram
+from reachwatch.diagrams import export_graph, make_closed_loop_diagram, make_guarded_diagram
+from reachwatch.diagrams.contact_sheet import environment_sheet
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.evaluation import COLUMNS, format_cell
 
+from .commands import write_png
 from .stages import Run
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;
@@ -66,21 +66,6 @@ class Page:
         return "\n".join(self.html) + "</body></html>\n", "\n".join(self.md)
 
 
-def environment_sheet(run: Run, path, state=(0.0, 150.0, 0.0), per_row=4):
-    """The wing-camera view of each environment of the run, captioned, in one PNG."""
-    tiles = []
-    for env in run.environments():
-        tile = np.ascontiguousarray(StateRenderer(environment=env, camera=run.spec.scenario.camera)
-                                    .render(state))
-        cv2.putText(tile, env.name, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 0, 255), 1,
-                    cv2.LINE_AA)
-        tiles.append(tile)
-    tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % per_row)
-    sheet = np.vstack([np.hstack(tiles[i:i + per_row]) for i in range(0, len(tiles), per_row)])
-    ok, data = cv2.imencode(".png", sheet[..., ::-1])
-    return atomic_write_bytes(path, data.tobytes())
-
-
 def _pct(x):
     return f"{100 * x:.2f}" if x is not None else "-"
 
@@ -106,7 +91,8 @@ def write_report(run: Run) -> dict:
     page.table(["stage", "key", "seconds", "finished"],
                [[n, r["key"], f"{r['seconds']:.1f}", r["finished"]] for n, r in run.records.items()])
     page.section("Environments", "environments")
-    sheet = environment_sheet(run, run.path("figures/environments.png"))
+    sheet = write_png(run.path("figures/environments.png"), environment_sheet(
+        run.environments(), per_row=4, camera=spec.scenario.camera))
     page.text("Training: " + ", ".join(e.name for e in spec.train) + ". Held out: " +
               ", ".join(e.name for e in spec.test) + ".")
     page.images([run.rel(sheet)])
@@ -188,7 +174,3 @@ def write_report(run: Run) -> dict:
     text_html, text_md = page.done()
     return {"html": run.rel(atomic_write_bytes(run.path("report.html"), text_html.encode())),
             "md": run.rel(atomic_write_bytes(run.path("report.md"), text_md.encode()))}
-
-
-def report_path(root) -> Path:
-    return Path(root) / "report.html"

@@ -48,6 +48,13 @@ class Run:
         self.root.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(self.root / "run.yaml", dump_run_spec(spec).encode())
 
+    def bar(self):
+        """A tqdm-style ``progress(iterable, **kw)`` for training loops, or None when quiet."""
+        if not self.progress:
+            return None
+        from tqdm import tqdm
+        return lambda it, **kw: tqdm(it, **kw)
+
     def path(self, relative) -> Path:
         return self.root / relative
 
@@ -171,8 +178,7 @@ def _ensemble(run: Run):
     folder = run.path(f"ensemble/{digest(config, spec.seeds)}")
     paths = [folder / f"taxinet_seed{s}.pt" for s in spec.seeds]
     if not all(p.exists() for p in paths):
-        progress = (lambda it, **kw: __import__("tqdm").tqdm(it, **kw)) if run.progress else None
-        train_taxinet_ensemble(config, folder, spec.seeds, progress=progress)
+        train_taxinet_ensemble(config, folder, spec.seeds, progress=run.bar())
     return paths
 
 
@@ -202,7 +208,7 @@ def stage_train(run: Run) -> dict:
     (baseline a), each with its operating threshold."""
     spec, config = run.spec, run.spec.detector
     data = run.datasets(spec.train)
-    progress = (lambda it, **kw: __import__("tqdm").tqdm(it, **kw)) if run.progress else None
+    progress = run.bar()
     tag = digest(config, run.outputs["dataset"]["folders"])
     brt_path = run.path(f"detectors/detector_brt_{tag}.pt")
     if not brt_path.exists():
