@@ -69,13 +69,15 @@ def _crop(images, crop):
 
 
 def preprocess(images: torch.Tensor, config: PreprocessConfig) -> torch.Tensor:
-    """uint8 ``(N, H, W, 3)`` (or ``(H, W, 3)``) RGB -> float network input."""
+    """uint8 ``(N, H, W, 3)`` RGB or ``(N, H, W, 4)`` RGBA (alpha ignored), or one
+    ``(H, W, C)`` image -> float network input. Alpha is dropped by a view, so a camera
+    frame is copied once, by the float conversion of its crop."""
     if images.dim() == 3:
         images = images.unsqueeze(0)
-    if images.dim() != 4 or images.shape[-1] != 3:
-        raise ValueError(f"TaxiNet expects RGB images shaped (N, H, W, 3), got "
+    if images.dim() != 4 or images.shape[-1] not in (3, 4):
+        raise ValueError(f"TaxiNet expects RGB or RGBA images shaped (N, H, W, 3|4), got "
                          f"{tuple(images.shape)}")
-    x = _crop(images, config.crop).permute(0, 3, 1, 2).float() / 255.0   # crop first
+    x = _crop(images[..., :3], config.crop).permute(0, 3, 1, 2).float() / 255.0
     if config.grayscale:
         x = (0.299 * x[:, 0:1] + 0.587 * x[:, 1:2] + 0.114 * x[:, 2:3])
     if config.kind == "blockmax":

@@ -49,7 +49,7 @@ class TaxiNet(LeafSystem):
 
     @torch.no_grad()
     def estimate(self, images_rgb: np.ndarray) -> np.ndarray:
-        """``(N, H, W, 3)`` uint8 RGB -> ``(N, 2)`` [px_hat m, theta_hat deg]."""
+        """``(N, H, W, 3)`` uint8 RGB (or RGBA) -> ``(N, 2)`` [px_hat m, theta_hat deg]."""
         x = preprocess_batched(images_rgb, self._preprocess)
         return self._model(x).double().numpy()
 
@@ -61,7 +61,7 @@ class TaxiNet(LeafSystem):
                 f"TaxiNet: input port 'color_image' got a {rgba.shape[0]}x{rgba.shape[1]} "
                 f"image, but this model was trained on {self._image_size[0]}x"
                 f"{self._image_size[1]} (height x width); set the camera size to match")
-        output.SetFromVector(self.estimate(rgba[None, ..., :3])[0])
+        output.SetFromVector(self.estimate(rgba[None])[0])
 
 
 class ProportionalController(LeafSystem):

@@ -54,6 +54,11 @@ def test_blockmax_preprocessing_shape_and_range():
     assert float(x.min()) >= 0.0 and float(x.max()) <= 1.0
     with pytest.raises(ValueError, match="RGB"):
         preprocess(images[..., :2], PreprocessConfig())
+    # A camera frame's alpha channel is ignored: RGBA in, the same input out.
+    rgba = torch.cat([images, torch.full((5, 200, 360, 1), 7, dtype=torch.uint8)], dim=-1)
+    for config in (PreprocessConfig(), PreprocessConfig(kind="resize", height=32, width=64)):
+        torch.testing.assert_close(preprocess(rgba, config), preprocess(images, config),
+                                   rtol=0, atol=0)
 
 
 def test_taxinet_system_output_shape_and_determinism():
