@@ -1,6 +1,7 @@
 """The image anomaly detector: models (a CPU-sized CNN, or the paper's EfficientNet-B0)
 and the `AnomalyDetector` LeafSystem. Class 1 = anomalous (leads to failure)."""
 
+import copy
 import dataclasses as dc
 from typing import List
 
@@ -12,6 +13,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageRgba8U
 from torch import nn
+from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 
 @dc.dataclass
@@ -22,6 +24,7 @@ class DetectorConfig:
     height: int = 96
     width: int = 160
     channels: List[int] = dc.field(default_factory=lambda: [16, 32, 64, 96])
+    stem_stride: int = 1
 
     @classmethod
     def paper(cls) -> "DetectorConfig":
@@ -31,24 +34,33 @@ class DetectorConfig:
         if self.arch not in ("small_cnn", "efficientnet_b0"):
             raise ValueError(f"detector arch must be small_cnn or efficientnet_b0, got "
                              f"'{self.arch}'")
+        if self.stem_stride not in (1, 2):
+            raise ValueError(f"detector stem_stride must be 1 or 2, got {self.stem_stride}")
         if not (16 <= self.height <= 1024 and 16 <= self.width <= 1024):
             raise ValueError(f"detector input must be 16..1024 pixels a side, got "
                              f"{self.height}x{self.width}")
         return self
 
 
-def resize_for_detector(images_rgb: np.ndarray, config: DetectorConfig) -> np.ndarray:
-    """uint8 ``(N, H, W, 3)`` -> ``(N, height, width, 3)`` with OpenCV's area filter:
-    how datasets store their images, so training and the online loop see the same
-    pixels (and it costs ~0.1 ms a frame, a fraction of a float resize)."""
-    images_rgb = np.asarray(images_rgb)
-    if images_rgb.ndim != 4 or images_rgb.shape[-1] != 3:
-        raise ValueError(f"the detector expects RGB images shaped (N, H, W, 3), got "
-                         f"{images_rgb.shape}")
-    if images_rgb.shape[1:3] == (config.height, config.width):
-        return np.ascontiguousarray(images_rgb)
-    return np.stack([cv2.resize(np.ascontiguousarray(im), (config.width, config.height),
-                                interpolation=cv2.INTER_AREA) for im in images_rgb])
+def resize_for_detector(images: np.ndarray, config: DetectorConfig) -> np.ndarray:
+    """uint8 RGB ``(N, H, W, 3)`` or RGBA ``(N, H, W, 4)`` (alpha dropped) ->
+    RGB ``(N, height, width, 3)`` with OpenCV's area filter: how datasets store their
+    images, so training and the online loop see the same pixels. An RGBA camera frame
+    goes in as it is: OpenCV drops alpha in ~0.01 ms, where numpy's strided
+    ``[..., :3]`` copy of a 200x360 frame costs ~0.2 ms, as much as the resize."""
+    images = np.asarray(images)
+    if images.ndim != 4 or images.shape[-1] not in (3, 4):
+        raise ValueError(f"the detector expects RGB or RGBA images shaped (N, H, W, 3|4), "
+                         f"got {images.shape}")
+    size = (config.width, config.height)
+
+    def one(im):
+        im = cv2.cvtColor(im, cv2.COLOR_RGBA2RGB) if im.shape[-1] == 4 else im
+        if im.shape[:2] == (config.height, config.width):
+            return np.ascontiguousarray(im)
+        return cv2.resize(np.ascontiguousarray(im), size, interpolation=cv2.INTER_AREA)
+
+    return np.stack([one(im) for im in images])
 
 
 def detector_input(images: torch.Tensor, config: DetectorConfig) -> torch.Tensor:
@@ -65,14 +77,17 @@ def detector_input(images: torch.Tensor, config: DetectorConfig) -> torch.Tensor
 
 
 class SmallDetectorCNN(nn.Module):
-    """Conv-BN-ReLU-pool stacks, global average pool, 2-way linear head."""
+    """Conv-BN-ReLU-pool stacks, global average pool, 2-way linear head. With
+    ``stem_stride=2`` the first convolution strides 2, so every later layer works on a
+    quarter of the pixels (a quarter of the cost) while the first still sees them all."""
 
     def __init__(self, config: DetectorConfig):
         super().__init__()
         layers, c = [], 3
-        for out in config.channels:
-            layers += [nn.Conv2d(c, out, 3, padding=1, bias=False), nn.BatchNorm2d(out),
-                       nn.ReLU(inplace=True), nn.MaxPool2d(2)]
+        for i, out in enumerate(config.channels):
+            stride = config.stem_stride if i == 0 else 1
+            layers += [nn.Conv2d(c, out, 3, stride=stride, padding=1, bias=False),
+                       nn.BatchNorm2d(out), nn.ReLU(inplace=True), nn.MaxPool2d(2)]
             c = out
         self.features = nn.Sequential(*layers)
         self.head = nn.Sequential(nn.Dropout(0.2), nn.Linear(c, 2))
@@ -103,6 +118,26 @@ def build_detector(config: DetectorConfig, pretrained_path: str = "") -> nn.Modu
     return model
 
 
+def inference_model(model: nn.Module) -> nn.Module:
+    """A copy of ``model`` for per-frame CPU inference: eval mode; every ``Conv2d``
+    directly followed by a ``BatchNorm2d`` inside an ``nn.Sequential`` folded into one
+    convolution (the same function up to float rounding); weights in channels-last
+    layout, which is how a camera frame permuted to NCHW already lies in memory.
+    Measured on the default detector: 0.73 -> 0.59 ms a frame (benchmarks/detector.py)."""
+    model = copy.deepcopy(model).eval()
+    for module in list(model.modules()):
+        if not isinstance(module, nn.Sequential):
+            continue
+        names = list(module._modules)
+        for a, b in zip(names, names[1:]):
+            conv, bn = module._modules[a], module._modules[b]
+            if (isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d)
+                    and bn.track_running_stats and bn.running_mean is not None):
+                module._modules[a] = fuse_conv_bn_eval(conv, bn)
+                module._modules[b] = nn.Identity()
+    return model.to(memory_format=torch.channels_last)
+
+
 class AnomalyDetector(LeafSystem):
     """Flags camera images that lead to system failure.
 
@@ -125,7 +160,7 @@ class AnomalyDetector(LeafSystem):
         super().__init__()
         if not 0.0 <= threshold <= 1.0:
             raise ValueError(f"AnomalyDetector: threshold must be in [0, 1], got {threshold}")
-        self._model = model.eval()
+        self._model = inference_model(model)
         self._config = config.validate()
         self._threshold = float(threshold)
         self._image_size = tuple(image_size) if image_size is not None else None
@@ -149,7 +184,8 @@ class AnomalyDetector(LeafSystem):
 
     @torch.no_grad()
     def scores(self, images_rgb: np.ndarray, batch: int = 64) -> np.ndarray:
-        """Anomaly probabilities of uint8 RGB images ``(N, H, W, 3)``."""
+        """Anomaly probabilities of uint8 RGB ``(N, H, W, 3)`` or RGBA
+        ``(N, H, W, 4)`` images."""
         out = []
         for i in range(0, len(images_rgb), batch):
             x = detector_input(torch.from_numpy(resize_for_detector(images_rgb[i:i + batch],
@@ -165,7 +201,7 @@ class AnomalyDetector(LeafSystem):
                 f"AnomalyDetector: input port 'color_image' got a {rgba.shape[0]}x"
                 f"{rgba.shape[1]} image, but this detector was trained on "
                 f"{self._image_size[0]}x{self._image_size[1]} (height x width)")
-        output.SetAtIndex(0, self.scores(rgba[None, ..., :3])[0])
+        output.SetAtIndex(0, self.scores(rgba[None])[0])
 
     def _calc_anomaly(self, context, output):
         score = self._score_port.Eval(context)[0]

@@ -133,5 +133,32 @@ def test_online_detector_sees_the_pixels_the_dataset_stored():
     model = build_detector(TINY).eval()
     system = AnomalyDetector(model=model, config=TINY)
     np.testing.assert_allclose(system.scores(frames), system.scores(small), rtol=1e-6)
-    with pytest.raises(ValueError, match=r"\(N, H, W, 3\)"):
+    # The system's path: the camera's RGBA frame, alpha dropped by OpenCV, same pixels.
+    rgba = np.concatenate([frames, rng.integers(0, 256, (3, 200, 360, 1), np.uint8)], -1)
+    np.testing.assert_array_equal(resize_for_detector(rgba, TINY), small)
+    np.testing.assert_allclose(system.scores(rgba), system.scores(small), rtol=1e-6)
+    with pytest.raises(ValueError, match=r"\(N, H, W, 3\|4\)"):
         resize_for_detector(frames[..., :2], TINY)
+
+
+@pytest.mark.parametrize("stem_stride", [1, 2])
+def test_inference_model_computes_the_same_scores_and_leaves_the_model_alone(stem_stride):
+    """The system's copy folds BatchNorm into the convolutions (channels-last); its
+    scores equal the trained model's, and the caller's model is not touched."""
+    from reachwatch.systems.detector import inference_model
+    config = DetectorConfig(height=64, width=96, channels=[4, 8, 8], stem_stride=stem_stride)
+    torch.manual_seed(0)
+    model = build_detector(config)
+    for m in model.modules():                         # non-trivial running statistics
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.3, 0.3)
+            m.running_var.uniform_(0.5, 2.0)
+    model.train()
+    fast = inference_model(model)
+    assert model.training and sum(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules()) == 3
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fast.modules())
+    x = torch.randn(5, 3, 64, 96)
+    with torch.no_grad():
+        np.testing.assert_allclose(fast(x).numpy(), model.eval()(x).numpy(), atol=1e-5)
+    with pytest.raises(ValueError, match="stem_stride"):
+        DetectorConfig(stem_stride=3).validate()
