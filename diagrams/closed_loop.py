@@ -99,10 +99,12 @@ def make_state_feedback_diagram(scenario) -> Diagram:
                       name="state_feedback_closed_loop")
 
 
-def simulate(diagram: Diagram, *, initial_state, duration: float, half_width: float,
-             stop_on_failure: bool = True, context=None) -> Trajectory:
-    """Runs a closed-loop diagram from ``initial_state`` [px m, py m, theta rad] for
-    ``duration`` s; stops early at failure (``|px| >= half_width``) if asked."""
+def start_simulator(diagram: Diagram, *, initial_state, half_width: float = 1e9,
+                    stop_on_failure: bool = True, context=None):
+    """A `Simulator` of a closed-loop diagram, initialised at time 0 in
+    ``initial_state`` [px m, py m, theta rad] with its logs cleared and a monitor that
+    ends the run at failure (``|px| >= half_width``) if asked. Returns
+    ``(simulator, failure)``; ``failure`` gets ``"t"`` (s) when the monitor fires."""
     plant = diagram.GetSubsystemByName(PLANT)
     simulator = Simulator(diagram, context) if context is not None else Simulator(diagram)
     context = simulator.get_mutable_context()
@@ -110,7 +112,6 @@ def simulate(diagram: Diagram, *, initial_state, duration: float, half_width: fl
     context.SetTime(0.0)
     plant.GetMyMutableContextFromRoot(context).SetContinuousState(
         np.asarray(initial_state, float))
-    logs = [diagram.GetSubsystemByName(n) for n in ("state_log", "estimate_log")]
     for name in ("state_log", "estimate_log", "speed_log", "anomaly_log"):
         if diagram.HasSubsystemNamed(name):
             diagram.GetSubsystemByName(name).FindMutableLog(context).Clear()
@@ -126,6 +127,18 @@ def simulate(diagram: Diagram, *, initial_state, duration: float, half_width: fl
 
     simulator.set_monitor(monitor)
     simulator.Initialize()
+    return simulator, failure
+
+
+def simulate(diagram: Diagram, *, initial_state, duration: float, half_width: float,
+             stop_on_failure: bool = True, context=None) -> Trajectory:
+    """Runs a closed-loop diagram from ``initial_state`` [px m, py m, theta rad] for
+    ``duration`` s; stops early at failure (``|px| >= half_width``) if asked."""
+    simulator, failure = start_simulator(diagram, initial_state=initial_state,
+                                         half_width=half_width,
+                                         stop_on_failure=stop_on_failure, context=context)
+    context = simulator.get_context()
+    logs = [diagram.GetSubsystemByName(n) for n in ("state_log", "estimate_log")]
     simulator.AdvanceTo(duration)
     state_log, estimate_log = (log.FindLog(context) for log in logs)
     n = min(state_log.num_samples(), estimate_log.num_samples())

@@ -126,3 +126,48 @@ def test_cli_simulate_guarded_writes_plot_and_replay(detector_path, tmp_path):
     html = (tmp_path / "guarded_KMWH_9h_clear_brake.html").read_text()
     assert "<html" in html.lower() and len(html) > 10000
     assert (tmp_path / "guarded_KMWH_9h_clear_brake.png").stat().st_size > 1000
+
+
+def test_paired_rates_alternates_blocks_and_checks_arguments(monkeypatch):
+    """Both loops run from the same start, advanced block by block in turn, the one
+    going first alternating; each rate is ticks over its own blocks' wall time."""
+    import reachwatch.diagrams.timing as timing
+    from reachwatch.diagrams import make_state_feedback_diagram, paired_rates
+    scenario = load_scenario(data="")
+    reference, candidate = make_state_feedback_diagram(scenario), make_state_feedback_diagram(scenario)
+    calls = []
+
+    class FakeSimulator:
+        def __init__(self, diagram, x0):
+            self.name = "ref" if diagram is reference else "cand"
+            calls.append(("start", self.name, list(x0)))
+
+        def AdvanceTo(self, t):
+            calls.append(("advance", self.name, round(t, 6)))
+
+    monkeypatch.setattr(timing, "start_simulator",
+                        lambda d, *, initial_state, context: (FakeSimulator(d, initial_state), {}))
+    monkeypatch.setattr(timing, "_ticks", lambda simulator, diagram: 20)
+    starts = [[0.0, 110.0, 0.0], [1.0, 120.0, 0.1]]
+    ref, cand = paired_rates(reference, candidate, rounds=3, duration=1.0, block=0.5,
+                             starts=starts)
+    assert ref.shape == cand.shape == (3,) and np.all(ref > 0) and np.all(cand > 0)
+    rounds = [calls[i:i + 6] for i in range(4, len(calls), 6)]   # after the warm-up round
+    assert len(rounds) == 3
+    assert [c[2] for r in rounds for c in r if c[0] == "start"] == [starts[0], starts[0],
+                                                                   starts[1], starts[1],
+                                                                   starts[0], starts[0]]
+    for r in rounds:
+        assert [(c[1], c[2]) for c in r if c[0] == "advance"] == [
+            ("ref", 0.5), ("cand", 0.5), ("cand", 1.0), ("ref", 1.0)]
+    with pytest.raises(ValueError, match="rounds >= 1"):
+        paired_rates(reference, candidate, rounds=0, duration=1.0)
+    with pytest.raises(ValueError, match="block > 0"):
+        paired_rates(reference, candidate, rounds=1, duration=1.0, block=0.0)
+
+
+def test_paired_rates_times_real_runs():
+    from reachwatch.diagrams import make_state_feedback_diagram, paired_rates
+    diagram = make_state_feedback_diagram(load_scenario(data=""))
+    ref, cand = paired_rates(diagram, diagram, rounds=2, duration=0.2, block=0.1)
+    assert ref.shape == cand.shape == (2,) and np.all(ref > 0) and np.all(cand > 0)
