@@ -79,7 +79,7 @@ def guard_environment(run: Run, env) -> dict:
                           lowest_speed=float(np.min(guarded.speed)),
                           flagged_ticks=int(np.sum(np.asarray(guarded.anomaly) >= 0.5)),
                           files=[run.rel(p) for p in paths])
-    # Rounds timed alone, guarded, guarded, alone; the median per-round ratio (the VM drifts).
+    # Both loops side by side in alternating blocks; the median per-round ratio (the VM drifts).
     alone, guarded_rate = paired_rates(nominal_diagram, guarded_diagram, rounds=3,
                                        duration=spec.guard.online_seconds)
     return {"threshold": scenario.pipeline.threshold, "volumes": volumes,

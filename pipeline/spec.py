@@ -31,7 +31,7 @@ class GuardSpec:
     environments: List[Environment] = dc.field(default_factory=list)
     strategies: List[str] = dc.field(default_factory=lambda: list(STRATEGIES))
     candidates: int = 5            # table-chosen starts tried in the real Drake loop
-    online_seconds: float = 2.0    # simulated seconds per timed run of the online rate
+    online_seconds: float = 2.0    # simulated seconds per round of the online rate
     meshcat_html: bool = True
 
 

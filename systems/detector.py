@@ -53,6 +53,8 @@ def resize_for_detector(images: np.ndarray, config: DetectorConfig) -> np.ndarra
         raise ValueError(f"the detector expects RGB or RGBA images shaped (N, H, W, 3|4), "
                          f"got {images.shape}")
     size = (config.width, config.height)
+    if images.shape[1:] == (config.height, config.width, 3):
+        return np.ascontiguousarray(images)                  # dataset images: stored resized
 
     def one(im):
         im = cv2.cvtColor(im, cv2.COLOR_RGBA2RGB) if im.shape[-1] == 4 else im
