@@ -1,16 +1,17 @@
-"""A regular state grid over [px m, py m, theta rad], with multilinear interpolation."""
+"""A regular N-dimensional state grid with multilinear interpolation."""
 
 import dataclasses as dc
 from typing import List
 
 import numpy as np
 
-AXES = ("px", "py", "theta")
+#: What a query does with a state outside the grid box.
+OUTSIDE_MODES = ("raise", "clamp", "nan")
 
 
 @dc.dataclass
 class GridSpec:
-    """A grid as configs write it (theta in degrees)."""
+    """The taxi grid as configs write it (theta in degrees)."""
     px: List[float] = dc.field(default_factory=lambda: [-11.0, 11.0])
     py: List[float] = dc.field(default_factory=lambda: [100.0, 250.0])
     theta_deg: List[float] = dc.field(default_factory=lambda: [-28.0, 28.0])
@@ -19,34 +20,57 @@ class GridSpec:
     def to_grid(self) -> "Grid":
         return Grid(lo=[self.px[0], self.py[0], np.deg2rad(self.theta_deg[0])],
                     hi=[self.px[1], self.py[1], np.deg2rad(self.theta_deg[1])],
-                    shape=self.shape)
+                    shape=self.shape, names=("px", "py", "theta"))
+
+
+def check_states(states, dim: int, what: str = "state") -> np.ndarray:
+    """``states`` as a float array ``(..., dim)``; raises ValueError naming the first
+    non-finite state or a wrong trailing size."""
+    states = np.asarray(states, dtype=float)
+    if states.ndim == 0 or states.shape[-1] != dim:
+        raise ValueError(f"{what}s must be shaped (..., {dim}), got {states.shape}")
+    flat = states.reshape(-1, dim)
+    bad = ~np.all(np.isfinite(flat), axis=-1)
+    if bad.any():
+        raise ValueError(f"{what} {flat[np.argmax(bad)].tolist()} is not finite "
+                         f"({int(bad.sum())} of {len(flat)} such)")
+    return states
 
 
 class Grid:
-    """Nodes ``lo + i * spacing`` for ``i`` in ``range(shape)`` per axis (ends included).
+    """Nodes ``lo + i * spacing`` for ``i`` in ``range(shape)`` per axis (ends included),
+    in any number of dimensions. ``names`` label the axes in messages (default
+    ``x0, x1, ...``); they are not part of the grid's identity."""
 
-    ``lo``/``hi`` in state units [px m, py m, theta rad]."""
-
-    def __init__(self, *, lo, hi, shape):
-        lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    def __init__(self, *, lo, hi, shape, names=None):
+        lo, hi = np.atleast_1d(np.asarray(lo, dtype=float)), np.atleast_1d(np.asarray(hi, dtype=float))
         shape = tuple(int(n) for n in np.atleast_1d(shape))
-        if lo.shape != (3,) or hi.shape != (3,) or len(shape) != 3:
-            raise ValueError(f"a grid needs 3 lower bounds, 3 upper bounds and 3 sizes "
-                             f"({', '.join(AXES)}), got {lo.tolist()}, {hi.tolist()}, {shape}")
-        for axis, a, b, n in zip(AXES, lo, hi, shape):
+        names = tuple(names) if names is not None else tuple(f"x{k}" for k in range(len(shape)))
+        if lo.ndim != 1 or not (len(lo) == len(hi) == len(shape) == len(names)) or not shape:
+            raise ValueError(f"a grid needs as many lower bounds, upper bounds, sizes and names "
+                             f"as it has axes, got lo {lo.tolist()}, hi {hi.tolist()}, shape "
+                             f"{list(shape)}, names {list(names)}")
+        for axis, a, b, n in zip(names, lo, hi, shape):
             if not (np.isfinite(a) and np.isfinite(b) and a < b):
                 raise ValueError(f"grid axis {axis}: lower bound {a} must be finite and below "
                                  f"the upper bound {b}")
             if n < 2:
                 raise ValueError(f"grid axis {axis}: needs at least 2 nodes, got {n}")
-        self.lo, self.hi, self.shape = lo, hi, shape
+        self.lo, self.hi, self.shape, self.names = lo, hi, shape, names
 
     @classmethod
     def paper(cls, half_width: float, shape=(101, 101, 101)) -> "Grid":
-        """The paper's grid: px in [-(B+1), B+1] m, py in [100, 250] m, theta in
+        """The TaxiNet paper's grid: px in [-(B+1), B+1] m, py in [100, 250] m, theta in
         [-28, 28] deg."""
+        if len(tuple(shape)) != 3:
+            raise ValueError(f"the paper grid has 3 axes (px, py, theta), got shape {list(shape)}")
         return cls(lo=[-(half_width + 1.0), 100.0, np.deg2rad(-28.0)],
-                   hi=[half_width + 1.0, 250.0, np.deg2rad(28.0)], shape=shape)
+                   hi=[half_width + 1.0, 250.0, np.deg2rad(28.0)], shape=shape,
+                   names=("px", "py", "theta"))
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
 
     def __eq__(self, other):
         return (isinstance(other, Grid) and self.shape == other.shape
@@ -73,7 +97,7 @@ class Grid:
         return [np.linspace(a, b, n) for a, b, n in zip(self.lo, self.hi, self.shape)]
 
     def states(self, flat_indices=None) -> np.ndarray:
-        """``(N, 3)`` node states in C order (all nodes, or the given flat indices)."""
+        """``(N, ndim)`` node states in C order (all nodes, or the given flat indices)."""
         if flat_indices is None:
             flat_indices = np.arange(self.size)
         idx = np.stack(np.unravel_index(np.asarray(flat_indices), self.shape), axis=-1)
@@ -84,36 +108,39 @@ class Grid:
         return np.meshgrid(*self.axes, indexing="ij")
 
     def contains(self, states, atol=1e-9) -> np.ndarray:
-        states = np.atleast_2d(states)
+        states = np.asarray(states, dtype=float).reshape(-1, self.ndim)
         return np.all((states >= self.lo - atol) & (states <= self.hi + atol), axis=-1)
+
+    def describe(self, state) -> str:
+        """``state`` and the box, in words (for error messages)."""
+        return (f"state [{', '.join(f'{n}={v:.4g}' for n, v in zip(self.names, state))}] is "
+                f"outside the grid " + ", ".join(f"{n} [{a:g}, {b:g}]" for n, a, b in
+                                                 zip(self.names, self.lo, self.hi)))
 
     def interpolate(self, values: np.ndarray, states, *, outside="raise") -> np.ndarray:
         """Multilinear interpolation of node ``values`` (shape ``self.shape`` + trailing)
-        at ``states`` ``(..., 3)``. ``outside``: ``raise`` (naming the state), ``clamp``
-        to the box, or ``nan``."""
+        at ``states`` ``(..., ndim)``. ``outside``: ``raise`` (naming the state),
+        ``clamp`` to the box, or ``nan``. A non-finite state is always an error."""
+        if outside not in OUTSIDE_MODES:
+            raise ValueError(f"outside must be one of {OUTSIDE_MODES}, got {outside!r}")
         values = np.asarray(values)
-        if values.shape[:3] != self.shape:
+        if values.shape[:self.ndim] != self.shape:
             raise ValueError(f"values shaped {values.shape} do not match grid {self.shape}")
-        states = np.asarray(states, dtype=float)
-        flat = states.reshape(-1, 3)
+        states = check_states(states, self.ndim)
+        flat = states.reshape(-1, self.ndim)
         inside = self.contains(flat)
         if outside == "raise" and not inside.all():
-            bad = flat[np.argmin(inside)]
-            raise ValueError(f"state [px={bad[0]:.3f} m, py={bad[1]:.3f} m, "
-                             f"theta={np.rad2deg(bad[2]):.2f} deg] is outside the grid "
-                             f"px [{self.lo[0]:g}, {self.hi[0]:g}] m, py [{self.lo[1]:g}, "
-                             f"{self.hi[1]:g}] m, theta [{np.rad2deg(self.lo[2]):g}, "
-                             f"{np.rad2deg(self.hi[2]):g}] deg")
+            raise ValueError(self.describe(flat[np.argmin(inside)]))
         u = (np.clip(flat, self.lo, self.hi) - self.lo) / self.spacing
         i0 = np.clip(np.floor(u).astype(int), 0, np.asarray(self.shape) - 2)
         w = u - i0
         out = 0.0
-        for corner in range(8):
-            bits = [(corner >> k) & 1 for k in range(3)]
+        for corner in range(2 ** self.ndim):
+            bits = [(corner >> k) & 1 for k in range(self.ndim)]
             weight = np.prod([w[:, k] if b else 1.0 - w[:, k] for k, b in enumerate(bits)], axis=0)
-            node = values[i0[:, 0] + bits[0], i0[:, 1] + bits[1], i0[:, 2] + bits[2]]
+            node = values[tuple(i0[:, k] + b for k, b in enumerate(bits))]
             out = out + weight.reshape((-1,) + (1,) * (node.ndim - 1)) * node
         out = np.asarray(out, dtype=float)
         if outside == "nan":
             out[~inside] = np.nan
-        return out.reshape(states.shape[:-1] + values.shape[3:])
+        return out.reshape(states.shape[:-1] + values.shape[self.ndim:])

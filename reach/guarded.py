@@ -11,7 +11,8 @@ import torch
 
 from reachwatch.systems import next_speed
 
-from .dynamics import rk4_step
+from .dynamics import positive, rk4_step, split_horizon
+from .grid import check_states
 from .interpolate import GridInterpolator
 
 
@@ -22,14 +23,17 @@ def pipeline_failures(grid, dynamics, steering_table, score_table=None, *, thres
     """Boolean failure per start (default: every grid node, C order) and the speed
     history's minimum per start. ``score_table=None`` = no detector (TaxiNet alone)."""
     as_t = lambda a: torch.as_tensor(np.asarray(a, float), dtype=torch.float64)   # noqa: E731
-    x = as_t(grid.states() if starts is None else starts).reshape(-1, 3)
+    x = as_t(grid.states() if starts is None else check_states(starts, grid.ndim, "start")
+             ).reshape(-1, grid.ndim)
     steer = as_t(steering_table).reshape(grid.shape)
     score = None if score_table is None else as_t(score_table).reshape(grid.shape)
     nominal = dynamics.speed
     v = torch.full((len(x),), nominal, dtype=torch.float64)
     lowest, slowest = dynamics.target(x), v.clone()
-    h = period / substeps
-    for _ in range(int(round(horizon / period))):
+    whole, tail = split_horizon(horizon, period)
+    substeps = positive("substeps", substeps, integer=True)
+    for k in range(whole + (tail > 0)):       # a last partial period when it does not divide
+        h = (period if k < whole else tail) / substeps
         interpolate = GridInterpolator(grid, x)
         u = interpolate(steer)[:, None]
         if score is not None:

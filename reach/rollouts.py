@@ -4,7 +4,8 @@ states) and take the minimum of the target along each path."""
 import numpy as np
 import torch
 
-from .dynamics import rk4_step
+from .dynamics import positive, rk4_step
+from .grid import check_states
 from .interpolate import GridInterpolator
 
 
@@ -12,7 +13,7 @@ from .interpolate import GridInterpolator
 def min_target_along_rollouts(grid, dynamics, control_table, starts, *, horizon=8.0,
                               dt=0.01, hold=None, batch=200_000, device="cpu",
                               progress=None) -> np.ndarray:
-    """``min_t l(x(t))`` over ``[0, horizon]`` from each start ``(N, 3)``.
+    """``min_t l(x(t))`` over ``[0, horizon]`` from each start ``(N, ndim)``.
 
     The control comes from multilinear interpolation of ``control_table`` at the
     current state (``hold=None``: continuous feedback, RK4 with step ``dt``), or is
@@ -20,8 +21,12 @@ def min_target_along_rollouts(grid, dynamics, control_table, starts, *, horizon=
     table = torch.as_tensor(np.asarray(control_table, float).reshape(grid.shape + (-1,)),
                             dtype=torch.float64, device=device)
     columns = [table[..., k] for k in range(table.shape[-1])]
-    starts = torch.as_tensor(np.asarray(starts, float).reshape(-1, 3), device=device)
+    starts = torch.as_tensor(check_states(starts, grid.ndim, "start").reshape(-1, grid.ndim),
+                             device=device)
+    horizon, dt = positive("horizon", horizon), positive("dt", dt)
     steps = int(round(horizon / dt))
+    if abs(steps * dt - horizon) > 1e-9 * max(1.0, horizon):
+        raise ValueError(f"horizon {horizon} s must be a whole number of steps dt = {dt} s")
     if hold is not None:
         per_hold = int(round(hold / dt))
         if per_hold < 1 or abs(per_hold * dt - hold) > 1e-9:

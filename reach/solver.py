@@ -19,7 +19,7 @@ grid (the swept controller output). Accuracy names:
 import numpy as np
 import torch
 
-from .dynamics import rk4_step
+from .dynamics import positive, rk4_step, split_horizon
 from .grid import Grid
 from .interpolate import GridInterpolator
 from .levelset import hamiltonian_rate, rk_step
@@ -47,54 +47,83 @@ def _interpolate_table(grid, table, points):
     return torch.stack([interpolate(table[..., k]) for k in range(table.shape[-1])], dim=-1)
 
 
+def _sampled_flow(grid, dynamics, x, u, target, periods, period, tail=0.0):
+    """Foot of the sampled-data flow from the nodes ``x`` over ``periods`` whole
+    control periods then ``tail`` s, and the minimum of the target at every period
+    boundary (and the end) along the way."""
+    foot, path_target = x, target
+    for k in range(periods + (tail > 0)):
+        held = u if k == 0 else _interpolate_table(grid, u, foot)
+        foot = _held_flow(dynamics, foot, held, period if k < periods else tail, substeps=4)
+        path_target = torch.minimum(path_target, dynamics.target(foot))
+    return foot, path_target
+
+
 def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
               accuracy: str = "semi_lagrangian", period: float = 0.05,
               periods_per_step: int = 4, cfl: float = 0.75,
               device=None, dtype=torch.float32, progress=None) -> ValueFunction:
-    """V(x, 0) of the closed loop ``f(x, control_table(x))`` over ``horizon`` s.
+    """V(x, 0) of the closed loop ``f(x, control_table(x))`` over exactly ``horizon`` s.
 
     ``control_table``: ``grid.shape`` or ``grid.shape + (m,)``; ``period`` (s) is the
     control hold of ``semi_lagrangian`` and ``periods_per_step`` its step length in
-    periods; ``device`` defaults to CUDA when present."""
+    periods (a horizon that is no whole number of steps ends with a shorter step, and
+    one that is no whole number of periods with a partial period); ``cfl`` (0, 1] sets
+    the level-set schemes' step; ``device`` defaults to CUDA when present. The
+    metadata records what was solved: steps, whole periods and tail."""
     if accuracy not in ACCURACIES:
         raise ValueError(f"accuracy must be one of {sorted(ACCURACIES)}, got '{accuracy}'")
-    if not horizon > 0:
-        raise ValueError(f"horizon must be > 0 s, got {horizon}")
+    horizon = positive("horizon", horizon)
+    whole, tail = split_horizon(horizon, period)
+    periods_per_step = positive("periods_per_step", periods_per_step, integer=True)
+    cfl = positive("cfl", cfl)
+    if cfl > 1:
+        raise ValueError(f"cfl must be in (0, 1] (explicit schemes are unstable above 1), got {cfl}")
+    state_dim = getattr(dynamics, "state_dim", grid.ndim)
+    if state_dim != grid.ndim:
+        raise ValueError(f"dynamics has {state_dim} states but the grid {grid.ndim} axes")
     table = np.asarray(control_table, dtype=float)
-    if table.shape[:3] != grid.shape:
+    if table.shape[:grid.ndim] != grid.shape:
         raise ValueError(f"control table shaped {table.shape} does not match grid {grid.shape}")
     if not np.all(np.isfinite(table)):
         raise ValueError(f"control table has {np.sum(~np.isfinite(table))} non-finite entries")
     device = _device(device)
     as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)     # noqa: E731
-    x = as_t(np.stack(grid.mesh(), axis=-1))                           # (*shape, 3)
+    x = as_t(np.stack(grid.mesh(), axis=-1))                           # (*shape, n)
     u = as_t(table.reshape(grid.shape + (-1,)))
     target = dynamics.target(x)
     values = target.clone()
     scheme, order = ACCURACIES[accuracy]
     if scheme is None:
-        # One step spans `periods_per_step` control periods: the flow re-samples the
-        # control (interpolated) every period and the target is checked at each.
-        dt = period * periods_per_step
-        steps = int(np.ceil(horizon / dt - 1e-9))
-        foot, path_target = x, target
-        for k in range(periods_per_step):
-            held = u if k == 0 else _interpolate_table(grid, u, foot)
-            foot = _held_flow(dynamics, foot, held, period, substeps=4)
-            path_target = torch.minimum(path_target, dynamics.target(foot))
-        interpolate = GridInterpolator(grid, foot)   # leaving the box in px = failure
-        for _ in (progress(range(steps)) if progress else range(steps)):
+        # Dynamic programming backward from the end of the horizon: the last step in
+        # time (the shorter one, if any) is applied first. A step spans up to
+        # `periods_per_step` control periods; the flow re-samples the control
+        # (interpolated) every period and the target is checked at each boundary.
+        full_steps, rest = divmod(whole, periods_per_step)
+        schedule = ([(rest, tail)] if rest or tail else []) + [(periods_per_step, 0.0)] * full_steps
+        maps = {}
+        for periods, tail_s in set(schedule):
+            foot, path_target = _sampled_flow(grid, dynamics, x, u, target, periods, period, tail_s)
+            maps[periods, tail_s] = path_target, GridInterpolator(grid, foot)  # leaving the box in px = failure
+        steps = len(schedule)
+        for k in (progress(range(steps)) if progress else range(steps)):
+            path_target, interpolate = maps[schedule[k]]
             values = torch.minimum(path_target, interpolate(values))
+        metadata = {"steps": steps, "periods": whole, "tail": tail,
+                    "dt": period * periods_per_step}
     else:
-        field = dynamics.vector_field(x, u).movedim(-1, 0)                # (3, *shape)
+        field = dynamics.vector_field(x, u).movedim(-1, 0)                # (n, *shape)
         spacing = grid.spacing
-        rate_bound = sum(field[k].abs().max().item() / spacing[k] for k in range(3))
+        rate_bound = sum(field[k].abs().max().item() / spacing[k] for k in range(grid.ndim))
         dt = cfl / max(rate_bound, 1e-12)
         steps = int(np.ceil(horizon / dt))
         dt = horizon / steps
         rate = lambda v: hamiltonian_rate(v, field, spacing, scheme)   # noqa: E731
         for _ in (progress(range(steps)) if progress else range(steps)):
             values = torch.minimum(rk_step(values, rate, dt, order), target)
+        metadata = {"steps": steps, "dt": dt}
+    metadata.update(solved_horizon=horizon, period=period, device=str(device))
+    box = dynamics.safe_box() if hasattr(dynamics, "safe_box") else None
     return ValueFunction(grid=grid, values=values.cpu().double().numpy(), horizon=horizon,
-                         accuracy=accuracy,
-                         metadata={"steps": steps, "dt": dt, "device": str(device)})
+                         accuracy=accuracy, metadata=metadata,
+                         safe_box=None if box is None else tuple(np.asarray(b, float) for b in box))

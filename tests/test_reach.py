@@ -7,6 +7,7 @@ import torch
 
 from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram,
                                  make_state_feedback_diagram, save_checkpoint, load_taxinet)
+from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.reach import (Grid, GridSpec, InlineExecutor, Probe, TaxiDynamics,
                               ValueFunction, min_target_along_rollouts, sign_agreement,
                               solve_brt, sweep, sweep_key)
@@ -31,10 +32,10 @@ def test_paper_grid_preset():
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    (dict(lo=[1, 0, 0], hi=[0, 1, 1], shape=[3, 3, 3]), "axis px: lower bound"),
-    (dict(lo=[0, 0, 0], hi=[1, 1, np.inf], shape=[3, 3, 3]), "axis theta"),
-    (dict(lo=[0, 0, 0], hi=[1, 1, 1], shape=[3, 1, 3]), "axis py: needs at least 2"),
-    (dict(lo=[0, 0], hi=[1, 1], shape=[3, 3]), "3 lower bounds"),
+    (dict(lo=[1, 0, 0], hi=[0, 1, 1], shape=[3, 3, 3], names="abc"), "axis a: lower bound"),
+    (dict(lo=[0, 0, 0], hi=[1, 1, np.inf], shape=[3, 3, 3]), "axis x2"),
+    (dict(lo=[0, 0, 0], hi=[1, 1, 1], shape=[3, 1, 3]), "axis x1: needs at least 2"),
+    (dict(lo=[0, 0], hi=[1, 1], shape=[3, 3, 3]), "as many lower bounds"),
 ])
 def test_bad_grids_rejected(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -42,12 +43,12 @@ def test_bad_grids_rejected(kwargs, match):
 
 
 def test_interpolation_exact_for_linear_and_outside_named():
-    g = Grid(lo=[-1, 0, -0.5], hi=[1, 2, 0.5], shape=[5, 4, 3])
+    g = Grid(lo=[-1, 0, -0.5], hi=[1, 2, 0.5], shape=[5, 4, 3], names=("px", "py", "theta"))
     px, py, th = g.mesh()
     values = 2 * px - 3 * py + 5 * th + 1
     x = np.array([[0.3, 1.1, 0.2], [-0.95, 1.99, -0.49]])
     np.testing.assert_allclose(g.interpolate(values, x), 2 * x[:, 0] - 3 * x[:, 1] + 5 * x[:, 2] + 1)
-    with pytest.raises(ValueError, match="px=2.000 m.*outside the grid"):
+    with pytest.raises(ValueError, match="px=2, py=1, theta=0.*outside the grid"):
         g.interpolate(values, [2.0, 1.0, 0.0])
     assert np.isnan(g.interpolate(values, [[2.0, 1.0, 0.0]], outside="nan")[0])
 
@@ -227,3 +228,78 @@ def test_upwind_derivatives_converge_at_their_order(scheme, order):
             errors.append((d - 3 * torch.cos(3 * x)).abs()[3:-3].max().item())
     rate = np.log2(max(errors[:2]) / max(errors[2:]))
     assert rate > order - 0.5
+
+
+# --- N-dimensional grids, strict queries, exact horizons -----------------------------
+
+@pytest.mark.parametrize("shape", [(7, 5), (4, 3, 5, 3)])
+def test_interpolation_exact_for_linear_in_2d_and_4d(shape):
+    n = len(shape)
+    g = Grid(lo=-np.arange(1, n + 1), hi=np.arange(1, n + 1) * 2.0, shape=shape)
+    coeffs = np.arange(1, n + 1) * 0.5
+    values = sum(c * m for c, m in zip(coeffs, g.mesh())) + 3.0
+    x = np.random.default_rng(0).uniform(g.lo, g.hi, size=(20, n))
+    np.testing.assert_allclose(g.interpolate(values, x), x @ coeffs + 3.0)
+    interpolate = GridInterpolator(g, torch.as_tensor(x))
+    np.testing.assert_allclose(interpolate(torch.as_tensor(values)).numpy(), x @ coeffs + 3.0)
+
+
+def test_queries_reject_nan_states_and_unknown_modes():
+    g = Grid.paper(B, (5, 3, 5))
+    values = np.ones(g.shape)
+    for mode in ("raise", "clamp", "nan"):
+        with pytest.raises(ValueError, match="not finite"):
+            g.interpolate(values, [[np.nan, 150.0, 0.0]], outside=mode)
+    with pytest.raises(ValueError, match="outside must be one of"):
+        g.interpolate(values, [[0.0, 150.0, 0.0]], outside="extrapolate")
+
+
+def test_in_brt_never_calls_an_unknown_state_safe():
+    g = Grid.paper(B, (9, 3, 9))
+    vf = solve_brt(g, TaxiDynamics(half_width=B), _p_table(g), horizon=1.0, device="cpu")
+    past_edge = [[B + 5.0, 150.0, 0.0]]                 # 5 m off the runway: a failure
+    steep = [[0.0, 150.0, np.deg2rad(60.0)]]            # on the runway, outside the box
+    for mode in ("raise", "clamp", "unsafe"):
+        assert vf.in_brt(past_edge, outside=mode)[0]
+        with pytest.raises(ValueError, match="not finite"):
+            vf.in_brt([[np.nan, 150.0, 0.0]], outside=mode)
+    with pytest.raises(ValueError, match="outside the grid.*not a known failure"):
+        vf.in_brt(steep)
+    assert vf.in_brt(steep, outside="unsafe")[0]
+    for mode in ("nan", "ignore"):
+        with pytest.raises(ValueError, match="outside must be one of"):
+            vf.in_brt(past_edge, outside=mode)
+    # in the box, in_brt is the interpolated sign
+    x = g.states()[::7]
+    np.testing.assert_array_equal(vf.in_brt(x), vf.at(x) <= 0)
+
+
+def test_horizon_is_solved_exactly_and_recorded():
+    g = Grid.paper(B, (41, 3, 41))
+    dyn = TaxiDynamics(half_width=B)
+    px, _, th = g.mesh()
+    brts = {}
+    for T in (0.3, 0.4, 0.33):
+        vf = solve_brt(g, dyn, np.zeros(g.shape), horizon=T, device="cpu")
+        assert vf.horizon == T and vf.metadata["solved_horizon"] == T
+        end = px + 5.0 * T * np.sin(th)
+        exact = np.minimum(B - np.abs(px), B - np.abs(end))
+        stays = np.abs(end) <= B + 1                 # straight lines that stay in the box: exact
+        np.testing.assert_allclose(vf.values[stays], exact[stays], atol=1e-4)
+        brts[T] = vf
+    assert brts[0.3].metadata["periods"] == 6 and brts[0.3].metadata["tail"] == 0
+    assert brts[0.33].metadata["periods"] == 6 and abs(brts[0.33].metadata["tail"] - 0.03) < 1e-9
+    assert not np.array_equal(brts[0.3].values, brts[0.4].values)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(horizon=np.inf), "horizon must be a finite"), (dict(horizon=0), "horizon"),
+    (dict(period=-0.05), "period must be"), (dict(period=0), "period must be"),
+    (dict(cfl=0, accuracy="low"), "cfl must be"), (dict(cfl=1.5, accuracy="low"), "cfl must be"),
+    (dict(periods_per_step=0), "periods_per_step must be"),
+    (dict(periods_per_step=1.5), "periods_per_step must be a finite whole"),
+])
+def test_solver_parameters_are_checked(kwargs, match):
+    g = Grid.paper(B, (5, 3, 5))
+    with pytest.raises(ValueError, match=match):
+        solve_brt(g, TaxiDynamics(half_width=B), np.zeros(g.shape), device="cpu", **kwargs)
