@@ -105,13 +105,18 @@ def start_simulator(diagram: Diagram, *, initial_state, half_width: float = 1e9,
     ``initial_state`` [px m, py m, theta rad] with its logs cleared and a monitor that
     ends the run at failure (``|px| >= half_width``) if asked. Returns
     ``(simulator, failure)``; ``failure`` gets ``"t"`` (s) when the monitor fires."""
+    x0 = np.asarray(initial_state, float)
+    if x0.shape != (3,) or not np.all(np.isfinite(x0)):
+        raise ValueError(f"initial state must be 3 finite numbers [px m, py m, theta rad], "
+                         f"got {np.asarray(initial_state).tolist()}")
+    if not (np.isfinite(half_width) and half_width > 0):
+        raise ValueError(f"half_width must be a finite number > 0 m, got {half_width}")
     plant = diagram.GetSubsystemByName(PLANT)
     simulator = Simulator(diagram, context) if context is not None else Simulator(diagram)
     context = simulator.get_mutable_context()
     diagram.SetDefaultContext(context)        # a reused context starts afresh (holds, speed)
     context.SetTime(0.0)
-    plant.GetMyMutableContextFromRoot(context).SetContinuousState(
-        np.asarray(initial_state, float))
+    plant.GetMyMutableContextFromRoot(context).SetContinuousState(x0)
     for name in ("state_log", "estimate_log", "speed_log", "anomaly_log"):
         if diagram.HasSubsystemNamed(name):
             diagram.GetSubsystemByName(name).FindMutableLog(context).Clear()
@@ -134,6 +139,8 @@ def simulate(diagram: Diagram, *, initial_state, duration: float, half_width: fl
              stop_on_failure: bool = True, context=None) -> Trajectory:
     """Runs a closed-loop diagram from ``initial_state`` [px m, py m, theta rad] for
     ``duration`` s; stops early at failure (``|px| >= half_width``) if asked."""
+    if not (np.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration must be a finite number > 0 s, got {duration}")
     simulator, failure = start_simulator(diagram, initial_state=initial_state,
                                          half_width=half_width,
                                          stop_on_failure=stop_on_failure, context=context)

@@ -6,10 +6,12 @@ schema first, so every error names the field's full path.
 """
 
 import dataclasses as dc
+import math
 import typing
 from pathlib import Path
 from typing import List
 
+import yaml
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_data, yaml_load_typed
 
 from reachwatch.systems import CameraConfig, Environment
@@ -34,9 +36,9 @@ class ControllerConfig:
     speed: float = 5.0
 
     def validate(self):
-        if not self.period > 0:
-            raise ValueError(f"controller.period must be > 0 s, got {self.period}")
-        if not self.speed >= 0:
+        if not (math.isfinite(self.period) and self.period > 0):
+            raise ValueError(f"controller.period must be a finite number > 0 s, got {self.period}")
+        if not (math.isfinite(self.speed) and self.speed >= 0):
             raise ValueError(f"controller.speed must be >= 0 m/s, got {self.speed}")
         if self.checkpoint and not Path(self.checkpoint).is_file():
             raise ValueError(f"controller.checkpoint: file not found: {self.checkpoint}")
@@ -87,7 +89,7 @@ class Scenario:
         self.camera.validate()
         self.controller.validate()
         self.pipeline.validate()
-        if not self.duration > 0:
+        if not (math.isfinite(self.duration) and self.duration > 0):
             raise ValueError(f"duration must be > 0 s, got {self.duration}")
         return self
 
@@ -137,16 +139,53 @@ def _check(value, schema, path):
                             f"{type(value).__name__} {value!r}")
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key written twice in one mapping (PyYAML and
+    Drake's loader silently keep the last one)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if key in seen:
+                raise ScenarioError(f"line {key_node.start_mark.line + 1}: key '{key}' is "
+                                    f"written twice in one mapping (first on line {seen[key]})")
+            seen[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep)
+
+
+def read_text_file(filename, what="scenario file") -> str:
+    """The UTF-8 text of ``filename``; ScenarioError naming it when it is missing, not
+    a regular file, binary or empty."""
+    path = Path(filename)
+    if not path.is_file():
+        raise ScenarioError(f"{what} not found: {filename}")
+    raw = path.read_bytes()
+    if b"\0" in raw:
+        raise ScenarioError(f"{filename}: not a text YAML file (it holds NUL bytes)")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ScenarioError(f"{filename}: not a UTF-8 text YAML file ({e.reason} at byte "
+                            f"{e.start})") from None
+    if not any(line.strip() and not line.lstrip().startswith("#") for line in text.splitlines()):
+        raise ScenarioError(f"{filename} is empty; write '{{}}' for all defaults")
+    return text
+
+
 def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario"):
-    """Load and validate a scenario (``schema`` instance) from a YAML file or string;
-    errors name fields as ``root.field.subfield``."""
+    """Load and validate a scenario (``schema`` instance) from a YAML file or string
+    (an empty string means all defaults; an empty file is an error); errors name fields
+    as ``root.field.subfield``, and a key written twice is an error."""
     where = str(filename) if filename is not None else "<yaml>"
     if filename is not None:
-        if not Path(filename).is_file():
-            raise ScenarioError(f"scenario file not found: {filename}")
-        data = Path(filename).read_text()
+        data = read_text_file(filename)
     try:
-        raw = yaml_load_data(data) if data.strip() else {}
+        raw = yaml.load(data, Loader=_UniqueKeyLoader) if data.strip() else {}
+        if raw:
+            yaml_load_data(data)
+    except ScenarioError as e:
+        raise ScenarioError(f"{where}: {e}") from None
     except Exception as e:  # PyYAML's or Drake's parser error
         raise ScenarioError(f"{where}: not valid YAML: {e}") from None
     _check(raw if raw is not None else {}, schema, root)

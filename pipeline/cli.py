@@ -1,9 +1,12 @@
 """The ``reachwatch`` command line."""
 
 import argparse
+import importlib.metadata
+import signal
 import sys
+import threading
 
-from . import commands, evaluate_commands, guard_commands, reach_commands, run, taxinet_commands
+from . import commands, console, evaluate_commands, guard_commands, reach_commands, run, taxinet_commands
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -11,6 +14,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="reachwatch",
         description="Find, detect and mitigate system-level failures of vision-based "
                     "controllers (Drake + HJ reachability).")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {version()}")
+    noise = parser.add_mutually_exclusive_group()
+    noise.add_argument("-v", "--verbose", action="store_true", help="debug messages too")
+    noise.add_argument("-q", "--quiet", action="store_true",
+                       help="warnings and errors only; no progress bars")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     render = sub.add_parser("render", help="render the wing-camera image of a scenario, "
@@ -37,13 +45,48 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def version() -> str:
+    try:
+        return importlib.metadata.version("reachwatch")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (what ``timeout``, container stops and batch schedulers send), raised
+    like Ctrl-C so that workers are stopped and finished work is kept."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
+KEPT = ("finished work is kept (stage records, sweep and dataset chunks, checkpoints are "
+        "written atomically); run the same command again to resume")
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    console.setup(-1 if args.quiet else (1 if args.verbose else 0))
+    previous = signal.getsignal(signal.SIGTERM)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminate)
     try:
         return args.func(args) or 0
     except (ValueError, FileNotFoundError) as e:  # bad input: say what, exit 2
         print(f"reachwatch {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except PermissionError as e:
+        print(f"reachwatch {args.command}: error: cannot write {e.filename}: {e.strerror}",
+              file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as e:
+        what = "terminated" if isinstance(e, Terminated) else "interrupted"
+        print(f"reachwatch {args.command}: {what}; {KEPT}", file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
+    finally:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -1,15 +1,37 @@
 """Implementations of the ``reachwatch`` subcommands (argparse namespaces in, files out)."""
 
+import argparse
+import math
 from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from reachwatch.diagrams import (Scenario, StateRenderer, export_graph,
                                  initial_state_vector, load_scenario, make_world_diagram)
 from reachwatch.diagrams.contact_sheet import contact_sheet
 from reachwatch.systems.files import atomic_write_bytes
+
+from .console import bar, log
+
+
+def _number(kind, least, strict, what):
+    def parse(text):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"'{text}' is not {what}") from None
+        if not math.isfinite(value) or value < least or (strict and value == least):
+            raise argparse.ArgumentTypeError(f"'{text}' is not {what}")
+        return value
+    parse.__name__ = what
+    return parse
+
+
+#: argparse types that reject bad numbers at parse time, before any work is done.
+positive_int = _number(int, 0, True, "a whole number >= 1")
+count = _number(int, 0, False, "a whole number >= 0")
+positive_float = _number(float, 0.0, True, "a finite number > 0")
 
 
 def scenario_from_args(args) -> Scenario:
@@ -31,16 +53,16 @@ def render(args):
     state = initial_state_vector(scenario.initial_state)
     if args.contact_sheet:
         sheet = contact_sheet(state=state, camera=scenario.camera,
-                              progress=lambda it: tqdm(it, desc="contact sheet"))
-        print(write_png(out / "contact_sheet.png", sheet))
+                              progress=lambda it: bar(it, desc="contact sheet"))
+        log.info(write_png(out / "contact_sheet.png", sheet))
         return
     image = StateRenderer(environment=scenario.environment, camera=scenario.camera,
                           shadows=scenario.shadows).render(state)
-    print(write_png(out / f"{scenario.environment.name}.png", image))
+    log.info(write_png(out / f"{scenario.environment.name}.png", image))
 
 
 def graph(args):
     scenario = scenario_from_args(args)
     diagram = make_world_diagram(scenario)
     for path in export_graph(diagram, Path(args.out) / "world", max_depth=args.max_depth):
-        print(path)
+        log.info(path)

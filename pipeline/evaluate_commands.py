@@ -3,7 +3,6 @@ to its evaluate stage, configured from the command line)."""
 
 import dataclasses as dc
 
-from tqdm import tqdm
 
 from reachwatch.systems import DetectorConfig, Environment, test_environments, training_environments
 from reachwatch.training.dataset import DatasetSpec
@@ -11,8 +10,9 @@ from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.evaluation import markdown_table
 from reachwatch.training.incremental import IncrementalConfig
 
-from .commands import scenario_from_args
-from .executors import make_executor
+from .console import log
+from .commands import count, positive_int, scenario_from_args
+from .executors import open_executor
 from .run import run_pipeline
 from .spec import EnsembleSpec, RunSpec
 
@@ -41,19 +41,19 @@ def add_parsers(sub):
                    help="training environments RUNWAY:HOUR:SKY (default: the paper's 12)")
     p.add_argument("--test", nargs="+", default=_names(test_environments()),
                    help="held-out environments (default: the paper's 12)")
-    p.add_argument("--shape", type=int, nargs=3, default=[21, 21, 21], help="BRT grid")
-    p.add_argument("--samples", type=int, default=DatasetSpec.samples, help="images per environment")
+    p.add_argument("--shape", type=positive_int, nargs=3, default=[21, 21, 21], help="BRT grid")
+    p.add_argument("--samples", type=positive_int, default=DatasetSpec.samples, help="images per environment")
     p.add_argument("--arch", choices=["small_cnn", "efficientnet_b0"], default="small_cnn")
-    p.add_argument("--input-size", type=int, nargs=2, default=[96, 160], metavar=("H", "W"))
+    p.add_argument("--input-size", type=positive_int, nargs=2, default=[96, 160], metavar=("H", "W"))
     p.add_argument("--pretrained", default="", help="local EfficientNet-B0 ImageNet state_dict "
                    "file (never downloaded)")
-    p.add_argument("--epochs", type=int, default=DetectorTrainConfig.epochs)
+    p.add_argument("--epochs", type=positive_int, default=DetectorTrainConfig.epochs)
     p.add_argument("--threshold", type=float, default=0.5,
                    help="decision threshold when --target-recall is 0")
     p.add_argument("--target-recall", type=float, default=0.95,
                    help="operate at the highest threshold reaching this recall on the "
                         "training validation split (0: use --threshold)")
-    p.add_argument("--ensemble", type=int, default=5, help="TaxiNets in the ensemble baseline")
+    p.add_argument("--ensemble", type=count, default=5, help="TaxiNets in the ensemble baseline")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--executor", default="inline", help="local | inline | dask://HOST:PORT")
     p.add_argument("--out", required=True, help="output folder (reused: finished work is skipped)")
@@ -74,12 +74,8 @@ def evaluate_command(args):
         ensemble=EnsembleSpec(seeds=list(range(1, args.ensemble + 1)) if args.ensemble >= 2
                               else []),
         incremental=IncrementalConfig(enabled=False))
-    executor, close = make_executor(args.executor)
-    try:
-        run = run_pipeline(spec, args.out, executor=executor, until="evaluate",
-                           log=tqdm.write)
-    finally:
-        close()
-    print(markdown_table(run.outputs["evaluate"]["rows"]))
-    print(f"wrote {args.out}/table2.md, table2.csv and figures/ "
+    with open_executor(args.executor) as executor:
+        run = run_pipeline(spec, args.out, executor=executor, until="evaluate")
+    log.info(markdown_table(run.outputs["evaluate"]["rows"]))
+    log.info(f"wrote {args.out}/table2.md, table2.csv and figures/ "
           f"(configuration: {dc.asdict(spec.dataset)}, detector {dc.asdict(detector)})")

@@ -2,16 +2,20 @@
 process), ``dask://HOST:PORT`` (an existing Dask scheduler; needs the
 ``distributed`` extra)."""
 
+import contextlib
+
 from reachwatch.reach import InlineExecutor, default_executor
+from reachwatch.reach.sweep import stop_executor
 
 
-def make_executor(spec: str):
-    """An executor and a ``close()`` callable for ``spec``."""
+def make_executor(spec: str, *, connect_timeout: float = 10.0):
+    """An executor and a ``close(abort=False)`` callable for ``spec``; ``abort`` stops
+    local workers at once instead of letting their current chunk finish."""
     if spec == "local":
         executor = default_executor()
-        return executor, executor.shutdown
+        return executor, lambda abort=False: stop_executor(executor, abort=abort)
     if spec == "inline":
-        return InlineExecutor(), lambda: None
+        return InlineExecutor(), lambda abort=False: None
     if spec.startswith("dask://") or spec.startswith("tcp://"):
         try:
             from dask.distributed import Client
@@ -19,6 +23,23 @@ def make_executor(spec: str):
             raise ValueError("--executor dask://... needs dask: pip install "
                              "'reachwatch[distributed]'") from None
         address = "tcp://" + spec.split("://", 1)[1]
-        client = Client(address, timeout=30)
-        return client.get_executor(), client.close
+        try:
+            client = Client(address, timeout=f"{connect_timeout}s")
+        except (OSError, TimeoutError) as e:
+            raise ValueError(f"--executor {spec}: no Dask scheduler answered at {address} "
+                             f"within {connect_timeout:g} s ({type(e).__name__})") from None
+        return client.get_executor(), lambda abort=False: client.close()
     raise ValueError(f"--executor must be local, inline or dask://HOST:PORT, got '{spec}'")
+
+
+@contextlib.contextmanager
+def open_executor(spec: str, **kwargs):
+    """``with open_executor("local") as executor:`` closes it on the way out, and on an
+    error or interrupt stops its workers at once."""
+    executor, close = make_executor(spec, **kwargs)
+    try:
+        yield executor
+    except BaseException:
+        close(abort=True)
+        raise
+    close()

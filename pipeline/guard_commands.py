@@ -1,13 +1,14 @@
 """``reachwatch guard`` (failure sets with and without the fallback) and the guarded
 ``reachwatch simulate --pipeline guarded``."""
 
+import gc
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-from reachwatch.diagrams import (Scenario, initial_state_vector, load_scenario,
+from reachwatch.diagrams import (Scenario, initial_state_vector, load_detector, load_scenario,
                                  make_closed_loop_diagram, make_guarded_diagram, simulate)
 from reachwatch.diagrams.plots import plot_guarded_run
 from reachwatch.reach import (Grid, ValueFunction, pipeline_failures, sweep_guarded,
@@ -16,7 +17,9 @@ from reachwatch.reach.plots import plot_brt_slices
 from reachwatch.systems import STRATEGIES
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 
-from .executors import make_executor
+from .commands import positive_float, positive_int
+from .console import log
+from .executors import open_executor
 
 
 def add_parsers(sub):
@@ -24,8 +27,8 @@ def add_parsers(sub):
                        "runway within the horizon) under TaxiNet alone and under each "
                        "fallback strategy, from one sweep of the guarded diagram")
     g.add_argument("--scenario", required=True, help="scenario YAML with pipeline.detector")
-    g.add_argument("--shape", type=int, nargs=3, default=[41, 41, 41])
-    g.add_argument("--horizon", type=float, default=8.0)
+    g.add_argument("--shape", type=positive_int, nargs=3, default=[41, 41, 41])
+    g.add_argument("--horizon", type=positive_float, default=8.0, help="s")
     g.add_argument("--out", required=True)
     g.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT")
     g.add_argument("--cache", default=None)
@@ -57,40 +60,47 @@ def plot_failure_sets(failures, grid, horizon, *, py, path, half_width, title):
 def guard_command(args):
     scenario = load_scenario(args.scenario)
     grid = Grid.paper(scenario.environment.half_width, tuple(args.shape))
-    executor, close = make_executor(args.executor)
-    try:
+    with open_executor(args.executor) as executor:
         tables = sweep_guarded(scenario, grid, cache_dir=args.cache or cache_root() / "sweeps",
                                executor=executor)
-    finally:
-        close()
     started = time.time()
     failures = failure_sets(scenario, grid, tables, args.horizon)
     out = Path(args.out)
     name = scenario.environment.name
     volumes = {k: float(v.mean()) for k, v in failures.items()}
-    print(f"{name}, grid {list(grid.shape)}, horizon {args.horizon:g} s, detector "
+    log.info(f"{name}, grid {list(grid.shape)}, horizon {args.horizon:g} s, detector "
           f"{scenario.pipeline.detector} (threshold {scenario.pipeline.threshold}); "
           f"rollouts {time.time() - started:.1f} s")
     for k, v in volumes.items():
-        print(f"  failure set ({k}): {100 * v:.2f}% of the grid")
+        log.info(f"  failure set ({k}): {100 * v:.2f}% of the grid")
     atomic_write_bytes(out / f"guard_{name}.json", json.dumps(volumes, indent=1).encode())
     plot_failure_sets(failures, grid, args.horizon, py=175.0, path=out / f"guard_{name}.png",
                       half_width=scenario.environment.half_width,
                       title=f"{name}: failing start states (grey)")
-    print(f"wrote {out / f'guard_{name}.json'} and .png")
+    log.info(f"wrote {out / f'guard_{name}.json'} and .png")
+
+
+def open_meshcat():
+    """A Meshcat server on localhost (for a recording turned into standalone HTML)."""
+    from pydrake.geometry import Meshcat, MeshcatParams
+    return Meshcat(MeshcatParams(host="localhost"))
 
 
 def simulate_guarded(scenario: Scenario, out: Path, *, meshcat_html=True):
     """Nominal and guarded runs from the scenario's start; Fig.-6 plot, trajectories
-    (.npz) and a standalone Meshcat replay (.html) of the guarded run."""
+    (.npz) and a standalone Meshcat replay (.html) of the guarded run. The Meshcat
+    server opens only once the inputs have loaded, and is closed when the HTML is
+    written."""
     x0 = initial_state_vector(scenario.initial_state)
     B = scenario.environment.half_width
+    if not scenario.pipeline.detector:
+        raise ValueError("pipeline.detector: the guarded pipeline needs a detector checkpoint")
+    load_detector(scenario.pipeline.detector)          # a bad file fails here, before Meshcat
     nominal = simulate(make_closed_loop_diagram(scenario), initial_state=x0,
                        duration=scenario.duration, half_width=B)
     meshcat = visualizer = None
     if meshcat_html:
-        from pydrake.geometry import Meshcat, MeshcatParams
-        meshcat = Meshcat(MeshcatParams(host="localhost"))
+        meshcat = open_meshcat()
     diagram = make_guarded_diagram(scenario, meshcat=meshcat)
     if meshcat is not None:
         from pydrake.geometry import MeshcatVisualizer
@@ -111,4 +121,6 @@ def simulate_guarded(scenario: Scenario, out: Path, *, meshcat_html=True):
         visualizer.PublishRecording()
         paths.append(atomic_write_bytes(out / f"guarded_{name}.html",
                                         meshcat.StaticHtml().encode()))
+        del diagram, visualizer, meshcat            # the last references: the server stops
+        gc.collect()
     return nominal, guarded, paths

@@ -93,7 +93,7 @@ def guard_environment(run: Run, env) -> dict:
 def stage_guard(run: Run) -> dict:
     out = {}
     for env in run.spec.guard_environments():
-        key = digest(run.outputs["train"], run.records[f"solve_{env.name}"]["key"],
+        key = digest(run.records["train"]["key"], run.records[f"solve_{env.name}"]["key"],
                      run.spec.guard, run.spec.scenario.pipeline, run.spec.horizon)
         out[env.name] = run.stage(f"guard_{env.name}", key,
                                   lambda env=env: guard_environment(run, env))
@@ -108,9 +108,11 @@ def incremental(run: Run) -> dict:
                            np.random.default_rng(config.seed))
     base = resolved(run.scenario_for(env)).controller.checkpoint
     path = run.path(f"incremental/taxinet_{digest(config, run.outputs['dataset'], file_hash(base))}.pt")
+    seconds = None
     if not path.exists():
-        fine_tune_taxinet(base, mined, config, spec.scenario.camera, path, progress=progress)
-    meta = load_taxinet(path)[2]
+        seconds = fine_tune_taxinet(base, mined, config, spec.scenario.camera, path,
+                                    progress=progress)["fine_tune_seconds"]
+    meta = {**load_taxinet(path)[2], "fine_tune_seconds": seconds}
     after = {**sweep_env(run, env, checkpoint=path),
              **solve_env(run, env, checkpoint=path, label=" fine-tuned")}
     before_vf, after_vf = run.value_function(env.name), ValueFunction.load(run.path(after["value"]))

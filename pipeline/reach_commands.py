@@ -5,27 +5,28 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from reachwatch.reach import (ACCURACIES, Grid, drake_agreement, min_target_along_rollouts,
                               sign_agreement, solve_brt, sweep_closed_loop, taxi_dynamics)
 from reachwatch.reach.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 
-from .commands import scenario_from_args
-from .executors import make_executor
+from .console import bar, log
+from .commands import count, positive_float, positive_int, scenario_from_args
+from .executors import open_executor
 
 
 def _grid_args(parser):
     parser.add_argument("--scenario", help="scenario YAML (environment, camera, controller)")
-    parser.add_argument("--shape", type=int, nargs=3, default=[41, 41, 41],
+    parser.add_argument("--shape", type=positive_int, nargs=3, default=[41, 41, 41],
                         metavar=("NPX", "NPY", "NTHETA"),
                         help="grid nodes over the paper box (paper: 101 101 101)")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT")
     parser.add_argument("--cache", default=None, help="sweep cache folder "
                         "(default: $REACHWATCH_CACHE/sweeps or ~/.cache/reachwatch/sweeps)")
-    parser.add_argument("--chunk-size", type=int, default=1024)
+    parser.add_argument("--chunk-size", type=positive_int, default=1024,
+                        help="grid states per cached chunk")
 
 
 def add_parsers(sub):
@@ -37,8 +38,8 @@ def add_parsers(sub):
                        "slice plots, print BRT volume and agreement with rollouts")
     _grid_args(b)
     b.add_argument("--accuracy", choices=sorted(ACCURACIES), default="semi_lagrangian")
-    b.add_argument("--horizon", type=float, default=8.0, help="s")
-    b.add_argument("--drake-starts", type=int, default=50,
+    b.add_argument("--horizon", type=positive_float, default=8.0, help="s")
+    b.add_argument("--drake-starts", type=count, default=50,
                    help="random starts run through the real Drake loop (0 skips)")
     b.add_argument("--seed", type=int, default=0)
     b.set_defaults(func=brt_command)
@@ -47,13 +48,10 @@ def add_parsers(sub):
 def _sweep(args):
     scenario = scenario_from_args(args)
     grid = Grid.paper(scenario.environment.half_width, tuple(args.shape))
-    executor, close = make_executor(args.executor)
     started = time.time()
-    try:
+    with open_executor(args.executor) as executor:
         table = sweep_closed_loop(scenario, grid, cache_dir=args.cache or cache_root() / "sweeps",
                                   executor=executor, chunk_size=args.chunk_size)
-    finally:
-        close()
     return scenario, grid, table, time.time() - started
 
 
@@ -64,8 +62,10 @@ def sweep_command(args):
              steering_angle=table["p_controller.steering_angle"][..., 0],
              estimate=table["taxinet.estimate"])
     path = atomic_write_bytes(Path(args.out) / f"sweep_{table.key}.npz", buffer.getvalue())
-    print(f"{grid.size} states in {seconds:.1f} s ({grid.size / max(seconds, 1e-9):.1f} "
-          f"states/s, cached chunks count as done); wrote {path}")
+    rate = (f"{table.computed / max(seconds, 0.1):.1f} states/s" if table.computed
+            else "all cached")
+    log.info(f"{grid.size} states ({table.computed} rendered) in {seconds:.1f} s ({rate}); "
+             f"wrote {path}")
 
 
 def brt_command(args):
@@ -82,19 +82,19 @@ def brt_command(args):
     vf.save(out / f"value_{name}.npz")
     lowest = min_target_along_rollouts(grid, dynamics, control, grid.states(),
                                        horizon=args.horizon, progress=None)
-    print(f"{name}: grid {list(grid.shape)}, accuracy {args.accuracy}, solve {solve_s:.1f} s")
-    print(f"BRT volume: {100 * vf.brt_fraction:.2f}% of the grid")
-    print(f"sign agreement with RK4 rollouts (dt 0.01 s, interpolated control) from every "
+    log.info(f"{name}: grid {list(grid.shape)}, accuracy {args.accuracy}, solve {solve_s:.1f} s")
+    log.info(f"BRT volume: {100 * vf.brt_fraction:.2f}% of the grid")
+    log.info(f"sign agreement with RK4 rollouts (dt 0.01 s, interpolated control) from every "
           f"node: {100 * sign_agreement(vf.values.ravel(), lowest):.2f}%")
     if args.drake_starts:
         rng = np.random.default_rng(args.seed)
         starts = grid.lo + rng.uniform(size=(args.drake_starts, 3)) * (grid.hi - grid.lo)
         agreement, failed, predicted = drake_agreement(
-            scenario, vf, starts, progress=lambda it: tqdm(it, desc="drake rollouts",
+            scenario, vf, starts, progress=lambda it: bar(it, desc="drake rollouts",
                                                            leave=False))
-        print(f"agreement with the real Drake closed loop from {len(starts)} random starts: "
+        log.info(f"agreement with the real Drake closed loop from {len(starts)} random starts: "
               f"{100 * agreement:.1f}% ({failed.sum()} failed, {predicted.sum()} predicted)")
     for py in (100.0, 175.0, 250.0):
         plot_brt_slices({name: vf}, py=py, path=out / f"brt_{name}_py{py:.0f}.png",
                         half_width=scenario.environment.half_width)
-    print(f"wrote {out / f'value_{name}.npz'} and slice plots brt_{name}_py*.png")
+    log.info(f"wrote {out / f'value_{name}.npz'} and slice plots brt_{name}_py*.png")

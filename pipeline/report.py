@@ -12,7 +12,7 @@ from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.evaluation import COLUMNS, format_cell
 
 from .commands import write_png
-from .stages import Run
+from .stages import Run, sweep_rate
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;
 color:#222}h1{border-bottom:2px solid #444}h2{margin-top:2em;border-bottom:1px solid #ccc}
@@ -111,7 +111,7 @@ def write_report(run: Run) -> dict:
                 "states/s", "solve s"],
                [[n, roles.get(n, "extra"), r["states"], _pct(r["brt_fraction"]),
                  _pct(r["rollout_agreement"]), r["sweep_seconds"],
-                 f"{r['states'] / max(r['sweep_seconds'], 1e-9):.0f}", r["solve_seconds"]]
+                 sweep_rate(r), r["solve_seconds"]]
                 for n, r in o["solve"].items()])
     page.images([r["figure"] for r in o["solve"].values()])
     page.section("BRT labels and the detector", "labels")
@@ -160,8 +160,9 @@ def write_report(run: Run) -> dict:
                   f"(held out): {_pct(inc['before'])}% before, {_pct(inc['after'])}% after.")
         page.images([inc["figure"], inc.get("star", {}).get("figure")])
     page.section("Benchmarks measured in this run", "benchmarks")
-    rows = [[f"sweep {n}", f"{r['states'] / max(r['sweep_seconds'], 1e-9):.0f} states/s"]
-            for n, r in o["solve"].items() if r["sweep_seconds"] > 0]
+    rows = [[f"sweep {n}", f"{sweep_rate(r)} states/s ({r.get('rendered', r['states'])} "
+             f"rendered in {r['sweep_seconds']:.1f} s)"]
+            for n, r in o["solve"].items() if r.get("rendered", r["states"])]
     for env, g in o["guard"].items():
         on = g["online"]
         rows.append([f"online {env} {on['image'][0]}x{on['image'][1]}",

@@ -6,9 +6,9 @@ same key (a digest of its inputs), and resumes its chunked work when it was kill
 
 import time
 
-from tqdm import tqdm
 
-from .executors import make_executor
+from .console import log, progress_enabled
+from .executors import open_executor
 from .online_stages import stage_guard, stage_incremental
 from .report import write_report
 from .spec import RunSpec, digest, load_run_spec
@@ -19,7 +19,7 @@ REPORT_FORMAT = 1
 
 
 def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=True,
-                 log=print, sweep_cache=None) -> Run:
+                 log=log.info, sweep_cache=None) -> Run:
     """Run (or resume) every stage up to ``until``; returns the `Run` with its records."""
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got '{until}'")
@@ -33,7 +33,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
             spec.ensemble, spec.scenario.camera), lambda: stage_dataset(run)),
         "train": lambda: run.stage("train", digest(run.outputs["dataset"], spec.detector),
                                    lambda: stage_train(run)),
-        "evaluate": lambda: run.stage("evaluate", digest(run.outputs["train"], spec.slice_py),
+        "evaluate": lambda: run.stage("evaluate", digest(run.records["train"]["key"], spec.slice_py),
                                       lambda: stage_evaluate(run)),
         "guard": lambda: stage_guard(run),
         "incremental": lambda: stage_incremental(run),
@@ -63,14 +63,11 @@ def add_parsers(sub):
 def run_command(args):
     spec = load_run_spec(args.scenario)
     started = time.time()
-    executor, close = make_executor(args.executor)
-    try:
+    with open_executor(args.executor) as executor:
         run = run_pipeline(spec, args.out, executor=executor, until=args.until,
-                           sweep_cache=args.sweep_cache,
-                           log=lambda m: tqdm.write(f"{time.time() - started:7.1f} s  {m}"))
-    finally:
-        close()
-    print(f"run '{spec.name}' up to {args.until} finished in {time.time() - started:.0f} s")
+                           sweep_cache=args.sweep_cache, progress=progress_enabled(),
+                           log=lambda m: log.info(f"{time.time() - started:7.1f} s  {m}"))
+    log.info(f"run '{spec.name}' up to {args.until} finished in {time.time() - started:.0f} s")
     if "report" in run.outputs and run.outputs["report"]:
-        print(f"report: {run.path(run.outputs['report']['html'])} "
-              f"(and {run.path(run.outputs['report']['md'])})")
+        log.info(f"report: {run.path(run.outputs['report']['html'])} "
+                 f"(and {run.path(run.outputs['report']['md'])})")

@@ -10,6 +10,7 @@ from typing import List
 from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.diagrams.scenario import dump_scenario
 from reachwatch.reach import ACCURACIES
+from reachwatch.reach.dynamics import positive, split_horizon
 from reachwatch.systems import STRATEGIES, Environment
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
@@ -73,13 +74,18 @@ class RunSpec:
         if len(self.grid) != 3 or min(self.grid) < 3:
             raise ValueError(f"grid must be 3 sizes [n_px, n_py, n_theta], each >= 3, "
                              f"got {self.grid}")
-        if not self.horizon > 0:
-            raise ValueError(f"horizon must be > 0 s, got {self.horizon}")
+        split_horizon(self.horizon, self.scenario.controller.period)   # finite, > 0
         if self.accuracy not in ACCURACIES:
             raise ValueError(f"accuracy must be one of {sorted(ACCURACIES)}, got "
                              f"'{self.accuracy}'")
-        if self.dataset.samples < 10:
-            raise ValueError(f"dataset.samples must be >= 10, got {self.dataset.samples}")
+        self.dataset.validate()
+        self.detector.validate()
+        for name in ("samples", "epochs"):
+            if getattr(self.ensemble, name) < 1:
+                raise ValueError(f"ensemble.{name} must be >= 1, got {getattr(self.ensemble, name)}")
+        if self.guard.candidates < 0:
+            raise ValueError(f"guard.candidates must be >= 0, got {self.guard.candidates}")
+        positive("guard.online_seconds", self.guard.online_seconds)
         if [self.dataset.height, self.dataset.width] != [self.detector.detector.height,
                                                          self.detector.detector.width]:
             raise ValueError(f"dataset image size {[self.dataset.height, self.dataset.width]} "

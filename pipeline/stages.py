@@ -6,7 +6,10 @@ itself chunked and cached by content, so a killed stage resumes where it stopped
 
 import copy
 import datetime
+import hashlib
 import json
+import logging
+import os
 import time
 from pathlib import Path
 
@@ -33,11 +36,25 @@ def _plain(value):
     return value.item() if hasattr(value, "item") else str(value)
 
 
+#: Bump when a record's meaning changes; older records then run their stage again.
+RECORD_FORMAT = 2
+_log = logging.getLogger("reachwatch")
+
+
+def file_digest(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 class Run:
     """A run directory: the spec (``run.yaml``), artifacts, and one record per
-    finished stage (``stages/NAME.json``: key, seconds, outputs)."""
+    finished stage (``stages/NAME.json``: key, seconds, outputs, and the size and
+    SHA-256 of every file its outputs name)."""
 
-    def __init__(self, spec: RunSpec, root, *, executor=None, progress=True, log=print,
+    def __init__(self, spec: RunSpec, root, *, executor=None, progress=True, log=_log.info,
                  sweep_cache=None):
         self.spec, self.root = spec, Path(root)
         # Sweeps are keyed by content, so runs may share one cache folder.
@@ -45,8 +62,21 @@ class Run:
         self.executor = executor or InlineExecutor()
         self.progress, self.log = progress, log
         self.outputs, self.records = {}, {}
-        self.root.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(self.root / "run.yaml", dump_run_spec(spec).encode())
+        text = dump_run_spec(spec).encode()
+        spec_path = self.root / "run.yaml"
+        if not (spec_path.is_file() and spec_path.read_bytes() == text):
+            self._writable("to record its run file")
+            atomic_write_bytes(spec_path, text)
+
+    def _writable(self, why):
+        """Raise a ValueError naming the run directory when it cannot be written."""
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ValueError(f"cannot create the run directory {self.root}: {e.strerror}") from None
+        if not os.access(self.root, os.W_OK | os.X_OK):
+            raise ValueError(f"the run directory {self.root} is not writable, and the run "
+                             f"needs it {why}")
 
     def bar(self):
         """A tqdm-style ``progress(iterable, **kw)`` for training loops, or None when quiet."""
@@ -61,26 +91,79 @@ class Run:
     def rel(self, path) -> str:
         return str(Path(path).resolve().relative_to(self.root.resolve()))
 
+    def output_files(self, outputs) -> dict:
+        """``{relative path: {"bytes", "sha256"}}`` of every file the ``outputs`` name
+        (string values that are paths inside the run directory; folders expanded)."""
+        found, root = {}, self.root.resolve()
+
+        def visit(value):
+            if isinstance(value, dict):
+                for v in value.values():
+                    visit(v)
+            elif isinstance(value, (list, tuple)):
+                for v in value:
+                    visit(v)
+            elif isinstance(value, str) and value and "\n" not in value and len(value) < 1024:
+                path = self.root / value
+                try:
+                    if not path.exists() or not path.resolve().is_relative_to(root):
+                        return
+                except OSError:
+                    return
+                for f in ([path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())):
+                    found[self.rel(f)] = {"bytes": f.stat().st_size, "sha256": file_digest(f)}
+
+        visit(outputs)
+        return found
+
+    def _read_record(self, name, record_path):
+        """The record, or ``(None, why it cannot be used)``."""
+        if not record_path.exists():
+            return None, "no record"
+        try:
+            record = json.loads(record_path.read_text())
+        except (OSError, ValueError) as e:
+            return None, f"record {record_path} is corrupt ({type(e).__name__})"
+        needed = {"key": str, "seconds": (int, float), "outputs": (dict, list),
+                  "files": dict, "format": int}
+        if not isinstance(record, dict) or any(not isinstance(record.get(k), t)
+                                               for k, t in needed.items()):
+            return None, f"record {record_path} is corrupt (not a stage record)"
+        if record["format"] != RECORD_FORMAT:
+            return None, f"record {record_path} has format {record['format']}"
+        return record, None
+
+    def _check_files(self, record):
+        """Why the files a record names no longer match it, or None."""
+        for relative, want in record["files"].items():
+            path = self.root / relative
+            if not path.is_file():
+                return f"its output {relative} is missing"
+            if path.stat().st_size != want.get("bytes"):
+                return f"its output {relative} changed size"
+            if file_digest(path) != want.get("sha256"):
+                return f"its output {relative} changed content"
+        return None
+
     def stage(self, name, key, fn) -> dict:
-        """``fn()``'s outputs, or the recorded ones when the key is unchanged."""
+        """``fn()``'s outputs, or the recorded ones when the key is unchanged and every
+        file the record names is there with the recorded size and hash."""
         record_path = self.root / "stages" / f"{name}.json"
-        record = None
-        if record_path.exists():
-            try:
-                record = json.loads(record_path.read_text())
-            except ValueError:
-                self.log(f"[{name}] record {record_path} is corrupt; running the stage again")
-        if record and record.get("key") == key:
+        record, why = self._read_record(name, record_path)
+        if record is not None:
+            why = ("its inputs changed" if record["key"] != key else self._check_files(record))
+        if why is None:
             self.log(f"[{name}] up to date (key {key}, took {record['seconds']:.0f} s), skipped")
         else:
-            self.log(f"[{name}] running (key {key})")
+            self.log(f"[{name}] running: {why} (key {key})")
+            self._writable(f"to run stage {name}")
             started = time.time()
-            outputs = fn()
-            record = {"stage": name, "key": key, "seconds": round(time.time() - started, 1),
+            outputs = json.loads(json.dumps(fn(), default=_plain))
+            record = {"format": RECORD_FORMAT, "stage": name, "key": key,
+                      "seconds": round(time.time() - started, 1),
                       "finished": datetime.datetime.now().isoformat(timespec="seconds"),
-                      "outputs": outputs}
-            atomic_write_bytes(record_path, json.dumps(record, indent=1, default=_plain).encode())
-            record = json.loads(record_path.read_text())     # exactly what a re-run reads
+                      "outputs": outputs, "files": self.output_files(outputs)}
+            atomic_write_bytes(record_path, json.dumps(record, indent=1).encode())
             self.log(f"[{name}] done in {record['seconds']:.0f} s")
         self.outputs[name], self.records[name] = record["outputs"], record
         return record["outputs"]
@@ -118,10 +201,18 @@ def sweep_env(run: Run, env, *, checkpoint=None) -> dict:
     """Sweep ``env``'s closed loop over the grid (chunks cached in ``sweeps/``)."""
     scenario, grid = run.scenario_for(env, checkpoint), run.grid_for(env)
     started = time.time()
-    sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
-                      progress=run.progress)
-    return {"sweep": sweep_key(scenario, grid), "states": int(grid.size),
+    table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
+                              progress=run.progress)
+    return {"sweep": table.key, "states": int(grid.size), "rendered": int(table.computed),
             "sweep_seconds": round(time.time() - started, 1)}
+
+
+def sweep_rate(record) -> str:
+    """States per second of the states a sweep rendered; "cached" when it rendered none."""
+    rendered = record.get("rendered", record["states"])
+    if not rendered:
+        return "cached"
+    return f"{rendered / max(record['sweep_seconds'], 0.1):.0f}"
 
 
 def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
@@ -211,8 +302,9 @@ def stage_train(run: Run) -> dict:
     progress = run.bar()
     tag = digest(config, run.outputs["dataset"]["folders"])
     brt_path = run.path(f"detectors/detector_brt_{tag}.pt")
+    seconds = None
     if not brt_path.exists():
-        train_detector(data, config, brt_path, progress=progress)
+        seconds = train_detector(data, config, brt_path, progress=progress)["train_seconds"]
     model, _, meta = load_detector(brt_path)
     threshold = float(operating_threshold(model, data, config))
     errors = np.concatenate([prediction_error(d.states, d.estimates) for d in data])
@@ -223,7 +315,7 @@ def stage_train(run: Run) -> dict:
         train_detector(data, config, error_path, progress=progress, labels=labels)
     model, _, _ = load_detector(error_path)
     return {"detector": run.rel(brt_path), "threshold": threshold,
-            "validation": meta.get("validation", {}), "train_seconds": meta.get("train_seconds"),
+            "validation": meta.get("validation", {}), "train_seconds": seconds,
             "prediction_error_detector": run.rel(error_path),
             "prediction_error_threshold": float(error_threshold),
             "prediction_error_detector_threshold": operating_threshold(model, data, config, labels)}

@@ -5,7 +5,6 @@ import io
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from reachwatch.diagrams import (REFERENCE_TAXINET, initial_state_vector,
                                  make_closed_loop_diagram, simulate)
@@ -15,7 +14,8 @@ from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.taxinet_eval import evaluate_taxinet, format_reports
 from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet
 
-from .commands import scenario_from_args
+from .console import bar, log
+from .commands import count, positive_int, scenario_from_args
 
 
 def add_parsers(sub):
@@ -25,8 +25,8 @@ def add_parsers(sub):
                             "train TaxiNet; reproduces the shipped reference checkpoint "
                             "with the defaults")
     train.add_argument("--out", default=str(REFERENCE_TAXINET), help="checkpoint path")
-    train.add_argument("--samples", type=int, default=TaxiNetTrainConfig.samples)
-    train.add_argument("--epochs", type=int, default=TaxiNetTrainConfig.epochs)
+    train.add_argument("--samples", type=positive_int, default=TaxiNetTrainConfig.samples)
+    train.add_argument("--epochs", type=positive_int, default=TaxiNetTrainConfig.epochs)
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--arch", choices=["tiny", "cnn"], default="tiny")
     train.set_defaults(func=train_command)
@@ -35,9 +35,9 @@ def add_parsers(sub):
                                "rate on every catalog environment")
     evaluate.add_argument("--checkpoint", default=str(REFERENCE_TAXINET))
     evaluate.add_argument("--scenario", help="scenario YAML for camera/controller settings")
-    evaluate.add_argument("--samples", type=int, default=200,
+    evaluate.add_argument("--samples", type=positive_int, default=200,
                           help="random states per environment for the estimation error")
-    evaluate.add_argument("--starts", type=int, default=100,
+    evaluate.add_argument("--starts", type=count, default=100,
                           help="closed-loop starts per environment (0 skips)")
     evaluate.add_argument("--runways", nargs="+", default=list(RUNWAYS))
     evaluate.add_argument("--hours", nargs="+", type=float, default=[9.0, 17.0, 21.0])
@@ -63,9 +63,9 @@ def train_command(args):
         config.model.arch = "cnn"
         config.preprocess = dc.replace(config.preprocess, kind="resize", crop=[0, 0.3, 1, 1],
                                        height=48, width=96)
-    metadata = train_taxinet(config, args.out, progress=tqdm)
-    print(f"wrote {args.out}")
-    print(f"validation (nominal condition): {metadata['validation']}")
+    metadata = train_taxinet(config, args.out, progress=bar)
+    log.info(f"wrote {args.out}")
+    log.info(f"validation (nominal condition): {metadata['validation']}")
 
 
 def evaluate_command(args):
@@ -73,9 +73,9 @@ def evaluate_command(args):
     environments = [Environment(r, h, s) for r in args.runways for h in args.hours for s in SKIES]
     reports = evaluate_taxinet(base, environments, checkpoint=args.checkpoint,
                                samples=args.samples, starts=args.starts, seed=args.seed,
-                               progress=lambda it: tqdm(it, leave=False, desc="rollouts"))
+                               progress=lambda it: bar(it, leave=False, desc="rollouts"))
     table = format_reports(reports)
-    print(table)
+    log.info(table)
     if args.out:
         atomic_write_bytes(args.out, (table + "\n").encode())
 
@@ -87,7 +87,7 @@ def simulate_command(args):
         from .guard_commands import simulate_guarded
         nominal, guarded, paths = simulate_guarded(scenario, out,
                                                    meshcat_html=not args.no_meshcat)
-        print(f"TaxiNet alone {'failed' if nominal.failed else 'stayed on the runway'}; "
+        log.info(f"TaxiNet alone {'failed' if nominal.failed else 'stayed on the runway'}; "
               f"guarded {'failed' if guarded.failed else 'stayed on the runway'} "
               f"(min speed {guarded.speed.min():.2f} m/s, {int(guarded.anomaly.sum())} "
               f"flagged ticks); wrote {', '.join(map(str, paths))}")
@@ -112,5 +112,5 @@ def simulate_command(args):
                                 half_width=trajectory.half_width,
                                 path=out / f"{name}_trajectory.png",
                                 title=f"{name}: {'FAILED at %.2f s' % trajectory.failure_time if trajectory.failed else 'stayed on the runway'}")
-    print(f"{'failed' if trajectory.failed else 'stayed on the runway'}; wrote "
+    log.info(f"{'failed' if trajectory.failed else 'stayed on the runway'}; wrote "
           f"{out / (name + '_trajectory.csv')}, .npz and {plot}")

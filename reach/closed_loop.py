@@ -46,13 +46,17 @@ def sweep_key(scenario, grid: Grid, probe: Probe = Probe()) -> str:
     return f"{scenario.environment.name}_{'x'.join(map(str, grid.shape))}_{digest}"
 
 
+def _label(scenario, grid, what=""):
+    return f"{what}{scenario.environment.name} {'x'.join(map(str, grid.shape))}"
+
+
 def sweep_closed_loop(scenario, grid: Grid, *, cache_dir, executor=None, chunk_size=1024,
                       progress=True) -> SweepTable:
     """Steering (rad) and TaxiNet estimate at every node of ``grid``."""
     scenario = resolved(scenario)
     return sweep(functools.partial(make_closed_loop_diagram, scenario), grid,
                  key=sweep_key(scenario, grid), cache_dir=cache_dir, executor=executor,
-                 chunk_size=chunk_size, progress=progress)
+                 chunk_size=chunk_size, progress=progress, label=_label(scenario, grid))
 
 
 #: What the guarded sweep reads: steering, TaxiNet estimate and detector score.
@@ -66,7 +70,7 @@ def sweep_guarded(scenario, grid: Grid, *, cache_dir, executor=None, chunk_size=
     return sweep(functools.partial(make_guarded_diagram, scenario), grid,
                  key=sweep_key(scenario, grid, GUARDED_PROBE), cache_dir=cache_dir,
                  probe=GUARDED_PROBE, executor=executor, chunk_size=chunk_size,
-                 progress=progress)
+                 progress=progress, label=_label(scenario, grid, "guarded "))
 
 
 def taxi_dynamics(scenario) -> TaxiDynamics:

@@ -9,9 +9,13 @@ costs nothing. Chunks run on any `concurrent.futures.Executor`."""
 import concurrent.futures as cf
 import concurrent.futures.process  # noqa: F401  (BrokenProcessPool)
 import dataclasses as dc
+import functools
 import io
 import multiprocessing
+import os
+import signal
 import threading
+import time
 from pathlib import Path
 from typing import Callable, Tuple
 
@@ -47,10 +51,60 @@ class InlineExecutor(cf.Executor):
         return future
 
 
-def default_executor() -> cf.Executor:
-    """One spawned worker: it builds the diagram once (a second process adds nothing
-    to CPU rendering, which already uses every core)."""
-    return cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+_ON_STATE = None      # called once per evaluated state (progress), when set
+
+
+def _count_state(counter):
+    with counter.get_lock():
+        counter.value += 1
+
+
+def _watch_parent(parent_pid: int, interval: float):
+    while True:
+        time.sleep(interval)
+        if os.getppid() != parent_pid:      # the driver died (even by SIGKILL): stop now
+            os._exit(3)
+
+
+def _init_worker(counter, parent_pid: int, interval: float = 0.5):
+    """In each spawned worker: count evaluated states into the shared ``counter``,
+    leave Ctrl-C to the driver (it stops the pool), and exit as soon as the driver is
+    gone, however it died."""
+    global _ON_STATE
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _ON_STATE = functools.partial(_count_state, counter)
+    threading.Thread(target=_watch_parent, args=(parent_pid, interval), daemon=True,
+                     name="reachwatch-parent-watchdog").start()
+
+
+def default_executor(max_workers: int = 1) -> cf.Executor:
+    """One spawned worker (a second process adds nothing to CPU rendering, which already
+    uses every core). It builds each diagram once, reports every evaluated state to
+    ``executor.progress_counter``, ignores SIGINT and exits when this process dies."""
+    context = multiprocessing.get_context("spawn")
+    counter = context.Value("q", 0)
+    executor = cf.ProcessPoolExecutor(max_workers=max_workers, mp_context=context,
+                                      initializer=_init_worker,
+                                      initargs=(counter, os.getpid()))
+    executor.progress_counter = counter
+    return executor
+
+
+def stop_executor(executor, *, abort: bool = False):
+    """Shut ``executor`` down; with ``abort``, cancel queued work and kill a process
+    pool's workers now instead of waiting for their current chunk (finished chunks are
+    on disk already)."""
+    if executor is None or not hasattr(executor, "shutdown"):
+        return
+    if abort and isinstance(executor, cf.ProcessPoolExecutor):
+        processes = list((getattr(executor, "_processes", None) or {}).values())
+        for process in processes:
+            process.terminate()
+        executor.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.join(5)
+    else:
+        executor.shutdown(wait=True, cancel_futures=abort)
 
 
 class _DiagramProbe:
@@ -74,6 +128,8 @@ class _DiagramProbe:
                 self.plant_context.SetContinuousState(x)
                 for k, (port, ctx) in enumerate(self.ports):
                     out[k][i] = port.Eval(ctx)
+                if _ON_STATE is not None:
+                    _ON_STATE()
             return out
 
 
@@ -101,68 +157,101 @@ class SweepTable:
     grid: Grid
     tables: dict
     key: str
+    computed: int = 0       # states evaluated by the call that returned it (0: all cached)
 
     def __getitem__(self, port):
         return self.tables[port]
 
 
-def _chunk_ok(path: Path, start: int, stop: int) -> bool:
+def _chunk_ok(path: Path, start: int, stop: int, ports: int) -> bool:
+    """A chunk file is used only if it covers ``start:stop`` with every port's rows."""
     try:
         with np.load(path) as data:
-            return int(data["start"]) == start and int(data["stop"]) == stop
-    except Exception:   # truncated/corrupt: recompute it
+            return (int(data["start"]) == start and int(data["stop"]) == stop and
+                    all(len(data[f"port{k}"]) == stop - start for k in range(ports)))
+    except Exception:   # missing, truncated, corrupt or lacking a port: recompute it
         return False
 
 
 def sweep(factory: Callable, grid: Grid, *, key: str, cache_dir, probe: Probe = Probe(),
           chunk_size: int = 1024, executor: cf.Executor = None, progress: bool = True,
-          max_in_flight: int = 8) -> SweepTable:
+          max_in_flight: int = 8, label: str = None) -> SweepTable:
     """Evaluate ``probe.ports`` of ``factory()``'s diagram at every node of ``grid``.
 
     ``factory`` must be picklable when ``executor`` runs elsewhere (e.g.
     ``functools.partial(make_closed_loop_diagram, scenario)``); ``key`` names the
-    cache entry and must change whenever the diagram's output could."""
+    cache entry and must change whenever the diagram's output could. The progress bar
+    (``label``, default the key) moves per state on this process and on
+    `default_executor`, per chunk on others. ``table.computed`` counts the states
+    evaluated by this call (0 when every chunk was cached)."""
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"chunk_size must be a whole number >= 1, got {chunk_size!r}")
+    global _ON_STATE
     folder = Path(cache_dir) / key
     folder.mkdir(parents=True, exist_ok=True)
     bounds = [(i, s, min(s + chunk_size, grid.size))
               for i, s in enumerate(range(0, grid.size, chunk_size))]
-    todo = [b for b in bounds if not _chunk_ok(_chunk_path(folder, b[0]), b[1], b[2])]
-    bar = tqdm(total=grid.size, initial=grid.size - sum(b[2] - b[1] for b in todo),
-               desc=f"sweep {key[:24]}", unit="state", disable=not progress)
+    nports = len(probe.ports)
+    todo = [b for b in bounds if not _chunk_ok(_chunk_path(folder, b[0]), b[1], b[2], nports)]
+    computed = sum(b[2] - b[1] for b in todo)
+    bar = tqdm(total=grid.size, initial=grid.size - computed, unit="state",
+               desc=f"sweep {label or key}", disable=not progress)
     owned = executor is None and todo
     executor = executor or (default_executor() if todo else None)
+    counter = getattr(executor, "progress_counter", None)
+    counted = counter.value if counter is not None else 0
+    inline = isinstance(executor, InlineExecutor)
+    previous_hook = _ON_STATE
+    if inline:
+        _ON_STATE = functools.partial(bar.update, 1)
     pending = {}
+
+    def show():
+        if counter is not None:
+            bar.update(min(counter.value - counted, computed) - (bar.n - (grid.size - computed)))
 
     def finish(done):
         for future in done:
             future.result()                      # re-raises a worker's error
             s, e = pending.pop(future)
-            bar.update(e - s)
+            if counter is None and not inline:
+                bar.update(e - s)
+        show()
 
     try:   # a bounded window of chunks in flight: progress shows, an abort stops soon
         for i, s, e in todo:
             pending[executor.submit(run_chunk, factory, probe, key, grid, i, s, e,
                                     str(folder))] = (s, e)
             finish([f for f in pending if f.done()])
-            if len(pending) >= max_in_flight:
-                finish(cf.wait(pending, return_when=cf.FIRST_COMPLETED).done)
-        finish(list(cf.as_completed(list(pending))))
+            while len(pending) >= max_in_flight:
+                finish(cf.wait(pending, timeout=0.25, return_when=cf.FIRST_COMPLETED).done)
+        while pending:
+            finish(cf.wait(pending, timeout=0.25, return_when=cf.FIRST_COMPLETED).done)
     except cf.process.BrokenProcessPool as e:
+        if owned:
+            stop_executor(executor, abort=True)
+            owned = False
         raise RuntimeError(
             "a sweep worker process died; finished chunks are kept and a re-run resumes. "
             "Workers are spawned: a script calling sweep must guard its top level with "
             "`if __name__ == '__main__':` (or pass executor=InlineExecutor())") from e
+    except BaseException:
+        if owned:
+            stop_executor(executor, abort=True)
+            owned = False
+        raise
     finally:
+        _ON_STATE = previous_hook
         bar.close()
         if owned:
-            executor.shutdown(cancel_futures=True)
+            stop_executor(executor)
     tables = None
     for i, s, e in bounds:
         with np.load(_chunk_path(folder, i)) as data:
-            arrays = [data[f"port{k}"] for k in range(len(probe.ports))]
+            arrays = [data[f"port{k}"] for k in range(nports)]
         if tables is None:
             tables = [np.empty((grid.size, a.shape[1])) for a in arrays]
         for table, a in zip(tables, arrays):
             table[s:e] = a
-    return SweepTable(grid=grid, key=key, tables={
+    return SweepTable(grid=grid, key=key, computed=computed, tables={
         name: t.reshape(grid.shape + (t.shape[1],)) for name, t in zip(probe.ports, tables)})

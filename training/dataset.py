@@ -33,6 +33,13 @@ class DatasetSpec:
     width: int = 160
     chunk_size: int = 256
 
+    def validate(self, where="dataset"):
+        for name, least in (("samples", 10), ("height", 16), ("width", 16), ("chunk_size", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"{where}.{name} must be a whole number >= {least}, got {value!r}")
+        return self
+
 
 def _value_hash(value_function) -> str:
     return hashlib.sha256(np.ascontiguousarray(value_function.values, np.float32)
@@ -140,6 +147,21 @@ def load_dataset(folder) -> LabelledData:
     if len(manifest["chunks_done"]) < -(-spec.samples // spec.chunk_size):
         raise ValueError(f"{folder} is incomplete ({len(manifest['chunks_done'])} chunks); "
                          f"run build_dataset again to resume it")
-    load = lambda k, mm=None: np.load(folder / f"{k}.npy", mmap_mode=mm)   # noqa: E731
-    return LabelledData(folder, manifest, load("images", "r"), load("states"), load("values"),
-                        load("labels"), load("estimates"), load("ensemble"))
+    n = spec.samples
+
+    def load(name, rows_shape, mmap_mode=None):
+        path = folder / f"{name}.npy"
+        try:
+            array = np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as e:
+            raise ValueError(f"{path} is unreadable (truncated or corrupt: {e}); delete "
+                             f"{folder} to rebuild the dataset") from None
+        if array.shape[:len(rows_shape)] != rows_shape:
+            raise ValueError(f"{path} holds shape {array.shape}, the manifest says "
+                             f"{rows_shape}; delete {folder} to rebuild the dataset")
+        return array
+
+    return LabelledData(folder, manifest,
+                        load("images", (n, spec.height, spec.width, 3), "r"),
+                        load("states", (n, 3)), load("values", (n,)), load("labels", (n,)),
+                        load("estimates", (n, 2)), load("ensemble", (n,)))

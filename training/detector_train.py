@@ -32,6 +32,28 @@ class DetectorTrainConfig:
     augment: bool = True
     device: str = ""                        # "" = CUDA when present, else CPU
 
+    def validate(self, where="detector"):
+        """Raise ValueError naming the first bad field (as ``where.field``); return self."""
+        self.detector.validate()
+        for name in ("epochs", "batch_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{where}.{name} must be a whole number >= 1, got {value!r}")
+        if not (np.isfinite(self.learning_rate) and self.learning_rate > 0):
+            raise ValueError(f"{where}.learning_rate must be > 0, got {self.learning_rate}")
+        if not 0.0 <= self.validation_fraction < 1.0:
+            raise ValueError(f"{where}.validation_fraction must be in [0, 1), got "
+                             f"{self.validation_fraction}")
+        if not 0.0 <= self.target_recall <= 1.0:
+            raise ValueError(f"{where}.target_recall must be in [0, 1] (0: use threshold), "
+                             f"got {self.target_recall}")
+        if self.target_recall > 0 and self.validation_fraction == 0:
+            raise ValueError(f"{where}.target_recall {self.target_recall} needs a validation "
+                             f"split: set {where}.validation_fraction > 0")
+        if not 0.0 <= self.threshold <= 1.0:
+            raise ValueError(f"{where}.threshold must be in [0, 1], got {self.threshold}")
+        return self
+
 
 def _device(name):
     return torch.device(name or ("cuda" if torch.cuda.is_available() else "cpu"))
@@ -106,6 +128,7 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
     """Train on the concatenated ``datasets`` (`LabelledData`), with their BRT labels or
     the given per-dataset ``labels`` (for baselines); writes a checkpoint."""
     started = time.time()
+    config.validate()
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     device = _device(config.device)
@@ -137,8 +160,7 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
                 "environments": [d.manifest["environment"] for d in datasets],
                 "samples": int(len(y_all)), "positives": int(y_all.sum()),
                 "epochs": config.epochs, "seed": config.seed, "train_losses": losses,
-                "pretrained": bool(config.pretrained_path),
-                "train_seconds": round(time.time() - started, 1)}
+                "pretrained": bool(config.pretrained_path)}
     if len(val):
         scores = []
         with torch.no_grad():
@@ -149,4 +171,5 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
                                                 scores).row()
     save_checkpoint(out_path, kind="detector", model=model.cpu(), model_config=config.detector,
                     preprocess_config=None, metadata=metadata)
-    return metadata
+    # Wall time is returned, not saved: identical training gives an identical file.
+    return {**metadata, "train_seconds": round(time.time() - started, 1)}

@@ -96,8 +96,9 @@ def fine_tune_taxinet(checkpoint, mined, config: IncrementalConfig, camera: Came
                 "mined_per_environment": {e.name: int(len(s)) for e, s in mined},
                 "fine_tune_epochs": config.epochs, "final_train_loss": losses[-1],
                 "mined_error_before": before,
-                "mined_error_after": estimation_errors(model, mined_x, mined_y),
-                "fine_tune_seconds": round(time.time() - started, 1)}
+                "mined_error_after": estimation_errors(model, mined_x, mined_y)}
+    metadata.pop("train_seconds", None)     # the base checkpoint's, if it recorded one
     save_checkpoint(out_path, kind="taxinet", model=model, model_config=model_config,
                     preprocess_config=preprocess_config, metadata=metadata)
-    return metadata
+    # Wall time is returned, not saved: identical training gives an identical file.
+    return {**metadata, "fine_tune_seconds": round(time.time() - started, 1)}
