@@ -72,8 +72,12 @@ def test_file_and_empty(tmp_path):
     path.write_text("initial_state: {px: 2.0, theta_deg: -5.0}\n")
     s = load_scenario(path)
     assert s.initial_state.px == 2.0 and s.initial_state.theta_deg == -5.0
-    path.write_text("")
+    path.write_text("")                      # an empty file is a mistake, not "all defaults"
+    with pytest.raises(ScenarioError, match="is empty; write '{}' for all defaults"):
+        load_scenario(path)
+    path.write_text("{}\n")
     assert load_scenario(path) == Scenario()
+    assert load_scenario(data="") == Scenario()      # an empty string still means defaults
 
 
 def test_malformed_yaml():
