@@ -108,5 +108,10 @@ def load_detector(path):
 
 
 def file_hash(path) -> str:
-    """SHA-256 (hex, first 16) of a file's bytes: the cache key of a checkpoint."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+    """SHA-256 (hex, first 16) of a file's bytes, read in blocks: the cache key of a
+    checkpoint, and how a stage record recognises its output files."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:16]

@@ -6,7 +6,6 @@ itself chunked and cached by content, so a killed stage resumes where it stopped
 
 import copy
 import datetime
-import hashlib
 import json
 import logging
 import os
@@ -15,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reachwatch.diagrams import load_detector
+from reachwatch.diagrams import file_hash, load_detector
 from reachwatch.reach import (Grid, InlineExecutor, ValueFunction, min_target_along_rollouts,
                               sign_agreement, solve_brt, sweep_closed_loop, sweep_key,
                               taxi_dynamics)
@@ -41,18 +40,10 @@ RECORD_FORMAT = 2
 _log = logging.getLogger("reachwatch")
 
 
-def file_digest(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 class Run:
     """A run directory: the spec (``run.yaml``), artifacts, and one record per
     finished stage (``stages/NAME.json``: key, seconds, outputs, and the size and
-    SHA-256 of every file its outputs name)."""
+    content hash of every file its outputs name)."""
 
     def __init__(self, spec: RunSpec, root, *, executor=None, progress=True, log=_log.info,
                  sweep_cache=None):
@@ -92,7 +83,7 @@ class Run:
         return str(Path(path).resolve().relative_to(self.root.resolve()))
 
     def output_files(self, outputs) -> dict:
-        """``{relative path: {"bytes", "sha256"}}`` of every file the ``outputs`` name
+        """``{relative path: {"bytes", "hash"}}`` of every file the ``outputs`` name
         (string values that are paths inside the run directory; folders expanded)."""
         found, root = {}, self.root.resolve()
 
@@ -111,12 +102,12 @@ class Run:
                 except OSError:
                     return
                 for f in ([path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())):
-                    found[self.rel(f)] = {"bytes": f.stat().st_size, "sha256": file_digest(f)}
+                    found[self.rel(f)] = {"bytes": f.stat().st_size, "hash": file_hash(f)}
 
         visit(outputs)
         return found
 
-    def _read_record(self, name, record_path):
+    def _read_record(self, record_path):
         """The record, or ``(None, why it cannot be used)``."""
         if not record_path.exists():
             return None, "no record"
@@ -141,7 +132,7 @@ class Run:
                 return f"its output {relative} is missing"
             if path.stat().st_size != want.get("bytes"):
                 return f"its output {relative} changed size"
-            if file_digest(path) != want.get("sha256"):
+            if file_hash(path) != want.get("hash"):
                 return f"its output {relative} changed content"
         return None
 
@@ -149,7 +140,7 @@ class Run:
         """``fn()``'s outputs, or the recorded ones when the key is unchanged and every
         file the record names is there with the recorded size and hash."""
         record_path = self.root / "stages" / f"{name}.json"
-        record, why = self._read_record(name, record_path)
+        record, why = self._read_record(record_path)
         if record is not None:
             why = ("its inputs changed" if record["key"] != key else self._check_files(record))
         if why is None:
