@@ -1,16 +1,16 @@
 """``reachwatch guard`` (failure sets with and without the fallback) and the guarded
 ``reachwatch simulate --pipeline guarded``."""
 
-import gc
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-from reachwatch.diagrams import (Scenario, initial_state_vector, load_detector, load_scenario,
+from reachwatch.diagrams import (Scenario, initial_state_vector, load_scenario,
                                  make_closed_loop_diagram, make_guarded_diagram, simulate)
 from reachwatch.diagrams.plots import plot_guarded_run
+from reachwatch.diagrams.replay import meshcat_replay_html
 from reachwatch.reach import (Grid, ValueFunction, pipeline_failures, sweep_guarded,
                               taxi_dynamics)
 from reachwatch.reach.plots import plot_brt_slices
@@ -80,33 +80,18 @@ def guard_command(args):
     log.info(f"wrote {out / f'guard_{name}.json'} and .png")
 
 
-def open_meshcat():
-    """A Meshcat server on localhost (for a recording turned into standalone HTML)."""
-    from pydrake.geometry import Meshcat, MeshcatParams
-    return Meshcat(MeshcatParams(host="localhost"))
-
-
 def simulate_guarded(scenario: Scenario, out: Path, *, meshcat_html=True):
     """Nominal and guarded runs from the scenario's start; Fig.-6 plot, trajectories
-    (.npz) and a standalone Meshcat replay (.html) of the guarded run. The Meshcat
-    server opens only once the inputs have loaded, and is closed when the HTML is
-    written."""
+    (.npz) and a standalone Meshcat replay (.html) of the guarded run. The replay is
+    recorded after both runs, by a Meshcat server that is closed once the HTML is
+    written (`meshcat_replay_html`)."""
     x0 = initial_state_vector(scenario.initial_state)
     B = scenario.environment.half_width
     if not scenario.pipeline.detector:
         raise ValueError("pipeline.detector: the guarded pipeline needs a detector checkpoint")
-    load_detector(scenario.pipeline.detector)          # a bad file fails here, before Meshcat
-    nominal = simulate(make_closed_loop_diagram(scenario), initial_state=x0,
-                       duration=scenario.duration, half_width=B)
-    meshcat = visualizer = None
-    if meshcat_html:
-        meshcat = open_meshcat()
-    diagram = make_guarded_diagram(scenario, meshcat=meshcat)
-    if meshcat is not None:
-        from pydrake.geometry import MeshcatVisualizer
-        visualizer = next(s for s in diagram.GetSystems() if isinstance(s, MeshcatVisualizer))
-        visualizer.StartRecording(set_transforms_while_recording=False)
-    guarded = simulate(diagram, initial_state=x0, duration=scenario.duration, half_width=B)
+    diagrams = make_closed_loop_diagram(scenario), make_guarded_diagram(scenario)  # inputs load
+    nominal, guarded = (simulate(d, initial_state=x0, duration=scenario.duration, half_width=B)
+                        for d in diagrams)
     name = f"{scenario.environment.name}_{scenario.pipeline.strategy}"
     paths = [plot_guarded_run(nominal, guarded, half_width=B, path=out / f"guarded_{name}.png",
                               title=f"{scenario.environment.name}: TaxiNet alone "
@@ -116,11 +101,7 @@ def simulate_guarded(scenario: Scenario, out: Path, *, meshcat_html=True):
     np.savez(out / f"guarded_{name}.npz", nominal_state=nominal.state, state=guarded.state,
              speed=guarded.speed, anomaly=guarded.anomaly, time=guarded.time)
     paths.append(out / f"guarded_{name}.npz")
-    if visualizer is not None:
-        visualizer.StopRecording()
-        visualizer.PublishRecording()
-        paths.append(atomic_write_bytes(out / f"guarded_{name}.html",
-                                        meshcat.StaticHtml().encode()))
-        del diagram, visualizer, meshcat            # the last references: the server stops
-        gc.collect()
+    if meshcat_html:
+        html = meshcat_replay_html(scenario, guarded.time, guarded.state)
+        paths.append(atomic_write_bytes(out / f"guarded_{name}.html", html.encode()))
     return nominal, guarded, paths

@@ -408,7 +408,7 @@ def test_bad_detector_never_opens_meshcat(tmp_path, monkeypatch):
     """Before: a bad detector file started a Meshcat server on port 7000 first."""
     from reachwatch.pipeline import guard_commands
     opened = []
-    monkeypatch.setattr(guard_commands, "open_meshcat", lambda: opened.append(1))
+    monkeypatch.setattr(guard_commands, "meshcat_replay_html", lambda *a: opened.append(1))
     bad = tmp_path / "detector.pt"
     bad.write_bytes(b"not a checkpoint")
     scenario = load_scenario(data=f"pipeline: {{detector: {bad}}}\nduration: 0.2\n")

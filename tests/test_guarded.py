@@ -118,6 +118,9 @@ def test_never_flagging_pipeline_equals_taxinet_alone(detector_path):
 
 
 def test_cli_simulate_guarded_writes_plot_and_replay(detector_path, tmp_path):
+    import socket
+    from pydrake.geometry import Meshcat, MeshcatParams
+    port = Meshcat(MeshcatParams(host="localhost")).port()    # the port a new server takes
     path = tmp_path / "s.yaml"
     path.write_text(f"pipeline: {{detector: {detector_path}, threshold: 0.0, strategy: brake}}\n"
                     "duration: 1.0\n")
@@ -126,6 +129,8 @@ def test_cli_simulate_guarded_writes_plot_and_replay(detector_path, tmp_path):
     html = (tmp_path / "guarded_KMWH_9h_clear_brake.html").read_text()
     assert "<html" in html.lower() and len(html) > 10000
     assert (tmp_path / "guarded_KMWH_9h_clear_brake.png").stat().st_size > 1000
+    with socket.socket() as s:       # the replay's Meshcat server is closed again
+        assert s.connect_ex(("127.0.0.1", port)) != 0
 
 
 def test_paired_rates_alternates_blocks_and_checks_arguments(monkeypatch):
