@@ -290,12 +290,16 @@ def test_truncated_dataset_array_names_the_file(tmp_path):
     grid = Grid.paper(10.0, (5, 3, 5))
     vf = solve_brt(grid, TaxiDynamics(half_width=10.0), np.zeros(grid.shape), horizon=1.0,
                    device="cpu")
-    folder = build_dataset(tmp_path, load_scenario(data=""), vf,
-                           DatasetSpec(samples=12, height=16, width=24, chunk_size=12),
-                           progress=False)
+    spec = DatasetSpec(samples=12, height=16, width=24, chunk_size=12)
+    folder = build_dataset(tmp_path, load_scenario(data=""), vf, spec, progress=False)
     images = folder / "images.npy"
     images.write_bytes(images.read_bytes()[:500])
     with pytest.raises(ValueError, match=f"{images} is unreadable.*delete {folder}"):
+        load_dataset(folder)
+    with pytest.raises(ValueError, match=f"{images} is unreadable.*delete {folder}"):
+        build_dataset(tmp_path, load_scenario(data=""), vf, spec, progress=False)   # resuming
+    (folder / "manifest.json").write_text("{ torn")
+    with pytest.raises(ValueError, match=f"{folder} is not a readable reachwatch dataset"):
         load_dataset(folder)
 
 

@@ -58,6 +58,29 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
     return Path(root) / f"{scenario.environment.name}_{spec.samples}_{digest}"
 
 
+def _open_array(folder: Path, name: str, rows_shape: tuple, mmap_mode=None) -> np.ndarray:
+    """``folder/name.npy``, checked against the leading ``rows_shape``; a truncated,
+    corrupt or misshapen file is a ValueError naming it."""
+    path = folder / f"{name}.npy"
+    try:
+        array = np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
+        raise ValueError(f"{path} is unreadable (truncated or corrupt: {e}); delete "
+                         f"{folder} to rebuild the dataset") from None
+    if array.shape[:len(rows_shape)] != tuple(rows_shape):
+        raise ValueError(f"{path} holds shape {array.shape}, the manifest says "
+                         f"{tuple(rows_shape)}; delete {folder} to rebuild the dataset")
+    return array
+
+
+def _read_manifest(folder: Path) -> dict:
+    try:
+        return json.loads((folder / "manifest.json").read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{folder} is not a readable reachwatch dataset ({type(e).__name__}: "
+                         f"{e}); delete it to rebuild the dataset") from None
+
+
 def _write_manifest(folder, manifest):
     atomic_write_bytes(folder / "manifest.json", json.dumps(manifest, indent=1).encode())
 
@@ -72,9 +95,10 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     grid, n = value_function.grid, spec.samples
     manifest_path = folder / "manifest.json"
     if manifest_path.exists():
-        manifest = json.loads(manifest_path.read_text())
-        arrays = {k: np.load(folder / f"{k}.npy", mmap_mode="r+")
-                  for k in ("images", "estimates", "ensemble")}
+        manifest = _read_manifest(folder)
+        arrays = {k: _open_array(folder, k, shape, "r+") for k, shape in (
+            ("images", (n, spec.height, spec.width, 3)), ("estimates", (n, 2)),
+            ("ensemble", (n, len(ensemble), 2)))}
     else:
         rng = np.random.default_rng(spec.seed)
         states = grid.lo + rng.uniform(size=(n, 3)) * (grid.hi - grid.lo)
@@ -137,10 +161,7 @@ class LabelledData:
 def load_dataset(folder) -> LabelledData:
     """Open a finished dataset; raises ValueError if it is incomplete or foreign."""
     folder = Path(folder)
-    try:
-        manifest = json.loads((folder / "manifest.json").read_text())
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{folder} is not a reachwatch dataset: {e}") from None
+    manifest = _read_manifest(folder)
     if manifest.get("format") != FORMAT:
         raise ValueError(f"{folder}: unknown dataset format {manifest.get('format')}")
     spec = DatasetSpec(**manifest["spec"])
@@ -148,19 +169,7 @@ def load_dataset(folder) -> LabelledData:
         raise ValueError(f"{folder} is incomplete ({len(manifest['chunks_done'])} chunks); "
                          f"run build_dataset again to resume it")
     n = spec.samples
-
-    def load(name, rows_shape, mmap_mode=None):
-        path = folder / f"{name}.npy"
-        try:
-            array = np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as e:
-            raise ValueError(f"{path} is unreadable (truncated or corrupt: {e}); delete "
-                             f"{folder} to rebuild the dataset") from None
-        if array.shape[:len(rows_shape)] != rows_shape:
-            raise ValueError(f"{path} holds shape {array.shape}, the manifest says "
-                             f"{rows_shape}; delete {folder} to rebuild the dataset")
-        return array
-
+    load = lambda name, shape, mode=None: _open_array(folder, name, shape, mode)  # noqa: E731
     return LabelledData(folder, manifest,
                         load("images", (n, spec.height, spec.width, 3), "r"),
                         load("states", (n, 3)), load("values", (n,)), load("labels", (n,)),
