@@ -60,10 +60,14 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
 
 def _open_array(folder: Path, name: str, rows_shape: tuple, mmap_mode=None) -> np.ndarray:
     """``folder/name.npy``, checked against the leading ``rows_shape``; a truncated,
-    corrupt or misshapen file is a ValueError naming it."""
+    corrupt or misshapen file is a ValueError naming it. (numpy's ``r+`` memmap would
+    silently zero-extend a truncated file, so every file is first opened read-only.)"""
     path = folder / f"{name}.npy"
     try:
-        array = np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
+        array = np.load(path, mmap_mode="r" if mmap_mode else None, allow_pickle=False)
+        if mmap_mode not in (None, "r"):
+            del array
+            array = np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
     except (OSError, ValueError, EOFError) as e:
         raise ValueError(f"{path} is unreadable (truncated or corrupt: {e}); delete "
                          f"{folder} to rebuild the dataset") from None
