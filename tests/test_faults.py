@@ -57,11 +57,17 @@ def _alive(pid):
     return state != "Z"
 
 
+def _default_sigint():
+    # A shell without job control starts background jobs with SIGINT ignored, and Python
+    # then installs no Ctrl-C handler: give the driver the terminal default back.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_driver(cache, command=None):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}
     process = subprocess.Popen(command or [sys.executable, str(TESTS / "fault_helpers.py"), str(cache)],
                                env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True, start_new_session=True)
+                               text=True, start_new_session=True, preexec_fn=_default_sigint)
     deadline = time.time() + 120
     while time.time() < deadline:                 # the worker has written its first chunk
         if list(Path(cache).rglob("chunk_*.npz")):
