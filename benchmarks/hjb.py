@@ -14,8 +14,8 @@ import time
 
 import numpy as np
 
-from reachwatch.reach import (Grid, TaxiDynamics, min_target_along_rollouts, sign_agreement,
-                              solve_brt)
+from reachwatch.reach import min_target_along_rollouts, sign_agreement, solve_brt
+from reachwatch.taxi import TaxiDynamics, paper_grid
 
 B, HORIZON = 10.0, 8.0
 
@@ -76,7 +76,7 @@ def main():
                         help="random grid nodes integrated for the agreement figures")
     parser.add_argument("--skip-hj", action="store_true")
     args = parser.parse_args()
-    grid = Grid.paper(B, tuple(args.shape))
+    grid = paper_grid(B, tuple(args.shape))
     table = synthetic_table(grid)
     dynamics = TaxiDynamics(half_width=B)
     nodes = np.random.default_rng(0).choice(grid.size, min(args.rollouts, grid.size),

@@ -10,7 +10,8 @@ import tempfile
 import time
 
 from reachwatch.diagrams import StateRenderer, load_scenario
-from reachwatch.reach import Grid, InlineExecutor, sweep_closed_loop
+from reachwatch.reach import InlineExecutor
+from reachwatch.taxi import paper_grid, sweep_closed_loop
 
 
 def main():
@@ -19,13 +20,13 @@ def main():
     parser.add_argument("--rounds", type=int, default=3)
     args = parser.parse_args()
     scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
-    grid = Grid.paper(scenario.environment.half_width, tuple(args.shape))
+    grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
     renderer = StateRenderer(environment=scenario.environment, camera=scenario.camera)
     states = grid.states()
     renderer.render(states[0])
     render_fps = sweep_rate = 0.0
     with tempfile.TemporaryDirectory() as cache:
-        sweep_closed_loop(scenario, Grid.paper(10.0, (2, 2, 2)), cache_dir=cache,
+        sweep_closed_loop(scenario, paper_grid(10.0, (2, 2, 2)), cache_dir=cache,
                           executor=InlineExecutor(), progress=False)        # warm-up build
         for round_ in range(args.rounds):   # interleaved, best of each: the VM is noisy
             start = time.perf_counter()

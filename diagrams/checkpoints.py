@@ -5,7 +5,6 @@ only tensors and plain Python values. Written atomically.
 """
 
 import dataclasses as dc
-import hashlib
 import io
 import json
 from pathlib import Path
@@ -14,7 +13,7 @@ import torch
 
 from reachwatch.systems import (DetectorConfig, PreprocessConfig, TaxiNetConfig,
                                 build_detector, build_taxinet)
-from reachwatch.systems.files import atomic_write_bytes
+from reachwatch.systems.files import atomic_write_bytes, file_hash  # noqa: F401  (re-exported)
 
 FORMAT = "reachwatch.checkpoint"
 VERSION = 1
@@ -105,13 +104,3 @@ def load_detector(path):
     """``(model, detector_config, metadata)`` from an anomaly-detector checkpoint."""
     model, config, _, metadata = _load_model(path, "detector", DetectorConfig, build_detector)
     return model, config, metadata
-
-
-def file_hash(path) -> str:
-    """SHA-256 (hex, first 16) of a file's bytes, read in blocks: the cache key of a
-    checkpoint, and how a stage record recognises its output files."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()[:16]

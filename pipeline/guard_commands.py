@@ -11,9 +11,9 @@ from reachwatch.diagrams import (Scenario, initial_state_vector, load_scenario,
                                  make_closed_loop_diagram, make_guarded_diagram, simulate)
 from reachwatch.diagrams.plots import plot_guarded_run
 from reachwatch.diagrams.replay import meshcat_replay_html
-from reachwatch.reach import (Grid, ValueFunction, pipeline_failures, sweep_guarded,
-                              taxi_dynamics)
-from reachwatch.reach.plots import plot_brt_slices
+from reachwatch.reach import ValueFunction
+from reachwatch.taxi import dynamics_for, guarded_failures, paper_grid, sweep_guarded
+from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems import STRATEGIES
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 
@@ -38,13 +38,13 @@ def add_parsers(sub):
 def failure_sets(scenario, grid, tables, horizon, strategies=STRATEGIES):
     """{"TaxiNet alone" | strategy: boolean failure per grid node (C order)} from the
     swept tables of the guarded diagram."""
-    dynamics = taxi_dynamics(scenario)
+    dynamics = dynamics_for(scenario)
     steering = tables["p_controller.steering_angle"]
     score = tables["anomaly_detector.score"]
     kw = dict(horizon=horizon, period=scenario.controller.period)
-    out = {"TaxiNet alone": pipeline_failures(grid, dynamics, steering, None, **kw)[0]}
+    out = {"TaxiNet alone": guarded_failures(grid, dynamics, steering, None, **kw)[0]}
     for strategy in strategies:
-        out[strategy] = pipeline_failures(
+        out[strategy] = guarded_failures(
             grid, dynamics, steering, score, threshold=scenario.pipeline.threshold,
             strategy=strategy, brake_deceleration=scenario.pipeline.brake_deceleration, **kw)[0]
     return out
@@ -59,7 +59,7 @@ def plot_failure_sets(failures, grid, horizon, *, py, path, half_width, title):
 
 def guard_command(args):
     scenario = load_scenario(args.scenario)
-    grid = Grid.paper(scenario.environment.half_width, tuple(args.shape))
+    grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
     with open_executor(args.executor) as executor:
         tables = sweep_guarded(scenario, grid, cache_dir=args.cache or cache_root() / "sweeps",
                                executor=executor)

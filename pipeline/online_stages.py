@@ -10,8 +10,9 @@ from reachwatch.diagrams import (file_hash, initial_state_vector, load_taxinet,
                                  simulate)
 from reachwatch.diagrams.plots import plot_runway_top_view
 from reachwatch.diagrams.scenario import InitialState
-from reachwatch.reach import ValueFunction, resolved, sweep_guarded
-from reachwatch.reach.plots import plot_brt_slices
+from reachwatch.reach import ValueFunction
+from reachwatch.taxi import resolved, sweep_guarded
+from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.training.incremental import fine_tune_taxinet, mine_anomalies
 
 from .guard_commands import failure_sets, plot_failure_sets, simulate_guarded

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from reachwatch.reach import (ACCURACIES, Grid, drake_agreement, min_target_along_rollouts,
-                              sign_agreement, solve_brt, sweep_closed_loop, taxi_dynamics)
-from reachwatch.reach.plots import plot_brt_slices
+from reachwatch.reach import ACCURACIES, min_target_along_rollouts, sign_agreement, solve_brt
+from reachwatch.taxi import drake_agreement, dynamics_for, paper_grid, sweep_closed_loop
+from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 
 from .console import bar, log
@@ -47,7 +47,7 @@ def add_parsers(sub):
 
 def _sweep(args):
     scenario = scenario_from_args(args)
-    grid = Grid.paper(scenario.environment.half_width, tuple(args.shape))
+    grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
     started = time.time()
     with open_executor(args.executor) as executor:
         table = sweep_closed_loop(scenario, grid, cache_dir=args.cache or cache_root() / "sweeps",
@@ -70,7 +70,7 @@ def sweep_command(args):
 
 def brt_command(args):
     scenario, grid, table, _ = _sweep(args)
-    dynamics = taxi_dynamics(scenario)
+    dynamics = dynamics_for(scenario)
     control = table["p_controller.steering_angle"]
     started = time.time()
     vf = solve_brt(grid, dynamics, control, horizon=args.horizon, accuracy=args.accuracy,

@@ -16,9 +16,9 @@ import numpy as np
 
 from reachwatch.diagrams import file_hash, load_detector
 from reachwatch.reach import (Grid, InlineExecutor, ValueFunction, min_target_along_rollouts,
-                              sign_agreement, solve_brt, sweep_closed_loop, sweep_key,
-                              taxi_dynamics)
-from reachwatch.reach.plots import plot_brt_slices
+                              sign_agreement, solve_brt)
+from reachwatch.taxi import dynamics_for, paper_grid, sweep_closed_loop, taxi_sweep_key
+from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import prediction_error, prediction_error_labels
 from reachwatch.training.dataset import build_dataset, load_dataset
@@ -168,7 +168,7 @@ class Run:
         return scenario
 
     def grid_for(self, env) -> Grid:
-        return Grid.paper(env.half_width, tuple(self.spec.grid))
+        return paper_grid(env.half_width, tuple(self.spec.grid))
 
     def environments(self):
         """Every environment whose BRT the run needs (train, test, guard, incremental)."""
@@ -213,12 +213,12 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     scenario, grid = run.scenario_for(env, checkpoint), run.grid_for(env)
     table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache,
                               executor=run.executor, progress=False)
-    steering, dynamics = table["p_controller.steering_angle"], taxi_dynamics(scenario)
+    steering, dynamics = table["p_controller.steering_angle"], dynamics_for(scenario)
     started = time.time()
     vf = solve_brt(grid, dynamics, steering, horizon=spec.horizon, accuracy=spec.accuracy,
                    period=scenario.controller.period)
     solved = time.time() - started
-    key = sweep_key(scenario, grid)
+    key = taxi_sweep_key(scenario, grid)
     vf.metadata.update(environment=env.name, sweep=key)
     path = vf.save(run.path(f"brt/value_{key}_{spec.horizon:g}s_{spec.accuracy}.npz"))
     reference = min_target_along_rollouts(grid, dynamics, steering, grid.states(),
@@ -235,7 +235,7 @@ def stage_sweep(run: Run) -> dict:
     """Sweep every environment the run needs (one record each, keyed by content)."""
     out = {}
     for env in run.environments():
-        key = sweep_key(run.scenario_for(env), run.grid_for(env))
+        key = taxi_sweep_key(run.scenario_for(env), run.grid_for(env))
         out[env.name] = run.stage(f"sweep_{env.name}", key, lambda env=env: sweep_env(run, env))
     return out
 

@@ -1,12 +1,13 @@
 """Closed-loop dynamics on a grid: ``f(x, u(x))`` with ``u`` a swept control table.
 
 A `Dynamics` maps states ``(..., n)`` and controls ``(..., m)`` to derivatives; the
-solver and the rollouts use nothing else, so any plant can be dropped in."""
+solver and the rollouts use nothing else, so any plant can be dropped in. Also the
+small helpers they share: an RK4 step and the checks of horizons and periods."""
+
+import abc
 
 import numpy as np
 import torch
-
-from reachwatch.systems import NOMINAL_SPEED_MPS, WHEELBASE_M
 
 
 def rk4_step(f, x, h):
@@ -38,56 +39,29 @@ def split_horizon(horizon: float, period: float):
     return whole, (tail if tail > 1e-9 * period else 0.0)
 
 
-class Dynamics:
-    """Interface: ``vector_field(x, u)`` (torch, broadcasting) and the failure margin
-    ``target(x)`` (``l(x) <= 0`` is failure).
+class Dynamics(abc.ABC):
+    """A closed loop's plant, as the solver and the rollouts see it.
+
+    Subclasses set ``state_dim`` and ``control_dim`` and implement
+    ``vector_field(x, u)`` (torch, broadcasting over leading dimensions: states
+    ``(..., state_dim)`` and controls ``(..., control_dim)`` to derivatives) and the
+    failure margin ``target(x)`` (``l(x) <= 0`` is failure).
 
     ``safe_box()`` may say where failure is known without the grid: ``(lo, hi)`` per
     state axis (``-inf``/``inf`` where unbounded) such that a state not strictly inside
-    is a failure. BRT queries use it to answer for states outside the solved grid
-    (leaving the runway is failure wherever it happens); ``None`` = not known."""
+    is a failure. BRT queries use it to answer for states outside the solved grid;
+    ``None`` (the default) = not known."""
 
-    state_dim = 3
-    control_dim = 1
+    state_dim: int
+    control_dim: int
+
+    @abc.abstractmethod
+    def vector_field(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """dx/dt at states ``x`` under controls ``u``."""
+
+    @abc.abstractmethod
+    def target(self, x: torch.Tensor) -> torch.Tensor:
+        """The failure margin ``l(x)``; ``l <= 0`` is failure."""
 
     def safe_box(self):
         return None
-
-    def vector_field(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
-
-    def target(self, x: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
-
-    def hamiltonian(self, grad_value: torch.Tensor, x, u) -> torch.Tensor:
-        """Closed-loop Hamiltonian ``<grad V, f(x, u)>`` (``grad_value`` like ``x``)."""
-        return (grad_value * self.vector_field(x, u)).sum(-1)
-
-    def partial_max_magnitudes(self, x, u) -> torch.Tensor:
-        """``|dH/dp_i| = |f_i|`` per state dimension (for the CFL condition)."""
-        return self.vector_field(x, u).abs()
-
-
-class TaxiDynamics(Dynamics):
-    """``px' = v sin(theta)``, ``py' = v cos(theta)``, ``theta' = (v/L) tan(phi)``;
-    failure ``|px| >= half_width``, so ``l(x) = half_width - |px|`` (m)."""
-
-    def __init__(self, *, half_width: float, speed: float = NOMINAL_SPEED_MPS,
-                 wheelbase: float = WHEELBASE_M):
-        self.half_width, self.speed, self.wheelbase = float(half_width), float(speed), float(wheelbase)
-
-    def vector_field(self, x, u, speed=None):
-        """``speed`` (m/s, tensor broadcasting with ``x[..., 0]``) overrides the
-        nominal one, for the fallback pipeline whose speed is a state."""
-        v = self.speed if speed is None else speed
-        theta = x[..., 2]
-        phi = u[..., 0]
-        return torch.stack([v * torch.sin(theta), v * torch.cos(theta),
-                            v / self.wheelbase * torch.tan(phi)], dim=-1)
-
-    def target(self, x):
-        return self.half_width - x[..., 0].abs()
-
-    def safe_box(self):
-        inf = float("inf")
-        return [-self.half_width, -inf, -inf], [self.half_width, inf, inf]

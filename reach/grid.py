@@ -1,26 +1,9 @@
 """A regular N-dimensional state grid with multilinear interpolation."""
 
-import dataclasses as dc
-from typing import List
-
 import numpy as np
 
 #: What a query does with a state outside the grid box.
 OUTSIDE_MODES = ("raise", "clamp", "nan")
-
-
-@dc.dataclass
-class GridSpec:
-    """The taxi grid as configs write it (theta in degrees)."""
-    px: List[float] = dc.field(default_factory=lambda: [-11.0, 11.0])
-    py: List[float] = dc.field(default_factory=lambda: [100.0, 250.0])
-    theta_deg: List[float] = dc.field(default_factory=lambda: [-28.0, 28.0])
-    shape: List[int] = dc.field(default_factory=lambda: [101, 101, 101])
-
-    def to_grid(self) -> "Grid":
-        return Grid(lo=[self.px[0], self.py[0], np.deg2rad(self.theta_deg[0])],
-                    hi=[self.px[1], self.py[1], np.deg2rad(self.theta_deg[1])],
-                    shape=self.shape, names=("px", "py", "theta"))
 
 
 def check_states(states, dim: int, what: str = "state") -> np.ndarray:
@@ -57,16 +40,6 @@ class Grid:
             if n < 2:
                 raise ValueError(f"grid axis {axis}: needs at least 2 nodes, got {n}")
         self.lo, self.hi, self.shape, self.names = lo, hi, shape, names
-
-    @classmethod
-    def paper(cls, half_width: float, shape=(101, 101, 101)) -> "Grid":
-        """The TaxiNet paper's grid: px in [-(B+1), B+1] m, py in [100, 250] m, theta in
-        [-28, 28] deg."""
-        if len(tuple(shape)) != 3:
-            raise ValueError(f"the paper grid has 3 axes (px, py, theta), got shape {list(shape)}")
-        return cls(lo=[-(half_width + 1.0), 100.0, np.deg2rad(-28.0)],
-                   hi=[half_width + 1.0, 250.0, np.deg2rad(28.0)], shape=shape,
-                   names=("px", "py", "theta"))
 
     @property
     def ndim(self) -> int:

@@ -11,11 +11,13 @@ import concurrent.futures.process  # noqa: F401  (BrokenProcessPool)
 import dataclasses as dc
 import functools
 import io
+import json
 import multiprocessing
 import os
 import signal
 import threading
 import time
+import warnings
 from pathlib import Path
 from typing import Callable, Tuple
 
@@ -24,15 +26,17 @@ from tqdm import tqdm
 
 from reachwatch.systems.files import atomic_write_bytes
 
+from .fingerprint import Unfingerprintable, fingerprint
 from .grid import Grid
 
 
 @dc.dataclass(frozen=True)
 class Probe:
-    """Where to write the state and what to read in a diagram."""
-    plant: str = "taxi_plant"
-    control_port: str = "p_controller.steering_angle"
-    extra_ports: Tuple[str, ...] = ("taxinet.estimate",)
+    """Where to write the state and what to read in a diagram: the subsystem whose
+    continuous state is the grid state, and ports named ``"system.port"``."""
+    plant: str
+    control_port: str
+    extra_ports: Tuple[str, ...] = ()
 
     @property
     def ports(self):
@@ -107,16 +111,33 @@ def stop_executor(executor, *, abort: bool = False):
         executor.shutdown(wait=True, cancel_futures=abort)
 
 
+def _subsystem(diagram, name):
+    if not diagram.HasSubsystemNamed(name):
+        names = sorted(s.get_name() for s in diagram.GetSystems())
+        raise ValueError(f"the diagram '{diagram.get_name()}' has no subsystem '{name}'; "
+                         f"it has {names}")
+    return diagram.GetSubsystemByName(name)
+
+
 class _DiagramProbe:
-    def __init__(self, factory, probe: Probe):
+    def __init__(self, factory, probe: Probe, state_dim: int):
         self.diagram = factory()
         self.context = self.diagram.CreateDefaultContext()
-        plant = self.diagram.GetSubsystemByName(probe.plant)
+        plant = _subsystem(self.diagram, probe.plant)
         self.plant_context = plant.GetMyMutableContextFromRoot(self.context)
+        size = self.plant_context.num_continuous_states()
+        if size != state_dim:
+            raise ValueError(f"probe.plant '{probe.plant}' has {size} continuous states, the "
+                             f"grid {state_dim} axes")
         self.ports = []
         for name in probe.ports:
-            system_name, port_name = name.split(".", 1)
-            system = self.diagram.GetSubsystemByName(system_name)
+            system_name, _, port_name = name.partition(".")
+            system = _subsystem(self.diagram, system_name)
+            if not system.HasOutputPort(port_name):
+                ports = [system.get_output_port(i).get_name()
+                         for i in range(system.num_output_ports())]
+                raise ValueError(f"subsystem '{system_name}' has no output port "
+                                 f"'{port_name}'; it has {ports}")
             port = system.GetOutputPort(port_name)
             self.ports.append((port, system.GetMyContextFromRoot(self.context)))
         self.lock = threading.Lock()
@@ -144,7 +165,7 @@ def run_chunk(factory, probe: Probe, key: str, grid: Grid, index: int, start: in
               stop: int, folder: str) -> str:
     """Evaluate nodes ``start:stop`` (flat C order) and write the chunk file."""
     if key not in _PROBES:
-        _PROBES[key] = _DiagramProbe(factory, probe)
+        _PROBES[key] = _DiagramProbe(factory, probe, grid.ndim)
     arrays = _PROBES[key].evaluate(grid.states(np.arange(start, stop)))
     buffer = io.BytesIO()
     np.savez(buffer, start=start, stop=stop, **{f"port{k}": a for k, a in enumerate(arrays)})
@@ -173,22 +194,65 @@ def _chunk_ok(path: Path, start: int, stop: int, ports: int) -> bool:
         return False
 
 
-def sweep(factory: Callable, grid: Grid, *, key: str, cache_dir, probe: Probe = Probe(),
+def sweep_key(factory: Callable, grid: Grid, probe: Probe, *, name: str = None) -> str:
+    """The cache folder name of a sweep: ``name`` (default: the factory's function
+    name), the grid shape, and the first 20 hex digits of the content fingerprint of
+    factory, grid and probe (`reach.fingerprint`)."""
+    base = getattr(factory, "func", factory)
+    name = name or getattr(base, "__name__", "sweep")
+    return f"{name}_{'x'.join(map(str, grid.shape))}_{fingerprint(factory, grid.key(), probe)[:20]}"
+
+
+def _check_fingerprint(folder: Path, factory, grid, probe, key):
+    """Records what a user-keyed cache folder was filled from, and refuses to reuse it
+    for anything else."""
+    try:
+        mine = fingerprint(factory, grid.key(), probe)
+    except Unfingerprintable as e:
+        warnings.warn(f"sweep key '{key}' cannot be checked against its cache ({e}); a "
+                      f"changed controller under the same key would reuse a stale table")
+        mine = None
+    path = folder / "fingerprint.json"
+    if path.is_file():
+        try:
+            theirs = json.loads(path.read_text()).get("fingerprint")
+        except (OSError, ValueError):
+            theirs = None
+        if mine is not None and theirs is not None and theirs != mine:
+            raise ValueError(f"sweep key '{key}' names a cache ({folder}) filled from another "
+                             f"factory, grid or probe (fingerprint {theirs[:12]}, this sweep "
+                             f"{mine[:12]}); use another key, or key=None to derive one")
+    if mine is not None and not path.is_file():
+        atomic_write_bytes(path, json.dumps({"fingerprint": mine}).encode())
+
+
+def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = None,
           chunk_size: int = 1024, executor: cf.Executor = None, progress: bool = True,
-          max_in_flight: int = 8, label: str = None) -> SweepTable:
+          max_in_flight: int = 8, label: str = None, name: str = None) -> SweepTable:
     """Evaluate ``probe.ports`` of ``factory()``'s diagram at every node of ``grid``.
 
     ``factory`` must be picklable when ``executor`` runs elsewhere (e.g.
-    ``functools.partial(make_closed_loop_diagram, scenario)``); ``key`` names the
-    cache entry and must change whenever the diagram's output could. The progress bar
-    (``label``, default the key) moves per state on this process and on
-    `default_executor`, per chunk on others. ``table.computed`` counts the states
+    ``functools.partial(make_closed_loop_diagram, scenario)``). The cache folder
+    under ``cache_dir`` is `sweep_key` of its content fingerprint, so a changed
+    controller, gain or checkpoint never returns a stale table; a ``key`` you give
+    names the folder instead, and is checked against the fingerprint recorded in it
+    (``name`` starts a derived key; default: the factory's function name).
+    The progress bar (``label``, default the key) moves per state on this process and
+    on `default_executor`, per chunk on others. ``table.computed`` counts the states
     evaluated by this call (0 when every chunk was cached)."""
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a whole number >= 1, got {chunk_size!r}")
+    if len(probe.ports) < 1:
+        raise ValueError("the probe names no port to read")
     global _ON_STATE
-    folder = Path(cache_dir) / key
-    folder.mkdir(parents=True, exist_ok=True)
+    if key is None:
+        key = sweep_key(factory, grid, probe, name=name)
+        folder = Path(cache_dir) / key
+        folder.mkdir(parents=True, exist_ok=True)
+    else:
+        folder = Path(cache_dir) / key
+        folder.mkdir(parents=True, exist_ok=True)
+        _check_fingerprint(folder, factory, grid, probe, key)
     bounds = [(i, s, min(s + chunk_size, grid.size))
               for i, s in enumerate(range(0, grid.size, chunk_size))]
     nports = len(probe.ports)

@@ -1,5 +1,6 @@
-"""Atomic file writes: a reader never sees a half-written file."""
+"""Files: atomic writes (a reader never sees a half-written file) and content hashes."""
 
+import hashlib
 import os
 import tempfile
 from pathlib import Path
@@ -9,6 +10,16 @@ def cache_root() -> Path:
     """Where reachwatch caches generated assets and sweeps: ``$REACHWATCH_CACHE`` or
     ``~/.cache/reachwatch``."""
     return Path(os.environ.get("REACHWATCH_CACHE", Path.home() / ".cache" / "reachwatch"))
+
+
+def file_hash(path, length: int = 16) -> str:
+    """SHA-256 (hex, first ``length`` digits) of a file's bytes, read in blocks: the
+    cache key of a checkpoint, and how a stage record recognises its output files."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:length]
 
 
 def atomic_write_bytes(path, data: bytes) -> Path:

@@ -6,7 +6,8 @@ import torch
 from pydrake.systems.sensors import ImageRgba8U
 
 from reachwatch.diagrams import CheckpointError, load_detector, load_scenario, save_checkpoint
-from reachwatch.reach import Grid, TaxiDynamics, solve_brt
+from reachwatch.reach import solve_brt
+from reachwatch.taxi import TaxiDynamics, paper_grid
 from reachwatch.systems import AnomalyDetector, DetectorConfig, build_detector
 from reachwatch.training.baselines import ensemble_variance, prediction_error
 from reachwatch.training.dataset import DatasetSpec, build_dataset, load_dataset
@@ -93,7 +94,7 @@ def test_detector_checkpoint_round_trip_and_errors(tmp_path):
 
 @pytest.fixture(scope="module")
 def tiny_brt():
-    grid = Grid.paper(10.0, (9, 3, 9))
+    grid = paper_grid(10.0, (9, 3, 9))
     px, _, th = grid.mesh()
     table = np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th) + 8.0)     # a biased controller
     return solve_brt(grid, TaxiDynamics(half_width=10.0), table, horizon=4.0, device="cpu")

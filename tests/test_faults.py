@@ -21,10 +21,12 @@ from reachwatch.pipeline.run import run_pipeline
 from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.pipeline.stages import sweep_rate
 from reachwatch.reach import Grid, InlineExecutor, Probe, default_executor, sweep
+from reachwatch.taxi import paper_grid
 
 TESTS = Path(__file__).resolve().parent
 REPO = TESTS.parent
-FEEDBACK = Probe(extra_ports=("state_estimator.estimate",))
+FEEDBACK = Probe(plant="taxi_plant", control_port="p_controller.steering_angle",
+                 extra_ports=("state_estimator.estimate",))
 SLOW = Probe(plant="plant", control_port="plant.u", extra_ports=())
 
 TINY = (TESTS / "test_pipeline_run.py").read_text().split('TINY = """', 1)[1].split('"""', 1)[0]
@@ -148,7 +150,7 @@ def test_sweep_progress_moves_per_state_and_label_keeps_the_shape(tmp_path, monk
         def close(self):
             pass
     monkeypatch.setattr(sweep_module, "tqdm", Bar)
-    g = Grid.paper(10.0, (4, 3, 3))
+    g = paper_grid(10.0, (4, 3, 3))
     table = sweep(_feedback_factory(), g, key="k" * 40, cache_dir=tmp_path, probe=FEEDBACK,
                   executor=InlineExecutor(), chunk_size=1000, label="KMWH_9h_clear 4x3x3")
     assert bars[0].updates == [1] * g.size and bars[0].desc == "sweep KMWH_9h_clear 4x3x3"
@@ -169,7 +171,7 @@ def test_sweep_progress_moves_per_state_and_label_keeps_the_shape(tmp_path, monk
 
 def test_chunk_missing_a_port_is_recomputed(tmp_path):
     """Before: a chunk file lacking a port was a KeyError traceback."""
-    g = Grid.paper(10.0, (4, 3, 3))
+    g = paper_grid(10.0, (4, 3, 3))
     good = sweep(_feedback_factory(), g, key="f", cache_dir=tmp_path, probe=FEEDBACK,
                  executor=InlineExecutor(), chunk_size=12, progress=False)
     chunk = tmp_path / "f" / "chunk_000001.npz"
@@ -185,7 +187,7 @@ def test_chunk_missing_a_port_is_recomputed(tmp_path):
 @pytest.mark.parametrize("chunk_size", [0, -5, 2.5])
 def test_bad_chunk_size_is_an_error(tmp_path, chunk_size):
     with pytest.raises(ValueError, match="chunk_size must be a whole number >= 1"):
-        sweep(_feedback_factory(), Grid.paper(10.0, (3, 3, 3)), key="x", cache_dir=tmp_path,
+        sweep(_feedback_factory(), paper_grid(10.0, (3, 3, 3)), key="x", cache_dir=tmp_path,
               probe=FEEDBACK, executor=InlineExecutor(), chunk_size=chunk_size)
 
 
@@ -270,11 +272,12 @@ def test_stage_keys_do_not_depend_on_wall_time(tmp_path):
     """Before: the detector checkpoint held train_seconds, so identical runs had other
     checkpoint hashes and stage keys."""
     from reachwatch.diagrams import file_hash
-    from reachwatch.reach import TaxiDynamics, solve_brt
+    from reachwatch.reach import solve_brt
+    from reachwatch.taxi import TaxiDynamics
     from reachwatch.training.dataset import DatasetSpec, build_dataset, load_dataset
     from reachwatch.training.detector_train import DetectorTrainConfig, train_detector
     from reachwatch.systems import DetectorConfig
-    grid = Grid.paper(10.0, (5, 3, 5))
+    grid = paper_grid(10.0, (5, 3, 5))
     px, _, th = grid.mesh()
     vf = solve_brt(grid, TaxiDynamics(half_width=10.0),
                    np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th) + 8.0), horizon=2.0, device="cpu")
@@ -291,9 +294,10 @@ def test_stage_keys_do_not_depend_on_wall_time(tmp_path):
 
 def test_truncated_dataset_array_names_the_file(tmp_path):
     """Before: a truncated memmap failed with numpy's message and no file name."""
-    from reachwatch.reach import TaxiDynamics, solve_brt
+    from reachwatch.reach import solve_brt
+    from reachwatch.taxi import TaxiDynamics
     from reachwatch.training.dataset import DatasetSpec, build_dataset, load_dataset
-    grid = Grid.paper(10.0, (5, 3, 5))
+    grid = paper_grid(10.0, (5, 3, 5))
     vf = solve_brt(grid, TaxiDynamics(half_width=10.0), np.zeros(grid.shape), horizon=1.0,
                    device="cpu")
     spec = DatasetSpec(samples=12, height=16, width=24, chunk_size=12)

@@ -5,7 +5,8 @@ import torch
 from reachwatch.diagrams import (DETECTOR, SWITCH, load_scenario, make_closed_loop_diagram,
                                  make_guarded_diagram, save_checkpoint, simulate)
 from reachwatch.pipeline.cli import main
-from reachwatch.reach import Grid, InlineExecutor, pipeline_failures, sweep_guarded, taxi_dynamics
+from reachwatch.reach import InlineExecutor
+from reachwatch.taxi import dynamics_for, guarded_failures, paper_grid, sweep_guarded
 from reachwatch.systems import DetectorConfig, FallbackSwitch, build_detector, next_speed
 
 TINY = DetectorConfig(height=24, width=40, channels=[4, 8])
@@ -87,13 +88,13 @@ def test_guarded_run_survives_where_nominal_fails(detector_path, tmp_path):
     """Pick, from swept tables, a start that TaxiNet alone fails from and the braking
     pipeline saves; then check both verdicts in the real Drake loops."""
     scenario = _scenario(detector_path, 0.0)           # threshold 0: every image flagged
-    grid = Grid.paper(10.0, (12, 2, 9))
+    grid = paper_grid(10.0, (12, 2, 9))
     tables = sweep_guarded(scenario, grid, cache_dir=tmp_path, executor=InlineExecutor(),
                            progress=False)
-    dynamics = taxi_dynamics(scenario)
+    dynamics = dynamics_for(scenario)
     steer, score = tables["p_controller.steering_angle"], tables[f"{DETECTOR}.score"]
-    nominal_fail, _ = pipeline_failures(grid, dynamics, steer, None)
-    guarded_fail, slowest = pipeline_failures(grid, dynamics, steer, score, threshold=0.0,
+    nominal_fail, _ = guarded_failures(grid, dynamics, steer, None)
+    guarded_fail, slowest = guarded_failures(grid, dynamics, steer, score, threshold=0.0,
                                               strategy="brake", brake_deceleration=4.0)
     saved = np.flatnonzero(nominal_fail & ~guarded_fail)
     assert len(saved) > 0 and slowest.min() == 0.0

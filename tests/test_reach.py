@@ -8,13 +8,15 @@ import torch
 from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram,
                                  make_state_feedback_diagram, save_checkpoint, load_taxinet)
 from reachwatch.reach.interpolate import GridInterpolator
-from reachwatch.reach import (Grid, GridSpec, InlineExecutor, Probe, TaxiDynamics,
-                              ValueFunction, min_target_along_rollouts, sign_agreement,
-                              solve_brt, sweep, sweep_key)
+from reachwatch.reach import (Grid, InlineExecutor, Probe, ValueFunction,
+                              min_target_along_rollouts, sign_agreement, solve_brt, sweep)
+from reachwatch.reach import Unfingerprintable, sweep_key
+from reachwatch.taxi import TAXI_PROBE, TaxiDynamics, TaxiGridSpec, paper_grid, taxi_sweep_key
 from reachwatch.systems import PreprocessConfig, TaxiNet, TaxiNetConfig, build_taxinet
 
 B = 10.0
-FEEDBACK = Probe(extra_ports=("state_estimator.estimate",))
+FEEDBACK = Probe(plant="taxi_plant", control_port="p_controller.steering_angle",
+                 extra_ports=("state_estimator.estimate",))
 
 
 def _feedback_factory():
@@ -24,11 +26,11 @@ def _feedback_factory():
 # --- grid -------------------------------------------------------------------------
 
 def test_paper_grid_preset():
-    g = Grid.paper(10.0)
+    g = paper_grid(10.0)
     assert g.shape == (101, 101, 101)
     np.testing.assert_allclose(g.lo, [-11.0, 100.0, np.deg2rad(-28)])
     np.testing.assert_allclose(g.hi, [11.0, 250.0, np.deg2rad(28)])
-    assert GridSpec().to_grid() == g
+    assert TaxiGridSpec().to_grid() == g
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -59,7 +61,7 @@ def test_interpolation_exact_for_linear_and_outside_named():
 def test_constant_heading_brt_matches_analytic_within_a_cell(accuracy):
     """No steering: px(t) = px0 + v t sin(theta); V = min(B - |px0|, B - |px0 + vT sin theta|)."""
     T = 2.0
-    g = Grid.paper(B, (45, 5, 41))
+    g = paper_grid(B, (45, 5, 41))
     px, _, th = g.mesh()
     exact = np.minimum(B - np.abs(px), B - np.abs(px + 5.0 * T * np.sin(th)))
     vf = solve_brt(g, TaxiDynamics(half_width=B), np.zeros(g.shape), horizon=T,
@@ -81,7 +83,7 @@ def _p_table(grid, bias_deg=0.0):
 
 @pytest.mark.parametrize("accuracy, hold", [("very_high", None), ("semi_lagrangian", 0.05)])
 def test_solver_agrees_with_rollouts_small_grid(accuracy, hold):
-    g = Grid.paper(B, (31, 5, 31))
+    g = paper_grid(B, (31, 5, 31))
     dyn = TaxiDynamics(half_width=B)
     table = _p_table(g, bias_deg=6.0)           # a biased controller: a lopsided BRT
     vf = solve_brt(g, dyn, table, horizon=4.0, accuracy=accuracy, device="cpu")
@@ -91,7 +93,7 @@ def test_solver_agrees_with_rollouts_small_grid(accuracy, hold):
 
 
 def test_solver_input_errors():
-    g = Grid.paper(B, (5, 5, 5))
+    g = paper_grid(B, (5, 5, 5))
     dyn = TaxiDynamics(half_width=B)
     with pytest.raises(ValueError, match="does not match grid"):
         solve_brt(g, dyn, np.zeros((5, 5, 4)))
@@ -102,7 +104,7 @@ def test_solver_input_errors():
 
 
 def test_value_function_round_trip_and_queries(tmp_path):
-    g = Grid.paper(B, (9, 3, 9))
+    g = paper_grid(B, (9, 3, 9))
     vf = solve_brt(g, TaxiDynamics(half_width=B), _p_table(g), horizon=1.0, device="cpu")
     path = vf.save(tmp_path / "v.npz")
     back = ValueFunction.load(path)
@@ -117,7 +119,7 @@ def test_value_function_round_trip_and_queries(tmp_path):
 # --- sweep -------------------------------------------------------------------------
 
 def test_sweep_of_a_user_diagram_matches_the_controller(tmp_path):
-    g = Grid.paper(B, (5, 3, 4))
+    g = paper_grid(B, (5, 3, 4))
     table = sweep(_feedback_factory(), g, key="feedback", cache_dir=tmp_path, probe=FEEDBACK,
                   chunk_size=7, executor=InlineExecutor(), progress=False)
     px, _, th = g.mesh()
@@ -143,7 +145,7 @@ class _Interrupted(cf.Executor):
 
 
 def test_sweep_resumes_after_interruption(tmp_path):
-    g = Grid.paper(B, (6, 3, 5))
+    g = paper_grid(B, (6, 3, 5))
     kwargs = dict(key="k", probe=FEEDBACK, chunk_size=8, progress=False)
     with pytest.raises(RuntimeError, match="killed"):
         sweep(_feedback_factory(), g, cache_dir=tmp_path / "a",
@@ -184,17 +186,57 @@ def test_sweep_key_changes_with_checkpoint_grid_and_environment(tmp_path):
     s1 = load_scenario(data=f"controller: {{checkpoint: {paths[1]}}}\n")
     s2 = load_scenario(data=f"controller: {{checkpoint: {paths[0]}}}\n"
                             "environment: {hour: 17.0}\n")
-    g = Grid.paper(B, (5, 5, 5))
-    keys = {sweep_key(s0, g), sweep_key(s1, g), sweep_key(s2, g),
-            sweep_key(s0, Grid.paper(B, (5, 5, 7)))}
-    assert len(keys) == 4 and sweep_key(s0, g) == sweep_key(s0, g)
+    g = paper_grid(B, (5, 5, 5))
+    s3 = load_scenario(data=f"controller: {{checkpoint: {paths[0]}, px_gain: -0.8}}\n")
+    keys = {taxi_sweep_key(s0, g), taxi_sweep_key(s1, g), taxi_sweep_key(s2, g),
+            taxi_sweep_key(s3, g), taxi_sweep_key(s0, paper_grid(B, (5, 5, 7)))}
+    assert len(keys) == 5 and taxi_sweep_key(s0, g) == taxi_sweep_key(s0, g)
+    # what the table does not depend on leaves the key alone
+    s4 = load_scenario(data=f"controller: {{checkpoint: {paths[0]}}}\n"
+                            "initial_state: {px: 3.0}\nduration: 2.0\n")
+    assert taxi_sweep_key(s4, g) == taxi_sweep_key(s0, g)
+    # the checkpoint counts by content: retrained in place changes it, moved keeps it
+    moved = tmp_path / "moved.pt"
+    moved.write_bytes(paths[0].read_bytes())
+    s5 = load_scenario(data=f"controller: {{checkpoint: {moved}}}\n")
+    assert taxi_sweep_key(s5, g) == taxi_sweep_key(s0, g)
+    moved.write_bytes(paths[1].read_bytes())
+    assert taxi_sweep_key(s5, g) == taxi_sweep_key(s1, g) != taxi_sweep_key(s0, g)
+
+
+def _gain_factory(gain):
+    scenario = load_scenario(data=f"controller: {{px_gain: {gain}}}\n")
+    return functools.partial(make_state_feedback_diagram, scenario)
+
+
+def test_a_user_key_is_checked_not_trusted(tmp_path):
+    """Sweeping twice under one key with another gain used to return the first table."""
+    g = paper_grid(B, (3, 2, 3))
+    first = sweep(_gain_factory(-0.74), g, key="mine", cache_dir=tmp_path, probe=FEEDBACK,
+                  executor=InlineExecutor(), progress=False)
+    with pytest.raises(ValueError, match="sweep key 'mine' names a cache .* filled from another"):
+        sweep(_gain_factory(-2.0), g, key="mine", cache_dir=tmp_path, probe=FEEDBACK,
+              executor=InlineExecutor(), progress=False)
+    derived = [sweep(_gain_factory(k), g, cache_dir=tmp_path, probe=FEEDBACK,
+                     executor=InlineExecutor(), progress=False) for k in (-0.74, -2.0)]
+    assert derived[0].key != derived[1].key
+    np.testing.assert_array_equal(derived[0]["p_controller.steering_angle"],
+                                  first["p_controller.steering_angle"])
+    assert not np.array_equal(derived[0]["p_controller.steering_angle"],
+                              derived[1]["p_controller.steering_angle"])
+    gain = -0.74
+
+    def closure():
+        return _gain_factory(gain)()
+    with pytest.raises(Unfingerprintable, match="closure"):
+        sweep_key(closure, g, FEEDBACK)
 
 
 def test_taxinet_sweep_equals_taxinet_on_rendered_image(tmp_path):
     """The sweep evaluates the same diagram the simulator runs."""
     scenario = load_scenario(data="")
-    g = Grid.paper(B, (2, 2, 2))
-    table = sweep(functools.partial(make_closed_loop_diagram, scenario), g, key="taxinet",
+    g = paper_grid(B, (2, 2, 2))
+    table = sweep(functools.partial(make_closed_loop_diagram, scenario), g, probe=TAXI_PROBE,
                   cache_dir=tmp_path, executor=InlineExecutor(), progress=False)
     from reachwatch.diagrams import StateRenderer
     model, pre, _ = load_taxinet()
@@ -206,7 +248,7 @@ def test_taxinet_sweep_equals_taxinet_on_rendered_image(tmp_path):
 
 def test_sweep_on_dask_local_cluster(tmp_path):
     distributed = pytest.importorskip("dask.distributed")
-    g = Grid.paper(B, (4, 3, 3))
+    g = paper_grid(B, (4, 3, 3))
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                                   host="127.0.0.1", dashboard_address=None) as cluster, \
             distributed.Client(cluster) as client:
@@ -245,7 +287,7 @@ def test_interpolation_exact_for_linear_in_2d_and_4d(shape):
 
 
 def test_queries_reject_nan_states_and_unknown_modes():
-    g = Grid.paper(B, (5, 3, 5))
+    g = paper_grid(B, (5, 3, 5))
     values = np.ones(g.shape)
     for mode in ("raise", "clamp", "nan"):
         with pytest.raises(ValueError, match="not finite"):
@@ -255,7 +297,7 @@ def test_queries_reject_nan_states_and_unknown_modes():
 
 
 def test_in_brt_never_calls_an_unknown_state_safe():
-    g = Grid.paper(B, (9, 3, 9))
+    g = paper_grid(B, (9, 3, 9))
     vf = solve_brt(g, TaxiDynamics(half_width=B), _p_table(g), horizon=1.0, device="cpu")
     past_edge = [[B + 5.0, 150.0, 0.0]]                 # 5 m off the runway: a failure
     steep = [[0.0, 150.0, np.deg2rad(60.0)]]            # on the runway, outside the box
@@ -275,7 +317,7 @@ def test_in_brt_never_calls_an_unknown_state_safe():
 
 
 def test_horizon_is_solved_exactly_and_recorded():
-    g = Grid.paper(B, (41, 3, 41))
+    g = paper_grid(B, (41, 3, 41))
     dyn = TaxiDynamics(half_width=B)
     px, _, th = g.mesh()
     brts = {}
@@ -300,6 +342,6 @@ def test_horizon_is_solved_exactly_and_recorded():
     (dict(periods_per_step=1.5), "periods_per_step must be a finite whole"),
 ])
 def test_solver_parameters_are_checked(kwargs, match):
-    g = Grid.paper(B, (5, 3, 5))
+    g = paper_grid(B, (5, 3, 5))
     with pytest.raises(ValueError, match=match):
         solve_brt(g, TaxiDynamics(half_width=B), np.zeros(g.shape), device="cpu", **kwargs)

@@ -17,7 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from reachwatch.diagrams import StateRenderer, file_hash, load_taxinet
-from reachwatch.reach import resolved
+from reachwatch.taxi import resolved
 from reachwatch.systems import TaxiNet, resize_for_detector
 from reachwatch.systems.files import atomic_write_bytes
 

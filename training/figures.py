@@ -5,7 +5,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from reachwatch.diagrams.plots import save_figure
-from reachwatch.reach.plots import plot_brt_slices
+from reachwatch.taxi.plots import plot_brt_slices
 
 
 def plot_error_vs_margin(results, path, bins=(0, 0.25, 0.5, 1, 2, 4, 8, 100)):

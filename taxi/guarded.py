@@ -11,13 +11,13 @@ import torch
 
 from reachwatch.systems import next_speed
 
-from .dynamics import positive, rk4_step, split_horizon
-from .grid import check_states
-from .interpolate import GridInterpolator
+from reachwatch.reach.dynamics import positive, rk4_step, split_horizon
+from reachwatch.reach.grid import check_states
+from reachwatch.reach.interpolate import GridInterpolator
 
 
 @torch.no_grad()
-def pipeline_failures(grid, dynamics, steering_table, score_table=None, *, threshold=0.5,
+def guarded_failures(grid, dynamics, steering_table, score_table=None, *, threshold=0.5,
                       strategy="slow_down", horizon=8.0, period=0.05, substeps=2,
                       starts=None, **strategy_params):
     """Boolean failure per start (default: every grid node, C order) and the speed

@@ -1,0 +1,95 @@
+"""Content fingerprints of sweep factories: what a cached table was computed from.
+
+A factory (usually ``functools.partial(make_diagram, config)``) is reduced to plain
+JSON: the function's module, name and source text; dataclasses field by field; numpy
+arrays, torch modules and tensors by a hash of their bytes; and any string or path that
+names an existing file by a hash of the file's *contents* (a moved checkpoint keeps
+its fingerprint, a retrained one does not). What cannot be reduced this way raises
+`Unfingerprintable`, so a sweep never silently reuses a table made by another
+controller."""
+
+import dataclasses as dc
+import functools
+import hashlib
+import inspect
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from reachwatch.systems.files import file_hash
+
+#: Bump when what a sweep computes changes for the same inputs.
+FORMAT = 1
+
+
+class Unfingerprintable(ValueError):
+    """A factory argument whose content cannot be summarised."""
+
+
+def _bytes_digest(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _callable(fn):
+    try:
+        source = inspect.getsource(fn)
+    except (OSError, TypeError):
+        source = ""
+    return {"callable": f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', repr(fn))}",
+            "source": _bytes_digest(source.encode())}
+
+
+def canonical(value, where="factory"):
+    """``value`` as JSON-able data that changes whenever its content does."""
+    if value is None or isinstance(value, (bool, int)):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else repr(value)
+    if isinstance(value, (str, os.PathLike)):
+        text = os.fspath(value)
+        if text and len(text) < 4096 and "\n" not in text and os.path.isfile(text):
+            return {"file": file_hash(text, 64)}
+        return text
+    if isinstance(value, (np.integer, np.floating, np.bool_)):
+        return canonical(value.item(), where)
+    if isinstance(value, np.ndarray):
+        array = np.ascontiguousarray(value)
+        return {"array": [str(array.dtype), list(array.shape), _bytes_digest(array.tobytes())]}
+    if dc.is_dataclass(value) and not isinstance(value, type):
+        return {"dataclass": type(value).__qualname__,
+                "fields": {f.name: canonical(getattr(value, f.name), f"{where}.{f.name}")
+                           for f in dc.fields(value)}}
+    if isinstance(value, functools.partial):
+        return {"partial": canonical(value.func, where),
+                "args": [canonical(a, f"{where}[{i}]") for i, a in enumerate(value.args)],
+                "kwargs": {k: canonical(v, f"{where}.{k}") for k, v in sorted(value.keywords.items())}}
+    if isinstance(value, (list, tuple)):
+        return [canonical(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, dict):
+        return {str(k): canonical(v, f"{where}[{k!r}]") for k, v in sorted(value.items(), key=str)}
+    try:
+        import torch
+        if isinstance(value, torch.Tensor):
+            return canonical(value.detach().cpu().numpy(), where)
+        if isinstance(value, torch.nn.Module):
+            return {"module": type(value).__qualname__,
+                    "state": {k: canonical(v, f"{where}.{k}") for k, v in value.state_dict().items()}}
+    except ImportError:          # pragma: no cover - torch is a dependency
+        pass
+    if inspect.isfunction(value) or inspect.isclass(value) or inspect.isbuiltin(value):
+        if getattr(value, "__closure__", None):
+            raise Unfingerprintable(f"{where}: {value.__qualname__} is a closure; pass its "
+                                    f"values with functools.partial instead")
+        return _callable(value)
+    raise Unfingerprintable(f"{where}: cannot summarise a {type(value).__qualname__}; make "
+                            f"the factory a functools.partial of a module-level function over "
+                            f"dataclasses, numbers, strings, arrays or file paths")
+
+
+def fingerprint(*parts) -> str:
+    """SHA-256 (hex) of ``parts`` reduced by `canonical`, with the format number."""
+    text = json.dumps([FORMAT] + [canonical(p) for p in parts], sort_keys=True)
+    return _bytes_digest(text.encode())

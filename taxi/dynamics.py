@@ -1,0 +1,41 @@
+"""The taxiing aircraft as the solver sees it: kinematic bicycle at a set speed,
+failure when it leaves the runway."""
+
+import torch
+
+from reachwatch.reach import Dynamics
+from reachwatch.systems import NOMINAL_SPEED_MPS, WHEELBASE_M
+
+
+class TaxiDynamics(Dynamics):
+    """``px' = v sin(theta)``, ``py' = v cos(theta)``, ``theta' = (v/L) tan(phi)``;
+    failure ``|px| >= half_width``, so ``l(x) = half_width - |px|`` (m)."""
+
+    state_dim = 3
+    control_dim = 1
+
+    def __init__(self, *, half_width: float, speed: float = NOMINAL_SPEED_MPS,
+                 wheelbase: float = WHEELBASE_M):
+        self.half_width, self.speed, self.wheelbase = float(half_width), float(speed), float(wheelbase)
+
+    def vector_field(self, x, u, speed=None):
+        """``speed`` (m/s, tensor broadcasting with ``x[..., 0]``) overrides the
+        nominal one, for the fallback pipeline whose speed is a state."""
+        v = self.speed if speed is None else speed
+        theta = x[..., 2]
+        phi = u[..., 0]
+        return torch.stack([v * torch.sin(theta), v * torch.cos(theta),
+                            v / self.wheelbase * torch.tan(phi)], dim=-1)
+
+    def target(self, x):
+        return self.half_width - x[..., 0].abs()
+
+    def safe_box(self):
+        inf = float("inf")
+        return [-self.half_width, -inf, -inf], [self.half_width, inf, inf]
+
+
+def dynamics_for(scenario) -> TaxiDynamics:
+    """The taxi dynamics of a scenario: its runway's half-width, its controller's speed."""
+    return TaxiDynamics(half_width=scenario.environment.half_width,
+                        speed=scenario.controller.speed)

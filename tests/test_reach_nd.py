@@ -1,0 +1,128 @@
+"""The generic reach layer on plants that are not the taxi: a 2-D double integrator
+(swept as a Drake diagram) and a 4-D unicycle with speed as a state."""
+
+import functools
+
+import numpy as np
+import pytest
+import torch
+from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
+
+from reachwatch.reach import (Dynamics, Grid, InlineExecutor, Probe, min_target_along_rollouts,
+                              sign_agreement, solve_brt, sweep)
+
+GAINS = (1.0, 0.6, 0.3)          # u = -k1 p - k2 v + bias: slightly unstable toward +p
+
+
+class DoubleIntegrator(Dynamics):
+    """p' = v, v' = u; failure |p| >= 1."""
+    state_dim, control_dim = 2, 1
+
+    def vector_field(self, x, u):
+        return torch.stack([x[..., 1], u[..., 0]], dim=-1)
+
+    def target(self, x):
+        return 1.0 - x[..., 0].abs()
+
+    def safe_box(self):
+        return [-1.0, -np.inf], [1.0, np.inf]
+
+
+class Unicycle(Dynamics):
+    """x' = v cos th, y' = v sin th, th' = omega, v' = a; failure |y| >= 1 (a lane)."""
+    state_dim, control_dim = 4, 2
+
+    def vector_field(self, x, u):
+        return torch.stack([x[..., 3] * torch.cos(x[..., 2]), x[..., 3] * torch.sin(x[..., 2]),
+                            u[..., 0], u[..., 1]], dim=-1)
+
+    def target(self, x):
+        return 1.0 - x[..., 1].abs()
+
+
+def test_dynamics_is_abstract():
+    with pytest.raises(TypeError):
+        Dynamics()
+
+
+@pytest.mark.parametrize("accuracy, hold", [("semi_lagrangian", 0.05), ("high", None)])
+def test_2d_brt_agrees_with_rollouts(accuracy, hold):
+    g = Grid(lo=[-1.2, -2.0], hi=[1.2, 2.0], shape=[49, 41], names=("p", "v"))
+    p, v = g.mesh()
+    k1, k2, bias = GAINS
+    table = -k1 * p - k2 * v + bias
+    dyn = DoubleIntegrator()
+    vf = solve_brt(g, dyn, table, horizon=3.0, accuracy=accuracy, device="cpu")
+    lowest = min_target_along_rollouts(g, dyn, table, g.states(), horizon=3.0, hold=hold)
+    assert 0.1 < vf.brt_fraction < 0.9
+    assert sign_agreement(vf.values.ravel(), lowest) > 0.97
+    assert vf.in_brt([[1.5, 0.0]])[0]                 # past the safe box: failure
+    with pytest.raises(ValueError, match="p=0, v=5.*outside the grid"):
+        vf.in_brt([[0.0, 5.0]])
+
+
+def test_4d_brt_agrees_with_rollouts():
+    g = Grid(lo=[0.0, -1.2, -0.8, 0.5], hi=[1.0, 1.2, 0.8, 1.5], shape=[2, 25, 17, 5],
+             names=("x", "y", "th", "v"))
+    _, y, th, v = g.mesh()
+    table = np.stack([-1.2 * y - 1.0 * th + 0.5, -(v - 1.2)], axis=-1)   # biased steering
+    dyn = Unicycle()
+    vf = solve_brt(g, dyn, table, horizon=2.0, device="cpu")
+    lowest = min_target_along_rollouts(g, dyn, table, g.states(), horizon=2.0, hold=0.05)
+    assert 0.05 < vf.brt_fraction < 0.9
+    assert sign_agreement(vf.values.ravel(), lowest) > 0.95
+
+
+class _Plant(LeafSystem):
+    """Double integrator as a Drake system: state [p, v], input u, output state."""
+
+    def __init__(self):
+        super().__init__()
+        state = self.DeclareContinuousState(2)
+        self.u = self.DeclareVectorInputPort("u", 1)
+        self.DeclareStateOutputPort("state", state)
+
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        x = context.get_continuous_state_vector().CopyToVector()
+        derivatives.get_mutable_vector().SetFromVector([x[1], self.u.Eval(context)[0]])
+
+
+class _Controller(LeafSystem):
+    def __init__(self, k1, k2, bias):
+        super().__init__()
+        self.gains = (k1, k2, bias)
+        self.x = self.DeclareVectorInputPort("x", 2)
+        self.DeclareVectorOutputPort("u", 1, self._calc)
+
+    def _calc(self, context, output: BasicVector):
+        p, v = self.x.Eval(context)
+        k1, k2, bias = self.gains
+        output.SetFromVector([-k1 * p - k2 * v + bias])
+
+
+def make_double_integrator_loop(k1, k2, bias):
+    builder = DiagramBuilder()
+    plant = builder.AddNamedSystem("plant", _Plant())
+    controller = builder.AddNamedSystem("controller", _Controller(k1, k2, bias))
+    builder.Connect(plant.get_output_port(), controller.get_input_port())
+    builder.Connect(controller.get_output_port(), plant.get_input_port())
+    return builder.Build()
+
+
+def test_2d_sweep_of_a_drake_loop_matches_its_controller(tmp_path):
+    g = Grid(lo=[-1.2, -2.0], hi=[1.2, 2.0], shape=[5, 4], names=("p", "v"))
+    probe = Probe(plant="plant", control_port="controller.u")
+    table = sweep(functools.partial(make_double_integrator_loop, *GAINS), g, probe=probe,
+                  cache_dir=tmp_path, executor=InlineExecutor(), chunk_size=6, progress=False)
+    p, v = g.mesh()
+    k1, k2, bias = GAINS
+    np.testing.assert_allclose(table["controller.u"][..., 0], -k1 * p - k2 * v + bias)
+    assert table.key.startswith("make_double_integrator_loop_5x4_")
+    with pytest.raises(ValueError, match="has 2 continuous states, the grid 3 axes"):
+        sweep(functools.partial(make_double_integrator_loop, *GAINS),
+              Grid(lo=[0, 0, 0], hi=[1, 1, 1], shape=[2, 2, 2]), probe=probe,
+              cache_dir=tmp_path, executor=InlineExecutor(), progress=False)
+    with pytest.raises(ValueError, match="subsystem 'controller' has no output port 'y'"):
+        sweep(functools.partial(make_double_integrator_loop, *GAINS), g,
+              probe=Probe(plant="plant", control_port="controller.y"), cache_dir=tmp_path,
+              executor=InlineExecutor(), progress=False)
