@@ -9,7 +9,7 @@ from .closed_loop import (CONTROL_PORT, ESTIMATE_PORT, PLANT, Trajectory,
                           make_state_feedback_diagram, simulate, start_simulator)
 from .guarded import DETECTOR, SWITCH, make_guarded_diagram
 from .graph import GraphvizMissing, export_graph
-from .render import StateRenderer, check_state
+from .render import StateRenderer, check_state, write_png
 from .scenario import ControllerConfig, InitialState, PipelineConfig, Scenario, ScenarioError, dump_scenario, load_scenario
 from .timing import paired_rates
 from .world import World, add_world, initial_state_vector, make_world_diagram
@@ -18,6 +18,6 @@ __all__ = ["REFERENCE_TAXINET", "CheckpointError", "file_hash", "load_checkpoint
            "load_detector", "load_taxinet", "save_checkpoint", "CONTROL_PORT", "ESTIMATE_PORT", "PLANT",
            "Trajectory", "add_taxinet_controller", "make_closed_loop_diagram",
            "make_state_feedback_diagram", "simulate", "start_simulator",
-           "ControllerConfig", "PipelineConfig", "DETECTOR", "SWITCH", "make_guarded_diagram", "GraphvizMissing", "export_graph", "StateRenderer", "check_state",
+           "ControllerConfig", "PipelineConfig", "DETECTOR", "SWITCH", "make_guarded_diagram", "GraphvizMissing", "export_graph", "StateRenderer", "check_state", "write_png",
            "InitialState", "Scenario", "ScenarioError", "dump_scenario", "load_scenario",
            "paired_rates", "World", "add_world", "initial_state_vector", "make_world_diagram"]

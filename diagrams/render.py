@@ -1,9 +1,13 @@
 """Render wing-camera images at arbitrary states with one reused Context."""
 
+from pathlib import Path
+
+import cv2
 import numpy as np
 from pydrake.systems.framework import DiagramBuilder
 
 from reachwatch.systems import CameraConfig, Environment
+from reachwatch.systems.files import atomic_write_bytes
 
 from .world import add_world
 
@@ -50,3 +54,11 @@ class StateRenderer:
         self._plant_context.SetContinuousState(check_state(state))
         image = self._world.camera.color_image_output_port().Eval(self._camera_context)
         return image.data[..., :3].copy()
+
+
+def write_png(path, rgb: np.ndarray) -> Path:
+    """Write an RGB uint8 image atomically."""
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
+    if not ok:
+        raise RuntimeError(f"could not encode {path}")
+    return atomic_write_bytes(path, data.tobytes())

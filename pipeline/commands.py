@@ -4,13 +4,10 @@ import argparse
 import math
 from pathlib import Path
 
-import cv2
-import numpy as np
 
-from reachwatch.diagrams import (Scenario, StateRenderer, export_graph,
+from reachwatch.diagrams import (Scenario, StateRenderer, export_graph, write_png,
                                  initial_state_vector, load_scenario, make_world_diagram)
 from reachwatch.diagrams.contact_sheet import contact_sheet
-from reachwatch.systems.files import atomic_write_bytes
 
 from .console import bar, log
 
@@ -37,14 +34,6 @@ positive_float = _number(float, 0.0, True, "a finite number > 0")
 def scenario_from_args(args) -> Scenario:
     """The ``--scenario`` file, or the built-in defaults when none is given."""
     return load_scenario(args.scenario) if args.scenario else Scenario().validate()
-
-
-def write_png(path, rgb: np.ndarray) -> Path:
-    """Write an RGB uint8 image atomically."""
-    ok, data = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
-    if not ok:
-        raise RuntimeError(f"could not encode {path}")
-    return atomic_write_bytes(path, data.tobytes())
 
 
 def render(args):

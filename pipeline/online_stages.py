@@ -11,11 +11,10 @@ from reachwatch.diagrams import (file_hash, initial_state_vector, load_taxinet,
 from reachwatch.diagrams.plots import plot_runway_top_view
 from reachwatch.diagrams.scenario import InitialState
 from reachwatch.reach import ValueFunction
-from reachwatch.taxi import resolved, sweep_guarded
-from reachwatch.taxi.plots import plot_brt_slices
+from reachwatch.taxi import failure_sets, resolved, simulate_guarded, sweep_guarded
+from reachwatch.taxi.plots import plot_brt_slices, plot_failure_sets
 from reachwatch.training.incremental import fine_tune_taxinet, mine_anomalies
 
-from .guard_commands import failure_sets, plot_failure_sets, simulate_guarded
 from .spec import digest
 from .stages import Run, solve_env, sweep_env
 

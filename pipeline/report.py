@@ -6,12 +6,11 @@ import html
 
 import numpy as np
 
-from reachwatch.diagrams import export_graph, make_closed_loop_diagram, make_guarded_diagram
+from reachwatch.diagrams import export_graph, write_png, make_closed_loop_diagram, make_guarded_diagram
 from reachwatch.diagrams.contact_sheet import environment_sheet
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.evaluation import COLUMNS, format_cell
 
-from .commands import write_png
 from .stages import Run, sweep_rate
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;

@@ -9,6 +9,7 @@ import numpy as np
 from reachwatch.diagrams import (REFERENCE_TAXINET, initial_state_vector,
                                  make_closed_loop_diagram, simulate)
 from reachwatch.diagrams.plots import plot_runway_top_view
+from reachwatch.taxi import simulate_guarded
 from reachwatch.systems import SKIES, RUNWAYS, Environment
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.taxinet_eval import evaluate_taxinet, format_reports
@@ -84,7 +85,6 @@ def simulate_command(args):
     scenario = scenario_from_args(args)
     out = Path(args.out)
     if args.pipeline == "guarded":
-        from .guard_commands import simulate_guarded
         nominal, guarded, paths = simulate_guarded(scenario, out,
                                                    meshcat_html=not args.no_meshcat)
         log.info(f"TaxiNet alone {'failed' if nominal.failed else 'stayed on the runway'}; "

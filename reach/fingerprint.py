@@ -15,7 +15,6 @@ import inspect
 import json
 import math
 import os
-from pathlib import Path
 
 import numpy as np
 

@@ -5,10 +5,11 @@ the check against the real Drake loop. Built on the generic `reachwatch.reach`."
 from .dynamics import TaxiDynamics, dynamics_for
 from .fidelity import drake_agreement
 from .grid import TaxiGridSpec, paper_grid
-from .guarded import guarded_failures
+from .guarded import failure_sets, guarded_failures
+from .guarded_run import simulate_guarded
 from .sweeps import (GUARDED_PROBE, TAXI_PROBE, resolved, sweep_closed_loop, sweep_guarded,
                      taxi_sweep_key)
 
 __all__ = ["TaxiDynamics", "dynamics_for", "drake_agreement", "TaxiGridSpec", "paper_grid",
-           "guarded_failures", "GUARDED_PROBE", "TAXI_PROBE", "resolved", "sweep_closed_loop",
+           "failure_sets", "guarded_failures", "simulate_guarded", "GUARDED_PROBE", "TAXI_PROBE", "resolved", "sweep_closed_loop",
            "sweep_guarded", "taxi_sweep_key"]

@@ -9,11 +9,12 @@ and a node fails if ``|px| >= B`` within the horizon."""
 import numpy as np
 import torch
 
-from reachwatch.systems import next_speed
-
 from reachwatch.reach.dynamics import positive, rk4_step, split_horizon
 from reachwatch.reach.grid import check_states
 from reachwatch.reach.interpolate import GridInterpolator
+from reachwatch.systems import STRATEGIES, next_speed
+
+from .dynamics import dynamics_for
 
 
 @torch.no_grad()
@@ -45,3 +46,18 @@ def guarded_failures(grid, dynamics, steering_table, score_table=None, *, thresh
         lowest = torch.minimum(lowest, dynamics.target(x))
         slowest = torch.minimum(slowest, v)
     return (lowest <= 0).numpy(), slowest.numpy()
+
+
+def failure_sets(scenario, grid, tables, horizon, strategies=STRATEGIES):
+    """{"TaxiNet alone" | strategy: boolean failure per grid node (C order)} from the
+    swept tables of the guarded diagram."""
+    dynamics = dynamics_for(scenario)
+    steering = tables["p_controller.steering_angle"]
+    score = tables["anomaly_detector.score"]
+    kw = dict(horizon=horizon, period=scenario.controller.period)
+    out = {"TaxiNet alone": guarded_failures(grid, dynamics, steering, None, **kw)[0]}
+    for strategy in strategies:
+        out[strategy] = guarded_failures(
+            grid, dynamics, steering, score, threshold=scenario.pipeline.threshold,
+            strategy=strategy, brake_deceleration=scenario.pipeline.brake_deceleration, **kw)[0]
+    return out

@@ -5,6 +5,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from reachwatch.diagrams.plots import save_figure
+from reachwatch.reach import ValueFunction
 
 
 def slice_index(grid, py: float) -> int:
@@ -42,3 +43,10 @@ def plot_brt_slices(value_functions, *, py: float, path, half_width=None, title=
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return save_figure(fig, path)
+
+
+def plot_failure_sets(failures, grid, horizon, *, py, path, half_width, title):
+    """One BRT-style slice panel per failure set (failing starts grey)."""
+    sets = {k: ValueFunction(grid, np.where(v.reshape(grid.shape), -1.0, 1.0), horizon,
+                             "rollouts") for k, v in failures.items()}
+    return plot_brt_slices(sets, py=py, path=path, half_width=half_width, title=title)

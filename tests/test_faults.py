@@ -20,7 +20,7 @@ from reachwatch.pipeline.executors import make_executor
 from reachwatch.pipeline.run import run_pipeline
 from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.pipeline.stages import sweep_rate
-from reachwatch.reach import Grid, InlineExecutor, Probe, default_executor, sweep
+from reachwatch.reach import InlineExecutor, Probe, default_executor, sweep
 from reachwatch.taxi import paper_grid
 
 TESTS = Path(__file__).resolve().parent
@@ -420,12 +420,12 @@ def test_warnings_become_one_line(capsys):
 
 def test_bad_detector_never_opens_meshcat(tmp_path, monkeypatch):
     """Before: a bad detector file started a Meshcat server on port 7000 first."""
-    from reachwatch.pipeline import guard_commands
+    from reachwatch.taxi import guarded_run
     opened = []
-    monkeypatch.setattr(guard_commands, "meshcat_replay_html", lambda *a: opened.append(1))
+    monkeypatch.setattr(guarded_run, "meshcat_replay_html", lambda *a: opened.append(1))
     bad = tmp_path / "detector.pt"
     bad.write_bytes(b"not a checkpoint")
     scenario = load_scenario(data=f"pipeline: {{detector: {bad}}}\nduration: 0.2\n")
     with pytest.raises(ValueError, match="not a readable checkpoint"):
-        guard_commands.simulate_guarded(scenario, tmp_path)
+        guarded_run.simulate_guarded(scenario, tmp_path)
     assert opened == []
