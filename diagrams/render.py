@@ -26,7 +26,7 @@ class StateRenderer:
     """Renders the wing camera of ``environment`` at any plant state.
 
     Builds the world diagram once; every `render` sets the plant state in the same
-    Context and evaluates the camera's colour port (drake-notes.md, section 1).
+    Context and evaluates the camera's colour port (no Simulator, no new Context per frame).
     """
 
     def __init__(self, *, environment: Environment, camera: CameraConfig = None,

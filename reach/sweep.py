@@ -245,13 +245,10 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
     if len(probe.ports) < 1:
         raise ValueError("the probe names no port to read")
     global _ON_STATE
-    if key is None:
-        key = sweep_key(factory, grid, probe, name=name)
-        folder = Path(cache_dir) / key
-        folder.mkdir(parents=True, exist_ok=True)
-    else:
-        folder = Path(cache_dir) / key
-        folder.mkdir(parents=True, exist_ok=True)
+    checked, key = key is not None, key or sweep_key(factory, grid, probe, name=name)
+    folder = Path(cache_dir) / key
+    folder.mkdir(parents=True, exist_ok=True)
+    if checked:            # a derived key is the fingerprint; a given one must match it
         _check_fingerprint(folder, factory, grid, probe, key)
     bounds = [(i, s, min(s + chunk_size, grid.size))
               for i, s in enumerate(range(0, grid.size, chunk_size))]

@@ -37,7 +37,9 @@ class ValueFunction:
 
     def known_failure(self, states) -> np.ndarray:
         """True where a state is outside ``safe_box`` (a failure already)."""
-        states = check_states(states, self.grid.ndim)
+        return self._outside_safe_box(check_states(states, self.grid.ndim))
+
+    def _outside_safe_box(self, states):
         if self.safe_box is None:
             return np.zeros(states.shape[:-1], bool)
         lo, hi = (np.asarray(b, float) for b in self.safe_box)
@@ -54,7 +56,7 @@ class ValueFunction:
                              f"{outside!r}")
         states = check_states(states, self.grid.ndim)
         flat = states.reshape(-1, self.grid.ndim)
-        failed = self.known_failure(flat)
+        failed = self._outside_safe_box(flat)
         inside = self.grid.contains(flat)
         unknown = ~failed & ~inside
         if outside == "raise" and unknown.any():

@@ -14,7 +14,7 @@ from pydrake.systems.sensors import CameraInfo, RgbdSensor
 
 @dc.dataclass
 class CameraConfig:
-    """The right-wing camera of the authors' X-Plane setup (facts.md, section 4).
+    """The right-wing camera of the authors' X-Plane setup, as their public code places it.
 
     Offsets are from the aircraft reference point, which sits ``reference_height``
     above the ground; ``yaw_out_deg`` turns the camera outward (right), and

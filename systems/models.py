@@ -30,7 +30,7 @@ AUTHORS_CROP = [55 / 360, 5 / 200, 1.0, 135 / 200]
 class PreprocessConfig:
     """How an RGB frame becomes the network input.
 
-    ``blockmax`` is the authors' TinyTaxiNet pipeline (facts.md, section 3): grayscale,
+    ``blockmax`` is the authors' TinyTaxiNet pipeline (their public code): grayscale,
     crop, resize to 128x256, mean of the ``top_k`` brightest pixels of each 16x16 block
     (8x16), shifted to mean 0.5 and clipped to [0, 1]. ``resize`` crops and resizes to
     ``height`` x ``width`` and standardises per image (for the CNN).

@@ -1,6 +1,6 @@
 """Procedural textures and tiled meshes, generated at run time and cached on disk.
 
-VTK clamps OBJ texture coordinates outside [0, 1] (drake-notes.md, section 3), so a
+Drake's VTK renderer clamps OBJ texture coordinates outside [0, 1], so a
 textured surface is an OBJ with one quad per tile, each with UVs 0..1.
 """
 

@@ -45,6 +45,10 @@ def _factory(scenario, guarded=False):
     return functools.partial(make, _sweep_scenario(scenario, guarded))
 
 
+def _name(scenario, guarded=False):
+    return scenario.environment.name + ("_guarded" if guarded else "")
+
+
 def _label(scenario, grid, what=""):
     return f"{what}{scenario.environment.name} {'x'.join(map(str, grid.shape))}"
 
@@ -53,13 +57,13 @@ def taxi_sweep_key(scenario, grid: Grid, *, guarded=False) -> str:
     """The cache folder of ``scenario``'s (guarded) sweep over ``grid``: the environment
     name, the grid shape and the content fingerprint of what the table depends on."""
     return sweep_key(_factory(scenario, guarded), grid, GUARDED_PROBE if guarded else TAXI_PROBE,
-                     name=scenario.environment.name + ("_guarded" if guarded else ""))
+                     name=_name(scenario, guarded))
 
 
 def sweep_closed_loop(scenario, grid: Grid, *, cache_dir, executor=None, chunk_size=1024,
                       progress=True) -> SweepTable:
     """Steering (rad) and TaxiNet estimate at every node of ``grid``."""
-    return sweep(_factory(scenario), grid, probe=TAXI_PROBE, name=scenario.environment.name,
+    return sweep(_factory(scenario), grid, probe=TAXI_PROBE, name=_name(scenario),
                  cache_dir=cache_dir, executor=executor, chunk_size=chunk_size,
                  progress=progress, label=_label(scenario, grid))
 
@@ -68,6 +72,6 @@ def sweep_guarded(scenario, grid: Grid, *, cache_dir, executor=None, chunk_size=
                   progress=True) -> SweepTable:
     """Steering, estimate and detector score at every node (one render per node)."""
     return sweep(_factory(scenario, True), grid, probe=GUARDED_PROBE,
-                 name=scenario.environment.name + "_guarded", cache_dir=cache_dir,
+                 name=_name(scenario, True), cache_dir=cache_dir,
                  executor=executor, chunk_size=chunk_size, progress=progress,
                  label=_label(scenario, grid, "guarded "))

@@ -29,7 +29,7 @@ def test_derivatives_match_formula(state, phi, v):
 
 
 def test_at_nominal_speed_heading_rate_is_tan_phi():
-    # DESIGN.md: at v = 5 m/s and L = 5 m, theta' = tan(phi), the paper's u.
+    # at v = 5 m/s and L = 5 m, theta' = tan(phi), the paper's u.
     d = _derivatives(TaxiPlant(), [0.0, 0.0, 0.0], 0.3, 5.0)
     assert d[2] == pytest.approx(np.tan(0.3))
 
