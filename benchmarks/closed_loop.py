@@ -53,6 +53,7 @@ def main():
                 x0 = [rng.uniform(-2, 2), rng.uniform(100, 150), np.deg2rad(rng.uniform(-5, 5))]
                 start = time.perf_counter()
                 trajectory = simulate(diagram, initial_state=x0, duration=args.duration,
+                                      period=scenario.controller.period,
                                       half_width=1e9, context=context)
                 best = max(best, (len(trajectory.time) - 1) / (time.perf_counter() - start))
             renderer = StateRenderer(environment=scenario.environment, camera=scenario.camera)

@@ -1,5 +1,5 @@
 """Online rate: closed-loop control ticks per wall second of TaxiNet alone vs the
-guarded pipeline (TaxiNet + anomaly detector + fallback switch), same run, same
+guarded loop (TaxiNet + anomaly detector + fallback switch), same run, same
 200x360 camera. The detector has random weights unless --detector is given (timing
 does not depend on the weights) and never triggers the fallback (threshold 1), so both
 loops drive the same path.
@@ -62,9 +62,9 @@ def main():
         for name, path in candidates:
             guarded = make_closed_loop_diagram(load_scenario(data="")) if path is None else \
                 make_guarded_diagram(load_scenario(
-                    data=f"pipeline: {{detector: {path}, threshold: 1.0}}\n"))
+                    data=f"monitor: {{detector: {path}, threshold: 1.0}}\n"))
             alone, guard = paired_rates(nominal, guarded, rounds=args.rounds,
-                                        duration=args.duration)
+                                        duration=args.duration, period=0.05)
             ratio = guard / alone
             extra_ms = float(np.median(1e3 / guard - 1e3 / alone))
             print(f"{name:<34} {np.median(alone):10.1f} {np.median(guard):12.1f} "

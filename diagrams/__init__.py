@@ -4,20 +4,24 @@ import reachwatch.systems  # noqa: F401  (first: sets process-wide settings befo
 
 from .checkpoints import (REFERENCE_TAXINET, CheckpointError, file_hash, load_checkpoint,
                           load_detector, load_taxinet, save_checkpoint)
-from .closed_loop import (CONTROL_PORT, ESTIMATE_PORT, PLANT, Trajectory,
-                          add_taxinet_controller, make_closed_loop_diagram,
-                          make_state_feedback_diagram, simulate, start_simulator)
+from .closed_loop import (CONTROL_PORT, CONTROLLER, ESTIMATE_PORT, PLANT, Trajectory,
+                          add_controller, export_loop_ports, make_closed_loop_diagram,
+                          make_state_feedback_diagram, simulate, start_simulator, tick_times)
+from .controller import (ControllerProbe, TaxiNetController, check_controller, make_controller,
+                         make_taxinet_controller, resolve_factory)
 from .guarded import DETECTOR, SWITCH, make_guarded_diagram
 from .graph import GraphvizMissing, export_graph
 from .render import StateRenderer, check_state, write_png
-from .scenario import ControllerConfig, InitialState, PipelineConfig, Scenario, ScenarioError, dump_scenario, load_scenario
+from .scenario import ControllerConfig, InitialState, MonitorConfig, Scenario, ScenarioError, dump_scenario, load_scenario
 from .timing import paired_rates
 from .world import World, add_world, initial_state_vector, make_world_diagram
 
 __all__ = ["REFERENCE_TAXINET", "CheckpointError", "file_hash", "load_checkpoint",
-           "load_detector", "load_taxinet", "save_checkpoint", "CONTROL_PORT", "ESTIMATE_PORT", "PLANT",
-           "Trajectory", "add_taxinet_controller", "make_closed_loop_diagram",
-           "make_state_feedback_diagram", "simulate", "start_simulator",
-           "ControllerConfig", "PipelineConfig", "DETECTOR", "SWITCH", "make_guarded_diagram", "GraphvizMissing", "export_graph", "StateRenderer", "check_state", "write_png",
+           "load_detector", "load_taxinet", "save_checkpoint", "CONTROL_PORT", "CONTROLLER", "ESTIMATE_PORT", "PLANT",
+           "Trajectory", "add_controller", "export_loop_ports", "make_closed_loop_diagram",
+           "make_state_feedback_diagram", "simulate", "start_simulator", "tick_times",
+           "ControllerProbe", "TaxiNetController", "check_controller", "make_controller",
+           "make_taxinet_controller", "resolve_factory",
+           "ControllerConfig", "MonitorConfig", "DETECTOR", "SWITCH", "make_guarded_diagram", "GraphvizMissing", "export_graph", "StateRenderer", "check_state", "write_png",
            "InitialState", "Scenario", "ScenarioError", "dump_scenario", "load_scenario",
            "paired_rates", "World", "add_world", "initial_state_vector", "make_world_diagram"]

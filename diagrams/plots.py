@@ -52,7 +52,7 @@ def plot_guarded_run(nominal, guarded, *, half_width: float, path, title=""):
         ax.axhline(sign * half_width, color="k", lw=1.5)
         ax.axhspan(sign * half_width, sign * (half_width + 3), color="tab:red", alpha=0.12)
     ax.plot(nominal.state[:, 1], nominal.state[:, 0], "k--", lw=1.5,
-            label="TaxiNet alone" + (" (fails)" if nominal.failed else ""))
+            label="alone" + (" (fails)" if nominal.failed else ""))
     points = ax.scatter(guarded.state[:, 1], guarded.state[:, 0], c=guarded.speed, s=10,
                         cmap="viridis", vmin=0.0, vmax=max(5.0, float(np.max(guarded.speed))),
                         label="guarded" + (" (fails)" if guarded.failed else ""))

@@ -9,7 +9,7 @@ import dataclasses as dc
 import math
 import typing
 from pathlib import Path
-from typing import List
+from typing import Dict, List
 
 import yaml
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_data, yaml_load_typed
@@ -27,15 +27,34 @@ class InitialState:
 
 @dc.dataclass
 class ControllerConfig:
-    """The controller under test. ``checkpoint`` empty = the shipped reference
-    TaxiNet; gains in deg per m and deg per deg; ``period`` s; ``speed`` m/s."""
+    """The controller under test and how it is run. ``factory``: the function that
+    builds it (``"package.module:function"`` or ``"path/to/file.py:function"``, given
+    this config; empty = TaxiNet + P-controller, see `reachwatch.diagrams.controller`);
+    ``parameters``: numbers for that function. ``checkpoint`` empty = the shipped
+    reference TaxiNet; gains in deg per m and deg per deg (TaxiNet's P-controller and
+    the privileged oracle); ``period`` s (the steering is held that long); ``speed`` m/s."""
+    factory: str = ""
+    parameters: Dict[str, float] = dc.field(default_factory=dict)
     checkpoint: str = ""
     px_gain: float = -0.74
     theta_gain: float = -0.44
     period: float = 0.05
     speed: float = 5.0
 
+    def __fingerprint__(self):
+        """What a sweep of this controller depends on: every field, plus the source
+        file of a user factory (an edited controller never reuses a stale table)."""
+        from .controller import factory_code_hash
+        return {**{f.name: getattr(self, f.name) for f in dc.fields(self)},
+                "factory_code": factory_code_hash(self.factory)}
+
     def validate(self):
+        if self.factory:
+            from .controller import resolve_factory
+            resolve_factory(self.factory)          # a bad name fails before any work
+        for name, value in self.parameters.items():
+            if not math.isfinite(value):
+                raise ValueError(f"controller.parameters.{name} must be finite, got {value}")
         if not (math.isfinite(self.period) and self.period > 0):
             raise ValueError(f"controller.period must be a finite number > 0 s, got {self.period}")
         if not (math.isfinite(self.speed) and self.speed >= 0):
@@ -46,8 +65,8 @@ class ControllerConfig:
 
 
 @dc.dataclass
-class PipelineConfig:
-    """The safety pipeline: detector checkpoint and threshold, fallback strategy
+class MonitorConfig:
+    """The runtime monitor of the guarded loop: detector checkpoint and threshold, fallback strategy
     (``slow_down`` | ``brake``), steering while flagged (``taxinet`` | ``oracle``,
     privileged), brake deceleration (m/s^2)."""
     detector: str = ""
@@ -59,15 +78,15 @@ class PipelineConfig:
     def validate(self):
         from reachwatch.systems import STEERING, STRATEGIES
         if self.strategy not in STRATEGIES:
-            raise ValueError(f"pipeline.strategy must be one of {STRATEGIES}, got "
+            raise ValueError(f"monitor.strategy must be one of {STRATEGIES}, got "
                              f"'{self.strategy}'")
         if self.steering not in STEERING:
-            raise ValueError(f"pipeline.steering must be one of {STEERING}, got "
+            raise ValueError(f"monitor.steering must be one of {STEERING}, got "
                              f"'{self.steering}'")
         if not 0.0 <= self.threshold <= 1.0:
-            raise ValueError(f"pipeline.threshold must be in [0, 1], got {self.threshold}")
+            raise ValueError(f"monitor.threshold must be in [0, 1], got {self.threshold}")
         if self.detector and not Path(self.detector).is_file():
-            raise ValueError(f"pipeline.detector: file not found: {self.detector}")
+            raise ValueError(f"monitor.detector: file not found: {self.detector}")
         return self
 
 
@@ -78,7 +97,7 @@ class Scenario:
     camera: CameraConfig = dc.field(default_factory=CameraConfig)
     initial_state: InitialState = dc.field(default_factory=InitialState)
     controller: ControllerConfig = dc.field(default_factory=ControllerConfig)
-    pipeline: PipelineConfig = dc.field(default_factory=PipelineConfig)
+    monitor: MonitorConfig = dc.field(default_factory=MonitorConfig)
     duration: float = 10.0
     seed: int = 0
     shadows: bool = False
@@ -88,7 +107,7 @@ class Scenario:
         self.environment.validate()
         self.camera.validate()
         self.controller.validate()
-        self.pipeline.validate()
+        self.monitor.validate()
         if not (math.isfinite(self.duration) and self.duration > 0):
             raise ValueError(f"duration must be > 0 s, got {self.duration}")
         return self
@@ -121,6 +140,15 @@ def _check(value, schema, path):
                 raise ScenarioError(f"{path}.{key}: unknown field of {schema.__name__}; "
                                     f"known fields: {', '.join(fields)}")
             _check(item, hints[key], f"{path}.{key}")
+        return
+    if origin in (dict, Dict):
+        if not isinstance(value, dict):
+            raise ScenarioError(f"{path}: expected a mapping, got {type(value).__name__} "
+                                f"{value!r}")
+        key_type, item_type = typing.get_args(schema)
+        for key, item in value.items():
+            _check(key, key_type, f"{path} key")
+            _check(item, item_type, f"{path}.{key}")
         return
     if origin in (list, List):
         if not isinstance(value, list):

@@ -11,21 +11,21 @@ import numpy as np
 from .closed_loop import start_simulator
 
 
-def _ticks(simulator, diagram):
-    return diagram.GetSubsystemByName("state_log").FindLog(simulator.get_context()).num_samples()
+def _ticks(simulator, period):
+    return int(np.floor(simulator.get_context().get_time() / period + 1e-9)) + 1
 
 
-def paired_rates(reference, candidate, *, rounds: int, duration: float, block: float = 0.5,
-                 starts=None):
-    """Ticks per wall second of ``reference`` and ``candidate`` (closed-loop diagrams
-    with a ``state_log``) in each of ``rounds`` rounds. In a round both run ``duration``
+def paired_rates(reference, candidate, *, rounds: int, duration: float, period: float,
+                 block: float = 0.5, starts=None):
+    """Control ticks (one every ``period`` s) per wall second of ``reference`` and
+    ``candidate`` (closed-loop diagrams exporting ``state``) in each of ``rounds`` rounds. In a round both run ``duration``
     s from the same start, ``starts[k % len(starts)]`` ([px m, py m, theta rad];
     default: a few states near the centreline), advanced ``block`` s at a time, in turn,
     the one going first alternating. Returns two arrays of ``rounds`` rates; their
     per-round ratio is the figure to report."""
-    if rounds < 1 or duration <= 0 or block <= 0:
-        raise ValueError(f"paired_rates needs rounds >= 1, duration > 0 s and block > 0 s, "
-                         f"got {rounds}, {duration}, {block}")
+    if rounds < 1 or duration <= 0 or block <= 0 or period <= 0:
+        raise ValueError(f"paired_rates needs rounds >= 1, duration > 0 s, period > 0 s and "
+                         f"block > 0 s, got {rounds}, {duration}, {period}, {block}")
     starts = starts if starts is not None else [
         [0.5 * (k % 3), 110.0 + 10.0 * k, np.deg2rad(2.0 * (k % 3))] for k in range(5)]
     diagrams = (reference, candidate)
@@ -45,5 +45,5 @@ def paired_rates(reference, candidate, *, rounds: int, duration: float, block: f
                 spent[j] += time.perf_counter() - started
             i += 1
         if k >= 0:
-            rates[:, k] = [_ticks(s, d) / w for s, d, w in zip(sims, diagrams, spent)]
+            rates[:, k] = [_ticks(s, period) / w for s, w in zip(sims, spent)]
     return rates[0], rates[1]

@@ -6,7 +6,8 @@ import signal
 import sys
 import threading
 
-from . import commands, console, evaluate_commands, guard_commands, reach_commands, run, taxinet_commands
+from . import (commands, console, evaluate_commands, guard_commands, reach_commands, run,
+               simulate_commands, taxinet_commands)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -38,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     graph.set_defaults(func=commands.graph)
 
     taxinet_commands.add_parsers(sub)
+    simulate_commands.add_parsers(sub)
     reach_commands.add_parsers(sub)
     evaluate_commands.add_parsers(sub)
     guard_commands.add_parsers(sub)

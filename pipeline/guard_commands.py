@@ -16,7 +16,7 @@ from .executors import open_executor
 
 def add_parsers(sub):
     g = sub.add_parser("guard", help="failure sets (fraction of grid starts that leave the "
-                       "runway within the horizon) under TaxiNet alone and under each "
+                       "runway within the horizon) under the controller alone and under each "
                        "fallback strategy, from one sweep of the guarded diagram")
     g.add_argument("--scenario", required=True, help="scenario YAML with pipeline.detector")
     g.add_argument("--shape", type=positive_int, nargs=3, default=[41, 41, 41])
@@ -39,7 +39,7 @@ def guard_command(args):
     name = scenario.environment.name
     volumes = {k: float(v.mean()) for k, v in failures.items()}
     log.info(f"{name}, grid {list(grid.shape)}, horizon {args.horizon:g} s, detector "
-          f"{scenario.pipeline.detector} (threshold {scenario.pipeline.threshold}); "
+          f"{scenario.monitor.detector} (threshold {scenario.monitor.threshold}); "
           f"rollouts {time.time() - started:.1f} s")
     for k, v in volumes.items():
         log.info(f"  failure set ({k}): {100 * v:.2f}% of the grid")

@@ -1,4 +1,4 @@
-"""The online stages of ``reachwatch run``: guard (the safety pipeline's failure
+"""The online stages of ``reachwatch run``: guard (the guarded loop's failure
 sets, a real nominal-vs-guarded run, the online rate) and incremental (TaxiNet
 fine-tuned on mined anomalies, the held-out BRT recomputed)."""
 
@@ -11,7 +11,7 @@ from reachwatch.diagrams import (file_hash, initial_state_vector, load_taxinet,
 from reachwatch.diagrams.plots import plot_runway_top_view
 from reachwatch.diagrams.scenario import InitialState
 from reachwatch.reach import ValueFunction
-from reachwatch.taxi import failure_sets, resolved, simulate_guarded, sweep_guarded
+from reachwatch.taxi import UNGUARDED, failure_sets, resolved, simulate_guarded, sweep_guarded
 from reachwatch.taxi.plots import plot_brt_slices, plot_failure_sets
 from reachwatch.training.incremental import fine_tune_taxinet, mine_anomalies
 
@@ -36,8 +36,8 @@ def _state(x):
 def guard_environment(run: Run, env) -> dict:
     spec, trained = run.spec, run.outputs["train"]
     scenario = run.scenario_for(env)
-    scenario.pipeline.detector = str(run.path(trained["detector"]))
-    scenario.pipeline.threshold = float(trained["threshold"])
+    scenario.monitor.detector = str(run.path(trained["detector"]))
+    scenario.monitor.threshold = float(trained["threshold"])
     scenario.duration = spec.horizon
     scenario = resolved(scenario)
     grid = run.grid_for(env)
@@ -49,19 +49,20 @@ def guard_environment(run: Run, env) -> dict:
                                half_width=env.half_width,
                                path=run.path(f"figures/guard_{env.name}.png"),
                                title=f"{env.name}: failing start states (grey), detector at "
-                                     f"threshold {scenario.pipeline.threshold:.3g}")
+                                     f"threshold {scenario.monitor.threshold:.3g}")
     # A start the tables say the guard saves, checked in the real Drake loops.
     best = min(spec.guard.strategies, key=lambda s: volumes[s]) if spec.guard.strategies else None
     tried, chosen = [], None
-    scenario.pipeline.strategy = best or scenario.pipeline.strategy
+    scenario.monitor.strategy = best or scenario.monitor.strategy
     nominal_diagram, guarded_diagram = (make_closed_loop_diagram(scenario),
                                         make_guarded_diagram(scenario))
     if best is not None:
         contexts = [d.CreateDefaultContext() for d in (nominal_diagram, guarded_diagram)]
-        for node in robust_starts(failures["TaxiNet alone"] & ~failures[best], grid,
+        for node in robust_starts(failures[UNGUARDED] & ~failures[best], grid,
                                   spec.guard.candidates):
             x0 = grid.states([node])[0]
             runs = [simulate(d, initial_state=x0, duration=spec.horizon,
+                             period=scenario.controller.period,
                              half_width=env.half_width, context=c)
                     for d, c in zip((nominal_diagram, guarded_diagram), contexts)]
             tried.append({"start": [float(v) for v in x0], "nominal_fails": runs[0].failed,
@@ -81,8 +82,9 @@ def guard_environment(run: Run, env) -> dict:
                           files=[run.rel(p) for p in paths])
     # Both loops side by side in alternating blocks; the median per-round ratio (the VM drifts).
     alone, guarded_rate = paired_rates(nominal_diagram, guarded_diagram, rounds=3,
-                                       duration=spec.guard.online_seconds)
-    return {"threshold": scenario.pipeline.threshold, "volumes": volumes,
+                                       duration=spec.guard.online_seconds,
+                                       period=scenario.controller.period)
+    return {"threshold": scenario.monitor.threshold, "volumes": volumes,
             "figure": run.rel(slices), "run": run_record,
             "online": {"alone_ticks_per_s": float(np.median(alone)),
                        "guarded_ticks_per_s": float(np.median(guarded_rate)),
@@ -94,7 +96,7 @@ def stage_guard(run: Run) -> dict:
     out = {}
     for env in run.spec.guard_environments():
         key = digest(run.records["train"]["key"], run.records[f"solve_{env.name}"]["key"],
-                     run.spec.guard, run.spec.scenario.pipeline, run.spec.horizon)
+                     run.spec.guard, run.spec.scenario.monitor, run.spec.horizon)
         out[env.name] = run.stage(f"guard_{env.name}", key,
                                   lambda env=env: guard_environment(run, env))
     return out
@@ -136,6 +138,7 @@ def incremental(run: Run) -> dict:
         for label, checkpoint in (("vanilla TaxiNet", base), ("fine-tuned TaxiNet", path)):
             scenario = run.scenario_for(env, checkpoint)
             t = simulate(make_closed_loop_diagram(scenario), initial_state=star[0],
+                         period=scenario.controller.period,
                          duration=spec.horizon, half_width=env.half_width)
             trajectories.append((t, f"{label}{' (fails)' if t.failed else ''}"))
         result["star"] = {"start": [float(v) for v in star[0]],

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reachwatch.diagrams import CONTROL_PORT, ESTIMATE_PORT
 from reachwatch.reach import ACCURACIES, min_target_along_rollouts, sign_agreement, solve_brt
 from reachwatch.taxi import drake_agreement, dynamics_for, paper_grid, sweep_closed_loop
 from reachwatch.taxi.plots import plot_brt_slices
@@ -58,9 +59,9 @@ def _sweep(args):
 def sweep_command(args):
     scenario, grid, table, seconds = _sweep(args)
     buffer = io.BytesIO()
+    estimate = {"estimate": table[ESTIMATE_PORT]} if ESTIMATE_PORT in table.tables else {}
     np.savez(buffer, lo=grid.lo, hi=grid.hi, shape=grid.shape,
-             steering_angle=table["p_controller.steering_angle"][..., 0],
-             estimate=table["taxinet.estimate"])
+             steering_angle=table[CONTROL_PORT][..., 0], **estimate)
     path = atomic_write_bytes(Path(args.out) / f"sweep_{table.key}.npz", buffer.getvalue())
     rate = (f"{table.computed / max(seconds, 0.1):.1f} states/s" if table.computed
             else "all cached")
@@ -71,7 +72,7 @@ def sweep_command(args):
 def brt_command(args):
     scenario, grid, table, _ = _sweep(args)
     dynamics = dynamics_for(scenario)
-    control = table["p_controller.steering_angle"]
+    control = table[CONTROL_PORT]
     started = time.time()
     vf = solve_brt(grid, dynamics, control, horizon=args.horizon, accuracy=args.accuracy,
                    period=scenario.controller.period)

@@ -72,7 +72,7 @@ def _pct(x):
 def graphs(run: Run):
     """SVG/PNG (or only .dot without graphviz) of the nominal and guarded diagrams."""
     scenario = run.scenario_for(run.spec.test[0])
-    scenario.pipeline.detector = str(run.path(run.outputs["train"]["detector"]))
+    scenario.monitor.detector = str(run.path(run.outputs["train"]["detector"]))
     out = {}
     for name, diagram in (("closed_loop", make_closed_loop_diagram(scenario)),
                           ("guarded", make_guarded_diagram(scenario))):
@@ -135,14 +135,14 @@ def write_report(run: Run) -> dict:
         page.images([g["figure"]])
         r = g["run"]
         if not r.get("files"):
-            page.text("No grid start where the tables say TaxiNet alone fails and the "
+            page.text("No grid start where the tables say the controller alone fails and the "
                       "guarded loop survives, so no nominal-vs-guarded run to show.")
         else:
             verdict = ("confirmed in the real Drake loops" if r["confirmed"] else
                        "NOT confirmed in the real Drake loops (the tables are coarse)")
             page.text(f"Nominal vs guarded ({r['strategy']}) from the start {np.round(r['start'], 2)} "
                       f"[px m, py m, theta rad], chosen from the tables ({len(r['tried'])} "
-                      f"tried), {verdict}: TaxiNet alone "
+                      f"tried), {verdict}: the controller alone "
                       f"{'fails' if r['nominal_fails'] else 'stays on'}, guarded "
                       f"{'fails' if r['guarded_fails'] else 'stays on'}; lowest speed "
                       f"{r['lowest_speed']:.2f} m/s, {r['flagged_ticks']} flagged ticks.")

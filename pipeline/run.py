@@ -48,7 +48,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
 
 def add_parsers(sub):
     p = sub.add_parser("run", help="the whole study from a run file: sweeps, BRTs, labelled "
-                       "datasets, detector, Table 2, safety pipeline, incremental training, "
+                       "datasets, detector, Table 2, guarded loop, incremental training, "
                        "report (re-runs skip finished stages; killed runs resume)")
     p.add_argument("--scenario", required=True, help="run file (e.g. scenarios/demo.yaml)")
     p.add_argument("--out", required=True, help="run directory (reused)")

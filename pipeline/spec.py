@@ -27,7 +27,7 @@ class EnsembleSpec:
 
 @dc.dataclass
 class GuardSpec:
-    """The safety pipeline on held-out environments (default: the first test one):
+    """The guarded loop on held-out environments (default: the first test one):
     failure sets per strategy, a nominal-vs-guarded run, the online rate."""
     environments: List[Environment] = dc.field(default_factory=list)
     strategies: List[str] = dc.field(default_factory=lambda: list(STRATEGIES))
@@ -99,6 +99,10 @@ class RunSpec:
         for i, env in enumerate(self.guard.environments):
             env.validate()
         self.incremental.validate()
+        if self.incremental.enabled and self.scenario.controller.factory:
+            raise ValueError("incremental.enabled: incremental training fine-tunes TaxiNet, "
+                             "and scenario.controller.factory names another controller; set "
+                             "incremental: {enabled: false}")
         return self
 
     def guard_environments(self) -> List[Environment]:

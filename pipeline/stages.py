@@ -14,13 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from reachwatch.diagrams import file_hash, load_detector
+from reachwatch.diagrams import CONTROL_PORT, file_hash, load_detector
 from reachwatch.reach import (Grid, InlineExecutor, ValueFunction, min_target_along_rollouts,
                               sign_agreement, solve_brt)
 from reachwatch.taxi import dynamics_for, paper_grid, sweep_closed_loop, taxi_sweep_key
 from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes
-from reachwatch.training.baselines import prediction_error, prediction_error_labels
+from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
 from reachwatch.training.dataset import build_dataset, load_dataset
 from reachwatch.training.detector_train import operating_threshold, train_detector
 from reachwatch.training.evaluation import Detector, csv_table, evaluate_environment, markdown_table
@@ -213,7 +213,7 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     scenario, grid = run.scenario_for(env, checkpoint), run.grid_for(env)
     table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache,
                               executor=run.executor, progress=False)
-    steering, dynamics = table["p_controller.steering_angle"], dynamics_for(scenario)
+    steering, dynamics = table[CONTROL_PORT], dynamics_for(scenario)
     started = time.time()
     vf = solve_brt(grid, dynamics, steering, horizon=spec.horizon, accuracy=spec.accuracy,
                    period=scenario.controller.period)
@@ -298,6 +298,10 @@ def stage_train(run: Run) -> dict:
         seconds = train_detector(data, config, brt_path, progress=progress)["train_seconds"]
     model, _, meta = load_detector(brt_path)
     threshold = float(operating_threshold(model, data, config))
+    out = {"detector": run.rel(brt_path), "threshold": threshold,
+           "validation": meta.get("validation", {}), "train_seconds": seconds}
+    if not all(has_pose_estimate(d) for d in data):     # a controller without a pose estimate
+        return out
     errors = np.concatenate([prediction_error(d.states, d.estimates) for d in data])
     error_threshold, _ = best_threshold(np.concatenate([d.labels for d in data]), errors)
     labels = [prediction_error_labels(d, error_threshold) for d in data]
@@ -305,9 +309,7 @@ def stage_train(run: Run) -> dict:
     if not error_path.exists():
         train_detector(data, config, error_path, progress=progress, labels=labels)
     model, _, _ = load_detector(error_path)
-    return {"detector": run.rel(brt_path), "threshold": threshold,
-            "validation": meta.get("validation", {}), "train_seconds": seconds,
-            "prediction_error_detector": run.rel(error_path),
+    return {**out, "prediction_error_detector": run.rel(error_path),
             "prediction_error_threshold": float(error_threshold),
             "prediction_error_detector_threshold": operating_threshold(model, data, config, labels)}
 
@@ -316,11 +318,13 @@ def stage_evaluate(run: Run) -> dict:
     """Table 2 on the held-out environments, error-vs-margin and overlay figures."""
     spec, trained = run.spec, run.outputs["train"]
     detectors = []
-    for name, path, threshold in [
-            ("detector (BRT labels)", trained["detector"], trained["threshold"]),
-            (f"detector (prediction-error labels, error > "
-             f"{trained['prediction_error_threshold']:.3f})",
-             trained["prediction_error_detector"], trained["prediction_error_detector_threshold"])]:
+    candidates = [("detector (BRT labels)", trained["detector"], trained["threshold"])]
+    if "prediction_error_detector" in trained:
+        candidates.append((f"detector (prediction-error labels, error > "
+                           f"{trained['prediction_error_threshold']:.3f})",
+                           trained["prediction_error_detector"],
+                           trained["prediction_error_detector_threshold"]))
+    for name, path, threshold in candidates:
         model, config, _ = load_detector(run.path(path))
         detectors.append(Detector(name, model, config, threshold))
     rows, figures = [], {}

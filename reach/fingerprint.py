@@ -1,7 +1,8 @@
 """Content fingerprints of sweep factories: what a cached table was computed from.
 
 A factory (usually ``functools.partial(make_diagram, config)``) is reduced to plain
-JSON: the function's module, name and source text; dataclasses field by field; numpy
+JSON: the function's module, name and source text; an object with a
+``__fingerprint__()`` method by what that returns; dataclasses field by field; numpy
 arrays, torch modules and tensors by a hash of their bytes; and any string or path that
 names an existing file by a hash of the file's *contents* (a moved checkpoint keeps
 its fingerprint, a retrained one does not). What cannot be reduced this way raises
@@ -45,6 +46,9 @@ def canonical(value, where="factory"):
     """``value`` as JSON-able data that changes whenever its content does."""
     if value is None or isinstance(value, (bool, int)):
         return value
+    own = getattr(type(value), "__fingerprint__", None)
+    if own is not None and not isinstance(value, type):    # an object that says what it depends on
+        return {"object": type(value).__qualname__, "content": canonical(value.__fingerprint__(), where)}
     if isinstance(value, float):
         return value if math.isfinite(value) else repr(value)
     if isinstance(value, (str, os.PathLike)):

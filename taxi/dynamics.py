@@ -20,7 +20,7 @@ class TaxiDynamics(Dynamics):
 
     def vector_field(self, x, u, speed=None):
         """``speed`` (m/s, tensor broadcasting with ``x[..., 0]``) overrides the
-        nominal one, for the fallback pipeline whose speed is a state."""
+        nominal one, for the guarded loop whose speed is a state."""
         v = self.speed if speed is None else speed
         theta = x[..., 2]
         phi = u[..., 0]

@@ -20,6 +20,7 @@ def drake_agreement(scenario, value_function, starts, *, duration=None, progress
     failed = []
     for x in (progress(starts) if progress else starts):
         failed.append(abs(x[0]) >= B or simulate(diagram, initial_state=x, duration=duration,
+                                                  period=scenario.controller.period,
                                                   half_width=B, context=context).failed)
     failed = np.array(failed)
     return float(np.mean(failed == predicted)), failed, predicted

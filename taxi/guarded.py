@@ -1,4 +1,4 @@
-"""Failure sets of the safety pipeline, where speed becomes a state.
+"""Failure sets of the guarded loop, where speed becomes a state.
 
 The image does not depend on speed, so the swept tables of steering and detector
 score on the 3-D grid are enough: from every grid node at the nominal speed, the
@@ -9,6 +9,7 @@ and a node fails if ``|px| >= B`` within the horizon."""
 import numpy as np
 import torch
 
+from reachwatch.diagrams import CONTROL_PORT
 from reachwatch.reach.dynamics import positive, rk4_step, split_horizon
 from reachwatch.reach.grid import check_states
 from reachwatch.reach.interpolate import GridInterpolator
@@ -22,7 +23,7 @@ def guarded_failures(grid, dynamics, steering_table, score_table=None, *, thresh
                       strategy="slow_down", horizon=8.0, period=0.05, substeps=2,
                       starts=None, **strategy_params):
     """Boolean failure per start (default: every grid node, C order) and the speed
-    history's minimum per start. ``score_table=None`` = no detector (TaxiNet alone)."""
+    history's minimum per start. ``score_table=None`` = no detector (the controller alone)."""
     as_t = lambda a: torch.as_tensor(np.asarray(a, float), dtype=torch.float64)   # noqa: E731
     x = as_t(grid.states() if starts is None else check_states(starts, grid.ndim, "start")
              ).reshape(-1, grid.ndim)
@@ -48,16 +49,19 @@ def guarded_failures(grid, dynamics, steering_table, score_table=None, *, thresh
     return (lowest <= 0).numpy(), slowest.numpy()
 
 
+#: The failure-set key of the controller alone (no detector, no fallback).
+UNGUARDED = "unguarded"
+
 def failure_sets(scenario, grid, tables, horizon, strategies=STRATEGIES):
-    """{"TaxiNet alone" | strategy: boolean failure per grid node (C order)} from the
+    """{UNGUARDED | strategy: boolean failure per grid node (C order)} from the
     swept tables of the guarded diagram."""
     dynamics = dynamics_for(scenario)
-    steering = tables["p_controller.steering_angle"]
+    steering = tables[CONTROL_PORT]
     score = tables["anomaly_detector.score"]
     kw = dict(horizon=horizon, period=scenario.controller.period)
-    out = {"TaxiNet alone": guarded_failures(grid, dynamics, steering, None, **kw)[0]}
+    out = {UNGUARDED: guarded_failures(grid, dynamics, steering, None, **kw)[0]}
     for strategy in strategies:
         out[strategy] = guarded_failures(
-            grid, dynamics, steering, score, threshold=scenario.pipeline.threshold,
-            strategy=strategy, brake_deceleration=scenario.pipeline.brake_deceleration, **kw)[0]
+            grid, dynamics, steering, score, threshold=scenario.monitor.threshold,
+            strategy=strategy, brake_deceleration=scenario.monitor.brake_deceleration, **kw)[0]
     return out

@@ -1,4 +1,4 @@
-"""The showcase run of the safety pipeline: TaxiNet alone and guarded from one start,
+"""The showcase run of the guarded loop: the controller alone and guarded from one start,
 with a plot, the trajectories and a Meshcat replay."""
 
 from pathlib import Path
@@ -19,16 +19,17 @@ def simulate_guarded(scenario: Scenario, out: Path, *, meshcat_html=True):
     written (`meshcat_replay_html`)."""
     x0 = initial_state_vector(scenario.initial_state)
     B = scenario.environment.half_width
-    if not scenario.pipeline.detector:
-        raise ValueError("pipeline.detector: the guarded pipeline needs a detector checkpoint")
+    if not scenario.monitor.detector:
+        raise ValueError("monitor.detector: the guarded loop needs a detector checkpoint")
     diagrams = make_closed_loop_diagram(scenario), make_guarded_diagram(scenario)  # inputs load
-    nominal, guarded = (simulate(d, initial_state=x0, duration=scenario.duration, half_width=B)
+    nominal, guarded = (simulate(d, initial_state=x0, duration=scenario.duration,
+                                 period=scenario.controller.period, half_width=B)
                         for d in diagrams)
-    name = f"{scenario.environment.name}_{scenario.pipeline.strategy}"
+    name = f"{scenario.environment.name}_{scenario.monitor.strategy}"
     paths = [plot_guarded_run(nominal, guarded, half_width=B, path=out / f"guarded_{name}.png",
-                              title=f"{scenario.environment.name}: TaxiNet alone "
+                              title=f"{scenario.environment.name}: alone "
                                     f"{'fails' if nominal.failed else 'stays on'}; guarded "
-                                    f"({scenario.pipeline.strategy}) "
+                                    f"({scenario.monitor.strategy}) "
                                     f"{'fails' if guarded.failed else 'stays on'}")]
     np.savez(out / f"guarded_{name}.npz", nominal_state=nominal.state, state=guarded.state,
              speed=guarded.speed, anomaly=guarded.anomaly, time=guarded.time)

@@ -1,28 +1,40 @@
-"""The TaxiNet closed loop as a sweepable system: its probes, factories and sweeps."""
+"""The taxi closed loop (any controller on the taxi plant) as a sweepable system: its
+probes, factories and sweeps."""
 
 import copy
 import functools
 from pathlib import Path
 
 from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, ESTIMATE_PORT, PLANT, REFERENCE_TAXINET,
-                                 make_closed_loop_diagram, make_guarded_diagram)
-from reachwatch.diagrams.scenario import InitialState, PipelineConfig, Scenario
+                                 make_closed_loop_diagram, make_controller,
+                                 make_guarded_diagram)
+from reachwatch.diagrams.controller import has_estimate
+from reachwatch.diagrams.scenario import InitialState, MonitorConfig, Scenario
 from reachwatch.reach import Grid, Probe, SweepTable, sweep, sweep_key
 
-#: What a taxi sweep reads: the steering and TaxiNet's estimate.
-TAXI_PROBE = Probe(plant=PLANT, control_port=CONTROL_PORT, extra_ports=(ESTIMATE_PORT,))
-#: What the guarded sweep reads: steering, TaxiNet estimate and detector score.
-GUARDED_PROBE = Probe(plant=PLANT, control_port=CONTROL_PORT,
-                      extra_ports=(ESTIMATE_PORT, f"{DETECTOR}.score"))
+def taxi_probe(scenario, *, guarded=False) -> Probe:
+    """What a taxi sweep reads: the steering, the controller's estimate when it declares
+    one, and (``guarded``) the detector's score."""
+    extra = (ESTIMATE_PORT,) if has_estimate(make_controller(scenario.controller)) else ()
+    return Probe(plant=PLANT, control_port=CONTROL_PORT,
+                 extra_ports=extra + ((f"{DETECTOR}.score",) if guarded else ()))
+
+
+def _absolute_factory(spec: str) -> str:
+    target, sep, name = spec.rpartition(":")
+    return f"{Path(target).resolve()}:{name}" if sep and target.endswith(".py") else spec
 
 
 def resolved(scenario):
-    """A copy of ``scenario`` whose controller checkpoint is an absolute path."""
+    """A copy of ``scenario`` whose file paths (checkpoints, a controller factory's
+    file) are absolute; TaxiNet's empty checkpoint becomes the shipped one."""
     scenario = copy.deepcopy(scenario)
-    scenario.controller.checkpoint = str(Path(scenario.controller.checkpoint
-                                              or REFERENCE_TAXINET).resolve())
-    if scenario.pipeline.detector:
-        scenario.pipeline.detector = str(Path(scenario.pipeline.detector).resolve())
+    controller = scenario.controller
+    controller.factory = _absolute_factory(controller.factory)
+    if controller.checkpoint or not controller.factory:
+        controller.checkpoint = str(Path(controller.checkpoint or REFERENCE_TAXINET).resolve())
+    if scenario.monitor.detector:
+        scenario.monitor.detector = str(Path(scenario.monitor.detector).resolve())
     return scenario
 
 
@@ -36,7 +48,7 @@ def _sweep_scenario(scenario, guarded=False) -> Scenario:
     scenario.initial_state, scenario.duration, scenario.seed = (
         InitialState(), defaults.duration, defaults.seed)
     scenario.environment.runway_spec = scenario.environment.spec()
-    scenario.pipeline = PipelineConfig(detector=scenario.pipeline.detector if guarded else "")
+    scenario.monitor = MonitorConfig(detector=scenario.monitor.detector if guarded else "")
     return scenario
 
 
@@ -56,14 +68,14 @@ def _label(scenario, grid, what=""):
 def taxi_sweep_key(scenario, grid: Grid, *, guarded=False) -> str:
     """The cache folder of ``scenario``'s (guarded) sweep over ``grid``: the environment
     name, the grid shape and the content fingerprint of what the table depends on."""
-    return sweep_key(_factory(scenario, guarded), grid, GUARDED_PROBE if guarded else TAXI_PROBE,
+    return sweep_key(_factory(scenario, guarded), grid, taxi_probe(scenario, guarded=guarded),
                      name=_name(scenario, guarded))
 
 
 def sweep_closed_loop(scenario, grid: Grid, *, cache_dir, executor=None, chunk_size=1024,
                       progress=True) -> SweepTable:
-    """Steering (rad) and TaxiNet estimate at every node of ``grid``."""
-    return sweep(_factory(scenario), grid, probe=TAXI_PROBE, name=_name(scenario),
+    """Steering (rad) and the controller's estimate (if any) at every node of ``grid``."""
+    return sweep(_factory(scenario), grid, probe=taxi_probe(scenario), name=_name(scenario),
                  cache_dir=cache_dir, executor=executor, chunk_size=chunk_size,
                  progress=progress, label=_label(scenario, grid))
 
@@ -71,7 +83,7 @@ def sweep_closed_loop(scenario, grid: Grid, *, cache_dir, executor=None, chunk_s
 def sweep_guarded(scenario, grid: Grid, *, cache_dir, executor=None, chunk_size=1024,
                   progress=True) -> SweepTable:
     """Steering, estimate and detector score at every node (one render per node)."""
-    return sweep(_factory(scenario, True), grid, probe=GUARDED_PROBE,
+    return sweep(_factory(scenario, True), grid, probe=taxi_probe(scenario, guarded=True),
                  name=_name(scenario, True), cache_dir=cache_dir,
                  executor=executor, chunk_size=chunk_size, progress=progress,
                  label=_label(scenario, grid, "guarded "))

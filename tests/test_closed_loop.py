@@ -26,9 +26,10 @@ def test_reference_checkpoint_is_shipped():
 def test_closed_loop_structure(nominal_loop):
     _, diagram = nominal_loop
     names = {diagram.GetSubsystemByName(n).get_name() for n in
-             ["taxi_plant", "taxinet", "p_controller", "steering_hold", "speed", "state_log",
-              "estimate_log"]}
-    assert len(names) == 7
+             ["taxi_plant", "controller", "steering_hold", "speed"]}
+    assert len(names) == 4
+    assert [diagram.get_output_port(i).get_name()
+            for i in range(diagram.num_output_ports())] == ["state", "estimate"]
     system, port = CONTROL_PORT.split(".")
     assert diagram.GetSubsystemByName(system).GetOutputPort(port).size() == 1
     assert diagram.GetSubsystemByName(PLANT).num_continuous_states() == 3
@@ -36,7 +37,7 @@ def test_closed_loop_structure(nominal_loop):
 
 def test_centreline_start_stays_on_runway_nominal(nominal_loop):
     scenario, diagram = nominal_loop
-    trajectory = simulate(diagram, initial_state=[0.0, 110.0, 0.0], duration=3.0,
+    trajectory = simulate(diagram, initial_state=[0.0, 110.0, 0.0], duration=3.0, period=0.05,
                           half_width=10.0)
     assert not trajectory.failed
     assert np.abs(trajectory.state[:, 0]).max() < 4.0
@@ -49,7 +50,7 @@ def test_steering_is_held_between_ticks(nominal_loop):
     """The camera renders and TaxiNet acts once per tick: within a tick theta moves
     at the constant rate tan(phi) of the steering sampled at the tick's start."""
     _, diagram = nominal_loop
-    trajectory = simulate(diagram, initial_state=[4.0, 110.0, 0.0], duration=0.1,
+    trajectory = simulate(diagram, initial_state=[4.0, 110.0, 0.0], duration=0.1, period=0.05,
                           half_width=10.0)
     phi0 = np.deg2rad(-0.74 * trajectory.estimate[0, 0] - 0.44 * trajectory.estimate[0, 1])
     assert trajectory.state[1, 2] == pytest.approx(0.05 * np.tan(phi0), rel=1e-4, abs=1e-7)
@@ -58,7 +59,7 @@ def test_steering_is_held_between_ticks(nominal_loop):
 def test_failure_stops_the_run(nominal_loop):
     _, diagram = nominal_loop
     trajectory = simulate(diagram, initial_state=[9.9, 110.0, np.deg2rad(28.0)],
-                          duration=8.0, half_width=10.0)
+                          duration=8.0, period=0.05, half_width=10.0)
     assert trajectory.failed and trajectory.failure_time < 1.0
     assert trajectory.time[-1] < 1.0
 

@@ -260,8 +260,8 @@ def test_bad_run_files_are_named_and_exit_2(tmp_path, edit, message):
 @pytest.mark.parametrize("state", [[np.nan, 110.0, 0.0], [0.0, np.inf, 0.0], [0.0, 110.0]])
 def test_simulate_rejects_bad_start_states(state):
     diagram = make_state_feedback_diagram(load_scenario(data=""))
-    with pytest.raises(ValueError, match="initial state must be 3 finite numbers"):
-        simulate(diagram, initial_state=state, duration=1.0, half_width=10.0)
+    with pytest.raises(ValueError, match="initial state must be a vector of finite numbers|has 3 continuous states .*, the initial state 2"):
+        simulate(diagram, initial_state=state, duration=1.0, period=0.05, half_width=10.0)
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -327,7 +327,7 @@ def test_bad_detector_never_opens_meshcat(tmp_path, monkeypatch):
     monkeypatch.setattr(guarded_run, "meshcat_replay_html", lambda *a: opened.append(1))
     bad = tmp_path / "detector.pt"
     bad.write_bytes(b"not a checkpoint")
-    scenario = load_scenario(data=f"pipeline: {{detector: {bad}}}\nduration: 0.2\n")
+    scenario = load_scenario(data=f"monitor: {{detector: {bad}}}\nduration: 0.2\n")
     with pytest.raises(ValueError, match="not a readable checkpoint"):
         guarded_run.simulate_guarded(scenario, tmp_path)
     assert opened == []

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from reachwatch.diagrams import (DETECTOR, SWITCH, load_scenario, make_closed_loop_diagram,
+from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, SWITCH, load_scenario, make_closed_loop_diagram,
                                  make_guarded_diagram, save_checkpoint, simulate)
 from reachwatch.pipeline.cli import main
 from reachwatch.reach import InlineExecutor
@@ -66,7 +66,7 @@ def detector_path(tmp_path_factory):
 
 
 def _scenario(detector_path, threshold, strategy="brake"):
-    return load_scenario(data=f"pipeline: {{detector: {detector_path}, threshold: {threshold},"
+    return load_scenario(data=f"monitor: {{detector: {detector_path}, threshold: {threshold},"
                               f" strategy: {strategy}, brake_deceleration: 4.0}}\n"
                               "duration: 8.0\n")
 
@@ -77,10 +77,11 @@ def test_guarded_diagram_structure(detector_path):
     detector = diagram.GetSubsystemByName(DETECTOR)
     assert [detector.get_output_port(i).get_name() for i in range(2)] == ["anomaly", "score"]
     assert [switch.get_output_port(i).get_name() for i in range(2)] == ["steering_angle", "speed"]
-    for name in ["taxi_plant", "taxinet", "p_controller", "steering_hold", "speed_log",
-                 "anomaly_log"]:
+    for name in ["taxi_plant", "controller", "steering_hold"]:
         assert diagram.HasSubsystemNamed(name)
-    with pytest.raises(ValueError, match="pipeline.detector"):
+    assert [diagram.get_output_port(i).get_name() for i in range(4)] == [
+        "state", "estimate", "speed", "anomaly"]
+    with pytest.raises(ValueError, match="monitor.detector"):
         make_guarded_diagram(load_scenario(data=""))
 
 
@@ -92,16 +93,16 @@ def test_guarded_run_survives_where_nominal_fails(detector_path, tmp_path):
     tables = sweep_guarded(scenario, grid, cache_dir=tmp_path, executor=InlineExecutor(),
                            progress=False)
     dynamics = dynamics_for(scenario)
-    steer, score = tables["p_controller.steering_angle"], tables[f"{DETECTOR}.score"]
+    steer, score = tables[CONTROL_PORT], tables[f"{DETECTOR}.score"]
     nominal_fail, _ = guarded_failures(grid, dynamics, steer, None)
     guarded_fail, slowest = guarded_failures(grid, dynamics, steer, score, threshold=0.0,
                                               strategy="brake", brake_deceleration=4.0)
     saved = np.flatnonzero(nominal_fail & ~guarded_fail)
     assert len(saved) > 0 and slowest.min() == 0.0
     x0 = grid.states([saved[len(saved) // 2]])[0]
-    nominal = simulate(make_closed_loop_diagram(scenario), initial_state=x0, duration=8.0,
+    nominal = simulate(make_closed_loop_diagram(scenario), initial_state=x0, duration=8.0, period=0.05,
                        half_width=10.0)
-    guarded = simulate(make_guarded_diagram(scenario), initial_state=x0, duration=8.0,
+    guarded = simulate(make_guarded_diagram(scenario), initial_state=x0, duration=8.0, period=0.05,
                        half_width=10.0)
     assert nominal.failed and not guarded.failed
     assert guarded.anomaly.min() == 1.0 and guarded.speed[-1] == 0.0
@@ -110,9 +111,9 @@ def test_guarded_run_survives_where_nominal_fails(detector_path, tmp_path):
 def test_never_flagging_pipeline_equals_taxinet_alone(detector_path):
     scenario = _scenario(detector_path, 1.0)           # threshold 1: nothing flagged
     x0 = [2.0, 120.0, np.deg2rad(-10.0)]
-    a = simulate(make_closed_loop_diagram(scenario), initial_state=x0, duration=2.0,
+    a = simulate(make_closed_loop_diagram(scenario), initial_state=x0, duration=2.0, period=0.05,
                  half_width=10.0)
-    b = simulate(make_guarded_diagram(scenario), initial_state=x0, duration=2.0,
+    b = simulate(make_guarded_diagram(scenario), initial_state=x0, duration=2.0, period=0.05,
                  half_width=10.0)
     np.testing.assert_allclose(a.state, b.state, atol=1e-9)
     assert np.all(b.speed == 5.0)
@@ -123,9 +124,9 @@ def test_cli_simulate_guarded_writes_plot_and_replay(detector_path, tmp_path):
     from pydrake.geometry import Meshcat, MeshcatParams
     port = Meshcat(MeshcatParams(host="localhost")).port()    # the port a new server takes
     path = tmp_path / "s.yaml"
-    path.write_text(f"pipeline: {{detector: {detector_path}, threshold: 0.0, strategy: brake}}\n"
+    path.write_text(f"monitor: {{detector: {detector_path}, threshold: 0.0, strategy: brake}}\n"
                     "duration: 1.0\n")
-    assert main(["simulate", "--pipeline", "guarded", "--scenario", str(path),
+    assert main(["simulate", "--loop", "guarded", "--scenario", str(path),
                  "--out", str(tmp_path)]) == 0
     html = (tmp_path / "guarded_KMWH_9h_clear_brake.html").read_text()
     assert "<html" in html.lower() and len(html) > 10000
@@ -153,9 +154,9 @@ def test_paired_rates_alternates_blocks_and_checks_arguments(monkeypatch):
 
     monkeypatch.setattr(timing, "start_simulator",
                         lambda d, *, initial_state, context: (FakeSimulator(d, initial_state), {}))
-    monkeypatch.setattr(timing, "_ticks", lambda simulator, diagram: 20)
+    monkeypatch.setattr(timing, "_ticks", lambda simulator, period: 20)
     starts = [[0.0, 110.0, 0.0], [1.0, 120.0, 0.1]]
-    ref, cand = paired_rates(reference, candidate, rounds=3, duration=1.0, block=0.5,
+    ref, cand = paired_rates(reference, candidate, rounds=3, duration=1.0, period=0.05, block=0.5,
                              starts=starts)
     assert ref.shape == cand.shape == (3,) and np.all(ref > 0) and np.all(cand > 0)
     rounds = [calls[i:i + 6] for i in range(4, len(calls), 6)]   # after the warm-up round
@@ -167,13 +168,13 @@ def test_paired_rates_alternates_blocks_and_checks_arguments(monkeypatch):
         assert [(c[1], c[2]) for c in r if c[0] == "advance"] == [
             ("ref", 0.5), ("cand", 0.5), ("cand", 1.0), ("ref", 1.0)]
     with pytest.raises(ValueError, match="rounds >= 1"):
-        paired_rates(reference, candidate, rounds=0, duration=1.0)
+        paired_rates(reference, candidate, rounds=0, duration=1.0, period=0.05)
     with pytest.raises(ValueError, match="block > 0"):
-        paired_rates(reference, candidate, rounds=1, duration=1.0, block=0.0)
+        paired_rates(reference, candidate, rounds=1, duration=1.0, period=0.05, block=0.0)
 
 
 def test_paired_rates_times_real_runs():
     from reachwatch.diagrams import make_state_feedback_diagram, paired_rates
     diagram = make_state_feedback_diagram(load_scenario(data=""))
-    ref, cand = paired_rates(diagram, diagram, rounds=2, duration=0.2, block=0.1)
+    ref, cand = paired_rates(diagram, diagram, rounds=2, duration=0.2, period=0.05, block=0.1)
     assert ref.shape == cand.shape == (2,) and np.all(ref > 0) and np.all(cand > 0)

@@ -93,8 +93,8 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     for r in rows:
         assert f"| KSFO_17h_clear | {r['method']} | 40 |" in md
     guard = run.outputs["guard"]["KSFO_17h_clear"]
-    assert set(guard["volumes"]) == {"TaxiNet alone", "slow_down", "brake"}
-    assert guard["volumes"]["brake"] <= guard["volumes"]["TaxiNet alone"]
+    assert set(guard["volumes"]) == {"unguarded", "slow_down", "brake"}
+    assert guard["volumes"]["brake"] <= guard["volumes"]["unguarded"]
     assert guard["online"]["alone_ticks_per_s"] > 0 and guard["online"]["guarded_ticks_per_s"] > 0
     inc = run.outputs["incremental"]
     assert inc["environment"] == "KMWH_17h_clear" and 0 <= inc["after"] <= 1

@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 import torch
 
-from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram,
+from reachwatch.diagrams import (ESTIMATE_PORT, load_scenario, make_closed_loop_diagram,
                                  make_state_feedback_diagram, save_checkpoint, load_taxinet)
 from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.reach import (Grid, InlineExecutor, Probe, ValueFunction,
                               min_target_along_rollouts, sign_agreement, solve_brt, sweep)
 from reachwatch.reach import Unfingerprintable, sweep_key
-from reachwatch.taxi import TAXI_PROBE, TaxiDynamics, TaxiGridSpec, paper_grid, taxi_sweep_key
+from reachwatch.taxi import TaxiDynamics, TaxiGridSpec, paper_grid, taxi_probe, taxi_sweep_key
 from reachwatch.systems import PreprocessConfig, TaxiNet, TaxiNetConfig, build_taxinet
 
 B = 10.0
@@ -123,7 +123,7 @@ def test_sweep_of_a_user_diagram_matches_the_controller(tmp_path):
     table = sweep(_feedback_factory(), g, key="feedback", cache_dir=tmp_path, probe=FEEDBACK,
                   chunk_size=7, executor=InlineExecutor(), progress=False)
     px, _, th = g.mesh()
-    np.testing.assert_allclose(table["p_controller.steering_angle"][..., 0], _p_table(g),
+    np.testing.assert_allclose(table[FEEDBACK.control_port][..., 0], _p_table(g),
                                atol=1e-12)
     np.testing.assert_allclose(table["state_estimator.estimate"][..., 1], np.rad2deg(th))
 
@@ -220,10 +220,10 @@ def test_a_user_key_is_checked_not_trusted(tmp_path):
     derived = [sweep(_gain_factory(k), g, cache_dir=tmp_path, probe=FEEDBACK,
                      executor=InlineExecutor(), progress=False) for k in (-0.74, -2.0)]
     assert derived[0].key != derived[1].key
-    np.testing.assert_array_equal(derived[0]["p_controller.steering_angle"],
-                                  first["p_controller.steering_angle"])
-    assert not np.array_equal(derived[0]["p_controller.steering_angle"],
-                              derived[1]["p_controller.steering_angle"])
+    np.testing.assert_array_equal(derived[0][FEEDBACK.control_port],
+                                  first[FEEDBACK.control_port])
+    assert not np.array_equal(derived[0][FEEDBACK.control_port],
+                              derived[1][FEEDBACK.control_port])
     gain = -0.74
 
     def closure():
@@ -236,14 +236,14 @@ def test_taxinet_sweep_equals_taxinet_on_rendered_image(tmp_path):
     """The sweep evaluates the same diagram the simulator runs."""
     scenario = load_scenario(data="")
     g = paper_grid(B, (2, 2, 2))
-    table = sweep(functools.partial(make_closed_loop_diagram, scenario), g, probe=TAXI_PROBE,
+    table = sweep(functools.partial(make_closed_loop_diagram, scenario), g, probe=taxi_probe(scenario),
                   cache_dir=tmp_path, executor=InlineExecutor(), progress=False)
     from reachwatch.diagrams import StateRenderer
     model, pre, _ = load_taxinet()
     renderer = StateRenderer(environment=scenario.environment, camera=scenario.camera)
     images = np.stack([renderer.render(x) for x in g.states()])
     expected = TaxiNet(model=model, preprocess_config=pre).estimate(images)
-    np.testing.assert_allclose(table["taxinet.estimate"].reshape(-1, 2), expected, atol=1e-4)
+    np.testing.assert_allclose(table[ESTIMATE_PORT].reshape(-1, 2), expected, atol=1e-4)
 
 
 def test_sweep_on_dask_local_cluster(tmp_path):
@@ -254,7 +254,7 @@ def test_sweep_on_dask_local_cluster(tmp_path):
             distributed.Client(cluster) as client:
         table = sweep(_feedback_factory(), g, key="dask", cache_dir=tmp_path, probe=FEEDBACK,
                       chunk_size=10, executor=client.get_executor(), progress=False)
-    np.testing.assert_allclose(table["p_controller.steering_angle"][..., 0], _p_table(g),
+    np.testing.assert_allclose(table[FEEDBACK.control_port][..., 0], _p_table(g),
                                atol=1e-12)
 
 

@@ -7,6 +7,13 @@ import numpy as np
 SCALE = np.array([10.0, 30.0])
 
 
+def has_pose_estimate(data) -> bool:
+    """Whether a dataset's controller estimates the pose as TaxiNet does, ``[px_hat m,
+    theta_hat deg]`` (an ``estimate`` output of size 2): the prediction-error baseline
+    needs that, and is skipped for a controller without it."""
+    return data.estimates.ndim == 2 and data.estimates.shape[1] == 2
+
+
 def prediction_error(states, estimates) -> np.ndarray:
     """Scaled estimate error ``||([px_hat, theta_hat] - [px, theta_deg]) / (10 m, 30 deg)||``."""
     truth = np.column_stack([states[:, 0], np.rad2deg(states[:, 2])])

@@ -1,10 +1,12 @@
 """BRT-labelled image datasets: uniform states of the grid box, their wing-camera
-images, TaxiNet's (and an ensemble's) estimates, V(x) and the label ``V <= 0``.
+images, the controller's estimates (when it declares an ``estimate`` output) and an
+ensemble's, V(x) and the label ``V <= 0``.
 
 On disk, one folder per (environment, BRT, sampling, image size, controllers):
 ``manifest.json`` plus ``.npy`` arrays (``images.npy`` is a uint8 memmap
 ``(N, H, W, 3)``; ``states.npy`` [px m, py m, theta rad]; ``values.npy`` m;
-``labels.npy`` uint8, 1 = anomalous; ``estimates.npy`` [px_hat m, theta_hat deg];
+``labels.npy`` uint8, 1 = anomalous; ``estimates.npy`` ``(N, k)``, the controller's
+``estimate`` output (TaxiNet: [px_hat m, theta_hat deg]; k = 0 when it has none);
 ``ensemble.npy`` ``(N, K, 2)``). Filled chunk by chunk; the manifest records finished
 chunks and is replaced atomically, so an interrupted build resumes."""
 
@@ -16,12 +18,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from reachwatch.diagrams import StateRenderer, file_hash, load_taxinet
+from reachwatch.diagrams import ControllerProbe, StateRenderer, file_hash, load_taxinet, make_controller
+from reachwatch.diagrams.controller import has_estimate
+from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.taxi import resolved
 from reachwatch.systems import TaxiNet, resize_for_detector
 from reachwatch.systems.files import atomic_write_bytes
 
-FORMAT = "reachwatch.dataset/1"
+FORMAT = "reachwatch.dataset/2"
 
 
 @dc.dataclass
@@ -52,7 +56,7 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
     parts = {"format": FORMAT, "env": dc.asdict(scenario.environment),
              "brt": _value_hash(value_function), "spec": dc.asdict(spec),
              "camera": [scenario.camera.height, scenario.camera.width],
-             "taxinet": file_hash(scenario.controller.checkpoint),
+             "controller": fingerprint(scenario.controller),
              "ensemble": [file_hash(p) for p in ensemble]}
     digest = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
     return Path(root) / f"{scenario.environment.name}_{spec.samples}_{digest}"
@@ -89,6 +93,19 @@ def _write_manifest(folder, manifest):
     atomic_write_bytes(folder / "manifest.json", json.dumps(manifest, indent=1).encode())
 
 
+def _estimator(controller):
+    """A function ``(N, H, W, 3) images -> (N, k)`` estimates of ``controller`` (one batch
+    when it offers ``estimate(images)``, as TaxiNet's does; else image by image through
+    its ``estimate`` port), and k."""
+    if not has_estimate(controller):
+        return (lambda images: np.zeros((len(images), 0))), 0
+    size = controller.GetOutputPort("estimate").size()
+    if callable(getattr(controller, "estimate", None)):
+        return controller.estimate, size
+    probe = ControllerProbe(controller)
+    return (lambda images: np.stack([probe.outputs(image)[1] for image in images])), size
+
+
 def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpec(), *,
                   ensemble=(), progress=True) -> Path:
     """Render, estimate and label ``spec.samples`` states of ``scenario``'s environment;
@@ -97,15 +114,17 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     folder = dataset_folder(root, scenario, value_function, spec, ensemble)
     folder.mkdir(parents=True, exist_ok=True)
     grid, n = value_function.grid, spec.samples
+    controller = make_controller(scenario.controller)
+    estimate, k = _estimator(controller)
     manifest_path = folder / "manifest.json"
     if manifest_path.exists():
         manifest = _read_manifest(folder)
-        arrays = {k: _open_array(folder, k, shape, "r+") for k, shape in (
-            ("images", (n, spec.height, spec.width, 3)), ("estimates", (n, 2)),
+        arrays = {name: _open_array(folder, name, shape, "r+") for name, shape in (
+            ("images", (n, spec.height, spec.width, 3)), ("estimates", (n, k)),
             ("ensemble", (n, len(ensemble), 2)))}
     else:
         rng = np.random.default_rng(spec.seed)
-        states = grid.lo + rng.uniform(size=(n, 3)) * (grid.hi - grid.lo)
+        states = grid.lo + rng.uniform(size=(n, grid.ndim)) * (grid.hi - grid.lo)
         values = value_function.at(states)
         np.save(folder / "states.npy", states)
         np.save(folder / "values.npy", values)
@@ -113,7 +132,7 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
         open_mm = np.lib.format.open_memmap
         arrays = {"images": open_mm(folder / "images.npy", "w+", np.uint8,
                                     (n, spec.height, spec.width, 3)),
-                  "estimates": open_mm(folder / "estimates.npy", "w+", np.float64, (n, 2)),
+                  "estimates": open_mm(folder / "estimates.npy", "w+", np.float64, (n, k)),
                   "ensemble": open_mm(folder / "ensemble.npy", "w+", np.float64,
                                       (n, len(ensemble), 2))}
         manifest = {"format": FORMAT, "environment": scenario.environment.name,
@@ -122,7 +141,8 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
                     "brt_fraction_of_samples": float(np.mean(values <= 0)),
                     "image_size": [spec.height, spec.width],
                     "camera_size": [scenario.camera.height, scenario.camera.width],
-                    "spec": dc.asdict(spec), "taxinet": scenario.controller.checkpoint,
+                    "spec": dc.asdict(spec), "controller": dc.asdict(scenario.controller),
+                    "estimate_size": k,
                     "ensemble": [str(p) for p in ensemble], "chunks_done": []}
         _write_manifest(folder, manifest)
     states = np.load(folder / "states.npy")
@@ -130,15 +150,15 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     todo = [c for c in chunks if c[0] not in manifest["chunks_done"]]
     if todo:
         renderer = StateRenderer(environment=scenario.environment, camera=scenario.camera)
-        nets = [TaxiNet(model=m, preprocess_config=p) for m, p, _ in
-                (load_taxinet(c) for c in [scenario.controller.checkpoint, *ensemble])]
+        ensemble_nets = [TaxiNet(model=m, preprocess_config=p) for m, p, _ in
+                         (load_taxinet(c) for c in ensemble)]
         bar = tqdm(total=n, initial=n - sum(e - s for s, e in todo), unit="image",
                    desc=f"dataset {scenario.environment.name}", disable=not progress)
         for s, e in todo:
             full = np.stack([renderer.render(x) for x in states[s:e]])
-            arrays["estimates"][s:e] = nets[0].estimate(full)
-            for k, net in enumerate(nets[1:]):
-                arrays["ensemble"][s:e, k] = net.estimate(full)
+            arrays["estimates"][s:e] = estimate(full)
+            for j, net in enumerate(ensemble_nets):
+                arrays["ensemble"][s:e, j] = net.estimate(full)
             arrays["images"][s:e] = resize_for_detector(full, spec)    # as the detector system does
             for a in arrays.values():
                 a.flush()
@@ -176,5 +196,5 @@ def load_dataset(folder) -> LabelledData:
     load = lambda name, shape, mode=None: _open_array(folder, name, shape, mode)  # noqa: E731
     return LabelledData(folder, manifest,
                         load("images", (n, spec.height, spec.width, 3), "r"),
-                        load("states", (n, 3)), load("values", (n,)), load("labels", (n,)),
+                        load("states", (n,)), load("values", (n,)), load("labels", (n,)),
                         load("estimates", (n, 2)), load("ensemble", (n,)))

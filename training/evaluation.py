@@ -7,7 +7,7 @@ import io
 
 import numpy as np
 
-from .baselines import ensemble_variance, prediction_error
+from .baselines import ensemble_variance, has_pose_estimate, prediction_error
 from .detector_train import detector_scores
 from .metrics import best_threshold, binary_metrics
 
@@ -35,8 +35,10 @@ def evaluate_environment(data, detectors, *, device="") -> list:
         scores[det.name] = s
         rows.append({"environment": env, "method": det.name, "threshold": det.threshold,
                      **binary_metrics(labels, s >= det.threshold, s).row()})
-    baselines = {"TaxiNet prediction error (best threshold)":
-                 prediction_error(data.states, data.estimates)}
+    baselines = {}
+    if has_pose_estimate(data):
+        baselines["TaxiNet prediction error (best threshold)"] = \
+            prediction_error(data.states, data.estimates)
     if data.ensemble.shape[1] >= 2:
         baselines[f"ensemble of {data.ensemble.shape[1]} variance (best threshold)"] = \
             ensemble_variance(data.ensemble)

@@ -62,6 +62,7 @@ def closed_loop_failure_rate(scenario, *, starts: int, seed: int, duration: floa
             failed.append(True)
             continue
         failed.append(simulate(diagram, initial_state=x, duration=duration, half_width=B,
+                               period=scenario.controller.period,
                                context=context).failed)
     failed = np.array(failed)
     return float(failed.mean()), states, failed

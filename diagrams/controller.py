@@ -1,0 +1,198 @@
+"""Vision controllers: what a closed loop needs from one, and how a run file names one.
+
+A controller is any Drake `System` (a LeafSystem or a Diagram) with
+
+- an abstract input port ``color_image`` (the wing camera's `ImageRgba8U`),
+- a vector output port ``steering_angle`` of size 1 (rad, positive turns left),
+- optionally a vector output port ``estimate`` (what it believes about the state,
+  e.g. TaxiNet's ``[px_hat m, theta_hat deg]``; only the prediction-error baseline and
+  the logs use it).
+
+A run file names the function that builds it: ``controller: {factory:
+"package.module:function"}`` (an importable module) or ``"path/to/file.py:function"``
+(relative to the working directory), with ``parameters: {name: number, ...}`` for
+it. The function takes the `ControllerConfig` and returns the System. An empty
+``factory`` is TaxiNet followed by the P-controller (`make_taxinet_controller`)."""
+
+import hashlib
+import importlib
+import importlib.util
+import inspect
+import sys
+from pathlib import Path
+
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import Diagram, DiagramBuilder, PortDataType, System
+from pydrake.systems.sensors import ImageRgba8U
+
+from reachwatch.systems import ProportionalController, TaxiNet
+
+from .checkpoints import REFERENCE_TAXINET, load_taxinet
+
+IMAGE_INPUT = "color_image"
+CONTROL_OUTPUT = "steering_angle"
+ESTIMATE_OUTPUT = "estimate"
+
+
+class TaxiNetController(Diagram):
+    """TaxiNet (image -> estimate) followed by the P-controller (estimate -> steering).
+
+    .. pydrake_system::
+
+        name: TaxiNetController
+        input_ports:
+        - color_image
+        output_ports:
+        - steering_angle
+        - estimate
+
+    ``taxinet`` is the inner `TaxiNet` system (its ``estimate(images)`` runs a batch)."""
+
+    def __init__(self, *, checkpoint: str = "", px_gain: float, theta_gain: float):
+        super().__init__()
+        model, preprocess_config, metadata = load_taxinet(checkpoint or REFERENCE_TAXINET)
+        builder = DiagramBuilder()
+        self.taxinet = builder.AddNamedSystem("taxinet", TaxiNet(
+            model=model, preprocess_config=preprocess_config,
+            image_size=metadata.get("image_size")))
+        p_controller = builder.AddNamedSystem("p_controller", ProportionalController(
+            px_gain=px_gain, theta_gain=theta_gain))
+        builder.Connect(self.taxinet.get_estimate_output_port(),
+                        p_controller.get_estimate_input_port())
+        builder.ExportInput(self.taxinet.get_color_image_input_port(), IMAGE_INPUT)
+        builder.ExportOutput(p_controller.get_steering_angle_output_port(), CONTROL_OUTPUT)
+        builder.ExportOutput(self.taxinet.get_estimate_output_port(), ESTIMATE_OUTPUT)
+        builder.BuildInto(self)
+        self.set_name("taxinet_controller")
+
+    def estimate(self, images_rgb):
+        """``(N, H, W, 3)`` uint8 RGB -> ``(N, 2)`` estimates, as one batch."""
+        return self.taxinet.estimate(images_rgb)
+
+
+def make_taxinet_controller(config) -> TaxiNetController:
+    """The reference controller: ``config.checkpoint`` (empty: the shipped TaxiNet) and
+    the P-controller with ``config.px_gain`` and ``config.theta_gain``."""
+    return TaxiNetController(checkpoint=config.checkpoint, px_gain=config.px_gain,
+                             theta_gain=config.theta_gain)
+
+
+def _split(spec: str):
+    target, sep, name = spec.rpartition(":")
+    if not sep or not target or not name.isidentifier():
+        raise ValueError(f"controller.factory must be 'package.module:function' or "
+                         f"'path/to/file.py:function', got '{spec}'")
+    return target, name
+
+
+def _module(target: str):
+    if target.endswith(".py"):
+        path = Path(target).resolve()
+        if not path.is_file():
+            raise ValueError(f"controller.factory: file not found: {target}")
+        name = f"reachwatch_user_{path.stem}_{hashlib.sha256(str(path).encode()).hexdigest()[:8]}"
+        if name not in sys.modules:
+            spec = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[name] = module
+            try:
+                spec.loader.exec_module(module)
+            except BaseException:
+                del sys.modules[name]
+                raise
+        return sys.modules[name]
+    try:
+        return importlib.import_module(target)
+    except ImportError as e:
+        raise ValueError(f"controller.factory: cannot import '{target}' ({e}); install the "
+                         f"package or name a file as 'path/to/file.py:function'") from None
+
+
+def resolve_factory(spec: str):
+    """The function a ``controller.factory`` string names (empty: TaxiNet's)."""
+    if not spec:
+        return make_taxinet_controller
+    target, name = _split(spec)
+    function = getattr(_module(target), name, None)
+    if not callable(function):
+        raise ValueError(f"controller.factory: '{target}' has no function '{name}'")
+    return function
+
+
+def factory_code_hash(spec: str) -> str:
+    """SHA-256 of the source file that defines the factory ``spec`` names (so a sweep
+    of an edited controller is never answered from a stale cache); '' for TaxiNet's,
+    whose content is its checkpoint and gains."""
+    if not spec:
+        return ""
+    function = resolve_factory(spec)
+    try:
+        source = Path(inspect.getsourcefile(function)).read_bytes()
+    except (OSError, TypeError):
+        source = inspect.getsource(function).encode()
+    return hashlib.sha256(source).hexdigest()
+
+
+def check_controller(system, where="controller") -> System:
+    """``system`` if it has the ports a controller needs; else a ValueError saying what
+    is missing."""
+    if not isinstance(system, System):
+        raise ValueError(f"{where}: the factory must return a Drake System, got "
+                         f"{type(system).__name__}")
+    inputs = [system.get_input_port(i).get_name() for i in range(system.num_input_ports())]
+    outputs = [system.get_output_port(i).get_name() for i in range(system.num_output_ports())]
+    if IMAGE_INPUT not in inputs:
+        raise ValueError(f"{where}: the system '{system.get_name()}' needs an input port "
+                         f"'{IMAGE_INPUT}' (the camera's ImageRgba8U); it has {inputs}")
+    port = system.GetInputPort(IMAGE_INPUT)
+    if port.get_data_type() != PortDataType.kAbstractValued:
+        raise ValueError(f"{where}: input '{IMAGE_INPUT}' must be abstract (ImageRgba8U)")
+    if not isinstance(port.Allocate().get_value(), ImageRgba8U):
+        raise ValueError(f"{where}: input '{IMAGE_INPUT}' must hold an ImageRgba8U")
+    if CONTROL_OUTPUT not in outputs:
+        raise ValueError(f"{where}: the system '{system.get_name()}' needs a vector output "
+                         f"port '{CONTROL_OUTPUT}' of size 1 (rad); it has {outputs}")
+    for name, size in ((CONTROL_OUTPUT, 1), (ESTIMATE_OUTPUT, None)):
+        if name in outputs:
+            port = system.GetOutputPort(name)
+            if port.get_data_type() != PortDataType.kVectorValued or (
+                    size is not None and port.size() != size):
+                raise ValueError(f"{where}: output '{name}' must be a vector"
+                                 f"{f' of size {size}' if size else ''}")
+    return system
+
+
+def make_controller(config) -> System:
+    """The controller ``config`` (a `ControllerConfig`) names, built and checked."""
+    system = resolve_factory(config.factory)(config)
+    return check_controller(system, f"controller.factory '{config.factory or 'TaxiNet'}'")
+
+
+def has_estimate(system) -> bool:
+    return system.HasOutputPort(ESTIMATE_OUTPUT)
+
+
+def image_value(rgb) -> AbstractValue:
+    """An `ImageRgba8U` value holding ``rgb`` ``(H, W, 3 or 4)`` uint8 (alpha 255)."""
+    height, width = rgb.shape[:2]
+    image = ImageRgba8U(width, height)
+    image.mutable_data[..., :3] = rgb[..., :3]
+    image.mutable_data[..., 3] = 255
+    return AbstractValue.Make(image)
+
+
+class ControllerProbe:
+    """Evaluates a controller on images outside any loop (datasets, baselines):
+    fixes its image input and reads ``steering_angle`` and ``estimate``."""
+
+    def __init__(self, system):
+        self.system = system
+        self.context = system.CreateDefaultContext()
+
+    def outputs(self, rgb):
+        """``(steering (1,), estimate (k,) or None)`` for one RGB image."""
+        self.system.GetInputPort(IMAGE_INPUT).FixValue(self.context, image_value(rgb))
+        steering = self.system.GetOutputPort(CONTROL_OUTPUT).Eval(self.context).copy()
+        estimate = (self.system.GetOutputPort(ESTIMATE_OUTPUT).Eval(self.context).copy()
+                    if has_estimate(self.system) else None)
+        return steering, estimate
