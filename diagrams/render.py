@@ -56,6 +56,27 @@ class StateRenderer:
         return image.data[..., :3].copy()
 
 
+def render_at_states(diagram, *, plant: str, image_port: str, states) -> np.ndarray:
+    """RGB images ``(N, H, W, 3)`` uint8 of any diagram's camera at ``states``: sets the
+    continuous state of the subsystem ``plant`` and evaluates the image port named
+    ``"system.port"`` (one reused Context; no Simulator). For a plant of any state
+    dimension, where `StateRenderer` is the taxi's."""
+    context = diagram.CreateDefaultContext()
+    plant_context = diagram.GetSubsystemByName(plant).GetMyMutableContextFromRoot(context)
+    system_name, _, port_name = image_port.partition(".")
+    system = diagram.GetSubsystemByName(system_name)
+    port, port_context = system.GetOutputPort(port_name), system.GetMyContextFromRoot(context)
+    states = np.asarray(states, float)
+    if states.ndim != 2 or states.shape[1] != plant_context.num_continuous_states():
+        raise ValueError(f"states must be (N, {plant_context.num_continuous_states()}) for "
+                         f"'{plant}', got {states.shape}")
+    images = []
+    for x in states:
+        plant_context.SetContinuousState(x)
+        images.append(port.Eval(port_context).data[..., :3].copy())
+    return np.stack(images)
+
+
 def write_png(path, rgb: np.ndarray) -> Path:
     """Write an RGB uint8 image atomically."""
     ok, data = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))

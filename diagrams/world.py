@@ -16,7 +16,8 @@ RENDERER = "vtk"
 
 @dc.dataclass
 class World:
-    """Handles to the systems `add_world` put into a builder."""
+    """Handles to the systems `add_world` put into a builder (``plant`` is None when the
+    caller brought its own plant)."""
     plant: TaxiPlant
     geometry: AircraftGeometry
     scene_graph: SceneGraph
@@ -32,12 +33,18 @@ def initial_state_vector(initial_state) -> np.ndarray:
 
 def add_world(builder: DiagramBuilder, *, environment: Environment,
               camera: CameraConfig = None, shadows: bool = False,
-              initial_state=(0.0, 110.0, 0.0)) -> World:
+              initial_state=(0.0, 110.0, 0.0), pose_port=None) -> World:
     """Adds plant, aircraft geometry, the environment's scene and renderer, and the
-    wing camera to ``builder``; leaves the plant's inputs unconnected."""
+    wing camera to ``builder``; leaves the plant's inputs unconnected.
+
+    ``pose_port``: the output port of your own plant giving the camera carrier's
+    ``[px m, py m, theta rad]``; then no `TaxiPlant` is added and ``world.plant`` is None."""
     environment.validate()
     camera = (camera or CameraConfig()).validate()
-    plant = builder.AddNamedSystem("taxi_plant", TaxiPlant(initial_state=initial_state))
+    plant = None
+    if pose_port is None:
+        plant = builder.AddNamedSystem("taxi_plant", TaxiPlant(initial_state=initial_state))
+        pose_port = plant.get_state_output_port()
     scene_graph = builder.AddNamedSystem("scene_graph", SceneGraph())
     lighting = lighting_for(environment)
     scene_graph.AddRenderer(RENDERER, MakeRenderEngineVtk(
@@ -47,7 +54,7 @@ def add_world(builder: DiagramBuilder, *, environment: Environment,
                                       AircraftGeometry(scene_graph=scene_graph))
     sensor = builder.AddSystem(make_wing_camera(frame_id=geometry.frame_id, config=camera,
                                                 renderer_name=RENDERER))
-    builder.Connect(plant.get_state_output_port(), geometry.get_state_input_port())
+    builder.Connect(pose_port, geometry.get_state_input_port())
     builder.Connect(geometry.get_geometry_pose_output_port(),
                     scene_graph.get_source_pose_port(geometry.source_id))
     builder.Connect(scene_graph.get_query_output_port(), sensor.query_object_input_port())

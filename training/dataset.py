@@ -171,7 +171,8 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
 
 @dc.dataclass
 class LabelledData:
-    """A dataset folder's arrays (images memory-mapped)."""
+    """A dataset folder's arrays (images memory-mapped), or arrays made in memory
+    (`from_arrays`, for a plant other than the taxi)."""
     folder: Path
     manifest: dict
     images: np.ndarray
@@ -180,6 +181,25 @@ class LabelledData:
     labels: np.ndarray
     estimates: np.ndarray
     ensemble: np.ndarray
+
+    @classmethod
+    def from_arrays(cls, *, images, states, values, environment: str, camera_size):
+        """Labelled data from any plant: detector-size RGB ``images`` ``(N, h, w, 3)``
+        uint8, the ``states`` ``(N, n)`` they were rendered at and their BRT ``values``
+        (label 1 iff ``V <= 0``); ``camera_size`` = (height, width) of the camera frames
+        the online detector will see."""
+        images, states, values = np.asarray(images), np.asarray(states), np.asarray(values)
+        n = len(images)
+        if images.dtype != np.uint8 or images.ndim != 4 or images.shape[3] != 3:
+            raise ValueError(f"images must be uint8 (N, h, w, 3), got {images.dtype} {images.shape}")
+        if len(states) != n or values.shape != (n,):
+            raise ValueError(f"{n} images need {n} states and {n} values, got "
+                             f"{len(states)} and {values.shape}")
+        manifest = {"format": FORMAT, "environment": environment,
+                    "camera_size": [int(v) for v in camera_size],
+                    "image_size": list(images.shape[1:3]), "estimate_size": 0}
+        return cls(None, manifest, images, states, values, (values <= 0).astype(np.uint8),
+                   np.zeros((n, 0)), np.zeros((n, 0, 2)))
 
 
 def load_dataset(folder) -> LabelledData:
@@ -197,4 +217,4 @@ def load_dataset(folder) -> LabelledData:
     return LabelledData(folder, manifest,
                         load("images", (n, spec.height, spec.width, 3), "r"),
                         load("states", (n,)), load("values", (n,)), load("labels", (n,)),
-                        load("estimates", (n, 2)), load("ensemble", (n,)))
+                        load("estimates", (n, manifest["estimate_size"])), load("ensemble", (n,)))

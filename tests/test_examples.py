@@ -1,0 +1,122 @@
+"""The worked examples in examples/, end to end at a tiny size."""
+
+import json
+from dataclasses import replace as dc_replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import ControllerConfig, ControllerProbe, check_controller, make_controller
+from reachwatch.pipeline.cli import main
+from reachwatch.pipeline.spec import dump_run_spec, load_run_spec
+
+ROOT = Path(__file__).resolve().parents[1]
+GRASS = ROOT / "examples" / "grass_follower"
+
+
+def _tiny(spec):
+    """A run file's spec shrunk to test size (the controller and environments kept)."""
+    spec.grid, spec.horizon = [5, 3, 5], 4.0
+    spec.dataset.samples, spec.dataset.height, spec.dataset.width = 40, 24, 40
+    spec.dataset.chunk_size = 16
+    spec.detector.detector.height, spec.detector.detector.width = 24, 40
+    spec.detector.detector.channels = [4, 8]
+    spec.detector.epochs, spec.detector.batch_size, spec.detector.device = 1, 8, "cpu"
+    spec.guard.candidates, spec.guard.online_seconds = 1, 0.2
+    spec.train, spec.test = spec.train[:1], spec.test[:1]
+    return spec
+
+
+def test_grass_follower_is_a_controller():
+    config = ControllerConfig(factory=f"{GRASS / 'grass_follower.py'}:make_controller",
+                              parameters={"gain_deg": 10.0})
+    system = make_controller(config)
+    assert not system.HasOutputPort("estimate")
+    grass, road = np.zeros((20, 40, 3), np.uint8), np.zeros((20, 40, 3), np.uint8)
+    grass[..., 1] = 120                        # green everywhere
+    road[:] = 90                               # grey everywhere
+    half = road.copy()
+    half[:, 20:] = grass[:, 20:]               # grass on the right: steer left (positive)
+    balance = [system.grass_balance(x) for x in (road, grass, half)]
+    assert balance == [0.0, 0.0, 1.0]
+    steering, estimate = ControllerProbe(system).outputs(half)
+    assert estimate is None and steering[0] == pytest.approx(np.deg2rad(10.0 * (1.0 - 0.09)))
+
+
+def test_a_system_without_the_ports_is_refused():
+    from pydrake.systems.primitives import ConstantVectorSource
+    with pytest.raises(ValueError, match="needs an input port 'color_image'"):
+        check_controller(ConstantVectorSource([0.0]))
+    with pytest.raises(ValueError, match="must be 'package.module:function'"):
+        make_controller(ControllerConfig(factory="no_colon_here"))
+    with pytest.raises(ValueError, match="cannot import 'not_a_module_xyz'"):
+        make_controller(ControllerConfig(factory="not_a_module_xyz:make"))
+
+
+def test_grass_follower_through_reachwatch_run(tmp_path, monkeypatch):
+    """Example (a): a classical controller on the taxi plant, run file to report."""
+    monkeypatch.chdir(ROOT)                    # the run file's factory path is relative
+    spec = _tiny(load_run_spec(GRASS / "run.yaml"))
+    spec.guard.environments = []
+    path = tmp_path / "tiny.yaml"
+    path.write_text(dump_run_spec(spec))
+    out = tmp_path / "out"
+    assert main(["-q", "run", "--scenario", str(path), "--out", str(out),
+                 "--executor", "inline"]) == 0
+    report = (out / "report.md").read_text()
+    assert "grass_follower" in report and "Table 2" in report
+    assert "prediction-error labels" not in report        # no pose estimate: no such baseline
+    table = (out / "table2.csv").read_text()
+    assert "detector (BRT labels)" in table and "TaxiNet prediction error" not in table
+    record = json.loads((out / "stages" / "guard_KSFO_21h_overcast.json").read_text())
+    assert set(record["outputs"]["volumes"]) == {"unguarded", "slow_down", "brake"}
+
+
+def _speed_car():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(
+        "speed_car_example", ROOT / "examples" / "speed_car" / "speed_car.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_speed_car_through_sweep_brt_labels_detector_and_switch(tmp_path):
+    """Example (b): a 4-state plant (speed lags its command) with the runway camera."""
+    from reachwatch.diagrams import simulate
+    from reachwatch.reach import InlineExecutor
+    from reachwatch.systems import DetectorConfig, Environment
+    from reachwatch.training.detector_train import DetectorTrainConfig
+    car = _speed_car()
+    config = car.CarConfig(environment=Environment("KMWH", 9.0, "clear"))
+    detector = DetectorTrainConfig(detector=DetectorConfig(height=24, width=40, channels=[4, 8]),
+                                   epochs=1, batch_size=8, device="cpu")
+    grid, table, value, data, trained = car.study(
+        config, tmp_path, shape=(5, 3, 5, 2), horizon=2.0, samples=40, detector=detector,
+        executor=InlineExecutor(), progress=False)
+    steering = table[car.PROBE.control_port][..., 0]
+    assert steering.shape == (5, 3, 5, 2)
+    # The image does not see the speed: both speed layers got the same steering.
+    np.testing.assert_array_equal(steering[..., 0], steering[..., 1])
+    assert value.values.shape == (5, 3, 5, 2)
+    # Ground truth at the edges: a state at |px| = B is a failure; slow cars fail less.
+    B = config.environment.half_width
+    assert value.in_brt([[B, 150.0, 0.0, 3.0]])[0]
+    assert np.mean(value.values[..., 1] <= 0) >= np.mean(value.values[..., 0] <= 0)
+    np.testing.assert_array_equal(data.labels, value.at(data.states) <= 0)
+    assert data.images.shape == (40, 24, 40, 3) and (tmp_path / "detector.pt").is_file()
+    # The switch in the car's loop: always flagged, the commanded speed falls and the car
+    # slows through its lag; never flagged, the guarded loop is the loop alone.
+    x0 = [0.0, 120.0, 0.0, 5.0]
+    runs = {}
+    for name, threshold in (("always", 0.0), ("never", 1.0)):
+        guarded = dc_replace(config, detector=str(tmp_path / "detector.pt"), threshold=threshold)
+        runs[name] = simulate(car.make_car_loop(guarded), initial_state=x0, duration=1.0,
+                              period=0.05, half_width=B)
+    alone = simulate(car.make_car_loop(config), initial_state=x0, duration=1.0, period=0.05,
+                     half_width=B)
+    assert runs["always"].anomaly.all() and runs["always"].speed[-1] < 5.0
+    assert runs["always"].state[-1, 3] < runs["always"].state[0, 3] - 0.05
+    assert not runs["never"].anomaly.any()
+    np.testing.assert_allclose(runs["never"].state, alone.state)
