@@ -3,13 +3,13 @@ closed and guarded loops of any controller on the taxi plant, failure sets with 
 the check against the real Drake loop. Built on the generic `reachwatch.reach`."""
 
 from .dynamics import TaxiDynamics, dynamics_for
-from .fidelity import drake_agreement
+from .fidelity import on_runway_starts, real_loop_fidelity
 from .grid import TaxiGridSpec, paper_grid
 from .guarded import UNGUARDED, failure_sets, guarded_failures
 from .guarded_run import simulate_guarded
 from .sweeps import (resolved, taxi_probe, sweep_closed_loop, sweep_guarded,
                      taxi_sweep_key)
 
-__all__ = ["TaxiDynamics", "dynamics_for", "drake_agreement", "TaxiGridSpec", "paper_grid",
+__all__ = ["TaxiDynamics", "dynamics_for", "on_runway_starts", "real_loop_fidelity", "TaxiGridSpec", "paper_grid",
            "UNGUARDED", "failure_sets", "guarded_failures", "simulate_guarded", "resolved", "taxi_probe", "sweep_closed_loop",
            "sweep_guarded", "taxi_sweep_key"]

@@ -1,0 +1,75 @@
+"""Fidelity of BRT verdicts against real runs: the interval arithmetic, the counts, and
+box exits of a real Drake loop."""
+
+import re
+
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import load_scenario, make_state_feedback_diagram, simulate
+from reachwatch.reach import compare_verdicts, left_box, wilson_interval
+from reachwatch.taxi import on_runway_starts, paper_grid
+
+
+def test_wilson_interval_known_values():
+    lo, hi = wilson_interval(98, 100)
+    assert (lo, hi) == pytest.approx((0.929988, 0.994498), abs=1e-6)
+    # 0 of n: lower end 0, upper end z^2 / (n + z^2) (the normal interval would be [0, 0])
+    z2 = 1.959963984540054 ** 2
+    assert wilson_interval(0, 10) == pytest.approx((0.0, z2 / (10 + z2)))
+    assert wilson_interval(10, 10) == pytest.approx((10 / (10 + z2), 1.0))
+    lo, hi = wilson_interval(15, 150)          # symmetric in successes and failures
+    assert wilson_interval(135, 150) == pytest.approx((1 - hi, 1 - lo))
+    for bad in [(3, 2), (-1, 5), (0, 0), (True, 4)]:
+        with pytest.raises(ValueError):
+            wilson_interval(*bad)
+
+
+def test_compare_verdicts_counts_each_kind_of_error():
+    predicted = [True, True, False, False, False, True]
+    failed = [True, False, True, False, True, True]
+    left = [False, False, True, True, False, False]
+    f = compare_verdicts(predicted, failed, left)
+    assert (f.n, f.real_failures, f.predicted_failures) == (6, 4, 3)
+    assert (f.agree, f.false_safe, f.false_unsafe) == (3, 2, 1)
+    assert (f.box_exits, f.exits_missed) == (2, 1)
+    rate, lo, hi = f.rate("false_safe")
+    assert rate == pytest.approx(2 / 6) and (lo, hi) == pytest.approx(wilson_interval(2, 6))
+    assert "false-safe 33.3 %" in f.summary()
+    with pytest.raises(ValueError, match="equal non-empty"):
+        compare_verdicts([True], [True, False])
+
+
+def test_a_loop_turning_beyond_the_box_is_reported():
+    """A P-controller with the heading gain's sign flipped turns away: its real run
+    leaves the box's +-28 deg long before the horizon, and left_box says so."""
+    grid = paper_grid(10.0, (5, 3, 5))
+    turning = load_scenario(data="controller: {px_gain: 0.0, theta_gain: 2.0}\n")
+    run = simulate(make_state_feedback_diagram(turning), initial_state=[0.0, 120.0, 0.05],
+                   duration=8.0, period=0.05, half_width=1e3, stop_on_failure=False)
+    assert np.max(np.abs(run.state[:, 2])) > np.deg2rad(28.0)
+    assert left_box(run.state, grid, axes=(1, 2))
+    steady = simulate(make_state_feedback_diagram(load_scenario(data="")),
+                      initial_state=[0.0, 120.0, 0.05], duration=8.0, period=0.05,
+                      half_width=10.0)
+    assert not left_box(steady.state, grid, axes=(1, 2))
+
+
+def test_on_runway_starts_are_seeded_and_on_the_runway():
+    grid = paper_grid(10.0, (5, 3, 5))
+    a, b = on_runway_starts(grid, 200, 3), on_runway_starts(grid, 200, 3)
+    np.testing.assert_array_equal(a, b)
+    assert np.all(np.abs(a[:, 0]) < 10.0) and np.abs(a[:, 0]).max() > 9.0
+    assert not np.array_equal(a, on_runway_starts(grid, 200, 4))
+
+
+def test_brt_command_reports_real_loop_fidelity_with_intervals(tmp_path, capsys):
+    from reachwatch.pipeline.cli import main
+    scenario = tmp_path / "s.yaml"
+    scenario.write_text("environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    assert main(["brt", "--scenario", str(scenario), "--shape", "5", "3", "5", "--out",
+                 str(tmp_path / "out"), "--cache", str(tmp_path / "cache"), "--executor",
+                 "inline", "--horizon", "1.0", "--drake-starts", "3"]) == 0
+    text = capsys.readouterr().out
+    assert "3 starts" in text and "false-safe" in text and "left the box" in text
+    assert re.search(r"agreement \d+\.\d % \[\d+\.\d, \d+\.\d\]", text)
