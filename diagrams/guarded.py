@@ -16,6 +16,25 @@ DETECTOR = "anomaly_detector"
 SWITCH = "fallback_switch"
 
 
+def add_monitor(builder, *, image_port, steering_port, monitor, controller):
+    """Adds the runtime monitor of ``monitor`` (a `MonitorConfig`) to any loop: the
+    `AnomalyDetector` on ``image_port`` and the `FallbackSwitch` fed by the controller's
+    ``steering_port``, ticking at ``controller.period`` from ``controller.speed``.
+    Returns ``(detector, switch)``; connect the switch's ``steering_angle`` and ``speed``
+    outputs to your plant (and its ``fallback_steering_angle`` input for ``oracle``)."""
+    model, config, metadata = load_detector(monitor.detector)
+    detector = builder.AddNamedSystem(DETECTOR, AnomalyDetector(
+        model=model, config=config, threshold=monitor.threshold,
+        image_size=metadata.get("image_size")))
+    switch = builder.AddNamedSystem(SWITCH, FallbackSwitch(
+        strategy=monitor.strategy, steering=monitor.steering, period=controller.period,
+        nominal_speed=controller.speed, brake_deceleration=monitor.brake_deceleration))
+    builder.Connect(image_port, detector.get_color_image_input_port())
+    builder.Connect(steering_port, switch.get_steering_angle_input_port())
+    builder.Connect(detector.get_anomaly_output_port(), switch.get_anomaly_input_port())
+    return detector, switch
+
+
 def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
     """Plant + camera + the scenario's controller + AnomalyDetector + FallbackSwitch.
 
@@ -41,17 +60,10 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
                       shadows=scenario.shadows,
                       initial_state=initial_state_vector(scenario.initial_state))
     vision = add_controller(builder, world, controller)
-    model, config, metadata = load_detector(monitor.detector)
-    detector = builder.AddNamedSystem(DETECTOR, AnomalyDetector(
-        model=model, config=config, threshold=monitor.threshold,
-        image_size=metadata.get("image_size")))
-    switch = builder.AddNamedSystem(SWITCH, FallbackSwitch(
-        strategy=monitor.strategy, steering=monitor.steering, period=controller.period,
-        nominal_speed=controller.speed, brake_deceleration=monitor.brake_deceleration))
+    detector, switch = add_monitor(builder, image_port=world.camera.color_image_output_port(),
+                                   steering_port=vision.GetOutputPort(CONTROL_OUTPUT),
+                                   monitor=monitor, controller=controller)
     hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(controller.period, 1))
-    builder.Connect(world.camera.color_image_output_port(), detector.get_color_image_input_port())
-    builder.Connect(vision.GetOutputPort(CONTROL_OUTPUT), switch.get_steering_angle_input_port())
-    builder.Connect(detector.get_anomaly_output_port(), switch.get_anomaly_input_port())
     if monitor.steering == "oracle":
         estimator = builder.AddNamedSystem("state_estimator", TrueStateEstimator())
         oracle = builder.AddNamedSystem("oracle_p_controller", ProportionalController(

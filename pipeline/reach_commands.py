@@ -88,7 +88,8 @@ def brt_command(args):
     log.info(f"sign agreement with RK4 rollouts (dt 0.01 s, interpolated control) from every "
           f"node: {100 * sign_agreement(vf.values.ravel(), lowest):.2f}%")
     if args.drake_starts:
-        starts = on_runway_starts(grid, args.drake_starts, args.seed)
+        starts = on_runway_starts(grid, args.drake_starts, args.seed,
+                                  half_width=scenario.environment.half_width)
         fidelity = real_loop_fidelity(scenario, vf, starts, duration=args.horizon,
                                       progress=lambda it: bar(it, desc="real-loop runs",
                                                               leave=False))

@@ -12,13 +12,12 @@ from .sweeps import resolved
 OPEN_AXES = (1, 2)
 
 
-def on_runway_starts(grid, count: int, seed: int) -> np.ndarray:
-    """``count`` seeded uniform random states of ``grid``'s box with |px| < B, B being
-    the grid's px bound less its 1 m margin (starts already off the runway would agree
-    with any BRT and flatter it)."""
+def on_runway_starts(grid, count: int, seed: int, *, half_width: float) -> np.ndarray:
+    """``count`` seeded uniform random states of ``grid``'s box with |px| < half_width
+    (starts already off the runway would agree with any BRT and flatter it)."""
     rng = np.random.default_rng(seed)
     lo, hi = grid.lo.copy(), grid.hi.copy()
-    lo[0], hi[0] = lo[0] + 1.0, hi[0] - 1.0
+    lo[0], hi[0] = max(lo[0], -half_width), min(hi[0], half_width)
     return lo + rng.uniform(size=(count, grid.ndim)) * (hi - lo)
 
 
@@ -26,8 +25,7 @@ def real_loop_fidelity(scenario, value_function, starts, *, duration=None,
                        progress=None) -> Fidelity:
     """Runs the real Drake closed loop from each start for the BRT's horizon and
     compares "left the runway" with the verdict ``V(x0) <= 0``; counts the runs that
-    left the solved box in py or theta. Returns the `Fidelity` (``.failed``,
-    ``.predicted`` and ``.left_box`` hold the per-start arrays)."""
+    left the solved box in py or theta. Returns the `Fidelity`."""
     scenario = resolved(scenario)
     B = scenario.environment.half_width
     diagram = make_closed_loop_diagram(scenario)
@@ -44,7 +42,4 @@ def real_loop_fidelity(scenario, value_function, starts, *, duration=None,
                        period=scenario.controller.period, half_width=B, context=context)
         failed.append(run.failed)
         left.append(left_box(run.state, value_function.grid, axes=OPEN_AXES))
-    fidelity = compare_verdicts(predicted, failed, left)
-    fidelity.failed, fidelity.predicted, fidelity.left_box = (
-        np.array(failed), np.asarray(predicted, bool), np.array(left))
-    return fidelity
+    return compare_verdicts(predicted, failed, left)

@@ -84,7 +84,7 @@ def _speed_car():
 
 def test_speed_car_through_sweep_brt_labels_detector_and_switch(tmp_path):
     """Example (b): a 4-state plant (speed lags its command) with the runway camera."""
-    from reachwatch.diagrams import simulate
+    from reachwatch.diagrams import MonitorConfig, simulate
     from reachwatch.reach import InlineExecutor
     from reachwatch.systems import DetectorConfig, Environment
     from reachwatch.training.detector_train import DetectorTrainConfig
@@ -111,7 +111,8 @@ def test_speed_car_through_sweep_brt_labels_detector_and_switch(tmp_path):
     x0 = [0.0, 120.0, 0.0, 5.0]
     runs = {}
     for name, threshold in (("always", 0.0), ("never", 1.0)):
-        guarded = dc_replace(config, detector=str(tmp_path / "detector.pt"), threshold=threshold)
+        guarded = dc_replace(config, monitor=MonitorConfig(detector=str(tmp_path / "detector.pt"),
+                                                           threshold=threshold))
         runs[name] = simulate(car.make_car_loop(guarded), initial_state=x0, duration=1.0,
                               period=0.05, half_width=B)
     alone = simulate(car.make_car_loop(config), initial_state=x0, duration=1.0, period=0.05,

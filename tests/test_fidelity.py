@@ -57,10 +57,10 @@ def test_a_loop_turning_beyond_the_box_is_reported():
 
 def test_on_runway_starts_are_seeded_and_on_the_runway():
     grid = paper_grid(10.0, (5, 3, 5))
-    a, b = on_runway_starts(grid, 200, 3), on_runway_starts(grid, 200, 3)
+    a, b = (on_runway_starts(grid, 200, 3, half_width=10.0) for _ in range(2))
     np.testing.assert_array_equal(a, b)
     assert np.all(np.abs(a[:, 0]) < 10.0) and np.abs(a[:, 0]).max() > 9.0
-    assert not np.array_equal(a, on_runway_starts(grid, 200, 4))
+    assert not np.array_equal(a, on_runway_starts(grid, 200, 4, half_width=10.0))
 
 
 def test_brt_command_reports_real_loop_fidelity_with_intervals(tmp_path, capsys):

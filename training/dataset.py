@@ -114,15 +114,17 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     folder = dataset_folder(root, scenario, value_function, spec, ensemble)
     folder.mkdir(parents=True, exist_ok=True)
     grid, n = value_function.grid, spec.samples
-    controller = make_controller(scenario.controller)
-    estimate, k = _estimator(controller)
     manifest_path = folder / "manifest.json"
+    estimator = None            # the controller is built only when there is work for it
     if manifest_path.exists():
         manifest = _read_manifest(folder)
+        k = manifest["estimate_size"]
         arrays = {name: _open_array(folder, name, shape, "r+") for name, shape in (
             ("images", (n, spec.height, spec.width, 3)), ("estimates", (n, k)),
             ("ensemble", (n, len(ensemble), 2)))}
     else:
+        estimator = _estimator(make_controller(scenario.controller))
+        k = estimator[1]
         rng = np.random.default_rng(spec.seed)
         states = grid.lo + rng.uniform(size=(n, grid.ndim)) * (grid.hi - grid.lo)
         values = value_function.at(states)
@@ -149,6 +151,7 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     chunks = [(s, min(s + spec.chunk_size, n)) for s in range(0, n, spec.chunk_size)]
     todo = [c for c in chunks if c[0] not in manifest["chunks_done"]]
     if todo:
+        estimate, _ = estimator or _estimator(make_controller(scenario.controller))
         renderer = StateRenderer(environment=scenario.environment, camera=scenario.camera)
         ensemble_nets = [TaxiNet(model=m, preprocess_config=p) for m, p, _ in
                          (load_taxinet(c) for c in ensemble)]

@@ -19,11 +19,10 @@ import torch
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource, ZeroOrderHold
 
-from reachwatch.diagrams import (ControllerConfig, add_world, export_loop_ports, load_detector,
-                                 make_controller, render_at_states)
+from reachwatch.diagrams import (ControllerConfig, MonitorConfig, add_monitor, add_world,
+                                 export_loop_ports, make_controller, render_at_states)
 from reachwatch.reach import Dynamics, Grid, InlineExecutor, Probe, solve_brt, sweep
-from reachwatch.systems import (AnomalyDetector, DetectorConfig, Environment, FallbackSwitch,
-                                resize_for_detector)
+from reachwatch.systems import DetectorConfig, Environment, resize_for_detector
 from reachwatch.training.dataset import LabelledData
 from reachwatch.training.detector_train import DetectorTrainConfig, train_detector
 
@@ -80,13 +79,12 @@ class CarConfig:
     environment: Environment = dc.field(default_factory=Environment)
     controller: ControllerConfig = dc.field(default_factory=ControllerConfig)
     time_constant: float = 1.0
-    detector: str = ""            # a detector checkpoint: the guarded loop
-    threshold: float = 0.5
+    monitor: MonitorConfig = dc.field(default_factory=MonitorConfig)   # a detector: guarded
 
 
 def make_car_loop(config: CarConfig):
     """The car, the runway world and its camera, the controller, a steering hold; with a
-    detector, the AnomalyDetector and the FallbackSwitch (slow down) command the speed.
+    detector in ``config.monitor``, the AnomalyDetector and FallbackSwitch command the speed.
     Exports ``state`` (and ``speed``, ``anomaly`` when guarded)."""
     builder = DiagramBuilder()
     car = builder.AddNamedSystem("car", LagCar(time_constant=config.time_constant))
@@ -96,17 +94,10 @@ def make_car_loop(config: CarConfig):
     hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(config.controller.period, 1))
     builder.Connect(hold.get_output_port(), car.GetInputPort("steering_angle"))
     extra = {}
-    if config.detector:
-        model, detector_config, meta = load_detector(config.detector)
-        detector = builder.AddNamedSystem("anomaly_detector", AnomalyDetector(
-            model=model, config=detector_config, threshold=config.threshold,
-            image_size=meta.get("image_size")))
-        switch = builder.AddNamedSystem("fallback_switch", FallbackSwitch(
-            strategy="slow_down", period=config.controller.period,
-            nominal_speed=config.controller.speed))
-        builder.Connect(world.camera.color_image_output_port(), detector.get_color_image_input_port())
-        builder.Connect(controller.GetOutputPort("steering_angle"), switch.get_steering_angle_input_port())
-        builder.Connect(detector.get_anomaly_output_port(), switch.get_anomaly_input_port())
+    if config.monitor.detector:
+        detector, switch = add_monitor(builder, image_port=world.camera.color_image_output_port(),
+                                       steering_port=controller.GetOutputPort("steering_angle"),
+                                       monitor=config.monitor, controller=config.controller)
         builder.Connect(switch.get_steering_angle_output_port(), hold.get_input_port())
         builder.Connect(switch.get_speed_output_port(), car.GetInputPort("speed_command"))
         extra = {"speed": switch.get_speed_output_port(), "anomaly": detector.get_anomaly_output_port()}
