@@ -12,7 +12,7 @@ from reachwatch.taxi import dynamics_for, on_runway_starts, real_loop_fidelity, 
 from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 
-from .console import bar, log
+from .console import log, progress_enabled
 from .commands import count, positive_float, positive_int, scenario_from_args
 from .executors import open_executor
 
@@ -91,8 +91,8 @@ def brt_command(args):
         starts = on_runway_starts(grid, args.drake_starts, args.seed,
                                   half_width=scenario.environment.half_width)
         fidelity = real_loop_fidelity(scenario, vf, starts, duration=args.horizon,
-                                      progress=lambda it: bar(it, desc="real-loop runs",
-                                                              leave=False))
+                                      cache_dir=Path(args.cache or cache_root()) / "outcomes",
+                                      progress=progress_enabled())
         log.info(f"the real Drake closed loop (rendering every tick) from random on-runway "
                  f"starts, 95 % Wilson intervals: {fidelity.summary()}")
         if fidelity.box_exits > 0.05 * fidelity.n:

@@ -1,0 +1,134 @@
+"""What the real closed loop does from given starts: run a rollout function over
+the starts chunk by chunk, on any executor, each finished chunk written atomically
+under ``cache_dir/key/``, so a killed batch resumes and a repeated one costs
+nothing.
+
+A rollout function is any picklable callable ``rollout(states) -> dict`` mapping
+``(n, ndim)`` starts to arrays with ``n`` rows: ``failed`` (bool) is required;
+``failure_time`` (s), ``left_box`` (bool) and ``ticks`` (frames rendered) are read
+when present. The taxi's is `reachwatch.taxi.fidelity.taxi_rollouts`; anything
+deterministic that runs the loop the labels are about will do."""
+
+import concurrent.futures as cf
+import dataclasses as dc
+import hashlib
+import io
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from reachwatch.systems.files import atomic_write_bytes
+
+from .fingerprint import fingerprint
+from .sweep import InlineExecutor
+
+
+@dc.dataclass
+class Outcomes:
+    """Per-start arrays of a batch of rollouts (``fields["failed"]`` and whatever else
+    the rollout function returned); ``computed``: starts run by the call that
+    returned it (0 when every chunk was cached)."""
+    fields: dict
+    key: str
+    computed: int = 0
+
+    def __getitem__(self, name):
+        return self.fields[name]
+
+    def __len__(self):
+        return len(self.fields["failed"])
+
+    @property
+    def failed(self) -> np.ndarray:
+        return self.fields["failed"].astype(bool)
+
+    def get(self, name, default=None):
+        return self.fields.get(name, default)
+
+
+def outcomes_key(rollout, states) -> str:
+    """The cache folder name of a batch: the rollout function's fingerprint and the
+    hash of the starts' bytes."""
+    states = np.ascontiguousarray(states, np.float64)
+    digest = hashlib.sha256(states.tobytes() + str(states.shape).encode()).hexdigest()[:12]
+    base = getattr(rollout, "func", rollout)
+    return f"{getattr(base, '__name__', 'rollout')}_{len(states)}_{fingerprint(rollout)[:16]}_{digest}"
+
+
+def _chunk(folder: Path, index: int) -> Path:
+    return folder / f"chunk_{index:06d}.npz"
+
+
+def _run_chunk(rollout, states, path: str) -> str:
+    out = rollout(states)
+    if not isinstance(out, dict) or "failed" not in out:
+        raise ValueError(f"a rollout function must return a dict with a 'failed' array, "
+                         f"got {type(out).__name__}")
+    arrays = {k: np.asarray(v) for k, v in out.items()}
+    for name, a in arrays.items():
+        if a.shape[:1] != (len(states),):
+            raise ValueError(f"rollout output '{name}' has {a.shape[:1]} rows for "
+                             f"{len(states)} starts")
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return str(atomic_write_bytes(Path(path), buffer.getvalue()))
+
+
+def _load(path: Path, rows: int):
+    """The chunk's arrays, or None when it is missing, corrupt or short."""
+    try:
+        with np.load(path) as data:
+            arrays = {k: data[k] for k in data.files}
+    except Exception:       # missing, truncated or corrupt: run it again
+        return None
+    if "failed" not in arrays or any(len(a) != rows for a in arrays.values()):
+        return None
+    return arrays
+
+
+def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = 8, executor=None,
+                 progress: bool = True, label: str = None, max_in_flight: int = 4) -> Outcomes:
+    """``rollout`` from every start in ``states`` ``(N, ndim)``; chunks of
+    ``chunk_size`` starts are cached under ``cache_dir/outcomes_key(...)`` and run
+    on ``executor`` (default: here, one after another). The progress bar moves per
+    chunk."""
+    states = np.asarray(states, float)
+    if states.ndim != 2 or len(states) == 0 or not np.all(np.isfinite(states)):
+        raise ValueError(f"starts must be a non-empty (N, ndim) array of finite numbers, got "
+                         f"shape {states.shape}")
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"chunk_size must be a whole number >= 1, got {chunk_size!r}")
+    key = outcomes_key(rollout, states)
+    folder = Path(cache_dir) / key
+    folder.mkdir(parents=True, exist_ok=True)
+    bounds = [(i, s, min(s + chunk_size, len(states)))
+              for i, s in enumerate(range(0, len(states), chunk_size))]
+    done = {i: _load(_chunk(folder, i), e - s) for i, s, e in bounds}
+    todo = [b for b in bounds if done[b[0]] is None]
+    computed = sum(e - s for _, s, e in todo)
+    bar = tqdm(total=len(states), initial=len(states) - computed, unit="run",
+               desc=f"real loop {label or key}", disable=not progress)
+    executor = executor or InlineExecutor()
+    pending = {}
+    try:
+        for i, s, e in todo:
+            pending[executor.submit(_run_chunk, rollout, states[s:e], str(_chunk(folder, i)))] = (s, e)
+            while len(pending) >= max_in_flight or (pending and i == todo[-1][0]):
+                finished = cf.wait(pending, return_when=cf.FIRST_COMPLETED).done
+                for future in finished:
+                    future.result()
+                    s_, e_ = pending.pop(future)
+                    bar.update(e_ - s_)
+    finally:
+        bar.close()
+    fields = None
+    for i, s, e in bounds:
+        arrays = _load(_chunk(folder, i), e - s)
+        if arrays is None:
+            raise RuntimeError(f"rollout chunk {i} of {key} did not finish")
+        if fields is None:
+            fields = {k: np.empty((len(states),) + a.shape[1:], a.dtype) for k, a in arrays.items()}
+        for k, a in arrays.items():
+            fields[k][s:e] = a
+    return Outcomes(fields=fields, key=key, computed=computed)
