@@ -12,8 +12,10 @@ from .interpolate import GridInterpolator
 @torch.no_grad()
 def min_target_along_rollouts(grid, dynamics, control_table, starts, *, horizon=8.0,
                               dt=0.01, hold=None, batch=200_000, device="cpu",
-                              progress=None) -> np.ndarray:
-    """``min_t l(x(t))`` over ``[0, horizon]`` from each start ``(N, ndim)``.
+                              progress=None, box_axes=None):
+    """``min_t l(x(t))`` over ``[0, horizon]`` from each start ``(N, ndim)``; with
+    ``box_axes`` (axis indices), also whether each rollout left ``grid``'s box on any of
+    them (where the table is clamped to its edge), as a second array.
 
     The control comes from multilinear interpolation of ``control_table`` at the
     current state (``hold=None``: continuous feedback, RK4 with step ``dt``), or is
@@ -36,11 +38,18 @@ def min_target_along_rollouts(grid, dynamics, control_table, starts, *, horizon=
         interpolate = GridInterpolator(grid, x)
         return torch.stack([interpolate(c) for c in columns], dim=-1)
 
-    out = []
+    lo, hi = (torch.as_tensor(b, dtype=torch.float64, device=device) for b in (grid.lo, grid.hi))
+    axes = list(box_axes or [])
+
+    def outside(y):
+        return ((y[..., axes] < lo[axes] - 1e-9) | (y[..., axes] > hi[axes] + 1e-9)).any(-1)
+
+    out, exits = [], []
     chunks = range(0, len(starts), batch)
     for s in (progress(chunks) if progress else chunks):
         x = starts[s:s + batch]
         lowest = dynamics.target(x)
+        left = outside(x)
         u = control(x)
         for k in range(steps):
             if hold is None:
@@ -51,8 +60,12 @@ def min_target_along_rollouts(grid, dynamics, control_table, starts, *, horizon=
                 f = lambda y, u=u: dynamics.vector_field(y, u)     # noqa: E731
             x = rk4_step(f, x, dt)
             lowest = torch.minimum(lowest, dynamics.target(x))
+            left |= outside(x)
         out.append(lowest.cpu().numpy())
-    return np.concatenate(out)
+        exits.append(left.cpu().numpy())
+    if box_axes is None:
+        return np.concatenate(out)
+    return np.concatenate(out), np.concatenate(exits)
 
 
 def sign_agreement(values, reference) -> float:

@@ -1,14 +1,17 @@
-"""BRT-labelled image datasets: uniform states of the grid box, their wing-camera
-images, the controller's estimates (when it declares an ``estimate`` output) and an
-ensemble's, V(x) and the label ``V <= 0``.
+"""Labelled image datasets: uniform states of the grid box, their wing-camera images,
+the controller's estimates (when it declares an ``estimate`` output) and an
+ensemble's, V(x), and a label per state from the source `LabelSpec` names: the BRT
+(``V <= 0``), the real closed loop run from the state, or a hybrid of both.
 
-On disk, one folder per (environment, BRT, sampling, image size, controllers):
-``manifest.json`` plus ``.npy`` arrays (``images.npy`` is a uint8 memmap
-``(N, H, W, 3)``; ``states.npy`` [px m, py m, theta rad]; ``values.npy`` m;
-``labels.npy`` uint8, 1 = anomalous; ``estimates.npy`` ``(N, k)``, the controller's
+On disk, one folder per (environment, BRT, sampling, labels, image size,
+controllers): ``manifest.json`` plus ``.npy`` arrays (``images.npy`` is a uint8
+memmap ``(N, H, W, 3)``; ``states.npy`` [px m, py m, theta rad]; ``values.npy`` m;
+``labels.npy`` uint8, 1 = anomalous; ``sources.npy`` uint8, where each label came from
+(`SOURCE_BRT`, `SOURCE_ROLLOUT`); ``estimates.npy`` ``(N, k)``, the controller's
 ``estimate`` output (TaxiNet: [px_hat m, theta_hat deg]; k = 0 when it has none);
-``ensemble.npy`` ``(N, K, 2)``). Filled chunk by chunk; the manifest records finished
-chunks and is replaced atomically, so an interrupted build resumes."""
+``ensemble.npy`` ``(N, K, 2)``), and ``rollouts/``, the cached real-loop runs.
+Filled chunk by chunk; the manifest records finished chunks and is replaced
+atomically, so an interrupted build resumes."""
 
 import dataclasses as dc
 import hashlib
@@ -22,26 +25,70 @@ from reachwatch.diagrams import ControllerProbe, StateRenderer, file_hash, load_
 from reachwatch.diagrams.controller import has_estimate
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.taxi import resolved
+from reachwatch.taxi.fidelity import real_outcomes
 from reachwatch.systems import TaxiNet, resize_for_detector
 from reachwatch.systems.files import atomic_write_bytes
 
-FORMAT = "reachwatch.dataset/2"
+FORMAT = "reachwatch.dataset/3"
+LABEL_SOURCES = ("brt", "rollout", "hybrid")
+#: Values of ``sources.npy``: the label is the BRT's verdict, or the real loop's outcome.
+SOURCE_BRT, SOURCE_ROLLOUT = 0, 1
+
+
+def _whole(where, value, least):
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise ValueError(f"{where} must be a whole number >= {least}, got {value!r}")
+
+
+@dc.dataclass
+class LabelSpec:
+    """Where a dataset's labels come from (``source``):
+
+    - ``brt``: ``V(x) <= 0`` of the solved BRT. Free, and as right as the map.
+    - ``rollout``: the real closed loop (rendering every tick) run from every sampled
+      on-runway state for the BRT's horizon, stopping at failure: exact for a
+      deterministic loop, about one render per tick.
+    - ``hybrid``: the BRT where the map is trusted, rollouts where it is not. The first
+      ``audit`` on-runway samples are rolled out. If the BRT called any of them safe
+      and the loop failed, the map is not trusted in this environment and every
+      sample it calls safe (``V > 0``) is rolled out; otherwise only the safe samples
+      within ``band`` m of the boundary (``0 < V < band``). The BRT's unsafe verdicts
+      are kept: in the night checks they were wrong about 1 time in 150, its safe
+      verdicts 1 in 7.
+
+    ``max_rollouts`` (0 = no cap) bounds the rollouts per environment: a dataset that
+    would need more keeps only its first samples, as many as the cap allows (they are
+    still uniform), and its manifest says how many it kept."""
+    source: str = "brt"
+    audit: int = 50
+    band: float = 2.0
+    max_rollouts: int = 0
+
+    def validate(self, where="dataset.labels"):
+        if self.source not in LABEL_SOURCES:
+            raise ValueError(f"{where}.source must be one of {LABEL_SOURCES}, got '{self.source}'")
+        _whole(f"{where}.audit", self.audit, 0)
+        _whole(f"{where}.max_rollouts", self.max_rollouts, 0)
+        if isinstance(self.band, bool) or not np.isfinite(self.band) or self.band < 0:
+            raise ValueError(f"{where}.band must be a number >= 0 m, got {self.band!r}")
+        return self
 
 
 @dc.dataclass
 class DatasetSpec:
-    """How many states, which seed, and the stored image size (the detector's input)."""
+    """How many states, which seed, how they are labelled, and the stored image size
+    (the detector's input)."""
     samples: int = 2000
     seed: int = 0
     height: int = 96
     width: int = 160
     chunk_size: int = 256
+    labels: LabelSpec = dc.field(default_factory=LabelSpec)
 
     def validate(self, where="dataset"):
         for name, least in (("samples", 10), ("height", 16), ("width", 16), ("chunk_size", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise ValueError(f"{where}.{name} must be a whole number >= {least}, got {value!r}")
+            _whole(f"{where}.{name}", getattr(self, name), least)
+        self.labels.validate(f"{where}.labels")
         return self
 
 
@@ -106,6 +153,63 @@ def _estimator(controller):
     return (lambda images: np.stack([probe.outputs(image)[1] for image in images])), size
 
 
+def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
+    """Labels and their sources for states with BRT values ``values`` under
+    ``labels.source``; ``on_runway`` marks the states where the loop has not failed
+    yet (the audit's candidates) and ``run_loop(index) -> (failed, frames)`` runs the
+    real loop from the states at ``index`` (called at most twice: the audit, then the
+    rest). Returns ``(n kept, labels, sources, info)``."""
+    values, on_runway = np.asarray(values, float), np.asarray(on_runway, bool)
+    n = len(values)
+    brt = (values <= 0).astype(np.uint8)
+    info = {"source": labels.source}
+    if labels.source == "brt":
+        return n, brt, np.full(n, SOURCE_BRT, np.uint8), info
+    failed, frames = {}, 0
+
+    def run(index):
+        nonlocal frames
+        index = np.array([i for i in index if i not in failed], int)
+        if len(index):
+            outcome, used = run_loop(index)
+            failed.update(zip(index.tolist(), np.asarray(outcome, bool).tolist()))
+            frames += int(used)
+
+    if labels.source == "rollout":
+        roll = np.arange(n)
+    else:
+        audit = np.flatnonzero(on_runway)[:labels.audit]
+        run(audit)
+        audit_failed = np.array([failed[i] for i in audit.tolist()], bool)
+        false_safe = int(np.sum(audit_failed & (values[audit] > 0)))
+        trusted = false_safe == 0
+        info["audit"] = {"samples": int(len(audit)), "real_failures": int(audit_failed.sum()),
+                         "false_safe": false_safe, "map_trusted": trusted}
+        uncertain = (values > 0) & ((values < labels.band) if trusted else True)
+        roll = np.union1d(audit, np.flatnonzero(uncertain)).astype(int)
+    if labels.max_rollouts and len(roll) > labels.max_rollouts:
+        n = int(roll[labels.max_rollouts])     # the first sample whose rollout is over the cap
+        roll = roll[:labels.max_rollouts]
+    run(roll)
+    out, sources = brt[:n].copy(), np.full(n, SOURCE_BRT, np.uint8)
+    for i in roll.tolist():
+        out[i], sources[i] = failed[i], SOURCE_ROLLOUT
+    info.update(samples_kept=n, rollouts=int(len(roll)), rollout_frames=frames,
+                rollout_disagrees_with_brt=int(np.sum(out[roll] != brt[roll])))
+    return n, out, sources, info
+
+
+def _real_loop(scenario, value_function, states, folder: Path, progress):
+    """``run_loop`` for `assign_labels`: the real closed loop from ``states[index]``,
+    cached under ``folder/rollouts``."""
+    def run_loop(index):
+        outcome = real_outcomes(scenario, states[index], grid=value_function.grid,
+                                duration=value_function.horizon, cache_dir=folder / "rollouts",
+                                progress=progress)
+        return outcome.failed, int(np.sum(outcome["ticks"]))
+    return run_loop
+
+
 def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpec(), *,
                   ensemble=(), progress=True) -> Path:
     """Render, estimate and label ``spec.samples`` states of ``scenario``'s environment;
@@ -113,24 +217,29 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     scenario = resolved(scenario)
     folder = dataset_folder(root, scenario, value_function, spec, ensemble)
     folder.mkdir(parents=True, exist_ok=True)
-    grid, n = value_function.grid, spec.samples
+    grid = value_function.grid
     manifest_path = folder / "manifest.json"
     estimator = None            # the controller is built only when there is work for it
     if manifest_path.exists():
         manifest = _read_manifest(folder)
-        k = manifest["estimate_size"]
+        k, n = manifest["estimate_size"], manifest["samples"]
         arrays = {name: _open_array(folder, name, shape, "r+") for name, shape in (
             ("images", (n, spec.height, spec.width, 3)), ("estimates", (n, k)),
             ("ensemble", (n, len(ensemble), 2)))}
     else:
+        rng = np.random.default_rng(spec.seed)
+        states = grid.lo + rng.uniform(size=(spec.samples, grid.ndim)) * (grid.hi - grid.lo)
+        values = value_function.at(states)
+        n, labels, sources, label_info = assign_labels(
+            values, np.abs(states[:, 0]) < scenario.environment.half_width, spec.labels,
+            _real_loop(scenario, value_function, states, folder, progress))
+        states, values = states[:n], values[:n]
         estimator = _estimator(make_controller(scenario.controller))
         k = estimator[1]
-        rng = np.random.default_rng(spec.seed)
-        states = grid.lo + rng.uniform(size=(n, grid.ndim)) * (grid.hi - grid.lo)
-        values = value_function.at(states)
         np.save(folder / "states.npy", states)
         np.save(folder / "values.npy", values)
-        np.save(folder / "labels.npy", (values <= 0).astype(np.uint8))
+        np.save(folder / "labels.npy", labels)
+        np.save(folder / "sources.npy", sources)
         open_mm = np.lib.format.open_memmap
         arrays = {"images": open_mm(folder / "images.npy", "w+", np.uint8,
                                     (n, spec.height, spec.width, 3)),
@@ -141,6 +250,9 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
                     "environment_spec": dc.asdict(scenario.environment),
                     "grid": grid.key(), "brt_hash": _value_hash(value_function),
                     "brt_fraction_of_samples": float(np.mean(values <= 0)),
+                    "samples": n, "labels": label_info,
+                    "label_counts": {"brt": int(np.sum(sources == SOURCE_BRT)),
+                                     "rollout": int(np.sum(sources == SOURCE_ROLLOUT))},
                     "image_size": [spec.height, spec.width],
                     "camera_size": [scenario.camera.height, scenario.camera.width],
                     "spec": dc.asdict(spec), "controller": dc.asdict(scenario.controller),
@@ -184,6 +296,12 @@ class LabelledData:
     labels: np.ndarray
     estimates: np.ndarray
     ensemble: np.ndarray
+    sources: np.ndarray = None      # SOURCE_BRT / SOURCE_ROLLOUT per label
+
+    @property
+    def brt_labels(self) -> np.ndarray:
+        """``V <= 0`` at every state, whatever the labels' source."""
+        return (self.values <= 0).astype(np.uint8)
 
     @classmethod
     def from_arrays(cls, *, images, states, values, environment: str, camera_size):
@@ -200,9 +318,10 @@ class LabelledData:
                              f"{len(states)} and {values.shape}")
         manifest = {"format": FORMAT, "environment": environment,
                     "camera_size": [int(v) for v in camera_size],
-                    "image_size": list(images.shape[1:3]), "estimate_size": 0}
+                    "image_size": list(images.shape[1:3]), "estimate_size": 0, "samples": n,
+                    "labels": {"source": "brt"}}
         return cls(None, manifest, images, states, values, (values <= 0).astype(np.uint8),
-                   np.zeros((n, 0)), np.zeros((n, 0, 2)))
+                   np.zeros((n, 0)), np.zeros((n, 0, 2)), np.full(n, SOURCE_BRT, np.uint8))
 
 
 def load_dataset(folder) -> LabelledData:
@@ -212,12 +331,13 @@ def load_dataset(folder) -> LabelledData:
     if manifest.get("format") != FORMAT:
         raise ValueError(f"{folder}: unknown dataset format {manifest.get('format')}")
     spec = DatasetSpec(**manifest["spec"])
-    if len(manifest["chunks_done"]) < -(-spec.samples // spec.chunk_size):
+    if len(manifest["chunks_done"]) < -(-manifest["samples"] // spec.chunk_size):
         raise ValueError(f"{folder} is incomplete ({len(manifest['chunks_done'])} chunks); "
                          f"run build_dataset again to resume it")
-    n = spec.samples
+    n = manifest["samples"]
     load = lambda name, shape, mode=None: _open_array(folder, name, shape, mode)  # noqa: E731
     return LabelledData(folder, manifest,
                         load("images", (n, spec.height, spec.width, 3), "r"),
                         load("states", (n,)), load("values", (n,)), load("labels", (n,)),
-                        load("estimates", (n, manifest["estimate_size"])), load("ensemble", (n,)))
+                        load("estimates", (n, manifest["estimate_size"])), load("ensemble", (n,)),
+                        load("sources", (n,)))

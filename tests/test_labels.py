@@ -1,0 +1,94 @@
+"""Label sources: the BRT, the real loop from every state, and the hybrid that rolls
+out only where the map is not trusted."""
+
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import load_scenario, make_closed_loop_diagram, simulate
+from reachwatch.reach import solve_brt
+from reachwatch.taxi import TaxiDynamics, paper_grid
+from reachwatch.training.dataset import (SOURCE_BRT, SOURCE_ROLLOUT, DatasetSpec, LabelSpec,
+                                         assign_labels, build_dataset, load_dataset)
+
+
+class FakeLoop:
+    """The 'real' loop of a controller that steers as the grid says at its nodes and
+    off the runway between them: it fails wherever ``truth`` says, and the grid's
+    BRT (values) knows nothing of the states between nodes."""
+
+    def __init__(self, truth):
+        self.truth, self.calls = np.asarray(truth, bool), []
+
+    def __call__(self, index):
+        self.calls.append(list(index))
+        return self.truth[index], 10 * len(index)
+
+
+def _case():
+    values = np.array([-1.0, 0.5, 5.0, 6.0, 1.5, 7.0, -2.0, 8.0, 9.0, 0.2])
+    on_runway = np.array([False] + [True] * 9)
+    return values, on_runway
+
+
+def test_hybrid_keeps_brt_labels_where_the_audit_finds_the_map_right():
+    values, on_runway = _case()
+    truth = values <= 0.3                        # the BRT is right except inside its band
+    loop = FakeLoop(truth)
+    n, labels, sources, info = assign_labels(values, on_runway, LabelSpec("hybrid", audit=3, band=2.0), loop)
+    assert info["audit"] == {"samples": 3, "real_failures": 0, "false_safe": 0, "map_trusted": True}
+    # the audit (samples 1, 2, 3), then the safe ones within 2 m of the boundary (4, 9)
+    assert loop.calls == [[1, 2, 3], [4, 9]]
+    assert n == 10 and list(np.flatnonzero(sources == SOURCE_ROLLOUT)) == [1, 2, 3, 4, 9]
+    np.testing.assert_array_equal(labels, truth)            # sample 9 (V = 0.2) was a miss
+    assert info["rollout_disagrees_with_brt"] == 1 and info["rollout_frames"] == 50
+
+
+def test_hybrid_rolls_out_every_safe_verdict_where_the_audit_finds_a_miss():
+    """Between the nodes this controller steers off the runway: samples 3 and 7 fail
+    although V > 2; the audit catches sample 3, and the hybrid then rolls out every
+    sample the BRT calls safe, catching 7 too."""
+    values, on_runway = _case()
+    truth = (values <= 0) | np.isin(np.arange(10), [3, 7])
+    loop = FakeLoop(truth)
+    n, labels, sources, info = assign_labels(values, on_runway, LabelSpec("hybrid", audit=3, band=2.0), loop)
+    assert info["audit"]["false_safe"] == 1 and not info["audit"]["map_trusted"]
+    assert loop.calls == [[1, 2, 3], [4, 5, 7, 8, 9]]
+    np.testing.assert_array_equal(labels, truth)
+    assert list(sources) == [SOURCE_BRT if v <= 0 else SOURCE_ROLLOUT for v in values]
+    # BRT labels alone would have missed both
+    assert np.sum((values > 0) & truth) == 2
+
+
+def test_rollout_budget_keeps_a_uniform_prefix_and_brt_source_runs_nothing():
+    values, on_runway = _case()
+    truth = values <= 0
+    loop = FakeLoop(truth)
+    n, labels, sources, info = assign_labels(values, on_runway, LabelSpec("rollout", max_rollouts=4), loop)
+    assert n == 4 and info["samples_kept"] == 4 and loop.calls == [[0, 1, 2, 3]]
+    assert np.all(sources == SOURCE_ROLLOUT) and len(labels) == 4
+    loop = FakeLoop(truth)
+    n, labels, sources, info = assign_labels(values, on_runway, LabelSpec("brt"), loop)
+    assert n == 10 and loop.calls == [] and np.all(sources == SOURCE_BRT)
+    with pytest.raises(ValueError, match="dataset.labels.source"):
+        LabelSpec("oracle").validate()
+
+
+def test_rollout_labels_equal_direct_simulation_of_the_real_loop(tmp_path):
+    """A dataset labelled by rollouts: each label is what the real Drake loop (TaxiNet
+    on rendered images) does from that state, checked by simulating it again."""
+    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    B = scenario.environment.half_width
+    grid = paper_grid(B, (5, 3, 5))
+    px, _, th = grid.mesh()
+    table = np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th))
+    vf = solve_brt(grid, TaxiDynamics(half_width=B), table, horizon=1.0, device="cpu")
+    spec = DatasetSpec(samples=10, seed=5, height=20, width=36, chunk_size=8,
+                       labels=LabelSpec("rollout"))
+    data = load_dataset(build_dataset(tmp_path, scenario, vf, spec, progress=False))
+    assert np.all(data.sources == SOURCE_ROLLOUT)
+    assert data.manifest["labels"]["rollouts"] == 10
+    diagram = make_closed_loop_diagram(scenario)
+    for x, label in zip(data.states, data.labels):
+        run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, half_width=B)
+        assert bool(label) == run.failed
+    assert 0 < data.labels.sum() < 10
