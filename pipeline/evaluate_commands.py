@@ -5,7 +5,7 @@ import dataclasses as dc
 
 
 from reachwatch.systems import DetectorConfig, Environment, test_environments, training_environments
-from reachwatch.training.dataset import DatasetSpec
+from reachwatch.training.dataset import LABEL_SOURCES, DatasetSpec, LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.evaluation import markdown_table
 from reachwatch.training.incremental import IncrementalConfig
@@ -14,7 +14,7 @@ from .console import log
 from .commands import count, positive_int, scenario_from_args
 from .executors import open_executor
 from .run import run_pipeline
-from .spec import EnsembleSpec, RunSpec
+from .spec import EnsembleSpec, FidelitySpec, RunSpec
 
 
 def parse_environment(text: str) -> Environment:
@@ -55,6 +55,13 @@ def add_parsers(sub):
                         "training validation split (0: use --threshold)")
     p.add_argument("--ensemble", type=count, default=5, help="TaxiNets in the ensemble baseline")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--labels", choices=LABEL_SOURCES, default="brt",
+                   help="label source: the BRT, the real loop from every state, or rollouts "
+                   "where the BRT is not trusted (see the README)")
+    p.add_argument("--check-starts", type=count, default=50, help="real-loop runs per "
+                   "environment checking the BRT and the labels (0: no check)")
+    p.add_argument("--max-box-exits", type=float, default=0.05, help="refuse BRT labels where "
+                   "more than this share of the checked runs leave the solved box")
     p.add_argument("--executor", default="inline", help="local | inline | dask://HOST:PORT")
     p.add_argument("--out", required=True, help="output folder (reused: finished work is skipped)")
     p.set_defaults(func=evaluate_command)
@@ -67,7 +74,9 @@ def evaluate_command(args):
         name="evaluate", scenario=scenario_from_args(args),
         train=[parse_environment(t) for t in args.train],
         test=[parse_environment(t) for t in args.test], grid=list(args.shape),
-        dataset=DatasetSpec(samples=args.samples, seed=args.seed, height=height, width=width),
+        dataset=DatasetSpec(samples=args.samples, seed=args.seed, height=height, width=width,
+                            labels=LabelSpec(source=args.labels)),
+        fidelity=FidelitySpec(starts=args.check_starts, max_box_exits=args.max_box_exits),
         detector=DetectorTrainConfig(detector=detector, epochs=args.epochs, seed=args.seed,
                                      threshold=args.threshold, target_recall=args.target_recall,
                                      pretrained_path=args.pretrained),

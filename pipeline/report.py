@@ -69,6 +69,63 @@ def _pct(x):
     return f"{100 * x:.2f}" if x is not None else "-"
 
 
+LABEL_SOURCE_TEXT = {
+    "brt": "anomalous iff V(x) <= 0: as right as the BRT map",
+    "rollout": "the real Drake loop run from every state: exact",
+    "hybrid": "the real Drake loop where an audit of the map or the distance to its "
+              "boundary says the BRT is not to be trusted, V(x) <= 0 elsewhere"}
+
+
+def _rate(record, name):
+    """``"x.x [lo, hi]"`` (%) of a `Fidelity.as_dict` rate with its interval."""
+    lo, hi = record[f"{name}_ci95"]
+    return f"{100 * record[f'{name}_rate']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+
+def fidelity_section(page, run: Run, roles):
+    """The BRT, its table and the labels against the real loop, per environment."""
+    spec, results = run.spec, run.outputs.get("fidelity") or {}
+    page.section("Fidelity against the real Drake loop", "fidelity")
+    if not results:
+        page.text("Not checked (fidelity.starts: 0): nothing in this report says whether "
+                  "the BRT, the labels and the failure sets match what the real loop does.")
+        return
+    page.text(f"The real closed loop (rendering and the controller at every tick) from "
+              f"{spec.fidelity.starts} seeded uniform on-runway starts per environment "
+              f"(|px| < B; starts already off the runway agree with any BRT), run for "
+              f"{spec.horizon:g} s. False-safe: the BRT called the start safe and the real "
+              f"loop left the runway, the error a safety tool must not make. 'Table "
+              f"rollouts = real': the swept table integrated from the same starts, i.e. the "
+              f"table as a model of the loop; 'BRT = table rollouts': the solver against its "
+              f"table; 'left the box': runs leaving the solved box in py or theta, where the "
+              f"table is clamped to its edge. Every rate in % with its 95 % Wilson interval.")
+    page.table(["environment", "role", "starts", "real failures", "BRT agreement",
+                "false-safe", "false-unsafe", "table rollouts = real", "BRT = table rollouts",
+                "real runs left the box", "table rollouts left the box", "real max |theta| deg (median / 90 % / max)",
+                "renders"],
+               [[n, roles.get(n, "extra"), r["starts"], r["brt"]["real_failures"],
+                 _rate(r["brt"], "agree"), _rate(r["brt"], "false_safe"),
+                 _rate(r["brt"], "false_unsafe"), _rate(r["table_rollouts"], "agree"),
+                 f"{100 * r['brt_vs_table_rollouts']:.1f}", _rate(r["brt"], "box_exits"),
+                 _rate(r["table_rollouts"], "box_exits"),
+                 " / ".join(f"{v:g}" for v in r["real_max_abs_theta_deg"]), r["frames"]]
+                for n, r in results.items()])
+    crowded = [n for n, r in results.items()
+               if r["brt"]["box_exits_rate"] > spec.fidelity.max_box_exits]
+    if crowded:
+        page.text(f"WARNING: in {', '.join(crowded)} more than "
+                  f"{100 * spec.fidelity.max_box_exits:.0f} % of the real runs leave the solved "
+                  f"box; there the BRT's verdicts rest on clamped table values.")
+    labelled = {n: r["labels"] for n, r in results.items() if "labels" in r}
+    if labelled:
+        page.text("The labels of the datasets against the same real runs: where the "
+                  "labelling rule rolls out, the label is the real outcome; elsewhere it is "
+                  "the BRT's verdict.")
+        page.table(["environment", "label source", "agreement", "false-safe", "false-unsafe"],
+                   [[n, r["source"], _rate(r, "agree"), _rate(r, "false_safe"),
+                     _rate(r, "false_unsafe")] for n, r in labelled.items()])
+
+
 def graphs(run: Run):
     """SVG/PNG (or only .dot without graphviz) of the nominal and guarded diagrams."""
     scenario = run.scenario_for(run.spec.test[0])
@@ -103,19 +160,23 @@ def write_report(run: Run) -> dict:
             page.images([path], f"{name} diagram", wide=True)
     page.section("Backward reachable tubes", "brts")
     page.text(f"Grid {spec.grid} over the paper's box, horizon {spec.horizon:g} s, solver "
-              f"{spec.accuracy}; agreement = sign agreement with RK4 rollouts of the swept "
-              f"loop from every node; slices at py = {spec.slice_py:g} m.")
+              f"{spec.accuracy}; 'BRT = table rollouts': sign agreement of the BRT with RK4 "
+              f"rollouts of the swept table from every node (the solver against its own "
+              f"model of the loop, not against the real loop: see the next section); "
+              f"slices at py = {spec.slice_py:g} m.")
     roles = {**{e.name: "test" for e in spec.test}, **{e.name: "train" for e in spec.train}}
-    page.table(["environment", "role", "states", "BRT %", "rollout agreement %", "sweep s",
+    page.table(["environment", "role", "states", "BRT %", "BRT = table rollouts (all nodes) %", "sweep s",
                 "states/s", "solve s"],
                [[n, roles.get(n, "extra"), r["states"], _pct(r["brt_fraction"]),
                  _pct(r["rollout_agreement"]), r["sweep_seconds"],
                  sweep_rate(r), r["solve_seconds"]]
                 for n, r in o["solve"].items()])
     page.images([r["figure"] for r in o["solve"].values()])
-    page.section("BRT labels and the detector", "labels")
-    page.text(f"{spec.dataset.samples} uniform states per environment, labelled anomalous "
-              f"iff V(x) <= 0; positives per environment: " + ", ".join(
+    fidelity_section(page, run, roles)
+    page.section("Labels and the detector", "labels")
+    page.text(f"{spec.dataset.samples} uniform states per environment, labels from "
+              f"'{spec.dataset.labels.source}' ({LABEL_SOURCE_TEXT[spec.dataset.labels.source]}); "
+              f"positives per environment: " + ", ".join(
                   f"{n} {_pct(p)}%" for n, p in o["dataset"]["positives"].items()) +
               f". Detector {spec.detector.detector.arch} "
               f"{spec.detector.detector.height}x{spec.detector.detector.width}, "

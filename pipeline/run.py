@@ -1,6 +1,6 @@
 """``reachwatch run``: scenario file to report in one command.
 
-Stages run in order sweep -> solve -> dataset -> train -> evaluate -> guard ->
+Stages run in order sweep -> solve -> dataset -> fidelity -> train -> evaluate -> guard ->
 incremental -> report; each is skipped when its record in ``OUT/stages/`` has the
 same key (a digest of its inputs), and resumes its chunked work when it was killed."""
 
@@ -9,12 +9,13 @@ import time
 
 from .console import log, progress_enabled
 from .executors import open_executor
+from .fidelity_stages import stage_fidelity
 from .online_stages import stage_guard, stage_incremental
 from .report import write_report
 from .spec import RunSpec, digest, load_run_spec
 from .stages import Run, stage_dataset, stage_evaluate, stage_solve, stage_sweep, stage_train
 
-STAGES = ("sweep", "solve", "dataset", "train", "evaluate", "guard", "incremental", "report")
+STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "incremental", "report")
 REPORT_FORMAT = 1
 
 
@@ -31,6 +32,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
         "dataset": lambda: run.stage("dataset", digest(
             {n: r["value"] for n, r in run.outputs["solve"].items()}, spec.dataset,
             spec.ensemble, spec.scenario.camera), lambda: stage_dataset(run)),
+        "fidelity": lambda: stage_fidelity(run),
         "train": lambda: run.stage("train", digest(run.outputs["dataset"], spec.detector),
                                    lambda: stage_train(run)),
         "evaluate": lambda: run.stage("evaluate", digest(run.records["train"]["key"], spec.slice_py),

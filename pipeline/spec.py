@@ -37,6 +37,17 @@ class GuardSpec:
 
 
 @dc.dataclass
+class FidelitySpec:
+    """The check of every environment against the real Drake loop: ``starts`` seeded
+    uniform on-runway starts each (0 = no check; each costs up to horizon / period
+    renders), and the share of real runs leaving the solved box above which BRT
+    labels are refused (``max_box_exits``)."""
+    starts: int = 50
+    seed: int = 1000
+    max_box_exits: float = 0.05
+
+
+@dc.dataclass
 class RunSpec:
     """A whole study. ``scenario`` holds camera, controller and fallback settings
     (its environment and start are ignored); grids are ``[n_px, n_py, n_theta]``
@@ -53,6 +64,7 @@ class RunSpec:
     detector: DetectorTrainConfig = dc.field(default_factory=DetectorTrainConfig)
     ensemble: EnsembleSpec = dc.field(default_factory=EnsembleSpec)
     guard: GuardSpec = dc.field(default_factory=GuardSpec)
+    fidelity: FidelitySpec = dc.field(default_factory=FidelitySpec)
     incremental: IncrementalConfig = dc.field(default_factory=IncrementalConfig)
 
     def validate(self):
@@ -86,6 +98,13 @@ class RunSpec:
         if self.guard.candidates < 0:
             raise ValueError(f"guard.candidates must be >= 0, got {self.guard.candidates}")
         positive("guard.online_seconds", self.guard.online_seconds)
+        if isinstance(self.fidelity.starts, bool) or not isinstance(self.fidelity.starts, int) \
+                or self.fidelity.starts < 0:
+            raise ValueError(f"fidelity.starts must be a whole number >= 0, got "
+                             f"{self.fidelity.starts!r}")
+        if not 0 <= self.fidelity.max_box_exits <= 1:
+            raise ValueError(f"fidelity.max_box_exits must be a fraction in [0, 1], got "
+                             f"{self.fidelity.max_box_exits!r}")
         if [self.dataset.height, self.dataset.width] != [self.detector.detector.height,
                                                          self.detector.detector.width]:
             raise ValueError(f"dataset image size {[self.dataset.height, self.dataset.width]} "

@@ -280,9 +280,11 @@ def stage_dataset(run: Run) -> dict:
         str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset,
         [str(p) for p in ensemble], run.progress) for e in envs}
     folders = {name: run.rel(f.result()) for name, f in futures.items()}
+    data = {name: load_dataset(run.path(f)) for name, f in folders.items()}
     return {"ensemble": [run.rel(p) for p in ensemble], "folders": folders,
-            "positives": {name: float(load_dataset(run.path(f)).labels.mean())
-                          for name, f in folders.items()}}
+            "positives": {name: float(d.labels.mean()) for name, d in data.items()},
+            "labels": {name: {**d.manifest["labels"], "counts": d.manifest["label_counts"]}
+                       for name, d in data.items()}}
 
 
 def stage_train(run: Run) -> dict:

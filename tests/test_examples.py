@@ -25,6 +25,7 @@ def _tiny(spec):
     spec.detector.epochs, spec.detector.batch_size, spec.detector.device = 1, 8, "cpu"
     spec.guard.candidates, spec.guard.online_seconds = 1, 0.2
     spec.train, spec.test = spec.train[:1], spec.test[:1]
+    spec.fidelity.starts, spec.fidelity.max_box_exits = 2, 1.0
     return spec
 
 

@@ -73,3 +73,26 @@ def test_brt_command_reports_real_loop_fidelity_with_intervals(tmp_path, capsys)
     text = capsys.readouterr().out
     assert "3 starts" in text and "false-safe" in text and "left the box" in text
     assert re.search(r"agreement \d+\.\d % \[\d+\.\d, \d+\.\d\]", text)
+
+
+def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
+    from reachwatch.pipeline.fidelity_stages import BoxExitError, check_box_exits, label_verdicts
+    values = np.array([-1.0, 0.5, 3.0, 4.0])
+    real = np.array([True, True, True, False])
+    manifest = lambda source, **audit: {"labels": {"source": source, "audit": audit},  # noqa: E731
+                                        "spec": {"labels": {"band": 2.0}}}
+    np.testing.assert_array_equal(label_verdicts(manifest("brt"), values, real), values <= 0)
+    np.testing.assert_array_equal(label_verdicts(manifest("rollout"), values, real), real)
+    # hybrid with a trusted map rolls out only 0 < V < band; with a distrusted one all V > 0
+    np.testing.assert_array_equal(label_verdicts(manifest("hybrid", map_trusted=True), values, real),
+                                  [True, True, False, False])
+    np.testing.assert_array_equal(label_verdicts(manifest("hybrid", map_trusted=False), values, real),
+                                  real)
+    results = {"A": {"brt": {"box_exits_rate": 0.3}, "labels": {"source": "brt"}},
+               "B": {"brt": {"box_exits_rate": 0.3}, "labels": {"source": "hybrid"}},
+               "C": {"brt": {"box_exits_rate": 0.01}, "labels": {"source": "brt"}},
+               "D": {"brt": {"box_exits_rate": 0.5}}}
+    with pytest.raises(BoxExitError, match=r"A: 30 % of runs \(fidelity.max_box_exits 5 %\)"):
+        check_box_exits(results, 0.05)
+    check_box_exits(results, 0.3)                     # at the limit: accepted
+    check_box_exits({k: results[k] for k in "BCD"}, 0.05)

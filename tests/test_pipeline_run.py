@@ -27,13 +27,14 @@ detector:
   device: cpu
 ensemble: {seeds: [1, 2], samples: 48, epochs: 2}
 guard: {candidates: 2, online_seconds: 0.2, meshcat_html: true}
+fidelity: {starts: 3, max_box_exits: 1.0}
 incremental:
   environment: {runway: KMWH, hour: 17.0, sky: clear}
   anomalies: 20
   replay: 20
   epochs: 2
 """
-SECTIONS = ("environments", "diagrams", "brts", "labels", "table2", "margin", "guard",
+SECTIONS = ("environments", "diagrams", "brts", "fidelity", "labels", "table2", "margin", "guard",
             "incremental", "benchmarks", "configuration")
 
 
@@ -96,6 +97,13 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     assert set(guard["volumes"]) == {"unguarded", "slow_down", "brake"}
     assert guard["volumes"]["brake"] <= guard["volumes"]["unguarded"]
     assert guard["online"]["alone_ticks_per_s"] > 0 and guard["online"]["guarded_ticks_per_s"] > 0
+    fidelity = run.outputs["fidelity"]
+    assert set(fidelity) == {"KMWH_9h_clear", "KSFO_17h_clear", "KMWH_17h_clear"}
+    check = fidelity["KSFO_17h_clear"]
+    assert check["brt"]["n"] == check["table_rollouts"]["n"] == 3 and check["frames"] > 0
+    assert check["labels"]["source"] == "brt" and check["labels"]["agree"] == check["brt"]["agree"]
+    assert "labels" not in fidelity["KMWH_17h_clear"]          # incremental only: no dataset
+    assert "Fidelity against the real Drake loop" in md and "false-safe" in md
     inc = run.outputs["incremental"]
     assert inc["environment"] == "KMWH_17h_clear" and 0 <= inc["after"] <= 1
     assert (tmp_path / inc["checkpoint"]).is_file()
@@ -179,7 +187,7 @@ def test_evaluate_command_is_the_run_up_to_evaluate(tmp_path, capsys):
     from reachwatch.pipeline.cli import main
     assert main(["evaluate", "--train", "KMWH:9:clear", "--test", "KSFO:17:clear",
                  "--shape", "5", "3", "5", "--samples", "20", "--input-size", "24", "40",
-                 "--epochs", "1", "--ensemble", "0", "--executor", "inline",
+                 "--epochs", "1", "--ensemble", "0", "--executor", "inline", "--check-starts", "0",
                  "--out", str(tmp_path)]) == 0
     assert "| KSFO_17h_clear | detector (BRT labels) | 20 |" in capsys.readouterr().out
     assert (tmp_path / "table2.csv").is_file() and (tmp_path / "stages" / "evaluate.json").is_file()

@@ -1,0 +1,107 @@
+"""How true are BRT verdicts and labels? For a day and a night environment: sweep and
+solve the BRT on each uniform grid, run the real Drake closed loop (rendering every
+tick) from fresh seeded on-runway starts, and score each label source against it,
+with the renders each one costs and 95 % Wilson intervals.
+
+- ``brt``: V(x0) <= 0; costs only the map's renders.
+Label cost is in rendered frames per label of a 1000-state dataset, beyond the map.
+
+- ``hybrid``: an audit of ``--audit`` other on-runway states decides whether the map
+  is trusted (no false-safe among them); the verdict at a check start is then its
+  real outcome where the hybrid rule would roll out (0 < V < band if trusted, V > 0
+  if not), the BRT's elsewhere. Its cost is the audit plus the rolled-out share.
+- ``rollout``: the real outcome itself (exact by construction: the same
+  deterministic loop); costs every start's frames.
+
+Real runs are cached by content under ``--cache`` (a re-run is free, a killed one
+resumes).
+
+    python benchmarks/fidelity.py [--run-file scenarios/demo.yaml]
+        [--day KMWH:9:clear] [--night KSFO:21:overcast] [--grids 11 5 11 21 9 21]
+        [--starts 100] [--audit 30] [--band 2.0] [--cache DIR]
+"""
+
+import argparse
+import copy
+import time
+from pathlib import Path
+
+import numpy as np
+
+from reachwatch.diagrams import CONTROL_PORT
+from reachwatch.pipeline.evaluate_commands import parse_environment
+from reachwatch.pipeline.spec import load_run_spec
+from reachwatch.reach import compare_verdicts, solve_brt
+from reachwatch.systems.files import cache_root
+from reachwatch.taxi import dynamics_for, on_runway_starts, paper_grid, sweep_closed_loop
+from reachwatch.taxi.fidelity import real_outcomes
+
+
+def interval(f, name):
+    rate, lo, hi = f.rate(name)
+    return f"{100 * rate:5.1f} [{100 * lo:4.1f}, {100 * hi:5.1f}]"
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--run-file", default="scenarios/demo.yaml", help="camera, controller, horizon")
+    p.add_argument("--day", default="KMWH:9:clear")
+    p.add_argument("--night", default="KSFO:21:overcast")
+    p.add_argument("--grids", type=int, nargs="+", default=[11, 5, 11, 21, 9, 21],
+                   help="uniform grid shapes, three numbers each")
+    p.add_argument("--starts", type=int, default=100, help="real-loop check starts per environment")
+    p.add_argument("--audit", type=int, default=30, help="hybrid audit states per environment")
+    p.add_argument("--band", type=float, default=2.0, help="hybrid band (m)")
+    p.add_argument("--cache", default=None, help="sweep and rollout cache (default: the user cache)")
+    args = p.parse_args()
+    if len(args.grids) % 3:
+        p.error("--grids takes three numbers per grid")
+    spec = load_run_spec(args.run_file)
+    cache = cache_root() if args.cache is None else Path(args.cache)
+    print(f"{'environment':22s} {'grid':9s} {'source':8s} {'map renders':>11s} "
+          f"{'frames/label':>12s} {'agreement % [95 % CI]':>22s} "
+          f"{'false-safe %':>18s} {'false-unsafe %':>18s}")
+    for text in (args.day, args.night):
+        env = parse_environment(text)
+        scenario = copy.deepcopy(spec.scenario)
+        scenario.environment = env
+        B = env.half_width
+        base = paper_grid(B, (3, 3, 3))
+        starts = on_runway_starts(base, args.starts, 1000, half_width=B)
+        audit = on_runway_starts(base, args.audit, 2000, half_width=B)
+        started = time.time()
+        check = real_outcomes(scenario, starts, grid=base, duration=spec.horizon,
+                              cache_dir=cache / "outcomes")
+        audited = real_outcomes(scenario, audit, grid=base, duration=spec.horizon,
+                                cache_dir=cache / "outcomes")
+        seconds = time.time() - started
+        real, frames = check.failed, check["ticks"]
+        for shape in np.reshape(args.grids, (-1, 3)):
+            grid = paper_grid(B, tuple(int(n) for n in shape))
+            table = sweep_closed_loop(scenario, grid, cache_dir=cache / "sweeps", progress=True)
+            vf = solve_brt(grid, dynamics_for(scenario), table[CONTROL_PORT], horizon=spec.horizon,
+                           period=scenario.controller.period)
+            values = vf.at(starts)
+            trusted = not np.any(audited.failed & (vf.at(audit) > 0))
+            rolled = (values > 0) & ((values < args.band) if trusted else True)
+            sources = {
+                "brt": (values <= 0, 0.0),
+                "hybrid": (np.where(rolled, real, values <= 0),
+                           np.sum(frames[rolled]) / len(starts) + np.sum(audited["ticks"]) / 1000),
+                "rollout": (real, float(np.mean(frames)))}
+            for source, (verdicts, cost) in sources.items():
+                f = compare_verdicts(verdicts, real)
+                print(f"{env.name:22s} {'x'.join(map(str, grid.shape)):9s} {source:8s} "
+                      f"{grid.size:11d} {cost:12.1f} {interval(f, 'agree'):>22s} "
+                      f"{interval(f, 'false_safe'):>18s} {interval(f, 'false_unsafe'):>18s}")
+            print(f"{'':22s} hybrid audit: {'map trusted' if trusted else 'map NOT trusted'} "
+                  f"({int(np.sum(audited.failed & (vf.at(audit) > 0)))} false-safe of "
+                  f"{len(audit)}); rolled out {100 * rolled.mean():.0f} % of the check starts")
+        print(f"{'':22s} {len(starts)} check runs: {int(real.sum())} failures, "
+              f"{100 * np.mean(check['left_box']):.0f} % left the paper box, "
+              f"{int(frames.sum())} frames, {seconds:.0f} s with the audit "
+              f"(0 s when cached), max |theta| {np.rad2deg(check['max_abs_theta'].max()):.0f} deg")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,108 @@
+"""The fidelity stage of ``reachwatch run``: every environment's BRT, swept table and
+labels checked against the real Drake loop (rendering at every tick) from seeded
+uniform random on-runway starts, with 95 % Wilson intervals.
+
+The split says where an error comes from: the swept table as a model of the real
+loop (table rollouts vs real), the solver against its own table (BRT vs table
+rollouts), and the runs that leave the solved box (where the table is clamped)."""
+
+import time
+
+import numpy as np
+
+from reachwatch.diagrams import CONTROL_PORT
+from reachwatch.reach import compare_verdicts, min_target_along_rollouts
+from reachwatch.taxi import dynamics_for, on_runway_starts, sweep_closed_loop
+from reachwatch.taxi.fidelity import OPEN_AXES, real_outcomes
+from reachwatch.training.dataset import load_dataset
+
+from .spec import digest
+from .stages import Run
+
+
+class BoxExitError(RuntimeError):
+    """The real loop leaves the solved box too often for BRT labels to mean anything."""
+
+
+def label_verdicts(manifest: dict, values, real_failed) -> np.ndarray:
+    """What a dataset's labelling rule (its manifest's ``labels``) gives at fresh
+    states with BRT values ``values`` whose real outcomes are ``real_failed``: the
+    real outcome where the rule rolls out, the BRT's verdict elsewhere."""
+    labels, spec = manifest["labels"], manifest["spec"]["labels"]
+    brt = np.asarray(values) <= 0
+    if labels["source"] == "brt":
+        return brt
+    if labels["source"] == "rollout":
+        return np.asarray(real_failed, bool)
+    trusted = labels["audit"]["map_trusted"]
+    rolled = (np.asarray(values) > 0) & ((np.asarray(values) < spec["band"]) if trusted else True)
+    return np.where(rolled, real_failed, brt)
+
+
+def fidelity_env(run: Run, env) -> dict:
+    """Real-loop outcomes from ``run.spec.fidelity.starts`` starts and the BRT, the
+    table rollouts and (for train/test environments) the labels compared with them."""
+    spec, check = run.spec, run.spec.fidelity
+    scenario, grid = run.scenario_for(env), run.grid_for(env)
+    vf = run.value_function(env.name)
+    starts = on_runway_starts(grid, check.starts, check.seed, half_width=env.half_width)
+    started = time.time()
+    outcomes = real_outcomes(scenario, starts, grid=grid, duration=spec.horizon,
+                             cache_dir=run.path("outcomes"), executor=run.executor,
+                             progress=run.progress)
+    seconds = time.time() - started
+    real = outcomes.failed
+    predicted = vf.in_brt(starts)
+    table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
+                              progress=False)
+    lowest, table_left = min_target_along_rollouts(
+        grid, dynamics_for(scenario), table[CONTROL_PORT], starts, horizon=spec.horizon,
+        hold=scenario.controller.period, box_axes=OPEN_AXES)
+    table_fails = lowest <= 0
+    out = {"starts": int(check.starts), "seed": int(check.seed),
+           "brt": compare_verdicts(predicted, real, outcomes["left_box"]).as_dict(),
+           "table_rollouts": compare_verdicts(table_fails, real, table_left).as_dict(),
+           "brt_vs_table_rollouts": float(np.mean(predicted == table_fails)),
+           "real_max_abs_theta_deg": np.percentile(np.rad2deg(outcomes["max_abs_theta"]),
+                                                   [50, 90, 100]).round(1).tolist(),
+           "frames": int(np.sum(outcomes["ticks"])), "seconds": round(seconds, 1)}
+    folder = run.outputs.get("dataset", {}).get("folders", {}).get(env.name)
+    if folder:
+        manifest = load_dataset(run.path(folder)).manifest
+        verdicts = label_verdicts(manifest, vf.at(starts), real)
+        out["labels"] = {"source": manifest["labels"]["source"],
+                         **compare_verdicts(verdicts, real, outcomes["left_box"]).as_dict()}
+    return out
+
+
+def stage_fidelity(run: Run) -> dict:
+    """`fidelity_env` for every environment the run needs (one record each); raises
+    `BoxExitError` when BRT labels are used where more than ``fidelity.max_box_exits``
+    of the real runs leave the solved box."""
+    check, out = run.spec.fidelity, {}
+    if check.starts == 0:
+        return out
+    folders = run.outputs.get("dataset", {}).get("folders", {})
+    for env in run.environments():
+        key = digest(run.records[f"solve_{env.name}"]["key"], check, folders.get(env.name))
+        out[env.name] = run.stage(f"fidelity_{env.name}", key,
+                                  lambda env=env: fidelity_env(run, env))
+    check_box_exits(out, check.max_box_exits)
+    return out
+
+
+def check_box_exits(results: dict, max_box_exits: float):
+    """Raise `BoxExitError` naming every environment of ``results`` (`fidelity_env`
+    outputs by name) labelled by the BRT alone where more than ``max_box_exits`` of
+    the real runs left the solved box."""
+    crowded = {name: r["brt"]["box_exits_rate"] for name, r in results.items()
+               if r.get("labels", {}).get("source") == "brt"
+               and r["brt"]["box_exits_rate"] > max_box_exits}
+    if crowded:
+        raise BoxExitError(
+            "the real loop leaves the solved box (py or theta) within the horizon in " +
+            ", ".join(f"{n}: {100 * r:.0f} % of runs" for n, r in crowded.items()) +
+            f" (fidelity.max_box_exits {100 * max_box_exits:.0f} %): there the swept "
+            f"table is clamped to its edge and BRT labels are guesses. Label with "
+            f"dataset.labels.source: hybrid or rollout, widen the grid, or raise "
+            f"fidelity.max_box_exits to accept it (the report then shows it)")
