@@ -5,6 +5,7 @@ outputs (paths relative to the run directory); `Run.stage` skips a stage whose k
 itself chunked and cached by content, so a killed stage resumes where it stopped."""
 
 import copy
+import dataclasses as dc
 import datetime
 import json
 import logging
@@ -21,7 +22,7 @@ from reachwatch.taxi import dynamics_for, paper_grid, sweep_closed_loop, taxi_sw
 from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
-from reachwatch.training.dataset import build_dataset, load_dataset
+from reachwatch.training.dataset import SOURCE_BRT, build_dataset, load_dataset
 from reachwatch.training.detector_train import operating_threshold, train_detector
 from reachwatch.training.evaluation import Detector, csv_table, evaluate_environment, markdown_table
 from reachwatch.training.figures import plot_error_vs_margin, plot_overlay
@@ -320,7 +321,8 @@ def stage_evaluate(run: Run) -> dict:
     """Table 2 on the held-out environments, error-vs-margin and overlay figures."""
     spec, trained = run.spec, run.outputs["train"]
     detectors = []
-    candidates = [("detector (BRT labels)", trained["detector"], trained["threshold"])]
+    source = {"brt": "BRT", "rollout": "real-loop", "hybrid": "hybrid"}[spec.dataset.labels.source]
+    candidates = [(f"detector ({source} labels)", trained["detector"], trained["threshold"])]
     if "prediction_error_detector" in trained:
         candidates.append((f"detector (prediction-error labels, error > "
                            f"{trained['prediction_error_threshold']:.3f})",
@@ -333,6 +335,10 @@ def stage_evaluate(run: Run) -> dict:
     for env, d in zip(spec.test, run.datasets(spec.test)):
         env_rows, scores = evaluate_environment(d, detectors, device=spec.detector.device)
         rows += env_rows
+        if np.any(d.sources != SOURCE_BRT):       # also scored against the BRT's verdicts
+            as_brt = dc.replace(d, labels=d.brt_labels,
+                                manifest={**d.manifest, "labels": {"source": "brt"}})
+            rows += evaluate_environment(as_brt, detectors, device=spec.detector.device)[0]
         predictions = {r["method"]: scores[r["method"]] >= r["threshold"] for r in env_rows}
         margin = plot_error_vs_margin({m: (d.values, d.labels, p) for m, p in predictions.items()},
                                       run.path(f"figures/error_vs_margin_{env.name}.png"))

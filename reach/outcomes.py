@@ -111,15 +111,21 @@ def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = 8, executor=No
                desc=f"real loop {label or key}", disable=not progress)
     executor = executor or InlineExecutor()
     pending = {}
-    try:
+
+    def finish(done):
+        for future in done:
+            future.result()                      # re-raises a worker's error
+            first, last = pending.pop(future)
+            bar.update(last - first)
+
+    try:       # a bounded window of chunks in flight; the bar moves as each finishes
         for i, s, e in todo:
             pending[executor.submit(_run_chunk, rollout, states[s:e], str(_chunk(folder, i)))] = (s, e)
-            while len(pending) >= max_in_flight or (pending and i == todo[-1][0]):
-                finished = cf.wait(pending, return_when=cf.FIRST_COMPLETED).done
-                for future in finished:
-                    future.result()
-                    s_, e_ = pending.pop(future)
-                    bar.update(e_ - s_)
+            finish([f for f in pending if f.done()])
+            while len(pending) >= max_in_flight:
+                finish(cf.wait(pending, return_when=cf.FIRST_COMPLETED).done)
+        while pending:
+            finish(cf.wait(pending, return_when=cf.FIRST_COMPLETED).done)
     finally:
         bar.close()
     fields = None

@@ -92,7 +92,7 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     rows = run.outputs["evaluate"]["rows"]
     assert [r["environment"] for r in rows] == ["KSFO_17h_clear"] * 4
     for r in rows:
-        assert f"| KSFO_17h_clear | {r['method']} | 40 |" in md
+        assert f"| KSFO_17h_clear | {r['method']} | brt | 40 |" in md
     guard = run.outputs["guard"]["KSFO_17h_clear"]
     assert set(guard["volumes"]) == {"unguarded", "slow_down", "brake"}
     assert guard["volumes"]["brake"] <= guard["volumes"]["unguarded"]
@@ -189,6 +189,6 @@ def test_evaluate_command_is_the_run_up_to_evaluate(tmp_path, capsys):
                  "--shape", "5", "3", "5", "--samples", "20", "--input-size", "24", "40",
                  "--epochs", "1", "--ensemble", "0", "--executor", "inline", "--check-starts", "0",
                  "--out", str(tmp_path)]) == 0
-    assert "| KSFO_17h_clear | detector (BRT labels) | 20 |" in capsys.readouterr().out
+    assert "| KSFO_17h_clear | detector (BRT labels) | brt | 20 |" in capsys.readouterr().out
     assert (tmp_path / "table2.csv").is_file() and (tmp_path / "stages" / "evaluate.json").is_file()
     assert not (tmp_path / "stages" / "guard_KSFO_17h_clear.json").exists()

@@ -1,5 +1,6 @@
 """The paper's Table 2 and its baselines: per held-out environment, recall, accuracy,
-precision, F1 and AUROC of each method against the BRT labels."""
+precision, F1 and AUROC of each method against the dataset's labels (whatever their
+source: the BRT, the real loop, or both; the ``labels`` column says which)."""
 
 import csv
 import dataclasses as dc
@@ -11,7 +12,7 @@ from .baselines import ensemble_variance, has_pose_estimate, prediction_error
 from .detector_train import detector_scores
 from .metrics import best_threshold, binary_metrics
 
-COLUMNS = ("environment", "method", "n", "positives", "recall", "accuracy", "precision",
+COLUMNS = ("environment", "method", "labels", "n", "positives", "recall", "accuracy", "precision",
            "f1", "auroc", "threshold")
 
 
@@ -29,11 +30,13 @@ def evaluate_environment(data, detectors, *, device="") -> list:
     threshold, then the baselines at the threshold maximising F1 on this same data
     (oracle-tuned, i.e. as generous to them as possible)."""
     env, labels, rows = data.manifest["environment"], data.labels, []
+    source = data.manifest.get("labels", {}).get("source", "brt")
     scores = {}
     for det in detectors:
         s = detector_scores(det.model, det.config, data.images, device=device)
         scores[det.name] = s
-        rows.append({"environment": env, "method": det.name, "threshold": det.threshold,
+        rows.append({"environment": env, "method": det.name, "labels": source,
+                     "threshold": det.threshold,
                      **binary_metrics(labels, s >= det.threshold, s).row()})
     baselines = {}
     if has_pose_estimate(data):
@@ -45,7 +48,8 @@ def evaluate_environment(data, detectors, *, device="") -> list:
     for name, s in baselines.items():
         threshold, metrics = best_threshold(labels, s)
         scores[name] = s
-        rows.append({"environment": env, "method": name, "threshold": float(threshold),
+        rows.append({"environment": env, "method": name, "labels": source,
+                     "threshold": float(threshold),
                      **metrics.row()})
     return rows, scores
 
