@@ -1,5 +1,5 @@
 """How true are BRT verdicts and labels? For a day and a night environment: sweep and
-solve the BRT on each uniform grid, run the real Drake closed loop (rendering every
+solve the BRT on each uniform grid (with each solver step length), run the real Drake closed loop (rendering every
 tick) from fresh seeded on-runway starts, and score each label source against it,
 with the renders each one costs and 95 % Wilson intervals.
 
@@ -18,7 +18,7 @@ resumes).
 
     python benchmarks/fidelity.py [--run-file scenarios/demo.yaml]
         [--day KMWH:9:clear] [--night KSFO:21:overcast] [--grids 11 5 11 21 9 21]
-        [--starts 100] [--audit 30] [--band 2.0] [--cache DIR]
+        [--periods-per-step 4 40] [--starts 100] [--audit 30] [--band 2.0] [--cache DIR]
 """
 
 import argparse
@@ -49,6 +49,8 @@ def main():
     p.add_argument("--night", default="KSFO:21:overcast")
     p.add_argument("--grids", type=int, nargs="+", default=[11, 5, 11, 21, 9, 21],
                    help="uniform grid shapes, three numbers each")
+    p.add_argument("--periods-per-step", type=int, nargs="+", default=[4, 40],
+                   help="semi_lagrangian solver steps to compare (control periods per step)")
     p.add_argument("--starts", type=int, default=100, help="real-loop check starts per environment")
     p.add_argument("--audit", type=int, default=30, help="hybrid audit states per environment")
     p.add_argument("--band", type=float, default=2.0, help="hybrid band (m)")
@@ -58,7 +60,7 @@ def main():
         p.error("--grids takes three numbers per grid")
     spec = load_run_spec(args.run_file)
     cache = cache_root() if args.cache is None else Path(args.cache)
-    print(f"{'environment':22s} {'grid':9s} {'source':8s} {'map renders':>11s} "
+    print(f"{'environment':22s} {'grid/pps':12s} {'source':8s} {'map renders':>11s} "
           f"{'frames/label':>12s} {'agreement % [95 % CI]':>22s} "
           f"{'false-safe %':>18s} {'false-unsafe %':>18s}")
     for text in (args.day, args.night):
@@ -76,11 +78,13 @@ def main():
                                 cache_dir=cache / "outcomes")
         seconds = time.time() - started
         real, frames = check.failed, check["ticks"]
-        for shape in np.reshape(args.grids, (-1, 3)):
+        variants = [(shape, pps) for shape in np.reshape(args.grids, (-1, 3))
+                    for pps in args.periods_per_step]
+        for shape, pps in variants:
             grid = paper_grid(B, tuple(int(n) for n in shape))
             table = sweep_closed_loop(scenario, grid, cache_dir=cache / "sweeps", progress=True)
             vf = solve_brt(grid, dynamics_for(scenario), table[CONTROL_PORT], horizon=spec.horizon,
-                           period=scenario.controller.period)
+                           period=scenario.controller.period, periods_per_step=int(pps))
             values = vf.at(starts)
             trusted = not np.any(audited.failed & (vf.at(audit) > 0))
             rolled = (values > 0) & ((values < args.band) if trusted else True)
@@ -91,7 +95,7 @@ def main():
                 "rollout": (real, float(np.mean(frames)))}
             for source, (verdicts, cost) in sources.items():
                 f = compare_verdicts(verdicts, real)
-                print(f"{env.name:22s} {'x'.join(map(str, grid.shape)):9s} {source:8s} "
+                print(f"{env.name:22s} {'x'.join(map(str, grid.shape)) + f'/{pps}':12s} {source:8s} "
                       f"{grid.size:11d} {cost:12.1f} {interval(f, 'agree'):>22s} "
                       f"{interval(f, 'false_safe'):>18s} {interval(f, 'false_unsafe'):>18s}")
             print(f"{'':22s} hybrid audit: {'map trusted' if trusted else 'map NOT trusted'} "

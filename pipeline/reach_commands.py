@@ -39,6 +39,9 @@ def add_parsers(sub):
                        "slice plots, print BRT volume and agreement with rollouts")
     _grid_args(b)
     b.add_argument("--accuracy", choices=sorted(ACCURACIES), default="semi_lagrangian")
+    b.add_argument("--periods-per-step", type=positive_int, default=40,
+                   help="semi_lagrangian: control periods per step; each step interpolates V "
+                   "once, so fewer, longer steps blur a coarse grid's BRT less")
     b.add_argument("--horizon", type=positive_float, default=8.0, help="s")
     b.add_argument("--drake-starts", type=count, default=50,
                    help="random starts run through the real Drake loop (0 skips)")
@@ -75,7 +78,7 @@ def brt_command(args):
     control = table[CONTROL_PORT]
     started = time.time()
     vf = solve_brt(grid, dynamics, control, horizon=args.horizon, accuracy=args.accuracy,
-                   period=scenario.controller.period)
+                   period=scenario.controller.period, periods_per_step=args.periods_per_step)
     solve_s = time.time() - started
     out = Path(args.out)
     name = scenario.environment.name

@@ -217,7 +217,7 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     steering, dynamics = table[CONTROL_PORT], dynamics_for(scenario)
     started = time.time()
     vf = solve_brt(grid, dynamics, steering, horizon=spec.horizon, accuracy=spec.accuracy,
-                   period=scenario.controller.period)
+                   period=scenario.controller.period, periods_per_step=spec.periods_per_step)
     solved = time.time() - started
     key = taxi_sweep_key(scenario, grid)
     vf.metadata.update(environment=env.name, sweep=key)
@@ -246,7 +246,7 @@ def stage_solve(run: Run) -> dict:
     out = {}
     for env in run.environments():
         key = digest(run.records[f"sweep_{env.name}"]["key"], run.spec.horizon,
-                     run.spec.accuracy, run.spec.slice_py)
+                     run.spec.accuracy, run.spec.periods_per_step, run.spec.slice_py)
         out[env.name] = {**run.outputs[f"sweep_{env.name}"], **run.stage(
             f"solve_{env.name}", key, lambda env=env: solve_env(run, env))}
     return out
