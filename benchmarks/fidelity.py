@@ -3,9 +3,9 @@ solve the BRT on each uniform grid (with each solver step length), run the real 
 tick) from fresh seeded on-runway starts, and score each label source against it,
 with the renders each one costs and 95 % Wilson intervals.
 
-- ``brt``: V(x0) <= 0; costs only the map's renders.
 Label cost is in rendered frames per label of a 1000-state dataset, beyond the map.
 
+- ``brt``: V(x0) <= 0; costs only the map's renders.
 - ``hybrid``: an audit of ``--audit`` other on-runway states decides whether the map
   is trusted (no false-safe among them); the verdict at a check start is then its
   real outcome where the hybrid rule would roll out (0 < V < band if trusted, V > 0
@@ -35,6 +35,7 @@ from reachwatch.reach import compare_verdicts, solve_brt
 from reachwatch.systems.files import cache_root
 from reachwatch.taxi import dynamics_for, on_runway_starts, paper_grid, sweep_closed_loop
 from reachwatch.taxi.fidelity import real_outcomes
+from reachwatch.training.dataset import hybrid_rolls_out
 
 
 def interval(f, name):
@@ -87,7 +88,7 @@ def main():
                            period=scenario.controller.period, periods_per_step=int(pps))
             values = vf.at(starts)
             trusted = not np.any(audited.failed & (vf.at(audit) > 0))
-            rolled = (values > 0) & ((values < args.band) if trusted else True)
+            rolled = hybrid_rolls_out(values, args.band, trusted)
             sources = {
                 "brt": (values <= 0, 0.0),
                 "hybrid": (np.where(rolled, real, values <= 0),

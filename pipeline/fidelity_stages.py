@@ -14,7 +14,7 @@ from reachwatch.diagrams import CONTROL_PORT
 from reachwatch.reach import compare_verdicts, min_target_along_rollouts
 from reachwatch.taxi import dynamics_for, on_runway_starts, sweep_closed_loop
 from reachwatch.taxi.fidelity import OPEN_AXES, real_outcomes
-from reachwatch.training.dataset import load_dataset
+from reachwatch.training.dataset import hybrid_rolls_out
 
 from .spec import digest
 from .stages import Run
@@ -24,18 +24,17 @@ class BoxExitError(RuntimeError):
     """The real loop leaves the solved box too often for BRT labels to mean anything."""
 
 
-def label_verdicts(manifest: dict, values, real_failed) -> np.ndarray:
-    """What a dataset's labelling rule (its manifest's ``labels``) gives at fresh
-    states with BRT values ``values`` whose real outcomes are ``real_failed``: the
-    real outcome where the rule rolls out, the BRT's verdict elsewhere."""
-    labels, spec = manifest["labels"], manifest["spec"]["labels"]
+def label_verdicts(labels: dict, band: float, values, real_failed) -> np.ndarray:
+    """What a dataset's labelling rule (``labels``: its manifest's record of the
+    source and the audit; ``band`` m) gives at fresh states with BRT values
+    ``values`` whose real outcomes are ``real_failed``: the real outcome where the
+    rule rolls out, the BRT's verdict elsewhere."""
     brt = np.asarray(values) <= 0
     if labels["source"] == "brt":
         return brt
     if labels["source"] == "rollout":
         return np.asarray(real_failed, bool)
-    trusted = labels["audit"]["map_trusted"]
-    rolled = (np.asarray(values) > 0) & ((np.asarray(values) < spec["band"]) if trusted else True)
+    rolled = hybrid_rolls_out(values, band, labels["audit"]["map_trusted"])
     return np.where(rolled, real_failed, brt)
 
 
@@ -66,11 +65,10 @@ def fidelity_env(run: Run, env) -> dict:
            "real_max_abs_theta_deg": np.percentile(np.rad2deg(outcomes["max_abs_theta"]),
                                                    [50, 90, 100]).round(1).tolist(),
            "frames": int(np.sum(outcomes["ticks"])), "seconds": round(seconds, 1)}
-    folder = run.outputs.get("dataset", {}).get("folders", {}).get(env.name)
-    if folder:
-        manifest = load_dataset(run.path(folder)).manifest
-        verdicts = label_verdicts(manifest, vf.at(starts), real)
-        out["labels"] = {"source": manifest["labels"]["source"],
+    labels = run.outputs.get("dataset", {}).get("labels", {}).get(env.name)
+    if labels:
+        verdicts = label_verdicts(labels, spec.dataset.labels.band, vf.at(starts), real)
+        out["labels"] = {"source": labels["source"],
                          **compare_verdicts(verdicts, real, outcomes["left_box"]).as_dict()}
     return out
 

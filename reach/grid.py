@@ -56,6 +56,9 @@ class Grid:
         """A stable text id (for cache keys)."""
         return repr(self)
 
+    def __fingerprint__(self):
+        return self.key()
+
     @property
     def spacing(self) -> np.ndarray:
         return (self.hi - self.lo) / (np.asarray(self.shape) - 1)

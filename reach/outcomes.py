@@ -43,9 +43,6 @@ class Outcomes:
     def failed(self) -> np.ndarray:
         return self.fields["failed"].astype(bool)
 
-    def get(self, name, default=None):
-        return self.fields.get(name, default)
-
 
 def outcomes_key(rollout, states) -> str:
     """The cache folder name of a batch: the rollout function's fingerprint and the
@@ -130,7 +127,7 @@ def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = 8, executor=No
         bar.close()
     fields = None
     for i, s, e in bounds:
-        arrays = _load(_chunk(folder, i), e - s)
+        arrays = done[i] if done[i] is not None else _load(_chunk(folder, i), e - s)
         if arrays is None:
             raise RuntimeError(f"rollout chunk {i} of {key} did not finish")
         if fields is None:

@@ -6,7 +6,7 @@ import functools
 import numpy as np
 
 from reachwatch.diagrams import make_closed_loop_diagram, simulate
-from reachwatch.reach.fidelity import Fidelity, compare_verdicts
+from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.outcomes import Outcomes, run_outcomes
 
@@ -28,19 +28,19 @@ def on_runway_starts(grid, count: int, seed: int, *, half_width: float) -> np.nd
     return lo + rng.uniform(size=(count, grid.ndim)) * (hi - lo)
 
 
-def taxi_rollouts(scenario, duration: float, box_lo, box_hi, states) -> dict:
+def taxi_rollouts(scenario, duration: float, grid, states) -> dict:
     """Runs the real closed loop of ``scenario`` from each start for ``duration`` s
     (stopping at failure, |px| >= B). Returns per start ``failed``, ``failure_time``
-    (s, NaN if none), ``left_box`` (the run left ``[box_lo, box_hi]`` in py or theta),
+    (s, NaN if none), ``left_box`` (the run left ``grid``'s box in py or theta),
     ``max_abs_theta`` (rad) and ``ticks`` (frames rendered). Use it through
     `real_outcomes`, which caches it; ``functools.partial(taxi_rollouts, scenario,
-    duration, lo, hi)`` is a picklable rollout function for `run_outcomes`."""
+    duration, grid)`` is a picklable rollout function for `run_outcomes`."""
     key = fingerprint(scenario)
     if key not in _LOOPS:
         diagram = make_closed_loop_diagram(scenario)
         _LOOPS[key] = diagram, diagram.CreateDefaultContext()
     diagram, context = _LOOPS[key]
-    B, lo, hi = scenario.environment.half_width, np.asarray(box_lo), np.asarray(box_hi)
+    B = scenario.environment.half_width
     out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
     for x in np.asarray(states, float):
         if abs(x[0]) >= B:                      # already off the runway
@@ -48,10 +48,8 @@ def taxi_rollouts(scenario, duration: float, box_lo, box_hi, states) -> dict:
         else:
             run = simulate(diagram, initial_state=x, duration=duration,
                            period=scenario.controller.period, half_width=B, context=context)
-            open_axes = run.state[:, OPEN_AXES]
-            left = bool(np.any((open_axes < lo[list(OPEN_AXES)] - 1e-9) |
-                               (open_axes > hi[list(OPEN_AXES)] + 1e-9)))
-            row = (run.failed, run.failure_time, left, float(np.max(np.abs(run.state[:, 2]))),
+            row = (run.failed, run.failure_time, left_box(run.state, grid, axes=OPEN_AXES),
+                   float(np.max(np.abs(run.state[:, 2]))),
                    len(run.time))
         for k, v in zip(out, row):
             out[k].append(v)
@@ -64,8 +62,7 @@ def real_outcomes(scenario, starts, *, grid, duration: float, cache_dir, executo
     scenario, the horizon, ``grid``'s box and the starts): a killed batch resumes, a
     repeated one costs nothing."""
     scenario = resolved(scenario)
-    rollout = functools.partial(taxi_rollouts, scenario, float(duration),
-                                tuple(map(float, grid.lo)), tuple(map(float, grid.hi)))
+    rollout = functools.partial(taxi_rollouts, scenario, float(duration), grid)
     return run_outcomes(rollout, starts, cache_dir=cache_dir, executor=executor,
                         progress=progress, label=scenario.environment.name)
 

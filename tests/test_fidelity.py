@@ -79,14 +79,13 @@ def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
     from reachwatch.pipeline.fidelity_stages import BoxExitError, check_box_exits, label_verdicts
     values = np.array([-1.0, 0.5, 3.0, 4.0])
     real = np.array([True, True, True, False])
-    manifest = lambda source, **audit: {"labels": {"source": source, "audit": audit},  # noqa: E731
-                                        "spec": {"labels": {"band": 2.0}}}
-    np.testing.assert_array_equal(label_verdicts(manifest("brt"), values, real), values <= 0)
-    np.testing.assert_array_equal(label_verdicts(manifest("rollout"), values, real), real)
+    labels = lambda source, **audit: {"source": source, "audit": audit}  # noqa: E731
+    np.testing.assert_array_equal(label_verdicts(labels("brt"), 2.0, values, real), values <= 0)
+    np.testing.assert_array_equal(label_verdicts(labels("rollout"), 2.0, values, real), real)
     # hybrid with a trusted map rolls out only 0 < V < band; with a distrusted one all V > 0
-    np.testing.assert_array_equal(label_verdicts(manifest("hybrid", map_trusted=True), values, real),
+    np.testing.assert_array_equal(label_verdicts(labels("hybrid", map_trusted=True), 2.0, values, real),
                                   [True, True, False, False])
-    np.testing.assert_array_equal(label_verdicts(manifest("hybrid", map_trusted=False), values, real),
+    np.testing.assert_array_equal(label_verdicts(labels("hybrid", map_trusted=False), 2.0, values, real),
                                   real)
     results = {"A": {"brt": {"box_exits_rate": 0.3}, "labels": {"source": "brt"}},
                "B": {"brt": {"box_exits_rate": 0.3}, "labels": {"source": "hybrid"}},

@@ -153,6 +153,13 @@ def _estimator(controller):
     return (lambda images: np.stack([probe.outputs(image)[1] for image in images])), size
 
 
+def hybrid_rolls_out(values, band: float, map_trusted: bool) -> np.ndarray:
+    """Where the ``hybrid`` source labels by the real loop: every state the BRT calls
+    safe (``V > 0``) when the map is not trusted, else those with ``0 < V < band``."""
+    values = np.asarray(values, float)
+    return (values > 0) & ((values < band) if map_trusted else True)
+
+
 def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
     """Labels and their sources for states with BRT values ``values`` under
     ``labels.source``; ``on_runway`` marks the states where the loop has not failed
@@ -185,7 +192,7 @@ def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
         trusted = false_safe == 0
         info["audit"] = {"samples": int(len(audit)), "real_failures": int(audit_failed.sum()),
                          "false_safe": false_safe, "map_trusted": trusted}
-        uncertain = (values > 0) & ((values < labels.band) if trusted else True)
+        uncertain = hybrid_rolls_out(values, labels.band, trusted)
         roll = np.union1d(audit, np.flatnonzero(uncertain)).astype(int)
     if labels.max_rollouts and len(roll) > labels.max_rollouts:
         n = int(roll[labels.max_rollouts])     # the first sample whose rollout is over the cap
