@@ -57,55 +57,59 @@ def _chunk(folder: Path, index: int) -> Path:
     return folder / f"chunk_{index:06d}.npz"
 
 
-def _run_chunk(rollout, states, path: str) -> str:
-    out = rollout(states)
-    if not isinstance(out, dict) or "failed" not in out:
-        raise ValueError(f"a rollout function must return a dict with a 'failed' array, "
-                         f"got {type(out).__name__}")
+def _run_chunk(fn, states, path: str, required) -> str:
+    out = fn(states)
+    if not isinstance(out, dict) or any(name not in out for name in required):
+        raise ValueError(f"{getattr(getattr(fn, 'func', fn), '__name__', 'the function')} must "
+                         f"return a dict with {', '.join(map(repr, required)) or 'arrays'}, got "
+                         f"{sorted(out) if isinstance(out, dict) else type(out).__name__}")
     arrays = {k: np.asarray(v) for k, v in out.items()}
     for name, a in arrays.items():
         if a.shape[:1] != (len(states),):
-            raise ValueError(f"rollout output '{name}' has {a.shape[:1]} rows for "
-                             f"{len(states)} starts")
+            raise ValueError(f"output '{name}' has {a.shape[:1]} rows for {len(states)} states")
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
     return str(atomic_write_bytes(Path(path), buffer.getvalue()))
 
 
-def _load(path: Path, rows: int):
+def _load(path: Path, rows: int, required):
     """The chunk's arrays, or None when it is missing, corrupt or short."""
     try:
         with np.load(path) as data:
             arrays = {k: data[k] for k in data.files}
     except Exception:       # missing, truncated or corrupt: run it again
         return None
-    if "failed" not in arrays or any(len(a) != rows for a in arrays.values()):
+    if any(n not in arrays for n in required) or any(len(a) != rows for a in arrays.values()):
         return None
     return arrays
 
 
-def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = 8, executor=None,
-                 progress: bool = True, label: str = None, max_in_flight: int = 4) -> Outcomes:
-    """``rollout`` from every start in ``states`` ``(N, ndim)``; chunks of
-    ``chunk_size`` starts are cached under ``cache_dir/outcomes_key(...)`` and run
-    on ``executor`` (default: here, one after another). The progress bar moves per
-    chunk."""
+def map_states(fn, states, *, cache_dir, chunk_size: int = 8, executor=None,
+               progress: bool = True, label: str = None, max_in_flight: int = 4,
+               required=(), unit: str = "state"):
+    """``fn(states[s:e]) -> dict of arrays with e - s rows`` over ``states`` ``(N, ndim)``
+    in chunks of ``chunk_size``, each cached under ``cache_dir/outcomes_key(fn, states)``
+    and run on ``executor`` (default: here, one after another); ``required`` names the
+    arrays every chunk must hold. The progress bar moves per chunk. Returns
+    ``(fields, key, computed)``: the arrays of all states in order, the cache folder
+    name, and the states this call ran (0 when every chunk was cached)."""
     states = np.asarray(states, float)
     if states.ndim != 2 or len(states) == 0 or not np.all(np.isfinite(states)):
-        raise ValueError(f"starts must be a non-empty (N, ndim) array of finite numbers, got "
+        raise ValueError(f"states must be a non-empty (N, ndim) array of finite numbers, got "
                          f"shape {states.shape}")
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a whole number >= 1, got {chunk_size!r}")
-    key = outcomes_key(rollout, states)
+    required = tuple(required)
+    key = outcomes_key(fn, states)
     folder = Path(cache_dir) / key
     folder.mkdir(parents=True, exist_ok=True)
     bounds = [(i, s, min(s + chunk_size, len(states)))
               for i, s in enumerate(range(0, len(states), chunk_size))]
-    done = {i: _load(_chunk(folder, i), e - s) for i, s, e in bounds}
+    done = {i: _load(_chunk(folder, i), e - s, required) for i, s, e in bounds}
     todo = [b for b in bounds if done[b[0]] is None]
     computed = sum(e - s for _, s, e in todo)
-    bar = tqdm(total=len(states), initial=len(states) - computed, unit="run",
-               desc=f"real loop {label or key}", disable=not progress)
+    bar = tqdm(total=len(states), initial=len(states) - computed, unit=unit,
+               desc=label or key, disable=not progress)
     executor = executor or InlineExecutor()
     pending = {}
 
@@ -117,7 +121,8 @@ def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = 8, executor=No
 
     try:       # a bounded window of chunks in flight; the bar moves as each finishes
         for i, s, e in todo:
-            pending[executor.submit(_run_chunk, rollout, states[s:e], str(_chunk(folder, i)))] = (s, e)
+            pending[executor.submit(_run_chunk, fn, states[s:e], str(_chunk(folder, i)),
+                                    required)] = (s, e)
             finish([f for f in pending if f.done()])
             while len(pending) >= max_in_flight:
                 finish(cf.wait(pending, return_when=cf.FIRST_COMPLETED).done)
@@ -127,11 +132,24 @@ def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = 8, executor=No
         bar.close()
     fields = None
     for i, s, e in bounds:
-        arrays = done[i] if done[i] is not None else _load(_chunk(folder, i), e - s)
+        arrays = done[i] if done[i] is not None else _load(_chunk(folder, i), e - s, required)
         if arrays is None:
-            raise RuntimeError(f"rollout chunk {i} of {key} did not finish")
+            raise RuntimeError(f"chunk {i} of {key} did not finish")
         if fields is None:
             fields = {k: np.empty((len(states),) + a.shape[1:], a.dtype) for k, a in arrays.items()}
         for k, a in arrays.items():
             fields[k][s:e] = a
+    return fields, key, computed
+
+
+def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = 8, executor=None,
+                 progress: bool = True, label: str = None, max_in_flight: int = 4) -> Outcomes:
+    """``rollout`` from every start in ``states`` ``(N, ndim)``; chunks of
+    ``chunk_size`` starts are cached under ``cache_dir/outcomes_key(...)`` and run
+    on ``executor`` (default: here, one after another). The progress bar moves per
+    chunk."""
+    fields, key, computed = map_states(
+        rollout, states, cache_dir=cache_dir, chunk_size=chunk_size, executor=executor,
+        progress=progress, label=f"real loop {label or ''}".rstrip(),
+        max_in_flight=max_in_flight, required=("failed",), unit="run")
     return Outcomes(fields=fields, key=key, computed=computed)

@@ -172,6 +172,16 @@ def run_chunk(factory, probe: Probe, key: str, grid: Grid, index: int, start: in
     return str(atomic_write_bytes(_chunk_path(Path(folder), index), buffer.getvalue()))
 
 
+def evaluate_states(factory, probe: Probe, key: str, states) -> dict:
+    """``probe.ports`` at each of ``states`` ``(n, ndim)`` as ``{"port0": (n, size),
+    ...}`` (in ``probe.ports`` order); the diagram is built once per process and
+    ``key``. For `reach.outcomes.map_states` (cached, chunked, on any executor)."""
+    states = np.asarray(states, float)
+    if key not in _PROBES:
+        _PROBES[key] = _DiagramProbe(factory, probe, states.shape[1])
+    return {f"port{k}": a for k, a in enumerate(_PROBES[key].evaluate(states))}
+
+
 @dc.dataclass
 class SweepTable:
     """Port values at every grid node: ``tables[port]`` shaped ``grid.shape + (size,)``."""
@@ -179,6 +189,9 @@ class SweepTable:
     tables: dict
     key: str
     computed: int = 0       # states evaluated by the call that returned it (0: all cached)
+    #: Nodes whose values were evaluated in the diagram (``None``: all of them); the
+    #: others were interpolated from a coarser table (`reach.refine`).
+    rendered: np.ndarray = None
 
     def __getitem__(self, port):
         return self.tables[port]

@@ -7,9 +7,9 @@ from .fidelity import on_runway_starts, real_loop_fidelity
 from .grid import TaxiGridSpec, paper_grid
 from .guarded import UNGUARDED, failure_sets, guarded_failures
 from .guarded_run import simulate_guarded
-from .sweeps import (resolved, taxi_probe, sweep_closed_loop, sweep_guarded,
+from .sweeps import (refine_closed_loop, resolved, taxi_probe, sweep_closed_loop, sweep_guarded,
                      taxi_sweep_key)
 
 __all__ = ["TaxiDynamics", "dynamics_for", "on_runway_starts", "real_loop_fidelity", "TaxiGridSpec", "paper_grid",
-           "UNGUARDED", "failure_sets", "guarded_failures", "simulate_guarded", "resolved", "taxi_probe", "sweep_closed_loop",
+           "UNGUARDED", "failure_sets", "guarded_failures", "simulate_guarded", "refine_closed_loop", "resolved", "taxi_probe", "sweep_closed_loop",
            "sweep_guarded", "taxi_sweep_key"]

@@ -11,6 +11,7 @@ from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, ESTIMATE_PORT, PLANT, R
 from reachwatch.diagrams.controller import has_estimate
 from reachwatch.diagrams.scenario import InitialState, MonitorConfig, Scenario
 from reachwatch.reach import Grid, Probe, SweepTable, sweep, sweep_key
+from reachwatch.reach.refine import refine_adaptively
 
 def taxi_probe(scenario, *, guarded=False) -> Probe:
     """What a taxi sweep reads: the steering, the controller's estimate when it declares
@@ -87,3 +88,15 @@ def sweep_guarded(scenario, grid: Grid, *, cache_dir, executor=None, chunk_size=
                  name=_name(scenario, True), cache_dir=cache_dir,
                  executor=executor, chunk_size=chunk_size, progress=progress,
                  label=_label(scenario, grid, "guarded "))
+
+
+def refine_closed_loop(scenario, table: SweepTable, *, solve, levels: int, band: float,
+                       variation: float = None, cache_dir, executor=None, progress=True):
+    """`reach.refine.refine_adaptively` of ``scenario``'s swept ``table`` (from
+    `sweep_closed_loop`): ``levels`` times, render the new nodes of the cells where the
+    BRT's boundary passes within ``band`` m or the steering varies by more than
+    ``variation`` rad, and solve again with ``solve(table)``."""
+    return refine_adaptively(_factory(scenario), table, probe=taxi_probe(scenario), solve=solve,
+                             levels=levels, band=band, variation=variation,
+                             cache_dir=cache_dir, executor=executor, progress=progress,
+                             label=scenario.environment.name)
