@@ -47,21 +47,33 @@ def _interpolate_table(grid, table, points):
     return torch.stack([interpolate(table[..., k]) for k in range(table.shape[-1])], dim=-1)
 
 
-def _sampled_flow(grid, dynamics, x, u, target, periods, period, tail=0.0):
+def _outside(grid, points, axes):
+    """True where ``points`` lie outside ``grid``'s box on any of ``axes``."""
+    out = torch.zeros(points.shape[:-1], dtype=torch.bool, device=points.device)
+    for a in axes:
+        out |= (points[..., a] < grid.lo[a] - 1e-9) | (points[..., a] > grid.hi[a] + 1e-9)
+    return out
+
+
+def _sampled_flow(grid, dynamics, x, u, target, periods, period, tail=0.0, exit_fails=()):
     """Foot of the sampled-data flow from the nodes ``x`` over ``periods`` whole
     control periods then ``tail`` s, and the minimum of the target at every period
-    boundary (and the end) along the way."""
+    boundary (and the end) along the way; a boundary outside the box on one of
+    ``exit_fails`` caps that minimum at 0 (a failure)."""
     foot, path_target = x, target
     for k in range(periods + (tail > 0)):
         held = u if k == 0 else _interpolate_table(grid, u, foot)
         foot = _held_flow(dynamics, foot, held, period if k < periods else tail, substeps=4)
         path_target = torch.minimum(path_target, dynamics.target(foot))
+        if exit_fails:
+            path_target = torch.where(_outside(grid, foot, exit_fails),
+                                      torch.clamp(path_target, max=0.0), path_target)
     return foot, path_target
 
 
 def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
               accuracy: str = "semi_lagrangian", period: float = 0.05,
-              periods_per_step: int = 4, cfl: float = 0.75,
+              periods_per_step: int = 4, cfl: float = 0.75, exit_fails=(),
               device=None, dtype=torch.float32, progress=None) -> ValueFunction:
     """V(x, 0) of the closed loop ``f(x, control_table(x))`` over exactly ``horizon`` s.
 
@@ -70,7 +82,12 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
     periods (a horizon that is no whole number of steps ends with a shorter step, and
     one that is no whole number of periods with a partial period); ``cfl`` (0, 1] sets
     the level-set schemes' step; ``device`` defaults to CUDA when present. The
-    metadata records what was solved: steps, whole periods and tail."""
+    metadata records what was solved: steps, whole periods and tail.
+
+    Where the flow leaves the grid box, the table and V are read at the box's edge
+    (clamped): what the loop does out there is unknown. ``exit_fails`` (axis indices,
+    ``semi_lagrangian`` only) makes leaving the box on those axes within the horizon a
+    failure instead (V <= 0): conservative where clamping is optimistic."""
     if accuracy not in ACCURACIES:
         raise ValueError(f"accuracy must be one of {sorted(ACCURACIES)}, got '{accuracy}'")
     horizon = positive("horizon", horizon)
@@ -85,6 +102,12 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
     table = np.asarray(control_table, dtype=float)
     if table.shape[:grid.ndim] != grid.shape:
         raise ValueError(f"control table shaped {table.shape} does not match grid {grid.shape}")
+    exit_fails = tuple(sorted({int(a) for a in exit_fails}))
+    if any(not 0 <= a < grid.ndim for a in exit_fails):
+        raise ValueError(f"exit_fails names axes {list(exit_fails)}; the grid has axes "
+                         f"0..{grid.ndim - 1} ({', '.join(grid.names)})")
+    if exit_fails and accuracy != "semi_lagrangian":
+        raise ValueError(f"exit_fails needs accuracy 'semi_lagrangian', got '{accuracy}'")
     if not np.all(np.isfinite(table)):
         raise ValueError(f"control table has {np.sum(~np.isfinite(table))} non-finite entries")
     device = _device(device)
@@ -103,14 +126,15 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
         schedule = ([(rest, tail)] if rest or tail else []) + [(periods_per_step, 0.0)] * full_steps
         maps = {}
         for periods, tail_s in set(schedule):
-            foot, path_target = _sampled_flow(grid, dynamics, x, u, target, periods, period, tail_s)
+            foot, path_target = _sampled_flow(grid, dynamics, x, u, target, periods, period,
+                                              tail_s, exit_fails)
             maps[periods, tail_s] = path_target, GridInterpolator(grid, foot)  # leaving the box in px = failure
         steps = len(schedule)
         for k in (progress(range(steps)) if progress else range(steps)):
             path_target, interpolate = maps[schedule[k]]
             values = torch.minimum(path_target, interpolate(values))
         metadata = {"steps": steps, "periods": whole, "tail": tail,
-                    "dt": period * periods_per_step}
+                    "dt": period * periods_per_step, "exit_fails": list(exit_fails)}
     else:
         field = dynamics.vector_field(x, u).movedim(-1, 0)                # (n, *shape)
         spacing = grid.spacing

@@ -126,3 +126,21 @@ def test_2d_sweep_of_a_drake_loop_matches_its_controller(tmp_path):
         sweep(functools.partial(make_double_integrator_loop, *GAINS), g,
               probe=Probe(plant="plant", control_port="controller.y"), cache_dir=tmp_path,
               executor=InlineExecutor(), progress=False)
+
+
+def test_leaving_the_box_is_clamped_or_a_failure_as_asked():
+    """u = +1: v grows past the grid's v range within the horizon from v0 > 0. Clamped,
+    that says nothing (p stays on the runway); with exit_fails on v it is a failure."""
+    g = Grid(lo=[-1.2, -0.5], hi=[1.2, 0.5], shape=[25, 21], names=("p", "v"))
+    table = np.ones(g.shape)
+    clamped = solve_brt(g, DoubleIntegrator(), table, horizon=0.5, device="cpu")
+    strict = solve_brt(g, DoubleIntegrator(), table, horizon=0.5, exit_fails=[1], device="cpu")
+    inside, leaving = [0.0, -0.4], [0.0, 0.2]
+    assert not clamped.in_brt([inside, leaving]).any()
+    assert strict.in_brt([inside, leaving]).tolist() == [False, True]
+    assert strict.metadata["exit_fails"] == [1]
+    with pytest.raises(ValueError, match=r"exit_fails names axes \[2\]; the grid has axes 0..1"):
+        solve_brt(g, DoubleIntegrator(), table, horizon=0.5, exit_fails=[2], device="cpu")
+    with pytest.raises(ValueError, match="exit_fails needs accuracy 'semi_lagrangian'"):
+        solve_brt(g, DoubleIntegrator(), table, horizon=0.5, exit_fails=[1], accuracy="low",
+                  device="cpu")
