@@ -13,12 +13,24 @@ Label cost is in rendered frames per label of a 1000-state dataset, beyond the m
 - ``rollout``: the real outcome itself (exact by construction: the same
   deterministic loop); costs every start's frames.
 
+With ``--refine L``, each grid is also refined adaptively ``L`` levels
+(`reach.refine`): each level halves the spacing and renders new nodes only in the
+cells where the BRT's boundary passes within ``--refine-band`` m or the steering
+varies by more than ``--refine-variation`` deg across the cell; its row counts every
+node rendered (``+rL`` in the grid column).
+
 Real runs are cached by content under ``--cache`` (a re-run is free, a killed one
 resumes).
 
     python benchmarks/fidelity.py [--run-file scenarios/demo.yaml]
         [--day KMWH:9:clear] [--night KSFO:21:overcast] [--grids 11 5 11 21 9 21]
         [--periods-per-step 4 40] [--starts 100] [--audit 30] [--band 2.0] [--cache DIR]
+        [--refine 2] [--refine-band 1.0] [--refine-variation 5]
+        [--theta-deg 28] [--py-max 250] [--exit-fails theta]
+
+``--theta-deg`` and ``--py-max`` widen the solved box (the check starts stay in the
+paper's box); ``--exit-fails`` makes leaving the box on those axes within the horizon
+a failure in the solver instead of clamping (`reach.solve_brt`'s ``exit_fails``).
 """
 
 import argparse
@@ -33,7 +45,9 @@ from reachwatch.pipeline.evaluate_commands import parse_environment
 from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.reach import compare_verdicts, solve_brt
 from reachwatch.systems.files import cache_root
-from reachwatch.taxi import dynamics_for, on_runway_starts, paper_grid, sweep_closed_loop
+from reachwatch.taxi import (TaxiGridSpec, dynamics_for, on_runway_starts, paper_grid,
+                             refine_closed_loop, sweep_closed_loop)
+from reachwatch.taxi.grid import AXES
 from reachwatch.taxi.fidelity import real_outcomes
 from reachwatch.training.dataset import hybrid_rolls_out
 
@@ -46,7 +60,7 @@ def interval(f, name):
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--run-file", default="scenarios/demo.yaml", help="camera, controller, horizon")
-    p.add_argument("--day", default="KMWH:9:clear")
+    p.add_argument("--day", default="KMWH:9:clear", help='"" skips the day environment')
     p.add_argument("--night", default="KSFO:21:overcast")
     p.add_argument("--grids", type=int, nargs="+", default=[11, 5, 11, 21, 9, 21],
                    help="uniform grid shapes, three numbers each")
@@ -56,6 +70,14 @@ def main():
     p.add_argument("--audit", type=int, default=30, help="hybrid audit states per environment")
     p.add_argument("--band", type=float, default=2.0, help="hybrid band (m)")
     p.add_argument("--cache", default=None, help="sweep and rollout cache (default: the user cache)")
+    p.add_argument("--refine", type=int, default=0, help="adaptive refinement levels of each grid")
+    p.add_argument("--refine-band", type=float, default=1.0, help="refine where |V| boundary within (m)")
+    p.add_argument("--refine-variation", type=float, default=None,
+                   help="refine where the steering varies more than this across a cell (deg)")
+    p.add_argument("--theta-deg", type=float, default=28.0, help="solved box: |theta| up to (deg)")
+    p.add_argument("--py-max", type=float, default=250.0, help="solved box: py up to (m)")
+    p.add_argument("--exit-fails", nargs="*", default=[], choices=AXES,
+                   help="axes where leaving the solved box is a failure (default: clamp)")
     args = p.parse_args()
     if len(args.grids) % 3:
         p.error("--grids takes three numbers per grid")
@@ -64,7 +86,7 @@ def main():
     print(f"{'environment':22s} {'grid/pps':12s} {'source':8s} {'map renders':>11s} "
           f"{'frames/label':>12s} {'agreement % [95 % CI]':>22s} "
           f"{'false-safe %':>18s} {'false-unsafe %':>18s}")
-    for text in (args.day, args.night):
+    for text in [t for t in (args.day, args.night) if t]:      # "" skips one
         env = parse_environment(text)
         scenario = copy.deepcopy(spec.scenario)
         scenario.environment = env
@@ -82,30 +104,51 @@ def main():
         variants = [(shape, pps) for shape in np.reshape(args.grids, (-1, 3))
                     for pps in args.periods_per_step]
         for shape, pps in variants:
-            grid = paper_grid(B, tuple(int(n) for n in shape))
+            grid = TaxiGridSpec(px=[-(B + 1), B + 1], py=[100.0, args.py_max],
+                                theta_deg=[-args.theta_deg, args.theta_deg],
+                                shape=[int(n) for n in shape]).to_grid()
             table = sweep_closed_loop(scenario, grid, cache_dir=cache / "sweeps", progress=True)
-            vf = solve_brt(grid, dynamics_for(scenario), table[CONTROL_PORT], horizon=spec.horizon,
-                           period=scenario.controller.period, periods_per_step=int(pps))
-            values = vf.at(starts)
-            trusted = not np.any(audited.failed & (vf.at(audit) > 0))
-            rolled = hybrid_rolls_out(values, args.band, trusted)
-            sources = {
-                "brt": (values <= 0, 0.0),
-                "hybrid": (np.where(rolled, real, values <= 0),
-                           np.sum(frames[rolled]) / len(starts) + np.sum(audited["ticks"]) / 1000),
-                "rollout": (real, float(np.mean(frames)))}
-            for source, (verdicts, cost) in sources.items():
-                f = compare_verdicts(verdicts, real)
-                print(f"{env.name:22s} {'x'.join(map(str, grid.shape)) + f'/{pps}':12s} {source:8s} "
-                      f"{grid.size:11d} {cost:12.1f} {interval(f, 'agree'):>22s} "
-                      f"{interval(f, 'false_safe'):>18s} {interval(f, 'false_unsafe'):>18s}")
-            print(f"{'':22s} hybrid audit: {'map trusted' if trusted else 'map NOT trusted'} "
-                  f"({int(np.sum(audited.failed & (vf.at(audit) > 0)))} false-safe of "
-                  f"{len(audit)}); rolled out {100 * rolled.mean():.0f} % of the check starts")
+
+            def solve(table, pps=int(pps)):
+                return solve_brt(table.grid, dynamics_for(scenario), table[CONTROL_PORT],
+                                 horizon=spec.horizon, period=scenario.controller.period,
+                                 periods_per_step=pps,
+                                 exit_fails=[AXES.index(a) for a in args.exit_fails])
+            variation = (None if args.refine_variation is None
+                         else np.deg2rad(args.refine_variation))
+            levels = refine_closed_loop(scenario, table, solve=solve, levels=args.refine,
+                                        band=args.refine_band, variation=variation,
+                                        cache_dir=cache / "sweeps")
+            for level in levels:
+                score(env, level, pps, starts, audit, audited, real, frames, args)
         print(f"{'':22s} {len(starts)} check runs: {int(real.sum())} failures, "
               f"{100 * np.mean(check['left_box']):.0f} % left the paper box, "
               f"{int(frames.sum())} frames, {seconds:.0f} s with the audit "
               f"(0 s when cached), max |theta| {np.rad2deg(check['max_abs_theta'].max()):.0f} deg")
+
+
+def score(env, level, pps, starts, audit, audited, real, frames, args):
+    """One table row per label source for one BRT map (a refinement ``level``)."""
+    vf, grid = level.solution, level.table.grid
+    values = vf.at(starts)
+    trusted = not np.any(audited.failed & (vf.at(audit) > 0))
+    rolled = hybrid_rolls_out(values, args.band, trusted)
+    sources = {
+        "brt": (values <= 0, 0.0),
+        "hybrid": (np.where(rolled, real, values <= 0),
+                   np.sum(frames[rolled]) / len(starts) + np.sum(audited["ticks"]) / 1000),
+        "rollout": (real, float(np.mean(frames)))}
+    name = "x".join(map(str, grid.shape)) + f"/{pps}"
+    if level.cells is not None:
+        name = "x".join(map(str, grid.shape)) + f"r/{pps}"
+    for source, (verdicts, cost) in sources.items():
+        f = compare_verdicts(verdicts, real)
+        print(f"{env.name:22s} {name:12s} {source:8s} "
+              f"{level.rendered:11d} {cost:12.1f} {interval(f, 'agree'):>22s} "
+              f"{interval(f, 'false_safe'):>18s} {interval(f, 'false_unsafe'):>18s}")
+    print(f"{'':22s} hybrid audit: {'map trusted' if trusted else 'map NOT trusted'} "
+          f"({int(np.sum(audited.failed & (vf.at(audit) > 0)))} false-safe of "
+          f"{len(audit)}); rolled out {100 * rolled.mean():.0f} % of the check starts")
 
 
 if __name__ == "__main__":
