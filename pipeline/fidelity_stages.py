@@ -10,9 +10,8 @@ import time
 
 import numpy as np
 
-from reachwatch.diagrams import CONTROL_PORT
 from reachwatch.reach import compare_verdicts, min_target_along_rollouts
-from reachwatch.taxi import dynamics_for, on_runway_starts, sweep_closed_loop
+from reachwatch.taxi import dynamics_for, on_runway_starts
 from reachwatch.taxi.fidelity import OPEN_AXES, real_outcomes
 from reachwatch.training.dataset import hybrid_rolls_out
 
@@ -46,16 +45,16 @@ def fidelity_env(run: Run, env) -> dict:
     vf = run.value_function(env.name)
     starts = on_runway_starts(grid, check.starts, check.seed, half_width=env.half_width)
     started = time.time()
-    outcomes = real_outcomes(scenario, starts, grid=grid, duration=spec.horizon,
+    # box exits are counted against the solved box (wider than the paper's if asked)
+    outcomes = real_outcomes(scenario, starts, grid=run.solved_grid_for(env), duration=spec.horizon,
                              cache_dir=run.path("outcomes"), executor=run.executor,
                              progress=run.progress)
     seconds = time.time() - started
     real = outcomes.failed
     predicted = vf.in_brt(starts)
-    table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
-                              progress=False)
+    solved_grid, steering = run.steering_table(env)
     lowest, table_left = min_target_along_rollouts(
-        grid, dynamics_for(scenario), table[CONTROL_PORT], starts, horizon=spec.horizon,
+        solved_grid, dynamics_for(scenario), steering, starts, horizon=spec.horizon,
         hold=scenario.controller.period, box_axes=OPEN_AXES)
     table_fails = lowest <= 0
     out = {"starts": int(check.starts), "seed": int(check.seed),

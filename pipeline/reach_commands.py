@@ -8,7 +8,8 @@ import numpy as np
 
 from reachwatch.diagrams import CONTROL_PORT, ESTIMATE_PORT
 from reachwatch.reach import ACCURACIES, min_target_along_rollouts, sign_agreement, solve_brt
-from reachwatch.taxi import dynamics_for, on_runway_starts, real_loop_fidelity, paper_grid, sweep_closed_loop
+from reachwatch.taxi import (dynamics_for, on_runway_starts, real_loop_fidelity, paper_grid,
+                             refine_closed_loop, sweep_closed_loop)
 from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 
@@ -43,6 +44,10 @@ def add_parsers(sub):
                    help="semi_lagrangian: control periods per step; each step interpolates V "
                    "once, so fewer, longer steps blur a coarse grid's BRT less")
     b.add_argument("--horizon", type=positive_float, default=8.0, help="s")
+    b.add_argument("--refine", type=count, default=0,
+                   help="adaptive refinement levels: each halves the spacing and renders new "
+                   "nodes only where the BRT's boundary passes within --refine-band")
+    b.add_argument("--refine-band", type=positive_float, default=2.0, help="m")
     b.add_argument("--drake-starts", type=count, default=50,
                    help="random starts run through the real Drake loop (0 skips)")
     b.add_argument("--seed", type=int, default=0)
@@ -75,10 +80,20 @@ def sweep_command(args):
 def brt_command(args):
     scenario, grid, table, _ = _sweep(args)
     dynamics = dynamics_for(scenario)
-    control = table[CONTROL_PORT]
     started = time.time()
-    vf = solve_brt(grid, dynamics, control, horizon=args.horizon, accuracy=args.accuracy,
-                   period=scenario.controller.period, periods_per_step=args.periods_per_step)
+
+    def solve(table):
+        return solve_brt(table.grid, dynamics, table[CONTROL_PORT], horizon=args.horizon,
+                         accuracy=args.accuracy, period=scenario.controller.period,
+                         periods_per_step=args.periods_per_step)
+    with open_executor(args.executor) as executor:
+        levels = refine_closed_loop(scenario, table, solve=solve, levels=args.refine,
+                                    band=args.refine_band, executor=executor,
+                                    cache_dir=args.cache or cache_root() / "sweeps")
+    vf, grid, control = levels[-1].solution, levels[-1].table.grid, levels[-1].table[CONTROL_PORT]
+    if args.refine:
+        log.info("adaptive refinement: " + " -> ".join(
+            f"{'x'.join(map(str, lv.table.grid.shape))} ({lv.rendered} rendered)" for lv in levels))
     solve_s = time.time() - started
     out = Path(args.out)
     name = scenario.environment.name
@@ -86,7 +101,7 @@ def brt_command(args):
     vf.save(out / f"value_{name}.npz")
     lowest = min_target_along_rollouts(grid, dynamics, control, grid.states(),
                                        horizon=args.horizon, progress=None)
-    log.info(f"{name}: grid {list(grid.shape)}, accuracy {args.accuracy}, solve {solve_s:.1f} s")
+    log.info(f"{name}: grid {list(grid.shape)}, accuracy {args.accuracy}, solve{' and refine' if args.refine else ''} {solve_s:.1f} s")
     log.info(f"BRT volume: {100 * vf.brt_fraction:.2f}% of the grid")
     log.info(f"sign agreement with RK4 rollouts (dt 0.01 s, interpolated control) from every "
           f"node: {100 * sign_agreement(vf.values.ravel(), lowest):.2f}%")

@@ -9,6 +9,7 @@ import numpy as np
 from reachwatch.diagrams import export_graph, write_png, make_closed_loop_diagram, make_guarded_diagram
 from reachwatch.diagrams.contact_sheet import environment_sheet
 from reachwatch.systems.files import atomic_write_bytes
+from reachwatch.reach import wilson_interval
 from reachwatch.training.evaluation import COLUMNS, format_cell
 
 from .stages import Run, sweep_rate
@@ -82,6 +83,18 @@ def _rate(record, name):
     return f"{100 * record[f'{name}_rate']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]"
 
 
+def monte_carlo(record) -> str:
+    """The on-runway failure set of a `fidelity_env` record: the BRT map's share of the
+    check starts and the real loop's (a Monte-Carlo estimate), each with its 95 %
+    Wilson interval."""
+    n, brt = record["brt"]["n"], record["brt"]
+    (a, b), (c, d) = (wilson_interval(brt["predicted_failures"], n),
+                      wilson_interval(brt["real_failures"], n))
+    return (f"map {100 * brt['predicted_failures'] / n:.1f} [{100 * a:.1f}, {100 * b:.1f}] %, "
+            f"real loop {100 * brt['real_failures'] / n:.1f} [{100 * c:.1f}, {100 * d:.1f}] % "
+            f"({brt['real_failures']} of {n} starts)")
+
+
 def fidelity_section(page, run: Run, roles):
     """The BRT, its table and the labels against the real loop, per environment."""
     spec, results = run.spec, run.outputs.get("fidelity") or {}
@@ -110,6 +123,10 @@ def fidelity_section(page, run: Run, roles):
                  _rate(r["table_rollouts"], "box_exits"),
                  " / ".join(f"{v:g}" for v in r["real_max_abs_theta_deg"]), r["frames"]]
                 for n, r in results.items()])
+    page.text("The failure set over the same on-runway starts: the share the BRT map puts "
+              "in the BRT, and the share that failed in the real loop (a Monte-Carlo "
+              "estimate of the true failure set, independent of the map): " + "; ".join(
+                  f"{n}: {monte_carlo(r)}" for n, r in results.items()) + ".")
     crowded = [n for n, r in results.items()
                if r["brt"]["box_exits_rate"] > spec.fidelity.max_box_exits]
     if crowded:
@@ -165,10 +182,19 @@ def write_report(run: Run) -> dict:
               f"model of the loop, not against the real loop: see the next section); "
               f"slices at py = {spec.slice_py:g} m.")
     roles = {**{e.name: "test" for e in spec.test}, **{e.name: "train" for e in spec.train}}
-    page.table(["environment", "role", "states", "BRT %", "BRT = table rollouts (all nodes) %", "sweep s",
-                "states/s", "solve s"],
-               [[n, roles.get(n, "extra"), r["states"], _pct(r["brt_fraction"]),
-                 _pct(r["rollout_agreement"]), r["sweep_seconds"],
+    if spec.refine.levels:
+        page.text(f"Each table was refined adaptively {spec.refine.levels} time(s): each level "
+                  f"halves the spacing and renders new nodes only in the cells where the BRT's "
+                  f"boundary passes within {spec.refine.band:g} m" +
+                  (f" or the steering varies by more than {spec.refine.variation_deg:g} deg"
+                   if spec.refine.variation_deg is not None else "") +
+                  "; every other node is interpolated. 'Nodes rendered' counts each level's "
+                  "total.")
+    page.table(["environment", "role", "grid solved", "nodes rendered", "BRT %",
+                "BRT = table rollouts (all nodes) %", "sweep s", "states/s", "solve s"],
+               [[n, roles.get(n, "extra"), "x".join(map(str, r.get("grid", spec.grid))),
+                 " -> ".join(map(str, r.get("nodes_rendered", [r["states"]]))),
+                 _pct(r["brt_fraction"]), _pct(r["rollout_agreement"]), r["sweep_seconds"],
                  sweep_rate(r), r["solve_seconds"]]
                 for n, r in o["solve"].items()])
     page.images([r["figure"] for r in o["solve"].values()])
@@ -193,6 +219,11 @@ def write_report(run: Run) -> dict:
         page.text(f"{env}: fraction of grid starts that leave the runway within "
                   f"{spec.horizon:g} s (detector threshold {g['threshold']:.3g}).")
         page.table(["closed loop", "failure set %"], [[k, _pct(v)] for k, v in g["volumes"].items()])
+        checked = (o.get("fidelity") or {}).get(env)
+        if checked:
+            page.text(f"The controller alone in the real loop, from {checked['starts']} random "
+                      f"on-runway starts (the grid figures above count every node, off-runway "
+                      f"ones too): {monte_carlo(checked)}.")
         page.images([g["figure"]])
         r = g["run"]
         if not r.get("files"):

@@ -7,6 +7,7 @@ itself chunked and cached by content, so a killed stage resumes where it stopped
 import copy
 import dataclasses as dc
 import datetime
+import io
 import json
 import logging
 import os
@@ -18,7 +19,9 @@ import numpy as np
 from reachwatch.diagrams import CONTROL_PORT, file_hash, load_detector
 from reachwatch.reach import (Grid, InlineExecutor, ValueFunction, min_target_along_rollouts,
                               sign_agreement, solve_brt)
-from reachwatch.taxi import dynamics_for, paper_grid, sweep_closed_loop, taxi_sweep_key
+from reachwatch.taxi import (dynamics_for, paper_grid, refine_closed_loop, sweep_closed_loop,
+                             taxi_sweep_key)
+from reachwatch.taxi.grid import AXES, TaxiGridSpec
 from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
@@ -169,7 +172,15 @@ class Run:
         return scenario
 
     def grid_for(self, env) -> Grid:
+        """The paper's box (where states are labelled and checked) at the run's shape."""
         return paper_grid(env.half_width, tuple(self.spec.grid))
+
+    def solved_grid_for(self, env) -> Grid:
+        """The box swept and solved over: the paper's, with |theta| up to
+        ``solved_theta_deg``."""
+        B, t = env.half_width, float(self.spec.solved_theta_deg)
+        return TaxiGridSpec(px=[-(B + 1.0), B + 1.0], py=[100.0, 250.0], theta_deg=[-t, t],
+                            shape=list(self.spec.grid)).to_grid()
 
     def environments(self):
         """Every environment whose BRT the run needs (train, test, guard, incremental)."""
@@ -185,13 +196,26 @@ class Run:
     def value_function(self, name) -> ValueFunction:
         return ValueFunction.load(self.path(self.outputs["solve"][name]["value"]))
 
+    def steering_table(self, env):
+        """``(grid, steering)`` the BRT of ``env`` was solved from: the refined table
+        the solve stage saved, or the (cached) sweep."""
+        saved = self.outputs["solve"][env.name].get("table")
+        if saved:
+            with np.load(self.path(saved)) as data:
+                steering, lo, hi = data["steering"], data["lo"], data["hi"]
+            return Grid(lo=lo, hi=hi, shape=steering.shape[:3], names=AXES), steering
+        scenario, grid = self.scenario_for(env), self.solved_grid_for(env)
+        table = sweep_closed_loop(scenario, grid, cache_dir=self.sweep_cache,
+                                  executor=self.executor, progress=False)
+        return grid, table[CONTROL_PORT]
+
     def datasets(self, envs):
         return [load_dataset(self.path(self.outputs["dataset"]["folders"][e.name])) for e in envs]
 
 
 def sweep_env(run: Run, env, *, checkpoint=None) -> dict:
     """Sweep ``env``'s closed loop over the grid (chunks cached in ``sweeps/``)."""
-    scenario, grid = run.scenario_for(env, checkpoint), run.grid_for(env)
+    scenario, grid = run.scenario_for(env, checkpoint), run.solved_grid_for(env)
     started = time.time()
     table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
                               progress=run.progress)
@@ -208,35 +232,59 @@ def sweep_rate(record) -> str:
 
 
 def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
-    """Solve ``env``'s BRT from its (cached) sweep, check it against RK4 rollouts of
-    the swept loop from every node, plot a slice."""
+    """Solve ``env``'s BRT from its (cached) sweep, refined adaptively ``refine.levels``
+    times; check it against RK4 rollouts of the (refined) table from every node, plot
+    a slice. The refined steering table is saved beside the value function."""
     spec = run.spec
-    scenario, grid = run.scenario_for(env, checkpoint), run.grid_for(env)
+    scenario, grid = run.scenario_for(env, checkpoint), run.solved_grid_for(env)
     table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache,
                               executor=run.executor, progress=False)
-    steering, dynamics = table[CONTROL_PORT], dynamics_for(scenario)
+    dynamics = dynamics_for(scenario)
+    solved = [0.0]
+
+    def solve(table):
+        started = time.time()
+        vf = solve_brt(table.grid, dynamics, table[CONTROL_PORT], horizon=spec.horizon,
+                       accuracy=spec.accuracy, period=scenario.controller.period,
+                       periods_per_step=spec.periods_per_step)
+        solved[0] += time.time() - started
+        return vf
+    refine = spec.refine
     started = time.time()
-    vf = solve_brt(grid, dynamics, steering, horizon=spec.horizon, accuracy=spec.accuracy,
-                   period=scenario.controller.period, periods_per_step=spec.periods_per_step)
-    solved = time.time() - started
-    key = taxi_sweep_key(scenario, grid)
-    vf.metadata.update(environment=env.name, sweep=key)
-    path = vf.save(run.path(f"brt/value_{key}_{spec.horizon:g}s_{spec.accuracy}.npz"))
+    levels = refine_closed_loop(
+        scenario, table, solve=solve, levels=refine.levels, band=refine.band,
+        variation=None if refine.variation_deg is None else np.deg2rad(refine.variation_deg),
+        cache_dir=run.sweep_cache, executor=run.executor, progress=run.progress)
+    refine_seconds = time.time() - started - solved[0]
+    vf, table = levels[-1].solution, levels[-1].table
+    grid, steering = table.grid, table[CONTROL_PORT]
+    key = taxi_sweep_key(scenario, run.solved_grid_for(env))
+    vf.metadata.update(environment=env.name, sweep=key, refine_levels=refine.levels)
+    name = f"{key}_{spec.horizon:g}s_{spec.accuracy}" + (
+        f"_refined{refine.levels}_{digest(refine)[:8]}" if refine.levels else "")
+    path = vf.save(run.path(f"brt/value_{name}.npz"))
+    out = {"value": run.rel(path), "brt_fraction": vf.brt_fraction, "grid": list(grid.shape),
+           "nodes_rendered": [lv.rendered for lv in levels]}
+    if refine.levels:
+        buffer = io.BytesIO()
+        np.savez(buffer, steering=steering, rendered=table.rendered, lo=grid.lo, hi=grid.hi)
+        out["table"] = run.rel(atomic_write_bytes(run.path(f"brt/table_{name}.npz"),
+                                                  buffer.getvalue()))
+        out["refine_seconds"] = round(refine_seconds, 1)
     reference = min_target_along_rollouts(grid, dynamics, steering, grid.states(),
                                           horizon=spec.horizon, hold=scenario.controller.period)
     figure = plot_brt_slices({f"{env.name}{label}": vf}, py=spec.slice_py,
                              path=run.path(f"figures/brt_{env.name}{label.replace(' ', '_')}.png"),
                              half_width=env.half_width)
-    return {"value": run.rel(path), "brt_fraction": vf.brt_fraction,
-            "rollout_agreement": sign_agreement(vf.values.ravel(), reference),
-            "solve_seconds": round(solved, 2), "figure": run.rel(figure)}
+    return {**out, "rollout_agreement": sign_agreement(vf.values.ravel(), reference),
+            "solve_seconds": round(solved[0], 2), "figure": run.rel(figure)}
 
 
 def stage_sweep(run: Run) -> dict:
     """Sweep every environment the run needs (one record each, keyed by content)."""
     out = {}
     for env in run.environments():
-        key = taxi_sweep_key(run.scenario_for(env), run.grid_for(env))
+        key = taxi_sweep_key(run.scenario_for(env), run.solved_grid_for(env))
         out[env.name] = run.stage(f"sweep_{env.name}", key, lambda env=env: sweep_env(run, env))
     return out
 
@@ -246,7 +294,8 @@ def stage_solve(run: Run) -> dict:
     out = {}
     for env in run.environments():
         key = digest(run.records[f"sweep_{env.name}"]["key"], run.spec.horizon,
-                     run.spec.accuracy, run.spec.periods_per_step, run.spec.slice_py)
+                     run.spec.accuracy, run.spec.periods_per_step, run.spec.slice_py,
+                     *([run.spec.refine] if run.spec.refine.levels else []))
         out[env.name] = {**run.outputs[f"sweep_{env.name}"], **run.stage(
             f"solve_{env.name}", key, lambda env=env: solve_env(run, env))}
     return out
@@ -265,10 +314,18 @@ def _ensemble(run: Run):
     return paths
 
 
-def _build(root, scenario, value_path, spec, ensemble, progress):
+def _build(root, scenario, value_path, spec, ensemble, progress, box=None):
     """One dataset (module-level so a process pool or Dask worker can run it)."""
     return str(build_dataset(root, scenario, ValueFunction.load(value_path), spec,
-                             ensemble=ensemble, progress=progress))
+                             ensemble=ensemble, progress=progress, box=box))
+
+
+def _label_box(run: Run, env):
+    """The paper's box, where states are labelled, when the solved box is wider."""
+    if run.solved_grid_for(env) == run.grid_for(env):
+        return None
+    grid = run.grid_for(env)
+    return grid.lo.tolist(), grid.hi.tolist()
 
 
 def stage_dataset(run: Run) -> dict:
@@ -279,7 +336,7 @@ def stage_dataset(run: Run) -> dict:
     futures = {e.name: run.executor.submit(
         _build, str(run.path("datasets")), run.scenario_for(e),
         str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset,
-        [str(p) for p in ensemble], run.progress) for e in envs}
+        [str(p) for p in ensemble], run.progress, _label_box(run, e)) for e in envs}
     folders = {name: run.rel(f.result()) for name, f in futures.items()}
     data = {name: load_dataset(run.path(f)) for name, f in folders.items()}
     return {"ensemble": [run.rel(p) for p in ensemble], "folders": folders,

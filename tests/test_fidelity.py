@@ -69,8 +69,10 @@ def test_brt_command_reports_real_loop_fidelity_with_intervals(tmp_path, capsys)
     scenario.write_text("environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
     assert main(["brt", "--scenario", str(scenario), "--shape", "5", "3", "5", "--out",
                  str(tmp_path / "out"), "--cache", str(tmp_path / "cache"), "--executor",
-                 "inline", "--horizon", "1.0", "--drake-starts", "3"]) == 0
+                 "inline", "--horizon", "1.0", "--drake-starts", "3", "--refine", "1",
+                 "--refine-band", "0.5"]) == 0
     text = capsys.readouterr().out
+    assert "adaptive refinement: 5x3x5 (75 rendered) -> 9x5x9 (" in text
     assert "3 starts" in text and "false-safe" in text and "left the box" in text
     assert re.search(r"agreement \d+\.\d % \[\d+\.\d, \d+\.\d\]", text)
 

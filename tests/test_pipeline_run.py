@@ -7,11 +7,13 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from reachwatch.pipeline.run import STAGES, run_pipeline
 from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.diagrams import ScenarioError
+from reachwatch.training.dataset import load_dataset
 
 TINY = """
 name: tiny
@@ -56,6 +58,9 @@ def _ran(log):
     (("grid: [5, 3, 5]", "grid: [5, 3]"), "grid must be 3 sizes"),
     (("horizon: 4.0", "horizon: 4.0\nperiods_per_step: 0"), "periods_per_step must be a finite whole"),
     (("fidelity: {starts: 3", "fidelity: {starts: -1"), "fidelity.starts must be a whole number >= 0"),
+    (("horizon: 4.0", "horizon: 4.0\nrefine: {levels: -1}"), "refine.levels must be a whole number >= 0"),
+    (("horizon: 4.0", "horizon: 4.0\nsolved_theta_deg: 20"), "solved_theta_deg must be a number of degrees in [28, 180]"),
+    (("horizon: 4.0", "horizon: 4.0\nrefine: {levels: 1, band: -2}"), "refine.band must be a finite"),
     (("{samples: 40, height: 24", "{labels: {source: oracle}, samples: 40, height: 24"),
      "dataset.labels.source must be one of"),
     (("{samples: 40, height: 24", "{samples: 40, height: 32"), "must equal the detector input"),
@@ -108,6 +113,10 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     assert check["labels"]["source"] == "brt" and check["labels"]["agree"] == check["brt"]["agree"]
     assert "labels" not in fidelity["KMWH_17h_clear"]          # incremental only: no dataset
     assert "Fidelity against the real Drake loop" in md and "false-safe" in md
+    # the guard's failure set beside its Monte-Carlo estimate from the real runs
+    real = check["brt"]["real_failures"]
+    assert (f"The controller alone in the real loop, from 3 random on-runway starts" in md
+            and f"real loop {100 * real / 3:.1f} [" in md and f"({real} of 3 starts)" in md)
     inc = run.outputs["incremental"]
     assert inc["environment"] == "KMWH_17h_clear" and 0 <= inc["after"] <= 1
     assert (tmp_path / inc["checkpoint"]).is_file()
@@ -122,6 +131,26 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     _, log = _run(tmp_path, TINY.replace("epochs: 1", "epochs: 2"))   # detector changed
     assert _ran(log) == {"train", "evaluate", "guard_KSFO_17h_clear", "report"}
     assert not any("sweep_" in m and "running" in m for m in log)
+
+
+def test_refined_run_solves_and_checks_on_the_refined_table(tmp_path):
+    text = TINY.replace("horizon: 4.0", "horizon: 4.0\nrefine: {levels: 1, band: 1.0}\n"
+                                        "solved_theta_deg: 56")
+    run, _ = _run(tmp_path, text, until="fidelity")
+    solved = run.outputs["solve"]["KSFO_17h_clear"]
+    # the tables and the BRT cover |theta| <= 56 deg; the labelled states stay within 28
+    states = load_dataset(tmp_path / run.outputs["dataset"]["folders"]["KSFO_17h_clear"]).states
+    assert np.abs(states[:, 2]).max() <= np.deg2rad(28.0) + 1e-9
+    assert np.isclose(run.value_function("KSFO_17h_clear").grid.hi[2], np.deg2rad(56.0))
+    assert solved["grid"] == [9, 5, 9] and solved["nodes_rendered"][0] == 75
+    assert 75 < solved["nodes_rendered"][1] < 9 * 5 * 9
+    vf = run.value_function("KSFO_17h_clear")
+    assert vf.grid.shape == (9, 5, 9)
+    grid, steering = run.steering_table(run.spec.test[0])
+    assert grid == vf.grid and steering.shape == (9, 5, 9, 1)
+    with np.load(tmp_path / solved["table"]) as saved:
+        assert saved["rendered"].sum() == solved["nodes_rendered"][1]
+    assert run.outputs["fidelity"]["KSFO_17h_clear"]["table_rollouts"]["n"] == 3
 
 
 def test_killed_run_resumes_at_the_failed_stage(tmp_path, monkeypatch):

@@ -97,7 +97,8 @@ def _value_hash(value_function) -> str:
                           .tobytes()).hexdigest()[:16]
 
 
-def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=()) -> Path:
+def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(),
+                   box=None) -> Path:
     """The content-addressed folder of a dataset under ``root``."""
     scenario = resolved(scenario)
     parts = {"format": FORMAT, "env": dc.asdict(scenario.environment),
@@ -105,6 +106,8 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
              "camera": [scenario.camera.height, scenario.camera.width],
              "controller": fingerprint(scenario.controller),
              "ensemble": [file_hash(p) for p in ensemble]}
+    if box is not None:
+        parts["box"] = np.asarray(box, float).tolist()
     digest = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
     return Path(root) / f"{scenario.environment.name}_{spec.samples}_{digest}"
 
@@ -218,13 +221,23 @@ def _real_loop(scenario, value_function, states, folder: Path, progress):
 
 
 def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpec(), *,
-                  ensemble=(), progress=True) -> Path:
-    """Render, estimate and label ``spec.samples`` states of ``scenario``'s environment;
-    returns the dataset folder (reused or resumed when it already exists)."""
+                  ensemble=(), progress=True, box=None) -> Path:
+    """Render, estimate and label ``spec.samples`` uniform states of ``box`` (``(lo,
+    hi)``, inside the value function's grid; default: the whole grid) in
+    ``scenario``'s environment; returns the dataset folder (reused or resumed when it
+    already exists)."""
     scenario = resolved(scenario)
-    folder = dataset_folder(root, scenario, value_function, spec, ensemble)
-    folder.mkdir(parents=True, exist_ok=True)
     grid = value_function.grid
+    if box is not None:
+        lo, hi = (np.asarray(b, float) for b in box)
+        if lo.shape != grid.lo.shape or hi.shape != grid.lo.shape or np.any(lo >= hi) \
+                or not (grid.contains(lo[None]) & grid.contains(hi[None])).all():
+            raise ValueError(f"the dataset box {lo.tolist()} .. {hi.tolist()} must be a "
+                             f"non-empty box inside the BRT's grid {grid}")
+    else:
+        lo, hi = grid.lo, grid.hi
+    folder = dataset_folder(root, scenario, value_function, spec, ensemble, box)
+    folder.mkdir(parents=True, exist_ok=True)
     manifest_path = folder / "manifest.json"
     estimator = None            # the controller is built only when there is work for it
     if manifest_path.exists():
@@ -235,7 +248,7 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
             ("ensemble", (n, len(ensemble), 2)))}
     else:
         rng = np.random.default_rng(spec.seed)
-        states = grid.lo + rng.uniform(size=(spec.samples, grid.ndim)) * (grid.hi - grid.lo)
+        states = lo + rng.uniform(size=(spec.samples, grid.ndim)) * (hi - lo)
         values = value_function.at(states)
         n, labels, sources, label_info = assign_labels(
             values, np.abs(states[:, 0]) < scenario.environment.half_width, spec.labels,
