@@ -45,8 +45,8 @@ from reachwatch.pipeline.evaluate_commands import parse_environment
 from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.reach import compare_verdicts, solve_brt
 from reachwatch.systems.files import cache_root
-from reachwatch.taxi import (TaxiGridSpec, dynamics_for, on_runway_starts, paper_grid,
-                             refine_closed_loop, sweep_closed_loop)
+from reachwatch.taxi import (dynamics_for, on_runway_starts, paper_grid, refine_closed_loop,
+                             sweep_closed_loop)
 from reachwatch.taxi.grid import AXES
 from reachwatch.taxi.fidelity import real_outcomes
 from reachwatch.training.dataset import hybrid_rolls_out
@@ -104,9 +104,8 @@ def main():
         variants = [(shape, pps) for shape in np.reshape(args.grids, (-1, 3))
                     for pps in args.periods_per_step]
         for shape, pps in variants:
-            grid = TaxiGridSpec(px=[-(B + 1), B + 1], py=[100.0, args.py_max],
-                                theta_deg=[-args.theta_deg, args.theta_deg],
-                                shape=[int(n) for n in shape]).to_grid()
+            grid = paper_grid(B, tuple(int(n) for n in shape), theta_deg=args.theta_deg,
+                              py_max=args.py_max)
             table = sweep_closed_loop(scenario, grid, cache_dir=cache / "sweeps", progress=True)
 
             def solve(table, pps=int(pps)):

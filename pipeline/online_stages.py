@@ -16,7 +16,8 @@ from reachwatch.taxi.plots import plot_brt_slices, plot_failure_sets
 from reachwatch.training.incremental import fine_tune_taxinet, mine_anomalies
 
 from .spec import digest
-from .stages import Run, solve_env, sweep_env
+from .brt_stages import solve_env, sweep_env
+from .stages import Run
 
 
 def robust_starts(mask, grid, limit):

@@ -12,7 +12,8 @@ from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.reach import wilson_interval
 from reachwatch.training.evaluation import COLUMNS, format_cell
 
-from .stages import Run, sweep_rate
+from .brt_stages import sweep_rate
+from .stages import Run
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;
 color:#222}h1{border-bottom:2px solid #444}h2{margin-top:2em;border-bottom:1px solid #ccc}

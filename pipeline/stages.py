@@ -1,5 +1,5 @@
-"""The offline stages of ``reachwatch run``: sweep -> solve -> dataset -> train ->
-evaluate. Each reads the records of the stages before it and returns JSON-able
+"""The run (`Run`) and the learning stages of ``reachwatch run``: dataset -> train ->
+evaluate (sweep and solve are in `brt_stages`). Each reads the records of the stages before it and returns JSON-able
 outputs (paths relative to the run directory); `Run.stage` skips a stage whose key
 (a digest of its inputs) matches its record. The heavy work inside a stage is
 itself chunked and cached by content, so a killed stage resumes where it stopped."""
@@ -7,7 +7,6 @@ itself chunked and cached by content, so a killed stage resumes where it stopped
 import copy
 import dataclasses as dc
 import datetime
-import io
 import json
 import logging
 import os
@@ -17,12 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from reachwatch.diagrams import CONTROL_PORT, file_hash, load_detector
-from reachwatch.reach import (Grid, InlineExecutor, ValueFunction, min_target_along_rollouts,
-                              sign_agreement, solve_brt)
-from reachwatch.taxi import (dynamics_for, paper_grid, refine_closed_loop, sweep_closed_loop,
-                             taxi_sweep_key)
-from reachwatch.taxi.grid import AXES, TaxiGridSpec
-from reachwatch.taxi.plots import plot_brt_slices
+from reachwatch.reach import Grid, InlineExecutor, ValueFunction
+from reachwatch.taxi import paper_grid, sweep_closed_loop
+from reachwatch.taxi.grid import AXES
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
 from reachwatch.training.dataset import SOURCE_BRT, build_dataset, load_dataset
@@ -178,9 +174,8 @@ class Run:
     def solved_grid_for(self, env) -> Grid:
         """The box swept and solved over: the paper's, with |theta| up to
         ``solved_theta_deg``."""
-        B, t = env.half_width, float(self.spec.solved_theta_deg)
-        return TaxiGridSpec(px=[-(B + 1.0), B + 1.0], py=[100.0, 250.0], theta_deg=[-t, t],
-                            shape=list(self.spec.grid)).to_grid()
+        return paper_grid(env.half_width, tuple(self.spec.grid),
+                          theta_deg=float(self.spec.solved_theta_deg))
 
     def environments(self):
         """Every environment whose BRT the run needs (train, test, guard, incremental)."""
@@ -211,94 +206,6 @@ class Run:
 
     def datasets(self, envs):
         return [load_dataset(self.path(self.outputs["dataset"]["folders"][e.name])) for e in envs]
-
-
-def sweep_env(run: Run, env, *, checkpoint=None) -> dict:
-    """Sweep ``env``'s closed loop over the grid (chunks cached in ``sweeps/``)."""
-    scenario, grid = run.scenario_for(env, checkpoint), run.solved_grid_for(env)
-    started = time.time()
-    table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
-                              progress=run.progress)
-    return {"sweep": table.key, "states": int(grid.size), "rendered": int(table.computed),
-            "sweep_seconds": round(time.time() - started, 1)}
-
-
-def sweep_rate(record) -> str:
-    """States per second of the states a sweep rendered; "cached" when it rendered none."""
-    rendered = record.get("rendered", record["states"])
-    if not rendered:
-        return "cached"
-    return f"{rendered / max(record['sweep_seconds'], 0.1):.0f}"
-
-
-def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
-    """Solve ``env``'s BRT from its (cached) sweep, refined adaptively ``refine.levels``
-    times; check it against RK4 rollouts of the (refined) table from every node, plot
-    a slice. The refined steering table is saved beside the value function."""
-    spec = run.spec
-    scenario, grid = run.scenario_for(env, checkpoint), run.solved_grid_for(env)
-    table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache,
-                              executor=run.executor, progress=False)
-    dynamics = dynamics_for(scenario)
-    solved = [0.0]
-
-    def solve(table):
-        started = time.time()
-        vf = solve_brt(table.grid, dynamics, table[CONTROL_PORT], horizon=spec.horizon,
-                       accuracy=spec.accuracy, period=scenario.controller.period,
-                       periods_per_step=spec.periods_per_step)
-        solved[0] += time.time() - started
-        return vf
-    refine = spec.refine
-    started = time.time()
-    levels = refine_closed_loop(
-        scenario, table, solve=solve, levels=refine.levels, band=refine.band,
-        variation=None if refine.variation_deg is None else np.deg2rad(refine.variation_deg),
-        cache_dir=run.sweep_cache, executor=run.executor, progress=run.progress)
-    refine_seconds = time.time() - started - solved[0]
-    vf, table = levels[-1].solution, levels[-1].table
-    grid, steering = table.grid, table[CONTROL_PORT]
-    key = taxi_sweep_key(scenario, run.solved_grid_for(env))
-    vf.metadata.update(environment=env.name, sweep=key, refine_levels=refine.levels)
-    name = f"{key}_{spec.horizon:g}s_{spec.accuracy}" + (
-        f"_refined{refine.levels}_{digest(refine)[:8]}" if refine.levels else "")
-    path = vf.save(run.path(f"brt/value_{name}.npz"))
-    out = {"value": run.rel(path), "brt_fraction": vf.brt_fraction, "grid": list(grid.shape),
-           "nodes_rendered": [lv.rendered for lv in levels]}
-    if refine.levels:
-        buffer = io.BytesIO()
-        np.savez(buffer, steering=steering, rendered=table.rendered, lo=grid.lo, hi=grid.hi)
-        out["table"] = run.rel(atomic_write_bytes(run.path(f"brt/table_{name}.npz"),
-                                                  buffer.getvalue()))
-        out["refine_seconds"] = round(refine_seconds, 1)
-    reference = min_target_along_rollouts(grid, dynamics, steering, grid.states(),
-                                          horizon=spec.horizon, hold=scenario.controller.period)
-    figure = plot_brt_slices({f"{env.name}{label}": vf}, py=spec.slice_py,
-                             path=run.path(f"figures/brt_{env.name}{label.replace(' ', '_')}.png"),
-                             half_width=env.half_width)
-    return {**out, "rollout_agreement": sign_agreement(vf.values.ravel(), reference),
-            "solve_seconds": round(solved[0], 2), "figure": run.rel(figure)}
-
-
-def stage_sweep(run: Run) -> dict:
-    """Sweep every environment the run needs (one record each, keyed by content)."""
-    out = {}
-    for env in run.environments():
-        key = taxi_sweep_key(run.scenario_for(env), run.solved_grid_for(env))
-        out[env.name] = run.stage(f"sweep_{env.name}", key, lambda env=env: sweep_env(run, env))
-    return out
-
-
-def stage_solve(run: Run) -> dict:
-    """The BRT of every environment the run needs, from its sweep."""
-    out = {}
-    for env in run.environments():
-        key = digest(run.records[f"sweep_{env.name}"]["key"], run.spec.horizon,
-                     run.spec.accuracy, run.spec.periods_per_step, run.spec.slice_py,
-                     *([run.spec.refine] if run.spec.refine.levels else []))
-        out[env.name] = {**run.outputs[f"sweep_{env.name}"], **run.stage(
-            f"solve_{env.name}", key, lambda env=env: solve_env(run, env))}
-    return out
 
 
 def _ensemble(run: Run):

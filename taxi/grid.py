@@ -10,12 +10,14 @@ from reachwatch.reach import Grid
 AXES = ("px", "py", "theta")
 
 
-def paper_grid(half_width: float, shape=(101, 101, 101)) -> Grid:
-    """The paper's box: px in [-(B+1), B+1] m, py in [100, 250] m, theta in [-28, 28] deg."""
+def paper_grid(half_width: float, shape=(101, 101, 101), *, theta_deg: float = 28.0,
+               py_max: float = 250.0) -> Grid:
+    """The paper's box: px in [-(B+1), B+1] m, py in [100, 250] m, theta in [-28, 28] deg;
+    ``theta_deg`` and ``py_max`` widen it (a box that holds what the loop does)."""
     if len(tuple(shape)) != 3:
         raise ValueError(f"the taxi grid has 3 axes (px, py, theta), got shape {list(shape)}")
-    return Grid(lo=[-(half_width + 1.0), 100.0, np.deg2rad(-28.0)],
-                hi=[half_width + 1.0, 250.0, np.deg2rad(28.0)], shape=shape, names=AXES)
+    return Grid(lo=[-(half_width + 1.0), 100.0, np.deg2rad(-theta_deg)],
+                hi=[half_width + 1.0, py_max, np.deg2rad(theta_deg)], shape=shape, names=AXES)
 
 
 @dc.dataclass

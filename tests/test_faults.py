@@ -17,7 +17,7 @@ from reachwatch.pipeline import cli, console
 from reachwatch.pipeline.executors import make_executor
 from reachwatch.pipeline.run import run_pipeline
 from reachwatch.pipeline.spec import load_run_spec
-from reachwatch.pipeline.stages import sweep_rate
+from reachwatch.pipeline.brt_stages import sweep_rate
 from reachwatch.reach import InlineExecutor, Probe, default_executor, sweep
 from reachwatch.taxi import paper_grid
 
