@@ -4,8 +4,8 @@ the fallback switch between the controller and the plant."""
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import ZeroOrderHold
 
-from reachwatch.systems import (AnomalyDetector, FallbackSwitch, ProportionalController,
-                                TrueStateEstimator)
+from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, fallback_name,
+                                ProportionalController, TrueStateEstimator)
 
 from .checkpoints import load_detector
 from .closed_loop import add_controller, export_loop_ports
@@ -35,6 +35,28 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller):
     return detector, switch
 
 
+def add_dead_reckoning(builder, *, estimate_port, anomaly_port, switch, controller,
+                       wheelbase):
+    """Adds the honest fallback steering to a loop with a `FallbackSwitch` whose
+    steering is ``dead_reckoning``: `DeadReckoning` (named ``dead_reckoning``) on the
+    controller's ``estimate_port`` ``[px m, theta deg]`` and the detector's
+    ``anomaly_port``, fed back the switch's steering and speed, and the P-controller
+    (``fallback_p_controller``, ``controller``'s gains) on its estimate, into the
+    switch's ``fallback_steering_angle``. Returns the `DeadReckoning` system."""
+    reckoning = builder.AddNamedSystem("dead_reckoning", DeadReckoning(
+        period=controller.period, wheelbase=wheelbase))
+    fallback = builder.AddNamedSystem("fallback_p_controller", ProportionalController(
+        px_gain=controller.px_gain, theta_gain=controller.theta_gain))
+    builder.Connect(estimate_port, reckoning.get_estimate_input_port())
+    builder.Connect(anomaly_port, reckoning.get_anomaly_input_port())
+    builder.Connect(switch.get_steering_angle_output_port(), reckoning.get_steering_angle_input_port())
+    builder.Connect(switch.get_speed_output_port(), reckoning.get_speed_input_port())
+    builder.Connect(reckoning.get_estimate_output_port(), fallback.get_estimate_input_port())
+    builder.Connect(fallback.get_steering_angle_output_port(),
+                    switch.get_fallback_steering_angle_input_port())
+    return reckoning
+
+
 def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
     """Plant + camera + the scenario's controller + AnomalyDetector + FallbackSwitch.
 
@@ -48,7 +70,9 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
         - anomaly
 
     Subsystems: ``taxi_plant``, ``controller``, ``anomaly_detector``,
-    ``fallback_switch``, ``steering_hold``; with ``monitor.steering: oracle`` also
+    ``fallback_switch``, ``steering_hold``; with ``monitor.steering: dead_reckoning``
+    also ``dead_reckoning`` (fed by the controller's ``estimate``, which must be
+    ``[px m, theta deg]``) and ``fallback_p_controller``; with ``oracle`` also
     ``state_estimator`` and ``oracle_p_controller`` (privileged). With ``meshcat``
     (a `Meshcat`), a `MeshcatVisualizer` of the perception scene is added."""
     monitor, controller = scenario.monitor, scenario.controller
@@ -72,6 +96,13 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
         builder.Connect(estimator.get_estimate_output_port(), oracle.get_estimate_input_port())
         builder.Connect(oracle.get_steering_angle_output_port(),
                         switch.get_fallback_steering_angle_input_port())
+    elif monitor.steering == "dead_reckoning":
+        if not has_estimate(vision):
+            raise ValueError("monitor.steering: dead_reckoning carries the controller's "
+                             "'estimate' output forward, and this controller has none")
+        add_dead_reckoning(builder, estimate_port=vision.GetOutputPort(ESTIMATE_OUTPUT),
+                           anomaly_port=detector.get_anomaly_output_port(), switch=switch,
+                           controller=controller, wheelbase=world.plant.wheelbase)
     builder.Connect(switch.get_steering_angle_output_port(), hold.get_input_port())
     builder.Connect(hold.get_output_port(), world.plant.get_steering_angle_input_port())
     builder.Connect(switch.get_speed_output_port(), world.plant.get_speed_input_port())
@@ -85,5 +116,5 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
         MeshcatVisualizer.AddToBuilder(builder, world.scene_graph, meshcat,
                                        MeshcatVisualizerParams(role=Role.kPerception))
     diagram = builder.Build()
-    diagram.set_name(f"guarded_{monitor.strategy}")
+    diagram.set_name(f"guarded_{fallback_name(monitor.strategy, monitor.steering)}")
     return diagram

@@ -67,8 +67,9 @@ class ControllerConfig:
 @dc.dataclass
 class MonitorConfig:
     """The runtime monitor of the guarded loop: detector checkpoint and threshold, fallback strategy
-    (``slow_down`` | ``brake``), steering while flagged (``taxinet`` | ``oracle``,
-    privileged), brake deceleration (m/s^2)."""
+    (``slow_down`` | ``brake``), steering while flagged (``taxinet`` | ``dead_reckoning``:
+    the last trusted estimate carried forward | ``oracle``: the true state, privileged),
+    brake deceleration (m/s^2)."""
     detector: str = ""
     threshold: float = 0.5
     strategy: str = "slow_down"

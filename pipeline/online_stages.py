@@ -1,18 +1,25 @@
 """The online stages of ``reachwatch run``: guard (the guarded loop's failure
-sets, a real nominal-vs-guarded run, the online rate) and incremental (TaxiNet
+sets and liveness per fallback, their trade-off as the threshold sweeps, the same
+figures from the real Drake loops, a real nominal-vs-guarded run, the online rate) and incremental (TaxiNet
 fine-tuned on mined anomalies, the held-out BRT recomputed)."""
+
+import copy
 
 import numpy as np
 from scipy.ndimage import uniform_filter
 
-from reachwatch.diagrams import (file_hash, initial_state_vector, load_taxinet,
+from reachwatch.diagrams import (file_hash, load_taxinet,
                                  make_closed_loop_diagram, make_guarded_diagram, paired_rates,
                                  simulate)
 from reachwatch.diagrams.plots import plot_runway_top_view
 from reachwatch.diagrams.scenario import InitialState
 from reachwatch.reach import ValueFunction
-from reachwatch.taxi import UNGUARDED, failure_sets, resolved, simulate_guarded, sweep_guarded
-from reachwatch.taxi.plots import plot_brt_slices, plot_failure_sets
+from reachwatch.reach.liveness import liveness_figures
+from reachwatch.systems import fallback_parts
+from reachwatch.taxi import (UNGUARDED, fallback_rollouts, mission_rollouts, on_runway_starts,
+                             real_missions, resolved, simulate_guarded, sweep_guarded)
+from reachwatch.taxi.guarded import tradeoff_curves, tradeoff_row
+from reachwatch.taxi.plots import plot_brt_slices, plot_failure_sets, plot_tradeoff
 from reachwatch.training.incremental import fine_tune_taxinet, mine_anomalies
 
 from .spec import digest
@@ -34,6 +41,84 @@ def _state(x):
     return InitialState(px=float(x[0]), py=float(x[1]), theta_deg=float(np.rad2deg(x[2])))
 
 
+def showcase_candidates(on_grid, fallbacks, grid, limit):
+    """Up to ``limit`` ``(fallback, node)`` pairs where the tables say the controller
+    alone fails and an honest fallback saves the start: saves that keep moving first
+    (fallbacks with the smaller failure set first), then saves that end stopped."""
+    honest = sorted((f for f in fallbacks if fallback_parts(f)[1] != "oracle"),
+                    key=lambda f: on_grid[f].failed.mean())
+    alone = on_grid[UNGUARDED].failed
+    picks = []
+    for moving in (True, False):
+        for name in honest:
+            outcome = on_grid[name]
+            kept = ~outcome.stopped if moving else outcome.stopped
+            picks += [(name, node) for node in
+                      robust_starts(alone & ~outcome.failed & kept, grid, limit)]
+    return picks[:limit]
+
+
+def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
+    """A start the tables say an honest fallback saves, checked in the real Drake loops:
+    the first real save that keeps moving, else the first real save (a stop), else the
+    first start tried; its plot, trajectories and replay."""
+    spec = run.spec
+    tried, moving_save, stop_save = [], None, None
+    for name, node in showcase_candidates(on_grid, spec.guard.strategies, grid,
+                                          spec.guard.candidates):
+        x0 = grid.states([node])[0]
+        alone, guarded = (mission_rollouts(scenario, f, spec.horizon, x0[None])
+                          for f in (None, name))
+        entry = {"fallback": name, "start": [float(v) for v in x0],
+                 "nominal_fails": bool(alone["failed"][0]),
+                 "guarded_fails": bool(guarded["failed"][0]),
+                 "guarded_stopped": bool(guarded["stopped"][0])}
+        tried.append(entry)
+        if entry["nominal_fails"] and not entry["guarded_fails"]:
+            if not entry["guarded_stopped"]:
+                moving_save = entry
+                break
+            stop_save = stop_save or entry
+    chosen = moving_save or stop_save
+    record = {"tried": tried, "confirmed": chosen is not None,
+              "save": "moving" if moving_save else "stop" if stop_save else None}
+    if not tried:
+        return record
+    shown = chosen or tried[0]
+    shown_scenario = copy.deepcopy(scenario)
+    shown_scenario.monitor.strategy, shown_scenario.monitor.steering = fallback_parts(
+        shown["fallback"])
+    shown_scenario.initial_state = _state(shown["start"])
+    nominal, guarded, paths = simulate_guarded(shown_scenario, run.path("figures"),
+                                               meshcat_html=spec.guard.meshcat_html)
+    record.update(strategy=shown["fallback"], start=shown["start"],
+                  nominal_fails=nominal.failed, guarded_fails=guarded.failed,
+                  lowest_speed=float(np.min(guarded.speed)),
+                  final_speed=float(np.asarray(guarded.speed).ravel()[-1]),
+                  flagged_ticks=int(np.sum(np.asarray(guarded.anomaly) >= 0.5)),
+                  ticks=len(guarded.time), files=[run.rel(p) for p in paths])
+    return record
+
+
+def real_loop_check(run: Run, scenario, grid, tables, env) -> dict:
+    """Every fallback and the controller alone in the real Drake loops from
+    ``guard.check_starts`` seeded on-runway starts, beside the tables' figures from the
+    same starts."""
+    spec = run.spec
+    starts = on_runway_starts(grid, spec.guard.check_starts, spec.guard.check_seed,
+                              half_width=env.half_width)
+    table = fallback_rollouts(scenario, grid, tables, spec.horizon, spec.guard.strategies,
+                              starts=starts)
+    real = {f: real_missions(scenario, starts, fallback=None if f == UNGUARDED else f,
+                             duration=spec.horizon, cache_dir=run.path("outcomes"),
+                             executor=run.executor, progress=run.progress)
+            for f in [UNGUARDED, *spec.guard.strategies]}
+    return {"starts": len(starts), "seed": spec.guard.check_seed,
+            "fallbacks": {f: {"table": liveness_figures(table[UNGUARDED], table[f]),
+                              "real": liveness_figures(real[UNGUARDED], real[f])}
+                          for f in spec.guard.strategies}}
+
+
 def guard_environment(run: Run, env) -> dict:
     spec, trained = run.spec, run.outputs["train"]
     scenario = run.scenario_for(env)
@@ -42,51 +127,39 @@ def guard_environment(run: Run, env) -> dict:
     scenario.duration = spec.horizon
     scenario = resolved(scenario)
     grid = run.grid_for(env)
+    fallbacks = spec.guard.strategies
     tables = sweep_guarded(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
                            progress=run.progress)
-    failures = failure_sets(scenario, grid, tables, spec.horizon, spec.guard.strategies)
-    volumes = {k: float(v.mean()) for k, v in failures.items()}
-    slices = plot_failure_sets(failures, grid, spec.horizon, py=spec.slice_py,
-                               half_width=env.half_width,
+    on_grid = fallback_rollouts(scenario, grid, tables, spec.horizon, fallbacks)
+    volumes = {k: float(v.failed.mean()) for k, v in on_grid.items()}
+    liveness = {f: liveness_figures(on_grid[UNGUARDED], on_grid[f]) for f in fallbacks}
+    slices = plot_failure_sets({k: v.failed for k, v in on_grid.items()}, grid, spec.horizon,
+                               py=spec.slice_py, half_width=env.half_width,
                                path=run.path(f"figures/guard_{env.name}.png"),
                                title=f"{env.name}: failing start states (grey), detector at "
                                      f"threshold {scenario.monitor.threshold:.3g}")
-    # A start the tables say the guard saves, checked in the real Drake loops.
-    best = min(spec.guard.strategies, key=lambda s: volumes[s]) if spec.guard.strategies else None
-    tried, chosen = [], None
-    scenario.monitor.strategy = best or scenario.monitor.strategy
-    nominal_diagram, guarded_diagram = (make_closed_loop_diagram(scenario),
-                                        make_guarded_diagram(scenario))
-    if best is not None:
-        contexts = [d.CreateDefaultContext() for d in (nominal_diagram, guarded_diagram)]
-        for node in robust_starts(failures[UNGUARDED] & ~failures[best], grid,
-                                  spec.guard.candidates):
-            x0 = grid.states([node])[0]
-            runs = [simulate(d, initial_state=x0, duration=spec.horizon,
-                             period=scenario.controller.period,
-                             half_width=env.half_width, context=c)
-                    for d, c in zip((nominal_diagram, guarded_diagram), contexts)]
-            tried.append({"start": [float(v) for v in x0], "nominal_fails": runs[0].failed,
-                          "guarded_fails": runs[1].failed})
-            if runs[0].failed and not runs[1].failed:
-                chosen = x0
-                break
-    run_record = {"strategy": best, "tried": tried, "confirmed": chosen is not None}
-    if tried:
-        scenario.initial_state = _state(chosen if chosen is not None else tried[0]["start"])
-        nominal, guarded, paths = simulate_guarded(scenario, run.path("figures"),
-                                                   meshcat_html=spec.guard.meshcat_html)
-        run_record.update(start=[float(v) for v in initial_state_vector(scenario.initial_state)],
-                          nominal_fails=nominal.failed, guarded_fails=guarded.failed,
-                          lowest_speed=float(np.min(guarded.speed)),
-                          flagged_ticks=int(np.sum(np.asarray(guarded.anomaly) >= 0.5)),
-                          files=[run.rel(p) for p in paths])
+    curves = tradeoff_curves(scenario, grid, tables, spec.horizon, fallbacks,
+                             spec.guard.tradeoff_points) if spec.guard.tradeoff_points else {}
+    operating = {f: tradeoff_row(liveness[f], scenario.monitor.threshold) for f in fallbacks}
+    tradeoff = (plot_tradeoff(curves, operating=operating, alone=volumes[UNGUARDED],
+                              path=run.path(f"figures/tradeoff_{env.name}.png"),
+                              title=f"{env.name}: failures against liveness as the detector "
+                                    f"threshold sweeps (star: threshold "
+                                    f"{scenario.monitor.threshold:.3g})")
+                if curves else None)
+    check = (real_loop_check(run, scenario, grid, tables, env)
+             if spec.guard.check_starts else None)
+    run_record = showcase_run(run, scenario, on_grid, grid, env)
     # Both loops side by side in alternating blocks; the median per-round ratio (the VM drifts).
-    alone, guarded_rate = paired_rates(nominal_diagram, guarded_diagram, rounds=3,
-                                       duration=spec.guard.online_seconds,
+    shown = copy.deepcopy(scenario)
+    shown.monitor.strategy, shown.monitor.steering = fallback_parts(
+        run_record.get("strategy") or (fallbacks[0] if fallbacks else "slow_down"))
+    alone, guarded_rate = paired_rates(make_closed_loop_diagram(shown), make_guarded_diagram(shown),
+                                       rounds=3, duration=spec.guard.online_seconds,
                                        period=scenario.controller.period)
-    return {"threshold": scenario.monitor.threshold, "volumes": volumes,
-            "figure": run.rel(slices), "run": run_record,
+    return {"threshold": scenario.monitor.threshold, "volumes": volumes, "liveness": liveness,
+            "tradeoff": curves, "tradeoff_figure": run.rel(tradeoff) if tradeoff else None,
+            "check": check, "figure": run.rel(slices), "run": run_record,
             "online": {"alone_ticks_per_s": float(np.median(alone)),
                        "guarded_ticks_per_s": float(np.median(guarded_rate)),
                        "ratio": float(np.median(np.asarray(guarded_rate) / np.asarray(alone))),

@@ -10,6 +10,8 @@ from reachwatch.diagrams import export_graph, write_png, make_closed_loop_diagra
 from reachwatch.diagrams.contact_sheet import environment_sheet
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.reach import wilson_interval
+from reachwatch.reach.liveness import percent
+from reachwatch.taxi import UNGUARDED
 from reachwatch.training.evaluation import COLUMNS, format_cell
 
 from .brt_stages import sweep_rate
@@ -144,6 +146,74 @@ def fidelity_section(page, run: Run, roles):
                      _rate(r, "false_unsafe")] for n, r in labelled.items()])
 
 
+def _x(value):
+    return "-" if value is None else f"{value:.2f}"
+
+
+def _share(entry):
+    return "-" if entry.get("rate") is None else f"{100 * entry['rate']:.1f} ({entry['count']}/{entry['of']})"
+
+
+def guard_section(page, env, g, spec, checked):
+    """Failure sets with their liveness per fallback, the trade-off curve, the real-loop
+    check and the showcase run of one guard environment."""
+    page.text(f"{env}: fraction of grid starts that leave the runway within "
+              f"{spec.horizon:g} s (detector threshold {g['threshold']:.3g}), and what each "
+              f"fallback costs: starts ended stopped, needless stops (of the starts the "
+              f"controller alone survives, those the fallback ends stopped), harmed (of those, "
+              f"the ones it makes fail), saves that keep moving (of the starts the controller "
+              f"alone fails), distance travelled relative to the controller alone, and ticks "
+              f"flagged. 'oracle' steers with the true state: a privileged reference, not a result.")
+    rows = [["controller alone", _pct(g["volumes"][UNGUARDED]), "-", "-", "-", "-", "1.00", "-"]]
+    for f, v in g.get("liveness", {}).items():
+        rows.append([f, _pct(v["failure_set"]["rate"]), _share(v["ended_stopped"]),
+                     _share(v["needless_stops"]), _share(v["harmed"]), _share(v["saved_moving"]),
+                     _x(v["distance_ratio"]),
+                     "-" if v["flagged_ticks"] is None else f"{100 * v['flagged_ticks']:.1f}"])
+    page.table(["closed loop", "failure set %", "ended stopped %", "needless stops %",
+                "harmed %", "saved, moving %", "distance / alone", "ticks flagged %"], rows)
+    if checked:
+        page.text(f"The controller alone in the real loop, from {checked['starts']} random "
+                  f"on-runway starts (the grid figures above count every node, off-runway "
+                  f"ones too): {monte_carlo(checked)}.")
+    page.images([g["figure"], g.get("tradeoff_figure")])
+    check = g.get("check")
+    if check:
+        page.text(f"The same figures in the real Drake loops (rendering and the detector at "
+                  f"every tick) from {check['starts']} seeded random on-runway starts (seed "
+                  f"{check['seed']}), beside the tables' rollouts from the same starts; "
+                  f"95 % Wilson intervals.")
+        rows = []
+        for f, both in check["fallbacks"].items():
+            for source in ("table", "real"):
+                v = both[source]
+                rows.append([f, source, percent(v["alone_failure_set"]), percent(v["failure_set"]),
+                             percent(v["ended_stopped"]), percent(v["needless_stops"]),
+                             _x(v["distance_ratio"])])
+        page.table(["fallback", "figures from", "alone fails", "guarded fails", "ended stopped",
+                    "needless stops", "distance / alone"], rows)
+    r = g["run"]
+    if not r.get("files"):
+        page.text("No grid start where the tables say the controller alone fails and an honest "
+                  "fallback saves it, so no nominal-vs-guarded run to show.")
+        return
+    save = r.get("save")
+    verdict = ("a save that keeps moving, confirmed in the real Drake loops" if save == "moving"
+               else "confirmed in the real Drake loops, but the only save found is a stop: the "
+                    "guarded loop ends at standstill" if save == "stop"
+               else "NOT confirmed in the real Drake loops (the tables are coarse)")
+    page.text(f"Nominal vs guarded ({r['strategy']}) from the start {np.round(r['start'], 2)} "
+              f"[px m, py m, theta rad], chosen from the tables ({len(r['tried'])} tried), "
+              f"{verdict}: the controller alone {'fails' if r['nominal_fails'] else 'stays on'}, "
+              f"guarded {'fails' if r['guarded_fails'] else 'stays on'}; lowest speed "
+              f"{r['lowest_speed']:.2f} m/s, final speed {r.get('final_speed', float('nan')):.2f} "
+              f"m/s, {r['flagged_ticks']} of {r.get('ticks', '?')} ticks flagged.")
+    page.images([p for p in r["files"] if p.endswith(".png")])
+    for p in r["files"]:
+        if p.endswith(".html"):
+            page.link(p, "Meshcat replay of the guarded run (standalone HTML)")
+
+
 def graphs(run: Run):
     """SVG/PNG (or only .dot without graphviz) of the nominal and guarded diagrams."""
     scenario = run.scenario_for(run.spec.test[0])
@@ -217,32 +287,7 @@ def write_report(run: Run) -> dict:
     page.images([f["error_vs_margin"] for f in o["evaluate"]["figures"].values()])
     page.section("Safety pipeline", "guard")
     for env, g in o["guard"].items():
-        page.text(f"{env}: fraction of grid starts that leave the runway within "
-                  f"{spec.horizon:g} s (detector threshold {g['threshold']:.3g}).")
-        page.table(["closed loop", "failure set %"], [[k, _pct(v)] for k, v in g["volumes"].items()])
-        checked = (o.get("fidelity") or {}).get(env)
-        if checked:
-            page.text(f"The controller alone in the real loop, from {checked['starts']} random "
-                      f"on-runway starts (the grid figures above count every node, off-runway "
-                      f"ones too): {monte_carlo(checked)}.")
-        page.images([g["figure"]])
-        r = g["run"]
-        if not r.get("files"):
-            page.text("No grid start where the tables say the controller alone fails and the "
-                      "guarded loop survives, so no nominal-vs-guarded run to show.")
-        else:
-            verdict = ("confirmed in the real Drake loops" if r["confirmed"] else
-                       "NOT confirmed in the real Drake loops (the tables are coarse)")
-            page.text(f"Nominal vs guarded ({r['strategy']}) from the start {np.round(r['start'], 2)} "
-                      f"[px m, py m, theta rad], chosen from the tables ({len(r['tried'])} "
-                      f"tried), {verdict}: the controller alone "
-                      f"{'fails' if r['nominal_fails'] else 'stays on'}, guarded "
-                      f"{'fails' if r['guarded_fails'] else 'stays on'}; lowest speed "
-                      f"{r['lowest_speed']:.2f} m/s, {r['flagged_ticks']} flagged ticks.")
-            page.images([p for p in r["files"] if p.endswith(".png")])
-            for p in r["files"]:
-                if p.endswith(".html"):
-                    page.link(p, "Meshcat replay of the guarded run (standalone HTML)")
+        guard_section(page, env, g, spec, (o.get("fidelity") or {}).get(env))
     if o.get("incremental"):
         inc = o["incremental"]
         page.section("Incremental training", "incremental")

@@ -12,7 +12,7 @@ from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.diagrams.scenario import dump_scenario
 from reachwatch.reach import ACCURACIES
 from reachwatch.reach.dynamics import positive, split_horizon
-from reachwatch.systems import STRATEGIES, Environment
+from reachwatch.systems import Environment, fallback_parts
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.incremental import IncrementalConfig
@@ -26,15 +26,31 @@ class EnsembleSpec:
     epochs: int = 400
 
 
+#: The fallbacks a guard compares by default: the paper's slow-down, braking, dead
+#: reckoning with slow-down (honest), and slow-down with the true state's steering
+#: (privileged: the paper's reference point, never an honest result).
+DEFAULT_FALLBACKS = ("slow_down", "brake", "slow_down+dead_reckoning", "slow_down+oracle")
+
+
 @dc.dataclass
 class GuardSpec:
-    """The guarded loop on held-out environments (default: the first test one):
-    failure sets per strategy, a nominal-vs-guarded run, the online rate."""
+    """The guarded loop on held-out environments (default: the first test one). For
+    each fallback in ``strategies`` (a speed strategy, optionally ``+`` a steering
+    while flagged, e.g. ``slow_down+dead_reckoning``): failure sets and liveness from
+    the swept tables over the grid, a trade-off curve over ``tradeoff_points``
+    detector thresholds, and the same figures from ``check_starts`` seeded random
+    on-runway starts in the real Drake loops (each start costs one real run alone and
+    one per fallback; 0 = no real-loop check). ``candidates``: table-chosen starts
+    tried in the real loops for the showcase run; ``online_seconds``: simulated
+    seconds per round of the online rate."""
     environments: List[Environment] = dc.field(default_factory=list)
-    strategies: List[str] = dc.field(default_factory=lambda: list(STRATEGIES))
-    candidates: int = 5            # table-chosen starts tried in the real Drake loop
-    online_seconds: float = 2.0    # simulated seconds per round of the online rate
+    strategies: List[str] = dc.field(default_factory=lambda: list(DEFAULT_FALLBACKS))
+    candidates: int = 5
+    online_seconds: float = 2.0
     meshcat_html: bool = True
+    check_starts: int = 200
+    check_seed: int = 2000
+    tradeoff_points: int = 9
 
 
 @dc.dataclass
@@ -149,9 +165,17 @@ class RunSpec:
                              f"{[self.detector.detector.height, self.detector.detector.width]}")
         if len(self.ensemble.seeds) == 1:
             raise ValueError("ensemble.seeds: an ensemble needs >= 2 seeds (or [] for none)")
-        for i, s in enumerate(self.guard.strategies):
-            if s not in STRATEGIES:
-                raise ValueError(f"guard.strategies[{i}]: '{s}' is not one of {STRATEGIES}")
+        for i, name in enumerate(self.guard.strategies):
+            try:
+                fallback_parts(name)
+            except ValueError as e:
+                raise ValueError(f"guard.strategies[{i}]: {e}") from None
+        if len(set(self.guard.strategies)) != len(self.guard.strategies):
+            raise ValueError(f"guard.strategies: each fallback once, got {self.guard.strategies}")
+        for name in ("candidates", "check_starts", "tradeoff_points"):
+            value = getattr(self.guard, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"guard.{name} must be a whole number >= 0, got {value!r}")
         for i, env in enumerate(self.guard.environments):
             env.validate()
         self.incremental.validate()

@@ -26,7 +26,9 @@ from .models import (ESTIMATE_UNITS, PreprocessConfig, SmallTaxiCNN, TaxiNetConf
 from .plant import NOMINAL_SPEED_MPS, WHEELBASE_M, TaxiPlant, taxi_dynamics
 from .runway import RUNWAYS, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, TaxiwayLine
 from .scene import add_runway_scene
-from .switch import STEERING, STRATEGIES, FallbackSwitch, next_speed
+from .dead_reckoning import DeadReckoning, propagate_estimate
+from .switch import (STEERING, STRATEGIES, FallbackSwitch, fallback_name, fallback_parts,
+                     next_speed)
 from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, TaxiNet,
                       TrueStateEstimator)
 
@@ -39,5 +41,5 @@ __all__ = [
     "SmallTaxiCNN", "TaxiNetConfig", "TinyTaxiNet", "build_taxinet", "preprocess",
     "PX_GAIN_DEG_PER_M", "THETA_GAIN", "ProportionalController", "TaxiNet", "TrueStateEstimator", "AnomalyDetector",
     "DetectorConfig", "SmallDetectorCNN", "build_detector", "detector_input", "resize_for_detector", "STEERING", "STRATEGIES", "FallbackSwitch",
-    "next_speed",
+    "next_speed", "fallback_name", "fallback_parts", "DeadReckoning", "propagate_estimate",
 ]

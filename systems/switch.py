@@ -6,7 +6,27 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from .plant import NOMINAL_SPEED_MPS
 
 STRATEGIES = ("slow_down", "brake")
-STEERING = ("taxinet", "oracle")
+#: Steering while flagged: the controller's own, the P-controller on the dead-reckoned
+#: estimate (honest), or on the true state (privileged, a reference only).
+STEERING = ("taxinet", "dead_reckoning", "oracle")
+
+
+def fallback_parts(name: str):
+    """``(strategy, steering)`` of a fallback's name: a speed strategy alone
+    (``"slow_down"``, TaxiNet keeps steering) or ``"strategy+steering"`` (e.g.
+    ``"slow_down+dead_reckoning"``, ``"slow_down+oracle"``)."""
+    strategy, _, steering = str(name).partition("+")
+    steering = steering or "taxinet"
+    if strategy not in STRATEGIES or steering not in STEERING:
+        raise ValueError(f"fallback '{name}': write a speed strategy {STRATEGIES}, optionally "
+                         f"followed by '+' and a steering {STEERING[1:]} (e.g. "
+                         f"'slow_down+dead_reckoning')")
+    return strategy, steering
+
+
+def fallback_name(strategy: str, steering: str = "taxinet") -> str:
+    """The inverse of `fallback_parts`."""
+    return strategy if steering == "taxinet" else f"{strategy}+{steering}"
 
 
 def next_speed(speed, flagged, *, strategy="slow_down", nominal=NOMINAL_SPEED_MPS,
@@ -35,9 +55,11 @@ class FallbackSwitch(LeafSystem):
 
     ``speed`` (m/s) is discrete state, updated once per ``period`` s from ``anomaly``
     (1 = flagged) by `next_speed`. Steering passes the nominal (TaxiNet) steering
-    through, except with ``steering="oracle"``, which steers with
-    ``fallback_steering_angle`` while flagged: the authors' P-controller on the *true*
-    state, privileged information, for comparison only.
+    through while the image is clear. While it is flagged, ``steering="dead_reckoning"``
+    or ``"oracle"`` steer with ``fallback_steering_angle`` instead: the diagram feeds it
+    the P-controller on the `DeadReckoning` estimate (honest: the last trusted
+    estimate carried forward with the known steering and speed) or on the *true* state
+    (privileged information, for comparison only).
     """
 
     def __init__(self, *, strategy="slow_down", steering="taxinet", period=0.05,
@@ -92,10 +114,10 @@ class FallbackSwitch(LeafSystem):
             0, float(next_speed(speed, self._flagged(context), **self._params)))
 
     def _calc_steering(self, context, output):
-        if self._steering_mode == "oracle" and self._flagged(context):
+        if self._steering_mode != "taxinet" and self._flagged(context):
             if not self._fallback_in.HasValue(context):
-                raise ValueError("FallbackSwitch: steering='oracle' needs the "
-                                 "'fallback_steering_angle' input connected")
+                raise ValueError(f"FallbackSwitch: steering='{self._steering_mode}' needs the "
+                                 f"'fallback_steering_angle' input connected")
             output.SetFromVector(self._fallback_in.Eval(context))
         else:
             output.SetFromVector(self._steering_in.Eval(context))

@@ -3,13 +3,15 @@ closed and guarded loops of any controller on the taxi plant, failure sets with 
 the check against the real Drake loop. Built on the generic `reachwatch.reach`."""
 
 from .dynamics import TaxiDynamics, dynamics_for
-from .fidelity import on_runway_starts, real_loop_fidelity
+from .fidelity import mission_rollouts, on_runway_starts, real_loop_fidelity, real_missions
 from .grid import TaxiGridSpec, paper_grid
-from .guarded import UNGUARDED, failure_sets, guarded_failures
+from .guarded import (UNGUARDED, fallback_rollouts, guarded_rollouts,
+                      p_controller_policy)
 from .guarded_run import simulate_guarded
 from .sweeps import (refine_closed_loop, resolved, taxi_probe, sweep_closed_loop, sweep_guarded,
                      taxi_sweep_key)
 
 __all__ = ["TaxiDynamics", "dynamics_for", "on_runway_starts", "real_loop_fidelity", "TaxiGridSpec", "paper_grid",
-           "UNGUARDED", "failure_sets", "guarded_failures", "simulate_guarded", "refine_closed_loop", "resolved", "taxi_probe", "sweep_closed_loop",
+           "UNGUARDED", "fallback_rollouts", "guarded_rollouts",
+           "p_controller_policy", "mission_rollouts", "real_missions", "simulate_guarded", "refine_closed_loop", "resolved", "taxi_probe", "sweep_closed_loop",
            "sweep_guarded", "taxi_sweep_key"]

@@ -1,14 +1,18 @@
 """The taxi's real Drake closed loop (rendering at every tick) run from given starts:
-the rollout function behind rollout labels and every fidelity check."""
+the rollout function behind rollout labels and every fidelity check, and the
+missions (failure and liveness) of the loop alone and guarded by each fallback."""
 
+import copy
 import functools
 
 import numpy as np
 
-from reachwatch.diagrams import make_closed_loop_diagram, simulate
+from reachwatch.diagrams import make_closed_loop_diagram, make_guarded_diagram, simulate
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
-from reachwatch.reach.outcomes import Outcomes, run_outcomes
+from reachwatch.reach.liveness import MISSION_FIELDS, MissionOutcomes
+from reachwatch.reach.outcomes import Outcomes, map_states, run_outcomes
+from reachwatch.systems import fallback_parts
 
 from .sweeps import resolved
 
@@ -28,6 +32,15 @@ def on_runway_starts(grid, count: int, seed: int, *, half_width: float) -> np.nd
     return lo + rng.uniform(size=(count, grid.ndim)) * (hi - lo)
 
 
+def _loop(scenario, make):
+    """The diagram ``make(scenario)`` and a context for it, built once per process."""
+    key = (make.__name__, fingerprint(scenario))
+    if key not in _LOOPS:
+        diagram = make(scenario)
+        _LOOPS[key] = diagram, diagram.CreateDefaultContext()
+    return _LOOPS[key]
+
+
 def taxi_rollouts(scenario, duration: float, grid, states) -> dict:
     """Runs the real closed loop of ``scenario`` from each start for ``duration`` s
     (stopping at failure, |px| >= B). Returns per start ``failed``, ``failure_time``
@@ -35,11 +48,7 @@ def taxi_rollouts(scenario, duration: float, grid, states) -> dict:
     ``max_abs_theta`` (rad) and ``ticks`` (frames rendered). Use it through
     `real_outcomes`, which caches it; ``functools.partial(taxi_rollouts, scenario,
     duration, grid)`` is a picklable rollout function for `run_outcomes`."""
-    key = fingerprint(scenario)
-    if key not in _LOOPS:
-        diagram = make_closed_loop_diagram(scenario)
-        _LOOPS[key] = diagram, diagram.CreateDefaultContext()
-    diagram, context = _LOOPS[key]
+    diagram, context = _loop(scenario, make_closed_loop_diagram)
     B = scenario.environment.half_width
     out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
     for x in np.asarray(states, float):
@@ -76,3 +85,53 @@ def real_loop_fidelity(scenario, value_function, starts, *, cache_dir, duration=
                              cache_dir=cache_dir, executor=executor, progress=progress)
     return compare_verdicts(value_function.in_brt(starts), outcomes.failed,
                             outcomes["left_box"])
+
+
+def mission_rollouts(scenario, fallback, duration: float, states) -> dict:
+    """Runs the real loop of ``scenario`` from each start for ``duration`` s, stopping
+    at failure: the controller alone (``fallback=None``) or guarded by the detector of
+    ``scenario.monitor`` with the fallback named ``fallback`` (e.g. ``"brake"``,
+    ``"slow_down+dead_reckoning"``). Returns the `MissionOutcomes` fields per start:
+    the speed logged at a tick is the speed applied since the previous one, and ticks
+    are the control ticks before the horizon."""
+    if fallback is None:
+        diagram, context = _loop(scenario, make_closed_loop_diagram)
+    else:
+        guarded = copy.deepcopy(scenario)
+        guarded.monitor.strategy, guarded.monitor.steering = fallback_parts(fallback)
+        diagram, context = _loop(guarded, make_guarded_diagram)
+    B, period = scenario.environment.half_width, scenario.controller.period
+    out = {name: [] for name in MISSION_FIELDS}
+    for x in np.asarray(states, float):
+        if abs(x[0]) >= B:                      # already off the runway
+            row = (True, False, False, 0.0, 0, 0)
+        else:
+            run = simulate(diagram, initial_state=x, duration=duration, period=period,
+                           half_width=B, context=context)
+            speed = (np.full(len(run.time), scenario.controller.speed) if run.speed is None
+                     else np.asarray(run.speed, float).reshape(-1))
+            distance = float(np.sum(speed[1:] * np.diff(run.time)))
+            if run.failed and run.failure_time > run.time[-1]:
+                distance += float(speed[-1] * (run.failure_time - run.time[-1]))
+            acting = run.time < duration - 1e-9
+            flags = (np.zeros(len(run.time), bool) if run.anomaly is None
+                     else np.asarray(run.anomaly, float).reshape(-1) >= 0.5)
+            row = (run.failed, not run.failed and speed[-1] <= 0,
+                   bool(np.any(speed[1:] <= 0)), distance, int(np.sum(flags & acting)),
+                   int(np.sum(acting)))
+        for name, value in zip(MISSION_FIELDS, row):
+            out[name].append(value)
+    return {name: np.asarray(value) for name, value in out.items()}
+
+
+def real_missions(scenario, starts, *, fallback=None, duration: float, cache_dir,
+                  executor=None, progress=True) -> MissionOutcomes:
+    """`mission_rollouts` from every start, cached by content under ``cache_dir`` like
+    `real_outcomes` (a killed batch resumes, a repeated one costs nothing)."""
+    scenario = resolved(scenario)
+    rollout = functools.partial(mission_rollouts, scenario, fallback, float(duration))
+    fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
+                              progress=progress, required=MISSION_FIELDS, unit="run",
+                              label=f"real loop {scenario.environment.name} "
+                                    f"{fallback or 'alone'}")
+    return MissionOutcomes.from_fields(fields)

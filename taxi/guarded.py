@@ -1,67 +1,155 @@
-"""Failure sets of the guarded loop, where speed becomes a state.
+"""Failure sets and liveness of the guarded loop, where speed becomes a state.
 
-The image does not depend on speed, so the swept tables of steering and detector
-score on the 3-D grid are enough: from every grid node at the nominal speed, the
-sampled-data loop is rolled out tick by tick (steering and flag read from the tables,
-speed updated by the fallback strategy, dynamics integrated with RK4 over the tick),
-and a node fails if ``|px| >= B`` within the horizon."""
+The image does not depend on speed, so the swept tables of steering, estimate and
+detector score on the 3-D grid are enough: from every start at the nominal speed, the
+sampled-data loop is rolled out tick by tick (steering, estimate and flag read from the
+tables, speed updated by the fallback strategy, the steering while flagged chosen by
+the fallback's steering mode, dynamics integrated with RK4 over the tick). A start fails
+if ``|px| >= B`` within the horizon; what it did until then (distance, stops, flagged
+ticks) is its liveness (`reach.liveness`)."""
 
 import numpy as np
 import torch
 
-from reachwatch.diagrams import CONTROL_PORT
+from reachwatch.diagrams import CONTROL_PORT, DETECTOR, ESTIMATE_PORT
 from reachwatch.reach.dynamics import positive, rk4_step, split_horizon
 from reachwatch.reach.grid import check_states
 from reachwatch.reach.interpolate import GridInterpolator
-from reachwatch.systems import STRATEGIES, next_speed
+from reachwatch.reach.liveness import MissionOutcomes, liveness_figures
+from reachwatch.systems import (ProportionalController, fallback_parts, next_speed,
+                                propagate_estimate)
 
 from .dynamics import dynamics_for
 
+#: The key of the controller alone (no detector, no fallback) in failure sets.
+UNGUARDED = "unguarded"
+SCORE_PORT = f"{DETECTOR}.score"
+
 
 @torch.no_grad()
-def guarded_failures(grid, dynamics, steering_table, score_table=None, *, threshold=0.5,
-                      strategy="slow_down", horizon=8.0, period=0.05, substeps=2,
-                      starts=None, **strategy_params):
-    """Boolean failure per start (default: every grid node, C order) and the speed
-    history's minimum per start. ``score_table=None`` = no detector (the controller alone)."""
+def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, threshold=0.5,
+                     strategy="slow_down", steering="taxinet", estimate_table=None,
+                     policy=None, horizon=8.0, period=0.05, substeps=2, starts=None,
+                     **strategy_params) -> MissionOutcomes:
+    """`MissionOutcomes` per start (default: every grid node, C order) of the loop whose
+    steering, score and estimate are interpolated from tables of ``grid``.
+    ``score_table=None`` = no detector (the controller alone).
+
+    While flagged, ``steering`` is ``"taxinet"`` (the table's steering), ``"oracle"``
+    (``policy`` of the true ``[px m, theta deg]``) or ``"dead_reckoning"`` (``policy``
+    of the last unflagged estimate from ``estimate_table``, carried forward with the
+    steering and speed applied since, as `DeadReckoning` does). ``policy`` maps
+    ``(n, 2)`` estimates to steering (rad)."""
+    if steering not in ("taxinet", "oracle", "dead_reckoning"):
+        raise ValueError(f"steering must be taxinet, oracle or dead_reckoning, got '{steering}'")
+    if steering != "taxinet" and policy is None:
+        raise ValueError(f"steering '{steering}' needs a policy (estimate -> steering)")
+    if steering == "dead_reckoning" and estimate_table is None:
+        raise ValueError("steering 'dead_reckoning' needs the estimate table")
     as_t = lambda a: torch.as_tensor(np.asarray(a, float), dtype=torch.float64)   # noqa: E731
     x = as_t(grid.states() if starts is None else check_states(starts, grid.ndim, "start")
              ).reshape(-1, grid.ndim)
+    n = len(x)
     steer = as_t(steering_table).reshape(grid.shape)
     score = None if score_table is None else as_t(score_table).reshape(grid.shape)
+    estimates = (None if estimate_table is None else
+                 [as_t(column).reshape(grid.shape)
+                  for column in np.asarray(estimate_table, float).reshape(-1, 2).T])
     nominal = dynamics.speed
-    v = torch.full((len(x),), nominal, dtype=torch.float64)
-    lowest, slowest = dynamics.target(x), v.clone()
+    v = np.full(n, nominal)
+    alive = (dynamics.target(x) > 0).numpy()
+    failed = ~alive
+    distance, flagged_ticks, ticks = np.zeros(n), np.zeros(n, int), np.zeros(n, int)
+    ever_stopped = np.zeros(n, bool)
+    base, u_prev, v_prev, trusted = np.zeros((n, 2)), np.zeros(n), v.copy(), np.zeros(n, bool)
     whole, tail = split_horizon(horizon, period)
     substeps = positive("substeps", substeps, integer=True)
     for k in range(whole + (tail > 0)):       # a last partial period when it does not divide
-        h = (period if k < whole else tail) / substeps
+        dt = period if k < whole else tail
         interpolate = GridInterpolator(grid, x)
-        u = interpolate(steer)[:, None]
+        u = interpolate(steer).numpy()
+        flagged = (np.zeros(n, bool) if score is None
+                   else interpolate(score).numpy() >= threshold)
         if score is not None:
-            flagged = interpolate(score).numpy() >= threshold
-            v = torch.as_tensor(next_speed(v.numpy(), flagged, strategy=strategy,
-                                           nominal=nominal, period=period, **strategy_params))
+            v = next_speed(v, flagged, strategy=strategy, nominal=nominal, period=period,
+                           **strategy_params)
+            if steering == "oracle":
+                truth = np.stack([x[:, 0].numpy(), np.rad2deg(x[:, 2].numpy())], axis=-1)
+                u = np.where(flagged, policy(truth), u)
+            elif steering == "dead_reckoning":
+                seen = np.stack([interpolate(e).numpy() for e in estimates], axis=-1)
+                carried = propagate_estimate(base, u_prev, v_prev, period,
+                                             wheelbase=dynamics.wheelbase)
+                belief = np.where((flagged & trusted)[:, None], carried, seen)
+                u = np.where(flagged, policy(belief), u)
+                base, u_prev, v_prev = belief, u, v.copy()
+                trusted |= ~flagged
+        ticks += alive
+        flagged_ticks += alive & flagged
+        ever_stopped |= alive & (v <= 0)
+        distance += np.where(alive, v * dt, 0.0)
+        h = dt / substeps
+        u_t, v_t = as_t(u)[:, None], as_t(v)
         for _ in range(substeps):
-            x = rk4_step(lambda y: dynamics.vector_field(y, u, speed=v), x, h)
-        lowest = torch.minimum(lowest, dynamics.target(x))
-        slowest = torch.minimum(slowest, v)
-    return (lowest <= 0).numpy(), slowest.numpy()
+            x = rk4_step(lambda y: dynamics.vector_field(y, u_t, speed=v_t), x, h)
+        out = (dynamics.target(x) <= 0).numpy()
+        failed |= alive & out
+        alive &= ~out
+    return MissionOutcomes(failed=failed, stopped=~failed & (v <= 0), ever_stopped=ever_stopped,
+                           distance=distance, flagged_ticks=flagged_ticks, ticks=ticks)
 
 
-#: The failure-set key of the controller alone (no detector, no fallback).
-UNGUARDED = "unguarded"
+def p_controller_policy(controller):
+    """The taxi fallback's policy: the P-controller of ``controller`` (a
+    `ControllerConfig`'s gains) on ``(n, 2)`` estimates ``[px m, theta deg]``, in rad."""
+    p = ProportionalController(px_gain=controller.px_gain, theta_gain=controller.theta_gain)
+    return lambda estimate: np.deg2rad(p.steering_deg(estimate))
 
-def failure_sets(scenario, grid, tables, horizon, strategies=STRATEGIES):
-    """{UNGUARDED | strategy: boolean failure per grid node (C order)} from the
-    swept tables of the guarded diagram."""
+
+def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=None,
+                      starts=None) -> dict:
+    """{UNGUARDED | fallback name: `MissionOutcomes`} from the swept tables of the
+    guarded diagram (`sweep_guarded`), at every grid node or at ``starts``. A fallback
+    name is a speed strategy with an optional steering (`systems.fallback_parts`)."""
     dynamics = dynamics_for(scenario)
-    steering = tables[CONTROL_PORT]
-    score = tables["anomaly_detector.score"]
-    kw = dict(horizon=horizon, period=scenario.controller.period)
-    out = {UNGUARDED: guarded_failures(grid, dynamics, steering, None, **kw)[0]}
-    for strategy in strategies:
-        out[strategy] = guarded_failures(
-            grid, dynamics, steering, score, threshold=scenario.monitor.threshold,
-            strategy=strategy, brake_deceleration=scenario.monitor.brake_deceleration, **kw)[0]
+    kw = dict(horizon=horizon, period=scenario.controller.period, starts=starts)
+    policy = p_controller_policy(scenario.controller)
+    out = {UNGUARDED: guarded_rollouts(grid, dynamics, tables[CONTROL_PORT], None, **kw)}
+    for name in fallbacks:
+        strategy, steering = fallback_parts(name)
+        if steering == "dead_reckoning" and ESTIMATE_PORT not in tables.tables:
+            raise ValueError(f"fallback '{name}' needs the controller's estimate, and the "
+                             f"controller of this scenario has no 'estimate' output")
+        out[name] = guarded_rollouts(
+            grid, dynamics, tables[CONTROL_PORT], tables[SCORE_PORT],
+            threshold=scenario.monitor.threshold if threshold is None else threshold,
+            strategy=strategy, steering=steering, policy=policy,
+            estimate_table=tables[ESTIMATE_PORT] if ESTIMATE_PORT in tables.tables else None,
+            brake_deceleration=scenario.monitor.brake_deceleration, **kw)
     return out
+
+
+def tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points: int) -> dict:
+    """{fallback: rows} of the failure set against liveness as the detector threshold
+    sweeps the range of the swept scores (``points`` thresholds at evenly spaced
+    quantiles of the scores, from flagging every node to flagging almost none), each
+    row ``{threshold, failure_set, ended_stopped, needless_stops, distance_ratio,
+    flagged_ticks}`` over the grid's nodes."""
+    scores = np.asarray(tables[SCORE_PORT], float).ravel()
+    thresholds = np.unique(np.quantile(scores, np.linspace(0.0, 1.0, max(points, 2))))
+    curves = {name: [] for name in fallbacks}
+    for threshold in thresholds:
+        runs = fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
+                                 threshold=float(threshold))
+        for name in fallbacks:
+            curves[name].append(tradeoff_row(liveness_figures(runs[UNGUARDED], runs[name]),
+                                             float(threshold)))
+    return curves
+
+
+def tradeoff_row(figures: dict, threshold=None) -> dict:
+    """One point of a trade-off curve from `liveness_figures`."""
+    return {"threshold": threshold, "failure_set": figures["failure_set"]["rate"],
+            "ended_stopped": figures["ended_stopped"]["rate"],
+            "needless_stops": figures["needless_stops"]["rate"],
+            "distance_ratio": figures["distance_ratio"], "flagged_ticks": figures["flagged_ticks"]}

@@ -9,6 +9,7 @@ from reachwatch.diagrams import (Scenario, initial_state_vector, make_closed_loo
                                  make_guarded_diagram, simulate)
 from reachwatch.diagrams.plots import plot_guarded_run
 from reachwatch.diagrams.replay import meshcat_replay_html
+from reachwatch.systems import fallback_name
 from reachwatch.systems.files import atomic_write_bytes
 
 
@@ -25,12 +26,14 @@ def simulate_guarded(scenario: Scenario, out: Path, *, meshcat_html=True):
     nominal, guarded = (simulate(d, initial_state=x0, duration=scenario.duration,
                                  period=scenario.controller.period, half_width=B)
                         for d in diagrams)
-    name = f"{scenario.environment.name}_{scenario.monitor.strategy}"
+    fallback = fallback_name(scenario.monitor.strategy, scenario.monitor.steering)
+    name = f"{scenario.environment.name}_{fallback.replace('+', '_')}"
     paths = [plot_guarded_run(nominal, guarded, half_width=B, path=out / f"guarded_{name}.png",
                               title=f"{scenario.environment.name}: alone "
                                     f"{'fails' if nominal.failed else 'stays on'}; guarded "
-                                    f"({scenario.monitor.strategy}) "
-                                    f"{'fails' if guarded.failed else 'stays on'}")]
+                                    f"({fallback}) "
+                                    f"{'fails' if guarded.failed else 'stays on'}"
+                                    f"{' (stopped)' if guarded.speed.ravel()[-1] <= 0 else ''}")]
     np.savez(out / f"guarded_{name}.npz", nominal_state=nominal.state, state=guarded.state,
              speed=guarded.speed, anomaly=guarded.anomaly, time=guarded.time)
     paths.append(out / f"guarded_{name}.npz")

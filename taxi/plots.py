@@ -50,3 +50,37 @@ def plot_failure_sets(failures, grid, horizon, *, py, path, half_width, title):
     sets = {k: ValueFunction(grid, np.where(v.reshape(grid.shape), -1.0, 1.0), horizon,
                              "rollouts") for k, v in failures.items()}
     return plot_brt_slices(sets, py=py, path=path, half_width=half_width, title=title)
+
+
+def plot_tradeoff(curves, *, operating=None, alone=None, path, title=""):
+    """Failure set against % of starts ended stopped (left) and against the distance
+    travelled relative to the controller alone (right), one curve per fallback as the
+    detector threshold sweeps (`taxi.guarded.tradeoff_curves`); ``operating``:
+    {fallback: the row at the run's threshold}, marked with a star; ``alone``: the
+    controller alone's failure set, a dashed line."""
+    fig, axes = plt.subplots(1, 2, figsize=(9.0, 3.8))
+    for k, (name, rows) in enumerate(curves.items()):
+        color = f"C{k}"
+        fail = [100 * r["failure_set"] for r in rows]
+        stopped = [100 * r["ended_stopped"] for r in rows]
+        distance = [r["distance_ratio"] for r in rows]
+        axes[0].plot(stopped, fail, "o-", color=color, ms=3, label=name)
+        axes[1].plot(distance, fail, "o-", color=color, ms=3, label=name)
+        if operating and name in operating:
+            op = operating[name]
+            axes[0].plot(100 * op["ended_stopped"], 100 * op["failure_set"], "*", color=color,
+                         ms=12, mec="k")
+            axes[1].plot(op["distance_ratio"], 100 * op["failure_set"], "*", color=color,
+                         ms=12, mec="k")
+    for ax in axes:
+        if alone is not None:
+            ax.axhline(100 * alone, color="k", ls="--", lw=1, label="controller alone")
+        ax.set_ylabel("failure set (% of starts)")
+        ax.grid(alpha=0.3)
+    axes[0].set_xlabel("starts ended stopped (%)")
+    axes[1].set_xlabel("distance travelled / controller alone")
+    axes[0].legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return save_figure(fig, path)

@@ -23,3 +23,17 @@ def tiny_camera():
 
 def deg(x):
     return np.deg2rad(x)
+
+
+@pytest.fixture(scope="session")
+def detector_path(tmp_path_factory):
+    """An untrained tiny detector checkpoint (seeded) for the 200x360 default camera."""
+    import torch
+    from reachwatch.diagrams import save_checkpoint
+    from reachwatch.systems import DetectorConfig, build_detector
+    config = DetectorConfig(height=24, width=40, channels=[4, 8])
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("det") / "detector.pt"
+    save_checkpoint(path, kind="detector", model=build_detector(config), model_config=config,
+                    preprocess_config=None, metadata={"image_size": [200, 360]})
+    return path

@@ -24,6 +24,7 @@ def _tiny(spec):
     spec.detector.detector.channels = [4, 8]
     spec.detector.epochs, spec.detector.batch_size, spec.detector.device = 1, 8, "cpu"
     spec.guard.candidates, spec.guard.online_seconds = 1, 0.2
+    spec.guard.check_starts, spec.guard.tradeoff_points = 1, 2
     spec.train, spec.test = spec.train[:1], spec.test[:1]
     spec.fidelity.starts, spec.fidelity.max_box_exits = 2, 1.0
     return spec
@@ -71,7 +72,7 @@ def test_grass_follower_through_reachwatch_run(tmp_path, monkeypatch):
     table = (out / "table2.csv").read_text()
     assert "detector (BRT labels)" in table and "TaxiNet prediction error" not in table
     record = json.loads((out / "stages" / "guard_KSFO_21h_overcast.json").read_text())
-    assert set(record["outputs"]["volumes"]) == {"unguarded", "slow_down", "brake"}
+    assert set(record["outputs"]["volumes"]) == {"unguarded", "slow_down", "brake", "slow_down+oracle"}
 
 
 def _speed_car():

@@ -1,16 +1,12 @@
 import numpy as np
 import pytest
-import torch
 
 from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, SWITCH, load_scenario, make_closed_loop_diagram,
-                                 make_guarded_diagram, save_checkpoint, simulate)
+                                 make_guarded_diagram, simulate)
 from reachwatch.pipeline.cli import main
 from reachwatch.reach import InlineExecutor
-from reachwatch.taxi import dynamics_for, guarded_failures, paper_grid, sweep_guarded
-from reachwatch.systems import DetectorConfig, FallbackSwitch, build_detector, next_speed
-
-TINY = DetectorConfig(height=24, width=40, channels=[4, 8])
-
+from reachwatch.taxi import dynamics_for, guarded_rollouts, paper_grid, sweep_guarded
+from reachwatch.systems import FallbackSwitch, next_speed
 
 def _switch_ticks(flags, **kwargs):
     """Speed after each 0.05 s tick of a FallbackSwitch simulated alone."""
@@ -56,15 +52,6 @@ def test_switch_steering_modes_and_errors():
         FallbackSwitch(strategy="teleport")
 
 
-@pytest.fixture(scope="module")
-def detector_path(tmp_path_factory):
-    torch.manual_seed(0)
-    path = tmp_path_factory.mktemp("det") / "detector.pt"
-    save_checkpoint(path, kind="detector", model=build_detector(TINY), model_config=TINY,
-                    preprocess_config=None, metadata={"image_size": [200, 360]})
-    return path
-
-
 def _scenario(detector_path, threshold, strategy="brake"):
     return load_scenario(data=f"monitor: {{detector: {detector_path}, threshold: {threshold},"
                               f" strategy: {strategy}, brake_deceleration: 4.0}}\n"
@@ -94,11 +81,12 @@ def test_guarded_run_survives_where_nominal_fails(detector_path, tmp_path):
                            progress=False)
     dynamics = dynamics_for(scenario)
     steer, score = tables[CONTROL_PORT], tables[f"{DETECTOR}.score"]
-    nominal_fail, _ = guarded_failures(grid, dynamics, steer, None)
-    guarded_fail, slowest = guarded_failures(grid, dynamics, steer, score, threshold=0.0,
-                                              strategy="brake", brake_deceleration=4.0)
-    saved = np.flatnonzero(nominal_fail & ~guarded_fail)
-    assert len(saved) > 0 and slowest.min() == 0.0
+    nominal_fail = guarded_rollouts(grid, dynamics, steer, None).failed
+    guarded = guarded_rollouts(grid, dynamics, steer, score, threshold=0.0, strategy="brake",
+                               brake_deceleration=4.0)
+    saved = np.flatnonzero(nominal_fail & ~guarded.failed)
+    assert len(saved) > 0 and guarded.ever_stopped.any()
+    assert np.all(guarded.stopped[saved])           # braking at 4 m/s^2: every save is a stop
     x0 = grid.states([saved[len(saved) // 2]])[0]
     nominal = simulate(make_closed_loop_diagram(scenario), initial_state=x0, duration=8.0, period=0.05,
                        half_width=10.0)

@@ -28,7 +28,7 @@ detector:
   batch_size: 8
   device: cpu
 ensemble: {seeds: [1, 2], samples: 48, epochs: 2}
-guard: {candidates: 2, online_seconds: 0.2, meshcat_html: true}
+guard: {candidates: 2, online_seconds: 0.2, meshcat_html: true, check_starts: 2, tradeoff_points: 3}
 fidelity: {starts: 3, max_box_exits: 1.0}
 incremental:
   environment: {runway: KMWH, hour: 17.0, sky: clear}
@@ -65,7 +65,10 @@ def _ran(log):
      "dataset.labels.source must be one of"),
     (("{samples: 40, height: 24", "{samples: 40, height: 32"), "must equal the detector input"),
     (("guard: {candidates: 2", "guard: {strategies: [stop], candidates: 2"),
-     "guard.strategies[0]: 'stop'"),
+     "guard.strategies[0]: fallback 'stop'"),
+    (("guard: {candidates: 2", "guard: {strategies: [slow_down+gps], candidates: 2"),
+     "guard.strategies[0]: fallback 'slow_down+gps'"),
+    (("check_starts: 2", "check_starts: -2"), "guard.check_starts must be a whole number >= 0"),
 ])
 def test_run_spec_errors_name_the_field(edit, message):
     with pytest.raises(ScenarioError, match=re.escape(message)):
@@ -103,8 +106,18 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     for r in rows:
         assert f"| KSFO_17h_clear | {r['method']} | brt | 40 |" in md
     guard = run.outputs["guard"]["KSFO_17h_clear"]
-    assert set(guard["volumes"]) == {"unguarded", "slow_down", "brake"}
+    assert set(guard["volumes"]) == {"unguarded", "slow_down", "brake",
+                                     "slow_down+dead_reckoning", "slow_down+oracle"}
     assert guard["volumes"]["brake"] <= guard["volumes"]["unguarded"]
+    # liveness beside every failure set, the trade-off curve, the real-loop check
+    for name, figures in guard["liveness"].items():
+        assert figures["failure_set"]["rate"] == guard["volumes"][name]
+        assert figures["alone_failure_set"]["rate"] == guard["volumes"]["unguarded"]
+        assert len(guard["tradeoff"][name]) in (2, 3)
+    assert (tmp_path / guard["tradeoff_figure"]).is_file()
+    real = guard["check"]["fallbacks"]["brake"]["real"]
+    assert guard["check"]["starts"] == real["starts"] == 2
+    assert "needless stops" in md and "The same figures in the real Drake loops" in md
     assert guard["online"]["alone_ticks_per_s"] > 0 and guard["online"]["guarded_ticks_per_s"] > 0
     fidelity = run.outputs["fidelity"]
     assert set(fidelity) == {"KMWH_9h_clear", "KSFO_17h_clear", "KMWH_17h_clear"}

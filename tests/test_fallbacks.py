@@ -1,0 +1,260 @@
+"""Fallbacks that keep moving, and liveness beside every failure figure: dead
+reckoning tick by tick, in a Drake loop with a scheduled flag, in the rendered loop,
+the table rollouts' liveness, and the liveness arithmetic on known answers."""
+
+import numpy as np
+import pytest
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import ZeroOrderHold
+
+from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, add_dead_reckoning, load_scenario,
+                                 make_guarded_diagram)
+from reachwatch.diagrams.scenario import ControllerConfig
+from reachwatch.reach import Grid
+from reachwatch.reach.liveness import MissionOutcomes, liveness_figures, percent
+from reachwatch.systems import (DeadReckoning, FallbackSwitch,
+                                ProportionalController, TaxiPlant, TrueStateEstimator,
+                                fallback_parts, propagate_estimate,
+                                taxi_dynamics)
+from reachwatch.taxi import (UNGUARDED, dynamics_for, fallback_rollouts, guarded_rollouts,
+                             mission_rollouts, p_controller_policy, paper_grid, resolved,
+                             sweep_guarded)
+from reachwatch.reach import InlineExecutor
+
+PERIOD = 0.05
+
+
+def test_propagate_estimate_is_the_plant_kinematics():
+    x = np.array([1.0, 0.0, np.deg2rad(10.0)])
+    for steering in (0.2, -0.05, 0.0):
+        y = x.copy()
+        for _ in range(4000):                    # fine Euler of the plant itself
+            y = y + taxi_dynamics(y, steering, 4.0) * (PERIOD / 4000)
+        np.testing.assert_allclose(propagate_estimate([1.0, 10.0], steering, 4.0, PERIOD),
+                                   [y[0], np.rad2deg(y[2])], atol=1e-5)
+
+
+def _reckon(flags, estimates, steering, speeds):
+    """DeadReckoning alone: its output at each tick, inputs fixed per tick."""
+    system = DeadReckoning(period=PERIOD)
+    simulator = Simulator(system)
+    context = simulator.get_mutable_context()
+    out = []
+    for k, (flag, estimate, u, v) in enumerate(zip(flags, estimates, steering, speeds)):
+        for port, value in ((system.get_anomaly_input_port(), [flag]),
+                            (system.get_estimate_input_port(), estimate),
+                            (system.get_steering_angle_input_port(), [u]),
+                            (system.get_speed_input_port(), [v])):
+            port.FixValue(context, value)
+        if k == 0:
+            simulator.Initialize()
+        out.append(system.get_estimate_output_port().Eval(context).copy())
+        simulator.AdvanceTo((k + 1) * PERIOD)   # runs the update at k * period on these inputs
+    return np.array(out)
+
+
+def test_dead_reckoning_tick_by_tick():
+    flags = [1, 0, 1, 1, 0, 1]
+    estimates = [[9.0, 9.0], [1.0, 5.0], [7.0, -7.0], [8.0, 8.0], [2.0, -3.0], [6.0, 6.0]]
+    steering = [0.3, 0.1, -0.2, 0.05, 0.0, 0.1]
+    speeds = [5.0, 5.0, 4.99, 4.98, 4.97, 5.0]
+    out = _reckon(flags, estimates, steering, speeds)
+    np.testing.assert_allclose(out[0], [9.0, 9.0])   # flagged, nothing trusted yet: as seen
+    np.testing.assert_allclose(out[1], [1.0, 5.0])   # clear: the controller's estimate
+    # flagged: the belief of the previous tick carried over the period with the steering
+    # applied from it and the speed applied since (the speed input at this tick)
+    two = propagate_estimate([1.0, 5.0], 0.1, 4.99, PERIOD)
+    three = propagate_estimate(two, -0.2, 4.98, PERIOD)
+    np.testing.assert_allclose(out[2], two)
+    np.testing.assert_allclose(out[3], three)
+    np.testing.assert_allclose(out[4], [2.0, -3.0])
+    np.testing.assert_allclose(out[5], propagate_estimate([2.0, -3.0], 0.0, 5.0, PERIOD))
+    system = DeadReckoning()
+    assert not system.HasDirectFeedthrough(2, 0)     # steering feeds back without a loop
+    with pytest.raises(ValueError, match="period"):
+        DeadReckoning(period=0.0)
+
+
+def test_switch_steers_from_the_fallback_input_only_while_flagged():
+    for mode in ("dead_reckoning", "oracle"):
+        switch = FallbackSwitch(steering=mode)
+        context = switch.CreateDefaultContext()
+        switch.get_steering_angle_input_port().FixValue(context, [0.1])
+        switch.get_fallback_steering_angle_input_port().FixValue(context, [-0.2])
+        for flag, expected in ((1.0, -0.2), (0.0, 0.1)):
+            switch.get_anomaly_input_port().FixValue(context, [flag])
+            assert switch.get_steering_angle_output_port().Eval(context)[0] == pytest.approx(expected)
+    assert fallback_parts("brake") == ("brake", "taxinet")
+    assert fallback_parts("slow_down+dead_reckoning") == ("slow_down", "dead_reckoning")
+    with pytest.raises(ValueError, match="'slow_down\\+gps'"):
+        fallback_parts("slow_down+gps")
+
+
+class _Schedule(LeafSystem):
+    """Flag 1 on the ticks listed (a hand-made detector)."""
+
+    def __init__(self, flagged_ticks):
+        super().__init__()
+        self._ticks = set(flagged_ticks)
+        self.DeclareVectorOutputPort("anomaly", 1, self._calc)
+
+    def _calc(self, context, output):
+        output.SetAtIndex(0, float(round(context.get_time() / PERIOD) in self._ticks))
+
+
+class _Corrupt(LeafSystem):
+    """The true estimate, with ``bias`` added while the schedule flags (a camera gone bad)."""
+
+    def __init__(self, bias):
+        super().__init__()
+        self._bias = np.asarray(bias, float)
+        self._truth = self.DeclareVectorInputPort("truth", 2)
+        self._flag = self.DeclareVectorInputPort("anomaly", 1)
+        self.DeclareVectorOutputPort("estimate", 2, self._calc)
+
+    def _calc(self, context, output):
+        flagged = self._flag.Eval(context)[0] >= 0.5
+        output.SetFromVector(self._truth.Eval(context) + (self._bias if flagged else 0.0))
+
+
+def _scheduled_loop(steering, flagged_ticks, bias, x0, duration=3.0):
+    """The taxi plant, a P-controller on a corruptible estimate and the fallback switch
+    with ``steering`` (its dead-reckoning wired by `add_dead_reckoning`), flags from a
+    schedule; the plant's states at every tick."""
+    controller = ControllerConfig()
+    builder = DiagramBuilder()
+    plant = builder.AddSystem(TaxiPlant(initial_state=x0))
+    truth = builder.AddSystem(TrueStateEstimator())
+    flags = builder.AddSystem(_Schedule(flagged_ticks))
+    corrupt = builder.AddSystem(_Corrupt(bias))
+    p = builder.AddSystem(ProportionalController(px_gain=controller.px_gain,
+                                                 theta_gain=controller.theta_gain))
+    switch = builder.AddSystem(FallbackSwitch(strategy="slow_down", steering=steering))
+    hold = builder.AddSystem(ZeroOrderHold(PERIOD, 1))
+    builder.Connect(plant.get_state_output_port(), truth.get_state_input_port())
+    builder.Connect(truth.get_estimate_output_port(), corrupt.get_input_port(0))
+    builder.Connect(flags.get_output_port(), corrupt.get_input_port(1))
+    builder.Connect(corrupt.get_output_port(), p.get_estimate_input_port())
+    builder.Connect(p.get_steering_angle_output_port(), switch.get_steering_angle_input_port())
+    builder.Connect(flags.get_output_port(), switch.get_anomaly_input_port())
+    if steering == "dead_reckoning":
+        add_dead_reckoning(builder, estimate_port=corrupt.get_output_port(),
+                           anomaly_port=flags.get_output_port(), switch=switch,
+                           controller=controller, wheelbase=plant.wheelbase)
+    builder.Connect(switch.get_steering_angle_output_port(), hold.get_input_port())
+    builder.Connect(hold.get_output_port(), plant.get_steering_angle_input_port())
+    builder.Connect(switch.get_speed_output_port(), plant.get_speed_input_port())
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    context = plant.GetMyContextFromRoot(simulator.get_mutable_context())
+    states = []
+    for k in range(int(round(duration / PERIOD)) + 1):
+        simulator.AdvanceTo(k * PERIOD)
+        states.append(plant.get_state_output_port().Eval(context).copy())
+    return np.array(states)
+
+
+def test_dead_reckoning_rides_out_a_corrupted_estimate_in_a_drake_loop():
+    """With the estimate corrupted while flagged (ticks 10-59), dead reckoning steers as
+    if it had seen the truth: the loop follows the uncorrupted loop (which only slows
+    down), while the controller's own steering follows the corruption metres away."""
+    x0, bias, flagged = [3.0, 0.0, np.deg2rad(-8.0)], [-8.0, -20.0], range(10, 60)
+    reference = _scheduled_loop("dead_reckoning", flagged, [0.0, 0.0], x0)
+    reckoned = _scheduled_loop("dead_reckoning", flagged, bias, x0)
+    own = _scheduled_loop("taxinet", flagged, bias, x0)
+    np.testing.assert_allclose(reckoned, reference, atol=1e-4)
+    assert np.max(np.abs(own[:, 0] - reference[:, 0])) > 2.0
+
+
+def test_liveness_arithmetic_known_answer():
+    alone = MissionOutcomes(failed=[1, 1, 0, 0, 0], stopped=[0] * 5, ever_stopped=[0] * 5,
+                            distance=[10, 20, 40, 40, 40], flagged_ticks=[0] * 5,
+                            ticks=[10, 20, 40, 40, 40])
+    guarded = MissionOutcomes(failed=[0, 1, 0, 0, 1], stopped=[1, 0, 0, 1, 0],
+                              ever_stopped=[1, 0, 1, 1, 0], distance=[15, 20, 40, 10, 30],
+                              flagged_ticks=[40, 5, 10, 40, 0], ticks=[40, 20, 40, 40, 30])
+    f = liveness_figures(alone, guarded)
+    assert f["failure_set"]["count"] == 2 and f["alone_failure_set"]["count"] == 2
+    assert f["failure_cut"] == pytest.approx(0.0)
+    assert (f["ended_stopped"]["count"], f["ever_stopped"]["count"]) == (2, 3)
+    assert (f["needless_stops"]["count"], f["needless_stops"]["of"]) == (1, 3)
+    assert (f["harmed"]["count"], f["saved"]["count"], f["saved_moving"]["count"]) == (1, 1, 0)
+    assert f["distance_ratio"] == pytest.approx(115 / 150)
+    assert f["flagged_ticks"] == pytest.approx(95 / 170)
+    assert percent(f["needless_stops"]).startswith("33.3 % [")
+    with pytest.raises(ValueError, match="both fail and end stopped"):
+        MissionOutcomes(failed=[1], stopped=[1], ever_stopped=[1], distance=[0],
+                        flagged_ticks=[0], ticks=[1])
+    with pytest.raises(ValueError, match="same starts"):
+        liveness_figures(alone, MissionOutcomes(**{k: v[:2] for k, v in
+                                                   guarded.as_fields().items()}))
+
+
+def _tables(grid, steering, score):
+    """Tables on ``grid`` from functions of the node states (a hand-made controller)."""
+    nodes = grid.states()
+    estimate = np.stack([nodes[:, 0], np.rad2deg(nodes[:, 2])], axis=-1)
+    return steering(nodes), score(nodes), estimate
+
+
+def test_table_rollouts_liveness_and_dead_reckoning():
+    """A controller steering the wrong way wherever px > 0: alone it fails there; a
+    detector flagging px > 0 with dead reckoning saves those starts without stopping,
+    braking saves them by stopping, and a detector that never flags changes nothing."""
+    scenario = load_scenario(data="")
+    dynamics = dynamics_for(scenario)
+    policy = p_controller_policy(scenario.controller)
+    grid = Grid(lo=[-10.0, 0.0, -0.3], hi=[10.0, 100.0, 0.3], shape=(11, 3, 7))
+    good = lambda x: policy(np.stack([x[:, 0], np.rad2deg(x[:, 2])], -1))   # noqa: E731
+    steer, score, estimate = _tables(grid, lambda x: np.where(x[:, 0] > 0.5, 0.3, good(x)),
+                                     lambda x: (x[:, 0] > 0.5).astype(float))
+    starts = np.array([[2.0, 10.0, 0.0], [-2.0, 10.0, 0.0]])
+    kw = dict(horizon=6.0, starts=starts)
+    alone = guarded_rollouts(grid, dynamics, steer, None, **kw)
+    assert alone.failed.tolist() == [True, False] and not alone.ever_stopped.any()
+    never = guarded_rollouts(grid, dynamics, steer, score, threshold=1.5, **kw)
+    f = liveness_figures(alone, never)
+    assert (f["failure_set"]["rate"], f["ended_stopped"]["rate"], f["flagged_ticks"]) == (
+        0.5, 0.0, 0.0) and f["distance_ratio"] == pytest.approx(1.0)
+    reckoned = guarded_rollouts(grid, dynamics, steer, score, steering="dead_reckoning",
+                                policy=policy, estimate_table=estimate, **kw)
+    assert not reckoned.failed.any() and not reckoned.stopped.any()
+    assert reckoned.flagged_ticks[0] > 0 and reckoned.flagged_ticks[1] == 0
+    braked = guarded_rollouts(grid, dynamics, steer, score, strategy="brake",
+                              brake_deceleration=4.0, **kw)
+    assert braked.failed.tolist() == [False, False] and braked.stopped.tolist() == [True, False]
+    with pytest.raises(ValueError, match="estimate table"):
+        guarded_rollouts(grid, dynamics, steer, score, steering="dead_reckoning", policy=policy)
+
+
+def test_dead_reckoning_in_the_rendered_loop(detector_path, tmp_path):
+    """The guarded diagram with dead reckoning in the real rendered loop: flagged from
+    the first tick, nothing is trusted, so it steers like slow-down with TaxiNet; never
+    flagged, it is TaxiNet alone (0 % stopped, the same failures); and the tables'
+    rollouts of a sweep of it read the same verdicts."""
+    def scenario(threshold):
+        return resolved(load_scenario(data=f"monitor: {{detector: {detector_path}, "
+                                           f"threshold: {threshold}}}\n"))
+    starts = np.array([[6.0, 100.0, 0.3], [-1.0, 150.0, -0.1]])
+    always = scenario(0.0)
+    diagram = make_guarded_diagram(load_scenario(data=f"monitor: {{detector: {detector_path}, "
+                                                      f"steering: dead_reckoning}}\n"))
+    assert diagram.HasSubsystemNamed("dead_reckoning")
+    reckoned = mission_rollouts(always, "slow_down+dead_reckoning", 3.0, starts)
+    slowed = mission_rollouts(always, "slow_down", 3.0, starts)
+    for name in ("failed", "distance", "flagged_ticks"):
+        np.testing.assert_allclose(reckoned[name], slowed[name])
+    never = scenario(1.0)
+    alone = MissionOutcomes.from_fields(mission_rollouts(never, None, 3.0, starts))
+    guarded = MissionOutcomes.from_fields(mission_rollouts(never, "slow_down+dead_reckoning",
+                                                           3.0, starts))
+    f = liveness_figures(alone, guarded)
+    assert f["ended_stopped"]["count"] == 0 and f["flagged_ticks"] == 0.0
+    assert f["failure_set"] == f["alone_failure_set"] and f["distance_ratio"] == pytest.approx(1.0)
+    grid = paper_grid(10.0, (5, 2, 5))
+    tables = sweep_guarded(never, grid, cache_dir=tmp_path, executor=InlineExecutor(),
+                           progress=False)
+    runs = fallback_rollouts(never, grid, tables, 3.0, ["slow_down+dead_reckoning"])
+    np.testing.assert_array_equal(runs[UNGUARDED].failed, runs["slow_down+dead_reckoning"].failed)
+    assert CONTROL_PORT in tables.tables and f"{DETECTOR}.score" in tables.tables
