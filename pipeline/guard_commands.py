@@ -1,5 +1,6 @@
 """``reachwatch guard``: failure sets with and without the fallback."""
 
+import argparse
 import json
 import time
 from pathlib import Path
@@ -7,12 +8,13 @@ from pathlib import Path
 from reachwatch.diagrams import load_scenario
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 from reachwatch.reach.liveness import liveness_figures, percent
-from reachwatch.systems import fallback_parts
-from reachwatch.taxi import UNGUARDED, fallback_rollouts, paper_grid, sweep_guarded
+from reachwatch.systems import DEFAULT_FALLBACKS, fallback_parts
+from reachwatch.taxi import (UNGUARDED, fallback_rollouts, on_runway_starts, paper_grid,
+                             real_missions, sweep_guarded)
 from reachwatch.taxi.guarded import tradeoff_curves, tradeoff_row
 from reachwatch.taxi.plots import plot_failure_sets, plot_tradeoff
 
-from .commands import positive_float, positive_int
+from .commands import count, positive_float, positive_int
 from .console import log
 from .executors import open_executor
 
@@ -27,11 +29,15 @@ def add_parsers(sub):
     g.add_argument("--shape", type=positive_int, nargs=3, default=[41, 41, 41])
     g.add_argument("--horizon", type=positive_float, default=8.0, help="s")
     g.add_argument("--fallbacks", nargs="+", type=_fallback,
-                   default=["slow_down", "brake", "slow_down+dead_reckoning", "slow_down+oracle"],
+                   default=list(DEFAULT_FALLBACKS),
                    help="speed strategy, optionally '+' the steering while flagged "
                         "(dead_reckoning; oracle is privileged, a reference only)")
     g.add_argument("--tradeoff-points", type=positive_int, default=9,
                    help="detector thresholds on the trade-off curve")
+    g.add_argument("--check-starts", type=count, default=0,
+                   help="also run the real Drake loops (alone and each fallback) from this "
+                        "many seeded random on-runway starts; cached and resumable")
+    g.add_argument("--seed", type=int, default=2000, help="seed of the check starts")
     g.add_argument("--out", required=True)
     g.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT")
     g.add_argument("--cache", default=None)
@@ -39,16 +45,33 @@ def add_parsers(sub):
 
 
 def _fallback(text):
-    fallback_parts(text)        # a clear error for a misspelt name
+    try:
+        fallback_parts(text)        # a clear error for a misspelt name, before any work
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
     return text
 
 
 def guard_command(args):
     scenario = load_scenario(args.scenario)
     grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
+    cache = Path(args.cache) if args.cache else cache_root()
+    check = {}
     with open_executor(args.executor) as executor:
-        tables = sweep_guarded(scenario, grid, cache_dir=args.cache or cache_root() / "sweeps",
-                               executor=executor)
+        tables = sweep_guarded(scenario, grid, cache_dir=cache / "sweeps", executor=executor)
+        if args.check_starts:
+            starts = on_runway_starts(grid, args.check_starts, args.seed,
+                                      half_width=scenario.environment.half_width)
+            real = {f: real_missions(scenario, starts, fallback=None if f == UNGUARDED else f,
+                                     duration=args.horizon, cache_dir=cache / "outcomes",
+                                     executor=executor)
+                    for f in [UNGUARDED, *args.fallbacks]}
+            table = fallback_rollouts(scenario, grid, tables, args.horizon, args.fallbacks,
+                                      starts=starts)
+            check = {"starts": len(starts), "seed": args.seed,
+                     "fallbacks": {f: {"table": liveness_figures(table[UNGUARDED], table[f]),
+                                       "real": liveness_figures(real[UNGUARDED], real[f])}
+                                   for f in args.fallbacks}}
     started = time.time()
     runs = fallback_rollouts(scenario, grid, tables, args.horizon, args.fallbacks)
     out = Path(args.out)
@@ -66,8 +89,16 @@ def guard_command(args):
                  f"{percent(v['ended_stopped'])}, needless stops {percent(v['needless_stops'])}, "
                  f"distance {v['distance_ratio']:.2f} x alone, ticks flagged "
                  f"{100 * v['flagged_ticks']:.1f}%")
+    for f, both in check.get("fallbacks", {}).items():
+        for source in ("table", "real"):
+            v = both[source]
+            log.info(f"  {check['starts']} starts, {source:5s} {f}: alone fails "
+                     f"{percent(v['alone_failure_set'])}, guarded fails "
+                     f"{percent(v['failure_set'])}, ended stopped {percent(v['ended_stopped'])}, "
+                     f"needless stops {percent(v['needless_stops'])}")
     atomic_write_bytes(out / f"guard_{name}.json", json.dumps(
-        {"volumes": volumes, "liveness": liveness, "tradeoff": curves}, indent=1).encode())
+        {"volumes": volumes, "liveness": liveness, "tradeoff": curves, "check": check},
+        indent=1).encode())
     plot_failure_sets({k: v.failed for k, v in runs.items()}, grid, args.horizon, py=175.0,
                       path=out / f"guard_{name}.png", half_width=scenario.environment.half_width,
                       title=f"{name}: failing start states (grey)")

@@ -12,7 +12,7 @@ from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.diagrams.scenario import dump_scenario
 from reachwatch.reach import ACCURACIES
 from reachwatch.reach.dynamics import positive, split_horizon
-from reachwatch.systems import Environment, fallback_parts
+from reachwatch.systems import DEFAULT_FALLBACKS, Environment, fallback_parts
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.incremental import IncrementalConfig
@@ -24,12 +24,6 @@ class EnsembleSpec:
     seeds: List[int] = dc.field(default_factory=lambda: [1, 2, 3, 4, 5])
     samples: int = 4000
     epochs: int = 400
-
-
-#: The fallbacks a guard compares by default: the paper's slow-down, braking, dead
-#: reckoning with slow-down (honest), and slow-down with the true state's steering
-#: (privileged: the paper's reference point, never an honest result).
-DEFAULT_FALLBACKS = ("slow_down", "brake", "slow_down+dead_reckoning", "slow_down+oracle")
 
 
 @dc.dataclass

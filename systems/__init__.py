@@ -27,7 +27,7 @@ from .plant import NOMINAL_SPEED_MPS, WHEELBASE_M, TaxiPlant, taxi_dynamics
 from .runway import RUNWAYS, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, TaxiwayLine
 from .scene import add_runway_scene
 from .dead_reckoning import DeadReckoning, propagate_estimate
-from .switch import (STEERING, STRATEGIES, FallbackSwitch, fallback_name, fallback_parts,
+from .switch import (DEFAULT_FALLBACKS, STEERING, STRATEGIES, FallbackSwitch, fallback_name, fallback_parts,
                      next_speed)
 from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, TaxiNet,
                       TrueStateEstimator)
@@ -41,5 +41,5 @@ __all__ = [
     "SmallTaxiCNN", "TaxiNetConfig", "TinyTaxiNet", "build_taxinet", "preprocess",
     "PX_GAIN_DEG_PER_M", "THETA_GAIN", "ProportionalController", "TaxiNet", "TrueStateEstimator", "AnomalyDetector",
     "DetectorConfig", "SmallDetectorCNN", "build_detector", "detector_input", "resize_for_detector", "STEERING", "STRATEGIES", "FallbackSwitch",
-    "next_speed", "fallback_name", "fallback_parts", "DeadReckoning", "propagate_estimate",
+    "next_speed", "DEFAULT_FALLBACKS", "fallback_name", "fallback_parts", "DeadReckoning", "propagate_estimate",
 ]

@@ -11,6 +11,12 @@ STRATEGIES = ("slow_down", "brake")
 STEERING = ("taxinet", "dead_reckoning", "oracle")
 
 
+#: The fallbacks compared by default: the paper's slow-down, braking, dead reckoning
+#: with slow-down (honest), and slow-down with the true state's steering (privileged:
+#: the paper's reference point, never an honest result).
+DEFAULT_FALLBACKS = ("slow_down", "brake", "slow_down+dead_reckoning", "slow_down+oracle")
+
+
 def fallback_parts(name: str):
     """``(strategy, steering)`` of a fallback's name: a speed strategy alone
     (``"slow_down"``, TaxiNet keeps steering) or ``"strategy+steering"`` (e.g.

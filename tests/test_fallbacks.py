@@ -258,3 +258,20 @@ def test_dead_reckoning_in_the_rendered_loop(detector_path, tmp_path):
     runs = fallback_rollouts(never, grid, tables, 3.0, ["slow_down+dead_reckoning"])
     np.testing.assert_array_equal(runs[UNGUARDED].failed, runs["slow_down+dead_reckoning"].failed)
     assert CONTROL_PORT in tables.tables and f"{DETECTOR}.score" in tables.tables
+
+
+def test_guard_command_reports_liveness_and_the_real_loop_check(detector_path, tmp_path):
+    import json
+    from reachwatch.pipeline.cli import main
+    path = tmp_path / "guarded.yaml"
+    path.write_text(f"monitor: {{detector: {detector_path}, threshold: 0.5}}\n")
+    assert main(["-q", "guard", "--scenario", str(path), "--shape", "3", "2", "3", "--horizon",
+                 "2", "--fallbacks", "brake", "slow_down+dead_reckoning", "--tradeoff-points",
+                 "2", "--check-starts", "2", "--executor", "inline", "--cache",
+                 str(tmp_path / "cache"), "--out", str(tmp_path)]) == 0
+    record = json.loads((tmp_path / "guard_KMWH_9h_clear.json").read_text())
+    assert set(record["liveness"]) == {"brake", "slow_down+dead_reckoning"}
+    assert record["check"]["starts"] == 2
+    for both in record["check"]["fallbacks"].values():
+        assert both["real"]["starts"] == both["table"]["starts"] == 2
+    assert (tmp_path / "tradeoff_KMWH_9h_clear.png").stat().st_size > 1000

@@ -270,6 +270,8 @@ def test_simulate_rejects_bad_start_states(state):
     (["sweep", "--chunk-size", "-5"], "--chunk-size: '-5' is not a whole number >= 1"),
     (["brt", "--horizon", "inf"], "--horizon: 'inf' is not a finite number > 0"),
     (["guard", "--scenario", "x", "--horizon", "0"], "--horizon: '0' is not a finite number > 0"),
+    (["guard", "--scenario", "x", "--fallbacks", "slow_down+gps"],
+     "--fallbacks: fallback 'slow_down+gps': write a speed strategy"),
 ])
 def test_bad_numbers_on_the_command_line_fail_before_any_work(tmp_path, capsys, argv, message):
     with pytest.raises(SystemExit) as stop:
