@@ -14,16 +14,18 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from reachwatch.diagrams import CONTROL_PORT, file_hash, load_detector
 from reachwatch.reach import Grid, InlineExecutor, ValueFunction
-from reachwatch.taxi import paper_grid, sweep_closed_loop
+from reachwatch.taxi import dynamics_for, paper_grid, sweep_closed_loop
 from reachwatch.taxi.grid import AXES
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
 from reachwatch.training.dataset import SOURCE_BRT, build_dataset, load_dataset
 from reachwatch.training.detector_train import operating_threshold, train_detector
-from reachwatch.training.evaluation import Detector, csv_table, evaluate_environment, markdown_table
+from reachwatch.training.evaluation import (NOT_FAILED, Detector, csv_table, evaluate_environment,
+                                            markdown_table)
 from reachwatch.training.figures import plot_error_vs_margin, plot_overlay
 from reachwatch.training.metrics import best_threshold
 from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
@@ -297,13 +299,20 @@ def stage_evaluate(run: Run) -> dict:
         detectors.append(Detector(name, model, config, threshold))
     rows, figures = [], {}
     for env, d in zip(spec.test, run.datasets(spec.test)):
-        env_rows, scores = evaluate_environment(d, detectors, device=spec.detector.device)
+        # States that have not failed yet: for the taxi, the aircraft still on the runway.
+        inside = dynamics_for(run.scenario_for(env)).target(
+            torch.as_tensor(d.states, dtype=torch.float64)).numpy() > 0
+        subsets = {NOT_FAILED: inside}
+        env_rows, scores = evaluate_environment(d, detectors, device=spec.detector.device,
+                                                subsets=subsets)
         rows += env_rows
         if np.any(d.sources != SOURCE_BRT):       # also scored against the BRT's verdicts
             as_brt = dc.replace(d, labels=d.brt_labels,
                                 manifest={**d.manifest, "labels": {"source": "brt"}})
-            rows += evaluate_environment(as_brt, detectors, device=spec.detector.device)[0]
-        predictions = {r["method"]: scores[r["method"]] >= r["threshold"] for r in env_rows}
+            rows += evaluate_environment(as_brt, detectors, device=spec.detector.device,
+                                         subsets=subsets)[0]
+        predictions = {r["method"]: scores[r["method"]] >= r["threshold"]
+                       for r in env_rows if r["states"] == "all"}
         margin = plot_error_vs_margin({m: (d.values, d.labels, p) for m, p in predictions.items()},
                                       run.path(f"figures/error_vs_margin_{env.name}.png"))
         overlay = plot_overlay(run.value_function(env.name), d.states, d.labels,

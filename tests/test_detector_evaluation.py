@@ -1,3 +1,4 @@
+import dataclasses as dc
 import json
 
 import numpy as np
@@ -10,7 +11,8 @@ from reachwatch.reach import solve_brt
 from reachwatch.taxi import TaxiDynamics, paper_grid
 from reachwatch.systems import AnomalyDetector, DetectorConfig, build_detector
 from reachwatch.training.baselines import ensemble_variance, prediction_error
-from reachwatch.training.dataset import DatasetSpec, build_dataset, load_dataset
+from reachwatch.training.dataset import DatasetSpec, LabelledData, build_dataset, load_dataset
+from reachwatch.training.evaluation import NOT_FAILED, evaluate_environment
 from reachwatch.training.metrics import auroc, best_threshold, binary_metrics
 
 TINY = DetectorConfig(height=24, width=40, channels=[4, 8])
@@ -163,3 +165,24 @@ def test_inference_model_computes_the_same_scores_and_leaves_the_model_alone(ste
         np.testing.assert_allclose(fast(x).numpy(), model.eval()(x).numpy(), atol=1e-5)
     with pytest.raises(ValueError, match="stem_stride"):
         DetectorConfig(stem_stride=3).validate()
+
+
+def test_table2_rows_over_the_states_that_have_not_failed_yet():
+    # 6 samples labelled 0 0 1 1 1 1; the prediction-error baseline scores them 0 1 2 3 2 3.
+    # The last two states have already failed (px beyond the edge): easy positives.
+    states = np.zeros((6, 3))
+    states[4:, 0] = 20.0
+    data = LabelledData.from_arrays(images=np.zeros((6, 4, 4, 3), np.uint8), states=states,
+                                    values=np.array([1, 1, -1, -1, -1, -1.0]),
+                                    environment="tiny", camera_size=(4, 4))
+    data = dc.replace(data, estimates=np.stack([np.arange(6.0) * 10.0, np.zeros(6)], axis=1))
+    inside = np.abs(states[:, 0]) < 10.0
+    rows, scores = evaluate_environment(data, [], subsets={NOT_FAILED: inside})
+    assert [(r["states"], r["n"], r["positives"]) for r in rows] == [("all", 6, 4),
+                                                                     (NOT_FAILED, 4, 2)]
+    assert rows[1]["recall"] == rows[1]["accuracy"] == 1.0      # tuned again on the 4 states
+    assert 1.0 < rows[1]["threshold"] <= 2.0 == scores[rows[1]["method"]][2]
+    with pytest.raises(ValueError, match="subset 'x' must be a boolean mask of the 6"):
+        evaluate_environment(data, [], subsets={"x": np.ones(5, bool)})
+    # an empty subset adds no rows
+    assert len(evaluate_environment(data, [], subsets={"none": np.zeros(6, bool)})[0]) == 1

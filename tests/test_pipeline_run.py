@@ -14,6 +14,7 @@ from reachwatch.pipeline.run import STAGES, run_pipeline
 from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.diagrams import ScenarioError
 from reachwatch.training.dataset import load_dataset
+from reachwatch.training.evaluation import NOT_FAILED
 
 TINY = """
 name: tiny
@@ -102,9 +103,17 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     for src in re.findall(r"\]\(([^)]+)\)", md):
         assert (tmp_path / src).is_file(), src
     rows = run.outputs["evaluate"]["rows"]
-    assert [r["environment"] for r in rows] == ["KSFO_17h_clear"] * 4
-    for r in rows:
-        assert f"| KSFO_17h_clear | {r['method']} | brt | 40 |" in md
+    every = [r for r in rows if r["states"] == "all"]
+    assert [r["environment"] for r in every] == ["KSFO_17h_clear"] * 4
+    for r in every:
+        assert f"| KSFO_17h_clear | {r['method']} | brt | all | 40 |" in md
+    # the same rows over the states still on the runway, counted from the dataset itself
+    data = run.datasets(run.spec.test)[0]
+    on_runway = np.abs(data.states[:, 0]) < run.spec.test[0].half_width
+    inside = [r for r in rows if r["states"] == NOT_FAILED]
+    assert [r["method"] for r in inside] == [r["method"] for r in every]
+    assert {r["n"] for r in inside} == {int(on_runway.sum())}
+    assert {r["positives"] for r in inside} == {int(data.labels[on_runway].sum())}
     guard = run.outputs["guard"]["KSFO_17h_clear"]
     assert set(guard["volumes"]) == {"unguarded", "slow_down", "brake",
                                      "slow_down+dead_reckoning", "slow_down+oracle"}
@@ -235,6 +244,8 @@ def test_evaluate_command_is_the_run_up_to_evaluate(tmp_path, capsys):
                  "--shape", "5", "3", "5", "--samples", "20", "--input-size", "24", "40",
                  "--epochs", "1", "--ensemble", "0", "--executor", "inline", "--check-starts", "0",
                  "--out", str(tmp_path)]) == 0
-    assert "| KSFO_17h_clear | detector (BRT labels) | brt | 20 |" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "| KSFO_17h_clear | detector (BRT labels) | brt | all | 20 |" in out
+    assert "| KSFO_17h_clear | detector (BRT labels) | brt | not yet failed |" in out
     assert (tmp_path / "table2.csv").is_file() and (tmp_path / "stages" / "evaluate.json").is_file()
     assert not (tmp_path / "stages" / "guard_KSFO_17h_clear.json").exists()

@@ -1,6 +1,9 @@
 """The paper's Table 2 and its baselines: per held-out environment, recall, accuracy,
 precision, F1 and AUROC of each method against the dataset's labels (whatever their
-source: the BRT, the real loop, or both; the ``labels`` column says which)."""
+source: the BRT, the real loop, or both; the ``labels`` column says which), over all
+the environment's states and over named subsets of them (the ``states`` column), e.g.
+the states that have not failed yet: states already outside the safe set are failures
+by definition, easy to flag, and on a wide safe set a large share of the positives."""
 
 import csv
 import dataclasses as dc
@@ -12,8 +15,11 @@ from .baselines import ensemble_variance, has_pose_estimate, prediction_error
 from .detector_train import detector_scores
 from .metrics import best_threshold, binary_metrics
 
-COLUMNS = ("environment", "method", "labels", "n", "positives", "recall", "accuracy", "precision",
+COLUMNS = ("environment", "method", "labels", "states", "n", "positives", "recall", "accuracy", "precision",
            "f1", "auroc", "threshold")
+
+#: The ``states`` subset of the samples that have not failed yet (inside the safe set).
+NOT_FAILED = "not yet failed"
 
 
 @dc.dataclass
@@ -25,32 +31,44 @@ class Detector:
     threshold: float = 0.5
 
 
-def evaluate_environment(data, detectors, *, device="") -> list:
-    """Rows (dicts with `COLUMNS`) for one `LabelledData`: each detector at its own
-    threshold, then the baselines at the threshold maximising F1 on this same data
-    (oracle-tuned, i.e. as generous to them as possible)."""
+def evaluate_environment(data, detectors, *, device="", subsets=None) -> tuple:
+    """``(rows, scores)`` for one `LabelledData`: rows (dicts with `COLUMNS`) for each
+    detector at its own threshold, then the baselines at the threshold maximising F1 on
+    the same states (oracle-tuned, i.e. as generous to them as possible); ``scores``
+    {method: score per sample}. ``subsets`` {name: boolean mask over the samples} adds
+    the same rows over each subset (the baselines tuned again on it); ``"all"`` is
+    always first. An empty subset gives no rows."""
     env, labels, rows = data.manifest["environment"], data.labels, []
     source = data.manifest.get("labels", {}).get("source", "brt")
-    scores = {}
-    for det in detectors:
-        s = detector_scores(det.model, det.config, data.images, device=device)
-        scores[det.name] = s
-        rows.append({"environment": env, "method": det.name, "labels": source,
-                     "threshold": det.threshold,
-                     **binary_metrics(labels, s >= det.threshold, s).row()})
-    baselines = {}
+    n = len(labels)
+    masks = {"all": np.ones(n, bool)}
+    for name, mask in (subsets or {}).items():
+        mask = np.asarray(mask)
+        if mask.dtype != bool or mask.shape != (n,):
+            raise ValueError(f"subset '{name}' must be a boolean mask of the {n} samples, got "
+                             f"dtype {mask.dtype} shape {mask.shape}")
+        masks[name] = mask
+    scores = {det.name: detector_scores(det.model, det.config, data.images, device=device)
+              for det in detectors}
+    thresholds = {det.name: det.threshold for det in detectors}
+    baselines = []
     if has_pose_estimate(data):
-        baselines["TaxiNet prediction error (best threshold)"] = \
-            prediction_error(data.states, data.estimates)
+        baselines.append("TaxiNet prediction error (best threshold)")
+        scores[baselines[-1]] = prediction_error(data.states, data.estimates)
     if data.ensemble.shape[1] >= 2:
-        baselines[f"ensemble of {data.ensemble.shape[1]} variance (best threshold)"] = \
-            ensemble_variance(data.ensemble)
-    for name, s in baselines.items():
-        threshold, metrics = best_threshold(labels, s)
-        scores[name] = s
-        rows.append({"environment": env, "method": name, "labels": source,
-                     "threshold": float(threshold),
-                     **metrics.row()})
+        baselines.append(f"ensemble of {data.ensemble.shape[1]} variance (best threshold)")
+        scores[baselines[-1]] = ensemble_variance(data.ensemble)
+    for subset, mask in masks.items():
+        if not mask.any():
+            continue
+        head = {"environment": env, "labels": source, "states": subset}
+        for det in detectors:
+            s = scores[det.name][mask]
+            rows.append({**head, "method": det.name, "threshold": thresholds[det.name],
+                         **binary_metrics(labels[mask], s >= thresholds[det.name], s).row()})
+        for name in baselines:
+            threshold, metrics = best_threshold(labels[mask], scores[name][mask])
+            rows.append({**head, "method": name, "threshold": float(threshold), **metrics.row()})
     return rows, scores
 
 
