@@ -1,11 +1,13 @@
 """The guarded loop: the closed loop under test watched by the anomaly detector, with
 the fallback switch between the controller and the plant."""
 
-from pydrake.systems.framework import Diagram, DiagramBuilder
+from typing import NamedTuple
+
+from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
 from pydrake.systems.primitives import ZeroOrderHold
 
-from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, fallback_name,
-                                ProportionalController, TrueStateEstimator)
+from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, FlagFilter,
+                                fallback_name, ProportionalController, TrueStateEstimator)
 
 from .checkpoints import load_detector
 from .closed_loop import add_controller, export_loop_ports
@@ -14,14 +16,24 @@ from .world import add_world, initial_state_vector
 
 DETECTOR = "anomaly_detector"
 SWITCH = "fallback_switch"
+FLAG_FILTER = "flag_filter"
 
 
-def add_monitor(builder, *, image_port, steering_port, monitor, controller):
+class Monitor(NamedTuple):
+    """The systems `add_monitor` added, and the port of the flags the switch acts on
+    (the detector's own, or the `FlagFilter`'s when a k-of-n rule confirms them)."""
+    detector: AnomalyDetector
+    switch: FallbackSwitch
+    anomaly: OutputPort
+
+
+def add_monitor(builder, *, image_port, steering_port, monitor, controller) -> Monitor:
     """Adds the runtime monitor of ``monitor`` (a `MonitorConfig`) to any loop: the
-    `AnomalyDetector` on ``image_port`` and the `FallbackSwitch` fed by the controller's
+    `AnomalyDetector` on ``image_port``, a `FlagFilter` (named ``flag_filter``) when
+    ``monitor.flag_window`` > 1, and the `FallbackSwitch` fed by the controller's
     ``steering_port``, ticking at ``controller.period`` from ``controller.speed``.
-    Returns ``(detector, switch)``; connect the switch's ``steering_angle`` and ``speed``
-    outputs to your plant (and its ``fallback_steering_angle`` input for ``oracle``)."""
+    Returns a `Monitor`; connect the switch's ``steering_angle`` and ``speed`` outputs
+    to your plant (and its ``fallback_steering_angle`` input for ``oracle``)."""
     model, config, metadata = load_detector(monitor.detector)
     detector = builder.AddNamedSystem(DETECTOR, AnomalyDetector(
         model=model, config=config, threshold=monitor.threshold,
@@ -31,8 +43,15 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller):
         nominal_speed=controller.speed, brake_deceleration=monitor.brake_deceleration))
     builder.Connect(image_port, detector.get_color_image_input_port())
     builder.Connect(steering_port, switch.get_steering_angle_input_port())
-    builder.Connect(detector.get_anomaly_output_port(), switch.get_anomaly_input_port())
-    return detector, switch
+    anomaly = detector.get_anomaly_output_port()
+    if monitor.flag_window > 1:
+        confirm = builder.AddNamedSystem(FLAG_FILTER, FlagFilter(
+            flags_needed=monitor.flags_needed, window=monitor.flag_window,
+            period=controller.period))
+        builder.Connect(anomaly, confirm.get_anomaly_input_port())
+        anomaly = confirm.get_anomaly_output_port()
+    builder.Connect(anomaly, switch.get_anomaly_input_port())
+    return Monitor(detector, switch, anomaly)
 
 
 def add_dead_reckoning(builder, *, estimate_port, anomaly_port, switch, controller,
@@ -70,7 +89,8 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
         - anomaly
 
     Subsystems: ``taxi_plant``, ``controller``, ``anomaly_detector``,
-    ``fallback_switch``, ``steering_hold``; with ``monitor.steering: dead_reckoning``
+    ``fallback_switch``, ``steering_hold``; ``flag_filter`` with a k-of-n rule (the
+    ``anomaly`` output is then the confirmed flag); with ``monitor.steering: dead_reckoning``
     also ``dead_reckoning`` (fed by the controller's ``estimate``, which must be
     ``[px m, theta deg]``) and ``fallback_p_controller``; with ``oracle`` also
     ``state_estimator`` and ``oracle_p_controller`` (privileged). With ``meshcat``
@@ -84,7 +104,7 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
                       shadows=scenario.shadows,
                       initial_state=initial_state_vector(scenario.initial_state))
     vision = add_controller(builder, world, controller)
-    detector, switch = add_monitor(builder, image_port=world.camera.color_image_output_port(),
+    detector, switch, anomaly = add_monitor(builder, image_port=world.camera.color_image_output_port(),
                                    steering_port=vision.GetOutputPort(CONTROL_OUTPUT),
                                    monitor=monitor, controller=controller)
     hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(controller.period, 1))
@@ -101,7 +121,7 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
             raise ValueError("monitor.steering: dead_reckoning carries the controller's "
                              "'estimate' output forward, and this controller has none")
         add_dead_reckoning(builder, estimate_port=vision.GetOutputPort(ESTIMATE_OUTPUT),
-                           anomaly_port=detector.get_anomaly_output_port(), switch=switch,
+                           anomaly_port=anomaly, switch=switch,
                            controller=controller, wheelbase=world.plant.wheelbase)
     builder.Connect(switch.get_steering_angle_output_port(), hold.get_input_port())
     builder.Connect(hold.get_output_port(), world.plant.get_steering_angle_input_port())
@@ -110,7 +130,7 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
                       estimate=(vision.GetOutputPort(ESTIMATE_OUTPUT)
                                 if has_estimate(vision) else None),
                       speed=switch.get_speed_output_port(),
-                      anomaly=detector.get_anomaly_output_port())
+                      anomaly=anomaly)
     if meshcat is not None:
         from pydrake.geometry import MeshcatVisualizer, MeshcatVisualizerParams, Role
         MeshcatVisualizer.AddToBuilder(builder, world.scene_graph, meshcat,

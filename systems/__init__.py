@@ -27,12 +27,14 @@ from .plant import NOMINAL_SPEED_MPS, WHEELBASE_M, TaxiPlant, taxi_dynamics
 from .runway import RUNWAYS, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, TaxiwayLine
 from .scene import add_runway_scene
 from .dead_reckoning import DeadReckoning, propagate_estimate
+from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
 from .switch import (DEFAULT_FALLBACKS, STEERING, STRATEGIES, FallbackSwitch, fallback_name, fallback_parts,
                      next_speed)
 from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, TaxiNet,
                       TrueStateEstimator)
 
 __all__ = [
+    "FlagFilter", "check_k_of_n", "confirmed_flags",
     "AircraftGeometry", "CameraConfig", "make_wing_camera", "SKIES", "Environment",
     "test_environments", "training_environments", "Lighting", "lighting_for",
     "render_engine_params", "sun_elevation_deg", "NOMINAL_SPEED_MPS", "WHEELBASE_M",

@@ -16,8 +16,8 @@ from reachwatch.reach.dynamics import positive, rk4_step, split_horizon
 from reachwatch.reach.grid import check_states
 from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.reach.liveness import MissionOutcomes, liveness_figures
-from reachwatch.systems import (ProportionalController, fallback_parts, next_speed,
-                                propagate_estimate)
+from reachwatch.systems import (ProportionalController, check_k_of_n, confirmed_flags,
+                                fallback_parts, next_speed, propagate_estimate)
 
 from .dynamics import dynamics_for
 
@@ -30,7 +30,7 @@ SCORE_PORT = f"{DETECTOR}.score"
 def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, threshold=0.5,
                      strategy="slow_down", steering="taxinet", estimate_table=None,
                      policy=None, horizon=8.0, period=0.05, substeps=2, starts=None,
-                     **strategy_params) -> MissionOutcomes:
+                     flags_needed=1, flag_window=1, **strategy_params) -> MissionOutcomes:
     """`MissionOutcomes` per start (default: every grid node, C order) of the loop whose
     steering, score and estimate are interpolated from tables of ``grid``.
     ``score_table=None`` = no detector (the controller alone).
@@ -39,7 +39,10 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
     (``policy`` of the true ``[px m, theta deg]``) or ``"dead_reckoning"`` (``policy``
     of the last unflagged estimate from ``estimate_table``, carried forward with the
     steering and speed applied since, as `DeadReckoning` does). ``policy`` maps
-    ``(n, 2)`` estimates to steering (rad)."""
+    ``(n, 2)`` estimates to steering (rad). A tick counts as flagged when at least
+    ``flags_needed`` of the last ``flag_window`` ticks' scores reached the threshold,
+    as `FlagFilter` confirms them."""
+    flags_needed, flag_window = check_k_of_n(flags_needed, flag_window)
     if steering not in ("taxinet", "oracle", "dead_reckoning"):
         raise ValueError(f"steering must be taxinet, oracle or dead_reckoning, got '{steering}'")
     if steering != "taxinet" and policy is None:
@@ -62,14 +65,17 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
     distance, flagged_ticks, ticks = np.zeros(n), np.zeros(n, int), np.zeros(n, int)
     ever_stopped = np.zeros(n, bool)
     base, u_prev, v_prev, trusted = np.zeros((n, 2)), np.zeros(n), v.copy(), np.zeros(n, bool)
+    history = np.zeros((n, flag_window - 1), bool)
     whole, tail = split_horizon(horizon, period)
     substeps = positive("substeps", substeps, integer=True)
     for k in range(whole + (tail > 0)):       # a last partial period when it does not divide
         dt = period if k < whole else tail
         interpolate = GridInterpolator(grid, x)
         u = interpolate(steer).numpy()
-        flagged = (np.zeros(n, bool) if score is None
-                   else interpolate(score).numpy() >= threshold)
+        flagged = np.zeros(n, bool)
+        if score is not None:
+            flagged, history = confirmed_flags(interpolate(score).numpy() >= threshold, history,
+                                               flags_needed)
         if score is not None:
             v = next_speed(v, flagged, strategy=strategy, nominal=nominal, period=period,
                            **strategy_params)
@@ -125,7 +131,9 @@ def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=N
             threshold=scenario.monitor.threshold if threshold is None else threshold,
             strategy=strategy, steering=steering, policy=policy,
             estimate_table=tables[ESTIMATE_PORT] if ESTIMATE_PORT in tables.tables else None,
-            brake_deceleration=scenario.monitor.brake_deceleration, **kw)
+            brake_deceleration=scenario.monitor.brake_deceleration,
+            flags_needed=scenario.monitor.flags_needed, flag_window=scenario.monitor.flag_window,
+            **kw)
     return out
 
 

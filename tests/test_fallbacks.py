@@ -13,7 +13,7 @@ from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, add_dead_reckoning, loa
 from reachwatch.diagrams.scenario import ControllerConfig
 from reachwatch.reach import Grid
 from reachwatch.reach.liveness import MissionOutcomes, liveness_figures, percent
-from reachwatch.systems import (DeadReckoning, FallbackSwitch,
+from reachwatch.systems import (DeadReckoning, FallbackSwitch, FlagFilter, confirmed_flags,
                                 ProportionalController, TaxiPlant, TrueStateEstimator,
                                 fallback_parts, propagate_estimate,
                                 taxi_dynamics)
@@ -198,6 +198,48 @@ def _tables(grid, steering, score):
     return steering(nodes), score(nodes), estimate
 
 
+# raw flags by tick, and the 2-of-3 rule's verdict worked out by hand
+RAW = [1, 0, 1, 1, 0, 0, 1, 1, 1, 0]
+TWO_OF_THREE = [0, 0, 1, 1, 1, 0, 0, 1, 1, 1]
+
+
+def test_k_of_n_flags_tick_by_tick():
+    history, got = np.zeros((1, 2), bool), []
+    for raw in RAW:
+        confirmed, history = confirmed_flags([raw], history, 2)
+        got.append(int(confirmed[0]))
+    assert got == TWO_OF_THREE
+    # the same in a Drake loop, read as the switch reads it: sampled at every tick (a
+    # zero-order hold, whose output between ticks is what it sampled at the last one)
+    builder = DiagramBuilder()
+    source = builder.AddSystem(_Schedule([t for t, r in enumerate(RAW) if r]))
+    confirm = builder.AddSystem(FlagFilter(flags_needed=2, window=3, period=PERIOD))
+    sample = builder.AddSystem(ZeroOrderHold(PERIOD, 1))
+    builder.Connect(source.get_output_port(0), confirm.get_anomaly_input_port())
+    builder.Connect(confirm.get_anomaly_output_port(), sample.get_input_port())
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    seen, logged = [], []
+    for tick in range(len(RAW)):
+        simulator.AdvanceTo(tick * PERIOD)      # read at the tick, after its update (a logger)
+        logged.append(int(confirm.get_anomaly_output_port().Eval(
+            confirm.GetMyContextFromRoot(context))[0]))
+        simulator.AdvanceTo((tick + 0.4) * PERIOD)
+        seen.append(int(sample.get_output_port().Eval(sample.GetMyContextFromRoot(context))[0]))
+    assert seen == logged == TWO_OF_THREE
+    # 1 of 1 passes the raw flags through; bad rules are named
+    one = FlagFilter(period=PERIOD)
+    one_context = one.CreateDefaultContext()
+    one.get_anomaly_input_port().FixValue(one_context, [1.0])
+    assert one.get_anomaly_output_port().Eval(one_context)[0] == 1.0
+    for k, n in ((3, 2), (0, 1), (True, 2), (1.5, 2)):
+        with pytest.raises(ValueError, match="1 <= flags_needed"):
+            FlagFilter(flags_needed=k, window=n)
+    with pytest.raises(ValueError, match="monitor.flags_needed / monitor.flag_window"):
+        load_scenario(data="{monitor: {flags_needed: 4, flag_window: 3}}")
+
+
 def test_table_rollouts_liveness_and_dead_reckoning():
     """A controller steering the wrong way wherever px > 0: alone it fails there; a
     detector flagging px > 0 with dead reckoning saves those starts without stopping,
@@ -226,6 +268,12 @@ def test_table_rollouts_liveness_and_dead_reckoning():
     assert braked.failed.tolist() == [False, False] and braked.stopped.tolist() == [True, False]
     with pytest.raises(ValueError, match="estimate table"):
         guarded_rollouts(grid, dynamics, steer, score, steering="dead_reckoning", policy=policy)
+    # a 3-of-3 rule on a detector that flags every tick from the start: the first two
+    # ticks are not yet confirmed, every later one is
+    always = np.ones_like(score)
+    confirmed = guarded_rollouts(grid, dynamics, steer, always, flags_needed=3, flag_window=3,
+                                 **kw)
+    assert (confirmed.flagged_ticks == confirmed.ticks - 2).all()
 
 
 def test_dead_reckoning_in_the_rendered_loop(detector_path, tmp_path):

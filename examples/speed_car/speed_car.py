@@ -95,12 +95,12 @@ def make_car_loop(config: CarConfig):
     builder.Connect(hold.get_output_port(), car.GetInputPort("steering_angle"))
     extra = {}
     if config.monitor.detector:
-        detector, switch = add_monitor(builder, image_port=world.camera.color_image_output_port(),
-                                       steering_port=controller.GetOutputPort("steering_angle"),
-                                       monitor=config.monitor, controller=config.controller)
-        builder.Connect(switch.get_steering_angle_output_port(), hold.get_input_port())
-        builder.Connect(switch.get_speed_output_port(), car.GetInputPort("speed_command"))
-        extra = {"speed": switch.get_speed_output_port(), "anomaly": detector.get_anomaly_output_port()}
+        monitor = add_monitor(builder, image_port=world.camera.color_image_output_port(),
+                              steering_port=controller.GetOutputPort("steering_angle"),
+                              monitor=config.monitor, controller=config.controller)
+        builder.Connect(monitor.switch.get_steering_angle_output_port(), hold.get_input_port())
+        builder.Connect(monitor.switch.get_speed_output_port(), car.GetInputPort("speed_command"))
+        extra = {"speed": monitor.switch.get_speed_output_port(), "anomaly": monitor.anomaly}
     else:
         speed = builder.AddNamedSystem("speed", ConstantVectorSource([config.controller.speed]))
         builder.Connect(controller.GetOutputPort("steering_angle"), hold.get_input_port())
