@@ -180,7 +180,8 @@ def incremental(run: Run) -> dict:
     spec, config = run.spec, run.spec.incremental
     env = config.environment
     progress = run.bar()
-    mined = mine_anomalies(list(zip(spec.train, run.datasets(spec.train))), config.anomalies,
+    train = spec.training_environments()
+    mined = mine_anomalies(list(zip(train, run.datasets(train))), config.anomalies,
                            np.random.default_rng(config.seed))
     base = resolved(run.scenario_for(env)).controller.checkpoint
     path = run.path(f"incremental/taxinet_{digest(config, run.outputs['dataset'], file_hash(base))}.pt")

@@ -12,7 +12,7 @@ from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.diagrams.scenario import dump_scenario
 from reachwatch.reach import ACCURACIES
 from reachwatch.reach.dynamics import positive, split_horizon
-from reachwatch.systems import DEFAULT_FALLBACKS, Environment, fallback_parts
+from reachwatch.systems import DEFAULT_FALLBACKS, Environment, RandomEnvironments, fallback_parts
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.incremental import IncrementalConfig
@@ -89,11 +89,15 @@ class RunSpec:
     that failed in the real loop, 40 per step 6-9 %). ``solved_theta_deg`` widens the
     box the tables are swept and the BRT solved over to |theta| <= it (the loop turns
     far past the paper's 28 deg at night); labelled states and check starts stay in
-    the paper's box."""
+    the paper's box. ``train_random`` / ``test_random``: families of random environments
+    (`RandomEnvironments`) added to the listed ``train`` / ``test`` ones; the held-out
+    family needs its own seed."""
     name: str = "run"
     scenario: Scenario = dc.field(default_factory=Scenario)
     train: List[Environment] = dc.field(default_factory=list)
     test: List[Environment] = dc.field(default_factory=list)
+    train_random: RandomEnvironments = dc.field(default_factory=RandomEnvironments)
+    test_random: RandomEnvironments = dc.field(default_factory=RandomEnvironments)
     grid: List[int] = dc.field(default_factory=lambda: [21, 11, 21])
     horizon: float = 8.0
     accuracy: str = "semi_lagrangian"
@@ -111,17 +115,27 @@ class RunSpec:
     def validate(self):
         """Raise ValueError naming the first bad field; return self."""
         self.scenario.validate()
-        if not self.train:
-            raise ValueError("train: list at least one training environment")
-        if not self.test:
-            raise ValueError("test: list at least one held-out environment")
+        self.train_random.validate("train_random")
+        self.test_random.validate("test_random")
+        if not self.train and not self.train_random.count:
+            raise ValueError("train: list at least one training environment (or ask for "
+                             "train_random: {count: N})")
+        if not self.test and not self.test_random.count:
+            raise ValueError("test: list at least one held-out environment (or ask for "
+                             "test_random: {count: N})")
         for where in ("train", "test"):
             for i, env in enumerate(getattr(self, where)):
                 try:
                     env.validate()
                 except ValueError as e:
                     raise ValueError(f"{where}[{i}]: {e}") from None
-        names = [e.name for e in self.train + self.test]
+        if self.train_random.count and self.test_random.count and (
+                self.train_random.seed, self.train_random.prefix) == (
+                self.test_random.seed, self.test_random.prefix):
+            raise ValueError(f"test_random.seed {self.test_random.seed} equals "
+                             f"train_random.seed: the held-out family would be the training "
+                             f"family; give it another seed")
+        names = [e.name for e in self.training_environments() + self.held_out_environments()]
         if len(set(names)) != len(names):
             raise ValueError(f"train/test: an environment is listed twice: {names}")
         if len(self.grid) != 3 or min(self.grid) < 3:
@@ -139,6 +153,10 @@ class RunSpec:
                              f"paper's box is +-28), got {self.solved_theta_deg!r}")
         self.dataset.validate()
         self.detector.validate()
+        n_train = len(self.train) + self.train_random.count
+        if self.detector.threshold_folds > n_train:
+            raise ValueError(f"detector.threshold_folds {self.detector.threshold_folds}: there "
+                             f"are only {n_train} training environments to leave out")
         for name in ("samples", "epochs"):
             if getattr(self.ensemble, name) < 1:
                 raise ValueError(f"ensemble.{name} must be >= 1, got {getattr(self.ensemble, name)}")
@@ -179,8 +197,16 @@ class RunSpec:
                              "incremental: {enabled: false}")
         return self
 
+    def training_environments(self) -> List[Environment]:
+        """``train``, then the ``train_random`` family."""
+        return list(self.train) + self.train_random.environments()
+
+    def held_out_environments(self) -> List[Environment]:
+        """``test``, then the ``test_random`` family (never trained on)."""
+        return list(self.test) + self.test_random.environments()
+
     def guard_environments(self) -> List[Environment]:
-        return self.guard.environments or self.test[:1]
+        return self.guard.environments or self.held_out_environments()[:1]
 
 
 def load_run_spec(filename=None, *, data=None) -> RunSpec:

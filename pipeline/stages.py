@@ -23,7 +23,8 @@ from reachwatch.taxi.grid import AXES
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
 from reachwatch.training.dataset import SOURCE_BRT, build_dataset, load_dataset
-from reachwatch.training.detector_train import operating_threshold, train_detector
+from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
+                                                operating_threshold, train_detector)
 from reachwatch.training.evaluation import (NOT_FAILED, Detector, csv_table, evaluate_environment,
                                             markdown_table)
 from reachwatch.training.figures import plot_error_vs_margin, plot_overlay
@@ -184,7 +185,7 @@ class Run:
         envs, seen = [], set()
         extra = self.spec.guard_environments() + (
             [self.spec.incremental.environment] if self.spec.incremental.enabled else [])
-        for env in self.spec.train + self.spec.test + extra:
+        for env in self.spec.training_environments() + self.spec.held_out_environments() + extra:
             if env.name not in seen:
                 seen.add(env.name)
                 envs.append(env)
@@ -241,7 +242,7 @@ def stage_dataset(run: Run) -> dict:
     """The ensemble baseline's TaxiNets, then one BRT-labelled dataset per train/test
     environment, built on the run's executor."""
     ensemble = _ensemble(run)
-    envs = run.spec.train + run.spec.test
+    envs = run.spec.training_environments() + run.spec.held_out_environments()
     futures = {e.name: run.executor.submit(
         _build, str(run.path("datasets")), run.scenario_for(e),
         str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset,
@@ -258,17 +259,29 @@ def stage_train(run: Run) -> dict:
     """The detector on BRT labels, and the same detector on prediction-error labels
     (baseline a), each with its operating threshold."""
     spec, config = run.spec, run.spec.detector
-    data = run.datasets(spec.train)
+    data = run.datasets(spec.training_environments())
     progress = run.bar()
-    tag = digest(config, run.outputs["dataset"]["folders"])
+    # The weights do not depend on how the threshold is chosen: keep them out of the key.
+    weights = {k: v for k, v in dc.asdict(config).items() if k not in THRESHOLD_CHOICE}
+    folders = run.outputs["dataset"]["folders"]
+    tag = digest(weights, folders)
     brt_path = run.path(f"detectors/detector_brt_{tag}.pt")
     seconds = None
     if not brt_path.exists():
         seconds = train_detector(data, config, brt_path, progress=progress)["train_seconds"]
     model, _, meta = load_detector(brt_path)
-    threshold = float(operating_threshold(model, data, config))
-    out = {"detector": run.rel(brt_path), "threshold": threshold,
-           "validation": meta.get("validation", {}), "train_seconds": seconds}
+    out = {"detector": run.rel(brt_path), "validation": meta.get("validation", {}),
+           "train_seconds": seconds}
+    if config.threshold_folds:
+        def checkpoint_for(left_out):
+            kept = {e.name: folders[e.name] for e in spec.training_environments()
+                    if e.name not in left_out}
+            return run.path(f"detectors/detector_brt_heldout_{digest(weights, kept)}.pt")
+        chosen = held_out_operating_threshold(data, config, checkpoint_for, progress=progress)
+        out["threshold"] = chosen.threshold
+        out["held_out_threshold"] = dc.asdict(chosen)
+    else:
+        out["threshold"] = float(operating_threshold(model, data, config))
     if not all(has_pose_estimate(d) for d in data):     # a controller without a pose estimate
         return out
     errors = np.concatenate([prediction_error(d.states, d.estimates) for d in data])
@@ -298,7 +311,8 @@ def stage_evaluate(run: Run) -> dict:
         model, config, _ = load_detector(run.path(path))
         detectors.append(Detector(name, model, config, threshold))
     rows, figures = [], {}
-    for env, d in zip(spec.test, run.datasets(spec.test)):
+    held_out = spec.held_out_environments()
+    for env, d in zip(held_out, run.datasets(held_out)):
         # States that have not failed yet: for the taxi, the aircraft still on the runway.
         inside = dynamics_for(run.scenario_for(env)).target(
             torch.as_tensor(d.states, dtype=torch.float64)).numpy() > 0

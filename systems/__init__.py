@@ -25,6 +25,7 @@ from .models import (ESTIMATE_UNITS, PreprocessConfig, SmallTaxiCNN, TaxiNetConf
                      TinyTaxiNet, build_taxinet, preprocess)
 from .plant import NOMINAL_SPEED_MPS, WHEELBASE_M, TaxiPlant, taxi_dynamics
 from .runway import RUNWAYS, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, TaxiwayLine
+from .random_environments import RandomEnvironments, RandomRunwayRanges, random_runway
 from .scene import add_runway_scene
 from .dead_reckoning import DeadReckoning, propagate_estimate
 from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
@@ -35,6 +36,7 @@ from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, Tax
 
 __all__ = [
     "FlagFilter", "check_k_of_n", "confirmed_flags",
+    "RandomEnvironments", "RandomRunwayRanges", "random_runway",
     "AircraftGeometry", "CameraConfig", "make_wing_camera", "SKIES", "Environment",
     "test_environments", "training_environments", "Lighting", "lighting_for",
     "render_engine_params", "sun_elevation_deg", "NOMINAL_SPEED_MPS", "WHEELBASE_M",

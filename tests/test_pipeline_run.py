@@ -70,6 +70,8 @@ def _ran(log):
     (("guard: {candidates: 2", "guard: {strategies: [slow_down+gps], candidates: 2"),
      "guard.strategies[0]: fallback 'slow_down+gps'"),
     (("check_starts: 2", "check_starts: -2"), "guard.check_starts must be a whole number >= 0"),
+    (("batch_size: 8", "batch_size: 8\n  threshold_folds: 2"),
+     "detector.threshold_folds 2: there are only 1 training environments to leave out"),
 ])
 def test_run_spec_errors_name_the_field(edit, message):
     with pytest.raises(ScenarioError, match=re.escape(message)):
@@ -90,6 +92,24 @@ def test_shipped_run_files_load():
     assert len(paper.train) == 12 and len(paper.test) == 18 and paper.grid == [101] * 3
     assert paper.dataset.samples == 20000 and paper.detector.detector.arch == "efficientnet_b0"
     assert len(demo.train) < len(paper.train)
+
+
+def test_random_families_and_a_held_out_threshold_run_through_the_pipeline(tmp_path):
+    text = (TINY.replace("test: [{runway: KSFO, hour: 17.0, sky: clear}]",
+                         "train_random: {count: 1, seed: 0}\ntest_random: {count: 1, seed: 1}")
+                .replace("batch_size: 8", "batch_size: 8\n  threshold_folds: 2")
+                .replace("fidelity: {starts: 3", "fidelity: {starts: 0"))
+    run, _ = _run(tmp_path, text, until="evaluate")
+    trained = run.outputs["train"]["held_out_threshold"]
+    assert list(trained["per_group"]) == ["KMWH_9h_clear", run.spec.training_environments()[1].name]
+    assert run.outputs["train"]["threshold"] == trained["threshold"]
+    assert len(list((tmp_path / "detectors").glob("detector_brt_heldout_*.pt"))) == 2
+    held_out = run.spec.held_out_environments()[0].name
+    assert held_out.startswith("RND1-")
+    assert {r["environment"] for r in run.outputs["evaluate"]["rows"]} == {held_out}
+    assert set(run.outputs["dataset"]["folders"]) == {e.name for e in
+                                                      run.spec.training_environments() +
+                                                      run.spec.held_out_environments()}
 
 
 def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_path):

@@ -7,10 +7,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from reachwatch.diagrams import save_checkpoint
+from reachwatch.diagrams import load_detector, save_checkpoint
 from reachwatch.systems import DetectorConfig, build_detector, detector_input
 
-from .metrics import binary_metrics
+from .metrics import HELD_OUT_RULES, binary_metrics, held_out_threshold, recall_threshold
 
 
 @dc.dataclass
@@ -26,6 +26,14 @@ class DetectorTrainConfig:
     #: > 0: operate at the highest threshold whose recall on the validation split is at
     #: least this (safety first: a missed anomaly costs more than a false alarm).
     target_recall: float = 0.95
+    #: > 0 (with target_recall): choose the threshold on environments the detector has
+    #: not seen. The training datasets are split into this many contiguous groups in
+    #: their listed order (as many as datasets: leave-one-environment-out); a detector
+    #: trained without each group scores it, and `held_out_threshold` picks the
+    #: threshold by ``threshold_rule`` (every_group | pooled). Costs one extra training
+    #: per group; the deployed detector is still trained on every dataset.
+    threshold_folds: int = 0
+    threshold_rule: str = "every_group"
     pretrained_path: str = ""
     #: Random per-image colour gains, brightness and contrast in training, so lighting
     #: the training environments lack (e.g. a warm low sun) does not shift the scores.
@@ -50,9 +58,23 @@ class DetectorTrainConfig:
         if self.target_recall > 0 and self.validation_fraction == 0:
             raise ValueError(f"{where}.target_recall {self.target_recall} needs a validation "
                              f"split: set {where}.validation_fraction > 0")
+        folds = self.threshold_folds
+        if isinstance(folds, bool) or not isinstance(folds, int) or folds < 0 or folds == 1:
+            raise ValueError(f"{where}.threshold_folds must be 0 (validation split) or a whole "
+                             f"number >= 2 of environment groups, got {folds!r}")
+        if folds and not self.target_recall:
+            raise ValueError(f"{where}.threshold_folds {folds} chooses a threshold for "
+                             f"target_recall; set {where}.target_recall > 0")
+        if self.threshold_rule not in HELD_OUT_RULES:
+            raise ValueError(f"{where}.threshold_rule must be one of {HELD_OUT_RULES}, got "
+                             f"'{self.threshold_rule}'")
         if not 0.0 <= self.threshold <= 1.0:
             raise ValueError(f"{where}.threshold must be in [0, 1], got {self.threshold}")
         return self
+
+
+#: The `DetectorTrainConfig` fields that choose the threshold but leave the weights alone.
+THRESHOLD_CHOICE = ("threshold", "target_recall", "threshold_folds", "threshold_rule")
 
 
 def _device(name):
@@ -116,11 +138,8 @@ def operating_threshold(model, datasets, config: DetectorTrainConfig, labels=Non
     which = np.searchsorted(offsets, val, side="right") - 1
     images = np.stack([datasets[w].images[r - offsets[w]] for w, r in zip(which, val)])
     scores = detector_scores(model, config.detector, images, device=config.device)
-    positives = np.sort(scores[y[val] == 1])
-    if len(positives) == 0:
-        return config.threshold
-    k = int(np.floor((1.0 - config.target_recall) * len(positives)))
-    return float(positives[k])
+    threshold = recall_threshold(y[val], scores, config.target_recall)
+    return config.threshold if threshold is None else threshold
 
 
 def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=None,
@@ -173,3 +192,37 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
                     preprocess_config=None, metadata=metadata)
     # Wall time is returned, not saved: identical training gives an identical file.
     return {**metadata, "train_seconds": round(time.time() - started, 1)}
+
+
+def environment_groups(n: int, folds: int):
+    """``folds`` contiguous groups of dataset indices ``0..n-1`` in order (sizes differ by
+    at most one), e.g. the paper's 12 environments listed runway by runway, in 3 groups,
+    leave one runway out."""
+    if not 2 <= folds <= n:
+        raise ValueError(f"threshold_folds must be between 2 and the number of training "
+                         f"datasets ({n}), got {folds}")
+    return [list(map(int, g)) for g in np.array_split(np.arange(n), folds)]
+
+
+def held_out_operating_threshold(datasets, config: DetectorTrainConfig, checkpoint_for, *,
+                                 progress=None):
+    """The threshold from detectors that never saw the environments they score (see
+    ``DetectorTrainConfig.threshold_folds``): for each group, a detector trained on the
+    other datasets (checkpoint ``checkpoint_for(names_left_out)``, trained when missing,
+    so an interrupted choice resumes) scores the group's datasets. Returns
+    `HeldOutThreshold` with one group per left-out dataset group."""
+    config.validate()
+    groups = environment_groups(len(datasets), config.threshold_folds)
+    scored = {}
+    for group in groups:
+        names = [datasets[i].manifest["environment"] for i in group]
+        path = checkpoint_for(names)
+        if not path.exists():
+            train_detector([d for i, d in enumerate(datasets) if i not in group], config, path,
+                           progress=progress)
+        model, detector_config, _ = load_detector(path)
+        labels = np.concatenate([datasets[i].labels for i in group])
+        scores = np.concatenate([detector_scores(model, detector_config, datasets[i].images,
+                                                 device=config.device) for i in group])
+        scored["+".join(names)] = (labels, scores)
+    return held_out_threshold(scored, config.target_recall, rule=config.threshold_rule)

@@ -76,3 +76,78 @@ def best_threshold(labels, scores, *, objective="f1"):
         if best is None or (not np.isnan(value) and value > best[0]):
             best = (value, t, m)
     return best[1], best[2]
+
+
+def recall_threshold(labels, scores, target_recall: float):
+    """The highest threshold ``t`` (flag where ``score >= t``) whose recall on these
+    samples is at least ``target_recall``: one of the positives' scores. None when there
+    are no positives (any threshold has undefined recall)."""
+    labels = np.asarray(labels).astype(bool)
+    scores = np.asarray(scores, dtype=float)
+    if labels.shape != scores.shape:
+        raise ValueError(f"labels {labels.shape} and scores {scores.shape} differ")
+    if not 0.0 < target_recall <= 1.0:
+        raise ValueError(f"target_recall must be in (0, 1], got {target_recall}")
+    positives = np.sort(scores[labels])
+    if len(positives) == 0:
+        return None
+    # Flagging the top n - k positives leaves k misses; the most k may be is
+    # floor((1 - target) n). Ties at the threshold are flagged too, which only helps.
+    k = int(np.floor((1.0 - target_recall) * len(positives) + 1e-9))
+    return float(positives[k])
+
+
+@dc.dataclass
+class HeldOutThreshold:
+    """A threshold chosen on held-out scores (`held_out_threshold`). ``per_group``:
+    for each held-out group, the highest threshold reaching the target on it alone,
+    its recall and accuracy at the chosen ``threshold``, its sample and positive
+    counts. ``promised``: recall (lowest over the groups and pooled) and pooled
+    accuracy at ``threshold`` on the held-out scores: what the threshold promises for
+    an environment it has not seen."""
+    threshold: float
+    rule: str
+    target_recall: float
+    per_group: dict
+    promised: dict
+
+
+HELD_OUT_RULES = ("every_group", "pooled")
+
+
+def held_out_threshold(groups, target_recall: float, *, rule: str = "every_group",
+                       ) -> HeldOutThreshold:
+    """The operating threshold from scores of samples their model never trained on.
+
+    ``groups`` maps a group name (e.g. one left-out environment) to ``(labels,
+    scores)``, the scores coming from a model trained without that group. ``rule``:
+    ``every_group`` takes the lowest of the groups' own thresholds, so that the
+    target recall holds on each left-out group (the target says "every environment");
+    ``pooled`` reaches it on all held-out samples together. Groups without positives
+    constrain nothing under ``every_group``."""
+    if rule not in HELD_OUT_RULES:
+        raise ValueError(f"rule must be one of {HELD_OUT_RULES}, got '{rule}'")
+    if not groups:
+        raise ValueError("held_out_threshold needs at least one group")
+    own = {name: recall_threshold(y, s, target_recall) for name, (y, s) in groups.items()}
+    if all(t is None for t in own.values()):
+        raise ValueError(f"no held-out group has a positive sample ({sorted(groups)}): "
+                         f"no threshold reaches a recall")
+    if rule == "every_group":
+        threshold = min(t for t in own.values() if t is not None)
+    else:
+        threshold = recall_threshold(np.concatenate([np.asarray(y) for y, _ in groups.values()]),
+                                     np.concatenate([np.asarray(s) for _, s in groups.values()]),
+                                     target_recall)
+    per_group = {}
+    for name, (y, s) in groups.items():
+        m = binary_metrics(y, np.asarray(s, dtype=float) >= threshold)
+        per_group[name] = {"own_threshold": own[name], "recall": m.recall,
+                           "accuracy": m.accuracy, "n": m.n, "positives": m.tp + m.fn}
+    pooled = binary_metrics(np.concatenate([np.asarray(y) for y, _ in groups.values()]),
+                            np.concatenate([np.asarray(s, dtype=float) >= threshold
+                                            for _, s in groups.values()]))
+    recalls = [g["recall"] for g in per_group.values() if g["positives"]]
+    promised = {"min_recall": float(min(recalls)), "pooled_recall": pooled.recall,
+                "pooled_accuracy": pooled.accuracy, "flagged": (pooled.tp + pooled.fp) / pooled.n}
+    return HeldOutThreshold(float(threshold), rule, float(target_recall), per_group, promised)

@@ -1,0 +1,139 @@
+"""The operating threshold chosen on environments the detector never saw: known
+answers for the pure functions, and the fold training on tiny in-memory datasets
+(one checkpoint per left-out group, none trained twice, each blind to its group)."""
+
+import os
+
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import load_detector
+from reachwatch.systems import DetectorConfig
+from reachwatch.training.dataset import LabelledData
+from reachwatch.training.detector_train import (DetectorTrainConfig, detector_scores,
+                                                environment_groups,
+                                                held_out_operating_threshold)
+from reachwatch.training.metrics import held_out_threshold, recall_threshold
+
+
+def test_recall_threshold_known_answers():
+    labels = [1, 1, 1, 1, 0, 0]
+    scores = [0.9, 0.8, 0.7, 0.6, 0.95, 0.1]
+    assert recall_threshold(labels, scores, 1.0) == 0.6
+    assert recall_threshold(labels, scores, 0.75) == 0.7      # 3 of 4 flagged
+    assert recall_threshold(labels, scores, 0.76) == 0.6      # 3 of 4 is not enough
+    # (1 - 0.9) * 10 is 0.999... in floating point: one miss is still allowed.
+    assert recall_threshold([1] * 10, np.arange(10) / 10, 0.9) == 0.1
+    assert recall_threshold([0, 0], [0.3, 0.4], 0.95) is None
+    with pytest.raises(ValueError, match="target_recall must be in"):
+        recall_threshold(labels, scores, 0.0)
+    with pytest.raises(ValueError, match="differ"):
+        recall_threshold([1, 0], [0.5], 0.9)
+
+
+def test_held_out_threshold_every_group_and_pooled():
+    groups = {"A": ([1, 1, 1, 1, 0, 0], [0.9, 0.8, 0.7, 0.6, 0.5, 0.05]),
+              "B": ([1, 1, 0, 0], [0.5, 0.4, 0.3, 0.2]),
+              "C": ([0, 0], [0.99, 0.01])}                    # no positives: no constraint
+    every = held_out_threshold(groups, 0.75)
+    # A alone: 0.7; B alone: floor(0.25 * 2) = 0 misses -> 0.4; the lower one holds for both.
+    assert every.per_group["A"]["own_threshold"] == 0.7
+    assert every.per_group["B"]["own_threshold"] == 0.4
+    assert every.per_group["C"]["own_threshold"] is None
+    assert every.threshold == 0.4
+    assert every.per_group["A"]["recall"] == 1.0 and every.per_group["B"]["recall"] == 1.0
+    assert every.per_group["A"]["accuracy"] == 5 / 6              # 0.5 >= 0.4 is a false alarm
+    assert every.per_group["C"]["accuracy"] == 0.5
+    assert every.promised["min_recall"] == 1.0
+    assert every.promised["pooled_accuracy"] == 10 / 12    # A 5, B 4, C 1 right
+    assert every.promised["flagged"] == 8 / 12             # A 5, B 2, C 1 flagged
+    # Pooled: positives 0.9 0.8 0.7 0.6 0.5 0.4, one miss allowed (floor(0.25 * 6) = 1).
+    pooled = held_out_threshold(groups, 0.75, rule="pooled")
+    assert pooled.threshold == 0.5
+    assert pooled.per_group["B"]["recall"] == 0.5
+    assert pooled.promised["min_recall"] == 0.5
+    assert pooled.promised["pooled_recall"] == 5 / 6
+    with pytest.raises(ValueError, match="rule must be one of"):
+        held_out_threshold(groups, 0.75, rule="median")
+    with pytest.raises(ValueError, match="no held-out group has a positive"):
+        held_out_threshold({"C": groups["C"]}, 0.75)
+
+
+def test_environment_groups_are_contiguous():
+    assert environment_groups(12, 3) == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]]
+    assert environment_groups(5, 2) == [[0, 1, 2], [3, 4]]
+    assert environment_groups(3, 3) == [[0], [1], [2]]
+    with pytest.raises(ValueError, match="between 2 and the number of training datasets"):
+        environment_groups(3, 4)
+
+
+@pytest.mark.parametrize("edit, message", [
+    ({"threshold_folds": 1}, "threshold_folds must be 0 (validation split) or a whole number >= 2"),
+    ({"threshold_folds": 2, "target_recall": 0.0}, "chooses a threshold for target_recall"),
+    ({"threshold_rule": "median"}, "threshold_rule must be one of"),
+])
+def test_config_errors_name_the_field(edit, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        DetectorTrainConfig(**edit).validate()
+
+
+def _dataset(name, seed):
+    rng = np.random.default_rng(seed)
+    values = rng.uniform(-1, 1, 24)
+    # Bright images are the anomalies, with some overlap: something to learn.
+    brightness = np.where(values <= 0, 170, 90) + rng.integers(-60, 60, 24)
+    images = np.clip(brightness[:, None, None, None] + rng.integers(-20, 20, (24, 16, 20, 3)),
+                     0, 255).astype(np.uint8)
+    return LabelledData.from_arrays(images=images, states=np.zeros((24, 3)), values=values,
+                                    environment=name, camera_size=(16, 20))
+
+
+def test_fold_training_is_blind_to_its_group_and_resumes(tmp_path):
+    data = [_dataset(f"ENV{i}", i) for i in range(3)]
+    config = DetectorTrainConfig(detector=DetectorConfig(height=16, width=20, channels=[4, 8]),
+                                 epochs=1, batch_size=8, device="cpu", augment=False,
+                                 threshold_folds=3, target_recall=0.9)
+    asked = []
+
+    def checkpoint_for(left_out):
+        asked.append(tuple(left_out))
+        return tmp_path / f"without_{'_'.join(left_out)}.pt"
+
+    chosen = held_out_operating_threshold(data, config, checkpoint_for)
+    assert asked == [("ENV0",), ("ENV1",), ("ENV2",)]
+    # Each fold's detector trained on the other two only, and scored its own.
+    groups = {}
+    for d in data:
+        name = d.manifest["environment"]
+        model, detector_config, meta = load_detector(tmp_path / f"without_{name}.pt")
+        assert sorted(meta["environments"]) == sorted({"ENV0", "ENV1", "ENV2"} - {name})
+        groups[name] = (d.labels, detector_scores(model, detector_config, d.images, device="cpu"))
+    expected = held_out_threshold(groups, 0.9)
+    assert chosen.threshold == expected.threshold
+    assert chosen.per_group == expected.per_group
+    # A second call trains nothing: the checkpoints are kept.
+    stamps = {p: os.stat(p).st_mtime_ns for p in tmp_path.iterdir()}
+    again = held_out_operating_threshold(data, config, checkpoint_for)
+    assert again.threshold == chosen.threshold
+    assert {p: os.stat(p).st_mtime_ns for p in tmp_path.iterdir()} == stamps
+
+
+def test_report_sets_the_promise_beside_what_was_got():
+    import dataclasses as dc
+    from reachwatch.pipeline.report import Page, threshold_section
+    chosen = held_out_threshold({"A": ([1, 1, 0], [0.9, 0.6, 0.7]), "B": ([1, 0], [0.8, 0.1])}, 1.0)
+    rows = [{"environment": "NEW", "method": "detector", "labels": "brt", "states": "all",
+             "recall": 0.5},
+            {"environment": "NEW", "method": "detector", "labels": "brt",
+             "states": "not yet failed", "recall": 0.25}]
+    page = Page("t")
+    threshold_section(page, {"threshold": chosen.threshold, "held_out_threshold": dc.asdict(chosen)},
+                      rows, DetectorTrainConfig(threshold_folds=2))
+    text = "\n".join(page.md)
+    assert "chosen on the training environments left out in 2 groups" in text
+    assert "promised recall >= 100.00% on every left-out group" in text
+    assert "| A | 3 | 2 | 0.6 | 100.00 | 66.67 |" in text
+    assert "got on the held-out environments: NEW 50.00%." in text
+    page = Page("t")
+    threshold_section(page, {"threshold": 0.3}, rows, DetectorTrainConfig())
+    assert "a random validation split of the training images" in "\n".join(page.md)
