@@ -264,7 +264,7 @@ def stage_train(run: Run) -> dict:
     # The weights do not depend on how the threshold is chosen: keep them out of the key.
     weights = {k: v for k, v in dc.asdict(config).items() if k not in THRESHOLD_CHOICE}
     folders = run.outputs["dataset"]["folders"]
-    tag = digest(weights, folders)
+    tag = digest(weights, {e.name: folders[e.name] for e in spec.training_environments()})
     brt_path = run.path(f"detectors/detector_brt_{tag}.pt")
     seconds = None
     if not brt_path.exists():
