@@ -315,6 +315,14 @@ def write_report(run: Run) -> dict:
     page.section("Table 2: detector and baselines on held-out environments", "table2")
     page.table(COLUMNS, [[format_cell(r.get(k), k) for k in COLUMNS] for r in o["evaluate"]["rows"]])
     page.link("table2.csv", "table2.csv")
+    page.text("tp / fp / fn / tn: flagged anomalies, false alarms, missed anomalies and "
+              "safe states left alone. ROC curves per held-out environment over all states, "
+              "each method's operating point dotted; then the detector's most confident "
+              "mistakes there: the anomalous images it scored lowest and the safe images it "
+              "scored highest, with their value V and state.")
+    figures = o["evaluate"]["figures"].values()
+    page.images([f.get("roc") for f in figures])
+    page.images([f.get("mistakes") for f in figures], wide=True)
     threshold_section(page, o["train"], o["evaluate"]["rows"], spec.detector)
     page.section("Failure modes: error rate against distance to the BRT boundary", "margin")
     page.images([f["error_vs_margin"] for f in o["evaluate"]["figures"].values()])

@@ -26,8 +26,9 @@ from reachwatch.training.dataset import SOURCE_BRT, build_dataset, load_dataset
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
 from reachwatch.training.evaluation import (NOT_FAILED, Detector, csv_table, evaluate_environment,
-                                            markdown_table)
-from reachwatch.training.figures import plot_error_vs_margin, plot_overlay
+                                            markdown_table, worst_mistakes)
+from reachwatch.training.figures import (plot_error_vs_margin, plot_examples, plot_overlay,
+                                         plot_roc)
 from reachwatch.training.metrics import best_threshold
 from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
 
@@ -334,7 +335,24 @@ def stage_evaluate(run: Run) -> dict:
                                half_width=env.half_width,
                                path=run.path(f"figures/overlay_{env.name}.png"),
                                title=f"{env.name}: {detectors[0].name}")
-        figures[env.name] = {"error_vs_margin": run.rel(margin), "overlay": run.rel(overlay)}
+        thresholds = {r["method"]: r["threshold"] for r in env_rows if r["states"] == "all"}
+        roc = plot_roc({m: (d.labels, scores[m], t) for m, t in thresholds.items()},
+                       run.path(f"figures/roc_{env.name}.png"),
+                       title=f"{env.name}: ROC over all states (dots: operating points)")
+        main = detectors[0]
+        misses, alarms = worst_mistakes(d.labels, scores[main.name], main.threshold, 4)
+        caption = lambda kind, i: (f"{kind}: score {scores[main.name][i]:.3f}, "  # noqa: E731
+                                   f"V {d.values[i]:+.2f}\nstate "
+                                   f"{np.array2string(d.states[i], precision=2)}")
+        examples = plot_examples([d.images[i] for i in np.r_[misses, alarms]],
+                                 [caption("missed", i) for i in misses] +
+                                 [caption("false alarm", i) for i in alarms],
+                                 run.path(f"figures/mistakes_{env.name}.png"),
+                                 title=f"{env.name}: {main.name}, its most confident misses "
+                                       f"and false alarms")
+        figures[env.name] = {"error_vs_margin": run.rel(margin), "overlay": run.rel(overlay),
+                             "roc": run.rel(roc), "mistakes": run.rel(examples),
+                             "mistake_counts": {"misses": len(misses), "false_alarms": len(alarms)}}
     atomic_write_bytes(run.path("table2.md"), markdown_table(rows).encode())
     atomic_write_bytes(run.path("table2.csv"), csv_table(rows).encode())
     return {"rows": rows, "figures": figures, "table_md": "table2.md", "table_csv": "table2.csv"}

@@ -181,8 +181,27 @@ def test_table2_rows_over_the_states_that_have_not_failed_yet():
     assert [(r["states"], r["n"], r["positives"]) for r in rows] == [("all", 6, 4),
                                                                      (NOT_FAILED, 4, 2)]
     assert rows[1]["recall"] == rows[1]["accuracy"] == 1.0      # tuned again on the 4 states
+    assert [rows[1][k] for k in ("tp", "fp", "fn", "tn")] == [2, 0, 0, 2]
     assert 1.0 < rows[1]["threshold"] <= 2.0 == scores[rows[1]["method"]][2]
     with pytest.raises(ValueError, match="subset 'x' must be a boolean mask of the 6"):
         evaluate_environment(data, [], subsets={"x": np.ones(5, bool)})
     # an empty subset adds no rows
     assert len(evaluate_environment(data, [], subsets={"none": np.zeros(6, bool)})[0]) == 1
+
+
+def test_roc_points_and_worst_mistakes_known_answers():
+    from reachwatch.training.evaluation import worst_mistakes
+    from reachwatch.training.metrics import auroc, roc_points
+    labels = [1, 0, 1, 0, 1]
+    scores = [0.9, 0.8, 0.8, 0.3, 0.1]
+    fpr, tpr, thresholds = roc_points(labels, scores)
+    # flag nothing; >= 0.9; >= 0.8 (one of each); >= 0.3; >= 0.1 (everything)
+    np.testing.assert_array_equal(thresholds, [np.inf, 0.9, 0.8, 0.3, 0.1])
+    np.testing.assert_allclose(tpr, [0, 1 / 3, 2 / 3, 2 / 3, 1])
+    np.testing.assert_allclose(fpr, [0, 0, 0.5, 1, 1])
+    # the trapezoid area of the curve is the rank AUROC (ties averaged)
+    assert np.trapezoid(tpr, fpr) == pytest.approx(auroc(labels, scores))
+    misses, alarms = worst_mistakes(labels, scores, 0.5, 4)
+    assert list(misses) == [4] and list(alarms) == [1]
+    misses, alarms = worst_mistakes([1, 1, 1, 0, 0, 0], [0.1, 0.0, 0.2, 0.9, 0.7, 0.95], 0.5, 2)
+    assert list(misses) == [1, 0] and list(alarms) == [5, 3]

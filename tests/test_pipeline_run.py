@@ -127,6 +127,13 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     assert [r["environment"] for r in every] == ["KSFO_17h_clear"] * 4
     for r in every:
         assert f"| KSFO_17h_clear | {r['method']} | brt | all | 40 |" in md
+        assert r["tp"] + r["fn"] == r["positives"] and r["tp"] + r["fp"] + r["fn"] + r["tn"] == 40
+    figures = run.outputs["evaluate"]["figures"]["KSFO_17h_clear"]
+    assert f"![{figures['roc']}]({figures['roc']})" in md
+    assert f"![{figures['mistakes']}]({figures['mistakes']})" in md
+    detector = every[0]
+    assert figures["mistake_counts"] == {"misses": min(4, detector["fn"]),
+                                         "false_alarms": min(4, detector["fp"])}
     # the same rows over the states still on the runway, counted from the dataset itself
     data = run.datasets(run.spec.test)[0]
     on_runway = np.abs(data.states[:, 0]) < run.spec.test[0].half_width

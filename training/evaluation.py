@@ -15,8 +15,9 @@ from .baselines import ensemble_variance, has_pose_estimate, prediction_error
 from .detector_train import detector_scores
 from .metrics import best_threshold, binary_metrics
 
-COLUMNS = ("environment", "method", "labels", "states", "n", "positives", "recall", "accuracy", "precision",
-           "f1", "auroc", "threshold")
+COLUMNS = ("environment", "method", "labels", "states", "n", "positives", "tp", "fp", "fn", "tn",
+           "recall", "accuracy", "precision", "f1", "auroc", "threshold")
+COUNTS = ("n", "positives", "tp", "fp", "fn", "tn")
 
 #: The ``states`` subset of the samples that have not failed yet (inside the safe set).
 NOT_FAILED = "not yet failed"
@@ -72,11 +73,25 @@ def evaluate_environment(data, detectors, *, device="", subsets=None) -> tuple:
     return rows, scores
 
 
+def worst_mistakes(labels, scores, threshold, k: int):
+    """``(misses, false_alarms)``: indices of up to ``k`` anomalous samples left unflagged,
+    lowest score first, and of up to ``k`` safe samples flagged, highest score first (the
+    detector's most confident mistakes; ties keep sample order)."""
+    labels = np.asarray(labels).astype(bool)
+    scores = np.asarray(scores, dtype=float)
+    flagged = scores >= threshold
+    misses = np.flatnonzero(labels & ~flagged)
+    alarms = np.flatnonzero(~labels & flagged)
+    misses = misses[np.argsort(scores[misses], kind="stable")][:k]
+    alarms = alarms[np.argsort(-scores[alarms], kind="stable")][:k]
+    return misses, alarms
+
+
 def format_cell(value, key) -> str:
     """One Table-2 cell as text: rates in %, counts as integers, missing as -."""
     if isinstance(value, str):
         return value
-    if key in ("n", "positives"):
+    if key in COUNTS:
         return str(int(value))
     if value is None or (isinstance(value, float) and np.isnan(value)):
         return "-"

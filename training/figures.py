@@ -1,11 +1,13 @@
-"""Evaluation figures: error rate against the distance to the BRT boundary, and
-flagged/misclassified states over a BRT slice."""
+"""Evaluation figures: error rate against the distance to the BRT boundary,
+flagged/misclassified states over a BRT slice, ROC curves, and example images."""
 
 import matplotlib.pyplot as plt
 import numpy as np
 
 from reachwatch.diagrams.plots import save_figure
 from reachwatch.taxi.plots import plot_brt_slices
+
+from .metrics import roc_points
 
 
 def plot_error_vs_margin(results, path, bins=(0, 0.25, 0.5, 1, 2, 4, 8, 100)):
@@ -38,3 +40,39 @@ def plot_overlay(value_function, states, labels, predictions, *, py, path, title
               ("false alarm", states[~labels & predictions], "m+")]
     return plot_brt_slices({title or "BRT": value_function}, py=py, path=path, points=points,
                            half_width=half_width)
+
+
+def plot_roc(curves, path, title=""):
+    """``curves``: {method: (labels, scores, threshold)}: each method's ROC curve with its
+    operating point (``score >= threshold``) marked; AUROC in the legend."""
+    from .metrics import auroc
+    fig, ax = plt.subplots(figsize=(4.6, 4.2))
+    for name, (labels, scores, threshold) in curves.items():
+        fpr, tpr, _ = roc_points(labels, scores)
+        line, = ax.plot(100 * fpr, 100 * tpr, lw=1.3,
+                        label=f"{name} (AUROC {100 * auroc(labels, scores):.1f})")
+        flagged = np.asarray(scores) >= threshold
+        labels = np.asarray(labels).astype(bool)
+        ax.plot(100 * flagged[~labels].mean(), 100 * flagged[labels].mean(), "o",
+                color=line.get_color())
+    ax.plot([0, 100], [0, 100], ":", color="grey", lw=0.8)
+    ax.set_xlabel("false alarms: % of safe states flagged")
+    ax.set_ylabel("recall: % of anomalous states flagged")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=6, loc="lower right")
+    ax.grid(alpha=0.3)
+    return save_figure(fig, path)
+
+
+def plot_examples(images, captions, path, *, columns=4, title=""):
+    """Images in a grid, each with its caption (e.g. misses and false alarms)."""
+    rows = max(1, -(-len(images) // columns))
+    fig, axes = plt.subplots(rows, columns, figsize=(3.0 * columns, 2.3 * rows), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, image, caption in zip(axes.ravel(), images, captions):
+        ax.imshow(image)
+        ax.set_title(caption, fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    return save_figure(fig, path)

@@ -39,7 +39,8 @@ class Metrics:
         return 2 * p * r / (p + r)
 
     def row(self) -> dict:
-        return {"n": self.n, "positives": self.tp + self.fn, "recall": self.recall,
+        return {"n": self.n, "positives": self.tp + self.fn, "tp": self.tp, "fp": self.fp,
+                "fn": self.fn, "tn": self.tn, "recall": self.recall,
                 "accuracy": self.accuracy, "precision": self.precision, "f1": self.f1,
                 "auroc": self.auroc}
 
@@ -52,6 +53,23 @@ def auroc(labels, scores) -> float:
         return float("nan")
     ranks = rankdata(np.asarray(scores, dtype=float))
     return float((ranks[labels].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))
+
+
+def roc_points(labels, scores):
+    """The ROC curve ``(false_positive_rate, true_positive_rate, thresholds)``: one point
+    per distinct score, flagging ``score >= threshold``, from flagging nothing
+    (threshold +inf) to flagging everything. NaN rates where a class is absent."""
+    labels = np.asarray(labels).astype(bool)
+    scores = np.asarray(scores, dtype=float)
+    order = np.argsort(-scores, kind="stable")
+    s, y = scores[order], labels[order]
+    last = np.r_[np.flatnonzero(np.diff(s)), len(s) - 1]      # last sample of each score
+    tp, fp = np.cumsum(y)[last], np.cumsum(~y)[last]
+    n_pos, n_neg = labels.sum(), (~labels).sum()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tpr = np.r_[0, tp] / n_pos if n_pos else np.full(len(last) + 1, np.nan)
+        fpr = np.r_[0, fp] / n_neg if n_neg else np.full(len(last) + 1, np.nan)
+    return fpr, tpr, np.r_[np.inf, s[last]]
 
 
 def binary_metrics(labels, predictions, scores=None) -> Metrics:
