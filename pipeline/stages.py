@@ -262,7 +262,7 @@ def stage_train(run: Run) -> dict:
     spec, config = run.spec, run.spec.detector
     data = run.datasets(spec.training_environments())
     progress = run.bar()
-    # The weights do not depend on how the threshold is chosen: keep them out of the key.
+    # How the threshold is chosen changes neither the weights nor the file: not in the key.
     weights = {k: v for k, v in dc.asdict(config).items() if k not in THRESHOLD_CHOICE}
     folders = run.outputs["dataset"]["folders"]
     tag = digest(weights, {e.name: folders[e.name] for e in spec.training_environments()})

@@ -73,8 +73,9 @@ class DetectorTrainConfig:
         return self
 
 
-#: The `DetectorTrainConfig` fields that choose the threshold but leave the weights alone.
-THRESHOLD_CHOICE = ("threshold", "target_recall", "threshold_folds", "threshold_rule")
+#: The `DetectorTrainConfig` fields that change neither the weights nor the checkpoint
+#: file (``threshold`` and ``target_recall`` are in its metadata; these are not).
+THRESHOLD_CHOICE = ("threshold_folds", "threshold_rule")
 
 
 def _device(name):

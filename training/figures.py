@@ -7,7 +7,7 @@ import numpy as np
 from reachwatch.diagrams.plots import save_figure
 from reachwatch.taxi.plots import plot_brt_slices
 
-from .metrics import roc_points
+from .metrics import auroc, roc_points
 
 
 def plot_error_vs_margin(results, path, bins=(0, 0.25, 0.5, 1, 2, 4, 8, 100)):
@@ -45,7 +45,6 @@ def plot_overlay(value_function, states, labels, predictions, *, py, path, title
 def plot_roc(curves, path, title=""):
     """``curves``: {method: (labels, scores, threshold)}: each method's ROC curve with its
     operating point (``score >= threshold``) marked; AUROC in the legend."""
-    from .metrics import auroc
     fig, ax = plt.subplots(figsize=(4.6, 4.2))
     for name, (labels, scores, threshold) in curves.items():
         fpr, tpr, _ = roc_points(labels, scores)

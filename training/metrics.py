@@ -151,20 +151,18 @@ def held_out_threshold(groups, target_recall: float, *, rule: str = "every_group
     if all(t is None for t in own.values()):
         raise ValueError(f"no held-out group has a positive sample ({sorted(groups)}): "
                          f"no threshold reaches a recall")
+    all_labels = np.concatenate([np.asarray(y) for y, _ in groups.values()])
+    all_scores = np.concatenate([np.asarray(s, dtype=float) for _, s in groups.values()])
     if rule == "every_group":
         threshold = min(t for t in own.values() if t is not None)
     else:
-        threshold = recall_threshold(np.concatenate([np.asarray(y) for y, _ in groups.values()]),
-                                     np.concatenate([np.asarray(s) for _, s in groups.values()]),
-                                     target_recall)
+        threshold = recall_threshold(all_labels, all_scores, target_recall)
     per_group = {}
     for name, (y, s) in groups.items():
         m = binary_metrics(y, np.asarray(s, dtype=float) >= threshold)
         per_group[name] = {"own_threshold": own[name], "recall": m.recall,
                            "accuracy": m.accuracy, "n": m.n, "positives": m.tp + m.fn}
-    pooled = binary_metrics(np.concatenate([np.asarray(y) for y, _ in groups.values()]),
-                            np.concatenate([np.asarray(s, dtype=float) >= threshold
-                                            for _, s in groups.values()]))
+    pooled = binary_metrics(all_labels, all_scores >= threshold)
     recalls = [g["recall"] for g in per_group.values() if g["positives"]]
     promised = {"min_recall": float(min(recalls)), "pooled_recall": pooled.recall,
                 "pooled_accuracy": pooled.accuracy, "flagged": (pooled.tp + pooled.fp) / pooled.n}
