@@ -235,6 +235,14 @@ def threshold_section(page, trained, rows, config):
                      _pct(g["recall"]),
                      _pct(g["accuracy"])] for name, g in held_out["per_group"].items()])
         promised = f"promised {_pct(p['min_recall'])}% (every left-out group)"
+        baseline = trained.get("prediction_error_held_out_threshold")
+        if baseline:
+            b = baseline["promised"]
+            page.text(f"The prediction-error baseline's threshold "
+                      f"{trained['prediction_error_detector_threshold']:.3g} was chosen the "
+                      f"same way, on its own labels: it promised recall >= "
+                      f"{_pct(b['min_recall'])}% on every left-out group, flagging "
+                      f"{_pct(b['flagged'])}% of their images.")
     else:
         promised = (f"promised {_pct(config.target_recall)}% on a random validation split of "
                     f"the training images: environments it trained on, which is no promise "

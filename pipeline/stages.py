@@ -273,12 +273,18 @@ def stage_train(run: Run) -> dict:
     model, _, meta = load_detector(brt_path)
     out = {"detector": run.rel(brt_path), "validation": meta.get("validation", {}),
            "train_seconds": seconds}
-    if config.threshold_folds:
+
+    def checkpoint_for_prefix(prefix, *labelling):
         def checkpoint_for(left_out):
             kept = {e.name: folders[e.name] for e in spec.training_environments()
                     if e.name not in left_out}
-            return run.path(f"detectors/detector_brt_heldout_{digest(weights, kept)}.pt")
-        chosen = held_out_operating_threshold(data, config, checkpoint_for, progress=progress)
+            key = digest(weights, kept, *labelling)
+            return run.path(f"detectors/{prefix}_heldout_{key}.pt")
+        return checkpoint_for
+
+    if config.threshold_folds:
+        chosen = held_out_operating_threshold(data, config, checkpoint_for_prefix("detector_brt"),
+                                              progress=progress)
         out["threshold"] = chosen.threshold
         out["held_out_threshold"] = dc.asdict(chosen)
     else:
@@ -291,10 +297,20 @@ def stage_train(run: Run) -> dict:
     error_path = run.path(f"detectors/detector_prediction_error_{tag}.pt")
     if not error_path.exists():
         train_detector(data, config, error_path, progress=progress, labels=labels)
-    model, _, _ = load_detector(error_path)
-    return {**out, "prediction_error_detector": run.rel(error_path),
-            "prediction_error_threshold": float(error_threshold),
-            "prediction_error_detector_threshold": operating_threshold(model, data, config, labels)}
+    out.update({"prediction_error_detector": run.rel(error_path),
+                "prediction_error_threshold": float(error_threshold)})
+    if config.threshold_folds:          # the baseline's threshold is chosen the same way
+        chosen = held_out_operating_threshold(
+            data, config, checkpoint_for_prefix("detector_prediction_error", float(error_threshold)),
+            labels=labels,
+            progress=progress)
+        out["prediction_error_detector_threshold"] = chosen.threshold
+        out["prediction_error_held_out_threshold"] = dc.asdict(chosen)
+    else:
+        model, _, _ = load_detector(error_path)
+        out["prediction_error_detector_threshold"] = operating_threshold(model, data, config,
+                                                                         labels)
+    return out
 
 
 def stage_evaluate(run: Run) -> dict:

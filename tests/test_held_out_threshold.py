@@ -118,6 +118,24 @@ def test_fold_training_is_blind_to_its_group_and_resumes(tmp_path):
     assert {p: os.stat(p).st_mtime_ns for p in tmp_path.iterdir()} == stamps
 
 
+def test_fold_training_uses_the_labels_it_is_given(tmp_path):
+    data = [_dataset(f"ENV{i}", i) for i in range(2)]
+    config = DetectorTrainConfig(detector=DetectorConfig(height=16, width=20, channels=[4, 8]),
+                                 epochs=1, batch_size=8, device="cpu", augment=False,
+                                 threshold_folds=2, target_recall=0.9)
+    flipped = [1 - d.labels for d in data]
+    chosen = held_out_operating_threshold(data, config, lambda left: tmp_path / f"{left[0]}.pt",
+                                          labels=flipped)
+    for d, labels in zip(data, flipped):
+        name = d.manifest["environment"]
+        _, _, meta = load_detector(tmp_path / f"{name}.pt")
+        assert meta["positives"] == int(sum((1 - o.labels).sum() for o in data if o is not d))
+        assert chosen.per_group[name]["positives"] == int(labels.sum())
+    with pytest.raises(ValueError, match="2 datasets need 2 label arrays, got 1"):
+        held_out_operating_threshold(data, config, lambda left: tmp_path / "x.pt",
+                                     labels=flipped[:1])
+
+
 def test_report_sets_the_promise_beside_what_was_got():
     import dataclasses as dc
     from reachwatch.pipeline.report import Page, threshold_section
@@ -134,6 +152,17 @@ def test_report_sets_the_promise_beside_what_was_got():
     assert "promised recall >= 100.00% on every left-out group" in text
     assert "| A | 3 | 2 | 0.6 | 100.00 | 66.67 |" in text
     assert "got on the held-out environments: NEW 50.00%." in text
+    assert "prediction-error baseline" not in text
+    baseline = held_out_threshold({"A": ([1, 0, 0], [0.9, 0.6, 0.7]), "B": ([1, 0], [0.8, 0.1])},
+                                  1.0)
+    page = Page("t")
+    threshold_section(page, {"threshold": chosen.threshold, "held_out_threshold": dc.asdict(chosen),
+                             "prediction_error_detector_threshold": baseline.threshold,
+                             "prediction_error_held_out_threshold": dc.asdict(baseline)},
+                      rows, DetectorTrainConfig(threshold_folds=2))
+    assert ("The prediction-error baseline's threshold 0.8 was chosen the same way, on its own "
+            "labels: it promised recall >= 100.00% on every left-out group, flagging 40.00% of "
+            "their images.") in "\n".join(page.md)
     page = Page("t")
     threshold_section(page, {"threshold": 0.3}, rows, DetectorTrainConfig())
     assert "a random validation split of the training images" in "\n".join(page.md)

@@ -104,6 +104,12 @@ def test_random_families_and_a_held_out_threshold_run_through_the_pipeline(tmp_p
     assert list(trained["per_group"]) == ["KMWH_9h_clear", run.spec.training_environments()[1].name]
     assert run.outputs["train"]["threshold"] == trained["threshold"]
     assert len(list((tmp_path / "detectors").glob("detector_brt_heldout_*.pt"))) == 2
+    # The prediction-error baseline's threshold is chosen on left-out groups too.
+    baseline = run.outputs["train"]["prediction_error_held_out_threshold"]
+    assert list(baseline["per_group"]) == list(trained["per_group"])
+    assert run.outputs["train"]["prediction_error_detector_threshold"] == baseline["threshold"]
+    assert len(list((tmp_path / "detectors").glob(
+        "detector_prediction_error_heldout_*.pt"))) == 2
     held_out = run.spec.held_out_environments()[0].name
     assert held_out.startswith("RND1-")
     assert {r["environment"] for r in run.outputs["evaluate"]["rows"]} == {held_out}

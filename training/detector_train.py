@@ -206,24 +206,31 @@ def environment_groups(n: int, folds: int):
 
 
 def held_out_operating_threshold(datasets, config: DetectorTrainConfig, checkpoint_for, *,
-                                 progress=None):
+                                 labels=None, progress=None):
     """The threshold from detectors that never saw the environments they score (see
     ``DetectorTrainConfig.threshold_folds``): for each group, a detector trained on the
     other datasets (checkpoint ``checkpoint_for(names_left_out)``, trained when missing,
-    so an interrupted choice resumes) scores the group's datasets. Returns
-    `HeldOutThreshold` with one group per left-out dataset group."""
+    so an interrupted choice resumes) scores the group's datasets. ``labels`` (one array
+    per dataset, as in `train_detector`) replace the datasets' own, e.g. for the
+    prediction-error baseline. Returns `HeldOutThreshold` with one group per left-out
+    dataset group."""
     config.validate()
+    if labels is not None and len(labels) != len(datasets):
+        raise ValueError(f"{len(datasets)} datasets need {len(datasets)} label arrays, got "
+                         f"{len(labels)}")
+    labels_of = (lambda i: datasets[i].labels) if labels is None else (lambda i: labels[i])
     groups = environment_groups(len(datasets), config.threshold_folds)
     scored = {}
     for group in groups:
         names = [datasets[i].manifest["environment"] for i in group]
         path = checkpoint_for(names)
         if not path.exists():
-            train_detector([d for i, d in enumerate(datasets) if i not in group], config, path,
-                           progress=progress)
+            kept = [i for i in range(len(datasets)) if i not in group]
+            train_detector([datasets[i] for i in kept], config, path, progress=progress,
+                           labels=None if labels is None else [labels[i] for i in kept])
         model, detector_config, _ = load_detector(path)
-        labels = np.concatenate([datasets[i].labels for i in group])
+        group_labels = np.concatenate([labels_of(i) for i in group])
         scores = np.concatenate([detector_scores(model, detector_config, datasets[i].images,
                                                  device=config.device) for i in group])
-        scored["+".join(names)] = (labels, scores)
+        scored["+".join(names)] = (group_labels, scores)
     return held_out_threshold(scored, config.target_recall, rule=config.threshold_rule)
