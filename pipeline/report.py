@@ -253,6 +253,45 @@ def threshold_section(page, trained, rows, config):
         f"{r['environment']} {_pct(r['recall'])}%" for r in mine) + ".")
 
 
+#: A detector flagging at least this share of a held-out environment's images is called
+#: out as flagging nearly everything; below `CHANCE_AUROC` it is called near chance.
+FLAGS_NEARLY_ALL = 0.9
+CHANCE_AUROC = 0.6
+
+
+def detector_verdicts(rows) -> list:
+    """One plain sentence per held-out environment on the first method of ``rows`` (the
+    detector), over all states with the first label source: the share of images it
+    flags beside the share that are anomalous, its recall and accuracy, its AUROC beside
+    the best other method's, and a warning when it flags nearly everything, is near
+    chance, or is beaten by a baseline."""
+    if not rows:
+        return []
+    method, labels = rows[0]["method"], rows[0]["labels"]
+    same = [r for r in rows if r["states"] == "all" and r["labels"] == labels]
+    out = []
+    for d in (r for r in same if r["method"] == method):
+        others = [r for r in same if r["environment"] == d["environment"] and r is not d
+                  and r.get("auroc") is not None]
+        flagged = (d["tp"] + d["fp"]) / d["n"] if d["n"] else 0.0
+        text = (f"{d['environment']}: the detector flags {_pct(flagged)}% of the images, of "
+                f"which {_pct(d['positives'] / d['n'] if d['n'] else 0.0)}% are anomalous; it "
+                f"catches {_pct(d['recall'])}% of the anomalies at {_pct(d['accuracy'])}% "
+                f"accuracy, AUROC {_pct(d['auroc'])}")
+        best = max(others, key=lambda r: r["auroc"], default=None)
+        if best is not None:
+            text += f" (best other method: {best['method']}, {_pct(best['auroc'])})"
+        text += "."
+        if flagged >= FLAGS_NEARLY_ALL:
+            text += " It flags nearly every image: here it is an alarm, not a detector."
+        elif d["auroc"] is not None and d["auroc"] < CHANCE_AUROC:
+            text += " Its scores barely separate the classes here (chance is 50)."
+        elif best is not None and d["auroc"] is not None and d["auroc"] <= best["auroc"]:
+            text += " A baseline ranks the images better here."
+        out.append(text)
+    return out
+
+
 def graphs(run: Run):
     """SVG/PNG (or only .dot without graphviz) of the nominal and guarded diagrams."""
     scenario = run.scenario_for(run.spec.held_out_environments()[0])
@@ -321,6 +360,8 @@ def write_report(run: Run) -> dict:
               f"{o['train']['threshold']:.3g} (target recall {spec.detector.target_recall}).")
     page.images([f["overlay"] for f in o["evaluate"]["figures"].values()])
     page.section("Table 2: detector and baselines on held-out environments", "table2")
+    for sentence in detector_verdicts(o["evaluate"]["rows"]):
+        page.text(sentence)
     page.table(COLUMNS, [[format_cell(r.get(k), k) for k in COLUMNS] for r in o["evaluate"]["rows"]])
     page.link("table2.csv", "table2.csv")
     page.text("tp / fp / fn / tn: flagged anomalies, false alarms, missed anomalies and "

@@ -205,3 +205,31 @@ def test_roc_points_and_worst_mistakes_known_answers():
     assert list(misses) == [4] and list(alarms) == [1]
     misses, alarms = worst_mistakes([1, 1, 1, 0, 0, 0], [0.1, 0.0, 0.2, 0.9, 0.7, 0.95], 0.5, 2)
     assert list(misses) == [1, 0] and list(alarms) == [5, 3]
+
+
+def test_verdicts_call_out_a_detector_that_flags_everything():
+    from reachwatch.pipeline.report import detector_verdicts
+
+    def row(env, method, tp, fp, fn, tn, auroc, states="all"):
+        n = tp + fp + fn + tn
+        return {"environment": env, "method": method, "labels": "brt", "states": states,
+                "n": n, "positives": tp + fn, "tp": tp, "fp": fp, "fn": fn, "tn": tn,
+                "recall": tp / (tp + fn), "accuracy": (tp + tn) / n, "auroc": auroc}
+
+    rows = [row("NIGHT", "detector", 19, 77, 1, 3, 0.55),     # flags 96 of 100
+            row("NIGHT", "baseline", 10, 10, 10, 70, 0.75),
+            row("NIGHT", "detector", 10, 80, 0, 0, 0.5, states="not yet failed"),
+            row("DAY", "detector", 18, 5, 2, 75, 0.95),
+            row("DAY", "baseline", 10, 10, 10, 70, 0.70),
+            row("DUSK", "detector", 15, 30, 5, 50, 0.70),
+            row("DUSK", "baseline", 10, 10, 10, 70, 0.80),
+            row("DARK", "detector", 10, 40, 10, 40, 0.52)]
+    night, day, dusk, dark = detector_verdicts(rows)
+    assert night.startswith("NIGHT: the detector flags 96.00% of the images, of which 20.00% "
+                            "are anomalous; it catches 95.00% of the anomalies at 22.00% accuracy, "
+                            "AUROC 55.00 (best other method: baseline, 75.00).")
+    assert "here it is an alarm, not a detector" in night
+    assert day.endswith("AUROC 95.00 (best other method: baseline, 70.00).")
+    assert dusk.endswith("A baseline ranks the images better here.")
+    assert dark.endswith("AUROC 52.00. Its scores barely separate the classes here (chance is 50).")
+    assert detector_verdicts([]) == []

@@ -134,6 +134,9 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     for r in every:
         assert f"| KSFO_17h_clear | {r['method']} | brt | all | 40 |" in md
         assert r["tp"] + r["fn"] == r["positives"] and r["tp"] + r["fp"] + r["fn"] + r["tn"] == 40
+    mine = every[0]
+    assert (f"KSFO_17h_clear: the detector flags {100 * (mine['tp'] + mine['fp']) / 40:.2f}% of "
+            f"the images") in md
     figures = run.outputs["evaluate"]["figures"]["KSFO_17h_clear"]
     assert f"![{figures['roc']}]({figures['roc']})" in md
     assert f"![{figures['mistakes']}]({figures['mistakes']})" in md
@@ -170,7 +173,7 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     assert "Fidelity against the real Drake loop" in md and "false-safe" in md
     # the guard's failure set beside its Monte-Carlo estimate from the real runs
     real = check["brt"]["real_failures"]
-    assert (f"The controller alone in the real loop, from 3 random on-runway starts" in md
+    assert ("The controller alone in the real loop, from 3 random on-runway starts" in md
             and f"real loop {100 * real / 3:.1f} [" in md and f"({real} of 3 starts)" in md)
     inc = run.outputs["incremental"]
     assert inc["environment"] == "KMWH_17h_clear" and 0 <= inc["after"] <= 1
