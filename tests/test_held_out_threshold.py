@@ -166,3 +166,24 @@ def test_report_sets_the_promise_beside_what_was_got():
     page = Page("t")
     threshold_section(page, {"threshold": 0.3}, rows, DetectorTrainConfig())
     assert "a random validation split of the training images" in "\n".join(page.md)
+
+
+def test_class_balance_weights_each_class_to_half_the_loss(tmp_path):
+    from reachwatch.training.detector_train import class_weights, train_detector
+    balanced = DetectorTrainConfig(class_balance=True)
+    assert class_weights(np.array([0, 0, 0, 1]), DetectorTrainConfig()) is None
+    assert class_weights(np.array([0, 0, 0, 1]), balanced).tolist() == pytest.approx([2 / 3, 2.0])
+    assert class_weights(np.array([0, 0]), balanced).tolist() == pytest.approx([0.5, 1.0])
+    with pytest.raises(ValueError, match="detector.class_balance must be true or false, got 'yes'"):
+        DetectorTrainConfig(class_balance="yes").validate()
+    # The weights used are the training split's, kept in the checkpoint's metadata.
+    data = [_dataset("ENV0", 0)]
+    config = DetectorTrainConfig(detector=DetectorConfig(height=16, width=20, channels=[4, 8]),
+                                 epochs=1, batch_size=8, device="cpu", augment=False,
+                                 class_balance=True, target_recall=0.0)
+    train_detector(data, config, tmp_path / "balanced.pt")
+    _, _, meta = load_detector(tmp_path / "balanced.pt")
+    val = np.sort(np.random.default_rng(0).permutation(24)[:5])
+    train_labels = np.delete(data[0].labels, val)
+    assert meta["class_weights"] == pytest.approx(
+        class_weights(train_labels, config).tolist())

@@ -38,6 +38,10 @@ class DetectorTrainConfig:
     #: Random per-image colour gains, brightness and contrast in training, so lighting
     #: the training environments lack (e.g. a warm low sun) does not shift the scores.
     augment: bool = True
+    #: Weight the loss so each class counts as much as the other (weights from the
+    #: training split's class shares). Anomalies are 10-25 % of a dataset, so an
+    #: unweighted loss leans towards calling images safe.
+    class_balance: bool = False
     device: str = ""                        # "" = CUDA when present, else CPU
 
     def validate(self, where="detector"):
@@ -68,6 +72,10 @@ class DetectorTrainConfig:
         if self.threshold_rule not in HELD_OUT_RULES:
             raise ValueError(f"{where}.threshold_rule must be one of {HELD_OUT_RULES}, got "
                              f"'{self.threshold_rule}'")
+        for name in ("augment", "class_balance"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{where}.{name} must be true or false, got "
+                                 f"{getattr(self, name)!r}")
         if not 0.0 <= self.threshold <= 1.0:
             raise ValueError(f"{where}.threshold must be in [0, 1], got {self.threshold}")
         return self
@@ -143,6 +151,19 @@ def operating_threshold(model, datasets, config: DetectorTrainConfig, labels=Non
     return config.threshold if threshold is None else threshold
 
 
+def class_weights(labels, config: DetectorTrainConfig):
+    """The loss weights of classes 0 and 1: None (equal) unless ``config.class_balance``,
+    then ``0.5 / share`` of each class among ``labels``, so both classes carry half the
+    loss. A class missing from ``labels`` keeps weight 1."""
+    if not config.class_balance:
+        return None
+    labels = torch.as_tensor(labels)
+    share = torch.stack([(labels == c).double().mean() for c in (0, 1)])
+    weights = torch.where(share > 0, 0.5 / share.clamp(min=1e-12),
+                          torch.ones(2, dtype=torch.float64))
+    return weights.float()
+
+
 def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=None,
                    progress=None) -> dict:
     """Train on the concatenated ``datasets`` (`LabelledData`), with their BRT labels or
@@ -158,7 +179,9 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
     jitter = torch.Generator().manual_seed(config.seed) if config.augment else None
     model = build_detector(config.detector, config.pretrained_path).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
-    loss_fn, losses = nn.CrossEntropyLoss(), []
+    weights = class_weights(y_all[train], config)
+    loss_fn = nn.CrossEntropyLoss(weight=None if weights is None else weights.to(device))
+    losses = []
     epochs = progress(range(config.epochs), desc="train detector") if progress else range(config.epochs)
     for _ in epochs:
         model.train()
@@ -180,6 +203,7 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
                 "environments": [d.manifest["environment"] for d in datasets],
                 "samples": int(len(y_all)), "positives": int(y_all.sum()),
                 "epochs": config.epochs, "seed": config.seed, "train_losses": losses,
+                "class_weights": None if weights is None else weights.tolist(),
                 "pretrained": bool(config.pretrained_path)}
     if len(val):
         scores = []
