@@ -15,6 +15,7 @@ from reachwatch.taxi import UNGUARDED
 from reachwatch.training.evaluation import COLUMNS, format_cell
 
 from .brt_stages import sweep_rate
+from .detector_sections import detector_verdicts, percent_text as _pct, threshold_section
 from .stages import Run
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;
@@ -67,10 +68,6 @@ class Page:
 
     def done(self):
         return "\n".join(self.html) + "</body></html>\n", "\n".join(self.md)
-
-
-def _pct(x):
-    return f"{100 * x:.2f}" if x is not None else "-"
 
 
 LABEL_SOURCE_TEXT = {
@@ -212,84 +209,6 @@ def guard_section(page, env, g, spec, checked):
     for p in r["files"]:
         if p.endswith(".html"):
             page.link(p, "Meshcat replay of the guarded run (standalone HTML)")
-
-
-def threshold_section(page, trained, rows, config):
-    """What the operating threshold promised, beside the recall it got on each
-    held-out environment (the detector's own row, all states, first label source)."""
-    if not config.target_recall:
-        return
-    held_out = trained.get("held_out_threshold")
-    if held_out:
-        p = held_out["promised"]
-        page.text(f"Operating threshold {trained['threshold']:.3g}, chosen on the training "
-                  f"environments left out in {len(held_out['per_group'])} groups (a detector "
-                  f"trained without each group scored it; rule '{held_out['rule']}'): it "
-                  f"promised recall >= {_pct(p['min_recall'])}% on every left-out group "
-                  f"({_pct(p['pooled_recall'])}% pooled) at {_pct(p['pooled_accuracy'])}% "
-                  f"accuracy, flagging {_pct(p['flagged'])}% of their images.")
-        page.table(["left-out group", "images", "positives", "own threshold",
-                    "recall at the threshold %", "accuracy %"],
-                   [[name, g["n"], g["positives"],
-                     "-" if g["own_threshold"] is None else f"{g['own_threshold']:.3g}",
-                     _pct(g["recall"]),
-                     _pct(g["accuracy"])] for name, g in held_out["per_group"].items()])
-        promised = f"promised {_pct(p['min_recall'])}% (every left-out group)"
-        baseline = trained.get("prediction_error_held_out_threshold")
-        if baseline:
-            b = baseline["promised"]
-            page.text(f"The prediction-error baseline's threshold "
-                      f"{trained['prediction_error_detector_threshold']:.3g} was chosen the "
-                      f"same way, on its own labels: it promised recall >= "
-                      f"{_pct(b['min_recall'])}% on every left-out group, flagging "
-                      f"{_pct(b['flagged'])}% of their images.")
-    else:
-        promised = (f"promised {_pct(config.target_recall)}% on a random validation split of "
-                    f"the training images: environments it trained on, which is no promise "
-                    f"for a new one (set detector.threshold_folds)")
-    mine = [r for r in rows if r["states"] == "all" and r["method"] == rows[0]["method"]
-            and r["labels"] == rows[0]["labels"]]
-    page.text(f"Recall {promised}; got on the held-out environments: " + ", ".join(
-        f"{r['environment']} {_pct(r['recall'])}%" for r in mine) + ".")
-
-
-#: A detector flagging at least this share of a held-out environment's images is called
-#: out as flagging nearly everything; below `CHANCE_AUROC` it is called near chance.
-FLAGS_NEARLY_ALL = 0.9
-CHANCE_AUROC = 0.6
-
-
-def detector_verdicts(rows) -> list:
-    """One plain sentence per held-out environment on the first method of ``rows`` (the
-    detector), over all states with the first label source: the share of images it
-    flags beside the share that are anomalous, its recall and accuracy, its AUROC beside
-    the best other method's, and a warning when it flags nearly everything, is near
-    chance, or is beaten by a baseline."""
-    if not rows:
-        return []
-    method, labels = rows[0]["method"], rows[0]["labels"]
-    same = [r for r in rows if r["states"] == "all" and r["labels"] == labels]
-    out = []
-    for d in (r for r in same if r["method"] == method):
-        others = [r for r in same if r["environment"] == d["environment"] and r is not d
-                  and r.get("auroc") is not None]
-        flagged = (d["tp"] + d["fp"]) / d["n"] if d["n"] else 0.0
-        text = (f"{d['environment']}: the detector flags {_pct(flagged)}% of the images, of "
-                f"which {_pct(d['positives'] / d['n'] if d['n'] else 0.0)}% are anomalous; it "
-                f"catches {_pct(d['recall'])}% of the anomalies at {_pct(d['accuracy'])}% "
-                f"accuracy, AUROC {_pct(d['auroc'])}")
-        best = max(others, key=lambda r: r["auroc"], default=None)
-        if best is not None:
-            text += f" (best other method: {best['method']}, {_pct(best['auroc'])})"
-        text += "."
-        if flagged >= FLAGS_NEARLY_ALL:
-            text += " It flags nearly every image: here it is an alarm, not a detector."
-        elif d["auroc"] is not None and d["auroc"] < CHANCE_AUROC:
-            text += " Its scores barely separate the classes here (chance is 50)."
-        elif best is not None and d["auroc"] is not None and d["auroc"] <= best["auroc"]:
-            text += " A baseline ranks the images better here."
-        out.append(text)
-    return out
 
 
 def graphs(run: Run):

@@ -208,7 +208,7 @@ def test_roc_points_and_worst_mistakes_known_answers():
 
 
 def test_verdicts_call_out_a_detector_that_flags_everything():
-    from reachwatch.pipeline.report import detector_verdicts
+    from reachwatch.pipeline.detector_sections import detector_verdicts
 
     def row(env, method, tp, fp, fn, tn, auroc, states="all"):
         n = tp + fp + fn + tn

@@ -138,7 +138,8 @@ def test_fold_training_uses_the_labels_it_is_given(tmp_path):
 
 def test_report_sets_the_promise_beside_what_was_got():
     import dataclasses as dc
-    from reachwatch.pipeline.report import Page, threshold_section
+    from reachwatch.pipeline.detector_sections import threshold_section
+    from reachwatch.pipeline.report import Page
     chosen = held_out_threshold({"A": ([1, 1, 0], [0.9, 0.6, 0.7]), "B": ([1, 0], [0.8, 0.1])}, 1.0)
     rows = [{"environment": "NEW", "method": "detector", "labels": "brt", "states": "all",
              "recall": 0.5},
