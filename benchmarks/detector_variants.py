@@ -1,0 +1,173 @@
+"""Detector variants on the datasets of a finished `reachwatch run`: each variant of the
+run file's detector settings is trained on the run's training environments, its
+threshold chosen the way the run file says, and scored on every held-out environment.
+Prints one line per variant and held-out environment, then per variant the minimum and
+median over held-out environments of: the share of images flagged, recall, accuracy,
+AUROC, the accuracy an oracle threshold reaching 95 % recall on that environment would
+give (what the ranking allows), and the same over the states that have not failed yet.
+Also how many environments the detector's AUROC beats every baseline in.
+
+    python benchmarks/detector_variants.py --run out/demo [--variants all] [--seeds 0]
+        [--work out/demo/variants] [--json variants.json]
+
+Variants are named overrides of the run file's ``detector`` block (see VARIANTS);
+``train_environments: k`` keeps the first k training environments of the run file.
+Checkpoints are cached in ``--work`` by content, so a killed study resumes.
+"""
+
+import argparse
+import copy
+import dataclasses as dc
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from reachwatch.diagrams import load_detector
+from reachwatch.pipeline.spec import digest, load_run_spec
+from reachwatch.taxi import dynamics_for
+from reachwatch.training.dataset import load_dataset
+from reachwatch.training.detector_train import (held_out_operating_threshold,
+                                                operating_threshold, train_detector)
+from reachwatch.training.evaluation import NOT_FAILED, Detector, evaluate_environment
+from reachwatch.training.metrics import recall_threshold
+
+#: Named overrides of the run file's detector settings (nested dicts for ``detector``).
+VARIANTS = {
+    "run file": {},
+    "class balance": {"class_balance": True},
+    "no augmentation": {"augment": False},
+    "input 48x80": {"detector": {"height": 48, "width": 80}},
+    "wide channels": {"detector": {"channels": [32, 64, 128, 192]}},
+    "12 epochs": {"epochs": 12},
+    "half the environments": {"train_environments": 0.5},
+}
+ORACLE_RECALL = 0.95
+
+
+def variant_config(base, override: dict):
+    """``(DetectorTrainConfig, training-environment count or fraction)``."""
+    override = copy.deepcopy(override)
+    keep = override.pop("train_environments", None)
+    nested = override.pop("detector", {})
+    config = dc.replace(base, detector=dc.replace(base.detector, **nested), **override)
+    return config.validate(), keep
+
+
+def accuracy_at_recall(labels, scores, target):
+    t = recall_threshold(labels, scores, target)
+    if t is None:
+        return float("nan")
+    return float(np.mean((scores >= t) == labels.astype(bool)))
+
+
+def score_environment(env, data, detector, scenario):
+    """One held-out environment: dict of figures over all states and not-yet-failed."""
+    inside = dynamics_for(scenario).target(
+        torch.as_tensor(data.states, dtype=torch.float64)).numpy() > 0
+    rows, scores = evaluate_environment(data, [detector], subsets={NOT_FAILED: inside})
+    out = {"environment": env.name}
+    for states, mask in (("all", np.ones(len(data.labels), bool)), (NOT_FAILED, inside)):
+        mine = [r for r in rows if r["states"] == states and r["method"] == detector.name]
+        if not mine:
+            continue
+        row = mine[0]
+        baselines = [r["auroc"] for r in rows if r["states"] == states and r["method"] != detector.name]
+        labels, s = data.labels[mask], scores[detector.name][mask]
+        out[states] = {"n": row["n"], "positives": row["positives"],
+                       "flagged": (row["tp"] + row["fp"]) / row["n"],
+                       "recall": row["recall"], "accuracy": row["accuracy"],
+                       "auroc": row["auroc"], "best_baseline_auroc": max(baselines, default=np.nan),
+                       "accuracy_at_95_recall": accuracy_at_recall(labels, s, ORACLE_RECALL)}
+    return out
+
+
+def summary_line(name, results, states):
+    figures = [r[states] for r in results if states in r]
+    if not figures:
+        return f"{name:<24} {states}: no samples"
+    parts = []
+    for key in ("flagged", "recall", "accuracy", "auroc", "accuracy_at_95_recall"):
+        v = np.array([f[key] for f in figures], float) * 100
+        parts.append(f"{key} {np.nanmin(v):5.1f}/{np.nanmedian(v):5.1f}")
+    beats = sum(f["auroc"] > f["best_baseline_auroc"] for f in figures
+                if np.isfinite(f["best_baseline_auroc"]))
+    return (f"{name:<24} {states:<15} min/median: " + "  ".join(parts) +
+            f"  AUROC beats baselines in {beats}/{len(figures)}")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", required=True, type=Path, help="a finished run directory")
+    parser.add_argument("--variants", default="all",
+                        help=f"comma-separated names of {list(VARIANTS)}, or all")
+    parser.add_argument("--seeds", default="0", help="comma-separated training seeds")
+    parser.add_argument("--work", type=Path, help="checkpoint folder (default RUN/variants)")
+    parser.add_argument("--json", type=Path, help="also write every figure here")
+    args = parser.parse_args()
+    names = list(VARIANTS) if args.variants == "all" else args.variants.split(",")
+    unknown = [n for n in names if n not in VARIANTS]
+    if unknown:
+        parser.error(f"unknown variants {unknown}; known: {list(VARIANTS)}")
+    record = args.run / "stages" / "dataset.json"
+    if not record.is_file():
+        parser.error(f"{args.run} has no finished dataset stage ({record} is missing)")
+    spec = load_run_spec(args.run / "run.yaml")
+    folders = json.loads(record.read_text())["outputs"]["folders"]
+    train_envs, test_envs = spec.training_environments(), spec.held_out_environments()
+    data = {e.name: load_dataset(args.run / folders[e.name]) for e in train_envs + test_envs}
+    work = args.work or args.run / "variants"
+    work.mkdir(parents=True, exist_ok=True)
+    print(f"detector variants: run {args.run}, {len(train_envs)} training and "
+          f"{len(test_envs)} held-out environments, seeds {args.seeds}")
+    everything = {}
+    for name in names:
+        for seed in [int(s) for s in args.seeds.split(",")]:
+            config, keep = variant_config(dc.replace(spec.detector, seed=seed), VARIANTS[name])
+            count = len(train_envs) if keep is None else max(
+                1, int(round(keep * len(train_envs))) if isinstance(keep, float) else int(keep))
+            kept = train_envs[:count]
+            train = [data[e.name] for e in kept]
+            if config.threshold_folds and config.threshold_folds > len(train):
+                config = dc.replace(config, threshold_folds=len(train) if len(train) >= 2 else 0)
+            tag = digest(dc.asdict(config), [folders[e.name] for e in kept])
+            path = work / f"detector_{tag}.pt"
+            started = time.time()
+            if not path.exists():
+                train_detector(train, config, path)
+            model, detector_config, _ = load_detector(path)
+            if config.threshold_folds:
+                threshold = held_out_operating_threshold(
+                    train, config, lambda left, tag=tag: work / f"detector_{tag}_without_"
+                    f"{digest(left)}.pt").threshold
+            else:
+                threshold = operating_threshold(model, train, config)
+            detector = Detector(name, model, detector_config, threshold)
+            results = []
+            for env in test_envs:
+                scenario = copy.deepcopy(spec.scenario)
+                scenario.environment = env
+                r = score_environment(env, data[env.name], detector, scenario)
+                results.append(r)
+                a = r["all"]
+                print(f"  {name} seed {seed} {env.name:<28} flagged {100 * a['flagged']:5.1f} "
+                      f"(anomalous {100 * a['positives'] / a['n']:5.1f})  recall "
+                      f"{100 * a['recall']:5.1f}  accuracy {100 * a['accuracy']:5.1f}  AUROC "
+                      f"{100 * a['auroc']:5.1f} (best baseline "
+                      f"{100 * a['best_baseline_auroc']:5.1f})", flush=True)
+            label = f"{name} (seed {seed})"
+            print(f"{label}: {len(kept)} training environments, threshold {threshold:.3g}, "
+                  f"{time.time() - started:.0f} s")
+            for states in ("all", NOT_FAILED):
+                print(summary_line(label, results, states), flush=True)
+            everything[label] = {"config": dc.asdict(config), "threshold": threshold,
+                                 "training_environments": [e.name for e in kept],
+                                 "environments": results}
+    if args.json:
+        args.json.write_text(json.dumps(everything, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()
