@@ -27,7 +27,10 @@ def wilson_interval(successes: int, trials: int, z: float = Z95):
     denominator = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / denominator
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denominator
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # No successes (or no failures): the bound is 0 (or 1) exactly, not 1e-17 off it.
+    lo = 0.0 if successes == 0 else max(0.0, centre - half)
+    hi = 1.0 if successes == trials else min(1.0, centre + half)
+    return lo, hi
 
 
 @dc.dataclass

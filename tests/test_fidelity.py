@@ -18,6 +18,8 @@ def test_wilson_interval_known_values():
     z2 = 1.959963984540054 ** 2
     assert wilson_interval(0, 10) == pytest.approx((0.0, z2 / (10 + z2)))
     assert wilson_interval(10, 10) == pytest.approx((10 / (10 + z2), 1.0))
+    for n in (1, 6, 7, 3969):             # exact ends, not a rounding error away from them
+        assert wilson_interval(0, n)[0] == 0.0 and wilson_interval(n, n)[1] == 1.0
     lo, hi = wilson_interval(15, 150)          # symmetric in successes and failures
     assert wilson_interval(135, 150) == pytest.approx((1 - hi, 1 - lo))
     for bad in [(3, 2), (-1, 5), (0, 0), (True, 4)]:
