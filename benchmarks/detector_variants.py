@@ -17,7 +17,8 @@ settings moved the median share flagged from 61 % to 34 % and the worst recall f
         [--work out/demo/variants] [--json variants.json]
 
 Variants are named overrides of the run file's ``detector`` block (see VARIANTS);
-``train_environments: k`` keeps the first k training environments of the run file.
+``train_environments: f`` keeps the first share ``f`` of the run file's training
+environments (at least one).
 Checkpoints are cached in ``--work`` by content, so a killed study resumes.
 """
 
@@ -38,7 +39,7 @@ from reachwatch.training.dataset import load_dataset
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
 from reachwatch.training.evaluation import NOT_FAILED, Detector, evaluate_environment
-from reachwatch.training.metrics import recall_threshold
+from reachwatch.training.metrics import binary_metrics, recall_threshold
 
 #: Named overrides of the run file's detector settings (nested dicts for ``detector``).
 VARIANTS = {
@@ -56,20 +57,19 @@ VARIANTS = {
 ORACLE_RECALL = 0.95
 
 
-def variant_config(base, override: dict):
-    """``(DetectorTrainConfig, training-environment count or fraction)``."""
+def variant_config(base, override: dict, environments: int):
+    """``(DetectorTrainConfig, how many of the ``environments`` training environments
+    to keep)``."""
     override = copy.deepcopy(override)
-    keep = override.pop("train_environments", None)
+    share = override.pop("train_environments", 1.0)
     nested = override.pop("detector", {})
     config = dc.replace(base, detector=dc.replace(base.detector, **nested), **override)
-    return config.validate(), keep
+    return config.validate(), max(1, int(round(share * environments)))
 
 
 def accuracy_at_recall(labels, scores, target):
     t = recall_threshold(labels, scores, target)
-    if t is None:
-        return float("nan")
-    return float(np.mean((scores >= t) == labels.astype(bool)))
+    return float("nan") if t is None else binary_metrics(labels, scores >= t).accuracy
 
 
 def score_environment(env, data, detector, scenario):
@@ -134,9 +134,8 @@ def main():
     everything = {}
     for name in names:
         for seed in [int(s) for s in args.seeds.split(",")]:
-            config, keep = variant_config(dc.replace(spec.detector, seed=seed), VARIANTS[name])
-            count = len(train_envs) if keep is None else max(
-                1, int(round(keep * len(train_envs))) if isinstance(keep, float) else int(keep))
+            config, count = variant_config(dc.replace(spec.detector, seed=seed), VARIANTS[name],
+                                           len(train_envs))
             kept = train_envs[:count]
             train = [data[e.name] for e in kept]
             if config.threshold_folds and config.threshold_folds > len(train):
