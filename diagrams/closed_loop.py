@@ -170,11 +170,13 @@ def tick_times(duration: float, period: float) -> np.ndarray:
 
 
 def simulate(diagram: Diagram, *, initial_state, duration: float, period: float,
-             half_width: float, stop_on_failure: bool = True, context=None) -> Trajectory:
+             half_width: float, stop_on_failure: bool = True, context=None,
+             stop_when=None) -> Trajectory:
     """Runs a closed-loop diagram from ``initial_state`` for ``duration`` s and reads its
     exported ports (``state``; ``estimate``, ``speed``, ``anomaly`` when exported) at
     every control tick (every ``period`` s); stops early at failure (``|px| >=
-    half_width``) if asked."""
+    half_width``) if asked, and after the tick where ``stop_when(rows)`` is true, if
+    given (``rows``: {port name: list of the values read so far, one per tick})."""
     times = tick_times(duration, period)
     simulator, failure = start_simulator(diagram, initial_state=initial_state,
                                          half_width=half_width,
@@ -189,7 +191,7 @@ def simulate(diagram: Diagram, *, initial_state, duration: float, period: float,
             break                        # stopped between ticks: no sample at t
         for name in rows:
             rows[name].append(ports[name].Eval(context).copy())
-        if "t" in failure:
+        if "t" in failure or (stop_when is not None and stop_when(rows)):
             break
     n = len(rows["state"])
     x = np.array(rows["state"]).reshape(n, -1)

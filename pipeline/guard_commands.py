@@ -7,7 +7,7 @@ from pathlib import Path
 
 from reachwatch.diagrams import load_scenario
 from reachwatch.systems.files import atomic_write_bytes, cache_root
-from reachwatch.reach.liveness import liveness_figures, percent
+from reachwatch.reach.liveness import liveness_figures, percent, same_distance
 from reachwatch.systems import DEFAULT_FALLBACKS, fallback_parts
 from reachwatch.taxi import (UNGUARDED, fallback_rollouts, on_runway_starts, paper_grid,
                              real_missions, sweep_guarded)
@@ -38,6 +38,11 @@ def add_parsers(sub):
                    help="also run the real Drake loops (alone and each fallback) from this "
                         "many seeded random on-runway starts; cached and resumable")
     g.add_argument("--seed", type=int, default=2000, help="seed of the check starts")
+    g.add_argument("--mission-limit", type=positive_float, default=3.0,
+                   help="also judge failures by distance: runs go on past the horizon, for "
+                        "up to this many horizons, until they cover the distance the "
+                        "controller alone covers within it (a slower aircraft on the same "
+                        "path otherwise fails only later)")
     g.add_argument("--out", required=True)
     g.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT")
     g.add_argument("--cache", default=None)
@@ -63,17 +68,18 @@ def guard_command(args):
             starts = on_runway_starts(grid, args.check_starts, args.seed,
                                       half_width=scenario.environment.half_width)
             real = {f: real_missions(scenario, starts, fallback=None if f == UNGUARDED else f,
-                                     duration=args.horizon, cache_dir=cache / "outcomes",
-                                     executor=executor)
+                                     duration=args.horizon, mission_limit=args.mission_limit,
+                                     cache_dir=cache / "outcomes", executor=executor)
                     for f in [UNGUARDED, *args.fallbacks]}
             table = fallback_rollouts(scenario, grid, tables, args.horizon, args.fallbacks,
-                                      starts=starts)
+                                      starts=starts, mission_limit=args.mission_limit)
             check = {"starts": len(starts), "seed": args.seed,
                      "fallbacks": {f: {"table": liveness_figures(table[UNGUARDED], table[f]),
                                        "real": liveness_figures(real[UNGUARDED], real[f])}
                                    for f in args.fallbacks}}
     started = time.time()
-    runs = fallback_rollouts(scenario, grid, tables, args.horizon, args.fallbacks)
+    runs = fallback_rollouts(scenario, grid, tables, args.horizon, args.fallbacks,
+                             mission_limit=args.mission_limit)
     out = Path(args.out)
     name = scenario.environment.name
     volumes = {k: float(v.failed.mean()) for k, v in runs.items()}
@@ -88,14 +94,14 @@ def guard_command(args):
         log.info(f"  {f}: failure set {percent(v['failure_set'])}, ended stopped "
                  f"{percent(v['ended_stopped'])}, needless stops {percent(v['needless_stops'])}, "
                  f"distance {v['distance_ratio']:.2f} x alone, ticks flagged "
-                 f"{100 * v['flagged_ticks']:.1f}%")
+                 f"{100 * v['flagged_ticks']:.1f}%; {same_distance(v)}")
     for f, both in check.get("fallbacks", {}).items():
         for source in ("table", "real"):
             v = both[source]
             log.info(f"  {check['starts']} starts, {source:5s} {f}: alone fails "
                      f"{percent(v['alone_failure_set'])}, guarded fails "
                      f"{percent(v['failure_set'])}, ended stopped {percent(v['ended_stopped'])}, "
-                     f"needless stops {percent(v['needless_stops'])}")
+                     f"needless stops {percent(v['needless_stops'])}; {same_distance(v)}")
     atomic_write_bytes(out / f"guard_{name}.json", json.dumps(
         {"volumes": volumes, "liveness": liveness, "tradeoff": curves, "check": check},
         indent=1).encode())

@@ -44,7 +44,9 @@ def _state(x):
 def showcase_candidates(on_grid, fallbacks, grid, limit):
     """Up to ``limit`` ``(fallback, node)`` pairs where the tables say the controller
     alone fails and an honest fallback saves the start: saves that keep moving first
-    (fallbacks with the smaller failure set first), then saves that end stopped."""
+    (fallbacks with the smaller failure set first), then saves that end stopped. When
+    the outcomes are judged by distance too, a start that the fallback only makes fail
+    later (past the horizon, on the same path) is no save."""
     honest = sorted((f for f in fallbacks if fallback_parts(f)[1] != "oracle"),
                     key=lambda f: on_grid[f].failed.mean())
     alone = on_grid[UNGUARDED].failed
@@ -53,6 +55,8 @@ def showcase_candidates(on_grid, fallbacks, grid, limit):
         for name in honest:
             outcome = on_grid[name]
             kept = ~outcome.stopped if moving else outcome.stopped
+            if outcome.has_same_distance:
+                kept = kept & ~outcome.failed_same_distance
             picks += [(name, node) for node in
                       robust_starts(alone & ~outcome.failed & kept, grid, limit)]
     return picks[:limit]
@@ -60,28 +64,37 @@ def showcase_candidates(on_grid, fallbacks, grid, limit):
 
 def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
     """A start the tables say an honest fallback saves, checked in the real Drake loops:
-    the first real save that keeps moving, else the first real save (a stop), else the
-    first start tried; its plot, trajectories and replay."""
+    the first real save that keeps moving (and covers the distance the controller alone
+    covers without failing), else the first real save by stopping, else the first start
+    the fallback only makes fail later, else the first start tried; its plot,
+    trajectories and replay."""
     spec = run.spec
-    tried, moving_save, stop_save = [], None, None
+    tried, moving_save, stop_save, delayed = [], None, None, None
     for name, node in showcase_candidates(on_grid, spec.guard.strategies, grid,
                                           spec.guard.candidates):
         x0 = grid.states([node])[0]
-        alone, guarded = (mission_rollouts(scenario, f, spec.horizon, x0[None])
+        alone, guarded = (mission_rollouts(scenario, f, spec.horizon, x0[None],
+                                           mission_limit=spec.guard.mission_limit)
                           for f in (None, name))
         entry = {"fallback": name, "start": [float(v) for v in x0],
                  "nominal_fails": bool(alone["failed"][0]),
                  "guarded_fails": bool(guarded["failed"][0]),
-                 "guarded_stopped": bool(guarded["stopped"][0])}
+                 "guarded_stopped": bool(guarded["stopped"][0]),
+                 "guarded_fails_later": bool(guarded["failed_same_distance"][0]
+                                             and not guarded["failed"][0])}
         tried.append(entry)
         if entry["nominal_fails"] and not entry["guarded_fails"]:
-            if not entry["guarded_stopped"]:
+            if entry["guarded_fails_later"]:
+                delayed = delayed or entry
+            elif not entry["guarded_stopped"]:
                 moving_save = entry
                 break
-            stop_save = stop_save or entry
+            else:
+                stop_save = stop_save or entry
     chosen = moving_save or stop_save
     record = {"tried": tried, "confirmed": chosen is not None,
               "save": "moving" if moving_save else "stop" if stop_save else None}
+    chosen = chosen or delayed
     if not tried:
         return record
     shown = chosen or tried[0]
@@ -108,9 +121,10 @@ def real_loop_check(run: Run, scenario, grid, tables, env) -> dict:
     starts = on_runway_starts(grid, spec.guard.check_starts, spec.guard.check_seed,
                               half_width=env.half_width)
     table = fallback_rollouts(scenario, grid, tables, spec.horizon, spec.guard.strategies,
-                              starts=starts)
+                              starts=starts, mission_limit=spec.guard.mission_limit)
     real = {f: real_missions(scenario, starts, fallback=None if f == UNGUARDED else f,
-                             duration=spec.horizon, cache_dir=run.path("outcomes"),
+                             duration=spec.horizon, mission_limit=spec.guard.mission_limit,
+                             cache_dir=run.path("outcomes"),
                              executor=run.executor, progress=run.progress)
             for f in [UNGUARDED, *spec.guard.strategies]}
     return {"starts": len(starts), "seed": spec.guard.check_seed,
@@ -130,7 +144,8 @@ def guard_environment(run: Run, env) -> dict:
     fallbacks = spec.guard.strategies
     tables = sweep_guarded(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
                            progress=run.progress)
-    on_grid = fallback_rollouts(scenario, grid, tables, spec.horizon, fallbacks)
+    on_grid = fallback_rollouts(scenario, grid, tables, spec.horizon, fallbacks,
+                                mission_limit=spec.guard.mission_limit)
     volumes = {k: float(v.failed.mean()) for k, v in on_grid.items()}
     liveness = {f: liveness_figures(on_grid[UNGUARDED], on_grid[f]) for f in fallbacks}
     slices = plot_failure_sets({k: v.failed for k, v in on_grid.items()}, grid, spec.horizon,

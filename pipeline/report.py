@@ -160,15 +160,27 @@ def guard_section(page, env, g, spec, checked):
               f"controller alone survives, those the fallback ends stopped), harmed (of those, "
               f"the ones it makes fail), saves that keep moving (of the starts the controller "
               f"alone fails), distance travelled relative to the controller alone, and ticks "
-              f"flagged. 'oracle' steers with the true state: a privileged reference, not a result.")
-    rows = [["controller alone", _pct(g["volumes"][UNGUARDED]), "-", "-", "-", "-", "1.00", "-"]]
+              f"flagged. 'oracle' steers with the true state: a privileged reference, not a result. "
+              f"Slowing down does not change the aircraft's path (its turn rate scales with "
+              f"speed), only when it gets somewhere: a slower aircraft can leave the runway "
+              f"after the horizon instead of within it. So the last two columns judge the same "
+              f"runs by distance: the share that leaves the runway before covering the distance "
+              f"the controller alone covers in {spec.horizon:g} s (the runs going on past the "
+              f"horizon), and the share that never covers it (parked or crawling).")
+    first = next(iter(g.get("liveness", {}).values()), {})
+    alone_same = first.get("alone_same_distance_failure_set")
+    rows = [["controller alone", _pct(g["volumes"][UNGUARDED]), "-", "-", "-", "-", "1.00", "-",
+             _share(alone_same) if alone_same else "-", "-"]]
     for f, v in g.get("liveness", {}).items():
         rows.append([f, _pct(v["failure_set"]["rate"]), _share(v["ended_stopped"]),
                      _share(v["needless_stops"]), _share(v["harmed"]), _share(v["saved_moving"]),
                      _x(v["distance_ratio"]),
-                     "-" if v["flagged_ticks"] is None else f"{100 * v['flagged_ticks']:.1f}"])
+                     "-" if v["flagged_ticks"] is None else f"{100 * v['flagged_ticks']:.1f}",
+                     _share(v["same_distance_failure_set"]) if "same_distance_failure_set" in v else "-",
+                     _share(v["short_of_distance"]) if "short_of_distance" in v else "-"])
     page.table(["closed loop", "failure set %", "ended stopped %", "needless stops %",
-                "harmed %", "saved, moving %", "distance / alone", "ticks flagged %"], rows)
+                "harmed %", "saved, moving %", "distance / alone", "ticks flagged %",
+                "fails at the same distance %", "short of the distance %"], rows)
     if checked:
         page.text(f"The controller alone in the real loop, from {checked['starts']} random "
                   f"on-runway starts (the grid figures above count every node, off-runway "
@@ -186,9 +198,13 @@ def guard_section(page, env, g, spec, checked):
                 v = both[source]
                 rows.append([f, source, percent(v["alone_failure_set"]), percent(v["failure_set"]),
                              percent(v["ended_stopped"]), percent(v["needless_stops"]),
-                             _x(v["distance_ratio"])])
+                             _x(v["distance_ratio"]),
+                             percent(v.get("alone_same_distance_failure_set")),
+                             percent(v.get("same_distance_failure_set")),
+                             percent(v.get("short_of_distance"))])
         page.table(["fallback", "figures from", "alone fails", "guarded fails", "ended stopped",
-                    "needless stops", "distance / alone"], rows)
+                    "needless stops", "distance / alone", "alone fails, same distance",
+                    "guarded fails, same distance", "short of the distance"], rows)
     r = g["run"]
     if not r.get("files"):
         page.text("No grid start where the tables say the controller alone fails and an honest "
@@ -198,6 +214,9 @@ def guard_section(page, env, g, spec, checked):
     verdict = ("a save that keeps moving, confirmed in the real Drake loops" if save == "moving"
                else "confirmed in the real Drake loops, but the only save found is a stop: the "
                     "guarded loop ends at standstill" if save == "stop"
+               else "NOT a save: in the real Drake loops the guarded aircraft only leaves the "
+                    "runway later, past the horizon, on the same path" if any(
+                        t.get("guarded_fails_later") for t in r["tried"])
                else "NOT confirmed in the real Drake loops (the tables are coarse)")
     page.text(f"Nominal vs guarded ({r['strategy']}) from the start {np.round(r['start'], 2)} "
               f"[px m, py m, theta rad], chosen from the tables ({len(r['tried'])} tried), "

@@ -36,7 +36,10 @@ class GuardSpec:
     on-runway starts in the real Drake loops (each start costs one real run alone and
     one per fallback; 0 = no real-loop check). ``candidates``: table-chosen starts
     tried in the real loops for the showcase run; ``online_seconds``: simulated
-    seconds per round of the online rate."""
+    seconds per round of the online rate. ``mission_limit``: the failure sets are also
+    judged by distance (failures before covering the distance the controller alone
+    covers within the horizon, the runs going on for up to ``mission_limit`` horizons;
+    a slower aircraft otherwise fails later, past the horizon, on the same path)."""
     environments: List[Environment] = dc.field(default_factory=list)
     strategies: List[str] = dc.field(default_factory=lambda: list(DEFAULT_FALLBACKS))
     candidates: int = 5
@@ -45,6 +48,7 @@ class GuardSpec:
     check_starts: int = 200
     check_seed: int = 2000
     tradeoff_points: int = 9
+    mission_limit: float = 3.0
 
 
 @dc.dataclass

@@ -13,6 +13,8 @@ from .fidelity import wilson_interval
 
 #: The per-start fields of `MissionOutcomes` (all arrays of one length).
 MISSION_FIELDS = ("failed", "stopped", "ever_stopped", "distance", "flagged_ticks", "ticks")
+#: Its optional fields, judged by distance instead of time (see `MissionOutcomes`).
+SAME_DISTANCE_FIELDS = ("failed_same_distance", "short_of_distance")
 
 
 @dc.dataclass
@@ -21,25 +23,47 @@ class MissionOutcomes:
     the horizon at standstill without failing), ``ever_stopped`` (was at standstill at
     some tick before it ended or failed), ``distance`` (m travelled until the end or the
     failure), ``flagged_ticks`` and ``ticks`` (control ticks flagged by the detector,
-    and all control ticks, until the end or the failure)."""
+    and all control ticks, until the end or the failure).
+
+    A fallback that only slows down leaves the path of a loop whose turn rate scales
+    with speed (a car, the taxiing aircraft) as it was and only delays the failure,
+    past the horizon if it slows enough. So the optional fields judge the mission by
+    distance instead of time, the run going on past the horizon until it has covered
+    the distance the controller alone covers within it: ``failed_same_distance`` (left
+    the safe set before covering it) and ``short_of_distance`` (neither failed nor
+    covered it before the run's time limit: parked or crawling). Both or neither."""
     failed: np.ndarray
     stopped: np.ndarray
     ever_stopped: np.ndarray
     distance: np.ndarray
     flagged_ticks: np.ndarray
     ticks: np.ndarray
+    failed_same_distance: np.ndarray = None
+    short_of_distance: np.ndarray = None
 
     def __post_init__(self):
-        for name in MISSION_FIELDS:
+        given = [name for name in SAME_DISTANCE_FIELDS if getattr(self, name) is not None]
+        if given and len(given) != len(SAME_DISTANCE_FIELDS):
+            raise ValueError(f"MissionOutcomes: give both {SAME_DISTANCE_FIELDS} or neither, "
+                             f"got only {given}")
+        fields = MISSION_FIELDS + tuple(given)
+        for name in fields:
             setattr(self, name, np.asarray(getattr(self, name)).reshape(-1))
-        n = {len(getattr(self, name)) for name in MISSION_FIELDS}
+        n = {len(getattr(self, name)) for name in fields}
         if len(n) != 1 or n == {0}:
             raise ValueError(f"MissionOutcomes: every field needs the same number (> 0) of "
-                             f"starts, got {[len(getattr(self, f)) for f in MISSION_FIELDS]}")
-        for name in ("failed", "stopped", "ever_stopped"):
+                             f"starts, got {[len(getattr(self, f)) for f in fields]}")
+        for name in ("failed", "stopped", "ever_stopped", *given):
             setattr(self, name, getattr(self, name).astype(bool))
         if np.any(self.stopped & self.failed):
             raise ValueError("MissionOutcomes: a start cannot both fail and end stopped")
+        if given and np.any(self.failed_same_distance & self.short_of_distance):
+            raise ValueError("MissionOutcomes: a start cannot both fail and fall short of "
+                             "the distance")
+
+    @property
+    def has_same_distance(self) -> bool:
+        return self.failed_same_distance is not None
 
     def __len__(self):
         return len(self.failed)
@@ -49,10 +73,12 @@ class MissionOutcomes:
         missing = [name for name in MISSION_FIELDS if name not in fields]
         if missing:
             raise ValueError(f"MissionOutcomes: missing fields {missing}")
-        return cls(**{name: fields[name] for name in MISSION_FIELDS})
+        return cls(**{name: fields[name] for name in MISSION_FIELDS + SAME_DISTANCE_FIELDS
+                      if name in fields})
 
     def as_fields(self) -> dict:
-        return {name: getattr(self, name) for name in MISSION_FIELDS}
+        names = MISSION_FIELDS + (SAME_DISTANCE_FIELDS if self.has_same_distance else ())
+        return {name: getattr(self, name) for name in names}
 
 
 def _rate(mask):
@@ -74,7 +100,11 @@ def liveness_figures(alone: MissionOutcomes, guarded: MissionOutcomes) -> dict:
     - ``saved`` / ``saved_moving``: of the starts the controller alone fails, the share
       the guarded loop survives / survives without ending stopped;
     - ``distance_ratio``: mean distance travelled, guarded over alone;
-    - ``flagged_ticks``: share of all control ticks the detector flagged."""
+    - ``flagged_ticks``: share of all control ticks the detector flagged;
+    - when both carry the same-distance fields: ``same_distance_failure_set`` (share of
+      starts that fail before covering the distance the controller alone covers in the
+      horizon), ``same_distance_failure_cut`` (1 - guarded / alone, by that measure) and
+      ``short_of_distance`` (share that neither fails nor covers it: missions lost)."""
     if len(alone) != len(guarded):
         raise ValueError(f"liveness_figures: {len(alone)} starts alone but {len(guarded)} "
                          f"guarded; both must come from the same starts")
@@ -94,6 +124,13 @@ def liveness_figures(alone: MissionOutcomes, guarded: MissionOutcomes) -> dict:
            "saved_moving": _rate((~guarded.failed & ~guarded.stopped)[fails]),
            "distance_ratio": float(np.mean(guarded.distance)) / alone_mean if alone_mean > 0 else None,
            "flagged_ticks": int(np.sum(guarded.flagged_ticks)) / ticks if ticks else None}
+    if alone.has_same_distance and guarded.has_same_distance:
+        alone_fails = alone.failed_same_distance.mean()
+        out.update(same_distance_failure_set=_rate(guarded.failed_same_distance),
+                   alone_same_distance_failure_set=_rate(alone.failed_same_distance),
+                   same_distance_failure_cut=(1.0 - guarded.failed_same_distance.mean() / alone_fails
+                                              if alone_fails > 0 else None),
+                   short_of_distance=_rate(guarded.short_of_distance))
     return out
 
 
@@ -104,3 +141,14 @@ def percent(entry, digits=1) -> str:
     lo, hi = entry["ci95"]
     return (f"{100 * entry['rate']:.{digits}f} % [{100 * lo:.{digits}f}, "
             f"{100 * hi:.{digits}f}]")
+
+
+def same_distance(figures: dict) -> str:
+    """The same-distance figures of `liveness_figures` in words (or that there are none)."""
+    if "same_distance_failure_set" not in figures:
+        return "not judged by distance"
+    cut = figures["same_distance_failure_cut"]
+    return (f"at the same distance: alone fails {percent(figures['alone_same_distance_failure_set'])}, "
+            f"guarded {percent(figures['same_distance_failure_set'])} "
+            f"(cut {'-' if cut is None else f'{100 * cut:.0f} %'}), short of the distance "
+            f"{percent(figures['short_of_distance'])}")

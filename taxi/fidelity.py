@@ -10,7 +10,7 @@ import numpy as np
 from reachwatch.diagrams import make_closed_loop_diagram, make_guarded_diagram, simulate
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
-from reachwatch.reach.liveness import MISSION_FIELDS, MissionOutcomes
+from reachwatch.reach.liveness import MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes
 from reachwatch.reach.outcomes import Outcomes, map_states, run_outcomes
 from reachwatch.systems import fallback_parts
 
@@ -87,13 +87,26 @@ def real_loop_fidelity(scenario, value_function, starts, *, cache_dir, duration=
                             outcomes["left_box"])
 
 
-def mission_rollouts(scenario, fallback, duration: float, states) -> dict:
+#: A guarded run at standstill this long (s) is parked for good: its image, and so its
+#: flag and its speed, no longer change.
+PARKED_SECONDS = 1.0
+
+
+def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=None) -> dict:
     """Runs the real loop of ``scenario`` from each start for ``duration`` s, stopping
     at failure: the controller alone (``fallback=None``) or guarded by the detector of
     ``scenario.monitor`` with the fallback named ``fallback`` (e.g. ``"brake"``,
     ``"slow_down+dead_reckoning"``). Returns the `MissionOutcomes` fields per start:
     the speed logged at a tick is the speed applied since the previous one, and ticks
-    are the control ticks before the horizon."""
+    are the control ticks before the horizon.
+
+    With ``mission_limit`` (a number >= 1) a run goes on past the horizon until it has
+    covered the distance the controller alone covers within it (its speed x
+    ``duration``), fails, stands still for `PARKED_SECONDS` or reaches
+    ``mission_limit * duration`` s, and the same-distance fields are returned too; the
+    others are read from its first ``duration`` s, as without it."""
+    if mission_limit is not None and not (np.isfinite(mission_limit) and mission_limit >= 1):
+        raise ValueError(f"mission_limit is a multiple of the horizon >= 1, got {mission_limit}")
     if fallback is None:
         diagram, context = _loop(scenario, make_closed_loop_diagram)
     else:
@@ -101,37 +114,75 @@ def mission_rollouts(scenario, fallback, duration: float, states) -> dict:
         guarded.monitor.strategy, guarded.monitor.steering = fallback_parts(fallback)
         diagram, context = _loop(guarded, make_guarded_diagram)
     B, period = scenario.environment.half_width, scenario.controller.period
-    out = {name: [] for name in MISSION_FIELDS}
+    nominal = scenario.controller.speed
+    goal = nominal * duration
+    names = MISSION_FIELDS + (SAME_DISTANCE_FIELDS if mission_limit is not None else ())
+    out = {name: [] for name in names}
     for x in np.asarray(states, float):
         if abs(x[0]) >= B:                      # already off the runway
-            row = (True, False, False, 0.0, 0, 0)
+            row = (True, False, False, 0.0, 0, 0, True, False)
         else:
-            run = simulate(diagram, initial_state=x, duration=duration, period=period,
-                           half_width=B, context=context)
-            speed = (np.full(len(run.time), scenario.controller.speed) if run.speed is None
+            run = simulate(diagram, initial_state=x, period=period, half_width=B,
+                           context=context,
+                           duration=duration * (mission_limit or 1.0),
+                           stop_when=(None if mission_limit is None else
+                                      _mission_done(goal, nominal, period)))
+            speed = (np.full(len(run.time), nominal) if run.speed is None
                      else np.asarray(run.speed, float).reshape(-1))
-            distance = float(np.sum(speed[1:] * np.diff(run.time)))
-            if run.failed and run.failure_time > run.time[-1]:
-                distance += float(speed[-1] * (run.failure_time - run.time[-1]))
-            acting = run.time < duration - 1e-9
-            flags = (np.zeros(len(run.time), bool) if run.anomaly is None
-                     else np.asarray(run.anomaly, float).reshape(-1) >= 0.5)
-            row = (run.failed, not run.failed and speed[-1] <= 0,
-                   bool(np.any(speed[1:] <= 0)), distance, int(np.sum(flags & acting)),
-                   int(np.sum(acting)))
-        for name, value in zip(MISSION_FIELDS, row):
+            k = int(np.sum(run.time <= duration + 1e-9))      # the ticks within the horizon
+            failed = run.failed and run.failure_time <= duration + 1e-9
+            distance = _distance(run.time[:k], speed[:k], run.failure_time if failed else None)
+            acting = run.time[:k] < duration - 1e-9
+            flags = (np.zeros(k, bool) if run.anomaly is None
+                     else np.asarray(run.anomaly, float).reshape(-1)[:k] >= 0.5)
+            whole = _distance(run.time, speed, run.failure_time if run.failed else None)
+            row = (failed, not failed and speed[k - 1] <= 0, bool(np.any(speed[1:k] <= 0)),
+                   distance, int(np.sum(flags & acting)), int(np.sum(acting)),
+                   run.failed, not run.failed and whole < goal * (1 - 1e-9))
+        for name, value in zip(names, row):
             out[name].append(value)
     return {name: np.asarray(value) for name, value in out.items()}
 
 
+def _distance(time, speed, failure_time=None):
+    """Metres travelled over the logged ticks (a tick's speed applies since the previous
+    one), plus the stretch from the last tick to ``failure_time`` when given."""
+    distance = float(np.sum(speed[1:] * np.diff(time)))
+    if failure_time is not None and failure_time > time[-1]:
+        distance += float(speed[-1] * (failure_time - time[-1]))
+    return distance
+
+
+def _mission_done(goal: float, nominal: float, period: float):
+    """`simulate`'s ``stop_when`` for a mission: true once the run has covered ``goal``
+    m, or has stood still for `PARKED_SECONDS`."""
+    parked_ticks = max(1, int(round(PARKED_SECONDS / period)))
+    seen = {"ticks": 0, "distance": 0.0, "still": 0}
+
+    def done(rows):
+        if seen["ticks"] == len(rows["state"]):
+            return False
+        seen["ticks"] = len(rows["state"])
+        speed = float(np.ravel(rows["speed"][-1])[0]) if "speed" in rows else nominal
+        if seen["ticks"] > 1:
+            seen["distance"] += speed * period
+        seen["still"] = seen["still"] + 1 if speed <= 0 else 0
+        return seen["distance"] >= goal * (1 - 1e-9) or seen["still"] >= parked_ticks
+    return done
+
+
 def real_missions(scenario, starts, *, fallback=None, duration: float, cache_dir,
-                  executor=None, progress=True) -> MissionOutcomes:
+                  mission_limit=None, executor=None, progress=True) -> MissionOutcomes:
     """`mission_rollouts` from every start, cached by content under ``cache_dir`` like
     `real_outcomes` (a killed batch resumes, a repeated one costs nothing)."""
     scenario = resolved(scenario)
-    rollout = functools.partial(mission_rollouts, scenario, fallback, float(duration))
+    rollout = functools.partial(mission_rollouts, scenario, fallback, float(duration),
+                                **({} if mission_limit is None
+                                   else {"mission_limit": float(mission_limit)}))
     fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
-                              progress=progress, required=MISSION_FIELDS, unit="run",
+                              progress=progress, unit="run",
+                              required=MISSION_FIELDS + (SAME_DISTANCE_FIELDS
+                                                         if mission_limit is not None else ()),
                               label=f"real loop {scenario.environment.name} "
                                     f"{fallback or 'alone'}")
     return MissionOutcomes.from_fields(fields)

@@ -30,7 +30,8 @@ SCORE_PORT = f"{DETECTOR}.score"
 def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, threshold=0.5,
                      strategy="slow_down", steering="taxinet", estimate_table=None,
                      policy=None, horizon=8.0, period=0.05, substeps=2, starts=None,
-                     flags_needed=1, flag_window=1, **strategy_params) -> MissionOutcomes:
+                     flags_needed=1, flag_window=1, mission_limit=None,
+                     **strategy_params) -> MissionOutcomes:
     """`MissionOutcomes` per start (default: every grid node, C order) of the loop whose
     steering, score and estimate are interpolated from tables of ``grid``.
     ``score_table=None`` = no detector (the controller alone).
@@ -41,7 +42,12 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
     steering and speed applied since, as `DeadReckoning` does). ``policy`` maps
     ``(n, 2)`` estimates to steering (rad). A tick counts as flagged when at least
     ``flags_needed`` of the last ``flag_window`` ticks' scores reached the threshold,
-    as `FlagFilter` confirms them."""
+    as `FlagFilter` confirms them.
+
+    With ``mission_limit`` (a number >= 1), the rollouts also go on past the horizon, up
+    to ``mission_limit * horizon`` s, until each start has covered the distance the
+    controller alone covers within the horizon (nominal speed x horizon), and fill the
+    same-distance fields of `MissionOutcomes`; the other fields stay the horizon's."""
     flags_needed, flag_window = check_k_of_n(flags_needed, flag_window)
     if steering not in ("taxinet", "oracle", "dead_reckoning"):
         raise ValueError(f"steering must be taxinet, oracle or dead_reckoning, got '{steering}'")
@@ -67,9 +73,22 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
     base, u_prev, v_prev, trusted = np.zeros((n, 2)), np.zeros(n), v.copy(), np.zeros(n, bool)
     history = np.zeros((n, flag_window - 1), bool)
     whole, tail = split_horizon(horizon, period)
+    steps = [period] * whole + ([tail] if tail > 0 else [])
+    goal = nominal * horizon                      # the controller alone's distance
+    if mission_limit is not None:
+        limit = positive("mission_limit", mission_limit)
+        if limit < 1:
+            raise ValueError(f"mission_limit is a multiple of the horizon >= 1, got {limit}")
+        steps += [period] * max(0, int(np.ceil((limit - 1) * horizon / period - 1e-9)))
+    covered = np.zeros(n, bool)
     substeps = positive("substeps", substeps, integer=True)
-    for k in range(whole + (tail > 0)):       # a last partial period when it does not divide
-        dt = period if k < whole else tail
+    at_horizon = None
+    for k, dt in enumerate(steps):       # a last partial period when it does not divide
+        if k == whole + (tail > 0):      # the horizon's figures, before going on
+            at_horizon = _snapshot(failed, v, ever_stopped, distance, flagged_ticks, ticks)
+        active = alive & ~covered
+        if not active.any():
+            break
         interpolate = GridInterpolator(grid, x)
         u = interpolate(steer).numpy()
         flagged = np.zeros(n, bool)
@@ -90,19 +109,30 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
                 u = np.where(flagged, policy(belief), u)
                 base, u_prev, v_prev = belief, u, v.copy()
                 trusted |= ~flagged
-        ticks += alive
-        flagged_ticks += alive & flagged
-        ever_stopped |= alive & (v <= 0)
-        distance += np.where(alive, v * dt, 0.0)
+        ticks += active
+        flagged_ticks += active & flagged
+        ever_stopped |= active & (v <= 0)
+        distance += np.where(active, v * dt, 0.0)
         h = dt / substeps
         u_t, v_t = as_t(u)[:, None], as_t(v)
         for _ in range(substeps):
             x = rk4_step(lambda y: dynamics.vector_field(y, u_t, speed=v_t), x, h)
         out = (dynamics.target(x) <= 0).numpy()
-        failed |= alive & out
-        alive &= ~out
-    return MissionOutcomes(failed=failed, stopped=~failed & (v <= 0), ever_stopped=ever_stopped,
-                           distance=distance, flagged_ticks=flagged_ticks, ticks=ticks)
+        failed |= active & out
+        alive &= ~(active & out)
+        if mission_limit is not None:
+            covered |= alive & (distance >= goal * (1 - 1e-9))
+    if at_horizon is None:
+        at_horizon = _snapshot(failed, v, ever_stopped, distance, flagged_ticks, ticks)
+    h_failed, h_v, h_ever, h_distance, h_flagged, h_ticks = at_horizon
+    same = {} if mission_limit is None else dict(failed_same_distance=failed,
+                                                 short_of_distance=~failed & ~covered)
+    return MissionOutcomes(failed=h_failed, stopped=~h_failed & (h_v <= 0), ever_stopped=h_ever,
+                           distance=h_distance, flagged_ticks=h_flagged, ticks=h_ticks, **same)
+
+
+def _snapshot(*arrays):
+    return tuple(np.array(a, copy=True) for a in arrays)
 
 
 def p_controller_policy(controller):
@@ -113,12 +143,14 @@ def p_controller_policy(controller):
 
 
 def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=None,
-                      starts=None) -> dict:
+                      starts=None, mission_limit=None) -> dict:
     """{UNGUARDED | fallback name: `MissionOutcomes`} from the swept tables of the
     guarded diagram (`sweep_guarded`), at every grid node or at ``starts``. A fallback
-    name is a speed strategy with an optional steering (`systems.fallback_parts`)."""
+    name is a speed strategy with an optional steering (`systems.fallback_parts`).
+    ``mission_limit``: also the same-distance figures (`guarded_rollouts`)."""
     dynamics = dynamics_for(scenario)
-    kw = dict(horizon=horizon, period=scenario.controller.period, starts=starts)
+    kw = dict(horizon=horizon, period=scenario.controller.period, starts=starts,
+              mission_limit=mission_limit)
     policy = p_controller_policy(scenario.controller)
     out = {UNGUARDED: guarded_rollouts(grid, dynamics, tables[CONTROL_PORT], None, **kw)}
     for name in fallbacks:

@@ -12,7 +12,8 @@ from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, add_dead_reckoning, loa
                                  make_guarded_diagram)
 from reachwatch.diagrams.scenario import ControllerConfig
 from reachwatch.reach import Grid
-from reachwatch.reach.liveness import MissionOutcomes, liveness_figures, percent
+from reachwatch.reach.liveness import (MISSION_FIELDS, MissionOutcomes, liveness_figures,
+                                       percent)
 from reachwatch.systems import (DeadReckoning, FallbackSwitch, FlagFilter, confirmed_flags,
                                 ProportionalController, TaxiPlant, TrueStateEstimator,
                                 fallback_parts, propagate_estimate,
@@ -191,6 +192,50 @@ def test_liveness_arithmetic_known_answer():
                                                    guarded.as_fields().items()}))
 
 
+def test_same_distance_figures_known_answer():
+    """A straight run that leaves a 10 m runway after 36.1 m, with a detector that
+    flags every tick. Alone it fails at 7.22 s, within the 8 s horizon. Slowing down
+    (-0.01 m/s per tick) covers only 33.56 m in 8 s, so by the horizon it "survives":
+    a 100 % cut that is only a delay, since the path is the same; judged at the same
+    distance (40 m) it fails like the controller alone. Braking (-1 m/s^2) parks after
+    12.375 m: it never fails, but falls short of the distance."""
+    scenario = load_scenario(data="")
+    dynamics = dynamics_for(scenario)
+    grid = paper_grid(10.0, (3, 3, 3))
+    theta = np.deg2rad(10.0)
+    starts = np.array([[10.0 - 36.1 * np.sin(theta), 110.0, theta]])
+    steer, always = np.zeros(grid.shape), np.ones(grid.shape)
+    kw = dict(horizon=8.0, starts=starts, mission_limit=3.0)
+    alone = guarded_rollouts(grid, dynamics, steer, None, **kw)
+    slowed = guarded_rollouts(grid, dynamics, steer, always, strategy="slow_down", **kw)
+    braked = guarded_rollouts(grid, dynamics, steer, always, strategy="brake", **kw)
+    assert alone.failed.tolist() == alone.failed_same_distance.tolist() == [True]
+    assert alone.distance[0] == pytest.approx(36.25)           # 145 ticks of 0.25 m
+    assert slowed.failed.tolist() == [False] and slowed.distance[0] == pytest.approx(33.56)
+    assert slowed.failed_same_distance.tolist() == [True]
+    assert braked.stopped.tolist() == braked.short_of_distance.tolist() == [True]
+    assert not braked.failed_same_distance.any()
+    f = liveness_figures(alone, slowed)
+    assert f["failure_cut"] == pytest.approx(1.0)
+    assert f["same_distance_failure_cut"] == pytest.approx(0.0)
+    assert f["short_of_distance"]["count"] == 0
+    g = liveness_figures(alone, braked)
+    assert g["same_distance_failure_cut"] == pytest.approx(1.0)
+    assert g["short_of_distance"]["count"] == 1
+    # without a mission limit the fields stay absent and the horizon figures are the same
+    plain = guarded_rollouts(grid, dynamics, steer, always, strategy="slow_down", horizon=8.0,
+                             starts=starts)
+    assert not plain.has_same_distance and "same_distance_failure_cut" not in liveness_figures(
+        alone, plain)
+    assert plain.distance[0] == pytest.approx(slowed.distance[0])
+    with pytest.raises(ValueError, match="or neither"):
+        MissionOutcomes(failed=[1], stopped=[0], ever_stopped=[0], distance=[0],
+                        flagged_ticks=[0], ticks=[1], failed_same_distance=[1])
+    with pytest.raises(ValueError, match=">= 1"):
+        guarded_rollouts(grid, dynamics, steer, None, horizon=8.0, starts=starts,
+                         mission_limit=0.5)
+
+
 def _tables(grid, steering, score):
     """Tables on ``grid`` from functions of the node states (a hand-made controller)."""
     nodes = grid.states()
@@ -293,6 +338,14 @@ def test_dead_reckoning_in_the_rendered_loop(detector_path, tmp_path):
     slowed = mission_rollouts(always, "slow_down", 3.0, starts)
     for name in ("failed", "distance", "flagged_ticks"):
         np.testing.assert_allclose(reckoned[name], slowed[name])
+    # judged by distance too: the horizon's fields are unchanged, a failure within the
+    # horizon is one before the distance, and braking parks short of it
+    limited = mission_rollouts(always, "slow_down", 3.0, starts, mission_limit=3.0)
+    for name in MISSION_FIELDS:
+        np.testing.assert_allclose(limited[name], slowed[name])
+    assert (limited["failed_same_distance"] >= limited["failed"]).all()
+    parked = mission_rollouts(always, "brake", 3.0, starts[1:], mission_limit=3.0)
+    assert parked["short_of_distance"].tolist() == [True] and not parked["failed"].any()
     never = scenario(1.0)
     alone = MissionOutcomes.from_fields(mission_rollouts(never, None, 3.0, starts))
     guarded = MissionOutcomes.from_fields(mission_rollouts(never, "slow_down+dead_reckoning",
