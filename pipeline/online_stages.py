@@ -17,7 +17,8 @@ from reachwatch.reach import ValueFunction
 from reachwatch.reach.liveness import liveness_figures
 from reachwatch.systems import fallback_parts
 from reachwatch.taxi import (UNGUARDED, fallback_rollouts, mission_rollouts, on_runway_starts,
-                             real_missions, resolved, simulate_guarded, sweep_guarded)
+                             perfect_detector_scores, real_missions, resolved, simulate_guarded,
+                             sweep_guarded)
 from reachwatch.taxi.guarded import tradeoff_curves, tradeoff_row
 from reachwatch.taxi.plots import plot_brt_slices, plot_failure_sets, plot_tradeoff
 from reachwatch.training.incremental import fine_tune_taxinet, mine_anomalies
@@ -148,6 +149,10 @@ def guard_environment(run: Run, env) -> dict:
                                 mission_limit=spec.guard.mission_limit)
     volumes = {k: float(v.failed.mean()) for k, v in on_grid.items()}
     liveness = {f: liveness_figures(on_grid[UNGUARDED], on_grid[f]) for f in fallbacks}
+    perfect = fallback_rollouts(scenario, grid, tables, spec.horizon, fallbacks, threshold=0.0,
+                                scores=perfect_detector_scores(run.value_function(env.name), grid),
+                                mission_limit=spec.guard.mission_limit)
+    perfect_liveness = {f: liveness_figures(perfect[UNGUARDED], perfect[f]) for f in fallbacks}
     slices = plot_failure_sets({k: v.failed for k, v in on_grid.items()}, grid, spec.horizon,
                                py=spec.slice_py, half_width=env.half_width,
                                path=run.path(f"figures/guard_{env.name}.png"),
@@ -173,6 +178,7 @@ def guard_environment(run: Run, env) -> dict:
                                        rounds=3, duration=spec.guard.online_seconds,
                                        period=scenario.controller.period)
     return {"threshold": scenario.monitor.threshold, "volumes": volumes, "liveness": liveness,
+            "perfect_detector": perfect_liveness,
             "tradeoff": curves, "tradeoff_figure": run.rel(tradeoff) if tradeoff else None,
             "check": check, "figure": run.rel(slices), "run": run_record,
             "online": {"alone_ticks_per_s": float(np.median(alone)),

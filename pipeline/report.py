@@ -181,6 +181,21 @@ def guard_section(page, env, g, spec, checked):
     page.table(["closed loop", "failure set %", "ended stopped %", "needless stops %",
                 "harmed %", "saved, moving %", "distance / alone", "ticks flagged %",
                 "fails at the same distance %", "short of the distance %"], rows)
+    perfect = g.get("perfect_detector")
+    if perfect:
+        page.text("The same fallbacks with a perfect detector, one that flags exactly the "
+                  "states the BRT holds (the label the detector learns): what is left here no "
+                  "better detector can remove, and the gap between the two tables is the "
+                  "detector's share.")
+        page.table(["fallback, perfect detector", "failure set %", "ended stopped %",
+                    "needless stops %", "ticks flagged %", "fails at the same distance %",
+                    "short of the distance %"],
+                   [[f, _share(v["failure_set"]), _share(v["ended_stopped"]),
+                     _share(v["needless_stops"]),
+                     "-" if v["flagged_ticks"] is None else f"{100 * v['flagged_ticks']:.1f}",
+                     _share(v["same_distance_failure_set"]) if "same_distance_failure_set" in v else "-",
+                     _share(v["short_of_distance"]) if "short_of_distance" in v else "-"]
+                    for f, v in perfect.items()])
     if checked:
         page.text(f"The controller alone in the real loop, from {checked['starts']} random "
                   f"on-runway starts (the grid figures above count every node, off-runway "

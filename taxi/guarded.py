@@ -143,11 +143,13 @@ def p_controller_policy(controller):
 
 
 def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=None,
-                      starts=None, mission_limit=None) -> dict:
+                      starts=None, mission_limit=None, scores=None) -> dict:
     """{UNGUARDED | fallback name: `MissionOutcomes`} from the swept tables of the
     guarded diagram (`sweep_guarded`), at every grid node or at ``starts``. A fallback
     name is a speed strategy with an optional steering (`systems.fallback_parts`).
-    ``mission_limit``: also the same-distance figures (`guarded_rollouts`)."""
+    ``mission_limit``: also the same-distance figures (`guarded_rollouts`). ``scores``
+    (per grid node) replaces the swept detector's scores, e.g. with a perfect
+    detector's (`perfect_detector_scores`)."""
     dynamics = dynamics_for(scenario)
     kw = dict(horizon=horizon, period=scenario.controller.period, starts=starts,
               mission_limit=mission_limit)
@@ -159,7 +161,7 @@ def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=N
             raise ValueError(f"fallback '{name}' needs the controller's estimate, and the "
                              f"controller of this scenario has no 'estimate' output")
         out[name] = guarded_rollouts(
-            grid, dynamics, tables[CONTROL_PORT], tables[SCORE_PORT],
+            grid, dynamics, tables[CONTROL_PORT], tables[SCORE_PORT] if scores is None else scores,
             threshold=scenario.monitor.threshold if threshold is None else threshold,
             strategy=strategy, steering=steering, policy=policy,
             estimate_table=tables[ESTIMATE_PORT] if ESTIMATE_PORT in tables.tables else None,
@@ -167,6 +169,15 @@ def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=N
             flags_needed=scenario.monitor.flags_needed, flag_window=scenario.monitor.flag_window,
             **kw)
     return out
+
+
+def perfect_detector_scores(value_function, grid) -> np.ndarray:
+    """Per node of ``grid``: ``-V``, the score of a perfect detector for the BRT of
+    ``value_function``: at threshold 0 it flags exactly where the (interpolated) BRT
+    holds the state, the label the detector is trained on. With these scores the
+    fallbacks' figures say what a perfect detector would leave to the fallback: the
+    part of the gap that no better detector closes."""
+    return -np.asarray(value_function.at(grid.states()), float).reshape(grid.shape)
 
 
 def tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points: int) -> dict:

@@ -19,8 +19,8 @@ from reachwatch.systems import (DeadReckoning, FallbackSwitch, FlagFilter, confi
                                 fallback_parts, propagate_estimate,
                                 taxi_dynamics)
 from reachwatch.taxi import (UNGUARDED, dynamics_for, fallback_rollouts, guarded_rollouts,
-                             mission_rollouts, p_controller_policy, paper_grid, resolved,
-                             sweep_guarded)
+                             mission_rollouts, p_controller_policy, paper_grid,
+                             perfect_detector_scores, resolved, sweep_guarded)
 from reachwatch.reach import InlineExecutor
 
 PERIOD = 0.05
@@ -313,6 +313,14 @@ def test_table_rollouts_liveness_and_dead_reckoning():
     assert braked.failed.tolist() == [False, False] and braked.stopped.tolist() == [True, False]
     with pytest.raises(ValueError, match="estimate table"):
         guarded_rollouts(grid, dynamics, steer, score, steering="dead_reckoning", policy=policy)
+    # a perfect detector for a BRT that holds px > 0.5 flags what the hand-made one does
+    brt = type("HandMadeBRT", (), {"at": staticmethod(lambda x: 0.5 - np.asarray(x)[:, 0])})()
+    scores = perfect_detector_scores(brt, grid)
+    np.testing.assert_allclose(scores.ravel(), grid.states()[:, 0] - 0.5)
+    perfect = guarded_rollouts(grid, dynamics, steer, scores, threshold=0.0, strategy="brake",
+                               brake_deceleration=4.0, **kw)
+    for name in ("failed", "stopped", "flagged_ticks", "distance"):
+        np.testing.assert_allclose(getattr(perfect, name), getattr(braked, name))
     # a 3-of-3 rule on a detector that flags every tick from the start: the first two
     # ticks are not yet confirmed, every later one is
     always = np.ones_like(score)

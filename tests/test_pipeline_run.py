@@ -159,6 +159,12 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
         assert figures["failure_set"]["rate"] == guard["volumes"][name]
         assert figures["alone_failure_set"]["rate"] == guard["volumes"]["unguarded"]
         assert len(guard["tradeoff"][name]) in (2, 3)
+        # judged by distance too: the controller alone covers the distance within the
+        # horizon, so its failure set is the same either way
+        assert figures["alone_same_distance_failure_set"]["rate"] == guard["volumes"]["unguarded"]
+        perfect = guard["perfect_detector"][name]
+        assert perfect["alone_failure_set"] == figures["alone_failure_set"]
+    assert "fails at the same distance %" in md and "perfect detector" in md
     assert (tmp_path / guard["tradeoff_figure"]).is_file()
     real = guard["check"]["fallbacks"]["brake"]["real"]
     assert guard["check"]["starts"] == real["starts"] == 2
