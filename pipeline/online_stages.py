@@ -159,7 +159,8 @@ def guard_environment(run: Run, env) -> dict:
                                title=f"{env.name}: failing start states (grey), detector at "
                                      f"threshold {scenario.monitor.threshold:.3g}")
     curves = tradeoff_curves(scenario, grid, tables, spec.horizon, fallbacks,
-                             spec.guard.tradeoff_points) if spec.guard.tradeoff_points else {}
+                             spec.guard.tradeoff_points, mission_limit=spec.guard.mission_limit
+                             ) if spec.guard.tradeoff_points else {}
     operating = {f: tradeoff_row(liveness[f], scenario.monitor.threshold) for f in fallbacks}
     tradeoff = (plot_tradeoff(curves, operating=operating, alone=volumes[UNGUARDED],
                               path=run.path(f"figures/tradeoff_{env.name}.png"),

@@ -80,13 +80,13 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
         if limit < 1:
             raise ValueError(f"mission_limit is a multiple of the horizon >= 1, got {limit}")
         steps += [period] * max(0, int(np.ceil((limit - 1) * horizon / period - 1e-9)))
-    covered = np.zeros(n, bool)
+    covered, parked = np.zeros(n, bool), np.zeros(n, bool)
     substeps = positive("substeps", substeps, integer=True)
     at_horizon = None
     for k, dt in enumerate(steps):       # a last partial period when it does not divide
         if k == whole + (tail > 0):      # the horizon's figures, before going on
             at_horizon = _snapshot(failed, v, ever_stopped, distance, flagged_ticks, ticks)
-        active = alive & ~covered
+        active = alive & ~covered & ~parked
         if not active.any():
             break
         interpolate = GridInterpolator(grid, x)
@@ -122,6 +122,8 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
         alive &= ~(active & out)
         if mission_limit is not None:
             covered |= alive & (distance >= goal * (1 - 1e-9))
+            if k + 1 >= whole + (tail > 0):   # past the horizon: standing still while
+                parked |= active & flagged & (v <= 0)     # flagged is for good
     if at_horizon is None:
         at_horizon = _snapshot(failed, v, ever_stopped, distance, flagged_ticks, ticks)
     h_failed, h_v, h_ever, h_distance, h_flagged, h_ticks = at_horizon
@@ -180,18 +182,20 @@ def perfect_detector_scores(value_function, grid) -> np.ndarray:
     return -np.asarray(value_function.at(grid.states()), float).reshape(grid.shape)
 
 
-def tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points: int) -> dict:
+def tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points: int, *,
+                    mission_limit=None) -> dict:
     """{fallback: rows} of the failure set against liveness as the detector threshold
     sweeps the range of the swept scores (``points`` thresholds at evenly spaced
     quantiles of the scores, from flagging every node to flagging almost none), each
     row ``{threshold, failure_set, ended_stopped, needless_stops, distance_ratio,
-    flagged_ticks}`` over the grid's nodes."""
+    flagged_ticks}`` over the grid's nodes; with ``mission_limit``, also the same-distance
+    figures (``same_distance_failure_set``, ``short_of_distance``)."""
     scores = np.asarray(tables[SCORE_PORT], float).ravel()
     thresholds = np.unique(np.quantile(scores, np.linspace(0.0, 1.0, max(points, 2))))
     curves = {name: [] for name in fallbacks}
     for threshold in thresholds:
         runs = fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
-                                 threshold=float(threshold))
+                                 threshold=float(threshold), mission_limit=mission_limit)
         for name in fallbacks:
             curves[name].append(tradeoff_row(liveness_figures(runs[UNGUARDED], runs[name]),
                                              float(threshold)))
@@ -203,4 +207,6 @@ def tradeoff_row(figures: dict, threshold=None) -> dict:
     return {"threshold": threshold, "failure_set": figures["failure_set"]["rate"],
             "ended_stopped": figures["ended_stopped"]["rate"],
             "needless_stops": figures["needless_stops"]["rate"],
-            "distance_ratio": figures["distance_ratio"], "flagged_ticks": figures["flagged_ticks"]}
+            "distance_ratio": figures["distance_ratio"], "flagged_ticks": figures["flagged_ticks"],
+            **{name: figures[name]["rate"] for name in ("same_distance_failure_set",
+                                                        "short_of_distance") if name in figures}}

@@ -57,25 +57,31 @@ def plot_tradeoff(curves, *, operating=None, alone=None, path, title=""):
     travelled relative to the controller alone (right), one curve per fallback as the
     detector threshold sweeps (`taxi.guarded.tradeoff_curves`); ``operating``:
     {fallback: the row at the run's threshold}, marked with a star; ``alone``: the
-    controller alone's failure set, a dashed line."""
+    controller alone's failure set, a dashed line. Rows judged by distance too are
+    plotted by their same-distance failure set (a slower aircraft on the same path only
+    fails later), which for the controller alone is its failure set."""
+    rows_all = [r for rows in curves.values() for r in rows] + list((operating or {}).values())
+    by_distance = bool(rows_all) and all("same_distance_failure_set" in r for r in rows_all)
+    key = "same_distance_failure_set" if by_distance else "failure_set"
     fig, axes = plt.subplots(1, 2, figsize=(9.0, 3.8))
     for k, (name, rows) in enumerate(curves.items()):
         color = f"C{k}"
-        fail = [100 * r["failure_set"] for r in rows]
+        fail = [100 * r[key] for r in rows]
         stopped = [100 * r["ended_stopped"] for r in rows]
         distance = [r["distance_ratio"] for r in rows]
         axes[0].plot(stopped, fail, "o-", color=color, ms=3, label=name)
         axes[1].plot(distance, fail, "o-", color=color, ms=3, label=name)
         if operating and name in operating:
             op = operating[name]
-            axes[0].plot(100 * op["ended_stopped"], 100 * op["failure_set"], "*", color=color,
+            axes[0].plot(100 * op["ended_stopped"], 100 * op[key], "*", color=color,
                          ms=12, mec="k")
-            axes[1].plot(op["distance_ratio"], 100 * op["failure_set"], "*", color=color,
+            axes[1].plot(op["distance_ratio"], 100 * op[key], "*", color=color,
                          ms=12, mec="k")
     for ax in axes:
         if alone is not None:
             ax.axhline(100 * alone, color="k", ls="--", lw=1, label="controller alone")
-        ax.set_ylabel("failure set (% of starts)")
+        ax.set_ylabel("fails at the same distance (% of starts)" if by_distance
+                      else "failure set (% of starts)")
         ax.grid(alpha=0.3)
     axes[0].set_xlabel("starts ended stopped (%)")
     axes[1].set_xlabel("distance travelled / controller alone")

@@ -159,6 +159,7 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
         assert figures["failure_set"]["rate"] == guard["volumes"][name]
         assert figures["alone_failure_set"]["rate"] == guard["volumes"]["unguarded"]
         assert len(guard["tradeoff"][name]) in (2, 3)
+        assert {"same_distance_failure_set", "short_of_distance"} <= set(guard["tradeoff"][name][0])
         # judged by distance too: the controller alone covers the distance within the
         # horizon, so its failure set is the same either way
         assert figures["alone_same_distance_failure_set"]["rate"] == guard["volumes"]["unguarded"]
