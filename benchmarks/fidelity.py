@@ -8,8 +8,8 @@ Label cost is in rendered frames per label of a 1000-state dataset, beyond the m
 - ``brt``: V(x0) <= 0; costs only the map's renders.
 - ``hybrid``: an audit of ``--audit`` other on-runway states decides whether the map
   is trusted (no false-safe among them); the verdict at a check start is then its
-  real outcome where the hybrid rule would roll out (0 < V < band if trusted, V > 0
-  if not), the BRT's elsewhere. Its cost is the audit plus the rolled-out share.
+  real outcome where the hybrid rule would roll out (|V| < band, and every V > 0 if
+  the map is not trusted), the BRT's elsewhere. Its cost is the audit plus the rolled-out share.
 - ``rollout``: the real outcome itself (exact by construction: the same
   deterministic loop); costs every start's frames.
 

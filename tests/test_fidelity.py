@@ -86,9 +86,12 @@ def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
     labels = lambda source, **audit: {"source": source, "audit": audit}  # noqa: E731
     np.testing.assert_array_equal(label_verdicts(labels("brt"), 2.0, values, real), values <= 0)
     np.testing.assert_array_equal(label_verdicts(labels("rollout"), 2.0, values, real), real)
-    # hybrid with a trusted map rolls out only 0 < V < band; with a distrusted one all V > 0
+    # hybrid with a trusted map rolls out only |V| < band; with a distrusted one all V > -band
     np.testing.assert_array_equal(label_verdicts(labels("hybrid", map_trusted=True), 2.0, values, real),
                                   [True, True, False, False])
+    survives = np.array([False, True, True, False])      # the map's unsafe -1.0 is wrong
+    np.testing.assert_array_equal(label_verdicts(labels("hybrid", map_trusted=True), 2.0, values,
+                                                 survives), [False, True, False, False])
     np.testing.assert_array_equal(label_verdicts(labels("hybrid", map_trusted=False), 2.0, values, real),
                                   real)
     results = {"A": {"brt": {"box_exits_rate": 0.3}, "labels": {"source": "brt"}},

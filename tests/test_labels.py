@@ -59,6 +59,22 @@ def test_hybrid_rolls_out_every_safe_verdict_where_the_audit_finds_a_miss():
     assert np.sum((values > 0) & truth) == 2
 
 
+def test_hybrid_rolls_out_unsafe_verdicts_near_the_boundary():
+    """The map calls sample 6 unsafe (V = -2.0, on the band's edge) and sample 4 unsafe
+    (V = -0.5) but the loop survives from both: the hybrid rolls out the on-runway
+    unsafe verdicts within the band (4), keeps those further in (6) and never rolls out
+    a state already off the runway (0)."""
+    values, on_runway = _case()
+    values[4] = -0.5
+    truth = values <= 0
+    truth[[4, 6]] = False
+    loop = FakeLoop(truth)
+    n, labels, sources, info = assign_labels(values, on_runway, LabelSpec("hybrid", audit=3, band=2.0), loop)
+    assert info["audit"]["map_trusted"] and loop.calls == [[1, 2, 3], [4, 9]]
+    assert labels[4] == 0 and sources[4] == SOURCE_ROLLOUT
+    assert labels[6] == 1 and sources[6] == SOURCE_BRT and sources[0] == SOURCE_BRT
+
+
 def test_rollout_budget_keeps_a_uniform_prefix_and_brt_source_runs_nothing():
     values, on_runway = _case()
     truth = values <= 0
