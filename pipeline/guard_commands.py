@@ -85,7 +85,8 @@ def guard_command(args):
     volumes = {k: float(v.failed.mean()) for k, v in runs.items()}
     liveness = {f: liveness_figures(runs[UNGUARDED], runs[f]) for f in args.fallbacks}
     curves = tradeoff_curves(scenario, grid, tables, args.horizon, args.fallbacks,
-                             args.tradeoff_points, mission_limit=args.mission_limit)
+                             args.tradeoff_points, mission_limit=args.mission_limit,
+                             alone=runs[UNGUARDED])
     log.info(f"{name}, grid {list(grid.shape)}, horizon {args.horizon:g} s, detector "
              f"{scenario.monitor.detector} (threshold {scenario.monitor.threshold}); "
              f"rollouts {time.time() - started:.1f} s")

@@ -92,13 +92,11 @@ def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
                 break
             else:
                 stop_save = stop_save or entry
-    chosen = moving_save or stop_save
-    record = {"tried": tried, "confirmed": chosen is not None,
+    record = {"tried": tried, "confirmed": bool(moving_save or stop_save),
               "save": "moving" if moving_save else "stop" if stop_save else None}
-    chosen = chosen or delayed
     if not tried:
         return record
-    shown = chosen or tried[0]
+    shown = moving_save or stop_save or delayed or tried[0]
     shown_scenario = copy.deepcopy(scenario)
     shown_scenario.monitor.strategy, shown_scenario.monitor.steering = fallback_parts(
         shown["fallback"])
@@ -151,7 +149,7 @@ def guard_environment(run: Run, env) -> dict:
     liveness = {f: liveness_figures(on_grid[UNGUARDED], on_grid[f]) for f in fallbacks}
     perfect = fallback_rollouts(scenario, grid, tables, spec.horizon, fallbacks, threshold=0.0,
                                 scores=perfect_detector_scores(run.value_function(env.name), grid),
-                                mission_limit=spec.guard.mission_limit)
+                                mission_limit=spec.guard.mission_limit, alone=on_grid[UNGUARDED])
     perfect_liveness = {f: liveness_figures(perfect[UNGUARDED], perfect[f]) for f in fallbacks}
     slices = plot_failure_sets({k: v.failed for k, v in on_grid.items()}, grid, spec.horizon,
                                py=spec.slice_py, half_width=env.half_width,
@@ -159,8 +157,8 @@ def guard_environment(run: Run, env) -> dict:
                                title=f"{env.name}: failing start states (grey), detector at "
                                      f"threshold {scenario.monitor.threshold:.3g}")
     curves = tradeoff_curves(scenario, grid, tables, spec.horizon, fallbacks,
-                             spec.guard.tradeoff_points, mission_limit=spec.guard.mission_limit
-                             ) if spec.guard.tradeoff_points else {}
+                             spec.guard.tradeoff_points, mission_limit=spec.guard.mission_limit,
+                             alone=on_grid[UNGUARDED]) if spec.guard.tradeoff_points else {}
     operating = {f: tradeoff_row(liveness[f], scenario.monitor.threshold) for f in fallbacks}
     tradeoff = (plot_tradeoff(curves, operating=operating, alone=volumes[UNGUARDED],
                               path=run.path(f"figures/tradeoff_{env.name}.png"),

@@ -148,7 +148,14 @@ def _x(value):
 
 
 def _share(entry):
-    return "-" if entry.get("rate") is None else f"{100 * entry['rate']:.1f} ({entry['count']}/{entry['of']})"
+    """``"12.3 (45/367)"`` for a `liveness_figures` rate (``"-"`` when absent or empty)."""
+    if entry is None or entry.get("rate") is None:
+        return "-"
+    return f"{100 * entry['rate']:.1f} ({entry['count']}/{entry['of']})"
+
+
+def _ticks(figures):
+    return "-" if figures["flagged_ticks"] is None else f"{100 * figures['flagged_ticks']:.1f}"
 
 
 def guard_section(page, env, g, spec, checked):
@@ -170,14 +177,12 @@ def guard_section(page, env, g, spec, checked):
     first = next(iter(g.get("liveness", {}).values()), {})
     alone_same = first.get("alone_same_distance_failure_set")
     rows = [["controller alone", _pct(g["volumes"][UNGUARDED]), "-", "-", "-", "-", "1.00", "-",
-             _share(alone_same) if alone_same else "-", "-"]]
+             _share(alone_same), "-"]]
     for f, v in g.get("liveness", {}).items():
         rows.append([f, _pct(v["failure_set"]["rate"]), _share(v["ended_stopped"]),
                      _share(v["needless_stops"]), _share(v["harmed"]), _share(v["saved_moving"]),
-                     _x(v["distance_ratio"]),
-                     "-" if v["flagged_ticks"] is None else f"{100 * v['flagged_ticks']:.1f}",
-                     _share(v["same_distance_failure_set"]) if "same_distance_failure_set" in v else "-",
-                     _share(v["short_of_distance"]) if "short_of_distance" in v else "-"])
+                     _x(v["distance_ratio"]), _ticks(v),
+                     _share(v.get("same_distance_failure_set")), _share(v.get("short_of_distance"))])
     page.table(["closed loop", "failure set %", "ended stopped %", "needless stops %",
                 "harmed %", "saved, moving %", "distance / alone", "ticks flagged %",
                 "fails at the same distance %", "short of the distance %"], rows)
@@ -191,10 +196,8 @@ def guard_section(page, env, g, spec, checked):
                     "needless stops %", "ticks flagged %", "fails at the same distance %",
                     "short of the distance %"],
                    [[f, _share(v["failure_set"]), _share(v["ended_stopped"]),
-                     _share(v["needless_stops"]),
-                     "-" if v["flagged_ticks"] is None else f"{100 * v['flagged_ticks']:.1f}",
-                     _share(v["same_distance_failure_set"]) if "same_distance_failure_set" in v else "-",
-                     _share(v["short_of_distance"]) if "short_of_distance" in v else "-"]
+                     _share(v["needless_stops"]), _ticks(v),
+                     _share(v.get("same_distance_failure_set")), _share(v.get("short_of_distance"))]
                     for f, v in perfect.items()])
     if checked:
         page.text(f"The controller alone in the real loop, from {checked['starts']} random "

@@ -81,6 +81,18 @@ class MissionOutcomes:
         return {name: getattr(self, name) for name in names}
 
 
+def check_mission_limit(value) -> float:
+    """``value`` as a float, or a clear error: a mission limit is a multiple of the
+    horizon, at least 1."""
+    try:
+        limit = float(value)
+    except (TypeError, ValueError):
+        limit = float("nan")
+    if not (np.isfinite(limit) and limit >= 1):
+        raise ValueError(f"mission_limit is a multiple of the horizon >= 1, got {value!r}")
+    return limit
+
+
 def _rate(mask):
     count, n = int(np.sum(mask)), int(np.size(mask))
     if n == 0:

@@ -10,7 +10,8 @@ import numpy as np
 from reachwatch.diagrams import make_closed_loop_diagram, make_guarded_diagram, simulate
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
-from reachwatch.reach.liveness import MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes
+from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes,
+                                       check_mission_limit)
 from reachwatch.reach.outcomes import Outcomes, map_states, run_outcomes
 from reachwatch.systems import fallback_parts
 
@@ -105,8 +106,8 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
     ``duration``), fails, stands still for `PARKED_SECONDS` or reaches
     ``mission_limit * duration`` s, and the same-distance fields are returned too; the
     others are read from its first ``duration`` s, as without it."""
-    if mission_limit is not None and not (np.isfinite(mission_limit) and mission_limit >= 1):
-        raise ValueError(f"mission_limit is a multiple of the horizon >= 1, got {mission_limit}")
+    if mission_limit is not None:
+        mission_limit = check_mission_limit(mission_limit)
     if fallback is None:
         diagram, context = _loop(scenario, make_closed_loop_diagram)
     else:
@@ -157,14 +158,11 @@ def _mission_done(goal: float, nominal: float, period: float):
     """`simulate`'s ``stop_when`` for a mission: true once the run has covered ``goal``
     m, or has stood still for `PARKED_SECONDS`."""
     parked_ticks = max(1, int(round(PARKED_SECONDS / period)))
-    seen = {"ticks": 0, "distance": 0.0, "still": 0}
+    seen = {"distance": 0.0, "still": 0}
 
-    def done(rows):
-        if seen["ticks"] == len(rows["state"]):
-            return False
-        seen["ticks"] = len(rows["state"])
+    def done(rows):                      # called once per tick, after its row is read
         speed = float(np.ravel(rows["speed"][-1])[0]) if "speed" in rows else nominal
-        if seen["ticks"] > 1:
+        if len(rows["state"]) > 1:       # the first row is the start: nothing travelled
             seen["distance"] += speed * period
         seen["still"] = seen["still"] + 1 if speed <= 0 else 0
         return seen["distance"] >= goal * (1 - 1e-9) or seen["still"] >= parked_ticks

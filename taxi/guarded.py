@@ -15,7 +15,7 @@ from reachwatch.diagrams import CONTROL_PORT, DETECTOR, ESTIMATE_PORT
 from reachwatch.reach.dynamics import positive, rk4_step, split_horizon
 from reachwatch.reach.grid import check_states
 from reachwatch.reach.interpolate import GridInterpolator
-from reachwatch.reach.liveness import MissionOutcomes, liveness_figures
+from reachwatch.reach.liveness import MissionOutcomes, check_mission_limit, liveness_figures
 from reachwatch.systems import (ProportionalController, check_k_of_n, confirmed_flags,
                                 fallback_parts, next_speed, propagate_estimate)
 
@@ -76,9 +76,7 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
     steps = [period] * whole + ([tail] if tail > 0 else [])
     goal = nominal * horizon                      # the controller alone's distance
     if mission_limit is not None:
-        limit = positive("mission_limit", mission_limit)
-        if limit < 1:
-            raise ValueError(f"mission_limit is a multiple of the horizon >= 1, got {limit}")
+        limit = check_mission_limit(mission_limit)
         steps += [period] * max(0, int(np.ceil((limit - 1) * horizon / period - 1e-9)))
     covered, parked = np.zeros(n, bool), np.zeros(n, bool)
     substeps = positive("substeps", substeps, integer=True)
@@ -145,18 +143,21 @@ def p_controller_policy(controller):
 
 
 def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=None,
-                      starts=None, mission_limit=None, scores=None) -> dict:
+                      starts=None, mission_limit=None, scores=None, alone=None) -> dict:
     """{UNGUARDED | fallback name: `MissionOutcomes`} from the swept tables of the
     guarded diagram (`sweep_guarded`), at every grid node or at ``starts``. A fallback
     name is a speed strategy with an optional steering (`systems.fallback_parts`).
     ``mission_limit``: also the same-distance figures (`guarded_rollouts`). ``scores``
     (per grid node) replaces the swept detector's scores, e.g. with a perfect
-    detector's (`perfect_detector_scores`)."""
+    detector's (`perfect_detector_scores`). ``alone``: the controller alone's outcomes
+    from the same starts and settings when already computed (they do not depend on the
+    detector), reused instead of rolled out again."""
     dynamics = dynamics_for(scenario)
     kw = dict(horizon=horizon, period=scenario.controller.period, starts=starts,
               mission_limit=mission_limit)
     policy = p_controller_policy(scenario.controller)
-    out = {UNGUARDED: guarded_rollouts(grid, dynamics, tables[CONTROL_PORT], None, **kw)}
+    out = {UNGUARDED: alone if alone is not None else
+           guarded_rollouts(grid, dynamics, tables[CONTROL_PORT], None, **kw)}
     for name in fallbacks:
         strategy, steering = fallback_parts(name)
         if steering == "dead_reckoning" and ESTIMATE_PORT not in tables.tables:
@@ -183,19 +184,22 @@ def perfect_detector_scores(value_function, grid) -> np.ndarray:
 
 
 def tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points: int, *,
-                    mission_limit=None) -> dict:
+                    mission_limit=None, alone=None) -> dict:
     """{fallback: rows} of the failure set against liveness as the detector threshold
     sweeps the range of the swept scores (``points`` thresholds at evenly spaced
     quantiles of the scores, from flagging every node to flagging almost none), each
     row ``{threshold, failure_set, ended_stopped, needless_stops, distance_ratio,
     flagged_ticks}`` over the grid's nodes; with ``mission_limit``, also the same-distance
-    figures (``same_distance_failure_set``, ``short_of_distance``)."""
+    figures (``same_distance_failure_set``, ``short_of_distance``). ``alone``: the
+    controller alone's outcomes on the grid, when already computed (as `fallback_rollouts`)."""
     scores = np.asarray(tables[SCORE_PORT], float).ravel()
     thresholds = np.unique(np.quantile(scores, np.linspace(0.0, 1.0, max(points, 2))))
     curves = {name: [] for name in fallbacks}
     for threshold in thresholds:
         runs = fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
-                                 threshold=float(threshold), mission_limit=mission_limit)
+                                 threshold=float(threshold), mission_limit=mission_limit,
+                                 alone=alone)
+        alone = runs[UNGUARDED]          # the same for every threshold
         for name in fallbacks:
             curves[name].append(tradeoff_row(liveness_figures(runs[UNGUARDED], runs[name]),
                                              float(threshold)))
