@@ -158,6 +158,13 @@ def _ticks(figures):
     return "-" if figures["flagged_ticks"] is None else f"{100 * figures['flagged_ticks']:.1f}"
 
 
+def _cut_inside(figures):
+    """The failure cut over the starts inside the safe set: at the same distance when
+    judged so, else within the horizon (``"-"`` for runs from before these figures)."""
+    cut = figures.get("same_distance_failure_cut_inside", figures.get("failure_cut_inside"))
+    return "-" if cut is None else f"{100 * cut:.0f}"
+
+
 def guard_section(page, env, g, spec, checked):
     """Failure sets with their liveness per fallback, the trade-off curve, the real-loop
     check and the showcase run of one guard environment."""
@@ -173,19 +180,24 @@ def guard_section(page, env, g, spec, checked):
               f"after the horizon instead of within it. So the last two columns judge the same "
               f"runs by distance: the share that leaves the runway before covering the distance "
               f"the controller alone covers in {spec.horizon:g} s (the runs going on past the "
-              f"horizon), and the share that never covers it (parked or crawling).")
+              f"horizon), and the share that never covers it (parked or crawling). Grid "
+              f"nodes off the runway fail before the first tick and no fallback can save "
+              f"them, yet they count in every failure set; the column 'cut, on-runway "
+              f"starts' gives the cut at the same distance over the other nodes.")
     first = next(iter(g.get("liveness", {}).values()), {})
     alone_same = first.get("alone_same_distance_failure_set")
     rows = [["controller alone", _pct(g["volumes"][UNGUARDED]), "-", "-", "-", "-", "1.00", "-",
-             _share(alone_same), "-"]]
+             _share(alone_same), "-", "-"]]
     for f, v in g.get("liveness", {}).items():
         rows.append([f, _pct(v["failure_set"]["rate"]), _share(v["ended_stopped"]),
                      _share(v["needless_stops"]), _share(v["harmed"]), _share(v["saved_moving"]),
                      _x(v["distance_ratio"]), _ticks(v),
-                     _share(v.get("same_distance_failure_set")), _share(v.get("short_of_distance"))])
+                     _share(v.get("same_distance_failure_set")), _share(v.get("short_of_distance")),
+                     _cut_inside(v)])
     page.table(["closed loop", "failure set %", "ended stopped %", "needless stops %",
                 "harmed %", "saved, moving %", "distance / alone", "ticks flagged %",
-                "fails at the same distance %", "short of the distance %"], rows)
+                "fails at the same distance %", "short of the distance %",
+                "cut, on-runway starts %"], rows)
     perfect = g.get("perfect_detector")
     if perfect:
         page.text("The same fallbacks with a perfect detector, one that flags exactly the "
@@ -194,10 +206,11 @@ def guard_section(page, env, g, spec, checked):
                   "detector's share.")
         page.table(["fallback, perfect detector", "failure set %", "ended stopped %",
                     "needless stops %", "ticks flagged %", "fails at the same distance %",
-                    "short of the distance %"],
+                    "short of the distance %", "cut, on-runway starts %"],
                    [[f, _share(v["failure_set"]), _share(v["ended_stopped"]),
                      _share(v["needless_stops"]), _ticks(v),
-                     _share(v.get("same_distance_failure_set")), _share(v.get("short_of_distance"))]
+                     _share(v.get("same_distance_failure_set")), _share(v.get("short_of_distance")),
+                     _cut_inside(v)]
                     for f, v in perfect.items()])
     if checked:
         page.text(f"The controller alone in the real loop, from {checked['starts']} random "

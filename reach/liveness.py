@@ -116,7 +116,11 @@ def liveness_figures(alone: MissionOutcomes, guarded: MissionOutcomes) -> dict:
     - when both carry the same-distance fields: ``same_distance_failure_set`` (share of
       starts that fail before covering the distance the controller alone covers in the
       horizon), ``same_distance_failure_cut`` (1 - guarded / alone, by that measure) and
-      ``short_of_distance`` (share that neither fails nor covers it: missions lost)."""
+      ``short_of_distance`` (share that neither fails nor covers it: missions lost);
+    - ``failed_at_start``: share of starts outside the safe set already (failed before
+      their first tick, as grid nodes off the runway do): no fallback can save them, yet
+      they count in every failure set, so ``failure_cut_inside`` (and
+      ``same_distance_failure_cut_inside``) give the cut over the other starts."""
     if len(alone) != len(guarded):
         raise ValueError(f"liveness_figures: {len(alone)} starts alone but {len(guarded)} "
                          f"guarded; both must come from the same starts")
@@ -126,8 +130,7 @@ def liveness_figures(alone: MissionOutcomes, guarded: MissionOutcomes) -> dict:
     out = {"starts": len(alone),
            "failure_set": _rate(guarded.failed),
            "alone_failure_set": _rate(alone.failed),
-           "failure_cut": (1.0 - guarded.failed.mean() / alone.failed.mean()
-                           if alone.failed.any() else None),
+           "failure_cut": _cut(alone.failed, guarded.failed),
            "ended_stopped": _rate(guarded.stopped),
            "ever_stopped": _rate(guarded.ever_stopped),
            "needless_stops": _rate(guarded.stopped[survives]),
@@ -136,14 +139,23 @@ def liveness_figures(alone: MissionOutcomes, guarded: MissionOutcomes) -> dict:
            "saved_moving": _rate((~guarded.failed & ~guarded.stopped)[fails]),
            "distance_ratio": float(np.mean(guarded.distance)) / alone_mean if alone_mean > 0 else None,
            "flagged_ticks": int(np.sum(guarded.flagged_ticks)) / ticks if ticks else None}
+    at_start = alone.failed & guarded.failed & (alone.ticks == 0) & (guarded.ticks == 0)
+    out.update(failed_at_start=_rate(at_start),
+               failure_cut_inside=_cut(alone.failed[~at_start], guarded.failed[~at_start]))
     if alone.has_same_distance and guarded.has_same_distance:
-        alone_fails = alone.failed_same_distance.mean()
         out.update(same_distance_failure_set=_rate(guarded.failed_same_distance),
                    alone_same_distance_failure_set=_rate(alone.failed_same_distance),
-                   same_distance_failure_cut=(1.0 - guarded.failed_same_distance.mean() / alone_fails
-                                              if alone_fails > 0 else None),
-                   short_of_distance=_rate(guarded.short_of_distance))
+                   same_distance_failure_cut=_cut(alone.failed_same_distance,
+                                                  guarded.failed_same_distance),
+                   short_of_distance=_rate(guarded.short_of_distance),
+                   same_distance_failure_cut_inside=_cut(alone.failed_same_distance[~at_start],
+                                                         guarded.failed_same_distance[~at_start]))
     return out
+
+
+def _cut(alone_failed, guarded_failed):
+    """1 - guarded / alone failures (None when the controller alone never fails)."""
+    return 1.0 - guarded_failed.mean() / alone_failed.mean() if np.any(alone_failed) else None
 
 
 def percent(entry, digits=1) -> str:
@@ -159,8 +171,14 @@ def same_distance(figures: dict) -> str:
     """The same-distance figures of `liveness_figures` in words (or that there are none)."""
     if "same_distance_failure_set" not in figures:
         return "not judged by distance"
-    cut = figures["same_distance_failure_cut"]
+    cut = _share_text(figures["same_distance_failure_cut"])
+    if figures.get("failed_at_start", {}).get("count"):
+        cut += (f"; {_share_text(figures['same_distance_failure_cut_inside'])} over the starts "
+                f"inside the safe set")
     return (f"at the same distance: alone fails {percent(figures['alone_same_distance_failure_set'])}, "
             f"guarded {percent(figures['same_distance_failure_set'])} "
-            f"(cut {'-' if cut is None else f'{100 * cut:.0f} %'}), short of the distance "
-            f"{percent(figures['short_of_distance'])}")
+            f"(cut {cut}), short of the distance {percent(figures['short_of_distance'])}")
+
+
+def _share_text(value):
+    return "-" if value is None else f"{100 * value:.0f} %"

@@ -192,6 +192,27 @@ def test_liveness_arithmetic_known_answer():
                                                    guarded.as_fields().items()}))
 
 
+def test_cut_over_starts_inside_the_safe_set():
+    """Two starts outside the safe set (failed before their first tick) count in both
+    failure sets and no fallback can save them: 4 of 6 fail alone, 2 guarded, a 50 %
+    cut over all starts but 100 % over the two that start inside."""
+    out = dict(failed=[1, 1, 1, 1, 0, 0], stopped=[0] * 6, ever_stopped=[0] * 6,
+               distance=[0, 0, 10, 20, 40, 40], flagged_ticks=[0] * 6,
+               ticks=[0, 0, 10, 20, 40, 40], failed_same_distance=[1, 1, 1, 1, 0, 0],
+               short_of_distance=[0] * 6)
+    alone = MissionOutcomes(**out)
+    guarded = MissionOutcomes(**{**out, "failed": [1, 1, 0, 0, 0, 0],
+                                 "failed_same_distance": [1, 1, 0, 1, 0, 0],
+                                 "distance": [0, 0, 40, 40, 40, 40],
+                                 "ticks": [0, 0, 40, 40, 40, 40]})
+    f = liveness_figures(alone, guarded)
+    assert (f["failed_at_start"]["count"], f["failed_at_start"]["of"]) == (2, 6)
+    assert f["failure_cut"] == pytest.approx(0.5)
+    assert f["failure_cut_inside"] == pytest.approx(1.0)
+    assert f["same_distance_failure_cut"] == pytest.approx(0.25)
+    assert f["same_distance_failure_cut_inside"] == pytest.approx(0.5)
+
+
 def test_same_distance_figures_known_answer():
     """A straight run that leaves a 10 m runway after 36.1 m, with a detector that
     flags every tick. Alone it fails at 7.22 s, within the 8 s horizon. Slowing down

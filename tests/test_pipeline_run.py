@@ -155,6 +155,10 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
                                      "slow_down+dead_reckoning", "slow_down+oracle"}
     assert guard["volumes"]["brake"] <= guard["volumes"]["unguarded"]
     # liveness beside every failure set, the trade-off curve, the real-loop check
+    nodes = run.grid_for(run.spec.test[0]).states()
+    outside = int(np.sum(np.abs(nodes[:, 0]) >= run.spec.test[0].half_width))
+    off_runway = next(iter(guard["liveness"].values()))["failed_at_start"]
+    assert (off_runway["count"], off_runway["of"]) == (outside, len(nodes))
     for name, figures in guard["liveness"].items():
         assert figures["failure_set"]["rate"] == guard["volumes"][name]
         assert figures["alone_failure_set"]["rate"] == guard["volumes"]["unguarded"]
@@ -165,7 +169,10 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
         assert figures["alone_same_distance_failure_set"]["rate"] == guard["volumes"]["unguarded"]
         perfect = guard["perfect_detector"][name]
         assert perfect["alone_failure_set"] == figures["alone_failure_set"]
+        # the grid's off-runway nodes fail before their first tick, whatever the fallback
+        assert figures["failed_at_start"] == perfect["failed_at_start"] == off_runway
     assert "fails at the same distance %" in md and "perfect detector" in md
+    assert "cut, on-runway starts %" in md
     assert (tmp_path / guard["tradeoff_figure"]).is_file()
     real = guard["check"]["fallbacks"]["brake"]["real"]
     assert guard["check"]["starts"] == real["starts"] == 2
