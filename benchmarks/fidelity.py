@@ -13,6 +13,10 @@ Label cost is in rendered frames per label of a 1000-state dataset, beyond the m
 - ``rollout``: the real outcome itself (exact by construction: the same
   deterministic loop); costs every start's frames.
 
+With ``--robust-spread D [D ...]``, each map is also solved robustly (`reach.robust`):
+where the steering ranges over more than D deg across a node's neighbours, the solver
+takes its worst value in that range; its rows are marked ``+RD`` and cost no renders.
+
 With ``--refine L``, each grid is also refined adaptively ``L`` levels
 (`reach.refine`): each level halves the spacing and renders new nodes only in the
 cells where the BRT's boundary passes within ``--refine-band`` m or the steering
@@ -25,7 +29,7 @@ resumes).
     python benchmarks/fidelity.py [--run-file scenarios/demo.yaml]
         [--day KMWH:9:clear] [--night KSFO:21:overcast] [--grids 11 5 11 21 9 21]
         [--periods-per-step 4 40] [--starts 100] [--audit 30] [--band 2.0] [--cache DIR]
-        [--refine 2] [--refine-band 1.0] [--refine-variation 5]
+        [--refine 2] [--refine-band 1.0] [--refine-variation 5] [--robust-spread 15 20]
         [--theta-deg 28] [--py-max 250] [--exit-fails theta]
 
 ``--theta-deg`` and ``--py-max`` widen the solved box (the check starts stay in the
@@ -35,6 +39,7 @@ a failure in the solver instead of clamping (`reach.solve_brt`'s ``exit_fails``)
 
 import argparse
 import copy
+import dataclasses as dc
 import time
 from pathlib import Path
 
@@ -43,7 +48,7 @@ import numpy as np
 from reachwatch.diagrams import CONTROL_PORT
 from reachwatch.pipeline.evaluate_commands import parse_environment
 from reachwatch.pipeline.spec import load_run_spec
-from reachwatch.reach import compare_verdicts, solve_brt
+from reachwatch.reach import compare_verdicts, local_range, solve_brt
 from reachwatch.systems.files import cache_root
 from reachwatch.taxi import (dynamics_for, on_runway_starts, paper_grid, refine_closed_loop,
                              sweep_closed_loop)
@@ -74,6 +79,9 @@ def main():
     p.add_argument("--refine-band", type=float, default=1.0, help="refine where |V| boundary within (m)")
     p.add_argument("--refine-variation", type=float, default=None,
                    help="refine where the steering varies more than this across a cell (deg)")
+    p.add_argument("--robust-spread", type=float, nargs="*", default=[],
+                   help="also solve each map robustly where the steering ranges over more "
+                   "than each of these deg across a node's neighbours (no renders)")
     p.add_argument("--theta-deg", type=float, default=28.0, help="solved box: |theta| up to (deg)")
     p.add_argument("--py-max", type=float, default=250.0, help="solved box: py up to (m)")
     p.add_argument("--exit-fails", nargs="*", default=[], choices=AXES,
@@ -108,10 +116,12 @@ def main():
                               py_max=args.py_max)
             table = sweep_closed_loop(scenario, grid, cache_dir=cache / "sweeps", progress=True)
 
-            def solve(table, pps=int(pps)):
+            def solve(table, pps=int(pps), spread=None):
+                bounds = None if spread is None else local_range(
+                    table.grid, table[CONTROL_PORT], min_spread=np.deg2rad(spread))
                 return solve_brt(table.grid, dynamics_for(scenario), table[CONTROL_PORT],
                                  horizon=spec.horizon, period=scenario.controller.period,
-                                 periods_per_step=pps,
+                                 periods_per_step=pps, control_bounds=bounds,
                                  exit_fails=[AXES.index(a) for a in args.exit_fails])
             variation = (None if args.refine_variation is None
                          else np.deg2rad(args.refine_variation))
@@ -120,14 +130,19 @@ def main():
                                         cache_dir=cache / "sweeps")
             for level in levels:
                 score(env, level, pps, starts, audit, audited, real, frames, args)
+                for spread in args.robust_spread:
+                    robust = dc.replace(level, solution=solve(level.table, spread=spread))
+                    score(env, robust, pps, starts, audit, audited, real, frames, args,
+                          variant=f"+R{spread:g}")
         print(f"{'':22s} {len(starts)} check runs: {int(real.sum())} failures, "
               f"{100 * np.mean(check['left_box']):.0f} % left the paper box, "
               f"{int(frames.sum())} frames, {seconds:.0f} s with the audit "
               f"(0 s when cached), max |theta| {np.rad2deg(check['max_abs_theta'].max()):.0f} deg")
 
 
-def score(env, level, pps, starts, audit, audited, real, frames, args):
-    """One table row per label source for one BRT map (a refinement ``level``)."""
+def score(env, level, pps, starts, audit, audited, real, frames, args, variant=""):
+    """One table row per label source for one BRT map (a refinement ``level``;
+    ``variant`` names a robust solve of it in the grid column)."""
     vf, grid = level.solution, level.table.grid
     values = vf.at(starts)
     trusted = not np.any(audited.failed & (vf.at(audit) > 0))
@@ -140,6 +155,7 @@ def score(env, level, pps, starts, audit, audited, real, frames, args):
     name = "x".join(map(str, grid.shape)) + f"/{pps}"
     if level.cells is not None:
         name = "x".join(map(str, grid.shape)) + f"r/{pps}"
+    name += variant
     for source, (verdicts, cost) in sources.items():
         f = compare_verdicts(verdicts, real)
         print(f"{env.name:22s} {name:12s} {source:8s} "

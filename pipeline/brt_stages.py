@@ -1,5 +1,6 @@
 """The BRT stages of ``reachwatch run``: sweep every environment's closed loop over
-the solved box, then refine the table adaptively (``refine``) and solve the BRT.
+the solved box, then refine the table adaptively (``refine``) and solve the BRT
+(robust where the swept output varies fast, with ``robust``).
 Each reads the records of the stages before it and returns JSON-able outputs; the
 sweeps and refinements are chunked and cached by content, so a killed stage
 resumes where it stopped."""
@@ -10,7 +11,7 @@ import time
 import numpy as np
 
 from reachwatch.diagrams import CONTROL_PORT
-from reachwatch.reach import min_target_along_rollouts, sign_agreement, solve_brt
+from reachwatch.reach import local_range, min_target_along_rollouts, sign_agreement, solve_brt
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.taxi import dynamics_for, refine_closed_loop, sweep_closed_loop, taxi_sweep_key
 from reachwatch.taxi.plots import plot_brt_slices
@@ -50,9 +51,12 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
 
     def solve(table):
         started = time.time()
+        bounds = (local_range(table.grid, table[CONTROL_PORT], size=spec.robust.neighbourhood,
+                              min_spread=np.deg2rad(spec.robust.min_spread_deg))
+                  if spec.robust.enabled else None)
         vf = solve_brt(table.grid, dynamics, table[CONTROL_PORT], horizon=spec.horizon,
                        accuracy=spec.accuracy, period=scenario.controller.period,
-                       periods_per_step=spec.periods_per_step)
+                       periods_per_step=spec.periods_per_step, control_bounds=bounds)
         solved[0] += time.time() - started
         return vf
     refine = spec.refine
@@ -65,9 +69,11 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     key = table.key                            # the sweep's (`taxi_sweep_key`)
     vf, table = levels[-1].solution, levels[-1].table
     grid, steering = table.grid, table[CONTROL_PORT]
-    vf.metadata.update(environment=env.name, sweep=key, refine_levels=refine.levels)
+    vf.metadata.update(environment=env.name, sweep=key, refine_levels=refine.levels,
+                       robust_min_spread_deg=spec.robust.min_spread_deg)
     name = f"{key}_{spec.horizon:g}s_{spec.accuracy}" + (
-        f"_refined{refine.levels}_{digest(refine)[:8]}" if refine.levels else "")
+        f"_refined{refine.levels}_{digest(refine)[:8]}" if refine.levels else "") + (
+        f"_robust_{digest(spec.robust)[:8]}" if spec.robust.enabled else "")
     path = vf.save(run.path(f"brt/value_{name}.npz"))
     out = {"value": run.rel(path), "brt_fraction": vf.brt_fraction, "grid": list(grid.shape),
            "nodes_rendered": [lv.rendered for lv in levels]}
@@ -101,7 +107,8 @@ def stage_solve(run: Run) -> dict:
     for env in run.environments():
         key = digest(run.records[f"sweep_{env.name}"]["key"], run.spec.horizon,
                      run.spec.accuracy, run.spec.periods_per_step, run.spec.slice_py,
-                     *([run.spec.refine] if run.spec.refine.levels else []))
+                     *([run.spec.refine] if run.spec.refine.levels else []),
+                     *([run.spec.robust] if run.spec.robust.enabled else []))
         out[env.name] = {**run.outputs[f"sweep_{env.name}"], **run.stage(
             f"solve_{env.name}", key, lambda env=env: solve_env(run, env))}
     return out

@@ -29,6 +29,7 @@ def _number(kind, least, strict, what):
 positive_int = _number(int, 0, True, "a whole number >= 1")
 count = _number(int, 0, False, "a whole number >= 0")
 positive_float = _number(float, 0.0, True, "a finite number > 0")
+non_negative_float = _number(float, 0.0, False, "a finite number >= 0")
 
 
 def scenario_from_args(args) -> Scenario:

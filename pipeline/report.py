@@ -309,6 +309,13 @@ def write_report(run: Run) -> dict:
                    if spec.refine.variation_deg is not None else "") +
                   "; every other node is interpolated. 'Nodes rendered' counts each level's "
                   "total.")
+    if spec.robust.enabled:
+        page.text(f"The BRTs are robust: where the swept steering ranges over more than "
+                  f"{spec.robust.min_spread_deg:g} deg across the {spec.robust.neighbourhood}-node "
+                  f"neighbourhood of a node, the solver lets it take the worst value in that "
+                  f"range, since interpolating it there says little about the controller "
+                  f"between the nodes. This can only grow the BRT, so it trades false-safe "
+                  f"verdicts for false-unsafe ones: the fidelity section counts both.")
     page.table(["environment", "role", "grid solved", "nodes rendered", "BRT %",
                 "BRT = table rollouts (all nodes) %", "sweep s", "states/s", "solve s"],
                [[n, roles.get(n, "extra"), "x".join(map(str, r.get("grid", spec.grid))),

@@ -84,6 +84,33 @@ class RefineSpec:
 
 
 @dc.dataclass
+class RobustSpec:
+    """A robust BRT for every environment (`reach.robust`): where the swept steering
+    ranges over more than ``min_spread_deg`` across the ``neighbourhood`` nodes around a
+    node (None = off), the solver lets it take the worst value in that range
+    (`solve_brt`'s ``control_bounds``), since its interpolation there says little about
+    the controller between the nodes."""
+    min_spread_deg: Optional[float] = None
+    neighbourhood: int = 3
+
+    @property
+    def enabled(self) -> bool:
+        return self.min_spread_deg is not None
+
+    def validate(self):
+        if self.min_spread_deg is not None:
+            if isinstance(self.min_spread_deg, bool) or not isinstance(
+                    self.min_spread_deg, (int, float)) or not math.isfinite(
+                    self.min_spread_deg) or self.min_spread_deg < 0:
+                raise ValueError(f"robust.min_spread_deg must be a finite number of degrees "
+                                 f">= 0 (or null for no robust BRT), got {self.min_spread_deg!r}")
+        if isinstance(self.neighbourhood, bool) or not isinstance(self.neighbourhood, int) \
+                or self.neighbourhood < 2:
+            raise ValueError(f"robust.neighbourhood must be a whole number of nodes >= 2, got "
+                             f"{self.neighbourhood!r}")
+
+
+@dc.dataclass
 class RunSpec:
     """A whole study. ``scenario`` holds camera, controller and fallback settings
     (its environment and start are ignored); grids are ``[n_px, n_py, n_theta]``
@@ -114,6 +141,7 @@ class RunSpec:
     guard: GuardSpec = dc.field(default_factory=GuardSpec)
     fidelity: FidelitySpec = dc.field(default_factory=FidelitySpec)
     refine: RefineSpec = dc.field(default_factory=RefineSpec)
+    robust: RobustSpec = dc.field(default_factory=RobustSpec)
     incremental: IncrementalConfig = dc.field(default_factory=IncrementalConfig)
 
     def validate(self):
@@ -151,6 +179,7 @@ class RunSpec:
                              f"'{self.accuracy}'")
         positive("periods_per_step", self.periods_per_step, integer=True)
         self.refine.validate()
+        self.robust.validate()
         if isinstance(self.solved_theta_deg, bool) or not isinstance(
                 self.solved_theta_deg, (int, float)) or not 28.0 <= self.solved_theta_deg <= 180.0:
             raise ValueError(f"solved_theta_deg must be a number of degrees in [28, 180] (the "

@@ -8,12 +8,13 @@ from .dynamics import Dynamics
 from .fidelity import Fidelity, compare_verdicts, left_box, wilson_interval
 from .fingerprint import Unfingerprintable, fingerprint
 from .grid import Grid
+from .robust import local_range
 from .rollouts import min_target_along_rollouts, sign_agreement
 from .solver import ACCURACIES, solve_brt
 from .sweep import (InlineExecutor, Probe, SweepTable, default_executor, stop_executor, sweep,
                     sweep_key)
 from .value_function import ValueFunction
 
-__all__ = ["Dynamics", "Fidelity", "compare_verdicts", "left_box", "wilson_interval", "Unfingerprintable", "fingerprint", "Grid", "min_target_along_rollouts",
+__all__ = ["Dynamics", "Fidelity", "compare_verdicts", "left_box", "wilson_interval", "Unfingerprintable", "fingerprint", "Grid", "local_range", "min_target_along_rollouts",
            "sign_agreement", "ACCURACIES", "solve_brt", "InlineExecutor", "Probe", "SweepTable",
            "default_executor", "stop_executor", "sweep", "sweep_key", "ValueFunction"]

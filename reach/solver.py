@@ -16,6 +16,9 @@ grid (the swept controller output). Accuracy names:
 - ``high`` / ``very_high``: WENO5 + TVD-RK2 / TVD-RK3, CFL steps (continuous feedback).
 """
 
+import functools
+import itertools
+
 import numpy as np
 import torch
 
@@ -71,10 +74,38 @@ def _sampled_flow(grid, dynamics, x, u, target, periods, period, tail=0.0, exit_
     return foot, path_target
 
 
+def _bound_corners(grid, table, control_bounds, accuracy):
+    """The corner tables of ``control_bounds`` (every control component at its ``lo``
+    or its ``hi``), each shaped ``grid.shape + (m,)``; none without bounds."""
+    if control_bounds is None:
+        return []
+    if accuracy != "semi_lagrangian":
+        raise ValueError(f"control_bounds needs accuracy 'semi_lagrangian', got '{accuracy}'")
+    try:
+        lo, hi = (np.asarray(b, dtype=float) for b in control_bounds)
+    except (TypeError, ValueError):
+        raise ValueError("control_bounds must be a pair (lo, hi) of tables") from None
+    for name, bound in (("lo", lo), ("hi", hi)):
+        if bound.shape != table.shape:
+            raise ValueError(f"control_bounds {name} shaped {bound.shape} does not match the "
+                             f"control table {table.shape}")
+        if not np.all(np.isfinite(bound)):
+            raise ValueError(f"control_bounds {name} has {np.sum(~np.isfinite(bound))} "
+                             f"non-finite entries")
+    outside = (lo > table) | (hi < table)
+    if np.any(outside):
+        raise ValueError(f"control_bounds must hold the control table (lo <= table <= hi); "
+                         f"{int(np.sum(outside))} entries lie outside")
+    lo, hi = (b.reshape(grid.shape + (-1,)) for b in (lo, hi))
+    return [np.stack([(hi if pick else lo)[..., k] for k, pick in enumerate(choice)], axis=-1)
+            for choice in itertools.product((0, 1), repeat=lo.shape[-1])]
+
+
 def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
               accuracy: str = "semi_lagrangian", period: float = 0.05,
               periods_per_step: int = 4, cfl: float = 0.75, exit_fails=(),
-              device=None, dtype=torch.float32, progress=None) -> ValueFunction:
+              control_bounds=None, device=None, dtype=torch.float32,
+              progress=None) -> ValueFunction:
     """V(x, 0) of the closed loop ``f(x, control_table(x))`` over exactly ``horizon`` s.
 
     ``control_table``: ``grid.shape`` or ``grid.shape + (m,)``; ``period`` (s) is the
@@ -87,7 +118,15 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
     Where the flow leaves the grid box, the table and V are read at the box's edge
     (clamped): what the loop does out there is unknown. ``exit_fails`` (axis indices,
     ``semi_lagrangian`` only) makes leaving the box on those axes within the horizon a
-    failure instead (V <= 0): conservative where clamping is optimistic."""
+    failure instead (V <= 0): conservative where clamping is optimistic.
+
+    ``control_bounds`` (``(lo, hi)``, two tables shaped like ``control_table``;
+    ``semi_lagrangian`` only) solves a robust BRT: the controller's output at a state
+    may lie anywhere in ``[lo, hi]`` there (e.g. the range of the swept output around
+    each node, `reach.robust.local_range`), and each step takes the worst of the flows
+    under ``control_table`` and under each corner of the bounds (every component at its
+    ``lo`` or ``hi``), the choice held for the step. It covers outputs the grid cannot
+    see between its nodes, and it can only grow the BRT."""
     if accuracy not in ACCURACIES:
         raise ValueError(f"accuracy must be one of {sorted(ACCURACIES)}, got '{accuracy}'")
     horizon = positive("horizon", horizon)
@@ -110,10 +149,12 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
         raise ValueError(f"exit_fails needs accuracy 'semi_lagrangian', got '{accuracy}'")
     if not np.all(np.isfinite(table)):
         raise ValueError(f"control table has {np.sum(~np.isfinite(table))} non-finite entries")
+    corners = _bound_corners(grid, table, control_bounds, accuracy)
     device = _device(device)
     as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)     # noqa: E731
     x = as_t(np.stack(grid.mesh(), axis=-1))                           # (*shape, n)
     u = as_t(table.reshape(grid.shape + (-1,)))
+    controls = [u] + [as_t(c) for c in corners]
     target = dynamics.target(x)
     values = target.clone()
     scheme, order = ACCURACIES[accuracy]
@@ -126,15 +167,19 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
         schedule = ([(rest, tail)] if rest or tail else []) + [(periods_per_step, 0.0)] * full_steps
         maps = {}
         for periods, tail_s in set(schedule):
-            foot, path_target = _sampled_flow(grid, dynamics, x, u, target, periods, period,
-                                              tail_s, exit_fails)
-            maps[periods, tail_s] = path_target, GridInterpolator(grid, foot)  # leaving the box in px = failure
+            maps[periods, tail_s] = []
+            for control in controls:       # the nominal table, then any bounds' corners
+                foot, path_target = _sampled_flow(grid, dynamics, x, control, target, periods,
+                                                  period, tail_s, exit_fails)
+                maps[periods, tail_s].append((path_target, GridInterpolator(grid, foot)))
         steps = len(schedule)
         for k in (progress(range(steps)) if progress else range(steps)):
-            path_target, interpolate = maps[schedule[k]]
-            values = torch.minimum(path_target, interpolate(values))
+            stepped = [torch.minimum(path_target, interpolate(values))
+                       for path_target, interpolate in maps[schedule[k]]]
+            values = functools.reduce(torch.minimum, stepped)
         metadata = {"steps": steps, "periods": whole, "tail": tail,
-                    "dt": period * periods_per_step, "exit_fails": list(exit_fails)}
+                    "dt": period * periods_per_step, "exit_fails": list(exit_fails),
+                    "robust": bool(corners)}
     else:
         field = dynamics.vector_field(x, u).movedim(-1, 0)                # (n, *shape)
         spacing = grid.spacing

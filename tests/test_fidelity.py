@@ -77,6 +77,15 @@ def test_brt_command_reports_real_loop_fidelity_with_intervals(tmp_path, capsys)
     assert "adaptive refinement: 5x3x5 (75 rendered) -> 9x5x9 (" in text
     assert "3 starts" in text and "false-safe" in text and "left the box" in text
     assert re.search(r"agreement \d+\.\d % \[\d+\.\d, \d+\.\d\]", text)
+    nominal = float(re.search(r"BRT volume: (\d+\.\d+)%", text).group(1))
+    # the same maps solved robustly: no new renders, a BRT at least as large
+    assert main(["brt", "--scenario", str(scenario), "--shape", "5", "3", "5", "--out",
+                 str(tmp_path / "robust"), "--cache", str(tmp_path / "cache"), "--executor",
+                 "inline", "--horizon", "1.0", "--drake-starts", "0",
+                 "--robust-spread", "0"]) == 0
+    text = capsys.readouterr().out
+    assert "robust BRT: the steering takes its worst value" in text
+    assert float(re.search(r"BRT volume: (\d+\.\d+)%", text).group(1)) >= nominal
 
 
 def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():

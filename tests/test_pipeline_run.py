@@ -62,6 +62,10 @@ def _ran(log):
     (("horizon: 4.0", "horizon: 4.0\nrefine: {levels: -1}"), "refine.levels must be a whole number >= 0"),
     (("horizon: 4.0", "horizon: 4.0\nsolved_theta_deg: 20"), "solved_theta_deg must be a number of degrees in [28, 180]"),
     (("horizon: 4.0", "horizon: 4.0\nrefine: {levels: 1, band: -2}"), "refine.band must be a finite"),
+    (("horizon: 4.0", "horizon: 4.0\nrobust: {min_spread_deg: -1}"),
+     "robust.min_spread_deg must be a finite number of degrees >= 0"),
+    (("horizon: 4.0", "horizon: 4.0\nrobust: {min_spread_deg: 5, neighbourhood: 1}"),
+     "robust.neighbourhood must be a whole number of nodes >= 2"),
     (("{samples: 40, height: 24", "{labels: {source: oracle}, samples: 40, height: 24"),
      "dataset.labels.source must be one of"),
     (("{samples: 40, height: 24", "{samples: 40, height: 32"), "must equal the detector input"),
@@ -263,6 +267,25 @@ def test_until_stops_and_dask_executor_runs_the_heavy_stages(tmp_path):
     assert {p: p.stat().st_mtime for p in (tmp_path / "sweeps").rglob("*") if p.is_file()} \
         == chunks
     assert STAGES[-1] == "report"
+
+
+def test_a_robust_run_solves_robust_brts_from_the_same_sweeps(tmp_path):
+    """``robust`` changes the solve only: the same sweeps, a BRT at least as large in
+    every environment, saved under its own name and said in the metadata."""
+    sweeps = tmp_path / "sweeps"
+    nominal, _ = _run(tmp_path / "nominal", until="solve", sweep_cache=sweeps)
+    chunks = {p: p.stat().st_mtime for p in sweeps.rglob("*") if p.is_file()}
+    robust, _ = _run(tmp_path / "robust", TINY.replace("horizon: 4.0", "horizon: 4.0\nrobust: "
+                                                      "{min_spread_deg: 0}"),
+                     until="solve", sweep_cache=sweeps)
+    assert {p: p.stat().st_mtime for p in sweeps.rglob("*") if p.is_file()} == chunks
+    for name, solved in robust.outputs["solve"].items():
+        assert "_robust_" in solved["value"]
+        assert solved["brt_fraction"] >= nominal.outputs["solve"][name]["brt_fraction"]
+        vf = robust.value_function(name)
+        assert vf.metadata["robust"] and vf.metadata["robust_min_spread_deg"] == 0
+    assert any(solved["brt_fraction"] > nominal.outputs["solve"][name]["brt_fraction"]
+               for name, solved in robust.outputs["solve"].items())
 
 
 @pytest.mark.slow

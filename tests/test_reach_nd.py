@@ -8,7 +8,7 @@ import pytest
 import torch
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
 
-from reachwatch.reach import (Dynamics, Grid, InlineExecutor, Probe, min_target_along_rollouts,
+from reachwatch.reach import (Dynamics, Grid, InlineExecutor, Probe, local_range, min_target_along_rollouts,
                               sign_agreement, solve_brt, sweep)
 
 GAINS = (1.0, 0.6, 0.3)          # u = -k1 p - k2 v + bias: slightly unstable toward +p
@@ -144,3 +144,78 @@ def test_leaving_the_box_is_clamped_or_a_failure_as_asked():
     with pytest.raises(ValueError, match="exit_fails needs accuracy 'semi_lagrangian'"):
         solve_brt(g, DoubleIntegrator(), table, horizon=0.5, exit_fails=[1], accuracy="low",
                   device="cpu")
+
+
+class Integrator(Dynamics):
+    """x' = u; failure |x| >= 1."""
+    state_dim, control_dim = 1, 1
+
+    def vector_field(self, x, u):
+        return u
+
+    def target(self, x):
+        return 1.0 - x[..., 0].abs()
+
+
+@pytest.mark.parametrize("periods_per_step", [1, 10])
+def test_robust_brt_known_answer(periods_per_step):
+    """Nominal output 0 (stand still), but anywhere in [-1, 1]: over 0.5 s the worst
+    output carries every state 0.5 closer to the nearer edge, so V = 0.5 - |x| instead
+    of 1 - |x|, whether the worst choice is held per period or per 0.5 s step."""
+    g = Grid(lo=[-1.5], hi=[1.5], shape=[61], names=("x",))
+    still = np.zeros(g.shape)
+    kw = dict(horizon=0.5, period=0.05, periods_per_step=periods_per_step, device="cpu",
+              dtype=torch.float64)
+    nominal = solve_brt(g, Integrator(), still, **kw)
+    robust = solve_brt(g, Integrator(), still, control_bounds=(still - 1, still + 1), **kw)
+    x = g.states()[:, 0]
+    inside = np.abs(x) <= 0.9 + 1e-9
+    np.testing.assert_allclose(nominal.values[inside], 1 - np.abs(x[inside]), atol=1e-9)
+    np.testing.assert_allclose(robust.values[inside], 0.5 - np.abs(x[inside]), atol=1e-9)
+    assert robust.metadata["robust"] and not nominal.metadata["robust"]
+    # bounds that hold only the table change nothing
+    same = solve_brt(g, Integrator(), still, control_bounds=(still, still), **kw)
+    np.testing.assert_array_equal(same.values, nominal.values)
+
+
+def test_robust_brt_with_local_range_only_grows_the_brt_and_checks_its_bounds():
+    g = Grid(lo=[-1.2, -2.0], hi=[1.2, 2.0], shape=[25, 21], names=("p", "v"))
+    p, v = g.mesh()
+    k1, k2, bias = GAINS
+    table = -k1 * p - k2 * v + bias + 0.4 * np.sign(np.sin(7 * p))     # jumps between nodes
+    lo, hi = local_range(g, table, min_spread=0.5)
+    wide = (hi - lo) > 0
+    assert 0 < wide.mean() < 1 and np.all(lo[~wide] == table[~wide])
+    nominal = solve_brt(g, DoubleIntegrator(), table, horizon=2.0, device="cpu")
+    robust = solve_brt(g, DoubleIntegrator(), table, horizon=2.0, device="cpu",
+                       control_bounds=(lo, hi))
+    assert np.all(robust.values <= nominal.values + 1e-6)
+    assert robust.brt_fraction > nominal.brt_fraction
+    with pytest.raises(ValueError, match="hi shaped"):
+        solve_brt(g, DoubleIntegrator(), table, control_bounds=(lo, hi[:-1]))
+    with pytest.raises(ValueError, match="2 entries lie outside"):
+        bad = lo.copy()
+        bad[0, :2] = table[0, :2] + 1
+        solve_brt(g, DoubleIntegrator(), table, control_bounds=(bad, hi))
+    with pytest.raises(ValueError, match="needs accuracy 'semi_lagrangian'"):
+        solve_brt(g, DoubleIntegrator(), table, accuracy="low", control_bounds=(lo, hi))
+
+
+def test_local_range_known_answer():
+    g = Grid(lo=[0.0], hi=[4.0], shape=[5], names=("x",))
+    table = np.array([0.0, 0.0, 1.0, 0.0, 0.0])
+    lo, hi = local_range(g, table)
+    np.testing.assert_array_equal(lo, [0, 0, 0, 0, 0])
+    np.testing.assert_array_equal(hi, [0, 1, 1, 1, 0])
+    # with a trailing component: a node counts as wide when any component is
+    two = np.stack([table, [0.0, 0.0, 0.0, 0.0, 3.0]], axis=-1)
+    lo, hi = local_range(g, two, min_spread=2.0)
+    # nodes 3-4 are wide through the second component (3 > 2), so both components take
+    # their range there; node 2 is narrow (spreads 1 and 0) and keeps the table
+    np.testing.assert_array_equal(hi[:, 0], [0, 0, 1, 1, 0])
+    np.testing.assert_array_equal(hi[:, 1], [0, 0, 0, 3, 3])
+    np.testing.assert_array_equal(lo, np.stack([[0, 0, 1, 0, 0], [0] * 5], axis=-1))
+    with pytest.raises(ValueError, match="does not match the grid"):
+        local_range(g, table[:4])
+    with pytest.raises(ValueError, match="size must be"):
+        local_range(g, table, size=1)
