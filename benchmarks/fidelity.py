@@ -6,10 +6,12 @@ with the renders each one costs and 95 % Wilson intervals.
 Label cost is in rendered frames per label of a 1000-state dataset, beyond the map.
 
 - ``brt``: V(x0) <= 0; costs only the map's renders.
-- ``hybrid``: an audit of ``--audit`` other on-runway states decides whether the map
-  is trusted (no false-safe among them); the verdict at a check start is then its
-  real outcome where the hybrid rule would roll out (|V| < band, and every V > 0 if
-  the map is not trusted), the BRT's elsewhere. Its cost is the audit plus the rolled-out share.
+- ``hybrid``: an audit of ``--audit`` other on-runway states measures the largest
+  |V| of a wrong verdict; the band is ``--band``, widened to ``--band-factor`` times
+  that, and the map is trusted when the band is at most ``--max-band`` m. The verdict
+  at a check start is then its real outcome where the hybrid rule would roll out
+  (|V| < band, and every V > 0 if the map is not trusted), the BRT's elsewhere. Its
+  cost is the audit plus the rolled-out share.
 - ``rollout``: the real outcome itself (exact by construction: the same
   deterministic loop); costs every start's frames.
 
@@ -54,7 +56,7 @@ from reachwatch.taxi import (dynamics_for, on_runway_starts, paper_grid, refine_
                              sweep_closed_loop)
 from reachwatch.taxi.grid import AXES
 from reachwatch.taxi.fidelity import real_outcomes
-from reachwatch.training.dataset import hybrid_rolls_out
+from reachwatch.training.dataset import audited_band, hybrid_rolls_out
 
 
 def interval(f, name):
@@ -74,6 +76,10 @@ def main():
     p.add_argument("--starts", type=int, default=100, help="real-loop check starts per environment")
     p.add_argument("--audit", type=int, default=30, help="hybrid audit states per environment")
     p.add_argument("--band", type=float, default=2.0, help="hybrid band (m)")
+    p.add_argument("--band-factor", type=float, default=2.0,
+                   help="hybrid: widen the band to this times the audit's largest error")
+    p.add_argument("--max-band", type=float, default=6.0,
+                   help="hybrid: distrust the map when the widened band exceeds this (m)")
     p.add_argument("--cache", default=None, help="sweep and rollout cache (default: the user cache)")
     p.add_argument("--refine", type=int, default=0, help="adaptive refinement levels of each grid")
     p.add_argument("--refine-band", type=float, default=1.0, help="refine where |V| boundary within (m)")
@@ -145,8 +151,9 @@ def score(env, level, pps, starts, audit, audited, real, frames, args, variant="
     ``variant`` names a robust solve of it in the grid column)."""
     vf, grid = level.solution, level.table.grid
     values = vf.at(starts)
-    trusted = not np.any(audited.failed & (vf.at(audit) > 0))
-    rolled = hybrid_rolls_out(values, args.band, trusted)
+    band, trusted, largest = audited_band(vf.at(audit), audited.failed, band=args.band,
+                                          band_factor=args.band_factor, max_band=args.max_band)
+    rolled = hybrid_rolls_out(values, band if trusted else args.band, trusted)
     sources = {
         "brt": (values <= 0, 0.0),
         "hybrid": (np.where(rolled, real, values <= 0),
@@ -161,7 +168,8 @@ def score(env, level, pps, starts, audit, audited, real, frames, args, variant="
         print(f"{env.name:22s} {name:12s} {source:8s} "
               f"{level.rendered:11d} {cost:12.1f} {interval(f, 'agree'):>22s} "
               f"{interval(f, 'false_safe'):>18s} {interval(f, 'false_unsafe'):>18s}")
-    print(f"{'':22s} hybrid audit: {'map trusted' if trusted else 'map NOT trusted'} "
+    print(f"{'':22s} hybrid audit: largest error {largest:.2f} m, "
+          f"{f'map trusted, band {band:.2f} m' if trusted else 'map NOT trusted'} "
           f"({int(np.sum(audited.failed & (vf.at(audit) > 0)))} false-safe of "
           f"{len(audit)}); rolled out {100 * rolled.mean():.0f} % of the check starts")
 

@@ -25,15 +25,16 @@ class BoxExitError(RuntimeError):
 
 def label_verdicts(labels: dict, band: float, values, real_failed) -> np.ndarray:
     """What a dataset's labelling rule (``labels``: its manifest's record of the
-    source and the audit; ``band`` m) gives at fresh states with BRT values
-    ``values`` whose real outcomes are ``real_failed``: the real outcome where the
-    rule rolls out, the BRT's verdict elsewhere."""
+    source and the audit; ``band`` m where the audit recorded none) gives at fresh
+    states with BRT values ``values`` whose real outcomes are ``real_failed``: the real
+    outcome where the rule rolls out, the BRT's verdict elsewhere."""
     brt = np.asarray(values) <= 0
     if labels["source"] == "brt":
         return brt
     if labels["source"] == "rollout":
         return np.asarray(real_failed, bool)
-    rolled = hybrid_rolls_out(values, band, labels["audit"]["map_trusted"])
+    audit = labels["audit"]
+    rolled = hybrid_rolls_out(values, audit.get("band", band), audit["map_trusted"])
     return np.where(rolled, real_failed, brt)
 
 
@@ -67,7 +68,9 @@ def fidelity_env(run: Run, env) -> dict:
     labels = run.outputs.get("dataset", {}).get("labels", {}).get(env.name)
     if labels:
         verdicts = label_verdicts(labels, spec.dataset.labels.band, vf.at(starts), real)
-        out["labels"] = {"source": labels["source"],
+        audit = labels.get("audit") or {}
+        out["labels"] = {"source": labels["source"], "map_trusted": audit.get("map_trusted"),
+                         "band": audit.get("band", spec.dataset.labels.band) if audit else None,
                          **compare_verdicts(verdicts, real, outcomes["left_box"]).as_dict()}
     return out
 

@@ -73,8 +73,10 @@ class Page:
 LABEL_SOURCE_TEXT = {
     "brt": "anomalous iff V(x) <= 0: as right as the BRT map",
     "rollout": "the real Drake loop run from every state: exact",
-    "hybrid": "the real Drake loop where an audit of the map or the distance to its "
-              "boundary says the BRT is not to be trusted, V(x) <= 0 elsewhere"}
+    "hybrid": "the real Drake loop within a band of the BRT's boundary as wide as an "
+              "audit of the map measures its errors to reach, or wherever the map calls a "
+              "state safe when the audit finds errors too far out to trust it; V(x) <= 0 "
+              "elsewhere"}
 
 
 def _rate(record, name):
@@ -138,9 +140,18 @@ def fidelity_section(page, run: Run, roles):
         page.text("The labels of the datasets against the same real runs: where the "
                   "labelling rule rolls out, the label is the real outcome; elsewhere it is "
                   "the BRT's verdict.")
-        page.table(["environment", "label source", "agreement", "false-safe", "false-unsafe"],
-                   [[n, r["source"], _rate(r, "agree"), _rate(r, "false_safe"),
+        page.table(["environment", "label source", "hybrid's audit", "agreement",
+                    "false-safe", "false-unsafe"],
+                   [[n, r["source"], _audit_text(r), _rate(r, "agree"), _rate(r, "false_safe"),
                      _rate(r, "false_unsafe")] for n, r in labelled.items()])
+
+
+def _audit_text(record):
+    """What the hybrid's audit decided, for the label-fidelity table."""
+    if record.get("map_trusted") is None:
+        return "-"
+    return (f"map trusted, band {record['band']:.2f} m" if record["map_trusted"]
+            else "map not trusted")
 
 
 def _x(value):

@@ -103,6 +103,9 @@ def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
                                                  survives), [False, True, False, False])
     np.testing.assert_array_equal(label_verdicts(labels("hybrid", map_trusted=False), 2.0, values, real),
                                   real)
+    # the band the audit widened to (recorded in the manifest) wins over the run file's
+    np.testing.assert_array_equal(label_verdicts(labels("hybrid", map_trusted=True, band=3.5), 2.0,
+                                                 values, real), [True, True, True, False])
     results = {"A": {"brt": {"box_exits_rate": 0.3}, "labels": {"source": "brt"}},
                "B": {"brt": {"box_exits_rate": 0.3}, "labels": {"source": "hybrid"}},
                "C": {"brt": {"box_exits_rate": 0.01}, "labels": {"source": "brt"}},

@@ -7,7 +7,7 @@ import pytest
 from reachwatch.diagrams import load_scenario, make_closed_loop_diagram, simulate
 from reachwatch.reach import solve_brt
 from reachwatch.taxi import TaxiDynamics, paper_grid
-from reachwatch.training.dataset import (SOURCE_BRT, SOURCE_ROLLOUT, DatasetSpec, LabelSpec,
+from reachwatch.training.dataset import (SOURCE_BRT, SOURCE_ROLLOUT, DatasetSpec, LabelSpec, audited_band,
                                          assign_labels, build_dataset, load_dataset)
 
 
@@ -35,7 +35,8 @@ def test_hybrid_keeps_brt_labels_where_the_audit_finds_the_map_right():
     truth = values <= 0.3                        # the BRT is right except inside its band
     loop = FakeLoop(truth)
     n, labels, sources, info = assign_labels(values, on_runway, LabelSpec("hybrid", audit=3, band=2.0), loop)
-    assert info["audit"] == {"samples": 3, "real_failures": 0, "false_safe": 0, "map_trusted": True}
+    assert info["audit"] == {"samples": 3, "real_failures": 0, "false_safe": 0,
+                             "largest_error_m": 0.0, "map_trusted": True, "band": 2.0}
     # the audit (samples 1, 2, 3), then the safe ones within 2 m of the boundary (4, 9)
     assert loop.calls == [[1, 2, 3], [4, 9]]
     assert n == 10 and list(np.flatnonzero(sources == SOURCE_ROLLOUT)) == [1, 2, 3, 4, 9]
@@ -57,6 +58,31 @@ def test_hybrid_rolls_out_every_safe_verdict_where_the_audit_finds_a_miss():
     assert list(sources) == [SOURCE_BRT if v <= 0 else SOURCE_ROLLOUT for v in values]
     # BRT labels alone would have missed both
     assert np.sum((values > 0) & truth) == 2
+
+
+def test_hybrid_widens_its_band_to_the_errors_the_audit_measures():
+    """The audit finds sample 2 (V = 2.5) wrong: the map's errors reach 2.5 m from the
+    boundary, so the band widens to 2 x 2.5 = 5 m (within max_band 6) and the map stays
+    trusted: every on-runway sample with |V| < 5 is rolled out (4, 6 and 9 after the
+    audit), catching sample 6 (V = -2.0, survives) that the 2 m band would have kept.
+    An error 3.5 m out would need a 7 m band: the map is then not trusted."""
+    values, on_runway = _case()
+    values[2] = 2.5
+    truth = values <= 0
+    truth[[2, 6]] = [True, False]
+    loop = FakeLoop(truth)
+    spec = LabelSpec("hybrid", audit=3, band=2.0, band_factor=2.0, max_band=6.0)
+    n, labels, sources, info = assign_labels(values, on_runway, spec, loop)
+    assert info["audit"]["largest_error_m"] == 2.5 and info["audit"]["band"] == 5.0
+    assert info["audit"]["map_trusted"] and loop.calls == [[1, 2, 3], [4, 6, 9]]
+    np.testing.assert_array_equal(labels, truth)
+    values[2] = 3.5
+    n, labels, sources, info = assign_labels(values, on_runway, spec, FakeLoop(truth))
+    assert not info["audit"]["map_trusted"] and info["audit"]["band"] == 2.0
+    assert audited_band([3.5, -1.0], [True, False], band=2.0, band_factor=2.0,
+                        max_band=6.0) == (7.0, False, 3.5)
+    with pytest.raises(ValueError, match="max_band .* must be at least band"):
+        LabelSpec("hybrid", band=2.0, max_band=1.0).validate()
 
 
 def test_hybrid_rolls_out_unsafe_verdicts_near_the_boundary():

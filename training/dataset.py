@@ -49,15 +49,18 @@ class LabelSpec:
       on-runway state for the BRT's horizon, stopping at failure: exact for a
       deterministic loop, about one render per tick.
     - ``hybrid``: the BRT where the map is trusted, rollouts where it is not. The first
-      ``audit`` on-runway samples are rolled out. If the BRT called any of them safe
-      and the loop failed, the map is not trusted in this environment and every
-      sample it calls safe (``V > 0``) is rolled out; otherwise only the safe samples
-      within ``band`` m of the boundary (``0 < V < band``). In both cases the
-      on-runway samples it calls unsafe within ``band`` m of the boundary
-      (``-band < V <= 0``) are rolled out too; its unsafe verdicts further in are
-      kept. (In night checks its safe verdicts were wrong 1 time in 5 to 1 in 17, its
-      unsafe ones up to 1 in 40, the five of those on KEWR 21 h all within 0.7 m of
-      the boundary.)
+      ``audit`` on-runway samples are rolled out, which measures how far from the
+      boundary the map's wrong verdicts reach: the band rolled out is ``band`` m, or
+      ``band_factor`` times the largest ``|V|`` of a verdict the audit found wrong if
+      that is wider. Where that band is at most ``max_band`` m the map is trusted and
+      the on-runway samples within the band on either side (``|V| < band``) are rolled
+      out. Where it is wider the map is not trusted in this environment: every sample it
+      calls safe (``V > 0``) is rolled out, and its unsafe verdicts within ``band`` m.
+      Unsafe verdicts further in are kept either way. (In night checks of 21x11x21
+      maps the audit found safe verdicts wrong 10-12 m from the boundary, so those maps
+      were not trusted; on a refined 41x21x101 map the audit's largest error was
+      2.2 m, and the 4.4 m band caught all but one of 10 wrong verdicts in 200 fresh
+      starts.)
 
     ``max_rollouts`` (0 = no cap) bounds the rollouts per environment: a dataset that
     would need more keeps only its first samples, as many as the cap allows (they are
@@ -65,6 +68,8 @@ class LabelSpec:
     source: str = "brt"
     audit: int = 50
     band: float = 2.0
+    band_factor: float = 2.0
+    max_band: float = 6.0
     max_rollouts: int = 0
 
     def validate(self, where="dataset.labels"):
@@ -72,8 +77,14 @@ class LabelSpec:
             raise ValueError(f"{where}.source must be one of {LABEL_SOURCES}, got '{self.source}'")
         _whole(f"{where}.audit", self.audit, 0)
         _whole(f"{where}.max_rollouts", self.max_rollouts, 0)
-        if isinstance(self.band, bool) or not np.isfinite(self.band) or self.band < 0:
-            raise ValueError(f"{where}.band must be a number >= 0 m, got {self.band!r}")
+        for name in ("band", "band_factor", "max_band"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not np.isfinite(value) or value < 0:
+                raise ValueError(f"{where}.{name} must be a finite number >= 0, got {value!r}")
+        if self.max_band < self.band:
+            raise ValueError(f"{where}.max_band ({self.max_band} m) must be at least band "
+                             f"({self.band} m)")
         return self
 
 
@@ -159,6 +170,19 @@ def _estimator(controller):
     return (lambda images: np.stack([probe.outputs(image)[1] for image in images])), size
 
 
+def audited_band(values, failed, *, band: float, band_factor: float, max_band: float):
+    """``(band m, map trusted, largest error m)`` from an audit: the real outcomes
+    ``failed`` of states with BRT values ``values``. The largest error is the largest
+    ``|V|`` of a wrong verdict (0 when none); the band is ``band``, widened to
+    ``band_factor`` times that error; the map is trusted when the band is at most
+    ``max_band``."""
+    values, failed = np.asarray(values, float), np.asarray(failed, bool)
+    wrong = (values <= 0) != failed
+    largest = float(np.abs(values[wrong]).max()) if wrong.any() else 0.0
+    widened = max(float(band), band_factor * largest)
+    return widened, widened <= max_band, largest
+
+
 def hybrid_rolls_out(values, band: float, map_trusted: bool) -> np.ndarray:
     """Where the ``hybrid`` source labels by the real loop: the states within ``band``
     of the BRT's boundary on either side (``|V| < band``), and every state the BRT calls
@@ -197,10 +221,14 @@ def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
         run(audit)
         audit_failed = np.array([failed[i] for i in audit.tolist()], bool)
         false_safe = int(np.sum(audit_failed & (values[audit] > 0)))
-        trusted = false_safe == 0
+        band, trusted, largest = audited_band(values[audit], audit_failed, band=labels.band,
+                                              band_factor=labels.band_factor,
+                                              max_band=labels.max_band)
+        band = band if trusted else labels.band
         info["audit"] = {"samples": int(len(audit)), "real_failures": int(audit_failed.sum()),
-                         "false_safe": false_safe, "map_trusted": trusted}
-        uncertain = hybrid_rolls_out(values, labels.band, trusted) & on_runway
+                         "false_safe": false_safe, "largest_error_m": largest,
+                         "map_trusted": trusted, "band": band}
+        uncertain = hybrid_rolls_out(values, band, trusted) & on_runway
         roll = np.union1d(audit, np.flatnonzero(uncertain)).astype(int)
     if labels.max_rollouts and len(roll) > labels.max_rollouts:
         n = int(roll[labels.max_rollouts])     # the first sample whose rollout is over the cap
