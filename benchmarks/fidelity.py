@@ -32,6 +32,7 @@ resumes).
         [--day KMWH:9:clear] [--night KSFO:21:overcast] [--grids 11 5 11 21 9 21]
         [--periods-per-step 4 40] [--starts 100] [--audit 30] [--band 2.0] [--cache DIR]
         [--refine 2] [--refine-band 1.0] [--refine-variation 5] [--robust-spread 15 20]
+        [--plot fidelity.png]
         [--theta-deg 28] [--py-max 250] [--exit-fails theta]
 
 ``--theta-deg`` and ``--py-max`` widen the solved box (the check starts stay in the
@@ -88,6 +89,8 @@ def main():
     p.add_argument("--robust-spread", type=float, nargs="*", default=[],
                    help="also solve each map robustly where the steering ranges over more "
                    "than each of these deg across a node's neighbours (no renders)")
+    p.add_argument("--plot", default=None, metavar="PNG",
+                   help="also draw each map's agreement and false-safe share against its renders")
     p.add_argument("--theta-deg", type=float, default=28.0, help="solved box: |theta| up to (deg)")
     p.add_argument("--py-max", type=float, default=250.0, help="solved box: py up to (m)")
     p.add_argument("--exit-fails", nargs="*", default=[], choices=AXES,
@@ -97,6 +100,7 @@ def main():
         p.error("--grids takes three numbers per grid")
     spec = load_run_spec(args.run_file)
     cache = cache_root() if args.cache is None else Path(args.cache)
+    curves = {}
     print(f"{'environment':22s} {'grid/pps':12s} {'source':8s} {'map renders':>11s} "
           f"{'frames/label':>12s} {'agreement % [95 % CI]':>22s} "
           f"{'false-safe %':>18s} {'false-unsafe %':>18s}")
@@ -115,6 +119,7 @@ def main():
                                 cache_dir=cache / "outcomes")
         seconds = time.time() - started
         real, frames = check.failed, check["ticks"]
+        curve = curves.setdefault(env.name, [])
         variants = [(shape, pps) for shape in np.reshape(args.grids, (-1, 3))
                     for pps in args.periods_per_step]
         for shape, pps in variants:
@@ -135,20 +140,51 @@ def main():
                                         band=args.refine_band, variation=variation,
                                         cache_dir=cache / "sweeps")
             for level in levels:
-                score(env, level, pps, starts, audit, audited, real, frames, args)
+                curve.append(score(env, level, pps, starts, audit, audited, real, frames, args))
                 for spread in args.robust_spread:
                     robust = dc.replace(level, solution=solve(level.table, spread=spread))
-                    score(env, robust, pps, starts, audit, audited, real, frames, args,
-                          variant=f"+R{spread:g}")
+                    curve.append(score(env, robust, pps, starts, audit, audited, real, frames,
+                                       args, variant=f"+R{spread:g}"))
         print(f"{'':22s} {len(starts)} check runs: {int(real.sum())} failures, "
               f"{100 * np.mean(check['left_box']):.0f} % left the paper box, "
               f"{int(frames.sum())} frames, {seconds:.0f} s with the audit "
               f"(0 s when cached), max |theta| {np.rad2deg(check['max_abs_theta'].max()):.0f} deg")
+    if args.plot:
+        plot_curves(curves, args.plot)
+        print(f"wrote {args.plot}")
+
+
+def plot_curves(curves, path):
+    """Agreement and false-safe share of each map's BRT verdicts against the renders
+    it cost, one panel per environment, with 95 % Wilson intervals."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, len(curves), figsize=(6 * len(curves), 4.5), squeeze=False)
+    for ax, (env, rows) in zip(axes[0], curves.items()):
+        renders = np.array([r for _, r, _ in rows], float)
+        for field, label, marker in (("agree", "agreement", "o"), ("false_safe", "false-safe", "x")):
+            rates = np.array([f.rate(field) for _, _, f in rows]) * 100
+            ax.errorbar(renders, rates[:, 0], yerr=[rates[:, 0] - rates[:, 1],
+                                                    rates[:, 2] - rates[:, 0]],
+                        fmt=marker, capsize=3, label=label)
+        for (name, r, f) in rows:
+            ax.annotate(name, (r, 100 * f.rate("agree")[0]), fontsize=7, rotation=30,
+                        textcoords="offset points", xytext=(3, 3))
+        ax.set(xscale="log", xlabel="nodes rendered for the map", ylabel="% of check starts",
+               title=f"{env}: BRT verdicts against the real loop")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="center right")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def score(env, level, pps, starts, audit, audited, real, frames, args, variant=""):
     """One table row per label source for one BRT map (a refinement ``level``;
-    ``variant`` names a robust solve of it in the grid column)."""
+    ``variant`` names a robust solve of it in the grid column). Returns the map's name,
+    its renders and its BRT verdicts' `Fidelity`."""
     vf, grid = level.solution, level.table.grid
     values = vf.at(starts)
     band, trusted, largest = audited_band(vf.at(audit), audited.failed, band=args.band,
@@ -165,6 +201,8 @@ def score(env, level, pps, starts, audit, audited, real, frames, args, variant="
     name += variant
     for source, (verdicts, cost) in sources.items():
         f = compare_verdicts(verdicts, real)
+        if source == "brt":
+            map_fidelity = f
         print(f"{env.name:22s} {name:12s} {source:8s} "
               f"{level.rendered:11d} {cost:12.1f} {interval(f, 'agree'):>22s} "
               f"{interval(f, 'false_safe'):>18s} {interval(f, 'false_unsafe'):>18s}")
@@ -172,6 +210,7 @@ def score(env, level, pps, starts, audit, audited, real, frames, args, variant="
           f"{f'map trusted, band {band:.2f} m' if trusted else 'map NOT trusted'} "
           f"({int(np.sum(audited.failed & (vf.at(audit) > 0)))} false-safe of "
           f"{len(audit)}); rolled out {100 * rolled.mean():.0f} % of the check starts")
+    return name, level.rendered, map_fidelity
 
 
 if __name__ == "__main__":
