@@ -58,9 +58,9 @@ class LabelSpec:
       calls safe (``V > 0``) is rolled out, and its unsafe verdicts within ``band`` m.
       Unsafe verdicts further in are kept either way. (In night checks of 21x11x21
       maps the audit found safe verdicts wrong 10-12 m from the boundary, so those maps
-      were not trusted; on a refined 41x21x101 map the audit's largest error was
-      2.2 m, and the 4.4 m band caught all but one of 10 wrong verdicts in 200 fresh
-      starts.)
+      were not trusted. On KSFO 21 h's refined 41x21x101 map the audit's largest error
+      was 2.2 m, and the 4.4 m band caught all but one of 10 wrong verdicts in 200
+      fresh starts; PAEI 21 h's refined map had an 11 m error and was not trusted.)
 
     ``max_rollouts`` (0 = no cap) bounds the rollouts per environment: a dataset that
     would need more keeps only its first samples, as many as the cap allows (they are
