@@ -119,8 +119,9 @@ class RunSpec:
     demo's 21x9x21 night grids, 4 per step called 14-17 % of the checked starts safe
     that failed in the real loop, 40 per step 6-9 %). ``solved_theta_deg`` widens the
     box the tables are swept and the BRT solved over to |theta| <= it (the loop turns
-    far past the paper's 28 deg at night); labelled states and check starts stay in
-    the paper's box. ``train_random`` / ``test_random``: families of random environments
+    far past the paper's 28 deg at night) and ``solved_py_max`` to py <= it (a loop
+    started near py = 250 m goes on past it within the horizon); labelled states and
+    check starts stay in the paper's box. ``train_random`` / ``test_random``: families of random environments
     (`RandomEnvironments`) added to the listed ``train`` / ``test`` ones; the held-out
     family needs its own seed."""
     name: str = "run"
@@ -134,6 +135,7 @@ class RunSpec:
     accuracy: str = "semi_lagrangian"
     periods_per_step: int = 40
     solved_theta_deg: float = 28.0
+    solved_py_max: float = 250.0
     slice_py: float = 175.0
     dataset: DatasetSpec = dc.field(default_factory=DatasetSpec)
     detector: DetectorTrainConfig = dc.field(default_factory=DetectorTrainConfig)
@@ -184,6 +186,10 @@ class RunSpec:
                 self.solved_theta_deg, (int, float)) or not 28.0 <= self.solved_theta_deg <= 180.0:
             raise ValueError(f"solved_theta_deg must be a number of degrees in [28, 180] (the "
                              f"paper's box is +-28), got {self.solved_theta_deg!r}")
+        if isinstance(self.solved_py_max, bool) or not isinstance(
+                self.solved_py_max, (int, float)) or not 250.0 <= self.solved_py_max < math.inf:
+            raise ValueError(f"solved_py_max must be a finite number of metres >= 250 (the "
+                             f"paper's box ends at py = 250), got {self.solved_py_max!r}")
         self.dataset.validate()
         self.detector.validate()
         n_train = len(self.train) + self.train_random.count

@@ -177,9 +177,10 @@ class Run:
 
     def solved_grid_for(self, env) -> Grid:
         """The box swept and solved over: the paper's, with |theta| up to
-        ``solved_theta_deg``."""
+        ``solved_theta_deg`` and py up to ``solved_py_max``."""
         return paper_grid(env.half_width, tuple(self.spec.grid),
-                          theta_deg=float(self.spec.solved_theta_deg))
+                          theta_deg=float(self.spec.solved_theta_deg),
+                          py_max=float(self.spec.solved_py_max))
 
     def environments(self):
         """Every environment whose BRT the run needs (train, test, guard, incremental)."""

@@ -61,6 +61,7 @@ def _ran(log):
     (("fidelity: {starts: 3", "fidelity: {starts: -1"), "fidelity.starts must be a whole number >= 0"),
     (("horizon: 4.0", "horizon: 4.0\nrefine: {levels: -1}"), "refine.levels must be a whole number >= 0"),
     (("horizon: 4.0", "horizon: 4.0\nsolved_theta_deg: 20"), "solved_theta_deg must be a number of degrees in [28, 180]"),
+    (("horizon: 4.0", "horizon: 4.0\nsolved_py_max: 200"), "solved_py_max must be a finite number of metres >= 250"),
     (("horizon: 4.0", "horizon: 4.0\nrefine: {levels: 1, band: -2}"), "refine.band must be a finite"),
     (("horizon: 4.0", "horizon: 4.0\nrobust: {min_spread_deg: -1}"),
      "robust.min_spread_deg must be a finite number of degrees >= 0"),
@@ -211,13 +212,15 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
 
 def test_refined_run_solves_and_checks_on_the_refined_table(tmp_path):
     text = TINY.replace("horizon: 4.0", "horizon: 4.0\nrefine: {levels: 1, band: 1.0}\n"
-                                        "solved_theta_deg: 56")
+                                        "solved_theta_deg: 56\nsolved_py_max: 290")
     run, _ = _run(tmp_path, text, until="fidelity")
     solved = run.outputs["solve"]["KSFO_17h_clear"]
-    # the tables and the BRT cover |theta| <= 56 deg; the labelled states stay within 28
+    # the tables and the BRT cover |theta| <= 56 deg and py <= 290 m; the labelled states
+    # stay within the paper's box (28 deg, 250 m)
     states = load_dataset(tmp_path / run.outputs["dataset"]["folders"]["KSFO_17h_clear"]).states
     assert np.abs(states[:, 2]).max() <= np.deg2rad(28.0) + 1e-9
-    assert np.isclose(run.value_function("KSFO_17h_clear").grid.hi[2], np.deg2rad(56.0))
+    assert states[:, 1].max() <= 250.0 + 1e-9
+    assert np.allclose(run.value_function("KSFO_17h_clear").grid.hi[1:], [290.0, np.deg2rad(56.0)])
     assert solved["grid"] == [9, 5, 9] and solved["nodes_rendered"][0] == 75
     assert 75 < solved["nodes_rendered"][1] < 9 * 5 * 9
     vf = run.value_function("KSFO_17h_clear")
