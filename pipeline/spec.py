@@ -105,9 +105,9 @@ class RobustSpec:
                 raise ValueError(f"robust.min_spread_deg must be a finite number of degrees "
                                  f">= 0 (or null for no robust BRT), got {self.min_spread_deg!r}")
         if isinstance(self.neighbourhood, bool) or not isinstance(self.neighbourhood, int) \
-                or self.neighbourhood < 2:
-            raise ValueError(f"robust.neighbourhood must be a whole number of nodes >= 2, got "
-                             f"{self.neighbourhood!r}")
+                or self.neighbourhood < 3 or self.neighbourhood % 2 == 0:
+            raise ValueError(f"robust.neighbourhood must be an odd whole number of nodes >= 3, "
+                             f"got {self.neighbourhood!r}")
 
 
 @dc.dataclass

@@ -15,15 +15,17 @@ from .grid import Grid
 def local_range(grid: Grid, table, *, size: int = 3, min_spread: float = 0.0):
     """``(lo, hi)`` per node of ``grid``: the minimum and maximum of ``table`` (shaped
     ``grid.shape`` or ``grid.shape + (m,)``, per component) over the ``size``-wide
-    neighbourhood of nodes around it (fewer at the box's faces). Where no component
+    neighbourhood of nodes centred on it (fewer at the box's faces). Where no component
     ranges over more than ``min_spread`` there, both equal the table: the output varies
     slowly and its interpolation is trusted."""
     table = np.asarray(table, float)
     if table.shape[:grid.ndim] != grid.shape or table.ndim > grid.ndim + 1:
         raise ValueError(f"table shaped {table.shape} does not match the grid {grid.shape} "
                          f"(give grid.shape or grid.shape + (m,))")
-    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 2:
-        raise ValueError(f"size must be a whole number of nodes >= 2, got {size!r}")
+    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 3 \
+            or size % 2 == 0:
+        raise ValueError(f"size must be an odd whole number of nodes >= 3 (a neighbourhood "
+                         f"centred on the node), got {size!r}")
     if not (np.isfinite(min_spread) and min_spread >= 0):
         raise ValueError(f"min_spread must be a finite number >= 0, got {min_spread!r}")
     window = (size,) * grid.ndim + (1,) * (table.ndim - grid.ndim)

@@ -217,5 +217,8 @@ def test_local_range_known_answer():
     np.testing.assert_array_equal(lo, np.stack([[0, 0, 1, 0, 0], [0] * 5], axis=-1))
     with pytest.raises(ValueError, match="does not match the grid"):
         local_range(g, table[:4])
-    with pytest.raises(ValueError, match="size must be"):
-        local_range(g, table, size=1)
+    for size in (1, 2, 4):
+        with pytest.raises(ValueError, match="size must be an odd whole number"):
+            local_range(g, table, size=size)
+    lo, hi = local_range(g, table, size=5)          # the whole 5-node grid from the middle
+    np.testing.assert_array_equal(hi, [1, 1, 1, 1, 1])
