@@ -61,26 +61,30 @@ def test_hybrid_rolls_out_every_safe_verdict_where_the_audit_finds_a_miss():
 
 
 def test_hybrid_widens_its_band_to_the_errors_the_audit_measures():
-    """The audit finds sample 2 (V = 2.5) wrong: the map's errors reach 2.5 m from the
-    boundary, so the band widens to 2 x 2.5 = 5 m (within max_band 6) and the map stays
-    trusted: every on-runway sample with |V| < 5 is rolled out (4, 6 and 9 after the
-    audit), catching sample 6 (V = -2.0, survives) that the 2 m band would have kept.
-    An error 3.5 m out would need a 7 m band: the map is then not trusted."""
+    """The audit finds sample 2 (V = -2.5) wrong, unsafe by the map but survived: the
+    map's errors reach 2.5 m from the boundary, so the band widens to 2 x 2.5 = 5 m
+    (within max_band 6) and the map stays trusted: every on-runway sample with |V| < 5
+    is rolled out (4, 6 and 9 after the audit), catching sample 6 (V = -2.0, survives)
+    that the 2 m band would have kept. An error 3.5 m out would need a 7 m band, and a
+    false-safe verdict anywhere in the audit distrusts the map whatever its distance."""
     values, on_runway = _case()
-    values[2] = 2.5
+    values[2] = -2.5
     truth = values <= 0
-    truth[[2, 6]] = [True, False]
+    truth[[2, 6]] = False
     loop = FakeLoop(truth)
     spec = LabelSpec("hybrid", audit=3, band=2.0, band_factor=2.0, max_band=6.0)
     n, labels, sources, info = assign_labels(values, on_runway, spec, loop)
     assert info["audit"]["largest_error_m"] == 2.5 and info["audit"]["band"] == 5.0
     assert info["audit"]["map_trusted"] and loop.calls == [[1, 2, 3], [4, 6, 9]]
     np.testing.assert_array_equal(labels, truth)
-    values[2] = 3.5
+    values[2] = -3.5
     n, labels, sources, info = assign_labels(values, on_runway, spec, FakeLoop(truth))
     assert not info["audit"]["map_trusted"] and info["audit"]["band"] == 2.0
-    assert audited_band([3.5, -1.0], [True, False], band=2.0, band_factor=2.0,
+    assert audited_band([-3.5, 1.0], [False, False], band=2.0, band_factor=2.0,
                         max_band=6.0) == (7.0, False, 3.5)
+    # a false-safe verdict 0.5 m out: a 2 m band would do, but the map is not trusted
+    assert audited_band([0.5, 3.0], [True, False], band=2.0, band_factor=2.0,
+                        max_band=6.0) == (2.0, False, 0.5)
     with pytest.raises(ValueError, match="max_band .* must be at least band"):
         LabelSpec("hybrid", band=2.0, max_band=1.0).validate()
 

@@ -49,18 +49,16 @@ class LabelSpec:
       on-runway state for the BRT's horizon, stopping at failure: exact for a
       deterministic loop, about one render per tick.
     - ``hybrid``: the BRT where the map is trusted, rollouts where it is not. The first
-      ``audit`` on-runway samples are rolled out, which measures how far from the
-      boundary the map's wrong verdicts reach: the band rolled out is ``band`` m, or
-      ``band_factor`` times the largest ``|V|`` of a verdict the audit found wrong if
-      that is wider. Where that band is at most ``max_band`` m the map is trusted and
-      the on-runway samples within the band on either side (``|V| < band``) are rolled
-      out. Where it is wider the map is not trusted in this environment: every sample it
+      ``audit`` on-runway samples are rolled out. If the BRT called any of them safe and
+      the loop failed, the map is not trusted in this environment: every sample it
       calls safe (``V > 0``) is rolled out, and its unsafe verdicts within ``band`` m.
-      Unsafe verdicts further in are kept either way. (In night checks of 21x11x21
-      maps the audit found safe verdicts wrong 10-12 m from the boundary, so those maps
-      were not trusted. On KSFO 21 h's refined 41x21x101 map the audit's largest error
-      was 2.2 m, and the 4.4 m band caught all but one of 10 wrong verdicts in 200
-      fresh starts; PAEI 21 h's refined map had an 11 m error and was not trusted.)
+      Otherwise the audit's wrong unsafe verdicts say how far from the boundary the
+      map's errors reach: the band is ``band`` m, or ``band_factor`` times the largest
+      ``|V|`` of a wrong verdict if wider, and the on-runway samples within it on either
+      side (``|V| < band``) are rolled out; a band wider than ``max_band`` m distrusts
+      the map too. Unsafe verdicts further in are kept either way. (A false-safe
+      verdict in the audit distrusts the map whatever its distance: on KMWH 21 h clear
+      the audit's one lay 0.5 m from the boundary, the fresh starts' out to 3.9 m.)
 
     ``max_rollouts`` (0 = no cap) bounds the rollouts per environment: a dataset that
     would need more keeps only its first samples, as many as the cap allows (they are
@@ -174,13 +172,16 @@ def audited_band(values, failed, *, band: float, band_factor: float, max_band: f
     """``(band m, map trusted, largest error m)`` from an audit: the real outcomes
     ``failed`` of states with BRT values ``values``. The largest error is the largest
     ``|V|`` of a wrong verdict (0 when none); the band is ``band``, widened to
-    ``band_factor`` times that error; the map is trusted when the band is at most
-    ``max_band``."""
+    ``band_factor`` times that error. The map is trusted when the audit found no
+    false-safe verdict and the band is at most ``max_band``: a false-safe verdict in a
+    small audit says little about how far out the others lie (on KMWH 21 h clear the
+    audit's one sat at V = 0.5 m and 200 fresh starts had them out to 3.9 m)."""
     values, failed = np.asarray(values, float), np.asarray(failed, bool)
     wrong = (values <= 0) != failed
     largest = float(np.abs(values[wrong]).max()) if wrong.any() else 0.0
     widened = max(float(band), band_factor * largest)
-    return widened, widened <= max_band, largest
+    false_safe = bool(np.any(failed & (values > 0)))
+    return widened, widened <= max_band and not false_safe, largest
 
 
 def hybrid_rolls_out(values, band: float, map_trusted: bool) -> np.ndarray:
