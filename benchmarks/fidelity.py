@@ -8,7 +8,8 @@ Label cost is in rendered frames per label of a 1000-state dataset, beyond the m
 - ``brt``: V(x0) <= 0; costs only the map's renders.
 - ``hybrid``: an audit of ``--audit`` other on-runway states measures the largest
   |V| of a wrong verdict; the band is ``--band``, widened to ``--band-factor`` times
-  that, and the map is trusted when the band is at most ``--max-band`` m. The verdict
+  that, and the map is trusted when the audit found no false-safe verdict and the band
+  is at most ``--max-band`` m. The verdict
   at a check start is then its real outcome where the hybrid rule would roll out
   (|V| < band, and every V > 0 if the map is not trusted), the BRT's elsewhere. Its
   cost is the audit plus the rolled-out share.
@@ -51,10 +52,10 @@ import numpy as np
 from reachwatch.diagrams import CONTROL_PORT
 from reachwatch.pipeline.evaluate_commands import parse_environment
 from reachwatch.pipeline.spec import load_run_spec
-from reachwatch.reach import compare_verdicts, local_range, solve_brt
+from reachwatch.reach import compare_verdicts, solve_brt
 from reachwatch.systems.files import cache_root
 from reachwatch.taxi import (dynamics_for, on_runway_starts, paper_grid, refine_closed_loop,
-                             sweep_closed_loop)
+                             steering_bounds, sweep_closed_loop)
 from reachwatch.taxi.grid import AXES
 from reachwatch.taxi.fidelity import real_outcomes
 from reachwatch.training.dataset import audited_band, hybrid_rolls_out
@@ -128,11 +129,10 @@ def main():
             table = sweep_closed_loop(scenario, grid, cache_dir=cache / "sweeps", progress=True)
 
             def solve(table, pps=int(pps), spread=None):
-                bounds = None if spread is None else local_range(
-                    table.grid, table[CONTROL_PORT], min_spread=np.deg2rad(spread))
                 return solve_brt(table.grid, dynamics_for(scenario), table[CONTROL_PORT],
                                  horizon=spec.horizon, period=scenario.controller.period,
-                                 periods_per_step=pps, control_bounds=bounds,
+                                 periods_per_step=pps,
+                                 control_bounds=steering_bounds(table, spread),
                                  exit_fails=[AXES.index(a) for a in args.exit_fails])
             variation = (None if args.refine_variation is None
                          else np.deg2rad(args.refine_variation))
@@ -187,7 +187,8 @@ def score(env, level, pps, starts, audit, audited, real, frames, args, variant="
     its renders and its BRT verdicts' `Fidelity`."""
     vf, grid = level.solution, level.table.grid
     values = vf.at(starts)
-    band, trusted, largest = audited_band(vf.at(audit), audited.failed, band=args.band,
+    audit_values = vf.at(audit)
+    band, trusted, largest = audited_band(audit_values, audited.failed, band=args.band,
                                           band_factor=args.band_factor, max_band=args.max_band)
     rolled = hybrid_rolls_out(values, band if trusted else args.band, trusted)
     sources = {
@@ -208,7 +209,7 @@ def score(env, level, pps, starts, audit, audited, real, frames, args, variant="
               f"{interval(f, 'false_safe'):>18s} {interval(f, 'false_unsafe'):>18s}")
     print(f"{'':22s} hybrid audit: largest error {largest:.2f} m, "
           f"{f'map trusted, band {band:.2f} m' if trusted else 'map NOT trusted'} "
-          f"({int(np.sum(audited.failed & (vf.at(audit) > 0)))} false-safe of "
+          f"({int(np.sum(audited.failed & (audit_values > 0)))} false-safe of "
           f"{len(audit)}); rolled out {100 * rolled.mean():.0f} % of the check starts")
     return name, level.rendered, map_fidelity
 

@@ -11,9 +11,10 @@ import time
 import numpy as np
 
 from reachwatch.diagrams import CONTROL_PORT
-from reachwatch.reach import local_range, min_target_along_rollouts, sign_agreement, solve_brt
+from reachwatch.reach import min_target_along_rollouts, sign_agreement, solve_brt
 from reachwatch.systems.files import atomic_write_bytes
-from reachwatch.taxi import dynamics_for, refine_closed_loop, sweep_closed_loop, taxi_sweep_key
+from reachwatch.taxi import (dynamics_for, refine_closed_loop, steering_bounds, sweep_closed_loop,
+                             taxi_sweep_key)
 from reachwatch.taxi.plots import plot_brt_slices
 
 from .spec import digest
@@ -51,12 +52,11 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
 
     def solve(table):
         started = time.time()
-        bounds = (local_range(table.grid, table[CONTROL_PORT], size=spec.robust.neighbourhood,
-                              min_spread=np.deg2rad(spec.robust.min_spread_deg))
-                  if spec.robust.enabled else None)
         vf = solve_brt(table.grid, dynamics, table[CONTROL_PORT], horizon=spec.horizon,
                        accuracy=spec.accuracy, period=scenario.controller.period,
-                       periods_per_step=spec.periods_per_step, control_bounds=bounds)
+                       periods_per_step=spec.periods_per_step,
+                       control_bounds=steering_bounds(table, spec.robust.min_spread_deg,
+                                                      neighbourhood=spec.robust.neighbourhood))
         solved[0] += time.time() - started
         return vf
     refine = spec.refine

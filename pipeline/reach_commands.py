@@ -7,10 +7,9 @@ from pathlib import Path
 import numpy as np
 
 from reachwatch.diagrams import CONTROL_PORT, ESTIMATE_PORT
-from reachwatch.reach import (ACCURACIES, local_range, min_target_along_rollouts, sign_agreement,
-                              solve_brt)
+from reachwatch.reach import ACCURACIES, min_target_along_rollouts, sign_agreement, solve_brt
 from reachwatch.taxi import (dynamics_for, on_runway_starts, real_loop_fidelity, paper_grid,
-                             refine_closed_loop, sweep_closed_loop)
+                             refine_closed_loop, steering_bounds, sweep_closed_loop)
 from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 
@@ -87,11 +86,10 @@ def brt_command(args):
     started = time.time()
 
     def solve(table):
-        bounds = None if args.robust_spread is None else local_range(
-            table.grid, table[CONTROL_PORT], min_spread=np.deg2rad(args.robust_spread))
         return solve_brt(table.grid, dynamics, table[CONTROL_PORT], horizon=args.horizon,
                          accuracy=args.accuracy, period=scenario.controller.period,
-                         periods_per_step=args.periods_per_step, control_bounds=bounds)
+                         periods_per_step=args.periods_per_step,
+                         control_bounds=steering_bounds(table, args.robust_spread))
     with open_executor(args.executor) as executor:
         levels = refine_closed_loop(scenario, table, solve=solve, levels=args.refine,
                                     band=args.refine_band, executor=executor,
@@ -109,10 +107,9 @@ def brt_command(args):
                                        horizon=args.horizon, progress=None)
     log.info(f"{name}: grid {list(grid.shape)}, accuracy {args.accuracy}, solve{' and refine' if args.refine else ''} {solve_s:.1f} s")
     if args.robust_spread is not None:
-        lo, hi = local_range(grid, control, min_spread=np.deg2rad(args.robust_spread))
         log.info(f"robust BRT: the steering takes its worst value in its neighbours' range at "
-                 f"the {100 * np.mean(np.any((hi - lo).reshape(grid.shape + (-1,)) > 0, axis=-1)):.1f}% "
-                 f"of nodes where that range exceeds {args.robust_spread:g} deg")
+                 f"the {100 * vf.metadata['bounded_nodes']:.1f}% of nodes where that range "
+                 f"exceeds {args.robust_spread:g} deg")
     log.info(f"BRT volume: {100 * vf.brt_fraction:.2f}% of the grid")
     log.info(f"sign agreement with RK4 rollouts (dt 0.01 s, interpolated control) from every "
           f"node: {100 * sign_agreement(vf.values.ravel(), lowest):.2f}%")

@@ -75,8 +75,8 @@ LABEL_SOURCE_TEXT = {
     "rollout": "the real Drake loop run from every state: exact",
     "hybrid": "the real Drake loop within a band of the BRT's boundary as wide as an "
               "audit of the map measures its errors to reach, or wherever the map calls a "
-              "state safe when the audit finds errors too far out to trust it; V(x) <= 0 "
-              "elsewhere"}
+              "state safe when the audit finds a false-safe verdict or errors too far out "
+              "to trust it; V(x) <= 0 elsewhere"}
 
 
 def _rate(record, name):

@@ -126,7 +126,8 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
     each node, `reach.robust.local_range`), and each step takes the worst of the flows
     under ``control_table`` and under each corner of the bounds (every component at its
     ``lo`` or ``hi``), the choice held for the step. It covers outputs the grid cannot
-    see between its nodes, and it can only grow the BRT."""
+    see between its nodes, and it can only grow the BRT. The metadata records the share
+    of nodes whose bounds are wider than the table (``bounded_nodes``)."""
     if accuracy not in ACCURACIES:
         raise ValueError(f"accuracy must be one of {sorted(ACCURACIES)}, got '{accuracy}'")
     horizon = positive("horizon", horizon)
@@ -179,7 +180,9 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
             values = functools.reduce(torch.minimum, stepped)
         metadata = {"steps": steps, "periods": whole, "tail": tail,
                     "dt": period * periods_per_step, "exit_fails": list(exit_fails),
-                    "robust": bool(corners)}
+                    "robust": bool(corners),
+                    "bounded_nodes": float(np.mean(np.any(np.stack(corners) != table.reshape(
+                        grid.shape + (-1,)), axis=(0, -1)))) if corners else 0.0}
     else:
         field = dynamics.vector_field(x, u).movedim(-1, 0)                # (n, *shape)
         spacing = grid.spacing

@@ -10,7 +10,9 @@ from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, ESTIMATE_PORT, PLANT, R
                                  make_guarded_diagram)
 from reachwatch.diagrams.controller import has_estimate
 from reachwatch.diagrams.scenario import InitialState, MonitorConfig, Scenario
-from reachwatch.reach import Grid, Probe, SweepTable, sweep, sweep_key
+import numpy as np
+
+from reachwatch.reach import Grid, Probe, SweepTable, local_range, sweep, sweep_key
 from reachwatch.reach.refine import refine_adaptively
 
 def taxi_probe(scenario, *, guarded=False) -> Probe:
@@ -100,3 +102,14 @@ def refine_closed_loop(scenario, table: SweepTable, *, solve, levels: int, band:
                              levels=levels, band=band, variation=variation,
                              cache_dir=cache_dir, executor=executor, progress=progress,
                              label=scenario.environment.name)
+
+
+def steering_bounds(table: SweepTable, min_spread_deg, *, neighbourhood: int = 3):
+    """``control_bounds`` for a robust `solve_brt` of a swept ``table``: the
+    `reach.local_range` of its steering where that ranges over more than
+    ``min_spread_deg`` across a node's ``neighbourhood``; None (a nominal solve) when
+    ``min_spread_deg`` is None."""
+    if min_spread_deg is None:
+        return None
+    return local_range(table.grid, table[CONTROL_PORT], size=neighbourhood,
+                       min_spread=np.deg2rad(min_spread_deg))
