@@ -12,13 +12,16 @@ from reachwatch.diagrams.contact_sheet import contact_sheet
 from .console import bar, log
 
 
-def _number(kind, least, strict, what):
+def number_type(kind, least, strict, what, most=math.inf):
+    """An argparse type: a ``kind`` number >= ``least`` (> when ``strict``) and <= ``most``,
+    refused with "'TEXT' is not ``what``" otherwise."""
     def parse(text):
         try:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"'{text}' is not {what}") from None
-        if not math.isfinite(value) or value < least or (strict and value == least):
+        if (not math.isfinite(value) or value < least or (strict and value == least)
+                or value > most):
             raise argparse.ArgumentTypeError(f"'{text}' is not {what}")
         return value
     parse.__name__ = what
@@ -26,10 +29,10 @@ def _number(kind, least, strict, what):
 
 
 #: argparse types that reject bad numbers at parse time, before any work is done.
-positive_int = _number(int, 0, True, "a whole number >= 1")
-count = _number(int, 0, False, "a whole number >= 0")
-positive_float = _number(float, 0.0, True, "a finite number > 0")
-non_negative_float = _number(float, 0.0, False, "a finite number >= 0")
+positive_int = number_type(int, 0, True, "a whole number >= 1")
+count = number_type(int, 0, False, "a whole number >= 0")
+positive_float = number_type(float, 0.0, True, "a finite number > 0")
+non_negative_float = number_type(float, 0.0, False, "a finite number >= 0")
 
 
 def scenario_from_args(args) -> Scenario:

@@ -14,15 +14,26 @@ from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 
 from .console import log, progress_enabled
-from .commands import count, non_negative_float, positive_float, positive_int, scenario_from_args
+from .commands import (number_type, count, non_negative_float, positive_float, positive_int,
+                       scenario_from_args)
 from .executors import open_executor
+
+#: the solved box's bounds, as the run file's ``solved_theta_deg`` and ``solved_py_max``
+solved_theta = number_type(float, 28.0, False, "a number of degrees in [28, 180]", most=180.0)
+solved_py = number_type(float, 250.0, False, "a finite number of metres >= 250")
 
 
 def _grid_args(parser):
     parser.add_argument("--scenario", help="scenario YAML (environment, camera, controller)")
     parser.add_argument("--shape", type=positive_int, nargs=3, default=[41, 41, 41],
                         metavar=("NPX", "NPY", "NTHETA"),
-                        help="grid nodes over the paper box (paper: 101 101 101)")
+                        help="grid nodes over the solved box (paper: 101 101 101)")
+    parser.add_argument("--solved-theta-deg", type=solved_theta, default=28.0, metavar="DEG",
+                        help="sweep and solve over |theta| <= DEG (the paper's box: 28); at "
+                        "night the loop turns far past 28 deg within the horizon")
+    parser.add_argument("--solved-py-max", type=solved_py, default=250.0, metavar="M",
+                        help="sweep and solve over py <= M (the paper's box: 250); a start "
+                        "near 250 runs past it within the horizon")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT")
     parser.add_argument("--cache", default=None, help="sweep cache folder "
@@ -59,7 +70,8 @@ def add_parsers(sub):
 
 def _sweep(args):
     scenario = scenario_from_args(args)
-    grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
+    grid = paper_grid(scenario.environment.half_width, tuple(args.shape),
+                      theta_deg=args.solved_theta_deg, py_max=args.solved_py_max)
     started = time.time()
     with open_executor(args.executor) as executor:
         table = sweep_closed_loop(scenario, grid, cache_dir=args.cache or cache_root() / "sweeps",
@@ -114,8 +126,10 @@ def brt_command(args):
     log.info(f"sign agreement with RK4 rollouts (dt 0.01 s, interpolated control) from every "
           f"node: {100 * sign_agreement(vf.values.ravel(), lowest):.2f}%")
     if args.drake_starts:
-        starts = on_runway_starts(grid, args.drake_starts, args.seed,
-                                  half_width=scenario.environment.half_width)
+        # the check starts stay in the paper's box whatever the solved box
+        half_width = scenario.environment.half_width
+        starts = on_runway_starts(paper_grid(half_width, (2, 2, 2)), args.drake_starts,
+                                  args.seed, half_width=half_width)
         fidelity = real_loop_fidelity(scenario, vf, starts, duration=args.horizon,
                                       cache_dir=Path(args.cache or cache_root()) / "outcomes",
                                       progress=progress_enabled())
@@ -124,7 +138,8 @@ def brt_command(args):
         if fidelity.box_exits > 0.05 * fidelity.n:
             log.warning(f"{fidelity.box_exits} of {fidelity.n} real runs left the solved box "
                         f"(py or theta) within the horizon: there the table is clamped to its "
-                        f"edge and the BRT's verdict is a guess; widen the box")
+                        f"edge and the BRT's verdict is a guess; widen the box (--solved-theta-deg, "
+                        f"--solved-py-max)")
     for py in (100.0, 175.0, 250.0):
         plot_brt_slices({name: vf}, py=py, path=out / f"brt_{name}_py{py:.0f}.png",
                         half_width=scenario.environment.half_width)

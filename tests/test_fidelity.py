@@ -88,6 +88,33 @@ def test_brt_command_reports_real_loop_fidelity_with_intervals(tmp_path, capsys)
     assert float(re.search(r"BRT volume: (\d+\.\d+)%", text).group(1)) >= nominal
 
 
+def test_brt_command_widens_the_solved_box_but_checks_starts_in_the_paper_box(
+        tmp_path, capsys, monkeypatch):
+    from reachwatch.pipeline import reach_commands
+    from reachwatch.pipeline.cli import main
+    from reachwatch.reach import ValueFunction
+    seen = {}
+    real = reach_commands.real_loop_fidelity
+
+    def spy(scenario, vf, starts, **kwargs):
+        seen["starts"] = starts
+        return real(scenario, vf, starts, **kwargs)
+    monkeypatch.setattr(reach_commands, "real_loop_fidelity", spy)
+    scenario = tmp_path / "s.yaml"
+    scenario.write_text("environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    assert main(["brt", "--scenario", str(scenario), "--shape", "5", "3", "5", "--out",
+                 str(tmp_path / "out"), "--cache", str(tmp_path / "cache"), "--executor",
+                 "inline", "--horizon", "0.5", "--drake-starts", "4",
+                 "--solved-theta-deg", "70", "--solved-py-max", "290"]) == 0
+    vf = ValueFunction.load(next((tmp_path / "out").glob("value_*.npz")))
+    np.testing.assert_allclose(vf.grid.hi[1:], [290.0, np.deg2rad(70.0)])
+    np.testing.assert_allclose(vf.grid.lo[1:], [100.0, np.deg2rad(-70.0)])
+    starts = seen["starts"]
+    assert len(starts) == 4
+    assert np.all((starts[:, 1] >= 100.0) & (starts[:, 1] <= 250.0))
+    assert np.all(np.abs(starts[:, 2]) <= np.deg2rad(28.0))
+
+
 def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
     from reachwatch.pipeline.fidelity_stages import BoxExitError, check_box_exits, label_verdicts
     values = np.array([-1.0, 0.5, 3.0, 4.0])
