@@ -181,8 +181,9 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
         metadata = {"steps": steps, "periods": whole, "tail": tail,
                     "dt": period * periods_per_step, "exit_fails": list(exit_fails),
                     "robust": bool(corners),
-                    "bounded_nodes": float(np.mean(np.any(np.stack(corners) != table.reshape(
-                        grid.shape + (-1,)), axis=(0, -1)))) if corners else 0.0}
+                    # nodes where the all-hi corner differs from the all-lo one
+                    "bounded_nodes": float(np.mean(np.any(corners[-1] != corners[0], axis=-1)))
+                    if corners else 0.0}
     else:
         field = dynamics.vector_field(x, u).movedim(-1, 0)                # (n, *shape)
         spacing = grid.spacing

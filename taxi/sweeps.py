@@ -5,13 +5,13 @@ import copy
 import functools
 from pathlib import Path
 
+import numpy as np
+
 from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, ESTIMATE_PORT, PLANT, REFERENCE_TAXINET,
                                  make_closed_loop_diagram, make_controller,
                                  make_guarded_diagram)
 from reachwatch.diagrams.controller import has_estimate
 from reachwatch.diagrams.scenario import InitialState, MonitorConfig, Scenario
-import numpy as np
-
 from reachwatch.reach import Grid, Probe, SweepTable, local_range, sweep, sweep_key
 from reachwatch.reach.refine import refine_adaptively
 
