@@ -50,6 +50,9 @@ VARIANTS = {
     "wide channels": {"detector": {"channels": [32, 64, 128, 192]}},
     "12 epochs": {"epochs": 12},
     "half the environments": {"train_environments": 0.5},
+    # With the half above, a learning curve in the number of training environments.
+    "a third of the environments": {"train_environments": 1 / 3},
+    "two thirds of the environments": {"train_environments": 2 / 3},
     # The threshold from detectors that never saw the group they score (4 groups).
     "left-out-group threshold (every group)": {"threshold_folds": 4},
     "left-out-group threshold (pooled)": {"threshold_folds": 4, "threshold_rule": "pooled"},
