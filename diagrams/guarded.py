@@ -40,7 +40,8 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller) -> M
         image_size=metadata.get("image_size")))
     switch = builder.AddNamedSystem(SWITCH, FallbackSwitch(
         strategy=monitor.strategy, steering=monitor.steering, period=controller.period,
-        nominal_speed=controller.speed, brake_deceleration=monitor.brake_deceleration))
+        nominal_speed=controller.speed, brake_deceleration=monitor.brake_deceleration,
+        resume_acceleration=monitor.resume_acceleration))
     builder.Connect(image_port, detector.get_color_image_input_port())
     builder.Connect(steering_port, switch.get_steering_angle_input_port())
     anomaly = detector.get_anomaly_output_port()

@@ -69,7 +69,8 @@ class MonitorConfig:
     """The runtime monitor of the guarded loop: detector checkpoint and threshold, fallback strategy
     (``slow_down`` | ``brake``), steering while flagged (``taxinet`` | ``dead_reckoning``:
     the last trusted estimate carried forward | ``oracle``: the true state, privileged),
-    brake deceleration (m/s^2), and the k-of-n rule that confirms flags: the loop counts
+    brake deceleration (m/s^2), how fast the speed comes back once the image is clear
+    (``resume_acceleration`` m/s^2; 0 = at once, the paper's rule), and the k-of-n rule that confirms flags: the loop counts
     a tick as flagged when at least ``flags_needed`` of the last ``flag_window`` control
     ticks had a score at or above the threshold (1 of 1: every raw flag)."""
     detector: str = ""
@@ -77,15 +78,20 @@ class MonitorConfig:
     strategy: str = "slow_down"
     steering: str = "taxinet"
     brake_deceleration: float = 1.0
+    resume_acceleration: float = 0.0
     flags_needed: int = 1
     flag_window: int = 1
 
     def validate(self):
-        from reachwatch.systems import STEERING, STRATEGIES, check_k_of_n
+        from reachwatch.systems import STEERING, STRATEGIES, check_k_of_n, check_resume_acceleration
         try:
             check_k_of_n(self.flags_needed, self.flag_window)
         except ValueError as e:
             raise ValueError(f"monitor.flags_needed / monitor.flag_window: {e}") from None
+        try:
+            check_resume_acceleration(self.resume_acceleration)
+        except ValueError as e:
+            raise ValueError(f"monitor.{e}") from None
         if self.strategy not in STRATEGIES:
             raise ValueError(f"monitor.strategy must be one of {STRATEGIES}, got "
                              f"'{self.strategy}'")

@@ -29,8 +29,8 @@ from .random_environments import RandomEnvironments, RandomRunwayRanges, random_
 from .scene import add_runway_scene
 from .dead_reckoning import DeadReckoning, propagate_estimate
 from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
-from .switch import (DEFAULT_FALLBACKS, STEERING, STRATEGIES, FallbackSwitch, fallback_name, fallback_parts,
-                     next_speed)
+from .switch import (DEFAULT_FALLBACKS, STEERING, STRATEGIES, FallbackSwitch, check_resume_acceleration,
+                     fallback_name, fallback_parts, next_speed)
 from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, TaxiNet,
                       TrueStateEstimator)
 
@@ -45,5 +45,5 @@ __all__ = [
     "SmallTaxiCNN", "TaxiNetConfig", "TinyTaxiNet", "build_taxinet", "preprocess",
     "PX_GAIN_DEG_PER_M", "THETA_GAIN", "ProportionalController", "TaxiNet", "TrueStateEstimator", "AnomalyDetector",
     "DetectorConfig", "SmallDetectorCNN", "build_detector", "detector_input", "resize_for_detector", "STEERING", "STRATEGIES", "FallbackSwitch",
-    "next_speed", "DEFAULT_FALLBACKS", "fallback_name", "fallback_parts", "DeadReckoning", "propagate_estimate",
+    "next_speed", "check_resume_acceleration", "DEFAULT_FALLBACKS", "fallback_name", "fallback_parts", "DeadReckoning", "propagate_estimate",
 ]

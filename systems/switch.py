@@ -36,13 +36,31 @@ def fallback_name(strategy: str, steering: str = "taxinet") -> str:
 
 
 def next_speed(speed, flagged, *, strategy="slow_down", nominal=NOMINAL_SPEED_MPS,
-               slow_down_step=0.01, brake_deceleration=1.0, period=0.05):
+               slow_down_step=0.01, brake_deceleration=1.0, resume_acceleration=0.0,
+               period=0.05):
     """Speed (m/s) for the next tick. ``slow_down`` (the paper): -0.01 m/s per tick
     while flagged; ``brake``: -``brake_deceleration`` m/s^2 while flagged. Both stop at
-    0 and return to ``nominal`` at once when the image is clear. Works on arrays."""
+    0. When the image is clear the speed returns to ``nominal`` at once
+    (``resume_acceleration`` = 0, the paper's rule), or climbs back at
+    ``resume_acceleration`` m/s^2: then one clear frame in a run of flagged ones costs
+    the braking one tick's worth of speed instead of all of it. Works on arrays."""
     speed, flagged = np.asarray(speed, float), np.asarray(flagged, bool)
     step = slow_down_step if strategy == "slow_down" else brake_deceleration * period
-    return np.where(flagged, np.maximum(speed - step, 0.0), nominal)
+    resumed = (np.full_like(speed, nominal) if not resume_acceleration else
+               np.minimum(speed + resume_acceleration * period, nominal))
+    return np.where(flagged, np.maximum(speed - step, 0.0), resumed)
+
+
+def check_resume_acceleration(value) -> float:
+    """``value`` as a float >= 0 (m/s^2; 0 = back to nominal speed at once), or ValueError."""
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (np.isfinite(value) and value >= 0):
+        raise ValueError(f"resume_acceleration must be a number >= 0 m/s^2 (0 = back to the "
+                         f"nominal speed at once), got {value!r}")
+    return value
 
 
 class FallbackSwitch(LeafSystem):
@@ -69,7 +87,8 @@ class FallbackSwitch(LeafSystem):
     """
 
     def __init__(self, *, strategy="slow_down", steering="taxinet", period=0.05,
-                 nominal_speed=NOMINAL_SPEED_MPS, slow_down_step=0.01, brake_deceleration=1.0):
+                 nominal_speed=NOMINAL_SPEED_MPS, slow_down_step=0.01, brake_deceleration=1.0,
+                 resume_acceleration=0.0):
         super().__init__()
         if strategy not in STRATEGIES:
             raise ValueError(f"FallbackSwitch: strategy must be one of {STRATEGIES}, got "
@@ -81,7 +100,9 @@ class FallbackSwitch(LeafSystem):
             raise ValueError(f"FallbackSwitch: period must be > 0 s, got {period}")
         self._params = dict(strategy=strategy, nominal=float(nominal_speed),
                             slow_down_step=float(slow_down_step),
-                            brake_deceleration=float(brake_deceleration), period=float(period))
+                            brake_deceleration=float(brake_deceleration),
+                            resume_acceleration=check_resume_acceleration(resume_acceleration),
+                            period=float(period))
         self._steering_mode = steering
         self._steering_in = self.DeclareVectorInputPort("steering_angle", 1)
         self._anomaly_in = self.DeclareVectorInputPort("anomaly", 1)

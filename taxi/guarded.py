@@ -169,6 +169,7 @@ def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=N
             strategy=strategy, steering=steering, policy=policy,
             estimate_table=tables[ESTIMATE_PORT] if ESTIMATE_PORT in tables.tables else None,
             brake_deceleration=scenario.monitor.brake_deceleration,
+            resume_acceleration=scenario.monitor.resume_acceleration,
             flags_needed=scenario.monitor.flags_needed, flag_window=scenario.monitor.flag_window,
             **kw)
     return out

@@ -37,6 +37,30 @@ def test_brake_schedule_and_floor():
     np.testing.assert_allclose(next_speed(np.array([0.005, 3.0]), [True, False]), [0.0, 5.0])
 
 
+def test_resume_acceleration_tick_by_tick():
+    """A clear frame inside a run of flagged ones: with the paper's rule the speed
+    jumps back to nominal; with resume_acceleration it climbs back one tick's worth, so
+    the braking goes on almost where it was."""
+    flags = [1, 1, 1, 1, 0, 1, 1, 0, 0, 0]
+    at_once = _switch_ticks(flags, strategy="brake", brake_deceleration=1.0)
+    np.testing.assert_allclose(at_once, [4.95, 4.9, 4.85, 4.8, 5.0, 4.95, 4.9, 5.0, 5.0, 5.0])
+    gradual = _switch_ticks(flags, strategy="brake", brake_deceleration=1.0,
+                            resume_acceleration=2.0)
+    np.testing.assert_allclose(gradual, [4.95, 4.9, 4.85, 4.8, 4.9, 4.85, 4.8, 4.9, 5.0, 5.0])
+    # The table rollouts use the same rule as the LeafSystem.
+    v, table = 5.0, []
+    for f in flags:
+        v = float(next_speed(v, f, strategy="brake", brake_deceleration=1.0,
+                             resume_acceleration=2.0))
+        table.append(v)
+    np.testing.assert_allclose(table, gradual)
+    for bad in (-1.0, float("nan"), "fast"):
+        with pytest.raises(ValueError, match="resume_acceleration"):
+            FallbackSwitch(resume_acceleration=bad)
+    with pytest.raises(ValueError, match="monitor.resume_acceleration"):
+        load_scenario(data="monitor: {resume_acceleration: -2.0}\n")
+
+
 def test_switch_steering_modes_and_errors():
     switch = FallbackSwitch(steering="oracle")
     context = switch.CreateDefaultContext()
