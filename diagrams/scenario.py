@@ -70,9 +70,10 @@ class MonitorConfig:
     (``slow_down`` | ``brake``), steering while flagged (``taxinet`` | ``dead_reckoning``:
     the last trusted estimate carried forward | ``oracle``: the true state, privileged),
     brake deceleration (m/s^2), how fast the speed comes back once the image is clear
-    (``resume_acceleration`` m/s^2; 0 = at once, the paper's rule), and the k-of-n rule that confirms flags: the loop counts
-    a tick as flagged when at least ``flags_needed`` of the last ``flag_window`` control
-    ticks had a score at or above the threshold (1 of 1: every raw flag)."""
+    (``resume_acceleration`` m/s^2; 0 = at once, the paper's rule), and the k-of-n rule
+    that confirms flags: the loop counts a tick as flagged when at least ``flags_needed``
+    of the last ``flag_window`` control ticks had a score at or above the threshold (1 of
+    1: every raw flag)."""
     detector: str = ""
     threshold: float = 0.5
     strategy: str = "slow_down"

@@ -54,13 +54,13 @@ def next_speed(speed, flagged, *, strategy="slow_down", nominal=NOMINAL_SPEED_MP
 def check_resume_acceleration(value) -> float:
     """``value`` as a float >= 0 (m/s^2; 0 = back to nominal speed at once), or ValueError."""
     try:
-        value = float(value)
+        number = float(value)
     except (TypeError, ValueError):
-        value = float("nan")
-    if not (np.isfinite(value) and value >= 0):
+        number = float("nan")
+    if not (np.isfinite(number) and number >= 0):
         raise ValueError(f"resume_acceleration must be a number >= 0 m/s^2 (0 = back to the "
                          f"nominal speed at once), got {value!r}")
-    return value
+    return number
 
 
 class FallbackSwitch(LeafSystem):

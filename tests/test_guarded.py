@@ -55,7 +55,7 @@ def test_resume_acceleration_tick_by_tick():
         table.append(v)
     np.testing.assert_allclose(table, gradual)
     for bad in (-1.0, float("nan"), "fast"):
-        with pytest.raises(ValueError, match="resume_acceleration"):
+        with pytest.raises(ValueError, match=f"resume_acceleration.*got {bad!r}"):
             FallbackSwitch(resume_acceleration=bad)
     with pytest.raises(ValueError, match="monitor.resume_acceleration"):
         load_scenario(data="monitor: {resume_acceleration: -2.0}\n")
