@@ -1,6 +1,7 @@
 """``reachwatch guard``: failure sets with and without the fallback."""
 
 import argparse
+import dataclasses as dc
 import json
 import time
 from pathlib import Path
@@ -57,6 +58,14 @@ def _fallback(text):
     return text
 
 
+def _monitor_settings(monitor) -> str:
+    """The monitor settings every fallback shares, as the log shows them."""
+    resume = ("at once" if not monitor.resume_acceleration
+              else f"at {monitor.resume_acceleration:g} m/s^2")
+    return (f"brake {monitor.brake_deceleration:g} m/s^2, speed back {resume}, flags "
+            f"{monitor.flags_needed} of {monitor.flag_window}")
+
+
 def guard_command(args):
     scenario = load_scenario(args.scenario)
     grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
@@ -89,7 +98,7 @@ def guard_command(args):
                              alone=runs[UNGUARDED])
     log.info(f"{name}, grid {list(grid.shape)}, horizon {args.horizon:g} s, detector "
              f"{scenario.monitor.detector} (threshold {scenario.monitor.threshold}); "
-             f"rollouts {time.time() - started:.1f} s")
+             f"{_monitor_settings(scenario.monitor)}; rollouts {time.time() - started:.1f} s")
     log.info(f"  controller alone: failure set {100 * volumes[UNGUARDED]:.2f}% of the grid")
     for f, v in liveness.items():
         log.info(f"  {f}: failure set {percent(v['failure_set'])}, ended stopped "
@@ -104,7 +113,8 @@ def guard_command(args):
                      f"{percent(v['failure_set'])}, ended stopped {percent(v['ended_stopped'])}, "
                      f"needless stops {percent(v['needless_stops'])}; {same_distance(v)}")
     atomic_write_bytes(out / f"guard_{name}.json", json.dumps(
-        {"volumes": volumes, "liveness": liveness, "tradeoff": curves, "check": check},
+        {"monitor": dc.asdict(scenario.monitor), "volumes": volumes, "liveness": liveness,
+         "tradeoff": curves, "check": check},
         indent=1).encode())
     plot_failure_sets({k: v.failed for k, v in runs.items()}, grid, args.horizon, py=175.0,
                       path=out / f"guard_{name}.png", half_width=scenario.environment.half_width,
