@@ -14,7 +14,7 @@ from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 
 from .console import log, progress_enabled
-from .commands import (number_type, count, non_negative_float, positive_float, positive_int,
+from .commands import (count, non_negative_float, number_type, positive_float, positive_int,
                        scenario_from_args)
 from .executors import open_executor
 
