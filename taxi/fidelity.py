@@ -3,11 +3,13 @@ the rollout function behind rollout labels and every fidelity check, and the
 missions (failure and liveness) of the loop alone and guarded by each fallback."""
 
 import copy
+import dataclasses as dc
 import functools
 
 import numpy as np
 
-from reachwatch.diagrams import make_closed_loop_diagram, make_guarded_diagram, simulate
+from reachwatch.diagrams import (MonitorConfig, make_closed_loop_diagram, make_guarded_diagram,
+                                 simulate)
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes,
@@ -66,12 +68,19 @@ def taxi_rollouts(scenario, duration: float, grid, states) -> dict:
     return {k: np.asarray(v) for k, v in out.items()}
 
 
+def without_monitor(scenario):
+    """``scenario`` with the default monitor. The controller alone's loop never reads
+    the monitor (detector, threshold, fallback), so its cached runs are keyed without
+    it: a run with another detector or fallback setting reuses them."""
+    return dc.replace(resolved(scenario), monitor=MonitorConfig())
+
+
 def real_outcomes(scenario, starts, *, grid, duration: float, cache_dir, executor=None,
                   progress=True) -> Outcomes:
     """`taxi_rollouts` from every start, cached under ``cache_dir`` by content (the
     scenario, the horizon, ``grid``'s box and the starts): a killed batch resumes, a
-    repeated one costs nothing."""
-    scenario = resolved(scenario)
+    repeated one costs nothing. The monitor is not part of the key (`without_monitor`)."""
+    scenario = without_monitor(scenario)
     rollout = functools.partial(taxi_rollouts, scenario, float(duration), grid)
     return run_outcomes(rollout, starts, cache_dir=cache_dir, executor=executor,
                         progress=progress, label=scenario.environment.name)
@@ -172,8 +181,10 @@ def _mission_done(goal: float, nominal: float, period: float):
 def real_missions(scenario, starts, *, fallback=None, duration: float, cache_dir,
                   mission_limit=None, executor=None, progress=True) -> MissionOutcomes:
     """`mission_rollouts` from every start, cached by content under ``cache_dir`` like
-    `real_outcomes` (a killed batch resumes, a repeated one costs nothing)."""
-    scenario = resolved(scenario)
+    `real_outcomes` (a killed batch resumes, a repeated one costs nothing). The
+    controller alone's runs (``fallback=None``) are keyed without the monitor
+    (`without_monitor`), so they are shared by every detector and fallback setting."""
+    scenario = resolved(scenario) if fallback else without_monitor(scenario)
     rollout = functools.partial(mission_rollouts, scenario, fallback, float(duration),
                                 **({} if mission_limit is None
                                    else {"mission_limit": float(mission_limit)}))

@@ -9,7 +9,7 @@ import pytest
 from reachwatch.diagrams import load_scenario, make_closed_loop_diagram, simulate
 from reachwatch.reach.outcomes import outcomes_key, run_outcomes
 from reachwatch.taxi import paper_grid
-from reachwatch.taxi.fidelity import real_outcomes
+from reachwatch.taxi.fidelity import real_missions, real_outcomes
 
 CALLS = []
 
@@ -68,3 +68,24 @@ def test_real_outcomes_equal_direct_simulation(tmp_path):
         assert outcomes["ticks"][i] == len(run.time)
     assert outcomes.failed[2] and outcomes["ticks"][2] == 0      # started off the runway
     assert outcomes.failed[1] and not outcomes.failed[0]
+
+
+def test_runs_of_the_controller_alone_are_cached_without_the_monitor(tmp_path):
+    """The loop alone never reads the monitor: scenarios that differ only there share
+    its cached runs (a new detector or fallback setting does not re-run them)."""
+    text = "environment: {runway: KMWH, hour: 9.0, sky: clear}\n"
+    plain = load_scenario(data=text)
+    braking = load_scenario(data=text + "monitor: {strategy: brake, threshold: 0.3, "
+                                        "resume_acceleration: 1.0}\n")
+    starts = np.array([[-30.0, 120.0, 0.0]])        # off the runway: no frame rendered
+    grid = paper_grid(plain.environment.half_width, (3, 3, 3))
+    for scenario in (plain, braking):
+        real_missions(scenario, starts, duration=1.0, cache_dir=tmp_path / "missions",
+                      progress=False)
+        real_outcomes(scenario, starts, grid=grid, duration=1.0,
+                      cache_dir=tmp_path / "outcomes", progress=False)
+    assert len(list((tmp_path / "missions").iterdir())) == 1
+    assert len(list((tmp_path / "outcomes").iterdir())) == 1
+    other = load_scenario(data="environment: {runway: KMWH, hour: 21.0, sky: clear}\n")
+    real_missions(other, starts, duration=1.0, cache_dir=tmp_path / "missions", progress=False)
+    assert len(list((tmp_path / "missions").iterdir())) == 2      # the environment counts
