@@ -11,16 +11,47 @@ import time
 import numpy as np
 
 from reachwatch.reach import compare_verdicts, min_target_along_rollouts
-from reachwatch.taxi import dynamics_for, on_runway_starts
+from reachwatch.taxi import dynamics_for, on_runway_starts, paper_grid
 from reachwatch.taxi.fidelity import OPEN_AXES, real_outcomes
 from reachwatch.training.dataset import hybrid_rolls_out
 
-from .spec import digest
+from .spec import RunSpec, digest
 from .stages import Run
 
 
 class BoxExitError(RuntimeError):
     """The real loop leaves the solved box too often for BRT labels to mean anything."""
+
+
+def downtrack_exit_share(spec: RunSpec) -> float:
+    """The share of the check starts (uniform in py over the paper's box) that begin
+    closer to the solved box's far end (``solved_py_max``) than the loop travels within
+    the horizon at nominal speed, heading at most the paper's 28 deg: those that do not
+    fail first leave the box through py. Known before anything is swept."""
+    paper = paper_grid(1.0, (2, 2, 2))
+    lo, hi = float(paper.lo[1]), float(paper.hi[1])
+    travel = spec.scenario.controller.speed * spec.horizon * np.cos(paper.hi[2])
+    return float(np.clip((hi + travel - spec.solved_py_max) / (hi - lo), 0.0, 1.0))
+
+
+def check_downtrack_room(spec: RunSpec):
+    """Raise `BoxExitError` before the sweeps when the fidelity check is bound to refuse
+    the run's BRT labels for lack of room downtrack (`downtrack_exit_share` above
+    ``fidelity.max_box_exits``), instead of after them."""
+    check = spec.fidelity
+    if check.starts == 0 or spec.dataset.labels.source != "brt":
+        return
+    share = downtrack_exit_share(spec)
+    if share > check.max_box_exits:
+        reach = 250.0 + spec.scenario.controller.speed * spec.horizon
+        raise BoxExitError(
+            f"solved_py_max {spec.solved_py_max:g} m leaves no room downtrack: about "
+            f"{100 * share:.0f} % of the fidelity check's starts would run past it within the "
+            f"{spec.horizon:g} s horizon at {spec.scenario.controller.speed:g} m/s, more than "
+            f"fidelity.max_box_exits ({100 * check.max_box_exits:.0f} %), so the check would "
+            f"refuse the BRT labels after every sweep had run. Set solved_py_max: {reach:g} "
+            f"(the paper's 250 m plus the horizon's travel), label with dataset.labels.source: "
+            f"hybrid or rollout, or raise fidelity.max_box_exits to accept it")
 
 
 def label_verdicts(labels: dict, band: float, values, real_failed) -> np.ndarray:

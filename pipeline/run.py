@@ -9,7 +9,7 @@ import time
 
 from .console import log, progress_enabled
 from .executors import open_executor
-from .fidelity_stages import stage_fidelity
+from .fidelity_stages import check_downtrack_room, stage_fidelity
 from .online_stages import stage_guard, stage_incremental
 from .report import write_report
 from .spec import RunSpec, digest, load_run_spec
@@ -26,6 +26,8 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got '{until}'")
     spec.validate()
+    if STAGES.index(until) >= STAGES.index("fidelity"):
+        check_downtrack_room(spec)
     run = Run(spec, out, executor=executor, progress=progress, log=log, sweep_cache=sweep_cache)
     steps = {
         "sweep": lambda: stage_sweep(run),

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from reachwatch.pipeline.fidelity_stages import BoxExitError, check_downtrack_room
 from reachwatch.pipeline.run import STAGES, run_pipeline
 from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.diagrams import ScenarioError
@@ -325,3 +326,25 @@ def test_evaluate_command_is_the_run_up_to_evaluate(tmp_path, capsys):
     assert "| KSFO_17h_clear | detector (BRT labels) | brt | not yet failed |" in out
     assert (tmp_path / "table2.csv").is_file() and (tmp_path / "stages" / "evaluate.json").is_file()
     assert not (tmp_path / "stages" / "guard_KSFO_17h_clear.json").exists()
+
+
+def test_a_run_without_room_downtrack_is_refused_before_any_sweep(tmp_path):
+    """With BRT labels and the real-loop check's default 5 %, a solved box ending at the
+    paper's py = 250 m is bound to be refused (starts in its last 5 m/s x 4 s x cos 28
+    deg = 17.7 m of 150 run past it): said before anything is swept, not after."""
+    text = TINY.replace("fidelity: {starts: 3, max_box_exits: 1.0}", "fidelity: {starts: 3}")
+    with pytest.raises(BoxExitError, match=r"solved_py_max 250 m leaves no room downtrack: "
+                                           r"about 12 % .* Set solved_py_max: 270"):
+        run_pipeline(load_run_spec(data=text), tmp_path / "run", progress=False,
+                     log=lambda m: None)
+    assert not (tmp_path / "run").exists()                  # nothing swept or written
+    run_pipeline(load_run_spec(data=text), tmp_path / "run", until="solve", progress=False,
+                 log=lambda m: None)                         # stops before the check: allowed
+    for old, new in (("horizon: 4.0", "horizon: 4.0\nsolved_py_max: 270.0"),
+                     ("fidelity: {starts: 3}", "fidelity: {starts: 0}"),
+                     ("fidelity: {starts: 3}", "fidelity: {starts: 3, max_box_exits: 0.15}"),
+                     ("chunk_size: 16}", "chunk_size: 16, labels: {source: hybrid}}")):
+        assert old in text
+        check_downtrack_room(load_run_spec(data=text.replace(old, new)))
+    with pytest.raises(BoxExitError, match="about 5 %"):
+        check_downtrack_room(load_run_spec(data=text + "solved_py_max: 260.0\n"))
