@@ -39,7 +39,7 @@ from reachwatch.training.dataset import load_dataset
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
 from reachwatch.training.evaluation import NOT_FAILED, Detector, evaluate_environment
-from reachwatch.training.metrics import binary_metrics, recall_threshold
+from reachwatch.training.metrics import accuracy_at_recall
 
 #: Named overrides of the run file's detector settings (nested dicts for ``detector``).
 VARIANTS = {
@@ -68,11 +68,6 @@ def variant_config(base, override: dict, environments: int):
     nested = override.pop("detector", {})
     config = dc.replace(base, detector=dc.replace(base.detector, **nested), **override)
     return config.validate(), max(1, int(round(share * environments)))
-
-
-def accuracy_at_recall(labels, scores, target):
-    t = recall_threshold(labels, scores, target)
-    return float("nan") if t is None else binary_metrics(labels, scores >= t).accuracy
 
 
 def score_environment(env, data, detector, scenario):

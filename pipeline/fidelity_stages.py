@@ -34,6 +34,12 @@ def downtrack_exit_share(spec: RunSpec) -> float:
     return float(np.clip((hi + travel - spec.solved_py_max) / (hi - lo), 0.0, 1.0))
 
 
+def downtrack_room_needed(spec: RunSpec) -> float:
+    """The ``solved_py_max`` (m) that no check start can run past within the horizon:
+    the paper box's far end plus the nominal speed x horizon."""
+    return float(paper_grid(1.0, (2, 2, 2)).hi[1]) + spec.scenario.controller.speed * spec.horizon
+
+
 def check_downtrack_room(spec: RunSpec):
     """Raise `BoxExitError` before the sweeps when the fidelity check is bound to refuse
     the run's BRT labels for lack of room downtrack (`downtrack_exit_share` above
@@ -43,14 +49,14 @@ def check_downtrack_room(spec: RunSpec):
         return
     share = downtrack_exit_share(spec)
     if share > check.max_box_exits:
-        reach = 250.0 + spec.scenario.controller.speed * spec.horizon
+        reach = downtrack_room_needed(spec)
         raise BoxExitError(
             f"solved_py_max {spec.solved_py_max:g} m leaves no room downtrack: about "
             f"{100 * share:.0f} % of the fidelity check's starts would run past it within the "
             f"{spec.horizon:g} s horizon at {spec.scenario.controller.speed:g} m/s, more than "
             f"fidelity.max_box_exits ({100 * check.max_box_exits:.0f} %), so the check would "
             f"refuse the BRT labels after every sweep had run. Set solved_py_max: {reach:g} "
-            f"(the paper's 250 m plus the horizon's travel), label with dataset.labels.source: "
+            f"(the paper box's end plus the horizon's travel), label with dataset.labels.source: "
             f"hybrid or rollout, or raise fidelity.max_box_exits to accept it")
 
 

@@ -13,7 +13,7 @@ from reachwatch.training.dataset import LabelledData
 from reachwatch.training.detector_train import (DetectorTrainConfig, detector_scores,
                                                 environment_groups,
                                                 held_out_operating_threshold)
-from reachwatch.training.metrics import held_out_threshold, recall_threshold
+from reachwatch.training.metrics import accuracy_at_recall, held_out_threshold, recall_threshold
 
 
 def test_recall_threshold_known_answers():
@@ -29,6 +29,10 @@ def test_recall_threshold_known_answers():
         recall_threshold(labels, scores, 0.0)
     with pytest.raises(ValueError, match="differ"):
         recall_threshold([1, 0], [0.5], 0.9)
+    # the oracle accuracy there: threshold 0.6 flags all 4 positives and the 0.95 negative
+    assert accuracy_at_recall(labels, scores, 1.0) == 5 / 6
+    assert accuracy_at_recall(labels, scores, 0.75) == 4 / 6   # 0.7: one positive missed
+    assert np.isnan(accuracy_at_recall([0, 0], [0.3, 0.4], 0.95))
 
 
 def test_held_out_threshold_every_group_and_pooled():

@@ -115,6 +115,13 @@ def recall_threshold(labels, scores, target_recall: float):
     return float(positives[k])
 
 
+def accuracy_at_recall(labels, scores, target_recall: float) -> float:
+    """The accuracy at `recall_threshold` on these very samples (an oracle: what the
+    ranking allows at that recall); nan when there are no positives."""
+    t = recall_threshold(labels, scores, target_recall)
+    return float("nan") if t is None else binary_metrics(labels, np.asarray(scores) >= t).accuracy
+
+
 @dc.dataclass
 class HeldOutThreshold:
     """A threshold chosen on held-out scores (`held_out_threshold`). ``per_group``:
