@@ -18,7 +18,8 @@ settings moved the median share flagged from 61 % to 34 % and the worst recall f
 
 Variants are named overrides of the run file's ``detector`` block (see VARIANTS);
 ``train_environments: f`` keeps the first share ``f`` of the run file's training
-environments (at least one).
+environments (at least one); ``adapt_batchnorm`` keeps the run file's weights and
+re-estimates the BatchNorm statistics on each held-out environment's images (`adapted`).
 Checkpoints are cached in ``--work`` by content, so a killed study resumes.
 """
 
@@ -34,6 +35,7 @@ import torch
 
 from reachwatch.diagrams import load_detector
 from reachwatch.pipeline.spec import digest, load_run_spec
+from reachwatch.systems.detector import detector_input
 from reachwatch.taxi import dynamics_for
 from reachwatch.training.dataset import load_dataset
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
@@ -56,6 +58,12 @@ VARIANTS = {
     # The threshold from detectors that never saw the group they score (4 groups).
     "left-out-group threshold (every group)": {"threshold_folds": 4},
     "left-out-group threshold (pooled)": {"threshold_folds": 4, "threshold_rule": "pooled"},
+    # The run file's weights, with the BatchNorm statistics re-estimated on each held-out
+    # environment's unlabelled images (AdaBN): on all of them, or only on those a
+    # nominally taxiing aircraft sees (|px| < B/4, |theta| < 10 deg), which the monitor
+    # could collect in service. The threshold stays the unadapted one.
+    "batch norm per environment (all images)": {"adapt_batchnorm": "all"},
+    "batch norm per environment (nominal images)": {"adapt_batchnorm": "nominal"},
 }
 ORACLE_RECALL = 0.95
 
@@ -64,10 +72,34 @@ def variant_config(base, override: dict, environments: int):
     """``(DetectorTrainConfig, how many of the ``environments`` training environments
     to keep)``."""
     override = copy.deepcopy(override)
+    override.pop("adapt_batchnorm", None)       # applied at scoring time (`adapted`)
     share = override.pop("train_environments", 1.0)
     nested = override.pop("detector", {})
     config = dc.replace(base, detector=dc.replace(base.detector, **nested), **override)
     return config.validate(), max(1, int(round(share * environments)))
+
+
+@torch.no_grad()
+def adapted(model, config, images, batch_size=64):
+    """A copy of ``model`` whose BatchNorm running statistics are re-estimated (a plain
+    average over every batch) on ``images``, uint8 ``(N, H, W, 3)``; weights unchanged."""
+    model = copy.deepcopy(model)
+    norms = [m for m in model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+    if not norms:
+        raise ValueError("adapt_batchnorm: the detector has no BatchNorm layer")
+    for m in norms:
+        m.reset_running_stats()
+        m.momentum = None
+    model.train()
+    for start in range(0, len(images), batch_size):
+        model(detector_input(torch.from_numpy(np.asarray(images[start:start + batch_size])),
+                             config))
+    return model.eval()
+
+
+def nominal_states(states, half_width):
+    """The samples a nominally taxiing aircraft sees: |px| < B/4 and |theta| < 10 deg."""
+    return (np.abs(states[:, 0]) < 0.25 * half_width) & (np.abs(np.rad2deg(states[:, 2])) < 10.0)
 
 
 def score_environment(env, data, detector, scenario):
@@ -157,7 +189,14 @@ def main():
             for env in test_envs:
                 scenario = copy.deepcopy(spec.scenario)
                 scenario.environment = env
-                r = score_environment(env, data[env.name], detector, scenario)
+                scored, mode = detector, VARIANTS[name].get("adapt_batchnorm")
+                if mode:
+                    images = data[env.name].images
+                    if mode == "nominal":
+                        images = images[np.flatnonzero(
+                            nominal_states(data[env.name].states, env.half_width))]
+                    scored = dc.replace(detector, model=adapted(model, detector_config, images))
+                r = score_environment(env, data[env.name], scored, scenario)
                 results.append(r)
                 a = r["all"]
                 print(f"  {name} seed {seed} {env.name:<28} flagged {100 * a['flagged']:5.1f} "

@@ -1,0 +1,45 @@
+"""The test-time BatchNorm adaptation of benchmarks/detector_variants.py."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from reachwatch.systems.detector import DetectorConfig, SmallDetectorCNN, detector_input
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "detector_variants.py"
+_SPEC = importlib.util.spec_from_file_location("detector_variants", _PATH)
+variants = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(variants)
+
+
+def test_adapted_statistics_are_those_of_the_images_and_the_weights_stay():
+    torch.manual_seed(0)
+    config = DetectorConfig(height=12, width=20, channels=[4, 6])
+    model = SmallDetectorCNN(config).eval()
+    images = np.random.default_rng(0).integers(0, 255, (10, 12, 20, 3), dtype=np.uint8)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    out = variants.adapted(model, config, images, batch_size=len(images))
+    # the first BatchNorm now holds the mean and (unbiased) variance of the first
+    # convolution's output over the images, per channel
+    with torch.no_grad():
+        y = model.features[0](detector_input(torch.from_numpy(images), config))
+    bn = out.features[1]
+    assert torch.allclose(bn.running_mean, y.mean(dim=(0, 2, 3)), atol=1e-5)
+    assert torch.allclose(bn.running_var, y.var(dim=(0, 2, 3), unbiased=True), rtol=1e-4)
+    assert not torch.allclose(bn.running_mean, before["features.1.running_mean"])
+    assert not out.training
+    # the weights are unchanged, and so is the model adapted from
+    after = out.state_dict()
+    for key, value in before.items():
+        if "running" not in key and "num_batches" not in key:
+            assert torch.equal(after[key], value), key
+        assert torch.equal(model.state_dict()[key], value), key
+
+
+def test_nominal_states_are_near_the_centreline_and_aligned():
+    states = np.array([[0.0, 150.0, 0.0], [5.0, 150.0, 0.0], [1.0, 150.0, np.deg2rad(12.0)],
+                       [-2.0, 200.0, np.deg2rad(-9.0)]])
+    assert variants.nominal_states(states, half_width=12.0).tolist() == [True, False, False,
+                                                                          True]
