@@ -84,11 +84,20 @@ def _load(path: Path, rows: int, required):
     return arrays
 
 
-def map_states(fn, states, *, cache_dir, chunk_size: int = 8, executor=None,
+def default_chunk_size(count: int) -> int:
+    """8 states per chunk, fewer for a batch under 32 states so that it still makes 4
+    chunks that a pool's workers share (a chunk's cache file holds its own rows, so
+    the size of a batch's chunks must not change between runs: it depends only on
+    ``count``)."""
+    return min(8, max(1, -(-int(count) // 4)))
+
+
+def map_states(fn, states, *, cache_dir, chunk_size: int = None, executor=None,
                progress: bool = True, label: str = None, max_in_flight: int = 4,
                required=(), unit: str = "state"):
     """``fn(states[s:e]) -> dict of arrays with e - s rows`` over ``states`` ``(N, ndim)``
-    in chunks of ``chunk_size``, each cached under ``cache_dir/outcomes_key(fn, states)``
+    in chunks of ``chunk_size`` (default `default_chunk_size`), each cached under
+    ``cache_dir/outcomes_key(fn, states)``
     and run on ``executor`` (default: here, one after another); ``required`` names the
     arrays every chunk must hold. The progress bar moves per chunk. Returns
     ``(fields, key, computed)``: the arrays of all states in order, the cache folder
@@ -97,6 +106,8 @@ def map_states(fn, states, *, cache_dir, chunk_size: int = 8, executor=None,
     if states.ndim != 2 or len(states) == 0 or not np.all(np.isfinite(states)):
         raise ValueError(f"states must be a non-empty (N, ndim) array of finite numbers, got "
                          f"shape {states.shape}")
+    if chunk_size is None:
+        chunk_size = default_chunk_size(len(states))
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a whole number >= 1, got {chunk_size!r}")
     required = tuple(required)
@@ -142,10 +153,10 @@ def map_states(fn, states, *, cache_dir, chunk_size: int = 8, executor=None,
     return fields, key, computed
 
 
-def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = 8, executor=None,
+def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = None, executor=None,
                  progress: bool = True, label: str = None, max_in_flight: int = 4) -> Outcomes:
     """``rollout`` from every start in ``states`` ``(N, ndim)``; chunks of
-    ``chunk_size`` starts are cached under ``cache_dir/outcomes_key(...)`` and run
+    ``chunk_size`` starts (default `default_chunk_size`) are cached under ``cache_dir/outcomes_key(...)`` and run
     on ``executor`` (default: here, one after another). The progress bar moves per
     chunk."""
     fields, key, computed = map_states(

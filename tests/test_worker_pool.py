@@ -1,0 +1,63 @@
+"""The default worker pool: one spawned worker per usable core, each with its share of
+the cores' threads; tables do not depend on the number of workers; small batches of
+rollouts still split into chunks that the workers share."""
+
+import functools
+import os
+
+import numpy as np
+import pytest
+
+from reachwatch.reach import InlineExecutor, default_executor, stop_executor, sweep
+from reachwatch.reach.outcomes import default_chunk_size, run_outcomes
+from reachwatch.reach.sweep import usable_cores
+from reachwatch.taxi import paper_grid
+
+from test_faults import FEEDBACK, _feedback_factory
+from test_outcomes import drift_rollout
+
+
+def _worker_threads(_):
+    import torch
+    return os.getpid(), os.environ.get("OMP_NUM_THREADS"), torch.get_num_threads()
+
+
+def test_two_workers_sweep_the_same_table_and_split_the_threads(tmp_path):
+    g = paper_grid(10.0, (4, 3, 3))
+    inline = sweep(_feedback_factory(), g, key="inline", cache_dir=tmp_path, probe=FEEDBACK,
+                   executor=InlineExecutor(), progress=False)
+    pool = default_executor(2)
+    try:
+        table = sweep(_feedback_factory(), g, key="pool", cache_dir=tmp_path, probe=FEEDBACK,
+                      executor=pool, chunk_size=5, progress=False)
+        assert pool.progress_counter.value == g.size
+        threads = [pool.submit(_worker_threads, i).result() for i in range(4)]
+    finally:
+        stop_executor(pool)
+    for port in FEEDBACK.ports:
+        np.testing.assert_array_equal(table[port], inline[port])
+    share = max(1, usable_cores() // 2)
+    assert {t[1:] for t in threads} == {(str(share), share)}
+    assert all(pid != os.getpid() for pid, _, _ in threads)
+
+
+@pytest.mark.parametrize("workers", [0, -1, 1.5, True])
+def test_bad_worker_count_is_named(workers):
+    with pytest.raises(ValueError, match="max_workers must be a whole number >= 1"):
+        default_executor(workers)
+
+
+@pytest.mark.parametrize("count, size", [(1, 1), (3, 1), (6, 2), (8, 2), (20, 5), (28, 7),
+                                         (29, 8), (32, 8), (200, 8)])
+def test_default_chunk_size(count, size):
+    assert default_chunk_size(count) == size
+
+
+def test_a_small_batch_makes_four_chunks(tmp_path):
+    """Eight starts run as 4 chunks of 2 (a pool shares them); 200 as 25 of 8, as before."""
+    rollout = functools.partial(drift_rollout, 0.5)
+    for count, chunks in ((8, 4), (200, 25)):
+        starts = np.column_stack([np.linspace(-0.9, 0.9, count), np.zeros(count)])
+        out = run_outcomes(rollout, starts, cache_dir=tmp_path, progress=False)
+        assert len(list((tmp_path / out.key).glob("chunk_*.npz"))) == chunks
+        np.testing.assert_array_equal(out.failed, np.abs(starts[:, 0] + 0.5) >= 1.0)
