@@ -62,7 +62,7 @@ def add_parsers(sub):
                    "environment checking the BRT and the labels (0: no check)")
     p.add_argument("--max-box-exits", type=float, default=0.05, help="refuse BRT labels where "
                    "more than this share of the checked runs leave the solved box")
-    p.add_argument("--executor", default="inline", help="local | inline | dask://HOST:PORT")
+    p.add_argument("--executor", default="inline", help="local (one worker per core) | local:N | inline | dask://HOST:PORT")
     p.add_argument("--out", required=True, help="output folder (reused: finished work is skipped)")
     p.set_defaults(func=evaluate_command)
 

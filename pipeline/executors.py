@@ -1,6 +1,6 @@
-"""``--executor`` values: ``local`` (a spawned process pool), ``inline`` (this
-process), ``dask://HOST:PORT`` (an existing Dask scheduler; needs the
-``distributed`` extra)."""
+"""``--executor`` values: ``local`` (a spawned process pool, one worker per usable
+core), ``local:N`` (N workers), ``inline`` (this process), ``dask://HOST:PORT`` (an
+existing Dask scheduler; needs the ``distributed`` extra)."""
 
 import contextlib
 
@@ -11,8 +11,12 @@ from reachwatch.reach.sweep import stop_executor
 def make_executor(spec: str, *, connect_timeout: float = 10.0):
     """An executor and a ``close(abort=False)`` callable for ``spec``; ``abort`` stops
     local workers at once instead of letting their current chunk finish."""
-    if spec == "local":
-        executor = default_executor()
+    if spec == "local" or spec.startswith("local:"):
+        count = spec.partition(":")[2]
+        if count and not (count.isdigit() and int(count) >= 1):
+            raise ValueError(f"--executor local:N needs a whole number of workers N >= 1, "
+                             f"got '{spec}'")
+        executor = default_executor(int(count) if count else None)
         return executor, lambda abort=False: stop_executor(executor, abort=abort)
     if spec == "inline":
         return InlineExecutor(), lambda abort=False: None
@@ -29,7 +33,7 @@ def make_executor(spec: str, *, connect_timeout: float = 10.0):
             raise ValueError(f"--executor {spec}: no Dask scheduler answered at {address} "
                              f"within {connect_timeout:g} s ({type(e).__name__})") from None
         return client.get_executor(), lambda abort=False: client.close()
-    raise ValueError(f"--executor must be local, inline or dask://HOST:PORT, got '{spec}'")
+    raise ValueError(f"--executor must be local, local:N, inline or dask://HOST:PORT, got '{spec}'")
 
 
 @contextlib.contextmanager

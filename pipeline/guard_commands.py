@@ -45,7 +45,7 @@ def add_parsers(sub):
                         "controller alone covers within it (a slower aircraft on the same "
                         "path otherwise fails only later)")
     g.add_argument("--out", required=True)
-    g.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT")
+    g.add_argument("--executor", default="local", help="local (one worker per core) | local:N | inline | dask://HOST:PORT")
     g.add_argument("--cache", default=None)
     g.set_defaults(func=guard_command)
 

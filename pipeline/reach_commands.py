@@ -35,7 +35,7 @@ def _grid_args(parser):
                         help="sweep and solve over py <= M (the paper's box: 250); a start "
                         "near 250 runs past it within the horizon")
     parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT")
+    parser.add_argument("--executor", default="local", help="local (one worker per core) | local:N | inline | dask://HOST:PORT")
     parser.add_argument("--cache", default=None, help="sweep cache folder "
                         "(default: $REACHWATCH_CACHE/sweeps or ~/.cache/reachwatch/sweeps)")
     parser.add_argument("--chunk-size", type=positive_int, default=1024,

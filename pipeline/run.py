@@ -57,8 +57,9 @@ def add_parsers(sub):
                        "report (re-runs skip finished stages; killed runs resume)")
     p.add_argument("--scenario", required=True, help="run file (e.g. scenarios/demo.yaml)")
     p.add_argument("--out", required=True, help="run directory (reused)")
-    p.add_argument("--executor", default="local", help="local | inline | dask://HOST:PORT "
-                   "(a Dask cluster must see the run directory at the same path)")
+    p.add_argument("--executor", default="local", help="local (one worker per core) | "
+                   "local:N | inline | dask://HOST:PORT (a Dask cluster must see the run "
+                   "directory at the same path)")
     p.add_argument("--until", choices=STAGES, default="report", help="last stage to run")
     p.add_argument("--sweep-cache", help="folder of sweep chunks shared between runs "
                    "(keyed by content; default OUT/sweeps)")

@@ -8,9 +8,10 @@ import os
 import numpy as np
 import pytest
 
+from reachwatch.pipeline.executors import make_executor
 from reachwatch.reach import InlineExecutor, default_executor, stop_executor, sweep
 from reachwatch.reach.outcomes import default_chunk_size, run_outcomes
-from reachwatch.reach.sweep import usable_cores
+from reachwatch.reach.sweep import WORKER_MEMORY, default_worker_count, usable_cores
 from reachwatch.taxi import paper_grid
 
 from test_faults import FEEDBACK, _feedback_factory
@@ -45,6 +46,30 @@ def test_two_workers_sweep_the_same_table_and_split_the_threads(tmp_path):
 def test_bad_worker_count_is_named(workers):
     with pytest.raises(ValueError, match="max_workers must be a whole number >= 1"):
         default_executor(workers)
+
+
+def test_local_executor_spec_names_its_worker_count():
+    executor, close = make_executor("local:2")
+    try:
+        assert len({executor.submit(_worker_threads, i).result()[0] for i in range(6)}) <= 2
+        assert executor.submit(_worker_threads, 0).result()[1] == str(max(1, usable_cores() // 2))
+    finally:
+        close()
+    for bad in ("local:0", "local:two", "local:-1"):
+        with pytest.raises(ValueError, match="local:N needs a whole number of workers"):
+            make_executor(bad)
+
+
+def test_default_worker_count_is_capped_by_memory(monkeypatch):
+    sweep_module = __import__("sys").modules["reachwatch.reach.sweep"]
+    monkeypatch.setattr(sweep_module, "usable_cores", lambda: 16)
+    pages = {"SC_PAGE_SIZE": 4096, "SC_PHYS_PAGES": 5 * WORKER_MEMORY // 4096}
+    monkeypatch.setattr(sweep_module.os, "sysconf", lambda name: pages[name])
+    assert default_worker_count() == 5
+    pages["SC_PHYS_PAGES"] = 100 * WORKER_MEMORY // 4096
+    assert default_worker_count() == 16
+    pages["SC_PHYS_PAGES"] = 1
+    assert default_worker_count() == 1
 
 
 @pytest.mark.parametrize("count, size", [(1, 1), (3, 1), (6, 2), (8, 2), (20, 5), (28, 7),
