@@ -1,23 +1,28 @@
 """The taxi's real Drake closed loop (rendering at every tick) run from given starts:
-the rollout function behind rollout labels and every fidelity check, and the
-missions (failure and liveness) of the loop alone and guarded by each fallback."""
+the rollout function behind rollout labels and every fidelity check, the missions
+(failure and liveness) of the loop alone and guarded by each fallback, and the
+detector's score along real runs (what the guard's tables miss between nodes)."""
 
 import copy
 import dataclasses as dc
 import functools
 
 import numpy as np
+import torch
 
 from reachwatch.diagrams import (MonitorConfig, make_closed_loop_diagram, make_guarded_diagram,
                                  simulate)
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
+from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes,
                                        check_mission_limit)
 from reachwatch.reach.outcomes import Outcomes, map_states, run_outcomes
+from reachwatch.reach.score_noise import fit_score_noise
+from reachwatch.reach.sweep import evaluate_states
 from reachwatch.systems import fallback_parts
 
-from .sweeps import resolved
+from .sweeps import guarded_factory, resolved, taxi_probe
 
 #: The taxi grid axes where leaving the box is not a failure (py, theta): past |px| = B
 #: the run has failed, and it stops there.
@@ -195,3 +200,57 @@ def real_missions(scenario, starts, *, fallback=None, duration: float, cache_dir
                               label=f"real loop {scenario.environment.name} "
                                     f"{fallback or 'alone'}")
     return MissionOutcomes.from_fields(fields)
+
+
+def score_paths(scenario, duration: float, states) -> dict:
+    """From each start, the real closed loop of the controller alone for ``duration``
+    s (stopping at failure), and the detector's score of the image at every logged
+    tick (``scenario.monitor.detector``): ``state`` ``(n, T, 3)`` and ``score`` ``(n, T)``,
+    NaN after a run ends; ``ticks`` ``(n,)``. ``functools.partial(score_paths,
+    scenario, duration)`` is a picklable rollout function for `map_states`."""
+    scenario = resolved(scenario)
+    diagram, context = _loop(without_monitor(scenario), make_closed_loop_diagram)
+    probe = taxi_probe(scenario, guarded=True)
+    key = f"score_paths_{fingerprint(scenario)[:16]}"
+    period, B = scenario.controller.period, scenario.environment.half_width
+    length = int(np.floor(duration / period + 1e-9)) + 2
+    states = np.asarray(states, float)
+    out = {"state": np.full((len(states), length, 3), np.nan),
+           "score": np.full((len(states), length), np.nan), "ticks": np.zeros(len(states), int)}
+    for i, x in enumerate(states):
+        if abs(x[0]) >= B:                      # already off the runway: no path
+            continue
+        run = simulate(diagram, initial_state=x, duration=duration, period=period,
+                       half_width=B, context=context)
+        path = np.asarray(run.state, float)[:length]
+        scores = evaluate_states(guarded_factory(scenario), probe, key, path)
+        out["state"][i, :len(path)] = path
+        out["score"][i, :len(path)] = np.asarray(scores[f"port{len(probe.ports) - 1}"]).ravel()
+        out["ticks"][i] = len(path)
+    return out
+
+
+def real_score_noise(scenario, grid, score_table, starts, *, duration: float, cache_dir,
+                     executor=None, progress=True):
+    """`reach.score_noise.ScoreNoise` fitted (`fit_score_noise`) to how the detector's real score along
+    runs of the controller alone from ``starts`` departs from ``score_table``
+    (the guarded sweep's score on ``grid``) interpolated at the same states. Runs are
+    cached like `real_outcomes`. Returns ``(noise, {"runs", "ticks"})``."""
+    scenario = resolved(scenario)
+    rollout = functools.partial(score_paths, scenario, float(duration))
+    fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
+                              progress=progress, unit="run", required=("score", "state"),
+                              label=f"detector score along real runs {scenario.environment.name}")
+    table = np.asarray(score_table, float).reshape(grid.shape)
+    real, interpolated, travelled = [], [], []
+    for path, scores, ticks in zip(fields["state"], fields["score"], fields["ticks"]):
+        if ticks < 2:
+            continue
+        path = path[:ticks]
+        real.append(scores[:ticks])
+        interpolated.append(GridInterpolator(grid, torch.as_tensor(path))(
+            torch.as_tensor(table)).numpy())
+        travelled.append(np.concatenate([[0.0], np.cumsum(np.linalg.norm(
+            np.diff(path[:, :2], axis=0), axis=1))]))
+    noise = fit_score_noise(real, interpolated, travelled)
+    return noise, {"runs": len(real), "ticks": int(sum(len(r) for r in real))}

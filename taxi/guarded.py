@@ -30,8 +30,8 @@ SCORE_PORT = f"{DETECTOR}.score"
 def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, threshold=0.5,
                      strategy="slow_down", steering="taxinet", estimate_table=None,
                      policy=None, horizon=8.0, period=0.05, substeps=2, starts=None,
-                     flags_needed=1, flag_window=1, mission_limit=None,
-                     **strategy_params) -> MissionOutcomes:
+                     flags_needed=1, flag_window=1, mission_limit=None, score_noise=None,
+                     seed=0, **strategy_params) -> MissionOutcomes:
     """`MissionOutcomes` per start (default: every grid node, C order) of the loop whose
     steering, score and estimate are interpolated from tables of ``grid``.
     ``score_table=None`` = no detector (the controller alone).
@@ -47,7 +47,11 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
     With ``mission_limit`` (a number >= 1), the rollouts also go on past the horizon, up
     to ``mission_limit * horizon`` s, until each start has covered the distance the
     controller alone covers within the horizon (nominal speed x horizon), and fill the
-    same-distance fields of `MissionOutcomes`; the other fields stay the horizon's."""
+    same-distance fields of `MissionOutcomes`; the other fields stay the horizon's.
+
+    ``score_noise`` (a `reach.score_noise.ScoreNoise`) adds, per start, the detector's
+    variation between grid nodes to the interpolated score, as noise that moves with
+    the distance travelled (seeded by ``seed``), as the real loop's score does."""
     flags_needed, flag_window = check_k_of_n(flags_needed, flag_window)
     if steering not in ("taxinet", "oracle", "dead_reckoning"):
         raise ValueError(f"steering must be taxinet, oracle or dead_reckoning, got '{steering}'")
@@ -79,6 +83,7 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
         limit = check_mission_limit(mission_limit)
         steps += [period] * max(0, int(np.ceil((limit - 1) * horizon / period - 1e-9)))
     covered, parked = np.zeros(n, bool), np.zeros(n, bool)
+    rng, noise, moved = np.random.default_rng(seed), None, np.zeros(n)
     substeps = positive("substeps", substeps, integer=True)
     at_horizon = None
     for k, dt in enumerate(steps):       # a last partial period when it does not divide
@@ -91,8 +96,11 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
         u = interpolate(steer).numpy()
         flagged = np.zeros(n, bool)
         if score is not None:
-            flagged, history = confirmed_flags(interpolate(score).numpy() >= threshold, history,
-                                               flags_needed)
+            score_now = interpolate(score).numpy()
+            if score_noise is not None:
+                noise = score_noise.step(noise, moved, rng)
+                score_now = score_noise.apply(score_now, noise)
+            flagged, history = confirmed_flags(score_now >= threshold, history, flags_needed)
         if score is not None:
             v = next_speed(v, flagged, strategy=strategy, nominal=nominal, period=period,
                            **strategy_params)
@@ -110,7 +118,8 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
         ticks += active
         flagged_ticks += active & flagged
         ever_stopped |= active & (v <= 0)
-        distance += np.where(active, v * dt, 0.0)
+        moved = np.where(active, v * dt, 0.0)
+        distance += moved
         h = dt / substeps
         u_t, v_t = as_t(u)[:, None], as_t(v)
         for _ in range(substeps):
@@ -143,7 +152,8 @@ def p_controller_policy(controller):
 
 
 def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=None,
-                      starts=None, mission_limit=None, scores=None, alone=None) -> dict:
+                      starts=None, mission_limit=None, scores=None, alone=None,
+                      score_noise=None, seed=0) -> dict:
     """{UNGUARDED | fallback name: `MissionOutcomes`} from the swept tables of the
     guarded diagram (`sweep_guarded`), at every grid node or at ``starts``. A fallback
     name is a speed strategy with an optional steering (`systems.fallback_parts`).
@@ -151,7 +161,8 @@ def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=N
     (per grid node) replaces the swept detector's scores, e.g. with a perfect
     detector's (`perfect_detector_scores`). ``alone``: the controller alone's outcomes
     from the same starts and settings when already computed (they do not depend on the
-    detector), reused instead of rolled out again."""
+    detector), reused instead of rolled out again. ``score_noise``, ``seed``: the
+    detector's variation between nodes (`guarded_rollouts`)."""
     dynamics = dynamics_for(scenario)
     kw = dict(horizon=horizon, period=scenario.controller.period, starts=starts,
               mission_limit=mission_limit)
@@ -171,7 +182,7 @@ def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=N
             brake_deceleration=scenario.monitor.brake_deceleration,
             resume_acceleration=scenario.monitor.resume_acceleration,
             flags_needed=scenario.monitor.flags_needed, flag_window=scenario.monitor.flag_window,
-            **kw)
+            score_noise=score_noise, seed=seed, **kw)
     return out
 
 

@@ -1,0 +1,125 @@
+"""The detector's variation between grid nodes as noise along the path: the fit
+recovers a known process, the noise stays put while the aircraft stands still, and
+in table rollouts it turns a score just under the threshold into flags that come
+and go (and braking on them into stops), seeded and reproducible."""
+
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import load_scenario
+from reachwatch.reach.score_noise import ScoreNoise, fit_score_noise, logit
+from reachwatch.taxi import dynamics_for, guarded_rollouts, paper_grid
+
+
+def _ou_runs(sigma, length, mean=0.0, runs=40, ticks=160, step=0.25, seed=0):
+    """Runs of a known process: logit(real) = logit(table) + mean + OU(sigma, length)
+    over a path advancing ``step`` per tick."""
+    rng = np.random.default_rng(seed)
+    noise_model = ScoreNoise(sigma, length, mean)
+    real, table, travelled = [], [], []
+    for _ in range(runs):
+        base = rng.uniform(0.05, 0.9, ticks)
+        noise, path = None, []
+        for _ in range(ticks):
+            noise = noise_model.step(noise, np.array([step]), rng)
+            path.append(noise[0])
+        real.append(noise_model.apply(base, np.array(path)))
+        table.append(base)
+        travelled.append(step * np.arange(ticks))
+    return real, table, travelled
+
+
+def test_fit_recovers_a_known_process():
+    fitted = fit_score_noise(*_ou_runs(0.55, 2.4))
+    assert fitted.sigma == pytest.approx(0.55, rel=0.1)
+    assert fitted.length == pytest.approx(2.4, rel=0.2)
+    assert abs(fitted.mean) < 0.1
+    other = fit_score_noise(*_ou_runs(0.3, 8.0, mean=-0.4, seed=1))
+    assert other.sigma == pytest.approx(0.3, rel=0.1) and other.length == pytest.approx(8.0, rel=0.25)
+    assert other.mean == pytest.approx(-0.4, abs=0.1)
+
+
+def test_noise_stays_put_at_standstill_and_keeps_its_spread_when_moving():
+    model, rng = ScoreNoise(0.5, 2.0), np.random.default_rng(3)
+    first = model.step(None, np.zeros(20000), rng)
+    assert np.std(first) == pytest.approx(0.5, rel=0.03)
+    np.testing.assert_array_equal(model.step(first, np.zeros(20000), rng), first)
+    later = model.step(first, np.full(20000, 2.0), rng)          # one length on
+    assert np.std(later) == pytest.approx(0.5, rel=0.03)
+    assert np.corrcoef(first, later)[0, 1] == pytest.approx(np.exp(-1.0), abs=0.03)
+    np.testing.assert_allclose(model.apply([0.2, 0.5], np.zeros(2)), [0.2, 0.5])
+    np.testing.assert_allclose(ScoreNoise(0.5, 2.0, mean=np.log(3.0)).apply([0.5], [0.0]), [0.75])
+    assert logit(0.5) == 0.0
+
+
+@pytest.mark.parametrize("field, value", [("sigma", 0.0), ("sigma", -1.0), ("length", np.inf),
+                                          ("length", True), ("sigma", "0.5"), ("mean", np.nan)])
+def test_bad_noise_parameters_are_named(field, value):
+    kw = {"sigma": 0.5, "length": 2.0, field: value}
+    with pytest.raises(ValueError, match=f"ScoreNoise.{field} must be a finite number"):
+        ScoreNoise(**kw)
+
+
+def test_fit_refuses_what_it_cannot_fit():
+    with pytest.raises(ValueError, match="equal length"):
+        fit_score_noise([np.ones(5)], [np.ones(4)], [np.arange(5.0)])
+    with pytest.raises(ValueError, match="at least 10"):
+        fit_score_noise([np.full(5, 0.3)], [np.full(5, 0.2)], [np.arange(5.0)])
+    with pytest.raises(ValueError, match="no noise"):
+        fit_score_noise([np.full(50, 0.3)], [np.full(50, 0.3)], [np.arange(50.0)])
+    rng = np.random.default_rng(0)
+    white = [rng.uniform(0.1, 0.9, 200) for _ in range(5)]
+    with pytest.raises(ValueError, match="uncorrelated"):
+        fit_score_noise(white, [np.full(200, 0.5)] * 5, [np.arange(200.0)] * 5)
+
+
+def test_noise_in_table_rollouts_makes_flags_come_and_go():
+    """A straight run along the centreline, where the swept score sits just under the
+    threshold everywhere: without noise, never flagged and never stopped; with the
+    noise, flagged on part of the ticks, and braking on those flags stops some runs
+    (the noise freezes once they stand still). Same seed, same outcomes."""
+    scenario = load_scenario(data="")
+    dynamics = dynamics_for(scenario)
+    grid = paper_grid(10.0, (3, 3, 3))
+    steer, score = np.zeros(grid.shape), np.full(grid.shape, 0.45)
+    starts = np.column_stack([np.zeros(200), np.full(200, 100.0), np.zeros(200)])
+    kw = dict(threshold=0.5, strategy="brake", horizon=8.0, starts=starts)
+    plain = guarded_rollouts(grid, dynamics, steer, score, **kw)
+    assert plain.flagged_ticks.sum() == 0 and not plain.stopped.any()
+    noise = ScoreNoise(0.6, 3.0)
+    noisy = guarded_rollouts(grid, dynamics, steer, score, score_noise=noise, seed=5, **kw)
+    share = noisy.flagged_ticks.sum() / noisy.ticks.sum()
+    assert 0.2 < share < 0.6                       # about P(N(0, 0.6) > logit(.5) - logit(.45))
+    assert 0 < noisy.stopped.sum() < len(starts)
+    again = guarded_rollouts(grid, dynamics, steer, score, score_noise=noise, seed=5, **kw)
+    np.testing.assert_array_equal(again.flagged_ticks, noisy.flagged_ticks)
+    np.testing.assert_array_equal(again.stopped, noisy.stopped)
+    other = guarded_rollouts(grid, dynamics, steer, score, score_noise=noise, seed=6, **kw)
+    assert not np.array_equal(other.flagged_ticks, noisy.flagged_ticks)
+
+
+def test_score_along_real_runs_and_the_fit_from_them(detector_path, tmp_path):
+    """In the rendered loop: the score logged at a run's first tick is the guarded
+    sweep's score at that node; runs are NaN-padded past their end and cached; the
+    fit of real against swept scores runs end to end on them."""
+    from reachwatch.reach import InlineExecutor
+    from reachwatch.taxi import sweep_guarded
+    from reachwatch.taxi.fidelity import real_score_noise, score_paths
+    from reachwatch.taxi.guarded import SCORE_PORT
+    scenario = load_scenario(data=f"monitor: {{detector: {detector_path}, threshold: 0.5}}\n")
+    grid = paper_grid(scenario.environment.half_width, (3, 3, 3))
+    tables = sweep_guarded(scenario, grid, cache_dir=tmp_path / "sweeps",
+                           executor=InlineExecutor(), progress=False)
+    nodes = grid.states([13, 10])
+    out = score_paths(scenario, 1.0, np.vstack([nodes, [[30.0, 100.0, 0.0]]]))
+    assert out["score"].shape == (3, 22) and out["state"].shape == (3, 22, 3)
+    np.testing.assert_allclose(out["score"][:2, 0], np.asarray(tables[SCORE_PORT]).ravel()[[13, 10]],
+                               rtol=1e-5, atol=1e-6)
+    assert out["ticks"].tolist()[2] == 0 and np.isnan(out["score"][2]).all()
+    for i in range(2):
+        assert np.isfinite(out["score"][i, :out["ticks"][i]]).all()
+        assert np.isnan(out["score"][i, out["ticks"][i]:]).all()
+    starts = grid.states([13, 12, 14, 10])
+    noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], starts, duration=2.0,
+                                  cache_dir=tmp_path / "outcomes", progress=False)
+    assert fit == {"runs": 4, "ticks": 4 * 41} and noise.sigma > 0 and noise.length > 0
