@@ -10,14 +10,14 @@ from reachwatch.diagrams import load_scenario
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 from reachwatch.reach.liveness import liveness_figures, percent, same_distance
 from reachwatch.systems import DEFAULT_FALLBACKS, fallback_parts
-from reachwatch.taxi import (UNGUARDED, fallback_rollouts, on_runway_starts, paper_grid,
-                             real_missions, sweep_guarded)
+from reachwatch.taxi import UNGUARDED, fallback_rollouts, paper_grid, sweep_guarded
 from reachwatch.taxi.guarded import tradeoff_curves, tradeoff_row
 from reachwatch.taxi.plots import plot_failure_sets, plot_tradeoff
 
 from .commands import count, positive_float, positive_int
 from .console import log
 from .executors import open_executor
+from .online_stages import guard_check
 
 
 def add_parsers(sub):
@@ -39,6 +39,12 @@ def add_parsers(sub):
                    help="also run the real Drake loops (alone and each fallback) from this "
                         "many seeded random on-runway starts; cached and resumable")
     g.add_argument("--seed", type=int, default=2000, help="seed of the check starts")
+    g.add_argument("--noise-starts", type=count, default=20,
+                   help="with --check-starts: fit the detector's variation between grid "
+                        "nodes on this many other real runs of the controller alone and show "
+                        "the tables with it beside the real loop (0 = no fit)")
+    g.add_argument("--noise-seed", type=int, default=4000,
+                   help="seed of the noise fit's starts and of the noise")
     g.add_argument("--mission-limit", type=positive_float, default=3.0,
                    help="also judge failures by distance: runs go on past the horizon, for "
                         "up to this many horizons, until they cover the distance the "
@@ -74,18 +80,11 @@ def guard_command(args):
     with open_executor(args.executor) as executor:
         tables = sweep_guarded(scenario, grid, cache_dir=cache / "sweeps", executor=executor)
         if args.check_starts:
-            starts = on_runway_starts(grid, args.check_starts, args.seed,
-                                      half_width=scenario.environment.half_width)
-            real = {f: real_missions(scenario, starts, fallback=None if f == UNGUARDED else f,
-                                     duration=args.horizon, mission_limit=args.mission_limit,
-                                     cache_dir=cache / "outcomes", executor=executor)
-                    for f in [UNGUARDED, *args.fallbacks]}
-            table = fallback_rollouts(scenario, grid, tables, args.horizon, args.fallbacks,
-                                      starts=starts, mission_limit=args.mission_limit)
-            check = {"starts": len(starts), "seed": args.seed,
-                     "fallbacks": {f: {"table": liveness_figures(table[UNGUARDED], table[f]),
-                                       "real": liveness_figures(real[UNGUARDED], real[f])}
-                                   for f in args.fallbacks}}
+            check = guard_check(scenario, grid, tables, args.fallbacks,
+                                starts=args.check_starts, seed=args.seed, horizon=args.horizon,
+                                mission_limit=args.mission_limit, cache_dir=cache / "outcomes",
+                                executor=executor, noise_starts=args.noise_starts,
+                                noise_seed=args.noise_seed)
     started = time.time()
     runs = fallback_rollouts(scenario, grid, tables, args.horizon, args.fallbacks,
                              mission_limit=args.mission_limit)
@@ -105,10 +104,18 @@ def guard_command(args):
                  f"{percent(v['ended_stopped'])}, needless stops {percent(v['needless_stops'])}, "
                  f"distance {v['distance_ratio']:.2f} x alone, ticks flagged "
                  f"{100 * v['flagged_ticks']:.1f}%; {same_distance(v)}")
+    if "score_noise" in check:
+        n = check["score_noise"]
+        log.info("  score noise between nodes: " + (
+            f"not fitted ({n['error']})" if "error" in n else
+            f"mean {n['mean']:+.3f}, sigma {n['sigma']:.3f} (logit), correlation length "
+            f"{n['length']:.2f} m, from {n['runs']} real runs of the controller alone"))
     for f, both in check.get("fallbacks", {}).items():
-        for source in ("table", "real"):
+        for source in ("table", "table_with_noise", "real"):
+            if source not in both:
+                continue
             v = both[source]
-            log.info(f"  {check['starts']} starts, {source:5s} {f}: alone fails "
+            log.info(f"  {check['starts']} starts, {source:16s} {f}: alone fails "
                      f"{percent(v['alone_failure_set'])}, guarded fails "
                      f"{percent(v['failure_set'])}, ended stopped {percent(v['ended_stopped'])}, "
                      f"needless stops {percent(v['needless_stops'])}; {same_distance(v)}")

@@ -4,6 +4,7 @@ figures from the real Drake loops, a real nominal-vs-guarded run, the online rat
 fine-tuned on mined anomalies, the held-out BRT recomputed)."""
 
 import copy
+import dataclasses as dc
 
 import numpy as np
 from scipy.ndimage import uniform_filter
@@ -19,7 +20,8 @@ from reachwatch.systems import fallback_parts
 from reachwatch.taxi import (UNGUARDED, fallback_rollouts, mission_rollouts, on_runway_starts,
                              perfect_detector_scores, real_missions, resolved, simulate_guarded,
                              sweep_guarded)
-from reachwatch.taxi.guarded import tradeoff_curves, tradeoff_row
+from reachwatch.taxi.fidelity import real_score_noise
+from reachwatch.taxi.guarded import SCORE_PORT, tradeoff_curves, tradeoff_row
 from reachwatch.taxi.plots import plot_brt_slices, plot_failure_sets, plot_tradeoff
 from reachwatch.training.incremental import fine_tune_taxinet, mine_anomalies
 
@@ -112,24 +114,54 @@ def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
     return record
 
 
+def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, horizon: float,
+                mission_limit, cache_dir, executor=None, progress=True, noise_starts: int = 0,
+                noise_seed: int = 4000) -> dict:
+    """Every fallback and the controller alone in the real Drake loops from ``starts``
+    seeded on-runway starts, beside the tables' figures from the same starts; with
+    ``noise_starts``, also beside the tables with the detector's variation between
+    nodes (`reach.score_noise`) fitted on that many other real runs of the controller
+    alone (starts and noise seeded ``noise_seed``). A fit that fails is recorded with its
+    reason and the check goes on."""
+    half_width = scenario.environment.half_width
+    points = on_runway_starts(grid, starts, seed, half_width=half_width)
+    table = fallback_rollouts(scenario, grid, tables, horizon, fallbacks, starts=points,
+                              mission_limit=mission_limit)
+    real = {f: real_missions(scenario, points, fallback=None if f == UNGUARDED else f,
+                             duration=horizon, mission_limit=mission_limit, cache_dir=cache_dir,
+                             executor=executor, progress=progress)
+            for f in [UNGUARDED, *fallbacks]}
+    check = {"starts": len(points), "seed": seed,
+             "fallbacks": {f: {"table": liveness_figures(table[UNGUARDED], table[f]),
+                               "real": liveness_figures(real[UNGUARDED], real[f])}
+                           for f in fallbacks}}
+    if not noise_starts:
+        return check
+    calibration = on_runway_starts(grid, noise_starts, noise_seed, half_width=half_width)
+    try:
+        noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], calibration,
+                                      duration=horizon, cache_dir=cache_dir, executor=executor,
+                                      progress=progress)
+    except ValueError as e:
+        check["score_noise"] = {"error": str(e), "runs": noise_starts, "seed": noise_seed}
+        return check
+    noisy = fallback_rollouts(scenario, grid, tables, horizon, fallbacks, starts=points,
+                              mission_limit=mission_limit, score_noise=noise, seed=noise_seed,
+                              alone=table[UNGUARDED])
+    check["score_noise"] = {**dc.asdict(noise), **fit, "seed": noise_seed}
+    for f in fallbacks:
+        check["fallbacks"][f]["table_with_noise"] = liveness_figures(table[UNGUARDED], noisy[f])
+    return check
+
+
 def real_loop_check(run: Run, scenario, grid, tables, env) -> dict:
-    """Every fallback and the controller alone in the real Drake loops from
-    ``guard.check_starts`` seeded on-runway starts, beside the tables' figures from the
-    same starts."""
-    spec = run.spec
-    starts = on_runway_starts(grid, spec.guard.check_starts, spec.guard.check_seed,
-                              half_width=env.half_width)
-    table = fallback_rollouts(scenario, grid, tables, spec.horizon, spec.guard.strategies,
-                              starts=starts, mission_limit=spec.guard.mission_limit)
-    real = {f: real_missions(scenario, starts, fallback=None if f == UNGUARDED else f,
-                             duration=spec.horizon, mission_limit=spec.guard.mission_limit,
-                             cache_dir=run.path("outcomes"),
-                             executor=run.executor, progress=run.progress)
-            for f in [UNGUARDED, *spec.guard.strategies]}
-    return {"starts": len(starts), "seed": spec.guard.check_seed,
-            "fallbacks": {f: {"table": liveness_figures(table[UNGUARDED], table[f]),
-                              "real": liveness_figures(real[UNGUARDED], real[f])}
-                          for f in spec.guard.strategies}}
+    """`guard_check` with the run file's ``guard`` settings."""
+    guard = run.spec.guard
+    return guard_check(scenario, grid, tables, guard.strategies, starts=guard.check_starts,
+                       seed=guard.check_seed, horizon=run.spec.horizon,
+                       mission_limit=guard.mission_limit, cache_dir=run.path("outcomes"),
+                       executor=run.executor, progress=run.progress,
+                       noise_starts=guard.noise_starts, noise_seed=guard.noise_seed)
 
 
 def guard_environment(run: Run, env) -> dict:

@@ -234,11 +234,26 @@ def guard_section(page, env, g, spec, checked):
                   f"every tick) from {check['starts']} seeded random on-runway starts (seed "
                   f"{check['seed']}), beside the tables' rollouts from the same starts; "
                   f"95 % Wilson intervals.")
+        noise = check.get("score_noise")
+        if noise and "error" in noise:
+            page.text(f"The detector's variation between grid nodes could not be fitted on "
+                      f"{noise['runs']} real runs of the controller alone: {noise['error']}.")
+        elif noise:
+            page.text(f"The tables interpolate the detector's score between grid nodes; the "
+                      f"real score departs from that in patches a few metres long. Fitted on "
+                      f"{noise['runs']} other real runs of the controller alone (seed "
+                      f"{noise['seed']}), the departure is noise in the score's logit with mean "
+                      f"{noise['mean']:+.2f}, standard deviation {noise['sigma']:.2f} and "
+                      f"correlation length {noise['length']:.1f} m of travel; the rows 'table + "
+                      f"score noise' roll the tables out with it (one draw).")
+        sources = {"table": "table", "table_with_noise": "table + score noise", "real": "real"}
         rows = []
         for f, both in check["fallbacks"].items():
-            for source in ("table", "real"):
+            for source, label in sources.items():
+                if source not in both:
+                    continue
                 v = both[source]
-                rows.append([f, source, percent(v["alone_failure_set"]), percent(v["failure_set"]),
+                rows.append([f, label, percent(v["alone_failure_set"]), percent(v["failure_set"]),
                              percent(v["ended_stopped"]), percent(v["needless_stops"]),
                              _x(v["distance_ratio"]),
                              percent(v.get("alone_same_distance_failure_set")),

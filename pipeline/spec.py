@@ -39,7 +39,10 @@ class GuardSpec:
     seconds per round of the online rate. ``mission_limit``: the failure sets are also
     judged by distance (failures before covering the distance the controller alone
     covers within the horizon, the runs going on for up to ``mission_limit`` horizons;
-    a slower aircraft otherwise fails later, past the horizon, on the same path)."""
+    a slower aircraft otherwise fails later, past the horizon, on the same path).
+    ``noise_starts``: real runs of the controller alone (seeded ``noise_seed``) on
+    which the detector's variation between grid nodes is fitted, so that the real-loop
+    check also shows the tables with it (`reach.score_noise`; 0 = not fitted)."""
     environments: List[Environment] = dc.field(default_factory=list)
     strategies: List[str] = dc.field(default_factory=lambda: list(DEFAULT_FALLBACKS))
     candidates: int = 5
@@ -49,6 +52,8 @@ class GuardSpec:
     check_seed: int = 2000
     tradeoff_points: int = 9
     mission_limit: float = 3.0
+    noise_starts: int = 20
+    noise_seed: int = 4000
 
 
 @dc.dataclass
@@ -223,7 +228,7 @@ class RunSpec:
                 raise ValueError(f"guard.strategies[{i}]: {e}") from None
         if len(set(self.guard.strategies)) != len(self.guard.strategies):
             raise ValueError(f"guard.strategies: each fallback once, got {self.guard.strategies}")
-        for name in ("candidates", "check_starts", "tradeoff_points"):
+        for name in ("candidates", "check_starts", "tradeoff_points", "noise_starts"):
             value = getattr(self.guard, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"guard.{name} must be a whole number >= 0, got {value!r}")

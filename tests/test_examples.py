@@ -24,7 +24,7 @@ def _tiny(spec):
     spec.detector.detector.channels = [4, 8]
     spec.detector.epochs, spec.detector.batch_size, spec.detector.device = 1, 8, "cpu"
     spec.guard.candidates, spec.guard.online_seconds = 1, 0.2
-    spec.guard.check_starts, spec.guard.tradeoff_points = 1, 2
+    spec.guard.check_starts, spec.guard.tradeoff_points, spec.guard.noise_starts = 1, 2, 2
     spec.train, spec.test = spec.train[:1], spec.test[:1]
     spec.fidelity.starts, spec.fidelity.max_box_exits = 2, 1.0
     return spec

@@ -352,12 +352,16 @@ def test_guard_command_reports_liveness_and_the_real_loop_check(detector_path, t
                     f"resume_acceleration: 2.0}}\n")
     assert main(["-q", "guard", "--scenario", str(path), "--shape", "3", "2", "3", "--horizon",
                  "2", "--fallbacks", "brake", "slow_down+dead_reckoning", "--tradeoff-points",
-                 "2", "--check-starts", "2", "--executor", "inline", "--cache",
+                 "2", "--check-starts", "2", "--noise-starts", "3", "--executor", "inline", "--cache",
                  str(tmp_path / "cache"), "--out", str(tmp_path)]) == 0
     record = json.loads((tmp_path / "guard_KMWH_9h_clear.json").read_text())
     assert set(record["liveness"]) == {"brake", "slow_down+dead_reckoning"}
     assert record["monitor"]["resume_acceleration"] == 2.0       # what produced the figures
     assert record["check"]["starts"] == 2
+    noise = record["check"]["score_noise"]            # fitted, or the reason it was not
+    assert noise["runs"] == 3 and noise["seed"] == 4000
     for both in record["check"]["fallbacks"].values():
         assert both["real"]["starts"] == both["table"]["starts"] == 2
+        if "error" not in noise:
+            assert both["table_with_noise"]["starts"] == 2
     assert (tmp_path / "tradeoff_KMWH_9h_clear.png").stat().st_size > 1000
