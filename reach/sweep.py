@@ -101,8 +101,13 @@ WORKER_MEMORY = 2 << 30
 
 
 def default_worker_count() -> int:
-    """One worker per usable core, but no more than the machine's memory holds at
-    `WORKER_MEMORY` each."""
+    """``$REACHWATCH_WORKERS`` when set; else one worker per usable core, but no more
+    than the machine's memory holds at `WORKER_MEMORY` each."""
+    given = os.environ.get("REACHWATCH_WORKERS", "").strip()
+    if given:
+        if not given.isdigit() or int(given) < 1:
+            raise ValueError(f"REACHWATCH_WORKERS must be a whole number >= 1, got '{given}'")
+        return int(given)
     try:
         memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (AttributeError, ValueError, OSError):       # not POSIX: cores alone

@@ -8,6 +8,9 @@ from reachwatch.systems import CameraConfig
 # Generated textures go to a per-session folder so tests never depend on ~/.cache.
 os.environ.setdefault("REACHWATCH_CACHE", os.path.join(
     os.environ.get("PYTEST_CACHE_ROOT", "/tmp"), f"reachwatch-test-cache-{os.getuid()}"))
+# Tests sweep tiny grids: one worker, whose start-up a second would only double
+# (tests/test_worker_pool.py asks for its pools' sizes explicitly).
+os.environ.setdefault("REACHWATCH_WORKERS", "1")
 
 
 @pytest.fixture

@@ -61,6 +61,7 @@ def test_local_executor_spec_names_its_worker_count():
 
 
 def test_default_worker_count_is_capped_by_memory(monkeypatch):
+    monkeypatch.delenv("REACHWATCH_WORKERS", raising=False)
     sweep_module = __import__("sys").modules["reachwatch.reach.sweep"]
     monkeypatch.setattr(sweep_module, "usable_cores", lambda: 16)
     pages = {"SC_PAGE_SIZE": 4096, "SC_PHYS_PAGES": 5 * WORKER_MEMORY // 4096}
@@ -70,6 +71,12 @@ def test_default_worker_count_is_capped_by_memory(monkeypatch):
     assert default_worker_count() == 16
     pages["SC_PHYS_PAGES"] = 1
     assert default_worker_count() == 1
+    monkeypatch.setenv("REACHWATCH_WORKERS", "3")                # the user's word wins
+    assert default_worker_count() == 3
+    for bad in ("0", "two", "-1"):
+        monkeypatch.setenv("REACHWATCH_WORKERS", bad)
+        with pytest.raises(ValueError, match="REACHWATCH_WORKERS must be a whole number >= 1"):
+            default_worker_count()
 
 
 @pytest.mark.parametrize("count, size", [(1, 1), (3, 1), (6, 2), (8, 2), (20, 5), (28, 7),
