@@ -30,7 +30,7 @@ detector:
   batch_size: 8
   device: cpu
 ensemble: {seeds: [1, 2], samples: 48, epochs: 2}
-guard: {candidates: 2, online_seconds: 0.2, meshcat_html: true, check_starts: 2, tradeoff_points: 3, noise_starts: 2}
+guard: {candidates: 2, online_seconds: 0.2, meshcat_html: true, check_starts: 2, tradeoff_points: 3, noise_starts: 0}
 fidelity: {starts: 3, max_box_exits: 1.0}
 incremental:
   environment: {runway: KMWH, hour: 17.0, sky: clear}
@@ -76,7 +76,7 @@ def _ran(log):
     (("guard: {candidates: 2", "guard: {strategies: [slow_down+gps], candidates: 2"),
      "guard.strategies[0]: fallback 'slow_down+gps'"),
     (("check_starts: 2", "check_starts: -2"), "guard.check_starts must be a whole number >= 0"),
-    (("noise_starts: 2", "noise_starts: -3"), "guard.noise_starts must be a whole number >= 0"),
+    (("noise_starts: 0", "noise_starts: -3"), "guard.noise_starts must be a whole number >= 0"),
     (("batch_size: 8", "batch_size: 8\n  threshold_folds: 2"),
      "detector.threshold_folds 2: there are only 1 training environments to leave out"),
 ])
