@@ -25,7 +25,7 @@ CONTROLLER = "controller"
 CONTROL_PORT = f"{CONTROLLER}.{CONTROL_OUTPUT}"
 ESTIMATE_PORT = f"{CONTROLLER}.{ESTIMATE_OUTPUT}"
 #: The output ports a loop exports for `simulate` (``state`` required).
-LOOP_OUTPUTS = ("state", "estimate", "speed", "anomaly")
+LOOP_OUTPUTS = ("state", "estimate", "speed", "anomaly", "score")
 
 
 @dc.dataclass
@@ -40,6 +40,7 @@ class Trajectory:
     failure_time: float = float("nan")
     speed: np.ndarray = None          # m/s per tick (loops exporting ``speed``)
     anomaly: np.ndarray = None        # detector flag per tick (loops exporting ``anomaly``)
+    score: np.ndarray = None          # detector score per tick (loops exporting ``score``)
 
 
 def add_controller(builder, world, controller):
@@ -50,28 +51,31 @@ def add_controller(builder, world, controller):
     return system
 
 
-def export_loop_ports(builder, *, state, estimate=None, speed=None, anomaly=None):
+def export_loop_ports(builder, *, state, estimate=None, speed=None, anomaly=None, score=None):
     """Exports the output ports `simulate` reads (those given)."""
-    for name, port in zip(LOOP_OUTPUTS, (state, estimate, speed, anomaly)):
+    for name, port in zip(LOOP_OUTPUTS, (state, estimate, speed, anomaly, score)):
         if port is not None:
             builder.ExportOutput(port, name)
 
 
-def close_loop(builder, *, plant, steering, estimate, controller, name):
+def close_loop(builder, *, plant, steering, estimate, controller, name, before_build=None):
     """Holds ``steering`` for one control period, feeds the plant a constant speed,
-    exports ``state`` (and ``estimate`` when given) and builds the diagram."""
+    exports ``state`` (and ``estimate`` when given), calls ``before_build(builder)``
+    when given, and builds the diagram."""
     hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(controller.period, 1))
     speed = builder.AddNamedSystem("speed", ConstantVectorSource([controller.speed]))
     builder.Connect(steering, hold.get_input_port())
     builder.Connect(hold.get_output_port(), plant.get_steering_angle_input_port())
     builder.Connect(speed.get_output_port(), plant.get_speed_input_port())
     export_loop_ports(builder, state=plant.get_state_output_port(), estimate=estimate)
+    if before_build is not None:
+        before_build(builder)
     diagram = builder.Build()
     diagram.set_name(name)
     return diagram
 
 
-def make_closed_loop_diagram(scenario) -> Diagram:
+def make_closed_loop_diagram(scenario, *, prebuild_callback=None) -> Diagram:
     """Plant + camera + the scenario's controller at ``scenario.controller.period``.
 
     .. pydrake_system::
@@ -82,7 +86,12 @@ def make_closed_loop_diagram(scenario) -> Diagram:
         - estimate (when the controller has one)
 
     Subsystems: ``taxi_plant``, ``controller``, ``steering_hold`` (zero-order hold),
-    ``speed``, and the world's scene graph, geometry and camera."""
+    ``speed``, and the world's scene graph, geometry and camera.
+
+    ``prebuild_callback(builder, world)``, when given, is called just before the
+    diagram is built, with the `World` handles: add your own systems there (e.g. an
+    observer on ``world.camera``) and export their ports (``score`` is read by
+    `simulate`)."""
     builder = DiagramBuilder()
     world = add_world(builder, environment=scenario.environment, camera=scenario.camera,
                       shadows=scenario.shadows,
@@ -92,7 +101,9 @@ def make_closed_loop_diagram(scenario) -> Diagram:
                       steering=controller.GetOutputPort(CONTROL_OUTPUT),
                       estimate=(controller.GetOutputPort(ESTIMATE_OUTPUT)
                                 if has_estimate(controller) else None),
-                      controller=scenario.controller, name="closed_loop")
+                      controller=scenario.controller, name="closed_loop",
+                      before_build=(None if prebuild_callback is None else
+                                    lambda builder: prebuild_callback(builder, world)))
 
 
 def make_state_feedback_diagram(scenario) -> Diagram:
@@ -201,6 +212,6 @@ def simulate(diagram: Diagram, *, initial_state, duration: float, period: float,
         t_fail = float(times[np.argmax(np.abs(x[:, 0]) >= half_width)])
     estimate = np.array(rows["estimate"]).reshape(n, -1) if "estimate" in rows else np.zeros((n, 0))
     extra = {name: np.array(rows[name]).reshape(n, -1)[:, 0]
-             for name in ("speed", "anomaly") if name in rows}
+             for name in ("speed", "anomaly", "score") if name in rows}
     return Trajectory(time=times[:n], state=x, estimate=estimate, half_width=half_width,
                       failed=failed, failure_time=t_fail, **extra)

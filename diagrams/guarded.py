@@ -27,6 +27,18 @@ class Monitor(NamedTuple):
     anomaly: OutputPort
 
 
+def add_detector(builder, *, image_port, monitor) -> AnomalyDetector:
+    """Adds the `AnomalyDetector` of ``monitor`` (a `MonitorConfig`: its checkpoint and
+    threshold), named ``anomaly_detector``, on ``image_port``; returns it. Alone (no
+    switch) it watches a loop without acting on it."""
+    model, config, metadata = load_detector(monitor.detector)
+    detector = builder.AddNamedSystem(DETECTOR, AnomalyDetector(
+        model=model, config=config, threshold=monitor.threshold,
+        image_size=metadata.get("image_size")))
+    builder.Connect(image_port, detector.get_color_image_input_port())
+    return detector
+
+
 def add_monitor(builder, *, image_port, steering_port, monitor, controller) -> Monitor:
     """Adds the runtime monitor of ``monitor`` (a `MonitorConfig`) to any loop: the
     `AnomalyDetector` on ``image_port``, a `FlagFilter` (named ``flag_filter``) when
@@ -34,15 +46,11 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller) -> M
     ``steering_port``, ticking at ``controller.period`` from ``controller.speed``.
     Returns a `Monitor`; connect the switch's ``steering_angle`` and ``speed`` outputs
     to your plant (and its ``fallback_steering_angle`` input for ``oracle``)."""
-    model, config, metadata = load_detector(monitor.detector)
-    detector = builder.AddNamedSystem(DETECTOR, AnomalyDetector(
-        model=model, config=config, threshold=monitor.threshold,
-        image_size=metadata.get("image_size")))
+    detector = add_detector(builder, image_port=image_port, monitor=monitor)
     switch = builder.AddNamedSystem(SWITCH, FallbackSwitch(
         strategy=monitor.strategy, steering=monitor.steering, period=controller.period,
         nominal_speed=controller.speed, brake_deceleration=monitor.brake_deceleration,
         resume_acceleration=monitor.resume_acceleration))
-    builder.Connect(image_port, detector.get_color_image_input_port())
     builder.Connect(steering_port, switch.get_steering_angle_input_port())
     anomaly = detector.get_anomaly_output_port()
     if monitor.flag_window > 1:
@@ -88,6 +96,7 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
         - estimate (when the controller has one)
         - speed
         - anomaly
+        - score
 
     Subsystems: ``taxi_plant``, ``controller``, ``anomaly_detector``,
     ``fallback_switch``, ``steering_hold``; ``flag_filter`` with a k-of-n rule (the
@@ -131,7 +140,7 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
                       estimate=(vision.GetOutputPort(ESTIMATE_OUTPUT)
                                 if has_estimate(vision) else None),
                       speed=switch.get_speed_output_port(),
-                      anomaly=anomaly)
+                      anomaly=anomaly, score=detector.get_score_output_port())
     if meshcat is not None:
         from pydrake.geometry import MeshcatVisualizer, MeshcatVisualizerParams, Role
         MeshcatVisualizer.AddToBuilder(builder, world.scene_graph, meshcat,

@@ -10,8 +10,8 @@ import functools
 import numpy as np
 import torch
 
-from reachwatch.diagrams import (MonitorConfig, make_closed_loop_diagram, make_guarded_diagram,
-                                 simulate)
+from reachwatch.diagrams import (MonitorConfig, add_detector, make_closed_loop_diagram,
+                                 make_guarded_diagram, simulate)
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.interpolate import GridInterpolator
@@ -19,10 +19,9 @@ from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, Mis
                                        check_mission_limit)
 from reachwatch.reach.outcomes import Outcomes, map_states, run_outcomes
 from reachwatch.reach.score_noise import fit_score_noise
-from reachwatch.reach.sweep import evaluate_states
 from reachwatch.systems import fallback_parts
 
-from .sweeps import guarded_factory, resolved, taxi_probe
+from .sweeps import resolved
 
 #: The taxi grid axes where leaving the box is not a failure (py, theta): past |px| = B
 #: the run has failed, and it stops there.
@@ -202,16 +201,26 @@ def real_missions(scenario, starts, *, fallback=None, duration: float, cache_dir
     return MissionOutcomes.from_fields(fields)
 
 
+def make_watched_loop(scenario):
+    """The controller alone's closed loop with the detector of ``scenario.monitor``
+    watching its camera and acting on nothing: exports ``score`` beside ``state``, from
+    the same rendered image the controller sees at each tick."""
+    def watch(builder, world):
+        detector = add_detector(builder, image_port=world.camera.color_image_output_port(),
+                                monitor=scenario.monitor)
+        builder.ExportOutput(detector.get_score_output_port(), "score")
+    return make_closed_loop_diagram(scenario, prebuild_callback=watch)
+
+
 def score_paths(scenario, duration: float, states) -> dict:
     """From each start, the real closed loop of the controller alone for ``duration``
     s (stopping at failure), and the detector's score of the image at every logged
-    tick (``scenario.monitor.detector``): ``state`` ``(n, T, 3)`` and ``score`` ``(n, T)``,
-    NaN after a run ends; ``ticks`` ``(n,)``. ``functools.partial(score_paths,
-    scenario, duration)`` is a picklable rollout function for `map_states`."""
+    tick (``scenario.monitor.detector``, `make_watched_loop`): ``state`` ``(n, T, 3)``
+    and ``score`` ``(n, T)``, NaN after a run ends; ``ticks`` ``(n,)``.
+    ``functools.partial(score_paths, scenario, duration)`` is a picklable rollout
+    function for `map_states`."""
     scenario = resolved(scenario)
-    diagram, context = _loop(without_monitor(scenario), make_closed_loop_diagram)
-    probe = taxi_probe(scenario, guarded=True)
-    key = f"score_paths_{fingerprint(scenario)[:16]}"
+    diagram, context = _loop(scenario, make_watched_loop)
     period, B = scenario.controller.period, scenario.environment.half_width
     length = int(np.floor(duration / period + 1e-9)) + 2
     states = np.asarray(states, float)
@@ -222,11 +231,10 @@ def score_paths(scenario, duration: float, states) -> dict:
             continue
         run = simulate(diagram, initial_state=x, duration=duration, period=period,
                        half_width=B, context=context)
-        path = np.asarray(run.state, float)[:length]
-        scores = evaluate_states(guarded_factory(scenario), probe, key, path)
-        out["state"][i, :len(path)] = path
-        out["score"][i, :len(path)] = np.asarray(scores[f"port{len(probe.ports) - 1}"]).ravel()
-        out["ticks"][i] = len(path)
+        n = min(len(run.time), length)
+        out["state"][i, :n] = np.asarray(run.state, float)[:n]
+        out["score"][i, :n] = np.asarray(run.score, float)[:n]
+        out["ticks"][i] = n
     return out
 
 

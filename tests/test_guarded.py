@@ -90,8 +90,8 @@ def test_guarded_diagram_structure(detector_path):
     assert [switch.get_output_port(i).get_name() for i in range(2)] == ["steering_angle", "speed"]
     for name in ["taxi_plant", "controller", "steering_hold"]:
         assert diagram.HasSubsystemNamed(name)
-    assert [diagram.get_output_port(i).get_name() for i in range(4)] == [
-        "state", "estimate", "speed", "anomaly"]
+    assert [diagram.get_output_port(i).get_name() for i in range(5)] == [
+        "state", "estimate", "speed", "anomaly", "score"]
     with pytest.raises(ValueError, match="monitor.detector"):
         make_guarded_diagram(load_scenario(data=""))
 
@@ -129,6 +129,15 @@ def test_never_flagging_pipeline_equals_taxinet_alone(detector_path):
                  half_width=10.0)
     np.testing.assert_allclose(a.state, b.state, atol=1e-9)
     assert np.all(b.speed == 5.0)
+    # The loop alone watched by the detector (added through make_closed_loop_diagram's
+    # prebuild_callback): the same run, and the guarded loop's score at every tick.
+    from reachwatch.taxi.fidelity import make_watched_loop
+    c = simulate(make_watched_loop(scenario), initial_state=x0, duration=2.0, period=0.05,
+                 half_width=10.0)
+    np.testing.assert_allclose(c.state, a.state, atol=1e-9)
+    assert a.score is None and c.score.shape == (len(c.time),)
+    np.testing.assert_allclose(c.score, b.score, rtol=1e-6)
+    assert len(np.unique(c.score)) > 1           # the score changes along the run
 
 
 def test_cli_simulate_guarded_writes_plot_and_replay(detector_path, tmp_path):
