@@ -6,7 +6,9 @@ between nodes and with the fitted noise of its variation between nodes
 same starts, each fallback with 95 % Wilson intervals.
 
 The noise is fitted on separate calibration runs of the controller alone (their own
-seed), never on the starts it is checked on. Real runs and sweeps are cached by
+seed), never on the starts it is checked on; the tables are rolled out with it under
+``--noise-seeds`` seeds (the calibration seed and the ones after it). This is the
+guard stage's real-loop check (`guard_check`) with more noise seeds. Real runs and sweeps are cached by
 content under ``--cache`` (a re-run is free, a killed one resumes).
 
     python benchmarks/guard_fidelity.py --scenario S.yaml [--shape 21 11 21]
@@ -24,12 +26,10 @@ import numpy as np
 
 from reachwatch.diagrams import load_scenario
 from reachwatch.pipeline.executors import open_executor
-from reachwatch.reach.liveness import liveness_figures, percent
+from reachwatch.pipeline.online_stages import guard_check
+from reachwatch.reach.liveness import percent
 from reachwatch.systems.files import cache_root
-from reachwatch.taxi import (UNGUARDED, fallback_rollouts, on_runway_starts, paper_grid,
-                             real_missions, resolved, sweep_guarded)
-from reachwatch.taxi.fidelity import real_score_noise
-from reachwatch.taxi.guarded import SCORE_PORT
+from reachwatch.taxi import paper_grid, resolved, sweep_guarded
 
 
 def row(name, figures):
@@ -60,49 +60,44 @@ def main():
     scenario = resolved(load_scenario(args.scenario))
     if not scenario.monitor.detector:
         p.error(f"{args.scenario} has no monitor.detector: nothing to guard with")
+    if args.calibration_starts < 1 or args.noise_seeds < 1:
+        p.error("--calibration-starts and --noise-seeds must be >= 1")
     fallbacks = [f for f in args.fallbacks.split(",") if f]
     cache = cache_root() if args.cache is None else Path(args.cache)
-    B, horizon = scenario.environment.half_width, float(scenario.duration)
-    grid = paper_grid(B, tuple(args.shape))
-    starts = on_runway_starts(grid, args.starts, args.seed, half_width=B)
-    calibration = on_runway_starts(grid, args.calibration_starts, args.calibration_seed,
-                                   half_width=B)
+    horizon = float(scenario.duration)
+    grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
     started = time.perf_counter()
     with open_executor(args.executor) as executor:
         tables = sweep_guarded(scenario, grid, cache_dir=cache / "sweeps", executor=executor)
-        noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], calibration,
-                                      duration=horizon, cache_dir=cache / "outcomes",
-                                      executor=executor)
-        real = {f: real_missions(scenario, starts, fallback=None if f == UNGUARDED else f,
-                                 duration=horizon, mission_limit=args.mission_limit,
-                                 cache_dir=cache / "outcomes", executor=executor)
-                for f in [UNGUARDED, *fallbacks]}
+        check = guard_check(scenario, grid, tables, fallbacks, starts=args.starts, seed=args.seed,
+                            horizon=horizon, mission_limit=args.mission_limit,
+                            cache_dir=cache / "outcomes", executor=executor,
+                            noise_starts=args.calibration_starts,
+                            noise_seed=args.calibration_seed, noise_seeds=args.noise_seeds)
     print(f"guard fidelity: {scenario.environment.name}, detector threshold "
           f"{scenario.monitor.threshold:.3g}, grid {args.shape}, {args.starts} starts (seed "
           f"{args.seed}), horizon {horizon:g} s, same distance up to {args.mission_limit:g} x "
           f"the horizon ({time.perf_counter() - started:.0f} s)")
-    print(f"score noise fitted on {fit['runs']} calibration runs of the controller alone (seed "
-          f"{args.calibration_seed}, {fit['ticks']} ticks): mean {noise.mean:+.3f} and sigma "
-          f"{noise.sigma:.3f} (logit), correlation length {noise.length:.2f} m")
-    plain = fallback_rollouts(scenario, grid, tables, horizon, fallbacks, starts=starts,
-                              mission_limit=args.mission_limit)
-    noisy = [fallback_rollouts(scenario, grid, tables, horizon, fallbacks, starts=starts,
-                               mission_limit=args.mission_limit, score_noise=noise, seed=seed,
-                               alone=plain[UNGUARDED])
-             for seed in range(args.noise_seeds)]
+    noise = check["score_noise"]
+    if "error" in noise:
+        raise SystemExit(f"the score-noise fit failed: {noise['error']}")
+    print(f"score noise fitted on {noise['runs']} calibration runs of the controller alone (seed "
+          f"{args.calibration_seed}, {noise['ticks']} ticks): mean {noise['mean']:+.3f} and sigma "
+          f"{noise['sigma']:.3f} (logit), correlation length {noise['length']:.2f} m")
     for f in fallbacks:
+        record = check["fallbacks"][f]
+        figures = record.get("table_with_noise_by_seed", [record["table_with_noise"]])
         print(f"\n{f}:")
-        print(row("tables, interpolated score", liveness_figures(plain[UNGUARDED], plain[f])))
-        figures = [liveness_figures(plain[UNGUARDED], n[f]) for n in noisy]
-        for seed, fig in enumerate(figures):
-            print(row(f"tables + score noise, seed {seed}", fig))
+        print(row("tables, interpolated score", record["table"]))
+        for k, fig in enumerate(figures):
+            print(row(f"tables + score noise, seed {args.calibration_seed + k}", fig))
         mean = {k: np.mean([fig[k]["rate"] for fig in figures])
                 for k in ("same_distance_failure_set", "ended_stopped", "needless_stops")}
         print(f"{'tables + score noise, mean':34s} guarded fails (same distance) "
               f"{100 * mean['same_distance_failure_set']:.1f} %, ended stopped "
               f"{100 * mean['ended_stopped']:.1f} %, needless stops "
               f"{100 * mean['needless_stops']:.1f} %")
-        print(row("real loop", liveness_figures(real[UNGUARDED], real[f])))
+        print(row("real loop", record["real"]))
 
 
 if __name__ == "__main__":

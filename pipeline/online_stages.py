@@ -116,13 +116,17 @@ def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
 
 def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, horizon: float,
                 mission_limit, cache_dir, executor=None, progress=True, noise_starts: int = 0,
-                noise_seed: int = 4000) -> dict:
+                noise_seed: int = 4000, noise_seeds: int = 1) -> dict:
     """Every fallback and the controller alone in the real Drake loops from ``starts``
     seeded on-runway starts, beside the tables' figures from the same starts; with
     ``noise_starts``, also beside the tables with the detector's variation between
     nodes (`reach.score_noise`) fitted on that many other real runs of the controller
-    alone (starts and noise seeded ``noise_seed``). A fit that fails is recorded with its
-    reason and the check goes on."""
+    alone (starts and noise seeded ``noise_seed``; with ``noise_seeds`` > 1 the tables
+    are also rolled out with the noise seeded ``noise_seed + 1, ...``, kept per fallback
+    as ``table_with_noise_by_seed``). A fit that fails is recorded with its reason and
+    the check goes on."""
+    if noise_seeds < 1:
+        raise ValueError(f"noise_seeds must be >= 1, got {noise_seeds}")
     half_width = scenario.environment.half_width
     points = on_runway_starts(grid, starts, seed, half_width=half_width)
     table = fallback_rollouts(scenario, grid, tables, horizon, fallbacks, starts=points,
@@ -145,12 +149,16 @@ def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, ho
     except ValueError as e:
         check["score_noise"] = {"error": str(e), "runs": noise_starts, "seed": noise_seed}
         return check
-    noisy = fallback_rollouts(scenario, grid, tables, horizon, fallbacks, starts=points,
-                              mission_limit=mission_limit, score_noise=noise, seed=noise_seed,
-                              alone=table[UNGUARDED])
+    noisy = [fallback_rollouts(scenario, grid, tables, horizon, fallbacks, starts=points,
+                               mission_limit=mission_limit, score_noise=noise,
+                               seed=noise_seed + k, alone=table[UNGUARDED])
+             for k in range(noise_seeds)]
     check["score_noise"] = {**dc.asdict(noise), **fit, "seed": noise_seed}
     for f in fallbacks:
-        check["fallbacks"][f]["table_with_noise"] = liveness_figures(table[UNGUARDED], noisy[f])
+        figures = [liveness_figures(table[UNGUARDED], n[f]) for n in noisy]
+        check["fallbacks"][f]["table_with_noise"] = figures[0]
+        if noise_seeds > 1:
+            check["fallbacks"][f]["table_with_noise_by_seed"] = figures
     return check
 
 

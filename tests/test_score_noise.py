@@ -123,3 +123,11 @@ def test_score_along_real_runs_and_the_fit_from_them(detector_path, tmp_path):
     noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], starts, duration=1.0,
                                   cache_dir=tmp_path / "outcomes", progress=False)
     assert fit == {"runs": 3, "ticks": 3 * 21} and noise.sigma > 0 and noise.length > 0
+
+
+def test_guard_check_refuses_no_noise_seeds(tmp_path):
+    from reachwatch.pipeline.online_stages import guard_check
+    with pytest.raises(ValueError, match="noise_seeds must be >= 1, got 0"):
+        guard_check(None, None, None, ["brake"], starts=2, seed=0, horizon=1.0, mission_limit=None,
+                    cache_dir=tmp_path, noise_starts=2, noise_seeds=0)
+    assert not any(tmp_path.iterdir())              # refused before any work
