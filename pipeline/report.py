@@ -4,18 +4,15 @@ relative path, so the run directory can be moved or served as it is."""
 
 import html
 
-import numpy as np
-
 from reachwatch.diagrams import export_graph, write_png, make_closed_loop_diagram, make_guarded_diagram
 from reachwatch.diagrams.contact_sheet import environment_sheet
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.reach import wilson_interval
-from reachwatch.reach.liveness import percent
-from reachwatch.taxi import UNGUARDED
 from reachwatch.training.evaluation import COLUMNS, format_cell
 
 from .brt_stages import sweep_rate
 from .detector_sections import detector_verdicts, percent_text as _pct, threshold_section
+from .guard_sections import guard_section
 from .stages import Run
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;
@@ -154,139 +151,6 @@ def _audit_text(record):
             else "map not trusted")
 
 
-def _x(value):
-    return "-" if value is None else f"{value:.2f}"
-
-
-def _share(entry):
-    """``"12.3 (45/367)"`` for a `liveness_figures` rate (``"-"`` when absent or empty)."""
-    if entry is None or entry.get("rate") is None:
-        return "-"
-    return f"{100 * entry['rate']:.1f} ({entry['count']}/{entry['of']})"
-
-
-def _ticks(figures):
-    return "-" if figures["flagged_ticks"] is None else f"{100 * figures['flagged_ticks']:.1f}"
-
-
-def _cut_inside(figures):
-    """The failure cut over the starts inside the safe set: at the same distance when
-    judged so, else within the horizon (``"-"`` for runs from before these figures)."""
-    cut = figures.get("same_distance_failure_cut_inside", figures.get("failure_cut_inside"))
-    return "-" if cut is None else f"{100 * cut:.0f}"
-
-
-def guard_section(page, env, g, spec, checked):
-    """Failure sets with their liveness per fallback, the trade-off curve, the real-loop
-    check and the showcase run of one guard environment."""
-    page.text(f"{env}: fraction of grid starts that leave the runway within "
-              f"{spec.horizon:g} s (detector threshold {g['threshold']:.3g}), and what each "
-              f"fallback costs: starts ended stopped, needless stops (of the starts the "
-              f"controller alone survives, those the fallback ends stopped), harmed (of those, "
-              f"the ones it makes fail), saves that keep moving (of the starts the controller "
-              f"alone fails), distance travelled relative to the controller alone, and ticks "
-              f"flagged. 'oracle' steers with the true state: a privileged reference, not a result. "
-              f"Slowing down does not change the aircraft's path (its turn rate scales with "
-              f"speed), only when it gets somewhere: a slower aircraft can leave the runway "
-              f"after the horizon instead of within it. So the last two columns judge the same "
-              f"runs by distance: the share that leaves the runway before covering the distance "
-              f"the controller alone covers in {spec.horizon:g} s (the runs going on past the "
-              f"horizon), and the share that never covers it (parked or crawling). Grid "
-              f"nodes off the runway fail before the first tick and no fallback can save "
-              f"them, yet they count in every failure set; the column 'cut, on-runway "
-              f"starts' gives the cut at the same distance over the other nodes.")
-    first = next(iter(g.get("liveness", {}).values()), {})
-    alone_same = first.get("alone_same_distance_failure_set")
-    rows = [["controller alone", _pct(g["volumes"][UNGUARDED]), "-", "-", "-", "-", "1.00", "-",
-             _share(alone_same), "-", "-"]]
-    for f, v in g.get("liveness", {}).items():
-        rows.append([f, _pct(v["failure_set"]["rate"]), _share(v["ended_stopped"]),
-                     _share(v["needless_stops"]), _share(v["harmed"]), _share(v["saved_moving"]),
-                     _x(v["distance_ratio"]), _ticks(v),
-                     _share(v.get("same_distance_failure_set")), _share(v.get("short_of_distance")),
-                     _cut_inside(v)])
-    page.table(["closed loop", "failure set %", "ended stopped %", "needless stops %",
-                "harmed %", "saved, moving %", "distance / alone", "ticks flagged %",
-                "fails at the same distance %", "short of the distance %",
-                "cut, on-runway starts %"], rows)
-    perfect = g.get("perfect_detector")
-    if perfect:
-        page.text("The same fallbacks with a perfect detector, one that flags exactly the "
-                  "states the BRT holds (the label the detector learns): what is left here no "
-                  "better detector can remove, and the gap between the two tables is the "
-                  "detector's share.")
-        page.table(["fallback, perfect detector", "failure set %", "ended stopped %",
-                    "needless stops %", "ticks flagged %", "fails at the same distance %",
-                    "short of the distance %", "cut, on-runway starts %"],
-                   [[f, _share(v["failure_set"]), _share(v["ended_stopped"]),
-                     _share(v["needless_stops"]), _ticks(v),
-                     _share(v.get("same_distance_failure_set")), _share(v.get("short_of_distance")),
-                     _cut_inside(v)]
-                    for f, v in perfect.items()])
-    if checked:
-        page.text(f"The controller alone in the real loop, from {checked['starts']} random "
-                  f"on-runway starts (the grid figures above count every node, off-runway "
-                  f"ones too): {monte_carlo(checked)}.")
-    page.images([g["figure"], g.get("tradeoff_figure")])
-    check = g.get("check")
-    if check:
-        page.text(f"The same figures in the real Drake loops (rendering and the detector at "
-                  f"every tick) from {check['starts']} seeded random on-runway starts (seed "
-                  f"{check['seed']}), beside the tables' rollouts from the same starts; "
-                  f"95 % Wilson intervals.")
-        noise = check.get("score_noise")
-        if noise and "error" in noise:
-            page.text(f"The detector's variation between grid nodes could not be fitted on "
-                      f"{noise['runs']} real runs of the controller alone: {noise['error']}.")
-        elif noise:
-            page.text(f"The tables interpolate the detector's score between grid nodes; the "
-                      f"real score departs from that in patches a few metres long. Fitted on "
-                      f"{noise['runs']} other real runs of the controller alone (seed "
-                      f"{noise['seed']}), the departure is noise in the score's logit with mean "
-                      f"{noise['mean']:+.2f}, standard deviation {noise['sigma']:.2f} and "
-                      f"correlation length {noise['length']:.1f} m of travel; the rows 'table + "
-                      f"score noise' roll the tables out with it (one draw).")
-        sources = {"table": "table", "table_with_noise": "table + score noise", "real": "real"}
-        rows = []
-        for f, both in check["fallbacks"].items():
-            for source, label in sources.items():
-                if source not in both:
-                    continue
-                v = both[source]
-                rows.append([f, label, percent(v["alone_failure_set"]), percent(v["failure_set"]),
-                             percent(v["ended_stopped"]), percent(v["needless_stops"]),
-                             _x(v["distance_ratio"]),
-                             percent(v.get("alone_same_distance_failure_set")),
-                             percent(v.get("same_distance_failure_set")),
-                             percent(v.get("short_of_distance"))])
-        page.table(["fallback", "figures from", "alone fails", "guarded fails", "ended stopped",
-                    "needless stops", "distance / alone", "alone fails, same distance",
-                    "guarded fails, same distance", "short of the distance"], rows)
-    r = g["run"]
-    if not r.get("files"):
-        page.text("No grid start where the tables say the controller alone fails and an honest "
-                  "fallback saves it, so no nominal-vs-guarded run to show.")
-        return
-    save = r.get("save")
-    verdict = ("a save that keeps moving, confirmed in the real Drake loops" if save == "moving"
-               else "confirmed in the real Drake loops, but the only save found is a stop: the "
-                    "guarded loop ends at standstill" if save == "stop"
-               else "NOT a save: in the real Drake loops the guarded aircraft only leaves the "
-                    "runway later, past the horizon, on the same path" if any(
-                        t.get("guarded_fails_later") for t in r["tried"])
-               else "NOT confirmed in the real Drake loops (the tables are coarse)")
-    page.text(f"Nominal vs guarded ({r['strategy']}) from the start {np.round(r['start'], 2)} "
-              f"[px m, py m, theta rad], chosen from the tables ({len(r['tried'])} tried), "
-              f"{verdict}: the controller alone {'fails' if r['nominal_fails'] else 'stays on'}, "
-              f"guarded {'fails' if r['guarded_fails'] else 'stays on'}; lowest speed "
-              f"{r['lowest_speed']:.2f} m/s, final speed {r.get('final_speed', float('nan')):.2f} "
-              f"m/s, {r['flagged_ticks']} of {r.get('ticks', '?')} ticks flagged.")
-    page.images([p for p in r["files"] if p.endswith(".png")])
-    for p in r["files"]:
-        if p.endswith(".html"):
-            page.link(p, "Meshcat replay of the guarded run (standalone HTML)")
-
-
 def graphs(run: Run):
     """SVG/PNG (or only .dot without graphviz) of the nominal and guarded diagrams."""
     scenario = run.scenario_for(run.spec.held_out_environments()[0])
@@ -379,7 +243,9 @@ def write_report(run: Run) -> dict:
     page.images([f["error_vs_margin"] for f in o["evaluate"]["figures"].values()])
     page.section("Safety pipeline", "guard")
     for env, g in o["guard"].items():
-        guard_section(page, env, g, spec, (o.get("fidelity") or {}).get(env))
+        checked = (o.get("fidelity") or {}).get(env)
+        guard_section(page, env, g, spec,
+                      alone_checked=checked and (checked["starts"], monte_carlo(checked)))
     if o.get("incremental"):
         inc = o["incremental"]
         page.section("Incremental training", "incremental")
