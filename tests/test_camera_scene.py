@@ -136,3 +136,17 @@ def test_bad_environment_fields_named():
         Environment(sky="foggy").validate()
     with pytest.raises(ValueError, match="half_width"):
         Environment(runway_spec=RunwaySpec(half_width=-1.0)).validate()
+
+
+def test_a_dropped_world_is_freed(tiny_camera):
+    """A renderer's diagram (scene, renderer and all) is freed once dropped: no Python
+    system of it outlives a garbage collection (pydrake keeps a system alive for good
+    when its abstract output port calls a bound method of its own)."""
+    import gc
+    import weakref
+    renderer = StateRenderer(environment=Environment("KMWH", 9.0, "clear"), camera=tiny_camera)
+    renderer.render([0.0, 150.0, 0.0])
+    geometry = weakref.ref(renderer.world.geometry)
+    del renderer
+    gc.collect()
+    assert geometry() is None
