@@ -86,6 +86,13 @@ def guard_section(page, env, g, spec, *, alone_checked=None):
         page.text(f"The controller alone in the real loop, from {starts} random "
                   f"on-runway starts (the grid figures above count every node, off-runway "
                   f"ones too): {text}.")
+    if g.get("tradeoff_with_noise") and g.get("tradeoff_figure"):
+        page.text("Dashed in the trade-off figure: the same curves with the detector's "
+                  "variation between grid nodes (the score noise fitted for the real-loop "
+                  "check below, one draw). Interpolated between nodes, the score is smoother "
+                  "than the real one, so the solid curves stop more and save more than the "
+                  "real loop; the check below shows which of the two the real loop follows "
+                  "at the operating point.")
     page.images([g["figure"], g.get("tradeoff_figure")])
     check = g.get("check")
     if check:

@@ -16,6 +16,7 @@ from reachwatch.diagrams.plots import plot_runway_top_view
 from reachwatch.diagrams.scenario import InitialState
 from reachwatch.reach import ValueFunction
 from reachwatch.reach.liveness import liveness_figures
+from reachwatch.reach.score_noise import ScoreNoise
 from reachwatch.systems import fallback_parts
 from reachwatch.taxi import (UNGUARDED, fallback_rollouts, mission_rollouts, on_runway_starts,
                              perfect_detector_scores, real_missions, resolved, simulate_guarded,
@@ -162,6 +163,20 @@ def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, ho
     return check
 
 
+def noisy_tradeoff_curves(check, scenario, grid, tables, horizon, fallbacks, points: int, *,
+                          mission_limit, alone=None) -> dict:
+    """The trade-off curves (`tradeoff_curves`) rolled out with the score noise that
+    ``check`` (a `guard_check` record) fitted, seeded as its check; {} when it fitted
+    none (no check, no noise runs, or a failed fit)."""
+    fit = (check or {}).get("score_noise")
+    if not points or not fit or "error" in fit:
+        return {}
+    noise = ScoreNoise(sigma=fit["sigma"], length=fit["length"], mean=fit["mean"])
+    return tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points,
+                           mission_limit=mission_limit, alone=alone, score_noise=noise,
+                           seed=fit["seed"])
+
+
 def real_loop_check(run: Run, scenario, grid, tables, env) -> dict:
     """`guard_check` with the run file's ``guard`` settings."""
     guard = run.spec.guard
@@ -199,15 +214,19 @@ def guard_environment(run: Run, env) -> dict:
     curves = tradeoff_curves(scenario, grid, tables, spec.horizon, fallbacks,
                              spec.guard.tradeoff_points, mission_limit=spec.guard.mission_limit,
                              alone=on_grid[UNGUARDED]) if spec.guard.tradeoff_points else {}
+    check = (real_loop_check(run, scenario, grid, tables, env)
+             if spec.guard.check_starts else None)
+    noisy = noisy_tradeoff_curves(check, scenario, grid, tables, spec.horizon, fallbacks,
+                                  spec.guard.tradeoff_points,
+                                  mission_limit=spec.guard.mission_limit, alone=on_grid[UNGUARDED])
     operating = {f: tradeoff_row(liveness[f], scenario.monitor.threshold) for f in fallbacks}
     tradeoff = (plot_tradeoff(curves, operating=operating, alone=volumes[UNGUARDED],
+                              noisy_curves=noisy,
                               path=run.path(f"figures/tradeoff_{env.name}.png"),
                               title=f"{env.name}: failures against liveness as the detector "
                                     f"threshold sweeps (star: threshold "
                                     f"{scenario.monitor.threshold:.3g})")
                 if curves else None)
-    check = (real_loop_check(run, scenario, grid, tables, env)
-             if spec.guard.check_starts else None)
     run_record = showcase_run(run, scenario, on_grid, grid, env)
     # Both loops side by side in alternating blocks; the median per-round ratio (the VM drifts).
     shown = copy.deepcopy(scenario)
@@ -218,7 +237,8 @@ def guard_environment(run: Run, env) -> dict:
                                        period=scenario.controller.period)
     return {"threshold": scenario.monitor.threshold, "volumes": volumes, "liveness": liveness,
             "perfect_detector": perfect_liveness,
-            "tradeoff": curves, "tradeoff_figure": run.rel(tradeoff) if tradeoff else None,
+            "tradeoff": curves, "tradeoff_with_noise": noisy,
+            "tradeoff_figure": run.rel(tradeoff) if tradeoff else None,
             "check": check, "figure": run.rel(slices), "run": run_record,
             "online": {"alone_ticks_per_s": float(np.median(alone)),
                        "guarded_ticks_per_s": float(np.median(guarded_rate)),

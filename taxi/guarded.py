@@ -196,21 +196,23 @@ def perfect_detector_scores(value_function, grid) -> np.ndarray:
 
 
 def tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points: int, *,
-                    mission_limit=None, alone=None) -> dict:
+                    mission_limit=None, alone=None, score_noise=None, seed=0) -> dict:
     """{fallback: rows} of the failure set against liveness as the detector threshold
     sweeps the range of the swept scores (``points`` thresholds at evenly spaced
     quantiles of the scores, from flagging every node to flagging almost none), each
     row ``{threshold, failure_set, ended_stopped, needless_stops, distance_ratio,
     flagged_ticks}`` over the grid's nodes; with ``mission_limit``, also the same-distance
     figures (``same_distance_failure_set``, ``short_of_distance``). ``alone``: the
-    controller alone's outcomes on the grid, when already computed (as `fallback_rollouts`)."""
+    controller alone's outcomes on the grid, when already computed (as `fallback_rollouts`).
+    ``score_noise``, ``seed``: every point rolled out with the detector's variation
+    between nodes (`fallback_rollouts`), the same draw at every threshold."""
     scores = np.asarray(tables[SCORE_PORT], float).ravel()
     thresholds = np.unique(np.quantile(scores, np.linspace(0.0, 1.0, max(points, 2))))
     curves = {name: [] for name in fallbacks}
     for threshold in thresholds:
         runs = fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
                                  threshold=float(threshold), mission_limit=mission_limit,
-                                 alone=alone)
+                                 alone=alone, score_noise=score_noise, seed=seed)
         alone = runs[UNGUARDED]          # the same for every threshold
         for name in fallbacks:
             curves[name].append(tradeoff_row(liveness_figures(runs[UNGUARDED], runs[name]),

@@ -52,15 +52,20 @@ def plot_failure_sets(failures, grid, horizon, *, py, path, half_width, title):
     return plot_brt_slices(sets, py=py, path=path, half_width=half_width, title=title)
 
 
-def plot_tradeoff(curves, *, operating=None, alone=None, path, title=""):
+def plot_tradeoff(curves, *, operating=None, alone=None, path, title="", noisy_curves=None):
     """Failure set against % of starts ended stopped (left) and against the distance
     travelled relative to the controller alone (right), one curve per fallback as the
     detector threshold sweeps (`taxi.guarded.tradeoff_curves`); ``operating``:
     {fallback: the row at the run's threshold}, marked with a star; ``alone``: the
     controller alone's failure set, a dashed line. Rows judged by distance too are
     plotted by their same-distance failure set (a slower aircraft on the same path only
-    fails later), which for the controller alone is its failure set."""
-    rows_all = [r for rows in curves.values() for r in rows] + list((operating or {}).values())
+    fails later), which for the controller alone is its failure set. ``noisy_curves``:
+    the same curves rolled out with the detector's variation between nodes
+    (``score_noise`` of `tradeoff_curves`), dashed in the same colour."""
+    noisy_curves = noisy_curves or {}
+    rows_all = ([r for rows in curves.values() for r in rows]
+                + [r for rows in noisy_curves.values() for r in rows]
+                + list((operating or {}).values()))
     by_distance = bool(rows_all) and all("same_distance_failure_set" in r for r in rows_all)
     key = "same_distance_failure_set" if by_distance else "failure_set"
     fig, axes = plt.subplots(1, 2, figsize=(9.0, 3.8))
@@ -71,6 +76,13 @@ def plot_tradeoff(curves, *, operating=None, alone=None, path, title=""):
         distance = [r["distance_ratio"] for r in rows]
         axes[0].plot(stopped, fail, "o-", color=color, ms=3, label=name)
         axes[1].plot(distance, fail, "o-", color=color, ms=3, label=name)
+        if name in noisy_curves:
+            noisy = noisy_curves[name]
+            fail_n = [100 * r[key] for r in noisy]
+            axes[0].plot([100 * r["ended_stopped"] for r in noisy], fail_n, "s--", color=color,
+                         ms=3, lw=1, label=f"{name}, + score noise")
+            axes[1].plot([r["distance_ratio"] for r in noisy], fail_n, "s--", color=color,
+                         ms=3, lw=1)
         if operating and name in operating:
             op = operating[name]
             axes[0].plot(100 * op["ended_stopped"], 100 * op[key], "*", color=color,

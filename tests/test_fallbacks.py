@@ -364,4 +364,8 @@ def test_guard_command_reports_liveness_and_the_real_loop_check(detector_path, t
         assert both["real"]["starts"] == both["table"]["starts"] == 2
         if "error" not in noise:
             assert both["table_with_noise"]["starts"] == 2
+    # the trade-off curves again with the fitted noise, point for point, or none without a fit
+    noisy = record["tradeoff_with_noise"]
+    assert ({f: len(rows) for f, rows in noisy.items()} ==
+            ({} if "error" in noise else {f: len(rows) for f, rows in record["tradeoff"].items()}))
     assert (tmp_path / "tradeoff_KMWH_9h_clear.png").stat().st_size > 1000

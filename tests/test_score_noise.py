@@ -123,6 +123,19 @@ def test_score_along_real_runs_and_the_fit_from_them(detector_path, tmp_path):
     noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], starts, duration=1.0,
                                   cache_dir=tmp_path / "outcomes", progress=False)
     assert fit == {"runs": 3, "ticks": 3 * 21} and noise.sigma > 0 and noise.length > 0
+    # the trade-off curves with noise: a vanishing noise gives the plain curves back; the
+    # fitted one keeps the thresholds and moves the figures
+    from reachwatch.taxi.guarded import tradeoff_curves
+    kw = dict(mission_limit=2.0)
+    plain = tradeoff_curves(scenario, grid, tables, 1.0, ["brake"], 3, **kw)
+    faint = tradeoff_curves(scenario, grid, tables, 1.0, ["brake"], 3,
+                            score_noise=ScoreNoise(sigma=1e-9, length=1.0), **kw)
+    assert faint == plain
+    noisy = tradeoff_curves(scenario, grid, tables, 1.0, ["brake"], 3, score_noise=noise,
+                            seed=1, **kw)
+    assert [r["threshold"] for r in noisy["brake"]] == [r["threshold"] for r in plain["brake"]]
+    assert noisy == tradeoff_curves(scenario, grid, tables, 1.0, ["brake"], 3,
+                                    score_noise=noise, seed=1, **kw)      # seeded
 
 
 def test_guard_check_refuses_no_noise_seeds(tmp_path):
