@@ -1,0 +1,138 @@
+"""Which operating points of the guard keep the aircraft moving? For one guarded scenario
+(an environment, a detector and its threshold), every combination of detector
+threshold, fallback, k-of-n flag rule and resume acceleration rolled out in the
+guarded sweep's tables with the detector's variation between nodes (the score noise
+of `reach.score_noise`, fitted on real runs of the controller alone, as the guard
+stage does), from seeded random on-runway starts: the failures cut at the same
+distance against the needless stops (starts the controller alone survives that end
+stopped). It ends with the best cut among the points within ``--max-needless`` and
+the fewest needless stops among the points reaching ``--min-cut``: what to check in
+the real loop next (``guard_fidelity.py``), or the measurement that no point of this
+detector gets there.
+
+Table rollouts only (no rendering beyond the sweep and the noise fit, both cached
+under ``--cache``).
+
+    python benchmarks/guard_operating_points.py --scenario S.yaml [--shape 21 11 21]
+        [--scales 0.75 1 1.5 2.5 4] [--fallbacks brake,slow_down,slow_down+dead_reckoning]
+        [--rules 1/1,3/5] [--resume 0,1] [--starts 600] [--seed 7000] [--noise-seeds 1]
+"""
+
+import argparse
+import copy
+import itertools
+import time
+from pathlib import Path
+
+import numpy as np
+
+from reachwatch.diagrams import load_scenario
+from reachwatch.pipeline.executors import open_executor
+from reachwatch.reach.liveness import liveness_figures
+from reachwatch.systems.files import cache_root
+from reachwatch.taxi import (UNGUARDED, fallback_rollouts, on_runway_starts, paper_grid,
+                             resolved, sweep_guarded)
+from reachwatch.taxi.fidelity import real_score_noise
+from reachwatch.taxi.guarded import SCORE_PORT
+
+
+def rule(text):
+    k, _, n = text.partition("/")
+    return int(k), int(n)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenario", required=True, help="scenario file with a monitor")
+    p.add_argument("--shape", type=int, nargs=3, default=[21, 11, 21])
+    p.add_argument("--scales", type=float, nargs="+", default=[0.75, 1.0, 1.5, 2.5, 4.0],
+                   help="thresholds as multiples of the scenario's (capped at 0.99)")
+    p.add_argument("--fallbacks", default="brake,slow_down,slow_down+dead_reckoning")
+    p.add_argument("--rules", default="1/1,3/5", help="k-of-n flag rules, k/n")
+    p.add_argument("--resume", default="0,1", help="resume accelerations, m/s^2")
+    p.add_argument("--starts", type=int, default=600)
+    p.add_argument("--seed", type=int, default=7000)
+    p.add_argument("--calibration-starts", type=int, default=20)
+    p.add_argument("--calibration-seed", type=int, default=4000)
+    p.add_argument("--noise-seeds", type=int, default=1)
+    p.add_argument("--mission-limit", type=float, default=3.0)
+    p.add_argument("--max-needless", type=float, default=0.10)
+    p.add_argument("--min-cut", type=float, default=0.50)
+    p.add_argument("--cache", default=None, help="sweep and rollout cache (default: the user cache)")
+    p.add_argument("--executor", default="local")
+    args = p.parse_args()
+    scenario = resolved(load_scenario(args.scenario))
+    if not scenario.monitor.detector:
+        p.error(f"{args.scenario} has no monitor.detector: nothing to guard with")
+    if min(args.starts, args.calibration_starts, args.noise_seeds) < 1:
+        p.error("--starts, --calibration-starts and --noise-seeds must be >= 1")
+    try:
+        rules = [rule(r) for r in args.rules.split(",") if r]
+        resumes = [float(r) for r in args.resume.split(",") if r]
+    except ValueError:
+        p.error(f"--rules is k/n,k/n,... and --resume a list of numbers; got '{args.rules}', "
+                f"'{args.resume}'")
+    fallbacks = [f for f in args.fallbacks.split(",") if f]
+    cache = cache_root() if args.cache is None else Path(args.cache)
+    horizon, B = float(scenario.duration), scenario.environment.half_width
+    grid = paper_grid(B, tuple(args.shape))
+    started = time.perf_counter()
+    with open_executor(args.executor) as executor:
+        tables = sweep_guarded(scenario, grid, cache_dir=cache / "sweeps", executor=executor)
+        calibration = on_runway_starts(grid, args.calibration_starts, args.calibration_seed,
+                                       half_width=B)
+        noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], calibration,
+                                      duration=horizon, cache_dir=cache / "outcomes",
+                                      executor=executor)
+    starts = on_runway_starts(grid, args.starts, args.seed, half_width=B)
+    print(f"guard operating points: {scenario.environment.name}, grid {args.shape}, "
+          f"{args.starts} starts (seed {args.seed}), horizon {horizon:g} s, same distance up "
+          f"to {args.mission_limit:g} x the horizon; score noise mean {noise.mean:+.3f}, sigma "
+          f"{noise.sigma:.3f}, length {noise.length:.2f} m from {fit['runs']} real runs; "
+          f"{args.noise_seeds} noise seed(s)")
+    print(f"{'threshold':>9s}  {'fallback':26s} {'rule':>4s} {'resume':>6s}  {'cut %':>6s} "
+          f"{'needless stops %':>16s} {'ended stopped %':>15s}")
+    alone, rows = None, []
+    for scale, fallback, (k, n), resume in itertools.product(args.scales, fallbacks, rules,
+                                                            resumes):
+        guarded = copy.deepcopy(scenario)
+        guarded.monitor.flags_needed, guarded.monitor.flag_window = k, n
+        guarded.monitor.resume_acceleration = resume
+        guarded.monitor.validate()
+        threshold = min(0.99, scale * scenario.monitor.threshold)
+        figures = []
+        for seed in range(args.noise_seeds):
+            runs = fallback_rollouts(guarded, grid, tables, horizon, [fallback], starts=starts,
+                                     threshold=threshold, mission_limit=args.mission_limit,
+                                     score_noise=noise, seed=args.calibration_seed + seed,
+                                     alone=alone)
+            alone = runs[UNGUARDED]
+            figures.append(liveness_figures(runs[UNGUARDED], runs[fallback]))
+        cut = float(np.mean([f["same_distance_failure_cut"] for f in figures]))
+        needless = float(np.mean([f["needless_stops"]["rate"] for f in figures]))
+        stopped = float(np.mean([f["ended_stopped"]["rate"] for f in figures]))
+        rows.append((threshold, fallback, f"{k}/{n}", resume, cut, needless, stopped))
+        print(f"{threshold:9.3f}  {fallback:26s} {k}/{n:<2d} {resume:6g}  {100 * cut:6.1f} "
+              f"{100 * needless:16.1f} {100 * stopped:15.1f}", flush=True)
+    print(f"controller alone fails at the same distance from "
+          f"{100 * np.mean(alone.failed_same_distance):.1f} % of the starts "
+          f"({time.perf_counter() - started:.0f} s)")
+    within = [r for r in rows if r[5] <= args.max_needless]
+    reaching = [r for r in rows if r[4] >= args.min_cut]
+    if within:
+        best = max(within, key=lambda r: r[4])
+        print(f"best cut with needless stops <= {100 * args.max_needless:g} %: {100 * best[4]:.1f} % "
+              f"({best[1]}, threshold {best[0]:.3f}, rule {best[2]}, resume {best[3]:g}; "
+              f"needless {100 * best[5]:.1f} %)")
+    if reaching:
+        best = min(reaching, key=lambda r: r[5])
+        print(f"fewest needless stops with a cut >= {100 * args.min_cut:g} %: "
+              f"{100 * best[5]:.1f} % ({best[1]}, threshold {best[0]:.3f}, rule {best[2]}, "
+              f"resume {best[3]:g}; cut {100 * best[4]:.1f} %)")
+    met = [r for r in within if r[4] >= args.min_cut]
+    print(f"points meeting both (cut >= {100 * args.min_cut:g} %, needless <= "
+          f"{100 * args.max_needless:g} %): {len(met)} of {len(rows)}")
+
+
+if __name__ == "__main__":
+    main()
