@@ -29,13 +29,14 @@ from .random_environments import RandomEnvironments, RandomRunwayRanges, random_
 from .scene import add_runway_scene
 from .dead_reckoning import DeadReckoning, propagate_estimate
 from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
+from .ports import weak_callback
 from .switch import (DEFAULT_FALLBACKS, STEERING, STRATEGIES, FallbackSwitch, check_resume_acceleration,
                      fallback_name, fallback_parts, next_speed)
 from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, TaxiNet,
                       TrueStateEstimator)
 
 __all__ = [
-    "FlagFilter", "check_k_of_n", "confirmed_flags",
+    "FlagFilter", "check_k_of_n", "confirmed_flags", "weak_callback",
     "RandomEnvironments", "RandomRunwayRanges", "random_runway",
     "AircraftGeometry", "CameraConfig", "make_wing_camera", "SKIES", "Environment",
     "test_environments", "training_environments", "Lighting", "lighting_for",

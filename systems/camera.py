@@ -1,7 +1,6 @@
 """The aircraft's geometry frame and the wing camera (Drake `RgbdSensor`)."""
 
 import dataclasses as dc
-import weakref
 
 import numpy as np
 from pydrake.common.value import AbstractValue
@@ -12,18 +11,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import CameraInfo, RgbdSensor
 
-
-def weak_callback(method):
-    """``method`` (a bound method of a system) as a callback that holds its system only
-    weakly. pydrake never frees a Python LeafSystem whose abstract output port computes
-    through a bound method of itself (a cycle through C++ that Python's collector cannot
-    see), and with it the whole diagram: 80 MB per taxi world, scene and renderer
-    included. The diagram keeps the system alive while the callback can be called."""
-    ref = weakref.WeakMethod(method)
-
-    def call(*args):
-        return ref()(*args)
-    return call
+from .ports import weak_callback
 
 
 def _make_pose_vector():

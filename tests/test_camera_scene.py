@@ -150,3 +150,32 @@ def test_a_dropped_world_is_freed(tiny_camera):
     del renderer
     gc.collect()
     assert geometry() is None
+
+
+def test_weak_callback_computes_and_lets_its_system_go():
+    import gc
+    import weakref
+    from pydrake.common.value import AbstractValue
+    from pydrake.systems.framework import DiagramBuilder, LeafSystem
+    from reachwatch.systems import weak_callback
+
+    class Doubler(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self._x = self.DeclareVectorInputPort("x", 1)
+            self.DeclareAbstractOutputPort("twice", lambda: AbstractValue.Make(0.0),
+                                           weak_callback(self._calc))
+
+        def _calc(self, context, output):
+            output.set_value(2.0 * float(self._x.Eval(context)[0]))
+
+    builder = DiagramBuilder()
+    system = builder.AddSystem(Doubler())
+    diagram = builder.Build()
+    context = system.GetMyContextFromRoot(diagram.CreateDefaultContext())
+    system.get_input_port(0).FixValue(context, [1.5])
+    assert system.get_output_port(0).Eval(context) == 3.0
+    alive = weakref.ref(system)
+    del builder, system, diagram, context
+    gc.collect()
+    assert alive() is None
