@@ -17,7 +17,7 @@ from reachwatch.taxi.plots import plot_failure_sets, plot_tradeoff
 from .commands import count, positive_float, positive_int
 from .console import log
 from .executors import open_executor
-from .online_stages import guard_check, noisy_tradeoff_curves
+from .online_stages import guard_check, noisy_guard_figures
 
 
 def add_parsers(sub):
@@ -95,9 +95,10 @@ def guard_command(args):
     curves = tradeoff_curves(scenario, grid, tables, args.horizon, args.fallbacks,
                              args.tradeoff_points, mission_limit=args.mission_limit,
                              alone=runs[UNGUARDED])
-    noisy = noisy_tradeoff_curves(check, scenario, grid, tables, args.horizon, args.fallbacks,
-                                  args.tradeoff_points, mission_limit=args.mission_limit,
-                                  alone=runs[UNGUARDED])
+    noisy_liveness, noisy = noisy_guard_figures(check, scenario, grid, tables, args.horizon,
+                                                args.fallbacks, args.tradeoff_points,
+                                                mission_limit=args.mission_limit,
+                                                alone=runs[UNGUARDED])
     log.info(f"{name}, grid {list(grid.shape)}, horizon {args.horizon:g} s, detector "
              f"{scenario.monitor.detector} (threshold {scenario.monitor.threshold}); "
              f"{_monitor_settings(scenario.monitor)}; rollouts {time.time() - started:.1f} s")
@@ -107,6 +108,10 @@ def guard_command(args):
                  f"{percent(v['ended_stopped'])}, needless stops {percent(v['needless_stops'])}, "
                  f"distance {v['distance_ratio']:.2f} x alone, ticks flagged "
                  f"{100 * v['flagged_ticks']:.1f}%; {same_distance(v)}")
+    for f, v in noisy_liveness.items():
+        log.info(f"  {f}, + score noise: failure set {percent(v['failure_set'])}, ended stopped "
+                 f"{percent(v['ended_stopped'])}, needless stops {percent(v['needless_stops'])}; "
+                 f"{same_distance(v)}")
     if "score_noise" in check:
         n = check["score_noise"]
         log.info("  score noise between nodes: " + (
@@ -124,13 +129,15 @@ def guard_command(args):
                      f"needless stops {percent(v['needless_stops'])}; {same_distance(v)}")
     atomic_write_bytes(out / f"guard_{name}.json", json.dumps(
         {"monitor": dc.asdict(scenario.monitor), "volumes": volumes, "liveness": liveness,
-         "tradeoff": curves, "tradeoff_with_noise": noisy, "check": check},
+         "liveness_with_noise": noisy_liveness, "tradeoff": curves,
+         "tradeoff_with_noise": noisy, "check": check},
         indent=1).encode())
     plot_failure_sets({k: v.failed for k, v in runs.items()}, grid, args.horizon, py=175.0,
                       path=out / f"guard_{name}.png", half_width=scenario.environment.half_width,
                       title=f"{name}: failing start states (grey)")
     plot_tradeoff(curves, alone=volumes[UNGUARDED], path=out / f"tradeoff_{name}.png",
                   noisy_curves=noisy,
+                  noisy_operating={f: tradeoff_row(v) for f, v in noisy_liveness.items()},
                   operating={f: tradeoff_row(v) for f, v in liveness.items()},
                   title=f"{name}: failures against liveness as the threshold sweeps")
     log.info(f"wrote {out / f'guard_{name}.json'}, guard_{name}.png and tradeoff_{name}.png")

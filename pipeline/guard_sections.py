@@ -57,12 +57,16 @@ def guard_section(page, env, g, spec, *, alone_checked=None):
     alone_same = first.get("alone_same_distance_failure_set")
     rows = [["controller alone", _pct(g["volumes"][UNGUARDED]), "-", "-", "-", "-", "1.00", "-",
              _share(alone_same), "-", "-"]]
-    for f, v in g.get("liveness", {}).items():
-        rows.append([f, _pct(v["failure_set"]["rate"]), _share(v["ended_stopped"]),
-                     _share(v["needless_stops"]), _share(v["harmed"]), _share(v["saved_moving"]),
-                     _x(v["distance_ratio"]), _ticks(v),
-                     _share(v.get("same_distance_failure_set")), _share(v.get("short_of_distance")),
-                     _cut_inside(v)])
+    noisy = g.get("liveness_with_noise") or {}
+    for f, plain in g.get("liveness", {}).items():
+        for name, v in ((f, plain), (f"{f}, + score noise", noisy.get(f))):
+            if v is None:
+                continue
+            rows.append([name, _pct(v["failure_set"]["rate"]), _share(v["ended_stopped"]),
+                         _share(v["needless_stops"]), _share(v["harmed"]),
+                         _share(v["saved_moving"]), _x(v["distance_ratio"]), _ticks(v),
+                         _share(v.get("same_distance_failure_set")),
+                         _share(v.get("short_of_distance")), _cut_inside(v)])
     page.table(["closed loop", "failure set %", "ended stopped %", "needless stops %",
                 "harmed %", "saved, moving %", "distance / alone", "ticks flagged %",
                 "fails at the same distance %", "short of the distance %",
@@ -86,13 +90,13 @@ def guard_section(page, env, g, spec, *, alone_checked=None):
         page.text(f"The controller alone in the real loop, from {starts} random "
                   f"on-runway starts (the grid figures above count every node, off-runway "
                   f"ones too): {text}.")
-    if g.get("tradeoff_with_noise") and g.get("tradeoff_figure"):
-        page.text("Dashed in the trade-off figure: the same curves with the detector's "
-                  "variation between grid nodes (the score noise fitted for the real-loop "
-                  "check below, one draw). Interpolated between nodes, the score is smoother "
-                  "than the real one, so the solid curves stop more and save more than the "
-                  "real loop; the check below shows which of the two the real loop follows "
-                  "at the operating point.")
+    if noisy:
+        page.text("Rows '+ score noise' and, in the trade-off figure, the dashed curves and "
+                  "hollow stars: the same tables rolled out with the detector's variation "
+                  "between grid nodes (the score noise fitted for the real-loop check below, "
+                  "one draw). Interpolated between nodes, the score is smoother than the real "
+                  "one, so the plain rows stop more and save more than the real loop; the "
+                  "check below shows which of the two the real loop follows.")
     page.images([g["figure"], g.get("tradeoff_figure")])
     check = g.get("check")
     if check:

@@ -163,18 +163,23 @@ def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, ho
     return check
 
 
-def noisy_tradeoff_curves(check, scenario, grid, tables, horizon, fallbacks, points: int, *,
-                          mission_limit, alone=None) -> dict:
-    """The trade-off curves (`tradeoff_curves`) rolled out with the score noise that
-    ``check`` (a `guard_check` record) fitted, seeded as its check; {} when it fitted
-    none (no check, no noise runs, or a failed fit)."""
+def noisy_guard_figures(check, scenario, grid, tables, horizon, fallbacks, points: int, *,
+                        mission_limit, alone=None):
+    """The guard's figures on the grid again with the score noise that ``check`` (a
+    `guard_check` record) fitted, seeded as its check: ``(liveness, curves)``, the
+    `liveness_figures` of each fallback at the scenario's threshold and the trade-off
+    curves (`tradeoff_curves`, when ``points``); ``({}, {})`` when the check fitted no
+    noise (no check, no noise runs, or a failed fit)."""
     fit = (check or {}).get("score_noise")
-    if not points or not fit or "error" in fit:
-        return {}
+    if not fit or "error" in fit:
+        return {}, {}
     noise = ScoreNoise(sigma=fit["sigma"], length=fit["length"], mean=fit["mean"])
-    return tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points,
-                           mission_limit=mission_limit, alone=alone, score_noise=noise,
-                           seed=fit["seed"])
+    kw = dict(mission_limit=mission_limit, score_noise=noise, seed=fit["seed"])
+    runs = fallback_rollouts(scenario, grid, tables, horizon, fallbacks, alone=alone, **kw)
+    liveness = {f: liveness_figures(runs[UNGUARDED], runs[f]) for f in fallbacks}
+    curves = (tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points,
+                              alone=runs[UNGUARDED], **kw) if points else {})
+    return liveness, curves
 
 
 def real_loop_check(run: Run, scenario, grid, tables, env) -> dict:
@@ -216,12 +221,14 @@ def guard_environment(run: Run, env) -> dict:
                              alone=on_grid[UNGUARDED]) if spec.guard.tradeoff_points else {}
     check = (real_loop_check(run, scenario, grid, tables, env)
              if spec.guard.check_starts else None)
-    noisy = noisy_tradeoff_curves(check, scenario, grid, tables, spec.horizon, fallbacks,
-                                  spec.guard.tradeoff_points,
-                                  mission_limit=spec.guard.mission_limit, alone=on_grid[UNGUARDED])
+    noisy_liveness, noisy = noisy_guard_figures(
+        check, scenario, grid, tables, spec.horizon, fallbacks, spec.guard.tradeoff_points,
+        mission_limit=spec.guard.mission_limit, alone=on_grid[UNGUARDED])
     operating = {f: tradeoff_row(liveness[f], scenario.monitor.threshold) for f in fallbacks}
     tradeoff = (plot_tradeoff(curves, operating=operating, alone=volumes[UNGUARDED],
                               noisy_curves=noisy,
+                              noisy_operating={f: tradeoff_row(v, scenario.monitor.threshold)
+                                               for f, v in noisy_liveness.items()},
                               path=run.path(f"figures/tradeoff_{env.name}.png"),
                               title=f"{env.name}: failures against liveness as the detector "
                                     f"threshold sweeps (star: threshold "
@@ -236,6 +243,7 @@ def guard_environment(run: Run, env) -> dict:
                                        rounds=3, duration=spec.guard.online_seconds,
                                        period=scenario.controller.period)
     return {"threshold": scenario.monitor.threshold, "volumes": volumes, "liveness": liveness,
+            "liveness_with_noise": noisy_liveness,
             "perfect_detector": perfect_liveness,
             "tradeoff": curves, "tradeoff_with_noise": noisy,
             "tradeoff_figure": run.rel(tradeoff) if tradeoff else None,

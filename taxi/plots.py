@@ -52,7 +52,8 @@ def plot_failure_sets(failures, grid, horizon, *, py, path, half_width, title):
     return plot_brt_slices(sets, py=py, path=path, half_width=half_width, title=title)
 
 
-def plot_tradeoff(curves, *, operating=None, alone=None, path, title="", noisy_curves=None):
+def plot_tradeoff(curves, *, operating=None, alone=None, path, title="", noisy_curves=None,
+                  noisy_operating=None):
     """Failure set against % of starts ended stopped (left) and against the distance
     travelled relative to the controller alone (right), one curve per fallback as the
     detector threshold sweeps (`taxi.guarded.tradeoff_curves`); ``operating``:
@@ -61,11 +62,12 @@ def plot_tradeoff(curves, *, operating=None, alone=None, path, title="", noisy_c
     plotted by their same-distance failure set (a slower aircraft on the same path only
     fails later), which for the controller alone is its failure set. ``noisy_curves``:
     the same curves rolled out with the detector's variation between nodes
-    (``score_noise`` of `tradeoff_curves`), dashed in the same colour."""
-    noisy_curves = noisy_curves or {}
+    (``score_noise`` of `tradeoff_curves`), dashed in the same colour, and
+    ``noisy_operating`` their rows at the run's threshold, hollow stars."""
+    noisy_curves, noisy_operating = noisy_curves or {}, noisy_operating or {}
     rows_all = ([r for rows in curves.values() for r in rows]
                 + [r for rows in noisy_curves.values() for r in rows]
-                + list((operating or {}).values()))
+                + list((operating or {}).values()) + list(noisy_operating.values()))
     by_distance = bool(rows_all) and all("same_distance_failure_set" in r for r in rows_all)
     key = "same_distance_failure_set" if by_distance else "failure_set"
     fig, axes = plt.subplots(1, 2, figsize=(9.0, 3.8))
@@ -83,6 +85,12 @@ def plot_tradeoff(curves, *, operating=None, alone=None, path, title="", noisy_c
                          ms=3, lw=1, label=f"{name}, + score noise")
             axes[1].plot([r["distance_ratio"] for r in noisy], fail_n, "s--", color=color,
                          ms=3, lw=1)
+        if name in noisy_operating:
+            op = noisy_operating[name]
+            axes[0].plot(100 * op["ended_stopped"], 100 * op[key], "*", mfc="white", mec=color,
+                         ms=12, mew=1.5)
+            axes[1].plot(op["distance_ratio"], 100 * op[key], "*", mfc="white", mec=color,
+                         ms=12, mew=1.5)
         if operating and name in operating:
             op = operating[name]
             axes[0].plot(100 * op["ended_stopped"], 100 * op[key], "*", color=color,

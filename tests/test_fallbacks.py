@@ -368,4 +368,9 @@ def test_guard_command_reports_liveness_and_the_real_loop_check(detector_path, t
     noisy = record["tradeoff_with_noise"]
     assert ({f: len(rows) for f, rows in noisy.items()} ==
             ({} if "error" in noise else {f: len(rows) for f, rows in record["tradeoff"].items()}))
+    # and the grid's figures at the threshold, from the same alone runs
+    assert set(record["liveness_with_noise"]) == (set() if "error" in noise
+                                                  else set(record["liveness"]))
+    for f, v in record["liveness_with_noise"].items():
+        assert v["alone_failure_set"] == record["liveness"][f]["alone_failure_set"]
     assert (tmp_path / "tradeoff_KMWH_9h_clear.png").stat().st_size > 1000
