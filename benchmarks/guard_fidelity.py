@@ -18,18 +18,15 @@ content under ``--cache`` (a re-run is free, a killed one resumes).
 ``S.yaml`` is a scenario file with ``monitor: {detector: ..., threshold: ...}``.
 """
 
-import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 
-from reachwatch.diagrams import load_scenario
+from guard_common import guard_parser, guarded_setup
 from reachwatch.pipeline.executors import open_executor
 from reachwatch.pipeline.online_stages import guard_check
 from reachwatch.reach.liveness import percent
-from reachwatch.systems.files import cache_root
-from reachwatch.taxi import paper_grid, resolved, sweep_guarded
+from reachwatch.taxi import sweep_guarded
 
 
 def row(name, figures):
@@ -44,28 +41,10 @@ def row(name, figures):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scenario", required=True, help="scenario file with a monitor")
-    p.add_argument("--shape", type=int, nargs=3, default=[21, 11, 21])
-    p.add_argument("--fallbacks", default="brake", help="comma-separated fallback names")
-    p.add_argument("--starts", type=int, default=200)
-    p.add_argument("--seed", type=int, default=2000)
-    p.add_argument("--calibration-starts", type=int, default=20)
-    p.add_argument("--calibration-seed", type=int, default=4000)
-    p.add_argument("--noise-seeds", type=int, default=5)
-    p.add_argument("--mission-limit", type=float, default=3.0)
-    p.add_argument("--cache", default=None, help="sweep and rollout cache (default: the user cache)")
-    p.add_argument("--executor", default="local")
+    p = guard_parser(__doc__, fallbacks="brake", starts=200, seed=2000, noise_seeds=5)
     args = p.parse_args()
-    scenario = resolved(load_scenario(args.scenario))
-    if not scenario.monitor.detector:
-        p.error(f"{args.scenario} has no monitor.detector: nothing to guard with")
-    if args.calibration_starts < 1 or args.noise_seeds < 1:
-        p.error("--calibration-starts and --noise-seeds must be >= 1")
-    fallbacks = [f for f in args.fallbacks.split(",") if f]
-    cache = cache_root() if args.cache is None else Path(args.cache)
+    scenario, grid, cache, fallbacks = guarded_setup(p, args)
     horizon = float(scenario.duration)
-    grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
     started = time.perf_counter()
     with open_executor(args.executor) as executor:
         tables = sweep_guarded(scenario, grid, cache_dir=cache / "sweeps", executor=executor)

@@ -18,22 +18,17 @@ under ``--cache``).
         [--rules 1/1,3/5] [--resume 0,1] [--starts 600] [--seed 7000] [--noise-seeds 1]
 """
 
-import argparse
 import copy
 import itertools
 import time
-from pathlib import Path
 
 import numpy as np
 
-from reachwatch.diagrams import load_scenario
+from guard_common import guard_parser, guarded_setup
 from reachwatch.pipeline.executors import open_executor
+from reachwatch.pipeline.online_stages import fit_guard_noise
 from reachwatch.reach.liveness import liveness_figures
-from reachwatch.systems.files import cache_root
-from reachwatch.taxi import (UNGUARDED, fallback_rollouts, on_runway_starts, paper_grid,
-                             resolved, sweep_guarded)
-from reachwatch.taxi.fidelity import real_score_noise
-from reachwatch.taxi.guarded import SCORE_PORT
+from reachwatch.taxi import UNGUARDED, fallback_rollouts, on_runway_starts, sweep_guarded
 
 
 def rule(text):
@@ -42,48 +37,31 @@ def rule(text):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scenario", required=True, help="scenario file with a monitor")
-    p.add_argument("--shape", type=int, nargs=3, default=[21, 11, 21])
+    p = guard_parser(__doc__, fallbacks="brake,slow_down,slow_down+dead_reckoning",
+                     starts=600, seed=7000, noise_seeds=1)
     p.add_argument("--scales", type=float, nargs="+", default=[0.75, 1.0, 1.5, 2.5, 4.0],
                    help="thresholds as multiples of the scenario's (capped at 0.99)")
-    p.add_argument("--fallbacks", default="brake,slow_down,slow_down+dead_reckoning")
     p.add_argument("--rules", default="1/1,3/5", help="k-of-n flag rules, k/n")
     p.add_argument("--resume", default="0,1", help="resume accelerations, m/s^2")
-    p.add_argument("--starts", type=int, default=600)
-    p.add_argument("--seed", type=int, default=7000)
-    p.add_argument("--calibration-starts", type=int, default=20)
-    p.add_argument("--calibration-seed", type=int, default=4000)
-    p.add_argument("--noise-seeds", type=int, default=1)
-    p.add_argument("--mission-limit", type=float, default=3.0)
     p.add_argument("--max-needless", type=float, default=0.10)
     p.add_argument("--min-cut", type=float, default=0.50)
-    p.add_argument("--cache", default=None, help="sweep and rollout cache (default: the user cache)")
-    p.add_argument("--executor", default="local")
     args = p.parse_args()
-    scenario = resolved(load_scenario(args.scenario))
-    if not scenario.monitor.detector:
-        p.error(f"{args.scenario} has no monitor.detector: nothing to guard with")
-    if min(args.starts, args.calibration_starts, args.noise_seeds) < 1:
-        p.error("--starts, --calibration-starts and --noise-seeds must be >= 1")
+    scenario, grid, cache, fallbacks = guarded_setup(p, args)
     try:
         rules = [rule(r) for r in args.rules.split(",") if r]
         resumes = [float(r) for r in args.resume.split(",") if r]
     except ValueError:
         p.error(f"--rules is k/n,k/n,... and --resume a list of numbers; got '{args.rules}', "
                 f"'{args.resume}'")
-    fallbacks = [f for f in args.fallbacks.split(",") if f]
-    cache = cache_root() if args.cache is None else Path(args.cache)
     horizon, B = float(scenario.duration), scenario.environment.half_width
-    grid = paper_grid(B, tuple(args.shape))
     started = time.perf_counter()
     with open_executor(args.executor) as executor:
         tables = sweep_guarded(scenario, grid, cache_dir=cache / "sweeps", executor=executor)
-        calibration = on_runway_starts(grid, args.calibration_starts, args.calibration_seed,
-                                       half_width=B)
-        noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], calibration,
-                                      duration=horizon, cache_dir=cache / "outcomes",
-                                      executor=executor)
+        noise, fit = fit_guard_noise(scenario, grid, tables, noise_starts=args.calibration_starts,
+                                     noise_seed=args.calibration_seed, horizon=horizon,
+                                     cache_dir=cache / "outcomes", executor=executor)
+    if noise is None:
+        raise SystemExit(f"the score-noise fit failed: {fit['error']}")
     starts = on_runway_starts(grid, args.starts, args.seed, half_width=B)
     print(f"guard operating points: {scenario.environment.name}, grid {args.shape}, "
           f"{args.starts} starts (seed {args.seed}), horizon {horizon:g} s, same distance up "

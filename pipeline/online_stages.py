@@ -115,6 +115,24 @@ def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
     return record
 
 
+def fit_guard_noise(scenario, grid, tables, *, noise_starts: int, noise_seed: int,
+                    horizon: float, cache_dir, executor=None, progress=True):
+    """The detector's variation between the nodes of the guarded sweep ``tables``
+    (`real_score_noise`), fitted on ``noise_starts`` real runs of the controller alone
+    from on-runway starts seeded ``noise_seed``: ``(noise, record)``, the record holding
+    the fit (mean, sigma, length, runs, ticks, seed); ``(None, record)`` with the reason
+    when it cannot be fitted."""
+    calibration = on_runway_starts(grid, noise_starts, noise_seed,
+                                   half_width=scenario.environment.half_width)
+    try:
+        noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], calibration,
+                                      duration=horizon, cache_dir=cache_dir, executor=executor,
+                                      progress=progress)
+    except ValueError as e:
+        return None, {"error": str(e), "runs": noise_starts, "seed": noise_seed}
+    return noise, {**dc.asdict(noise), **fit, "seed": noise_seed}
+
+
 def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, horizon: float,
                 mission_limit, cache_dir, executor=None, progress=True, noise_starts: int = 0,
                 noise_seed: int = 4000, noise_seeds: int = 1) -> dict:
@@ -128,8 +146,7 @@ def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, ho
     the check goes on."""
     if noise_seeds < 1:
         raise ValueError(f"noise_seeds must be >= 1, got {noise_seeds}")
-    half_width = scenario.environment.half_width
-    points = on_runway_starts(grid, starts, seed, half_width=half_width)
+    points = on_runway_starts(grid, starts, seed, half_width=scenario.environment.half_width)
     table = fallback_rollouts(scenario, grid, tables, horizon, fallbacks, starts=points,
                               mission_limit=mission_limit)
     real = {f: real_missions(scenario, points, fallback=None if f == UNGUARDED else f,
@@ -142,19 +159,15 @@ def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, ho
                            for f in fallbacks}}
     if not noise_starts:
         return check
-    calibration = on_runway_starts(grid, noise_starts, noise_seed, half_width=half_width)
-    try:
-        noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], calibration,
-                                      duration=horizon, cache_dir=cache_dir, executor=executor,
-                                      progress=progress)
-    except ValueError as e:
-        check["score_noise"] = {"error": str(e), "runs": noise_starts, "seed": noise_seed}
+    noise, check["score_noise"] = fit_guard_noise(
+        scenario, grid, tables, noise_starts=noise_starts, noise_seed=noise_seed,
+        horizon=horizon, cache_dir=cache_dir, executor=executor, progress=progress)
+    if noise is None:
         return check
     noisy = [fallback_rollouts(scenario, grid, tables, horizon, fallbacks, starts=points,
                                mission_limit=mission_limit, score_noise=noise,
                                seed=noise_seed + k, alone=table[UNGUARDED])
              for k in range(noise_seeds)]
-    check["score_noise"] = {**dc.asdict(noise), **fit, "seed": noise_seed}
     for f in fallbacks:
         figures = [liveness_figures(table[UNGUARDED], n[f]) for n in noisy]
         check["fallbacks"][f]["table_with_noise"] = figures[0]

@@ -60,12 +60,6 @@ def _factory(scenario, guarded=False):
     return functools.partial(make, _sweep_scenario(scenario, guarded))
 
 
-def guarded_factory(scenario):
-    """A picklable factory of the guarded loop as the guard's sweep builds it (the
-    detector's score readable at any state, e.g. with `reach.sweep.evaluate_states`)."""
-    return _factory(scenario, guarded=True)
-
-
 def _name(scenario, guarded=False):
     return scenario.environment.name + ("_guarded" if guarded else "")
 
