@@ -56,8 +56,9 @@ def add_parsers(sub):
     p.add_argument("--ensemble", type=count, default=5, help="TaxiNets in the ensemble baseline")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--labels", choices=LABEL_SOURCES, default="brt",
-                   help="label source: the BRT, the real loop from every state, or rollouts "
-                   "where the BRT is not trusted (see the README)")
+                   help="label source: the BRT, the real loop from every state, rollouts "
+                   "where the BRT is not trusted, or the real loop's runs and the states "
+                   "they pass through (see the README)")
     p.add_argument("--check-starts", type=count, default=50, help="real-loop runs per "
                    "environment checking the BRT and the labels (0: no check)")
     p.add_argument("--max-box-exits", type=float, default=0.05, help="refuse BRT labels where "

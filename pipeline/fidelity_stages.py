@@ -13,7 +13,7 @@ import numpy as np
 from reachwatch.reach import compare_verdicts, min_target_along_rollouts
 from reachwatch.taxi import dynamics_for, on_runway_starts, paper_grid
 from reachwatch.taxi.fidelity import OPEN_AXES, real_outcomes
-from reachwatch.training.dataset import hybrid_rolls_out
+from reachwatch.training.dataset import SOURCE_PATH, hybrid_rolls_out, load_dataset
 
 from .spec import RunSpec, digest
 from .stages import Run
@@ -68,7 +68,7 @@ def label_verdicts(labels: dict, band: float, values, real_failed) -> np.ndarray
     brt = np.asarray(values) <= 0
     if labels["source"] == "brt":
         return brt
-    if labels["source"] == "rollout":
+    if labels["source"] in ("rollout", "trajectory"):     # a fresh uniform state: its own run
         return np.asarray(real_failed, bool)
     audit = labels["audit"]
     rolled = hybrid_rolls_out(values, audit.get("band", band), audit["map_trusted"])
@@ -109,7 +109,29 @@ def fidelity_env(run: Run, env) -> dict:
         out["labels"] = {"source": labels["source"], "map_trusted": audit.get("map_trusted"),
                          "band": audit.get("band", spec.dataset.labels.band) if audit else None,
                          **compare_verdicts(verdicts, real, outcomes["left_box"]).as_dict()}
+        if labels["source"] == "trajectory":
+            out["path_labels"] = check_path_labels(run, env)
     return out
+
+
+def check_path_labels(run: Run, env) -> dict:
+    """The ``trajectory`` labels read along runs, checked where they could be wrong:
+    ``fidelity.starts`` of the dataset's states that runs passed through (drawn with
+    ``fidelity.seed``), each run again from scratch for the horizon and compared with
+    its label. `Fidelity.as_dict`, or ``{}`` when the dataset has no such states."""
+    check = run.spec.fidelity
+    data = load_dataset(run.path(run.outputs["dataset"]["folders"][env.name]))
+    along = np.flatnonzero(data.sources == SOURCE_PATH)
+    if len(along) == 0:
+        return {}
+    rows = np.sort(np.random.default_rng(check.seed).choice(
+        along, size=min(check.starts, len(along)), replace=False))
+    states = np.asarray(data.states[rows], float)
+    outcomes = real_outcomes(run.scenario_for(env), states, grid=run.solved_grid_for(env),
+                             duration=run.spec.horizon, cache_dir=run.path("outcomes"),
+                             executor=run.executor, progress=run.progress)
+    return compare_verdicts(np.asarray(data.labels[rows]) == 1, outcomes.failed,
+                            outcomes["left_box"]).as_dict()
 
 
 def stage_fidelity(run: Run) -> dict:

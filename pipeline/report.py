@@ -73,7 +73,11 @@ LABEL_SOURCE_TEXT = {
     "hybrid": "the real Drake loop within a band of the BRT's boundary as wide as an "
               "audit of the map measures its errors to reach, or wherever the map calls a "
               "state safe when the audit finds a false-safe verdict or errors too far out "
-              "to trust it; V(x) <= 0 elsewhere"}
+              "to trust it; V(x) <= 0 elsewhere",
+    "trajectory": "the real Drake loop run from every uniform state for longer than the "
+                  "horizon, and the states each run passes through labelled by the same run: "
+                  "exact for a loop whose state is all it remembers; those added states are "
+                  "where the loop goes, not uniform"}
 
 
 def _rate(record, name):
@@ -141,6 +145,14 @@ def fidelity_section(page, run: Run, roles):
                     "false-safe", "false-unsafe"],
                    [[n, r["source"], _audit_text(r), _rate(r, "agree"), _rate(r, "false_safe"),
                      _rate(r, "false_unsafe")] for n, r in labelled.items()])
+    along = {n: r["path_labels"] for n, r in results.items() if r.get("path_labels")}
+    if along:
+        page.text("The trajectory labels read along runs, checked: states the runs passed "
+                  "through (not the uniform starts), each run again from scratch for the "
+                  "horizon and compared with its label.")
+        page.table(["environment", "states", "agreement", "false-safe", "false-unsafe"],
+                   [[n, r["n"], _rate(r, "agree"), _rate(r, "false_safe"),
+                     _rate(r, "false_unsafe")] for n, r in along.items()])
 
 
 def _audit_text(record):

@@ -22,11 +22,11 @@ from reachwatch.taxi import dynamics_for, paper_grid, sweep_closed_loop
 from reachwatch.taxi.grid import AXES
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
-from reachwatch.training.dataset import SOURCE_BRT, build_dataset, load_dataset
+from reachwatch.training.dataset import SOURCE_BRT, SOURCE_PATH, build_dataset, load_dataset
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
-from reachwatch.training.evaluation import (NOT_FAILED, Detector, csv_table, evaluate_environment,
-                                            markdown_table, worst_mistakes)
+from reachwatch.training.evaluation import (NOT_FAILED, UNIFORM_STARTS, Detector, csv_table,
+                                            evaluate_environment, markdown_table, worst_mistakes)
 from reachwatch.training.figures import (plot_error_vs_margin, plot_examples, plot_overlay,
                                          plot_roc)
 from reachwatch.training.metrics import best_threshold
@@ -318,7 +318,8 @@ def stage_evaluate(run: Run) -> dict:
     """Table 2 on the held-out environments, error-vs-margin and overlay figures."""
     spec, trained = run.spec, run.outputs["train"]
     detectors = []
-    source = {"brt": "BRT", "rollout": "real-loop", "hybrid": "hybrid"}[spec.dataset.labels.source]
+    source = {"brt": "BRT", "rollout": "real-loop", "hybrid": "hybrid",
+              "trajectory": "real-loop trajectory"}[spec.dataset.labels.source]
     candidates = [(f"detector ({source} labels)", trained["detector"], trained["threshold"])]
     if "prediction_error_detector" in trained:
         candidates.append((f"detector (prediction-error labels, error > "
@@ -335,6 +336,8 @@ def stage_evaluate(run: Run) -> dict:
         inside = dynamics_for(run.scenario_for(env)).target(
             torch.as_tensor(d.states, dtype=torch.float64)).numpy() > 0
         subsets = {NOT_FAILED: inside}
+        if np.any(d.sources == SOURCE_PATH):      # trajectory labels: the uniform states alone
+            subsets[UNIFORM_STARTS] = d.sources != SOURCE_PATH
         env_rows, scores = evaluate_environment(d, detectors, device=spec.detector.device,
                                                 subsets=subsets)
         rows += env_rows

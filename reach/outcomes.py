@@ -7,7 +7,11 @@ A rollout function is any picklable callable ``rollout(states) -> dict`` mapping
 ``(n, ndim)`` starts to arrays with ``n`` rows: ``failed`` (bool) is required;
 ``failure_time`` (s), ``left_box`` (bool) and ``ticks`` (frames rendered) are read
 when present. The taxi's is `reachwatch.taxi.fidelity.taxi_rollouts`; anything
-deterministic that runs the loop the labels are about will do."""
+deterministic that runs the loop the labels are about will do.
+
+`path_labels` reads labels for every tick of one longer run: for a loop whose state
+is all it remembers (its controller has no state of its own), the run from a state it
+passes through is the rest of the same run."""
 
 import concurrent.futures as cf
 import dataclasses as dc
@@ -164,3 +168,31 @@ def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = None, executor
         progress=progress, label=f"real loop {label or ''}".rstrip(),
         max_in_flight=max_in_flight, required=("failed",), unit="run")
     return Outcomes(fields=fields, key=key, computed=computed)
+
+
+def path_labels(time, failure_time: float, duration: float, horizon: float) -> np.ndarray:
+    """Labels of the states a run passes through at its ticks ``time`` (s, from 0):
+    1 where the run fails (at ``failure_time`` s; NaN for none) within ``horizon`` s
+    of the tick, 0 where it does not and the run lasted (``duration`` s, or until its
+    failure) at least ``horizon`` s past the tick, and -1 where the run ended before
+    the tick's horizon did, so it cannot tell.
+
+    These are the outcomes the loop would have from each of those states if started
+    there, provided the loop's state is all it remembers and its control ticks fall
+    on the run's: the real loop's logged ticks are control ticks, and a loop whose
+    controller keeps its own state (a filter, a frame history) breaks the premise."""
+    time = np.asarray(time, float)
+    if time.ndim != 1 or not np.all(np.isfinite(time)):
+        raise ValueError(f"time must be a 1-d array of finite tick times, got shape {time.shape}")
+    for name, value in (("duration", duration), ("horizon", horizon)):
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be a finite number > 0 s, got {value}")
+    eps = 1e-9
+    labels = np.full(len(time), -1, np.int8)
+    failed = failure_time is not None and np.isfinite(failure_time)
+    if failed:
+        labels[failure_time - time <= horizon + eps] = 1
+        labels[failure_time - time > horizon + eps] = 0
+    else:
+        labels[time + horizon <= duration + eps] = 0
+    return labels

@@ -1,5 +1,5 @@
 """The taxi's real Drake closed loop (rendering at every tick) run from given starts:
-the rollout function behind rollout labels and every fidelity check, the missions
+the rollout functions behind rollout and trajectory labels and every fidelity check, the missions
 (failure and liveness) of the loop alone and guarded by each fallback, and the
 detector's score along real runs (what the guard's tables miss between nodes)."""
 
@@ -10,14 +10,14 @@ import functools
 import numpy as np
 import torch
 
-from reachwatch.diagrams import (MonitorConfig, add_detector, make_closed_loop_diagram,
+from reachwatch.diagrams import (CONTROLLER, MonitorConfig, add_detector, make_closed_loop_diagram,
                                  make_guarded_diagram, simulate)
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes,
                                        check_mission_limit)
-from reachwatch.reach.outcomes import Outcomes, map_states, run_outcomes
+from reachwatch.reach.outcomes import Outcomes, map_states, path_labels, run_outcomes
 from reachwatch.reach.score_noise import fit_score_noise
 from reachwatch.systems import fallback_parts
 
@@ -70,6 +70,80 @@ def taxi_rollouts(scenario, duration: float, grid, states) -> dict:
         for k, v in zip(out, row):
             out[k].append(v)
     return {k: np.asarray(v) for k, v in out.items()}
+
+
+def path_points(horizon: float, extend: float, stride: int, period: float) -> np.ndarray:
+    """The ticks `taxi_paths` keeps along a run: every ``stride``-th tick from the start
+    (tick 0) up to ``extend`` s, the stretch whose horizon the run of ``horizon +
+    extend`` s covers."""
+    return np.arange(int(np.floor(extend / (stride * period) + 1e-9)) + 1) * int(stride)
+
+
+def check_memoryless(diagram):
+    """Raise ValueError when the loop's ``controller`` keeps state of its own (a filter,
+    a frame history): then the run from a state a longer run passed through is not the
+    rest of that run, and labels read along runs would be guesses."""
+    controller = diagram.GetSubsystemByName(CONTROLLER)
+    states = controller.CreateDefaultContext().num_total_states()
+    if states:
+        raise ValueError(
+            f"trajectory labels need a controller that keeps no state of its own, but "
+            f"'{controller.get_name()}' ({type(controller).__name__}) has {states}: a run "
+            f"from a state a longer run passed through would not repeat that run. Label "
+            f"with dataset.labels.source: rollout instead")
+
+
+def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, states) -> dict:
+    """Like `taxi_rollouts`, but each run lasts ``horizon + extend`` s (stopping at
+    failure), and the states it passes through at the ticks `path_points` keeps are
+    labelled by the same run (`reach.outcomes.path_labels`). Per start: ``failed``
+    (within ``horizon``, as `taxi_rollouts`), ``failure_time`` (s, NaN if none within
+    the whole run), ``left_box`` and ``max_abs_theta`` (within ``horizon``), ``ticks``
+    (frames rendered), ``path_state`` ``(m, 3)`` (NaN where the run had ended) and
+    ``path_label`` ``(m,)`` (1 anomalous, 0 safe, -1 unknown); row 0 of both is the
+    start itself. Exact for the taxi's loop: TaxiNet and the P-controller keep no state,
+    and the steering hold is reset at every control tick."""
+    diagram, context = _loop(scenario, make_closed_loop_diagram)
+    check_memoryless(diagram)
+    B, period = scenario.environment.half_width, scenario.controller.period
+    points = path_points(horizon, extend, stride, period)
+    states = np.asarray(states, float)
+    out = {"failed": np.zeros(len(states), bool), "failure_time": np.full(len(states), np.nan),
+           "left_box": np.zeros(len(states), bool), "max_abs_theta": np.zeros(len(states)),
+           "ticks": np.zeros(len(states), int),
+           "path_state": np.full((len(states), len(points), states.shape[1]), np.nan),
+           "path_label": np.full((len(states), len(points)), -1, np.int8)}
+    for i, x in enumerate(states):
+        if abs(x[0]) >= B:                      # already off the runway
+            out["failed"][i], out["failure_time"][i] = True, 0.0
+            out["max_abs_theta"][i] = abs(x[2])
+            out["path_state"][i, 0], out["path_label"][i, 0] = x, 1
+            continue
+        run = simulate(diagram, initial_state=x, duration=horizon + extend, period=period,
+                       half_width=B, context=context)
+        labels = path_labels(run.time, run.failure_time if run.failed else None,
+                             horizon + extend, horizon)
+        within = run.time <= horizon + 1e-9
+        kept = points[points < len(run.time)]
+        out["failed"][i] = labels[0] == 1
+        out["failure_time"][i] = run.failure_time if run.failed else np.nan
+        out["left_box"][i] = left_box(run.state[within], grid, axes=OPEN_AXES)
+        out["max_abs_theta"][i] = float(np.max(np.abs(run.state[within, 2])))
+        out["ticks"][i] = len(run.time)
+        out["path_state"][i, :len(kept)] = run.state[kept]
+        out["path_label"][i, :len(kept)] = labels[kept]
+    return out
+
+
+def real_paths(scenario, starts, *, grid, horizon: float, extend: float, stride: int,
+               cache_dir, executor=None, progress=True) -> Outcomes:
+    """`taxi_paths` from every start, cached by content under ``cache_dir`` like
+    `real_outcomes`."""
+    scenario = without_monitor(scenario)
+    rollout = functools.partial(taxi_paths, scenario, float(horizon), float(extend),
+                                int(stride), grid)
+    return run_outcomes(rollout, starts, cache_dir=cache_dir, executor=executor,
+                        progress=progress, label=f"{scenario.environment.name} paths")
 
 
 def without_monitor(scenario):

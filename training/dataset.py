@@ -1,13 +1,14 @@
 """Labelled image datasets: uniform states of the grid box, their wing-camera images,
 the controller's estimates (when it declares an ``estimate`` output) and an
 ensemble's, V(x), and a label per state from the source `LabelSpec` names: the BRT
-(``V <= 0``), the real closed loop run from the state, or a hybrid of both.
+(``V <= 0``), the real closed loop run from the state, a hybrid of both, or the
+real loop's runs from uniform states and the states they pass through.
 
 On disk, one folder per (environment, BRT, sampling, labels, image size,
 controllers): ``manifest.json`` plus ``.npy`` arrays (``images.npy`` is a uint8
 memmap ``(N, H, W, 3)``; ``states.npy`` [px m, py m, theta rad]; ``values.npy`` m;
 ``labels.npy`` uint8, 1 = anomalous; ``sources.npy`` uint8, where each label came from
-(`SOURCE_BRT`, `SOURCE_ROLLOUT`); ``estimates.npy`` ``(N, k)``, the controller's
+(`SOURCE_BRT`, `SOURCE_ROLLOUT`, `SOURCE_PATH`); ``estimates.npy`` ``(N, k)``, the controller's
 ``estimate`` output (TaxiNet: [px_hat m, theta_hat deg]; k = 0 when it has none);
 ``ensemble.npy`` ``(N, K, 2)``), and ``rollouts/``, the cached real-loop runs.
 Filled chunk by chunk; the manifest records finished chunks and is replaced
@@ -25,14 +26,18 @@ from reachwatch.diagrams import ControllerProbe, StateRenderer, file_hash, load_
 from reachwatch.diagrams.controller import has_estimate
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.taxi import resolved
-from reachwatch.taxi.fidelity import real_outcomes
+from reachwatch.taxi.fidelity import real_outcomes, real_paths
 from reachwatch.systems import TaxiNet, resize_for_detector
 from reachwatch.systems.files import atomic_write_bytes
 
 FORMAT = "reachwatch.dataset/3"
-LABEL_SOURCES = ("brt", "rollout", "hybrid")
-#: Values of ``sources.npy``: the label is the BRT's verdict, or the real loop's outcome.
-SOURCE_BRT, SOURCE_ROLLOUT = 0, 1
+LABEL_SOURCES = ("brt", "rollout", "hybrid", "trajectory")
+#: Values of ``sources.npy``: the label is the BRT's verdict, the real loop's outcome
+#: from the sampled state, or the outcome read along a real run that passed through it.
+SOURCE_BRT, SOURCE_ROLLOUT, SOURCE_PATH = 0, 1, 2
+#: `LabelSpec` fields only the ``trajectory`` source reads (left out of other
+#: datasets' keys, so adding them did not move existing datasets).
+TRAJECTORY_FIELDS = ("extend", "stride")
 
 
 def _whole(where, value, least):
@@ -60,6 +65,14 @@ class LabelSpec:
       verdict in the audit distrusts the map whatever its distance: on KMWH 21 h clear
       the audit's one lay 0.5 m from the boundary, the fresh starts' out to 3.9 m.)
 
+    - ``trajectory``: ``rollout``, with each run lasting ``extend`` s past the horizon;
+      every ``stride``-th state it passes through within its first ``extend`` s (and
+      inside the dataset's box) is a sample too, labelled by the same run: whether the
+      loop fails within the horizon from there. Exact like ``rollout`` for a loop whose
+      state is all it remembers (the taxi's), at a fraction of the frames per label;
+      the added samples are the states the loop visits, not uniform ones (their
+      ``sources`` entry is `SOURCE_PATH`).
+
     ``max_rollouts`` (0 = no cap) bounds the rollouts per environment: a dataset that
     would need more keeps only its first samples, as many as the cap allows (they are
     still uniform), and its manifest says how many it kept."""
@@ -69,13 +82,16 @@ class LabelSpec:
     band_factor: float = 2.0
     max_band: float = 6.0
     max_rollouts: int = 0
+    extend: float = 8.0
+    stride: int = 8
 
     def validate(self, where="dataset.labels"):
         if self.source not in LABEL_SOURCES:
             raise ValueError(f"{where}.source must be one of {LABEL_SOURCES}, got '{self.source}'")
         _whole(f"{where}.audit", self.audit, 0)
         _whole(f"{where}.max_rollouts", self.max_rollouts, 0)
-        for name in ("band", "band_factor", "max_band"):
+        _whole(f"{where}.stride", self.stride, 1)
+        for name in ("band", "band_factor", "max_band", "extend"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
                     or not np.isfinite(value) or value < 0:
@@ -113,8 +129,12 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
                    box=None) -> Path:
     """The content-addressed folder of a dataset under ``root``."""
     scenario = resolved(scenario)
+    spec_parts = dc.asdict(spec)
+    if spec.labels.source != "trajectory":
+        for name in TRAJECTORY_FIELDS:
+            spec_parts["labels"].pop(name)
     parts = {"format": FORMAT, "env": dc.asdict(scenario.environment),
-             "brt": _value_hash(value_function), "spec": dc.asdict(spec),
+             "brt": _value_hash(value_function), "spec": spec_parts,
              "camera": [scenario.camera.height, scenario.camera.width],
              "controller": fingerprint(scenario.controller),
              "ensemble": [file_hash(p) for p in ensemble]}
@@ -243,6 +263,34 @@ def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
     return n, out, sources, info
 
 
+def trajectory_samples(starts, labels: LabelSpec, run_paths, inside):
+    """The ``trajectory`` source's samples: ``starts`` ``(N, n)`` (the first
+    ``labels.max_rollouts`` when capped), then the states their runs pass through whose
+    label the run settles and that ``inside(states) -> bool array`` keeps. ``run_paths
+    (starts) -> dict`` runs the real loop (``failed``, ``path_state`` ``(N, m, n)``,
+    ``path_label`` ``(N, m)`` with -1 for unknown, ``ticks``; row 0 is the start).
+    Returns ``(states, labels, sources, info)``."""
+    starts = np.asarray(starts, float)
+    if labels.max_rollouts and len(starts) > labels.max_rollouts:
+        starts = starts[:labels.max_rollouts]
+    out = run_paths(starts)
+    along = np.asarray(out["path_state"], float)[:, 1:].reshape(-1, starts.shape[1])
+    settled = np.asarray(out["path_label"])[:, 1:].reshape(-1)
+    keep = (settled >= 0) & np.all(np.isfinite(along), axis=1)
+    keep[keep] = np.asarray(inside(along[keep]), bool)
+    states = np.concatenate([starts, along[keep]])
+    values = np.concatenate([np.asarray(out["failed"], bool), settled[keep] == 1]).astype(np.uint8)
+    sources = np.concatenate([np.full(len(starts), SOURCE_ROLLOUT, np.uint8),
+                              np.full(int(keep.sum()), SOURCE_PATH, np.uint8)])
+    frames = int(np.sum(out["ticks"]))
+    info = {"source": "trajectory", "samples_kept": int(len(starts)),
+            "path_samples": int(keep.sum()),
+            "path_samples_left_out": int(np.sum(settled >= 0) - keep.sum()),
+            "rollouts": int(len(starts)), "rollout_frames": frames,
+            "frames_per_label": round(frames / len(states), 2)}
+    return states, values, sources, info
+
+
 def _real_loop(scenario, value_function, states, folder: Path, progress):
     """``run_loop`` for `assign_labels`: the real closed loop from ``states[index]``,
     cached under ``folder/rollouts``."""
@@ -254,11 +302,23 @@ def _real_loop(scenario, value_function, states, folder: Path, progress):
     return run_loop
 
 
+def _real_paths(scenario, value_function, labels: LabelSpec, folder: Path, progress):
+    """``run_paths`` for `trajectory_samples`: `real_paths` cached under
+    ``folder/rollouts``."""
+    def run_paths(starts):
+        return real_paths(scenario, starts, grid=value_function.grid,
+                          horizon=value_function.horizon, extend=labels.extend,
+                          stride=labels.stride, cache_dir=folder / "rollouts",
+                          progress=progress).fields
+    return run_paths
+
+
 def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpec(), *,
                   ensemble=(), progress=True, box=None) -> Path:
     """Render, estimate and label ``spec.samples`` uniform states of ``box`` (``(lo,
     hi)``, inside the value function's grid; default: the whole grid) in
-    ``scenario``'s environment; returns the dataset folder (reused or resumed when it
+    ``scenario``'s environment, and with ``trajectory`` labels the states their runs
+    pass through (`trajectory_samples`); returns the dataset folder (reused or resumed when it
     already exists)."""
     scenario = resolved(scenario)
     grid = value_function.grid
@@ -283,11 +343,18 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     else:
         rng = np.random.default_rng(spec.seed)
         states = lo + rng.uniform(size=(spec.samples, grid.ndim)) * (hi - lo)
-        values = value_function.at(states)
-        n, labels, sources, label_info = assign_labels(
-            values, np.abs(states[:, 0]) < scenario.environment.half_width, spec.labels,
-            _real_loop(scenario, value_function, states, folder, progress))
-        states, values = states[:n], values[:n]
+        if spec.labels.source == "trajectory":
+            states, labels, sources, label_info = trajectory_samples(
+                states, spec.labels, _real_paths(scenario, value_function, spec.labels,
+                                                 folder, progress),
+                lambda x: np.all((x >= lo) & (x <= hi), axis=1))
+            values, n = value_function.at(states), len(states)
+        else:
+            values = value_function.at(states)
+            n, labels, sources, label_info = assign_labels(
+                values, np.abs(states[:, 0]) < scenario.environment.half_width, spec.labels,
+                _real_loop(scenario, value_function, states, folder, progress))
+            states, values = states[:n], values[:n]
         estimator = _estimator(make_controller(scenario.controller))
         k = estimator[1]
         np.save(folder / "states.npy", states)
@@ -306,7 +373,8 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
                     "brt_fraction_of_samples": float(np.mean(values <= 0)),
                     "samples": n, "labels": label_info,
                     "label_counts": {"brt": int(np.sum(sources == SOURCE_BRT)),
-                                     "rollout": int(np.sum(sources == SOURCE_ROLLOUT))},
+                                     "rollout": int(np.sum(sources == SOURCE_ROLLOUT)),
+                                     "path": int(np.sum(sources == SOURCE_PATH))},
                     "image_size": [spec.height, spec.width],
                     "camera_size": [scenario.camera.height, scenario.camera.width],
                     "spec": dc.asdict(spec), "controller": dc.asdict(scenario.controller),
@@ -350,7 +418,7 @@ class LabelledData:
     labels: np.ndarray
     estimates: np.ndarray
     ensemble: np.ndarray
-    sources: np.ndarray = None      # SOURCE_BRT / SOURCE_ROLLOUT per label
+    sources: np.ndarray = None      # SOURCE_BRT / SOURCE_ROLLOUT / SOURCE_PATH per label
 
     @property
     def brt_labels(self) -> np.ndarray:

@@ -21,6 +21,9 @@ COUNTS = ("n", "positives", "tp", "fp", "fn", "tn")
 
 #: The ``states`` subset of the samples that have not failed yet (inside the safe set).
 NOT_FAILED = "not yet failed"
+#: The subset of a ``trajectory``-labelled dataset that is its uniform states (the rest are
+#: states the real runs passed through).
+UNIFORM_STARTS = "uniform states"
 
 
 @dc.dataclass

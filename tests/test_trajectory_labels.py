@@ -1,0 +1,160 @@
+"""Trajectory labels: every state a real run passes through is labelled by the same
+run, checked tick by tick on hand-made runs and against direct simulation of the
+real Drake loop."""
+
+import numpy as np
+import pytest
+from pydrake.systems.framework import LeafSystem
+
+from reachwatch.diagrams import load_scenario, make_closed_loop_diagram, simulate
+from reachwatch.reach import solve_brt
+from reachwatch.reach.outcomes import path_labels
+from reachwatch.taxi import TaxiDynamics, paper_grid
+from reachwatch.taxi.fidelity import check_memoryless, path_points
+from reachwatch.training.dataset import (SOURCE_PATH, SOURCE_ROLLOUT, DatasetSpec, LabelSpec,
+                                         build_dataset, dataset_folder, load_dataset,
+                                         trajectory_samples)
+
+
+def test_path_labels_tick_by_tick():
+    ticks = np.arange(9) * 0.5                       # 0 .. 4 s
+    # fails at 3.2 s, horizon 2 s: the ticks from 1.2 s on fail within it
+    np.testing.assert_array_equal(path_labels(ticks[:7], 3.2, 4.0, 2.0),
+                                  [0, 0, 0, 1, 1, 1, 1])
+    # a failure exactly one horizon after a tick counts (as a run of the horizon would)
+    assert path_labels([0.0, 1.0], 3.0, 3.0, 2.0).tolist() == [0, 1]
+    # no failure in 4 s: the ticks up to 2 s are safe, the later ones cannot tell
+    np.testing.assert_array_equal(path_labels(ticks, None, 4.0, 2.0), [0] * 5 + [-1] * 4)
+    np.testing.assert_array_equal(path_labels(ticks, float("nan"), 4.0, 2.0),
+                                  [0] * 5 + [-1] * 4)
+    with pytest.raises(ValueError, match="horizon"):
+        path_labels(ticks, None, 4.0, 0.0)
+    with pytest.raises(ValueError, match="tick times"):
+        path_labels([[0.0, 1.0]], None, 4.0, 1.0)
+
+
+def test_path_points_cover_the_extension():
+    assert path_points(8.0, 8.0, 8, 0.05).tolist() == list(range(0, 161, 8))
+    assert path_points(8.0, 0.0, 8, 0.05).tolist() == [0]
+    assert path_points(1.0, 1.0, 3, 0.05).tolist() == [0, 3, 6, 9, 12, 15, 18]
+
+
+def test_trajectory_samples_keeps_settled_states_inside_the_box():
+    starts = np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]])
+    calls = []
+
+    def run_paths(x):
+        calls.append(len(x))
+        nan = [np.nan, np.nan]
+        return {"failed": np.array([False, True]), "ticks": np.array([30, 12]),
+                "path_state": np.array([[[0.0, 0.0], [0.5, 0.5], [9.0, 9.0], [0.7, 0.7]],
+                                        [[1.0, 1.0], [1.5, 1.5], nan, nan]]),
+                "path_label": np.array([[0, 0, 0, -1], [1, 1, -1, -1]], np.int8)}
+
+    inside = lambda x: np.all(x < 5, axis=1)      # noqa: E731 ([9, 9] is outside)
+    states, labels, sources, info = trajectory_samples(
+        starts, LabelSpec("trajectory", max_rollouts=2), run_paths, inside)
+    assert calls == [2]                                   # the cap keeps the first 2 starts
+    np.testing.assert_array_equal(states, [[0, 0], [1, 1], [0.5, 0.5], [1.5, 1.5]])
+    assert labels.tolist() == [0, 1, 0, 1]
+    assert sources.tolist() == [SOURCE_ROLLOUT] * 2 + [SOURCE_PATH] * 2
+    assert info["path_samples"] == 2 and info["path_samples_left_out"] == 1
+    assert info["rollout_frames"] == 42 and info["frames_per_label"] == 10.5
+
+
+def test_trajectory_fields_leave_other_datasets_keys_alone(tmp_path):
+    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    grid = paper_grid(scenario.environment.half_width, (3, 3, 3))
+    vf = solve_brt(grid, TaxiDynamics(half_width=scenario.environment.half_width),
+                   np.zeros(grid.shape), horizon=1.0, device="cpu")
+    key = lambda labels: dataset_folder(tmp_path, scenario, vf, DatasetSpec(labels=labels))  # noqa: E731
+    assert key(LabelSpec("rollout")) == key(LabelSpec("rollout", extend=3.0, stride=2))
+    assert key(LabelSpec("trajectory")) != key(LabelSpec("trajectory", extend=3.0))
+    with pytest.raises(ValueError, match="stride"):
+        LabelSpec("trajectory", stride=0).validate()
+    with pytest.raises(ValueError, match="extend"):
+        LabelSpec("trajectory", extend=-1.0).validate()
+
+
+class _Counter(LeafSystem):
+    """A controller that keeps a tick count: it remembers more than the state."""
+
+    def __init__(self):
+        super().__init__()
+        self.DeclareDiscreteState(1)
+
+
+def test_a_controller_with_state_is_refused():
+    from pydrake.systems.framework import DiagramBuilder
+    builder = DiagramBuilder()
+    builder.AddNamedSystem("controller", _Counter())
+    diagram = builder.Build()
+    with pytest.raises(ValueError, match="keeps no state.*has 1.*source: rollout"):
+        check_memoryless(diagram)
+
+
+def test_trajectory_labels_equal_direct_simulation_of_the_real_loop(tmp_path):
+    """Each label of a trajectory-labelled dataset, the states the runs passed through
+    included, is what the real Drake loop (TaxiNet on rendered images) does when
+    simulated again from that state."""
+    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    B = scenario.environment.half_width
+    grid = paper_grid(B, (5, 3, 5))
+    px, _, th = grid.mesh()
+    table = np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th))
+    vf = solve_brt(grid, TaxiDynamics(half_width=B), table, horizon=1.0, device="cpu")
+    # seed 139: two starts near the edge turning out fail after 0.4 and 0.6 s, so states
+    # their runs pass through are anomalous too
+    spec = DatasetSpec(samples=10, seed=139, height=20, width=36, chunk_size=8,
+                       labels=LabelSpec("trajectory", extend=1.0, stride=5))
+    data = load_dataset(build_dataset(tmp_path, scenario, vf, spec, progress=False))
+    info = data.manifest["labels"]
+    along = data.sources == SOURCE_PATH
+    assert data.sources[:10].tolist() == [SOURCE_ROLLOUT] * 10 and not along[:10].any()
+    assert along[10:].all() and info["path_samples"] == along.sum() > 10
+    assert np.all(grid.contains(np.asarray(data.states)))
+    diagram = make_closed_loop_diagram(scenario)
+    for x, label in zip(data.states, data.labels):
+        run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, half_width=B)
+        assert bool(label) == run.failed
+    assert 0 < data.labels[along].sum() < along.sum()      # both kinds among the added states
+    assert info["frames_per_label"] < 20                     # a rollout per label: 21 frames
+
+
+def test_trajectory_labelled_run_checks_the_labels_read_along_runs(tmp_path):
+    """``reachwatch run`` with trajectory labels: the datasets hold the states the runs
+    passed through, the fidelity stage runs some of them again from scratch, and the
+    report shows that check."""
+    from reachwatch.pipeline.report import Page, fidelity_section
+    from reachwatch.pipeline.run import run_pipeline
+    from reachwatch.pipeline.spec import load_run_spec
+    text = """
+name: tiny_trajectory
+train: [{runway: KMWH, hour: 9.0, sky: clear}]
+test: [{runway: KSFO, hour: 17.0, sky: clear}]
+grid: [5, 3, 5]
+horizon: 2.0
+dataset: {samples: 10, height: 24, width: 40, chunk_size: 16,
+          labels: {source: trajectory, extend: 1.0, stride: 10}}
+detector:
+  detector: {height: 24, width: 40, channels: [4, 8]}
+  device: cpu
+ensemble: {seeds: []}
+fidelity: {starts: 3, max_box_exits: 1.0}
+"""
+    run = run_pipeline(load_run_spec(data=text), tmp_path, progress=False, log=lambda m: None,
+                       until="fidelity")
+    for env in ("KMWH_9h_clear", "KSFO_17h_clear"):
+        data = load_dataset(tmp_path / run.outputs["dataset"]["folders"][env])
+        assert data.manifest["label_counts"]["path"] == int(np.sum(data.sources == SOURCE_PATH)) > 0
+        check = run.outputs["fidelity"][env]
+        assert check["labels"]["source"] == "trajectory"
+        # a fresh uniform start is labelled by its own run; the states read along runs
+        # are what the loop does from them
+        assert check["labels"]["agree"] == check["labels"]["n"] == 3
+        assert check["path_labels"]["agree"] == check["path_labels"]["n"] == 3
+    page = Page("t")
+    fidelity_section(page, run, {})
+    markdown = "\n".join(page.md)
+    assert "trajectory labels read along runs, checked" in markdown
+    assert "| KSFO_17h_clear | 3 | 100.0 [43.9, 100.0] |" in markdown
