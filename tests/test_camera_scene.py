@@ -5,7 +5,6 @@ from reachwatch.diagrams import StateRenderer
 from reachwatch.systems import (RUNWAYS, SKIES, AircraftGeometry, CameraConfig, Environment,
                                 MarkingsSpec, RunwaySpec, TaxiwayLine, lighting_for, sun_elevation_deg)
 from pydrake.geometry import SceneGraph
-from pydrake.math import RigidTransform
 
 
 def test_geometry_pose_follows_state():
