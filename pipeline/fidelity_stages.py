@@ -109,14 +109,14 @@ def fidelity_env(run: Run, env) -> dict:
         out["labels"] = {"source": labels["source"], "map_trusted": audit.get("map_trusted"),
                          "band": audit.get("band", spec.dataset.labels.band) if audit else None,
                          **compare_verdicts(verdicts, real, outcomes["left_box"]).as_dict()}
-        if labels["source"] == "trajectory":
+        if labels.get("counts", {}).get("path"):       # trajectory labels, or paths: N
             out["path_labels"] = check_path_labels(run, env)
     return out
 
 
 def check_path_labels(run: Run, env) -> dict:
-    """The ``trajectory`` labels read along runs, checked where they could be wrong:
-    ``fidelity.starts`` of the dataset's states that runs passed through (drawn with
+    """The labels read along runs (``trajectory`` labels, or ``paths``), checked where
+    they could be wrong: ``fidelity.starts`` of the dataset's states that runs passed through (drawn with
     ``fidelity.seed``), each run again from scratch for the horizon and compared with
     its label. `Fidelity.as_dict`, or ``{}`` when the dataset has no such states."""
     check = run.spec.fidelity

@@ -147,9 +147,9 @@ def fidelity_section(page, run: Run, roles):
                      _rate(r, "false_unsafe")] for n, r in labelled.items()])
     along = {n: r["path_labels"] for n, r in results.items() if r.get("path_labels")}
     if along:
-        page.text("The trajectory labels read along runs, checked: states the runs passed "
-                  "through (not the uniform starts), each run again from scratch for the "
-                  "horizon and compared with its label.")
+        page.text("The labels read along runs (trajectory labels, or dataset.labels.paths), "
+                  "checked: states the runs passed through (not the uniform samples), each "
+                  "run again from scratch for the horizon and compared with its label.")
         page.table(["environment", "states", "agreement", "false-safe", "false-unsafe"],
                    [[n, r["n"], _rate(r, "agree"), _rate(r, "false_safe"),
                      _rate(r, "false_unsafe")] for n, r in along.items()])

@@ -11,9 +11,9 @@ from reachwatch.reach import solve_brt
 from reachwatch.reach.outcomes import path_labels
 from reachwatch.taxi import TaxiDynamics, paper_grid
 from reachwatch.taxi.fidelity import check_memoryless, path_points
-from reachwatch.training.dataset import (SOURCE_PATH, SOURCE_ROLLOUT, DatasetSpec, LabelSpec,
-                                         build_dataset, dataset_folder, load_dataset,
-                                         trajectory_samples)
+from reachwatch.training.dataset import (SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT, DatasetSpec,
+                                         LabelSpec, build_dataset, dataset_folder, load_dataset,
+                                         path_starts, trajectory_samples)
 
 
 def test_path_labels_tick_by_tick():
@@ -70,6 +70,10 @@ def test_trajectory_fields_leave_other_datasets_keys_alone(tmp_path):
     key = lambda labels: dataset_folder(tmp_path, scenario, vf, DatasetSpec(labels=labels))  # noqa: E731
     assert key(LabelSpec("rollout")) == key(LabelSpec("rollout", extend=3.0, stride=2))
     assert key(LabelSpec("trajectory")) != key(LabelSpec("trajectory", extend=3.0))
+    assert key(LabelSpec("brt")) != key(LabelSpec("brt", paths=2))
+    assert key(LabelSpec("brt", paths=2)) != key(LabelSpec("brt", paths=2, stride=4))
+    with pytest.raises(ValueError, match="paths"):
+        LabelSpec("brt", paths=-1).validate()
     with pytest.raises(ValueError, match="stride"):
         LabelSpec("trajectory", stride=0).validate()
     with pytest.raises(ValueError, match="extend"):
@@ -156,5 +160,40 @@ fidelity: {starts: 3, max_box_exits: 1.0}
     page = Page("t")
     fidelity_section(page, run, {})
     markdown = "\n".join(page.md)
-    assert "trajectory labels read along runs, checked" in markdown
+    assert "labels read along runs (trajectory labels, or dataset.labels.paths), checked" in markdown
     assert "| KSFO_17h_clear | 3 | 100.0 [43.9, 100.0] |" in markdown
+
+
+def test_path_starts_are_on_the_runway_and_apart_from_the_samples():
+    lo, hi = np.array([-12.0, 100.0, -0.5]), np.array([12.0, 250.0, 0.5])
+    starts = path_starts(lo, hi, 200, 3, half_width=10.0)
+    assert np.all(np.abs(starts[:, 0]) < 10.0) and np.all((starts >= lo) & (starts <= hi))
+    np.testing.assert_array_equal(starts, path_starts(lo, hi, 200, 3, half_width=10.0))
+    samples = lo + np.random.default_rng(3).uniform(size=(200, 3)) * (hi - lo)
+    assert not np.isin(starts, samples).any()
+
+
+def test_brt_labels_with_paths_add_true_labels_along_real_runs(tmp_path):
+    """``brt`` labels plus ``paths: 3``: the uniform samples keep the map's labels, and
+    the states three real runs pass through are added with what the loop does from
+    them, checked by simulating it again."""
+    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    B = scenario.environment.half_width
+    grid = paper_grid(B, (5, 3, 5))
+    px, _, th = grid.mesh()
+    table = np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th))
+    vf = solve_brt(grid, TaxiDynamics(half_width=B), table, horizon=1.0, device="cpu")
+    spec = DatasetSpec(samples=10, seed=5, height=20, width=36, chunk_size=8,
+                       labels=LabelSpec("brt", paths=3, extend=1.0, stride=5))
+    data = load_dataset(build_dataset(tmp_path, scenario, vf, spec, progress=False))
+    along = data.sources == SOURCE_PATH
+    assert data.sources[:10].tolist() == [SOURCE_BRT] * 10 and along[10:].all()
+    np.testing.assert_array_equal(data.labels[:10], np.asarray(data.values[:10]) <= 0)
+    info = data.manifest["labels"]["paths"]
+    assert info["runs"] == 3 and info["samples"] == along.sum() > 3
+    starts = path_starts(grid.lo, grid.hi, 3, 5, half_width=B)
+    np.testing.assert_allclose(data.states[10], starts[0])       # each run's start comes first
+    diagram = make_closed_loop_diagram(scenario)
+    for x, label in zip(data.states[along], data.labels[along]):
+        run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, half_width=B)
+        assert bool(label) == run.failed

@@ -35,9 +35,9 @@ LABEL_SOURCES = ("brt", "rollout", "hybrid", "trajectory")
 #: Values of ``sources.npy``: the label is the BRT's verdict, the real loop's outcome
 #: from the sampled state, or the outcome read along a real run that passed through it.
 SOURCE_BRT, SOURCE_ROLLOUT, SOURCE_PATH = 0, 1, 2
-#: `LabelSpec` fields only the ``trajectory`` source reads (left out of other
-#: datasets' keys, so adding them did not move existing datasets).
-TRAJECTORY_FIELDS = ("extend", "stride")
+#: `LabelSpec` fields read only by the ``trajectory`` source or with ``paths`` (left out
+#: of other datasets' keys, so adding them did not move existing datasets).
+TRAJECTORY_FIELDS = ("extend", "stride", "paths")
 
 
 def _whole(where, value, least):
@@ -73,6 +73,12 @@ class LabelSpec:
       the added samples are the states the loop visits, not uniform ones (their
       ``sources`` entry is `SOURCE_PATH`).
 
+    ``paths`` (any source; 0 = none): beside the samples, the real loop from this many
+    further uniform on-runway states (drawn after them) runs ``horizon + extend`` s, and
+    the states each run passes through are added as ``trajectory`` adds them, the start
+    included (`SOURCE_PATH`). With ``brt`` labels this puts true labels on the states the
+    loop visits beside the map's labels on uniform ones.
+
     ``max_rollouts`` (0 = no cap) bounds the rollouts per environment: a dataset that
     would need more keeps only its first samples, as many as the cap allows (they are
     still uniform), and its manifest says how many it kept."""
@@ -84,6 +90,7 @@ class LabelSpec:
     max_rollouts: int = 0
     extend: float = 8.0
     stride: int = 8
+    paths: int = 0
 
     def validate(self, where="dataset.labels"):
         if self.source not in LABEL_SOURCES:
@@ -91,6 +98,7 @@ class LabelSpec:
         _whole(f"{where}.audit", self.audit, 0)
         _whole(f"{where}.max_rollouts", self.max_rollouts, 0)
         _whole(f"{where}.stride", self.stride, 1)
+        _whole(f"{where}.paths", self.paths, 0)
         for name in ("band", "band_factor", "max_band", "extend"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
@@ -130,7 +138,7 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
     """The content-addressed folder of a dataset under ``root``."""
     scenario = resolved(scenario)
     spec_parts = dc.asdict(spec)
-    if spec.labels.source != "trajectory":
+    if spec.labels.source != "trajectory" and not spec.labels.paths:
         for name in TRAJECTORY_FIELDS:
             spec_parts["labels"].pop(name)
     parts = {"format": FORMAT, "env": dc.asdict(scenario.environment),
@@ -274,21 +282,40 @@ def trajectory_samples(starts, labels: LabelSpec, run_paths, inside):
     if labels.max_rollouts and len(starts) > labels.max_rollouts:
         starts = starts[:labels.max_rollouts]
     out = run_paths(starts)
-    along = np.asarray(out["path_state"], float)[:, 1:].reshape(-1, starts.shape[1])
-    settled = np.asarray(out["path_label"])[:, 1:].reshape(-1)
-    keep = (settled >= 0) & np.all(np.isfinite(along), axis=1)
-    keep[keep] = np.asarray(inside(along[keep]), bool)
-    states = np.concatenate([starts, along[keep]])
-    values = np.concatenate([np.asarray(out["failed"], bool), settled[keep] == 1]).astype(np.uint8)
+    along, settled, left_out = read_along(out, inside, first=1)
+    states = np.concatenate([starts, along])
+    values = np.concatenate([np.asarray(out["failed"], bool), settled]).astype(np.uint8)
     sources = np.concatenate([np.full(len(starts), SOURCE_ROLLOUT, np.uint8),
-                              np.full(int(keep.sum()), SOURCE_PATH, np.uint8)])
+                              np.full(len(along), SOURCE_PATH, np.uint8)])
     frames = int(np.sum(out["ticks"]))
     info = {"source": "trajectory", "samples_kept": int(len(starts)),
-            "path_samples": int(keep.sum()),
-            "path_samples_left_out": int(np.sum(settled >= 0) - keep.sum()),
+            "path_samples": int(len(along)), "path_samples_left_out": left_out,
             "rollouts": int(len(starts)), "rollout_frames": frames,
             "frames_per_label": round(frames / len(states), 2)}
     return states, values, sources, info
+
+
+def read_along(out, inside, *, first: int = 0):
+    """The states runs passed through (``out``: `taxi_paths`'s ``path_state`` and
+    ``path_label``), from path point ``first`` on (1 leaves the starts out), whose label
+    the run settled and that ``inside(states)`` keeps. Returns ``(states, anomalous
+    (bool), how many settled states inside left out)``."""
+    paths = np.asarray(out["path_state"], float)
+    along = paths[:, first:].reshape(-1, paths.shape[2])
+    settled = np.asarray(out["path_label"])[:, first:].reshape(-1)
+    keep = (settled >= 0) & np.all(np.isfinite(along), axis=1)
+    keep[keep] = np.asarray(inside(along[keep]), bool)
+    return along[keep], settled[keep] == 1, int(np.sum(settled >= 0) - keep.sum())
+
+
+def path_starts(lo, hi, count: int, seed: int, half_width: float) -> np.ndarray:
+    """``count`` uniform states of the box ``lo``..``hi`` with |px| < ``half_width``
+    (a run from off the runway passes through nothing), from a stream of ``seed`` apart
+    from the samples'."""
+    lo, hi = np.array(lo, float), np.array(hi, float)
+    lo[0], hi[0] = max(lo[0], -half_width), min(hi[0], half_width)
+    rng = np.random.default_rng([int(seed), 1])
+    return lo + rng.uniform(size=(count, len(lo))) * (hi - lo)
 
 
 def _real_loop(scenario, value_function, states, folder: Path, progress):
@@ -355,6 +382,21 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
                 values, np.abs(states[:, 0]) < scenario.environment.half_width, spec.labels,
                 _real_loop(scenario, value_function, states, folder, progress))
             states, values = states[:n], values[:n]
+        if spec.labels.paths:
+            inside = lambda x: np.all((x >= lo) & (x <= hi), axis=1)   # noqa: E731
+            out = _real_paths(scenario, value_function, spec.labels, folder, progress)(
+                path_starts(lo, hi, spec.labels.paths, spec.seed,
+                            scenario.environment.half_width))
+            along, anomalous, left_out = read_along(out, inside)
+            states = np.concatenate([states, along])
+            values = np.concatenate([values, value_function.at(along)])
+            labels = np.concatenate([labels, anomalous.astype(np.uint8)])
+            sources = np.concatenate([sources, np.full(len(along), SOURCE_PATH, np.uint8)])
+            frames = int(np.sum(out["ticks"]))
+            label_info["paths"] = {"runs": int(spec.labels.paths), "samples": int(len(along)),
+                                   "left_out": left_out, "frames": frames,
+                                   "frames_per_label": round(frames / max(1, len(along)), 2)}
+            n = len(states)
         estimator = _estimator(make_controller(scenario.controller))
         k = estimator[1]
         np.save(folder / "states.npy", states)
