@@ -116,9 +116,10 @@ def fidelity_env(run: Run, env) -> dict:
 
 def check_path_labels(run: Run, env) -> dict:
     """The labels read along runs (``trajectory`` labels, or ``paths``), checked where
-    they could be wrong: ``fidelity.starts`` of the dataset's states that runs passed through (drawn with
-    ``fidelity.seed``), each run again from scratch for the horizon and compared with
-    its label. `Fidelity.as_dict`, or ``{}`` when the dataset has no such states."""
+    they could be wrong: ``fidelity.starts`` of the dataset's states that runs passed
+    through (drawn with ``fidelity.seed``), each run again from scratch for the horizon
+    and compared with its label. `Fidelity.as_dict`, or ``{}`` when the dataset has no
+    such states."""
     check = run.spec.fidelity
     data = load_dataset(run.path(run.outputs["dataset"]["folders"][env.name]))
     along = np.flatnonzero(data.sources == SOURCE_PATH)

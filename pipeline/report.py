@@ -230,7 +230,10 @@ def write_report(run: Run) -> dict:
     page.section("Labels and the detector", "labels")
     page.text(f"{spec.dataset.samples} uniform states per environment, labels from "
               f"'{spec.dataset.labels.source}' ({LABEL_SOURCE_TEXT[spec.dataset.labels.source]}); "
-              f"positives per environment: " + ", ".join(
+              + (f"besides them, the states {spec.dataset.labels.paths} real runs per "
+                 f"environment pass through, labelled by those runs; "
+                 if spec.dataset.labels.paths else "") +
+              "positives per environment: " + ", ".join(
                   f"{n} {_pct(p)}%" for n, p in o["dataset"]["positives"].items()) +
               f". Detector {spec.detector.detector.arch} "
               f"{spec.detector.detector.height}x{spec.detector.detector.width}, "

@@ -320,6 +320,8 @@ def stage_evaluate(run: Run) -> dict:
     detectors = []
     source = {"brt": "BRT", "rollout": "real-loop", "hybrid": "hybrid",
               "trajectory": "real-loop trajectory"}[spec.dataset.labels.source]
+    if spec.dataset.labels.paths:
+        source += " + read-along"
     candidates = [(f"detector ({source} labels)", trained["detector"], trained["threshold"])]
     if "prediction_error_detector" in trained:
         candidates.append((f"detector (prediction-error labels, error > "

@@ -137,9 +137,9 @@ name: tiny_trajectory
 train: [{runway: KMWH, hour: 9.0, sky: clear}]
 test: [{runway: KSFO, hour: 17.0, sky: clear}]
 grid: [5, 3, 5]
-horizon: 2.0
+horizon: 1.0
 dataset: {samples: 10, height: 24, width: 40, chunk_size: 16,
-          labels: {source: trajectory, extend: 1.0, stride: 10}}
+          labels: {source: trajectory, extend: 0.5, stride: 5}}
 detector:
   detector: {height: 24, width: 40, channels: [4, 8]}
   device: cpu
