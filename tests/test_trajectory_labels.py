@@ -127,8 +127,8 @@ def test_trajectory_labels_equal_direct_simulation_of_the_real_loop(tmp_path):
 
 def test_trajectory_labelled_run_checks_the_labels_read_along_runs(tmp_path):
     """``reachwatch run`` with trajectory labels: the datasets hold the states the runs
-    passed through, the fidelity stage runs some of them again from scratch, and the
-    report shows that check."""
+    passed through, the fidelity stage runs some of them again from scratch, the report
+    shows that check, and Table 2 scores the uniform states alone too."""
     from reachwatch.pipeline.report import Page, fidelity_section
     from reachwatch.pipeline.run import run_pipeline
     from reachwatch.pipeline.spec import load_run_spec
@@ -147,7 +147,7 @@ ensemble: {seeds: []}
 fidelity: {starts: 3, max_box_exits: 1.0}
 """
     run = run_pipeline(load_run_spec(data=text), tmp_path, progress=False, log=lambda m: None,
-                       until="fidelity")
+                       until="evaluate")
     for env in ("KMWH_9h_clear", "KSFO_17h_clear"):
         data = load_dataset(tmp_path / run.outputs["dataset"]["folders"][env])
         assert data.manifest["label_counts"]["path"] == int(np.sum(data.sources == SOURCE_PATH)) > 0
@@ -157,6 +157,11 @@ fidelity: {starts: 3, max_box_exits: 1.0}
         # are what the loop does from them
         assert check["labels"]["agree"] == check["labels"]["n"] == 3
         assert check["path_labels"]["agree"] == check["path_labels"]["n"] == 3
+    rows = [r for r in run.outputs["evaluate"]["rows"] if r["environment"] == "KSFO_17h_clear"
+            and r["method"] == "detector (real-loop trajectory labels)"]
+    subsets = {r["states"]: r["n"] for r in rows if r["labels"] == "trajectory"}
+    data = load_dataset(tmp_path / run.outputs["dataset"]["folders"]["KSFO_17h_clear"])
+    assert subsets["all"] == len(data.labels) and subsets["uniform states"] == 10
     page = Page("t")
     fidelity_section(page, run, {})
     markdown = "\n".join(page.md)
