@@ -58,7 +58,7 @@ from reachwatch.taxi import (dynamics_for, on_runway_starts, paper_grid, refine_
                              steering_bounds, sweep_closed_loop)
 from reachwatch.taxi.grid import AXES
 from reachwatch.taxi.fidelity import real_outcomes
-from reachwatch.training.dataset import audited_band, hybrid_rolls_out
+from reachwatch.training.labels import audited_band, hybrid_rolls_out
 
 
 def interval(f, name):

@@ -26,17 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
+from fidelity import interval       # benchmarks/fidelity.py
 from reachwatch.pipeline.evaluate_commands import parse_environment
 from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.reach import compare_verdicts
 from reachwatch.systems.files import cache_root
 from reachwatch.taxi import on_runway_starts, paper_grid
 from reachwatch.taxi.fidelity import real_outcomes, real_paths
-
-
-def interval(f, name):
-    rate, lo, hi = f.rate(name)
-    return f"{100 * rate:5.1f} % [{100 * lo:4.1f}, {100 * hi:5.1f}]"
 
 
 def main():
@@ -79,9 +75,9 @@ def main():
     fidelity = compare_verdicts(check_labels, real.failed, real["left_box"])
     per_run = float(np.mean(real["ticks"]))
     print(f"{len(pick)} labelled states run again from scratch ({time.time() - started:.0f} s): "
-          f"{fidelity.real_failures} failed; labels agree {interval(fidelity, 'agree')}, "
-          f"false-safe {interval(fidelity, 'false_safe')}, "
-          f"false-unsafe {interval(fidelity, 'false_unsafe')}")
+          f"{fidelity.real_failures} failed; labels agree {interval(fidelity, 'agree')} %, "
+          f"false-safe {interval(fidelity, 'false_safe')} %, "
+          f"false-unsafe {interval(fidelity, 'false_unsafe')} %")
     print(f"frames per label: trajectory {frames / known.sum():.1f}, rollout {per_run:.1f} "
           f"(the check runs' mean); {per_run / (frames / known.sum()):.1f} x fewer")
 

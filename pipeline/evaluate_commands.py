@@ -5,7 +5,8 @@ import dataclasses as dc
 
 
 from reachwatch.systems import DetectorConfig, Environment, test_environments, training_environments
-from reachwatch.training.dataset import LABEL_SOURCES, DatasetSpec, LabelSpec
+from reachwatch.training.dataset import DatasetSpec
+from reachwatch.training.labels import LABEL_SOURCES, LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.evaluation import markdown_table
 from reachwatch.training.incremental import IncrementalConfig

@@ -13,7 +13,8 @@ import numpy as np
 from reachwatch.reach import compare_verdicts, min_target_along_rollouts
 from reachwatch.taxi import dynamics_for, on_runway_starts, paper_grid
 from reachwatch.taxi.fidelity import OPEN_AXES, real_outcomes
-from reachwatch.training.dataset import SOURCE_PATH, hybrid_rolls_out, load_dataset
+from reachwatch.training.dataset import load_dataset
+from reachwatch.training.labels import SOURCE_PATH, hybrid_rolls_out
 
 from .spec import RunSpec, digest
 from .stages import Run

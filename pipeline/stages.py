@@ -22,7 +22,8 @@ from reachwatch.taxi import dynamics_for, paper_grid, sweep_closed_loop
 from reachwatch.taxi.grid import AXES
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
-from reachwatch.training.dataset import SOURCE_BRT, SOURCE_PATH, build_dataset, load_dataset
+from reachwatch.training.dataset import build_dataset, load_dataset
+from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
 from reachwatch.training.evaluation import (NOT_FAILED, UNIFORM_STARTS, Detector, csv_table,

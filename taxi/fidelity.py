@@ -30,13 +30,15 @@ OPEN_AXES = (1, 2)
 _LOOPS = {}         # per process: scenario fingerprint -> (diagram, context), built once
 
 
-def on_runway_starts(grid, count: int, seed: int, *, half_width: float) -> np.ndarray:
-    """``count`` seeded uniform random states of ``grid``'s box with |px| < half_width
-    (starts already off the runway would agree with any BRT and flatter it)."""
-    rng = np.random.default_rng(seed)
-    lo, hi = grid.lo.copy(), grid.hi.copy()
+def on_runway_starts(box, count: int, seed, *, half_width: float) -> np.ndarray:
+    """``count`` seeded uniform random states of ``box`` (a `Grid`'s box, or ``(lo,
+    hi)``) with |px| < half_width (starts already off the runway would agree with any
+    BRT and flatter it). ``seed`` is anything `numpy.random.default_rng` takes."""
+    lo, hi = (box.lo, box.hi) if hasattr(box, "lo") else box
+    lo, hi = np.array(lo, float), np.array(hi, float)
     lo[0], hi[0] = max(lo[0], -half_width), min(hi[0], half_width)
-    return lo + rng.uniform(size=(count, grid.ndim)) * (hi - lo)
+    rng = np.random.default_rng(seed)
+    return lo + rng.uniform(size=(count, len(lo))) * (hi - lo)
 
 
 def _loop(scenario, make):

@@ -40,3 +40,20 @@ def detector_path(tmp_path_factory):
     save_checkpoint(path, kind="detector", model=build_detector(config), model_config=config,
                     preprocess_config=None, metadata={"image_size": [200, 360]})
     return path
+
+
+@pytest.fixture(scope="session")
+def kmwh_day_brt():
+    """``(scenario, value function)`` of a small real loop for label tests: KMWH 9 h
+    clear (the default camera and TaxiNet), the paper's box at 5x3x5, the P-controller's
+    steering on the true state as the table, a 1 s horizon."""
+    from reachwatch.diagrams import load_scenario
+    from reachwatch.reach import solve_brt
+    from reachwatch.taxi import TaxiDynamics, paper_grid
+    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    B = scenario.environment.half_width
+    grid = paper_grid(B, (5, 3, 5))
+    px, _, th = grid.mesh()
+    table = np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th))
+    return scenario, solve_brt(grid, TaxiDynamics(half_width=B), table, horizon=1.0,
+                               device="cpu")

@@ -4,11 +4,10 @@ out only where the map is not trusted."""
 import numpy as np
 import pytest
 
-from reachwatch.diagrams import load_scenario, make_closed_loop_diagram, simulate
-from reachwatch.reach import solve_brt
-from reachwatch.taxi import TaxiDynamics, paper_grid
-from reachwatch.training.dataset import (SOURCE_BRT, SOURCE_ROLLOUT, DatasetSpec, LabelSpec, audited_band,
-                                         assign_labels, build_dataset, load_dataset)
+from reachwatch.diagrams import make_closed_loop_diagram, simulate
+from reachwatch.training.dataset import DatasetSpec, build_dataset, load_dataset
+from reachwatch.training.labels import (SOURCE_BRT, SOURCE_ROLLOUT, LabelSpec, audited_band,
+                                        assign_labels)
 
 
 class FakeLoop:
@@ -119,15 +118,11 @@ def test_rollout_budget_keeps_a_uniform_prefix_and_brt_source_runs_nothing():
         LabelSpec("oracle").validate()
 
 
-def test_rollout_labels_equal_direct_simulation_of_the_real_loop(tmp_path):
+def test_rollout_labels_equal_direct_simulation_of_the_real_loop(tmp_path, kmwh_day_brt):
     """A dataset labelled by rollouts: each label is what the real Drake loop (TaxiNet
     on rendered images) does from that state, checked by simulating it again."""
-    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    scenario, vf = kmwh_day_brt
     B = scenario.environment.half_width
-    grid = paper_grid(B, (5, 3, 5))
-    px, _, th = grid.mesh()
-    table = np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th))
-    vf = solve_brt(grid, TaxiDynamics(half_width=B), table, horizon=1.0, device="cpu")
     spec = DatasetSpec(samples=10, seed=5, height=20, width=36, chunk_size=8,
                        labels=LabelSpec("rollout"))
     data = load_dataset(build_dataset(tmp_path, scenario, vf, spec, progress=False))

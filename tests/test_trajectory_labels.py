@@ -6,14 +6,12 @@ import numpy as np
 import pytest
 from pydrake.systems.framework import LeafSystem
 
-from reachwatch.diagrams import load_scenario, make_closed_loop_diagram, simulate
-from reachwatch.reach import solve_brt
+from reachwatch.diagrams import make_closed_loop_diagram, simulate
 from reachwatch.reach.outcomes import path_labels
-from reachwatch.taxi import TaxiDynamics, paper_grid
-from reachwatch.taxi.fidelity import check_memoryless, path_points
-from reachwatch.training.dataset import (SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT, DatasetSpec,
-                                         LabelSpec, build_dataset, dataset_folder, load_dataset,
-                                         path_starts, trajectory_samples)
+from reachwatch.taxi.fidelity import check_memoryless, on_runway_starts, path_points
+from reachwatch.training.dataset import DatasetSpec, build_dataset, dataset_folder, load_dataset
+from reachwatch.training.labels import (SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT, LabelSpec,
+                                        trajectory_samples)
 
 
 def test_path_labels_tick_by_tick():
@@ -62,11 +60,8 @@ def test_trajectory_samples_keeps_settled_states_inside_the_box():
     assert info["rollout_frames"] == 42 and info["frames_per_label"] == 10.5
 
 
-def test_trajectory_fields_leave_other_datasets_keys_alone(tmp_path):
-    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
-    grid = paper_grid(scenario.environment.half_width, (3, 3, 3))
-    vf = solve_brt(grid, TaxiDynamics(half_width=scenario.environment.half_width),
-                   np.zeros(grid.shape), horizon=1.0, device="cpu")
+def test_trajectory_fields_leave_other_datasets_keys_alone(tmp_path, kmwh_day_brt):
+    scenario, vf = kmwh_day_brt
     key = lambda labels: dataset_folder(tmp_path, scenario, vf, DatasetSpec(labels=labels))  # noqa: E731
     assert key(LabelSpec("rollout")) == key(LabelSpec("rollout", extend=3.0, stride=2))
     assert key(LabelSpec("trajectory")) != key(LabelSpec("trajectory", extend=3.0))
@@ -97,16 +92,12 @@ def test_a_controller_with_state_is_refused():
         check_memoryless(diagram)
 
 
-def test_trajectory_labels_equal_direct_simulation_of_the_real_loop(tmp_path):
+def test_trajectory_labels_equal_direct_simulation_of_the_real_loop(tmp_path, kmwh_day_brt):
     """Each label of a trajectory-labelled dataset, the states the runs passed through
     included, is what the real Drake loop (TaxiNet on rendered images) does when
     simulated again from that state."""
-    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
-    B = scenario.environment.half_width
-    grid = paper_grid(B, (5, 3, 5))
-    px, _, th = grid.mesh()
-    table = np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th))
-    vf = solve_brt(grid, TaxiDynamics(half_width=B), table, horizon=1.0, device="cpu")
+    scenario, vf = kmwh_day_brt
+    B, grid = scenario.environment.half_width, vf.grid
     # seed 139: two starts near the edge turning out fail after 0.4 and 0.6 s, so states
     # their runs pass through are anomalous too
     spec = DatasetSpec(samples=10, seed=139, height=20, width=36, chunk_size=8,
@@ -171,23 +162,19 @@ fidelity: {starts: 3, max_box_exits: 1.0}
 
 def test_path_starts_are_on_the_runway_and_apart_from_the_samples():
     lo, hi = np.array([-12.0, 100.0, -0.5]), np.array([12.0, 250.0, 0.5])
-    starts = path_starts(lo, hi, 200, 3, half_width=10.0)
+    starts = on_runway_starts((lo, hi), 200, [3, 1], half_width=10.0)    # as build_dataset
     assert np.all(np.abs(starts[:, 0]) < 10.0) and np.all((starts >= lo) & (starts <= hi))
-    np.testing.assert_array_equal(starts, path_starts(lo, hi, 200, 3, half_width=10.0))
+    np.testing.assert_array_equal(starts, on_runway_starts((lo, hi), 200, [3, 1], half_width=10.0))
     samples = lo + np.random.default_rng(3).uniform(size=(200, 3)) * (hi - lo)
     assert not np.isin(starts, samples).any()
 
 
-def test_brt_labels_with_paths_add_true_labels_along_real_runs(tmp_path):
+def test_brt_labels_with_paths_add_true_labels_along_real_runs(tmp_path, kmwh_day_brt):
     """``brt`` labels plus ``paths: 3``: the uniform samples keep the map's labels, and
     the states three real runs pass through are added with what the loop does from
     them, checked by simulating it again."""
-    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
-    B = scenario.environment.half_width
-    grid = paper_grid(B, (5, 3, 5))
-    px, _, th = grid.mesh()
-    table = np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th))
-    vf = solve_brt(grid, TaxiDynamics(half_width=B), table, horizon=1.0, device="cpu")
+    scenario, vf = kmwh_day_brt
+    B, grid = scenario.environment.half_width, vf.grid
     spec = DatasetSpec(samples=10, seed=5, height=20, width=36, chunk_size=8,
                        labels=LabelSpec("brt", paths=3, extend=1.0, stride=5))
     data = load_dataset(build_dataset(tmp_path, scenario, vf, spec, progress=False))
@@ -196,7 +183,7 @@ def test_brt_labels_with_paths_add_true_labels_along_real_runs(tmp_path):
     np.testing.assert_array_equal(data.labels[:10], np.asarray(data.values[:10]) <= 0)
     info = data.manifest["labels"]["paths"]
     assert info["runs"] == 3 and info["samples"] == along.sum() > 3
-    starts = path_starts(grid.lo, grid.hi, 3, 5, half_width=B)
+    starts = on_runway_starts(grid, 3, [5, 1], half_width=B)
     np.testing.assert_allclose(data.states[10], starts[0])       # each run's start comes first
     diagram = make_closed_loop_diagram(scenario)
     for x, label in zip(data.states[along], data.labels[along]):

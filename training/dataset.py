@@ -1,6 +1,7 @@
 """Labelled image datasets: uniform states of the grid box, their wing-camera images,
 the controller's estimates (when it declares an ``estimate`` output) and an
-ensemble's, V(x), and a label per state from the source `LabelSpec` names: the BRT
+ensemble's, V(x), and a label per state from the source `LabelSpec` names
+(`training.labels`): the BRT
 (``V <= 0``), the real closed loop run from the state, a hybrid of both, or the
 real loop's runs from uniform states and the states they pass through.
 
@@ -25,89 +26,15 @@ from tqdm import tqdm
 from reachwatch.diagrams import ControllerProbe, StateRenderer, file_hash, load_taxinet, make_controller
 from reachwatch.diagrams.controller import has_estimate
 from reachwatch.reach.fingerprint import fingerprint
-from reachwatch.taxi import resolved
+from reachwatch.taxi import on_runway_starts, resolved
 from reachwatch.taxi.fidelity import real_outcomes, real_paths
 from reachwatch.systems import TaxiNet, resize_for_detector
 from reachwatch.systems.files import atomic_write_bytes
 
+from .labels import (SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT, TRAJECTORY_FIELDS, LabelSpec,
+                     assign_labels, check_whole_number, read_along, trajectory_samples)
+
 FORMAT = "reachwatch.dataset/3"
-LABEL_SOURCES = ("brt", "rollout", "hybrid", "trajectory")
-#: Values of ``sources.npy``: the label is the BRT's verdict, the real loop's outcome
-#: from the sampled state, or the outcome read along a real run that passed through it.
-SOURCE_BRT, SOURCE_ROLLOUT, SOURCE_PATH = 0, 1, 2
-#: `LabelSpec` fields read only by the ``trajectory`` source or with ``paths`` (left out
-#: of other datasets' keys, so adding them did not move existing datasets).
-TRAJECTORY_FIELDS = ("extend", "stride", "paths")
-
-
-def _whole(where, value, least):
-    if isinstance(value, bool) or not isinstance(value, int) or value < least:
-        raise ValueError(f"{where} must be a whole number >= {least}, got {value!r}")
-
-
-@dc.dataclass
-class LabelSpec:
-    """Where a dataset's labels come from (``source``):
-
-    - ``brt``: ``V(x) <= 0`` of the solved BRT. Free, and as right as the map.
-    - ``rollout``: the real closed loop (rendering every tick) run from every sampled
-      on-runway state for the BRT's horizon, stopping at failure: exact for a
-      deterministic loop, about one render per tick.
-    - ``hybrid``: the BRT where the map is trusted, rollouts where it is not. The first
-      ``audit`` on-runway samples are rolled out. If the BRT called any of them safe and
-      the loop failed, the map is not trusted in this environment: every sample it
-      calls safe (``V > 0``) is rolled out, and its unsafe verdicts within ``band`` m.
-      Otherwise the audit's wrong unsafe verdicts say how far from the boundary the
-      map's errors reach: the band is ``band`` m, or ``band_factor`` times the largest
-      ``|V|`` of a wrong verdict if wider, and the on-runway samples within it on either
-      side (``|V| < band``) are rolled out; a band wider than ``max_band`` m distrusts
-      the map too. Unsafe verdicts further in are kept either way. (A false-safe
-      verdict in the audit distrusts the map whatever its distance: on KMWH 21 h clear
-      the audit's one lay 0.5 m from the boundary, the fresh starts' out to 3.9 m.)
-
-    - ``trajectory``: ``rollout``, with each run lasting ``extend`` s past the horizon;
-      every ``stride``-th state it passes through within its first ``extend`` s (and
-      inside the dataset's box) is a sample too, labelled by the same run: whether the
-      loop fails within the horizon from there. Exact like ``rollout`` for a loop whose
-      state is all it remembers (the taxi's), at a fraction of the frames per label;
-      the added samples are the states the loop visits, not uniform ones (their
-      ``sources`` entry is `SOURCE_PATH`).
-
-    ``paths`` (any source; 0 = none): beside the samples, the real loop from this many
-    further uniform on-runway states (drawn after them) runs ``horizon + extend`` s, and
-    the states each run passes through are added as ``trajectory`` adds them, the start
-    included (`SOURCE_PATH`). With ``brt`` labels this puts true labels on the states the
-    loop visits beside the map's labels on uniform ones.
-
-    ``max_rollouts`` (0 = no cap) bounds the rollouts per environment: a dataset that
-    would need more keeps only its first samples, as many as the cap allows (they are
-    still uniform), and its manifest says how many it kept."""
-    source: str = "brt"
-    audit: int = 50
-    band: float = 2.0
-    band_factor: float = 2.0
-    max_band: float = 6.0
-    max_rollouts: int = 0
-    extend: float = 8.0
-    stride: int = 8
-    paths: int = 0
-
-    def validate(self, where="dataset.labels"):
-        if self.source not in LABEL_SOURCES:
-            raise ValueError(f"{where}.source must be one of {LABEL_SOURCES}, got '{self.source}'")
-        _whole(f"{where}.audit", self.audit, 0)
-        _whole(f"{where}.max_rollouts", self.max_rollouts, 0)
-        _whole(f"{where}.stride", self.stride, 1)
-        _whole(f"{where}.paths", self.paths, 0)
-        for name in ("band", "band_factor", "max_band", "extend"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not np.isfinite(value) or value < 0:
-                raise ValueError(f"{where}.{name} must be a finite number >= 0, got {value!r}")
-        if self.max_band < self.band:
-            raise ValueError(f"{where}.max_band ({self.max_band} m) must be at least band "
-                             f"({self.band} m)")
-        return self
 
 
 @dc.dataclass
@@ -123,7 +50,7 @@ class DatasetSpec:
 
     def validate(self, where="dataset"):
         for name, least in (("samples", 10), ("height", 16), ("width", 16), ("chunk_size", 1)):
-            _whole(f"{where}.{name}", getattr(self, name), least)
+            check_whole_number(f"{where}.{name}", getattr(self, name), least)
         self.labels.validate(f"{where}.labels")
         return self
 
@@ -196,128 +123,6 @@ def _estimator(controller):
     return (lambda images: np.stack([probe.outputs(image)[1] for image in images])), size
 
 
-def audited_band(values, failed, *, band: float, band_factor: float, max_band: float):
-    """``(band m, map trusted, largest error m)`` from an audit: the real outcomes
-    ``failed`` of states with BRT values ``values``. The largest error is the largest
-    ``|V|`` of a wrong verdict (0 when none); the band is ``band``, widened to
-    ``band_factor`` times that error. The map is trusted when the audit found no
-    false-safe verdict and the band is at most ``max_band``: a false-safe verdict in a
-    small audit says little about how far out the others lie (on KMWH 21 h clear the
-    audit's one sat at V = 0.5 m and 200 fresh starts had them out to 3.9 m)."""
-    values, failed = np.asarray(values, float), np.asarray(failed, bool)
-    wrong = (values <= 0) != failed
-    largest = float(np.abs(values[wrong]).max()) if wrong.any() else 0.0
-    widened = max(float(band), band_factor * largest)
-    false_safe = bool(np.any(failed & (values > 0)))
-    return widened, widened <= max_band and not false_safe, largest
-
-
-def hybrid_rolls_out(values, band: float, map_trusted: bool) -> np.ndarray:
-    """Where the ``hybrid`` source labels by the real loop: the states within ``band``
-    of the BRT's boundary on either side (``|V| < band``), and every state the BRT calls
-    safe (``V > 0``) when the map is not trusted. Callers leave out states already off
-    the runway (failures by definition)."""
-    values = np.asarray(values, float)
-    return (np.abs(values) < band) | ((values > 0) & (not map_trusted))
-
-
-def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
-    """Labels and their sources for states with BRT values ``values`` under
-    ``labels.source``; ``on_runway`` marks the states where the loop has not failed
-    yet (the audit's candidates) and ``run_loop(index) -> (failed, frames)`` runs the
-    real loop from the states at ``index`` (called at most twice: the audit, then the
-    rest). Returns ``(n kept, labels, sources, info)``."""
-    values, on_runway = np.asarray(values, float), np.asarray(on_runway, bool)
-    n = len(values)
-    brt = (values <= 0).astype(np.uint8)
-    info = {"source": labels.source}
-    if labels.source == "brt":
-        return n, brt, np.full(n, SOURCE_BRT, np.uint8), info
-    failed, frames = {}, 0
-
-    def run(index):
-        nonlocal frames
-        index = np.array([i for i in index if i not in failed], int)
-        if len(index):
-            outcome, used = run_loop(index)
-            failed.update(zip(index.tolist(), np.asarray(outcome, bool).tolist()))
-            frames += int(used)
-
-    if labels.source == "rollout":
-        roll = np.arange(n)
-    else:
-        audit = np.flatnonzero(on_runway)[:labels.audit]
-        run(audit)
-        audit_failed = np.array([failed[i] for i in audit.tolist()], bool)
-        false_safe = int(np.sum(audit_failed & (values[audit] > 0)))
-        band, trusted, largest = audited_band(values[audit], audit_failed, band=labels.band,
-                                              band_factor=labels.band_factor,
-                                              max_band=labels.max_band)
-        band = band if trusted else labels.band
-        info["audit"] = {"samples": int(len(audit)), "real_failures": int(audit_failed.sum()),
-                         "false_safe": false_safe, "largest_error_m": largest,
-                         "map_trusted": trusted, "band": band}
-        uncertain = hybrid_rolls_out(values, band, trusted) & on_runway
-        roll = np.union1d(audit, np.flatnonzero(uncertain)).astype(int)
-    if labels.max_rollouts and len(roll) > labels.max_rollouts:
-        n = int(roll[labels.max_rollouts])     # the first sample whose rollout is over the cap
-        roll = roll[:labels.max_rollouts]
-    run(roll)
-    out, sources = brt[:n].copy(), np.full(n, SOURCE_BRT, np.uint8)
-    for i in roll.tolist():
-        out[i], sources[i] = failed[i], SOURCE_ROLLOUT
-    info.update(samples_kept=n, rollouts=int(len(roll)), rollout_frames=frames,
-                rollout_disagrees_with_brt=int(np.sum(out[roll] != brt[roll])))
-    return n, out, sources, info
-
-
-def trajectory_samples(starts, labels: LabelSpec, run_paths, inside):
-    """The ``trajectory`` source's samples: ``starts`` ``(N, n)`` (the first
-    ``labels.max_rollouts`` when capped), then the states their runs pass through whose
-    label the run settles and that ``inside(states) -> bool array`` keeps. ``run_paths
-    (starts) -> dict`` runs the real loop (``failed``, ``path_state`` ``(N, m, n)``,
-    ``path_label`` ``(N, m)`` with -1 for unknown, ``ticks``; row 0 is the start).
-    Returns ``(states, labels, sources, info)``."""
-    starts = np.asarray(starts, float)
-    if labels.max_rollouts and len(starts) > labels.max_rollouts:
-        starts = starts[:labels.max_rollouts]
-    out = run_paths(starts)
-    along, settled, left_out = read_along(out, inside, first=1)
-    states = np.concatenate([starts, along])
-    values = np.concatenate([np.asarray(out["failed"], bool), settled]).astype(np.uint8)
-    sources = np.concatenate([np.full(len(starts), SOURCE_ROLLOUT, np.uint8),
-                              np.full(len(along), SOURCE_PATH, np.uint8)])
-    frames = int(np.sum(out["ticks"]))
-    info = {"source": "trajectory", "samples_kept": int(len(starts)),
-            "path_samples": int(len(along)), "path_samples_left_out": left_out,
-            "rollouts": int(len(starts)), "rollout_frames": frames,
-            "frames_per_label": round(frames / len(states), 2)}
-    return states, values, sources, info
-
-
-def read_along(out, inside, *, first: int = 0):
-    """The states runs passed through (``out``: `taxi_paths`'s ``path_state`` and
-    ``path_label``), from path point ``first`` on (1 leaves the starts out), whose label
-    the run settled and that ``inside(states)`` keeps. Returns ``(states, anomalous
-    (bool), how many settled states inside left out)``."""
-    paths = np.asarray(out["path_state"], float)
-    along = paths[:, first:].reshape(-1, paths.shape[2])
-    settled = np.asarray(out["path_label"])[:, first:].reshape(-1)
-    keep = (settled >= 0) & np.all(np.isfinite(along), axis=1)
-    keep[keep] = np.asarray(inside(along[keep]), bool)
-    return along[keep], settled[keep] == 1, int(np.sum(settled >= 0) - keep.sum())
-
-
-def path_starts(lo, hi, count: int, seed: int, half_width: float) -> np.ndarray:
-    """``count`` uniform states of the box ``lo``..``hi`` with |px| < ``half_width``
-    (a run from off the runway passes through nothing), from a stream of ``seed`` apart
-    from the samples'."""
-    lo, hi = np.array(lo, float), np.array(hi, float)
-    lo[0], hi[0] = max(lo[0], -half_width), min(hi[0], half_width)
-    rng = np.random.default_rng([int(seed), 1])
-    return lo + rng.uniform(size=(count, len(lo))) * (hi - lo)
-
-
 def _real_loop(scenario, value_function, states, folder: Path, progress):
     """``run_loop`` for `assign_labels`: the real closed loop from ``states[index]``,
     cached under ``folder/rollouts``."""
@@ -385,8 +190,8 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
         if spec.labels.paths:
             inside = lambda x: np.all((x >= lo) & (x <= hi), axis=1)   # noqa: E731
             out = _real_paths(scenario, value_function, spec.labels, folder, progress)(
-                path_starts(lo, hi, spec.labels.paths, spec.seed,
-                            scenario.environment.half_width))
+                on_runway_starts((lo, hi), spec.labels.paths, [spec.seed, 1],
+                                 half_width=scenario.environment.half_width))
             along, anomalous, left_out = read_along(out, inside)
             states = np.concatenate([states, along])
             values = np.concatenate([values, value_function.at(along)])
