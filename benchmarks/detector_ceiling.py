@@ -45,7 +45,8 @@ def rows_of(data, rows):
     return dc.replace(data, images=data.images[rows], states=data.states[rows],
                       values=data.values[rows], labels=data.labels[rows],
                       estimates=data.estimates[rows], ensemble=data.ensemble[rows],
-                      sources=None if data.sources is None else data.sources[rows])
+                      sources=None if data.sources is None else data.sources[rows],
+                      runs=None if data.runs is None else data.runs[rows])
 
 
 def figures(labels, scores, threshold):

@@ -10,8 +10,8 @@ from reachwatch.diagrams import make_closed_loop_diagram, simulate
 from reachwatch.reach.outcomes import path_labels
 from reachwatch.taxi.fidelity import check_memoryless, on_runway_starts, path_points
 from reachwatch.training.dataset import DatasetSpec, build_dataset, dataset_folder, load_dataset
-from reachwatch.training.labels import (SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT, LabelSpec,
-                                        trajectory_samples)
+from reachwatch.training.labels import (NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
+                                        LabelSpec, trajectory_samples)
 
 
 def test_path_labels_tick_by_tick():
@@ -50,8 +50,9 @@ def test_trajectory_samples_keeps_settled_states_inside_the_box():
                 "path_label": np.array([[0, 0, 0, -1], [1, 1, -1, -1]], np.int8)}
 
     inside = lambda x: np.all(x < 5, axis=1)      # noqa: E731 ([9, 9] is outside)
-    states, labels, sources, info = trajectory_samples(
+    states, labels, sources, info, runs = trajectory_samples(
         starts, LabelSpec("trajectory", max_rollouts=2), run_paths, inside)
+    assert runs.tolist() == [0, 1, 0, 1]                  # each start, then its run's states
     assert calls == [2]                                   # the cap keeps the first 2 starts
     np.testing.assert_array_equal(states, [[0, 0], [1, 1], [0.5, 0.5], [1.5, 1.5]])
     assert labels.tolist() == [0, 1, 0, 1]
@@ -108,6 +109,10 @@ def test_trajectory_labels_equal_direct_simulation_of_the_real_loop(tmp_path, km
     assert data.sources[:10].tolist() == [SOURCE_ROLLOUT] * 10 and not along[:10].any()
     assert along[10:].all() and info["path_samples"] == along.sum() > 10
     assert np.all(grid.contains(np.asarray(data.states)))
+    # each start is its own run; a state read along a run lies downtrack of its start
+    assert data.runs[:10].tolist() == list(range(10)) and set(data.runs[10:]) <= set(range(10))
+    assert np.all(np.diff(data.runs[10:]) >= 0)
+    assert np.all(data.states[10:, 1] > data.states[data.runs[10:], 1])
     diagram = make_closed_loop_diagram(scenario)
     for x, label in zip(data.states, data.labels):
         run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, half_width=B)
@@ -185,6 +190,9 @@ def test_brt_labels_with_paths_add_true_labels_along_real_runs(tmp_path, kmwh_da
     assert info["runs"] == 3 and info["samples"] == along.sum() > 3
     starts = on_runway_starts(grid, 3, [5, 1], half_width=B)
     np.testing.assert_allclose(data.states[10], starts[0])       # each run's start comes first
+    assert data.runs[:10].tolist() == [NO_RUN] * 10             # uniform samples: on no run
+    for run in range(3):
+        np.testing.assert_allclose(data.states[along][data.runs[along] == run][0], starts[run])
     diagram = make_closed_loop_diagram(scenario)
     for x, label in zip(data.states[along], data.labels[along]):
         run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, half_width=B)

@@ -9,7 +9,10 @@ On disk, one folder per (environment, BRT, sampling, labels, image size,
 controllers): ``manifest.json`` plus ``.npy`` arrays (``images.npy`` is a uint8
 memmap ``(N, H, W, 3)``; ``states.npy`` [px m, py m, theta rad]; ``values.npy`` m;
 ``labels.npy`` uint8, 1 = anomalous; ``sources.npy`` uint8, where each label came from
-(`SOURCE_BRT`, `SOURCE_ROLLOUT`, `SOURCE_PATH`); ``estimates.npy`` ``(N, k)``, the controller's
+(`SOURCE_BRT`, `SOURCE_ROLLOUT`, `SOURCE_PATH`); with read-along states ``runs.npy``
+int64, the real run each sample lies on (`NO_RUN` for one drawn on its own: samples
+of one run are near-copies, and `train_detector`'s validation split keeps them
+together); ``estimates.npy`` ``(N, k)``, the controller's
 ``estimate`` output (TaxiNet: [px_hat m, theta_hat deg]; k = 0 when it has none);
 ``ensemble.npy`` ``(N, K, 2)``), and ``rollouts/``, the cached real-loop runs.
 Filled chunk by chunk; the manifest records finished chunks and is replaced
@@ -31,7 +34,7 @@ from reachwatch.taxi.fidelity import real_outcomes, real_paths
 from reachwatch.systems import TaxiNet, resize_for_detector
 from reachwatch.systems.files import atomic_write_bytes
 
-from .labels import (SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT, TRAJECTORY_FIELDS, LabelSpec,
+from .labels import (NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT, TRAJECTORY_FIELDS, LabelSpec,
                      assign_labels, check_whole_number, read_along, trajectory_samples)
 
 FORMAT = "reachwatch.dataset/3"
@@ -65,7 +68,8 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
     """The content-addressed folder of a dataset under ``root``."""
     scenario = resolved(scenario)
     spec_parts = dc.asdict(spec)
-    if spec.labels.source != "trajectory" and not spec.labels.paths:
+    read_along_runs = spec.labels.source == "trajectory" or spec.labels.paths
+    if not read_along_runs:
         for name in TRAJECTORY_FIELDS:
             spec_parts["labels"].pop(name)
     parts = {"format": FORMAT, "env": dc.asdict(scenario.environment),
@@ -75,6 +79,8 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
              "ensemble": [file_hash(p) for p in ensemble]}
     if box is not None:
         parts["box"] = np.asarray(box, float).tolist()
+    if read_along_runs:
+        parts["runs"] = 1       # runs.npy, which datasets of read-along states before it lacked
     digest = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
     return Path(root) / f"{scenario.environment.name}_{spec.samples}_{digest}"
 
@@ -176,7 +182,7 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
         rng = np.random.default_rng(spec.seed)
         states = lo + rng.uniform(size=(spec.samples, grid.ndim)) * (hi - lo)
         if spec.labels.source == "trajectory":
-            states, labels, sources, label_info = trajectory_samples(
+            states, labels, sources, label_info, runs = trajectory_samples(
                 states, spec.labels, _real_paths(scenario, value_function, spec.labels,
                                                  folder, progress),
                 lambda x: np.all((x >= lo) & (x <= hi), axis=1))
@@ -186,17 +192,18 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
             n, labels, sources, label_info = assign_labels(
                 values, np.abs(states[:, 0]) < scenario.environment.half_width, spec.labels,
                 _real_loop(scenario, value_function, states, folder, progress))
-            states, values = states[:n], values[:n]
+            states, values, runs = states[:n], values[:n], np.full(n, NO_RUN, np.int64)
         if spec.labels.paths:
             inside = lambda x: np.all((x >= lo) & (x <= hi), axis=1)   # noqa: E731
             out = _real_paths(scenario, value_function, spec.labels, folder, progress)(
                 on_runway_starts((lo, hi), spec.labels.paths, [spec.seed, 1],
                                  half_width=scenario.environment.half_width))
-            along, anomalous, left_out = read_along(out, inside)
+            along, anomalous, left_out, along_runs = read_along(out, inside)
             states = np.concatenate([states, along])
             values = np.concatenate([values, value_function.at(along)])
             labels = np.concatenate([labels, anomalous.astype(np.uint8)])
             sources = np.concatenate([sources, np.full(len(along), SOURCE_PATH, np.uint8)])
+            runs = np.concatenate([runs, along_runs + (runs.max(initial=NO_RUN) + 1)])
             frames = int(np.sum(out["ticks"]))
             label_info["paths"] = {"runs": int(spec.labels.paths), "samples": int(len(along)),
                                    "left_out": left_out, "frames": frames,
@@ -208,6 +215,8 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
         np.save(folder / "values.npy", values)
         np.save(folder / "labels.npy", labels)
         np.save(folder / "sources.npy", sources)
+        if spec.labels.source == "trajectory" or spec.labels.paths:
+            np.save(folder / "runs.npy", np.asarray(runs, np.int64))
         open_mm = np.lib.format.open_memmap
         arrays = {"images": open_mm(folder / "images.npy", "w+", np.uint8,
                                     (n, spec.height, spec.width, 3)),
@@ -266,6 +275,9 @@ class LabelledData:
     estimates: np.ndarray
     ensemble: np.ndarray
     sources: np.ndarray = None      # SOURCE_BRT / SOURCE_ROLLOUT / SOURCE_PATH per label
+    #: The real run each sample lies on (`NO_RUN` for a sample drawn on its own); None
+    #: when no sample shares a run (datasets without read-along states)
+    runs: np.ndarray = None
 
     @property
     def brt_labels(self) -> np.ndarray:
@@ -309,4 +321,5 @@ def load_dataset(folder) -> LabelledData:
                         load("images", (n, spec.height, spec.width, 3), "r"),
                         load("states", (n,)), load("values", (n,)), load("labels", (n,)),
                         load("estimates", (n, manifest["estimate_size"])), load("ensemble", (n,)),
-                        load("sources", (n,)))
+                        load("sources", (n,)),
+                        load("runs", (n,)) if (folder / "runs.npy").exists() else None)

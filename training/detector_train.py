@@ -20,6 +20,9 @@ class DetectorTrainConfig:
     epochs: int = 6
     batch_size: int = 64
     learning_rate: float = 3e-4
+    #: Share of the training images kept back to choose the threshold. Samples on one
+    #: real run (a dataset's read-along states, ``runs``) are near-copies of each
+    #: other, so a run goes to one side whole.
     validation_fraction: float = 0.2
     seed: int = 0
     threshold: float = 0.5
@@ -129,10 +132,43 @@ def detector_scores(model, config: DetectorConfig, images, *, batch_size=128, de
     return np.concatenate(out) if out else np.zeros(0)
 
 
-def _split(n, config, rng):
-    order = rng.permutation(n)
+def run_groups(datasets):
+    """One id per sample of the concatenated ``datasets``: samples on one real run
+    (`LabelledData.runs`) share theirs, every other sample has its own. None when no
+    dataset has runs."""
+    if all(getattr(d, "runs", None) is None for d in datasets):
+        return None
+    ids, offset, next_run = [], 0, 0
+    total = sum(len(d.labels) for d in datasets)
+    for d in datasets:
+        n = len(d.labels)
+        own = offset + np.arange(n)                   # a sample alone: its global row
+        runs = getattr(d, "runs", None)
+        if runs is None:
+            ids.append(own)
+        else:
+            runs = np.asarray(runs, np.int64)
+            on_run = runs >= 0
+            ids.append(np.where(on_run, total + next_run + runs, own))
+            next_run += int(runs.max(initial=-1)) + 1
+        offset += n
+    return np.concatenate(ids)
+
+
+def _split(n, config, rng, groups=None):
+    """Validation and training rows: a random ``validation_fraction`` of ``n`` rows,
+    or with ``groups`` (`run_groups`) whole groups in random order until that many rows
+    (the split of datasets without runs is unchanged)."""
     n_val = int(round(config.validation_fraction * n))
-    return np.sort(order[:n_val]), order[n_val:]
+    if groups is None:
+        order = rng.permutation(n)
+        return np.sort(order[:n_val]), order[n_val:]
+    _, group_of = np.unique(groups, return_inverse=True)
+    sizes = np.bincount(group_of)
+    order = rng.permutation(len(sizes))
+    taken = order[:int(np.searchsorted(np.cumsum(sizes[order]), n_val)) + 1] if n_val else order[:0]
+    in_val = np.isin(group_of, taken)
+    return np.flatnonzero(in_val), np.flatnonzero(~in_val)
 
 
 def operating_threshold(model, datasets, config: DetectorTrainConfig, labels=None) -> float:
@@ -142,7 +178,7 @@ def operating_threshold(model, datasets, config: DetectorTrainConfig, labels=Non
     if not config.target_recall:
         return config.threshold
     y = np.concatenate(labels if labels is not None else [d.labels for d in datasets])
-    val, _ = _split(len(y), config, np.random.default_rng(config.seed))
+    val, _ = _split(len(y), config, np.random.default_rng(config.seed), run_groups(datasets))
     offsets = np.cumsum([0] + [len(d.labels) for d in datasets])
     which = np.searchsorted(offsets, val, side="right") - 1
     images = np.stack([datasets[w].images[r - offsets[w]] for w, r in zip(which, val)])
@@ -175,7 +211,7 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
     device = _device(config.device)
     y_all = np.concatenate(labels if labels is not None else [d.labels for d in datasets])
     y_all = torch.as_tensor(y_all.astype(np.int64))
-    val, train = _split(len(y_all), config, rng)
+    val, train = _split(len(y_all), config, rng, run_groups(datasets))
     jitter = torch.Generator().manual_seed(config.seed) if config.augment else None
     model = build_detector(config.detector, config.pretrained_path).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)

@@ -12,6 +12,8 @@ LABEL_SOURCES = ("brt", "rollout", "hybrid", "trajectory")
 #: Values of ``sources.npy``: the label is the BRT's verdict, the real loop's outcome
 #: from the sampled state, or the outcome read along a real run that passed through it.
 SOURCE_BRT, SOURCE_ROLLOUT, SOURCE_PATH = 0, 1, 2
+#: ``runs.npy``'s entry for a sample that lies on no run shared with other samples.
+NO_RUN = -1
 #: `LabelSpec` fields read only by the ``trajectory`` source or with ``paths`` (left out
 #: of other datasets' keys, so adding them did not move existing datasets).
 TRAJECTORY_FIELDS = ("extend", "stride", "paths")
@@ -169,12 +171,13 @@ def trajectory_samples(starts, labels: LabelSpec, run_paths, inside):
     label the run settles and that ``inside(states) -> bool array`` keeps. ``run_paths
     (starts) -> dict`` runs the real loop (``failed``, ``path_state`` ``(N, m, n)``,
     ``path_label`` ``(N, m)`` with -1 for unknown, ``ticks``; row 0 is the start).
-    Returns ``(states, labels, sources, info)``."""
+    Returns ``(states, labels, sources, info, runs)``; ``runs[i]`` is the index of the
+    run sample ``i`` lies on (its start's row)."""
     starts = np.asarray(starts, float)
     if labels.max_rollouts and len(starts) > labels.max_rollouts:
         starts = starts[:labels.max_rollouts]
     out = run_paths(starts)
-    along, settled, left_out = read_along(out, inside, first=1)
+    along, settled, left_out, runs = read_along(out, inside, first=1)
     states = np.concatenate([starts, along])
     values = np.concatenate([np.asarray(out["failed"], bool), settled]).astype(np.uint8)
     sources = np.concatenate([np.full(len(starts), SOURCE_ROLLOUT, np.uint8),
@@ -184,17 +187,19 @@ def trajectory_samples(starts, labels: LabelSpec, run_paths, inside):
             "path_samples": int(len(along)), "path_samples_left_out": left_out,
             "rollouts": int(len(starts)), "rollout_frames": frames,
             "frames_per_label": round(frames / len(states), 2)}
-    return states, values, sources, info
+    return states, values, sources, info, np.concatenate([np.arange(len(starts)), runs])
 
 
 def read_along(out, inside, *, first: int = 0):
     """The states runs passed through (``out``: `taxi_paths`'s ``path_state`` and
     ``path_label``), from path point ``first`` on (1 leaves the starts out), whose label
     the run settled and that ``inside(states)`` keeps. Returns ``(states, anomalous
-    (bool), how many settled states inside left out)``."""
+    (bool), how many settled states inside left out, the run of each state (its row in
+    ``out``))``."""
     paths = np.asarray(out["path_state"], float)
     along = paths[:, first:].reshape(-1, paths.shape[2])
+    runs = np.repeat(np.arange(len(paths)), paths.shape[1] - first)
     settled = np.asarray(out["path_label"])[:, first:].reshape(-1)
     keep = (settled >= 0) & np.all(np.isfinite(along), axis=1)
     keep[keep] = np.asarray(inside(along[keep]), bool)
-    return along[keep], settled[keep] == 1, int(np.sum(settled >= 0) - keep.sum())
+    return along[keep], settled[keep] == 1, int(np.sum(settled >= 0) - keep.sum()), runs[keep]
