@@ -175,6 +175,25 @@ def graphs(run: Run):
     return out
 
 
+def labels_paragraph(spec, o) -> str:
+    """What the datasets hold and where their labels come from, and the detector trained
+    on them (the report's "Labels and the detector" text)."""
+    labels, paths = spec.dataset.labels, spec.dataset.labels.paths
+    return (f"{spec.dataset.samples} uniform states per environment, labels from "
+            f"'{labels.source}' ({LABEL_SOURCE_TEXT[labels.source]}); "
+            + (f"besides them, the states that {paths} more real run{'s' * (paths != 1)} per "
+               f"environment pass through (from uniform on-runway states, {labels.extend:g} s "
+               f"past the horizon, every {labels.stride}th tick), labelled by those runs, and "
+               f"each run's states kept on one side of the detector's validation split; "
+               if paths else "") +
+            "positives per environment: " + ", ".join(
+                f"{n} {_pct(p)}%" for n, p in o["dataset"]["positives"].items()) +
+            f". Detector {spec.detector.detector.arch} "
+            f"{spec.detector.detector.height}x{spec.detector.detector.width}, "
+            f"{spec.detector.epochs} epochs, operating threshold "
+            f"{o['train']['threshold']:.3g} (target recall {spec.detector.target_recall}).")
+
+
 def write_report(run: Run) -> dict:
     """Write ``report.html`` and ``report.md``; returns their paths (relative)."""
     spec, o = run.spec, run.outputs
@@ -228,17 +247,7 @@ def write_report(run: Run) -> dict:
     page.images([r["figure"] for r in o["solve"].values()])
     fidelity_section(page, run, roles)
     page.section("Labels and the detector", "labels")
-    page.text(f"{spec.dataset.samples} uniform states per environment, labels from "
-              f"'{spec.dataset.labels.source}' ({LABEL_SOURCE_TEXT[spec.dataset.labels.source]}); "
-              + (f"besides them, the states {spec.dataset.labels.paths} real runs per "
-                 f"environment pass through, labelled by those runs; "
-                 if spec.dataset.labels.paths else "") +
-              "positives per environment: " + ", ".join(
-                  f"{n} {_pct(p)}%" for n, p in o["dataset"]["positives"].items()) +
-              f". Detector {spec.detector.detector.arch} "
-              f"{spec.detector.detector.height}x{spec.detector.detector.width}, "
-              f"{spec.detector.epochs} epochs, operating threshold "
-              f"{o['train']['threshold']:.3g} (target recall {spec.detector.target_recall}).")
+    page.text(labels_paragraph(spec, o))
     page.images([f["overlay"] for f in o["evaluate"]["figures"].values()])
     page.section("Table 2: detector and baselines on held-out environments", "table2")
     for sentence in detector_verdicts(o["evaluate"]["rows"]):

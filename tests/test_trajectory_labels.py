@@ -125,7 +125,7 @@ def test_trajectory_labelled_run_checks_the_labels_read_along_runs(tmp_path):
     """``reachwatch run`` with trajectory labels: the datasets hold the states the runs
     passed through, the fidelity stage runs some of them again from scratch, the report
     shows that check, and Table 2 scores the uniform states alone too."""
-    from reachwatch.pipeline.report import Page, fidelity_section
+    from reachwatch.pipeline.report import Page, fidelity_section, labels_paragraph
     from reachwatch.pipeline.run import run_pipeline
     from reachwatch.pipeline.spec import load_run_spec
     text = """
@@ -135,7 +135,7 @@ test: [{runway: KSFO, hour: 17.0, sky: clear}]
 grid: [5, 3, 5]
 horizon: 1.0
 dataset: {samples: 10, height: 24, width: 40, chunk_size: 16,
-          labels: {source: trajectory, extend: 0.5, stride: 5}}
+          labels: {source: trajectory, extend: 0.5, stride: 5, paths: 1}}
 detector:
   detector: {height: 24, width: 40, channels: [4, 8]}
   device: cpu
@@ -154,10 +154,15 @@ fidelity: {starts: 3, max_box_exits: 1.0}
         assert check["labels"]["agree"] == check["labels"]["n"] == 3
         assert check["path_labels"]["agree"] == check["path_labels"]["n"] == 3
     rows = [r for r in run.outputs["evaluate"]["rows"] if r["environment"] == "KSFO_17h_clear"
-            and r["method"] == "detector (real-loop trajectory labels)"]
+            and r["method"] == "detector (real-loop trajectory + read-along labels)"]
     subsets = {r["states"]: r["n"] for r in rows if r["labels"] == "trajectory"}
     data = load_dataset(tmp_path / run.outputs["dataset"]["folders"]["KSFO_17h_clear"])
     assert subsets["all"] == len(data.labels) and subsets["uniform states"] == 10
+    # the one extra run of `paths: 1` is run 10, after the 10 starts' own runs
+    assert data.runs.max() == 10 and data.manifest["labels"]["paths"]["runs"] == 1
+    assert ("besides them, the states that 1 more real run per environment pass through "
+            "(from uniform on-runway states, 0.5 s past the horizon, every 5th tick)"
+            in labels_paragraph(run.spec, run.outputs))
     page = Page("t")
     fidelity_section(page, run, {})
     markdown = "\n".join(page.md)
