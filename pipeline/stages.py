@@ -26,8 +26,9 @@ from reachwatch.training.dataset import build_dataset, load_dataset
 from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
-from reachwatch.training.evaluation import (NOT_FAILED, UNIFORM_STARTS, Detector, csv_table,
-                                            evaluate_environment, markdown_table, worst_mistakes)
+from reachwatch.training.evaluation import (NOT_FAILED, READ_ALONG, UNIFORM_STARTS, Detector,
+                                            csv_table, evaluate_environment, markdown_table,
+                                            worst_mistakes)
 from reachwatch.training.figures import (plot_error_vs_margin, plot_examples, plot_overlay,
                                          plot_roc)
 from reachwatch.training.metrics import best_threshold
@@ -339,8 +340,9 @@ def stage_evaluate(run: Run) -> dict:
         inside = dynamics_for(run.scenario_for(env)).target(
             torch.as_tensor(d.states, dtype=torch.float64)).numpy() > 0
         subsets = {NOT_FAILED: inside}
-        if np.any(d.sources == SOURCE_PATH):      # trajectory labels: the uniform states alone
+        if np.any(d.sources == SOURCE_PATH):      # read-along states: each kind alone too
             subsets[UNIFORM_STARTS] = d.sources != SOURCE_PATH
+            subsets[READ_ALONG] = d.sources == SOURCE_PATH
         env_rows, scores = evaluate_environment(d, detectors, device=spec.detector.device,
                                                 subsets=subsets)
         rows += env_rows

@@ -155,9 +155,11 @@ fidelity: {starts: 3, max_box_exits: 1.0}
         assert check["path_labels"]["agree"] == check["path_labels"]["n"] == 3
     rows = [r for r in run.outputs["evaluate"]["rows"] if r["environment"] == "KSFO_17h_clear"
             and r["method"] == "detector (real-loop trajectory + read-along labels)"]
-    subsets = {r["states"]: r["n"] for r in rows if r["labels"] == "trajectory"}
+    subsets = {r["states"]: r["n"] for r in rows if r["labels"] == "trajectory + read-along"}
     data = load_dataset(tmp_path / run.outputs["dataset"]["folders"]["KSFO_17h_clear"])
     assert subsets["all"] == len(data.labels) and subsets["uniform states"] == 10
+    assert subsets["read along runs"] == len(data.labels) - 10
+    assert {r["states"] for r in rows if r["labels"] == "brt"} == set(subsets)   # and the map's
     # the one extra run of `paths: 1` is run 10, after the 10 starts' own runs
     assert data.runs.max() == 10 and data.manifest["labels"]["paths"]["runs"] == 1
     assert ("besides them, the states that 1 more real run per environment pass through "

@@ -21,9 +21,12 @@ COUNTS = ("n", "positives", "tp", "fp", "fn", "tn")
 
 #: The ``states`` subset of the samples that have not failed yet (inside the safe set).
 NOT_FAILED = "not yet failed"
-#: The subset of a ``trajectory``-labelled dataset that is its uniform states (the rest are
+#: The subset of a dataset with read-along states that is its uniform states (the rest are
 #: states the real runs passed through).
 UNIFORM_STARTS = "uniform states"
+#: The subset that is the states real runs passed through (`SOURCE_PATH`), with the
+#: runs' own labels: the states the loop visits, which an online monitor scores.
+READ_ALONG = "read along runs"
 
 
 @dc.dataclass
@@ -43,7 +46,8 @@ def evaluate_environment(data, detectors, *, device="", subsets=None) -> tuple:
     the same rows over each subset (the baselines tuned again on it); ``"all"`` is
     always first. An empty subset gives no rows."""
     env, labels, rows = data.manifest["environment"], data.labels, []
-    source = data.manifest.get("labels", {}).get("source", "brt")
+    label_info = data.manifest.get("labels", {})
+    source = label_info.get("source", "brt") + (" + read-along" if label_info.get("paths") else "")
     n = len(labels)
     masks = {"all": np.ones(n, bool)}
     for name, mask in (subsets or {}).items():
