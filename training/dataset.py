@@ -68,8 +68,7 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
     """The content-addressed folder of a dataset under ``root``."""
     scenario = resolved(scenario)
     spec_parts = dc.asdict(spec)
-    read_along_runs = spec.labels.source == "trajectory" or spec.labels.paths
-    if not read_along_runs:
+    if not spec.labels.reads_along:
         for name in TRAJECTORY_FIELDS:
             spec_parts["labels"].pop(name)
     parts = {"format": FORMAT, "env": dc.asdict(scenario.environment),
@@ -79,7 +78,7 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
              "ensemble": [file_hash(p) for p in ensemble]}
     if box is not None:
         parts["box"] = np.asarray(box, float).tolist()
-    if read_along_runs:
+    if spec.labels.reads_along:
         parts["runs"] = 1       # runs.npy, which datasets of read-along states before it lacked
     digest = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
     return Path(root) / f"{scenario.environment.name}_{spec.samples}_{digest}"
@@ -181,11 +180,11 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     else:
         rng = np.random.default_rng(spec.seed)
         states = lo + rng.uniform(size=(spec.samples, grid.ndim)) * (hi - lo)
+        inside = lambda x: np.all((x >= lo) & (x <= hi), axis=1)       # noqa: E731
         if spec.labels.source == "trajectory":
             states, labels, sources, label_info, runs = trajectory_samples(
                 states, spec.labels, _real_paths(scenario, value_function, spec.labels,
-                                                 folder, progress),
-                lambda x: np.all((x >= lo) & (x <= hi), axis=1))
+                                                 folder, progress), inside)
             values, n = value_function.at(states), len(states)
         else:
             values = value_function.at(states)
@@ -194,7 +193,6 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
                 _real_loop(scenario, value_function, states, folder, progress))
             states, values, runs = states[:n], values[:n], np.full(n, NO_RUN, np.int64)
         if spec.labels.paths:
-            inside = lambda x: np.all((x >= lo) & (x <= hi), axis=1)   # noqa: E731
             out = _real_paths(scenario, value_function, spec.labels, folder, progress)(
                 on_runway_starts((lo, hi), spec.labels.paths, [spec.seed, 1],
                                  half_width=scenario.environment.half_width))
@@ -215,7 +213,7 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
         np.save(folder / "values.npy", values)
         np.save(folder / "labels.npy", labels)
         np.save(folder / "sources.npy", sources)
-        if spec.labels.source == "trajectory" or spec.labels.paths:
+        if spec.labels.reads_along:
             np.save(folder / "runs.npy", np.asarray(runs, np.int64))
         open_mm = np.lib.format.open_memmap
         arrays = {"images": open_mm(folder / "images.npy", "w+", np.uint8,

@@ -72,6 +72,12 @@ class LabelSpec:
     stride: int = 8
     paths: int = 0
 
+    @property
+    def reads_along(self) -> bool:
+        """Whether the samples include states read along real runs (``trajectory``
+        labels, or ``paths``): such datasets record each sample's run."""
+        return self.source == "trajectory" or self.paths > 0
+
     def validate(self, where="dataset.labels"):
         if self.source not in LABEL_SOURCES:
             raise ValueError(f"{where}.source must be one of {LABEL_SOURCES}, got '{self.source}'")
