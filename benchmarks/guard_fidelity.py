@@ -37,7 +37,18 @@ def row(name, figures):
             f"{100 * cut if cut is not None else float('nan'):4.0f} %  ended stopped "
             f"{percent(figures['ended_stopped']):22s} needless stops "
             f"{percent(figures['needless_stops']):22s} flagged ticks "
-            f"{100 * figures['flagged_ticks']:3.0f} %")
+            f"{100 * figures['flagged_ticks']:3.0f} %{saves(figures)}")
+
+
+def saves(figures):
+    """Of the starts the controller alone fails within the horizon, how many the fallback
+    keeps on the runway within it, and how many of those still move at its end (the
+    rest are saved by standing still; a moving save may still fail later)."""
+    saved, moving = figures.get("saved"), figures.get("saved_moving")
+    if not saved:
+        return ""
+    return (f"  saved within the horizon {saved['count']}/{saved['of']}, still moving "
+            f"{moving['count']}")
 
 
 def main():

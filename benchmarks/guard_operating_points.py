@@ -1,6 +1,7 @@
 """Which operating points of the guard keep the aircraft moving? For one guarded scenario
 (an environment, a detector and its threshold), every combination of detector
-threshold, fallback, k-of-n flag rule and resume acceleration rolled out in the
+threshold, fallback, k-of-n flag rule, resume acceleration and braking deceleration
+(for ``brake``; a speed strategy that never stops ignores it) rolled out in the
 guarded sweep's tables with the detector's variation between nodes (the score noise
 of `reach.score_noise`, fitted on real runs of the controller alone, as the guard
 stage does), from seeded random on-runway starts: the failures cut at the same
@@ -15,7 +16,13 @@ under ``--cache``).
 
     python benchmarks/guard_operating_points.py --scenario S.yaml [--shape 21 11 21]
         [--scales 0.75 1 1.5 2.5 4] [--fallbacks brake,slow_down,slow_down+dead_reckoning]
-        [--rules 1/1,3/5] [--resume 0,1] [--starts 600] [--seed 7000] [--noise-seeds 1]
+        [--rules 1/1,3/5] [--resume 0,1] [--decelerations 1] [--starts 600] [--seed 7000]
+        [--noise-seeds 1]
+
+Braking harder lets a flag raised later still stop the aircraft in time: from 5 m/s,
+1 m/s^2 takes 5 s and 12.5 m to stop, 3 m/s^2 1.7 s and 4.2 m. Whether a deceleration is
+one the vehicle can hold is the user's call (a taxiing airliner's hard braking is of the
+order of 3 m/s^2); the figures only say what it would buy.
 """
 
 import copy
@@ -43,6 +50,8 @@ def main():
                    help="thresholds as multiples of the scenario's (capped at 0.99)")
     p.add_argument("--rules", default="1/1,3/5", help="k-of-n flag rules, k/n")
     p.add_argument("--resume", default="0,1", help="resume accelerations, m/s^2")
+    p.add_argument("--decelerations", default=None,
+                   help="braking decelerations, m/s^2 (default: the scenario's)")
     p.add_argument("--max-needless", type=float, default=0.10)
     p.add_argument("--min-cut", type=float, default=0.50)
     args = p.parse_args()
@@ -50,9 +59,13 @@ def main():
     try:
         rules = [rule(r) for r in args.rules.split(",") if r]
         resumes = [float(r) for r in args.resume.split(",") if r]
+        decelerations = ([scenario.monitor.brake_deceleration] if args.decelerations is None
+                         else [float(d) for d in args.decelerations.split(",") if d])
     except ValueError:
-        p.error(f"--rules is k/n,k/n,... and --resume a list of numbers; got '{args.rules}', "
-                f"'{args.resume}'")
+        p.error(f"--rules is k/n,k/n,..., --resume and --decelerations lists of numbers; got "
+                f"'{args.rules}', '{args.resume}', '{args.decelerations}'")
+    if not decelerations or min(decelerations) <= 0:
+        p.error(f"--decelerations must be numbers > 0 m/s^2, got '{args.decelerations}'")
     horizon, B = float(scenario.duration), scenario.environment.half_width
     started = time.perf_counter()
     with open_executor(args.executor) as executor:
@@ -68,12 +81,18 @@ def main():
           f"to {args.mission_limit:g} x the horizon; score noise mean {noise.mean:+.3f}, sigma "
           f"{noise.sigma:.3f}, length {noise.length:.2f} m from {fit['runs']} real runs; "
           f"{args.noise_seeds} noise seed(s)")
-    print(f"{'threshold':>9s}  {'fallback':26s} {'rule':>4s} {'resume':>6s}  {'cut %':>6s} "
+    print(f"{'threshold':>9s}  {'fallback':26s} {'rule':>4s} {'resume':>6s} {'brake':>5s}  "
+          f"{'cut %':>6s} "
           f"{'needless stops %':>16s} {'ended stopped %':>15s}")
     alone, rows = None, []
-    for scale, fallback, (k, n), resume in itertools.product(args.scales, fallbacks, rules,
-                                                            resumes):
+    points = [(scale, fallback, rule_, resume, deceleration)
+              for scale, fallback, rule_, resume in itertools.product(args.scales, fallbacks,
+                                                                      rules, resumes)
+              for deceleration in (decelerations if fallback.startswith("brake")
+                                   else [scenario.monitor.brake_deceleration])]
+    for scale, fallback, (k, n), resume, deceleration in points:
         guarded = copy.deepcopy(scenario)
+        guarded.monitor.brake_deceleration = deceleration
         guarded.monitor.flags_needed, guarded.monitor.flag_window = k, n
         guarded.monitor.resume_acceleration = resume
         guarded.monitor.validate()
@@ -89,8 +108,10 @@ def main():
         cut = float(np.mean([f["same_distance_failure_cut"] for f in figures]))
         needless = float(np.mean([f["needless_stops"]["rate"] for f in figures]))
         stopped = float(np.mean([f["ended_stopped"]["rate"] for f in figures]))
-        rows.append((threshold, fallback, f"{k}/{n}", resume, cut, needless, stopped))
-        print(f"{threshold:9.3f}  {fallback:26s} {k}/{n:<2d} {resume:6g}  {100 * cut:6.1f} "
+        rows.append((threshold, fallback, f"{k}/{n}", resume, cut, needless, stopped,
+                     deceleration))
+        print(f"{threshold:9.3f}  {fallback:26s} {k}/{n:<2d} {resume:6g} {deceleration:5g}  "
+              f"{100 * cut:6.1f} "
               f"{100 * needless:16.1f} {100 * stopped:15.1f}", flush=True)
     print(f"controller alone fails at the same distance from "
           f"{100 * np.mean(alone.failed_same_distance):.1f} % of the starts "
@@ -100,13 +121,13 @@ def main():
     if within:
         best = max(within, key=lambda r: r[4])
         print(f"best cut with needless stops <= {100 * args.max_needless:g} %: {100 * best[4]:.1f} % "
-              f"({best[1]}, threshold {best[0]:.3f}, rule {best[2]}, resume {best[3]:g}; "
-              f"needless {100 * best[5]:.1f} %)")
+              f"({best[1]}, threshold {best[0]:.3f}, rule {best[2]}, resume {best[3]:g}, "
+              f"brake {best[7]:g} m/s^2; needless {100 * best[5]:.1f} %)")
     if reaching:
         best = min(reaching, key=lambda r: r[5])
         print(f"fewest needless stops with a cut >= {100 * args.min_cut:g} %: "
               f"{100 * best[5]:.1f} % ({best[1]}, threshold {best[0]:.3f}, rule {best[2]}, "
-              f"resume {best[3]:g}; cut {100 * best[4]:.1f} %)")
+              f"resume {best[3]:g}, brake {best[7]:g} m/s^2; cut {100 * best[4]:.1f} %)")
     met = [r for r in within if r[4] >= args.min_cut]
     print(f"points meeting both (cut >= {100 * args.min_cut:g} %, needless <= "
           f"{100 * args.max_needless:g} %): {len(met)} of {len(rows)}")
