@@ -1,7 +1,7 @@
 """Which operating points of the guard keep the aircraft moving? For one guarded scenario
 (an environment, a detector and its threshold), every combination of detector
 threshold, fallback, k-of-n flag rule, resume acceleration and braking deceleration
-(for ``brake``; a speed strategy that never stops ignores it) rolled out in the
+(``brake`` fallbacks only) rolled out in the
 guarded sweep's tables with the detector's variation between nodes (the score noise
 of `reach.score_noise`, fitted on real runs of the controller alone, as the guard
 stage does), from seeded random on-runway starts: the failures cut at the same
@@ -21,8 +21,7 @@ under ``--cache``).
 
 Braking harder lets a flag raised later still stop the aircraft in time: from 5 m/s,
 1 m/s^2 takes 5 s and 12.5 m to stop, 3 m/s^2 1.7 s and 4.2 m. Whether a deceleration is
-one the vehicle can hold is the user's call (a taxiing airliner's hard braking is of the
-order of 3 m/s^2); the figures only say what it would buy.
+one the vehicle can hold is the user's call; the figures only say what it would buy.
 """
 
 import copy
@@ -35,12 +34,23 @@ from guard_common import guard_parser, guarded_setup
 from reachwatch.pipeline.executors import open_executor
 from reachwatch.pipeline.online_stages import fit_guard_noise
 from reachwatch.reach.liveness import liveness_figures
+from reachwatch.systems.switch import fallback_parts
 from reachwatch.taxi import UNGUARDED, fallback_rollouts, on_runway_starts, sweep_guarded
 
 
 def rule(text):
     k, _, n = text.partition("/")
     return int(k), int(n)
+
+
+def brake(deceleration):
+    """A point's braking deceleration as printed: '-' for a fallback that does not brake."""
+    return "-" if deceleration is None else f"{deceleration:g}"
+
+
+def braking(deceleration):
+    """The same in a summary line: nothing for a fallback that does not brake."""
+    return "" if deceleration is None else f", brake {deceleration:g} m/s^2"
 
 
 def main():
@@ -88,11 +98,12 @@ def main():
     points = [(scale, fallback, rule_, resume, deceleration)
               for scale, fallback, rule_, resume in itertools.product(args.scales, fallbacks,
                                                                       rules, resumes)
-              for deceleration in (decelerations if fallback.startswith("brake")
-                                   else [scenario.monitor.brake_deceleration])]
+              for deceleration in (decelerations if fallback_parts(fallback)[0] == "brake"
+                                   else [None])]
     for scale, fallback, (k, n), resume, deceleration in points:
         guarded = copy.deepcopy(scenario)
-        guarded.monitor.brake_deceleration = deceleration
+        if deceleration is not None:
+            guarded.monitor.brake_deceleration = deceleration
         guarded.monitor.flags_needed, guarded.monitor.flag_window = k, n
         guarded.monitor.resume_acceleration = resume
         guarded.monitor.validate()
@@ -110,7 +121,8 @@ def main():
         stopped = float(np.mean([f["ended_stopped"]["rate"] for f in figures]))
         rows.append((threshold, fallback, f"{k}/{n}", resume, cut, needless, stopped,
                      deceleration))
-        print(f"{threshold:9.3f}  {fallback:26s} {k}/{n:<2d} {resume:6g} {deceleration:5g}  "
+        print(f"{threshold:9.3f}  {fallback:26s} {k}/{n:<2d} {resume:6g} "
+              f"{brake(deceleration):>5s}  "
               f"{100 * cut:6.1f} "
               f"{100 * needless:16.1f} {100 * stopped:15.1f}", flush=True)
     print(f"controller alone fails at the same distance from "
@@ -121,13 +133,13 @@ def main():
     if within:
         best = max(within, key=lambda r: r[4])
         print(f"best cut with needless stops <= {100 * args.max_needless:g} %: {100 * best[4]:.1f} % "
-              f"({best[1]}, threshold {best[0]:.3f}, rule {best[2]}, resume {best[3]:g}, "
-              f"brake {best[7]:g} m/s^2; needless {100 * best[5]:.1f} %)")
+              f"({best[1]}, threshold {best[0]:.3f}, rule {best[2]}, resume {best[3]:g}"
+              f"{braking(best[7])}; needless {100 * best[5]:.1f} %)")
     if reaching:
         best = min(reaching, key=lambda r: r[5])
         print(f"fewest needless stops with a cut >= {100 * args.min_cut:g} %: "
               f"{100 * best[5]:.1f} % ({best[1]}, threshold {best[0]:.3f}, rule {best[2]}, "
-              f"resume {best[3]:g}, brake {best[7]:g} m/s^2; cut {100 * best[4]:.1f} %)")
+              f"resume {best[3]:g}{braking(best[7])}; cut {100 * best[4]:.1f} %)")
     met = [r for r in within if r[4] >= args.min_cut]
     print(f"points meeting both (cut >= {100 * args.min_cut:g} %, needless <= "
           f"{100 * args.max_needless:g} %): {len(met)} of {len(rows)}")
