@@ -23,7 +23,7 @@ from reachwatch.taxi.grid import AXES
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
 from reachwatch.training.dataset import build_dataset, load_dataset
-from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH
+from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH, labels_name
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
 from reachwatch.training.evaluation import (NOT_FAILED, READ_ALONG, UNIFORM_STARTS, Detector,
@@ -320,10 +320,9 @@ def stage_evaluate(run: Run) -> dict:
     """Table 2 on the held-out environments, error-vs-margin and overlay figures."""
     spec, trained = run.spec, run.outputs["train"]
     detectors = []
-    source = {"brt": "BRT", "rollout": "real-loop", "hybrid": "hybrid",
-              "trajectory": "real-loop trajectory"}[spec.dataset.labels.source]
-    if spec.dataset.labels.paths:
-        source += " + read-along"
+    source = labels_name({"brt": "BRT", "rollout": "real-loop", "hybrid": "hybrid",
+                          "trajectory": "real-loop trajectory"}[spec.dataset.labels.source],
+                         spec.dataset.labels.paths)
     candidates = [(f"detector ({source} labels)", trained["detector"], trained["threshold"])]
     if "prediction_error_detector" in trained:
         candidates.append((f"detector (prediction-error labels, error > "

@@ -14,6 +14,7 @@ import numpy as np
 from .baselines import ensemble_variance, has_pose_estimate, prediction_error
 from .detector_train import detector_scores
 from .metrics import best_threshold, binary_metrics
+from .labels import labels_name
 
 COLUMNS = ("environment", "method", "labels", "states", "n", "positives", "tp", "fp", "fn", "tn",
            "recall", "accuracy", "precision", "f1", "auroc", "threshold")
@@ -47,7 +48,7 @@ def evaluate_environment(data, detectors, *, device="", subsets=None) -> tuple:
     always first. An empty subset gives no rows."""
     env, labels, rows = data.manifest["environment"], data.labels, []
     label_info = data.manifest.get("labels", {})
-    source = label_info.get("source", "brt") + (" + read-along" if label_info.get("paths") else "")
+    source = labels_name(label_info.get("source", "brt"), label_info.get("paths"))
     n = len(labels)
     masks = {"all": np.ones(n, bool)}
     for name, mask in (subsets or {}).items():

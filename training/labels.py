@@ -19,6 +19,13 @@ NO_RUN = -1
 TRAJECTORY_FIELDS = ("extend", "stride", "paths")
 
 
+def labels_name(source: str, paths) -> str:
+    """A label set's name in tables and reports: its ``source`` (as the caller spells it),
+    with " + read-along" when ``paths`` added states read along real runs, so that such
+    labels never share a name with the source's alone."""
+    return f"{source} + read-along" if paths else source
+
+
 def check_whole_number(where, value, least):
     """Raise ValueError naming ``where`` unless ``value`` is an int >= ``least``."""
     if isinstance(value, bool) or not isinstance(value, int) or value < least:
