@@ -105,10 +105,11 @@ def fidelity_env(run: Run, env) -> dict:
            "frames": int(np.sum(outcomes["ticks"])), "seconds": round(seconds, 1)}
     labels = run.outputs.get("dataset", {}).get("labels", {}).get(env.name)
     if labels:
-        verdicts = label_verdicts(labels, spec.dataset.labels.band, vf.at(starts), real)
+        band = spec.dataset_spec_for(env).labels.band
+        verdicts = label_verdicts(labels, band, vf.at(starts), real)
         audit = labels.get("audit") or {}
         out["labels"] = {"source": labels["source"], "map_trusted": audit.get("map_trusted"),
-                         "band": audit.get("band", spec.dataset.labels.band) if audit else None,
+                         "band": audit.get("band", band) if audit else None,
                          **compare_verdicts(verdicts, real, outcomes["left_box"]).as_dict()}
         if labels.get("counts", {}).get("path"):       # trajectory labels, or paths: N
             out["path_labels"] = check_path_labels(run, env)

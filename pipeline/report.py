@@ -186,6 +186,10 @@ def labels_paragraph(spec, o) -> str:
                f"past the horizon, every {labels.stride}th tick), labelled by those runs, and "
                f"each run's states kept on one side of the detector's validation split; "
                if paths else "") +
+            (f"the held-out environments' labels from '{spec.held_out_labels.source}' "
+             f"({LABEL_SOURCE_TEXT[spec.held_out_labels.source]}; Table 2 scores against "
+             f"them and against the BRT's verdicts on the same states); "
+             if spec.held_out_labels is not None else "") +
             "positives per environment: " + ", ".join(
                 f"{n} {_pct(p)}%" for n, p in o["dataset"]["positives"].items()) +
             f". Detector {spec.detector.detector.arch} "

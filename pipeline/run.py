@@ -34,7 +34,10 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
         "solve": lambda: stage_solve(run),
         "dataset": lambda: run.stage("dataset", digest(
             {n: r["value"] for n, r in run.outputs["solve"].items()}, spec.dataset,
-            spec.ensemble, spec.scenario.camera), lambda: stage_dataset(run)),
+            spec.ensemble, spec.scenario.camera,
+            # only when set, so that runs without it keep their keys
+            *([spec.held_out_labels] if spec.held_out_labels is not None else [])),
+            lambda: stage_dataset(run)),
         "fidelity": lambda: stage_fidelity(run),
         "train": lambda: run.stage("train", digest(run.outputs["dataset"], spec.detector),
                                    lambda: stage_train(run)),

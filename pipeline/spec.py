@@ -14,6 +14,7 @@ from reachwatch.reach import ACCURACIES
 from reachwatch.reach.dynamics import positive, split_horizon
 from reachwatch.systems import DEFAULT_FALLBACKS, Environment, RandomEnvironments, fallback_parts
 from reachwatch.training.dataset import DatasetSpec
+from reachwatch.training.labels import LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.incremental import IncrementalConfig
 
@@ -128,7 +129,11 @@ class RunSpec:
     started near py = 250 m goes on past it within the horizon); labelled states and
     check starts stay in the paper's box. ``train_random`` / ``test_random``: families of random environments
     (`RandomEnvironments`) added to the listed ``train`` / ``test`` ones; the held-out
-    family needs its own seed."""
+    family needs its own seed. ``held_out_labels``: where the held-out environments'
+    labels come from (null: ``dataset.labels``, as the training environments'). The
+    detector trains on ``dataset.labels`` either way; a true-label source here (e.g.
+    ``hybrid``) scores a detector trained on cheap BRT labels against the real loop,
+    and Table 2 then also scores it against the BRT's verdicts on the same states."""
     name: str = "run"
     scenario: Scenario = dc.field(default_factory=Scenario)
     train: List[Environment] = dc.field(default_factory=list)
@@ -143,6 +148,7 @@ class RunSpec:
     solved_py_max: float = 250.0
     slice_py: float = 175.0
     dataset: DatasetSpec = dc.field(default_factory=DatasetSpec)
+    held_out_labels: Optional[LabelSpec] = None
     detector: DetectorTrainConfig = dc.field(default_factory=DetectorTrainConfig)
     ensemble: EnsembleSpec = dc.field(default_factory=EnsembleSpec)
     guard: GuardSpec = dc.field(default_factory=GuardSpec)
@@ -196,6 +202,8 @@ class RunSpec:
             raise ValueError(f"solved_py_max must be a finite number of metres >= 250 (the "
                              f"paper's box ends at py = 250), got {self.solved_py_max!r}")
         self.dataset.validate()
+        if self.held_out_labels is not None:
+            self.held_out_labels.validate("held_out_labels")
         self.detector.validate()
         n_train = len(self.train) + self.train_random.count
         if self.detector.threshold_folds > n_train:
@@ -248,6 +256,14 @@ class RunSpec:
     def held_out_environments(self) -> List[Environment]:
         """``test``, then the ``test_random`` family (never trained on)."""
         return list(self.test) + self.test_random.environments()
+
+    def dataset_spec_for(self, env) -> DatasetSpec:
+        """The `DatasetSpec` of ``env``'s dataset: ``dataset``, with ``held_out_labels``
+        for a held-out environment when it is set."""
+        if self.held_out_labels is None or env.name not in {
+                e.name for e in self.held_out_environments()}:
+            return self.dataset
+        return dc.replace(self.dataset, labels=self.held_out_labels)
 
     def guard_environments(self) -> List[Environment]:
         return self.guard.environments or self.held_out_environments()[:1]

@@ -243,13 +243,13 @@ def _label_box(run: Run, env):
 
 
 def stage_dataset(run: Run) -> dict:
-    """The ensemble baseline's TaxiNets, then one BRT-labelled dataset per train/test
-    environment, built on the run's executor."""
+    """The ensemble baseline's TaxiNets, then one labelled dataset per train/test
+    environment (`RunSpec.dataset_spec_for`), built on the run's executor."""
     ensemble = _ensemble(run)
     envs = run.spec.training_environments() + run.spec.held_out_environments()
     futures = {e.name: run.executor.submit(
         _build, str(run.path("datasets")), run.scenario_for(e),
-        str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset,
+        str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset_spec_for(e),
         [str(p) for p in ensemble], run.progress, _label_box(run, e)) for e in envs}
     folders = {name: run.rel(f.result()) for name, f in futures.items()}
     data = {name: load_dataset(run.path(f)) for name, f in folders.items()}

@@ -71,6 +71,8 @@ def _ran(log):
     (("{samples: 40, height: 24", "{labels: {source: oracle}, samples: 40, height: 24"),
      "dataset.labels.source must be one of"),
     (("{samples: 40, height: 24", "{samples: 40, height: 32"), "must equal the detector input"),
+    (("horizon: 4.0", "horizon: 4.0\nheld_out_labels: {source: oracle}"),
+     "held_out_labels.source must be one of"),
     (("guard: {candidates: 2", "guard: {strategies: [stop], candidates: 2"),
      "guard.strategies[0]: fallback 'stop'"),
     (("guard: {candidates: 2", "guard: {strategies: [slow_down+gps], candidates: 2"),
@@ -101,9 +103,11 @@ def test_shipped_run_files_load():
     assert len(demo.train) < len(paper.train)
 
 
-def test_random_families_and_a_held_out_threshold_run_through_the_pipeline(tmp_path):
+def test_random_families_a_held_out_threshold_and_held_out_labels_run_through_the_pipeline(
+        tmp_path):
     text = (TINY.replace("test: [{runway: KSFO, hour: 17.0, sky: clear}]",
-                         "train_random: {count: 1, seed: 0}\ntest_random: {count: 1, seed: 1}")
+                         "train_random: {count: 1, seed: 0}\ntest_random: {count: 1, seed: 1}\n"
+                         "held_out_labels: {source: rollout, max_rollouts: 6}")
                 .replace("batch_size: 8", "batch_size: 8\n  threshold_folds: 2")
                 .replace("fidelity: {starts: 3", "fidelity: {starts: 0"))
     run, _ = _run(tmp_path, text, until="evaluate")
@@ -123,6 +127,18 @@ def test_random_families_and_a_held_out_threshold_run_through_the_pipeline(tmp_p
     assert set(run.outputs["dataset"]["folders"]) == {e.name for e in
                                                       run.spec.training_environments() +
                                                       run.spec.held_out_environments()}
+    # held_out_labels: the held-out dataset is labelled by the real loop (capped at 6
+    # rollouts), the training ones by the BRT, and Table 2 scores the held-out
+    # environment against both its true labels and the BRT's verdicts on the same states
+    labels = run.outputs["dataset"]["labels"]
+    assert labels[held_out]["source"] == "rollout"
+    assert {labels[e.name]["source"] for e in run.spec.training_environments()} == {"brt"}
+    data = load_dataset(tmp_path / run.outputs["dataset"]["folders"][held_out])
+    assert 1 <= labels[held_out]["counts"]["rollout"] <= 6 and len(data.labels) < 40
+    own = [r for r in run.outputs["evaluate"]["rows"] if r["states"] == "all"
+           and r["method"].startswith("detector (BRT labels)")]
+    assert [r["labels"] for r in own] == ["rollout", "brt"]
+    assert [r["positives"] for r in own] == [int(data.labels.sum()), int(data.brt_labels.sum())]
 
 
 def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_path):
