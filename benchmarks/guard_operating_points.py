@@ -6,10 +6,12 @@ guarded sweep's tables with the detector's variation between nodes (the score no
 of `reach.score_noise`, fitted on real runs of the controller alone, as the guard
 stage does), from seeded random on-runway starts: the failures cut at the same
 distance against the needless stops (starts the controller alone survives that end
-stopped). It ends with the best cut among the points within ``--max-needless`` and
-the fewest needless stops among the points reaching ``--min-cut``: what to check in
-the real loop next (``guard_fidelity.py``), or the measurement that no point of this
-detector gets there.
+stopped), beside the share of control ticks flagged: what a flag budget would fix
+without labels (the threshold at which the guard flags that share of its ticks). It
+ends with the best cut among the points within ``--max-needless`` and the fewest
+needless stops among the points reaching ``--min-cut``: what to check in the real loop
+next (``guard_fidelity.py``), or the measurement that no point of this detector gets
+there.
 
 Table rollouts only (no rendering beyond the sweep and the noise fit, both cached
 under ``--cache``).
@@ -93,7 +95,7 @@ def main():
           f"{args.noise_seeds} noise seed(s)")
     print(f"{'threshold':>9s}  {'fallback':26s} {'rule':>4s} {'resume':>6s} {'brake':>5s}  "
           f"{'cut %':>6s} "
-          f"{'needless stops %':>16s} {'ended stopped %':>15s}")
+          f"{'needless stops %':>16s} {'ended stopped %':>15s} {'flagged ticks %':>15s}")
     alone, rows = None, []
     points = [(scale, fallback, rule_, resume, deceleration)
               for scale, fallback, rule_, resume in itertools.product(args.scales, fallbacks,
@@ -119,12 +121,13 @@ def main():
         cut = float(np.mean([f["same_distance_failure_cut"] for f in figures]))
         needless = float(np.mean([f["needless_stops"]["rate"] for f in figures]))
         stopped = float(np.mean([f["ended_stopped"]["rate"] for f in figures]))
+        flagged = float(np.mean([f["flagged_ticks"] or 0.0 for f in figures]))
         rows.append((threshold, fallback, f"{k}/{n}", resume, cut, needless, stopped,
                      deceleration))
         print(f"{threshold:9.3f}  {fallback:26s} {k}/{n:<2d} {resume:6g} "
               f"{brake(deceleration):>5s}  "
               f"{100 * cut:6.1f} "
-              f"{100 * needless:16.1f} {100 * stopped:15.1f}", flush=True)
+              f"{100 * needless:16.1f} {100 * stopped:15.1f} {100 * flagged:15.1f}", flush=True)
     print(f"controller alone fails at the same distance from "
           f"{100 * np.mean(alone.failed_same_distance):.1f} % of the starts "
           f"({time.perf_counter() - started:.0f} s)")
