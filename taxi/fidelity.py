@@ -319,8 +319,11 @@ def real_score_noise(scenario, grid, score_table, starts, *, duration: float, ca
     """`reach.score_noise.ScoreNoise` fitted (`fit_score_noise`) to how the detector's real score along
     runs of the controller alone from ``starts`` departs from ``score_table``
     (the guarded sweep's score on ``grid``) interpolated at the same states. Runs are
-    cached like `real_outcomes`. Returns ``(noise, {"runs", "ticks"})``."""
+    cached like `real_outcomes`, under a key without the monitor's threshold and fallback
+    settings: the controller alone and the detector's score do not depend on them.
+    Returns ``(noise, {"runs", "ticks"})``."""
     scenario = resolved(scenario)
+    scenario.monitor = MonitorConfig(detector=scenario.monitor.detector)
     rollout = functools.partial(score_paths, scenario, float(duration))
     fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
                               progress=progress, unit="run", required=("score", "state"),

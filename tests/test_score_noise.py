@@ -123,6 +123,13 @@ def test_score_along_real_runs_and_the_fit_from_them(detector_path, tmp_path):
     noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], starts, duration=1.0,
                                   cache_dir=tmp_path / "outcomes", progress=False)
     assert fit == {"runs": 3, "ticks": 3 * 21} and noise.sigma > 0 and noise.length > 0
+    # the runs do not depend on what the monitor does with the score: another threshold
+    # and fallback read the same cached runs (one cache folder) and fit the same noise
+    other = load_scenario(data=f"monitor: {{detector: {detector_path}, threshold: 0.2, "
+                               f"strategy: brake}}\n")
+    assert real_score_noise(other, grid, tables[SCORE_PORT], starts, duration=1.0,
+                            cache_dir=tmp_path / "outcomes", progress=False) == (noise, fit)
+    assert len(list((tmp_path / "outcomes").iterdir())) == 1
     # the trade-off curves with noise: a vanishing noise gives the plain curves back; the
     # fitted one keeps the thresholds and moves the figures
     from reachwatch.taxi.guarded import tradeoff_curves
