@@ -182,3 +182,46 @@ def same_distance(figures: dict) -> str:
 
 def _share_text(value):
     return "-" if value is None else f"{100 * value:.0f} %"
+
+
+def threshold_for_flag_budget(flagged_share, budget: float, *, low: float = 0.0,
+                              high: float = 1.0, tolerance: float = 1e-3):
+    """The detector threshold at which a guarded loop flags ``budget`` of its control
+    ticks, found without labels: ``flagged_share(threshold)`` is the share of ticks the
+    loop flags at that threshold (e.g. the ``flagged_ticks`` of `liveness_figures` from
+    rollouts), assumed to fall as the threshold rises. Bisects ``[low, high]`` down to
+    ``tolerance`` for the lowest threshold whose share is within the budget: returns
+    ``(threshold, share, steps)``, ``steps`` the ``(threshold, share)`` pairs tried.
+
+    A budget is what keeps a guard from flagging everything in an environment its
+    detector was not trained on, where a threshold chosen on the training environments
+    may flag most ticks (and a braking fallback then parks the vehicle on most starts).
+    It fixes how often the guard intervenes, not how many interventions are saves: that
+    still depends on how well the detector ranks the environment's states."""
+    budget = float(budget)
+    if not 0.0 < budget < 1.0:
+        raise ValueError(f"a flag budget is a share of control ticks in (0, 1), got {budget!r}")
+    if not (np.isfinite(low) and np.isfinite(high) and low < high) or not tolerance > 0:
+        raise ValueError(f"threshold_for_flag_budget: need finite low < high and tolerance > 0, "
+                         f"got low={low!r}, high={high!r}, tolerance={tolerance!r}")
+    steps = []
+
+    def share(threshold):
+        value = flagged_share(float(threshold))
+        steps.append((float(threshold), None if value is None else float(value)))
+        return 0.0 if value is None else float(value)     # no ticks: nothing flagged
+
+    if share(low) <= budget:
+        return float(low), steps[-1][1], steps
+    top = share(high)
+    if top > budget:
+        raise ValueError(f"even at threshold {high:g} the loop flags {100 * top:.1f} % of its "
+                         f"ticks, over the flag budget of {100 * budget:g} %")
+    below, above = float(low), float(high)       # share(below) > budget >= share(above)
+    while above - below > tolerance:
+        middle = 0.5 * (below + above)
+        if share(middle) <= budget:
+            above, top = middle, steps[-1][1]
+        else:
+            below = middle
+    return above, top, steps

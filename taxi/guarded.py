@@ -15,7 +15,8 @@ from reachwatch.diagrams import CONTROL_PORT, DETECTOR, ESTIMATE_PORT
 from reachwatch.reach.dynamics import positive, rk4_step, split_horizon
 from reachwatch.reach.grid import check_states
 from reachwatch.reach.interpolate import GridInterpolator
-from reachwatch.reach.liveness import MissionOutcomes, check_mission_limit, liveness_figures
+from reachwatch.reach.liveness import (MissionOutcomes, check_mission_limit, liveness_figures,
+                                       threshold_for_flag_budget)
 from reachwatch.systems import (ProportionalController, check_k_of_n, confirmed_flags,
                                 fallback_parts, next_speed, propagate_estimate)
 
@@ -218,6 +219,28 @@ def tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points: int, *,
             curves[name].append(tradeoff_row(liveness_figures(runs[UNGUARDED], runs[name]),
                                              float(threshold)))
     return curves
+
+
+def flag_budget_threshold(scenario, grid, tables, horizon, fallback: str, budget: float, *,
+                          starts, mission_limit=None, score_noise=None, seed=0,
+                          alone=None) -> dict:
+    """The threshold at which ``fallback``'s guarded loop, rolled out in the swept tables
+    from ``starts`` (optionally with the detector's variation between nodes,
+    ``score_noise`` seeded ``seed``), flags ``budget`` of its control ticks
+    (`reach.liveness.threshold_for_flag_budget`): no labels needed, only the detector's
+    scores in the environment. Returns ``{threshold, flagged_ticks, budget, fallback,
+    starts, steps}``; ``alone`` as in `fallback_rollouts`."""
+    def share(threshold):
+        nonlocal alone
+        runs = fallback_rollouts(scenario, grid, tables, horizon, [fallback], threshold=threshold,
+                                 starts=starts, mission_limit=mission_limit, alone=alone,
+                                 score_noise=score_noise, seed=seed)
+        alone = runs[UNGUARDED]          # the same at every threshold: rolled out once
+        return liveness_figures(alone, runs[fallback])["flagged_ticks"]
+
+    threshold, flagged, steps = threshold_for_flag_budget(share, budget)
+    return {"threshold": threshold, "flagged_ticks": flagged, "budget": float(budget),
+            "fallback": fallback, "starts": len(starts), "steps": steps}
 
 
 def tradeoff_row(figures: dict, threshold=None) -> dict:
