@@ -17,7 +17,7 @@ from reachwatch.taxi.plots import plot_failure_sets, plot_tradeoff
 from .commands import count, positive_float, positive_int
 from .console import log
 from .executors import open_executor
-from .online_stages import guard_check, noisy_guard_figures
+from .online_stages import budget_threshold, guard_check, noisy_guard_figures
 
 
 def add_parsers(sub):
@@ -45,6 +45,15 @@ def add_parsers(sub):
                         "the tables with it beside the real loop (0 = no fit)")
     g.add_argument("--noise-seed", type=int, default=4000,
                    help="seed of the noise fit's starts and of the noise")
+    g.add_argument("--flag-budget", type=_share, default=None,
+                   help="set the detector threshold without labels: the one at which the "
+                        "first fallback flags this share of its control ticks in the tables "
+                        "(with the score noise when --noise-starts fits it), instead of the "
+                        "scenario's")
+    g.add_argument("--flag-budget-starts", type=positive_int, default=600,
+                   help="on-runway starts the flag budget is rolled out from")
+    g.add_argument("--flag-budget-seed", type=int, default=7000,
+                   help="seed of the flag budget's starts")
     g.add_argument("--mission-limit", type=positive_float, default=3.0,
                    help="also judge failures by distance: runs go on past the horizon, for "
                         "up to this many horizons, until they cover the distance the "
@@ -64,6 +73,16 @@ def _fallback(text):
     return text
 
 
+def _share(text):
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(f"a share of control ticks in (0, 1), got '{text}'")
+    return value
+
+
 def _monitor_settings(monitor) -> str:
     """The monitor settings every fallback shares, as the log shows them."""
     resume = ("at once" if not monitor.resume_acceleration
@@ -76,9 +95,20 @@ def guard_command(args):
     scenario = load_scenario(args.scenario)
     grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
     cache = Path(args.cache) if args.cache else cache_root()
-    check = {}
+    check, budget = {}, None
     with open_executor(args.executor) as executor:
         tables = sweep_guarded(scenario, grid, cache_dir=cache / "sweeps", executor=executor)
+        if args.flag_budget is not None:
+            budget = budget_threshold(scenario, grid, tables, args.fallbacks[0], args.flag_budget,
+                                      starts=args.flag_budget_starts, seed=args.flag_budget_seed,
+                                      horizon=args.horizon, mission_limit=args.mission_limit,
+                                      noise_starts=args.noise_starts, noise_seed=args.noise_seed,
+                                      cache_dir=cache / "outcomes", executor=executor)
+            scenario.monitor.threshold = budget["threshold"]
+            log.info(f"flag budget {100 * args.flag_budget:g} % of the ticks of "
+                     f"{args.fallbacks[0]}: threshold {budget['threshold']:.3f} (the scenario's "
+                     f"{budget['scenario_threshold']:.3f}), {100 * budget['flagged_ticks']:.1f} % "
+                     f"flagged in the tables{' with the score noise' if budget['score_noise'] else ''}")
         if args.check_starts:
             check = guard_check(scenario, grid, tables, args.fallbacks,
                                 starts=args.check_starts, seed=args.seed, horizon=args.horizon,
@@ -128,7 +158,7 @@ def guard_command(args):
                      f"{percent(v['failure_set'])}, ended stopped {percent(v['ended_stopped'])}, "
                      f"needless stops {percent(v['needless_stops'])}; {same_distance(v)}")
     atomic_write_bytes(out / f"guard_{name}.json", json.dumps(
-        {"monitor": dc.asdict(scenario.monitor), "volumes": volumes, "liveness": liveness,
+        {"monitor": dc.asdict(scenario.monitor), "flag_budget": budget, "volumes": volumes, "liveness": liveness,
          "liveness_with_noise": noisy_liveness, "tradeoff": curves,
          "tradeoff_with_noise": noisy, "check": check},
         indent=1).encode())

@@ -53,6 +53,17 @@ def guard_section(page, env, g, spec, *, alone_checked=None):
               f"nodes off the runway fail before the first tick and no fallback can save "
               f"them, yet they count in every failure set; the column 'cut, on-runway "
               f"starts' gives the cut at the same distance over the other nodes.")
+    budget = g.get("flag_budget")
+    if budget:
+        page.text(f"The threshold {g['threshold']:.3g} was set here, without labels, from a "
+                  f"flag budget: the threshold at which {budget['fallback']} flags "
+                  f"{100 * budget['budget']:g} % of its control ticks in the tables "
+                  f"({'with' if budget['score_noise'] else 'without'} the score noise; "
+                  f"{100 * budget['flagged_ticks']:.1f} % at the threshold chosen, from "
+                  f"{budget['starts']} on-runway starts), instead of the training's "
+                  f"{budget['scenario_threshold']:.3g}. A budget bounds how often the guard "
+                  f"intervenes, not how many of its interventions are saves: the columns "
+                  f"below say that.")
     first = next(iter(g.get("liveness", {}).values()), {})
     alone_same = first.get("alone_same_distance_failure_set")
     rows = [["controller alone", _pct(g["volumes"][UNGUARDED]), "-", "-", "-", "-", "1.00", "-",

@@ -22,7 +22,8 @@ from reachwatch.taxi import (UNGUARDED, fallback_rollouts, mission_rollouts, on_
                              perfect_detector_scores, real_missions, resolved, simulate_guarded,
                              sweep_guarded)
 from reachwatch.taxi.fidelity import real_score_noise
-from reachwatch.taxi.guarded import SCORE_PORT, tradeoff_curves, tradeoff_row
+from reachwatch.taxi.guarded import (SCORE_PORT, flag_budget_threshold, tradeoff_curves,
+                                     tradeoff_row)
 from reachwatch.taxi.plots import plot_brt_slices, plot_failure_sets, plot_tradeoff
 from reachwatch.training.incremental import fine_tune_taxinet, mine_anomalies
 
@@ -195,6 +196,27 @@ def noisy_guard_figures(check, scenario, grid, tables, horizon, fallbacks, point
     return liveness, curves
 
 
+def budget_threshold(scenario, grid, tables, fallback: str, budget: float, *, starts: int,
+                     seed: int, horizon: float, mission_limit, noise_starts: int,
+                     noise_seed: int, cache_dir, executor=None, progress=True) -> dict:
+    """A flag budget turned into this environment's detector threshold, without labels:
+    `flag_budget_threshold` for ``fallback`` from ``starts`` on-runway starts seeded
+    ``seed``, in the tables with the score noise fitted on ``noise_starts`` real runs of
+    the controller alone (`fit_guard_noise`; without it when 0 or when the fit fails).
+    Its record, with the scenario's own threshold beside it and how the noise fit went."""
+    noise, fit = None, None
+    if noise_starts:
+        noise, fit = fit_guard_noise(scenario, grid, tables, noise_starts=noise_starts,
+                                     noise_seed=noise_seed, horizon=horizon, cache_dir=cache_dir,
+                                     executor=executor, progress=progress)
+    points = on_runway_starts(grid, starts, seed, half_width=scenario.environment.half_width)
+    chosen = flag_budget_threshold(scenario, grid, tables, horizon, fallback, budget,
+                                   starts=points, mission_limit=mission_limit,
+                                   score_noise=noise, seed=noise_seed)
+    return {**chosen, "seed": seed, "score_noise": noise is not None, "score_noise_fit": fit,
+            "scenario_threshold": scenario.monitor.threshold}
+
+
 def real_loop_check(run: Run, scenario, grid, tables, env) -> dict:
     """`guard_check` with the run file's ``guard`` settings."""
     guard = run.spec.guard
@@ -216,6 +238,16 @@ def guard_environment(run: Run, env) -> dict:
     fallbacks = spec.guard.strategies
     tables = sweep_guarded(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
                            progress=run.progress)
+    budget = None
+    if spec.guard.flag_budget is not None:          # the threshold, set here without labels
+        guard = spec.guard
+        budget = budget_threshold(scenario, grid, tables, guard.strategies[0], guard.flag_budget,
+                                  starts=guard.flag_budget_starts, seed=guard.flag_budget_seed,
+                                  horizon=spec.horizon, mission_limit=guard.mission_limit,
+                                  noise_starts=guard.noise_starts, noise_seed=guard.noise_seed,
+                                  cache_dir=run.path("outcomes"), executor=run.executor,
+                                  progress=run.progress)
+        scenario.monitor.threshold = budget["threshold"]
     on_grid = fallback_rollouts(scenario, grid, tables, spec.horizon, fallbacks,
                                 mission_limit=spec.guard.mission_limit)
     volumes = {k: float(v.failed.mean()) for k, v in on_grid.items()}
@@ -255,7 +287,8 @@ def guard_environment(run: Run, env) -> dict:
     alone, guarded_rate = paired_rates(make_closed_loop_diagram(shown), make_guarded_diagram(shown),
                                        rounds=3, duration=spec.guard.online_seconds,
                                        period=scenario.controller.period)
-    return {"threshold": scenario.monitor.threshold, "volumes": volumes, "liveness": liveness,
+    return {"threshold": scenario.monitor.threshold, "flag_budget": budget,
+            "volumes": volumes, "liveness": liveness,
             "liveness_with_noise": noisy_liveness,
             "perfect_detector": perfect_liveness,
             "tradeoff": curves, "tradeoff_with_noise": noisy,

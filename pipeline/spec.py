@@ -43,7 +43,12 @@ class GuardSpec:
     a slower aircraft otherwise fails later, past the horizon, on the same path).
     ``noise_starts``: real runs of the controller alone (seeded ``noise_seed``) on
     which the detector's variation between grid nodes is fitted, so that the real-loop
-    check also shows the tables with it (`reach.score_noise`; 0 = not fitted)."""
+    check also shows the tables with it (`reach.score_noise`; 0 = not fitted).
+    ``flag_budget`` (None: the detector's threshold from training): instead, set the
+    threshold per guard environment, without labels, to the one at which the first of
+    ``strategies`` flags that share of its control ticks in the tables (with the score
+    noise when ``noise_starts`` fits it), rolled out from ``flag_budget_starts``
+    on-runway starts seeded ``flag_budget_seed`` (`taxi.guarded.flag_budget_threshold`)."""
     environments: List[Environment] = dc.field(default_factory=list)
     strategies: List[str] = dc.field(default_factory=lambda: list(DEFAULT_FALLBACKS))
     candidates: int = 5
@@ -55,6 +60,9 @@ class GuardSpec:
     mission_limit: float = 3.0
     noise_starts: int = 20
     noise_seed: int = 4000
+    flag_budget: Optional[float] = None
+    flag_budget_starts: int = 600
+    flag_budget_seed: int = 7000
 
 
 @dc.dataclass
@@ -240,6 +248,19 @@ class RunSpec:
             value = getattr(self.guard, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"guard.{name} must be a whole number >= 0, got {value!r}")
+        if self.guard.flag_budget is not None:
+            budget = self.guard.flag_budget
+            if isinstance(budget, bool) or not isinstance(budget, (int, float)) \
+                    or not 0 < budget < 1:
+                raise ValueError(f"guard.flag_budget is a share of control ticks in (0, 1) "
+                                 f"(or null for the training threshold), got {budget!r}")
+            if not self.guard.strategies:
+                raise ValueError("guard.flag_budget: the budget is set on the first of "
+                                 "guard.strategies, and there are none")
+            starts = self.guard.flag_budget_starts
+            if isinstance(starts, bool) or not isinstance(starts, int) or starts < 1:
+                raise ValueError(f"guard.flag_budget_starts must be a whole number >= 1, got "
+                                 f"{starts!r}")
         for i, env in enumerate(self.guard.environments):
             env.validate()
         self.incremental.validate()

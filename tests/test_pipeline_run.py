@@ -79,6 +79,12 @@ def _ran(log):
      "guard.strategies[0]: fallback 'slow_down+gps'"),
     (("check_starts: 2", "check_starts: -2"), "guard.check_starts must be a whole number >= 0"),
     (("noise_starts: 0", "noise_starts: -3"), "guard.noise_starts must be a whole number >= 0"),
+    (("noise_starts: 0}", "noise_starts: 0, flag_budget: 1.5}"),
+     "guard.flag_budget is a share of control ticks in (0, 1)"),
+    (("noise_starts: 0}", "noise_starts: 0, flag_budget: 0.1, strategies: []}"),
+     "guard.flag_budget: the budget is set on the first of guard.strategies, and there are none"),
+    (("noise_starts: 0}", "noise_starts: 0, flag_budget: 0.1, flag_budget_starts: 0}"),
+     "guard.flag_budget_starts must be a whole number >= 1"),
     (("batch_size: 8", "batch_size: 8\n  threshold_folds: 2"),
      "detector.threshold_folds 2: there are only 1 training environments to leave out"),
 ])
@@ -226,6 +232,18 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     _, log = _run(tmp_path, TINY.replace("epochs: 1", "epochs: 2"))   # detector changed
     assert _ran(log) == {"train", "evaluate", "guard_KSFO_17h_clear", "report"}
     assert not any("sweep_" in m and "running" in m for m in log)
+
+    # a flag budget sets the guard's threshold without labels: only the guard reruns
+    run, log = _run(tmp_path, TINY.replace("epochs: 1", "epochs: 2").replace(
+        "noise_starts: 0}", "noise_starts: 0, flag_budget: 0.3}"))
+    assert _ran(log) == {"guard_KSFO_17h_clear", "report"}
+    guard, trained = run.outputs["guard"]["KSFO_17h_clear"], run.outputs["train"]
+    budget = guard["flag_budget"]
+    assert budget["threshold"] == guard["threshold"] and budget["fallback"] == "slow_down"
+    assert budget["scenario_threshold"] == trained["threshold"] and not budget["score_noise"]
+    assert budget["flagged_ticks"] <= 0.3 and budget["starts"] == 600
+    md = (tmp_path / "report.md").read_text()
+    assert f"The threshold {guard['threshold']:.3g} was set here, without labels" in md
 
 
 def test_refined_run_solves_and_checks_on_the_refined_table(tmp_path):
