@@ -19,7 +19,11 @@ under ``--cache``).
     python benchmarks/guard_operating_points.py --scenario S.yaml [--shape 21 11 21]
         [--scales 0.75 1 1.5 2.5 4] [--fallbacks brake,slow_down,slow_down+dead_reckoning]
         [--rules 1/1,3/5] [--resume 0,1] [--decelerations 1] [--starts 600] [--seed 7000]
-        [--noise-seeds 1]
+        [--noise-seeds 1] [--flag-budgets 0.05,0.1]
+
+With ``--flag-budgets`` each point's threshold is not a multiple of the scenario's but
+the one at which that point flags the given share of its ticks, bisected in the same
+tables with the score noise of the first noise seed (what ``guard.flag_budget`` does).
 
 Braking harder lets a flag raised later still stop the aircraft in time: from 5 m/s,
 1 m/s^2 takes 5 s and 12.5 m to stop, 3 m/s^2 1.7 s and 4.2 m. Whether a deceleration is
@@ -38,6 +42,7 @@ from reachwatch.pipeline.online_stages import fit_guard_noise
 from reachwatch.reach.liveness import liveness_figures
 from reachwatch.systems.switch import fallback_parts
 from reachwatch.taxi import UNGUARDED, fallback_rollouts, on_runway_starts, sweep_guarded
+from reachwatch.taxi.guarded import flag_budget_threshold
 
 
 def rule(text):
@@ -64,6 +69,9 @@ def main():
     p.add_argument("--resume", default="0,1", help="resume accelerations, m/s^2")
     p.add_argument("--decelerations", default=None,
                    help="braking decelerations, m/s^2 (default: the scenario's)")
+    p.add_argument("--flag-budgets", default=None,
+                   help="instead of --scales: shares of ticks flagged, each point's threshold "
+                        "bisected to flag that share (comma-separated, each in (0, 1))")
     p.add_argument("--max-needless", type=float, default=0.10)
     p.add_argument("--min-cut", type=float, default=0.50)
     args = p.parse_args()
@@ -76,6 +84,13 @@ def main():
     except ValueError:
         p.error(f"--rules is k/n,k/n,..., --resume and --decelerations lists of numbers; got "
                 f"'{args.rules}', '{args.resume}', '{args.decelerations}'")
+    try:
+        budgets = ([float(b) for b in args.flag_budgets.split(",") if b]
+                   if args.flag_budgets is not None else None)
+    except ValueError:
+        budgets = [float("nan")]
+    if budgets is not None and not (budgets and all(0 < b < 1 for b in budgets)):
+        p.error(f"--flag-budgets is a list of shares in (0, 1), got '{args.flag_budgets}'")
     if not decelerations or min(decelerations) <= 0:
         p.error(f"--decelerations must be numbers > 0 m/s^2, got '{args.decelerations}'")
     horizon, B = float(scenario.duration), scenario.environment.half_width
@@ -98,8 +113,8 @@ def main():
           f"{'needless stops %':>16s} {'ended stopped %':>15s} {'flagged ticks %':>15s}")
     alone, rows = None, []
     points = [(scale, fallback, rule_, resume, deceleration)
-              for scale, fallback, rule_, resume in itertools.product(args.scales, fallbacks,
-                                                                      rules, resumes)
+              for scale, fallback, rule_, resume in itertools.product(budgets or args.scales,
+                                                                      fallbacks, rules, resumes)
               for deceleration in (decelerations if fallback_parts(fallback)[0] == "brake"
                                    else [None])]
     for scale, fallback, (k, n), resume, deceleration in points:
@@ -109,7 +124,17 @@ def main():
         guarded.monitor.flags_needed, guarded.monitor.flag_window = k, n
         guarded.monitor.resume_acceleration = resume
         guarded.monitor.validate()
-        threshold = min(0.99, scale * scenario.monitor.threshold)
+        if budgets:                       # "scale" is the point's flag budget
+            try:
+                threshold = flag_budget_threshold(
+                    guarded, grid, tables, horizon, fallback, scale, starts=starts,
+                    mission_limit=args.mission_limit, score_noise=noise,
+                    seed=args.calibration_seed, alone=alone)["threshold"]
+            except ValueError as e:
+                print(f"flag budget {scale:g}, {fallback} {k}/{n}: {e}")
+                continue
+        else:
+            threshold = min(0.99, scale * scenario.monitor.threshold)
         figures = []
         for seed in range(args.noise_seeds):
             runs = fallback_rollouts(guarded, grid, tables, horizon, [fallback], starts=starts,
