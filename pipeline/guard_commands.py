@@ -158,8 +158,8 @@ def guard_command(args):
                      f"{percent(v['failure_set'])}, ended stopped {percent(v['ended_stopped'])}, "
                      f"needless stops {percent(v['needless_stops'])}; {same_distance(v)}")
     atomic_write_bytes(out / f"guard_{name}.json", json.dumps(
-        {"monitor": dc.asdict(scenario.monitor), "flag_budget": budget, "volumes": volumes, "liveness": liveness,
-         "liveness_with_noise": noisy_liveness, "tradeoff": curves,
+        {"monitor": dc.asdict(scenario.monitor), "flag_budget": budget, "volumes": volumes,
+         "liveness": liveness, "liveness_with_noise": noisy_liveness, "tradeoff": curves,
          "tradeoff_with_noise": noisy, "check": check},
         indent=1).encode())
     plot_failure_sets({k: v.failed for k, v in runs.items()}, grid, args.horizon, py=175.0,
