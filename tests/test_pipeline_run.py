@@ -234,8 +234,10 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     assert not any("sweep_" in m and "running" in m for m in log)
 
     # a flag budget sets the guard's threshold without labels: only the guard reruns
+    # (without its real-loop runs, which the budget does not need)
     run, log = _run(tmp_path, TINY.replace("epochs: 1", "epochs: 2").replace(
-        "noise_starts: 0}", "noise_starts: 0, flag_budget: 0.3}"))
+        "noise_starts: 0}", "noise_starts: 0, flag_budget: 0.3}").replace(
+        "candidates: 2", "candidates: 0").replace("check_starts: 2", "check_starts: 0"))
     assert _ran(log) == {"guard_KSFO_17h_clear", "report"}
     guard, trained = run.outputs["guard"]["KSFO_17h_clear"], run.outputs["train"]
     budget = guard["flag_budget"]
