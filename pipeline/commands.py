@@ -12,16 +12,16 @@ from reachwatch.diagrams.contact_sheet import contact_sheet
 from .console import bar, log
 
 
-def number_type(kind, least, strict, what, most=math.inf):
-    """An argparse type: a ``kind`` number >= ``least`` (> when ``strict``) and <= ``most``,
-    refused with "'TEXT' is not ``what``" otherwise."""
+def number_type(kind, least, strict, what, most=math.inf, most_strict=False):
+    """An argparse type: a ``kind`` number >= ``least`` (> when ``strict``) and <= ``most``
+    (< when ``most_strict``), refused with "'TEXT' is not ``what``" otherwise."""
     def parse(text):
         try:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"'{text}' is not {what}") from None
         if (not math.isfinite(value) or value < least or (strict and value == least)
-                or value > most):
+                or value > most or (most_strict and value == most)):
             raise argparse.ArgumentTypeError(f"'{text}' is not {what}")
         return value
     parse.__name__ = what
@@ -33,6 +33,7 @@ positive_int = number_type(int, 0, True, "a whole number >= 1")
 count = number_type(int, 0, False, "a whole number >= 0")
 positive_float = number_type(float, 0.0, True, "a finite number > 0")
 non_negative_float = number_type(float, 0.0, False, "a finite number >= 0")
+open_share = number_type(float, 0.0, True, "a share in (0, 1)", most=1.0, most_strict=True)
 
 
 def scenario_from_args(args) -> Scenario:

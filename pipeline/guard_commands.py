@@ -14,7 +14,7 @@ from reachwatch.taxi import UNGUARDED, fallback_rollouts, paper_grid, sweep_guar
 from reachwatch.taxi.guarded import tradeoff_curves, tradeoff_row
 from reachwatch.taxi.plots import plot_failure_sets, plot_tradeoff
 
-from .commands import count, positive_float, positive_int
+from .commands import count, open_share, positive_float, positive_int
 from .console import log
 from .executors import open_executor
 from .online_stages import budget_threshold, guard_check, noisy_guard_figures
@@ -45,7 +45,7 @@ def add_parsers(sub):
                         "the tables with it beside the real loop (0 = no fit)")
     g.add_argument("--noise-seed", type=int, default=4000,
                    help="seed of the noise fit's starts and of the noise")
-    g.add_argument("--flag-budget", type=_share, default=None,
+    g.add_argument("--flag-budget", type=open_share, default=None,
                    help="set the detector threshold without labels: the one at which the "
                         "first fallback flags this share of its control ticks in the tables "
                         "(with the score noise when --noise-starts fits it), instead of the "
@@ -71,16 +71,6 @@ def _fallback(text):
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
     return text
-
-
-def _share(text):
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0 < value < 1:
-        raise argparse.ArgumentTypeError(f"a share of control ticks in (0, 1), got '{text}'")
-    return value
 
 
 def _monitor_settings(monitor) -> str:

@@ -304,38 +304,6 @@ def test_table_rollouts_liveness_and_dead_reckoning():
     assert (confirmed.flagged_ticks == confirmed.ticks - 2).all()
 
 
-class _HandMadeTables(dict):
-    """The swept tables `fallback_rollouts` reads, by port name, from hand-made arrays."""
-    @property
-    def tables(self):
-        return self
-
-
-def test_flag_budget_threshold_in_the_tables():
-    """A detector whose score rises with px, braking when flagged: the chosen threshold
-    keeps the flagged share of ticks within the budget, and a slightly lower one does
-    not; the result names what it was chosen for."""
-    from reachwatch.taxi.guarded import SCORE_PORT, flag_budget_threshold
-    scenario = load_scenario(data="monitor: {brake_deceleration: 3.0}\n")
-    policy = p_controller_policy(scenario.controller)
-    grid = Grid(lo=[-10.0, 0.0, -0.3], hi=[10.0, 100.0, 0.3], shape=(11, 3, 7))
-    good = lambda x: policy(np.stack([x[:, 0], np.rad2deg(x[:, 2])], -1))   # noqa: E731
-    steer, score, _ = _tables(grid, good, lambda x: (x[:, 0] + 10.0) / 20.0)
-    tables = _HandMadeTables({CONTROL_PORT: steer.reshape(grid.shape),
-                              SCORE_PORT: score.reshape(grid.shape)})
-    starts = np.stack([np.linspace(-6.0, 6.0, 9), np.full(9, 10.0), np.zeros(9)], -1)
-    chosen = flag_budget_threshold(scenario, grid, tables, 4.0, "brake", 0.3, starts=starts)
-    assert (chosen["budget"], chosen["fallback"], chosen["starts"]) == (0.3, "brake", 9)
-
-    def flagged(threshold):
-        runs = fallback_rollouts(scenario, grid, tables, 4.0, ["brake"], threshold=threshold,
-                                 starts=starts)
-        return liveness_figures(runs[UNGUARDED], runs["brake"])["flagged_ticks"]
-    assert flagged(chosen["threshold"]) == chosen["flagged_ticks"] <= 0.3
-    assert flagged(chosen["threshold"] - 2e-3) > 0.3
-    assert 0.3 < flagged(0.0) and 0.0 < chosen["threshold"] < 1.0
-
-
 def test_dead_reckoning_in_the_rendered_loop(detector_path, tmp_path):
     """The guarded diagram with dead reckoning in the real rendered loop: flagged from
     the first tick, nothing is trusted, so it steers like slow-down with TaxiNet; never

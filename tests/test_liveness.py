@@ -49,23 +49,3 @@ def test_cut_over_starts_inside_the_safe_set():
     assert f["same_distance_failure_cut"] == pytest.approx(0.25)
     assert f["same_distance_failure_cut_inside"] == pytest.approx(0.5)
 
-
-def test_flag_budget_threshold_known_answer():
-    """Bisection for the lowest threshold whose flagged share is within the budget, on
-    shares worked out by hand: a straight line, a step, and the two edge cases."""
-    from reachwatch.reach.liveness import threshold_for_flag_budget
-    threshold, share, steps = threshold_for_flag_budget(lambda t: 1.0 - t, 0.25)
-    assert 0.75 <= threshold <= 0.75 + 1e-3 and share == pytest.approx(1.0 - threshold)
-    assert all(s > 0.25 for t, s in steps if t < 0.75)       # every lower threshold tried is over
-    step = lambda t: 0.5 if t < 0.3 else 0.05                 # noqa: E731
-    threshold, share, _ = threshold_for_flag_budget(step, 0.1, tolerance=1e-4)
-    assert 0.3 <= threshold <= 0.3 + 1e-4 and share == 0.05
-    # within the budget already at the lowest threshold: that one; never within: a clear error
-    assert threshold_for_flag_budget(lambda t: 0.01, 0.1)[:2] == (0.0, 0.01)
-    with pytest.raises(ValueError, match="flags 60.0 % of its ticks, over the flag budget of 10 %"):
-        threshold_for_flag_budget(lambda t: 0.6, 0.1)
-    for bad in (0.0, 1.0, -0.2):
-        with pytest.raises(ValueError, match="a flag budget is a share of control ticks"):
-            threshold_for_flag_budget(lambda t: 0.0, bad)
-    with pytest.raises(ValueError, match="low < high"):
-        threshold_for_flag_budget(lambda t: 0.0, 0.1, low=0.5, high=0.5)
