@@ -221,6 +221,14 @@ def tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points: int, *,
     return curves
 
 
+#: The flag budget searches the detector's logit, not its score: over +-16 (scores from
+#: 1e-7 to 1 - 1e-7), bisected to 0.005 (a score step of at most 0.00125). A detector
+#: sure of itself on an environment puts the budget's threshold near 1, e.g. 0.988,
+#: where a search on the score to 1e-3 would step the logit by 0.08 at a time.
+FLAG_BUDGET_LOGIT_RANGE = 16.0
+FLAG_BUDGET_LOGIT_TOLERANCE = 0.005
+
+
 def flag_budget_threshold(scenario, grid, tables, horizon, fallback: str, budget: float, *,
                           starts, mission_limit=None, score_noise=None, seed=0,
                           alone=None) -> dict:
@@ -228,19 +236,28 @@ def flag_budget_threshold(scenario, grid, tables, horizon, fallback: str, budget
     from ``starts`` (optionally with the detector's variation between nodes,
     ``score_noise`` seeded ``seed``), flags ``budget`` of its control ticks
     (`reach.liveness.threshold_for_flag_budget`): no labels needed, only the detector's
-    scores in the environment. Returns ``{threshold, flagged_ticks, budget, fallback,
+    scores in the environment, a probability in [0, 1], searched on its logit
+    (``FLAG_BUDGET_LOGIT_RANGE``). Returns ``{threshold, flagged_ticks, budget, fallback,
     starts, steps}``; ``alone`` as in `fallback_rollouts`."""
-    def share(threshold):
+    def share(logit):
         nonlocal alone
-        runs = fallback_rollouts(scenario, grid, tables, horizon, [fallback], threshold=threshold,
-                                 starts=starts, mission_limit=mission_limit, alone=alone,
+        runs = fallback_rollouts(scenario, grid, tables, horizon, [fallback],
+                                 threshold=_score_of_logit(logit), starts=starts,
+                                 mission_limit=mission_limit, alone=alone,
                                  score_noise=score_noise, seed=seed)
         alone = runs[UNGUARDED]          # the same at every threshold: rolled out once
         return liveness_figures(alone, runs[fallback])["flagged_ticks"]
 
-    threshold, flagged, steps = threshold_for_flag_budget(share, budget)
-    return {"threshold": threshold, "flagged_ticks": flagged, "budget": float(budget),
-            "fallback": fallback, "starts": len(starts), "steps": steps}
+    logit, flagged, steps = threshold_for_flag_budget(
+        share, budget, low=-FLAG_BUDGET_LOGIT_RANGE, high=FLAG_BUDGET_LOGIT_RANGE,
+        tolerance=FLAG_BUDGET_LOGIT_TOLERANCE)
+    return {"threshold": _score_of_logit(logit), "flagged_ticks": flagged,
+            "budget": float(budget), "fallback": fallback, "starts": len(starts),
+            "steps": [(_score_of_logit(z), s) for z, s in steps]}
+
+
+def _score_of_logit(logit: float) -> float:
+    return float(1.0 / (1.0 + np.exp(-logit)))
 
 
 def tradeoff_row(figures: dict, threshold=None) -> dict:

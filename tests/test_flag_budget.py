@@ -38,26 +38,45 @@ class _HandMadeTables(dict):
         return self
 
 
-def test_flag_budget_threshold_in_the_tables():
-    """A detector whose score rises with px, braking when flagged: the chosen threshold
-    keeps the flagged share of ticks within the budget, and a slightly lower one does
-    not; the result names what it was chosen for."""
+def _braking_on_px(score_of_px):
+    """Hand-made tables of a P-controller whose detector score rises with px, and a
+    ``flagged(threshold)`` share of ticks when braking on it from 9 starts."""
     scenario = load_scenario(data="monitor: {brake_deceleration: 3.0}\n")
     policy = p_controller_policy(scenario.controller)
     grid = Grid(lo=[-10.0, 0.0, -0.3], hi=[10.0, 100.0, 0.3], shape=(11, 3, 7))
     nodes = grid.states()
     steer = policy(np.stack([nodes[:, 0], np.rad2deg(nodes[:, 2])], -1))
-    score = (nodes[:, 0] + 10.0) / 20.0
     tables = _HandMadeTables({CONTROL_PORT: steer.reshape(grid.shape),
-                              SCORE_PORT: score.reshape(grid.shape)})
+                              SCORE_PORT: score_of_px(nodes[:, 0]).reshape(grid.shape)})
     starts = np.stack([np.linspace(-6.0, 6.0, 9), np.full(9, 10.0), np.zeros(9)], -1)
-    chosen = flag_budget_threshold(scenario, grid, tables, 4.0, "brake", 0.3, starts=starts)
-    assert (chosen["budget"], chosen["fallback"], chosen["starts"]) == (0.3, "brake", 9)
 
     def flagged(threshold):
         runs = fallback_rollouts(scenario, grid, tables, 4.0, ["brake"], threshold=threshold,
                                  starts=starts)
         return liveness_figures(runs[UNGUARDED], runs["brake"])["flagged_ticks"]
+    return scenario, grid, tables, starts, flagged
+
+
+def test_flag_budget_threshold_in_the_tables():
+    """A detector whose score rises with px, braking when flagged: the chosen threshold
+    keeps the flagged share of ticks within the budget, and a slightly lower one does
+    not; the result names what it was chosen for."""
+    scenario, grid, tables, starts, flagged = _braking_on_px(lambda px: (px + 10.0) / 20.0)
+    chosen = flag_budget_threshold(scenario, grid, tables, 4.0, "brake", 0.3, starts=starts)
+    assert (chosen["budget"], chosen["fallback"], chosen["starts"]) == (0.3, "brake", 9)
     assert flagged(chosen["threshold"]) == chosen["flagged_ticks"] <= 0.3
     assert flagged(chosen["threshold"] - 2e-3) > 0.3
     assert 0.3 < flagged(0.0) and 0.0 < chosen["threshold"] < 1.0
+
+
+def test_flag_budget_threshold_of_a_saturated_detector():
+    """A detector sure of itself: every score within 1e-4 of 1 (in order, as above).
+    The budget still finds the threshold between the scores, searching their logit: a
+    threshold a hundredth of a logit lower is over the budget."""
+    scenario, grid, tables, starts, flagged = _braking_on_px(
+        lambda px: 1.0 - 1e-4 * (10.0 - px) / 20.0 - 1e-6)
+    chosen = flag_budget_threshold(scenario, grid, tables, 4.0, "brake", 0.3, starts=starts)
+    assert 1.0 - 1.1e-4 < chosen["threshold"] < 1.0
+    assert flagged(chosen["threshold"]) == chosen["flagged_ticks"] <= 0.3
+    logit = np.log(chosen["threshold"] / (1.0 - chosen["threshold"]))
+    assert flagged(1.0 / (1.0 + np.exp(-(logit - 0.01)))) > 0.3
