@@ -239,15 +239,26 @@ def flag_budget_threshold(scenario, grid, tables, horizon, fallback: str, budget
     scores in the environment, a probability in [0, 1], searched on its logit
     (``FLAG_BUDGET_LOGIT_RANGE``). Returns ``{threshold, flagged_ticks, budget, fallback,
     starts, steps}``; ``alone`` as in `fallback_rollouts`."""
+    shares = {}
+
     def share(logit):
         nonlocal alone
-        runs = fallback_rollouts(scenario, grid, tables, horizon, [fallback],
-                                 threshold=_score_of_logit(logit), starts=starts,
-                                 mission_limit=mission_limit, alone=alone,
-                                 score_noise=score_noise, seed=seed)
-        alone = runs[UNGUARDED]          # the same at every threshold: rolled out once
-        return liveness_figures(alone, runs[fallback])["flagged_ticks"]
+        if logit not in shares:
+            runs = fallback_rollouts(scenario, grid, tables, horizon, [fallback],
+                                     threshold=_score_of_logit(logit), starts=starts,
+                                     mission_limit=mission_limit, alone=alone,
+                                     score_noise=score_noise, seed=seed)
+            alone = runs[UNGUARDED]      # the same at every threshold: rolled out once
+            shares[logit] = liveness_figures(alone, runs[fallback])["flagged_ticks"]
+        return shares[logit]
 
+    top = share(FLAG_BUDGET_LOGIT_RANGE)
+    if top is not None and top > budget:
+        raise ValueError(
+            f"even at threshold {_score_of_logit(FLAG_BUDGET_LOGIT_RANGE):.7f} the {fallback} "
+            f"loop flags {100 * top:.1f} % of its ticks, over the flag budget of "
+            f"{100 * budget:g} %: the detector's score is 1 (or within 1e-7 of it) on that "
+            f"share of the ticks")
     logit, flagged, steps = threshold_for_flag_budget(
         share, budget, low=-FLAG_BUDGET_LOGIT_RANGE, high=FLAG_BUDGET_LOGIT_RANGE,
         tolerance=FLAG_BUDGET_LOGIT_TOLERANCE)

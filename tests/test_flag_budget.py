@@ -80,3 +80,8 @@ def test_flag_budget_threshold_of_a_saturated_detector():
     assert flagged(chosen["threshold"]) == chosen["flagged_ticks"] <= 0.3
     logit = np.log(chosen["threshold"] / (1.0 - chosen["threshold"]))
     assert flagged(1.0 / (1.0 + np.exp(-(logit - 0.01)))) > 0.3
+    # a detector at 1 everywhere cannot keep any budget: the error names the score
+    scenario, grid, tables, starts, _ = _braking_on_px(lambda px: np.ones_like(px))
+    with pytest.raises(ValueError, match=r"even at threshold 0.9999999 the brake loop flags "
+                                         r"100.0 % of its ticks, over the flag budget of 30 %"):
+        flag_budget_threshold(scenario, grid, tables, 4.0, "brake", 0.3, starts=starts)
