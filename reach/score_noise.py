@@ -26,6 +26,11 @@ def logit(p):
     return np.log(p / (1 - p))
 
 
+def sigmoid(z):
+    """``1 / (1 + exp(-z))``, the inverse of `logit` (without its clipping)."""
+    return 1.0 / (1.0 + np.exp(-np.asarray(z, float)))
+
+
 @dc.dataclass(frozen=True)
 class ScoreNoise:
     """Logit-space Ornstein-Uhlenbeck noise over distance: ``sigma`` (its stationary
@@ -54,7 +59,7 @@ class ScoreNoise:
 
     def apply(self, scores, noise) -> np.ndarray:
         """``scores`` (in (0, 1)) with ``mean + noise`` added to their logits."""
-        return 1.0 / (1.0 + np.exp(-(logit(scores) + self.mean + noise)))
+        return sigmoid(logit(scores) + self.mean + noise)
 
 
 def fit_score_noise(real_scores, table_scores, travelled, *, max_lag: int = 64,

@@ -17,6 +17,7 @@ from reachwatch.reach.grid import check_states
 from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.reach.liveness import (MissionOutcomes, check_mission_limit, liveness_figures,
                                        threshold_for_flag_budget)
+from reachwatch.reach.score_noise import sigmoid
 from reachwatch.systems import (ProportionalController, check_k_of_n, confirmed_flags,
                                 fallback_parts, next_speed, propagate_estimate)
 
@@ -245,7 +246,7 @@ def flag_budget_threshold(scenario, grid, tables, horizon, fallback: str, budget
         nonlocal alone
         if logit not in shares:
             runs = fallback_rollouts(scenario, grid, tables, horizon, [fallback],
-                                     threshold=_score_of_logit(logit), starts=starts,
+                                     threshold=float(sigmoid(logit)), starts=starts,
                                      mission_limit=mission_limit, alone=alone,
                                      score_noise=score_noise, seed=seed)
             alone = runs[UNGUARDED]      # the same at every threshold: rolled out once
@@ -255,20 +256,16 @@ def flag_budget_threshold(scenario, grid, tables, horizon, fallback: str, budget
     top = share(FLAG_BUDGET_LOGIT_RANGE)
     if top is not None and top > budget:
         raise ValueError(
-            f"even at threshold {_score_of_logit(FLAG_BUDGET_LOGIT_RANGE):.7f} the {fallback} "
+            f"even at threshold {float(sigmoid(FLAG_BUDGET_LOGIT_RANGE)):.7f} the {fallback} "
             f"loop flags {100 * top:.1f} % of its ticks, over the flag budget of "
             f"{100 * budget:g} %: the detector's score is 1 (or within 1e-7 of it) on that "
             f"share of the ticks")
     logit, flagged, steps = threshold_for_flag_budget(
         share, budget, low=-FLAG_BUDGET_LOGIT_RANGE, high=FLAG_BUDGET_LOGIT_RANGE,
         tolerance=FLAG_BUDGET_LOGIT_TOLERANCE)
-    return {"threshold": _score_of_logit(logit), "flagged_ticks": flagged,
+    return {"threshold": float(sigmoid(logit)), "flagged_ticks": flagged,
             "budget": float(budget), "fallback": fallback, "starts": len(starts),
-            "steps": [(_score_of_logit(z), s) for z, s in steps]}
-
-
-def _score_of_logit(logit: float) -> float:
-    return float(1.0 / (1.0 + np.exp(-logit)))
+            "steps": [(float(sigmoid(z)), s) for z, s in steps]}
 
 
 def tradeoff_row(figures: dict, threshold=None) -> dict:
