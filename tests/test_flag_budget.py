@@ -7,6 +7,7 @@ import pytest
 from reachwatch.diagrams import CONTROL_PORT, load_scenario
 from reachwatch.reach import Grid
 from reachwatch.reach.liveness import liveness_figures, threshold_for_flag_budget
+from reachwatch.reach.score_noise import sigmoid
 from reachwatch.taxi import UNGUARDED, fallback_rollouts, p_controller_policy
 from reachwatch.taxi.guarded import SCORE_PORT, flag_budget_threshold
 
@@ -78,8 +79,9 @@ def test_flag_budget_threshold_of_a_saturated_detector():
     chosen = flag_budget_threshold(scenario, grid, tables, 4.0, "brake", 0.3, starts=starts)
     assert 1.0 - 1.1e-4 < chosen["threshold"] < 1.0
     assert flagged(chosen["threshold"]) == chosen["flagged_ticks"] <= 0.3
-    logit = np.log(chosen["threshold"] / (1.0 - chosen["threshold"]))
-    assert flagged(1.0 / (1.0 + np.exp(-(logit - 0.01)))) > 0.3
+    logit = np.log(chosen["threshold"] / (1.0 - chosen["threshold"]))   # unclipped, unlike
+    # reach.score_noise.logit, which stops at 1 - 1e-4
+    assert flagged(float(sigmoid(logit - 0.01))) > 0.3
     # a detector at 1 everywhere cannot keep any budget: the error names the score
     scenario, grid, tables, starts, _ = _braking_on_px(lambda px: np.ones_like(px))
     with pytest.raises(ValueError, match=r"even at threshold 0.9999999 the brake loop flags "
