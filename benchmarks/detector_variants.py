@@ -137,6 +137,20 @@ def summary_line(name, results, states):
             f"  AUROC beats baselines in {beats}/{len(figures)}")
 
 
+def promise_line(name, chosen, results):
+    """What a threshold chosen on left-out training groups (`HeldOutThreshold`) promised
+    for an unseen environment beside what it got on the held-out ones (all states)."""
+    got = np.array([r["all"]["recall"] for r in results if "all" in r], float) * 100
+    flagged = np.array([r["all"]["flagged"] for r in results if "all" in r], float) * 100
+    p = chosen.promised
+    return (f"{name:<24} promised on {len(chosen.per_group)} left-out groups: recall "
+            f"{100 * p['min_recall']:5.1f} (lowest group), accuracy "
+            f"{100 * p['pooled_accuracy']:5.1f}, flagged {100 * p['flagged']:5.1f}; got on "
+            f"{len(got)} held-out: recall min/median {np.nanmin(got):5.1f}/"
+            f"{np.nanmedian(got):5.1f}, flagged {np.nanmin(flagged):5.1f}/"
+            f"{np.nanmedian(flagged):5.1f}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", required=True, type=Path, help="a finished run directory")
@@ -178,10 +192,12 @@ def main():
             if not path.exists():
                 train_detector(train, config, path)
             model, detector_config, _ = load_detector(path)
+            chosen = None
             if config.threshold_folds:
-                threshold = held_out_operating_threshold(
+                chosen = held_out_operating_threshold(
                     train, config, lambda left, tag=tag: work / f"detector_{tag}_without_"
-                    f"{digest(left)}.pt").threshold
+                    f"{digest(left)}.pt")
+                threshold = chosen.threshold
             else:
                 threshold = operating_threshold(model, train, config)
             detector = Detector(name, model, detector_config, threshold)
@@ -209,7 +225,10 @@ def main():
                   f"{time.time() - started:.0f} s")
             for states in ("all", NOT_FAILED):
                 print(summary_line(label, results, states), flush=True)
+            if chosen is not None:
+                print(promise_line(label, chosen, results), flush=True)
             everything[label] = {"config": dc.asdict(config), "threshold": threshold,
+                                 "held_out_threshold": None if chosen is None else dc.asdict(chosen),
                                  "training_environments": [e.name for e in kept],
                                  "environments": results}
     if args.json:

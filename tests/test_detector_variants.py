@@ -43,3 +43,20 @@ def test_nominal_states_are_near_the_centreline_and_aligned():
                        [-2.0, 200.0, np.deg2rad(-9.0)]])
     assert variants.nominal_states(states, half_width=12.0).tolist() == [True, False, False,
                                                                           True]
+
+
+def test_promise_line_puts_the_left_out_promise_beside_the_held_out_recall():
+    from reachwatch.training.metrics import held_out_threshold
+    # two left-out groups; the lower group threshold (0.4) reaches full recall on both
+    groups = {"a": (np.array([1, 1, 0, 0]), np.array([0.9, 0.4, 0.3, 0.1])),
+              "b": (np.array([1, 0, 0, 0]), np.array([0.8, 0.5, 0.2, 0.1]))}
+    chosen = held_out_threshold(groups, 1.0)
+    assert chosen.threshold == 0.4
+    results = [{"all": {"recall": 1.0, "flagged": 0.5}}, {"all": {"recall": 0.5, "flagged": 0.2}},
+               {"all": {"recall": 0.75, "flagged": 0.3}}]
+    line = variants.promise_line("x", chosen, results)
+    # promised: recall 100 on the lowest group; 4 of 8 samples flagged, one of them a
+    # false alarm (b's 0.5), so pooled accuracy 7/8; got: recall 50 / 75, flagged 20 / 30
+    assert "promised on 2 left-out groups: recall 100.0 (lowest group), accuracy  87.5, " \
+           "flagged  50.0" in line
+    assert "got on 3 held-out: recall min/median  50.0/ 75.0, flagged  20.0/ 30.0" in line
