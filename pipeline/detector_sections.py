@@ -1,6 +1,8 @@
 """The report's text on the trained detector: what its operating threshold promised
 beside what it got, and one plain verdict per held-out environment."""
 
+import math
+
 
 def percent_text(x):
     """``0.1234`` -> ``"12.34"``; None -> ``"-"``."""
@@ -57,8 +59,9 @@ def detector_verdicts(rows) -> list:
     """One plain sentence per held-out environment on the first method of ``rows`` (the
     detector), over all states with the first label source: the share of images it
     flags beside the share that are anomalous, its recall and accuracy, its AUROC beside
-    the best other method's, and a warning when it flags nearly everything, is near
-    chance, or is beaten by a baseline."""
+    the best other method's, the accuracy its ranking allows at the recall target (an
+    oracle threshold, when the rows have ``accuracy_at_target_recall``), and a warning
+    when it flags nearly everything, is near chance, or is beaten by a baseline."""
     if not rows:
         return []
     method, labels = rows[0]["method"], rows[0]["labels"]
@@ -77,6 +80,11 @@ def detector_verdicts(rows) -> list:
         if best is not None:
             text += f" (best other method: {best['method']}, {percent_text(best['auroc'])})"
         text += "."
+        ceiling = d.get("accuracy_at_target_recall")
+        if ceiling is not None and not math.isnan(ceiling):     # missing or NaN: say nothing
+            text += (f" A threshold set on this environment's own labels for the recall "
+                     f"target would give {percent_text(ceiling)}% accuracy (what its ranking "
+                     f"allows).")
         if flagged >= FLAGS_NEARLY_ALL:
             text += " It flags nearly every image: here it is an alarm, not a detector."
         elif d["auroc"] is not None and d["auroc"] < CHANCE_AUROC:

@@ -189,6 +189,27 @@ def test_table2_rows_over_the_states_that_have_not_failed_yet():
     assert len(evaluate_environment(data, [], subsets={"none": np.zeros(6, bool)})[0]) == 1
 
 
+def test_table2_rows_give_the_accuracy_an_oracle_threshold_reaches_at_the_recall_target():
+    # labels 0 0 1 1 1 1; the prediction-error baseline ranks them 3 0 1 2 4 5 (x10 m)
+    states = np.zeros((6, 3))
+    states[4:, 0] = 20.0
+    data = LabelledData.from_arrays(images=np.zeros((6, 4, 4, 3), np.uint8), states=states,
+                                    values=np.array([1, 1, -1, -1, -1, -1.0]),
+                                    environment="tiny", camera_size=(4, 4))
+    errors = np.array([30.0, 0.0, 10.0, 20.0, 40.0, 50.0])
+    data = dc.replace(data, estimates=np.stack([states[:, 0] + errors, np.zeros(6)], axis=1))
+    # 95 %: every positive flagged, so the threshold is the lowest positive (10 m), which
+    # also flags the negative at 30 m: 5 of 6 right
+    row, = evaluate_environment(data, [])[0]
+    assert row["accuracy_at_target_recall"] == pytest.approx(5 / 6)
+    # 50 %: two of four positives may be missed, the threshold is 40 m: 4 of 6 right
+    row, = evaluate_environment(data, [], target_recall=0.5)[0]
+    assert row["accuracy_at_target_recall"] == pytest.approx(4 / 6)
+    # no positives: nothing to reach
+    safe = dc.replace(data, labels=np.zeros(6, bool))
+    assert np.isnan(evaluate_environment(safe, [])[0][0]["accuracy_at_target_recall"])
+
+
 def test_roc_points_and_worst_mistakes_known_answers():
     from reachwatch.training.evaluation import worst_mistakes
     from reachwatch.training.metrics import auroc, roc_points
@@ -233,3 +254,12 @@ def test_verdicts_call_out_a_detector_that_flags_everything():
     assert dusk.endswith("A baseline ranks the images better here.")
     assert dark.endswith("AUROC 52.00. Its scores barely separate the classes here (chance is 50).")
     assert detector_verdicts([]) == []
+    # with the oracle's accuracy at the recall target, the verdict says what the ranking
+    # allows, so a reader sees whether the threshold or the scores lost the accuracy
+    night_row = {**rows[0], "accuracy_at_target_recall": 0.475}
+    sentence, = detector_verdicts([night_row])
+    assert ("AUROC 55.00. A threshold set on this environment's own labels for the recall "
+            "target would give 47.50% accuracy (what its ranking allows). It flags nearly "
+            "every image") in sentence
+    assert detector_verdicts([{**rows[0], "accuracy_at_target_recall": float("nan")}]) == \
+        detector_verdicts([rows[0]])

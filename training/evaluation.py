@@ -13,11 +13,14 @@ import numpy as np
 
 from .baselines import ensemble_variance, has_pose_estimate, prediction_error
 from .detector_train import detector_scores
-from .metrics import best_threshold, binary_metrics
+from .metrics import accuracy_at_recall, best_threshold, binary_metrics
 from .labels import labels_name
 
 COLUMNS = ("environment", "method", "labels", "states", "n", "positives", "tp", "fp", "fn", "tn",
-           "recall", "accuracy", "precision", "f1", "auroc", "threshold")
+           "recall", "accuracy", "precision", "f1", "auroc", "threshold",
+           "accuracy_at_target_recall")
+#: Columns that are rates, shown in %.
+RATES = ("recall", "accuracy", "precision", "f1", "auroc", "accuracy_at_target_recall")
 COUNTS = ("n", "positives", "tp", "fp", "fn", "tn")
 
 #: The ``states`` subset of the samples that have not failed yet (inside the safe set).
@@ -39,13 +42,20 @@ class Detector:
     threshold: float = 0.5
 
 
-def evaluate_environment(data, detectors, *, device="", subsets=None) -> tuple:
+def evaluate_environment(data, detectors, *, device="", subsets=None,
+                         target_recall=0.95) -> tuple:
     """``(rows, scores)`` for one `LabelledData`: rows (dicts with `COLUMNS`) for each
     detector at its own threshold, then the baselines at the threshold maximising F1 on
     the same states (oracle-tuned, i.e. as generous to them as possible); ``scores``
     {method: score per sample}. ``subsets`` {name: boolean mask over the samples} adds
     the same rows over each subset (the baselines tuned again on it); ``"all"`` is
-    always first. An empty subset gives no rows."""
+    always first. An empty subset gives no rows.
+
+    Every row also has ``accuracy_at_target_recall``: the accuracy at the highest
+    threshold reaching ``target_recall`` on these very samples, chosen with their labels
+    (an oracle; NaN without positives). It is what the method's ranking allows at that
+    recall, so a detector's accuracy far below it was lost by its threshold, not by
+    its scores."""
     env, labels, rows = data.manifest["environment"], data.labels, []
     label_info = data.manifest.get("labels", {})
     source = labels_name(label_info.get("source", "brt"), label_info.get("paths"))
@@ -74,10 +84,15 @@ def evaluate_environment(data, detectors, *, device="", subsets=None) -> tuple:
         for det in detectors:
             s = scores[det.name][mask]
             rows.append({**head, "method": det.name, "threshold": thresholds[det.name],
-                         **binary_metrics(labels[mask], s >= thresholds[det.name], s).row()})
+                         **binary_metrics(labels[mask], s >= thresholds[det.name], s).row(),
+                         "accuracy_at_target_recall": accuracy_at_recall(labels[mask], s,
+                                                                         target_recall)})
         for name in baselines:
-            threshold, metrics = best_threshold(labels[mask], scores[name][mask])
-            rows.append({**head, "method": name, "threshold": float(threshold), **metrics.row()})
+            s = scores[name][mask]
+            threshold, metrics = best_threshold(labels[mask], s)
+            rows.append({**head, "method": name, "threshold": float(threshold), **metrics.row(),
+                         "accuracy_at_target_recall": accuracy_at_recall(labels[mask], s,
+                                                                         target_recall)})
     return rows, scores
 
 
@@ -103,8 +118,7 @@ def format_cell(value, key) -> str:
         return str(int(value))
     if value is None or (isinstance(value, float) and np.isnan(value)):
         return "-"
-    return f"{100 * value:.1f}" if key in ("recall", "accuracy", "precision", "f1", "auroc") \
-        else f"{value:.3g}"
+    return f"{100 * value:.1f}" if key in RATES else f"{value:.3g}"
 
 
 def markdown_table(rows) -> str:
