@@ -167,15 +167,22 @@ def test_inference_model_computes_the_same_scores_and_leaves_the_model_alone(ste
         DetectorConfig(stem_stride=3).validate()
 
 
-def test_table2_rows_over_the_states_that_have_not_failed_yet():
-    # 6 samples labelled 0 0 1 1 1 1; the prediction-error baseline scores them 0 1 2 3 2 3.
-    # The last two states have already failed (px beyond the edge): easy positives.
+def _six_samples(errors):
+    """6 samples labelled 0 0 1 1 1 1 whose TaxiNet px estimates are off by ``errors`` m
+    (what the prediction-error baseline scores); the last two states have already
+    failed (px 20 m, beyond the edge): easy positives. ``(data, states)``."""
     states = np.zeros((6, 3))
     states[4:, 0] = 20.0
     data = LabelledData.from_arrays(images=np.zeros((6, 4, 4, 3), np.uint8), states=states,
                                     values=np.array([1, 1, -1, -1, -1, -1.0]),
                                     environment="tiny", camera_size=(4, 4))
-    data = dc.replace(data, estimates=np.stack([np.arange(6.0) * 10.0, np.zeros(6)], axis=1))
+    estimates = np.stack([states[:, 0] + np.asarray(errors, float), np.zeros(6)], axis=1)
+    return dc.replace(data, estimates=estimates), states
+
+
+def test_table2_rows_over_the_states_that_have_not_failed_yet():
+    # the prediction-error baseline scores the 6 samples 0 1 2 3 2 3
+    data, states = _six_samples([0.0, 10.0, 20.0, 30.0, 20.0, 30.0])
     inside = np.abs(states[:, 0]) < 10.0
     rows, scores = evaluate_environment(data, [], subsets={NOT_FAILED: inside})
     assert [(r["states"], r["n"], r["positives"]) for r in rows] == [("all", 6, 4),
@@ -191,13 +198,7 @@ def test_table2_rows_over_the_states_that_have_not_failed_yet():
 
 def test_table2_rows_give_the_accuracy_an_oracle_threshold_reaches_at_the_recall_target():
     # labels 0 0 1 1 1 1; the prediction-error baseline ranks them 3 0 1 2 4 5 (x10 m)
-    states = np.zeros((6, 3))
-    states[4:, 0] = 20.0
-    data = LabelledData.from_arrays(images=np.zeros((6, 4, 4, 3), np.uint8), states=states,
-                                    values=np.array([1, 1, -1, -1, -1, -1.0]),
-                                    environment="tiny", camera_size=(4, 4))
-    errors = np.array([30.0, 0.0, 10.0, 20.0, 40.0, 50.0])
-    data = dc.replace(data, estimates=np.stack([states[:, 0] + errors, np.zeros(6)], axis=1))
+    data, _ = _six_samples([30.0, 0.0, 10.0, 20.0, 40.0, 50.0])
     # 95 %: every positive flagged, so the threshold is the lowest positive (10 m), which
     # also flags the negative at 30 m: 5 of 6 right
     row, = evaluate_environment(data, [])[0]
