@@ -1,12 +1,13 @@
 """Detector variants on the datasets of a finished `reachwatch run`: each variant of the
 run file's detector settings is trained on the run's training environments, its
 threshold chosen the way the run file says, and scored on every held-out environment.
-Prints one line per variant and held-out environment, then per variant the minimum and
-median over held-out environments of: the share of images flagged, recall, accuracy,
-AUROC, the accuracy an oracle threshold reaching 95 % recall on that environment would
-give (what the ranking allows), and the same over the states that have not failed yet.
-Also how many environments the detector's AUROC beats every baseline in (TaxiNet's
-prediction error and the ensemble's variance, as in Table 2).
+Prints one line per variant and held-out environment, then per variant, for each group
+of held-out environments (the run file's listed ones, its random family) and for all
+states and those that have not failed yet, the minimum and median of: the share of
+images flagged, recall, accuracy, AUROC, the accuracy an oracle threshold reaching 95 %
+recall on that environment would give (what the ranking allows). Also how many
+environments reach 95 % recall and accuracy, and in how many the detector's AUROC beats
+every baseline (TaxiNet's prediction error and the ensemble's variance, as in Table 2).
 
 Train with more than one seed (``--seeds 0,1``) before calling a variant better: on
 8 training and 8 held-out environments at the demo's settings, two seeds of the same
@@ -40,7 +41,8 @@ from reachwatch.taxi import dynamics_for
 from reachwatch.training.dataset import load_dataset
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
-from reachwatch.training.evaluation import NOT_FAILED, Detector, evaluate_environment
+from reachwatch.training.evaluation import (NOT_FAILED, Detector, evaluate_environment,
+                                            target_summary)
 
 #: Named overrides of the run file's detector settings (nested dicts for ``detector``).
 VARIANTS = {
@@ -102,7 +104,8 @@ def nominal_states(states, half_width):
 
 
 def score_environment(env, data, detector, scenario):
-    """One held-out environment: dict of figures over all states and not-yet-failed."""
+    """One held-out environment: ``(figures, rows)``, a dict of the detector's figures over
+    all states and not-yet-failed, and its Table 2 rows (`evaluate_environment`)."""
     inside = dynamics_for(scenario).target(
         torch.as_tensor(data.states, dtype=torch.float64)).numpy() > 0
     rows, _ = evaluate_environment(data, [detector], subsets={NOT_FAILED: inside},
@@ -119,21 +122,24 @@ def score_environment(env, data, detector, scenario):
                        "recall": row["recall"], "accuracy": row["accuracy"],
                        "auroc": row["auroc"], "best_baseline_auroc": max(baselines, default=np.nan),
                        "accuracy_at_95_recall": row["accuracy_at_target_recall"]}
-    return out
+    return out, rows
 
 
-def summary_line(name, results, states):
-    figures = [r[states] for r in results if states in r]
-    if not figures:
-        return f"{name:<24} {states}: no samples"
-    parts = []
-    for key in ("flagged", "recall", "accuracy", "auroc", "accuracy_at_95_recall"):
-        v = np.array([f[key] for f in figures], float) * 100
-        parts.append(f"{key} {np.nanmin(v):5.1f}/{np.nanmedian(v):5.1f}")
-    beats = sum(f["auroc"] > f["best_baseline_auroc"] for f in figures
-                if np.isfinite(f["best_baseline_auroc"]))
-    return (f"{name:<24} {states:<15} min/median: " + "  ".join(parts) +
-            f"  AUROC beats baselines in {beats}/{len(figures)}")
+def summary_lines(name, rows, groups):
+    """One line per group of held-out environments (the run file's listed ones and its
+    random family) and subset of states: min / median of the `target_summary` figures,
+    how many environments reach 95 % recall and accuracy, and in how many the
+    detector's AUROC beats every baseline."""
+    lines = []
+    for s in target_summary(rows, groups, recall=ORACLE_RECALL, accuracy=0.95):
+        parts = [f"{label} {100 * s[key][0]:5.1f}/{100 * s[key][1]:5.1f}" for key, label in (
+            ("flagged", "flagged"), ("recall", "recall"), ("accuracy", "accuracy"),
+            ("auroc", "auroc"), ("accuracy_at_target_recall", "accuracy_at_95_recall"))]
+        beats = "-" if s["beats_baselines"] is None else s["beats_baselines"]
+        lines.append(f"{name:<24} {s['group']:<16} {s['states']:<15} min/median: " +
+                     "  ".join(parts) + f"  both >= 95 in {s['meet_both']}/{s['environments']}"
+                     f"  AUROC beats baselines in {beats}/{s['environments']}")
+    return lines
 
 
 def promise_line(name, chosen, results):
@@ -200,7 +206,7 @@ def main():
             else:
                 threshold = operating_threshold(model, train, config)
             detector = Detector(name, model, detector_config, threshold)
-            results = []
+            results, rows = [], []
             for env in test_envs:
                 scenario = copy.deepcopy(spec.scenario)
                 scenario.environment = env
@@ -211,8 +217,9 @@ def main():
                         images = images[np.flatnonzero(
                             nominal_states(data[env.name].states, env.half_width))]
                     scored = dc.replace(detector, model=adapted(model, detector_config, images))
-                r = score_environment(env, data[env.name], scored, scenario)
+                r, env_rows = score_environment(env, data[env.name], scored, scenario)
                 results.append(r)
+                rows += env_rows
                 a = r["all"]
                 print(f"  {name} seed {seed} {env.name:<28} flagged {100 * a['flagged']:5.1f} "
                       f"(anomalous {100 * a['positives'] / a['n']:5.1f})  recall "
@@ -222,14 +229,16 @@ def main():
             label = f"{name} (seed {seed})"
             print(f"{label}: {len(kept)} training environments, threshold {threshold:.3g}, "
                   f"{time.time() - started:.0f} s")
-            for states in ("all", NOT_FAILED):
-                print(summary_line(label, results, states), flush=True)
+            for line in summary_lines(label, rows, spec.held_out_groups()):
+                print(line, flush=True)
             if chosen is not None:
                 print(promise_line(label, chosen, results), flush=True)
             everything[label] = {"config": dc.asdict(config), "threshold": threshold,
                                  "held_out_threshold": None if chosen is None else dc.asdict(chosen),
                                  "training_environments": [e.name for e in kept],
-                                 "environments": results}
+                                 "environments": results,
+                                 "summary": target_summary(rows, spec.held_out_groups(),
+                                                           recall=ORACLE_RECALL)}
     if args.json:
         args.json.write_text(json.dumps(everything, indent=1, default=float))
 

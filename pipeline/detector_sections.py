@@ -1,12 +1,15 @@
-"""The report's text on the trained detector: what its operating threshold promised
-beside what it got, and one plain verdict per held-out environment."""
+"""The report's text on the trained detector: Table 2 against the target, what its
+operating threshold promised beside what it got, and one plain verdict per held-out
+environment."""
 
 import math
 
+from reachwatch.training.evaluation import target_summary
+
 
 def percent_text(x):
-    """``0.1234`` -> ``"12.34"``; None -> ``"-"``."""
-    return f"{100 * x:.2f}" if x is not None else "-"
+    """``0.1234`` -> ``"12.34"``; None or NaN -> ``"-"``."""
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:.2f}"
 
 
 def threshold_section(page, trained, rows, config):
@@ -47,6 +50,41 @@ def threshold_section(page, trained, rows, config):
             and r["labels"] == rows[0]["labels"]]
     page.text(f"Recall {promised}; got on the held-out environments: " + ", ".join(
         f"{r['environment']} {percent_text(r['recall'])}%" for r in mine) + ".")
+
+
+#: The accuracy the report's summary counts environments against (the recall target
+#: is the run file's ``detector.target_recall``).
+TARGET_ACCURACY = 0.95
+
+
+def target_section(page, rows, groups, config):
+    """Table 2 against the target, before the per-environment rows: for each group of
+    held-out environments (``groups``: {name: environment names}), label source and
+    subset of states, the detector's min / median recall, accuracy, AUROC and the rest,
+    and how many environments reach the target."""
+    recall = config.target_recall or 0.95
+    summary = target_summary(rows, groups, recall=recall, accuracy=TARGET_ACCURACY)
+    if not summary:
+        return
+    pair = lambda v: f"{percent_text(v[0])} / {percent_text(v[1])}"   # noqa: E731
+    page.text(f"The detector ({summary[0]['method']}) against the target of recall >= "
+              f"{percent_text(recall)}% and accuracy >= {percent_text(TARGET_ACCURACY)}% on "
+              f"every held-out environment: min / median over each group of environments. "
+              f"The minimum is what the target is about. 'Accuracy its ranking allows' is "
+              f"the accuracy at the recall target with a threshold set on each environment's "
+              f"own labels (an oracle); 'AUROC above every baseline' counts the environments "
+              f"where the detector ranks the images better than every other method.")
+    page.table(["held-out group", "labels", "states", "environments", "recall %",
+                "accuracy %", "AUROC", "accuracy its ranking allows %", "flagged %",
+                "recall on target", "both on target", "AUROC above every baseline",
+                "lowest accuracy"],
+               [[s["group"], s["labels"], s["states"], s["environments"], pair(s["recall"]),
+                 pair(s["accuracy"]), pair(s["auroc"]), pair(s["accuracy_at_target_recall"]),
+                 pair(s["flagged"]), f"{s['meet_recall']} of {s['environments']}",
+                 f"{s['meet_both']} of {s['environments']}",
+                 "-" if s["beats_baselines"] is None
+                 else f"{s['beats_baselines']} of {s['environments']}", s["worst"]]
+                for s in summary])
 
 
 #: A detector flagging at least this share of a held-out environment's images is called

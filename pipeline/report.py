@@ -11,7 +11,8 @@ from reachwatch.reach import wilson_interval
 from reachwatch.training.evaluation import COLUMNS, format_cell
 
 from .brt_stages import sweep_rate
-from .detector_sections import detector_verdicts, percent_text as _pct, threshold_section
+from .detector_sections import (detector_verdicts, percent_text as _pct, target_section,
+                                threshold_section)
 from .guard_sections import guard_section
 from .stages import Run
 
@@ -254,6 +255,7 @@ def write_report(run: Run) -> dict:
     page.text(labels_paragraph(spec, o))
     page.images([f["overlay"] for f in o["evaluate"]["figures"].values()])
     page.section("Table 2: detector and baselines on held-out environments", "table2")
+    target_section(page, o["evaluate"]["rows"], spec.held_out_groups(), spec.detector)
     for sentence in detector_verdicts(o["evaluate"]["rows"]):
         page.text(sentence)
     page.table(COLUMNS, [[format_cell(r.get(k), k) for k in COLUMNS] for r in o["evaluate"]["rows"]])

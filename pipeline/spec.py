@@ -6,7 +6,7 @@ import dataclasses as dc
 import hashlib
 import json
 import math
-from typing import List, Optional
+from typing import Dict, List, Optional
 
 from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.diagrams.scenario import dump_scenario
@@ -277,6 +277,14 @@ class RunSpec:
     def held_out_environments(self) -> List[Environment]:
         """``test``, then the ``test_random`` family (never trained on)."""
         return list(self.test) + self.test_random.environments()
+
+    def held_out_groups(self) -> Dict[str, List[str]]:
+        """Names of the held-out environments by where they come from: ``"listed"``
+        (``test``) and ``"random, seed S"`` (``test_random``); empty groups left out."""
+        groups = {"listed": [e.name for e in self.test],
+                  f"random, seed {self.test_random.seed}":
+                      [e.name for e in self.test_random.environments()]}
+        return {name: names for name, names in groups.items() if names}
 
     def dataset_spec_for(self, env) -> DatasetSpec:
         """The `DatasetSpec` of ``env``'s dataset: ``dataset``, with ``held_out_labels``

@@ -264,3 +264,41 @@ def test_verdicts_call_out_a_detector_that_flags_everything():
             "every image") in sentence
     assert detector_verdicts([{**rows[0], "accuracy_at_target_recall": float("nan")}]) == \
         detector_verdicts([rows[0]])
+
+
+def test_target_summary_counts_environments_on_target_by_group_with_known_answers():
+    from reachwatch.training.evaluation import target_summary
+
+    def row(env, method, tp, fp, fn, tn, auroc, ceiling=0.9, states="all"):
+        n = tp + fp + fn + tn
+        return {"environment": env, "method": method, "labels": "brt", "states": states,
+                "n": n, "positives": tp + fn, "tp": tp, "fp": fp, "fn": fn, "tn": tn,
+                "recall": tp / (tp + fn) if tp + fn else float("nan"),
+                "accuracy": (tp + tn) / n, "auroc": auroc, "accuracy_at_target_recall": ceiling}
+
+    rows = [row("A", "det", 20, 2, 0, 78, 0.99),          # recall 100, accuracy 98: on target
+            row("A", "base", 10, 10, 10, 70, 0.80),
+            row("B", "det", 19, 30, 1, 50, 0.85, 0.6),    # recall 95, accuracy 69
+            row("B", "base", 10, 10, 10, 70, 0.90),       # a baseline ranks B better
+            row("C", "det", 10, 0, 10, 80, 0.97),         # recall 50, accuracy 90
+            row("C", "base", 10, 10, 10, 70, 0.70),
+            row("C", "det", 0, 5, 0, 45, None, float("nan"), states="not yet failed")]
+    listed, rand, night = target_summary(rows, {"listed": ["A", "B"], "random": ["C"],
+                                                "missing": ["Z"]})
+    assert (listed["group"], listed["states"], listed["environments"]) == ("listed", "all", 2)
+    assert listed["recall"] == pytest.approx((0.95, 0.975))
+    assert listed["accuracy"] == pytest.approx((0.69, 0.835))
+    assert listed["auroc"] == pytest.approx((0.85, 0.92))
+    assert listed["accuracy_at_target_recall"] == pytest.approx((0.6, 0.75))
+    assert listed["flagged"] == pytest.approx((0.22, 0.355))
+    assert (listed["meet_recall"], listed["meet_both"], listed["beats_baselines"]) == (2, 1, 1)
+    assert listed["worst"] == "B" and listed["method"] == "det"
+    assert (rand["meet_recall"], rand["meet_both"], rand["beats_baselines"]) == (0, 0, 1)
+    # a subset without positives: NaN figures stay NaN, no baseline to compare with
+    assert night["states"] == "not yet failed" and night["beats_baselines"] is None
+    assert np.isnan(night["recall"][0]) and np.isnan(night["auroc"][1])
+    assert night["accuracy"] == pytest.approx((0.9, 0.9)) and night["meet_recall"] == 0
+    # one group of everything by default; the recall target moves the counts
+    everything, _ = target_summary(rows, recall=0.5, accuracy=0.9)
+    assert everything["environments"] == 3 and everything["meet_both"] == 2
+    assert target_summary([]) == []

@@ -60,3 +60,21 @@ def test_promise_line_puts_the_left_out_promise_beside_the_held_out_recall():
     assert "promised on 2 left-out groups: recall 100.0 (lowest group), accuracy  87.5, " \
            "flagged  50.0" in line
     assert "got on 3 held-out: recall min/median  50.0/ 75.0, flagged  20.0/ 30.0" in line
+
+
+def test_summary_lines_split_the_held_out_environments_by_group():
+    def row(env, method, recall, accuracy, auroc):
+        return {"environment": env, "method": method, "labels": "brt", "states": "all",
+                "n": 100, "positives": 20, "tp": int(20 * recall), "fp": 0,
+                "fn": 20 - int(20 * recall), "tn": 80, "recall": recall, "accuracy": accuracy,
+                "auroc": auroc, "accuracy_at_target_recall": accuracy}
+
+    rows = [row("DAY", "det", 1.0, 0.97, 0.99), row("DAY", "base", 0.5, 0.8, 0.7),
+            row("RND1-0", "det", 0.5, 0.9, 0.6), row("RND1-0", "base", 0.5, 0.8, 0.7)]
+    listed, rand = variants.summary_lines("v", rows, {"listed": ["DAY"],
+                                                      "random, seed 1": ["RND1-0"]})
+    assert listed.startswith("v                        listed           all             ")
+    assert "recall 100.0/100.0" in listed and "both >= 95 in 1/1" in listed
+    assert "AUROC beats baselines in 1/1" in listed
+    assert "random, seed 1" in rand and "recall  50.0/ 50.0" in rand
+    assert "both >= 95 in 0/1" in rand and "AUROC beats baselines in 0/1" in rand

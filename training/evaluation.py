@@ -96,6 +96,63 @@ def evaluate_environment(data, detectors, *, device="", subsets=None,
     return rows, scores
 
 
+def target_summary(rows, groups=None, *, recall=0.95, accuracy=0.95) -> list:
+    """Table 2 against a target, one dict per group of environments, label source and
+    ``states`` subset, for the first method of ``rows`` (the detector): how many
+    environments; min and median (NaN-aware) of its recall, accuracy, AUROC,
+    ``accuracy_at_target_recall`` and share of images flagged; how many environments
+    reach ``recall``, how many reach both ``recall`` and ``accuracy``, and in how many
+    its AUROC is above every other method's (None when no other method has one); and
+    the environment with the lowest accuracy. The minimum is the figure a target is
+    about, so it comes first. ``groups`` {name: environment names} (default: one group
+    "all" of every environment in ``rows``); a name with no rows is left out."""
+    if not rows:
+        return []
+    method = rows[0]["method"]
+    if groups is None:
+        groups = {"all": list(dict.fromkeys(r["environment"] for r in rows))}
+    keys = list(dict.fromkeys((r["labels"], r["states"]) for r in rows if r["method"] == method))
+    out = []
+    for group, names in groups.items():
+        names = set(names)
+        for labels, states in keys:
+            same = [r for r in rows if r["environment"] in names and r["labels"] == labels
+                    and r["states"] == states]
+            mine = [r for r in same if r["method"] == method]
+            if not mine:
+                continue
+            figures = {k: np.array([np.nan if r.get(k) is None else r[k] for r in mine], float)
+                       for k in ("recall", "accuracy", "auroc", "accuracy_at_target_recall")}
+            figures["flagged"] = np.array([(r["tp"] + r["fp"]) / r["n"] if r["n"] else np.nan
+                                           for r in mine])
+            beats, compared = 0, 0
+            for r in mine:
+                others = [o["auroc"] for o in same if o["environment"] == r["environment"]
+                          and o["method"] != method and o.get("auroc") is not None
+                          and np.isfinite(o["auroc"])]
+                if others:
+                    compared += 1
+                    beats += int(r["auroc"] is not None and r["auroc"] > max(others))
+            meet_recall = figures["recall"] >= recall
+            worst = int(np.nanargmin(figures["accuracy"])) if np.isfinite(
+                figures["accuracy"]).any() else 0
+            out.append({"group": group, "method": method, "labels": labels, "states": states,
+                        "environments": len(mine),
+                        **{k: (_nan_stat(np.nanmin, v), _nan_stat(np.nanmedian, v))
+                           for k, v in figures.items()},
+                        "meet_recall": int(meet_recall.sum()),
+                        "meet_both": int((meet_recall & (figures["accuracy"] >= accuracy)).sum()),
+                        "beats_baselines": beats if compared else None,
+                        "worst": mine[worst]["environment"]})
+    return out
+
+
+def _nan_stat(fn, values):
+    """``fn`` over the finite ``values``; NaN when there are none (without a warning)."""
+    finite = values[np.isfinite(values)]
+    return float(fn(finite)) if len(finite) else float("nan")
+
+
 def worst_mistakes(labels, scores, threshold, k: int):
     """``(misses, false_alarms)``: indices of up to ``k`` anomalous samples left unflagged,
     lowest score first, and of up to ``k`` safe samples flagged, highest score first (the
