@@ -101,8 +101,9 @@ def target_summary(rows, groups=None, *, recall=0.95, accuracy=0.95) -> list:
     ``states`` subset, for the first method of ``rows`` (the detector): how many
     environments; min and median (NaN-aware) of its recall, accuracy, AUROC,
     ``accuracy_at_target_recall`` and share of images flagged; how many environments
-    reach ``recall``, how many reach both ``recall`` and ``accuracy``, and in how many
-    its AUROC is above every other method's (None when no other method has one); and
+    reach ``recall``, how many reach both ``recall`` and ``accuracy`` (an environment
+    without anomalies, whose recall is NaN, reaches neither), and in how many its AUROC
+    is above every other method's (None when no other method has one); and
     the environment with the lowest accuracy. The minimum is the figure a target is
     about, so it comes first. ``groups`` {name: environment names} (default: one group
     "all" of every environment in ``rows``); a name with no rows is left out."""
