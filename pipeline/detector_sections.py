@@ -52,8 +52,8 @@ def threshold_section(page, trained, rows, config):
         f"{r['environment']} {percent_text(r['recall'])}%" for r in mine) + ".")
 
 
-#: The accuracy the report's summary counts environments against (the recall target
-#: is the run file's ``detector.target_recall``).
+#: The accuracy the report's summary counts environments against (the recall is
+#: ``DetectorTrainConfig.judged_recall``).
 TARGET_ACCURACY = 0.95
 
 
@@ -62,7 +62,7 @@ def target_section(page, rows, groups, config):
     held-out environments (``groups``: {name: environment names}), label source and
     subset of states, the detector's min / median recall, accuracy, AUROC and the rest,
     and how many environments reach the target."""
-    recall = config.target_recall or 0.95
+    recall = config.judged_recall
     summary = target_summary(rows, groups, recall=recall, accuracy=TARGET_ACCURACY)
     if not summary:
         return

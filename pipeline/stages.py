@@ -334,9 +334,8 @@ def stage_evaluate(run: Run) -> dict:
         detectors.append(Detector(name, model, config, threshold))
     rows, figures = [], {}
     held_out = spec.held_out_environments()
-    # Each row's accuracy at an oracle threshold for this recall: the run file's target,
-    # or the paper's 95 % when the detector runs at a fixed threshold.
-    ceiling_recall = spec.detector.target_recall or 0.95
+    # Each row's accuracy at an oracle threshold for the recall the figures are judged at.
+    ceiling_recall = spec.detector.judged_recall
     for env, d in zip(held_out, run.datasets(held_out)):
         # States that have not failed yet: for the taxi, the aircraft still on the runway.
         inside = dynamics_for(run.scenario_for(env)).target(

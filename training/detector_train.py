@@ -47,6 +47,12 @@ class DetectorTrainConfig:
     class_balance: bool = False
     device: str = ""                        # "" = CUDA when present, else CPU
 
+    @property
+    def judged_recall(self) -> float:
+        """The recall the evaluation judges against: ``target_recall``, or the paper's
+        95 % when the detector runs at a fixed ``threshold`` (``target_recall`` 0)."""
+        return self.target_recall or 0.95
+
     def validate(self, where="detector"):
         """Raise ValueError naming the first bad field (as ``where.field``); return self."""
         self.detector.validate()
