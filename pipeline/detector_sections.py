@@ -57,6 +57,35 @@ def threshold_section(page, trained, rows, config):
 TARGET_ACCURACY = 0.95
 
 
+def target_table(summary):
+    """``(header, rows)`` of the target table from `target_summary`'s rows: one row
+    per held-out group, label source and subset, min / median cells in percent."""
+    pair = lambda v: f"{percent_text(v[0])} / {percent_text(v[1])}"   # noqa: E731
+    header = ["held-out group", "labels", "states", "environments", "recall %", "accuracy %",
+              "AUROC", "accuracy its ranking allows %", "flagged %", "recall on target",
+              "both on target", "AUROC above every baseline", "lowest accuracy"]
+    return header, [
+        [s["group"], s["labels"], s["states"], s["environments"], pair(s["recall"]),
+         pair(s["accuracy"]), pair(s["auroc"]), pair(s["accuracy_at_target_recall"]),
+         pair(s["flagged"]), f"{s['meet_recall']} of {s['environments']}",
+         f"{s['meet_both']} of {s['environments']}",
+         "-" if s["beats_baselines"] is None else f"{s['beats_baselines']} of {s['environments']}",
+         s["worst"]] for s in summary]
+
+
+def target_markdown(rows, groups, config) -> str:
+    """The target table (`target_table`) as Markdown, for the console; empty when
+    ``rows`` hold no detector rows."""
+    summary = target_summary(rows, groups, recall=config.judged_recall, accuracy=TARGET_ACCURACY)
+    if not summary:
+        return ""
+    header, body = target_table(summary)
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in body]
+    return (f"against the target (recall >= {percent_text(config.judged_recall)}%, accuracy >= "
+            f"{percent_text(TARGET_ACCURACY)}%; min / median per group):\n" + "\n".join(lines) + "\n")
+
+
 def target_section(page, rows, groups, config):
     """Table 2 against the target, before the per-environment rows: for each group of
     held-out environments (``groups``: {name: environment names}), label source and
@@ -66,7 +95,6 @@ def target_section(page, rows, groups, config):
     summary = target_summary(rows, groups, recall=recall, accuracy=TARGET_ACCURACY)
     if not summary:
         return
-    pair = lambda v: f"{percent_text(v[0])} / {percent_text(v[1])}"   # noqa: E731
     page.text(f"The detector ({summary[0]['method']}) against the target of recall >= "
               f"{percent_text(recall)}% and accuracy >= {percent_text(TARGET_ACCURACY)}% on "
               f"every held-out environment: min / median over each group of environments. "
@@ -74,17 +102,7 @@ def target_section(page, rows, groups, config):
               f"the accuracy at the recall target with a threshold set on each environment's "
               f"own labels (an oracle); 'AUROC above every baseline' counts the environments "
               f"where the detector ranks the images better than every other method.")
-    page.table(["held-out group", "labels", "states", "environments", "recall %",
-                "accuracy %", "AUROC", "accuracy its ranking allows %", "flagged %",
-                "recall on target", "both on target", "AUROC above every baseline",
-                "lowest accuracy"],
-               [[s["group"], s["labels"], s["states"], s["environments"], pair(s["recall"]),
-                 pair(s["accuracy"]), pair(s["auroc"]), pair(s["accuracy_at_target_recall"]),
-                 pair(s["flagged"]), f"{s['meet_recall']} of {s['environments']}",
-                 f"{s['meet_both']} of {s['environments']}",
-                 "-" if s["beats_baselines"] is None
-                 else f"{s['beats_baselines']} of {s['environments']}", s["worst"]]
-                for s in summary])
+    page.table(*target_table(summary))
 
 
 #: A detector flagging at least this share of a held-out environment's images is called

@@ -12,6 +12,7 @@ from reachwatch.training.evaluation import markdown_table
 from reachwatch.training.incremental import IncrementalConfig
 
 from .console import log
+from .detector_sections import target_markdown
 from .commands import count, positive_int, scenario_from_args
 from .executors import open_executor
 from .run import run_pipeline
@@ -87,6 +88,10 @@ def evaluate_command(args):
         incremental=IncrementalConfig(enabled=False))
     with open_executor(args.executor) as executor:
         run = run_pipeline(spec, args.out, executor=executor, until="evaluate")
-    log.info(markdown_table(run.outputs["evaluate"]["rows"]))
+    rows = run.outputs["evaluate"]["rows"]
+    log.info(markdown_table(rows))
+    summary = target_markdown(rows, spec.held_out_groups(), spec.detector)
+    if summary:
+        log.info(summary)
     log.info(f"wrote {args.out}/table2.md, table2.csv and figures/ "
           f"(configuration: {dc.asdict(spec.dataset)}, detector {dc.asdict(detector)})")

@@ -302,3 +302,27 @@ def test_target_summary_counts_environments_on_target_by_group_with_known_answer
     everything, _ = target_summary(rows, recall=0.5, accuracy=0.9)
     assert everything["environments"] == 3 and everything["meet_both"] == 2
     assert target_summary([]) == []
+
+
+def test_target_markdown_prints_the_reports_target_rows_for_the_console():
+    from reachwatch.pipeline.detector_sections import target_markdown
+    from reachwatch.training.detector_train import DetectorTrainConfig
+
+    def row(env, method, tp, fp, fn, tn, auroc):
+        n = tp + fp + fn + tn
+        return {"environment": env, "method": method, "labels": "brt", "states": "all", "n": n,
+                "positives": tp + fn, "tp": tp, "fp": fp, "fn": fn, "tn": tn,
+                "recall": tp / (tp + fn), "accuracy": (tp + tn) / n, "auroc": auroc,
+                "accuracy_at_target_recall": 0.9}
+
+    rows = [row("A", "det", 20, 2, 0, 78, 0.99), row("A", "base", 10, 10, 10, 70, 0.8),
+            row("B", "det", 10, 0, 10, 80, 0.97), row("B", "base", 10, 10, 10, 70, 0.7)]
+    text = target_markdown(rows, {"listed": ["A"], "random, seed 1": ["B"]},
+                           DetectorTrainConfig(target_recall=0.9))
+    assert "recall >= 90.00%, accuracy >= 95.00%" in text
+    assert ("| listed | brt | all | 1 | 100.00 / 100.00 | 98.00 / 98.00 | 99.00 / 99.00 | "
+            "90.00 / 90.00 | 22.00 / 22.00 | 1 of 1 | 1 of 1 | 1 of 1 | A |") in text
+    assert "| random, seed 1 | brt | all | 1 | 50.00 / 50.00 | 90.00 / 90.00 |" in text
+    # a fixed threshold (target_recall 0) is judged at 95 % recall
+    assert "recall >= 95.00%" in target_markdown(rows, {"listed": ["A"]}, DetectorTrainConfig())
+    assert target_markdown([], {"listed": ["A"]}, DetectorTrainConfig()) == ""
