@@ -65,12 +65,14 @@ def label_verdicts(labels: dict, band: float, values, real_failed) -> np.ndarray
     """What a dataset's labelling rule (``labels``: its manifest's record of the
     source and the audit; ``band`` m where the audit recorded none) gives at fresh
     states with BRT values ``values`` whose real outcomes are ``real_failed``: the real
-    outcome where the rule rolls out, the BRT's verdict elsewhere."""
+    outcome where the rule rolls out, the BRT's verdict elsewhere. A hybrid whose audit
+    distrusted the map and fell back to trajectory labels (``labelled_by``) rolls out
+    everywhere."""
     brt = np.asarray(values) <= 0
     if labels["source"] == "brt":
         return brt
-    if labels["source"] in ("rollout", "trajectory"):     # a fresh uniform state: its own run
-        return np.asarray(real_failed, bool)
+    if labels["source"] in ("rollout", "trajectory") or labels.get("labelled_by") == "trajectory":
+        return np.asarray(real_failed, bool)             # a fresh uniform state: its own run
     audit = labels["audit"]
     rolled = hybrid_rolls_out(values, audit.get("band", band), audit["map_trusted"])
     return np.where(rolled, real_failed, brt)
@@ -110,6 +112,7 @@ def fidelity_env(run: Run, env) -> dict:
         audit = labels.get("audit") or {}
         out["labels"] = {"source": labels["source"], "map_trusted": audit.get("map_trusted"),
                          "band": audit.get("band", band) if audit else None,
+                         "labelled_by": labels.get("labelled_by"),
                          **compare_verdicts(verdicts, real, outcomes["left_box"]).as_dict()}
         if labels.get("counts", {}).get("path"):       # trajectory labels, or paths: N
             out["path_labels"] = check_path_labels(run, env)

@@ -160,8 +160,11 @@ def _audit_text(record):
     """What the hybrid's audit decided, for the label-fidelity table."""
     if record.get("map_trusted") is None:
         return "-"
-    return (f"map trusted, band {record['band']:.2f} m" if record["map_trusted"]
-            else "map not trusted")
+    if record["map_trusted"]:
+        return f"map trusted, band {record['band']:.2f} m"
+    if record.get("labelled_by") == "trajectory":
+        return "map not trusted: trajectory labels"
+    return "map not trusted"
 
 
 def graphs(run: Run):

@@ -130,6 +130,18 @@ def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
                                                  survives), [False, True, False, False])
     np.testing.assert_array_equal(label_verdicts(labels("hybrid", map_trusted=False), 2.0, values, real),
                                   real)
+    # a distrusted map keeps its unsafe verdicts beyond the band, unless the dataset fell
+    # back to trajectory labels: then every fresh state is its own run
+    deep, wrong_deep = np.array([-5.0, 0.5, 3.0, 4.0]), np.array([False, True, True, False])
+    distrusted = labels("hybrid", map_trusted=False)
+    np.testing.assert_array_equal(label_verdicts(distrusted, 2.0, deep, wrong_deep),
+                                  [True, True, True, False])
+    np.testing.assert_array_equal(label_verdicts({**distrusted, "labelled_by": "trajectory"},
+                                                 2.0, deep, wrong_deep), wrong_deep)
+    from reachwatch.pipeline.report import _audit_text        # the report names the fallback
+    assert _audit_text({"map_trusted": False, "labelled_by": "trajectory"}) == \
+        "map not trusted: trajectory labels"
+    assert _audit_text({"map_trusted": False, "labelled_by": None}) == "map not trusted"
     # the band the audit widened to (recorded in the manifest) wins over the run file's
     np.testing.assert_array_equal(label_verdicts(labels("hybrid", map_trusted=True, band=3.5), 2.0,
                                                  values, real), [True, True, True, False])

@@ -133,3 +133,29 @@ def test_rollout_labels_equal_direct_simulation_of_the_real_loop(tmp_path, kmwh_
         run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, half_width=B)
         assert bool(label) == run.failed
     assert 0 < data.labels.sum() < 10
+
+
+def test_hybrid_falls_back_to_trajectory_labels_only_where_the_audit_distrusts_the_map():
+    values, on_runway = _case()
+    spec = LabelSpec("hybrid", audit=3, band=2.0, distrusted="trajectory")
+    # distrusted (the audit finds sample 3 safe on the map and failing): nothing is rolled
+    # out past the audit, and the caller is told to label by trajectories
+    loop = FakeLoop((values <= 0) | np.isin(np.arange(10), [3, 7]))
+    n, labels, sources, info = assign_labels(values, on_runway, spec, loop)
+    assert (n, labels, sources) == (0, None, None) and loop.calls == [[1, 2, 3]]
+    assert info["labelled_by"] == "trajectory" and info["audit_frames"] == 30
+    assert info["audit"]["false_safe"] == 1 and not info["audit"]["map_trusted"]
+    # trusted: exactly the plain hybrid's labels and rollouts
+    truth = values <= 0.3
+    plain, fallback = FakeLoop(truth), FakeLoop(truth)
+    expected = assign_labels(values, on_runway, LabelSpec("hybrid", audit=3, band=2.0), plain)
+    got = assign_labels(values, on_runway, spec, fallback)
+    assert plain.calls == fallback.calls == [[1, 2, 3], [4, 9]]
+    np.testing.assert_array_equal(got[1], expected[1])
+    np.testing.assert_array_equal(got[2], expected[2])
+    assert "labelled_by" not in got[3] and got[3]["audit"]["map_trusted"]
+    assert spec.reads_along and not LabelSpec("hybrid").reads_along
+    with pytest.raises(ValueError, match="distrusted must be one of"):
+        LabelSpec("hybrid", distrusted="brt").validate()
+    with pytest.raises(ValueError, match="distrusted_starts"):
+        LabelSpec("hybrid", distrusted="trajectory", distrusted_starts=0).validate()

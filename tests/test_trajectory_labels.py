@@ -204,3 +204,28 @@ def test_brt_labels_with_paths_add_true_labels_along_real_runs(tmp_path, kmwh_da
     for x, label in zip(data.states[along], data.labels[along]):
         run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, half_width=B)
         assert bool(label) == run.failed
+
+
+def test_hybrid_falls_back_to_trajectory_labels_where_its_audit_distrusts_the_map(
+        tmp_path, kmwh_day_brt):
+    """A map that calls every state safe is distrusted by the hybrid's audit against the
+    real loop (two of seed 139's starts fail), and with ``distrusted: trajectory`` the
+    dataset is exactly what the ``trajectory`` source makes from the same starts."""
+    import dataclasses as dc
+    scenario, vf = kmwh_day_brt
+    blind = dc.replace(vf, values=np.abs(vf.values) + 5.0)
+
+    def build(root, labels):
+        spec = DatasetSpec(samples=10, seed=139, height=20, width=36, chunk_size=8, labels=labels)
+        return load_dataset(build_dataset(root, scenario, blind, spec, progress=False))
+
+    want = build(tmp_path / "trajectory", LabelSpec("trajectory", extend=1.0, stride=5))
+    got = build(tmp_path / "hybrid", LabelSpec("hybrid", audit=10, distrusted="trajectory",
+                                               distrusted_starts=10, extend=1.0, stride=5))
+    info = got.manifest["labels"]
+    assert info["source"] == "hybrid" and info["labelled_by"] == "trajectory"
+    assert not info["audit"]["map_trusted"] and info["audit"]["false_safe"] == 2
+    assert info["audit_frames"] > 0 and info["path_samples"] == want.manifest["labels"]["path_samples"]
+    for name in ("states", "labels", "sources", "runs"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    assert (got.sources == SOURCE_PATH).any() and got.labels.sum() > 0

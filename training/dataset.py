@@ -34,8 +34,9 @@ from reachwatch.taxi.fidelity import real_outcomes, real_paths
 from reachwatch.systems import TaxiNet, resize_for_detector
 from reachwatch.systems.files import atomic_write_bytes
 
-from .labels import (NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT, TRAJECTORY_FIELDS, LabelSpec,
-                     assign_labels, check_whole_number, read_along, trajectory_samples)
+from .labels import (FALLBACK_FIELDS, NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
+                     TRAJECTORY_FIELDS, LabelSpec, assign_labels, check_whole_number,
+                     read_along, trajectory_samples)
 
 FORMAT = "reachwatch.dataset/3"
 
@@ -70,6 +71,9 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
     spec_parts = dc.asdict(spec)
     if not spec.labels.reads_along:
         for name in TRAJECTORY_FIELDS:
+            spec_parts["labels"].pop(name)
+    if not spec.labels.falls_back_to_trajectory:
+        for name in FALLBACK_FIELDS:
             spec_parts["labels"].pop(name)
     parts = {"format": FORMAT, "env": dc.asdict(scenario.environment),
              "brt": _value_hash(value_function), "spec": spec_parts,
@@ -191,7 +195,14 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
             n, labels, sources, label_info = assign_labels(
                 values, np.abs(states[:, 0]) < scenario.environment.half_width, spec.labels,
                 _real_loop(scenario, value_function, states, folder, progress))
-            states, values, runs = states[:n], values[:n], np.full(n, NO_RUN, np.int64)
+            if label_info.get("labelled_by") == "trajectory":    # the audit distrusts the map
+                states, labels, sources, read, runs = trajectory_samples(
+                    states[:spec.labels.distrusted_starts], spec.labels,
+                    _real_paths(scenario, value_function, spec.labels, folder, progress), inside)
+                label_info = {**read, **label_info}
+                values, n = value_function.at(states), len(states)
+            else:
+                states, values, runs = states[:n], values[:n], np.full(n, NO_RUN, np.int64)
         if spec.labels.paths:
             out = _real_paths(scenario, value_function, spec.labels, folder, progress)(
                 on_runway_starts((lo, hi), spec.labels.paths, [spec.seed, 1],

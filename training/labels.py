@@ -17,6 +17,11 @@ NO_RUN = -1
 #: `LabelSpec` fields read only by the ``trajectory`` source or with ``paths`` (left out
 #: of other datasets' keys, so adding them did not move existing datasets).
 TRAJECTORY_FIELDS = ("extend", "stride", "paths")
+#: `LabelSpec` fields read only by a ``hybrid`` source that falls back to trajectory
+#: labels (left out of other datasets' keys for the same reason).
+FALLBACK_FIELDS = ("distrusted", "distrusted_starts")
+#: What a ``hybrid`` source does in an environment whose audit distrusts the map.
+DISTRUSTED_CHOICES = ("rollout", "trajectory")
 
 
 def labels_name(source: str, paths) -> str:
@@ -51,6 +56,15 @@ class LabelSpec:
       the map too. Unsafe verdicts further in are kept either way. (A false-safe
       verdict in the audit distrusts the map whatever its distance: on KMWH 21 h clear
       the audit's one lay 0.5 m from the boundary, the fresh starts' out to 3.9 m.)
+      With ``distrusted: trajectory``, an environment whose audit distrusts the map is
+      labelled as the ``trajectory`` source labels it instead, from the first
+      ``distrusted_starts`` samples: where the map is wrong (at night) nearly every
+      sample it calls safe would be rolled out, about 130-160 frames each, while a
+      run read along labels a state for 12-21. An environment whose map the audit
+      trusts keeps the BRT's labels and band rollouts; the manifest records which
+      (``labelled_by``). The datasets then differ in kind between environments:
+      uniform states where the map is trusted, mostly states the loop visits where it
+      is not (Table 2 scores both kinds apart).
 
     - ``trajectory``: ``rollout``, with each run lasting ``extend`` s past the horizon;
       every ``stride``-th state it passes through within its first ``extend`` s (and
@@ -78,12 +92,20 @@ class LabelSpec:
     extend: float = 8.0
     stride: int = 8
     paths: int = 0
+    distrusted: str = "rollout"
+    distrusted_starts: int = 100
+
+    @property
+    def falls_back_to_trajectory(self) -> bool:
+        """Whether an environment whose audit distrusts the map gets trajectory labels."""
+        return self.source == "hybrid" and self.distrusted == "trajectory"
 
     @property
     def reads_along(self) -> bool:
-        """Whether the samples include states read along real runs (``trajectory``
-        labels, or ``paths``): such datasets record each sample's run."""
-        return self.source == "trajectory" or self.paths > 0
+        """Whether the samples may include states read along real runs (``trajectory``
+        labels, ``paths``, or a hybrid that falls back to trajectory labels): such
+        datasets record each sample's run."""
+        return self.source == "trajectory" or self.paths > 0 or self.falls_back_to_trajectory
 
     def validate(self, where="dataset.labels"):
         if self.source not in LABEL_SOURCES:
@@ -92,6 +114,11 @@ class LabelSpec:
         check_whole_number(f"{where}.max_rollouts", self.max_rollouts, 0)
         check_whole_number(f"{where}.stride", self.stride, 1)
         check_whole_number(f"{where}.paths", self.paths, 0)
+        check_whole_number(f"{where}.distrusted_starts", self.distrusted_starts, 1)
+        if self.distrusted not in DISTRUSTED_CHOICES:
+            raise ValueError(f"{where}.distrusted must be one of {DISTRUSTED_CHOICES} (what "
+                             f"the hybrid source does where its audit distrusts the map), "
+                             f"got {self.distrusted!r}")
         for name in ("band", "band_factor", "max_band", "extend"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
@@ -128,12 +155,36 @@ def hybrid_rolls_out(values, band: float, map_trusted: bool) -> np.ndarray:
     return (np.abs(values) < band) | ((values > 0) & (not map_trusted))
 
 
+def _audit(values, on_runway, labels: LabelSpec, run, failed):
+    """The ``hybrid`` source's audit: ``run(index)`` runs the real loop from the first
+    ``labels.audit`` on-runway states and records each outcome in ``failed`` {index:
+    bool}. Returns ``(audit index, their outcomes, record)``, the record being what the
+    manifest keeps: samples, real failures, false-safe verdicts, the largest error,
+    whether the map is trusted and the band (``labels.band`` when it is not)."""
+    audit = np.flatnonzero(on_runway)[:labels.audit]
+    run(audit)
+    audit_failed = np.array([failed[i] for i in audit.tolist()], bool)
+    band, trusted, largest = audited_band(values[audit], audit_failed, band=labels.band,
+                                          band_factor=labels.band_factor,
+                                          max_band=labels.max_band)
+    return audit, audit_failed, {
+        "samples": int(len(audit)), "real_failures": int(audit_failed.sum()),
+        "false_safe": int(np.sum(audit_failed & (values[audit] > 0))),
+        "largest_error_m": largest, "map_trusted": trusted,
+        "band": band if trusted else labels.band}
+
+
 def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
     """Labels and their sources for states with BRT values ``values`` under
     ``labels.source``; ``on_runway`` marks the states where the loop has not failed
     yet (the audit's candidates) and ``run_loop(index) -> (failed, frames)`` runs the
     real loop from the states at ``index`` (called at most twice: the audit, then the
-    rest). Returns ``(n kept, labels, sources, info)``."""
+    rest). Returns ``(n kept, labels, sources, info)``.
+
+    A ``hybrid`` source with ``distrusted: trajectory`` stops after an audit that
+    distrusts the map and returns ``(0, None, None, info)``, ``info["labelled_by"]``
+    being ``"trajectory"``: the caller labels the environment by `trajectory_samples`
+    (it renders; this module does not)."""
     values, on_runway = np.asarray(values, float), np.asarray(on_runway, bool)
     n = len(values)
     brt = (values <= 0).astype(np.uint8)
@@ -153,17 +204,11 @@ def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
     if labels.source == "rollout":
         roll = np.arange(n)
     else:
-        audit = np.flatnonzero(on_runway)[:labels.audit]
-        run(audit)
-        audit_failed = np.array([failed[i] for i in audit.tolist()], bool)
-        false_safe = int(np.sum(audit_failed & (values[audit] > 0)))
-        band, trusted, largest = audited_band(values[audit], audit_failed, band=labels.band,
-                                              band_factor=labels.band_factor,
-                                              max_band=labels.max_band)
-        band = band if trusted else labels.band
-        info["audit"] = {"samples": int(len(audit)), "real_failures": int(audit_failed.sum()),
-                         "false_safe": false_safe, "largest_error_m": largest,
-                         "map_trusted": trusted, "band": band}
+        audit, audit_failed, info["audit"] = _audit(values, on_runway, labels, run, failed)
+        band, trusted = info["audit"]["band"], info["audit"]["map_trusted"]
+        if not trusted and labels.falls_back_to_trajectory:
+            info.update(labelled_by="trajectory", audit_frames=frames)
+            return 0, None, None, info
         uncertain = hybrid_rolls_out(values, band, trusted) & on_runway
         roll = np.union1d(audit, np.flatnonzero(uncertain)).astype(int)
     if labels.max_rollouts and len(roll) > labels.max_rollouts:
