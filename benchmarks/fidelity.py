@@ -13,6 +13,12 @@ Label cost is in rendered frames per label of a 1000-state dataset, beyond the m
   at a check start is then its real outcome where the hybrid rule would roll out
   (|V| < band, and every V > 0 if the map is not trusted), the BRT's elsewhere. Its
   cost is the audit plus the rolled-out share.
+- ``hyb>traj``: ``hybrid`` with ``distrusted: trajectory``: where the audit trusts the
+  map, the hybrid's row; where it does not, the environment is labelled by runs read
+  along (``trajectory``), so the verdict at a fresh start is its real outcome, at the
+  audit's frames plus the frames per label that ``--trajectory-starts`` runs of
+  horizon + ``--extend`` s measure (uniform states of the paper box, as a dataset
+  draws them; run only for an environment whose audit distrusts some map).
 - ``rollout``: the real outcome itself (exact by construction: the same
   deterministic loop); costs every start's frames.
 
@@ -32,6 +38,7 @@ resumes).
     python benchmarks/fidelity.py [--run-file scenarios/demo.yaml]
         [--day KMWH:9:clear] [--night KSFO:21:overcast] [--grids 11 5 11 21 9 21]
         [--periods-per-step 4 40] [--starts 100] [--audit 30] [--band 2.0] [--cache DIR]
+        [--trajectory-starts 20] [--extend 8] [--stride 8]
         [--refine 2] [--refine-band 1.0] [--refine-variation 5] [--robust-spread 15 20]
         [--plot fidelity.png]
         [--theta-deg 28] [--py-max 250] [--exit-fails theta]
@@ -44,6 +51,7 @@ a failure in the solver instead of clamping (`reach.solve_brt`'s ``exit_fails``)
 import argparse
 import copy
 import dataclasses as dc
+import functools
 import time
 from pathlib import Path
 
@@ -57,8 +65,9 @@ from reachwatch.systems.files import cache_root
 from reachwatch.taxi import (dynamics_for, on_runway_starts, paper_grid, refine_closed_loop,
                              steering_bounds, sweep_closed_loop)
 from reachwatch.taxi.grid import AXES
-from reachwatch.taxi.fidelity import real_outcomes
-from reachwatch.training.labels import audited_band, hybrid_rolls_out
+from reachwatch.taxi.fidelity import real_outcomes, real_paths
+from reachwatch.training.labels import (LabelSpec, audited_band, hybrid_rolls_out,
+                                        trajectory_samples)
 
 
 def interval(f, name):
@@ -82,6 +91,10 @@ def main():
                    help="hybrid: widen the band to this times the audit's largest error")
     p.add_argument("--max-band", type=float, default=6.0,
                    help="hybrid: distrust the map when the widened band exceeds this (m)")
+    p.add_argument("--trajectory-starts", type=int, default=20,
+                   help="runs that measure the frames per label read along runs (hyb>traj)")
+    p.add_argument("--extend", type=float, default=8.0, help="hyb>traj: runs last the horizon + this (s)")
+    p.add_argument("--stride", type=int, default=8, help="hyb>traj: read every stride-th tick")
     p.add_argument("--cache", default=None, help="sweep and rollout cache (default: the user cache)")
     p.add_argument("--refine", type=int, default=0, help="adaptive refinement levels of each grid")
     p.add_argument("--refine-band", type=float, default=1.0, help="refine where |V| boundary within (m)")
@@ -121,6 +134,8 @@ def main():
         seconds = time.time() - started
         real, frames = check.failed, check["ticks"]
         curve = curves.setdefault(env.name, [])
+        trajectory_cost = functools.cache(functools.partial(
+            frames_per_label_read_along, scenario, base, spec.horizon, args, cache))
         variants = [(shape, pps) for shape in np.reshape(args.grids, (-1, 3))
                     for pps in args.periods_per_step]
         for shape, pps in variants:
@@ -140,11 +155,12 @@ def main():
                                         band=args.refine_band, variation=variation,
                                         cache_dir=cache / "sweeps")
             for level in levels:
-                curve.append(score(env, level, pps, starts, audit, audited, real, frames, args))
+                curve.append(score(env, level, pps, starts, audit, audited, real, frames, args,
+                                   trajectory_cost))
                 for spread in args.robust_spread:
                     robust = dc.replace(level, solution=solve(level.table, spread=spread))
                     curve.append(score(env, robust, pps, starts, audit, audited, real, frames,
-                                       args, variant=f"+R{spread:g}"))
+                                       args, trajectory_cost, variant=f"+R{spread:g}"))
         print(f"{'':22s} {len(starts)} check runs: {int(real.sum())} failures, "
               f"{100 * np.mean(check['left_box']):.0f} % left the paper box, "
               f"{int(frames.sum())} frames, {seconds:.0f} s with the audit "
@@ -181,21 +197,41 @@ def plot_curves(curves, path):
     plt.close(fig)
 
 
-def score(env, level, pps, starts, audit, audited, real, frames, args, variant=""):
+def frames_per_label_read_along(scenario, box_grid, horizon, args, cache):
+    """Frames per label of ``trajectory`` labels in ``scenario``: ``--trajectory-starts``
+    uniform states of ``box_grid``'s box (seed 3000), each run horizon + ``--extend``
+    s, every ``--stride``-th tick inside the box labelled (`trajectory_samples`)."""
+    lo, hi = box_grid.lo, box_grid.hi
+    starts = lo + np.random.default_rng(3000).uniform(size=(args.trajectory_starts, 3)) * (hi - lo)
+    labels = LabelSpec("trajectory", extend=args.extend, stride=args.stride)
+    run_paths = lambda x: real_paths(scenario, x, grid=box_grid, horizon=horizon,  # noqa: E731
+                                     extend=args.extend, stride=args.stride,
+                                     cache_dir=cache / "outcomes").fields
+    inside = lambda x: np.all((x >= lo) & (x <= hi), axis=1)                 # noqa: E731
+    return trajectory_samples(starts, labels, run_paths, inside)[3]["frames_per_label"]
+
+
+def score(env, level, pps, starts, audit, audited, real, frames, args, trajectory_cost,
+          variant=""):
     """One table row per label source for one BRT map (a refinement ``level``;
-    ``variant`` names a robust solve of it in the grid column). Returns the map's name,
-    its renders and its BRT verdicts' `Fidelity`."""
+    ``variant`` names a robust solve of it in the grid column; ``trajectory_cost()``
+    the frames per label read along runs). Returns the map's name, its renders and its
+    BRT verdicts' `Fidelity`."""
     vf, grid = level.solution, level.table.grid
     values = vf.at(starts)
     audit_values = vf.at(audit)
     band, trusted, largest = audited_band(audit_values, audited.failed, band=args.band,
                                           band_factor=args.band_factor, max_band=args.max_band)
     rolled = hybrid_rolls_out(values, band if trusted else args.band, trusted)
+    audit_cost = np.sum(audited["ticks"]) / 1000
     sources = {
         "brt": (values <= 0, 0.0),
         "hybrid": (np.where(rolled, real, values <= 0),
-                   np.sum(frames[rolled]) / len(starts) + np.sum(audited["ticks"]) / 1000),
+                   np.sum(frames[rolled]) / len(starts) + audit_cost),
+        "hyb>traj": None,
         "rollout": (real, float(np.mean(frames)))}
+    sources["hyb>traj"] = (sources["hybrid"] if trusted
+                           else (real, audit_cost + trajectory_cost()))
     name = "x".join(map(str, grid.shape)) + f"/{pps}"
     if level.cells is not None:
         name = "x".join(map(str, grid.shape)) + f"r/{pps}"

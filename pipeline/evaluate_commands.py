@@ -6,7 +6,7 @@ import dataclasses as dc
 
 from reachwatch.systems import DetectorConfig, Environment, test_environments, training_environments
 from reachwatch.training.dataset import DatasetSpec
-from reachwatch.training.labels import LABEL_SOURCES, LabelSpec
+from reachwatch.training.labels import DISTRUSTED_CHOICES, LABEL_SOURCES, LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.evaluation import markdown_table
 from reachwatch.training.incremental import IncrementalConfig
@@ -61,6 +61,9 @@ def add_parsers(sub):
                    help="label source: the BRT, the real loop from every state, rollouts "
                    "where the BRT is not trusted, or the real loop's runs and the states "
                    "they pass through (see the README)")
+    p.add_argument("--distrusted", choices=DISTRUSTED_CHOICES, default="rollout",
+                   help="with --labels hybrid: where the audit distrusts the map, roll out "
+                   "every sample it calls safe, or label by runs read along (trajectory)")
     p.add_argument("--check-starts", type=count, default=50, help="real-loop runs per "
                    "environment checking the BRT and the labels (0: no check)")
     p.add_argument("--max-box-exits", type=float, default=0.05, help="refuse BRT labels where "
@@ -78,7 +81,8 @@ def evaluate_command(args):
         train=[parse_environment(t) for t in args.train],
         test=[parse_environment(t) for t in args.test], grid=list(args.shape),
         dataset=DatasetSpec(samples=args.samples, seed=args.seed, height=height, width=width,
-                            labels=LabelSpec(source=args.labels)),
+                            labels=LabelSpec(source=args.labels,
+                                                distrusted=args.distrusted)),
         fidelity=FidelitySpec(starts=args.check_starts, max_box_exits=args.max_box_exits),
         detector=DetectorTrainConfig(detector=detector, epochs=args.epochs, seed=args.seed,
                                      threshold=args.threshold, target_recall=args.target_recall,

@@ -365,10 +365,15 @@ def test_evaluate_command_is_the_run_up_to_evaluate(tmp_path, capsys):
     assert main(["evaluate", "--train", "KMWH:9:clear", "--test", "KSFO:17:clear",
                  "--shape", "5", "3", "5", "--samples", "20", "--input-size", "24", "40",
                  "--epochs", "1", "--ensemble", "0", "--executor", "inline", "--check-starts", "0",
-                 "--out", str(tmp_path)]) == 0
+                 "--distrusted", "trajectory", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "| KSFO_17h_clear | detector (BRT labels) | brt | all | 20 |" in out
     assert "| KSFO_17h_clear | detector (BRT labels) | brt | not yet failed |" in out
+    # then Table 2 against the target, one row per held-out group and subset
+    assert "against the target (recall >= 95.00%, accuracy >= 95.00%" in out
+    assert "| listed | brt | all | 1 |" in out and "| listed | brt | not yet failed | 1 |" in out
+    # the label options reach the run file (BRT labels read neither)
+    assert "distrusted: trajectory" in (tmp_path / "run.yaml").read_text()
     assert (tmp_path / "table2.csv").is_file() and (tmp_path / "stages" / "evaluate.json").is_file()
     assert not (tmp_path / "stages" / "guard_KSFO_17h_clear.json").exists()
 
