@@ -224,14 +224,12 @@ def score(env, level, pps, starts, audit, audited, real, frames, args, trajector
                                           band_factor=args.band_factor, max_band=args.max_band)
     rolled = hybrid_rolls_out(values, band if trusted else args.band, trusted)
     audit_cost = np.sum(audited["ticks"]) / 1000
+    hybrid = (np.where(rolled, real, values <= 0), np.sum(frames[rolled]) / len(starts) + audit_cost)
     sources = {
         "brt": (values <= 0, 0.0),
-        "hybrid": (np.where(rolled, real, values <= 0),
-                   np.sum(frames[rolled]) / len(starts) + audit_cost),
-        "hyb>traj": None,
+        "hybrid": hybrid,
+        "hyb>traj": hybrid if trusted else (real, audit_cost + trajectory_cost()),
         "rollout": (real, float(np.mean(frames)))}
-    sources["hyb>traj"] = (sources["hybrid"] if trusted
-                           else (real, audit_cost + trajectory_cost()))
     name = "x".join(map(str, grid.shape)) + f"/{pps}"
     if level.cells is not None:
         name = "x".join(map(str, grid.shape)) + f"r/{pps}"

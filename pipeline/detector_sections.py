@@ -73,19 +73,6 @@ def target_table(summary):
          s["worst"]] for s in summary]
 
 
-def target_markdown(rows, groups, config) -> str:
-    """The target table (`target_table`) as Markdown, for the console; empty when
-    ``rows`` hold no detector rows."""
-    summary = target_summary(rows, groups, recall=config.judged_recall, accuracy=TARGET_ACCURACY)
-    if not summary:
-        return ""
-    header, body = target_table(summary)
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in body]
-    return (f"against the target (recall >= {percent_text(config.judged_recall)}%, accuracy >= "
-            f"{percent_text(TARGET_ACCURACY)}%; min / median per group):\n" + "\n".join(lines) + "\n")
-
-
 def target_section(page, rows, groups, config):
     """Table 2 against the target, before the per-environment rows: for each group of
     held-out environments (``groups``: {name: environment names}), label source and

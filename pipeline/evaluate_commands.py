@@ -12,9 +12,10 @@ from reachwatch.training.evaluation import markdown_table
 from reachwatch.training.incremental import IncrementalConfig
 
 from .console import log
-from .detector_sections import target_markdown
+from .detector_sections import target_section
 from .commands import count, positive_int, scenario_from_args
 from .executors import open_executor
+from .report import Page
 from .run import run_pipeline
 from .spec import EnsembleSpec, FidelitySpec, RunSpec
 
@@ -94,8 +95,9 @@ def evaluate_command(args):
         run = run_pipeline(spec, args.out, executor=executor, until="evaluate")
     rows = run.outputs["evaluate"]["rows"]
     log.info(markdown_table(rows))
-    summary = target_markdown(rows, spec.held_out_groups(), spec.detector)
-    if summary:
-        log.info(summary)
+    page = Page("target")               # the report's own table, printed as Markdown
+    target_section(page, rows, spec.held_out_groups(), spec.detector)
+    if page.md[1:]:                     # after the page's title
+        log.info("\n".join(page.md[1:]))
     log.info(f"wrote {args.out}/table2.md, table2.csv and figures/ "
           f"(configuration: {dc.asdict(spec.dataset)}, detector {dc.asdict(detector)})")

@@ -370,7 +370,7 @@ def test_evaluate_command_is_the_run_up_to_evaluate(tmp_path, capsys):
     assert "| KSFO_17h_clear | detector (BRT labels) | brt | all | 20 |" in out
     assert "| KSFO_17h_clear | detector (BRT labels) | brt | not yet failed |" in out
     # then Table 2 against the target, one row per held-out group and subset
-    assert "against the target (recall >= 95.00%, accuracy >= 95.00%" in out
+    assert "against the target of recall >= 95.00% and accuracy >= 95.00%" in out
     assert "| listed | brt | all | 1 |" in out and "| listed | brt | not yet failed | 1 |" in out
     # the label options reach the run file (BRT labels read neither)
     assert "distrusted: trajectory" in (tmp_path / "run.yaml").read_text()
