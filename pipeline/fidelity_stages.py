@@ -79,59 +79,79 @@ def label_verdicts(labels: dict, band: float, values, real_failed) -> np.ndarray
 
 
 def fidelity_env(run: Run, env) -> dict:
-    """Real-loop outcomes from ``run.spec.fidelity.starts`` starts and the BRT, the
-    table rollouts and (for train/test environments) the labels compared with them."""
+    """Real-loop outcomes from ``run.spec.fidelity.starts`` starts (``more_starts``
+    where those find the BRT or the labels wrong) and the BRT, the table rollouts and
+    (for train/test environments) the labels compared with them."""
     spec, check = run.spec, run.spec.fidelity
     scenario, grid = run.scenario_for(env), run.grid_for(env)
     vf = run.value_function(env.name)
-    starts = on_runway_starts(grid, check.starts, check.seed, half_width=env.half_width)
+    labels = run.outputs.get("dataset", {}).get("labels", {}).get(env.name)
+    band = spec.dataset_spec_for(env).labels.band
+
+    def real(states):
+        # box exits are counted against the solved box (wider than the paper's if asked)
+        return real_outcomes(scenario, states, grid=run.solved_grid_for(env),
+                             duration=spec.horizon, cache_dir=run.path("outcomes"),
+                             executor=run.executor, progress=run.progress).fields
+
+    def any_wrong(states, failed):
+        wrong = vf.in_brt(states) != failed
+        if labels:
+            wrong |= label_verdicts(labels, band, vf.at(states), failed) != failed
+        return bool(wrong.any())
+
     started = time.time()
-    # box exits are counted against the solved box (wider than the paper's if asked)
-    outcomes = real_outcomes(scenario, starts, grid=run.solved_grid_for(env), duration=spec.horizon,
-                             cache_dir=run.path("outcomes"), executor=run.executor,
-                             progress=run.progress)
+    starts = on_runway_starts(grid, check.starts, check.seed, half_width=env.half_width)
+    outcomes = real(starts)
+    extended = bool(check.more_starts) and any_wrong(starts, outcomes["failed"].astype(bool))
+    if extended:      # the same draw, longer: its first rows are the runs above
+        more = on_runway_starts(grid, check.more_starts, check.seed,
+                                half_width=env.half_width)[check.starts:]
+        extra = real(more)
+        starts = np.concatenate([starts, more])
+        outcomes = {k: np.concatenate([outcomes[k], extra[k]]) for k in outcomes}
     seconds = time.time() - started
-    real = outcomes.failed
+    real_failed = outcomes["failed"].astype(bool)
     predicted = vf.in_brt(starts)
     solved_grid, steering = run.steering_table(env)
     lowest, table_left = min_target_along_rollouts(
         solved_grid, dynamics_for(scenario), steering, starts, horizon=spec.horizon,
         hold=scenario.controller.period, box_axes=OPEN_AXES)
     table_fails = lowest <= 0
-    out = {"starts": int(check.starts), "seed": int(check.seed),
-           "brt": compare_verdicts(predicted, real, outcomes["left_box"]).as_dict(),
-           "table_rollouts": compare_verdicts(table_fails, real, table_left).as_dict(),
+    out = {"starts": int(len(starts)), "seed": int(check.seed),
+           "brt": compare_verdicts(predicted, real_failed, outcomes["left_box"]).as_dict(),
+           "table_rollouts": compare_verdicts(table_fails, real_failed, table_left).as_dict(),
            "brt_vs_table_rollouts": float(np.mean(predicted == table_fails)),
            "real_max_abs_theta_deg": np.percentile(np.rad2deg(outcomes["max_abs_theta"]),
                                                    [50, 90, 100]).round(1).tolist(),
            "frames": int(np.sum(outcomes["ticks"])), "seconds": round(seconds, 1)}
-    labels = run.outputs.get("dataset", {}).get("labels", {}).get(env.name)
+    if check.more_starts:
+        out["extended"] = extended
     if labels:
-        band = spec.dataset_spec_for(env).labels.band
-        verdicts = label_verdicts(labels, band, vf.at(starts), real)
+        verdicts = label_verdicts(labels, band, vf.at(starts), real_failed)
         audit = labels.get("audit") or {}
         out["labels"] = {"source": labels["source"], "map_trusted": audit.get("map_trusted"),
                          "band": audit.get("band", band) if audit else None,
                          "labelled_by": labels.get("labelled_by"),
-                         **compare_verdicts(verdicts, real, outcomes["left_box"]).as_dict()}
+                         **compare_verdicts(verdicts, real_failed, outcomes["left_box"]).as_dict()}
         if labels.get("counts", {}).get("path"):       # trajectory labels, or paths: N
-            out["path_labels"] = check_path_labels(run, env)
+            out["path_labels"] = check_path_labels(run, env, len(starts))
     return out
 
 
-def check_path_labels(run: Run, env) -> dict:
+def check_path_labels(run: Run, env, count: int) -> dict:
     """The labels read along runs (``trajectory`` labels, or ``paths``), checked where
-    they could be wrong: ``fidelity.starts`` of the dataset's states that runs passed
-    through (drawn with ``fidelity.seed``), each run again from scratch for the horizon
-    and compared with its label. `Fidelity.as_dict`, or ``{}`` when the dataset has no
-    such states."""
+    they could be wrong: ``count`` of the dataset's states that runs passed through
+    (drawn with ``fidelity.seed``; as many as the environment's check has starts), each
+    run again from scratch for the horizon and compared with its label.
+    `Fidelity.as_dict`, or ``{}`` when the dataset has no such states."""
     check = run.spec.fidelity
     data = load_dataset(run.path(run.outputs["dataset"]["folders"][env.name]))
     along = np.flatnonzero(data.sources == SOURCE_PATH)
     if len(along) == 0:
         return {}
     rows = np.sort(np.random.default_rng(check.seed).choice(
-        along, size=min(check.starts, len(along)), replace=False))
+        along, size=min(count, len(along)), replace=False))
     states = np.asarray(data.states[rows], float)
     outcomes = real_outcomes(run.scenario_for(env), states, grid=run.solved_grid_for(env),
                              duration=run.spec.horizon, cache_dir=run.path("outcomes"),
@@ -149,7 +169,7 @@ def stage_fidelity(run: Run) -> dict:
         return out
     folders = run.outputs.get("dataset", {}).get("folders", {})
     for env in run.environments():
-        key = digest(run.records[f"solve_{env.name}"]["key"], check, folders.get(env.name))
+        key = digest(run.records[f"solve_{env.name}"]["key"], check.key(), folders.get(env.name))
         out[env.name] = run.stage(f"fidelity_{env.name}", key,
                                   lambda env=env: fidelity_env(run, env))
     check_box_exits(out, check.max_box_exits)

@@ -70,10 +70,27 @@ class FidelitySpec:
     """The check of every environment against the real Drake loop: ``starts`` seeded
     uniform on-runway starts each (0 = no check; each costs up to horizon / period
     renders), and the share of real runs leaving the solved box above which BRT
-    labels are refused (``max_box_exits``)."""
+    labels are refused (``max_box_exits``).
+
+    ``more_starts`` (0 = never): where the first ``starts`` runs find the BRT or the
+    labels wrong at least once, the check goes on to this many starts (the same seeded
+    draw, so the first ``starts`` are the same runs), putting the renders where the
+    verdicts are in doubt: a narrow interval where the map errs (at night), ``starts``
+    runs where it does not. The extension depends on what the first runs found, so
+    an extended environment's rates lean slightly towards error; the report says which
+    environments were extended."""
     starts: int = 50
     seed: int = 1000
     max_box_exits: float = 0.05
+    more_starts: int = 0
+
+    def key(self) -> dict:
+        """What the fidelity stage's key reads: every field, ``more_starts`` only when
+        set (adding it moved no existing check)."""
+        fields = dc.asdict(self)
+        if not self.more_starts:
+            fields.pop("more_starts")
+        return fields
 
 
 @dc.dataclass
@@ -227,6 +244,12 @@ class RunSpec:
                 or self.fidelity.starts < 0:
             raise ValueError(f"fidelity.starts must be a whole number >= 0, got "
                              f"{self.fidelity.starts!r}")
+        more = self.fidelity.more_starts
+        if isinstance(more, bool) or not isinstance(more, int) or more < 0 \
+                or (more and more <= self.fidelity.starts):
+            raise ValueError(f"fidelity.more_starts must be 0 (never extend the check) or a "
+                             f"whole number above fidelity.starts ({self.fidelity.starts}), "
+                             f"got {more!r}")
         if not 0 <= self.fidelity.max_box_exits <= 1:
             raise ValueError(f"fidelity.max_box_exits must be a fraction in [0, 1], got "
                              f"{self.fidelity.max_box_exits!r}")

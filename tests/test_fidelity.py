@@ -153,3 +153,83 @@ def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
         check_box_exits(results, 0.05)
     check_box_exits(results, 0.3)                     # at the limit: accepted
     check_box_exits({k: results[k] for k in "BCD"}, 0.05)
+
+
+def test_the_check_extends_to_more_starts_only_where_its_first_runs_find_a_wrong_verdict(
+        tmp_path, monkeypatch):
+    """``fidelity.more_starts``: an environment whose first ``starts`` runs all agree
+    with the map keeps them; one where a run contradicts it is checked on the longer
+    draw, whose first rows are the same runs (the fake loop counts what it is asked)."""
+    import copy
+    import types
+
+    from reachwatch.pipeline import fidelity_stages
+    from reachwatch.pipeline.spec import FidelitySpec, digest, load_run_spec
+    from reachwatch.reach.outcomes import Outcomes
+
+    spec = load_run_spec(data="""
+name: extend
+train: [{runway: KMWH, hour: 9.0, sky: clear}]
+test: [{runway: KSFO, hour: 21.0, sky: clear}]
+grid: [5, 3, 5]
+horizon: 2.0
+fidelity: {starts: 4, more_starts: 10}
+""")
+    asked = []
+
+    def fake_real_outcomes(scenario, states, **kw):      # fails where |px| >= the env's edge
+        asked.append(np.array(states))
+        edge = 5.0 if scenario.environment.name.startswith("KMWH") else 0.0
+        failed = np.abs(states[:, 0]) >= edge
+        n = len(states)
+        return Outcomes({"failed": failed, "left_box": np.zeros(n, bool),
+                         "max_abs_theta": np.zeros(n), "ticks": np.full(n, 7)}, key="fake")
+    monkeypatch.setattr(fidelity_stages, "real_outcomes", fake_real_outcomes)
+
+    class Map:                                           # the BRT: |px| >= 5 m fails
+        def at(self, states):
+            return 5.0 - np.abs(np.asarray(states)[:, 0])
+
+        def in_brt(self, states):
+            return self.at(states) <= 0
+
+    def scenario_for(env):
+        scenario = copy.deepcopy(spec.scenario)
+        scenario.environment = env
+        return scenario
+    solved = paper_grid(11.0, (3, 3, 3), theta_deg=70.0, py_max=290.0)
+    run = types.SimpleNamespace(
+        spec=spec, outputs={"dataset": {"labels": {}}}, executor=None, progress=False,
+        scenario_for=scenario_for, path=lambda p: tmp_path / p,
+        grid_for=lambda env: paper_grid(env.half_width, (5, 3, 5)),
+        solved_grid_for=lambda env: solved, value_function=lambda name: Map(),
+        steering_table=lambda env: (solved, np.zeros((3, 3, 3, 1))))
+
+    right = fidelity_stages.fidelity_env(run, spec.train[0])        # the map is the loop
+    assert (right["starts"], right["brt"]["n"], right["extended"]) == (4, 4, False)
+    assert right["frames"] == 4 * 7 and len(asked) == 1
+
+    asked.clear()
+    env = spec.test[0]
+    wrong = fidelity_stages.fidelity_env(run, env)      # every start fails: the map errs
+    draw = on_runway_starts(paper_grid(env.half_width, (5, 3, 5)), 10, 1000,
+                            half_width=env.half_width)
+    assert [len(a) for a in asked] == [4, 6]                          # 4 runs, then 6 more
+    np.testing.assert_array_equal(np.concatenate(asked), draw)
+    assert (wrong["starts"], wrong["brt"]["n"], wrong["table_rollouts"]["n"]) == (10, 10, 10)
+    assert wrong["extended"] and wrong["frames"] == 10 * 7
+    assert wrong["brt"]["false_safe"] == int(np.sum(np.abs(draw[:, 0]) < 5.0))
+
+    # unset, it leaves the stage's key as it was before the field existed
+    assert digest(FidelitySpec(starts=50).key()) == digest(
+        {"starts": 50, "seed": 1000, "max_box_exits": 0.05})
+    assert digest(FidelitySpec(starts=50, more_starts=200).key()) != digest(FidelitySpec(starts=50).key())
+    for bad, why in ((4, "must be 0 .* above fidelity.starts"), (2, "above"), (-1, "above"),
+                     (True, "expected int")):
+        with pytest.raises(ValueError, match=f"fidelity.more_starts.*{why}"):
+            load_run_spec(data=f"""
+name: extend
+train: [{{runway: KMWH, hour: 9.0, sky: clear}}]
+test: [{{runway: KSFO, hour: 21.0, sky: clear}}]
+fidelity: {{starts: 4, more_starts: {str(bad).lower()}}}
+""")
