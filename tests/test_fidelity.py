@@ -220,6 +220,16 @@ fidelity: {starts: 4, more_starts: 10}
     assert wrong["extended"] and wrong["frames"] == 10 * 7
     assert wrong["brt"]["false_safe"] == int(np.sum(np.abs(draw[:, 0]) < 5.0))
 
+    # the report says how many starts and which environments were extended
+    from reachwatch.pipeline.report import Page, fidelity_section
+    page = Page("t")
+    run.outputs["fidelity"] = {spec.train[0].name: right, env.name: wrong}
+    fidelity_section(page, run, {})
+    md = "".join(page.md)
+    assert "from 4 seeded uniform on-runway starts per environment, 10 where the first 4 " \
+        "found the BRT or the labels wrong (fidelity.more_starts; here KSFO_21h_clear:" in md
+    assert f"| {env.name} | extra | 10 |" in md and f"| {spec.train[0].name} | extra | 4 |" in md
+
     # unset, it leaves the stage's key as it was before the field existed
     assert digest(FidelitySpec(starts=50).key()) == digest(
         {"starts": 50, "seed": 1000, "max_box_exits": 0.05})
