@@ -1,13 +1,19 @@
 """Static checks over every Python file of the repository: pyflakes' rules (undefined
 names, unused imports and variables, redefinitions) through flake8, which honours
 ``# noqa`` on the imports kept on purpose. The benchmarks run in no other test, so this
-is what catches a benchmark that still calls a function a refactor renamed."""
+is what catches a benchmark that still calls a function a refactor renamed; each one's
+``--help`` catches one that imports a name that no longer exists (flake8 cannot)."""
 
+import runpy
 import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS = ROOT / "benchmarks"
+SCRIPTS = sorted(p.name for p in BENCHMARKS.glob("*.py") if p.name != "guard_common.py")
 CHECKED = ("systems", "diagrams", "reach", "taxi", "training", "pipeline", "benchmarks",
            "examples", "tests")
 
@@ -30,3 +36,19 @@ def test_the_check_sees_an_undefined_name(tmp_path):
                       "    return Grid, solve_brt_renamed()\n")
     done = flake8(script)
     assert done.returncode == 1 and "undefined name 'solve_brt_renamed'" in done.stdout, done.stdout
+
+
+def test_every_benchmark_is_checked_here():
+    assert len(SCRIPTS) >= 13 and "fidelity.py" in SCRIPTS and "online.py" in SCRIPTS
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_every_benchmark_imports_and_explains_its_options(script, monkeypatch, capsys):
+    """Each benchmark run as a script with ``--help``: its imports resolve (a name a
+    refactor removed fails here) and it prints its usage instead of starting work."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))          # guard_common, as the script sees it
+    monkeypatch.setattr(sys, "argv", [script, "--help"])
+    with pytest.raises(SystemExit) as done:
+        runpy.run_path(str(BENCHMARKS / script), run_name="__main__")
+    assert done.value.code == 0
+    assert "usage:" in capsys.readouterr().out
