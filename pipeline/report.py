@@ -148,10 +148,14 @@ def fidelity_section(page, run: Run, roles):
         page.text("The labels of the datasets against the same real runs: where the "
                   "labelling rule rolls out, the label is the real outcome; elsewhere it is "
                   "the BRT's verdict.")
+        made = run.outputs.get("dataset", {}).get("labels", {})
+        page.text("Label renders: the frames the real loop rendered to label the dataset "
+                  "(audit, rollouts, runs read along), over its labels.")
         page.table(["environment", "label source", "hybrid's audit", "agreement",
-                    "false-safe", "false-unsafe"],
+                    "false-safe", "false-unsafe", "labels", "label renders", "renders per label"],
                    [[n, r["source"], _audit_text(r), _rate(r, "agree"), _rate(r, "false_safe"),
-                     _rate(r, "false_unsafe")] for n, r in labelled.items()])
+                     _rate(r, "false_unsafe"), *label_renders(made.get(n, {}))]
+                    for n, r in labelled.items()])
     along = {n: r["path_labels"] for n, r in results.items() if r.get("path_labels")}
     if along:
         page.text("The labels read along runs (trajectory labels, or dataset.labels.paths), "
@@ -160,6 +164,19 @@ def fidelity_section(page, run: Run, roles):
         page.table(["environment", "states", "agreement", "false-safe", "false-unsafe"],
                    [[n, r["n"], _rate(r, "agree"), _rate(r, "false_safe"),
                      _rate(r, "false_unsafe")] for n, r in along.items()])
+
+
+def label_renders(info) -> list:
+    """``[labels, frames, frames per label]`` of a dataset's label record (its manifest's
+    ``labels`` with ``counts``): the frames its labelling rendered, the audit's, the
+    rollouts', the trajectory runs' and the read-along paths' together ("-" where
+    unknown)."""
+    labels = sum((info.get("counts") or {}).values())
+    if not labels:
+        return ["-", "-", "-"]
+    frames = (int(info.get("rollout_frames", 0)) + int(info.get("audit_frames", 0)) +
+              int((info.get("paths") or {}).get("frames", 0)))
+    return [labels, frames, f"{frames / labels:.1f}"]
 
 
 def _audit_text(record):

@@ -142,6 +142,17 @@ def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
     assert _audit_text({"map_trusted": False, "labelled_by": "trajectory"}) == \
         "map not trusted: trajectory labels"
     assert _audit_text({"map_trusted": False, "labelled_by": None}) == "map not trusted"
+    # what each environment's labels cost: a trusted hybrid's rollout frames hold its
+    # audit's; a fallback adds the audit to its trajectory runs; paths add their own
+    from reachwatch.pipeline.report import label_renders
+    counts = {"brt": 700, "rollout": 300, "path": 0}
+    assert label_renders({"source": "brt", "counts": counts}) == [1000, 0, "0.0"]
+    assert label_renders({"source": "hybrid", "rollout_frames": 37440, "counts": counts}) == \
+        [1000, 37440, "37.4"]
+    assert label_renders({"source": "hybrid", "labelled_by": "trajectory", "audit_frames": 8000,
+                          "rollout_frames": 22000, "paths": {"frames": 500},
+                          "counts": {"rollout": 100, "path": 900}}) == [1000, 30500, "30.5"]
+    assert label_renders({}) == ["-", "-", "-"]
     # the band the audit widened to (recorded in the manifest) wins over the run file's
     np.testing.assert_array_equal(label_verdicts(labels("hybrid", map_trusted=True, band=3.5), 2.0,
                                                  values, real), [True, True, True, False])

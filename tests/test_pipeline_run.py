@@ -222,6 +222,8 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     assert check["labels"]["source"] == "brt" and check["labels"]["agree"] == check["brt"]["agree"]
     assert "labels" not in fidelity["KMWH_17h_clear"]          # incremental only: no dataset
     assert "Fidelity against the real Drake loop" in md and "false-safe" in md
+    label_row = next(r for r in md.splitlines() if r.startswith("| KSFO_17h_clear | brt | - |"))
+    assert label_row.endswith("| 40 | 0 | 0.0 |")             # BRT labels render nothing
     # the guard's failure set beside its Monte-Carlo estimate from the real runs
     real = check["brt"]["real_failures"]
     assert ("The controller alone in the real loop, from 3 random on-runway starts" in md
