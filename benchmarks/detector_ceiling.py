@@ -41,7 +41,7 @@ from reachwatch.pipeline.spec import digest, load_run_spec
 from reachwatch.pipeline.stages import Run
 from reachwatch.reach.value_function import ValueFunction
 from reachwatch.taxi.fidelity import path_points, real_paths
-from reachwatch.training.dataset import build_dataset, load_dataset
+from reachwatch.training.dataset import build_dataset, load_dataset, runs_cache
 from reachwatch.training.detector_train import detector_scores, train_detector
 from reachwatch.training.metrics import accuracy_at_recall, auroc, binary_metrics
 
@@ -92,7 +92,7 @@ def time_to_failure(data, scenario, value_function, runs_count):
     labels = data.manifest["spec"]["labels"]
     out = real_paths(scenario, np.asarray(data.states[:runs_count]), grid=value_function.grid,
                      horizon=value_function.horizon, extend=labels["extend"],
-                     stride=labels["stride"], cache_dir=data.folder / "rollouts",
+                     stride=labels["stride"], cache_dir=runs_cache(data.folder),
                      progress=False).fields
     ticks = path_points(value_function.horizon, labels["extend"], labels["stride"],
                         scenario.controller.period) * scenario.controller.period

@@ -229,3 +229,14 @@ def test_hybrid_falls_back_to_trajectory_labels_where_its_audit_distrusts_the_ma
     for name in ("states", "labels", "sources", "runs"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
     assert (got.sources == SOURCE_PATH).any() and got.labels.sum() > 0
+
+    # other label settings make another dataset, from the same cached runs: its audit
+    # and trajectory runs are found in the root's shared cache, nothing is rendered
+    cache = tmp_path / "hybrid" / "rollouts"
+    chunks = sorted(p.relative_to(cache) for p in cache.rglob("*.npz"))
+    again = build(tmp_path / "hybrid", LabelSpec("hybrid", audit=10, band=0.5,
+                                                 distrusted="trajectory", distrusted_starts=10,
+                                                 extend=1.0, stride=5))
+    assert again.folder != got.folder and chunks
+    assert sorted(p.relative_to(cache) for p in cache.rglob("*.npz")) == chunks
+    np.testing.assert_array_equal(again.labels, got.labels)

@@ -14,7 +14,9 @@ int64, the real run each sample lies on (`NO_RUN` for one drawn on its own: samp
 of one run are near-copies, and `train_detector`'s validation split keeps them
 together); ``estimates.npy`` ``(N, k)``, the controller's
 ``estimate`` output (TaxiNet: [px_hat m, theta_hat deg]; k = 0 when it has none);
-``ensemble.npy`` ``(N, K, 2)``), and ``rollouts/``, the cached real-loop runs.
+``ensemble.npy`` ``(N, K, 2)``). The real-loop runs that labelled it are cached
+beside the datasets, in ``ROOT/rollouts/`` (`runs_cache`), keyed by content: a dataset
+whose label settings change renders again only the runs that differ.
 Filled chunk by chunk; the manifest records finished chunks and is replaced
 atomically, so an interrupted build resumes."""
 
@@ -132,24 +134,31 @@ def _estimator(controller):
     return (lambda images: np.stack([probe.outputs(image)[1] for image in images])), size
 
 
+def runs_cache(folder) -> Path:
+    """Where the real-loop runs labelling the dataset in ``folder`` are cached: shared by
+    every dataset under the same root (the cache is keyed by scenario and starts), so
+    one built again with other label settings reuses the runs it has in common, the
+    audit and the trajectory runs, instead of rendering them again."""
+    return Path(folder).parent / "rollouts"
+
+
 def _real_loop(scenario, value_function, states, folder: Path, progress):
     """``run_loop`` for `assign_labels`: the real closed loop from ``states[index]``,
-    cached under ``folder/rollouts``."""
+    cached in `runs_cache`."""
     def run_loop(index):
         outcome = real_outcomes(scenario, states[index], grid=value_function.grid,
-                                duration=value_function.horizon, cache_dir=folder / "rollouts",
+                                duration=value_function.horizon, cache_dir=runs_cache(folder),
                                 progress=progress)
         return outcome.failed, int(np.sum(outcome["ticks"]))
     return run_loop
 
 
 def _real_paths(scenario, value_function, labels: LabelSpec, folder: Path, progress):
-    """``run_paths`` for `trajectory_samples`: `real_paths` cached under
-    ``folder/rollouts``."""
+    """``run_paths`` for `trajectory_samples`: `real_paths` cached in `runs_cache`."""
     def run_paths(starts):
         return real_paths(scenario, starts, grid=value_function.grid,
                           horizon=value_function.horizon, extend=labels.extend,
-                          stride=labels.stride, cache_dir=folder / "rollouts",
+                          stride=labels.stride, cache_dir=runs_cache(folder),
                           progress=progress).fields
     return run_paths
 
