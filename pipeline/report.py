@@ -108,11 +108,11 @@ def fidelity_section(page, run: Run, roles):
                   "the BRT, the labels and the failure sets match what the real loop does.")
         return
     extended = [n for n, r in results.items() if r.get("extended")]
-    more = (f", {spec.fidelity.more_starts} where the first {spec.fidelity.starts} found the "
-            "BRT or the labels wrong (fidelity.more_starts; here " +
-            (", ".join(extended) if extended else "none") + ": their rates lean slightly "
-            "towards error, the extension having been chosen by it)"
-            if spec.fidelity.more_starts else "")
+    more = "" if not spec.fidelity.more_starts else (
+        f", {spec.fidelity.more_starts} where the first {spec.fidelity.starts} found the BRT or "
+        "the labels wrong (fidelity.more_starts; " + (
+            f"here {', '.join(extended)}: their rates lean slightly towards error, the "
+            "extension having been chosen by it)" if extended else "none was)"))
     page.text(f"The real closed loop (rendering and the controller at every tick) from "
               f"{spec.fidelity.starts} seeded uniform on-runway starts per environment{more} "
               f"(|px| < B; starts already off the runway agree with any BRT), run for "

@@ -240,6 +240,10 @@ fidelity: {starts: 4, more_starts: 10}
     assert "from 4 seeded uniform on-runway starts per environment, 10 where the first 4 " \
         "found the BRT or the labels wrong (fidelity.more_starts; here KSFO_21h_clear:" in md
     assert f"| {env.name} | extra | 10 |" in md and f"| {spec.train[0].name} | extra | 4 |" in md
+    run.outputs["fidelity"] = {spec.train[0].name: right}
+    page = Page("t")
+    fidelity_section(page, run, {})
+    assert "the BRT or the labels wrong (fidelity.more_starts; none was) (|px| < B" in "".join(page.md)
 
     # unset, it leaves the stage's key as it was before the field existed
     assert digest(FidelitySpec(starts=50).key()) == digest(
