@@ -4,6 +4,7 @@ outputs (paths relative to the run directory); `Run.stage` skips a stage whose k
 (a digest of its inputs) matches its record. The heavy work inside a stage is
 itself chunked and cached by content, so a killed stage resumes where it stopped."""
 
+import concurrent.futures as cf
 import copy
 import dataclasses as dc
 import datetime
@@ -251,6 +252,11 @@ def stage_dataset(run: Run) -> dict:
         _build, str(run.path("datasets")), run.scenario_for(e),
         str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset_spec_for(e),
         [str(p) for p in ensemble], run.progress, _label_box(run, e)) for e in envs}
+    bar = run.bar()                  # hours at study scale: how many environments are done
+    finished = cf.as_completed(futures.values())
+    for _ in (bar(finished, total=len(futures), desc="datasets", unit="environment")
+              if bar else finished):
+        pass
     folders = {name: run.rel(f.result()) for name, f in futures.items()}
     data = {name: load_dataset(run.path(f)) for name, f in folders.items()}
     return {"ensemble": [run.rel(p) for p in ensemble], "folders": folders,
