@@ -74,6 +74,14 @@ def add_parsers(sub):
     p.set_defaults(func=evaluate_command)
 
 
+def target_text(rows, groups, config) -> str:
+    """The report's Table 2 against the target (`target_section`) as Markdown for the
+    console; empty when ``rows`` hold no detector rows."""
+    page = Page("target")
+    target_section(page, rows, groups, config)
+    return "\n".join(page.md[1:])          # after the page's title
+
+
 def evaluate_command(args):
     height, width = args.input_size
     detector = DetectorConfig(arch=args.arch, height=height, width=width)
@@ -95,9 +103,8 @@ def evaluate_command(args):
         run = run_pipeline(spec, args.out, executor=executor, until="evaluate")
     rows = run.outputs["evaluate"]["rows"]
     log.info(markdown_table(rows))
-    page = Page("target")               # the report's own table, printed as Markdown
-    target_section(page, rows, spec.held_out_groups(), spec.detector)
-    if page.md[1:]:                     # after the page's title
-        log.info("\n".join(page.md[1:]))
+    target = target_text(rows, spec.held_out_groups(), spec.detector)
+    if target:
+        log.info(target)
     log.info(f"wrote {args.out}/table2.md, table2.csv and figures/ "
           f"(configuration: {dc.asdict(spec.dataset)}, detector {dc.asdict(detector)})")

@@ -305,8 +305,7 @@ def test_target_summary_counts_environments_on_target_by_group_with_known_answer
 
 
 def test_target_section_writes_the_target_rows_the_console_prints():
-    from reachwatch.pipeline.detector_sections import target_section
-    from reachwatch.pipeline.report import Page
+    from reachwatch.pipeline.evaluate_commands import target_text
     from reachwatch.training.detector_train import DetectorTrainConfig
 
     def row(env, method, tp, fp, fn, tn, auroc):
@@ -316,19 +315,14 @@ def test_target_section_writes_the_target_rows_the_console_prints():
                 "recall": tp / (tp + fn), "accuracy": (tp + tn) / n, "auroc": auroc,
                 "accuracy_at_target_recall": 0.9}
 
-    def target_markdown(rows, groups, config):
-        page = Page("t")
-        target_section(page, rows, groups, config)
-        return "\n".join(page.md[1:])
-
     rows = [row("A", "det", 20, 2, 0, 78, 0.99), row("A", "base", 10, 10, 10, 70, 0.8),
             row("B", "det", 10, 0, 10, 80, 0.97), row("B", "base", 10, 10, 10, 70, 0.7)]
-    text = target_markdown(rows, {"listed": ["A"], "random, seed 1": ["B"]},
+    text = target_text(rows, {"listed": ["A"], "random, seed 1": ["B"]},
                            DetectorTrainConfig(target_recall=0.9))
     assert "recall >= 90.00% and accuracy >= 95.00%" in text
     assert ("| listed | brt | all | 1 | 100.00 / 100.00 | 98.00 / 98.00 | 99.00 / 99.00 | "
             "90.00 / 90.00 | 22.00 / 22.00 | 1 of 1 | 1 of 1 | 1 of 1 | A |") in text
     assert "| random, seed 1 | brt | all | 1 | 50.00 / 50.00 | 90.00 / 90.00 |" in text
     # a fixed threshold (target_recall 0) is judged at 95 % recall
-    assert "recall >= 95.00%" in target_markdown(rows, {"listed": ["A"]}, DetectorTrainConfig())
-    assert target_markdown([], {"listed": ["A"]}, DetectorTrainConfig()) == ""
+    assert "recall >= 95.00%" in target_text(rows, {"listed": ["A"]}, DetectorTrainConfig())
+    assert target_text([], {"listed": ["A"]}, DetectorTrainConfig()) == ""
