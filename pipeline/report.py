@@ -9,6 +9,7 @@ from reachwatch.diagrams.contact_sheet import environment_sheet
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.reach import wilson_interval
 from reachwatch.training.evaluation import COLUMNS, format_cell
+from reachwatch.training.dataset import label_frames
 
 from .brt_stages import sweep_rate
 from .detector_sections import (detector_verdicts, percent_text as _pct, target_section,
@@ -168,14 +169,12 @@ def fidelity_section(page, run: Run, roles):
 
 def label_renders(info) -> list:
     """``[labels, frames, frames per label]`` of a dataset's label record (its manifest's
-    ``labels`` with ``counts``): the frames its labelling rendered, the audit's, the
-    rollouts', the trajectory runs' and the read-along paths' together ("-" where
+    ``labels`` with ``counts``; frames as `label_frames` counts them; "-" where
     unknown)."""
     labels = sum((info.get("counts") or {}).values())
     if not labels:
         return ["-", "-", "-"]
-    frames = (int(info.get("rollout_frames", 0)) + int(info.get("audit_frames", 0)) +
-              int((info.get("paths") or {}).get("frames", 0)))
+    frames = label_frames(info)
     return [labels, frames, f"{frames / labels:.1f}"]
 
 

@@ -134,6 +134,14 @@ def _estimator(controller):
     return (lambda images: np.stack([probe.outputs(image)[1] for image in images])), size
 
 
+def label_frames(label_info) -> int:
+    """The frames the real loop rendered to label a dataset, from its manifest's
+    ``labels`` record: the rollouts' (a hybrid's include its audit), the audit's where
+    the hybrid fell back to trajectory labels, and the read-along paths'."""
+    return (int(label_info.get("rollout_frames", 0)) + int(label_info.get("audit_frames", 0)) +
+            int((label_info.get("paths") or {}).get("frames", 0)))
+
+
 def runs_cache(folder) -> Path:
     """Where the real-loop runs labelling the dataset in ``folder`` are cached: shared by
     every dataset under the same root (the cache is keyed by scenario and starts), so
