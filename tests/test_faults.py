@@ -20,12 +20,12 @@ from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.pipeline.brt_stages import sweep_rate
 from reachwatch.reach import InlineExecutor, Probe, default_executor, sweep
 from reachwatch.taxi import paper_grid
+from tiny_run import TINY
 
 TESTS = Path(__file__).resolve().parent
 FEEDBACK = Probe(plant="taxi_plant", control_port="p_controller.steering_angle",
                  extra_ports=("state_estimator.estimate",))
 
-TINY = (TESTS / "test_pipeline_run.py").read_text().split('TINY = """', 1)[1].split('"""', 1)[0]
 
 
 def _feedback_factory():
