@@ -232,11 +232,11 @@ def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario")
         raise ScenarioError(f"{where}: {e}") from None
     except Exception as e:  # PyYAML's or Drake's parser error
         raise ScenarioError(f"{where}: not valid YAML: {e}") from None
-    _check(raw if raw is not None else {}, schema, root)
-    scenario = yaml_load_typed(schema=schema, data=data) if raw else schema()
     try:
+        _check(raw if raw is not None else {}, schema, root)
+        scenario = yaml_load_typed(schema=schema, data=data) if raw else schema()
         return scenario.validate()
-    except ValueError as e:
+    except (ScenarioError, ValueError) as e:     # ScenarioError is a ValueError
         raise ScenarioError(f"{where}: {e}") from None
 
 

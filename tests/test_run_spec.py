@@ -61,6 +61,12 @@ def test_run_spec_file_errors(tmp_path):
     (tmp_path / "bad.yaml").write_text("train: [")
     with pytest.raises(ScenarioError, match="not valid YAML"):
         load_run_spec(tmp_path / "bad.yaml")
+    # every error names the file, also those of the schema's field and type checks
+    for edit in [("grid: [5, 3, 5]", "grids: [5, 3, 5]"), ("grid: [5, 3, 5]", "grid: [5, 3.5, 5]"),
+                 ("horizon: 4.0", "horizon: -4.0")]:
+        (tmp_path / "edited.yaml").write_text(TINY.replace(*edit))
+        with pytest.raises(ScenarioError, match=re.escape(f"{tmp_path / 'edited.yaml'}: ")):
+            load_run_spec(tmp_path / "edited.yaml")
 
 
 def test_shipped_run_files_load():
