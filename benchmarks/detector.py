@@ -36,7 +36,7 @@ def as_trained(model, config, frames_rgba):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=50)
     args = parser.parse_args()
     rng = np.random.default_rng(0)

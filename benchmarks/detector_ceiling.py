@@ -107,7 +107,7 @@ def time_to_failure(data, scenario, value_function, runs_count):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--run", required=True, type=Path,
                         help="a run directory with finished solve and train stages")
     parser.add_argument("--environment", help="an environment the run solved (default: its "

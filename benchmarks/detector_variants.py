@@ -157,7 +157,7 @@ def promise_line(name, chosen, results):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--run", required=True, type=Path, help="a finished run directory")
     parser.add_argument("--variants", default="all",
                         help=f"comma-separated names of {list(VARIANTS)}, or all")

@@ -13,7 +13,7 @@ def guard_parser(doc: str, *, fallbacks: str, starts: int, seed: int,
                  noise_seeds: int) -> argparse.ArgumentParser:
     """The options every guard benchmark takes, with its own defaults for ``--fallbacks``,
     ``--starts``, ``--seed`` and ``--noise-seeds``; add yours to the parser it returns."""
-    p = argparse.ArgumentParser(description=doc.splitlines()[0])
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     p.add_argument("--scenario", required=True, help="scenario file with a monitor")
     p.add_argument("--shape", type=int, nargs=3, default=[21, 11, 21])
     p.add_argument("--fallbacks", default=fallbacks, help="comma-separated fallback names")

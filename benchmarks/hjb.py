@@ -70,7 +70,7 @@ def solve_hj_reachability(grid, table, accuracy="very_high"):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--shape", type=int, nargs=3, default=[101, 101, 101])
     parser.add_argument("--rollouts", type=int, default=20000,
                         help="random grid nodes integrated for the agreement figures")

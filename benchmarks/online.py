@@ -26,7 +26,7 @@ from reachwatch.systems import DetectorConfig, build_detector
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--detector", help="a trained detector checkpoint")
     parser.add_argument("--duration", type=float, default=4.0, help="seconds simulated per round")
     parser.add_argument("--rounds", type=int, default=15, help="rounds (median ratio)")

@@ -51,7 +51,7 @@ def raw_fps(renderer, states, config):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument("--environment", default="KMWH")
     parser.add_argument("--seed", type=int, default=0)

@@ -24,7 +24,7 @@ def busy(ms):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=40)
     args = parser.parse_args()
     scenario = load_scenario(data="")

@@ -21,7 +21,7 @@ from reachwatch.taxi import paper_grid, sweep_closed_loop
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--shape", type=int, nargs=3, default=[9, 9, 9])
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--workers", action="store_true",

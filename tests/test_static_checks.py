@@ -4,6 +4,7 @@ names, unused imports and variables, redefinitions) through flake8, which honour
 is what catches a benchmark that still calls a function a refactor renamed; each one's
 ``--help`` catches one that imports a name that no longer exists (flake8 cannot)."""
 
+import ast
 import runpy
 import subprocess
 import sys
@@ -51,4 +52,9 @@ def test_every_benchmark_imports_and_explains_its_options(script, monkeypatch, c
     with pytest.raises(SystemExit) as done:
         runpy.run_path(str(BENCHMARKS / script), run_name="__main__")
     assert done.value.code == 0
-    assert "usage:" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "usage:" in out
+    # the description is the docstring's whole first paragraph, not a line cut mid-sentence
+    doc = ast.get_docstring(ast.parse((BENCHMARKS / script).read_text()))
+    # (compared without whitespace: argparse rewraps it, also after hyphens)
+    assert "".join(doc.split("\n\n")[0].split()) in "".join(out.split())
