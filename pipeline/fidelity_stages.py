@@ -132,6 +132,7 @@ def fidelity_env(run: Run, env) -> dict:
         audit = labels.get("audit") or {}
         out["labels"] = {"source": labels["source"], "map_trusted": audit.get("map_trusted"),
                          "band": audit.get("band", band) if audit else None,
+                         "audit_runs": audit.get("samples"),
                          "labelled_by": labels.get("labelled_by"),
                          **compare_verdicts(verdicts, real_failed, outcomes["left_box"]).as_dict()}
         if labels.get("counts", {}).get("path"):       # trajectory labels, or paths: N

@@ -182,11 +182,12 @@ def _audit_text(record):
     """What the hybrid's audit decided, for the label-fidelity table."""
     if record.get("map_trusted") is None:
         return "-"
+    runs = f" after {record['audit_runs']} runs" if record.get("audit_runs") else ""
     if record["map_trusted"]:
-        return f"map trusted, band {record['band']:.2f} m"
+        return f"map trusted{runs}, band {record['band']:.2f} m"
     if record.get("labelled_by") == "trajectory":
-        return "map not trusted: trajectory labels"
-    return "map not trusted"
+        return f"map not trusted{runs}: trajectory labels"
+    return f"map not trusted{runs}"
 
 
 def graphs(run: Run):

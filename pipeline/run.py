@@ -33,10 +33,10 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
         "sweep": lambda: stage_sweep(run),
         "solve": lambda: stage_solve(run),
         "dataset": lambda: run.stage("dataset", digest(
-            {n: r["value"] for n, r in run.outputs["solve"].items()}, spec.dataset,
+            {n: r["value"] for n, r in run.outputs["solve"].items()}, spec.dataset.key(),
             spec.ensemble, spec.scenario.camera,
             # only when set, so that runs without it keep their keys
-            *([spec.held_out_labels] if spec.held_out_labels is not None else [])),
+            *([spec.held_out_labels.key()] if spec.held_out_labels is not None else [])),
             lambda: stage_dataset(run)),
         "fidelity": lambda: stage_fidelity(run),
         "train": lambda: run.stage("train", digest(run.outputs["dataset"], spec.detector),

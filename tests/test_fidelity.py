@@ -142,6 +142,8 @@ def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
     assert _audit_text({"map_trusted": False, "labelled_by": "trajectory"}) == \
         "map not trusted: trajectory labels"
     assert _audit_text({"map_trusted": False, "labelled_by": None}) == "map not trusted"
+    assert _audit_text({"map_trusted": True, "band": 0.1, "audit_runs": 100}) == \
+        "map trusted after 100 runs, band 0.10 m"
     # what each environment's labels cost: a trusted hybrid's rollout frames hold its
     # audit's; a fallback adds the audit to its trajectory runs; paths add their own
     from reachwatch.pipeline.report import label_renders

@@ -1,6 +1,8 @@
 """Label sources: the BRT, the real loop from every state, and the hybrid that rolls
 out only where the map is not trusted."""
 
+import dataclasses as dc
+
 import numpy as np
 import pytest
 
@@ -159,3 +161,44 @@ def test_hybrid_falls_back_to_trajectory_labels_only_where_the_audit_distrusts_t
         LabelSpec("hybrid", distrusted="brt").validate()
     with pytest.raises(ValueError, match="distrusted_starts"):
         LabelSpec("hybrid", distrusted="trajectory", distrusted_starts=0).validate()
+
+
+def test_a_longer_audit_runs_in_batches_and_stops_where_the_map_is_caught():
+    """``more_audit``: a map whose one false-safe verdict (sample 7) lies past the
+    first batch is trusted by an audit of 3 and caught by one going on to 9, batch by
+    batch; the batches are the same index lists whatever ``more_audit`` is (so each
+    one's cached runs serve a longer audit), and a caught map stops the audit."""
+    values = np.full(12, 5.0)                    # all safe by the map, outside the band
+    on_runway = np.ones(12, bool)
+    truth = np.arange(12) == 7
+    short = FakeLoop(truth)
+    got = assign_labels(values, on_runway, LabelSpec("hybrid", audit=3, band=2.0), short)
+    assert short.calls == [[0, 1, 2]] and got[3]["audit"]["map_trusted"]
+    assert got[1][7] == 0                        # the short audit's label is wrong
+    long = FakeLoop(truth)
+    got = assign_labels(values, on_runway, LabelSpec("hybrid", audit=3, more_audit=9, band=2.0), long)
+    assert long.calls == [[0, 1, 2], [3, 4, 5], [6, 7, 8], [9, 10, 11]]  # 3 batches, the rest
+    assert got[3]["audit"] == {"samples": 9, "real_failures": 1, "false_safe": 1,
+                               "largest_error_m": 5.0, "map_trusted": False, "band": 2.0,
+                               "batches": 3}
+    np.testing.assert_array_equal(got[1], truth)
+    # trusted all the way: the last batch is cut at more_audit; the band's rollouts follow
+    right = FakeLoop(np.zeros(12, bool))
+    got = assign_labels(values, on_runway, LabelSpec("hybrid", audit=3, more_audit=7, band=2.0), right)
+    assert right.calls == [[0, 1, 2], [3, 4, 5], [6]]
+    assert got[3]["audit"]["map_trusted"] and got[3]["audit"]["samples"] == 7
+    # caught in the first batch: the audit stops there
+    early = FakeLoop(np.arange(12) == 1)
+    got = assign_labels(values, on_runway, LabelSpec("hybrid", audit=3, more_audit=9, band=2.0), early)
+    assert early.calls[0] == [0, 1, 2] and got[3]["audit"]["batches"] == 1
+    assert got[3]["audit"]["samples"] == 3
+
+
+def test_more_audit_is_validated_and_keys_only_when_set():
+    for bad in (dict(audit=3, more_audit=3), dict(audit=0, more_audit=5), dict(more_audit=-1)):
+        with pytest.raises(ValueError, match="more_audit"):
+            LabelSpec("hybrid", **bad).validate()
+    fields = {f.name for f in dc.fields(LabelSpec)}
+    assert set(LabelSpec("hybrid").key()) == fields - {"more_audit"}
+    assert LabelSpec("hybrid", more_audit=100).key()["more_audit"] == 100
+    assert DatasetSpec().key()["labels"] == LabelSpec().key()

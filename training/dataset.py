@@ -54,6 +54,10 @@ class DatasetSpec:
     chunk_size: int = 256
     labels: LabelSpec = dc.field(default_factory=LabelSpec)
 
+    def key(self) -> dict:
+        """What keys a dataset of this spec: every field, the labels' by `LabelSpec.key`."""
+        return {**dc.asdict(self), "labels": self.labels.key()}
+
     def validate(self, where="dataset"):
         for name, least in (("samples", 10), ("height", 16), ("width", 16), ("chunk_size", 1)):
             check_whole_number(f"{where}.{name}", getattr(self, name), least)
@@ -70,7 +74,7 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
                    box=None) -> Path:
     """The content-addressed folder of a dataset under ``root``."""
     scenario = resolved(scenario)
-    spec_parts = dc.asdict(spec)
+    spec_parts = spec.key()
     if not spec.labels.reads_along:
         for name in TRAJECTORY_FIELDS:
             spec_parts["labels"].pop(name)

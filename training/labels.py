@@ -80,11 +80,22 @@ class LabelSpec:
     included (`SOURCE_PATH`). With ``brt`` labels this puts true labels on the states the
     loop visits beside the map's labels on uniform ones.
 
+    ``more_audit`` (``hybrid`` only; 0 = off, else above ``audit``): an audit whose
+    first ``audit`` runs found the map right goes on, ``audit`` runs at a time, up to
+    ``more_audit`` runs, and stops at the first batch that finds a false-safe verdict
+    or widens the band past ``max_band``. No false-safe verdict in n runs bounds the
+    map's false-safe rate below ``1 - 0.05 ** (1 / n)`` with 95 % confidence: 5.8 % for
+    50 runs, 2.9 % for 100, 1.5 % for 200. (A night map with 4-6 % false-safe starts
+    passed an audit of 50 in the study.) Each batch is cached on its own, so raising
+    ``more_audit`` reuses the runs already made; a distrusted map stops the audit
+    early, so where maps are wrong it costs little more than ``audit`` runs.
+
     ``max_rollouts`` (0 = no cap) bounds the rollouts per environment: a dataset that
     would need more keeps only its first samples, as many as the cap allows (they are
     still uniform), and its manifest says how many it kept."""
     source: str = "brt"
     audit: int = 50
+    more_audit: int = 0
     band: float = 2.0
     band_factor: float = 2.0
     max_band: float = 6.0
@@ -107,10 +118,23 @@ class LabelSpec:
         datasets record each sample's run."""
         return self.source == "trajectory" or self.paths > 0 or self.falls_back_to_trajectory
 
+    def key(self) -> dict:
+        """What keys a dataset built with these labels: every field, ``more_audit`` only
+        when set (adding it moved no existing dataset)."""
+        fields = dc.asdict(self)
+        if not self.more_audit:
+            fields.pop("more_audit")
+        return fields
+
     def validate(self, where="dataset.labels"):
         if self.source not in LABEL_SOURCES:
             raise ValueError(f"{where}.source must be one of {LABEL_SOURCES}, got '{self.source}'")
         check_whole_number(f"{where}.audit", self.audit, 0)
+        check_whole_number(f"{where}.more_audit", self.more_audit, 0)
+        if self.more_audit and (self.audit < 1 or self.more_audit <= self.audit):
+            raise ValueError(f"{where}.more_audit must be 0 (an audit of {where}.audit runs) "
+                             f"or a whole number above {where}.audit ({self.audit}, at least "
+                             f"1), got {self.more_audit}")
         check_whole_number(f"{where}.max_rollouts", self.max_rollouts, 0)
         check_whole_number(f"{where}.stride", self.stride, 1)
         check_whole_number(f"{where}.paths", self.paths, 0)
@@ -157,21 +181,38 @@ def hybrid_rolls_out(values, band: float, map_trusted: bool) -> np.ndarray:
 
 def _audit(values, on_runway, labels: LabelSpec, run, failed):
     """The ``hybrid`` source's audit: ``run(index)`` runs the real loop from the first
-    ``labels.audit`` on-runway states and records each outcome in ``failed`` {index:
-    bool}. Returns ``(audit index, their outcomes, record)``, the record being what the
-    manifest keeps: samples, real failures, false-safe verdicts, the largest error,
-    whether the map is trusted and the band (``labels.band`` when it is not)."""
-    audit = np.flatnonzero(on_runway)[:labels.audit]
-    run(audit)
-    audit_failed = np.array([failed[i] for i in audit.tolist()], bool)
-    band, trusted, largest = audited_band(values[audit], audit_failed, band=labels.band,
-                                          band_factor=labels.band_factor,
-                                          max_band=labels.max_band)
-    return audit, audit_failed, {
+    ``labels.audit`` on-runway states (and on, a batch of ``labels.audit`` at a time up
+    to ``labels.more_audit``, while the map stays trusted) and records each outcome in
+    ``failed`` {index: bool}. Returns ``(audit index, their outcomes, record)``, the
+    record being what the manifest keeps: samples, real failures, false-safe verdicts,
+    the largest error, whether the map is trusted and the band (``labels.band`` when it
+    is not); with ``more_audit``, also the batches run."""
+    candidates = np.flatnonzero(on_runway)
+    size = min(max(labels.audit, labels.more_audit), len(candidates))
+    audit, batches = candidates[:0], 0
+    while len(audit) < size:
+        batch = candidates[len(audit):min(len(audit) + labels.audit, size)]
+        run(batch)                      # one call per batch: each is cached on its own
+        audit, batches = candidates[:len(audit) + len(batch)], batches + 1
+        audit_failed = np.array([failed[i] for i in audit.tolist()], bool)
+        band, trusted, largest = audited_band(values[audit], audit_failed, band=labels.band,
+                                              band_factor=labels.band_factor,
+                                              max_band=labels.max_band)
+        if not trusted:
+            break
+    if not len(audit):
+        audit_failed = np.zeros(0, bool)
+        band, trusted, largest = audited_band([], [], band=labels.band,
+                                              band_factor=labels.band_factor,
+                                              max_band=labels.max_band)
+    record = {
         "samples": int(len(audit)), "real_failures": int(audit_failed.sum()),
         "false_safe": int(np.sum(audit_failed & (values[audit] > 0))),
         "largest_error_m": largest, "map_trusted": trusted,
         "band": band if trusted else labels.band}
+    if labels.more_audit:
+        record["batches"] = batches
+    return audit, audit_failed, record
 
 
 def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
