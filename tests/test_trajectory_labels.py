@@ -240,3 +240,12 @@ def test_hybrid_falls_back_to_trajectory_labels_where_its_audit_distrusts_the_ma
     assert again.folder != got.folder and chunks
     assert sorted(p.relative_to(cache) for p in cache.rglob("*.npz")) == chunks
     np.testing.assert_array_equal(again.labels, got.labels)
+    # an audit allowed to go on (more_audit) stops at its first batch, which distrusts
+    # the map: that batch is the shorter audit's, so again nothing is rendered
+    longer = build(tmp_path / "hybrid", LabelSpec("hybrid", audit=10, more_audit=20,
+                                                  distrusted="trajectory", distrusted_starts=10,
+                                                  extend=1.0, stride=5))
+    assert longer.folder not in (got.folder, again.folder)
+    assert longer.manifest["labels"]["audit"]["batches"] == 1
+    assert sorted(p.relative_to(cache) for p in cache.rglob("*.npz")) == chunks
+    np.testing.assert_array_equal(longer.labels, got.labels)
