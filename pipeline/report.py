@@ -165,6 +165,45 @@ def fidelity_section(page, run: Run, roles):
         page.table(["environment", "states", "agreement", "false-safe", "false-unsafe"],
                    [[n, r["n"], _rate(r, "agree"), _rate(r, "false_safe"),
                      _rate(r, "false_unsafe")] for n, r in along.items()])
+    if labelled:
+        page.text(label_target_text(results))
+
+
+#: The label target each environment's check is judged against, the real loop's outcome
+#: being the truth: at least this agreement and at most this false-safe share.
+LABEL_TARGET = {"agree": 0.99, "false_safe": 0.01}
+
+
+def label_target_text(results) -> str:
+    """One sentence on the labels of `fidelity_env` records ``results`` (by environment)
+    against `LABEL_TARGET`: in how many environments both the fresh starts and, where
+    the dataset reads along runs, the re-run read-along states meet it, and which miss
+    it, with their figures. Empty when no record checks labels."""
+    def meets(check):
+        return (check["agree_rate"] >= LABEL_TARGET["agree"]
+                and check["false_safe_rate"] <= LABEL_TARGET["false_safe"])
+
+    def figures(check, what):
+        return (f"{what}: agreement {100 * check['agree_rate']:.1f} %, false-safe "
+                f"{100 * check['false_safe_rate']:.1f} % of {check['n']}")
+
+    labelled = {n: r for n, r in results.items() if "labels" in r}
+    if not labelled:
+        return ""
+    missed = []
+    for name, r in labelled.items():
+        checks = [(r["labels"], "starts")] + (
+            [(r["path_labels"], "read-along states")] if r.get("path_labels") else [])
+        wrong = [figures(c, what) for c, what in checks if not meets(c)]
+        if wrong:
+            missed.append(f"{name} ({'; '.join(wrong)})")
+    starts = [r["labels"]["n"] for r in labelled.values()]
+    return (f"Labels against the target (agreement >= {100 * LABEL_TARGET['agree']:g} % and "
+            f"false-safe <= {100 * LABEL_TARGET['false_safe']:g} % on the fresh starts, and on "
+            f"the re-run read-along states where the dataset has them): met in "
+            f"{len(labelled) - len(missed)} of {len(labelled)} environments, checked on "
+            f"{min(starts)}-{max(starts)} starts each" +
+            (f"; missed in {', '.join(missed)}." if missed else "."))
 
 
 def label_renders(info) -> list:

@@ -260,3 +260,27 @@ train: [{{runway: KMWH, hour: 9.0, sky: clear}}]
 test: [{{runway: KSFO, hour: 21.0, sky: clear}}]
 fidelity: {{starts: 4, more_starts: {str(bad).lower()}}}
 """)
+
+
+def test_the_report_judges_each_environments_labels_against_the_target():
+    """Met only where the fresh starts and the re-run read-along states both reach 99 %
+    agreement with at most 1 % false-safe; the misses are named with their figures."""
+    from reachwatch.pipeline.report import label_target_text
+    real = np.array([True] * 10 + [False] * 190)
+
+    def check(false_safe=0, false_unsafe=0):
+        labels = real.copy()
+        labels[:false_safe] = False                          # failed, labelled safe
+        labels[10:10 + false_unsafe] = True                  # survived, labelled failing
+        return compare_verdicts(labels, real).as_dict()
+
+    results = {"day": {"labels": check(false_unsafe=2)},           # 99.0 %: met
+               "dusk": {"labels": check(false_safe=3)},            # 1.5 % false-safe
+               "night": {"labels": check(), "path_labels": check(false_unsafe=3)},
+               "unchecked": {"brt": {}}}
+    text = label_target_text(results)
+    assert "met in 1 of 3 environments, checked on 200-200 starts each" in text
+    assert "dusk (starts: agreement 98.5 %, false-safe 1.5 % of 200)" in text
+    assert "night (read-along states: agreement 98.5 %, false-safe 0.0 % of 200)" in text
+    assert "day (" not in text
+    assert label_target_text({"unchecked": {"brt": {}}}) == ""

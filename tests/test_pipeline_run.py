@@ -78,6 +78,7 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
         assert (tmp_path / src).is_file(), src
     for src in re.findall(r"\]\(([^)]+)\)", md):
         assert (tmp_path / src).is_file(), src
+    assert re.search(r"Labels against the target .*: met in \d+ of 2 environments", md)
     rows = run.outputs["evaluate"]["rows"]
     every = [r for r in rows if r["states"] == "all"]
     assert [r["environment"] for r in every] == ["KSFO_17h_clear"] * 4
