@@ -85,7 +85,7 @@ class LabelSpec:
     ``more_audit`` runs, and stops at the first batch that finds a false-safe verdict
     or widens the band past ``max_band``. No false-safe verdict in n runs bounds the
     map's false-safe rate below ``1 - 0.05 ** (1 / n)`` with 95 % confidence: 5.8 % for
-    50 runs, 2.9 % for 100, 1.5 % for 200. (A night map with 4-6 % false-safe starts
+    50 runs, 2.9 % for 100, 1.5 % for 200. (A night map with 4-8 % false-safe starts
     passed an audit of 50 in the study.) Each batch is cached on its own, so raising
     ``more_audit`` reuses the runs already made; a distrusted map stops the audit
     early, so where maps are wrong it costs little more than ``audit`` runs.
@@ -189,22 +189,18 @@ def _audit(values, on_runway, labels: LabelSpec, run, failed):
     is not); with ``more_audit``, also the batches run."""
     candidates = np.flatnonzero(on_runway)
     size = min(max(labels.audit, labels.more_audit), len(candidates))
-    audit, batches = candidates[:0], 0
-    while len(audit) < size:
+    audit, batches, trusted = candidates[:0], 0, True
+    while len(audit) < size and trusted:
         batch = candidates[len(audit):min(len(audit) + labels.audit, size)]
         run(batch)                      # one call per batch: each is cached on its own
         audit, batches = candidates[:len(audit) + len(batch)], batches + 1
-        audit_failed = np.array([failed[i] for i in audit.tolist()], bool)
-        band, trusted, largest = audited_band(values[audit], audit_failed, band=labels.band,
-                                              band_factor=labels.band_factor,
-                                              max_band=labels.max_band)
-        if not trusted:
-            break
-    if not len(audit):
-        audit_failed = np.zeros(0, bool)
-        band, trusted, largest = audited_band([], [], band=labels.band,
-                                              band_factor=labels.band_factor,
-                                              max_band=labels.max_band)
+        trusted = audited_band(values[audit], [failed[i] for i in audit.tolist()],
+                               band=labels.band, band_factor=labels.band_factor,
+                               max_band=labels.max_band)[1]
+    audit_failed = np.array([failed[i] for i in audit.tolist()], bool)
+    band, trusted, largest = audited_band(values[audit], audit_failed, band=labels.band,
+                                          band_factor=labels.band_factor,
+                                          max_band=labels.max_band)
     record = {
         "samples": int(len(audit)), "real_failures": int(audit_failed.sum()),
         "false_safe": int(np.sum(audit_failed & (values[audit] > 0))),
