@@ -23,7 +23,7 @@ from reachwatch.taxi import dynamics_for, paper_grid, sweep_closed_loop
 from reachwatch.taxi.grid import AXES
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
-from reachwatch.training.dataset import build_dataset, load_dataset
+from reachwatch.training.dataset import build_dataset, label_summary, load_dataset
 from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH, labels_name
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
@@ -254,9 +254,12 @@ def stage_dataset(run: Run) -> dict:
         [str(p) for p in ensemble], run.progress, _label_box(run, e)) for e in envs}
     bar = run.bar()                  # hours at study scale: how many environments are done
     finished = cf.as_completed(futures.values())
-    for _ in (bar(finished, total=len(futures), desc="datasets", unit="environment")
-              if bar else finished):
-        pass
+    names = {future: name for name, future in futures.items()}
+    for future in (bar(finished, total=len(futures), desc="datasets", unit="environment")
+                   if bar else finished):
+        if future.exception() is None:     # a failed build raises below, once all are done
+            run.log(f"[dataset_{names[future]}] labelled: "
+                    f"{label_summary(load_dataset(future.result()).manifest)}")
     folders = {name: run.rel(f.result()) for name, f in futures.items()}
     data = {name: load_dataset(run.path(f)) for name, f in folders.items()}
     return {"ensemble": [run.rel(p) for p in ensemble], "folders": folders,

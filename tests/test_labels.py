@@ -202,3 +202,21 @@ def test_more_audit_is_validated_and_keys_only_when_set():
     assert set(LabelSpec("hybrid").key()) == fields - {"more_audit"}
     assert LabelSpec("hybrid", more_audit=100).key()["more_audit"] == 100
     assert DatasetSpec().key()["labels"] == LabelSpec().key()
+
+
+def test_the_log_line_says_how_each_dataset_was_labelled():
+    from reachwatch.training.dataset import label_summary
+    trusted = {"samples": 1000, "labels": {
+        "source": "hybrid", "rollout_frames": 16016,
+        "audit": {"samples": 100, "false_safe": 0, "map_trusted": True, "band": 0.1}}}
+    assert label_summary(trusted) == ("hybrid: map trusted after 100 audit runs, band 0.10 m; "
+                                      "1000 labels, 16016 frames (16.0 per label)")
+    fallback = {"samples": 1418, "labels": {
+        "source": "hybrid", "rollout_frames": 25811, "audit_frames": 14782,
+        "labelled_by": "trajectory",
+        "audit": {"samples": 100, "false_safe": 1, "map_trusted": False, "band": 0.1}}}
+    assert label_summary(fallback) == (
+        "hybrid: map distrusted after 100 audit runs (1 false-safe), trajectory labels; "
+        "1418 labels, 40593 frames (28.6 per label)")
+    assert label_summary({"samples": 600, "labels": {"source": "brt"}}) == \
+        "brt; 600 labels, 0 frames (0.0 per label)"

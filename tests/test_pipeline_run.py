@@ -79,6 +79,10 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     for src in re.findall(r"\]\(([^)]+)\)", md):
         assert (tmp_path / src).is_file(), src
     assert re.search(r"Labels against the target .*: met in \d+ of 2 environments", md)
+    # the log says how each environment's dataset was labelled, as it finishes
+    labelled = [re.match(r"\[dataset_(\S+)\] labelled: (.*)", m) for m in log]
+    assert sorted(m.group(1) for m in labelled if m) == ["KMWH_9h_clear", "KSFO_17h_clear"]
+    assert any(m.group(2).startswith("brt; 40 labels") for m in labelled if m)
     rows = run.outputs["evaluate"]["rows"]
     every = [r for r in rows if r["states"] == "all"]
     assert [r["environment"] for r in every] == ["KSFO_17h_clear"] * 4

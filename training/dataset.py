@@ -146,6 +146,24 @@ def label_frames(label_info) -> int:
             int((label_info.get("paths") or {}).get("frames", 0)))
 
 
+def label_summary(manifest) -> str:
+    """One line on how a dataset (its ``manifest``) was labelled: the source, what the
+    hybrid's audit decided and on how many runs, and what the labels cost in frames."""
+    info, samples = manifest["labels"], manifest["samples"]
+    audit = info.get("audit")
+    text = info["source"]
+    if audit:
+        verdict = "trusted" if audit["map_trusted"] else "distrusted"
+        text += f": map {verdict} after {audit['samples']} audit runs"
+        text += (f", band {audit['band']:.2f} m" if audit["map_trusted"] else
+                 f" ({audit['false_safe']} false-safe)")
+    if info.get("labelled_by"):
+        text += f", {info['labelled_by']} labels"
+    frames = label_frames(info)
+    return (f"{text}; {samples} labels, {frames} frames ({frames / samples:.1f} per label)"
+            if samples else text)
+
+
 def runs_cache(folder) -> Path:
     """Where the real-loop runs labelling the dataset in ``folder`` are cached: shared by
     every dataset under the same root (the cache is keyed by scenario and starts), so
