@@ -254,14 +254,15 @@ def stage_dataset(run: Run) -> dict:
         [str(p) for p in ensemble], run.progress, _label_box(run, e)) for e in envs}
     bar = run.bar()                  # hours at study scale: how many environments are done
     finished = cf.as_completed(futures.values())
-    names = {future: name for name, future in futures.items()}
+    names, data = {future: name for name, future in futures.items()}, {}
     for future in (bar(finished, total=len(futures), desc="datasets", unit="environment")
                    if bar else finished):
         if future.exception() is None:     # a failed build raises below, once all are done
+            data[names[future]] = load_dataset(future.result())
             run.log(f"[dataset_{names[future]}] labelled: "
-                    f"{label_summary(load_dataset(future.result()).manifest)}")
+                    f"{label_summary(data[names[future]].manifest)}")
     folders = {name: run.rel(f.result()) for name, f in futures.items()}
-    data = {name: load_dataset(run.path(f)) for name, f in folders.items()}
+    data = {name: data[name] for name in futures}          # the environments' order
     return {"ensemble": [run.rel(p) for p in ensemble], "folders": folders,
             "positives": {name: float(d.labels.mean()) for name, d in data.items()},
             "labels": {name: {**d.manifest["labels"], "counts": d.manifest["label_counts"]}
