@@ -63,7 +63,7 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
         raise ValueError("steering 'dead_reckoning' needs the estimate table")
     as_t = lambda a: torch.as_tensor(np.asarray(a, float), dtype=torch.float64)   # noqa: E731
     x = as_t(grid.states() if starts is None else check_states(starts, grid.ndim, "start")
-             ).reshape(-1, grid.ndim)
+             ).reshape(-1, grid.ndim).clone()      # updated in place: never the caller's array
     n = len(x)
     steer = as_t(steering_table).reshape(grid.shape)
     score = None if score_table is None else as_t(score_table).reshape(grid.shape)
@@ -94,14 +94,21 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
         active = alive & ~covered & ~parked
         if not active.any():
             break
-        interpolate = GridInterpolator(grid, x)
-        u = interpolate(steer).numpy()
+        # Only the active starts are interpolated and integrated: an ended start's
+        # state, score and speed no longer reach any figure (its outcome is settled,
+        # and the horizon's snapshot holds its speed from its last active tick).
+        rows = np.flatnonzero(active)
+        index = torch.as_tensor(rows)
+        interpolate = GridInterpolator(grid, x[index])
+        u = np.zeros(n)
+        u[rows] = interpolate(steer).numpy()
         flagged = np.zeros(n, bool)
         if score is not None:
-            score_now = interpolate(score).numpy()
-            if score_noise is not None:
+            score_now = np.zeros(n)
+            score_now[rows] = interpolate(score).numpy()
+            if score_noise is not None:          # stepped for every start: the same draws
                 noise = score_noise.step(noise, moved, rng)
-                score_now = score_noise.apply(score_now, noise)
+                score_now[rows] = score_noise.apply(score_now[rows], noise[rows])
             flagged, history = confirmed_flags(score_now >= threshold, history, flags_needed)
         if score is not None:
             v = next_speed(v, flagged, strategy=strategy, nominal=nominal, period=period,
@@ -110,7 +117,8 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
                 truth = np.stack([x[:, 0].numpy(), np.rad2deg(x[:, 2].numpy())], axis=-1)
                 u = np.where(flagged, policy(truth), u)
             elif steering == "dead_reckoning":
-                seen = np.stack([interpolate(e).numpy() for e in estimates], axis=-1)
+                seen = np.zeros((n, 2))
+                seen[rows] = np.stack([interpolate(e).numpy() for e in estimates], axis=-1)
                 carried = propagate_estimate(base, u_prev, v_prev, period,
                                              wheelbase=dynamics.wheelbase)
                 belief = np.where((flagged & trusted)[:, None], carried, seen)
@@ -123,9 +131,10 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
         moved = np.where(active, v * dt, 0.0)
         distance += moved
         h = dt / substeps
-        u_t, v_t = as_t(u)[:, None], as_t(v)
+        u_t, v_t, y = as_t(u[rows])[:, None], as_t(v[rows]), x[index]
         for _ in range(substeps):
-            x = rk4_step(lambda y: dynamics.vector_field(y, u_t, speed=v_t), x, h)
+            y = rk4_step(lambda z: dynamics.vector_field(z, u_t, speed=v_t), y, h)
+        x[index] = y
         out = (dynamics.target(x) <= 0).numpy()
         failed |= active & out
         alive &= ~(active & out)

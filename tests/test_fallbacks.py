@@ -12,7 +12,8 @@ from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, add_dead_reckoning, loa
                                  make_guarded_diagram)
 from reachwatch.diagrams.scenario import ControllerConfig
 from reachwatch.reach import Grid
-from reachwatch.reach.liveness import MISSION_FIELDS, MissionOutcomes, liveness_figures
+from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes,
+                                       liveness_figures)
 from reachwatch.systems import (DeadReckoning, FallbackSwitch, FlagFilter, confirmed_flags,
                                 ProportionalController, TaxiPlant, TrueStateEstimator,
                                 fallback_parts, propagate_estimate,
@@ -209,6 +210,37 @@ def test_same_distance_figures_known_answer():
     with pytest.raises(ValueError, match=">= 1"):
         guarded_rollouts(grid, dynamics, steer, None, horizon=8.0, starts=starts,
                          mission_limit=0.5)
+
+
+def test_table_rollouts_of_a_batch_equal_each_start_alone():
+    """The rollouts integrate only the starts still under way. Starts that fail early
+    (px > 0.5: the hand-made controller steers off), brake to a stop or cover the
+    distance sit in one batch beside starts that keep going; every field of every
+    start equals its rollout alone, for each speed strategy and steering mode, and
+    the caller's starts are left as they were."""
+    scenario = load_scenario(data="")
+    dynamics = dynamics_for(scenario)
+    policy = p_controller_policy(scenario.controller)
+    grid = Grid(lo=[-10.0, 0.0, -0.3], hi=[10.0, 100.0, 0.3], shape=(11, 3, 7))
+    good = lambda x: policy(np.stack([x[:, 0], np.rad2deg(x[:, 2])], -1))   # noqa: E731
+    steer, score, estimate = _tables(grid, lambda x: np.where(x[:, 0] > 0.5, 0.3, good(x)),
+                                     lambda x: np.clip(x[:, 0] / 4 + 0.4, 0.0, 1.0))
+    starts = np.array([[2.0, 10.0, 0.0], [-2.0, 10.0, 0.0], [6.0, 50.0, 0.2],
+                       [0.0, 30.0, -0.1], [9.5, 5.0, 0.25], [-4.0, 80.0, 0.1]])
+    before = starts.copy()
+    for kw in (dict(strategy="slow_down"), dict(strategy="brake", brake_deceleration=4.0),
+               dict(strategy="brake", steering="dead_reckoning", policy=policy,
+                    estimate_table=estimate, brake_deceleration=1.0),
+               dict(strategy="slow_down", steering="oracle", policy=policy)):
+        common = dict(threshold=0.5, horizon=4.0, mission_limit=2.0, **kw)
+        batch = guarded_rollouts(grid, dynamics, steer, score, starts=starts, **common)
+        assert batch.failed.any() and not batch.failed.all()
+        for i, start in enumerate(starts):
+            one = guarded_rollouts(grid, dynamics, steer, score, starts=start[None], **common)
+            for name in MISSION_FIELDS + SAME_DISTANCE_FIELDS:
+                np.testing.assert_allclose(getattr(one, name)[0], getattr(batch, name)[i],
+                                           err_msg=f"{kw} start {i} {name}")
+    np.testing.assert_array_equal(starts, before)
 
 
 def _tables(grid, steering, score):
