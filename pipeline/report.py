@@ -198,12 +198,29 @@ def label_target_text(results) -> str:
         if wrong:
             missed.append(f"{name} ({'; '.join(wrong)})")
     starts = [r["labels"]["n"] for r in labelled.values()]
+    by_run = [n for n, r in labelled.items() if labels_every_state_by_its_run(r["labels"])]
+    note = ""
+    if by_run:
+        unchecked = ("" if all(labelled[n].get("path_labels") for n in by_run)
+                     else " (none where a dataset has no such states)")
+        note = (f" In {len(by_run)} of them ({', '.join(by_run)}) a fresh start is labelled "
+                f"by its own real run and agrees by construction: there only the re-run "
+                f"read-along states test the labels{unchecked}.")
     return (f"Labels against the target (agreement >= {100 * LABEL_TARGET['agree']:g} % and "
             f"false-safe <= {100 * LABEL_TARGET['false_safe']:g} % on the fresh starts, and on "
             f"the re-run read-along states where the dataset has them): met in "
             f"{len(labelled) - len(missed)} of {len(labelled)} environments, checked on "
             f"{min(starts)}-{max(starts)} starts each" +
-            (f"; missed in {', '.join(missed)}." if missed else "."))
+            (f"; missed in {', '.join(missed)}." if missed else ".") + note)
+
+
+def labels_every_state_by_its_run(record) -> bool:
+    """Whether a `fidelity_env` labels record comes from a rule that labels every
+    state by a run of the real loop from it (``rollout``, ``trajectory``, or a hybrid
+    that fell back to trajectory labels): its fresh-start figures are then 100 % by
+    construction."""
+    return (record.get("source") in ("rollout", "trajectory")
+            or record.get("labelled_by") == "trajectory")
 
 
 def label_renders(info) -> list:

@@ -283,4 +283,14 @@ def test_the_report_judges_each_environments_labels_against_the_target():
     assert "dusk (starts: agreement 98.5 %, false-safe 1.5 % of 200)" in text
     assert "night (read-along states: agreement 98.5 %, false-safe 0.0 % of 200)" in text
     assert "day (" not in text
+    assert "by construction" not in text
     assert label_target_text({"unchecked": {"brt": {}}}) == ""
+    # labels that are runs of the real loop from their own state: the fresh starts
+    # agree by construction, and the sentence says which environments those are
+    results["night"]["labels"].update(source="hybrid", labelled_by="trajectory")
+    results["rolled"] = {"labels": {**check(), "source": "rollout"}}
+    text = label_target_text(results)
+    assert "met in 2 of 4 environments" in text
+    assert ("In 2 of them (night, rolled) a fresh start is labelled by its own real run "
+            "and agrees by construction: there only the re-run read-along states test the "
+            "labels (none where a dataset has no such states).") in text
