@@ -103,7 +103,14 @@ def fidelity_env(run: Run, env) -> dict:
     started = time.time()
     starts = on_runway_starts(grid, check.starts, check.seed, half_width=env.half_width)
     outcomes = real(starts)
-    extended = bool(check.more_starts) and any_wrong(starts, outcomes["failed"].astype(bool))
+    # The labels' audit (other runs) found the map wrong: its figure needs the longer
+    # check whatever the first runs say, and choosing so does not bias the check.
+    distrusted = bool(labels) and (labels.get("audit") or {}).get("map_trusted") is False
+    because = None
+    if check.more_starts:
+        because = ("audit" if distrusted else
+                   "check" if any_wrong(starts, outcomes["failed"].astype(bool)) else None)
+    extended = because is not None
     if extended:      # the same draw, longer: its first rows are the runs above
         more = on_runway_starts(grid, check.more_starts, check.seed,
                                 half_width=env.half_width)[check.starts:]
@@ -127,6 +134,8 @@ def fidelity_env(run: Run, env) -> dict:
            "frames": int(np.sum(outcomes["ticks"])), "seconds": round(seconds, 1)}
     if check.more_starts:
         out["extended"] = extended
+        if extended:
+            out["extended_because"] = because
     if labels:
         verdicts = label_verdicts(labels, band, vf.at(starts), real_failed)
         audit = labels.get("audit") or {}

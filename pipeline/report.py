@@ -108,12 +108,19 @@ def fidelity_section(page, run: Run, roles):
         page.text("Not checked (fidelity.starts: 0): nothing in this report says whether "
                   "the BRT, the labels and the failure sets match what the real loop does.")
         return
-    extended = [n for n, r in results.items() if r.get("extended")]
+    by_check = [n for n, r in results.items()
+                if r.get("extended") and r.get("extended_because", "check") == "check"]
+    by_audit = [n for n, r in results.items() if r.get("extended_because") == "audit"]
+    reasons = []
+    if by_check:
+        reasons.append(f"found wrong: {', '.join(by_check)}, whose rates lean slightly towards "
+                       f"error, the extension having been chosen by it")
+    if by_audit:
+        reasons.append(f"distrusted by the audit: {', '.join(by_audit)}")
     more = "" if not spec.fidelity.more_starts else (
         f", {spec.fidelity.more_starts} where the first {spec.fidelity.starts} found the BRT or "
-        "the labels wrong (fidelity.more_starts; " + (
-            f"here {', '.join(extended)}: their rates lean slightly towards error, the "
-            "extension having been chosen by it)" if extended else "none was)"))
+        f"the labels wrong or the labels' audit had distrusted the map (fidelity.more_starts; "
+        f"{'; '.join(reasons) or 'none was'})")
     page.text(f"The real closed loop (rendering and the controller at every tick) from "
               f"{spec.fidelity.starts} seeded uniform on-runway starts per environment{more} "
               f"(|px| < B; starts already off the runway agree with any BRT), run for "

@@ -73,12 +73,13 @@ class FidelitySpec:
     labels are refused (``max_box_exits``).
 
     ``more_starts`` (0 = never): where the first ``starts`` runs find the BRT or the
-    labels wrong at least once, the check goes on to this many starts (the same seeded
-    draw, so the first ``starts`` are the same runs), putting the renders where the
-    verdicts are in doubt: a narrow interval where the map errs (at night), ``starts``
-    runs where it does not. The extension depends on what the first runs found, so
-    an extended environment's rates lean slightly towards error; the report says which
-    environments were extended."""
+    labels wrong at least once, or where the hybrid labels' audit (runs of its own)
+    distrusted the map, the check goes on to this many starts (the same seeded draw,
+    so the first ``starts`` are the same runs), putting the renders where the verdicts
+    are in doubt: a narrow interval where the map errs (at night), ``starts`` runs
+    where it does not. An extension chosen by the first runs leans the environment's
+    rates slightly towards error (one chosen by the audit does not); the report says
+    which environments were extended, and why."""
     starts: int = 50
     seed: int = 1000
     max_box_exits: float = 0.05
@@ -86,10 +87,13 @@ class FidelitySpec:
 
     def key(self) -> dict:
         """What the fidelity stage's key reads: every field, ``more_starts`` only when
-        set (adding it moved no existing check)."""
+        set (adding it moved no existing check), and then the rule that extends (which
+        has grown since: a check from before it is run again)."""
         fields = dc.asdict(self)
         if not self.more_starts:
             fields.pop("more_starts")
+        else:
+            fields["extend_where"] = "a wrong verdict, or a map the audit distrusted"
         return fields
 
 

@@ -240,17 +240,40 @@ fidelity: {starts: 4, more_starts: 10}
     fidelity_section(page, run, {})
     md = "".join(page.md)
     assert "from 4 seeded uniform on-runway starts per environment, 10 where the first 4 " \
-        "found the BRT or the labels wrong (fidelity.more_starts; here KSFO_21h_clear:" in md
+        "found the BRT or the labels wrong or the labels' audit had distrusted the map " \
+        "(fidelity.more_starts; found wrong: KSFO_21h_clear, whose rates lean" in md
     assert f"| {env.name} | extra | 10 |" in md and f"| {spec.train[0].name} | extra | 4 |" in md
     run.outputs["fidelity"] = {spec.train[0].name: right}
     page = Page("t")
     fidelity_section(page, run, {})
-    assert "the BRT or the labels wrong (fidelity.more_starts; none was) (|px| < B" in "".join(page.md)
+    assert "the map (fidelity.more_starts; none was) (|px| < B" in "".join(page.md)
+
+    # where the labels' audit distrusted the map, the check is extended even though its
+    # first runs find every verdict right (the map and the loop agree here)
+    asked.clear()
+    run.outputs["dataset"]["labels"][spec.train[0].name] = {
+        "source": "hybrid", "labelled_by": "trajectory",
+        "audit": {"samples": 4, "map_trusted": False, "band": 0.1}}
+    distrusted = fidelity_stages.fidelity_env(run, spec.train[0])
+    assert [len(a) for a in asked] == [4, 6] and distrusted["starts"] == 10
+    assert distrusted["brt"]["agree"] == 10
+    assert (distrusted["extended"], distrusted["extended_because"]) == (True, "audit")
+    assert "extended_because" not in right and wrong["extended_because"] == "check"
+    run.outputs["fidelity"] = {spec.train[0].name: distrusted, env.name: wrong}
+    page = Page("t")
+    fidelity_section(page, run, {})
+    assert ("(fidelity.more_starts; found wrong: KSFO_21h_clear, whose rates lean slightly "
+            "towards error, the extension having been chosen by it; distrusted by the audit: "
+            "KMWH_9h_clear)") in "".join(page.md)
+    del run.outputs["dataset"]["labels"][spec.train[0].name]
 
     # unset, it leaves the stage's key as it was before the field existed
     assert digest(FidelitySpec(starts=50).key()) == digest(
         {"starts": 50, "seed": 1000, "max_box_exits": 0.05})
     assert digest(FidelitySpec(starts=50, more_starts=200).key()) != digest(FidelitySpec(starts=50).key())
+    # the extension rule is in the key: a check extended by the older rule runs again
+    assert digest(FidelitySpec(starts=50, more_starts=200).key()) != digest(
+        {"starts": 50, "seed": 1000, "max_box_exits": 0.05, "more_starts": 200})
     for bad, why in ((4, "must be 0 .* above fidelity.starts"), (2, "above"), (-1, "above"),
                      (True, "expected int")):
         with pytest.raises(ValueError, match=f"fidelity.more_starts.*{why}"):
