@@ -212,19 +212,28 @@ def test_same_distance_figures_known_answer():
                          mission_limit=0.5)
 
 
+def _wrong_way(score):
+    """A hand-made controller on a small grid that steers the wrong way wherever px >
+    0.5 (the P-controller elsewhere), and a detector scoring ``score(nodes)``: the
+    scenario's dynamics and policy, the grid, and its steering, score and estimate
+    tables."""
+    scenario = load_scenario(data="")
+    policy = p_controller_policy(scenario.controller)
+    grid = Grid(lo=[-10.0, 0.0, -0.3], hi=[10.0, 100.0, 0.3], shape=(11, 3, 7))
+    good = lambda x: policy(np.stack([x[:, 0], np.rad2deg(x[:, 2])], -1))   # noqa: E731
+    steer, scores, estimate = _tables(grid, lambda x: np.where(x[:, 0] > 0.5, 0.3, good(x)),
+                                      score)
+    return dynamics_for(scenario), policy, grid, steer, scores, estimate
+
+
 def test_table_rollouts_of_a_batch_equal_each_start_alone():
     """The rollouts integrate only the starts still under way. Starts that fail early
     (px > 0.5: the hand-made controller steers off), brake to a stop or cover the
     distance sit in one batch beside starts that keep going; every field of every
     start equals its rollout alone, for each speed strategy and steering mode, and
     the caller's starts are left as they were."""
-    scenario = load_scenario(data="")
-    dynamics = dynamics_for(scenario)
-    policy = p_controller_policy(scenario.controller)
-    grid = Grid(lo=[-10.0, 0.0, -0.3], hi=[10.0, 100.0, 0.3], shape=(11, 3, 7))
-    good = lambda x: policy(np.stack([x[:, 0], np.rad2deg(x[:, 2])], -1))   # noqa: E731
-    steer, score, estimate = _tables(grid, lambda x: np.where(x[:, 0] > 0.5, 0.3, good(x)),
-                                     lambda x: np.clip(x[:, 0] / 4 + 0.4, 0.0, 1.0))
+    dynamics, policy, grid, steer, score, estimate = _wrong_way(
+        lambda x: np.clip(x[:, 0] / 4 + 0.4, 0.0, 1.0))
     starts = np.array([[2.0, 10.0, 0.0], [-2.0, 10.0, 0.0], [6.0, 50.0, 0.2],
                        [0.0, 30.0, -0.1], [9.5, 5.0, 0.25], [-4.0, 80.0, 0.1]])
     before = starts.copy()
@@ -296,13 +305,8 @@ def test_table_rollouts_liveness_and_dead_reckoning():
     """A controller steering the wrong way wherever px > 0: alone it fails there; a
     detector flagging px > 0 with dead reckoning saves those starts without stopping,
     braking saves them by stopping, and a detector that never flags changes nothing."""
-    scenario = load_scenario(data="")
-    dynamics = dynamics_for(scenario)
-    policy = p_controller_policy(scenario.controller)
-    grid = Grid(lo=[-10.0, 0.0, -0.3], hi=[10.0, 100.0, 0.3], shape=(11, 3, 7))
-    good = lambda x: policy(np.stack([x[:, 0], np.rad2deg(x[:, 2])], -1))   # noqa: E731
-    steer, score, estimate = _tables(grid, lambda x: np.where(x[:, 0] > 0.5, 0.3, good(x)),
-                                     lambda x: (x[:, 0] > 0.5).astype(float))
+    dynamics, policy, grid, steer, score, estimate = _wrong_way(
+        lambda x: (x[:, 0] > 0.5).astype(float))
     starts = np.array([[2.0, 10.0, 0.0], [-2.0, 10.0, 0.0]])
     kw = dict(horizon=6.0, starts=starts)
     alone = guarded_rollouts(grid, dynamics, steer, None, **kw)
