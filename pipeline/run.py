@@ -14,21 +14,37 @@ from .online_stages import stage_guard, stage_incremental
 from .report import write_report
 from .spec import RunSpec, digest, load_run_spec
 from .brt_stages import stage_solve, stage_sweep
-from .stages import Run, stage_dataset, stage_evaluate, stage_train
+from .stages import Run, all_environments, stage_dataset, stage_evaluate, stage_train
 
 STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "incremental", "report")
 REPORT_FORMAT = 1
 
 
+#: The last stage a slice (``only``) may run: every later one pools all environments.
+SLICE_UNTIL = "fidelity"
+
+
 def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=True,
-                 log=log.info, sweep_cache=None) -> Run:
-    """Run (or resume) every stage up to ``until``; returns the `Run` with its records."""
+                 log=log.info, sweep_cache=None, only=None) -> Run:
+    """Run (or resume) every stage up to ``until``; returns the `Run` with its records.
+
+    ``only`` (environment names) runs a slice: the per-environment stages (sweep,
+    solve, dataset, fidelity) for those environments alone, whose records are the ones
+    the whole run gives them (each depends on its environment only). A long study
+    can so run in pieces, on machines that share nothing, and its per-environment
+    figures be read as they come."""
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got '{until}'")
     spec.validate()
+    if only is not None:
+        check_slice(spec, only, until)
     if STAGES.index(until) >= STAGES.index("fidelity"):
         check_downtrack_room(spec)
-    run = Run(spec, out, executor=executor, progress=progress, log=log, sweep_cache=sweep_cache)
+    run = Run(spec, out, executor=executor, progress=progress, log=log, sweep_cache=sweep_cache,
+              only=only)
+    if only is not None:
+        log(f"a slice of {len(run.environments())} of the run's {len(all_environments(spec))} "
+            f"environments, up to {until}: {', '.join(e.name for e in run.environments())}")
     steps = {
         "sweep": lambda: stage_sweep(run),
         "solve": lambda: stage_solve(run),
@@ -63,20 +79,41 @@ def add_parsers(sub):
     p.add_argument("--executor", default="local", help="local (one worker per core) | "
                    "local:N | inline | dask://HOST:PORT (a Dask cluster must see the run "
                    "directory at the same path)")
-    p.add_argument("--until", choices=STAGES, default="report", help="last stage to run")
+    p.add_argument("--until", choices=STAGES, help=f"last stage to run (default: report, "
+                   f"or {SLICE_UNTIL} with --only)")
     p.add_argument("--sweep-cache", help="folder of sweep chunks shared between runs "
                    "(keyed by content; default OUT/sweeps)")
+    p.add_argument("--only", nargs="+", metavar="ENV", help="run a slice: these environments "
+                   "alone (names as the report gives them, e.g. KSFO_21h_overcast), up to "
+                   f"--until {SLICE_UNTIL} at most; their records are the whole run's")
     p.set_defaults(func=run_command)
+
+
+def check_slice(spec: RunSpec, only, until: str):
+    """Raise a ValueError when ``only`` names no environment, or one the run lacks
+    (listing the run's), or when ``until`` goes past `SLICE_UNTIL`."""
+    names = [e.name for e in all_environments(spec)]
+    unknown = [n for n in only if n not in names]
+    if not only or unknown:
+        what = ("no environment given" if not only else
+                f"no environment named {', '.join(map(repr, unknown))} in run '{spec.name}'")
+        raise ValueError(f"--only: {what}; its environments are: {', '.join(names)}")
+    if STAGES.index(until) > STAGES.index(SLICE_UNTIL):
+        raise ValueError(f"--only runs a slice up to {SLICE_UNTIL} at most (--until sweep, solve, "
+                         f"dataset or {SLICE_UNTIL}): the stages after it pool every environment "
+                         f"(the detector trains on all of them), got --until {until}")
 
 
 def run_command(args):
     spec = load_run_spec(args.scenario)
+    until = args.until or (SLICE_UNTIL if args.only else "report")
     started = time.time()
     with open_executor(args.executor) as executor:
-        run = run_pipeline(spec, args.out, executor=executor, until=args.until,
-                           sweep_cache=args.sweep_cache, progress=progress_enabled(),
+        run = run_pipeline(spec, args.out, executor=executor, until=until,
+                           sweep_cache=args.sweep_cache, only=args.only,
+                           progress=progress_enabled(),
                            log=lambda m: log.info(f"{time.time() - started:7.1f} s  {m}"))
-    log.info(f"run '{spec.name}' up to {args.until} finished in {time.time() - started:.0f} s")
+    log.info(f"run '{spec.name}' up to {until} finished in {time.time() - started:.0f} s")
     if "report" in run.outputs and run.outputs["report"]:
         log.info(f"report: {run.path(run.outputs['report']['html'])} "
                  f"(and {run.path(run.outputs['report']['md'])})")

@@ -47,14 +47,29 @@ RECORD_FORMAT = 2
 _log = logging.getLogger("reachwatch")
 
 
+def all_environments(spec: RunSpec):
+    """Every environment whose BRT a run of ``spec`` needs: train, test, guard and
+    incremental, each once, in that order."""
+    envs, seen = [], set()
+    extra = spec.guard_environments() + (
+        [spec.incremental.environment] if spec.incremental.enabled else [])
+    for env in spec.training_environments() + spec.held_out_environments() + extra:
+        if env.name not in seen:
+            seen.add(env.name)
+            envs.append(env)
+    return envs
+
+
 class Run:
     """A run directory: the spec (``run.yaml``), artifacts, and one record per
     finished stage (``stages/NAME.json``: key, seconds, outputs, and the size and
     content hash of every file its outputs name)."""
 
     def __init__(self, spec: RunSpec, root, *, executor=None, progress=True, log=_log.info,
-                 sweep_cache=None):
+                 sweep_cache=None, only=None):
         self.spec, self.root = spec, Path(root)
+        # A slice: the per-environment stages for these environments alone (None: all).
+        self.only = None if only is None else set(only)
         # Sweeps are keyed by content, so runs may share one cache folder.
         self.sweep_cache = Path(sweep_cache) if sweep_cache else self.root / "sweeps"
         self.executor = executor or InlineExecutor()
@@ -91,7 +106,10 @@ class Run:
 
     def output_files(self, outputs) -> dict:
         """``{relative path: {"bytes", "hash"}}`` of every file the ``outputs`` name
-        (string values that are paths inside the run directory; folders expanded)."""
+        (string values that are paths inside the run directory; folders below the top
+        level expanded). A bare top-level folder name is the run's own layout, and as a
+        value it is a word such as the label source ``"brt"``: expanded, it made a
+        record depend on every BRT of the run."""
         found, root = {}, self.root.resolve()
 
         def visit(value):
@@ -105,6 +123,8 @@ class Run:
                 path = self.root / value
                 try:
                     if not path.exists() or not path.resolve().is_relative_to(root):
+                        return
+                    if path.is_dir() and len(Path(value).parts) < 2:
                         return
                 except OSError:
                     return
@@ -186,15 +206,13 @@ class Run:
                           py_max=float(self.spec.solved_py_max))
 
     def environments(self):
-        """Every environment whose BRT the run needs (train, test, guard, incremental)."""
-        envs, seen = [], set()
-        extra = self.spec.guard_environments() + (
-            [self.spec.incremental.environment] if self.spec.incremental.enabled else [])
-        for env in self.spec.training_environments() + self.spec.held_out_environments() + extra:
-            if env.name not in seen:
-                seen.add(env.name)
-                envs.append(env)
-        return envs
+        """Every environment whose BRT the run needs (train, test, guard, incremental),
+        less those a slice leaves out."""
+        return self.selected(all_environments(self.spec))
+
+    def selected(self, envs):
+        """``envs`` less those a slice (``only``) leaves out."""
+        return [e for e in envs if self.only is None or e.name in self.only]
 
     def value_function(self, name) -> ValueFunction:
         return ValueFunction.load(self.path(self.outputs["solve"][name]["value"]))
@@ -247,7 +265,7 @@ def stage_dataset(run: Run) -> dict:
     """The ensemble baseline's TaxiNets, then one labelled dataset per train/test
     environment (`RunSpec.dataset_spec_for`), built on the run's executor."""
     ensemble = _ensemble(run)
-    envs = run.spec.training_environments() + run.spec.held_out_environments()
+    envs = run.selected(run.spec.training_environments() + run.spec.held_out_environments())
     futures = {e.name: run.executor.submit(
         _build, str(run.path("datasets")), run.scenario_for(e),
         str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset_spec_for(e),

@@ -184,6 +184,43 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     assert f"The threshold {guard['threshold']:.3g} was set here, without labels" in md
 
 
+def test_a_slice_runs_its_environments_alone_with_the_whole_runs_records(tmp_path, capsys):
+    """``only``: the per-environment stages (sweep, solve, dataset, fidelity) for the
+    named environments alone, each with the record the whole run gives it; stages that
+    pool every environment are refused, and so are names the run lacks."""
+    whole, _ = _run(tmp_path / "whole", until="fidelity")
+    part, log = _run(tmp_path / "part", until="fidelity", only=["KSFO_17h_clear"])
+    assert any("a slice of 1 of the run's 3 environments, up to fidelity: KSFO_17h_clear" in m
+               for m in log)
+    env = "KSFO_17h_clear"
+    assert sorted(p.stem for p in (tmp_path / "part" / "stages").iterdir()) == sorted(
+        ["dataset", f"sweep_{env}", f"solve_{env}", f"fidelity_{env}"])
+    def timeless(outputs):                  # wall times ("seconds", "sweep_seconds") left out
+        return {k: v for k, v in outputs.items() if not k.endswith("seconds")}
+    for stage in (f"sweep_{env}", f"solve_{env}", f"fidelity_{env}"):
+        a, b = (json.loads((tmp_path / d / "stages" / f"{stage}.json").read_text())
+                for d in ("whole", "part"))
+        assert a["key"] == b["key"] and a["files"] == b["files"], stage
+        assert timeless(a["outputs"]) == timeless(b["outputs"]), stage
+    assert part.outputs["dataset"]["folders"] == {env: whole.outputs["dataset"]["folders"][env]}
+    assert part.outputs["dataset"]["labels"][env] == whole.outputs["dataset"]["labels"][env]
+    with pytest.raises(ValueError, match=r"no environment named 'KSFO_21h_clear' in run 'tiny'; "
+                                         r"its environments are: KMWH_9h_clear, KSFO_17h_clear"):
+        _run(tmp_path / "bad", until="fidelity", only=["KSFO_21h_clear"])
+    with pytest.raises(ValueError, match="no environment given"):
+        _run(tmp_path / "bad", until="fidelity", only=[])
+    with pytest.raises(ValueError, match="up to fidelity at most .* got --until train"):
+        _run(tmp_path / "bad", until="train", only=[env])
+    assert not (tmp_path / "bad").exists()
+    # the command line: --only alone stops after fidelity, and the slice is finished
+    from reachwatch.pipeline.cli import main
+    spec_path = tmp_path / "tiny.yaml"
+    spec_path.write_text(TINY)
+    main(["run", "--scenario", str(spec_path), "--out", str(tmp_path / "part"), "--executor",
+          "inline", "--only", env])
+    assert not (tmp_path / "part" / "stages" / "train.json").exists()
+
+
 def test_refined_run_solves_and_checks_on_the_refined_table(tmp_path):
     text = TINY.replace("horizon: 4.0", "horizon: 4.0\nrefine: {levels: 1, band: 1.0}\n"
                                         "solved_theta_deg: 56\nsolved_py_max: 290")
