@@ -61,6 +61,15 @@ def check_downtrack_room(spec: RunSpec):
             f"hybrid or rollout, or raise fidelity.max_box_exits to accept it")
 
 
+def labels_every_state_by_its_run(labels: dict) -> bool:
+    """Whether a labels record (a manifest's, or a `fidelity_env` one) comes from a rule
+    that labels every state by a run of the real loop from it (``rollout``,
+    ``trajectory``, or a hybrid that fell back to trajectory labels): at a fresh state
+    its verdict is that state's own run, so it agrees by construction."""
+    return (labels.get("source") in ("rollout", "trajectory")
+            or labels.get("labelled_by") == "trajectory")
+
+
 def label_verdicts(labels: dict, band: float, values, real_failed) -> np.ndarray:
     """What a dataset's labelling rule (``labels``: its manifest's record of the
     source and the audit; ``band`` m where the audit recorded none) gives at fresh
@@ -71,7 +80,7 @@ def label_verdicts(labels: dict, band: float, values, real_failed) -> np.ndarray
     brt = np.asarray(values) <= 0
     if labels["source"] == "brt":
         return brt
-    if labels["source"] in ("rollout", "trajectory") or labels.get("labelled_by") == "trajectory":
+    if labels_every_state_by_its_run(labels):
         return np.asarray(real_failed, bool)             # a fresh uniform state: its own run
     audit = labels["audit"]
     rolled = hybrid_rolls_out(values, audit.get("band", band), audit["map_trusted"])

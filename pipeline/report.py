@@ -12,6 +12,7 @@ from reachwatch.training.evaluation import COLUMNS, format_cell
 from reachwatch.training.dataset import label_frames
 
 from .brt_stages import sweep_rate
+from .fidelity_stages import labels_every_state_by_its_run
 from .detector_sections import (detector_verdicts, percent_text as _pct, target_section,
                                 threshold_section)
 from .guard_sections import guard_section
@@ -220,14 +221,6 @@ def label_target_text(results) -> str:
             f"{min(starts)}-{max(starts)} starts each" +
             (f"; missed in {', '.join(missed)}." if missed else ".") + note)
 
-
-def labels_every_state_by_its_run(record) -> bool:
-    """Whether a `fidelity_env` labels record comes from a rule that labels every
-    state by a run of the real loop from it (``rollout``, ``trajectory``, or a hybrid
-    that fell back to trajectory labels): its fresh-start figures are then 100 % by
-    construction."""
-    return (record.get("source") in ("rollout", "trajectory")
-            or record.get("labelled_by") == "trajectory")
 
 
 def label_renders(info) -> list:

@@ -14,7 +14,7 @@ from .online_stages import stage_guard, stage_incremental
 from .report import write_report
 from .spec import RunSpec, digest, load_run_spec
 from .brt_stages import stage_solve, stage_sweep
-from .stages import Run, all_environments, stage_dataset, stage_evaluate, stage_train
+from .stages import Run, stage_dataset, stage_evaluate, stage_train
 
 STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "incremental", "report")
 REPORT_FORMAT = 1
@@ -43,7 +43,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     run = Run(spec, out, executor=executor, progress=progress, log=log, sweep_cache=sweep_cache,
               only=only)
     if only is not None:
-        log(f"a slice of {len(run.environments())} of the run's {len(all_environments(spec))} "
+        log(f"a slice of {len(run.environments())} of the run's {len(spec.all_environments())} "
             f"environments, up to {until}: {', '.join(e.name for e in run.environments())}")
     steps = {
         "sweep": lambda: stage_sweep(run),
@@ -92,7 +92,7 @@ def add_parsers(sub):
 def check_slice(spec: RunSpec, only, until: str):
     """Raise a ValueError when ``only`` names no environment, or one the run lacks
     (listing the run's), or when ``until`` goes past `SLICE_UNTIL`."""
-    names = [e.name for e in all_environments(spec)]
+    names = [e.name for e in spec.all_environments()]
     unknown = [n for n in only if n not in names]
     if not only or unknown:
         what = ("no environment given" if not only else

@@ -324,6 +324,18 @@ class RunSpec:
     def guard_environments(self) -> List[Environment]:
         return self.guard.environments or self.held_out_environments()[:1]
 
+    def all_environments(self) -> List[Environment]:
+        """Every environment whose BRT a run needs: train, test, guard and incremental,
+        each once, in that order."""
+        envs, seen = [], set()
+        extra = self.guard_environments() + (
+            [self.incremental.environment] if self.incremental.enabled else [])
+        for env in self.training_environments() + self.held_out_environments() + extra:
+            if env.name not in seen:
+                seen.add(env.name)
+                envs.append(env)
+        return envs
+
 
 def load_run_spec(filename=None, *, data=None) -> RunSpec:
     """Load and validate a run specification (YAML file or string)."""

@@ -47,19 +47,6 @@ RECORD_FORMAT = 2
 _log = logging.getLogger("reachwatch")
 
 
-def all_environments(spec: RunSpec):
-    """Every environment whose BRT a run of ``spec`` needs: train, test, guard and
-    incremental, each once, in that order."""
-    envs, seen = [], set()
-    extra = spec.guard_environments() + (
-        [spec.incremental.environment] if spec.incremental.enabled else [])
-    for env in spec.training_environments() + spec.held_out_environments() + extra:
-        if env.name not in seen:
-            seen.add(env.name)
-            envs.append(env)
-    return envs
-
-
 class Run:
     """A run directory: the spec (``run.yaml``), artifacts, and one record per
     finished stage (``stages/NAME.json``: key, seconds, outputs, and the size and
@@ -208,7 +195,7 @@ class Run:
     def environments(self):
         """Every environment whose BRT the run needs (train, test, guard, incremental),
         less those a slice leaves out."""
-        return self.selected(all_environments(self.spec))
+        return self.selected(self.spec.all_environments())
 
     def selected(self, envs):
         """``envs`` less those a slice (``only``) leaves out."""

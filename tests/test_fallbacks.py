@@ -11,16 +11,13 @@ from pydrake.systems.primitives import ZeroOrderHold
 from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, add_dead_reckoning, load_scenario,
                                  make_guarded_diagram)
 from reachwatch.diagrams.scenario import ControllerConfig
-from reachwatch.reach import Grid
-from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes,
-                                       liveness_figures)
+from reachwatch.reach.liveness import MISSION_FIELDS, MissionOutcomes, liveness_figures
 from reachwatch.systems import (DeadReckoning, FallbackSwitch, FlagFilter, confirmed_flags,
                                 ProportionalController, TaxiPlant, TrueStateEstimator,
                                 fallback_parts, propagate_estimate,
                                 taxi_dynamics)
 from reachwatch.taxi import (UNGUARDED, dynamics_for, fallback_rollouts, guarded_rollouts,
-                             mission_rollouts, p_controller_policy, paper_grid,
-                             perfect_detector_scores, resolved, sweep_guarded)
+                             mission_rollouts, paper_grid, resolved, sweep_guarded)
 from reachwatch.reach import InlineExecutor
 
 PERIOD = 0.05
@@ -212,53 +209,6 @@ def test_same_distance_figures_known_answer():
                          mission_limit=0.5)
 
 
-def _wrong_way(score):
-    """A hand-made controller on a small grid that steers the wrong way wherever px >
-    0.5 (the P-controller elsewhere), and a detector scoring ``score(nodes)``: the
-    scenario's dynamics and policy, the grid, and its steering, score and estimate
-    tables."""
-    scenario = load_scenario(data="")
-    policy = p_controller_policy(scenario.controller)
-    grid = Grid(lo=[-10.0, 0.0, -0.3], hi=[10.0, 100.0, 0.3], shape=(11, 3, 7))
-    good = lambda x: policy(np.stack([x[:, 0], np.rad2deg(x[:, 2])], -1))   # noqa: E731
-    steer, scores, estimate = _tables(grid, lambda x: np.where(x[:, 0] > 0.5, 0.3, good(x)),
-                                      score)
-    return dynamics_for(scenario), policy, grid, steer, scores, estimate
-
-
-def test_table_rollouts_of_a_batch_equal_each_start_alone():
-    """The rollouts integrate only the starts still under way. Starts that fail early
-    (px > 0.5: the hand-made controller steers off), brake to a stop or cover the
-    distance sit in one batch beside starts that keep going; every field of every
-    start equals its rollout alone, for each speed strategy and steering mode, and
-    the caller's starts are left as they were."""
-    dynamics, policy, grid, steer, score, estimate = _wrong_way(
-        lambda x: np.clip(x[:, 0] / 4 + 0.4, 0.0, 1.0))
-    starts = np.array([[2.0, 10.0, 0.0], [-2.0, 10.0, 0.0], [6.0, 50.0, 0.2],
-                       [0.0, 30.0, -0.1], [9.5, 5.0, 0.25], [-4.0, 80.0, 0.1]])
-    before = starts.copy()
-    for kw in (dict(strategy="slow_down"), dict(strategy="brake", brake_deceleration=4.0),
-               dict(strategy="brake", steering="dead_reckoning", policy=policy,
-                    estimate_table=estimate, brake_deceleration=1.0),
-               dict(strategy="slow_down", steering="oracle", policy=policy)):
-        common = dict(threshold=0.5, horizon=4.0, mission_limit=2.0, **kw)
-        batch = guarded_rollouts(grid, dynamics, steer, score, starts=starts, **common)
-        assert batch.failed.any() and not batch.failed.all()
-        for i, start in enumerate(starts):
-            one = guarded_rollouts(grid, dynamics, steer, score, starts=start[None], **common)
-            for name in MISSION_FIELDS + SAME_DISTANCE_FIELDS:
-                np.testing.assert_allclose(getattr(one, name)[0], getattr(batch, name)[i],
-                                           err_msg=f"{kw} start {i} {name}")
-    np.testing.assert_array_equal(starts, before)
-
-
-def _tables(grid, steering, score):
-    """Tables on ``grid`` from functions of the node states (a hand-made controller)."""
-    nodes = grid.states()
-    estimate = np.stack([nodes[:, 0], np.rad2deg(nodes[:, 2])], axis=-1)
-    return steering(nodes), score(nodes), estimate
-
-
 # raw flags by tick, and the 2-of-3 rule's verdict worked out by hand
 RAW = [1, 0, 1, 1, 0, 0, 1, 1, 1, 0]
 TWO_OF_THREE = [0, 0, 1, 1, 1, 0, 0, 1, 1, 1]
@@ -299,45 +249,6 @@ def test_k_of_n_flags_tick_by_tick():
             FlagFilter(flags_needed=k, window=n)
     with pytest.raises(ValueError, match="monitor.flags_needed / monitor.flag_window"):
         load_scenario(data="{monitor: {flags_needed: 4, flag_window: 3}}")
-
-
-def test_table_rollouts_liveness_and_dead_reckoning():
-    """A controller steering the wrong way wherever px > 0: alone it fails there; a
-    detector flagging px > 0 with dead reckoning saves those starts without stopping,
-    braking saves them by stopping, and a detector that never flags changes nothing."""
-    dynamics, policy, grid, steer, score, estimate = _wrong_way(
-        lambda x: (x[:, 0] > 0.5).astype(float))
-    starts = np.array([[2.0, 10.0, 0.0], [-2.0, 10.0, 0.0]])
-    kw = dict(horizon=6.0, starts=starts)
-    alone = guarded_rollouts(grid, dynamics, steer, None, **kw)
-    assert alone.failed.tolist() == [True, False] and not alone.ever_stopped.any()
-    never = guarded_rollouts(grid, dynamics, steer, score, threshold=1.5, **kw)
-    f = liveness_figures(alone, never)
-    assert (f["failure_set"]["rate"], f["ended_stopped"]["rate"], f["flagged_ticks"]) == (
-        0.5, 0.0, 0.0) and f["distance_ratio"] == pytest.approx(1.0)
-    reckoned = guarded_rollouts(grid, dynamics, steer, score, steering="dead_reckoning",
-                                policy=policy, estimate_table=estimate, **kw)
-    assert not reckoned.failed.any() and not reckoned.stopped.any()
-    assert reckoned.flagged_ticks[0] > 0 and reckoned.flagged_ticks[1] == 0
-    braked = guarded_rollouts(grid, dynamics, steer, score, strategy="brake",
-                              brake_deceleration=4.0, **kw)
-    assert braked.failed.tolist() == [False, False] and braked.stopped.tolist() == [True, False]
-    with pytest.raises(ValueError, match="estimate table"):
-        guarded_rollouts(grid, dynamics, steer, score, steering="dead_reckoning", policy=policy)
-    # a perfect detector for a BRT that holds px > 0.5 flags what the hand-made one does
-    brt = type("HandMadeBRT", (), {"at": staticmethod(lambda x: 0.5 - np.asarray(x)[:, 0])})()
-    scores = perfect_detector_scores(brt, grid)
-    np.testing.assert_allclose(scores.ravel(), grid.states()[:, 0] - 0.5)
-    perfect = guarded_rollouts(grid, dynamics, steer, scores, threshold=0.0, strategy="brake",
-                               brake_deceleration=4.0, **kw)
-    for name in ("failed", "stopped", "flagged_ticks", "distance"):
-        np.testing.assert_allclose(getattr(perfect, name), getattr(braked, name))
-    # a 3-of-3 rule on a detector that flags every tick from the start: the first two
-    # ticks are not yet confirmed, every later one is
-    always = np.ones_like(score)
-    confirmed = guarded_rollouts(grid, dynamics, steer, always, flags_needed=3, flag_window=3,
-                                 **kw)
-    assert (confirmed.flagged_ticks == confirmed.ticks - 2).all()
 
 
 def test_dead_reckoning_in_the_rendered_loop(detector_path, tmp_path):

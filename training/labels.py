@@ -86,9 +86,10 @@ class LabelSpec:
     or widens the band past ``max_band``. No false-safe verdict in n runs bounds the
     map's false-safe rate below ``1 - 0.05 ** (1 / n)`` with 95 % confidence: 5.8 % for
     50 runs, 2.9 % for 100, 1.5 % for 200. (A night map with 4-8 % false-safe starts
-    passed an audit of 50 in a run of the study's environments.) Each batch is cached on its own, so raising
-    ``more_audit`` reuses the runs already made; a distrusted map stops the audit
-    early, so where maps are wrong it costs little more than ``audit`` runs.
+    passed an audit of 50 in a run of the study's environments.) Each batch is cached
+    on its own, so raising ``more_audit`` reuses the runs already made; a distrusted map
+    stops the audit early, so where maps are wrong it costs little more than ``audit``
+    runs.
 
     ``max_rollouts`` (0 = no cap) bounds the rollouts per environment: a dataset that
     would need more keeps only its first samples, as many as the cap allows (they are
