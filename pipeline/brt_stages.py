@@ -92,12 +92,25 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
             "solve_seconds": round(solved[0], 2), "figure": run.rel(figure)}
 
 
+def sweep_stage_key(run: Run, env) -> str:
+    """The key of ``env``'s sweep record: its sweep's content key (no rendering)."""
+    return taxi_sweep_key(run.scenario_for(env), run.solved_grid_for(env))
+
+
+def solve_stage_key(run: Run, sweep_key: str) -> str:
+    """The key of an environment's solve record, from its sweep record's key."""
+    spec = run.spec
+    return digest(sweep_key, spec.horizon, spec.accuracy, spec.periods_per_step, spec.slice_py,
+                  *([spec.refine] if spec.refine.levels else []),
+                  *([spec.robust] if spec.robust.enabled else []))
+
+
 def stage_sweep(run: Run) -> dict:
     """Sweep every environment the run needs (one record each, keyed by content)."""
     out = {}
     for env in run.environments():
-        key = taxi_sweep_key(run.scenario_for(env), run.solved_grid_for(env))
-        out[env.name] = run.stage(f"sweep_{env.name}", key, lambda env=env: sweep_env(run, env))
+        out[env.name] = run.stage(f"sweep_{env.name}", sweep_stage_key(run, env),
+                                  lambda env=env: sweep_env(run, env))
     return out
 
 
@@ -105,10 +118,7 @@ def stage_solve(run: Run) -> dict:
     """The BRT of every environment the run needs, from its sweep."""
     out = {}
     for env in run.environments():
-        key = digest(run.records[f"sweep_{env.name}"]["key"], run.spec.horizon,
-                     run.spec.accuracy, run.spec.periods_per_step, run.spec.slice_py,
-                     *([run.spec.refine] if run.spec.refine.levels else []),
-                     *([run.spec.robust] if run.spec.robust.enabled else []))
+        key = solve_stage_key(run, run.records[f"sweep_{env.name}"]["key"])
         out[env.name] = {**run.outputs[f"sweep_{env.name}"], **run.stage(
             f"solve_{env.name}", key, lambda env=env: solve_env(run, env))}
     return out

@@ -179,6 +179,12 @@ def check_path_labels(run: Run, env, count: int) -> dict:
                             outcomes["left_box"]).as_dict()
 
 
+def fidelity_stage_key(run: Run, solve_key: str, folder) -> str:
+    """The key of an environment's fidelity record, from its solve record's key and its
+    dataset's folder (None without a dataset)."""
+    return digest(solve_key, run.spec.fidelity.key(), folder)
+
+
 def stage_fidelity(run: Run) -> dict:
     """`fidelity_env` for every environment the run needs (one record each); raises
     `BoxExitError` when BRT labels are used where more than ``fidelity.max_box_exits``
@@ -188,7 +194,8 @@ def stage_fidelity(run: Run) -> dict:
         return out
     folders = run.outputs.get("dataset", {}).get("folders", {})
     for env in run.environments():
-        key = digest(run.records[f"solve_{env.name}"]["key"], check.key(), folders.get(env.name))
+        key = fidelity_stage_key(run, run.records[f"solve_{env.name}"]["key"],
+                                 folders.get(env.name))
         out[env.name] = run.stage(f"fidelity_{env.name}", key,
                                   lambda env=env: fidelity_env(run, env))
     check_box_exits(out, check.max_box_exits)

@@ -101,9 +101,16 @@ def monte_carlo(record) -> str:
             f"({brt['real_failures']} of {n} starts)")
 
 
-def fidelity_section(page, run: Run, roles):
-    """The BRT, its table and the labels against the real loop, per environment."""
-    spec, results = run.spec, run.outputs.get("fidelity") or {}
+def environment_roles(spec) -> dict:
+    """``{name: "train" | "test"}`` of a run's labelled environments."""
+    return {**{e.name: "test" for e in spec.held_out_environments()},
+            **{e.name: "train" for e in spec.training_environments()}}
+
+
+def fidelity_section(page, spec, results: dict, made: dict, roles: dict):
+    """The BRT, its table and the labels against the real loop, per environment:
+    ``results`` the `fidelity_env` outputs by name, ``made`` the datasets' label records
+    by name (their manifests' ``labels`` with ``counts``)."""
     page.section("Fidelity against the real Drake loop", "fidelity")
     if not results:
         page.text("Not checked (fidelity.starts: 0): nothing in this report says whether "
@@ -157,7 +164,6 @@ def fidelity_section(page, run: Run, roles):
         page.text("The labels of the datasets against the same real runs: where the "
                   "labelling rule rolls out, the label is the real outcome; elsewhere it is "
                   "the BRT's verdict.")
-        made = run.outputs.get("dataset", {}).get("labels", {})
         page.text("Label renders: the frames the real loop rendered to label the dataset "
                   "(audit, rollouts, runs read along), over its labels.")
         page.table(["environment", "label source", "hybrid's audit", "agreement",
@@ -307,8 +313,7 @@ def write_report(run: Run) -> dict:
               f"rollouts of the swept table from every node (the solver against its own "
               f"model of the loop, not against the real loop: see the next section); "
               f"slices at py = {spec.slice_py:g} m.")
-    roles = {**{e.name: "test" for e in spec.held_out_environments()},
-             **{e.name: "train" for e in spec.training_environments()}}
+    roles = environment_roles(spec)
     if spec.refine.levels:
         page.text(f"Each table was refined adaptively {spec.refine.levels} time(s): each level "
                   f"halves the spacing and renders new nodes only in the cells where the BRT's "
@@ -332,7 +337,8 @@ def write_report(run: Run) -> dict:
                  sweep_rate(r), r["solve_seconds"]]
                 for n, r in o["solve"].items()])
     page.images([r["figure"] for r in o["solve"].values()])
-    fidelity_section(page, run, roles)
+    fidelity_section(page, spec, o.get("fidelity") or {},
+                     o.get("dataset", {}).get("labels", {}), roles)
     page.section("Labels and the detector", "labels")
     page.text(labels_paragraph(spec, o))
     page.images([f["overlay"] for f in o["evaluate"]["figures"].values()])

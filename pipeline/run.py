@@ -7,6 +7,7 @@ same key (a digest of its inputs), and resumes its chunked work when it was kill
 import time
 
 
+from .checked_page import write_checked_page
 from .console import log, progress_enabled
 from .executors import open_executor
 from .fidelity_stages import check_downtrack_room, stage_fidelity
@@ -32,7 +33,9 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     solve, dataset, fidelity) for those environments alone, whose records are the ones
     the whole run gives them (each depends on its environment only). A long study
     can so run in pieces, on machines that share nothing, and its per-environment
-    figures be read as they come."""
+    figures be read as they come: a slice up to fidelity writes ``checked.html`` (and
+    ``.md``), the fidelity section over every environment checked so far in ``out``
+    (`write_checked_page`)."""
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got '{until}'")
     spec.validate()
@@ -67,6 +70,12 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     }
     for name in STAGES[:STAGES.index(until) + 1]:
         run.outputs[name] = steps[name]()
+    if only is not None and until == SLICE_UNTIL and spec.fidelity.starts:
+        page = write_checked_page(run)
+        log(f"checked so far: {len(page['checks'])} of the run's "
+            f"{len(spec.all_environments())} environments"
+            + (f" ({len(page['stale'])} on record for other inputs)" if page["stale"] else "")
+            + f"; {run.path(page['html'])} (and {page['md']})")
     return run
 
 

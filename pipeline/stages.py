@@ -23,7 +23,7 @@ from reachwatch.taxi import dynamics_for, paper_grid, sweep_closed_loop
 from reachwatch.taxi.grid import AXES
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
-from reachwatch.training.dataset import build_dataset, label_summary, load_dataset
+from reachwatch.training.dataset import build_dataset, dataset_folder, label_summary, load_dataset
 from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH, labels_name
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
@@ -150,6 +150,14 @@ class Run:
                 return f"its output {relative} changed content"
         return None
 
+    def recorded(self, name, key):
+        """The record of stage ``name`` when it has ``key`` and every file it names is
+        as recorded (what `stage` would reuse), else None; runs nothing."""
+        record, _ = self._read_record(self.root / "stages" / f"{name}.json")
+        if record is None or record["key"] != key or self._check_files(record) is not None:
+            return None
+        return record
+
     def stage(self, name, key, fn) -> dict:
         """``fn()``'s outputs, or the recorded ones when the key is unchanged and every
         file the record names is there with the recorded size and hash."""
@@ -222,16 +230,25 @@ class Run:
 
 
 def _ensemble(run: Run):
-    spec = run.spec.ensemble
-    if not spec.seeds:
-        return []
-    config = TaxiNetTrainConfig(camera=run.spec.scenario.camera, samples=spec.samples,
-                                epochs=spec.epochs)
-    folder = run.path(f"ensemble/{digest(config, spec.seeds)}")
-    paths = [folder / f"taxinet_seed{s}.pt" for s in spec.seeds]
+    paths = ensemble_paths(run)
     if not all(p.exists() for p in paths):
-        train_taxinet_ensemble(config, folder, spec.seeds, progress=run.bar())
+        spec = run.spec.ensemble
+        train_taxinet_ensemble(_ensemble_config(run), paths[0].parent, spec.seeds,
+                               progress=run.bar())
     return paths
+
+
+def _ensemble_config(run: Run) -> TaxiNetTrainConfig:
+    spec = run.spec.ensemble
+    return TaxiNetTrainConfig(camera=run.spec.scenario.camera, samples=spec.samples,
+                              epochs=spec.epochs)
+
+
+def ensemble_paths(run: Run) -> list:
+    """The checkpoints of the ensemble baseline's TaxiNets (trained or not yet)."""
+    spec = run.spec.ensemble
+    folder = run.path(f"ensemble/{digest(_ensemble_config(run), spec.seeds)}")
+    return [folder / f"taxinet_seed{s}.pt" for s in spec.seeds]
 
 
 def _build(root, scenario, value_path, spec, ensemble, progress, box=None):
@@ -246,6 +263,16 @@ def _label_box(run: Run, env):
         return None
     grid = run.grid_for(env)
     return grid.lo.tolist(), grid.hi.tolist()
+
+
+def dataset_folder_for(run: Run, env, value_path, ensemble) -> str:
+    """The folder (relative to the run) the dataset stage builds ``env``'s dataset in,
+    from its BRT (``value_path``) and the ensemble's checkpoints: content-addressed, so
+    known before it is built."""
+    folder = dataset_folder(run.path("datasets"), run.scenario_for(env),
+                            ValueFunction.load(value_path), run.spec.dataset_spec_for(env),
+                            ensemble=[str(p) for p in ensemble], box=_label_box(run, env))
+    return run.rel(folder)
 
 
 def stage_dataset(run: Run) -> dict:

@@ -237,7 +237,8 @@ fidelity: {starts: 4, more_starts: 10}
     from reachwatch.pipeline.report import Page, fidelity_section
     page = Page("t")
     run.outputs["fidelity"] = {spec.train[0].name: right, env.name: wrong}
-    fidelity_section(page, run, {})
+    fidelity_section(page, run.spec, run.outputs["fidelity"],
+                     run.outputs.get("dataset", {}).get("labels", {}), {})
     md = "".join(page.md)
     assert "from 4 seeded uniform on-runway starts per environment, 10 where the first 4 " \
         "found the BRT or the labels wrong or the labels' audit had distrusted the map " \
@@ -245,7 +246,8 @@ fidelity: {starts: 4, more_starts: 10}
     assert f"| {env.name} | extra | 10 |" in md and f"| {spec.train[0].name} | extra | 4 |" in md
     run.outputs["fidelity"] = {spec.train[0].name: right}
     page = Page("t")
-    fidelity_section(page, run, {})
+    fidelity_section(page, run.spec, run.outputs["fidelity"],
+                     run.outputs.get("dataset", {}).get("labels", {}), {})
     assert "the map (fidelity.more_starts; none was) (|px| < B" in "".join(page.md)
 
     # where the labels' audit distrusted the map, the check is extended even though its
@@ -261,7 +263,8 @@ fidelity: {starts: 4, more_starts: 10}
     assert "extended_because" not in right and wrong["extended_because"] == "check"
     run.outputs["fidelity"] = {spec.train[0].name: distrusted, env.name: wrong}
     page = Page("t")
-    fidelity_section(page, run, {})
+    fidelity_section(page, run.spec, run.outputs["fidelity"],
+                     run.outputs.get("dataset", {}).get("labels", {}), {})
     assert ("(fidelity.more_starts; found wrong: KSFO_21h_clear, whose rates lean slightly "
             "towards error, the extension having been chosen by it; distrusted by the audit: "
             "KMWH_9h_clear)") in "".join(page.md)

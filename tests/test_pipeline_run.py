@@ -12,6 +12,7 @@ import pytest
 
 from reachwatch.pipeline.run import STAGES, run_pipeline
 from reachwatch.pipeline.spec import load_run_spec
+from reachwatch.pipeline.stages import Run
 from reachwatch.training.dataset import load_dataset
 from reachwatch.training.evaluation import NOT_FAILED
 from tiny_run import TINY
@@ -204,6 +205,22 @@ def test_a_slice_runs_its_environments_alone_with_the_whole_runs_records(tmp_pat
         assert timeless(a["outputs"]) == timeless(b["outputs"]), stage
     assert part.outputs["dataset"]["folders"] == {env: whole.outputs["dataset"]["folders"][env]}
     assert part.outputs["dataset"]["labels"][env] == whole.outputs["dataset"]["labels"][env]
+    # the slice's page: the fidelity section over what is checked so far in its directory
+    md = (tmp_path / "part" / "checked.md").read_text()
+    assert "1 of the run's 3 environments have a real-loop check on record" in md
+    assert "Not checked yet: KMWH_9h_clear, KMWH_17h_clear." in md
+    assert f"| {env} | test | 3 |" in md and "met in 1 of 1 environments" in md
+    assert any(m.startswith("checked so far: 1 of the run's 3 environments; ") for m in log)
+    # the same function finds the whole run's three records current, and none once the
+    # check's settings change (the keys are computed, all the way down, without rendering)
+    from reachwatch.pipeline.checked_page import checked_environments
+    assert list(checked_environments(whole)["checks"]) == ["KMWH_9h_clear", env, "KMWH_17h_clear"]
+    changed = Run(load_run_spec(data=TINY.replace("starts: 3", "starts: 4")), tmp_path / "whole")
+    found = checked_environments(changed)
+    assert found["checks"] == {} and found["stale"] == ["KMWH_9h_clear", env, "KMWH_17h_clear"]
+    (tmp_path / "whole" / whole.outputs["dataset"]["folders"][env] / "manifest.json").unlink()
+    found = checked_environments(whole)                 # its dataset is gone: not current
+    assert found["stale"] == [env] and list(found["checks"]) == ["KMWH_9h_clear", "KMWH_17h_clear"]
     with pytest.raises(ValueError, match=r"no environment named 'KSFO_21h_clear' in run 'tiny'; "
                                          r"its environments are: KMWH_9h_clear, KSFO_17h_clear"):
         _run(tmp_path / "bad", until="fidelity", only=["KSFO_21h_clear"])

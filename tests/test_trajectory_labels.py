@@ -166,7 +166,8 @@ fidelity: {starts: 3, max_box_exits: 1.0}
             "(from uniform on-runway states, 0.5 s past the horizon, every 5th tick)"
             in labels_paragraph(run.spec, run.outputs))
     page = Page("t")
-    fidelity_section(page, run, {})
+    fidelity_section(page, run.spec, run.outputs["fidelity"],
+                     run.outputs.get("dataset", {}).get("labels", {}), {})
     markdown = "\n".join(page.md)
     assert "labels read along runs (trajectory labels, or dataset.labels.paths), checked" in markdown
     assert "| KSFO_17h_clear | 3 | 100.0 [43.9, 100.0] |" in markdown
