@@ -14,7 +14,7 @@ from reachwatch.systems.files import atomic_write_bytes
 
 from .brt_stages import solve_stage_key, sweep_stage_key
 from .fidelity_stages import fidelity_stage_key
-from .report import Page, environment_roles, fidelity_section
+from .report import Page, environment_roles, fidelity_section, labels_meet_target
 from .stages import Run, dataset_folder_for, ensemble_paths
 
 
@@ -56,7 +56,8 @@ def checked_environments(run: Run) -> dict:
 
 def write_checked_page(run: Run) -> dict:
     """Write ``checked.html`` and ``checked.md`` (`checked_environments`); returns their
-    paths (relative) and the environments by state."""
+    paths (relative), the environments by state, those whose labels were checked
+    (``labelled``) and those whose labels meet the report's target."""
     spec, found = run.spec, checked_environments(run)
     total = len(spec.all_environments())
     page = Page(f"reachwatch run '{spec.name}': the environments checked so far")
@@ -73,6 +74,10 @@ def write_checked_page(run: Run) -> dict:
     if found["checks"]:
         fidelity_section(page, spec, found["checks"], found["labels"], environment_roles(spec))
     text_html, text_md = page.done()
+    labelled = [n for n, r in found["checks"].items() if "labels" in r]
     return {"html": run.rel(atomic_write_bytes(run.path("checked.html"), text_html.encode())),
             "md": run.rel(atomic_write_bytes(run.path("checked.md"), text_md.encode())),
-            **{k: list(found[k]) for k in ("checks", "stale", "unchecked")}}
+            **{k: list(found[k]) for k in ("checks", "stale", "unchecked")},
+            "labelled": labelled,
+            "labels_meet_target": [n for n in labelled
+                                   if labels_meet_target(found["checks"][n])]}

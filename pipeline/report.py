@@ -188,15 +188,28 @@ def fidelity_section(page, spec, results: dict, made: dict, roles: dict):
 LABEL_TARGET = {"agree": 0.99, "false_safe": 0.01}
 
 
+def _meets(check) -> bool:
+    return (check["agree_rate"] >= LABEL_TARGET["agree"]
+            and check["false_safe_rate"] <= LABEL_TARGET["false_safe"])
+
+
+def _label_checks(record) -> list:
+    """``[(check, what)]`` of a `fidelity_env` record's labels: the fresh starts and,
+    where the dataset reads along runs, the re-run read-along states."""
+    return [(record["labels"], "starts")] + (
+        [(record["path_labels"], "read-along states")] if record.get("path_labels") else [])
+
+
+def labels_meet_target(record) -> bool:
+    """Whether a `fidelity_env` record's labels meet `LABEL_TARGET` on every check."""
+    return all(_meets(check) for check, _ in _label_checks(record))
+
+
 def label_target_text(results) -> str:
     """One sentence on the labels of `fidelity_env` records ``results`` (by environment)
     against `LABEL_TARGET`: in how many environments both the fresh starts and, where
     the dataset reads along runs, the re-run read-along states meet it, and which miss
     it, with their figures. Empty when no record checks labels."""
-    def meets(check):
-        return (check["agree_rate"] >= LABEL_TARGET["agree"]
-                and check["false_safe_rate"] <= LABEL_TARGET["false_safe"])
-
     def figures(check, what):
         return (f"{what}: agreement {100 * check['agree_rate']:.1f} %, false-safe "
                 f"{100 * check['false_safe_rate']:.1f} % of {check['n']}")
@@ -206,9 +219,7 @@ def label_target_text(results) -> str:
         return ""
     missed = []
     for name, r in labelled.items():
-        checks = [(r["labels"], "starts")] + (
-            [(r["path_labels"], "read-along states")] if r.get("path_labels") else [])
-        wrong = [figures(c, what) for c, what in checks if not meets(c)]
+        wrong = [figures(c, what) for c, what in _label_checks(r) if not _meets(c)]
         if wrong:
             missed.append(f"{name} ({'; '.join(wrong)})")
     starts = [r["labels"]["n"] for r in labelled.values()]

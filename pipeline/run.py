@@ -75,6 +75,8 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
         log(f"checked so far: {len(page['checks'])} of the run's "
             f"{len(spec.all_environments())} environments"
             + (f" ({len(page['stale'])} on record for other inputs)" if page["stale"] else "")
+            + (f", labels meeting the target in {len(page['labels_meet_target'])} of "
+               f"{len(page['labelled'])}" if page["labelled"] else "")
             + f"; {run.path(page['html'])} (and {page['md']})")
     return run
 

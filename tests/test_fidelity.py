@@ -311,6 +311,9 @@ def test_the_report_judges_each_environments_labels_against_the_target():
     assert "day (" not in text
     assert "by construction" not in text
     assert label_target_text({"unchecked": {"brt": {}}}) == ""
+    from reachwatch.pipeline.report import labels_meet_target   # the same rule, per record
+    assert [labels_meet_target(results[n]) for n in ("day", "dusk", "night")] == [
+        True, False, False]
     # labels that are runs of the real loop from their own state: the fresh starts
     # agree by construction, and the sentence says which environments those are
     results["night"]["labels"].update(source="hybrid", labelled_by="trajectory")

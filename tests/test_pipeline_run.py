@@ -210,7 +210,8 @@ def test_a_slice_runs_its_environments_alone_with_the_whole_runs_records(tmp_pat
     assert "1 of the run's 3 environments have a real-loop check on record" in md
     assert "Not checked yet: KMWH_9h_clear, KMWH_17h_clear." in md
     assert f"| {env} | test | 3 |" in md and "met in 1 of 1 environments" in md
-    assert any(m.startswith("checked so far: 1 of the run's 3 environments; ") for m in log)
+    assert any(m.startswith("checked so far: 1 of the run's 3 environments, labels meeting "
+                            "the target in 1 of 1; ") for m in log)
     # the same function finds the whole run's three records current, and none once the
     # check's settings change (the keys are computed, all the way down, without rendering)
     from reachwatch.pipeline.checked_page import checked_environments
