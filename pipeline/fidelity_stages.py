@@ -163,7 +163,8 @@ def check_path_labels(run: Run, env, count: int) -> dict:
     they could be wrong: ``count`` of the dataset's states that runs passed through
     (drawn with ``fidelity.seed``; as many as the environment's check has starts), each
     run again from scratch for the horizon and compared with its label.
-    `Fidelity.as_dict`, or ``{}`` when the dataset has no such states."""
+    `Fidelity.as_dict` with the ``frames`` those runs rendered, or ``{}`` when the
+    dataset has no such states."""
     check = run.spec.fidelity
     data = load_dataset(run.path(run.outputs["dataset"]["folders"][env.name]))
     along = np.flatnonzero(data.sources == SOURCE_PATH)
@@ -175,8 +176,9 @@ def check_path_labels(run: Run, env, count: int) -> dict:
     outcomes = real_outcomes(run.scenario_for(env), states, grid=run.solved_grid_for(env),
                              duration=run.spec.horizon, cache_dir=run.path("outcomes"),
                              executor=run.executor, progress=run.progress)
-    return compare_verdicts(np.asarray(data.labels[rows]) == 1, outcomes.failed,
-                            outcomes["left_box"]).as_dict()
+    return {**compare_verdicts(np.asarray(data.labels[rows]) == 1, outcomes.failed,
+                               outcomes["left_box"]).as_dict(),
+            "frames": int(np.sum(outcomes["ticks"]))}
 
 
 def fidelity_stage_key(run: Run, solve_key: str, folder) -> str:

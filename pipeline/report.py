@@ -176,9 +176,10 @@ def fidelity_section(page, spec, results: dict, made: dict, roles: dict):
         page.text("The labels read along runs (trajectory labels, or dataset.labels.paths), "
                   "checked: states the runs passed through (not the uniform samples), each "
                   "run again from scratch for the horizon and compared with its label.")
-        page.table(["environment", "states", "agreement", "false-safe", "false-unsafe"],
+        page.table(["environment", "states", "agreement", "false-safe", "false-unsafe",
+                    "renders"],
                    [[n, r["n"], _rate(r, "agree"), _rate(r, "false_safe"),
-                     _rate(r, "false_unsafe")] for n, r in along.items()])
+                     _rate(r, "false_unsafe"), r.get("frames", "-")] for n, r in along.items()])
     if labelled:
         page.text(label_target_text(results))
 

@@ -153,6 +153,10 @@ fidelity: {starts: 3, max_box_exits: 1.0}
         # are what the loop does from them
         assert check["labels"]["agree"] == check["labels"]["n"] == 3
         assert check["path_labels"]["agree"] == check["path_labels"]["n"] == 3
+        # their renders, counted apart from the check's own starts: none of these 1 s
+        # runs leaves the runway, so each renders its 21 ticks
+        assert check["path_labels"]["real_failures"] == 0
+        assert check["path_labels"]["frames"] == 3 * 21
     rows = [r for r in run.outputs["evaluate"]["rows"] if r["environment"] == "KSFO_17h_clear"
             and r["method"] == "detector (real-loop trajectory + read-along labels)"]
     subsets = {r["states"]: r["n"] for r in rows if r["labels"] == "trajectory + read-along"}
@@ -171,6 +175,9 @@ fidelity: {starts: 3, max_box_exits: 1.0}
     markdown = "\n".join(page.md)
     assert "labels read along runs (trajectory labels, or dataset.labels.paths), checked" in markdown
     assert "| KSFO_17h_clear | 3 | 100.0 [43.9, 100.0] |" in markdown
+    frames = run.outputs["fidelity"]["KSFO_17h_clear"]["path_labels"]["frames"]
+    row = next(r for r in markdown.splitlines() if r.startswith("| KSFO_17h_clear | 3 | 100.0"))
+    assert row.endswith(f"| {frames} |")
 
 
 def test_path_starts_are_on_the_runway_and_apart_from_the_samples():
