@@ -21,13 +21,14 @@ from .stages import Run, dataset_folder_for, ensemble_paths
 def checked_environments(run: Run) -> dict:
     """Every environment of the run by what its fidelity record says now:
     ``{"checks": {name: fidelity_env outputs}, "labels": {name: the dataset's label
-    record}, "stale": [names], "unchecked": [names]}``. ``stale``: a record is there,
-    but for other inputs (the run file changed since, or a file it names did)."""
+    record}, "stale": {name: why}, "unchecked": [names]}``. ``stale``: a record is
+    there, but for other inputs (the run file changed since, or a file it names did),
+    with the first input found different."""
     spec = run.spec
     labelled = {e.name for e in spec.training_environments() + spec.held_out_environments()}
     ensemble = ensemble_paths(run)
     ensemble_ready = all(p.is_file() for p in ensemble)
-    checks, labels, stale, unchecked = {}, {}, [], []
+    checks, labels, stale, unchecked = {}, {}, {}, []
     for env in spec.all_environments():
         if not run.path(f"stages/fidelity_{env.name}.json").is_file():
             unchecked.append(env.name)
@@ -35,18 +36,23 @@ def checked_environments(run: Run) -> dict:
         solve_key = solve_stage_key(run, sweep_stage_key(run, env))
         solve = run.recorded(f"solve_{env.name}", solve_key)
         folder, manifest = None, None
-        if solve is not None and env.name in labelled:
-            if ensemble_ready:
-                folder = dataset_folder_for(run, env, run.path(solve["outputs"]["value"]), ensemble)
-                path = run.path(folder) / "manifest.json"
-                manifest = json.loads(path.read_text()) if path.is_file() else None
-            current = manifest is not None
-        else:
-            current = solve is not None
-        record = current and run.recorded(f"fidelity_{env.name}",
-                                          fidelity_stage_key(run, solve_key, folder))
-        if not record:
-            stale.append(env.name)
+        if solve is None:
+            stale[env.name] = "its BRT is not the run file's (sweep or solve inputs changed)"
+            continue
+        if env.name in labelled:
+            if not ensemble_ready:
+                stale[env.name] = "the ensemble's checkpoints, which its dataset's folder " \
+                                  "depends on, are not in ensemble/"
+                continue
+            folder = dataset_folder_for(run, env, run.path(solve["outputs"]["value"]), ensemble)
+            path = run.path(folder) / "manifest.json"
+            if not path.is_file():
+                stale[env.name] = f"its dataset ({folder}) is not there"
+                continue
+            manifest = json.loads(path.read_text())
+        record = run.recorded(f"fidelity_{env.name}", fidelity_stage_key(run, solve_key, folder))
+        if record is None:
+            stale[env.name] = "the check's settings or its dataset changed"
             continue
         checks[env.name] = record["outputs"]
         if manifest is not None:
@@ -66,9 +72,9 @@ def write_checked_page(run: Run) -> dict:
               f"a whole run, in this directory); their figures are the ones the whole run "
               f"reports.")
     if found["stale"]:
-        page.text(f"On record for other inputs (the run file or a file a record names changed "
-                  f"since; running them again brings them up to date): "
-                  f"{', '.join(found['stale'])}.")
+        page.text("On record for other inputs (the run file or a file a record names changed "
+                  "since; running them again brings them up to date): " + "; ".join(
+                      f"{n} ({why})" for n, why in found["stale"].items()) + ".")
     if found["unchecked"]:
         page.text(f"Not checked yet: {', '.join(found['unchecked'])}.")
     if found["checks"]:

@@ -218,10 +218,22 @@ def test_a_slice_runs_its_environments_alone_with_the_whole_runs_records(tmp_pat
     assert list(checked_environments(whole)["checks"]) == ["KMWH_9h_clear", env, "KMWH_17h_clear"]
     changed = Run(load_run_spec(data=TINY.replace("starts: 3", "starts: 4")), tmp_path / "whole")
     found = checked_environments(changed)
-    assert found["checks"] == {} and found["stale"] == ["KMWH_9h_clear", env, "KMWH_17h_clear"]
-    (tmp_path / "whole" / whole.outputs["dataset"]["folders"][env] / "manifest.json").unlink()
+    assert found["checks"] == {} and found["stale"] == dict.fromkeys(
+        ["KMWH_9h_clear", env, "KMWH_17h_clear"], "the check's settings or its dataset changed")
+    folder = whole.outputs["dataset"]["folders"][env]
+    (tmp_path / "whole" / folder / "manifest.json").unlink()
     found = checked_environments(whole)                 # its dataset is gone: not current
-    assert found["stale"] == [env] and list(found["checks"]) == ["KMWH_9h_clear", "KMWH_17h_clear"]
+    assert found["stale"] == {env: f"its dataset ({folder}) is not there"}
+    assert list(found["checks"]) == ["KMWH_9h_clear", "KMWH_17h_clear"]
+    changed = Run(load_run_spec(data=TINY.replace("horizon: 4.0", "horizon: 3.0")), tmp_path / "whole")
+    assert set(checked_environments(changed)["stale"].values()) == {
+        "its BRT is not the run file's (sweep or solve inputs changed)"}
+    from reachwatch.pipeline.checked_page import write_checked_page
+    page = write_checked_page(changed)
+    assert page["checks"] == [] and page["stale"] == ["KMWH_9h_clear", env, "KMWH_17h_clear"]
+    assert ("running them again brings them up to date): KMWH_9h_clear (its BRT is not the run "
+            "file's (sweep or solve inputs changed)); KSFO_17h_clear (its BRT") in (
+        tmp_path / "whole" / "checked.md").read_text()
     with pytest.raises(ValueError, match=r"no environment named 'KSFO_21h_clear' in run 'tiny'; "
                                          r"its environments are: KMWH_9h_clear, KSFO_17h_clear"):
         _run(tmp_path / "bad", until="fidelity", only=["KSFO_21h_clear"])
