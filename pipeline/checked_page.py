@@ -14,8 +14,10 @@ from reachwatch.systems.files import atomic_write_bytes
 
 from .brt_stages import solve_stage_key, sweep_stage_key
 from .fidelity_stages import fidelity_stage_key
-from .report import Page, environment_roles, fidelity_section, labels_meet_target
-from .stages import Run, dataset_folder_for, ensemble_paths
+from .dataset_stages import dataset_folder_for, ensemble_paths
+from .fidelity_sections import fidelity_section, labels_meet_target
+from .report import Page, environment_roles
+from .stages import Run
 
 
 def checked_environments(run: Run) -> dict:

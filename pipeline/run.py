@@ -15,7 +15,8 @@ from .online_stages import stage_guard, stage_incremental
 from .report import write_report
 from .spec import RunSpec, digest, load_run_spec
 from .brt_stages import stage_solve, stage_sweep
-from .stages import Run, stage_dataset, stage_evaluate, stage_train
+from .dataset_stages import stage_dataset
+from .stages import Run, stage_evaluate, stage_train
 
 STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "incremental", "report")
 REPORT_FORMAT = 1

@@ -1,10 +1,9 @@
-"""The run (`Run`) and the learning stages of ``reachwatch run``: dataset -> train ->
-evaluate (sweep and solve are in `brt_stages`). Each reads the records of the stages before it and returns JSON-able
+"""The run (`Run`) and the learning stages of ``reachwatch run``: train -> evaluate
+(sweep and solve are in `brt_stages`, the dataset in `dataset_stages`). Each reads the records of the stages before it and returns JSON-able
 outputs (paths relative to the run directory); `Run.stage` skips a stage whose key
 (a digest of its inputs) matches its record. The heavy work inside a stage is
 itself chunked and cached by content, so a killed stage resumes where it stopped."""
 
-import concurrent.futures as cf
 import copy
 import dataclasses as dc
 import datetime
@@ -23,7 +22,7 @@ from reachwatch.taxi import dynamics_for, paper_grid, sweep_closed_loop
 from reachwatch.taxi.grid import AXES
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
-from reachwatch.training.dataset import build_dataset, dataset_folder, label_summary, load_dataset
+from reachwatch.training.dataset import load_dataset
 from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH, labels_name
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
@@ -33,7 +32,6 @@ from reachwatch.training.evaluation import (NOT_FAILED, READ_ALONG, UNIFORM_STAR
 from reachwatch.training.figures import (plot_error_vs_margin, plot_examples, plot_overlay,
                                          plot_roc)
 from reachwatch.training.metrics import best_threshold
-from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
 
 from .spec import RunSpec, digest, dump_run_spec
 
@@ -227,78 +225,6 @@ class Run:
 
     def datasets(self, envs):
         return [load_dataset(self.path(self.outputs["dataset"]["folders"][e.name])) for e in envs]
-
-
-def _ensemble(run: Run):
-    paths = ensemble_paths(run)
-    if not all(p.exists() for p in paths):
-        spec = run.spec.ensemble
-        train_taxinet_ensemble(_ensemble_config(run), paths[0].parent, spec.seeds,
-                               progress=run.bar())
-    return paths
-
-
-def _ensemble_config(run: Run) -> TaxiNetTrainConfig:
-    spec = run.spec.ensemble
-    return TaxiNetTrainConfig(camera=run.spec.scenario.camera, samples=spec.samples,
-                              epochs=spec.epochs)
-
-
-def ensemble_paths(run: Run) -> list:
-    """The checkpoints of the ensemble baseline's TaxiNets (trained or not yet)."""
-    spec = run.spec.ensemble
-    folder = run.path(f"ensemble/{digest(_ensemble_config(run), spec.seeds)}")
-    return [folder / f"taxinet_seed{s}.pt" for s in spec.seeds]
-
-
-def _build(root, scenario, value_path, spec, ensemble, progress, box=None):
-    """One dataset (module-level so a process pool or Dask worker can run it)."""
-    return str(build_dataset(root, scenario, ValueFunction.load(value_path), spec,
-                             ensemble=ensemble, progress=progress, box=box))
-
-
-def _label_box(run: Run, env):
-    """The paper's box, where states are labelled, when the solved box is wider."""
-    if run.solved_grid_for(env) == run.grid_for(env):
-        return None
-    grid = run.grid_for(env)
-    return grid.lo.tolist(), grid.hi.tolist()
-
-
-def dataset_folder_for(run: Run, env, value_path, ensemble) -> str:
-    """The folder (relative to the run) the dataset stage builds ``env``'s dataset in,
-    from its BRT (``value_path``) and the ensemble's checkpoints: content-addressed, so
-    known before it is built."""
-    folder = dataset_folder(run.path("datasets"), run.scenario_for(env),
-                            ValueFunction.load(value_path), run.spec.dataset_spec_for(env),
-                            ensemble=[str(p) for p in ensemble], box=_label_box(run, env))
-    return run.rel(folder)
-
-
-def stage_dataset(run: Run) -> dict:
-    """The ensemble baseline's TaxiNets, then one labelled dataset per train/test
-    environment (`RunSpec.dataset_spec_for`), built on the run's executor."""
-    ensemble = _ensemble(run)
-    envs = run.selected(run.spec.training_environments() + run.spec.held_out_environments())
-    futures = {e.name: run.executor.submit(
-        _build, str(run.path("datasets")), run.scenario_for(e),
-        str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset_spec_for(e),
-        [str(p) for p in ensemble], run.progress, _label_box(run, e)) for e in envs}
-    bar = run.bar()                  # hours at study scale: how many environments are done
-    finished = cf.as_completed(futures.values())
-    names, data = {future: name for name, future in futures.items()}, {}
-    for future in (bar(finished, total=len(futures), desc="datasets", unit="environment")
-                   if bar else finished):
-        if future.exception() is None:     # a failed build raises below, once all are done
-            data[names[future]] = load_dataset(future.result())
-            run.log(f"[dataset_{names[future]}] labelled: "
-                    f"{label_summary(data[names[future]].manifest)}")
-    folders = {name: run.rel(f.result()) for name, f in futures.items()}
-    data = {name: data[name] for name in futures}          # the environments' order
-    return {"ensemble": [run.rel(p) for p in ensemble], "folders": folders,
-            "positives": {name: float(d.labels.mean()) for name, d in data.items()},
-            "labels": {name: {**d.manifest["labels"], "counts": d.manifest["label_counts"]}
-                       for name, d in data.items()}}
 
 
 def stage_train(run: Run) -> dict:

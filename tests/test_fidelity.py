@@ -138,7 +138,7 @@ def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
                                   [True, True, True, False])
     np.testing.assert_array_equal(label_verdicts({**distrusted, "labelled_by": "trajectory"},
                                                  2.0, deep, wrong_deep), wrong_deep)
-    from reachwatch.pipeline.report import _audit_text        # the report names the fallback
+    from reachwatch.pipeline.fidelity_sections import _audit_text        # the report names the fallback
     assert _audit_text({"map_trusted": False, "labelled_by": "trajectory"}) == \
         "map not trusted: trajectory labels"
     assert _audit_text({"map_trusted": False, "labelled_by": None}) == "map not trusted"
@@ -146,7 +146,7 @@ def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
         "map trusted after 100 runs, band 0.10 m"
     # what each environment's labels cost: a trusted hybrid's rollout frames hold its
     # audit's; a fallback adds the audit to its trajectory runs; paths add their own
-    from reachwatch.pipeline.report import label_renders
+    from reachwatch.pipeline.fidelity_sections import label_renders
     counts = {"brt": 700, "rollout": 300, "path": 0}
     assert label_renders({"source": "brt", "counts": counts}) == [1000, 0, "0.0"]
     assert label_renders({"source": "hybrid", "rollout_frames": 37440, "counts": counts}) == \
@@ -234,7 +234,8 @@ fidelity: {starts: 4, more_starts: 10}
     assert wrong["brt"]["false_safe"] == int(np.sum(np.abs(draw[:, 0]) < 5.0))
 
     # the report says how many starts and which environments were extended
-    from reachwatch.pipeline.report import Page, fidelity_section
+    from reachwatch.pipeline.fidelity_sections import fidelity_section
+    from reachwatch.pipeline.report import Page
     page = Page("t")
     run.outputs["fidelity"] = {spec.train[0].name: right, env.name: wrong}
     fidelity_section(page, run.spec, run.outputs["fidelity"],
@@ -291,7 +292,7 @@ fidelity: {{starts: 4, more_starts: {str(bad).lower()}}}
 def test_the_report_judges_each_environments_labels_against_the_target():
     """Met only where the fresh starts and the re-run read-along states both reach 99 %
     agreement with at most 1 % false-safe; the misses are named with their figures."""
-    from reachwatch.pipeline.report import label_target_text
+    from reachwatch.pipeline.fidelity_sections import label_target_text
     real = np.array([True] * 10 + [False] * 190)
 
     def check(false_safe=0, false_unsafe=0):
@@ -311,7 +312,7 @@ def test_the_report_judges_each_environments_labels_against_the_target():
     assert "day (" not in text
     assert "by construction" not in text
     assert label_target_text({"unchecked": {"brt": {}}}) == ""
-    from reachwatch.pipeline.report import labels_meet_target   # the same rule, per record
+    from reachwatch.pipeline.fidelity_sections import labels_meet_target   # the same rule, per record
     assert [labels_meet_target(results[n]) for n in ("day", "dusk", "night")] == [
         True, False, False]
     # labels that are runs of the real loop from their own state: the fresh starts

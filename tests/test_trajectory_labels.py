@@ -125,7 +125,8 @@ def test_trajectory_labelled_run_checks_the_labels_read_along_runs(tmp_path):
     """``reachwatch run`` with trajectory labels: the datasets hold the states the runs
     passed through, the fidelity stage runs some of them again from scratch, the report
     shows that check, and Table 2 scores the uniform states alone too."""
-    from reachwatch.pipeline.report import Page, fidelity_section, labels_paragraph
+    from reachwatch.pipeline.fidelity_sections import fidelity_section
+    from reachwatch.pipeline.report import Page, labels_paragraph
     from reachwatch.pipeline.run import run_pipeline
     from reachwatch.pipeline.spec import load_run_spec
     text = """
