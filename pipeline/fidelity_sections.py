@@ -142,7 +142,8 @@ def label_target_text(results) -> str:
         wrong = [figures(c, what) for c, what in _label_checks(r) if not _meets(c)]
         if wrong:
             missed.append(f"{name} ({'; '.join(wrong)})")
-    starts = [r["labels"]["n"] for r in labelled.values()]
+    starts = sorted({r["labels"]["n"] for r in labelled.values()})
+    span = f"{starts[0]}" if len(starts) == 1 else f"{starts[0]}-{starts[-1]}"
     by_run = [n for n, r in labelled.items() if labels_every_state_by_its_run(r["labels"])]
     note = ""
     if by_run:
@@ -155,7 +156,7 @@ def label_target_text(results) -> str:
             f"false-safe <= {100 * LABEL_TARGET['false_safe']:g} % on the fresh starts, and on "
             f"the re-run read-along states where the dataset has them): met in "
             f"{len(labelled) - len(missed)} of {len(labelled)} environments, checked on "
-            f"{min(starts)}-{max(starts)} starts each" +
+            f"{span} starts each" +
             (f"; missed in {', '.join(missed)}." if missed else ".") + note)
 
 

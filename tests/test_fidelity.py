@@ -306,7 +306,9 @@ def test_the_report_judges_each_environments_labels_against_the_target():
                "night": {"labels": check(), "path_labels": check(false_unsafe=3)},
                "unchecked": {"brt": {}}}
     text = label_target_text(results)
-    assert "met in 1 of 3 environments, checked on 200-200 starts each" in text
+    assert "met in 1 of 3 environments, checked on 200 starts each" in text
+    short = {**results, "short": {"labels": compare_verdicts(real[:50], real[:50]).as_dict()}}
+    assert "met in 2 of 4 environments, checked on 50-200 starts each" in label_target_text(short)
     assert "dusk (starts: agreement 98.5 %, false-safe 1.5 % of 200)" in text
     assert "night (read-along states: agreement 98.5 %, false-safe 0.0 % of 200)" in text
     assert "day (" not in text
