@@ -142,8 +142,8 @@ def label_target_text(results) -> str:
         wrong = [figures(c, what) for c, what in _label_checks(r) if not _meets(c)]
         if wrong:
             missed.append(f"{name} ({'; '.join(wrong)})")
-    starts = sorted({r["labels"]["n"] for r in labelled.values()})
-    span = f"{starts[0]}" if len(starts) == 1 else f"{starts[0]}-{starts[-1]}"
+    starts = [r["labels"]["n"] for r in labelled.values()]
+    span = f"{min(starts)}" if min(starts) == max(starts) else f"{min(starts)}-{max(starts)}"
     by_run = [n for n, r in labelled.items() if labels_every_state_by_its_run(r["labels"])]
     note = ""
     if by_run:
