@@ -32,6 +32,12 @@ cells where the BRT's boundary passes within ``--refine-band`` m or the steering
 varies by more than ``--refine-variation`` deg across the cell; its row counts every
 node rendered (``+rL`` in the grid column).
 
+Each environment's map is then chosen among all of these by the hybrid audit's runs
+(`reach.select_map`: fewest false-unsafe + ``--select-weight`` x false-safe verdicts
+there, then fewest renders) and its verdicts on the check starts, which the choice
+never saw, are printed as the ``selected`` row: a procedure, not a setting tuned to
+the check.
+
 Real runs are cached by content under ``--cache`` (a re-run is free, a killed one
 resumes).
 
@@ -60,7 +66,7 @@ import numpy as np
 from reachwatch.diagrams import CONTROL_PORT
 from reachwatch.pipeline.evaluate_commands import parse_environment
 from reachwatch.pipeline.spec import load_run_spec
-from reachwatch.reach import compare_verdicts, solve_brt
+from reachwatch.reach import compare_verdicts, select_map, solve_brt
 from reachwatch.systems.files import cache_root
 from reachwatch.taxi import (dynamics_for, on_runway_starts, paper_grid, refine_closed_loop,
                              steering_bounds, sweep_closed_loop)
@@ -103,6 +109,9 @@ def main():
     p.add_argument("--robust-spread", type=float, nargs="*", default=[],
                    help="also solve each map robustly where the steering ranges over more "
                    "than each of these deg across a node's neighbours (no renders)")
+    p.add_argument("--select-weight", type=float, default=2.0,
+                   help="a false-safe audit verdict weighs this many false-unsafe ones when "
+                   "the audit picks each environment's map (reach.select_map)")
     p.add_argument("--plot", default=None, metavar="PNG",
                    help="also draw each map's agreement and false-safe share against its renders")
     p.add_argument("--theta-deg", type=float, default=28.0, help="solved box: |theta| up to (deg)")
@@ -134,6 +143,7 @@ def main():
         seconds = time.time() - started
         real, frames = check.failed, check["ticks"]
         curve = curves.setdefault(env.name, [])
+        first = len(curve)
         trajectory_cost = functools.cache(functools.partial(
             frames_per_label_read_along, scenario, base, spec.horizon, args, cache))
         variants = [(shape, pps) for shape in np.reshape(args.grids, (-1, 3))
@@ -161,6 +171,15 @@ def main():
                     robust = dc.replace(level, solution=solve(level.table, spread=spread))
                     curve.append(score(env, robust, pps, starts, audit, audited, real, frames,
                                        args, trajectory_cost, variant=f"+R{spread:g}"))
+        candidates = curve[first:]
+        kept = select_map([a for *_, a in candidates], costs=[r for _, r, *_ in candidates],
+                          false_safe_weight=args.select_weight)
+        name, rendered, f, a = candidates[kept]
+        print(f"{env.name:22s} {name:12s} selected by the audit's {a.n} runs ({a.false_safe} "
+              f"false-safe, {a.false_unsafe} false-unsafe there) among {len(candidates)} maps: "
+              f"{rendered} renders, agreement {interval(f, 'agree')}, false-safe "
+              f"{interval(f, 'false_safe')}, false-unsafe {interval(f, 'false_unsafe')} "
+              f"on the {f.n} check starts")
         print(f"{'':22s} {len(starts)} check runs: {int(real.sum())} failures, "
               f"{100 * np.mean(check['left_box']):.0f} % left the paper box, "
               f"{int(frames.sum())} frames, {seconds:.0f} s with the audit "
@@ -178,13 +197,13 @@ def plot_curves(curves, path):
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, len(curves), figsize=(6 * len(curves), 4.5), squeeze=False)
     for ax, (env, rows) in zip(axes[0], curves.items()):
-        renders = np.array([r for _, r, _ in rows], float)
+        renders = np.array([r for _, r, *_ in rows], float)
         for field, label, marker in (("agree", "agreement", "o"), ("false_safe", "false-safe", "x")):
-            rates = np.array([f.rate(field) for _, _, f in rows]) * 100
+            rates = np.array([f.rate(field) for _, _, f, _ in rows]) * 100
             ax.errorbar(renders, rates[:, 0], yerr=[rates[:, 0] - rates[:, 1],
                                                     rates[:, 2] - rates[:, 0]],
                         fmt=marker, capsize=3, label=label)
-        for (name, r, f) in rows:
+        for (name, r, f, _) in rows:
             ax.annotate(name, (r, 100 * f.rate("agree")[0]), fontsize=7, rotation=30,
                         textcoords="offset points", xytext=(3, 3))
         ax.set(xscale="log", xlabel="nodes rendered for the map", ylabel="% of check starts",
@@ -216,7 +235,7 @@ def score(env, level, pps, starts, audit, audited, real, frames, args, trajector
     """One table row per label source for one BRT map (a refinement ``level``;
     ``variant`` names a robust solve of it in the grid column; ``trajectory_cost()``
     the frames per label read along runs). Returns the map's name, its renders and its
-    BRT verdicts' `Fidelity`."""
+    BRT verdicts' `Fidelity` on the check starts and on the audit's."""
     vf, grid = level.solution, level.table.grid
     values = vf.at(starts)
     audit_values = vf.at(audit)
@@ -245,7 +264,7 @@ def score(env, level, pps, starts, audit, audited, real, frames, args, trajector
           f"{f'map trusted, band {band:.2f} m' if trusted else 'map NOT trusted'} "
           f"({int(np.sum(audited.failed & (audit_values > 0)))} false-safe of "
           f"{len(audit)}); rolled out {100 * rolled.mean():.0f} % of the check starts")
-    return name, level.rendered, map_fidelity
+    return name, level.rendered, map_fidelity, compare_verdicts(audit_values <= 0, audited.failed)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ about runways; the taxi application is `reachwatch.taxi`."""
 import reachwatch.systems  # noqa: F401  (first: process-wide settings before torch)
 
 from .dynamics import Dynamics
-from .fidelity import Fidelity, compare_verdicts, left_box, wilson_interval
+from .fidelity import Fidelity, compare_verdicts, left_box, select_map, wilson_interval
 from .fingerprint import Unfingerprintable, fingerprint
 from .grid import Grid
 from .robust import local_range
@@ -15,6 +15,6 @@ from .sweep import (InlineExecutor, Probe, SweepTable, default_executor, stop_ex
                     sweep_key)
 from .value_function import ValueFunction
 
-__all__ = ["Dynamics", "Fidelity", "compare_verdicts", "left_box", "wilson_interval", "Unfingerprintable", "fingerprint", "Grid", "local_range", "min_target_along_rollouts",
+__all__ = ["Dynamics", "Fidelity", "compare_verdicts", "left_box", "select_map", "wilson_interval", "Unfingerprintable", "fingerprint", "Grid", "local_range", "min_target_along_rollouts",
            "sign_agreement", "ACCURACIES", "solve_brt", "InlineExecutor", "Probe", "SweepTable",
            "default_executor", "stop_executor", "sweep", "sweep_key", "ValueFunction"]

@@ -96,3 +96,29 @@ def left_box(states, grid, *, axes=None) -> bool:
     axes = range(grid.ndim) if axes is None else axes
     return bool(any(np.any((states[:, a] < grid.lo[a] - 1e-9) | (states[:, a] > grid.hi[a] + 1e-9))
                     for a in axes))
+
+
+def select_map(fidelities, *, costs=None, false_safe_weight: float = 2.0) -> int:
+    """Index of the map to keep among candidates for one environment (refinement levels,
+    robust variants), from each one's `Fidelity` on the *same* selection runs, which
+    must not be the runs it is then judged on: the fewest weighted errors
+    ``false_unsafe + false_safe_weight * false_safe`` (a false-safe verdict costs more),
+    ties going to fewer false-safe verdicts, then to the lower cost (e.g. renders; the
+    earlier candidate without ``costs``)."""
+    fidelities = list(fidelities)
+    if not fidelities:
+        raise ValueError("select_map needs at least one candidate")
+    if not all(isinstance(f, Fidelity) for f in fidelities):
+        raise ValueError("select_map takes Fidelity records (compare_verdicts)")
+    if len({f.n for f in fidelities}) != 1:
+        raise ValueError(f"the candidates must be scored on the same selection runs, got "
+                         f"{sorted({f.n for f in fidelities})} starts")
+    costs = [0.0] * len(fidelities) if costs is None else [float(c) for c in costs]
+    if len(costs) != len(fidelities):
+        raise ValueError(f"{len(costs)} costs for {len(fidelities)} candidates")
+    if not np.isfinite(false_safe_weight) or false_safe_weight < 1:
+        raise ValueError(f"false_safe_weight must be a finite number >= 1, got "
+                         f"{false_safe_weight!r}")
+    keys = [(f.false_unsafe + false_safe_weight * f.false_safe, f.false_safe, c, i)
+            for i, (f, c) in enumerate(zip(fidelities, costs))]
+    return min(keys)[-1]

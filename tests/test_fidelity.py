@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from reachwatch.diagrams import load_scenario, make_state_feedback_diagram, simulate
-from reachwatch.reach import compare_verdicts, left_box, wilson_interval
+from reachwatch.reach import compare_verdicts, left_box, select_map, wilson_interval
 from reachwatch.taxi import on_runway_starts, paper_grid
 
 
@@ -40,6 +40,29 @@ def test_compare_verdicts_counts_each_kind_of_error():
     assert "false-safe 33.3 %" in f.summary()
     with pytest.raises(ValueError, match="equal non-empty"):
         compare_verdicts([True], [True, False])
+
+
+def test_select_map_weighs_false_safe_verdicts_and_breaks_ties_by_cost():
+    failed = np.array([True] * 4 + [False] * 16)
+    def scored(false_safe, false_unsafe):
+        predicted = failed.copy()
+        predicted[:false_safe] = False                       # failures called safe
+        predicted[4:4 + false_unsafe] = True                 # safe starts called failing
+        return compare_verdicts(predicted, failed)
+    nominal, robust, coarse = scored(2, 0), scored(0, 3), scored(1, 0)
+    # 2 false-safe weigh 4 errors at weight 2 (more than robust's 3), 2 at weight 1 (fewer)
+    assert select_map([nominal, robust]) == 1
+    assert select_map([nominal, robust], false_safe_weight=1.0) == 0
+    # equal weighted errors: fewer false-safe verdicts first, then the cheaper map
+    assert select_map([scored(1, 1), scored(0, 3)]) == 1
+    assert select_map([coarse, scored(1, 0)], costs=[40_000, 11_781]) == 1
+    assert select_map([coarse, scored(1, 0)]) == 0
+    with pytest.raises(ValueError, match="same selection runs"):
+        select_map([nominal, compare_verdicts(failed[:10], failed[:10])])
+    for bad in [dict(fidelities=[]), dict(fidelities=[nominal], costs=[1, 2]),
+                dict(fidelities=[nominal], false_safe_weight=0.5), dict(fidelities=[0.9])]:
+        with pytest.raises(ValueError):
+            select_map(**bad)
 
 
 def test_a_loop_turning_beyond_the_box_is_reported():
