@@ -1,6 +1,7 @@
 """The BRT stages of ``reachwatch run``: sweep every environment's closed loop over
 the solved box, then refine the table adaptively (``refine``) and solve the BRT
-(robust where the swept output varies fast, with ``robust``).
+(robust where the swept output varies fast, with ``robust``), keeping the level and
+variant real-loop runs find best with ``map_selection``.
 Each reads the records of the stages before it and returns JSON-able outputs; the
 sweeps and refinements are chunked and cached by content, so a killed stage
 resumes where it stopped."""
@@ -11,10 +12,12 @@ import time
 import numpy as np
 
 from reachwatch.diagrams import CONTROL_PORT
-from reachwatch.reach import min_target_along_rollouts, sign_agreement, solve_brt
+from reachwatch.reach import (compare_verdicts, min_target_along_rollouts, select_map,
+                             sign_agreement, solve_brt)
 from reachwatch.systems.files import atomic_write_bytes
-from reachwatch.taxi import (dynamics_for, refine_closed_loop, steering_bounds, sweep_closed_loop,
-                             taxi_sweep_key)
+from reachwatch.taxi import (dynamics_for, on_runway_starts, refine_closed_loop, steering_bounds,
+                             sweep_closed_loop, taxi_sweep_key)
+from reachwatch.taxi.fidelity import real_outcomes
 from reachwatch.taxi.plots import plot_brt_slices
 
 from .spec import digest
@@ -42,7 +45,9 @@ def sweep_rate(record) -> str:
 def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     """Solve ``env``'s BRT from its (cached) sweep, refined adaptively ``refine.levels``
     times; check it against RK4 rollouts of the (refined) table from every node, plot
-    a slice. The refined steering table is saved beside the value function."""
+    a slice. The refined steering table is saved beside the value function. With
+    ``map_selection``, the level and robust variant kept is the one real-loop runs
+    found best (`select_map_by_runs`)."""
     spec = run.spec
     scenario, grid = run.scenario_for(env, checkpoint), run.solved_grid_for(env)
     table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache,
@@ -50,12 +55,12 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     dynamics = dynamics_for(scenario)
     solved = [0.0]
 
-    def solve(table):
+    def solve(table, spread=spec.robust.min_spread_deg):
         started = time.time()
         vf = solve_brt(table.grid, dynamics, table[CONTROL_PORT], horizon=spec.horizon,
                        accuracy=spec.accuracy, period=scenario.controller.period,
                        periods_per_step=spec.periods_per_step,
-                       control_bounds=steering_bounds(table, spec.robust.min_spread_deg,
+                       control_bounds=steering_bounds(table, spread,
                                                       neighbourhood=spec.robust.neighbourhood))
         solved[0] += time.time() - started
         return vf
@@ -68,18 +73,28 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     refine_seconds = time.time() - started - solved[0]
     key = table.key                            # the sweep's (`taxi_sweep_key`)
     vf, table = levels[-1].solution, levels[-1].table
+    spread = spec.robust.min_spread_deg
+    chosen = None
+    if spec.map_selection.starts:
+        chosen, vf, table, spread = select_map_by_runs(run, env, levels, solve)
     grid, steering = table.grid, table[CONTROL_PORT]
     vf.metadata.update(environment=env.name, sweep=key, refine_levels=refine.levels,
-                       robust_min_spread_deg=spec.robust.min_spread_deg)
+                       robust_min_spread_deg=spread)
     name = f"{key}_{spec.horizon:g}s_{spec.accuracy}" + (
         f"_refined{refine.levels}_{digest(refine)[:8]}" if refine.levels else "") + (
-        f"_robust_{digest(spec.robust)[:8]}" if spec.robust.enabled else "")
+        f"_robust_{digest(spec.robust)[:8]}" if spec.robust.enabled else "") + (
+        f"_selected_{digest(spec.map_selection)[:8]}" if chosen else "")
+    if chosen:
+        vf.metadata.update(map_selection=chosen["kept"])
     path = vf.save(run.path(f"brt/value_{name}.npz"))
     out = {"value": run.rel(path), "brt_fraction": vf.brt_fraction, "grid": list(grid.shape),
            "nodes_rendered": [lv.rendered for lv in levels]}
+    if chosen:
+        out["map_selection"] = chosen
     if refine.levels:
         buffer = io.BytesIO()
-        np.savez(buffer, steering=steering, rendered=table.rendered, lo=grid.lo, hi=grid.hi)
+        rendered = np.ones(grid.shape, bool) if table.rendered is None else table.rendered
+        np.savez(buffer, steering=steering, rendered=rendered, lo=grid.lo, hi=grid.hi)
         out["table"] = run.rel(atomic_write_bytes(run.path(f"brt/table_{name}.npz"),
                                                   buffer.getvalue()))
         out["refine_seconds"] = round(refine_seconds, 1)
@@ -92,6 +107,38 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
             "solve_seconds": round(solved[0], 2), "figure": run.rel(figure)}
 
 
+def select_map_by_runs(run: Run, env, levels, solve):
+    """``(record, value function, table, robust spread)`` of the map real-loop runs find
+    best among every refinement level, each solved as ``robust`` says and robustly with
+    each of ``map_selection.robust_spreads_deg`` (`reach.select_map`; the runs are
+    cached by content under the run's ``outcomes``, as the fidelity check's)."""
+    spec, selection = run.spec, run.spec.map_selection
+    scenario = run.scenario_for(env)
+    candidates = []                         # (name, level, value function, spread)
+    for i, level in enumerate(levels):
+        own = spec.robust.min_spread_deg
+        candidates.append((f"level {i}" + ("" if own is None else f", robust {own:g} deg"),
+                           level, level.solution, own))
+        for spread in selection.robust_spreads_deg:
+            if spread != own:
+                candidates.append((f"level {i}, robust {spread:g} deg", level,
+                                   solve(level.table, spread), spread))
+    starts = on_runway_starts(run.grid_for(env), selection.starts, selection.seed,
+                              half_width=env.half_width)
+    outcomes = real_outcomes(scenario, starts, grid=run.solved_grid_for(env),
+                             duration=spec.horizon, cache_dir=run.path("outcomes"),
+                             executor=run.executor, progress=run.progress)
+    scores = [compare_verdicts(vf.in_brt(starts), outcomes.failed, outcomes["left_box"])
+              for _, _, vf, _ in candidates]
+    kept = select_map(scores, costs=[level.rendered for _, level, _, _ in candidates],
+                      false_safe_weight=selection.false_safe_weight)
+    name, level, vf, spread = candidates[kept]
+    record = {"starts": selection.starts, "seed": selection.seed, "kept": name,
+              "candidates": [{"map": n, "nodes_rendered": int(lv.rendered), **f.as_dict()}
+                             for (n, lv, _, _), f in zip(candidates, scores)]}
+    return record, vf, level.table, spread
+
+
 def sweep_stage_key(run: Run, env) -> str:
     """The key of ``env``'s sweep record: its sweep's content key (no rendering)."""
     return taxi_sweep_key(run.scenario_for(env), run.solved_grid_for(env))
@@ -102,7 +149,8 @@ def solve_stage_key(run: Run, sweep_key: str) -> str:
     spec = run.spec
     return digest(sweep_key, spec.horizon, spec.accuracy, spec.periods_per_step, spec.slice_py,
                   *([spec.refine] if spec.refine.levels else []),
-                  *([spec.robust] if spec.robust.enabled else []))
+                  *([spec.robust] if spec.robust.enabled else []),
+                  *([spec.map_selection] if spec.map_selection.starts else []))
 
 
 def stage_sweep(run: Run) -> dict:

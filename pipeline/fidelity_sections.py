@@ -26,6 +26,25 @@ def monte_carlo(record) -> str:
             f"({brt['real_failures']} of {n} starts)")
 
 
+def map_selection_section(page, spec, solved: dict):
+    """Which map each environment kept (``map_selection``) and how every candidate did
+    on the selection's real-loop runs (nothing when the run does not select maps)."""
+    chosen = {n: r["map_selection"] for n, r in solved.items() if r.get("map_selection")}
+    if not chosen:
+        return
+    selection = spec.map_selection
+    page.text(f"Each environment's map was chosen among its refinement levels and robust "
+              f"variants by {selection.starts} real-loop runs from seeded on-runway starts "
+              f"(seed {selection.seed}): the fewest false-unsafe + "
+              f"{selection.false_safe_weight:g} x false-safe verdicts there, then the fewest "
+              f"renders. The fidelity check below judges the kept map on other starts.")
+    page.table(["environment", "map", "nodes rendered", "agreement % [95 % CI]",
+                "false-safe % [95 % CI]", "false-unsafe % [95 % CI]", "kept"],
+               [[n, c["map"], c["nodes_rendered"], _rate(c, "agree"), _rate(c, "false_safe"),
+                 _rate(c, "false_unsafe"), "yes" if c["map"] == record["kept"] else ""]
+                for n, record in chosen.items() for c in record["candidates"]])
+
+
 def fidelity_section(page, spec, results: dict, made: dict, roles: dict):
     """The BRT, its table and the labels against the real loop, per environment:
     ``results`` the `fidelity_env` outputs by name, ``made`` the datasets' label records

@@ -10,7 +10,7 @@ from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.evaluation import COLUMNS, format_cell
 
 from .brt_stages import sweep_rate
-from .fidelity_sections import fidelity_section, monte_carlo
+from .fidelity_sections import fidelity_section, map_selection_section, monte_carlo
 from .detector_sections import (detector_verdicts, percent_text as _pct, target_section,
                                 threshold_section)
 from .guard_sections import guard_section
@@ -172,6 +172,7 @@ def write_report(run: Run) -> dict:
                  sweep_rate(r), r["solve_seconds"]]
                 for n, r in o["solve"].items()])
     page.images([r["figure"] for r in o["solve"].values()])
+    map_selection_section(page, spec, o["solve"])
     fidelity_section(page, spec, o.get("fidelity") or {},
                      o.get("dataset", {}).get("labels", {}), roles)
     page.section("Labels and the detector", "labels")

@@ -146,6 +146,39 @@ class RobustSpec:
 
 
 @dc.dataclass
+class MapSelectionSpec:
+    """Each environment's BRT map chosen by real-loop runs (`reach.select_map`). With
+    ``starts`` > 0, every refinement level (0 to ``refine.levels``) is solved as
+    ``robust`` says and again robustly with each spread of ``robust_spreads_deg``; the
+    real loop runs from ``starts`` seeded on-runway starts (``seed``, not the fidelity
+    check's, so the check judges the kept map on runs the choice never saw); and the
+    map with the fewest false-unsafe + ``false_safe_weight`` x false-safe verdicts
+    there is kept (ties: fewer false-safe, then fewer renders). 0 starts: off, the last
+    level is kept."""
+    starts: int = 0
+    seed: int = 2000
+    robust_spreads_deg: List[float] = dc.field(default_factory=list)
+    false_safe_weight: float = 2.0
+
+    def validate(self):
+        if isinstance(self.starts, bool) or not isinstance(self.starts, int) or self.starts < 0:
+            raise ValueError(f"map_selection.starts must be a whole number >= 0, got "
+                             f"{self.starts!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"map_selection.seed must be a whole number >= 0, got {self.seed!r}")
+        for spread in self.robust_spreads_deg:
+            if isinstance(spread, bool) or not isinstance(spread, (int, float)) or \
+                    not math.isfinite(spread) or spread < 0:
+                raise ValueError(f"map_selection.robust_spreads_deg must list finite numbers "
+                                 f"of degrees >= 0, got {spread!r}")
+        weight = self.false_safe_weight
+        if isinstance(weight, bool) or not isinstance(weight, (int, float)) or \
+                not math.isfinite(weight) or weight < 1:
+            raise ValueError(f"map_selection.false_safe_weight must be a finite number >= 1, "
+                             f"got {weight!r}")
+
+
+@dc.dataclass
 class RunSpec:
     """A whole study. ``scenario`` holds camera, controller and fallback settings
     (its environment and start are ignored); grids are ``[n_px, n_py, n_theta]``
@@ -184,6 +217,7 @@ class RunSpec:
     fidelity: FidelitySpec = dc.field(default_factory=FidelitySpec)
     refine: RefineSpec = dc.field(default_factory=RefineSpec)
     robust: RobustSpec = dc.field(default_factory=RobustSpec)
+    map_selection: MapSelectionSpec = dc.field(default_factory=MapSelectionSpec)
     incremental: IncrementalConfig = dc.field(default_factory=IncrementalConfig)
 
     def validate(self):
@@ -222,6 +256,11 @@ class RunSpec:
         positive("periods_per_step", self.periods_per_step, integer=True)
         self.refine.validate()
         self.robust.validate()
+        self.map_selection.validate()
+        if self.map_selection.starts and self.map_selection.seed == self.fidelity.seed:
+            raise ValueError(f"map_selection.seed {self.map_selection.seed} equals "
+                             f"fidelity.seed: the check would judge the map on the runs that "
+                             f"chose it; give the selection another seed")
         if isinstance(self.solved_theta_deg, bool) or not isinstance(
                 self.solved_theta_deg, (int, float)) or not 28.0 <= self.solved_theta_deg <= 180.0:
             raise ValueError(f"solved_theta_deg must be a number of degrees in [28, 180] (the "

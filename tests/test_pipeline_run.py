@@ -2,6 +2,7 @@
 downstream-only re-runs, resume after a failure, Dask (the run file's checks are in
 test_run_spec.py)."""
 
+import dataclasses as dc
 import json
 import re
 import shutil
@@ -271,6 +272,49 @@ def test_refined_run_solves_and_checks_on_the_refined_table(tmp_path):
     with np.load(tmp_path / solved["table"]) as saved:
         assert saved["rendered"].sum() == solved["nodes_rendered"][1]
     assert run.outputs["fidelity"]["KSFO_17h_clear"]["table_rollouts"]["n"] == 3
+
+
+def test_map_selection_keeps_the_level_and_variant_its_own_runs_find_best(tmp_path):
+    from reachwatch.reach import Fidelity, select_map
+    from reachwatch.taxi import on_runway_starts
+    text = TINY.replace("horizon: 4.0", "horizon: 4.0\nrefine: {levels: 1, band: 1.0}\n"
+                        "map_selection: {starts: 6, seed: 7, robust_spreads_deg: [0]}")
+    run, _ = _run(tmp_path, text, until="solve")
+    env = run.spec.test[0]
+    solved = run.outputs["solve"][env.name]
+    chosen = solved["map_selection"]
+    # two levels, each nominal and robust (0 deg), all scored on the same 6 runs
+    assert [c["map"] for c in chosen["candidates"]] == [
+        "level 0", "level 0, robust 0 deg", "level 1", "level 1, robust 0 deg"]
+    assert {c["n"] for c in chosen["candidates"]} == {6}
+    fields = [f.name for f in dc.fields(Fidelity)]
+    scores = [Fidelity(**{k: c[k] for k in fields}) for c in chosen["candidates"]]
+    kept = select_map(scores, costs=[c["nodes_rendered"] for c in chosen["candidates"]])
+    assert chosen["kept"] == chosen["candidates"][kept]["map"]
+    # the saved map is the kept one: its grid, and its verdicts at the selection's starts
+    vf = run.value_function(env.name)
+    assert vf.metadata["map_selection"] == chosen["kept"] and "_selected_" in solved["value"]
+    assert list(vf.grid.shape) == ([5, 3, 5] if kept < 2 else [9, 5, 9]) == solved["grid"]
+    starts = on_runway_starts(run.grid_for(env), 6, 7, half_width=env.half_width)
+    assert vf.in_brt(starts).sum() == chosen["candidates"][kept]["predicted_failures"]
+    grid, _ = run.steering_table(env)
+    assert grid == vf.grid
+    # the report lists every candidate's verdicts on those runs and marks the kept one
+    from reachwatch.pipeline.fidelity_sections import map_selection_section
+    from reachwatch.pipeline.report import Page
+    page = Page("t")
+    map_selection_section(page, run.spec, run.outputs["solve"])
+    md = "".join(page.md)
+    assert "by 6 real-loop runs from seeded on-runway starts (seed 7)" in md
+    kept_row = [r for r in md.splitlines() if r.startswith(f"| {env.name} | {chosen['kept']} |")]
+    assert len(kept_row) == 1 and kept_row[0].endswith("| yes |")
+    assert md.count("| yes |") == len(run.outputs["solve"])
+    page = Page("t")
+    map_selection_section(page, run.spec, {env.name: {k: v for k, v in solved.items()
+                                                      if k != "map_selection"}})
+    assert "".join(page.md) == "# t\n"
+    with pytest.raises(ValueError, match="map_selection.seed 1000 equals fidelity.seed"):
+        load_run_spec(data=text.replace("seed: 7", "seed: 1000"))
 
 
 def test_killed_run_resumes_at_the_failed_stage(tmp_path, monkeypatch):
