@@ -76,7 +76,7 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     spread = spec.robust.min_spread_deg
     chosen = None
     if spec.map_selection.starts:
-        chosen, vf, table, spread = select_map_by_runs(run, env, levels, solve)
+        chosen, vf, table, spread = select_map_by_runs(run, env, scenario, levels, solve)
     grid, steering = table.grid, table[CONTROL_PORT]
     vf.metadata.update(environment=env.name, sweep=key, refine_levels=refine.levels,
                        robust_min_spread_deg=spread)
@@ -107,16 +107,15 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
             "solve_seconds": round(solved[0], 2), "figure": run.rel(figure)}
 
 
-def select_map_by_runs(run: Run, env, levels, solve):
-    """``(record, value function, table, robust spread)`` of the map real-loop runs find
-    best among every refinement level, each solved as ``robust`` says and robustly with
+def select_map_by_runs(run: Run, env, scenario, levels, solve):
+    """``(record, value function, table, robust spread)`` of the map real-loop runs of
+    ``scenario`` (the one the maps were swept from) find best among every refinement level, each solved as ``robust`` says and robustly with
     each of ``map_selection.robust_spreads_deg`` (`reach.select_map`; the runs are
     cached by content under the run's ``outcomes``, as the fidelity check's)."""
     spec, selection = run.spec, run.spec.map_selection
-    scenario = run.scenario_for(env)
+    own = spec.robust.min_spread_deg
     candidates = []                         # (name, level, value function, spread)
     for i, level in enumerate(levels):
-        own = spec.robust.min_spread_deg
         candidates.append((f"level {i}" + ("" if own is None else f", robust {own:g} deg"),
                            level, level.solution, own))
         for spread in selection.robust_spreads_deg:
