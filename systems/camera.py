@@ -45,8 +45,16 @@ class CameraConfig:
                              f"{self.width}x{self.height}")
         if not 1.0 <= self.fov_x_deg <= 170.0:
             raise ValueError(f"camera.fov_x_deg must be in [1, 170], got {self.fov_x_deg}")
-        if not 0 < self.near < self.far:
-            raise ValueError(f"camera needs 0 < near < far, got {self.near}, {self.far}")
+        if not 0 < self.near < self.far <= 1e5:
+            raise ValueError(f"camera needs 0 < near < far <= 100000 m, got {self.near}, "
+                             f"{self.far}")
+        for name, most in (("right", 100.0), ("up", 100.0), ("forward", 100.0),
+                           ("reference_height", 100.0), ("yaw_out_deg", 180.0),
+                           ("pitch_down_deg", 90.0)):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and abs(value) <= most):
+                raise ValueError(f"camera.{name} must be a finite number within +-{most:g}, "
+                                 f"got {value}")
         return self
 
     @property

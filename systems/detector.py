@@ -15,6 +15,8 @@ from pydrake.systems.sensors import ImageRgba8U
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
+from .checks import short
+
 
 @dc.dataclass
 class DetectorConfig:
@@ -33,12 +35,17 @@ class DetectorConfig:
     def validate(self):
         if self.arch not in ("small_cnn", "efficientnet_b0"):
             raise ValueError(f"detector arch must be small_cnn or efficientnet_b0, got "
-                             f"'{self.arch}'")
+                             f"{short(self.arch)}")
         if self.stem_stride not in (1, 2):
             raise ValueError(f"detector stem_stride must be 1 or 2, got {self.stem_stride}")
         if not (16 <= self.height <= 1024 and 16 <= self.width <= 1024):
             raise ValueError(f"detector input must be 16..1024 pixels a side, got "
                              f"{self.height}x{self.width}")
+        if not (1 <= len(self.channels) <= 8 and all(
+                isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= 1024
+                for c in self.channels)):
+            raise ValueError(f"detector channels must list 1 to 8 whole numbers in [1, 1024], "
+                             f"got {short(self.channels)}")
         return self
 
 

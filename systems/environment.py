@@ -2,8 +2,10 @@
 
 import copy
 import dataclasses as dc
+import math
 from typing import Optional
 
+from .checks import check_name, short
 from .runway import RUNWAYS, RunwaySpec
 
 SKIES = ("clear", "overcast")
@@ -26,12 +28,15 @@ class Environment:
         """Raise ValueError naming the first bad field; return self."""
         if self.runway_spec is None and self.runway not in RUNWAYS:
             raise ValueError(
-                f"environment.runway: unknown runway '{self.runway}'; the catalog has "
+                f"environment.runway: unknown runway {short(self.runway)}; the catalog has "
                 f"{sorted(RUNWAYS)}, or describe your own under environment.runway_spec")
-        if not 0.0 <= self.hour < 24.0:
-            raise ValueError(f"environment.hour must be in [0, 24), got {self.hour}")
+        if self.runway_spec is not None:
+            check_name("environment.runway_spec.name", self.runway_spec.name)
+        if isinstance(self.hour, bool) or not isinstance(self.hour, (int, float)) \
+                or not 0.0 <= self.hour < 24.0:
+            raise ValueError(f"environment.hour must be in [0, 24), got {short(self.hour)}")
         if self.sky not in SKIES:
-            raise ValueError(f"environment.sky must be one of {SKIES}, got '{self.sky}'")
+            raise ValueError(f"environment.sky must be one of {SKIES}, got {short(self.sky)}")
         self.spec()
         return self
 
@@ -45,13 +50,21 @@ class Environment:
     def name(self) -> str:
         """A short id such as ``KMWH_9h_clear``."""
         runway = self.runway_spec.name if self.runway_spec is not None else self.runway
-        hour = f"{self.hour:g}".replace(".", "p")
-        return f"{runway}_{hour}h_{self.sky}"
+        return f"{runway}_{hour_text(self.hour)}h_{self.sky}"
 
     @property
     def half_width(self) -> float:
         """B (m): the aircraft fails when ``|px| >= B``."""
         return self.spec().half_width
+
+
+def hour_text(hour: float) -> str:
+    """``hour`` as environment names write it: ``9``, ``17p5``; as many digits as it
+    takes to name the hour itself (23.9999999 is not 24)."""
+    text = f"{hour:g}"
+    if math.isfinite(hour) and float(text) != hour:
+        text = repr(float(hour))
+    return text.replace(".", "p")
 
 
 def training_environments():

@@ -13,6 +13,7 @@ from typing import List
 
 import numpy as np
 
+from .checks import short
 from .environment import SKIES, Environment
 from .runway import SURFACES, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, TaxiwayLine
 
@@ -46,10 +47,15 @@ class RandomRunwayRanges:
         for name, hi in (("threshold_stripes", 40), ("taxiway_lines", 8), ("buildings", 20)):
             _range(f"{where}.{name}", getattr(self, name), 0, hi, whole=True)
         if not self.surfaces or any(s not in SURFACES for s in self.surfaces):
-            raise ValueError(f"{where}.surfaces must list some of {SURFACES}, got {self.surfaces}")
+            raise ValueError(f"{where}.surfaces must list some of {SURFACES}, got "
+                             f"{short(self.surfaces)}")
         if not _number(self.lights) or not 0.0 <= self.lights <= 1.0:
             raise ValueError(f"{where}.lights must be a chance in [0, 1], got {self.lights!r}")
         return self
+
+
+#: The most environments one family may hold (each is swept, solved and labelled).
+MAX_COUNT = 1000
 
 
 @dc.dataclass
@@ -67,15 +73,18 @@ class RandomEnvironments:
 
     def validate(self, where="random"):
         """Raise ValueError naming the first bad field (as ``where.field``); return self."""
-        for name in ("count", "seed"):
+        for name, most in (("count", MAX_COUNT), ("seed", 2 ** 31 - 1)):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"{where}.{name} must be a whole number >= 0, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= most:
+                raise ValueError(f"{where}.{name} must be a whole number >= 0 (at most {most}), "
+                                 f"got {short(value)}")
         _range(f"{where}.hours", self.hours, 0.0, 24.0)
         if not self.skies or any(s not in SKIES for s in self.skies):
-            raise ValueError(f"{where}.skies must list some of {SKIES}, got {self.skies}")
-        if not self.prefix.isalnum():
-            raise ValueError(f"{where}.prefix must be letters and digits, got '{self.prefix}'")
+            raise ValueError(f"{where}.skies must list some of {SKIES}, got {short(self.skies)}")
+        if not (isinstance(self.prefix, str) and self.prefix.isascii() and self.prefix.isalnum()
+                and len(self.prefix) <= 16):
+            raise ValueError(f"{where}.prefix must be letters and digits (1 to 16, ASCII), got "
+                             f"{short(self.prefix)}")
         self.runway.validate(f"{where}.runway")
         return self
 
@@ -133,4 +142,4 @@ def _range(where, value, lo, hi, *, whole=False):
           and all(_number(v) and (not whole or float(v).is_integer()) for v in value))
     if not ok or not lo <= value[0] <= value[1] <= hi:
         raise ValueError(f"{where} must be [low, high], {kind} with {lo} <= low <= high <= "
-                         f"{hi}, got {value!r}")
+                         f"{hi}, got {short(value)}")

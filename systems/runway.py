@@ -5,7 +5,10 @@ colours as linear RGB in [0, 1], angles in degrees.
 """
 
 import dataclasses as dc
+import math
 from typing import List
+
+from .checks import check_name, short
 
 SURFACES = ("asphalt", "concrete")
 
@@ -68,32 +71,76 @@ class RunwaySpec:
     building_tone: List[float] = dc.field(default_factory=lambda: [0.62, 0.60, 0.56])
 
     def validate(self):
-        """Raise ValueError naming the first bad field."""
+        """Raise ValueError naming the first bad field. Sizes are bounded so that the
+        scene stays a few thousand shapes (the pavement is tiled in ~8 m slabs, the
+        centreline dashed, lights and taxiway lines built piece by piece)."""
+        check_name("runway_spec.name", self.name)
+
         def bad(field, why):
             raise ValueError(f"runway '{self.name}': {field} {why}")
-        if not self.half_width > 0:
-            bad("half_width", f"must be > 0 m, got {self.half_width}")
+
+        def number(field, value, lo, hi, *, lo_open=False):
+            ok = (not isinstance(value, bool) and isinstance(value, (int, float))
+                  and math.isfinite(value) and lo <= value <= hi and not (lo_open and value == lo))
+            if not ok:
+                bad(field, f"must be a number in {'(' if lo_open else '['}{lo:g}, {hi:g}], got "
+                           f"{short(value)}")
+
+        def whole(field, value, hi):
+            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= hi:
+                bad(field, f"must be a whole number in [0, {hi}], got {short(value)}")
+
+        number("half_width", self.half_width, 0.0, MAX_HALF_WIDTH, lo_open=True)
         if not self.length > 300:
-            bad("length", f"must be > 300 m, got {self.length}")
+            bad("length", f"must be > 300 m, got {short(self.length)}")
+        number("length", self.length, 300.0, MAX_LENGTH)
+        number("heading_deg", self.heading_deg, -360.0, 360.0)
         if self.surface.kind not in SURFACES:
-            bad("surface.kind", f"must be one of {SURFACES}, got '{self.surface.kind}'")
+            bad("surface.kind", f"must be one of {SURFACES}, got {short(self.surface.kind)}")
+        number("surface.roughness", self.surface.roughness, 0.0, 1.0)
+        whole("surface.texture_seed", self.surface.texture_seed, 2 ** 31 - 1)
         for field, rgb in [("surface.tone", self.surface.tone),
                            ("surface.grass_tone", self.surface.grass_tone),
                            ("markings.paint", self.markings.paint),
                            ("lights.color", self.lights.color),
                            ("building_tone", self.building_tone)]:
             if len(rgb) != 3 or not all(0.0 <= c <= 1.0 for c in rgb):
-                bad(field, f"must be 3 numbers in [0, 1], got {rgb}")
-        if self.markings.dash_length <= 0 or self.markings.dash_gap < 0:
+                bad(field, f"must be 3 numbers in [0, 1], got {short(rgb)}")
+        if not (self.markings.dash_length > 0 and self.markings.dash_gap >= 0):
             bad("markings.dash_length/dash_gap", "must be > 0 and >= 0")
-        if self.lights.spacing <= 0:
-            bad("lights.spacing", f"must be > 0 m, got {self.lights.spacing}")
+        number("markings.dash_length", self.markings.dash_length, 1.0, MAX_LENGTH)
+        number("markings.dash_gap", self.markings.dash_gap, 0.0, MAX_LENGTH)
+        number("markings.edge_line_width", self.markings.edge_line_width, 0.0, 10.0)
+        number("markings.centreline_width", self.markings.centreline_width, 0.0, 10.0)
+        whole("markings.threshold_stripes", self.markings.threshold_stripes, 40)
+        if len(self.markings.touchdown_zone) > 20:
+            bad("markings.touchdown_zone", f"lists at most 20 positions, got "
+                                           f"{len(self.markings.touchdown_zone)}")
+        for i, x in enumerate(self.markings.touchdown_zone):
+            number(f"markings.touchdown_zone[{i}]", x, 0.0, MAX_LENGTH)
+        if not self.lights.spacing > 0:
+            bad("lights.spacing", f"must be > 0 m, got {short(self.lights.spacing)}")
+        number("lights.spacing", self.lights.spacing, 5.0, MAX_LENGTH)
+        number("lights.offset", self.lights.offset, 0.0, 100.0)
+        if len(self.taxiway_lines) > 20:
+            bad("taxiway_lines", f"lists at most 20 lines, got {len(self.taxiway_lines)}")
         for i, line in enumerate(self.taxiway_lines):
             if line.side not in (-1, 1):
-                bad(f"taxiway_lines[{i}].side", f"must be +1 or -1, got {line.side}")
-            if line.radius <= 0:
-                bad(f"taxiway_lines[{i}].radius", f"must be > 0 m, got {line.radius}")
+                bad(f"taxiway_lines[{i}].side", f"must be +1 or -1, got {short(line.side)}")
+            if not line.radius > 0:
+                bad(f"taxiway_lines[{i}].radius", f"must be > 0 m, got {short(line.radius)}")
+            number(f"taxiway_lines[{i}].radius", line.radius, 0.0, 1000.0, lo_open=True)
+            number(f"taxiway_lines[{i}].start", line.start, -MAX_LENGTH, MAX_LENGTH)
+            number(f"taxiway_lines[{i}].turn_deg", line.turn_deg, -360.0, 360.0)
+            number(f"taxiway_lines[{i}].width", line.width, 0.0, 10.0)
+        whole("buildings", self.buildings, MAX_BUILDINGS)
         return self
+
+
+#: Bounds of a `RunwaySpec` (m; hangars).
+MAX_HALF_WIDTH = 200.0
+MAX_LENGTH = 20000.0
+MAX_BUILDINGS = 50
 
 
 def _catalog():
