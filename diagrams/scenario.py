@@ -7,6 +7,7 @@ schema first, so every error names the field's full path.
 
 import dataclasses as dc
 import math
+import re
 import typing
 from pathlib import Path
 from typing import Dict, List
@@ -15,6 +16,18 @@ import yaml
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_data, yaml_load_typed
 
 from reachwatch.systems import CameraConfig, Environment
+from reachwatch.systems.checks import clip, short
+
+#: Bounds on a scenario's numbers (a value past them is a mistake, or would hang a run).
+MAX_DURATION = 3600.0       # s of simulated time
+MAX_PERIOD = 10.0           # s between control updates
+MAX_SPEED = 100.0           # m/s
+#: The largest scenario or run file read (bytes), and the most YAML nodes its aliases
+#: may expand to (a small file of nested aliases otherwise expands without bound).
+MAX_FILE_BYTES = 1 << 20
+MAX_NODES = 100_000
+#: The largest whole number a field may hold, and the range of seeds.
+MAX_INT = 2 ** 31 - 1
 
 
 @dc.dataclass
@@ -54,13 +67,19 @@ class ControllerConfig:
             resolve_factory(self.factory)          # a bad name fails before any work
         for name, value in self.parameters.items():
             if not math.isfinite(value):
-                raise ValueError(f"controller.parameters.{name} must be finite, got {value}")
-        if not (math.isfinite(self.period) and self.period > 0):
-            raise ValueError(f"controller.period must be a finite number > 0 s, got {self.period}")
-        if not (math.isfinite(self.speed) and self.speed >= 0):
-            raise ValueError(f"controller.speed must be >= 0 m/s, got {self.speed}")
+                raise ValueError(f"controller.parameters.{short(name)} must be finite, got {value}")
+        for name in ("px_gain", "theta_gain"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"controller.{name} must be a finite number, got "
+                                 f"{getattr(self, name)}")
+        if not (math.isfinite(self.period) and 0 < self.period <= MAX_PERIOD):
+            raise ValueError(f"controller.period must be a finite number > 0 s and at most "
+                             f"{MAX_PERIOD:g} s, got {self.period}")
+        if not (math.isfinite(self.speed) and 0 <= self.speed <= MAX_SPEED):
+            raise ValueError(f"controller.speed must be >= 0 m/s and at most {MAX_SPEED:g} m/s, "
+                             f"got {self.speed}")
         if self.checkpoint and not Path(self.checkpoint).is_file():
-            raise ValueError(f"controller.checkpoint: file not found: {self.checkpoint}")
+            raise ValueError(f"controller.checkpoint: file not found: {clip(self.checkpoint, 200)}")
         return self
 
 
@@ -102,7 +121,10 @@ class MonitorConfig:
         if not 0.0 <= self.threshold <= 1.0:
             raise ValueError(f"monitor.threshold must be in [0, 1], got {self.threshold}")
         if self.detector and not Path(self.detector).is_file():
-            raise ValueError(f"monitor.detector: file not found: {self.detector}")
+            raise ValueError(f"monitor.detector: file not found: {clip(self.detector, 200)}")
+        if not (math.isfinite(self.brake_deceleration) and 0 < self.brake_deceleration <= 100):
+            raise ValueError(f"monitor.brake_deceleration must be a number in (0, 100] m/s^2, "
+                             f"got {self.brake_deceleration}")
         return self
 
 
@@ -124,8 +146,14 @@ class Scenario:
         self.camera.validate()
         self.controller.validate()
         self.monitor.validate()
-        if not (math.isfinite(self.duration) and self.duration > 0):
-            raise ValueError(f"duration must be > 0 s, got {self.duration}")
+        if not (math.isfinite(self.duration) and 0 < self.duration <= MAX_DURATION):
+            raise ValueError(f"duration must be > 0 s and at most {MAX_DURATION:g} s, got "
+                             f"{self.duration}")
+        for name in ("px", "py", "theta_deg"):
+            value = getattr(self.initial_state, name)
+            if not (math.isfinite(value) and abs(value) <= 10000):
+                raise ValueError(f"initial_state.{name} must be a finite number within "
+                                 f"+-10000, got {value}")
         return self
 
 
@@ -137,62 +165,140 @@ def _type_name(t):
     return getattr(t, "__name__", str(t))
 
 
-def _check(value, schema, path):
-    """Compare raw YAML data with a type from the schema; raise ScenarioError."""
+#: A number written as text that PyYAML reads as a string (``1e-4``: YAML 1.1 floats
+#: need a dot), accepted for a float field.
+_FLOAT_TEXT = re.compile(r"[-+]?(\d+(\.\d*)?|\.\d+)([eE][-+]?\d+)?")
+
+
+def _key_text(key) -> str:
+    """A mapping key as a field path writes it (cut short)."""
+    return key if isinstance(key, str) and len(key) <= 60 else short(key)
+
+
+def _is_seed(key) -> bool:
+    return key in ("seed", "seeds") or str(key).endswith("_seed")
+
+
+def _check(value, schema, path, later=None, converted=None):
+    """Compare raw YAML data with a type from the schema; raise ScenarioError. Returns
+    the value, a number written as text (``1e-4``) in a float field turned into a float
+    (noted in ``converted``). Non-finite floats and negative seeds are noted in
+    ``later`` as ``(path, message)``: the schema's own checks run first and say more."""
+    later = [] if later is None else later
+    converted = [] if converted is None else converted
     origin = typing.get_origin(schema)
     if origin is typing.Union:                      # Optional[T]
         args = [a for a in typing.get_args(schema) if a is not type(None)]
         if value is None:
-            return
-        return _check(value, args[0], path)
+            return value
+        return _check(value, args[0], path, later, converted)
     if dc.is_dataclass(schema):
         if not isinstance(value, dict):
             raise ScenarioError(f"{path}: expected a mapping of {schema.__name__} fields, "
-                                f"got {type(value).__name__} {value!r}")
+                                f"got {type(value).__name__} {short(value)}")
         fields = {f.name: f for f in dc.fields(schema)}
         hints = typing.get_type_hints(schema)
-        for key, item in value.items():
+        for key, item in list(value.items()):
             if key not in fields:
-                raise ScenarioError(f"{path}.{key}: unknown field of {schema.__name__}; "
+                raise ScenarioError(f"{path}.{_key_text(key)}: unknown field of {schema.__name__}; "
                                     f"known fields: {', '.join(fields)}")
-            _check(item, hints[key], f"{path}.{key}")
-        return
+            checked = _check(item, hints[key], f"{path}.{key}", later, converted)
+            if checked is not item:
+                value[key] = checked
+            if _is_seed(key):
+                for seed in (checked if isinstance(checked, list) else [checked]):
+                    if isinstance(seed, int) and seed < 0:
+                        later.append((f"{path}.{key}", f"must be a seed, a whole number in "
+                                                       f"[0, {MAX_INT}], got {seed}"))
+        return value
     if origin in (dict, Dict):
         if not isinstance(value, dict):
             raise ScenarioError(f"{path}: expected a mapping, got {type(value).__name__} "
-                                f"{value!r}")
+                                f"{short(value)}")
         key_type, item_type = typing.get_args(schema)
-        for key, item in value.items():
-            _check(key, key_type, f"{path} key")
-            _check(item, item_type, f"{path}.{key}")
-        return
+        for key, item in list(value.items()):
+            _check(key, key_type, f"{path} key", later, converted)
+            checked = _check(item, item_type, f"{path}.{key}", later, converted)
+            if checked is not item:
+                value[key] = checked
+        return value
     if origin in (list, List):
         if not isinstance(value, list):
             raise ScenarioError(f"{path}: expected a list, got {type(value).__name__} "
-                                f"{value!r}")
+                                f"{short(value)}")
         (item_type,) = typing.get_args(schema)
         for i, item in enumerate(value):
-            _check(item, item_type, f"{path}[{i}]")
-        return
+            checked = _check(item, item_type, f"{path}[{i}]", later, converted)
+            if checked is not item:
+                value[i] = checked
+        return value
+    if schema is float and isinstance(value, str) and _FLOAT_TEXT.fullmatch(value.strip()):
+        value = float(value)
+        converted.append(path)
     ok = {bool: lambda v: isinstance(v, bool),
           int: lambda v: isinstance(v, int) and not isinstance(v, bool),
           float: lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
           str: lambda v: isinstance(v, str)}.get(schema, lambda v: True)
     if not ok(value):
         raise ScenarioError(f"{path}: expected {_type_name(schema)}, got "
-                            f"{type(value).__name__} {value!r}")
+                            f"{type(value).__name__} {short(value)}")
+    if schema in (int, float) and isinstance(value, int) and abs(value) > MAX_INT:
+        raise ScenarioError(f"{path}: {short(value)} is out of range; numbers here are at "
+                            f"most {MAX_INT} in size")
+    if schema is float and not math.isfinite(value):
+        later.append((path, f"must be a finite number, got {value}"))
+    return value
+
+
+def _expanded_nodes(root, budget: int) -> int:
+    """How many nodes the YAML node graph ``root`` stands for with every alias written
+    out; a ScenarioError past ``budget`` or for an alias inside its own anchor."""
+    sizes, open_nodes = {}, set()
+
+    def size(node):
+        key = id(node)
+        if key in sizes:
+            return sizes[key]
+        if key in open_nodes:
+            raise ScenarioError("a YAML alias refers to a node that contains it")
+        open_nodes.add(key)
+        if isinstance(node, yaml.SequenceNode):
+            children = node.value
+        elif isinstance(node, yaml.MappingNode):
+            children = [part for pair in node.value for part in pair]
+        else:
+            children = []
+        total = 1
+        for child in children:
+            total += size(child)
+            if total > budget:
+                raise ScenarioError(f"the YAML expands to more than {budget} values (through "
+                                    f"its aliases, *name); write the values out")
+        open_nodes.discard(key)
+        sizes[key] = total
+        return total
+
+    return size(root)
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
     """PyYAML's safe loader, refusing a key written twice in one mapping (PyYAML and
-    Drake's loader silently keep the last one)."""
+    Drake's loader silently keep the last one), and a document whose aliases expand to
+    more than `MAX_NODES` values (a few hundred bytes of nested aliases would otherwise
+    stand for billions)."""
+
+    def compose_document(self):
+        node = super().compose_document()
+        if node is not None:
+            _expanded_nodes(node, MAX_NODES)
+        return node
 
     def construct_mapping(self, node, deep=False):
         seen = {}
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=True)
             if key in seen:
-                raise ScenarioError(f"line {key_node.start_mark.line + 1}: key '{key}' is "
+                raise ScenarioError(f"line {key_node.start_mark.line + 1}: key {short(key)} is "
                                     f"written twice in one mapping (first on line {seen[key]})")
             seen[key] = key_node.start_mark.line + 1
         return super().construct_mapping(node, deep)
@@ -200,10 +306,14 @@ class _UniqueKeyLoader(yaml.SafeLoader):
 
 def read_text_file(filename, what="scenario file") -> str:
     """The UTF-8 text of ``filename``; ScenarioError naming it when it is missing, not
-    a regular file, binary or empty."""
+    a regular file, larger than `MAX_FILE_BYTES`, binary or empty."""
     path = Path(filename)
     if not path.is_file():
         raise ScenarioError(f"{what} not found: {filename}")
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise ScenarioError(f"{filename}: {size} bytes; a {what} is at most "
+                            f"{MAX_FILE_BYTES} bytes")
     raw = path.read_bytes()
     if b"\0" in raw:
         raise ScenarioError(f"{filename}: not a text YAML file (it holds NUL bytes)")
@@ -220,24 +330,39 @@ def read_text_file(filename, what="scenario file") -> str:
 def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario"):
     """Load and validate a scenario (``schema`` instance) from a YAML file or string
     (an empty string means all defaults; an empty file is an error); errors name fields
-    as ``root.field.subfield``, and a key written twice is an error."""
+    as ``root.field.subfield``, and a key written twice is an error. Every float must
+    be finite, every seed >= 0; a float written as text that PyYAML takes for a string
+    (``1e-4``) is read as the number."""
     where = str(filename) if filename is not None else "<yaml>"
     if filename is not None:
         data = read_text_file(filename)
+    elif len(data) > MAX_FILE_BYTES:
+        raise ScenarioError(f"{where}: {len(data)} characters; a scenario is at most "
+                            f"{MAX_FILE_BYTES}")
     try:
         raw = yaml.load(data, Loader=_UniqueKeyLoader) if data.strip() else {}
         if raw:
             yaml_load_data(data)
     except ScenarioError as e:
-        raise ScenarioError(f"{where}: {e}") from None
+        raise ScenarioError(clip(f"{where}: {e}")) from None
     except Exception as e:  # PyYAML's or Drake's parser error
-        raise ScenarioError(f"{where}: not valid YAML: {e}") from None
+        raise ScenarioError(clip(f"{where}: not valid YAML: {e}")) from None
+    later, converted = [], []
     try:
-        _check(raw if raw is not None else {}, schema, root)
+        raw = _check(raw if raw is not None else {}, schema, root, later, converted)
+        if converted:           # Drake's loader reads the text again: give it the numbers
+            data = yaml.safe_dump(raw, default_flow_style=None)
         scenario = yaml_load_typed(schema=schema, data=data) if raw else schema()
-        return scenario.validate()
+        scenario.validate()
     except (ScenarioError, ValueError) as e:     # ScenarioError is a ValueError
-        raise ScenarioError(f"{where}: {e}") from None
+        raise ScenarioError(clip(f"{where}: {e}")) from None
+    except (ArithmeticError, TypeError):        # a non-finite number the checks missed
+        if not later:
+            raise
+    if later:
+        path, message = later[0]
+        raise ScenarioError(clip(f"{where}: {path} {message}"))
+    return scenario
 
 
 def dump_scenario(scenario) -> str:
