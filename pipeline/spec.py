@@ -10,13 +10,21 @@ from typing import Dict, List, Optional
 
 from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.diagrams.scenario import dump_scenario
+from reachwatch.reach.liveness import check_mission_limit
 from reachwatch.reach import ACCURACIES
 from reachwatch.reach.dynamics import positive, split_horizon
 from reachwatch.systems import DEFAULT_FALLBACKS, Environment, RandomEnvironments, fallback_parts
+from reachwatch.systems.checks import short
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.labels import LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.incremental import IncrementalConfig
+
+
+#: Bounds of a run file's sizes: nodes per grid axis, horizon (s), real-loop starts.
+MAX_GRID = 401
+MAX_HORIZON = 120.0
+MAX_STARTS = 1_000_000
 
 
 @dc.dataclass
@@ -109,9 +117,11 @@ class RefineSpec:
     variation_deg: Optional[float] = None
 
     def validate(self):
-        if isinstance(self.levels, bool) or not isinstance(self.levels, int) or self.levels < 0:
-            raise ValueError(f"refine.levels must be a whole number >= 0, got {self.levels!r}")
-        if isinstance(self.band, bool) or not isinstance(self.band, (int, float)) or not math.isfinite(self.band) or self.band < 0:
+        if isinstance(self.levels, bool) or not isinstance(self.levels, int) or \
+                not 0 <= self.levels <= 5:
+            raise ValueError(f"refine.levels must be a whole number >= 0 (at most 5), got "
+                             f"{self.levels!r}")
+        if isinstance(self.band, bool) or not isinstance(self.band, (int, float)) or not math.isfinite(self.band) or not 0 <= self.band <= 1000:
             raise ValueError(f"refine.band must be a finite number of metres >= 0, got "
                              f"{self.band!r}")
         if self.variation_deg is not None:
@@ -140,9 +150,9 @@ class RobustSpec:
                 raise ValueError(f"robust.min_spread_deg must be a finite number of degrees "
                                  f">= 0 (or null for no robust BRT), got {self.min_spread_deg!r}")
         if isinstance(self.neighbourhood, bool) or not isinstance(self.neighbourhood, int) \
-                or self.neighbourhood < 3 or self.neighbourhood % 2 == 0:
-            raise ValueError(f"robust.neighbourhood must be an odd whole number of nodes >= 3, "
-                             f"got {self.neighbourhood!r}")
+                or not 3 <= self.neighbourhood <= 21 or self.neighbourhood % 2 == 0:
+            raise ValueError(f"robust.neighbourhood must be an odd whole number of nodes >= 3 "
+                             f"(at most 21), got {self.neighbourhood!r}")
 
 
 @dc.dataclass
@@ -161,19 +171,23 @@ class MapSelectionSpec:
     false_safe_weight: float = 2.0
 
     def validate(self):
-        if isinstance(self.starts, bool) or not isinstance(self.starts, int) or self.starts < 0:
-            raise ValueError(f"map_selection.starts must be a whole number >= 0, got "
-                             f"{self.starts!r}")
+        if isinstance(self.starts, bool) or not isinstance(self.starts, int) or \
+                not 0 <= self.starts <= MAX_STARTS:
+            raise ValueError(f"map_selection.starts must be a whole number >= 0 (at most "
+                             f"{MAX_STARTS}), got {self.starts!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"map_selection.seed must be a whole number >= 0, got {self.seed!r}")
+        if len(self.robust_spreads_deg) > 16:
+            raise ValueError(f"map_selection.robust_spreads_deg must list at most 16 spreads, "
+                             f"got {len(self.robust_spreads_deg)}")
         for spread in self.robust_spreads_deg:
             if isinstance(spread, bool) or not isinstance(spread, (int, float)) or \
-                    not math.isfinite(spread) or spread < 0:
+                    not math.isfinite(spread) or not 0 <= spread <= 360:
                 raise ValueError(f"map_selection.robust_spreads_deg must list finite numbers "
                                  f"of degrees >= 0, got {spread!r}")
         weight = self.false_safe_weight
         if isinstance(weight, bool) or not isinstance(weight, (int, float)) or \
-                not math.isfinite(weight) or weight < 1:
+                not math.isfinite(weight) or not 1 <= weight <= 1000:
             raise ValueError(f"map_selection.false_safe_weight must be a finite number >= 1, "
                              f"got {weight!r}")
 
@@ -243,17 +257,24 @@ class RunSpec:
             raise ValueError(f"test_random.seed {self.test_random.seed} equals "
                              f"train_random.seed: the held-out family would be the training "
                              f"family; give it another seed")
+        self._check_same_names()
         names = [e.name for e in self.training_environments() + self.held_out_environments()]
         if len(set(names)) != len(names):
-            raise ValueError(f"train/test: an environment is listed twice: {names}")
-        if len(self.grid) != 3 or min(self.grid) < 3:
-            raise ValueError(f"grid must be 3 sizes [n_px, n_py, n_theta], each >= 3, "
-                             f"got {self.grid}")
+            twice = sorted({n for n in names if names.count(n) > 1})
+            raise ValueError(f"train/test: an environment is listed twice: {short(twice)}")
+        if len(self.grid) != 3 or min(self.grid) < 3 or max(self.grid) > MAX_GRID:
+            raise ValueError(f"grid must be 3 sizes [n_px, n_py, n_theta], each >= 3 and <= "
+                             f"{MAX_GRID}, got {short(self.grid)}")
         split_horizon(self.horizon, self.scenario.controller.period)   # finite, > 0
+        if self.horizon > MAX_HORIZON:
+            raise ValueError(f"horizon must be a finite number > 0 s and at most "
+                             f"{MAX_HORIZON:g} s, got {self.horizon}")
         if self.accuracy not in ACCURACIES:
             raise ValueError(f"accuracy must be one of {sorted(ACCURACIES)}, got "
                              f"'{self.accuracy}'")
         positive("periods_per_step", self.periods_per_step, integer=True)
+        if self.periods_per_step > 10_000:
+            raise ValueError(f"periods_per_step must be at most 10000, got {self.periods_per_step}")
         self.refine.validate()
         self.robust.validate()
         self.map_selection.validate()
@@ -266,9 +287,13 @@ class RunSpec:
             raise ValueError(f"solved_theta_deg must be a number of degrees in [28, 180] (the "
                              f"paper's box is +-28), got {self.solved_theta_deg!r}")
         if isinstance(self.solved_py_max, bool) or not isinstance(
-                self.solved_py_max, (int, float)) or not 250.0 <= self.solved_py_max < math.inf:
+                self.solved_py_max, (int, float)) or not 250.0 <= self.solved_py_max <= 10_000:
             raise ValueError(f"solved_py_max must be a finite number of metres >= 250 (the "
-                             f"paper's box ends at py = 250), got {self.solved_py_max!r}")
+                             f"paper's box ends at py = 250; at most 10000), got "
+                             f"{self.solved_py_max!r}")
+        if not 0 <= self.slice_py <= self.solved_py_max:
+            raise ValueError(f"slice_py must be a number of metres in [0, solved_py_max "
+                             f"{self.solved_py_max:g}], got {self.slice_py!r}")
         self.dataset.validate()
         if self.held_out_labels is not None:
             self.held_out_labels.validate("held_out_labels")
@@ -277,19 +302,33 @@ class RunSpec:
         if self.detector.threshold_folds > n_train:
             raise ValueError(f"detector.threshold_folds {self.detector.threshold_folds}: there "
                              f"are only {n_train} training environments to leave out")
-        for name in ("samples", "epochs"):
-            if getattr(self.ensemble, name) < 1:
-                raise ValueError(f"ensemble.{name} must be >= 1, got {getattr(self.ensemble, name)}")
+        for name, most in (("samples", 1_000_000), ("epochs", 100_000)):
+            value = getattr(self.ensemble, name)
+            if value < 1 or value > most:
+                raise ValueError(f"ensemble.{name} must be >= 1 (at most {most}), got {value}")
+        if len(self.ensemble.seeds) > 32 or len(set(self.ensemble.seeds)) != len(self.ensemble.seeds):
+            raise ValueError(f"ensemble.seeds must list at most 32 different seeds, got "
+                             f"{short(self.ensemble.seeds)}")
         if self.guard.candidates < 0:
             raise ValueError(f"guard.candidates must be >= 0, got {self.guard.candidates}")
         positive("guard.online_seconds", self.guard.online_seconds)
+        if self.guard.online_seconds > 3600:
+            raise ValueError(f"guard.online_seconds must be at most 3600 s, got "
+                             f"{self.guard.online_seconds}")
+        try:
+            mission_limit = check_mission_limit(self.guard.mission_limit)
+        except ValueError as e:
+            raise ValueError(f"guard.{e}") from None
+        if mission_limit > 100:
+            raise ValueError(f"guard.mission_limit must be at most 100 horizons, got "
+                             f"{self.guard.mission_limit}")
         if isinstance(self.fidelity.starts, bool) or not isinstance(self.fidelity.starts, int) \
-                or self.fidelity.starts < 0:
-            raise ValueError(f"fidelity.starts must be a whole number >= 0, got "
-                             f"{self.fidelity.starts!r}")
+                or not 0 <= self.fidelity.starts <= MAX_STARTS:
+            raise ValueError(f"fidelity.starts must be a whole number >= 0 (at most "
+                             f"{MAX_STARTS}), got {self.fidelity.starts!r}")
         more = self.fidelity.more_starts
         if isinstance(more, bool) or not isinstance(more, int) or more < 0 \
-                or (more and more <= self.fidelity.starts):
+                or (more and more <= self.fidelity.starts) or more > MAX_STARTS:
             raise ValueError(f"fidelity.more_starts must be 0 (never extend the check) or a "
                              f"whole number above fidelity.starts ({self.fidelity.starts}), "
                              f"got {more!r}")
@@ -314,6 +353,9 @@ class RunSpec:
             value = getattr(self.guard, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"guard.{name} must be a whole number >= 0, got {value!r}")
+            if value > MAX_STARTS:
+                raise ValueError(f"guard.{name} must be a whole number >= 0 (at most "
+                                 f"{MAX_STARTS}), got {value!r}")
         if self.guard.flag_budget is not None:
             budget = self.guard.flag_budget
             if isinstance(budget, bool) or not isinstance(budget, (int, float)) \
@@ -324,17 +366,39 @@ class RunSpec:
                 raise ValueError("guard.flag_budget: the budget is set on the first of "
                                  "guard.strategies, and there are none")
             starts = self.guard.flag_budget_starts
-            if isinstance(starts, bool) or not isinstance(starts, int) or starts < 1:
-                raise ValueError(f"guard.flag_budget_starts must be a whole number >= 1, got "
-                                 f"{starts!r}")
+            if isinstance(starts, bool) or not isinstance(starts, int) or not 1 <= starts <= MAX_STARTS:
+                raise ValueError(f"guard.flag_budget_starts must be a whole number >= 1 (at most "
+                                 f"{MAX_STARTS}), got {starts!r}")
         for i, env in enumerate(self.guard.environments):
-            env.validate()
+            try:
+                env.validate()
+            except ValueError as e:
+                raise ValueError(f"guard.environments[{i}]: {e}") from None
         self.incremental.validate()
         if self.incremental.enabled and self.scenario.controller.factory:
             raise ValueError("incremental.enabled: incremental training fine-tunes TaxiNet, "
                              "and scenario.controller.factory names another controller; set "
                              "incremental: {enabled: false}")
         return self
+
+    def _check_same_names(self):
+        """Raise a ValueError naming both places when two environments of the run share
+        a name but differ (their files and stage records would be mixed up)."""
+        places = [(f"train[{i}]", e) for i, e in enumerate(self.train)]
+        places += [(f"test[{i}]", e) for i, e in enumerate(self.test)]
+        places += [(f"train_random ({e.name})", e) for e in self.train_random.environments()]
+        places += [(f"test_random ({e.name})", e) for e in self.test_random.environments()]
+        places += [(f"guard.environments[{i}]", e) for i, e in enumerate(self.guard.environments)]
+        if self.incremental.enabled:
+            places.append(("incremental.environment", self.incremental.environment))
+        first = {}
+        for where, env in places:
+            if env.name not in first:
+                first[env.name] = (where, env)
+            elif (first[env.name][1].spec(), first[env.name][1].hour) != (env.spec(), env.hour):
+                raise ValueError(f"{first[env.name][0]} and {where} are both named "
+                                 f"'{env.name}' but differ (runway_spec); give one runway_spec "
+                                 f"another name")
 
     def training_environments(self) -> List[Environment]:
         """``train``, then the ``train_random`` family."""

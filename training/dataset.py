@@ -59,8 +59,9 @@ class DatasetSpec:
         return {**dc.asdict(self), "labels": self.labels.key()}
 
     def validate(self, where="dataset"):
-        for name, least in (("samples", 10), ("height", 16), ("width", 16), ("chunk_size", 1)):
-            check_whole_number(f"{where}.{name}", getattr(self, name), least)
+        for name, least, most in (("samples", 10, 10_000_000), ("height", 16, 1024),
+                                  ("width", 16, 1024), ("chunk_size", 1, 100_000)):
+            check_whole_number(f"{where}.{name}", getattr(self, name), least, most)
         self.labels.validate(f"{where}.labels")
         return self
 

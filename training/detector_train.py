@@ -9,6 +9,7 @@ from torch import nn
 
 from reachwatch.diagrams import load_detector, save_checkpoint
 from reachwatch.systems import DetectorConfig, build_detector, detector_input
+from reachwatch.systems.checks import short
 
 from .metrics import HELD_OUT_RULES, binary_metrics, held_out_threshold, recall_threshold
 
@@ -56,12 +57,14 @@ class DetectorTrainConfig:
     def validate(self, where="detector"):
         """Raise ValueError naming the first bad field (as ``where.field``); return self."""
         self.detector.validate()
-        for name in ("epochs", "batch_size"):
+        for name, most in (("epochs", 100_000), ("batch_size", 65_536)):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{where}.{name} must be a whole number >= 1, got {value!r}")
-        if not (np.isfinite(self.learning_rate) and self.learning_rate > 0):
-            raise ValueError(f"{where}.learning_rate must be > 0, got {self.learning_rate}")
+            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= most:
+                raise ValueError(f"{where}.{name} must be a whole number >= 1 (at most {most}), "
+                                 f"got {value!r}")
+        if not (np.isfinite(self.learning_rate) and 0 < self.learning_rate <= 10):
+            raise ValueError(f"{where}.learning_rate must be a finite number > 0 (at most 10), "
+                             f"got {self.learning_rate}")
         if not 0.0 <= self.validation_fraction < 1.0:
             raise ValueError(f"{where}.validation_fraction must be in [0, 1), got "
                              f"{self.validation_fraction}")
@@ -80,7 +83,7 @@ class DetectorTrainConfig:
                              f"target_recall; set {where}.target_recall > 0")
         if self.threshold_rule not in HELD_OUT_RULES:
             raise ValueError(f"{where}.threshold_rule must be one of {HELD_OUT_RULES}, got "
-                             f"'{self.threshold_rule}'")
+                             f"{short(self.threshold_rule)}")
         for name in ("augment", "class_balance"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{where}.{name} must be true or false, got "

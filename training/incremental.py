@@ -8,6 +8,7 @@ staying on. Their frames are re-rendered at the camera resolution TaxiNet reads
 (datasets store them at the detector's smaller size)."""
 
 import dataclasses as dc
+import math
 import time
 from typing import List
 
@@ -38,11 +39,15 @@ class IncrementalConfig:
 
     def validate(self):
         self.environment.validate()
-        for name in ("anomalies", "replay", "epochs", "batch_size"):
-            if getattr(self, name) < 0 or (name in ("epochs", "batch_size")
-                                           and getattr(self, name) < 1):
-                raise ValueError(f"incremental.{name} must be positive, got "
-                                 f"{getattr(self, name)}")
+        for name, most in (("anomalies", 1_000_000), ("replay", 1_000_000),
+                           ("epochs", 100_000), ("batch_size", 65_536)):
+            value = getattr(self, name)
+            if value < 0 or (name in ("epochs", "batch_size") and value < 1) or value > most:
+                raise ValueError(f"incremental.{name} must be positive (at most {most}), got "
+                                 f"{value}")
+        if not (math.isfinite(self.learning_rate) and 0 < self.learning_rate <= 10):
+            raise ValueError(f"incremental.learning_rate must be a finite number > 0 (at most "
+                             f"10), got {self.learning_rate}")
         return self
 
 

@@ -8,6 +8,8 @@ import dataclasses as dc
 
 import numpy as np
 
+from reachwatch.systems.checks import short
+
 LABEL_SOURCES = ("brt", "rollout", "hybrid", "trajectory")
 #: Values of ``sources.npy``: the label is the BRT's verdict, the real loop's outcome
 #: from the sampled state, or the outcome read along a real run that passed through it.
@@ -24,6 +26,10 @@ FALLBACK_FIELDS = ("distrusted", "distrusted_starts")
 DISTRUSTED_CHOICES = ("rollout", "trajectory")
 
 
+#: The most real-loop runs a label count may ask for (audit, paths, starts).
+MAX_RUNS = 1_000_000
+
+
 def labels_name(source: str, paths) -> str:
     """A label set's name in tables and reports: its ``source`` (as the caller spells it),
     with " + read-along" when ``paths`` added states read along real runs, so that such
@@ -31,10 +37,14 @@ def labels_name(source: str, paths) -> str:
     return f"{source} + read-along" if paths else source
 
 
-def check_whole_number(where, value, least):
-    """Raise ValueError naming ``where`` unless ``value`` is an int >= ``least``."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < least:
-        raise ValueError(f"{where} must be a whole number >= {least}, got {value!r}")
+def check_whole_number(where, value, least, most=None):
+    """Raise ValueError naming ``where`` unless ``value`` is an int >= ``least`` (and <=
+    ``most`` when given)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < least or (
+            most is not None and value > most):
+        bound = "" if most is None else f" and <= {most}"
+        raise ValueError(f"{where} must be a whole number >= {least}{bound}, got "
+                         f"{short(value)}")
 
 
 @dc.dataclass
@@ -129,26 +139,33 @@ class LabelSpec:
 
     def validate(self, where="dataset.labels"):
         if self.source not in LABEL_SOURCES:
-            raise ValueError(f"{where}.source must be one of {LABEL_SOURCES}, got '{self.source}'")
-        check_whole_number(f"{where}.audit", self.audit, 0)
-        check_whole_number(f"{where}.more_audit", self.more_audit, 0)
+            raise ValueError(f"{where}.source must be one of {LABEL_SOURCES}, got "
+                             f"{short(self.source)}")
+        check_whole_number(f"{where}.audit", self.audit, 0, MAX_RUNS)
+        check_whole_number(f"{where}.more_audit", self.more_audit, 0, MAX_RUNS)
         if self.more_audit and (self.audit < 1 or self.more_audit <= self.audit):
             raise ValueError(f"{where}.more_audit must be 0 (an audit of {where}.audit runs) "
                              f"or a whole number above {where}.audit ({self.audit}, at least "
                              f"1), got {self.more_audit}")
-        check_whole_number(f"{where}.max_rollouts", self.max_rollouts, 0)
-        check_whole_number(f"{where}.stride", self.stride, 1)
-        check_whole_number(f"{where}.paths", self.paths, 0)
-        check_whole_number(f"{where}.distrusted_starts", self.distrusted_starts, 1)
+        if self.source == "hybrid" and self.audit == 0:
+            raise ValueError(f"{where}.audit must be >= 1 for the hybrid source: an audit of "
+                             f"no runs would trust every map unchecked (use source: brt for "
+                             f"the map's labels alone)")
+        check_whole_number(f"{where}.max_rollouts", self.max_rollouts, 0, 100 * MAX_RUNS)
+        check_whole_number(f"{where}.stride", self.stride, 1, 10_000)
+        check_whole_number(f"{where}.paths", self.paths, 0, MAX_RUNS)
+        check_whole_number(f"{where}.distrusted_starts", self.distrusted_starts, 1, MAX_RUNS)
         if self.distrusted not in DISTRUSTED_CHOICES:
             raise ValueError(f"{where}.distrusted must be one of {DISTRUSTED_CHOICES} (what "
                              f"the hybrid source does where its audit distrusts the map), "
-                             f"got {self.distrusted!r}")
-        for name in ("band", "band_factor", "max_band", "extend"):
+                             f"got {short(self.distrusted)}")
+        for name, most in (("band", 1000.0), ("band_factor", 1000.0), ("max_band", 1000.0),
+                           ("extend", 600.0)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not np.isfinite(value) or value < 0:
-                raise ValueError(f"{where}.{name} must be a finite number >= 0, got {value!r}")
+                    or not np.isfinite(value) or value < 0 or value > most:
+                raise ValueError(f"{where}.{name} must be a finite number >= 0 (at most "
+                                 f"{most:g}), got {short(value)}")
         if self.max_band < self.band:
             raise ValueError(f"{where}.max_band ({self.max_band} m) must be at least band "
                              f"({self.band} m)")
