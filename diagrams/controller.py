@@ -26,6 +26,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, PortDataType, Sys
 from pydrake.systems.sensors import ImageRgba8U
 
 from reachwatch.systems import ProportionalController, TaxiNet
+from reachwatch.systems.checks import clip
 
 from .checkpoints import REFERENCE_TAXINET, load_taxinet
 
@@ -116,6 +117,11 @@ def resolve_factory(spec: str):
     function = getattr(_module(target), name, None)
     if not callable(function):
         raise ValueError(f"controller.factory: '{target}' has no function '{name}'")
+    if not (inspect.isfunction(function) or inspect.isclass(function)
+            or inspect.ismethod(function)):
+        raise ValueError(f"controller.factory: '{spec}' is a {type(function).__name__}, not a "
+                         f"Python function or class that takes the ControllerConfig and "
+                         f"returns a Drake System")
     return function
 
 
@@ -164,8 +170,17 @@ def check_controller(system, where="controller") -> System:
 
 def make_controller(config) -> System:
     """The controller ``config`` (a `ControllerConfig`) names, built and checked."""
-    system = resolve_factory(config.factory)(config)
-    return check_controller(system, f"controller.factory '{config.factory or 'TaxiNet'}'")
+    where = f"controller.factory '{config.factory or 'TaxiNet'}'"
+    factory = resolve_factory(config.factory)
+    try:
+        system = factory(config)
+    except TypeError as e:
+        if not config.factory:
+            raise
+        raise ValueError(f"{where}: calling it with the ControllerConfig failed (TypeError: "
+                         f"{clip(e, 200)}); a factory takes the config and returns a Drake "
+                         f"System") from e
+    return check_controller(system, where)
 
 
 def has_estimate(system) -> bool:

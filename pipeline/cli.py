@@ -6,6 +6,8 @@ import signal
 import sys
 import threading
 
+from reachwatch.systems.checks import clip
+
 from . import (commands, console, evaluate_commands, guard_commands, reach_commands, run,
                simulate_commands, taxinet_commands)
 
@@ -76,10 +78,13 @@ def main(argv=None) -> int:
     try:
         return args.func(args) or 0
     except (ValueError, FileNotFoundError) as e:  # bad input: say what, exit 2
-        print(f"reachwatch {args.command}: error: {e}", file=sys.stderr)
+        print(clip(f"reachwatch {args.command}: error: {e}"), file=sys.stderr)
         return 2
-    except PermissionError as e:
-        print(f"reachwatch {args.command}: error: cannot write {e.filename}: {e.strerror}",
+    except (PermissionError, FileExistsError, NotADirectoryError, IsADirectoryError) as e:
+        # e.g. --out naming a file where a folder goes
+        blocked = isinstance(e, (FileExistsError, NotADirectoryError))
+        print(clip(f"reachwatch {args.command}: error: cannot write {e.filename}: {e.strerror}"
+                   + (" (a file stands where a folder is needed)" if blocked else "")),
               file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:

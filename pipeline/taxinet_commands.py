@@ -1,6 +1,7 @@
 """``reachwatch taxinet train`` and ``reachwatch taxinet evaluate``."""
 
 import dataclasses as dc
+from pathlib import Path
 
 from reachwatch.diagrams import REFERENCE_TAXINET
 from reachwatch.systems import SKIES, RUNWAYS, Environment
@@ -18,7 +19,8 @@ def add_parsers(sub):
     train = tsub.add_parser("train", help="render the nominal set (KMWH 9 h clear) and "
                             "train TaxiNet; reproduces the shipped reference checkpoint "
                             "with the defaults")
-    train.add_argument("--out", default=str(REFERENCE_TAXINET), help="checkpoint path")
+    train.add_argument("--out", required=True, help="checkpoint path to write (never the "
+                       "shipped reference checkpoint)")
     train.add_argument("--samples", type=positive_int, default=TaxiNetTrainConfig.samples)
     train.add_argument("--epochs", type=positive_int, default=TaxiNetTrainConfig.epochs)
     train.add_argument("--seed", type=int, default=0)
@@ -41,6 +43,12 @@ def add_parsers(sub):
 
 
 def train_command(args):
+    out = Path(args.out)
+    if out.resolve() == REFERENCE_TAXINET.resolve():
+        raise ValueError(f"--out {args.out} is the shipped reference TaxiNet, which the "
+                         f"defaults reproduce and the tests compare with; write elsewhere")
+    if out.is_dir():
+        raise ValueError(f"--out {args.out} is a folder; name the checkpoint file to write")
     config = TaxiNetTrainConfig(samples=args.samples, epochs=args.epochs, seed=args.seed)
     if args.arch == "cnn":
         config.model.arch = "cnn"
