@@ -1,0 +1,248 @@
+"""Bad input refused where the scenario or run file is loaded: names that become file
+names, non-finite and out-of-range numbers, YAML alias bombs and huge files, short
+one-line errors (exit 2 from the command line), and nothing written for them."""
+
+import re
+import time
+
+import pytest
+
+from reachwatch.diagrams import REFERENCE_TAXINET, ControllerConfig, ScenarioError, load_scenario
+from reachwatch.diagrams.controller import make_controller
+from reachwatch.pipeline import cli
+from reachwatch.pipeline.spec import load_run_spec
+from reachwatch.systems import Environment, RunwaySpec
+from reachwatch.training.labels import LabelSpec
+from tiny_run import TINY
+
+NAME_ERROR = "runway_spec.name must be 1 to 64 of the characters"
+
+
+def _runway(spec: str) -> str:
+    return f"environment: {{runway: MINE, runway_spec: {spec}}}\n"
+
+
+@pytest.mark.parametrize("name", ["../../../../escaped", "a/b", ".hidden", "..", "", "x" * 65,
+                                  "KMWH 9", "tab\there", "é"])
+def test_runway_names_that_are_not_safe_file_names_are_refused(name):
+    with pytest.raises(ScenarioError, match=re.escape(NAME_ERROR)):
+        load_scenario(data=_runway(f"{{name: {name!r}}}"))
+    text = TINY.replace("test: [{runway: KSFO, hour: 17.0, sky: clear}]",
+                        f"test: [{{runway: KSFO, runway_spec: {{name: {name!r}}}}}]")
+    with pytest.raises(ScenarioError, match=re.escape(NAME_ERROR)):
+        load_run_spec(data=text)
+    for good in ("MINE", "my-runway_2.b", "A" * 64):
+        load_scenario(data=_runway(f"{{name: {good}}}"))
+
+
+def test_render_with_an_escaping_runway_name_writes_nothing(tmp_path, capsys):
+    scenario = tmp_path / "s.yaml"
+    scenario.write_text(_runway("{name: '../../escaped'}"))
+    out = tmp_path / "a" / "b" / "out"
+    assert cli.main(["render", "--scenario", str(scenario), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert NAME_ERROR in err and err.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["s.yaml"]
+
+
+def test_environment_names_write_the_hour_faithfully():
+    assert Environment("KMWH", 9.0).name == "KMWH_9h_clear"            # names kept as they were
+    assert Environment("KSFO", 17.5, "overcast").name == "KSFO_17p5h_overcast"
+    assert Environment("KMWH", 23.9999999).name == "KMWH_23p9999999h_clear"
+    hours = (23.9999999, 23.99999999, 9.0000001, 9.0)
+    assert len({Environment("KMWH", h).name for h in hours}) == len(hours)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("camera: {right: .nan}", "camera.right must be a finite number within +-100, got nan"),
+    ("camera: {up: .inf}", "camera.up must be a finite number within +-100, got inf"),
+    ("camera: {forward: 1.0e6}", "camera.forward must be a finite number within +-100"),
+    ("camera: {far: 1.0e9}", "camera needs 0 < near < far <= 100000 m"),
+    ("initial_state: {px: .nan}", "initial_state.px must be a finite number within +-10000"),
+    (_runway("{heading_deg: .nan}"), "runway 'CUSTOM': heading_deg must be a number in [-360, 360]"),
+    (_runway("{buildings: -3}"), "buildings must be a whole number in [0, 50], got -3"),
+    (_runway("{buildings: 100000}"), "buildings must be a whole number in [0, 50]"),
+    (_runway("{half_width: 1.0e9}"), "half_width must be a number in (0, 200]"),
+    (_runway("{half_width: 1e9}"), "half_width must be a number in (0, 200]"),
+    (_runway("{half_width: .inf}"), "half_width must be a number in (0, 200]"),
+    (_runway("{length: 1.0e12}"), "length must be a number in [300, 20000]"),
+    (_runway("{lights: {spacing: 0.000001}}"), "lights.spacing must be a number in [5, 20000]"),
+    (_runway("{markings: {dash_length: 0.000001}}"),
+     "markings.dash_length must be a number in [1, 20000]"),
+    (_runway("{markings: {threshold_stripes: 1000000}}"), "markings.threshold_stripes must be"),
+    (_runway("{taxiway_lines: [{radius: 1.0e9}]}"), "taxiway_lines[0].radius must be a number"),
+    (_runway("{surface: {texture_seed: -1}}"), "surface.texture_seed must be a whole number in [0,"),
+    ("seed: -1", "scenario.seed must be a seed, a whole number in [0, 2147483647], got -1"),
+    ("duration: 1.0e12", "duration must be > 0 s and at most 3600 s"),
+    ("controller: {px_gain: .nan}", "controller.px_gain must be a finite number, got nan"),
+    ("controller: {theta_gain: -.inf}", "controller.theta_gain must be a finite number"),
+    ("controller: {speed: 1.0e9}", "controller.speed must be >= 0 m/s and at most 100"),
+    ("monitor: {brake_deceleration: .nan}", "monitor.brake_deceleration must be a number"),
+    ("camera: {width: 100000000000000}", "scenario.camera.width: 100000000000000 is out of range"),
+])
+def test_scenario_numbers_must_be_finite_and_in_range(text, message):
+    with pytest.raises(ScenarioError, match=re.escape(message)):
+        load_scenario(data=text)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("noise_starts: 0}", "noise_starts: 0, mission_limit: -1}"), "guard.mission_limit is a multiple"),
+    (("noise_starts: 0}", "noise_starts: 0, mission_limit: .nan}"), "guard.mission_limit is a multiple"),
+    (("noise_starts: 0}", "noise_starts: 0, mission_limit: 1.0e6}"), "guard.mission_limit must be at most"),
+    (("noise_starts: 0}", "noise_starts: 0, check_seed: -1}"), "run.guard.check_seed must be a seed"),
+    (("seeds: [1, 2]", "seeds: [1, -2]"), "run.ensemble.seeds must be a seed"),
+    (("epochs: 1\n", "epochs: 1\n  learning_rate: .nan\n"), "detector.learning_rate must be a finite"),
+    (("epochs: 1\n", "epochs: 1\n  seed: -1\n"), "run.detector.seed must be a seed"),
+    (("replay: 20", "replay: 20\n  learning_rate: .nan"), "incremental.learning_rate must be a finite"),
+    (("name: tiny", "name: tiny\nscenario: {controller: {px_gain: .nan}}"),
+     "controller.px_gain must be a finite number"),
+    (("grid: [5, 3, 5]", "grid: [5, 3, 50000]"), "grid must be 3 sizes [n_px, n_py, n_theta], each >= 3 and <= 401"),
+    (("horizon: 4.0", "horizon: 1.0e6"), "horizon must be a finite number > 0 s and at most 120 s"),
+    (("horizon: 4.0", "horizon: 4.0\nmap_selection: {starts: 100000000000}"),
+     "run.map_selection.starts: 100000000000 is out of range"),
+    (("horizon: 4.0", "horizon: 4.0\nmap_selection: {starts: 100000000}"),
+     "map_selection.starts must be a whole number >= 0 (at most 1000000)"),
+    (("horizon: 4.0", "horizon: 4.0\nrefine: {levels: 40}"), "refine.levels must be a whole number >= 0 (at most 5)"),
+    (("horizon: 4.0", "horizon: 4.0\nperiods_per_step: 100000000"), "periods_per_step must be at most"),
+    (("horizon: 4.0", "horizon: 4.0\nslice_py: .nan"), "slice_py must be a number of metres"),
+    (("chunk_size: 16}", "chunk_size: 16, labels: {source: hybrid, audit: 5, more_audit: 1000000000}}"),
+     "dataset.labels.more_audit must be a whole number >= 0 and <= 1000000"),
+    (("{samples: 40,", "{samples: 1000000000,"), "dataset.samples must be a whole number >= 10 and <="),
+    (("fidelity: {starts: 3", "fidelity: {starts: 300000000"), "fidelity.starts must be a whole number >= 0 (at most"),
+    (("check_starts: 2", "check_starts: 200000000"), "guard.check_starts must be a whole number >= 0 (at most"),
+    (("horizon: 4.0", "horizon: 4.0\ntest_random: {count: 1000000000, seed: 5}"),
+     "test_random.count must be a whole number >= 0 (at most 1000)"),
+    (("horizon: 4.0", "horizon: 4.0\ntest_random: {count: 1, seed: 5, prefix: ÄÖ}"),
+     "test_random.prefix must be letters and digits (1 to 16, ASCII)"),
+])
+def test_run_file_numbers_must_be_finite_and_in_range(edit, message):
+    assert edit[0] in TINY
+    with pytest.raises(ScenarioError, match=re.escape(message)):
+        load_run_spec(data=TINY.replace(*edit))
+
+
+def test_hybrid_labels_need_an_audit():
+    text = TINY.replace("chunk_size: 16}", "chunk_size: 16, labels: {source: hybrid, audit: 0}}")
+    with pytest.raises(ScenarioError, match=re.escape("dataset.labels.audit must be >= 1 for the "
+                                                      "hybrid source")):
+        load_run_spec(data=text)
+    with pytest.raises(ValueError, match="held_out_labels.audit must be >= 1"):
+        LabelSpec("hybrid", audit=0).validate("held_out_labels")
+    LabelSpec("brt", audit=0).validate()                # the audit is read by hybrid alone
+    LabelSpec("hybrid", audit=1).validate()
+
+
+def test_a_float_written_as_text_is_read_as_the_number():
+    spec = load_run_spec(data=TINY.replace("epochs: 1\n", "epochs: 1\n  learning_rate: 1e-4\n"))
+    assert spec.detector.learning_rate == 1e-4 and isinstance(spec.detector.learning_rate, float)
+    assert spec.detector.epochs == 1 and spec.grid == [5, 3, 5]            # the rest as written
+    s = load_scenario(data="controller: {parameters: {gain: -2E-1}, speed: '+5e0'}\n")
+    assert s.controller.parameters == {"gain": -0.2} and s.controller.speed == 5.0
+    for text, where in [("controller: {speed: 5e0x}", "scenario.controller.speed: expected float"),
+                        ("camera: {width: 1e3}", "scenario.camera.width: expected int"),
+                        ("controller: {checkpoint: 1e-4}", "controller.checkpoint: file not found")]:
+        with pytest.raises(ScenarioError, match=re.escape(where)):
+            load_scenario(data=text)
+
+
+BOMB = "".join(f"{c}: &{c} [{', '.join([f'*{p}'] * 9)}]\n" for p, c in zip("abcdefgh", "bcdefghi"))
+
+
+def test_yaml_alias_bombs_are_refused_quickly_and_briefly():
+    started = time.time()
+    in_parameters = "controller:\n  parameters:\n" + "".join(
+        f"    {line}\n" for line in ("a: &a [1.0]\n" + BOMB).splitlines())
+    for text in (in_parameters, "grid: &a [5, 3, 5]\n" + BOMB):
+        with pytest.raises(ScenarioError, match="expands to more than 100000 values") as info:
+            load_scenario(data=text)
+        assert len(str(info.value)) < 300
+    with pytest.raises(ScenarioError, match="expands to more than 100000 values"):
+        load_run_spec(data=TINY.replace("grid: [5, 3, 5]", "x: &a [5]\n" + BOMB + "grid: *i"))
+    with pytest.raises(ScenarioError, match="a YAML alias refers to a node that contains it"):
+        load_scenario(data="camera: &c {width: *c}\n")
+    assert time.time() - started < 10
+    # an alias that stands for a little is still fine
+    s = load_scenario(data="environment: {hour: &h 17.0}\ninitial_state: {theta_deg: *h}\n")
+    assert s.environment.hour == s.initial_state.theta_deg == 17.0
+
+
+def test_error_messages_cut_long_values():
+    long_list = "[" + ", ".join(["5"] * 50_000) + "]"
+    for text in (f"camera: {long_list}", f"environment: {{sky: {'x' * 100_000}}}",
+                 f"environment: {{runway: {'Z' * 100_000}}}", f"{'k' * 100_000}: 1"):
+        with pytest.raises(ScenarioError) as info:
+            load_scenario(data=text)
+        assert len(str(info.value)) < 400 and "\n" not in str(info.value)
+    with pytest.raises(ScenarioError) as info:
+        load_run_spec(data=TINY.replace("grid: [5, 3, 5]", f"grid: {long_list}"))
+    assert "grid must be 3 sizes" in str(info.value) and len(str(info.value)) < 400
+
+
+def test_a_huge_file_is_refused_before_it_is_read(tmp_path, capsys):
+    path = tmp_path / "big.yaml"
+    path.write_text("# padding\n" * 120_000 + "{}\n")
+    started = time.time()
+    with pytest.raises(ScenarioError, match=r"bytes; a scenario file is at most 1048576 bytes"):
+        load_scenario(path)
+    assert cli.main(["run", "--scenario", str(path), "--out", str(tmp_path / "o")]) == 2
+    assert "a scenario file is at most" in capsys.readouterr().err
+    assert time.time() - started < 10 and not (tmp_path / "o").exists()
+
+
+def test_two_environments_of_one_name_must_be_the_same():
+    mine = "{{runway: MINE, hour: 9.0, runway_spec: {{name: MINE, half_width: {}}}}}"
+
+    def run_file(test_width, guard_width):
+        return TINY.replace("test: [{runway: KSFO, hour: 17.0, sky: clear}]",
+                            f"test: [{mine.format(test_width)}]").replace(
+            "guard: {", f"guard: {{environments: [{mine.format(guard_width)}], ")
+
+    with pytest.raises(ScenarioError, match=re.escape(
+            "test[0] and guard.environments[0] are both named 'MINE_9h_clear' but differ")):
+        load_run_spec(data=run_file(12.0, 14.0))
+    assert load_run_spec(data=run_file(12.0, 12.0)).guard_environments()[0].half_width == 12.0
+    catalog_named = TINY.replace("test: [{runway: KSFO, hour: 17.0, sky: clear}]",
+                                 "test: [{runway: X, hour: 9.0, runway_spec: {name: KMWH}}]")
+    with pytest.raises(ScenarioError, match=re.escape("train[0] and test[0] are both named "
+                                                      "'KMWH_9h_clear' but differ")):
+        load_run_spec(data=catalog_named)
+
+
+def test_a_factory_that_is_no_python_function_or_fails_on_the_config_is_one_error(tmp_path, capsys):
+    path = tmp_path / "s.yaml"
+    path.write_text("controller: {factory: 'os:system'}\n")
+    assert cli.main(["render", "--scenario", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "controller.factory: 'os:system' is a builtin_function_or_method" in err
+    assert err.count("\n") == 1 and not (tmp_path / "o").exists()
+    with pytest.raises(ValueError, match=re.escape("controller.factory 'json:dumps': calling it "
+                                                   "with the ControllerConfig failed (TypeError")):
+        make_controller(ControllerConfig(factory="json:dumps"))
+
+
+def test_out_naming_a_file_is_one_error(tmp_path, capsys):
+    scenario = tmp_path / "s.yaml"
+    scenario.write_text("camera: {width: 16, height: 16}\n")
+    (tmp_path / "taken").write_text("a file")
+    assert cli.main(["render", "--scenario", str(scenario), "--out", str(tmp_path / "taken")]) == 2
+    err = capsys.readouterr().err
+    assert "cannot write" in err and "a file stands where a folder is needed" in err
+    assert err.count("\n") == 1 and (tmp_path / "taken").read_text() == "a file"
+
+
+def test_taxinet_train_never_writes_the_shipped_checkpoint(capsys):
+    with pytest.raises(SystemExit) as stop:            # no default --out
+        cli.main(["taxinet", "train", "--epochs", "1", "--samples", "1"])
+    assert stop.value.code == 2 and "--out" in capsys.readouterr().err
+    before = REFERENCE_TAXINET.stat().st_mtime_ns
+    assert cli.main(["taxinet", "train", "--epochs", "1", "--samples", "1",
+                     "--out", str(REFERENCE_TAXINET)]) == 2
+    assert "is the shipped reference TaxiNet" in capsys.readouterr().err
+    assert REFERENCE_TAXINET.stat().st_mtime_ns == before
+
+
+def test_runway_spec_validate_checks_programmatic_specs_too():
+    for bad, message in [(dict(name="../x"), NAME_ERROR), (dict(half_width=float("inf")), "half_width"),
+                         (dict(buildings=-3), "buildings"), (dict(heading_deg=float("nan")), "heading_deg")]:
+        with pytest.raises(ValueError, match=re.escape(message)):
+            RunwaySpec(**bad).validate()
