@@ -170,29 +170,49 @@ def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = None, executor
     return Outcomes(fields=fields, key=key, computed=computed)
 
 
+def time_to_failure(time, failure_time: float, duration: float):
+    """How long each state a run passes through (at its ticks ``time``, s from 0) has
+    until the run fails: ``(ttf s, observed)``. For a run that failed (at
+    ``failure_time`` s; NaN or None for none) the time is ``failure_time - t`` and
+    observed; for one that did not, it is right-censored at the end of the run
+    (``duration`` s): ``duration - t`` and not observed, meaning "no failure before
+    that long", never "safe". A label source for any loop whose runs are logged at
+    its control ticks; `fails_within` turns it into labels for a horizon."""
+    time = np.asarray(time, float)
+    if time.ndim != 1 or not np.all(np.isfinite(time)):
+        raise ValueError(f"time must be a 1-d array of finite tick times, got shape {time.shape}")
+    if not (np.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration must be a finite number > 0 s, got {duration}")
+    failed = failure_time is not None and np.isfinite(failure_time)
+    end = float(failure_time) if failed else float(duration)
+    return end - time, np.full(len(time), failed, bool)
+
+
+def fails_within(ttf, observed, within: float) -> np.ndarray:
+    """Labels for "the run fails within ``within`` s of this state" from
+    `time_to_failure`'s ``(ttf, observed)``: 1 where an observed failure comes within
+    ``within`` s, 0 where none comes within it (observed later, or censored only after
+    ``within`` s had passed), -1 where the run was censored sooner, so it cannot tell."""
+    if not (np.isfinite(within) and within > 0):
+        raise ValueError(f"horizon must be a finite number > 0 s, got {within}")
+    ttf, observed = np.asarray(ttf, float), np.asarray(observed, bool)
+    eps = 1e-9
+    labels = np.full(ttf.shape, -1, np.int8)
+    labels[observed & (ttf <= within + eps)] = 1
+    labels[observed & (ttf > within + eps)] = 0
+    labels[~observed & (ttf + eps >= within)] = 0
+    return labels
+
+
 def path_labels(time, failure_time: float, duration: float, horizon: float) -> np.ndarray:
     """Labels of the states a run passes through at its ticks ``time`` (s, from 0):
     1 where the run fails (at ``failure_time`` s; NaN for none) within ``horizon`` s
     of the tick, 0 where it does not and the run lasted (``duration`` s, or until its
     failure) at least ``horizon`` s past the tick, and -1 where the run ended before
-    the tick's horizon did, so it cannot tell.
+    the tick's horizon did, so it cannot tell: `fails_within` of `time_to_failure`.
 
     These are the outcomes the loop would have from each of those states if started
     there, provided the loop's state is all it remembers and its control ticks fall
     on the run's: the real loop's logged ticks are control ticks, and a loop whose
     controller keeps its own state (a filter, a frame history) breaks the premise."""
-    time = np.asarray(time, float)
-    if time.ndim != 1 or not np.all(np.isfinite(time)):
-        raise ValueError(f"time must be a 1-d array of finite tick times, got shape {time.shape}")
-    for name, value in (("duration", duration), ("horizon", horizon)):
-        if not (np.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be a finite number > 0 s, got {value}")
-    eps = 1e-9
-    labels = np.full(len(time), -1, np.int8)
-    failed = failure_time is not None and np.isfinite(failure_time)
-    if failed:
-        labels[failure_time - time <= horizon + eps] = 1
-        labels[failure_time - time > horizon + eps] = 0
-    else:
-        labels[time + horizon <= duration + eps] = 0
-    return labels
+    return fails_within(*time_to_failure(time, failure_time, duration), horizon)
