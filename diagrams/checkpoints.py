@@ -11,8 +11,8 @@ from pathlib import Path
 
 import torch
 
-from reachwatch.systems import (DetectorConfig, PreprocessConfig, TaxiNetConfig,
-                                build_detector, build_taxinet)
+from reachwatch.systems import (DetectorConfig, HistoryMonitorConfig, HistoryRiskModel,
+                                PreprocessConfig, TaxiNetConfig, build_detector, build_taxinet)
 from reachwatch.systems.files import atomic_write_bytes, file_hash  # noqa: F401  (re-exported)
 
 FORMAT = "reachwatch.checkpoint"
@@ -47,8 +47,9 @@ def _plain(metadata: dict) -> dict:
         raise ValueError(f"checkpoint metadata must be JSON-like: {e}") from None
 
 
-def load_checkpoint(path, *, kind: str) -> dict:
-    """The raw checkpoint dict of ``kind``; raises `CheckpointError` saying what is wrong."""
+def load_checkpoint(path, *, kind) -> dict:
+    """The raw checkpoint dict of ``kind`` (a name, or a tuple of accepted names);
+    raises `CheckpointError` saying what is wrong."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
@@ -63,9 +64,10 @@ def load_checkpoint(path, *, kind: str) -> dict:
     if payload.get("version") != VERSION:
         raise CheckpointError(f"{path} has checkpoint version {payload.get('version')}, "
                               f"this reachwatch reads version {VERSION}")
-    if payload.get("kind") != kind:
+    kinds = (kind,) if isinstance(kind, str) else tuple(kind)
+    if payload.get("kind") not in kinds:
         raise CheckpointError(f"{path} holds a '{payload.get('kind')}' model, not a "
-                              f"'{kind}' model")
+                              f"{' or '.join(repr(k) for k in kinds)} model")
     missing = {"state_dict", "model_config", "preprocess", "metadata"} - set(payload)
     if missing:
         raise CheckpointError(f"{path} lacks {sorted(missing)}")
@@ -88,7 +90,7 @@ def _load_model(path, kind, config_cls, build, preprocess_cls=None):
     try:
         model.load_state_dict(payload["state_dict"])
     except RuntimeError as e:
-        raise CheckpointError(f"{path}: weights do not fit the {config.arch} {kind} its "
+        raise CheckpointError(f"{path}: weights do not fit the {kind} its "
                               f"config describes: {str(e)[:300]}") from None
     return model.eval(), config, preprocess_config, payload["metadata"]
 
@@ -103,4 +105,21 @@ def load_taxinet(path=REFERENCE_TAXINET):
 def load_detector(path):
     """``(model, detector_config, metadata)`` from an anomaly-detector checkpoint."""
     model, config, _, metadata = _load_model(path, "detector", DetectorConfig, build_detector)
+    return model, config, metadata
+
+
+#: The checkpoint kinds a guarded loop's ``monitor.detector`` may name.
+MONITOR_KINDS = ("detector", "history_monitor")
+
+
+def checkpoint_kind(path, kinds=MONITOR_KINDS) -> str:
+    """The kind of the checkpoint at ``path`` (one of ``kinds``, else `CheckpointError`)."""
+    return load_checkpoint(path, kind=kinds)["kind"]
+
+
+def load_history_monitor(path):
+    """``(model, config, metadata)`` from a history-monitor checkpoint (eval mode); the
+    metadata holds its ``threshold`` and Platt ``calibration`` ``[a, b]``."""
+    model, config, _, metadata = _load_model(path, "history_monitor", HistoryMonitorConfig,
+                                             HistoryRiskModel)
     return model, config, metadata

@@ -41,6 +41,7 @@ class Trajectory:
     speed: np.ndarray = None          # m/s per tick (loops exporting ``speed``)
     anomaly: np.ndarray = None        # detector flag per tick (loops exporting ``anomaly``)
     score: np.ndarray = None          # detector score per tick (loops exporting ``score``)
+    records: dict = None              # `simulate`'s ``record``: name -> array, a row per tick
 
 
 def add_controller(builder, world, controller):
@@ -182,12 +183,16 @@ def tick_times(duration: float, period: float) -> np.ndarray:
 
 def simulate(diagram: Diagram, *, initial_state, duration: float, period: float,
              half_width: float, stop_on_failure: bool = True, context=None,
-             stop_when=None) -> Trajectory:
+             stop_when=None, record=None) -> Trajectory:
     """Runs a closed-loop diagram from ``initial_state`` for ``duration`` s and reads its
     exported ports (``state``; ``estimate``, ``speed``, ``anomaly`` when exported) at
     every control tick (every ``period`` s); stops early at failure (``|px| >=
     half_width``) if asked, and after the tick where ``stop_when(rows)`` is true, if
-    given (``rows``: {port name: list of the values read so far, one per tick})."""
+    given (``rows``: {port name: list of the values read so far, one per tick}).
+
+    ``record`` ({exported output port name: function of its value}) reads more ports at
+    every tick, e.g. ``{"color_image": lambda image: image.data.copy()}``; the results
+    are stacked in ``Trajectory.records``."""
     times = tick_times(duration, period)
     simulator, failure = start_simulator(diagram, initial_state=initial_state,
                                          half_width=half_width,
@@ -195,6 +200,13 @@ def simulate(diagram: Diagram, *, initial_state, duration: float, period: float,
     context = simulator.get_context()
     ports = {name: _output(diagram, name) for name in LOOP_OUTPUTS}
     rows = {name: [] for name, port in ports.items() if port is not None}
+    record = dict(record or {})
+    for name in record:
+        if not diagram.HasOutputPort(name):
+            raise ValueError(f"record: the loop '{diagram.get_name()}' exports no output port "
+                             f"'{name}'")
+    recorded = {name: [] for name in record}
+    record_ports = {name: diagram.GetOutputPort(name) for name in record}
     for t in times:
         if t > 0:
             simulator.AdvanceTo(min(t, duration))
@@ -202,6 +214,8 @@ def simulate(diagram: Diagram, *, initial_state, duration: float, period: float,
             break                        # stopped between ticks: no sample at t
         for name in rows:
             rows[name].append(ports[name].Eval(context).copy())
+        for name, fn in record.items():
+            recorded[name].append(np.asarray(fn(record_ports[name].Eval(context))))
         if "t" in failure or (stop_when is not None and stop_when(rows)):
             break
     n = len(rows["state"])
@@ -214,4 +228,6 @@ def simulate(diagram: Diagram, *, initial_state, duration: float, period: float,
     extra = {name: np.array(rows[name]).reshape(n, -1)[:, 0]
              for name in ("speed", "anomaly", "score") if name in rows}
     return Trajectory(time=times[:n], state=x, estimate=estimate, half_width=half_width,
-                      failed=failed, failure_time=t_fail, **extra)
+                      failed=failed, failure_time=t_fail,
+                      records={k: np.stack(v) for k, v in recorded.items()} if record else None,
+                      **extra)

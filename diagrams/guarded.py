@@ -4,12 +4,13 @@ the fallback switch between the controller and the plant."""
 from typing import NamedTuple
 
 from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
-from pydrake.systems.primitives import ZeroOrderHold
+from pydrake.systems.primitives import Multiplexer, ZeroOrderHold
 
 from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, FlagFilter,
-                                fallback_name, ProportionalController, TrueStateEstimator)
+                                HistoryMonitor, fallback_name, ProportionalController,
+                                TrueStateEstimator)
 
-from .checkpoints import load_detector
+from .checkpoints import checkpoint_kind, load_detector, load_history_monitor
 from .closed_loop import add_controller, export_loop_ports
 from .controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
 from .world import add_world, initial_state_vector
@@ -17,6 +18,7 @@ from .world import add_world, initial_state_vector
 DETECTOR = "anomaly_detector"
 SWITCH = "fallback_switch"
 FLAG_FILTER = "flag_filter"
+MONITOR_SIGNALS = "monitor_signals"
 
 
 class Monitor(NamedTuple):
@@ -27,10 +29,43 @@ class Monitor(NamedTuple):
     anomaly: OutputPort
 
 
-def add_detector(builder, *, image_port, monitor) -> AnomalyDetector:
-    """Adds the `AnomalyDetector` of ``monitor`` (a `MonitorConfig`: its checkpoint and
-    threshold), named ``anomaly_detector``, on ``image_port``; returns it. Alone (no
-    switch) it watches a loop without acting on it."""
+def add_monitor_signals(builder, *, steering_port, estimate_port=None) -> OutputPort:
+    """Adds the online signals a history monitor may read, as one vector (a
+    `Multiplexer` named ``monitor_signals``): the controller's ``estimate_port`` (when
+    it has one) and its steering ``steering_port``. Recording and monitoring build it
+    the same way, so a monitor trained on recorded runs reads the same numbers online."""
+    ports = ([estimate_port] if estimate_port is not None else []) + [steering_port]
+    mux = builder.AddNamedSystem(MONITOR_SIGNALS, Multiplexer([p.size() for p in ports]))
+    for i, port in enumerate(ports):
+        builder.Connect(port, mux.get_input_port(i))
+    return mux.get_output_port(0)
+
+
+def add_detector(builder, *, image_port, monitor, period=None, steering_port=None,
+                 estimate_port=None):
+    """Adds the monitor of ``monitor`` (a `MonitorConfig`: its checkpoint and threshold),
+    named ``anomaly_detector``, on ``image_port``; returns it. The checkpoint is an
+    image `AnomalyDetector`'s or a `HistoryMonitor`'s, which ticks every ``period`` s
+    and, when trained with signals, reads the controller's ``estimate_port`` and
+    ``steering_port`` through `add_monitor_signals`. Alone (no switch) it watches a
+    loop without acting on it."""
+    if checkpoint_kind(monitor.detector) == "history_monitor":
+        model, config, metadata = load_history_monitor(monitor.detector)
+        if period is None:
+            raise ValueError("monitor.detector: a history monitor needs the control period")
+        system = builder.AddNamedSystem(DETECTOR, HistoryMonitor(
+            model=model, threshold=monitor.threshold, period=period,
+            calibration=metadata.get("calibration", (1.0, 0.0))))
+        if config.signals:
+            signals_port = (None if steering_port is None else add_monitor_signals(
+                builder, steering_port=steering_port, estimate_port=estimate_port))
+            if signals_port is None or signals_port.size() != config.signals:
+                got = "none" if signals_port is None else f"{signals_port.size()}"
+                raise ValueError(f"monitor.detector: the history monitor reads {config.signals} "
+                                 f"online signals, this loop offers {got}")
+            builder.Connect(signals_port, system.get_signals_input_port())
+        builder.Connect(image_port, system.get_color_image_input_port())
+        return system
     model, config, metadata = load_detector(monitor.detector)
     detector = builder.AddNamedSystem(DETECTOR, AnomalyDetector(
         model=model, config=config, threshold=monitor.threshold,
@@ -39,14 +74,18 @@ def add_detector(builder, *, image_port, monitor) -> AnomalyDetector:
     return detector
 
 
-def add_monitor(builder, *, image_port, steering_port, monitor, controller) -> Monitor:
+def add_monitor(builder, *, image_port, steering_port, monitor, controller,
+                estimate_port=None) -> Monitor:
     """Adds the runtime monitor of ``monitor`` (a `MonitorConfig`) to any loop: the
     `AnomalyDetector` on ``image_port``, a `FlagFilter` (named ``flag_filter``) when
     ``monitor.flag_window`` > 1, and the `FallbackSwitch` fed by the controller's
     ``steering_port``, ticking at ``controller.period`` from ``controller.speed``.
     Returns a `Monitor`; connect the switch's ``steering_angle`` and ``speed`` outputs
-    to your plant (and its ``fallback_steering_angle`` input for ``oracle``)."""
-    detector = add_detector(builder, image_port=image_port, monitor=monitor)
+    to your plant (and its ``fallback_steering_angle`` input for ``oracle``). A history
+    monitor reads the controller's ``estimate_port`` (when given) and steering."""
+    detector = add_detector(builder, image_port=image_port, monitor=monitor,
+                            period=controller.period, steering_port=steering_port,
+                            estimate_port=estimate_port)
     switch = builder.AddNamedSystem(SWITCH, FallbackSwitch(
         strategy=monitor.strategy, steering=monitor.steering, period=controller.period,
         nominal_speed=controller.speed, brake_deceleration=monitor.brake_deceleration,
@@ -114,9 +153,11 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
                       shadows=scenario.shadows,
                       initial_state=initial_state_vector(scenario.initial_state))
     vision = add_controller(builder, world, controller)
-    detector, switch, anomaly = add_monitor(builder, image_port=world.camera.color_image_output_port(),
-                                   steering_port=vision.GetOutputPort(CONTROL_OUTPUT),
-                                   monitor=monitor, controller=controller)
+    detector, switch, anomaly = add_monitor(
+        builder, image_port=world.camera.color_image_output_port(),
+        steering_port=vision.GetOutputPort(CONTROL_OUTPUT), monitor=monitor,
+        controller=controller,
+        estimate_port=vision.GetOutputPort(ESTIMATE_OUTPUT) if has_estimate(vision) else None)
     hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(controller.period, 1))
     if monitor.steering == "oracle":
         estimator = builder.AddNamedSystem("state_estimator", TrueStateEstimator())

@@ -28,6 +28,8 @@ from .runway import RUNWAYS, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, 
 from .random_environments import RandomEnvironments, RandomRunwayRanges, random_runway
 from .scene import add_runway_scene
 from .dead_reckoning import DeadReckoning, propagate_estimate
+from .history_monitor import (TEMPORAL_MODELS, HistoryMonitor, HistoryMonitorConfig,
+                              HistoryRiskModel, platt)
 from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
 from .ports import weak_callback
 from .switch import (DEFAULT_FALLBACKS, STEERING, STRATEGIES, FallbackSwitch, check_resume_acceleration,
@@ -36,6 +38,7 @@ from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, Tax
                       TrueStateEstimator)
 
 __all__ = [
+    "TEMPORAL_MODELS", "HistoryMonitor", "HistoryMonitorConfig", "HistoryRiskModel", "platt",
     "FlagFilter", "check_k_of_n", "confirmed_flags", "weak_callback",
     "RandomEnvironments", "RandomRunwayRanges", "random_runway",
     "AircraftGeometry", "CameraConfig", "make_wing_camera", "SKIES", "Environment",

@@ -12,6 +12,7 @@ import torch
 
 from reachwatch.diagrams import (CONTROLLER, MonitorConfig, add_detector, make_closed_loop_diagram,
                                  make_guarded_diagram, simulate)
+from reachwatch.diagrams.controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.interpolate import GridInterpolator
@@ -282,8 +283,13 @@ def make_watched_loop(scenario):
     watching its camera and acting on nothing: exports ``score`` beside ``state``, from
     the same rendered image the controller sees at each tick."""
     def watch(builder, world):
-        detector = add_detector(builder, image_port=world.camera.color_image_output_port(),
-                                monitor=scenario.monitor)
+        controller = builder.GetSubsystemByName(CONTROLLER)
+        detector = add_detector(
+            builder, image_port=world.camera.color_image_output_port(),
+            monitor=scenario.monitor, period=scenario.controller.period,
+            steering_port=controller.GetOutputPort(CONTROL_OUTPUT),
+            estimate_port=(controller.GetOutputPort(ESTIMATE_OUTPUT)
+                           if has_estimate(controller) else None))
         builder.ExportOutput(detector.get_score_output_port(), "score")
     return make_closed_loop_diagram(scenario, prebuild_callback=watch)
 

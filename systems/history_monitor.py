@@ -1,0 +1,281 @@
+"""A runtime monitor over the image history: the risk that the loop fails within ``T``
+seconds, from the last ``frames`` camera frames (as per-frame features) and, when asked,
+the signals the loop has online (the controller's outputs). `HistoryRiskModel` is the
+network; `HistoryMonitor` the LeafSystem that keeps the history in its Context.
+
+The model sees, at tick ``t``, the frames of ticks ``t - (frames - 1) * stride, ...,
+t - stride, t`` (ticks before the run's first repeat its first frame), so the same
+function of a recorded run (`HistoryRiskModel.risk_sequence`) gives what the system
+outputs online, tick by tick."""
+
+import dataclasses as dc
+from typing import List
+
+import numpy as np
+import torch
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.sensors import ImageRgba8U
+from torch import nn
+
+from .detector import DetectorConfig, detector_input, resize_for_detector
+
+#: How the per-frame features of the history are combined: ``stack`` concatenates them
+#: into a small MLP (one frame: the single-frame monitor), ``gru`` runs a GRU over them.
+TEMPORAL_MODELS = ("stack", "gru")
+
+
+@dc.dataclass
+class HistoryMonitorConfig:
+    """The monitor's network and what it reads: ``frames`` frames ``stride`` ticks
+    apart, each resized to ``height`` x ``width`` and encoded by a small CNN
+    (``channels``) into ``features`` numbers; ``signals`` online numbers per tick
+    (0: images only), standardised with ``signal_mean`` / ``signal_std``; ``temporal``
+    one of `TEMPORAL_MODELS` with ``hidden`` units. ``within`` (s) is the T of "fails
+    within T s" that the risk predicts."""
+    frames: int = 8
+    stride: int = 1
+    height: int = 48
+    width: int = 80
+    channels: List[int] = dc.field(default_factory=lambda: [16, 32, 48])
+    features: int = 32
+    signals: int = 0
+    signal_mean: List[float] = dc.field(default_factory=list)
+    signal_std: List[float] = dc.field(default_factory=list)
+    temporal: str = "stack"
+    hidden: int = 32
+    within: float = 2.0
+
+    def validate(self):
+        for name, least, most in (("frames", 1, 64), ("stride", 1, 100), ("features", 1, 1024),
+                                  ("signals", 0, 64), ("hidden", 1, 1024)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not least <= value <= most:
+                raise ValueError(f"history monitor {name} must be a whole number in "
+                                 f"[{least}, {most}], got {value!r}")
+        if self.temporal not in TEMPORAL_MODELS:
+            raise ValueError(f"history monitor temporal must be one of {TEMPORAL_MODELS}, got "
+                             f"{self.temporal!r}")
+        if not (16 <= self.height <= 512 and 16 <= self.width <= 512):
+            raise ValueError(f"history monitor input must be 16..512 pixels a side, got "
+                             f"{self.height}x{self.width}")
+        if not self.channels or any(not isinstance(c, int) or not 1 <= c <= 512
+                                    for c in self.channels):
+            raise ValueError(f"history monitor channels must be whole numbers in [1, 512], got "
+                             f"{self.channels!r}")
+        if len(self.signal_mean) not in (0, self.signals) or \
+                len(self.signal_std) != len(self.signal_mean):
+            raise ValueError(f"history monitor signal_mean and signal_std need {self.signals} "
+                             f"numbers each (or none), got {len(self.signal_mean)} and "
+                             f"{len(self.signal_std)}")
+        if not (np.isfinite(self.within) and self.within > 0):
+            raise ValueError(f"history monitor within must be a number > 0 s, got {self.within}")
+        return self
+
+    @property
+    def image_config(self) -> DetectorConfig:
+        """The per-frame resize and normalisation (the detector's, at this size)."""
+        return DetectorConfig(height=self.height, width=self.width)
+
+    def history_ticks(self, tick: int) -> np.ndarray:
+        """The ticks whose frames the risk at ``tick`` reads (oldest first, clamped at 0)."""
+        offsets = np.arange(self.frames - 1, -1, -1) * self.stride
+        return np.maximum(tick - offsets, 0)
+
+
+def platt(q, a: float = 1.0, b: float = 0.0):
+    """``sigmoid(a * logit(q) + b)``: Platt scaling of a raw probability ``q`` (works on
+    arrays; ``q`` is clipped to [1e-7, 1 - 1e-7] first)."""
+    q = np.clip(np.asarray(q, float), 1e-7, 1 - 1e-7)
+    return 1.0 / (1.0 + np.exp(-(a * np.log(q / (1 - q)) + b)))
+
+
+class HistoryRiskModel(nn.Module):
+    """Per-frame CNN encoder, then the temporal model over the history's features (with
+    the standardised signals beside each frame's), then one logit of "fails within
+    ``within`` s"."""
+
+    def __init__(self, config: HistoryMonitorConfig):
+        super().__init__()
+        self.config = config.validate()
+        layers, c = [], 3
+        for out in config.channels:
+            layers += [nn.Conv2d(c, out, 3, padding=1, bias=False), nn.BatchNorm2d(out),
+                       nn.ReLU(inplace=True), nn.MaxPool2d(2)]
+            c = out
+        self.encoder = nn.Sequential(*layers)
+        self.project = nn.Sequential(nn.Linear(c, config.features), nn.ReLU())
+        width = config.features + config.signals
+        if config.temporal == "gru":
+            self.gru = nn.GRU(width, config.hidden, batch_first=True)
+            self.head = nn.Linear(config.hidden, 1)
+        else:
+            self.head = nn.Sequential(nn.Linear(width * config.frames, config.hidden), nn.ReLU(),
+                                      nn.Linear(config.hidden, 1))
+        mean = config.signal_mean or [0.0] * config.signals
+        std = config.signal_std or [1.0] * config.signals
+        self.register_buffer("signal_mean", torch.tensor(mean, dtype=torch.float32))
+        self.register_buffer("signal_std", torch.tensor(std, dtype=torch.float32).clamp_min(1e-6))
+        # the features' standardisation before the head, set when the head is trained
+        self.register_buffer("feature_mean", torch.zeros(config.features))
+        self.register_buffer("feature_std", torch.ones(config.features))
+
+    def encode(self, images: torch.Tensor) -> torch.Tensor:
+        """uint8 RGB ``(N, H, W, 3)`` at the configured size -> features ``(N, features)``."""
+        x = detector_input(images, self.config.image_config)
+        return self.project(self.encoder(x).mean(dim=(2, 3)))
+
+    def head_logits(self, features: torch.Tensor, signals: torch.Tensor = None) -> torch.Tensor:
+        """``features`` ``(N, frames, features)`` and ``signals`` ``(N, frames, signals)``
+        (both raw; standardised here) -> logits ``(N,)``."""
+        features = (features - self.feature_mean) / self.feature_std
+        if self.config.signals:
+            x = torch.cat([features, (signals - self.signal_mean) / self.signal_std], dim=-1)
+        else:
+            x = features
+        if self.config.temporal == "gru":
+            return self.head(self.gru(x)[0][:, -1]).squeeze(-1)
+        return self.head(x.flatten(1)).squeeze(-1)
+
+    def forward(self, images: torch.Tensor, signals: torch.Tensor = None) -> torch.Tensor:
+        """uint8 ``(N, frames, H, W, 3)`` (and ``(N, frames, signals)``) -> logits ``(N,)``."""
+        n, k = images.shape[:2]
+        features = self.encode(images.reshape(n * k, *images.shape[2:])).reshape(n, k, -1)
+        return self.head_logits(features, signals)
+
+    @torch.no_grad()
+    def encode_frames(self, frames: np.ndarray, batch: int = 256) -> torch.Tensor:
+        """Features ``(T, features)`` of uint8 frames ``(T, H, W, 3|4)`` of any size
+        (resized as online)."""
+        self.eval()
+        images = torch.from_numpy(resize_for_detector(frames, self.config.image_config))
+        return torch.cat([self.encode(images[i:i + batch]) for i in range(0, len(images), batch)])
+
+    @torch.no_grad()
+    def risk_from_features(self, features, signals=None, calibration=None) -> np.ndarray:
+        """The risk at every tick of one run from its per-tick ``features``
+        ``(T, features)`` (`encode_frames`) and ``signals`` ``(T, signals)``."""
+        self.eval()
+        features = torch.as_tensor(features, dtype=torch.float32)
+        index = torch.from_numpy(np.stack([self.config.history_ticks(t)
+                                           for t in range(len(features))]))
+        sig = (torch.as_tensor(np.asarray(signals, np.float32))[index]
+               if self.config.signals else None)
+        raw = torch.sigmoid(self.head_logits(features[index], sig)).double().numpy()
+        return calibration(raw) if calibration is not None else raw
+
+    def risk_sequence(self, frames: np.ndarray, signals: np.ndarray = None,
+                      calibration=None) -> np.ndarray:
+        """The risk at every tick of one recorded run: ``frames`` uint8 ``(T, H, W, 3|4)``
+        (any size: resized as online), ``signals`` ``(T, signals)``; ``calibration`` maps
+        the raw probability (e.g. a `PlattCalibration`). What `HistoryMonitor` outputs
+        at each tick of the same run."""
+        return self.risk_from_features(self.encode_frames(frames), signals, calibration)
+
+
+class HistoryMonitor(LeafSystem):
+    """The risk that the loop fails within ``config.within`` s, from the image history.
+
+    .. pydrake_system::
+
+        name: HistoryMonitor
+        input_ports:
+        - color_image
+        - signals (when config.signals > 0)
+        output_ports:
+        - anomaly
+        - score
+        - frame_features
+
+    Every ``period`` s (the control tick) the current frame's features and signals join
+    the history kept in the discrete state (the last ``(frames - 1) * stride + 1``
+    ticks). ``score`` is the calibrated risk at the current time, from the kept
+    history and the current frame (so the fallback switch, updated at the same tick,
+    sees this tick's frame); ``anomaly`` is 1.0 when ``score >= threshold``;
+    ``frame_features`` the current frame's features and signals (computed once a tick:
+    Drake caches the port). Ports
+    are named as `AnomalyDetector`'s, so either monitors a guarded loop."""
+
+    def __init__(self, *, model: HistoryRiskModel, threshold: float, period: float,
+                 calibration=(1.0, 0.0)):
+        super().__init__()
+        if not 0.0 <= threshold <= 1.0:
+            raise ValueError(f"HistoryMonitor: threshold must be in [0, 1], got {threshold}")
+        if not (np.isfinite(period) and period > 0):
+            raise ValueError(f"HistoryMonitor: period must be > 0 s, got {period}")
+        self._model = model.eval()
+        self._config = model.config
+        self._threshold = float(threshold)
+        self._platt = tuple(float(v) for v in calibration)
+        c = self._config
+        self._width = c.features + c.signals
+        self._slots = (c.frames - 1) * c.stride          # past ticks kept
+        self._image_port = self.DeclareAbstractInputPort(
+            "color_image", AbstractValue.Make(ImageRgba8U()))
+        self._signals_port = (self.DeclareVectorInputPort("signals", c.signals)
+                              if c.signals else None)
+        # [ticks seen so far, then the kept ticks' rows, oldest first]
+        self._history = self.DeclareDiscreteState(BasicVector(
+            np.zeros(1 + self._slots * self._width)))
+        self._row_port = self.DeclareVectorOutputPort(
+            "frame_features", self._width, self._calc_row,
+            prerequisites_of_calc={self.all_input_ports_ticket()})
+        if self._slots:
+            self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
+        self._score_port = self.DeclareVectorOutputPort("score", 1, self._calc_score)
+        self._anomaly_port = self.DeclareVectorOutputPort("anomaly", 1, self._calc_anomaly)
+
+    @property
+    def threshold(self) -> float:
+        return self._threshold
+
+    def get_color_image_input_port(self):
+        return self._image_port
+
+    def get_signals_input_port(self):
+        return self._signals_port
+
+    def get_anomaly_output_port(self):
+        return self._anomaly_port
+
+    def get_score_output_port(self):
+        return self._score_port
+
+    @torch.no_grad()
+    def _calc_row(self, context, row):
+        rgba = self._image_port.Eval(context).data
+        image = resize_for_detector(rgba[None], self._config.image_config)
+        features = self._model.encode(torch.from_numpy(image))[0].numpy()
+        if self._signals_port is not None:
+            features = np.concatenate([features, self._signals_port.Eval(context)])
+        row.SetFromVector(features.astype(float))
+
+    def _rows(self, context):
+        """The rows of the kept ticks and the current one, ``(slots + 1, width)``, with
+        ticks before the run's first filled by its first row."""
+        current = self._row_port.Eval(context)
+        state = context.get_discrete_state(self._history).get_value()
+        seen = int(round(state[0]))
+        kept = state[1:].reshape(self._slots, self._width)
+        rows = np.vstack([kept, current[None]])
+        if seen < self._slots:
+            first = rows[self._slots - seen] if seen else current
+            rows[:self._slots - seen] = first
+        return rows
+
+    def _update(self, context, discrete_state):
+        state = context.get_discrete_state(self._history).get_value()
+        rows = self._rows(context)
+        out = np.concatenate([[min(state[0] + 1, self._slots)], rows[1:].reshape(-1)])
+        discrete_state.get_mutable_vector(self._history).SetFromVector(out)
+
+    @torch.no_grad()
+    def _calc_score(self, context, output):
+        c = self._config
+        rows = self._rows(context)[::-1][::c.stride][::-1]       # every stride-th, newest last
+        x = torch.from_numpy(rows.astype(np.float32))[None]
+        logit = self._model.head_logits(x[..., :c.features], x[..., c.features:])
+        output.SetAtIndex(0, float(platt(float(torch.sigmoid(logit)[0]), *self._platt)))
+
+    def _calc_anomaly(self, context, output):
+        output.SetAtIndex(0, 1.0 if self._score_port.Eval(context)[0] >= self._threshold else 0.0)

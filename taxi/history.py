@@ -1,0 +1,86 @@
+"""Recorded real-loop runs of the taxi for a monitor over the image history: at every
+control tick the camera frame (resized to the monitor's input), the online signals a
+monitor may read (`reachwatch.diagrams.guarded.add_monitor_signals`: the controller's
+estimate and steering) and the state, with the run's failure time. Time-to-failure
+labels come from these by `reachwatch.reach.outcomes.time_to_failure`."""
+
+import functools
+
+import numpy as np
+
+from reachwatch.diagrams import CONTROLLER, make_closed_loop_diagram, simulate
+from reachwatch.diagrams.controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
+from reachwatch.diagrams.guarded import add_monitor_signals
+from reachwatch.reach.outcomes import map_states
+from reachwatch.systems import DetectorConfig, resize_for_detector
+
+from .fidelity import _loop, without_monitor
+
+#: The exported ports of `make_recording_loop` beside ``state`` and ``estimate``.
+FRAME_PORT, SIGNALS_PORT = "color_image", "monitor_signals"
+
+
+def make_recording_loop(scenario):
+    """The controller alone's closed loop, also exporting the camera's ``color_image``
+    and the ``monitor_signals`` a history monitor reads online."""
+    def export(builder, world):
+        controller = builder.GetSubsystemByName(CONTROLLER)
+        builder.ExportOutput(world.camera.color_image_output_port(), FRAME_PORT)
+        builder.ExportOutput(add_monitor_signals(
+            builder, steering_port=controller.GetOutputPort(CONTROL_OUTPUT),
+            estimate_port=(controller.GetOutputPort(ESTIMATE_OUTPUT)
+                           if has_estimate(controller) else None)), SIGNALS_PORT)
+    return make_closed_loop_diagram(scenario, prebuild_callback=export)
+
+
+def record_runs(scenario, duration: float, height: int, width: int, states) -> dict:
+    """Runs the real closed loop of ``scenario`` from each start for ``duration`` s
+    (stopping at failure) and records every control tick. Per start: ``frames`` uint8
+    ``(T, height, width, 3)``, ``signals`` ``(T, m)``, ``state`` ``(T, 3)`` (zeros /
+    NaN after the run ended), ``ticks``, ``failed`` and ``failure_time`` (s, NaN for
+    none); ``T`` is the horizon's tick count. ``functools.partial(record_runs,
+    scenario, duration, height, width)`` is a picklable rollout function."""
+    diagram, context = _loop(scenario, make_recording_loop)
+    size = DetectorConfig(height=height, width=width)
+    period, B = scenario.controller.period, scenario.environment.half_width
+    length = int(np.floor(duration / period + 1e-9)) + 1
+    states = np.asarray(states, float)
+    m = diagram.GetOutputPort(SIGNALS_PORT).size()
+    out = {"frames": np.zeros((len(states), length, height, width, 3), np.uint8),
+           "signals": np.full((len(states), length, m), np.nan),
+           "state": np.full((len(states), length, states.shape[1]), np.nan),
+           "ticks": np.zeros(len(states), int), "failed": np.zeros(len(states), bool),
+           "failure_time": np.full(len(states), np.nan)}
+    frame = functools.partial(_resized, size)
+    for i, x in enumerate(states):
+        if abs(x[0]) >= B:                       # already off the runway: no run
+            out["failed"][i], out["failure_time"][i] = True, 0.0
+            continue
+        run = simulate(diagram, initial_state=x, duration=duration, period=period,
+                       half_width=B, context=context,
+                       record={FRAME_PORT: frame, SIGNALS_PORT: np.copy})
+        n = min(len(run.time), length)
+        out["frames"][i, :n] = run.records[FRAME_PORT][:n]
+        out["signals"][i, :n] = run.records[SIGNALS_PORT][:n]
+        out["state"][i, :n] = run.state[:n]
+        out["ticks"][i] = n
+        out["failed"][i] = run.failed
+        out["failure_time"][i] = run.failure_time if run.failed else np.nan
+    return out
+
+
+def _resized(config, image):
+    return resize_for_detector(image.data[None], config)[0]
+
+
+def recorded_runs(scenario, starts, *, duration: float, height: int, width: int, cache_dir,
+                  executor=None, progress=True) -> dict:
+    """`record_runs` from every start, cached by content under ``cache_dir`` (the
+    scenario without its monitor, the horizon, the frame size and the starts) like
+    every real-loop batch: a killed batch resumes, a repeated one costs nothing."""
+    scenario = without_monitor(scenario)
+    rollout = functools.partial(record_runs, scenario, float(duration), int(height), int(width))
+    fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
+                              progress=progress, unit="run", required=("failed", "frames"),
+                              label=f"recorded runs {scenario.environment.name}")
+    return fields
