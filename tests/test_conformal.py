@@ -1,0 +1,87 @@
+"""The monitor's threshold with a miss-rate bound over environments: the bound holds
+on new environments of a family whose environments differ (checked by simulation),
+warning scores respect the fallback's lead, calibration maps are right."""
+
+import math
+
+import numpy as np
+import pytest
+
+from reachwatch.training.conformal import (PlattCalibration, brier_score, conformal_threshold,
+                                           expected_calibration_error, miss_rate,
+                                           per_environment_bound, reliability_curve,
+                                           warning_scores)
+
+
+def test_warning_scores_read_only_ticks_the_fallback_can_still_use():
+    time = np.arange(6) * 0.5
+    risks = [np.array([0.1, 0.2, 0.9, 0.3, 0.95, 0.99]), np.array([0.5, 0.1]),
+             np.array([0.7, 0.8, 0.9])]
+    scores = warning_scores(risks, [time, time[:2], time[:3]], [2.5, 0.3, float("nan")], lead=1.0)
+    # run 0: ticks at or before 1.5 s count (max 0.9 at 1.0 s; 0.95 at 2.0 s is too late);
+    # run 1 fails 0.3 s in: no tick 1 s before it; run 2 did not fail: no score
+    assert scores[0] == 0.9 and scores[1] == -math.inf and len(scores) == 2
+    assert miss_rate(scores, 0.5) == 0.5 and miss_rate(scores, 0.95) == 1.0
+
+
+def _family(rng, environments, runs=30):
+    """Environments that differ: each shifts its failing runs' warning scores."""
+    out = []
+    for _ in range(environments):
+        shift = rng.normal(0, 0.15)
+        n = rng.integers(0, runs)
+        out.append(np.clip(rng.beta(4, 2, size=n) + shift, 0, 1))
+    return out
+
+
+def test_the_expected_miss_rate_on_new_environments_is_bounded():
+    rng = np.random.default_rng(1)
+    alpha, misses = 0.15, []
+    for _ in range(1500):
+        calibration, new = _family(rng, 12), _family(rng, 1)[0]
+        chosen = conformal_threshold(calibration, alpha)
+        if len(new):
+            misses.append(miss_rate(new, chosen.threshold))
+    assert np.mean(misses) <= alpha + 0.01       # the guarantee (simulation error ~0.004)
+    assert np.mean(misses) >= alpha - 0.06       # and not a trivially low threshold
+
+
+def test_the_largest_threshold_is_kept_and_impossible_targets_refused():
+    scores = [np.array([0.2, 0.6, 0.8]), np.array([0.7, 0.9]), np.array([]),
+              np.array([0.5, 0.95])] * 3
+    chosen = conformal_threshold(scores, 0.3)
+    bound = lambda t: 12 / 13 * np.mean([miss_rate(s, t) if len(s) else 0 for s in scores]) + 1 / 13
+    assert bound(chosen.threshold) <= 0.3
+    higher = [t for t in np.unique(np.concatenate(scores)) if t > chosen.threshold]
+    assert all(bound(t) > 0.3 for t in higher)
+    assert "at most 30.0 %" in chosen.statement(lead=1.7)
+    with pytest.raises(ValueError, match="use at least 9"):
+        conformal_threshold(scores[:5], 0.1)
+    with pytest.raises(ValueError, match="fail before a warning can help"):
+        conformal_threshold([np.array([-np.inf, 0.5])] * 20, 0.2)
+
+
+def test_without_failing_runs_nothing_is_flagged():
+    chosen = conformal_threshold([np.array([])] * 9, 0.1)
+    assert chosen.threshold == 1.0 and chosen.failing_runs == 0
+
+
+def test_per_environment_bound_is_a_calibration_quantile():
+    rates = np.linspace(0, 0.9, 10)
+    assert per_environment_bound(rates, 0.2) == pytest.approx(rates[8])    # ceil(11 * 0.8) = 9
+    assert per_environment_bound(rates, 0.05) == 1.0                        # rank 11 > 10
+
+
+def test_platt_scaling_recovers_a_known_miscalibration():
+    rng = np.random.default_rng(0)
+    true = rng.uniform(0.02, 0.98, 20000)
+    y = rng.uniform(size=true.size) < true
+    z = np.log(true / (1 - true))
+    overconfident = 1 / (1 + np.exp(-(2.0 * z - 0.5)))
+    fit = PlattCalibration.fit(overconfident, y)
+    assert fit.a == pytest.approx(0.5, abs=0.05) and fit.b == pytest.approx(0.25, abs=0.05)
+    assert expected_calibration_error(fit(overconfident), y) < 0.02
+    assert expected_calibration_error(overconfident, y) > 0.05
+    assert brier_score(fit(overconfident), y) < brier_score(overconfident, y)
+    mean_p, freq, counts = reliability_curve(fit(overconfident), y, bins=5)
+    assert counts.sum() == y.size and np.all(np.abs(mean_p - freq) < 0.03)

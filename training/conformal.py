@@ -1,0 +1,201 @@
+"""A monitor's operating threshold with a stated miss-rate bound on environments nobody
+has seen, and the calibration of its risk. Pure functions of per-tick risks and run
+outcomes; nothing here renders or knows the plant.
+
+**Misses.** A failing run is *missed* at threshold ``tau`` when the monitor raised no
+flag (risk ``>= tau``) at least ``lead`` s before the failure, ``lead`` being what the
+fallback needs to act (e.g. the braking time). `warning_scores` reduces each failing
+run to the largest risk among its ticks at least ``lead`` s before its failure, so a
+run is missed exactly when that score is below ``tau``; a run that fails sooner than
+``lead`` s after it starts has no such tick and is missed at any threshold.
+
+**The bound** (`conformal_threshold`). Environments, not runs, are the exchangeable
+units: runs within one environment share its light and runway and are not exchangeable
+with another's. Each calibration environment ``e`` gives a loss ``L_e(tau)``, the share
+of its failing runs missed at ``tau`` (0 when none fail), which lies in [0, 1] and grows
+with ``tau``. Conformal risk control (Angelopoulos, Bates, Fisch, Lei and Schuster, 2022)
+picks the largest ``tau`` with ``n / (n + 1) * mean_e L_e(tau) + 1 / (n + 1) <= alpha``
+over ``n`` calibration environments; then for a new environment exchangeable with them
+(drawn from the same family, independently), ``E[L_new(tau)] <= alpha``: the expected
+miss rate on an unseen environment is at most ``alpha``. The expectation is over the
+draw of the calibration environments and the new one, not a promise for each
+environment; `per_environment_bound` adds the distribution-free quantile statement
+for one new environment. Nothing is assumed about the monitor: a poor one only buys
+its bound with a low threshold (many needless flags)."""
+
+import dataclasses as dc
+import math
+from typing import Sequence
+
+import numpy as np
+from scipy.optimize import minimize
+
+from reachwatch.systems.history_monitor import platt
+
+
+def warning_scores(risks, times, failure_times, *, lead: float) -> np.ndarray:
+    """One score per failing run: the largest risk at its ticks at least ``lead`` s
+    before its failure (``-inf`` when it has none). ``risks`` and ``times`` are per run
+    (sequences of 1-d arrays of equal lengths); ``failure_times`` per run (s; NaN for a
+    run that did not fail: such runs are skipped)."""
+    if not (np.isfinite(lead) and lead >= 0):
+        raise ValueError(f"lead must be a finite number >= 0 s, got {lead}")
+    if not len(risks) == len(times) == len(failure_times):
+        raise ValueError(f"risks, times and failure_times need one entry per run, got "
+                         f"{len(risks)}, {len(times)} and {len(failure_times)}")
+    out = []
+    for risk, time, failure in zip(risks, times, failure_times):
+        if failure is None or not np.isfinite(failure):
+            continue
+        risk, time = np.asarray(risk, float), np.asarray(time, float)
+        if risk.shape != time.shape or risk.ndim != 1:
+            raise ValueError(f"a run's risks and times must be 1-d arrays of the same length, "
+                             f"got {risk.shape} and {time.shape}")
+        early = time <= failure - lead + 1e-9
+        out.append(float(risk[early].max()) if early.any() else -math.inf)
+    return np.asarray(out, float)
+
+
+def miss_rate(scores, threshold: float) -> float:
+    """The share of failing runs (their `warning_scores`) missed at ``threshold``
+    (NaN when there are none)."""
+    scores = np.asarray(scores, float)
+    return float(np.mean(scores < threshold)) if len(scores) else float("nan")
+
+
+@dc.dataclass
+class ConformalThreshold:
+    """A threshold chosen by `conformal_threshold`: ``threshold``, the target expected
+    miss rate ``alpha`` it guarantees on a new environment of the family, the number of
+    calibration environments (``environments``) and of their failing runs
+    (``failing_runs``), and the calibration environments' mean miss rate at it."""
+    threshold: float
+    alpha: float
+    environments: int
+    failing_runs: int
+    calibration_miss_rate: float
+
+    def statement(self, lead: float) -> str:
+        """The guarantee in one sentence, with its assumption."""
+        return (f"Threshold {self.threshold:.4g}, fixed on {self.environments} calibration "
+                f"environments ({self.failing_runs} failing runs): on a new environment "
+                f"drawn from the same family, independently of them, the expected share of "
+                f"failing runs flagged less than {lead:g} s before they fail is at most "
+                f"{100 * self.alpha:.1f} % (conformal risk control; environments "
+                f"exchangeable, runs within each drawn as in calibration).")
+
+
+def _losses(env_scores, threshold):
+    return np.array([miss_rate(s, threshold) if len(s) else 0.0 for s in env_scores])
+
+
+def conformal_threshold(env_scores: Sequence, alpha: float) -> ConformalThreshold:
+    """The largest threshold whose conformal-risk-control bound on the expected miss
+    rate of a new environment is at most ``alpha`` (see the module's docstring).
+    ``env_scores``: per calibration environment, the `warning_scores` of its failing
+    runs (an environment without failures still counts, with loss 0). Raises
+    ValueError when no threshold reaches ``alpha`` with so few environments or so many
+    runs that fail before any warning can help."""
+    if not (0 < alpha < 1):
+        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+    env_scores = [np.asarray(s, float) for s in env_scores]
+    n = len(env_scores)
+    if n == 0:
+        raise ValueError("conformal_threshold needs at least one calibration environment")
+    if 1.0 / (n + 1) > alpha:
+        raise ValueError(f"{n} calibration environments cannot bound the miss rate at "
+                         f"{alpha:g}: the bound is at least 1/(n+1) = {1 / (n + 1):.3f}; "
+                         f"use at least {math.ceil(1 / alpha - 1)}")
+    # 0 flags every tick, 1 none (risks are probabilities below 1)
+    candidates = np.unique(np.concatenate([s[np.isfinite(s)] for s in env_scores] + [[0.0, 1.0]]))
+    best = None
+    for tau in candidates:                      # the bound grows with tau: keep the largest
+        bound = n / (n + 1) * float(np.mean(_losses(env_scores, tau))) + 1 / (n + 1)
+        if bound <= alpha:
+            best = tau
+        else:
+            break
+    if best is None:
+        raise ValueError(f"no threshold bounds the expected miss rate at {alpha:g}: even "
+                         f"flagging every tick misses {np.mean(_losses(env_scores, 0.0)):.3f} "
+                         f"of failing runs per environment (they fail before a warning "
+                         f"can help)")
+    return ConformalThreshold(
+        threshold=float(best), alpha=float(alpha), environments=n,
+        failing_runs=int(sum(len(s) for s in env_scores)),
+        calibration_miss_rate=float(np.mean(_losses(env_scores, best))))
+
+
+def per_environment_bound(env_miss_rates, delta: float) -> float:
+    """A bound ``b`` on one new environment's miss rate at a threshold fixed without
+    it: with probability at least ``1 - delta`` (over the draw of the calibration
+    environments and the new one, all exchangeable) the new one's miss rate is at most
+    ``b``, the ``ceil((n + 1)(1 - delta))``-th smallest of the ``n`` calibration
+    environments' miss rates (1.0 when that rank exceeds ``n``: too few to say more)."""
+    rates = np.sort(np.asarray(env_miss_rates, float))
+    if not (0 < delta < 1):
+        raise ValueError(f"delta must be in (0, 1), got {delta}")
+    rank = math.ceil((len(rates) + 1) * (1 - delta))
+    return float(rates[rank - 1]) if rank <= len(rates) else 1.0
+
+
+@dc.dataclass
+class PlattCalibration:
+    """``p = sigmoid(a * logit(q) + b)`` for a model's raw probability ``q`` (Platt
+    scaling: two numbers fitted by maximum likelihood on held-out labels; monotone, so
+    it never reorders risks)."""
+    a: float = 1.0
+    b: float = 0.0
+
+    def __call__(self, q):
+        return platt(q, self.a, self.b)
+
+    @classmethod
+    def fit(cls, q, labels) -> "PlattCalibration":
+        q = np.clip(np.asarray(q, float), 1e-7, 1 - 1e-7)
+        y = np.asarray(labels, float)
+        if q.shape != y.shape or q.ndim != 1 or len(q) == 0:
+            raise ValueError(f"Platt scaling needs 1-d probabilities and labels of one "
+                             f"length, got {q.shape} and {y.shape}")
+        if y.min() == y.max():
+            raise ValueError("Platt scaling needs labels of both classes")
+        z = np.log(q / (1 - q))
+
+        def nll(p):
+            s = p[0] * z + p[1]
+            return float(np.sum(np.logaddexp(0, s) - y * s))
+
+        def grad(p):
+            r = 1 / (1 + np.exp(-(p[0] * z + p[1]))) - y
+            return np.array([np.sum(r * z), np.sum(r)])
+
+        a, b = minimize(nll, np.array([1.0, 0.0]), jac=grad, method="L-BFGS-B").x
+        return cls(a=float(a), b=float(b))
+
+
+def reliability_curve(probabilities, labels, bins: int = 10):
+    """``(mean predicted, observed frequency, count)`` per equal-width probability bin
+    (empty bins left out): the points of a reliability diagram."""
+    p, y = np.asarray(probabilities, float), np.asarray(labels, float)
+    if p.shape != y.shape or p.ndim != 1:
+        raise ValueError(f"probabilities and labels must be 1-d of one length, got "
+                         f"{p.shape} and {y.shape}")
+    index = np.minimum((p * bins).astype(int), bins - 1)
+    counts = np.bincount(index, minlength=bins)
+    kept = counts > 0
+    mean_p = np.bincount(index, p, bins)[kept] / counts[kept]
+    freq = np.bincount(index, y, bins)[kept] / counts[kept]
+    return mean_p, freq, counts[kept]
+
+
+def expected_calibration_error(probabilities, labels, bins: int = 10) -> float:
+    """The count-weighted mean gap between predicted and observed frequency over
+    `reliability_curve`'s bins."""
+    mean_p, freq, counts = reliability_curve(probabilities, labels, bins)
+    return float(np.sum(counts * np.abs(mean_p - freq)) / max(1, counts.sum()))
+
+
+def brier_score(probabilities, labels) -> float:
+    """Mean squared error of probabilities against 0/1 outcomes."""
+    p, y = np.asarray(probabilities, float), np.asarray(labels, float)
+    return float(np.mean((p - y) ** 2))
