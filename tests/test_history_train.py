@@ -1,0 +1,71 @@
+"""Training the history monitor on recorded runs: labels leave censored ticks out, and
+on runs where only the change between frames says a failure is coming (every frame's
+brightness alone is ambiguous) stacked frames learn it and a single frame cannot."""
+
+import dataclasses as dc
+
+import numpy as np
+
+from reachwatch.systems import HistoryMonitorConfig
+from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
+                                               tick_labels, train_encoder, train_head)
+from reachwatch.training.metrics import auroc
+
+PERIOD, DURATION, T = 0.1, 3.0, 31
+
+
+def _runs(seed, count=40):
+    """Brightness = a run's base + a drift: runs that will fail brighten 12 steps a tick
+    over their last 6 ticks (the ticks labelled "fails within 0.5 s"), the others
+    darken as fast now and then; the base spreads far wider than a drift, so one
+    frame's brightness says little."""
+    rng = np.random.default_rng(seed)
+    frames = np.zeros((count, T, 16, 16, 3), np.uint8)
+    ticks = np.full(count, T)
+    failure = np.full(count, np.nan)
+    for r in range(count):
+        base = rng.uniform(60, 190, size=T)[0] + np.zeros(T)
+        fails = r % 2 == 0
+        end = int(rng.integers(15, T)) if fails else T
+        drift = np.zeros(T)
+        if fails:
+            drift[end - 6:end] = np.arange(1, 7) * 12.0
+        else:
+            drift[:] = np.where(np.arange(T) % 12 >= 6, -12.0 * (np.arange(T) % 6 + 1), 0)
+        noise = rng.normal(0, 1, size=(T, 16, 16, 3))
+        frames[r] = np.clip(base[:, None, None, None] + drift[:, None, None, None] + noise, 0, 255)
+        if fails:
+            ticks[r], failure[r] = end, (end - 1) * PERIOD
+    return {"frames": frames, "signals": np.zeros((count, T, 1)), "ticks": ticks,
+            "failure_time": failure}
+
+
+def test_labels_leave_censored_ticks_out():
+    runs = _runs(0, 4)
+    labels = tick_labels(runs, period=PERIOD, duration=DURATION, within=0.5)
+    assert labels[1, :26].tolist() == [0] * 26 and labels[1, 26:].tolist() == [-1] * 5
+    end = runs["ticks"][0]
+    assert labels[0, end - 6:end].tolist() == [1] * 6 and labels[0, end:].tolist() == [-1] * (T - end)
+
+
+def test_stacked_frames_see_what_one_frame_cannot():
+    train, test = _runs(1, 60), _runs(2, 40)
+    within = 0.5
+    labels = tick_labels(train, period=PERIOD, duration=DURATION, within=within)
+    config = HistoryMonitorConfig(frames=1, height=16, width=16, channels=[8], features=8,
+                                  hidden=16, within=within)
+    settings = HistoryTrainConfig(epochs=4, head_epochs=60, batch_size=64, tick_stride=1)
+    encoder = train_encoder(train, labels, config, settings)
+    features, test_features = encode_runs(encoder, train), encode_runs(encoder, test)
+    test_labels = tick_labels(test, period=PERIOD, duration=DURATION, within=within)
+    known = test_labels >= 0
+
+    def score(model):
+        risks = run_risks(model, test_features, test)
+        flat = np.concatenate([np.pad(r, (0, T - len(r))) for r in risks]).reshape(-1, T)
+        return auroc(test_labels[known], flat[known])
+
+    single = train_head(encoder, features, train, labels, config, settings)
+    stacked = train_head(encoder, features, train, labels, dc.replace(config, frames=4), settings)
+    assert score(stacked) > 0.9
+    assert score(stacked) > score(single) + 0.1

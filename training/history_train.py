@@ -1,0 +1,171 @@
+"""Training a monitor over the image history from recorded real-loop runs, in two
+stages that every variant shares: (1) the per-frame encoder, trained as a
+single-frame monitor on the runs' ticks; (2) with the encoder frozen, each variant's
+head (one frame, stacked frames, a GRU; with or without the online signals) on the
+encoded runs. The label of a tick is "the run fails within ``within`` s"
+(`reach.outcomes.fails_within` of `time_to_failure`): a censored tick (the run ended
+sooner without failing) is left out, never called safe.
+
+``runs`` is a dict of arrays as `reachwatch.taxi.history.record_runs` returns them
+(``frames`` ``(R, T, h, w, 3)``, ``signals`` ``(R, T, m)``, ``ticks``,
+``failure_time``), recorded at ``period`` s a tick for ``duration`` s."""
+
+import copy
+import dataclasses as dc
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from reachwatch.reach.outcomes import fails_within, time_to_failure
+from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel
+
+
+@dc.dataclass
+class HistoryTrainConfig:
+    """Optimisation settings: stage 1 runs ``epochs`` over every ``tick_stride``-th
+    labelled tick; stage 2 ``head_epochs`` over all of them."""
+    epochs: int = 6
+    head_epochs: int = 40
+    head_learning_rate: float = 3e-3
+    batch_size: int = 128
+    learning_rate: float = 1e-3
+    weight_decay: float = 1e-4
+    tick_stride: int = 2
+    seed: int = 0
+
+
+def tick_labels(runs: dict, *, period: float, duration: float, within: float) -> np.ndarray:
+    """``(R, T)`` int8: 1 where the run fails within ``within`` s of the tick, 0 where
+    it does not, -1 where censoring leaves it unknown or the run had ended."""
+    ticks, failure = np.asarray(runs["ticks"], int), np.asarray(runs["failure_time"], float)
+    length = runs["frames"].shape[1]
+    out = np.full((len(ticks), length), -1, np.int8)
+    for r, n in enumerate(ticks):
+        if n == 0:
+            continue
+        ttf, observed = time_to_failure(np.arange(n) * period, failure[r], duration)
+        out[r, :n] = fails_within(ttf, observed, within)
+    return out
+
+
+def _windows(config: HistoryMonitorConfig, ticks: np.ndarray) -> np.ndarray:
+    """``(N, frames)`` history ticks of each tick in ``ticks`` (clamped at 0)."""
+    offsets = np.arange(config.frames - 1, -1, -1) * config.stride
+    return np.maximum(ticks[:, None] - offsets[None, :], 0)
+
+
+def _pos_weight(labels) -> torch.Tensor:
+    positives = max(1, int(np.sum(labels == 1)))
+    return torch.tensor(min(50.0, np.sum(labels == 0) / positives))
+
+
+def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
+                  train: HistoryTrainConfig, progress=None) -> HistoryRiskModel:
+    """Stage 1: a single-frame monitor (``config`` with one frame, no signals) trained
+    on the labelled ticks of ``runs``; its encoder is what every variant reads."""
+    config = dc.replace(config, frames=1, stride=1, signals=0, signal_mean=[], signal_std=[],
+                        temporal="stack")
+    torch.manual_seed(train.seed)
+    rng = np.random.default_rng(train.seed)
+    model = HistoryRiskModel(config)
+    rows, cols = np.nonzero(labels >= 0)
+    keep = cols % train.tick_stride == 0
+    rows, cols = rows[keep], cols[keep]
+    y = torch.from_numpy(labels[rows, cols].astype(np.float32))
+    optimiser = torch.optim.AdamW(model.parameters(), lr=train.learning_rate,
+                                  weight_decay=train.weight_decay)
+    weight = _pos_weight(labels[rows, cols])
+    frames = runs["frames"]
+    for epoch in range(train.epochs):
+        model.train()
+        order = rng.permutation(len(rows))
+        for i in range(0, len(order), train.batch_size):
+            b = order[i:i + train.batch_size]
+            images = torch.from_numpy(frames[rows[b], cols[b]])[:, None]
+            loss = F.binary_cross_entropy_with_logits(model(images), y[b], pos_weight=weight)
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+        if progress:
+            progress(f"encoder epoch {epoch + 1}/{train.epochs}: loss {loss.item():.3f}")
+    return model.eval()
+
+
+@torch.no_grad()
+def encode_runs(encoder: HistoryRiskModel, runs: dict) -> np.ndarray:
+    """Features ``(R, T, features)`` of every recorded frame."""
+    frames = runs["frames"]
+    out = np.zeros(frames.shape[:2] + (encoder.config.features,), np.float32)
+    for r in range(len(frames)):
+        n = int(runs["ticks"][r])
+        if n:
+            out[r, :n] = encoder.encode_frames(frames[r, :n]).numpy()
+    return out
+
+
+def signal_statistics(runs: dict, count: int):
+    """``(mean, std)`` of the first ``count`` online signals over the runs' ticks."""
+    signals = np.asarray(runs["signals"], float)[..., :count]
+    valid = np.arange(signals.shape[1])[None, :] < np.asarray(runs["ticks"])[:, None]
+    values = signals[valid]
+    return values.mean(axis=0).tolist(), np.maximum(values.std(axis=0), 1e-6).tolist()
+
+
+def train_head(encoder: HistoryRiskModel, features: np.ndarray, runs: dict,
+               labels: np.ndarray, config: HistoryMonitorConfig,
+               train: HistoryTrainConfig) -> HistoryRiskModel:
+    """Stage 2: a monitor of ``config`` (its frames, stride, temporal model and
+    signals) whose encoder is ``encoder``'s, frozen; only its head is trained, on the
+    encoded runs ``features`` (`encode_runs`)."""
+    if config.signals:
+        mean, std = signal_statistics(runs, config.signals)
+        config = dc.replace(config, signal_mean=mean, signal_std=std)
+    config = dc.replace(config, height=encoder.config.height, width=encoder.config.width,
+                        channels=list(encoder.config.channels),
+                        features=encoder.config.features)
+    torch.manual_seed(train.seed)
+    rng = np.random.default_rng(train.seed)
+    model = HistoryRiskModel(config)
+    model.encoder = copy.deepcopy(encoder.encoder)
+    model.project = copy.deepcopy(encoder.project)
+    for module in (model.encoder, model.project):
+        for p in module.parameters():
+            p.requires_grad_(False)
+    rows, cols = np.nonzero(labels >= 0)
+    seen = features[rows, cols]
+    model.feature_mean.copy_(torch.from_numpy(seen.mean(axis=0)))
+    model.feature_std.copy_(torch.from_numpy(np.maximum(seen.std(axis=0), 1e-3)))
+    history = _windows(config, cols)
+    x = torch.from_numpy(features[rows[:, None], history])
+    s = (torch.from_numpy(np.asarray(runs["signals"], np.float32)[..., :config.signals]
+                          [rows[:, None], history]) if config.signals else None)
+    y = torch.from_numpy(labels[rows, cols].astype(np.float32))
+    head = [p for p in model.parameters() if p.requires_grad]
+    optimiser = torch.optim.AdamW(head, lr=train.head_learning_rate,
+                                  weight_decay=train.weight_decay)
+    weight = _pos_weight(labels[rows, cols])
+    for _ in range(train.head_epochs):
+        model.train()
+        order = torch.from_numpy(rng.permutation(len(rows)))
+        for i in range(0, len(order), 4 * train.batch_size):
+            b = order[i:i + 4 * train.batch_size]
+            logits = model.head_logits(x[b], s[b] if s is not None else None)
+            loss = F.binary_cross_entropy_with_logits(logits, y[b], pos_weight=weight)
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+    return model.eval()
+
+
+def run_risks(model: HistoryRiskModel, features: np.ndarray, runs: dict,
+              calibration=None) -> list:
+    """The risk at every tick of each run (a list of 1-d arrays, one per run, as long
+    as the run), from its encoded frames."""
+    out = []
+    for r in range(len(features)):
+        n = int(runs["ticks"][r])
+        signals = np.asarray(runs["signals"][r, :n, :model.config.signals], np.float32)
+        out.append(model.risk_from_features(features[r, :n], signals, calibration)
+                   if n else np.zeros(0))
+    return out

@@ -1,0 +1,79 @@
+"""What a runtime monitor does on recorded runs of the loop it watches, judged as a
+system: which failing runs it warned at least ``lead`` s (the fallback's need) before
+they failed, which runs that did not fail it flagged anyway, and the same for the
+oracle monitor that flags exactly when the true time to failure drops to ``lead``.
+
+Up to its first flag a guarded loop is the loop alone, so on runs of the loop alone
+the miss rate read here is the guarded loop's; whether a timely flag prevents the
+failure, and how often a flag stops the aircraft for nothing, the guarded real loop
+answers (`reachwatch.taxi.fidelity.mission_rollouts`)."""
+
+import numpy as np
+
+from reachwatch.reach.fidelity import wilson_interval
+from reachwatch.reach.outcomes import fails_within, time_to_failure
+
+from .conformal import warning_scores
+from .metrics import auroc
+
+
+def run_times(ticks, period: float) -> list:
+    """Each run's tick times (s), ``ticks[i]`` of them."""
+    return [np.arange(int(n)) * period for n in ticks]
+
+
+def flag_outcomes(risks, ticks, failure_times, *, period: float, threshold: float,
+                  lead: float) -> dict:
+    """Per run (bool arrays): ``failed``, ``warned`` (failed, with a flag at least
+    ``lead`` s before the failure), ``flagged`` (any tick with risk >= ``threshold``)."""
+    failure_times = np.asarray(failure_times, float)
+    failed = np.isfinite(failure_times)
+    times = run_times(ticks, period)
+    scores = warning_scores(risks, times, failure_times, lead=lead)
+    warned = np.zeros(len(failed), bool)
+    warned[failed] = scores >= threshold
+    flagged = np.array([bool(len(r)) and bool(np.max(r) >= threshold) for r in risks])
+    return {"failed": failed, "warned": warned, "flagged": flagged}
+
+
+def oracle_risks(ticks, failure_times, *, period: float, lead: float) -> list:
+    """The oracle monitor's risk per tick: 1 where the true time to failure is at most
+    ``lead`` s plus one tick (the last tick that still leaves the fallback its need,
+    and those after), else 0. Privileged: the ceiling for any monitor with this fallback."""
+    out = []
+    for n, failure in zip(ticks, failure_times):
+        ttf, observed = time_to_failure(np.arange(int(n)) * period, failure, 1e9)
+        out.append((observed & (ttf <= lead + period + 1e-9)).astype(float))
+    return out
+
+
+def rate(count: int, trials: int) -> dict:
+    """``{"count", "of", "rate", "lo", "hi"}`` with the Wilson 95 % interval (NaN when
+    there are no trials)."""
+    if trials == 0:
+        return {"count": 0, "of": 0, "rate": float("nan"), "lo": float("nan"),
+                "hi": float("nan")}
+    lo, hi = wilson_interval(count, trials)
+    return {"count": int(count), "of": int(trials), "rate": count / trials, "lo": lo, "hi": hi}
+
+
+def system_figures(outcomes: dict) -> dict:
+    """Miss rate (failing runs not warned in time) and needless-flag rate (runs that
+    did not fail but were flagged) of `flag_outcomes`, with Wilson intervals."""
+    failed, warned, flagged = outcomes["failed"], outcomes["warned"], outcomes["flagged"]
+    return {"miss": rate(int(np.sum(failed & ~warned)), int(failed.sum())),
+            "needless": rate(int(np.sum(~failed & flagged)), int(np.sum(~failed)))}
+
+
+def tick_auroc(risks, ticks, failure_times, *, period: float, duration: float,
+               within: float) -> float:
+    """AUROC of the per-tick risk for "fails within ``within`` s" over the ticks whose
+    label the runs settle (censored ticks left out); NaN with one class."""
+    labels, scores = [], []
+    for risk, n, failure in zip(risks, ticks, failure_times):
+        label = fails_within(*time_to_failure(np.arange(int(n)) * period, failure, duration),
+                             within)
+        labels.append(label[label >= 0])
+        scores.append(np.asarray(risk)[label >= 0])
+    labels, scores = np.concatenate(labels), np.concatenate(scores)
+    return auroc(labels == 1, scores) if len(labels) else float("nan")
