@@ -13,7 +13,7 @@ from reachwatch.training.incremental import IncrementalConfig
 
 from .console import log
 from .detector_sections import target_section
-from .commands import count, positive_int, scenario_from_args
+from .commands import count, grid_nodes, positive_int, scenario_from_args, seed_number
 from .executors import open_executor
 from .report import Page
 from .run import run_pipeline
@@ -44,7 +44,7 @@ def add_parsers(sub):
                    help="training environments RUNWAY:HOUR:SKY (default: the paper's 12)")
     p.add_argument("--test", nargs="+", default=_names(test_environments()),
                    help="held-out environments (default: the paper's 12)")
-    p.add_argument("--shape", type=positive_int, nargs=3, default=[21, 21, 21], help="BRT grid")
+    p.add_argument("--shape", type=grid_nodes, nargs=3, default=[21, 21, 21], help="BRT grid")
     p.add_argument("--samples", type=positive_int, default=DatasetSpec.samples, help="images per environment")
     p.add_argument("--arch", choices=["small_cnn", "efficientnet_b0"], default="small_cnn")
     p.add_argument("--input-size", type=positive_int, nargs=2, default=[96, 160], metavar=("H", "W"))
@@ -57,7 +57,7 @@ def add_parsers(sub):
                    help="operate at the highest threshold reaching this recall on the "
                         "training validation split (0: use --threshold)")
     p.add_argument("--ensemble", type=count, default=5, help="TaxiNets in the ensemble baseline")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_number, default=0)
     p.add_argument("--labels", choices=LABEL_SOURCES, default="brt",
                    help="label source: the BRT, the real loop from every state, rollouts "
                    "where the BRT is not trusted, or the real loop's runs and the states "

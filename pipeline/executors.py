@@ -6,6 +6,10 @@ import contextlib
 
 from reachwatch.reach import InlineExecutor, default_executor
 from reachwatch.reach.sweep import stop_executor
+from reachwatch.systems.checks import short
+
+#: The most local workers ``local:N`` may start (each is a process with its renderer).
+MAX_WORKERS = 256
 
 
 def make_executor(spec: str, *, connect_timeout: float = 10.0):
@@ -13,9 +17,10 @@ def make_executor(spec: str, *, connect_timeout: float = 10.0):
     local workers at once instead of letting their current chunk finish."""
     if spec == "local" or spec.startswith("local:"):
         count = spec.partition(":")[2]
-        if count and not (count.isdigit() and int(count) >= 1):
-            raise ValueError(f"--executor local:N needs a whole number of workers N >= 1, "
-                             f"got '{spec}'")
+        if count and not (count.isascii() and count.isdigit() and len(count) <= 6
+                          and 1 <= int(count) <= MAX_WORKERS):
+            raise ValueError(f"--executor local:N needs a whole number of workers N in "
+                             f"[1, {MAX_WORKERS}], got {short(spec)}")
         executor = default_executor(int(count) if count else None)
         return executor, lambda abort=False: stop_executor(executor, abort=abort)
     if spec == "inline":
@@ -33,7 +38,8 @@ def make_executor(spec: str, *, connect_timeout: float = 10.0):
             raise ValueError(f"--executor {spec}: no Dask scheduler answered at {address} "
                              f"within {connect_timeout:g} s ({type(e).__name__})") from None
         return client.get_executor(), lambda abort=False: client.close()
-    raise ValueError(f"--executor must be local, local:N, inline or dask://HOST:PORT, got '{spec}'")
+    raise ValueError(f"--executor must be local, local:N, inline or dask://HOST:PORT, got "
+                     f"{short(spec)}")
 
 
 @contextlib.contextmanager

@@ -14,7 +14,8 @@ from reachwatch.taxi import UNGUARDED, fallback_rollouts, paper_grid, sweep_guar
 from reachwatch.taxi.guarded import tradeoff_curves, tradeoff_row
 from reachwatch.taxi.plots import plot_failure_sets, plot_tradeoff
 
-from .commands import count, open_share, positive_float, positive_int
+from .commands import (count, grid_nodes, horizon_seconds, mission_multiple, open_share,
+                       positive_int, seed_number)
 from .console import log
 from .executors import open_executor
 from .online_stages import budget_threshold, guard_check, noisy_guard_figures
@@ -27,8 +28,8 @@ def add_parsers(sub):
                        "distance travelled, ticks flagged) and the trade-off as the detector "
                        "threshold sweeps, from one sweep of the guarded diagram")
     g.add_argument("--scenario", required=True, help="scenario YAML with pipeline.detector")
-    g.add_argument("--shape", type=positive_int, nargs=3, default=[41, 41, 41])
-    g.add_argument("--horizon", type=positive_float, default=8.0, help="s")
+    g.add_argument("--shape", type=grid_nodes, nargs=3, default=[41, 41, 41])
+    g.add_argument("--horizon", type=horizon_seconds, default=8.0, help="s")
     g.add_argument("--fallbacks", nargs="+", type=_fallback,
                    default=list(DEFAULT_FALLBACKS),
                    help="speed strategy, optionally '+' the steering while flagged "
@@ -38,12 +39,12 @@ def add_parsers(sub):
     g.add_argument("--check-starts", type=count, default=0,
                    help="also run the real Drake loops (alone and each fallback) from this "
                         "many seeded random on-runway starts; cached and resumable")
-    g.add_argument("--seed", type=int, default=2000, help="seed of the check starts")
+    g.add_argument("--seed", type=seed_number, default=2000, help="seed of the check starts")
     g.add_argument("--noise-starts", type=count, default=20,
                    help="with --check-starts: fit the detector's variation between grid "
                         "nodes on this many other real runs of the controller alone and show "
                         "the tables with it beside the real loop (0 = no fit)")
-    g.add_argument("--noise-seed", type=int, default=4000,
+    g.add_argument("--noise-seed", type=seed_number, default=4000,
                    help="seed of the noise fit's starts and of the noise")
     g.add_argument("--flag-budget", type=open_share, default=None,
                    help="set the detector threshold without labels: the one at which the "
@@ -52,9 +53,9 @@ def add_parsers(sub):
                         "scenario's")
     g.add_argument("--flag-budget-starts", type=positive_int, default=600,
                    help="on-runway starts the flag budget is rolled out from")
-    g.add_argument("--flag-budget-seed", type=int, default=7000,
+    g.add_argument("--flag-budget-seed", type=seed_number, default=7000,
                    help="seed of the flag budget's starts")
-    g.add_argument("--mission-limit", type=positive_float, default=3.0,
+    g.add_argument("--mission-limit", type=mission_multiple, default=3.0,
                    help="also judge failures by distance: runs go on past the horizon, for "
                         "up to this many horizons, until they cover the distance the "
                         "controller alone covers within it (a slower aircraft on the same "

@@ -14,18 +14,19 @@ from reachwatch.taxi.plots import plot_brt_slices
 from reachwatch.systems.files import atomic_write_bytes, cache_root
 
 from .console import log, progress_enabled
-from .commands import (count, non_negative_float, number_type, positive_float, positive_int,
-                       scenario_from_args)
+from .commands import (count, grid_nodes, horizon_seconds, non_negative_float, number_type,
+                       positive_float, positive_int, scenario_from_args, seed_number)
 from .executors import open_executor
 
 #: the solved box's bounds, as the run file's ``solved_theta_deg`` and ``solved_py_max``
 solved_theta = number_type(float, 28.0, False, "a number of degrees in [28, 180]", most=180.0)
-solved_py = number_type(float, 250.0, False, "a finite number of metres >= 250")
+solved_py = number_type(float, 250.0, False, "a finite number of metres >= 250",
+                        most=10_000.0)
 
 
 def _grid_args(parser):
     parser.add_argument("--scenario", help="scenario YAML (environment, camera, controller)")
-    parser.add_argument("--shape", type=positive_int, nargs=3, default=[41, 41, 41],
+    parser.add_argument("--shape", type=grid_nodes, nargs=3, default=[41, 41, 41],
                         metavar=("NPX", "NPY", "NTHETA"),
                         help="grid nodes over the solved box (paper: 101 101 101)")
     parser.add_argument("--solved-theta-deg", type=solved_theta, default=28.0, metavar="DEG",
@@ -54,8 +55,9 @@ def add_parsers(sub):
     b.add_argument("--periods-per-step", type=positive_int, default=40,
                    help="semi_lagrangian: control periods per step; each step interpolates V "
                    "once, so fewer, longer steps blur a coarse grid's BRT less")
-    b.add_argument("--horizon", type=positive_float, default=8.0, help="s")
-    b.add_argument("--refine", type=count, default=0,
+    b.add_argument("--horizon", type=horizon_seconds, default=8.0, help="s")
+    b.add_argument("--refine", type=number_type(int, 0, False, "a whole number in [0, 5]",
+                                                most=5), default=0,
                    help="adaptive refinement levels: each halves the spacing and renders new "
                    "nodes only where the BRT's boundary passes within --refine-band")
     b.add_argument("--refine-band", type=positive_float, default=2.0, help="m")
@@ -64,7 +66,7 @@ def add_parsers(sub):
                    "DEG across a node's neighbours, take its worst value in that range")
     b.add_argument("--drake-starts", type=count, default=50,
                    help="random starts run through the real Drake loop (0 skips)")
-    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--seed", type=seed_number, default=0)
     b.set_defaults(func=brt_command)
 
 

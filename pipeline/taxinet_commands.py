@@ -10,7 +10,7 @@ from reachwatch.training.taxinet_eval import evaluate_taxinet, format_reports
 from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet
 
 from .console import bar, log
-from .commands import count, positive_int, scenario_from_args
+from .commands import count, positive_int, scenario_from_args, seed_number
 
 
 def add_parsers(sub):
@@ -23,7 +23,7 @@ def add_parsers(sub):
                        "shipped reference checkpoint)")
     train.add_argument("--samples", type=positive_int, default=TaxiNetTrainConfig.samples)
     train.add_argument("--epochs", type=positive_int, default=TaxiNetTrainConfig.epochs)
-    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--seed", type=seed_number, default=0)
     train.add_argument("--arch", choices=["tiny", "cnn"], default="tiny")
     train.set_defaults(func=train_command)
 
@@ -37,7 +37,7 @@ def add_parsers(sub):
                           help="closed-loop starts per environment (0 skips)")
     evaluate.add_argument("--runways", nargs="+", default=list(RUNWAYS))
     evaluate.add_argument("--hours", nargs="+", type=float, default=[9.0, 17.0, 21.0])
-    evaluate.add_argument("--seed", type=int, default=0)
+    evaluate.add_argument("--seed", type=seed_number, default=0)
     evaluate.add_argument("--out", help="also write the table here (Markdown)")
     evaluate.set_defaults(func=evaluate_command)
 
@@ -62,6 +62,11 @@ def train_command(args):
 def evaluate_command(args):
     base = scenario_from_args(args)
     environments = [Environment(r, h, s) for r in args.runways for h in args.hours for s in SKIES]
+    for env in environments:                # a bad --runways or --hours fails before any work
+        try:
+            env.validate()
+        except ValueError as e:
+            raise ValueError(f"--runways / --hours: {e}") from None
     reports = evaluate_taxinet(base, environments, checkpoint=args.checkpoint,
                                samples=args.samples, starts=args.starts, seed=args.seed,
                                progress=lambda it: bar(it, leave=False, desc="rollouts"))

@@ -246,3 +246,37 @@ def test_runway_spec_validate_checks_programmatic_specs_too():
                          (dict(buildings=-3), "buildings"), (dict(heading_deg=float("nan")), "heading_deg")]:
         with pytest.raises(ValueError, match=re.escape(message)):
             RunwaySpec(**bad).validate()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["brt", "--seed", "-1"], "--seed: '-1' is not a seed"),
+    (["guard", "--scenario", "x", "--noise-seed", "-5"], "--noise-seed: '-5' is not a seed"),
+    (["evaluate", "--seed", "-3"], "--seed: '-3' is not a seed"),
+    (["taxinet", "train", "--seed", "-1"], "--seed: '-1' is not a seed"),
+    (["sweep", "--shape", "5", "5", "100000"], "--shape: '100000' is not a whole number of grid nodes"),
+    (["evaluate", "--shape", "5", "5", "100000"], "--shape: '100000' is not a whole number of grid nodes"),
+    (["brt", "--horizon", "1e9"], "--horizon: '1e9' is not a finite number > 0 of at most 120 s"),
+    (["brt", "--refine", "50"], "--refine: '50' is not a whole number in [0, 5]"),
+    (["brt", "--solved-py-max", "1e12"], "--solved-py-max: '1e12' is not a finite number of metres"),
+    (["guard", "--scenario", "x", "--mission-limit", "0.5"],
+     "--mission-limit: '0.5' is not a multiple of the horizon in [1, 100]"),
+])
+def test_bad_numbers_on_the_command_line_are_bounded(tmp_path, capsys, argv, message):
+    with pytest.raises(SystemExit) as stop:
+        cli.main(argv + ["--out", str(tmp_path / "o")])
+    assert stop.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_bad_command_line_environments_and_executors_are_one_error(tmp_path, capsys):
+    out = tmp_path / "o"
+    for argv, message in [
+            (["taxinet", "evaluate", "--runways", "XXXX"], "--runways / --hours: environment.runway: "
+                                                           "unknown runway 'XXXX'"),
+            (["taxinet", "evaluate", "--hours", "nan"], "environment.hour must be in [0, 24), got nan"),
+            (["brt", "--executor", "local:100000"], "--executor local:N needs a whole number of "
+                                                    "workers N in [1, 256]")]:
+        assert cli.main(argv + ["--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1
+    assert not out.exists()
