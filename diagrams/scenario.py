@@ -22,6 +22,7 @@ from reachwatch.systems.checks import clip, short
 MAX_DURATION = 3600.0       # s of simulated time
 MAX_PERIOD = 10.0           # s between control updates
 MAX_SPEED = 100.0           # m/s
+MAX_FLAG_WINDOW = 1000      # control ticks of the k-of-n rule
 #: The largest scenario or run file read (bytes), and the most YAML nodes its aliases
 #: may expand to (a small file of nested aliases otherwise expands without bound).
 MAX_FILE_BYTES = 1 << 20
@@ -108,6 +109,9 @@ class MonitorConfig:
             check_k_of_n(self.flags_needed, self.flag_window)
         except ValueError as e:
             raise ValueError(f"monitor.flags_needed / monitor.flag_window: {e}") from None
+        if self.flag_window > MAX_FLAG_WINDOW:      # each state keeps its window's flags
+            raise ValueError(f"monitor.flag_window must be at most {MAX_FLAG_WINDOW} control "
+                             f"ticks, got {self.flag_window}")
         try:
             check_resume_acceleration(self.resume_acceleration)
         except ValueError as e:

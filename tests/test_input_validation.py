@@ -79,6 +79,7 @@ def test_environment_names_write_the_hour_faithfully():
     ("controller: {speed: 1.0e9}", "controller.speed must be >= 0 m/s and at most 100"),
     ("monitor: {brake_deceleration: .nan}", "monitor.brake_deceleration must be a number"),
     ("camera: {width: 100000000000000}", "scenario.camera.width: 100000000000000 is out of range"),
+    ("monitor: {flag_window: 100000000}", "monitor.flag_window must be at most 1000 control ticks"),
 ])
 def test_scenario_numbers_must_be_finite_and_in_range(text, message):
     with pytest.raises(ScenarioError, match=re.escape(message)):
@@ -93,6 +94,7 @@ def test_scenario_numbers_must_be_finite_and_in_range(text, message):
     (("seeds: [1, 2]", "seeds: [1, -2]"), "run.ensemble.seeds must be a seed"),
     (("epochs: 1\n", "epochs: 1\n  learning_rate: .nan\n"), "detector.learning_rate must be a finite"),
     (("epochs: 1\n", "epochs: 1\n  seed: -1\n"), "run.detector.seed must be a seed"),
+    (("device: cpu", "device: gpu"), "detector.device must be a torch device such as cpu"),
     (("replay: 20", "replay: 20\n  learning_rate: .nan"), "incremental.learning_rate must be a finite"),
     (("name: tiny", "name: tiny\nscenario: {controller: {px_gain: .nan}}"),
      "controller.px_gain must be a finite number"),

@@ -90,6 +90,12 @@ class DetectorTrainConfig:
                                  f"{getattr(self, name)!r}")
         if not 0.0 <= self.threshold <= 1.0:
             raise ValueError(f"{where}.threshold must be in [0, 1], got {self.threshold}")
+        try:
+            torch.device(self.device or "cpu")
+        except (RuntimeError, TypeError, ValueError):
+            raise ValueError(f"{where}.device must be a torch device such as cpu, cuda or "
+                             f"cuda:1 (or empty for CUDA when present), got "
+                             f"{short(self.device)}") from None
         return self
 
 
