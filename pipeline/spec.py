@@ -393,6 +393,10 @@ class RunSpec:
             places.append(("incremental.environment", self.incremental.environment))
         first = {}
         for where, env in places:
+            try:
+                env.validate()
+            except ValueError as e:
+                raise ValueError(f"{where}: {e}") from None
             if env.name not in first:
                 first[env.name] = (where, env)
             elif (first[env.name][1].spec(), first[env.name][1].hour) != (env.spec(), env.hour):

@@ -208,6 +208,15 @@ def test_two_environments_of_one_name_must_be_the_same():
     with pytest.raises(ScenarioError, match=re.escape("train[0] and test[0] are both named "
                                                       "'KMWH_9h_clear' but differ")):
         load_run_spec(data=catalog_named)
+    for guard_env, message in [("{runway: XXXX}", "guard.environments[0]: environment.runway: "
+                                                   "unknown runway 'XXXX'"),
+                               ("{runway: A, runway_spec: {name: a/b}}",
+                                "guard.environments[0]: environment.runway_spec.name must be")]:
+        with pytest.raises(ScenarioError, match=re.escape(message)):
+            load_run_spec(data=TINY.replace("guard: {", f"guard: {{environments: [{guard_env}], "))
+    with pytest.raises(ScenarioError, match=re.escape("incremental.environment: environment.hour")):
+        load_run_spec(data=TINY.replace("environment: {runway: KMWH, hour: 17.0",
+                                        "environment: {runway: KMWH, hour: 24.0"))
 
 
 def test_a_factory_that_is_no_python_function_or_fails_on_the_config_is_one_error(tmp_path, capsys):
