@@ -26,7 +26,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, PortDataType, Sys
 from pydrake.systems.sensors import ImageRgba8U
 
 from reachwatch.systems import ProportionalController, TaxiNet
-from reachwatch.systems.checks import clip
+from reachwatch.systems.checks import clip, is_file
 
 from .checkpoints import REFERENCE_TAXINET, load_taxinet
 
@@ -88,9 +88,9 @@ def _split(spec: str):
 
 def _module(target: str):
     if target.endswith(".py"):
+        if not is_file(target):
+            raise ValueError(f"controller.factory: file not found: {clip(target, 200)}")
         path = Path(target).resolve()
-        if not path.is_file():
-            raise ValueError(f"controller.factory: file not found: {target}")
         name = f"reachwatch_user_{path.stem}_{hashlib.sha256(str(path).encode()).hexdigest()[:8]}"
         if name not in sys.modules:
             spec = importlib.util.spec_from_file_location(name, path)

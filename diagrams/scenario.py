@@ -16,7 +16,7 @@ import yaml
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_data, yaml_load_typed
 
 from reachwatch.systems import CameraConfig, Environment
-from reachwatch.systems.checks import clip, short
+from reachwatch.systems.checks import clip, is_file, short
 
 #: Bounds on a scenario's numbers (a value past them is a mistake, or would hang a run).
 MAX_DURATION = 3600.0       # s of simulated time
@@ -70,8 +70,8 @@ class ControllerConfig:
             if not math.isfinite(value):
                 raise ValueError(f"controller.parameters.{short(name)} must be finite, got {value}")
         for name in ("px_gain", "theta_gain"):
-            if not math.isfinite(getattr(self, name)):
-                raise ValueError(f"controller.{name} must be a finite number, got "
+            if not (math.isfinite(getattr(self, name)) and abs(getattr(self, name)) <= 1000):
+                raise ValueError(f"controller.{name} must be a finite number within +-1000, got "
                                  f"{getattr(self, name)}")
         if not (math.isfinite(self.period) and 0 < self.period <= MAX_PERIOD):
             raise ValueError(f"controller.period must be a finite number > 0 s and at most "
@@ -79,7 +79,7 @@ class ControllerConfig:
         if not (math.isfinite(self.speed) and 0 <= self.speed <= MAX_SPEED):
             raise ValueError(f"controller.speed must be >= 0 m/s and at most {MAX_SPEED:g} m/s, "
                              f"got {self.speed}")
-        if self.checkpoint and not Path(self.checkpoint).is_file():
+        if self.checkpoint and not is_file(self.checkpoint):
             raise ValueError(f"controller.checkpoint: file not found: {clip(self.checkpoint, 200)}")
         return self
 
@@ -124,7 +124,7 @@ class MonitorConfig:
                              f"'{self.steering}'")
         if not 0.0 <= self.threshold <= 1.0:
             raise ValueError(f"monitor.threshold must be in [0, 1], got {self.threshold}")
-        if self.detector and not Path(self.detector).is_file():
+        if self.detector and not is_file(self.detector):
             raise ValueError(f"monitor.detector: file not found: {clip(self.detector, 200)}")
         if not (math.isfinite(self.brake_deceleration) and 0 < self.brake_deceleration <= 100):
             raise ValueError(f"monitor.brake_deceleration must be a number in (0, 100] m/s^2, "
@@ -312,8 +312,8 @@ def read_text_file(filename, what="scenario file") -> str:
     """The UTF-8 text of ``filename``; ScenarioError naming it when it is missing, not
     a regular file, larger than `MAX_FILE_BYTES`, binary or empty."""
     path = Path(filename)
-    if not path.is_file():
-        raise ScenarioError(f"{what} not found: {filename}")
+    if not is_file(path):
+        raise ScenarioError(clip(f"{what} not found: {filename}", 300))
     size = path.stat().st_size
     if size > MAX_FILE_BYTES:
         raise ScenarioError(f"{filename}: {size} bytes; a {what} is at most "

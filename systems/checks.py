@@ -38,3 +38,13 @@ def check_name(where: str, name) -> str:
         raise ValueError(f"{where} must be 1 to {MAX_NAME} of the characters A-Z a-z 0-9 _ . - "
                          f"(not starting with a dot; it names files), got {short(name)}")
     return name
+
+
+def is_file(path) -> bool:
+    """Whether ``path`` names a regular file; False, not an error, for a name the system
+    refuses (too long, a NUL byte)."""
+    from pathlib import Path
+    try:
+        return Path(path).is_file()
+    except (OSError, ValueError):
+        return False

@@ -74,8 +74,12 @@ def test_environment_names_write_the_hour_faithfully():
     (_runway("{surface: {texture_seed: -1}}"), "surface.texture_seed must be a whole number in [0,"),
     ("seed: -1", "scenario.seed must be a seed, a whole number in [0, 2147483647], got -1"),
     ("duration: 1.0e12", "duration must be > 0 s and at most 3600 s"),
-    ("controller: {px_gain: .nan}", "controller.px_gain must be a finite number, got nan"),
+    ("controller: {px_gain: .nan}", "controller.px_gain must be a finite number within +-1000, got nan"),
     ("controller: {theta_gain: -.inf}", "controller.theta_gain must be a finite number"),
+    ("controller: {px_gain: 1.0e300}", "controller.px_gain must be a finite number within +-1000"),
+    (f"controller: {{checkpoint: {'c' * 5000}}}", "controller.checkpoint: file not found: ccc"),
+    (f"monitor: {{detector: {'d' * 5000}}}", "monitor.detector: file not found: ddd"),
+    (f"controller: {{factory: '{'f' * 5000}.py:make'}}", "controller.factory: file not found: fff"),
     ("controller: {speed: 1.0e9}", "controller.speed must be >= 0 m/s and at most 100"),
     ("monitor: {brake_deceleration: .nan}", "monitor.brake_deceleration must be a number"),
     ("camera: {width: 100000000000000}", "scenario.camera.width: 100000000000000 is out of range"),
@@ -95,6 +99,11 @@ def test_scenario_numbers_must_be_finite_and_in_range(text, message):
     (("epochs: 1\n", "epochs: 1\n  learning_rate: .nan\n"), "detector.learning_rate must be a finite"),
     (("epochs: 1\n", "epochs: 1\n  seed: -1\n"), "run.detector.seed must be a seed"),
     (("device: cpu", "device: gpu"), "detector.device must be a torch device such as cpu"),
+    (("device: cpu", "device: cpu\n  pretrained_path: missing.pt"),
+     "detector.pretrained_path: pretrained weights apply to detector.arch efficientnet_b0 only"),
+    (("detector: {height: 24, width: 40, channels: [4, 8]}",
+      "detector: {arch: efficientnet_b0, height: 24, width: 40}\n  pretrained_path: missing.pt"),
+     "detector.pretrained_path: file not found: missing.pt"),
     (("replay: 20", "replay: 20\n  learning_rate: .nan"), "incremental.learning_rate must be a finite"),
     (("name: tiny", "name: tiny\nscenario: {controller: {px_gain: .nan}}"),
      "controller.px_gain must be a finite number"),
@@ -178,6 +187,15 @@ def test_error_messages_cut_long_values():
     with pytest.raises(ScenarioError) as info:
         load_run_spec(data=TINY.replace("grid: [5, 3, 5]", f"grid: {long_list}"))
     assert "grid must be 3 sizes" in str(info.value) and len(str(info.value)) < 400
+
+
+def test_a_scenario_path_too_long_for_the_system_is_one_error(tmp_path, capsys):
+    path = str(tmp_path / ("s" * 5000)) + ".yaml"
+    with pytest.raises(ScenarioError, match="scenario file not found"):
+        load_scenario(path)
+    assert cli.main(["render", "--scenario", path, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "scenario file not found" in err and len(err) < 700
 
 
 def test_a_huge_file_is_refused_before_it_is_read(tmp_path, capsys):

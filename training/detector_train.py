@@ -9,7 +9,7 @@ from torch import nn
 
 from reachwatch.diagrams import load_detector, save_checkpoint
 from reachwatch.systems import DetectorConfig, build_detector, detector_input
-from reachwatch.systems.checks import short
+from reachwatch.systems.checks import clip, is_file, short
 
 from .metrics import HELD_OUT_RULES, binary_metrics, held_out_threshold, recall_threshold
 
@@ -90,6 +90,12 @@ class DetectorTrainConfig:
                                  f"{getattr(self, name)!r}")
         if not 0.0 <= self.threshold <= 1.0:
             raise ValueError(f"{where}.threshold must be in [0, 1], got {self.threshold}")
+        if self.pretrained_path and self.detector.arch != "efficientnet_b0":
+            raise ValueError(f"{where}.pretrained_path: pretrained weights apply to "
+                             f"detector.arch efficientnet_b0 only, got {short(self.detector.arch)}")
+        if self.pretrained_path and not is_file(self.pretrained_path):
+            raise ValueError(f"{where}.pretrained_path: file not found: "
+                             f"{clip(self.pretrained_path, 200)}")
         try:
             torch.device(self.device or "cpu")
         except (RuntimeError, TypeError, ValueError):
