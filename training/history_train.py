@@ -72,6 +72,11 @@ def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
     rows, cols = np.nonzero(labels >= 0)
     keep = cols % train.tick_stride == 0
     rows, cols = rows[keep], cols[keep]
+    if len(np.unique(labels[rows, cols])) < 2:
+        raise ValueError(f"the training runs give {len(rows)} labelled ticks, "
+                         f"{int(np.sum(labels[rows, cols] == 1))} of them failing within the "
+                         f"horizon: a monitor needs both kinds (more runs, runs that fail, or "
+                         f"runs longer than the horizon)")
     y = torch.from_numpy(labels[rows, cols].astype(np.float32))
     optimiser = torch.optim.AdamW(model.parameters(), lr=train.learning_rate,
                                   weight_decay=train.weight_decay)

@@ -1,0 +1,419 @@
+"""The monitor study (``monitor:`` in a run file): a monitor over the image history,
+trained on recorded real-loop runs of training environments, calibrated on other
+environments of the same random family (Platt scaling, then a conformal threshold
+that bounds the expected miss rate on a new environment of the family), and judged on
+held-out environments of it, and on named environments outside the family, as a
+system: misses at the fallback's lead, needless flags, AUROC of "fails within 4 s",
+calibration, beside the oracle monitor and the controller's prediction error; then in
+the guarded real loop with braking against the loop alone.
+
+Environment ``i`` of the family depends only on the family's seed and ``i``: the
+first ``train`` are for training, the next ``calibrate`` for calibration, the rest
+held out, so the split and the threshold are fixed before a held-out environment is
+seen. Every real-loop batch is cached by content: a rerun with other training
+settings renders nothing."""
+
+import dataclasses as dc
+import json
+import time
+from pathlib import Path
+from typing import List
+
+import numpy as np
+
+from reachwatch.diagrams import MonitorConfig, save_checkpoint
+from reachwatch.reach.outcomes import fails_within, time_to_failure
+from reachwatch.systems import (TEMPORAL_MODELS, Environment, HistoryMonitorConfig,
+                                RandomEnvironments)
+from reachwatch.systems.files import atomic_write_bytes
+from reachwatch.taxi import on_runway_starts, paper_grid
+from reachwatch.taxi.fidelity import real_missions
+from reachwatch.taxi.history import recorded_runs
+from reachwatch.training.baselines import prediction_error
+from reachwatch.training.conformal import (PlattCalibration, brier_score, conformal_threshold,
+                                           expected_calibration_error, per_environment_bound,
+                                           reliability_curve, warning_scores)
+from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
+                                               tick_labels, train_encoder, train_head)
+from reachwatch.training.monitor_eval import (flag_outcomes, oracle_risks, rate, run_times,
+                                              system_figures, tick_auroc)
+
+MONITOR_KINDS = ("detector", "history")
+
+
+@dc.dataclass
+class MonitorVariant:
+    """One monitor to train: ``frames`` frames ``stride`` ticks apart, combined by
+    ``temporal`` (`reachwatch.systems.TEMPORAL_MODELS`), with or without the online
+    ``signals`` (the controller's estimate and steering)."""
+    name: str
+    frames: int = 1
+    stride: int = 1
+    temporal: str = "stack"
+    signals: bool = False
+
+
+def default_variants() -> List[MonitorVariant]:
+    return [MonitorVariant("single frame"),
+            MonitorVariant("stacked 8 (1.4 s)", frames=8, stride=4),
+            MonitorVariant("GRU 16 (0.75 s)", frames=16, temporal="gru"),
+            MonitorVariant("stacked 8 (1.4 s) + signals", frames=8, stride=4, signals=True),
+            MonitorVariant("GRU 16 (0.75 s) + signals", frames=16, temporal="gru", signals=True)]
+
+
+@dc.dataclass
+class MonitorStudySpec:
+    """Which monitor guards the loop and how it is judged. ``kind``: ``detector`` (the
+    single-image detector of ``detector:`` and ``guard:``; this study is off) or
+    ``history`` (this study). The family (``family``: its ``seed``, hours, skies and
+    runways; its ``count`` is ``train + calibrate + held_out``) gives ``train``,
+    ``calibrate`` and ``held_out`` environments in that order; ``also_held_out`` are
+    named environments outside the family (e.g. the paper's nights), judged with the
+    same threshold but outside its guarantee. Each environment records ``runs`` real
+    runs of ``duration`` s from seeded uniform starts in the paper's box. The risk is
+    that of failing within ``within`` s; the fallback brakes at ``brake_deceleration``
+    m/s^2, so a warning counts when it comes at least speed / deceleration s before
+    the failure; the threshold bounds the expected miss rate at ``alpha``.
+    ``guarded_runs`` (0: none) starts per held-out environment also run in the guarded
+    real loop with the kept variant and the single-frame one. The kept variant is the
+    one with the fewest needless flags on the calibration environments."""
+    kind: str = "detector"
+    family: RandomEnvironments = dc.field(default_factory=lambda: RandomEnvironments(seed=11))
+    train: int = 12
+    calibrate: int = 10
+    held_out: int = 6
+    also_held_out: List[Environment] = dc.field(default_factory=list)
+    runs: int = 30
+    duration: float = 8.0
+    within: float = 3.0
+    brake_deceleration: float = 3.0
+    alpha: float = 0.1
+    height: int = 48
+    width: int = 80
+    epochs: int = 6
+    head_epochs: int = 40
+    guarded_runs: int = 0
+    variants: List[MonitorVariant] = dc.field(default_factory=default_variants)
+
+    @property
+    def enabled(self) -> bool:
+        return self.kind == "history"
+
+    def validate(self, where="monitor"):
+        if self.kind not in MONITOR_KINDS:
+            raise ValueError(f"{where}.kind must be one of {MONITOR_KINDS}, got {self.kind!r}")
+        for name, least, most in (("train", 1, 1000), ("calibrate", 1, 1000),
+                                  ("held_out", 1, 1000), ("runs", 1, 100_000),
+                                  ("height", 16, 512), ("width", 16, 512), ("epochs", 1, 10_000),
+                                  ("head_epochs", 1, 100_000), ("guarded_runs", 0, 100_000)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not least <= value <= most:
+                raise ValueError(f"{where}.{name} must be a whole number in [{least}, {most}], "
+                                 f"got {value!r}")
+        for name, most in (("duration", 600.0), ("within", 600.0),
+                           ("brake_deceleration", 100.0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not (np.isfinite(value) and 0 < value <= most):
+                raise ValueError(f"{where}.{name} must be a number in (0, {most:g}], got {value!r}")
+        if self.within >= self.duration:
+            raise ValueError(f"{where}.within ({self.within:g} s) must be shorter than "
+                             f"{where}.duration ({self.duration:g} s): a run that does not "
+                             f"fail says nothing of its last {self.within:g} s")
+        if isinstance(self.alpha, bool) or not isinstance(self.alpha, (int, float)) \
+                or not 0 < self.alpha < 1:
+            raise ValueError(f"{where}.alpha must be in (0, 1), got {self.alpha!r}")
+        if (self.calibrate + 1) * self.alpha < 1:
+            raise ValueError(f"{where}.calibrate: {self.calibrate} environments cannot bound the "
+                             f"miss rate at alpha {self.alpha:g} (the bound is at least "
+                             f"1/(calibrate+1)); use at least {int(np.ceil(1 / self.alpha - 1))}")
+        self.family.validate(f"{where}.family")
+        for i, env in enumerate(self.also_held_out):
+            try:
+                env.validate()
+            except ValueError as e:
+                raise ValueError(f"{where}.also_held_out[{i}]: {e}") from None
+        names = [v.name for v in self.variants]
+        if not self.variants or len(set(names)) != len(names):
+            raise ValueError(f"{where}.variants must list at least one variant, each name "
+                             f"once, got {names[:8]}")
+        for v in self.variants:
+            if v.temporal not in TEMPORAL_MODELS:
+                raise ValueError(f"{where}.variants: {v.name!r} temporal must be one of "
+                                 f"{TEMPORAL_MODELS}, got {v.temporal!r}")
+            HistoryMonitorConfig(frames=v.frames, stride=v.stride, temporal=v.temporal).validate()
+        return self
+
+    def environments(self):
+        """``{"train", "calibrate", "held_out", "also_held_out"}``: lists of environments."""
+        family = dc.replace(self.family, count=self.train + self.calibrate + self.held_out)
+        envs = family.environments()
+        return {"train": envs[:self.train],
+                "calibrate": envs[self.train:self.train + self.calibrate],
+                "held_out": envs[self.train + self.calibrate:],
+                "also_held_out": list(self.also_held_out)}
+
+
+def _record(spec, scenario, environments, first, *, cache_dir, executor, progress):
+    """Recorded runs of each environment: the starts of the ``i``-th environment (counted
+    from ``first``: its place in the family, or after it) seeded by the family's seed
+    and ``i``."""
+    out = []
+    for i, environment in enumerate(environments):
+        B = environment.half_width
+        grid = paper_grid(B, (3, 3, 3))
+        seed = [spec.family.seed, first + i]
+        starts = on_runway_starts((grid.lo, grid.hi), spec.runs, seed, half_width=B)
+        runs = recorded_runs(dc.replace(scenario, environment=environment), starts,
+                             duration=spec.duration, height=spec.height, width=spec.width,
+                             cache_dir=cache_dir, executor=executor, progress=progress)
+        out.append({**runs, "starts": starts, "name": environment.name,
+                    "environment": environment})
+    return out
+
+
+def _merged(groups):
+    keys = ("frames", "signals", "ticks", "failure_time", "state")
+    return {k: np.concatenate([g[k] for g in groups]) for k in keys}
+
+
+def _labelled(groups, risks, *, period, duration, within):
+    labels, scores = [], []
+    for g, group_risks in zip(groups, risks):
+        for risk, n, failure in zip(group_risks, g["ticks"], g["failure_time"]):
+            y = fails_within(*time_to_failure(np.arange(int(n)) * period, failure, duration),
+                             within)
+            labels.append(y[y >= 0])
+            scores.append(np.asarray(risk)[y >= 0])
+    return (np.concatenate(labels) if labels else np.zeros(0, np.int8),
+            np.concatenate(scores) if scores else np.zeros(0))
+
+
+def _judge(groups, risks, *, threshold, period, lead, duration):
+    """Per environment and pooled system figures at ``threshold``."""
+    per_env, pooled = [], {"failed": [], "warned": [], "flagged": []}
+    for r, g in zip(risks, groups):
+        out = flag_outcomes(r, g["ticks"], g["failure_time"], period=period,
+                            threshold=threshold, lead=lead)
+        for key in pooled:
+            pooled[key].append(out[key])
+        per_env.append({"environment": g["name"], **system_figures(out),
+                        "auroc_4s": tick_auroc(r, g["ticks"], g["failure_time"], period=period,
+                                               duration=duration, within=4.0)})
+    return per_env, system_figures({k: np.concatenate(v) for k, v in pooled.items()})
+
+
+def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, executor=None,
+                      progress=True, log=print) -> dict:
+    """The whole study (see the module); writes ``monitor.json`` and the kept and
+    single-frame monitors' checkpoints to ``out_dir``; returns the results."""
+    spec.validate()
+    started = time.time()
+    out_dir, cache_dir = Path(out_dir), Path(cache_dir)
+    period, speed = scenario.controller.period, scenario.controller.speed
+    lead = speed / spec.brake_deceleration
+    split = spec.environments()
+    first = {"train": 0, "calibrate": spec.train, "held_out": spec.train + spec.calibrate,
+             "also_held_out": spec.train + spec.calibrate + spec.held_out}
+    data = {k: _record(spec, scenario, envs, first[k], cache_dir=cache_dir / "runs",
+                       executor=executor, progress=progress) for k, envs in split.items()}
+    log(f"monitor: recorded {sum(len(g['ticks']) for v in data.values() for g in v)} runs, "
+        f"{sum(int(g['ticks'].sum()) for v in data.values() for g in v)} ticks; lead "
+        f"{lead:.2f} s, risk of failing within {spec.within:g} s")
+    failing = {k: {g["name"]: [int(np.isfinite(g["failure_time"]).sum()), len(g["ticks"])]
+                   for g in groups} for k, groups in data.items()}
+
+    train = _merged(data["train"])
+    labels = tick_labels(train, period=period, duration=spec.duration, within=spec.within)
+    base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within)
+    settings = HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs)
+    encoder = train_encoder(train, labels, base, settings,
+                            progress=(lambda m: log(f"monitor: {m}")) if progress else None)
+    features = {k: [encode_runs(encoder, g) for g in groups] for k, groups in data.items()}
+    train_features = np.concatenate(features["train"])
+    judged = ("calibrate", "held_out", "also_held_out")
+
+    results, models = {}, {}
+    for variant in spec.variants:
+        config = dc.replace(base, frames=variant.frames, stride=variant.stride,
+                            temporal=variant.temporal,
+                            signals=train["signals"].shape[-1] if variant.signals else 0)
+        model = train_head(encoder, train_features, train, labels, config, settings)
+        raw = {k: [run_risks(model, f, g) for f, g in zip(features[k], data[k])] for k in judged}
+        y, q = _labelled(data["calibrate"], raw["calibrate"], period=period,
+                         duration=spec.duration, within=spec.within)
+        try:
+            platt = PlattCalibration.fit(q, y == 1)
+        except ValueError:                      # one class among the calibration ticks
+            platt = PlattCalibration()
+        risks = {k: [[platt(r) for r in group] for group in v] for k, v in raw.items()}
+        env_scores = [warning_scores(r, run_times(g["ticks"], period), g["failure_time"],
+                                     lead=lead)
+                      for r, g in zip(risks["calibrate"], data["calibrate"])]
+        chosen = conformal_threshold(env_scores, spec.alpha)
+        calibration, _ = _judge(data["calibrate"], risks["calibrate"], threshold=chosen.threshold,
+                                period=period, lead=lead, duration=spec.duration)
+        needless = [c["needless"] for c in calibration]
+        row = {"threshold": chosen.threshold, "statement": chosen.statement(lead),
+               "calibration_miss_rate": chosen.calibration_miss_rate,
+               "per_environment_bound_90": per_environment_bound(
+                   [c["miss"]["rate"] if c["miss"]["of"] else 0.0 for c in calibration], 0.1),
+               "calibration_needless": sum(n["count"] for n in needless) / max(
+                   1, sum(n["of"] for n in needless)),
+               "platt": [platt.a, platt.b]}
+        for k in ("held_out", "also_held_out"):
+            per_env, pooled = _judge(data[k], risks[k], threshold=chosen.threshold,
+                                     period=period, lead=lead, duration=spec.duration)
+            y, p = _labelled(data[k], risks[k], period=period, duration=spec.duration,
+                             within=spec.within)
+            row[k] = {"environments": per_env, "pooled": pooled,
+                      "ece": expected_calibration_error(p, y == 1) if len(y) else float("nan"),
+                      "brier": brier_score(p, y == 1) if len(y) else float("nan"),
+                      "reliability": [a.tolist() for a in reliability_curve(p, y == 1)]
+                      if len(y) else []}
+        results[variant.name] = row
+        models[variant.name] = (model, platt, chosen.threshold)
+        log(f"monitor: {variant.name}: threshold {chosen.threshold:.3f}, held-out miss "
+            f"{_pct(row['held_out']['pooled']['miss'])}, needless "
+            f"{_pct(row['held_out']['pooled']['needless'])}")
+
+    oracle, baseline = {}, {}
+    for k in ("held_out", "also_held_out"):
+        groups = data[k]
+        risks = [oracle_risks(g["ticks"], g["failure_time"], period=period, lead=lead)
+                 for g in groups]
+        per_env, pooled = _judge(groups, risks, threshold=0.5, period=period, lead=lead,
+                                 duration=spec.duration)
+        oracle[k] = {"environments": per_env, "pooled": pooled}
+        baseline[k] = [tick_auroc([prediction_error(g["state"][i, :n], g["signals"][i, :n, :2])
+                                   for i, n in enumerate(g["ticks"])], g["ticks"],
+                                  g["failure_time"], period=period, duration=spec.duration,
+                                  within=4.0)
+                       if g["signals"].shape[-1] >= 3 else float("nan") for g in groups]
+
+    kept = min(results, key=lambda n: results[n]["calibration_needless"])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    checkpoints = {}
+    for name in dict.fromkeys([kept, spec.variants[0].name]):
+        model, platt, threshold = models[name]
+        path = out_dir / f"monitor_{len(checkpoints)}.pt"
+        save_checkpoint(path, kind="history_monitor", model=model, model_config=model.config,
+                        preprocess_config=None,
+                        metadata={"calibration": [platt.a, platt.b], "threshold": threshold,
+                                  "within_s": spec.within, "lead_s": lead, "variant": name})
+        checkpoints[name] = str(path)
+    guarded = (_guarded(spec, scenario, data["held_out"], models, checkpoints,
+                        cache_dir=cache_dir / "missions", executor=executor, progress=progress,
+                        log=log) if spec.guarded_runs else {})
+    result = {"lead_s": lead, "within_s": spec.within, "alpha": spec.alpha, "kept": kept,
+              "failing_runs": failing, "variants": results, "oracle": oracle,
+              "prediction_error_auroc_4s": baseline, "guarded": guarded,
+              "checkpoints": {k: Path(v).name for k, v in checkpoints.items()},
+              "seconds": round(time.time() - started, 1)}
+    atomic_write_bytes(out_dir / "monitor.json",
+                       json.dumps(result, indent=1, default=float).encode())
+    return result
+
+
+def _guarded(spec, scenario, held_out, models, checkpoints, *, cache_dir, executor, progress,
+             log):
+    """The guarded real loop (braking) with each saved monitor against the loop alone,
+    from the first ``guarded_runs`` recorded starts of each held-out environment."""
+    rows = {}
+    for name, path in checkpoints.items():
+        threshold = models[name][2]
+        counts = {"runs": 0, "failed_alone": 0, "failed_guarded": 0, "prevented": 0,
+                  "safe_alone": 0, "needless_stops": 0, "distance_alone_m": 0.0,
+                  "distance_guarded_m": 0.0, "environments": []}
+        for g in held_out:
+            sc = dc.replace(scenario, environment=g["environment"], monitor=MonitorConfig(
+                detector=path, threshold=threshold, strategy="brake",
+                brake_deceleration=spec.brake_deceleration))
+            starts = g["starts"][:spec.guarded_runs]
+            alone = real_missions(sc, starts, duration=spec.duration, cache_dir=cache_dir,
+                                  executor=executor, progress=progress)
+            guarded = real_missions(sc, starts, fallback="brake", duration=spec.duration,
+                                    cache_dir=cache_dir, executor=executor, progress=progress)
+            env = {"environment": g["name"], "runs": len(starts),
+                   "failed_alone": int(alone.failed.sum()),
+                   "failed_guarded": int(guarded.failed.sum()),
+                   "prevented": int(np.sum(alone.failed & ~guarded.failed)),
+                   "safe_alone": int(np.sum(~alone.failed)),
+                   "needless_stops": int(np.sum(~alone.failed & guarded.ever_stopped))}
+            counts["environments"].append(env)
+            for key in ("runs", "failed_alone", "failed_guarded", "prevented", "safe_alone",
+                        "needless_stops"):
+                counts[key] += env[key]
+            counts["distance_alone_m"] += float(alone.distance.sum())
+            counts["distance_guarded_m"] += float(guarded.distance.sum())
+        counts["prevented_rate"] = rate(counts["prevented"], counts["failed_alone"])
+        counts["needless_rate"] = rate(counts["needless_stops"], counts["safe_alone"])
+        rows[name] = counts
+        log(f"monitor: guarded real loop, {name}: failures {counts['failed_alone']} alone -> "
+            f"{counts['failed_guarded']} guarded of {counts['runs']} runs; prevented "
+            f"{_pct(counts['prevented_rate'])}; needless stops {_pct(counts['needless_rate'])}")
+    return rows
+
+
+def _pct(r):
+    if not r["of"]:
+        return "-"
+    return (f"{100 * r['rate']:.1f} % [{100 * r['lo']:.1f}, {100 * r['hi']:.1f}] "
+            f"({r['count']}/{r['of']})")
+
+
+def markdown_tables(result: dict) -> str:
+    """The study's tables: held-out environments pooled per variant (with the oracle and
+    the prediction-error baseline), the guarantee, the guarded real loop, and the kept
+    variant per environment."""
+    lines = []
+    for group, title in (("held_out", "held-out environments of the family"),
+                         ("also_held_out", "named environments outside the family")):
+        first = next(iter(result["variants"].values()))[group]
+        if not first["environments"]:
+            continue
+        lines += [f"#### Offline, pooled over the {title} (lead {result['lead_s']:.2f} s)", "",
+                  "| monitor | threshold | miss % [95 % CI] | needless flags % [95 % CI] | "
+                  "worst AUROC, fails within 4 s | ECE | Brier |", "|---|---|---|---|---|---|---|"]
+        for name, row in result["variants"].items():
+            r = row[group]
+            aurocs = [e["auroc_4s"] for e in r["environments"] if np.isfinite(e["auroc_4s"])]
+            kept = " (kept)" if name == result["kept"] else ""
+            lines.append(f"| {name}{kept} | {row['threshold']:.3f} | {_pct(r['pooled']['miss'])} "
+                         f"| {_pct(r['pooled']['needless'])} | "
+                         f"{min(aurocs) if aurocs else float('nan'):.3f} | {r['ece']:.3f} | "
+                         f"{r['brier']:.3f} |")
+        o = result["oracle"][group]["pooled"]
+        base = [b for b in result["prediction_error_auroc_4s"][group] if np.isfinite(b)]
+        lines += [f"| oracle (privileged) | - | {_pct(o['miss'])} | {_pct(o['needless'])} | - "
+                  f"| - | - |",
+                  f"| prediction error (privileged) | - | - | - | "
+                  f"{min(base) if base else float('nan'):.3f} | - | - |", ""]
+    kept = result["variants"][result["kept"]]
+    lines += [kept["statement"], "",
+              f"Per-environment statement: with probability 90 % a new environment's miss rate "
+              f"is at most {100 * kept['per_environment_bound_90']:.1f} % (the calibration "
+              f"environments' quantile).", ""]
+    if result["guarded"]:
+        lines += ["#### Guarded real loop (braking), pooled over the held-out environments", "",
+                  "| monitor | runs | failures alone | failures guarded | prevented % [95 % CI] "
+                  "| needless stops % [95 % CI] | distance guarded / alone |",
+                  "|---|---|---|---|---|---|---|"]
+        for name, c in result["guarded"].items():
+            lines.append(f"| {name} | {c['runs']} | {c['failed_alone']} | {c['failed_guarded']} "
+                         f"| {_pct(c['prevented_rate'])} | {_pct(c['needless_rate'])} | "
+                         f"{c['distance_guarded_m'] / max(1e-9, c['distance_alone_m']):.3f} |")
+        lines.append("")
+    lines += [f"#### {result['kept']}, per held-out environment", "",
+              "| environment | failing runs | miss % [95 % CI] | needless flags % [95 % CI] | "
+              "AUROC 4 s | prediction-error AUROC 4 s | oracle miss |",
+              "|---|---|---|---|---|---|---|"]
+    for group in ("held_out", "also_held_out"):
+        for e, b, o in zip(kept[group]["environments"],
+                           result["prediction_error_auroc_4s"][group],
+                           result["oracle"][group]["environments"]):
+            fails = result["failing_runs"][group][e["environment"]]
+            lines.append(f"| {e['environment']} | {fails[0]}/{fails[1]} | {_pct(e['miss'])} | "
+                         f"{_pct(e['needless'])} | {e['auroc_4s']:.3f} | {b:.3f} | "
+                         f"{_pct(o['miss'])} |")
+    return "\n".join(lines) + "\n"
