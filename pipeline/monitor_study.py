@@ -46,7 +46,7 @@ class MonitorVariant:
     """One monitor to train: ``frames`` frames ``stride`` ticks apart, combined by
     ``temporal`` (`reachwatch.systems.TEMPORAL_MODELS`), with or without the online
     ``signals`` (the controller's estimate and steering)."""
-    name: str
+    name: str = "single frame"
     frames: int = 1
     stride: int = 1
     temporal: str = "stack"
@@ -200,7 +200,8 @@ def _judge(groups, risks, *, threshold, period, lead, duration):
         per_env.append({"environment": g["name"], **system_figures(out),
                         "auroc_4s": tick_auroc(r, g["ticks"], g["failure_time"], period=period,
                                                duration=duration, within=4.0)})
-    return per_env, system_figures({k: np.concatenate(v) for k, v in pooled.items()})
+    return per_env, system_figures({k: np.concatenate(v) if v else np.zeros(0, bool)
+                                    for k, v in pooled.items()})
 
 
 def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, executor=None,
@@ -362,58 +363,119 @@ def _pct(r):
             f"({r['count']}/{r['of']})")
 
 
-def markdown_tables(result: dict) -> str:
-    """The study's tables: held-out environments pooled per variant (with the oracle and
-    the prediction-error baseline), the guarantee, the guarded real loop, and the kept
-    variant per environment."""
-    lines = []
+def study_blocks(result: dict) -> list:
+    """The study's findings as blocks a page renders: ``("heading", text)``,
+    ``("text", text)`` and ``("table", header, rows)``: held-out environments pooled
+    per variant (with the oracle and the prediction-error baseline), the guarantee, the
+    guarded real loop, and the kept variant per environment."""
+    blocks = []
+    guarded_header = ["monitor", "runs", "failures alone", "failures guarded",
+                      "prevented % [95 % CI]", "needless stops % [95 % CI]",
+                      "distance guarded / alone"]
+    if result["guarded"]:
+        blocks += [("heading", "Guarded real loop (braking), pooled over the held-out "
+                               "environments of the family"),
+                   ("table", guarded_header, [
+                       [name, c["runs"], c["failed_alone"], c["failed_guarded"],
+                        _pct(c["prevented_rate"]), _pct(c["needless_rate"]),
+                        f"{c['distance_guarded_m'] / max(1e-9, c['distance_alone_m']):.3f}"]
+                       for name, c in result["guarded"].items()])]
+    kept = result["variants"][result["kept"]]
+    blocks += [("text", kept["statement"]),
+               ("text", f"For one new environment: with probability 90 % its miss rate is at "
+                        f"most {100 * kept['per_environment_bound_90']:.1f} % (a quantile of the "
+                        f"calibration environments' miss rates; exchangeable environments).")]
     for group, title in (("held_out", "held-out environments of the family"),
-                         ("also_held_out", "named environments outside the family")):
+                         ("also_held_out", "named environments outside the family (no "
+                                           "guarantee: not drawn from it)")):
         first = next(iter(result["variants"].values()))[group]
         if not first["environments"]:
             continue
-        lines += [f"#### Offline, pooled over the {title} (lead {result['lead_s']:.2f} s)", "",
-                  "| monitor | threshold | miss % [95 % CI] | needless flags % [95 % CI] | "
-                  "worst AUROC, fails within 4 s | ECE | Brier |", "|---|---|---|---|---|---|---|"]
+        rows = []
         for name, row in result["variants"].items():
             r = row[group]
             aurocs = [e["auroc_4s"] for e in r["environments"] if np.isfinite(e["auroc_4s"])]
-            kept = " (kept)" if name == result["kept"] else ""
-            lines.append(f"| {name}{kept} | {row['threshold']:.3f} | {_pct(r['pooled']['miss'])} "
-                         f"| {_pct(r['pooled']['needless'])} | "
-                         f"{min(aurocs) if aurocs else float('nan'):.3f} | {r['ece']:.3f} | "
-                         f"{r['brier']:.3f} |")
+            rows.append([name + (" (kept)" if name == result["kept"] else ""),
+                         f"{row['threshold']:.3f}", _pct(r["pooled"]["miss"]),
+                         _pct(r["pooled"]["needless"]),
+                         f"{min(aurocs):.3f}" if aurocs else "-", f"{r['ece']:.3f}",
+                         f"{r['brier']:.3f}"])
         o = result["oracle"][group]["pooled"]
         base = [b for b in result["prediction_error_auroc_4s"][group] if np.isfinite(b)]
-        lines += [f"| oracle (privileged) | - | {_pct(o['miss'])} | {_pct(o['needless'])} | - "
-                  f"| - | - |",
-                  f"| prediction error (privileged) | - | - | - | "
-                  f"{min(base) if base else float('nan'):.3f} | - | - |", ""]
-    kept = result["variants"][result["kept"]]
-    lines += [kept["statement"], "",
-              f"Per-environment statement: with probability 90 % a new environment's miss rate "
-              f"is at most {100 * kept['per_environment_bound_90']:.1f} % (the calibration "
-              f"environments' quantile).", ""]
-    if result["guarded"]:
-        lines += ["#### Guarded real loop (braking), pooled over the held-out environments", "",
-                  "| monitor | runs | failures alone | failures guarded | prevented % [95 % CI] "
-                  "| needless stops % [95 % CI] | distance guarded / alone |",
-                  "|---|---|---|---|---|---|---|"]
-        for name, c in result["guarded"].items():
-            lines.append(f"| {name} | {c['runs']} | {c['failed_alone']} | {c['failed_guarded']} "
-                         f"| {_pct(c['prevented_rate'])} | {_pct(c['needless_rate'])} | "
-                         f"{c['distance_guarded_m'] / max(1e-9, c['distance_alone_m']):.3f} |")
-        lines.append("")
-    lines += [f"#### {result['kept']}, per held-out environment", "",
-              "| environment | failing runs | miss % [95 % CI] | needless flags % [95 % CI] | "
-              "AUROC 4 s | prediction-error AUROC 4 s | oracle miss |",
-              "|---|---|---|---|---|---|---|"]
+        rows += [["oracle (privileged)", "-", _pct(o["miss"]), _pct(o["needless"]), "-", "-", "-"],
+                 ["prediction error (privileged)", "-", "-", "-",
+                  f"{min(base):.3f}" if base else "-", "-", "-"]]
+        blocks += [("heading", f"Offline on recorded runs, pooled over the {title}; a miss is "
+                               f"a failing run with no flag {result['lead_s']:.2f} s before it "
+                               f"fails"),
+                   ("table", ["monitor", "threshold", "miss % [95 % CI]",
+                              "needless flags % [95 % CI]", "worst AUROC, fails within 4 s",
+                              "ECE", "Brier"], rows)]
+    rows = []
     for group in ("held_out", "also_held_out"):
         for e, b, o in zip(kept[group]["environments"],
                            result["prediction_error_auroc_4s"][group],
                            result["oracle"][group]["environments"]):
             fails = result["failing_runs"][group][e["environment"]]
-            lines.append(f"| {e['environment']} | {fails[0]}/{fails[1]} | {_pct(e['miss'])} | "
-                         f"{_pct(e['needless'])} | {e['auroc_4s']:.3f} | {b:.3f} | "
-                         f"{_pct(o['miss'])} |")
-    return "\n".join(lines) + "\n"
+            rows.append([e["environment"], f"{fails[0]}/{fails[1]}", _pct(e["miss"]),
+                         _pct(e["needless"]), f"{e['auroc_4s']:.3f}", f"{b:.3f}",
+                         _pct(o["miss"])])
+    blocks += [("heading", f"{result['kept']} (the kept variant), per environment"),
+               ("table", ["environment", "failing runs", "miss % [95 % CI]",
+                          "needless flags % [95 % CI]", "AUROC, fails within 4 s",
+                          "prediction-error AUROC", "oracle miss"], rows)]
+    return blocks
+
+
+def markdown_tables(result: dict) -> str:
+    """`study_blocks` as Markdown."""
+    lines = []
+    for block in study_blocks(result):
+        if block[0] == "heading":
+            lines += [f"#### {block[1]}", ""]
+        elif block[0] == "text":
+            lines += [block[1], ""]
+        else:
+            header, rows = block[1], block[2]
+            lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+            lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows] + [""]
+    return "\n".join(lines)
+
+
+def stage_monitor(run) -> dict:
+    """The run's ``monitor`` stage: the study when ``monitor.kind`` is ``history``
+    (keyed by the study's settings and the scenario's content, checkpoints and
+    controller code included), nothing (no record) otherwise."""
+    spec = run.spec.monitor
+    if not spec.enabled:
+        return {}
+    from reachwatch.reach.fingerprint import fingerprint
+    from reachwatch.taxi.fidelity import without_monitor
+    from .spec import digest
+    key = digest(spec, fingerprint(without_monitor(run.spec.scenario)))
+
+    def study():
+        run_monitor_study(spec, run.spec.scenario, run.path("monitor"),
+                          cache_dir=run.path("monitor_cache"), executor=run.executor,
+                          progress=run.progress, log=run.log)
+        return {"result": "monitor/monitor.json"}
+    return run.stage("monitor", key, study)
+
+
+def monitor_section(page, run):
+    """The report's section on the monitor study (when the run has one)."""
+    outputs = run.outputs.get("monitor") or {}
+    if not outputs:
+        return
+    result = json.loads(run.path(outputs["result"]).read_text())
+    page.section("Runtime monitor on environments it has never seen", "monitor")
+    page.text(f"A monitor over the image history predicts the risk of failing within "
+              f"{result['within_s']:g} s; its threshold is chosen on calibration environments "
+              f"of the random family before any held-out environment is seen. The fallback "
+              f"brakes and needs {result['lead_s']:.2f} s. Variants kept: {result['kept']} "
+              f"(fewest needless flags on the calibration environments).")
+    for block in study_blocks(result):
+        if block[0] in ("heading", "text"):
+            page.text(block[1])
+        else:
+            page.table(block[1], block[2])

@@ -14,6 +14,7 @@ from .fidelity_sections import fidelity_section, map_selection_section, monte_ca
 from .detector_sections import (detector_verdicts, percent_text as _pct, target_section,
                                 threshold_section)
 from .guard_sections import guard_section
+from .monitor_study import monitor_section
 from .stages import Run
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;
@@ -175,6 +176,7 @@ def write_report(run: Run) -> dict:
     map_selection_section(page, spec, o["solve"])
     fidelity_section(page, spec, o.get("fidelity") or {},
                      o.get("dataset", {}).get("labels", {}), roles)
+    monitor_section(page, run)
     page.section("Labels and the detector", "labels")
     page.text(labels_paragraph(spec, o))
     page.images([f["overlay"] for f in o["evaluate"]["figures"].values()])

@@ -1,7 +1,7 @@
 """``reachwatch run``: scenario file to report in one command.
 
 Stages run in order sweep -> solve -> dataset -> fidelity -> train -> evaluate -> guard ->
-incremental -> report; each is skipped when its record in ``OUT/stages/`` has the
+monitor -> incremental -> report; each is skipped when its record in ``OUT/stages/`` has the
 same key (a digest of its inputs), and resumes its chunked work when it was killed."""
 
 import time
@@ -16,9 +16,11 @@ from .report import write_report
 from .spec import RunSpec, digest, load_run_spec
 from .brt_stages import stage_solve, stage_sweep
 from .dataset_stages import stage_dataset
+from .monitor_study import stage_monitor
 from .stages import Run, stage_evaluate, stage_train
 
-STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "incremental", "report")
+STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "monitor",
+          "incremental", "report")
 REPORT_FORMAT = 1
 
 
@@ -64,6 +66,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
         "evaluate": lambda: run.stage("evaluate", digest(run.records["train"]["key"], spec.slice_py),
                                       lambda: stage_evaluate(run)),
         "guard": lambda: stage_guard(run),
+        "monitor": lambda: stage_monitor(run),
         "incremental": lambda: stage_incremental(run),
         "report": lambda: run.stage("report", digest(
             REPORT_FORMAT, {k: r["key"] for k, r in run.records.items()}),

@@ -20,6 +20,8 @@ from reachwatch.training.labels import LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 from reachwatch.training.incremental import IncrementalConfig
 
+from .monitor_study import MonitorStudySpec
+
 
 #: Bounds of a run file's sizes: nodes per grid axis, horizon (s), real-loop starts.
 MAX_GRID = 401
@@ -233,6 +235,7 @@ class RunSpec:
     robust: RobustSpec = dc.field(default_factory=RobustSpec)
     map_selection: MapSelectionSpec = dc.field(default_factory=MapSelectionSpec)
     incremental: IncrementalConfig = dc.field(default_factory=IncrementalConfig)
+    monitor: MonitorStudySpec = dc.field(default_factory=MonitorStudySpec)
 
     def validate(self):
         """Raise ValueError naming the first bad field; return self."""
@@ -295,6 +298,7 @@ class RunSpec:
             raise ValueError(f"slice_py must be a number of metres in [0, solved_py_max "
                              f"{self.solved_py_max:g}], got {self.slice_py!r}")
         self.dataset.validate()
+        self.monitor.validate()
         if self.held_out_labels is not None:
             self.held_out_labels.validate("held_out_labels")
         self.detector.validate()

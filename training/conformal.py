@@ -80,7 +80,7 @@ class ConformalThreshold:
         return (f"Threshold {self.threshold:.4g}, fixed on {self.environments} calibration "
                 f"environments ({self.failing_runs} failing runs): on a new environment "
                 f"drawn from the same family, independently of them, the expected share of "
-                f"failing runs flagged less than {lead:g} s before they fail is at most "
+                f"failing runs flagged less than {lead:.2f} s before they fail is at most "
                 f"{100 * self.alpha:.1f} % (conformal risk control; environments "
                 f"exchangeable, runs within each drawn as in calibration).")
 

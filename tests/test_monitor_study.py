@@ -1,0 +1,104 @@
+"""The monitor study of a run file (``monitor: {kind: history}``): the spec loads and
+refuses nonsense by name, and the study runs end to end at a tiny size on the real
+rendered loop (record, train every variant, calibrate, conformal threshold, judge
+offline and in the guarded real loop), its kept monitor a checkpoint the guarded loop
+takes, and its tables render."""
+
+import json
+
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import load_scenario
+from reachwatch.diagrams.checkpoints import load_history_monitor
+from reachwatch.pipeline.monitor_study import markdown_tables, run_monitor_study
+from reachwatch.pipeline.spec import dump_run_spec, load_run_spec
+from reachwatch.training.conformal import conformal_threshold
+from tiny_run import TINY
+
+STUDY = """
+monitor:
+  kind: history
+  family: {seed: 4}
+  train: 1
+  calibrate: 1
+  held_out: 1
+  alpha: 0.5
+  runs: 6
+  duration: 2.0
+  within: 1.0
+  height: 16
+  width: 24
+  epochs: 1
+  head_epochs: 2
+  guarded_runs: 2
+  variants:
+    - {name: one frame}
+    - {name: GRU 3 + signals, frames: 3, stride: 2, temporal: gru, signals: true}
+"""
+
+
+def test_the_study_spec_loads_round_trips_and_names_its_errors():
+    spec = load_run_spec(data=TINY + STUDY)
+    assert spec.monitor.enabled and [v.name for v in spec.monitor.variants] == [
+        "one frame", "GRU 3 + signals"]
+    assert load_run_spec(data=dump_run_spec(spec)).monitor == spec.monitor
+    assert not load_run_spec(data=TINY).monitor.enabled            # off by default
+    for edit, message in ((("kind: history", "kind: lstm"), "monitor.kind must be one of"),
+                          (("alpha: 0.5", "alpha: 0.1"), "monitor.calibrate: 1 environments "
+                                                         "cannot bound"),
+                          (("within: 1.0", "within: 2.0"), "monitor.within (2 s) must be shorter"),
+                          (("{name: one frame}", "{name: GRU 3 + signals}"),
+                           "monitor.variants must list"),
+                          (("runs: 6", "runs: 0"), "monitor.runs must be a whole number")):
+        with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            load_run_spec(data=TINY + STUDY.replace(*edit))
+
+
+def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
+    spec = load_run_spec(data=TINY + STUDY).monitor
+    scenario = load_scenario(data="")
+    result = run_monitor_study(spec, scenario, tmp_path / "out", cache_dir=tmp_path / "cache",
+                               progress=False, log=lambda m: None)
+    assert json.loads((tmp_path / "out" / "monitor.json").read_text())["kept"] == result["kept"]
+    assert set(result["variants"]) == {"one frame", "GRU 3 + signals"}
+    assert result["lead_s"] == pytest.approx(5.0 / 3.0)
+    for name, row in result["variants"].items():
+        assert 0 <= row["threshold"] <= 1
+        assert row["held_out"]["pooled"]["needless"]["of"] + row["held_out"]["pooled"]["miss"][
+            "of"] == 6
+    # the kept monitor (and the single-frame one) are checkpoints with their calibration
+    for name, file in result["checkpoints"].items():
+        model, config, meta = load_history_monitor(tmp_path / "out" / file)
+        assert meta["variant"] == name and meta["threshold"] == result["variants"][name]["threshold"]
+    # the guarded real loop ran from the held-out starts, for each saved monitor
+    assert set(result["guarded"]) == set(result["checkpoints"])
+    for counts in result["guarded"].values():
+        assert counts["runs"] == 2 and counts["failed_guarded"] <= counts["runs"]
+    # a rerun renders nothing new and gives the same figures (cached by content, seeded)
+    again = run_monitor_study(spec, scenario, tmp_path / "again", cache_dir=tmp_path / "cache",
+                              progress=False, log=lambda m: None)
+    for part in ("variants", "guarded", "oracle"):           # NaN where a group is empty
+        assert json.dumps(again[part], sort_keys=True) == json.dumps(result[part], sort_keys=True)
+    text = markdown_tables(result)
+    assert "Guarded real loop" in text and "oracle (privileged)" in text
+    assert "at most 50.0 %" in text
+
+    from reachwatch.pipeline.monitor_study import monitor_section
+    from reachwatch.pipeline.report import Page
+
+    class Run:                                   # what the report section reads of a run
+        outputs = {"monitor": {"result": "out/monitor.json"}}
+
+        def path(self, relative):
+            return tmp_path / relative
+    page = Page("run")
+    monitor_section(page, Run())
+    html, md = page.done()
+    assert "Runtime monitor on environments it has never seen" in md
+    assert "Guarded real loop" in md and html.count("<table>") >= 3
+
+
+def test_the_threshold_is_the_conformal_one_of_the_calibration_scores():
+    scores = [np.array([0.3, 0.7]), np.array([0.9])]
+    assert conformal_threshold(scores, 0.5).threshold == pytest.approx(0.7)
