@@ -1,8 +1,9 @@
 """Online rate: closed-loop control ticks per wall second of TaxiNet alone vs the
-guarded loop (TaxiNet + anomaly detector + fallback switch), same run, same
-200x360 camera. The detector has random weights unless --detector is given (timing
-does not depend on the weights) and never triggers the fallback (threshold 1), so both
-loops drive the same path.
+guarded loop (TaxiNet + a monitor + fallback switch), same run, same 200x360 camera.
+The monitors are single-image anomaly detectors and monitors over the image history
+(`HistoryMonitor`, 48x80 frames, as the monitor study trains them); they have random
+weights unless --detector is given (timing does not depend on the weights) and never
+trigger the fallback (threshold 1), so both loops drive the same path.
 
 The VM's speed moves by ~10 % within a second, so the two loops run side by side from
 the same start, advanced in alternating 0.5 s blocks (`reachwatch.diagrams.paired_rates`),
@@ -10,7 +11,8 @@ and the ratio is the median over rounds of guarded ticks/s over alone ticks/s. T
 first row times TaxiNet alone against a second copy of itself: the method's noise floor
 (its ratio should read 1.00; on this VM it reads 0.97-1.05).
 
-    python benchmarks/online.py [--detector PATH] [--duration 4] [--rounds 15]
+    python benchmarks/online.py [--detector PATH] [--monitors all|detector|history]
+                                [--duration 4] [--rounds 15]
 """
 
 import argparse
@@ -22,12 +24,14 @@ import torch
 
 from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram, make_guarded_diagram,
                                  paired_rates, save_checkpoint)
-from reachwatch.systems import DetectorConfig, build_detector
+from reachwatch.systems import DetectorConfig, HistoryMonitorConfig, HistoryRiskModel, build_detector
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--detector", help="a trained detector checkpoint")
+    parser.add_argument("--detector", help="a trained detector or history-monitor checkpoint")
+    parser.add_argument("--monitors", choices=("all", "detector", "history"), default="all",
+                        help="which untrained monitors to time (without --detector)")
     parser.add_argument("--duration", type=float, default=4.0, help="seconds simulated per round")
     parser.add_argument("--rounds", type=int, default=15, help="rounds (median ratio)")
     parser.add_argument("--torch-threads", type=int, default=0,
@@ -43,7 +47,7 @@ def main():
           f"{'range':>9}")
     with tempfile.TemporaryDirectory() as folder:
         configs = [("given", args.detector)] if args.detector else []
-        for name, config in [("small_cnn 96x160 (default)", DetectorConfig()),
+        for name, config in [] if args.monitors == "history" else [("small_cnn 96x160 (default)", DetectorConfig()),
                              ("small_cnn 96x160 stem_stride 2", DetectorConfig(stem_stride=2)),
                              ("small_cnn 48x80", DetectorConfig(height=48, width=80)),
                              ("efficientnet_b0 224x224 (paper)", DetectorConfig.paper())]:
@@ -55,6 +59,16 @@ def main():
             save_checkpoint(path, kind="detector", model=build_detector(config),
                             model_config=config, preprocess_config=None,
                             metadata={"image_size": [200, 360]})
+            configs.append((name, path))
+        for name, config in [] if args.detector or args.monitors == "detector" else [
+                ("history: stacked 8 frames, 48x80", HistoryMonitorConfig(frames=8, stride=4)),
+                ("history: GRU 16 + signals, 48x80", HistoryMonitorConfig(
+                    frames=16, temporal="gru", signals=3))]:
+            torch.manual_seed(0)
+            path = Path(folder) / f"history_{config.temporal}_{config.frames}.pt"
+            save_checkpoint(path, kind="history_monitor", model=HistoryRiskModel(config).eval(),
+                            model_config=config, preprocess_config=None,
+                            metadata={"calibration": [1.0, 0.0]})
             configs.append((name, path))
         nominal = make_closed_loop_diagram(load_scenario(data=""))
         # First row: TaxiNet alone against a second copy of itself, the method's noise floor.

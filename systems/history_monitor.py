@@ -18,7 +18,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from pydrake.systems.sensors import ImageRgba8U
 from torch import nn
 
-from .detector import DetectorConfig, detector_input, resize_for_detector
+from .detector import DetectorConfig, detector_input, inference_model, resize_for_detector
 
 #: How the per-frame features of the history are combined: ``stack`` concatenates them
 #: into a small MLP (one frame: the single-frame monitor), ``gru`` runs a GRU over them.
@@ -203,7 +203,7 @@ class HistoryMonitor(LeafSystem):
             raise ValueError(f"HistoryMonitor: threshold must be in [0, 1], got {threshold}")
         if not (np.isfinite(period) and period > 0):
             raise ValueError(f"HistoryMonitor: period must be > 0 s, got {period}")
-        self._model = model.eval()
+        self._model = inference_model(model)        # Conv-BN folded, channels-last
         self._config = model.config
         self._threshold = float(threshold)
         self._platt = tuple(float(v) for v in calibration)
