@@ -311,6 +311,11 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
               "prediction_error_auroc_4s": baseline, "guarded": guarded,
               "checkpoints": {k: Path(v).name for k, v in checkpoints.items()},
               "seconds": round(time.time() - started, 1)}
+    from reachwatch.training.figures import plot_reliability
+    result["reliability_figure"] = Path(plot_reliability(
+        {name: row["held_out"]["reliability"] for name, row in results.items()
+         if row["held_out"]["reliability"]}, out_dir / "reliability.png",
+        title=f"held-out environments: risk of failing within {spec.within:g} s")).name
     atomic_write_bytes(out_dir / "monitor.json",
                        json.dumps(result, indent=1, default=float).encode())
     return result
@@ -479,3 +484,6 @@ def monitor_section(page, run):
             page.text(block[1])
         else:
             page.table(block[1], block[2])
+    if result.get("reliability_figure"):
+        page.images([str(Path(outputs["result"]).parent / result["reliability_figure"])],
+                    "reliability of the risk on the held-out environments")

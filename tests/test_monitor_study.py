@@ -97,6 +97,8 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     html, md = page.done()
     assert "Runtime monitor on environments it has never seen" in md
     assert "Guarded real loop" in md and html.count("<table>") >= 3
+    assert (tmp_path / "out" / result["reliability_figure"]).stat().st_size > 1000
+    assert "out/reliability.png" in md
 
 
 def test_the_threshold_is_the_conformal_one_of_the_calibration_scores():

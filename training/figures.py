@@ -63,6 +63,26 @@ def plot_roc(curves, path, title=""):
     return save_figure(fig, path)
 
 
+def plot_reliability(curves, path, title=""):
+    """A reliability diagram: ``curves`` {name: (mean predicted, observed frequency,
+    count)} per probability bin (`reachwatch.training.conformal.reliability_curve`),
+    each with its expected calibration error in the legend; the diagonal is perfect."""
+    fig, ax = plt.subplots(figsize=(4.6, 4.2))
+    for name, (mean_p, freq, counts) in curves.items():
+        mean_p, freq, counts = map(np.asarray, (mean_p, freq, counts))
+        ece = float(np.sum(counts * np.abs(mean_p - freq)) / max(1, counts.sum()))
+        ax.plot(mean_p, freq, "o-", ms=3, lw=1.2, label=f"{name} (ECE {ece:.3f})")
+    ax.plot([0, 1], [0, 1], ":", color="grey", lw=0.8)
+    ax.set_xlabel("predicted risk")
+    ax.set_ylabel("observed frequency of failure within the horizon")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=6, loc="upper left")
+    ax.grid(alpha=0.3)
+    return save_figure(fig, path)
+
+
 def plot_examples(images, captions, path, *, columns=4, title=""):
     """Images in a grid, each with its caption (e.g. misses and false alarms)."""
     rows = max(1, -(-len(images) // columns))
