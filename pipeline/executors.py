@@ -1,8 +1,10 @@
 """``--executor`` values: ``local`` (a spawned process pool, one worker per usable
 core), ``local:N`` (N workers), ``inline`` (this process), ``dask://HOST:PORT`` (an
-existing Dask scheduler; needs the ``distributed`` extra)."""
+existing Dask scheduler; needs the ``distributed`` extra; its workers must have this
+process's `PINNED` versions, and may run any number of threads)."""
 
 import contextlib
+import importlib.metadata
 
 from reachwatch.reach import InlineExecutor, default_executor
 from reachwatch.reach.sweep import stop_executor
@@ -10,6 +12,39 @@ from reachwatch.systems.checks import short
 
 #: The most local workers ``local:N`` may start (each is a process with its renderer).
 MAX_WORKERS = 256
+
+#: Distributions a Dask worker must have at the driver's versions: a chunk is cached by
+#: the content it was asked for, not by the code that computed it.
+PINNED = ("reachwatch", "drake", "torch")
+
+
+def _version(name: str):
+    try:
+        return importlib.metadata.version(name)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def _describe(versions) -> str:
+    return ", ".join(f"{name} {versions[name] or 'missing'}" for name in PINNED)
+
+
+def check_worker_versions(client, spec: str = "dask"):
+    """Raise a one-line ValueError when a worker now connected to ``client`` has another
+    version of a `PINNED` distribution than this process (or lacks it). Asked of each
+    worker with `importlib.metadata.version` itself, so a worker without reachwatch is
+    reported, not an unpickling error."""
+    mine = {name: _version(name) for name in PINNED}
+    theirs = {}
+    for name in PINNED:
+        answers = client.run(importlib.metadata.version, name, on_error="return")
+        for worker, answer in answers.items():
+            theirs.setdefault(worker, {})[name] = answer if isinstance(answer, str) else None
+    for worker, versions in sorted(theirs.items()):
+        if versions != mine:
+            raise ValueError(f"--executor {spec}: the worker at {worker} has "
+                             f"{_describe(versions)}, this process {_describe(mine)}; "
+                             f"install the same versions on every worker")
 
 
 def make_executor(spec: str, *, connect_timeout: float = 10.0):
@@ -37,6 +72,11 @@ def make_executor(spec: str, *, connect_timeout: float = 10.0):
         except (OSError, TimeoutError) as e:
             raise ValueError(f"--executor {spec}: no Dask scheduler answered at {address} "
                              f"within {connect_timeout:g} s ({type(e).__name__})") from None
+        try:
+            check_worker_versions(client, spec)
+        except BaseException:
+            client.close()
+            raise
         return client.get_executor(), lambda abort=False: client.close()
     raise ValueError(f"--executor must be local, local:N, inline or dask://HOST:PORT, got "
                      f"{short(spec)}")

@@ -199,7 +199,22 @@ class _DiagramProbe:
             return out
 
 
-_PROBES = {}     # per worker process: key -> _DiagramProbe, built once
+#: Per worker *thread*: ``probes`` (key -> _DiagramProbe), built once by the thread that
+#: uses it. A Drake Context is not thread-safe, and a VTK/EGL render context works only
+#: on the thread that created it (on any other, eglMakeCurrent fails and the camera
+#: returns a stale or blank image: wrong steering, no error), so a worker that runs
+#: several threads (``dask worker`` runs one per core) gives each its own diagram.
+_THREAD = threading.local()
+
+
+def _thread_probe(factory, probe: Probe, key: str, state_dim: int) -> "_DiagramProbe":
+    """This thread's `_DiagramProbe` for ``key``, built on first use."""
+    probes = getattr(_THREAD, "probes", None)
+    if probes is None:
+        probes = _THREAD.probes = {}
+    if key not in probes:
+        probes[key] = _DiagramProbe(factory, probe, state_dim)
+    return probes[key]
 
 
 def _chunk_path(folder: Path, index: int) -> Path:
@@ -209,9 +224,8 @@ def _chunk_path(folder: Path, index: int) -> Path:
 def run_chunk(factory, probe: Probe, key: str, grid: Grid, index: int, start: int,
               stop: int, folder: str) -> str:
     """Evaluate nodes ``start:stop`` (flat C order) and write the chunk file."""
-    if key not in _PROBES:
-        _PROBES[key] = _DiagramProbe(factory, probe, grid.ndim)
-    arrays = _PROBES[key].evaluate(grid.states(np.arange(start, stop)))
+    arrays = _thread_probe(factory, probe, key, grid.ndim).evaluate(
+        grid.states(np.arange(start, stop)))
     buffer = io.BytesIO()
     np.savez(buffer, start=start, stop=stop, **{f"port{k}": a for k, a in enumerate(arrays)})
     return str(atomic_write_bytes(_chunk_path(Path(folder), index), buffer.getvalue()))
@@ -219,12 +233,11 @@ def run_chunk(factory, probe: Probe, key: str, grid: Grid, index: int, start: in
 
 def evaluate_states(factory, probe: Probe, key: str, states) -> dict:
     """``probe.ports`` at each of ``states`` ``(n, ndim)`` as ``{"port0": (n, size),
-    ...}`` (in ``probe.ports`` order); the diagram is built once per process and
+    ...}`` (in ``probe.ports`` order); the diagram is built once per worker thread and
     ``key``. For `reach.outcomes.map_states` (cached, chunked, on any executor)."""
     states = np.asarray(states, float)
-    if key not in _PROBES:
-        _PROBES[key] = _DiagramProbe(factory, probe, states.shape[1])
-    return {f"port{k}": a for k, a in enumerate(_PROBES[key].evaluate(states))}
+    arrays = _thread_probe(factory, probe, key, states.shape[1]).evaluate(states)
+    return {f"port{k}": a for k, a in enumerate(arrays)}
 
 
 @dc.dataclass
@@ -304,7 +317,8 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
         raise ValueError("the probe names no port to read")
     global _ON_STATE
     checked, key = key is not None, key or sweep_key(factory, grid, probe, name=name)
-    folder = Path(cache_dir) / key
+    # absolute: a worker writes its chunks itself, and may run in another directory
+    folder = Path(cache_dir).absolute() / key
     folder.mkdir(parents=True, exist_ok=True)
     if checked:            # a derived key is the fingerprint; a given one must match it
         _check_fingerprint(folder, factory, grid, probe, key)

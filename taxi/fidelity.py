@@ -6,6 +6,7 @@ detector's score along real runs (what the guard's tables miss between nodes).""
 import copy
 import dataclasses as dc
 import functools
+import threading
 
 import numpy as np
 import torch
@@ -28,7 +29,11 @@ from .sweeps import resolved
 #: the run has failed, and it stops there.
 OPEN_AXES = (1, 2)
 
-_LOOPS = {}         # per process: scenario fingerprint -> (diagram, context), built once
+#: Per worker *thread*: ``loops`` ((make, scenario fingerprint) -> (diagram, context)),
+#: built once by the thread that runs it. Two threads never share a Context (a
+#: Simulator on it would see the other's time) nor a VTK/EGL render context (it
+#: renders only on the thread that created it).
+_LOOPS = threading.local()
 
 
 def on_runway_starts(box, count: int, seed, *, half_width: float) -> np.ndarray:
@@ -43,12 +48,16 @@ def on_runway_starts(box, count: int, seed, *, half_width: float) -> np.ndarray:
 
 
 def _loop(scenario, make):
-    """The diagram ``make(scenario)`` and a context for it, built once per process."""
+    """The diagram ``make(scenario)`` and a context for it, built once per thread (a
+    Dask worker runs tasks on several threads of one process)."""
+    loops = getattr(_LOOPS, "loops", None)
+    if loops is None:
+        loops = _LOOPS.loops = {}
     key = (make.__name__, fingerprint(scenario))
-    if key not in _LOOPS:
+    if key not in loops:
         diagram = make(scenario)
-        _LOOPS[key] = diagram, diagram.CreateDefaultContext()
-    return _LOOPS[key]
+        loops[key] = diagram, diagram.CreateDefaultContext()
+    return loops[key]
 
 
 def taxi_rollouts(scenario, duration: float, grid, states) -> dict:

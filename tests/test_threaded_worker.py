@@ -1,0 +1,111 @@
+"""A Dask worker that runs two threads, started in another directory (``dask worker
+--nthreads 2``, as the cluster guide starts one, gets a thread per core): each thread
+builds and keeps its own diagram and Context, so a sweep and real-loop runs through
+``--executor dask://...`` equal the same run in this process. With one diagram per
+process, renders on a thread other than the one that built it failed (eglMakeCurrent)
+and left nodes with wrong steering, and runs sharing one Context broke each other's
+Simulator ('Simulation time has changed since last Initialize()')."""
+
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import load_scenario
+from reachwatch.pipeline import executors
+from reachwatch.pipeline.executors import make_executor
+from reachwatch.reach import InlineExecutor
+from reachwatch.taxi import on_runway_starts, paper_grid, sweep_closed_loop
+from reachwatch.taxi.fidelity import real_outcomes
+
+distributed = pytest.importorskip("dask.distributed")
+
+SCENARIO = "environment: {runway: KMWH, hour: 9.0, sky: clear}\n"
+
+
+@pytest.fixture(scope="module")
+def two_thread_worker(tmp_path_factory):
+    """``(scheduler address, worker log path)``: a scheduler here and one ``dask worker
+    --nthreads 2`` process whose working directory is a folder of its own."""
+    root = tmp_path_factory.mktemp("threaded_worker")
+    elsewhere = root / "elsewhere"
+    elsewhere.mkdir()
+    log_path = root / "worker.log"
+    with distributed.LocalCluster(n_workers=0, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        address = cluster.scheduler_address
+        env = dict(os.environ, OMP_NUM_THREADS="1")
+        with open(log_path, "wb") as log:
+            worker = subprocess.Popen(
+                [sys.executable, "-m", "distributed.cli.dask_worker", address,
+                 "--nthreads", "2", "--nworkers", "1", "--no-nanny", "--host", "127.0.0.1",
+                 "--no-dashboard", "--memory-limit", "0", "--death-timeout", "60"],
+                cwd=elsewhere, env=env, stdout=log, stderr=subprocess.STDOUT)
+        try:
+            with distributed.Client(address) as client:
+                deadline = time.monotonic() + 120
+                while not client.nthreads() and worker.poll() is None \
+                        and time.monotonic() < deadline:
+                    time.sleep(0.2)
+                assert list(client.nthreads().values()) == [2], log_path.read_text()[-3000:]
+            yield address, log_path
+        finally:
+            worker.terminate()
+            try:
+                worker.wait(30)
+            except subprocess.TimeoutExpired:
+                worker.kill()
+                worker.wait(10)
+
+
+def test_a_two_thread_worker_sweeps_and_runs_the_real_loop_as_this_process_does(
+        tmp_path, monkeypatch, two_thread_worker):
+    address, log_path = two_thread_worker
+    scenario = load_scenario(data=SCENARIO)
+    B = scenario.environment.half_width
+    grid = paper_grid(B, (3, 3, 3))
+    starts = on_runway_starts(grid, 8, 0, half_width=B)
+    driver = tmp_path / "driver"
+    driver.mkdir()
+    monkeypatch.chdir(driver)          # a relative sweep cache: the worker is elsewhere
+    inline = sweep_closed_loop(scenario, grid, cache_dir="inline_sweeps",
+                               executor=InlineExecutor(), chunk_size=3, progress=False)
+    runs = real_outcomes(scenario, starts, grid=grid, duration=0.5, executor=InlineExecutor(),
+                         cache_dir=driver / "inline_runs", progress=False)
+    executor, close = make_executor("dask://" + address.split("://", 1)[1])
+    try:     # 9 chunks of 3 nodes, 4 of 2 runs: both threads take some
+        dask = sweep_closed_loop(scenario, grid, cache_dir="dask_sweeps", executor=executor,
+                                 chunk_size=3, progress=False)
+        assert dask.computed == inline.computed == grid.size
+        assert set(dask.tables) == set(inline.tables)
+        for port, table in inline.tables.items():
+            wrong = np.any(dask.tables[port] != table, axis=-1)
+            assert not wrong.any(), (
+                f"{port}: {int(wrong.sum())} of {grid.size} nodes differ, by up to "
+                f"{np.max(np.abs(dask.tables[port] - table)):.3g}")
+        dask_runs = real_outcomes(scenario, starts, grid=grid, duration=0.5,
+                                  executor=executor, cache_dir=driver / "dask_runs",
+                                  progress=False)
+    finally:
+        close()
+    assert dask_runs.computed == runs.computed == len(starts)
+    assert set(dask_runs.fields) == set(runs.fields)
+    for name, values in runs.fields.items():
+        assert np.array_equal(dask_runs[name], values, equal_nan=True), name
+    assert runs["ticks"].min() > 1             # real runs, not starts already off the runway
+    assert "eglMakeCurrent" not in log_path.read_text(errors="replace")
+
+
+def test_a_worker_with_other_versions_is_refused_in_one_line(monkeypatch, two_thread_worker):
+    address, _ = two_thread_worker
+    real = executors._version
+    monkeypatch.setattr(executors, "_version",
+                        lambda name: "0.0.0" if name == "drake" else real(name))
+    with pytest.raises(ValueError) as error:
+        make_executor("dask://" + address.split("://", 1)[1])
+    message = str(error.value)
+    assert "\n" not in message and "drake 1" in message and "drake 0.0.0" in message
+    assert "install the same versions on every worker" in message
