@@ -15,6 +15,7 @@ from .detector_sections import (detector_verdicts, percent_text as _pct, target_
                                 threshold_section)
 from .guard_sections import guard_section
 from .monitor_study import monitor_section
+from .summary_section import summary_section
 from .stages import Run
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;
@@ -127,10 +128,7 @@ def write_report(run: Run) -> dict:
     """Write ``report.html`` and ``report.md``; returns their paths (relative)."""
     spec, o = run.spec, run.outputs
     page = Page(f"reachwatch run '{spec.name}'")
-    page.text("Stage records (OUT/stages/*.json); a re-run skips a stage whose key is "
-              "unchanged, and keeps the time of the run that produced it.")
-    page.table(["stage", "key", "seconds", "finished"],
-               [[n, r["key"], f"{r['seconds']:.1f}", r["finished"]] for n, r in run.records.items()])
+    summary_section(page, run)
     page.section("Environments", "environments")
     sheet = write_png(run.path("figures/environments.png"), environment_sheet(
         run.environments(), per_row=4, camera=spec.scenario.camera))
@@ -222,6 +220,11 @@ def write_report(run: Run) -> dict:
                      f"loops side by side in alternating 0.5 s blocks), "
                      f"median per-round ratio {on['ratio']:.2f}"])
     page.table(["what", "figure"], rows)
+    page.section("Stage records", "stages")
+    page.text("Stage records (OUT/stages/*.json); a re-run skips a stage whose key is "
+              "unchanged, and keeps the time of the run that produced it.")
+    page.table(["stage", "key", "seconds", "finished"],
+               [[n, r["key"], f"{r['seconds']:.1f}", r["finished"]] for n, r in run.records.items()])
     page.section("Configuration", "configuration")
     page.pre((run.root / "run.yaml").read_text())
     text_html, text_md = page.done()

@@ -98,6 +98,14 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     assert "Runtime monitor on environments it has never seen" in md
     assert "Guarded real loop" in md and html.count("<table>") >= 3
     assert (tmp_path / "out" / result["reliability_figure"]).stat().st_size > 1000
+    from reachwatch.pipeline.summary_section import summary_rows
+    rows = {row[0].split(" (")[0].split(",")[0]: row for row in summary_rows(Run())}
+    assert rows["labels against the real loop"][1].startswith("not checked")
+    miss = result["variants"][result["kept"]]["held_out"]["pooled"]["miss"]
+    assert rows["monitor miss rate"][1] == "-" if not miss["of"] else \
+        rows["monitor miss rate"][1].endswith(f"({miss['count']}/{miss['of']})")
+    assert rows["failures prevented"][3] in ("meets", "misses", "-")
+    assert rows["calibration error"][3] in ("meets", "misses")
     assert "out/reliability.png" in md
 
 

@@ -1,0 +1,90 @@
+"""The report's opening: the few figures a reviewer wants first, each with its 95 %
+interval, its target and whether it meets it: how true the labels are (the real loop
+the judge), and, when the run has a monitor study, the monitor's miss rate on
+held-out environments, the failures it prevents and the needless stops it causes in
+the guarded real loop, and its calibration."""
+
+import json
+
+from reachwatch.reach.fidelity import wilson_interval
+
+from .fidelity_sections import LABEL_TARGET, labels_meet_target
+
+#: The monitor study's targets: a miss rate and a needless-stop rate of at most 10 %
+#: whose 95 % upper bounds stay within 13 %, and a calibration error of at most 0.05.
+MONITOR_TARGETS = {"miss": (0.10, 0.13), "needless": (0.10, 0.13), "ece": 0.05}
+
+
+def _interval(count, of):
+    if not of:
+        return "-", None, None
+    lo, hi = wilson_interval(count, of)
+    return f"{100 * count / of:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}] ({count}/{of})", \
+        count / of, hi
+
+
+def _verdict(ok):
+    return "-" if ok is None else ("meets" if ok else "misses")
+
+
+def summary_rows(run) -> list:
+    """``[figure, value with interval, target, verdict]`` rows of the summary."""
+    rows = []
+    checked = {n: r for n, r in (run.outputs.get("fidelity") or {}).items()
+               if isinstance(r, dict) and "labels" in r}
+    if checked:
+        agree = sum(round(r["labels"]["agree_rate"] * r["labels"]["n"]) for r in checked.values())
+        false_safe = sum(round(r["labels"]["false_safe_rate"] * r["labels"]["n"])
+                         for r in checked.values())
+        n = sum(r["labels"]["n"] for r in checked.values())
+        met = sum(labels_meet_target(r) for r in checked.values())
+        rows.append(["labels agree with the real loop (pooled fresh starts)",
+                     _interval(agree, n)[0],
+                     f">= {100 * LABEL_TARGET['agree']:g} % in every environment",
+                     f"{_verdict(met == len(checked))} ({met} of {len(checked)} environments)"])
+        rows.append(["labels false-safe (pooled fresh starts)", _interval(false_safe, n)[0],
+                     f"<= {100 * LABEL_TARGET['false_safe']:g} % in every environment", "-"])
+    else:
+        rows.append(["labels against the real loop", "not checked (fidelity.starts: 0)", "-",
+                     "-"])
+    outputs = run.outputs.get("monitor") or {}
+    if not outputs:
+        rows.append(["monitor on unseen environments", "no monitor study (monitor.kind: "
+                     "detector); see the safety pipeline section", "-", "-"])
+        return rows
+    result = json.loads(run.path(outputs["result"]).read_text())
+    kept = result["variants"][result["kept"]]
+    miss = kept["held_out"]["pooled"]["miss"]
+    text, rate, hi = _interval(miss["count"], miss["of"])
+    target, upper = MONITOR_TARGETS["miss"]
+    rows.append([f"monitor miss rate, held-out environments ({result['kept']}; a failing run "
+                 f"with no flag {result['lead_s']:.2f} s before it fails)", text,
+                 f"<= {100 * target:g} % (upper bound <= {100 * upper:g} %); conformal bound "
+                 f"{100 * result['alpha']:g} % expected",
+                 _verdict(None if rate is None else rate <= target and hi <= upper)])
+    guarded = result["guarded"].get(result["kept"])
+    if guarded:
+        text, rate, _ = _interval(guarded["prevented"], guarded["failed_alone"])
+        oracle = result["oracle"]["held_out"]["pooled"]["miss"]
+        ceiling = 1 - oracle["rate"] if oracle["of"] else None
+        rows.append(["failures prevented, guarded real loop (braking)", text,
+                     ">= 85 % of what the oracle monitor prevents" +
+                     (f" (the oracle warns {100 * ceiling:.1f} % in time)" if ceiling else ""),
+                     _verdict(None if rate is None or not ceiling else rate >= 0.85 * ceiling)])
+        text, rate, hi = _interval(guarded["needless_stops"], guarded["safe_alone"])
+        target, upper = MONITOR_TARGETS["needless"]
+        rows.append(["needless stops, guarded real loop (of the runs the loop alone survives)",
+                     text, f"<= {100 * target:g} % (upper bound <= {100 * upper:g} %)",
+                     _verdict(None if rate is None else rate <= target and hi <= upper)])
+    else:
+        rows.append(["guarded real loop", "not run (monitor.guarded_runs: 0)", "-", "-"])
+    ece = kept["held_out"]["ece"]
+    rows.append(["calibration error (ECE) of the risk, held-out environments", f"{ece:.3f}",
+                 f"<= {MONITOR_TARGETS['ece']:g}", _verdict(ece <= MONITOR_TARGETS["ece"])])
+    return rows
+
+
+def summary_section(page, run):
+    """The report's first section: `summary_rows` as a table."""
+    page.section("Summary", "summary")
+    page.table(["figure", "value [95 % CI]", "target", "verdict"], summary_rows(run))
