@@ -1,4 +1,9 @@
-"""The ``reachwatch`` command line."""
+"""The ``reachwatch`` command line.
+
+Building the parser (and so ``--help`` and a refused argument) imports neither drake
+nor torch: the subcommand modules import those inside the functions that run a
+command, and `main` imports `reachwatch.systems` (its process-wide settings first)
+only once the arguments are parsed."""
 
 import argparse
 import importlib.metadata
@@ -6,10 +11,8 @@ import signal
 import sys
 import threading
 
-from reachwatch.systems.checks import clip
-
-from . import (commands, console, evaluate_commands, guard_commands, reach_commands, run,
-               simulate_commands, taxinet_commands)
+from . import (commands, console, evaluate_commands, guard_commands, reach_commands,
+               run_commands, simulate_commands, taxinet_commands)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     reach_commands.add_parsers(sub)
     evaluate_commands.add_parsers(sub)
     guard_commands.add_parsers(sub)
-    run.add_parsers(sub)
+    run_commands.add_parsers(sub)
     return parser
 
 
@@ -69,22 +72,28 @@ KEPT = ("finished work is kept (stage records, sweep and dataset chunks, checkpo
         "written atomically); run the same command again to resume")
 
 
+def _clip(text: str) -> str:
+    from reachwatch.systems.checks import clip
+    return clip(text)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     console.setup(-1 if args.quiet else (1 if args.verbose else 0))
+    import reachwatch.systems  # noqa: F401  (first: process-wide settings before torch loads)
     previous = signal.getsignal(signal.SIGTERM)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
     try:
         return args.func(args) or 0
     except (ValueError, FileNotFoundError) as e:  # bad input: say what, exit 2
-        print(clip(f"reachwatch {args.command}: error: {e}"), file=sys.stderr)
+        print(_clip(f"reachwatch {args.command}: error: {e}"), file=sys.stderr)
         return 2
     except (PermissionError, FileExistsError, NotADirectoryError, IsADirectoryError) as e:
         # e.g. --out naming a file where a folder goes
         blocked = isinstance(e, (FileExistsError, NotADirectoryError))
-        print(clip(f"reachwatch {args.command}: error: cannot write {e.filename}: {e.strerror}"
-                   + (" (a file stands where a folder is needed)" if blocked else "")),
+        print(_clip(f"reachwatch {args.command}: error: cannot write {e.filename}: {e.strerror}"
+                    + (" (a file stands where a folder is needed)" if blocked else "")),
               file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:

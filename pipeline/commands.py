@@ -1,13 +1,14 @@
-"""Implementations of the ``reachwatch`` subcommands (argparse namespaces in, files out)."""
+"""Implementations of the ``reachwatch`` subcommands (argparse namespaces in, files out).
+
+The command line builds its parser from these modules without drake or torch (so that
+``--help`` is quick): each ``*_commands`` module imports only the standard library and
+this package's light modules at the top, and its heavy imports inside the functions
+that run a command."""
 
 import argparse
 import math
+import os
 from pathlib import Path
-
-
-from reachwatch.diagrams import (Scenario, StateRenderer, export_graph, write_png,
-                                 initial_state_vector, load_scenario, make_world_diagram)
-from reachwatch.diagrams.contact_sheet import contact_sheet
 
 from .console import bar, log
 
@@ -41,14 +42,50 @@ horizon_seconds = number_type(float, 0.0, True, "a finite number > 0 of at most 
 mission_multiple = number_type(float, 1.0, False, "a multiple of the horizon in [1, 100]", most=100.0)
 
 
-def scenario_from_args(args) -> Scenario:
+def scenario_from_args(args):
     """The ``--scenario`` file, or the built-in defaults when none is given."""
+    from reachwatch.diagrams import Scenario, load_scenario
     return load_scenario(args.scenario) if args.scenario else Scenario().validate()
 
 
+def check_detector(scenario, path) -> None:
+    """Raise a ValueError when ``scenario`` (from the file ``path``; None: the built-in
+    defaults) names no detector checkpoint for the guarded loop, or a file that is not
+    one; cheap, so commands call it before their work."""
+    from reachwatch.diagrams.checkpoints import checkpoint_kind
+    if not scenario.monitor.detector:
+        raise ValueError(f"{f'--scenario {path}' if path else 'the built-in scenario'}: "
+                         f"monitor.detector is not set; the guarded loop needs a detector "
+                         f"checkpoint (train one with 'reachwatch evaluate')")
+    checkpoint_kind(scenario.monitor.detector)
+
+
+def output_folder(path) -> Path:
+    """``path`` as a folder the command can write to, made now so that a file standing
+    where it goes, or a folder it may not write in, fails before any work (the command
+    line reports the `OSError` and exits 2)."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise PermissionError(13, "Permission denied", str(path))
+    return path
+
+
+def output_file(path) -> Path:
+    """``path`` as a file the command can write at its end: not a folder, in a folder
+    that is made now and can be written (`output_folder`)."""
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(21, "Is a directory", str(path))
+    output_folder(path.parent)
+    return path
+
+
 def render(args):
+    from reachwatch.diagrams import StateRenderer, initial_state_vector, write_png
+    from reachwatch.diagrams.contact_sheet import contact_sheet
     scenario = scenario_from_args(args)
-    out = Path(args.out)
+    out = output_folder(args.out)
     state = initial_state_vector(scenario.initial_state)
     if args.contact_sheet:
         sheet = contact_sheet(state=state, camera=scenario.camera,
@@ -61,7 +98,9 @@ def render(args):
 
 
 def graph(args):
+    from reachwatch.diagrams import export_graph, make_world_diagram
     scenario = scenario_from_args(args)
+    out = output_folder(args.out)
     diagram = make_world_diagram(scenario)
-    for path in export_graph(diagram, Path(args.out) / "world", max_depth=args.max_depth):
+    for path in export_graph(diagram, out / "world", max_depth=args.max_depth):
         log.info(path)

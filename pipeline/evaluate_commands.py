@@ -3,25 +3,21 @@ to its evaluate stage, configured from the command line)."""
 
 import dataclasses as dc
 
-
-from reachwatch.systems import DetectorConfig, Environment, test_environments, training_environments
-from reachwatch.training.dataset import DatasetSpec
-from reachwatch.training.labels import DISTRUSTED_CHOICES, LABEL_SOURCES, LabelSpec
-from reachwatch.training.detector_train import DetectorTrainConfig
-from reachwatch.training.evaluation import markdown_table
-from reachwatch.training.incremental import IncrementalConfig
-
 from .console import log
-from .detector_sections import target_section
 from .commands import count, grid_nodes, positive_int, scenario_from_args, seed_number
-from .executors import open_executor
-from .report import Page
-from .run import run_pipeline
-from .spec import EnsembleSpec, FidelitySpec, RunSpec
+
+#: What the parser shows of the library, here so that building it needs no torch (a
+#: test keeps each the same as ``reachwatch.training``'s): the label sources and
+#: ``--distrusted`` choices, the dataset's images per environment and the detector's
+#: epochs.
+LABEL_SOURCES = ("brt", "rollout", "hybrid", "trajectory")
+DISTRUSTED_CHOICES = ("rollout", "trajectory")
+DATASET_SAMPLES, DETECTOR_EPOCHS = 2000, 6
 
 
-def parse_environment(text: str) -> Environment:
+def parse_environment(text: str):
     """``RUNWAY:HOUR:SKY`` (e.g. ``KSFO:17:overcast``) -> a validated `Environment`."""
+    from reachwatch.systems import Environment
     parts = text.split(":")
     if len(parts) != 3:
         raise ValueError(f"environment '{text}' must read RUNWAY:HOUR:SKY, e.g. KMWH:9:clear")
@@ -40,28 +36,35 @@ def add_parsers(sub):
     p = sub.add_parser("evaluate", help="BRTs, BRT-labelled datasets, the anomaly detector, "
                        "baselines and the paper's Table 2 on held-out environments")
     p.add_argument("--scenario", help="scenario YAML for camera/controller settings")
-    p.add_argument("--train", nargs="+", default=_names(training_environments()),
-                   help="training environments RUNWAY:HOUR:SKY (default: the paper's 12)")
-    p.add_argument("--test", nargs="+", default=_names(test_environments()),
-                   help="held-out environments (default: the paper's 12)")
+    p.add_argument("--train", nargs="+", default=None,
+                   help="training environments RUNWAY:HOUR:SKY (default: "
+                   "training_environments(), the paper's 12)")
+    p.add_argument("--test", nargs="+", default=None,
+                   help="held-out environments (default: test_environments(), the paper's "
+                   "18 held-out environments)")
     p.add_argument("--shape", type=grid_nodes, nargs=3, default=[21, 21, 21], help="BRT grid")
-    p.add_argument("--samples", type=positive_int, default=DatasetSpec.samples, help="images per environment")
-    p.add_argument("--arch", choices=["small_cnn", "efficientnet_b0"], default="small_cnn")
-    p.add_argument("--input-size", type=positive_int, nargs=2, default=[96, 160], metavar=("H", "W"))
+    p.add_argument("--samples", type=positive_int, default=DATASET_SAMPLES, help="images per environment")
+    p.add_argument("--arch", choices=["small_cnn", "efficientnet_b0"], default="small_cnn",
+                   help="anomaly detector architecture (default: small_cnn)")
+    p.add_argument("--input-size", type=positive_int, nargs=2, default=[96, 160],
+                   metavar=("H", "W"),
+                   help="the detector's input image size in pixels (default: 96 160)")
     p.add_argument("--pretrained", default="", help="local EfficientNet-B0 ImageNet state_dict "
                    "file (never downloaded)")
-    p.add_argument("--epochs", type=positive_int, default=DetectorTrainConfig.epochs)
+    p.add_argument("--epochs", type=positive_int, default=DETECTOR_EPOCHS,
+                   help=f"detector training epochs (default: {DETECTOR_EPOCHS})")
     p.add_argument("--threshold", type=float, default=0.5,
                    help="decision threshold when --target-recall is 0")
     p.add_argument("--target-recall", type=float, default=0.95,
                    help="operate at the highest threshold reaching this recall on the "
                         "training validation split (0: use --threshold)")
     p.add_argument("--ensemble", type=count, default=5, help="TaxiNets in the ensemble baseline")
-    p.add_argument("--seed", type=seed_number, default=0)
+    p.add_argument("--seed", type=seed_number, default=0,
+                   help="seed of the datasets' samples and of the detector's training")
     p.add_argument("--labels", choices=LABEL_SOURCES, default="brt",
                    help="label source: the BRT, the real loop from every state, rollouts "
                    "where the BRT is not trusted, or the real loop's runs and the states "
-                   "they pass through (see the README)")
+                   "they pass through (see docs/concepts.md#label-sources)")
     p.add_argument("--distrusted", choices=DISTRUSTED_CHOICES, default="rollout",
                    help="with --labels hybrid: where the audit distrusts the map, roll out "
                    "every sample it calls safe, or label by runs read along (trajectory)")
@@ -77,18 +80,31 @@ def add_parsers(sub):
 def target_text(rows, groups, config) -> str:
     """The report's Table 2 against the target (`target_section`) as Markdown for the
     console; empty when ``rows`` hold no detector rows."""
+    from .detector_sections import target_section
+    from .report import Page
     page = Page("target")
     target_section(page, rows, groups, config)
     return "\n".join(page.md[1:])          # after the page's title
 
 
 def evaluate_command(args):
+    from reachwatch.systems import DetectorConfig, test_environments, training_environments
+    from reachwatch.training.dataset import DatasetSpec
+    from reachwatch.training.detector_train import DetectorTrainConfig
+    from reachwatch.training.evaluation import markdown_table
+    from reachwatch.training.incremental import IncrementalConfig
+    from reachwatch.training.labels import LabelSpec
+
+    from .executors import open_executor
+    from .run import run_pipeline
+    from .spec import EnsembleSpec, FidelitySpec, RunSpec
     height, width = args.input_size
     detector = DetectorConfig(arch=args.arch, height=height, width=width)
     spec = RunSpec(
         name="evaluate", scenario=scenario_from_args(args),
-        train=[parse_environment(t) for t in args.train],
-        test=[parse_environment(t) for t in args.test], grid=list(args.shape),
+        train=[parse_environment(t) for t in args.train or _names(training_environments())],
+        test=[parse_environment(t) for t in args.test or _names(test_environments())],
+        grid=list(args.shape),
         dataset=DatasetSpec(samples=args.samples, seed=args.seed, height=height, width=width,
                             labels=LabelSpec(source=args.labels,
                                                 distrusted=args.distrusted)),

@@ -6,19 +6,13 @@ import json
 import time
 from pathlib import Path
 
-from reachwatch.diagrams import load_scenario
-from reachwatch.systems.files import atomic_write_bytes, cache_root
-from reachwatch.reach.liveness import liveness_figures, percent, same_distance
-from reachwatch.systems import DEFAULT_FALLBACKS, fallback_parts
-from reachwatch.taxi import UNGUARDED, fallback_rollouts, paper_grid, sweep_guarded
-from reachwatch.taxi.guarded import tradeoff_curves, tradeoff_row
-from reachwatch.taxi.plots import plot_failure_sets, plot_tradeoff
-
-from .commands import (count, grid_nodes, horizon_seconds, mission_multiple, open_share,
-                       positive_int, seed_number)
+from .commands import (check_detector, count, grid_nodes, horizon_seconds, mission_multiple,
+                       open_share, output_folder, positive_int, seed_number)
 from .console import log
-from .executors import open_executor
-from .online_stages import budget_threshold, guard_check, noisy_guard_figures
+
+#: ``reachwatch.systems.DEFAULT_FALLBACKS``, here so that the parser needs no torch
+#: (a test keeps the two the same).
+DEFAULT_FALLBACKS = ("slow_down", "brake", "slow_down+dead_reckoning", "slow_down+oracle")
 
 
 def add_parsers(sub):
@@ -27,13 +21,17 @@ def add_parsers(sub):
                        "fallback, with their liveness (starts ended stopped, needless stops, "
                        "distance travelled, ticks flagged) and the trade-off as the detector "
                        "threshold sweeps, from one sweep of the guarded diagram")
-    g.add_argument("--scenario", required=True, help="scenario YAML with pipeline.detector")
-    g.add_argument("--shape", type=grid_nodes, nargs=3, default=[41, 41, 41])
+    g.add_argument("--scenario", required=True, help="scenario YAML with monitor.detector "
+                   "(the detector checkpoint the guarded loop runs)")
+    g.add_argument("--shape", type=grid_nodes, nargs=3, default=[41, 41, 41],
+                   metavar=("NPX", "NPY", "NTHETA"),
+                   help="grid nodes over the paper's box (default: 41 41 41)")
     g.add_argument("--horizon", type=horizon_seconds, default=8.0, help="s")
     g.add_argument("--fallbacks", nargs="+", type=_fallback,
                    default=list(DEFAULT_FALLBACKS),
                    help="speed strategy, optionally '+' the steering while flagged "
-                        "(dead_reckoning; oracle is privileged, a reference only)")
+                        "(dead_reckoning; oracle is privileged, a reference only); "
+                        f"default: {' '.join(DEFAULT_FALLBACKS)}")
     g.add_argument("--tradeoff-points", type=positive_int, default=9,
                    help="detector thresholds on the trade-off curve")
     g.add_argument("--check-starts", type=count, default=0,
@@ -60,13 +58,16 @@ def add_parsers(sub):
                         "up to this many horizons, until they cover the distance the "
                         "controller alone covers within it (a slower aircraft on the same "
                         "path otherwise fails only later)")
-    g.add_argument("--out", required=True)
+    g.add_argument("--out", required=True, help="output folder (guard_ENV.json, the "
+                   "failure-set and trade-off plots)")
     g.add_argument("--executor", default="local", help="local (one worker per core) | local:N | inline | dask://HOST:PORT")
-    g.add_argument("--cache", default=None)
+    g.add_argument("--cache", default=None, help="cache folder of the guarded sweep and the "
+                   "real-loop runs (default: $REACHWATCH_CACHE or ~/.cache/reachwatch)")
     g.set_defaults(func=guard_command)
 
 
 def _fallback(text):
+    from reachwatch.systems import fallback_parts
     try:
         fallback_parts(text)        # a clear error for a misspelt name, before any work
     except ValueError as e:
@@ -83,11 +84,23 @@ def _monitor_settings(monitor) -> str:
 
 
 def guard_command(args):
+    from reachwatch.diagrams import load_scenario
+    from reachwatch.reach.liveness import liveness_figures, percent, same_distance
+    from reachwatch.systems.files import atomic_write_bytes, cache_root
+    from reachwatch.taxi import UNGUARDED, fallback_rollouts, paper_grid, sweep_guarded
+    from reachwatch.taxi.guarded import tradeoff_curves, tradeoff_row
+    from reachwatch.taxi.plots import plot_failure_sets, plot_tradeoff
+
+    from .executors import open_executor
+    from .online_stages import budget_threshold, guard_check, noisy_guard_figures
+
     scenario = load_scenario(args.scenario)
+    check_detector(scenario, args.scenario)      # before the sweep, not after it
     grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
     cache = Path(args.cache) if args.cache else cache_root()
     check, budget = {}, None
     with open_executor(args.executor) as executor:
+        out = output_folder(args.out)
         tables = sweep_guarded(scenario, grid, cache_dir=cache / "sweeps", executor=executor)
         if args.flag_budget is not None:
             budget = budget_threshold(scenario, grid, tables, args.fallbacks[0], args.flag_budget,
@@ -109,7 +122,6 @@ def guard_command(args):
     started = time.time()
     runs = fallback_rollouts(scenario, grid, tables, args.horizon, args.fallbacks,
                              mission_limit=args.mission_limit)
-    out = Path(args.out)
     name = scenario.environment.name
     volumes = {k: float(v.failed.mean()) for k, v in runs.items()}
     liveness = {f: liveness_figures(runs[UNGUARDED], runs[f]) for f in args.fallbacks}

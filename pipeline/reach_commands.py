@@ -4,19 +4,14 @@ import io
 import time
 from pathlib import Path
 
-import numpy as np
-
-from reachwatch.diagrams import CONTROL_PORT, ESTIMATE_PORT
-from reachwatch.reach import ACCURACIES, min_target_along_rollouts, sign_agreement, solve_brt
-from reachwatch.taxi import (dynamics_for, on_runway_starts, real_loop_fidelity, paper_grid,
-                             refine_closed_loop, steering_bounds, sweep_closed_loop)
-from reachwatch.taxi.plots import plot_brt_slices
-from reachwatch.systems.files import atomic_write_bytes, cache_root
-
 from .console import log, progress_enabled
 from .commands import (count, grid_nodes, horizon_seconds, non_negative_float, number_type,
-                       positive_float, positive_int, scenario_from_args, seed_number)
-from .executors import open_executor
+                       output_folder, positive_float, positive_int, scenario_from_args,
+                       seed_number)
+
+#: ``reachwatch.reach.ACCURACIES``' names, here so that the parser needs no torch (a
+#: test keeps the two the same).
+ACCURACIES = ("high", "low", "semi_lagrangian", "very_high")
 
 #: the solved box's bounds, as the run file's ``solved_theta_deg`` and ``solved_py_max``
 solved_theta = number_type(float, 28.0, False, "a number of degrees in [28, 180]", most=180.0)
@@ -51,7 +46,10 @@ def add_parsers(sub):
     b = sub.add_parser("brt", help="sweep, solve the HJB-VI, write the value function and "
                        "slice plots, print BRT volume and agreement with rollouts")
     _grid_args(b)
-    b.add_argument("--accuracy", choices=sorted(ACCURACIES), default="semi_lagrangian")
+    b.add_argument("--accuracy", choices=sorted(ACCURACIES), default="semi_lagrangian",
+                   help="HJB-VI scheme: semi_lagrangian (default; dynamic programming on the "
+                   "sampled-data loop), low (first-order upwind, Euler), high / very_high "
+                   "(WENO5, TVD-RK2 / RK3)")
     b.add_argument("--periods-per-step", type=positive_int, default=40,
                    help="semi_lagrangian: control periods per step; each step interpolates V "
                    "once, so fewer, longer steps blur a coarse grid's BRT less")
@@ -64,24 +62,44 @@ def add_parsers(sub):
     b.add_argument("--robust-spread", type=non_negative_float, default=None, metavar="DEG",
                    help="solve a robust BRT: where the swept steering ranges over more than "
                    "DEG across a node's neighbours, take its worst value in that range")
-    b.add_argument("--drake-starts", type=count, default=50,
-                   help="random starts run through the real Drake loop (0 skips)")
-    b.add_argument("--seed", type=seed_number, default=0)
+    b.add_argument("--drake-starts", type=count, default=0,
+                   help="also check the BRT against the real Drake closed loop (rendering "
+                   "every tick) from this many seeded random on-runway starts, with 95 %% "
+                   "Wilson intervals; each start costs a full-horizon simulation, so 50 "
+                   "take minutes (default: 0, no check; cached and resumable)")
+    b.add_argument("--seed", type=seed_number, default=0,
+                   help="seed of the --drake-starts starts")
     b.set_defaults(func=brt_command)
 
 
+def real_loop_fidelity(*args, **kwargs):
+    """`reachwatch.taxi.real_loop_fidelity`, imported when a command runs (and
+    replaceable here, as a test of the ``brt`` command does)."""
+    from reachwatch.taxi import real_loop_fidelity
+    return real_loop_fidelity(*args, **kwargs)
+
+
 def _sweep(args):
+    from reachwatch.systems.files import cache_root
+    from reachwatch.taxi import paper_grid, sweep_closed_loop
+
+    from .executors import open_executor
     scenario = scenario_from_args(args)
     grid = paper_grid(scenario.environment.half_width, tuple(args.shape),
                       theta_deg=args.solved_theta_deg, py_max=args.solved_py_max)
     started = time.time()
     with open_executor(args.executor) as executor:
+        output_folder(args.out)             # a bad --out fails before the sweep
         table = sweep_closed_loop(scenario, grid, cache_dir=args.cache or cache_root() / "sweeps",
                                   executor=executor, chunk_size=args.chunk_size)
     return scenario, grid, table, time.time() - started
 
 
 def sweep_command(args):
+    import numpy as np
+
+    from reachwatch.diagrams import CONTROL_PORT, ESTIMATE_PORT
+    from reachwatch.systems.files import atomic_write_bytes
     scenario, grid, table, seconds = _sweep(args)
     buffer = io.BytesIO()
     estimate = {"estimate": table[ESTIMATE_PORT]} if ESTIMATE_PORT in table.tables else {}
@@ -95,6 +113,14 @@ def sweep_command(args):
 
 
 def brt_command(args):
+    from reachwatch.diagrams import CONTROL_PORT
+    from reachwatch.reach import min_target_along_rollouts, sign_agreement, solve_brt
+    from reachwatch.systems.files import cache_root
+    from reachwatch.taxi import (dynamics_for, on_runway_starts, paper_grid, refine_closed_loop,
+                                 steering_bounds)
+    from reachwatch.taxi.plots import plot_brt_slices
+
+    from .executors import open_executor
     scenario, grid, table, _ = _sweep(args)
     dynamics = dynamics_for(scenario)
     started = time.time()

@@ -2,16 +2,8 @@
 from the scenario's start state."""
 
 import io
-from pathlib import Path
 
-import numpy as np
-
-from reachwatch.diagrams import initial_state_vector, make_closed_loop_diagram, simulate
-from reachwatch.diagrams.plots import plot_runway_top_view
-from reachwatch.systems.files import atomic_write_bytes
-from reachwatch.taxi import simulate_guarded
-
-from .commands import scenario_from_args
+from .commands import check_detector, output_folder, scenario_from_args
 from .console import log
 
 
@@ -29,6 +21,7 @@ def add_parsers(sub):
 
 
 def _columns(trajectory):
+    import numpy as np
     names = ["t_s", "px_m", "py_m", "theta_deg"]
     columns = [trajectory.time, trajectory.state[:, 0], trajectory.state[:, 1],
                np.rad2deg(trajectory.state[:, 2])]
@@ -39,8 +32,16 @@ def _columns(trajectory):
 
 
 def simulate_command(args):
+    import numpy as np
+
+    from reachwatch.diagrams import initial_state_vector, make_closed_loop_diagram, simulate
+    from reachwatch.diagrams.plots import plot_runway_top_view
+    from reachwatch.systems.files import atomic_write_bytes
+    from reachwatch.taxi import simulate_guarded
     scenario = scenario_from_args(args)
-    out = Path(args.out)
+    if args.loop == "guarded":
+        check_detector(scenario, args.scenario)
+    out = output_folder(args.out)
     if args.loop == "guarded":
         nominal, guarded, paths = simulate_guarded(scenario, out,
                                                    meshcat_html=not args.no_meshcat)
