@@ -1,0 +1,195 @@
+"""A controller over several files: its factory file imports a sibling helper. The
+folder is importable where the scenario is loaded and in spawned workers, without
+leaving the helper importable afterwards; the fingerprint covers every .py file in
+the folder, so editing the helper sweeps again; a broken factory is one line."""
+
+import os
+import py_compile
+import re
+import sys
+
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import CONTROL_PORT, ControllerConfig, load_scenario
+from reachwatch.diagrams.controller import factory_code_hash, make_controller, resolve_factory
+from reachwatch.reach import InlineExecutor, default_executor, stop_executor
+from reachwatch.taxi import paper_grid, sweep_closed_loop, taxi_sweep_key
+
+FACTORY = """\
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+from pydrake.systems.sensors import ImageRgba8U
+
+import lane_vision
+
+
+class Offset(LeafSystem):
+    def __init__(self):
+        super().__init__()
+        self.DeclareAbstractInputPort("color_image", AbstractValue.Make(ImageRgba8U()))
+        self.DeclareVectorOutputPort("steering_angle", 1, self._steer)
+
+    def _steer(self, context, output):
+        output.SetAtIndex(0, lane_vision.OFFSET)
+
+
+def make(config):
+    from lane_vision import OFFSET         # an import inside the factory finds it too
+    assert OFFSET == lane_vision.OFFSET
+    return Offset()
+"""
+
+
+def _controller(tmp_path, offset="0.0"):
+    folder = tmp_path / "mine"
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "follower.py").write_text(FACTORY)
+    (folder / "lane_vision.py").write_text(f"OFFSET = {offset}\n")
+    return f"{folder / 'follower.py'}:make"
+
+
+def _steering(controller):
+    from reachwatch.diagrams.controller import CONTROL_OUTPUT
+    context = controller.CreateDefaultContext()
+    return float(controller.GetOutputPort(CONTROL_OUTPUT).Eval(context)[0])
+
+
+def _steering_in_worker(factory):
+    return _steering(make_controller(ControllerConfig(factory=factory)))
+
+
+def test_a_two_file_controller_loads_here_and_in_a_worker_without_leaking(tmp_path):
+    factory = _controller(tmp_path, "0.25")
+    scenario = load_scenario(data=f"controller: {{factory: '{factory}'}}\n")
+    assert _steering(make_controller(scenario.controller)) == 0.25
+    assert "lane_vision" not in sys.modules            # not left importable for others
+    with pytest.raises(ImportError):
+        import lane_vision  # noqa: F401
+    pool = default_executor(1)
+    try:
+        assert pool.submit(_steering_in_worker, factory).result() == 0.25
+    finally:
+        stop_executor(pool)
+
+
+def test_two_folders_with_the_same_helper_name_keep_their_own(tmp_path):
+    one, two = _controller(tmp_path / "a", "1.0"), _controller(tmp_path / "b", "2.0")
+    assert _steering(make_controller(ControllerConfig(factory=one))) == 1.0
+    assert _steering(make_controller(ControllerConfig(factory=two))) == 2.0
+
+
+def test_the_fingerprint_covers_the_helper_and_nothing_outside_the_folder(tmp_path):
+    (tmp_path / "unrelated.py").write_text("X = 1\n")
+    factory = _controller(tmp_path)
+    before = factory_code_hash(factory)
+    (tmp_path / "unrelated.py").write_text("X = 2\n")
+    (tmp_path / "mine" / "__pycache__").mkdir()
+    (tmp_path / "mine" / "__pycache__" / "junk.py").write_text("")
+    (tmp_path / "mine" / ".hidden").mkdir()
+    (tmp_path / "mine" / ".hidden" / "junk.py").write_text("")
+    assert factory_code_hash(factory) == before
+    (tmp_path / "mine" / "lane_vision.py").write_text("OFFSET = 2.0\n")
+    assert factory_code_hash(factory) != before
+    (tmp_path / "mine" / "lane_vision.py").write_text("OFFSET = 0.0\n")
+    assert factory_code_hash(factory) == before
+    (tmp_path / "mine" / "tools").mkdir()
+    (tmp_path / "mine" / "tools" / "more.py").write_text("")   # importable as tools.more
+    assert factory_code_hash(factory) != before
+
+
+def _table(sweep):
+    return np.asarray(sweep[CONTROL_PORT])
+
+
+def test_editing_the_helper_sweeps_again(tmp_path):
+    scenario = load_scenario(data=f"controller: {{factory: '{_controller(tmp_path)}'}}\n")
+    grid = paper_grid(scenario.environment.half_width, (3, 3, 3))
+    kwargs = dict(cache_dir=tmp_path / "sweeps", executor=InlineExecutor(), progress=False)
+    first = sweep_closed_loop(scenario, grid, **kwargs)
+    assert first.computed == 27 and np.all(_table(first) == 0.0)
+    assert sweep_closed_loop(scenario, grid, **kwargs).computed == 0       # all cached
+    key = taxi_sweep_key(scenario, grid)
+    # Same size and time as a cached .pyc of the old file, which would pass for it.
+    helper = tmp_path / "mine" / "lane_vision.py"
+    py_compile.compile(str(helper), doraise=True)
+    stat = helper.stat()
+    helper.write_text("OFFSET = 0.1\n")
+    os.utime(helper, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert taxi_sweep_key(scenario, grid) != key
+    again = sweep_closed_loop(scenario, grid, **kwargs)
+    assert again.computed == 27 and np.all(_table(again) == 0.1)
+
+
+@pytest.mark.parametrize("helper, message", [
+    (None, "ModuleNotFoundError: No module named 'lane_vision' at "),
+    ("OFFSET = (\n", "SyntaxError: "),
+    ("OFFSET = 1 / 0\n", "ZeroDivisionError: division by zero at "),
+])
+def test_a_broken_folder_is_one_line_naming_the_factory(tmp_path, capsys, helper, message):
+    from reachwatch.pipeline import cli
+    factory = _controller(tmp_path)
+    (tmp_path / "mine" / "lane_vision.py").unlink()
+    if helper is not None:
+        (tmp_path / "mine" / "lane_vision.py").write_text(helper)
+    with pytest.raises(ValueError, match=re.escape(f"controller.factory '{factory}': importing "
+                                                   f"it failed: {message}")):
+        resolve_factory(factory)
+    path = tmp_path / "s.yaml"
+    path.write_text(f"controller: {{factory: '{factory}'}}\n")
+    assert cli.main(["render", "--scenario", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_a_missing_file_or_function_is_one_line(tmp_path):
+    factory = _controller(tmp_path)
+    with pytest.raises(ValueError, match="has no function 'missing'"):
+        resolve_factory(factory.replace(":make", ":missing"))
+    with pytest.raises(ValueError, match="controller.factory: file not found: "):
+        resolve_factory(factory.replace("follower.py", "nowhere.py"))
+
+
+def test_a_huge_folder_is_refused(tmp_path, monkeypatch):
+    from reachwatch.diagrams import controller
+    monkeypatch.setattr(controller, "MAX_SOURCE_ENTRIES", 5)
+    factory = _controller(tmp_path)
+    for i in range(6):
+        (tmp_path / "mine" / f"data_{i}.txt").write_text("")
+    with pytest.raises(ValueError, match="holds more than 5 files; put the controller's files "
+                                         "in a folder of their own"):
+        factory_code_hash(factory)
+
+
+def test_a_users_package_is_fingerprinted_whole_and_never_run_stale(tmp_path, monkeypatch):
+    package = tmp_path / "src" / "rw_test_pkg"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    relative = FACTORY.replace("import lane_vision", "from . import lane_vision")
+    (package / "follower.py").write_text(relative.replace("from lane_vision", "from .lane_vision"))
+    (package / "lane_vision.py").write_text("OFFSET = 0.5\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "src"))       # workers get the same sys.path
+    factory = "rw_test_pkg.follower:make"
+    pool = default_executor(1)
+    try:
+        before = factory_code_hash(factory)
+        assert _steering(make_controller(ControllerConfig(factory=factory))) == 0.5
+        (package / "lane_vision.py").write_text("OFFSET = 1.5\n")
+        with pytest.raises(ValueError, match="changed since this process imported them; start a "
+                                             "new process"):
+            factory_code_hash(factory)
+        assert pool.submit(factory_code_hash, factory).result() not in ("", before)
+        assert pool.submit(_steering_in_worker, factory).result() == 1.5
+    finally:
+        stop_executor(pool)
+        for name in [n for n in sys.modules if n.partition(".")[0] == "rw_test_pkg"]:
+            del sys.modules[name]
+    assert factory_code_hash("json:dumps") == factory_code_hash("json:dumps") != ""
+
+
+def test_a_factory_imported_from_a_helper_still_sees_its_folder(tmp_path):
+    factory = _controller(tmp_path, "0.75")
+    (tmp_path / "mine" / "entry.py").write_text("from follower import make  # noqa: F401\n")
+    entry = factory.replace("follower.py", "entry.py")
+    assert _steering(make_controller(ControllerConfig(factory=entry))) == 0.75
+    assert factory_code_hash(entry) == factory_code_hash(factory)      # the same folder
