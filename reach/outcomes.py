@@ -25,7 +25,7 @@ from tqdm import tqdm
 from reachwatch.systems.files import atomic_write_bytes
 
 from .fingerprint import fingerprint
-from .sweep import InlineExecutor
+from .sweep import InlineExecutor, in_flight
 
 
 @dc.dataclass
@@ -61,7 +61,9 @@ def _chunk(folder: Path, index: int) -> Path:
     return folder / f"chunk_{index:06d}.npz"
 
 
-def _run_chunk(fn, states, path: str, required) -> str:
+def _run_chunk(fn, states, required) -> dict:
+    """``fn(states)``'s arrays, checked: a worker returns them and the driver writes the
+    cache, so no worker needs the driver's filesystem."""
     out = fn(states)
     if not isinstance(out, dict) or any(name not in out for name in required):
         raise ValueError(f"{getattr(getattr(fn, 'func', fn), '__name__', 'the function')} must "
@@ -71,9 +73,13 @@ def _run_chunk(fn, states, path: str, required) -> str:
     for name, a in arrays.items():
         if a.shape[:1] != (len(states),):
             raise ValueError(f"output '{name}' has {a.shape[:1]} rows for {len(states)} states")
+    return arrays
+
+
+def _store(path: Path, arrays: dict) -> Path:
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
-    return str(atomic_write_bytes(Path(path), buffer.getvalue()))
+    return atomic_write_bytes(path, buffer.getvalue())
 
 
 def _load(path: Path, rows: int, required):
@@ -97,13 +103,16 @@ def default_chunk_size(count: int) -> int:
 
 
 def map_states(fn, states, *, cache_dir, chunk_size: int = None, executor=None,
-               progress: bool = True, label: str = None, max_in_flight: int = 4,
+               progress: bool = True, label: str = None, max_in_flight: int = None,
                required=(), unit: str = "state"):
     """``fn(states[s:e]) -> dict of arrays with e - s rows`` over ``states`` ``(N, ndim)``
     in chunks of ``chunk_size`` (default `default_chunk_size`), each cached under
     ``cache_dir/outcomes_key(fn, states)``
     and run on ``executor`` (default: here, one after another); ``required`` names the
-    arrays every chunk must hold. The progress bar moves per chunk. Returns
+    arrays every chunk must hold. Each chunk's arrays come back to this process, which
+    writes the cache: workers share no filesystem with it. At most ``max_in_flight``
+    chunks are in flight (default: twice the executor's worker threads, `in_flight`).
+    The progress bar moves per chunk. Returns
     ``(fields, key, computed)``: the arrays of all states in order, the cache folder
     name, and the states this call ran (0 when every chunk was cached)."""
     states = np.asarray(states, float)
@@ -126,18 +135,20 @@ def map_states(fn, states, *, cache_dir, chunk_size: int = None, executor=None,
     bar = tqdm(total=len(states), initial=len(states) - computed, unit=unit,
                desc=label or key, disable=not progress)
     executor = executor or InlineExecutor()
+    max_in_flight = max_in_flight or in_flight(executor)
     pending = {}
 
-    def finish(done):
-        for future in done:
-            future.result()                      # re-raises a worker's error
-            first, last = pending.pop(future)
+    def finish(finished):
+        for future in finished:
+            arrays = future.result()             # re-raises a worker's error
+            i, first, last = pending.pop(future)
+            _store(_chunk(folder, i), arrays)
+            done[i] = arrays
             bar.update(last - first)
 
     try:       # a bounded window of chunks in flight; the bar moves as each finishes
         for i, s, e in todo:
-            pending[executor.submit(_run_chunk, fn, states[s:e], str(_chunk(folder, i)),
-                                    required)] = (s, e)
+            pending[executor.submit(_run_chunk, fn, states[s:e], required)] = (i, s, e)
             finish([f for f in pending if f.done()])
             while len(pending) >= max_in_flight:
                 finish(cf.wait(pending, return_when=cf.FIRST_COMPLETED).done)
@@ -158,7 +169,7 @@ def map_states(fn, states, *, cache_dir, chunk_size: int = None, executor=None,
 
 
 def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = None, executor=None,
-                 progress: bool = True, label: str = None, max_in_flight: int = 4) -> Outcomes:
+                 progress: bool = True, label: str = None, max_in_flight: int = None) -> Outcomes:
     """``rollout`` from every start in ``states`` ``(N, ndim)``; chunks of
     ``chunk_size`` starts (default `default_chunk_size`) are cached under ``cache_dir/outcomes_key(...)`` and run
     on ``executor`` (default: here, one after another). The progress bar moves per

@@ -221,14 +221,42 @@ def _chunk_path(folder: Path, index: int) -> Path:
     return folder / f"chunk_{index:06d}.npz"
 
 
-def run_chunk(factory, probe: Probe, key: str, grid: Grid, index: int, start: int,
-              stop: int, folder: str) -> str:
-    """Evaluate nodes ``start:stop`` (flat C order) and write the chunk file."""
+def run_chunk(factory, probe: Probe, key: str, grid: Grid, start: int, stop: int) -> dict:
+    """The chunk of nodes ``start:stop`` (flat C order): its arrays, which the driver
+    writes (a worker needs no filesystem shared with it)."""
     arrays = _thread_probe(factory, probe, key, grid.ndim).evaluate(
         grid.states(np.arange(start, stop)))
+    return {"start": np.asarray(start), "stop": np.asarray(stop),
+            **{f"port{k}": np.asarray(a) for k, a in enumerate(arrays)}}
+
+
+def _store_chunk(folder: Path, index: int, arrays: dict) -> Path:
     buffer = io.BytesIO()
-    np.savez(buffer, start=start, stop=stop, **{f"port{k}": a for k, a in enumerate(arrays)})
-    return str(atomic_write_bytes(_chunk_path(Path(folder), index), buffer.getvalue()))
+    np.savez(buffer, **arrays)
+    return atomic_write_bytes(_chunk_path(folder, index), buffer.getvalue())
+
+
+def executor_threads(executor) -> int:
+    """How many chunks ``executor`` runs at once: 1 inline, a pool's workers, a Dask
+    cluster's threads (as connected now); 1 when it cannot tell."""
+    if isinstance(executor, InlineExecutor) or executor is None:
+        return 1
+    workers = getattr(executor, "_max_workers", None)
+    if workers:
+        return int(workers)
+    client = getattr(executor, "_client", None)
+    if client is not None:
+        try:
+            return max(1, int(sum(client.nthreads().values())))
+        except Exception:            # a client that cannot say: one at a time is safe
+            return 1
+    return 1
+
+
+def in_flight(executor, least: int = 4) -> int:
+    """Chunks to keep in flight on ``executor``: twice its threads (so none idles while
+    a finished chunk comes back), at least ``least``."""
+    return max(least, 2 * executor_threads(executor))
 
 
 def evaluate_states(factory, probe: Probe, key: str, states) -> dict:
@@ -299,7 +327,7 @@ def _check_fingerprint(folder: Path, factory, grid, probe, key):
 
 def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = None,
           chunk_size: int = 1024, executor: cf.Executor = None, progress: bool = True,
-          max_in_flight: int = 8, label: str = None, name: str = None) -> SweepTable:
+          max_in_flight: int = None, label: str = None, name: str = None) -> SweepTable:
     """Evaluate ``probe.ports`` of ``factory()``'s diagram at every node of ``grid``.
 
     ``factory`` must be picklable when ``executor`` runs elsewhere (e.g.
@@ -308,6 +336,9 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
     controller, gain or checkpoint never returns a stale table; a ``key`` you give
     names the folder instead, and is checked against the fingerprint recorded in it
     (``name`` starts a derived key; default: the factory's function name).
+    Each chunk's arrays come back to this process, which writes the cache (workers need
+    no filesystem shared with it); at most ``max_in_flight`` chunks are in flight
+    (default: `in_flight`, twice the executor's threads, at least 8).
     The progress bar (``label``, default the key) moves per state on this process and
     on `default_executor`, per chunk on others. ``table.computed`` counts the states
     evaluated by this call (0 when every chunk was cached)."""
@@ -317,7 +348,6 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
         raise ValueError("the probe names no port to read")
     global _ON_STATE
     checked, key = key is not None, key or sweep_key(factory, grid, probe, name=name)
-    # absolute: a worker writes its chunks itself, and may run in another directory
     folder = Path(cache_dir).absolute() / key
     folder.mkdir(parents=True, exist_ok=True)
     if checked:            # a derived key is the fingerprint; a given one must match it
@@ -331,6 +361,7 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
                desc=f"sweep {label or key}", disable=not progress)
     owned = executor is None and todo
     executor = executor or (default_executor() if todo else None)
+    max_in_flight = max_in_flight or in_flight(executor, least=8)
     counter = getattr(executor, "progress_counter", None)
     counted = counter.value if counter is not None else 0
     inline = isinstance(executor, InlineExecutor)
@@ -345,16 +376,16 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
 
     def finish(done):
         for future in done:
-            future.result()                      # re-raises a worker's error
-            s, e = pending.pop(future)
+            arrays = future.result()             # re-raises a worker's error
+            i, s, e = pending.pop(future)
+            _store_chunk(folder, i, arrays)
             if counter is None and not inline:
                 bar.update(e - s)
         show()
 
     try:   # a bounded window of chunks in flight: progress shows, an abort stops soon
         for i, s, e in todo:
-            pending[executor.submit(run_chunk, factory, probe, key, grid, i, s, e,
-                                    str(folder))] = (s, e)
+            pending[executor.submit(run_chunk, factory, probe, key, grid, s, e)] = (i, s, e)
             finish([f for f in pending if f.done()])
             while len(pending) >= max_in_flight:
                 finish(cf.wait(pending, timeout=0.25, return_when=cf.FIRST_COMPLETED).done)
