@@ -85,25 +85,6 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     return run
 
 
-def add_parsers(sub):
-    p = sub.add_parser("run", help="the whole study from a run file: sweeps, BRTs, labelled "
-                       "datasets, detector, Table 2, guarded loop, incremental training, "
-                       "report (re-runs skip finished stages; killed runs resume)")
-    p.add_argument("--scenario", required=True, help="run file (e.g. scenarios/demo.yaml)")
-    p.add_argument("--out", required=True, help="run directory (reused)")
-    p.add_argument("--executor", default="local", help="local (one worker per core) | "
-                   "local:N | inline | dask://HOST:PORT (a Dask cluster must see the run "
-                   "directory at the same path)")
-    p.add_argument("--until", choices=STAGES, help=f"last stage to run (default: report, "
-                   f"or {SLICE_UNTIL} with --only)")
-    p.add_argument("--sweep-cache", help="folder of sweep chunks shared between runs "
-                   "(keyed by content; default OUT/sweeps)")
-    p.add_argument("--only", nargs="+", metavar="ENV", help="run a slice: these environments "
-                   "alone (names as the report gives them, e.g. KSFO_21h_overcast), up to "
-                   f"--until {SLICE_UNTIL} at most; their records are the whole run's")
-    p.set_defaults(func=run_command)
-
-
 def check_slice(spec: RunSpec, only, until: str):
     """Raise a ValueError when ``only`` names no environment, or one the run lacks
     (listing the run's), or when ``until`` goes past `SLICE_UNTIL`."""
