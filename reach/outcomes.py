@@ -16,16 +16,13 @@ passes through is the rest of the same run."""
 import concurrent.futures as cf
 import dataclasses as dc
 import hashlib
-import io
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from reachwatch.systems.files import atomic_write_bytes
-
 from .fingerprint import fingerprint
-from .sweep import InlineExecutor, in_flight
+from .sweep import CHECKSUM, InlineExecutor, checksum_ok, in_flight, store_chunk_file
 
 
 @dc.dataclass
@@ -77,18 +74,20 @@ def _run_chunk(fn, states, required) -> dict:
 
 
 def _store(path: Path, arrays: dict) -> Path:
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    return atomic_write_bytes(path, buffer.getvalue())
+    return store_chunk_file(path, arrays)         # with its checksum
 
 
 def _load(path: Path, rows: int, required):
-    """The chunk's arrays, or None when it is missing, corrupt or short."""
+    """The chunk's arrays, or None when it is missing, corrupt, short, or its numbers
+    no longer match its checksum."""
     try:
-        with np.load(path) as data:
+        with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
     except Exception:       # missing, truncated or corrupt: run it again
         return None
+    if not checksum_ok(arrays):
+        return None
+    arrays.pop(CHECKSUM, None)
     if any(n not in arrays for n in required) or any(len(a) != rows for a in arrays.values()):
         return None
     return arrays

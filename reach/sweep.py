@@ -10,6 +10,7 @@ import concurrent.futures as cf
 import concurrent.futures.process  # noqa: F401  (BrokenProcessPool)
 import dataclasses as dc
 import functools
+import hashlib
 import io
 import json
 import multiprocessing
@@ -230,10 +231,37 @@ def run_chunk(factory, probe: Probe, key: str, grid: Grid, start: int, stop: int
             **{f"port{k}": np.asarray(a) for k, a in enumerate(arrays)}}
 
 
-def _store_chunk(folder: Path, index: int, arrays: dict) -> Path:
+#: The entry of a chunk file holding `chunk_checksum` of its other arrays.
+CHECKSUM = "checksum"
+
+
+def chunk_checksum(arrays: dict) -> str:
+    """SHA-256 (hex) of a chunk's arrays (all but `CHECKSUM`): names, dtypes, shapes and
+    bytes. Stored in the chunk file when written and compared when it is read, so a
+    chunk whose numbers changed since (its shape kept) is computed again."""
+    digest = hashlib.sha256()
+    for name in sorted(k for k in arrays if k != CHECKSUM):
+        a = np.ascontiguousarray(arrays[name])
+        digest.update(f"{name}:{a.dtype.str}:{a.shape};".encode())
+        digest.update(a.tobytes())
+    return digest.hexdigest()
+
+
+def checksum_ok(arrays: dict) -> bool:
+    """Whether a chunk's arrays match the `CHECKSUM` they were stored with (a chunk
+    written before chunks carried one is taken as it is)."""
+    return CHECKSUM not in arrays or str(arrays[CHECKSUM]) == chunk_checksum(arrays)
+
+
+def store_chunk_file(path: Path, arrays: dict) -> Path:
+    """Write a chunk's ``arrays`` (an ``.npz``, atomically) with their `chunk_checksum`."""
     buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    return atomic_write_bytes(_chunk_path(folder, index), buffer.getvalue())
+    np.savez(buffer, **arrays, **{CHECKSUM: np.asarray(chunk_checksum(arrays))})
+    return atomic_write_bytes(path, buffer.getvalue())
+
+
+def _store_chunk(folder: Path, index: int, arrays: dict) -> Path:
+    return store_chunk_file(_chunk_path(folder, index), arrays)
 
 
 def executor_threads(executor) -> int:
@@ -284,11 +312,14 @@ class SweepTable:
 
 
 def _chunk_ok(path: Path, start: int, stop: int, ports: int) -> bool:
-    """A chunk file is used only if it covers ``start:stop`` with every port's rows."""
+    """A chunk file is used only if it covers ``start:stop`` with every port's rows and
+    its arrays match the checksum they were written with (`checksum_ok`)."""
     try:
-        with np.load(path) as data:
-            return (int(data["start"]) == start and int(data["stop"]) == stop and
-                    all(len(data[f"port{k}"]) == stop - start for k in range(ports)))
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+        return (int(arrays["start"]) == start and int(arrays["stop"]) == stop and
+                all(len(arrays[f"port{k}"]) == stop - start for k in range(ports)) and
+                checksum_ok(arrays))
     except Exception:   # missing, truncated, corrupt or lacking a port: recompute it
         return False
 
