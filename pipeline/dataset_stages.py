@@ -35,9 +35,10 @@ def ensemble_paths(run: Run) -> list:
 
 
 def _build(root, scenario, value_path, spec, ensemble, progress, box=None):
-    """One dataset (module-level so a process pool or Dask worker can run it)."""
+    """One dataset (module-level so a process pool or Dask worker can run it); a folder
+    whose arrays are not the ones its manifest recorded is built again."""
     return str(build_dataset(root, scenario, ValueFunction.load(value_path), spec,
-                             ensemble=ensemble, progress=progress, box=box))
+                             ensemble=ensemble, progress=progress, box=box, rebuild=True))
 
 
 def _label_box(run: Run, env):

@@ -2,7 +2,9 @@
 
 Stages run in order sweep -> solve -> dataset -> fidelity -> train -> evaluate -> guard ->
 monitor -> incremental -> report; each is skipped when its record in ``OUT/stages/`` has the
-same key (a digest of its inputs), and resumes its chunked work when it was killed."""
+same key (a digest of its inputs: the settings it reads and, for the stages before it whose
+outputs it reads, `Run.content_key`: their keys and the content of every file they wrote),
+and resumes its chunked work when it was killed."""
 
 import time
 
@@ -55,21 +57,24 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
         "sweep": lambda: stage_sweep(run),
         "solve": lambda: stage_solve(run),
         "dataset": lambda: run.stage("dataset", digest(
-            {n: r["value"] for n, r in run.outputs["solve"].items()}, spec.dataset.key(),
+            {n: r["value"] for n, r in run.outputs["solve"].items()},
+            {n: run.content_key(f"solve_{n}") for n in run.outputs["solve"]}, spec.dataset.key(),
             spec.ensemble, spec.scenario.camera,
             # only when set, so that runs without it keep their keys
             *([spec.held_out_labels.key()] if spec.held_out_labels is not None else [])),
             lambda: stage_dataset(run)),
         "fidelity": lambda: stage_fidelity(run),
-        "train": lambda: run.stage("train", digest(run.outputs["dataset"], spec.detector),
+        "train": lambda: run.stage("train", digest(run.content_key("dataset"), spec.detector),
                                    lambda: stage_train(run)),
-        "evaluate": lambda: run.stage("evaluate", digest(run.records["train"]["key"], spec.slice_py),
-                                      lambda: stage_evaluate(run)),
+        "evaluate": lambda: run.stage("evaluate", digest(
+            run.content_key("train"), run.content_key("dataset"), spec.slice_py,
+            {e.name: run.content_key(f"solve_{e.name}") for e in spec.held_out_environments()}),
+            lambda: stage_evaluate(run)),
         "guard": lambda: stage_guard(run),
         "monitor": lambda: stage_monitor(run),
         "incremental": lambda: stage_incremental(run),
         "report": lambda: run.stage("report", digest(
-            REPORT_FORMAT, {k: r["key"] for k, r in run.records.items()}),
+            REPORT_FORMAT, {k: run.content_key(k) for k in run.records}),
             lambda: write_report(run)),
     }
     for name in STAGES[:STAGES.index(until) + 1]:

@@ -7,6 +7,7 @@ itself chunked and cached by content, so a killed stage resumes where it stopped
 import copy
 import dataclasses as dc
 import datetime
+import hashlib
 import json
 import logging
 import os
@@ -45,10 +46,18 @@ RECORD_FORMAT = 2
 _log = logging.getLogger("reachwatch")
 
 
+def record_check(record: dict) -> str:
+    """The digest of everything in a stage record but its ``check``: a record whose
+    outputs (or key, or files) were edited after its stage wrote it no longer matches
+    its check, and is not trusted (its stage runs again)."""
+    text = json.dumps({k: v for k, v in record.items() if k != "check"}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
 class Run:
     """A run directory: the spec (``run.yaml``), artifacts, and one record per
-    finished stage (``stages/NAME.json``: key, seconds, outputs, and the size and
-    content hash of every file its outputs name)."""
+    finished stage (``stages/NAME.json``: key, seconds, outputs, the size and
+    content hash of every file its outputs name, and a check over all of it)."""
 
     def __init__(self, spec: RunSpec, root, *, executor=None, progress=True, log=_log.info,
                  sweep_cache=None, only=None):
@@ -134,19 +143,58 @@ class Run:
             return None, f"record {record_path} is corrupt (not a stage record)"
         if record["format"] != RECORD_FORMAT:
             return None, f"record {record_path} has format {record['format']}"
+        # A record written before records carried a check has none: it gets one when reused.
+        if "check" in record and record["check"] != record_check(record):
+            return None, (f"record {record_path} is corrupt (edited after its stage wrote it: "
+                          f"its check does not match)")
         return record, None
 
     def _check_files(self, record):
         """Why the files a record names no longer match it, or None."""
+        why = self._stale_files(record, first=True)
+        return next(iter(why.values())) if why else None
+
+    def _stale_files(self, record, first=False) -> dict:
+        """``{relative path: why}`` of the files ``record`` names that are missing or
+        differ from the recorded size and hash (only the first with ``first``)."""
+        stale = {}
         for relative, want in record["files"].items():
             path = self.root / relative
             if not path.is_file():
-                return f"its output {relative} is missing"
-            if path.stat().st_size != want.get("bytes"):
-                return f"its output {relative} changed size"
-            if file_hash(path) != want.get("hash"):
-                return f"its output {relative} changed content"
-        return None
+                stale[relative] = f"its output {relative} is missing"
+            elif path.stat().st_size != want.get("bytes"):
+                stale[relative] = f"its output {relative} changed size"
+            elif file_hash(path) != want.get("hash"):
+                stale[relative] = f"its output {relative} changed content"
+            if stale and first:
+                break
+        return stale
+
+    def _remove_stale(self, record):
+        """Delete the files ``record`` names whose content no longer is what its stage
+        wrote: a stage that reuses a file found at its output path (a checkpoint named by
+        its config, a content-addressed dataset) then builds it again instead of adopting
+        the edited one. A file that another stage of this run recorded as it is now (its
+        own output, which this record names too) is kept."""
+        for relative, why in self._stale_files(record).items():
+            path = self.root / relative
+            if not (path.is_file() and path.resolve().is_relative_to(self.root.resolve())):
+                continue
+            now = file_hash(path)
+            if not any(other["files"].get(relative, {}).get("hash") == now
+                       for name, other in self.records.items() if name != record.get("stage")):
+                self.log(f"removing {relative}: {why.removeprefix(f'its output {relative} ')} "
+                         f"since its record")
+                path.unlink(missing_ok=True)
+
+    def content_key(self, name) -> str:
+        """A digest of stage ``name``'s record: its key and the size and hash of every
+        file its outputs name. What a downstream stage's key uses, so that an upstream
+        stage that ran again (its own key unchanged) and wrote other bytes runs what
+        reads them again. Not its outputs' values, which hold wall times: identical
+        runs keep identical keys (the values are covered by the record's check)."""
+        record = self.records[name]
+        return digest(record["key"], record["files"])
 
     def recorded(self, name, key):
         """The record of stage ``name`` when it has ``key`` and every file it names is
@@ -157,23 +205,31 @@ class Run:
         return record
 
     def stage(self, name, key, fn) -> dict:
-        """``fn()``'s outputs, or the recorded ones when the key is unchanged and every
-        file the record names is there with the recorded size and hash."""
+        """``fn()``'s outputs, or the recorded ones when the key is unchanged, the record
+        matches its check (`record_check`) and every file it names is there with the
+        recorded size and hash. Before ``fn`` runs, the files the old record names that
+        were changed since are deleted (`_remove_stale`)."""
         record_path = self.root / "stages" / f"{name}.json"
         record, why = self._read_record(record_path)
         if record is not None:
             why = ("its inputs changed" if record["key"] != key else self._check_files(record))
         if why is None:
             self.log(f"[{name}] up to date (key {key}, took {record['seconds']:.0f} s), skipped")
+            if "check" not in record and os.access(record_path.parent, os.W_OK | os.X_OK):
+                record["check"] = record_check(record)
+                atomic_write_bytes(record_path, json.dumps(record, indent=1).encode())
         else:
             self.log(f"[{name}] running: {why} (key {key})")
             self._writable(f"to run stage {name}")
+            if record is not None:
+                self._remove_stale(record)
             started = time.time()
             outputs = json.loads(json.dumps(fn(), default=_plain))
             record = {"format": RECORD_FORMAT, "stage": name, "key": key,
                       "seconds": round(time.time() - started, 1),
                       "finished": datetime.datetime.now().isoformat(timespec="seconds"),
                       "outputs": outputs, "files": self.output_files(outputs)}
+            record["check"] = record_check(record)
             atomic_write_bytes(record_path, json.dumps(record, indent=1).encode())
             self.log(f"[{name}] done in {record['seconds']:.0f} s")
         self.outputs[name], self.records[name] = record["outputs"], record
@@ -245,12 +301,15 @@ def stage_train(run: Run) -> dict:
     out = {"detector": run.rel(brt_path), "validation": meta.get("validation", {}),
            "train_seconds": seconds}
 
+    held_out = []       # in the outputs, so that the record holds their hashes too
+
     def checkpoint_for_prefix(prefix, *labelling):
         def checkpoint_for(left_out):
             kept = {e.name: folders[e.name] for e in spec.training_environments()
                     if e.name not in left_out}
             key = digest(weights, kept, *labelling)
-            return run.path(f"detectors/{prefix}_heldout_{key}.pt")
+            held_out.append(run.rel(run.path(f"detectors/{prefix}_heldout_{key}.pt")))
+            return run.path(held_out[-1])
         return checkpoint_for
 
     if config.threshold_folds:
@@ -258,6 +317,7 @@ def stage_train(run: Run) -> dict:
                                               progress=progress)
         out["threshold"] = chosen.threshold
         out["held_out_threshold"] = dc.asdict(chosen)
+        out["held_out_checkpoints"] = held_out
     else:
         out["threshold"] = float(operating_threshold(model, data, config))
     if not all(has_pose_estimate(d) for d in data):     # a controller without a pose estimate

@@ -18,11 +18,14 @@ together); ``estimates.npy`` ``(N, k)``, the controller's
 beside the datasets, in ``ROOT/rollouts/`` (`runs_cache`), keyed by content: a dataset
 whose label settings change renders again only the runs that differ.
 Filled chunk by chunk; the manifest records finished chunks and is replaced
-atomically, so an interrupted build resumes."""
+atomically, so an interrupted build resumes. It also records the hash of every array
+(the labels' when begun, the rest when finished): a folder whose arrays changed since
+is refused, or built again (`build_dataset`'s ``rebuild``), never reused."""
 
 import dataclasses as dc
 import hashlib
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +44,7 @@ from .labels import (FALLBACK_FIELDS, NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_RO
                      read_along, trajectory_samples)
 
 FORMAT = "reachwatch.dataset/3"
+_log = logging.getLogger("reachwatch")
 
 
 @dc.dataclass
@@ -126,6 +130,44 @@ def _write_manifest(folder, manifest):
     atomic_write_bytes(folder / "manifest.json", json.dumps(manifest, indent=1).encode())
 
 
+#: The arrays written once, when a dataset is begun (its labels); the others are filled
+#: chunk by chunk (`FILLED`).
+LABELLED = ("states", "values", "labels", "sources", "runs")
+FILLED = ("images", "estimates", "ensemble")
+
+
+def _array_hashes(folder: Path, names) -> dict:
+    """``{name: file_hash}`` of the ``folder/name.npy`` that exist among ``names``."""
+    return {name: file_hash(folder / f"{name}.npy") for name in names
+            if (folder / f"{name}.npy").is_file()}
+
+
+def _changed_arrays(folder: Path, manifest: dict, names=None) -> str:
+    """Why the arrays of ``folder`` (those of ``names``; default all) no longer are the
+    ones its manifest recorded (``manifest["hashes"]``), or "" when they are."""
+    for name, want in manifest.get("hashes", {}).items():
+        if names is not None and name not in names:
+            continue
+        path = folder / f"{name}.npy"
+        if not path.is_file():
+            return f"{path} is missing"
+        if file_hash(path) != want:
+            return f"{path} changed since the dataset was built"
+    return ""
+
+
+def _finished(manifest: dict, spec: "DatasetSpec") -> bool:
+    return len(manifest["chunks_done"]) >= -(-manifest["samples"] // spec.chunk_size)
+
+
+def _clear(folder: Path):
+    """Remove the dataset in ``folder`` (its manifest first, so that a build stopped
+    half way through this begins anew)."""
+    (folder / "manifest.json").unlink(missing_ok=True)
+    for path in folder.glob("*.npy"):
+        path.unlink()
+
+
 def _estimator(controller):
     """A function ``(N, H, W, 3) images -> (N, k)`` estimates of ``controller`` (one batch
     when it offers ``estimate(images)``, as TaxiNet's does; else image by image through
@@ -195,12 +237,14 @@ def _real_paths(scenario, value_function, labels: LabelSpec, folder: Path, progr
 
 
 def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpec(), *,
-                  ensemble=(), progress=True, box=None) -> Path:
+                  ensemble=(), progress=True, box=None, rebuild=False) -> Path:
     """Render, estimate and label ``spec.samples`` uniform states of ``box`` (``(lo,
     hi)``, inside the value function's grid; default: the whole grid) in
     ``scenario``'s environment, and with ``trajectory`` labels the states their runs
     pass through (`trajectory_samples`); returns the dataset folder (reused or resumed when it
-    already exists)."""
+    already exists). A folder whose arrays are not the ones its manifest recorded
+    (edited, truncated or missing since) is a ValueError naming the file, or with
+    ``rebuild`` is built again from the start."""
     scenario = resolved(scenario)
     grid = value_function.grid
     if box is not None:
@@ -214,14 +258,32 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     folder = dataset_folder(root, scenario, value_function, spec, ensemble, box)
     folder.mkdir(parents=True, exist_ok=True)
     manifest_path = folder / "manifest.json"
-    estimator = None            # the controller is built only when there is work for it
+    estimator = manifest = None     # the controller is built only when there is work for it
     if manifest_path.exists():
-        manifest = _read_manifest(folder)
-        k, n = manifest["estimate_size"], manifest["samples"]
-        arrays = {name: _open_array(folder, name, shape, "r+") for name, shape in (
-            ("images", (n, spec.height, spec.width, 3)), ("estimates", (n, k)),
-            ("ensemble", (n, len(ensemble), 2)))}
-    else:
+        # Reused (or resumed) only when its arrays are the ones its manifest recorded:
+        # else refused in one line, or with ``rebuild`` built again.
+        try:
+            manifest = _read_manifest(folder)
+            k, n = manifest["estimate_size"], manifest["samples"]
+            for name in LABELLED[:4]:
+                _open_array(folder, name, (n,))
+            arrays = {name: _open_array(folder, name, shape, "r+") for name, shape in (
+                ("images", (n, spec.height, spec.width, 3)), ("estimates", (n, k)),
+                ("ensemble", (n, len(ensemble), 2)))}
+            # (the filled arrays' hashes are those of the finished dataset)
+            why = _changed_arrays(folder, manifest,
+                                  None if _finished(manifest, spec) else LABELLED)
+            if why:
+                raise ValueError(f"{why}; delete {folder} to rebuild the dataset")
+        except ValueError as e:
+            if not rebuild:
+                raise
+            _log.warning(f"dataset {folder.name}: {str(e).split('; delete')[0]}; "
+                         f"building it again")
+            arrays = None
+            _clear(folder)
+            manifest = None
+    if manifest is None:
         rng = np.random.default_rng(spec.seed)
         states = lo + rng.uniform(size=(spec.samples, grid.ndim)) * (hi - lo)
         inside = lambda x: np.all((x >= lo) & (x <= hi), axis=1)       # noqa: E731
@@ -284,7 +346,8 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
                     "camera_size": [scenario.camera.height, scenario.camera.width],
                     "spec": dc.asdict(spec), "controller": dc.asdict(scenario.controller),
                     "estimate_size": k,
-                    "ensemble": [str(p) for p in ensemble], "chunks_done": []}
+                    "ensemble": [str(p) for p in ensemble], "chunks_done": [],
+                    "hashes": _array_hashes(folder, LABELLED)}
         _write_manifest(folder, manifest)
     states = np.load(folder / "states.npy")
     chunks = [(s, min(s + spec.chunk_size, n)) for s in range(0, n, spec.chunk_size)]
@@ -305,9 +368,18 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
             for a in arrays.values():
                 a.flush()
             manifest["chunks_done"].append(s)
+            if _finished(manifest, spec):          # the filled arrays are final now
+                manifest["hashes"] = {**manifest.get("hashes", {}),
+                                      **_array_hashes(folder, FILLED)}
             _write_manifest(folder, manifest)
             bar.update(e - s)
         bar.close()
+    elif not set(LABELLED[:4] + FILLED) <= set(manifest.get("hashes", {})):
+        # built before datasets recorded their arrays' hashes: recorded now, so that
+        # a later edit is found
+        manifest["hashes"] = {**_array_hashes(folder, LABELLED + FILLED),
+                              **manifest.get("hashes", {})}
+        _write_manifest(folder, manifest)
     return folder
 
 
@@ -354,21 +426,29 @@ class LabelledData:
                    np.zeros((n, 0)), np.zeros((n, 0, 2)), np.full(n, SOURCE_BRT, np.uint8))
 
 
-def load_dataset(folder) -> LabelledData:
-    """Open a finished dataset; raises ValueError if it is incomplete or foreign."""
+def load_dataset(folder, verify: bool = False) -> LabelledData:
+    """Open a finished dataset; raises ValueError if it is incomplete or foreign, or if
+    an array differs from the one its manifest recorded (the images checked too with
+    ``verify``)."""
     folder = Path(folder)
     manifest = _read_manifest(folder)
     if manifest.get("format") != FORMAT:
         raise ValueError(f"{folder}: unknown dataset format {manifest.get('format')}")
     spec = DatasetSpec(**manifest["spec"])
-    if len(manifest["chunks_done"]) < -(-manifest["samples"] // spec.chunk_size):
+    if not _finished(manifest, spec):
         raise ValueError(f"{folder} is incomplete ({len(manifest['chunks_done'])} chunks); "
                          f"run build_dataset again to resume it")
     n = manifest["samples"]
     load = lambda name, shape, mode=None: _open_array(folder, name, shape, mode)  # noqa: E731
-    return LabelledData(folder, manifest,
+    data = LabelledData(folder, manifest,
                         load("images", (n, spec.height, spec.width, 3), "r"),
                         load("states", (n,)), load("values", (n,)), load("labels", (n,)),
                         load("estimates", (n, manifest["estimate_size"])), load("ensemble", (n,)),
                         load("sources", (n,)),
                         load("runs", (n,)) if (folder / "runs.npy").exists() else None)
+    # Every array but the images (the bulk) is checked against the manifest at every
+    # load; the images too with ``verify`` (build_dataset checks all before reusing).
+    why = _changed_arrays(folder, manifest, None if verify else LABELLED + FILLED[1:])
+    if why:
+        raise ValueError(f"{why}; delete {folder} to rebuild the dataset")
+    return data

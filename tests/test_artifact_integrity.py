@@ -1,0 +1,217 @@
+"""A run's artifacts are used only as they were written: a dataset whose arrays changed
+is built again (or refused), an edited checkpoint is trained again rather than
+adopted, a downstream stage's key follows the content of what it reads, an edited
+stage record is not trusted, and an edited sweep or outcome chunk is computed again."""
+
+import json
+import re
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from reachwatch.diagrams import file_hash, load_detector
+from reachwatch.pipeline.run import run_pipeline
+from reachwatch.pipeline.spec import load_run_spec
+from reachwatch.pipeline.stages import Run
+from reachwatch.reach import InlineExecutor
+from reachwatch.reach.outcomes import map_states
+from reachwatch.taxi import sweep_closed_loop
+from reachwatch.training.dataset import load_dataset
+from tiny_run import TINY
+
+# Up to evaluate, without the fidelity check: ~10 s.
+TEXT = TINY.replace("fidelity: {starts: 3", "fidelity: {starts: 0")
+TRAIN_ENV = "KMWH_9h_clear"
+
+
+def _run(out, until):
+    log = []
+    run = run_pipeline(load_run_spec(data=TEXT), out, progress=False, log=log.append, until=until)
+    return run, log
+
+
+def _ran(log):
+    return {re.match(r"\[(\S+)\]", m).group(1) for m in log if "] running" in m}
+
+
+def _why(log, stage):
+    return next(m for m in log if m.startswith(f"[{stage}] running"))
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    """A tiny run up to evaluate, copied by each test that edits it."""
+    out = tmp_path_factory.mktemp("base")
+    run, _ = _run(out, "evaluate")
+    return out, run.outputs
+
+
+def _copy(base, tmp_path):
+    out = tmp_path / "run"
+    shutil.copytree(base[0], out)
+    return out
+
+
+def test_a_dataset_whose_labels_were_flipped_is_built_again_not_reused(base, tmp_path):
+    out = _copy(base, tmp_path)
+    folder = out / base[1]["dataset"]["folders"][TRAIN_ENV]
+    labels = np.load(folder / "labels.npy")
+    flipped = np.load(folder / "labels.npy", mmap_mode="r+")
+    flipped[:] = 1 - flipped
+    flipped.flush()
+    del flipped
+    # Loading it is refused, in one line naming the file.
+    with pytest.raises(ValueError, match=r"labels\.npy changed since the dataset was built") as e:
+        load_dataset(folder)
+    assert "\n" not in str(e.value)
+    # The run notices, builds the dataset again and trains on the labels it was built with.
+    run, log = _run(out, "train")
+    assert "labels.npy changed content" in _why(log, "dataset")
+    np.testing.assert_array_equal(np.load(folder / "labels.npy"), labels)
+    np.testing.assert_array_equal(load_dataset(folder, verify=True).labels, labels)
+    assert run.outputs["dataset"]["positives"] == base[1]["dataset"]["positives"]
+    # ... and the record now matches the files: nothing runs again
+    _, log = _run(out, "train")
+    assert _ran(log) == set()
+    # Without the stage's record, the dataset's manifest finds the edit itself.
+    flipped = np.load(folder / "labels.npy", mmap_mode="r+")
+    flipped[:] = 1 - flipped
+    flipped.flush()
+    del flipped
+    (out / "stages/dataset.json").unlink()
+    _run(out, "dataset")
+    np.testing.assert_array_equal(np.load(folder / "labels.npy"), labels)
+
+
+def test_zeroed_detector_weights_are_trained_again_and_what_reads_them_follows(
+        base, tmp_path, monkeypatch):
+    out = _copy(base, tmp_path)
+    # Training again gives other bytes (as on another machine or torch version).
+    from reachwatch.pipeline import stages
+    train = stages.train_detector
+
+    def other_bytes(data, config, path, **kw):
+        result = train(data, config, path, **kw)
+        checkpoint = torch.load(path, weights_only=False)
+        checkpoint["state_dict"] = {k: v + 1e-3 if v.is_floating_point() else v
+                                    for k, v in checkpoint["state_dict"].items()}
+        torch.save(checkpoint, path)
+        return result
+    monkeypatch.setattr(stages, "train_detector", other_bytes)
+    path = out / base[1]["train"]["detector"]
+    checkpoint = torch.load(path, weights_only=False)
+    checkpoint["state_dict"] = {k: torch.zeros_like(v) for k, v in checkpoint["state_dict"].items()}
+    torch.save(checkpoint, path)
+    edited = path.read_bytes()
+    run, log = _run(out, "evaluate")
+    assert "[train] running: its output" in _why(log, "train")
+    # Trained again, not the edited file adopted.
+    assert path.read_bytes() != edited
+    record = json.loads((out / "stages/train.json").read_text())
+    assert record["files"][base[1]["train"]["detector"]]["hash"] == file_hash(path)
+    model, _, _ = load_detector(path)
+    assert any(p.abs().sum() > 0 for p in model.parameters())
+    # evaluate's key follows the content of train's files (not only train's key, which
+    # is unchanged): Table 2 describes the detector now on disk.
+    original = json.loads((base[0] / "stages/train.json").read_text())
+    assert record["key"] == original["key"] and record["files"] != original["files"]
+    assert "[evaluate] running: its inputs changed" in _why(log, "evaluate")
+    _, log = _run(out, "evaluate")
+    assert _ran(log) == set()
+
+
+def test_a_downstream_key_follows_the_bytes_its_upstream_wrote(tmp_path):
+    run = Run(load_run_spec(data=TEXT), tmp_path, progress=False, log=lambda m: None)
+
+    def write(data):
+        def fn():
+            (tmp_path / "made").mkdir(exist_ok=True)
+            (tmp_path / "made/out.bin").write_bytes(data)
+            return {"file": "made/out.bin"}
+        return fn
+
+    run.stage("up", "k", write(b"one"))
+    first = run.content_key("up")
+    (tmp_path / "made/out.bin").write_bytes(b"two")      # edited: the stage runs again
+    run.stage("up", "k", write(b"three"))                # ... and writes other bytes
+    assert run.records["up"]["key"] == "k" and run.content_key("up") != first
+    run.stage("up", "k", write(b"four"))                 # up to date: not run
+    assert (tmp_path / "made/out.bin").read_bytes() == b"three"
+
+
+def test_an_edited_output_is_removed_before_its_stage_runs_again(tmp_path):
+    run = Run(load_run_spec(data=TEXT), tmp_path, progress=False, log=lambda m: None)
+    target = tmp_path / "made.bin"
+
+    def build():               # reuses a file found at its output path, as train does
+        if not target.exists():
+            target.write_bytes(b"built")
+        return {"file": "made.bin"}
+
+    run.stage("s", "k", build)
+    target.write_bytes(b"edited")
+    run.stage("s", "k", build)
+    assert target.read_bytes() == b"built"
+
+
+def test_a_hand_edited_record_is_not_trusted(base, tmp_path):
+    out = _copy(base, tmp_path)
+    record_path = out / f"stages/solve_{TRAIN_ENV}.json"
+    record = json.loads(record_path.read_text())
+    true_fraction = record["outputs"]["brt_fraction"]
+    record["outputs"]["brt_fraction"] = 0.987
+    record_path.write_text(json.dumps(record, indent=1))
+    run, log = _run(out, "solve")
+    assert "is corrupt (edited after its stage wrote it" in _why(log, f"solve_{TRAIN_ENV}")
+    assert run.outputs["solve"][TRAIN_ENV]["brt_fraction"] == true_fraction
+    assert json.loads(record_path.read_text())["outputs"]["brt_fraction"] == true_fraction
+    # A record from before records carried a check is reused, and gets one.
+    other = out / "stages/sweep_KSFO_17h_clear.json"
+    legacy = json.loads(other.read_text())
+    del legacy["check"]
+    other.write_text(json.dumps(legacy, indent=1))
+    _, log = _run(out, "sweep")
+    assert _ran(log) == set() and "check" in json.loads(other.read_text())
+
+
+def test_a_sweep_chunk_whose_numbers_were_edited_is_computed_again(tmp_path):
+    run = Run(load_run_spec(data=TEXT), tmp_path / "run", progress=False, log=lambda m: None)
+    env = run.spec.training_environments()[0]
+    scenario, grid = run.scenario_for(env), run.solved_grid_for(env)
+    sweep = lambda: sweep_closed_loop(scenario, grid, cache_dir=tmp_path / "sweeps",  # noqa: E731
+                                      executor=InlineExecutor(), chunk_size=25, progress=False)
+    first = sweep()
+    assert first.computed == grid.size
+    chunk = next((tmp_path / "sweeps").glob("*/chunk_000001.npz"))
+    with np.load(chunk) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["port0"] = arrays["port0"] + 1.0            # same shape, other numbers
+    np.savez(chunk, **arrays)
+    again = sweep()
+    assert again.computed == 25
+    for port in first.tables:
+        np.testing.assert_array_equal(again[port], first[port])
+    assert sweep().computed == 0
+
+
+def _square(states):
+    return {"y": states ** 2}
+
+
+def test_an_outcome_chunk_whose_numbers_were_edited_is_run_again(tmp_path):
+    states = np.arange(12, dtype=float).reshape(6, 2)
+    fields, key, computed = map_states(_square, states, cache_dir=tmp_path, chunk_size=2,
+                                       progress=False)
+    assert computed == 6
+    chunk = tmp_path / key / "chunk_000001.npz"
+    with np.load(chunk) as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["y"] = arrays["y"] * 0
+    np.savez(chunk, **arrays)
+    again, _, computed = map_states(_square, states, cache_dir=tmp_path, chunk_size=2,
+                                    progress=False)
+    assert computed == 2
+    np.testing.assert_array_equal(again["y"], states ** 2)
+    assert set(again) == {"y"}
