@@ -57,19 +57,20 @@ def summary_rows(run) -> list:
     miss = kept["held_out"]["pooled"]["miss"]
     text, rate, hi = _interval(miss["count"], miss["of"])
     target, upper = MONITOR_TARGETS["miss"]
-    rows.append([f"monitor miss rate, held-out environments ({result['kept']}; a failing run "
-                 f"with no flag {result['lead_s']:.2f} s before it fails)", text,
+    rows.append([f"monitor miss rate, held-out environments ({result['kept']}; a warnable "
+                 f"failing run with no flag {result['lead_s']:.2f} s before it fails)", text,
                  f"<= {100 * target:g} % (upper bound <= {100 * upper:g} %); conformal bound "
                  f"{100 * result['alpha']:g} % expected",
                  _verdict(None if rate is None else rate <= target and hi <= upper)])
     guarded = result["guarded"].get(result["kept"])
     if guarded:
         text, rate, _ = _interval(guarded["prevented"], guarded["failed_alone"])
-        oracle = result["oracle"]["held_out"]["pooled"]["miss"]
-        ceiling = 1 - oracle["rate"] if oracle["of"] else None
+        warnable = result["oracle"]["held_out"]["pooled"]["warnable"]
+        ceiling = warnable["rate"] if warnable["of"] else None
         rows.append(["failures prevented, guarded real loop (braking)", text,
                      ">= 85 % of what the oracle monitor prevents" +
-                     (f" (the oracle warns {100 * ceiling:.1f} % in time)" if ceiling else ""),
+                     (f" (at most the {100 * ceiling:.1f} % of failing runs that last long "
+                      f"enough to be warned)" if ceiling else ""),
                      _verdict(None if rate is None or not ceiling else rate >= 0.85 * ceiling)])
         text, rate, hi = _interval(guarded["needless_stops"], guarded["safe_alone"])
         target, upper = MONITOR_TARGETS["needless"]

@@ -17,11 +17,14 @@ def test_warning_scores_read_only_ticks_the_fallback_can_still_use():
     time = np.arange(6) * 0.5
     risks = [np.array([0.1, 0.2, 0.9, 0.3, 0.95, 0.99]), np.array([0.5, 0.1]),
              np.array([0.7, 0.8, 0.9])]
-    scores = warning_scores(risks, [time, time[:2], time[:3]], [2.5, 0.3, float("nan")], lead=1.0)
+    times, failures = [time, time[:2], time[:3]], [2.5, 0.3, float("nan")]
+    scores = warning_scores(risks, times, failures, lead=1.0, warnable_only=False)
     # run 0: ticks at or before 1.5 s count (max 0.9 at 1.0 s; 0.95 at 2.0 s is too late);
-    # run 1 fails 0.3 s in: no tick 1 s before it; run 2 did not fail: no score
+    # run 1 fails 0.3 s in: no tick 1 s before it (unwarnable); run 2 did not fail
     assert scores[0] == 0.9 and scores[1] == -math.inf and len(scores) == 2
     assert miss_rate(scores, 0.5) == 0.5 and miss_rate(scores, 0.95) == 1.0
+    # by default the unwarnable run is left out: no monitor could warn it in time
+    assert warning_scores(risks, times, failures, lead=1.0).tolist() == [0.9]
 
 
 def _family(rng, environments, runs=30):
@@ -85,3 +88,22 @@ def test_platt_scaling_recovers_a_known_miscalibration():
     assert brier_score(fit(overconfident), y) < brier_score(overconfident, y)
     mean_p, freq, counts = reliability_curve(fit(overconfident), y, bins=5)
     assert counts.sum() == y.size and np.all(np.abs(mean_p - freq) < 0.03)
+
+
+def test_flag_outcomes_count_misses_among_warnable_runs_only():
+    from reachwatch.training.monitor_eval import flag_outcomes, oracle_risks, system_figures
+    ticks, failures = [10, 3, 10, 10], [0.45, 0.1, float("nan"), float("nan")]
+    risks = [np.r_[np.zeros(5), np.ones(5)], np.ones(3), np.zeros(10), np.r_[np.zeros(9), 1.0]]
+    out = flag_outcomes(risks, ticks, failures, period=0.05, threshold=0.5, lead=0.2)
+    assert out["warnable"].tolist() == [True, False, False, False]
+    assert out["warned"].tolist() == [True, False, False, False]      # flag at 0.25 s
+    figures = system_figures(out)
+    assert (figures["miss"]["count"], figures["miss"]["of"]) == (0, 1)
+    assert (figures["needless"]["count"], figures["needless"]["of"]) == (1, 2)
+    assert (figures["warnable"]["count"], figures["warnable"]["of"]) == (1, 2)
+    late = flag_outcomes([np.r_[np.zeros(7), np.ones(3)]] + risks[1:], ticks, failures,
+                         period=0.05, threshold=0.5, lead=0.2)
+    assert system_figures(late)["miss"]["count"] == 1                  # flag at 0.35 s: late
+    oracle = flag_outcomes(oracle_risks(ticks, failures, period=0.05, lead=0.2), ticks,
+                           failures, period=0.05, threshold=0.5, lead=0.2)
+    assert system_figures(oracle)["miss"]["count"] == 0 and not oracle["flagged"][2:].any()

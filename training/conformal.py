@@ -6,8 +6,10 @@ outcomes; nothing here renders or knows the plant.
 flag (risk ``>= tau``) at least ``lead`` s before the failure, ``lead`` being what the
 fallback needs to act (e.g. the braking time). `warning_scores` reduces each failing
 run to the largest risk among its ticks at least ``lead`` s before its failure, so a
-run is missed exactly when that score is below ``tau``; a run that fails sooner than
-``lead`` s after it starts has no such tick and is missed at any threshold.
+run is missed exactly when that score is below ``tau``. A run that fails sooner than
+``lead`` s after it starts has no such tick: no monitor could warn it in time with this
+fallback (the oracle misses it too), so it is *unwarnable* and left out of the miss
+rate by default (``warnable_only``); reports count such runs apart.
 
 **The bound** (`conformal_threshold`). Environments, not runs, are the exchangeable
 units: runs within one environment share its light and runway and are not exchangeable
@@ -33,11 +35,13 @@ from scipy.optimize import minimize
 from reachwatch.systems.history_monitor import platt
 
 
-def warning_scores(risks, times, failure_times, *, lead: float) -> np.ndarray:
+def warning_scores(risks, times, failure_times, *, lead: float,
+                   warnable_only: bool = True) -> np.ndarray:
     """One score per failing run: the largest risk at its ticks at least ``lead`` s
-    before its failure (``-inf`` when it has none). ``risks`` and ``times`` are per run
-    (sequences of 1-d arrays of equal lengths); ``failure_times`` per run (s; NaN for a
-    run that did not fail: such runs are skipped)."""
+    before its failure. A run with no such tick is unwarnable: left out
+    (``warnable_only``) or scored ``-inf`` (missed at any threshold). ``risks`` and
+    ``times`` are per run (sequences of 1-d arrays of equal lengths); ``failure_times``
+    per run (s; NaN for a run that did not fail: such runs are skipped)."""
     if not (np.isfinite(lead) and lead >= 0):
         raise ValueError(f"lead must be a finite number >= 0 s, got {lead}")
     if not len(risks) == len(times) == len(failure_times):
@@ -52,7 +56,10 @@ def warning_scores(risks, times, failure_times, *, lead: float) -> np.ndarray:
             raise ValueError(f"a run's risks and times must be 1-d arrays of the same length, "
                              f"got {risk.shape} and {time.shape}")
         early = time <= failure - lead + 1e-9
-        out.append(float(risk[early].max()) if early.any() else -math.inf)
+        if early.any():
+            out.append(float(risk[early].max()))
+        elif not warnable_only:
+            out.append(-math.inf)
     return np.asarray(out, float)
 
 
@@ -94,8 +101,8 @@ def conformal_threshold(env_scores: Sequence, alpha: float) -> ConformalThreshol
     rate of a new environment is at most ``alpha`` (see the module's docstring).
     ``env_scores``: per calibration environment, the `warning_scores` of its failing
     runs (an environment without failures still counts, with loss 0). Raises
-    ValueError when no threshold reaches ``alpha`` with so few environments or so many
-    runs that fail before any warning can help."""
+    ValueError when no threshold reaches ``alpha`` with so few environments, or (with
+    unwarnable runs scored ``-inf``) so many runs that fail before any warning can help."""
     if not (0 < alpha < 1):
         raise ValueError(f"alpha must be in (0, 1), got {alpha}")
     env_scores = [np.asarray(s, float) for s in env_scores]

@@ -24,16 +24,19 @@ def run_times(ticks, period: float) -> list:
 
 def flag_outcomes(risks, ticks, failure_times, *, period: float, threshold: float,
                   lead: float) -> dict:
-    """Per run (bool arrays): ``failed``, ``warned`` (failed, with a flag at least
-    ``lead`` s before the failure), ``flagged`` (any tick with risk >= ``threshold``)."""
+    """Per run (bool arrays): ``failed``; ``warnable`` (failed, with a tick at least
+    ``lead`` s before the failure: a monitor could have warned it in time); ``warned``
+    (warnable, with a flag at least ``lead`` s before the failure); ``flagged`` (any
+    tick with risk >= ``threshold``)."""
     failure_times = np.asarray(failure_times, float)
     failed = np.isfinite(failure_times)
     times = run_times(ticks, period)
-    scores = warning_scores(risks, times, failure_times, lead=lead)
-    warned = np.zeros(len(failed), bool)
+    scores = warning_scores(risks, times, failure_times, lead=lead, warnable_only=False)
+    warnable, warned = np.zeros(len(failed), bool), np.zeros(len(failed), bool)
+    warnable[failed] = np.isfinite(scores)
     warned[failed] = scores >= threshold
     flagged = np.array([bool(len(r)) and bool(np.max(r) >= threshold) for r in risks])
-    return {"failed": failed, "warned": warned, "flagged": flagged}
+    return {"failed": failed, "warnable": warnable, "warned": warned, "flagged": flagged}
 
 
 def oracle_risks(ticks, failure_times, *, period: float, lead: float) -> list:
@@ -58,11 +61,15 @@ def rate(count: int, trials: int) -> dict:
 
 
 def system_figures(outcomes: dict) -> dict:
-    """Miss rate (failing runs not warned in time) and needless-flag rate (runs that
-    did not fail but were flagged) of `flag_outcomes`, with Wilson intervals."""
+    """Miss rate (warnable failing runs not warned in time), needless-flag rate (runs
+    that did not fail but were flagged), and the share of failing runs that were
+    warnable at all (the ceiling of any monitor with this fallback), with Wilson
+    intervals, from `flag_outcomes`."""
     failed, warned, flagged = outcomes["failed"], outcomes["warned"], outcomes["flagged"]
-    return {"miss": rate(int(np.sum(failed & ~warned)), int(failed.sum())),
-            "needless": rate(int(np.sum(~failed & flagged)), int(np.sum(~failed)))}
+    warnable = outcomes["warnable"]
+    return {"miss": rate(int(np.sum(warnable & ~warned)), int(warnable.sum())),
+            "needless": rate(int(np.sum(~failed & flagged)), int(np.sum(~failed))),
+            "warnable": rate(int(warnable.sum()), int(failed.sum()))}
 
 
 def tick_auroc(risks, ticks, failure_times, *, period: float, duration: float,
