@@ -303,7 +303,8 @@ def guard_environment(run: Run, env) -> dict:
 def stage_guard(run: Run) -> dict:
     out = {}
     for env in run.spec.guard_environments():
-        key = digest(run.records["train"]["key"], run.records[f"solve_{env.name}"]["key"],
+        # content keys: a detector or BRT rebuilt with other bytes guards again
+        key = digest(run.content_key("train"), run.content_key(f"solve_{env.name}"),
                      run.spec.guard, run.spec.scenario.monitor, run.spec.horizon)
         out[env.name] = run.stage(f"guard_{env.name}", key,
                                   lambda env=env: guard_environment(run, env))
@@ -364,5 +365,6 @@ def stage_incremental(run: Run) -> dict:
     config = run.spec.incremental
     if not config.enabled:
         return {}
-    key = digest(config, run.outputs["dataset"], run.records[f"solve_{config.environment.name}"]["key"])
+    key = digest(config, run.content_key("dataset"),
+                 run.content_key(f"solve_{config.environment.name}"))
     return run.stage("incremental", key, lambda: incremental(run))
