@@ -19,10 +19,9 @@ from typing import Callable, List
 
 import numpy as np
 
-from .fingerprint import fingerprint
 from .grid import Grid
 from .outcomes import map_states
-from .sweep import Probe, SweepTable, evaluate_states
+from .sweep import Probe, SweepTable, evaluate_states, probe_key
 
 
 def finer_grid(grid: Grid, factor: int = 2) -> Grid:
@@ -111,7 +110,7 @@ def refine_table(factory: Callable, table: SweepTable, cells, *, probe: Probe, c
     if len(todo):
         fields, _, computed = map_states(
             functools.partial(evaluate_states, factory, probe,
-                              f"states_{fingerprint(factory, probe)[:20]}"), states[todo],
+                              probe_key(factory, probe)), states[todo],
             cache_dir=cache_dir, chunk_size=chunk_size, executor=executor, progress=progress,
             label=f"refine {label or table.key}", required=tuple(
                 f"port{k}" for k in range(len(probe.ports))))

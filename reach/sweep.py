@@ -6,6 +6,7 @@ and the ports to read (``"system.port"``). Chunked; each finished chunk is writt
 atomically under ``cache_dir/key/``, so a killed sweep resumes and a repeated one
 costs nothing. Chunks run on any `concurrent.futures.Executor`."""
 
+import collections
 import concurrent.futures as cf
 import concurrent.futures.process  # noqa: F401  (BrokenProcessPool)
 import dataclasses as dc
@@ -208,13 +209,34 @@ class _DiagramProbe:
 _THREAD = threading.local()
 
 
+#: Diagrams a worker thread keeps (the most recently used): each holds a renderer.
+KEPT_DIAGRAMS = 4
+
+
+def probe_key(factory, probe: Probe, fallback: str = None) -> str:
+    """What a worker thread keeps one diagram for: the factory and probe's content
+    fingerprint, whatever grid they sweep (a sweep, its refinement and other grids of
+    the same loop share it); ``fallback`` (e.g. a sweep's checked key) when they cannot
+    be fingerprinted, else `Unfingerprintable` is raised."""
+    try:
+        return f"states_{fingerprint(factory, probe)[:20]}"
+    except Unfingerprintable:
+        if fallback is None:
+            raise
+        return fallback
+
+
 def _thread_probe(factory, probe: Probe, key: str, state_dim: int) -> "_DiagramProbe":
-    """This thread's `_DiagramProbe` for ``key``, built on first use."""
+    """This thread's `_DiagramProbe` for ``key``, built on first use; the thread keeps
+    the `KEPT_DIAGRAMS` most recently used."""
     probes = getattr(_THREAD, "probes", None)
     if probes is None:
-        probes = _THREAD.probes = {}
+        probes = _THREAD.probes = collections.OrderedDict()
     if key not in probes:
         probes[key] = _DiagramProbe(factory, probe, state_dim)
+        while len(probes) > KEPT_DIAGRAMS:
+            probes.popitem(last=False)
+    probes.move_to_end(key)
     return probes[key]
 
 
@@ -393,6 +415,7 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
     owned = executor is None and todo
     executor = executor or (default_executor() if todo else None)
     max_in_flight = max_in_flight or in_flight(executor, least=8)
+    diagram_key = probe_key(factory, probe, key)
     counter = getattr(executor, "progress_counter", None)
     counted = counter.value if counter is not None else 0
     inline = isinstance(executor, InlineExecutor)
@@ -416,7 +439,7 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
 
     try:   # a bounded window of chunks in flight: progress shows, an abort stops soon
         for i, s, e in todo:
-            pending[executor.submit(run_chunk, factory, probe, key, grid, s, e)] = (i, s, e)
+            pending[executor.submit(run_chunk, factory, probe, diagram_key, grid, s, e)] = (i, s, e)
             finish([f for f in pending if f.done()])
             while len(pending) >= max_in_flight:
                 finish(cf.wait(pending, timeout=0.25, return_when=cf.FIRST_COMPLETED).done)
