@@ -272,6 +272,13 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                       "brier": brier_score(p, y == 1) if len(y) else float("nan"),
                       "reliability": [a.tolist() for a in reliability_curve(p, y == 1)]
                       if len(y) else []}
+        # what any threshold does: each environment's warnable failing runs' warning
+        # scores and its other runs' largest risk (a run is flagged iff it is >= tau)
+        row["scores"] = {k: [{"warning": warning_scores(
+            r, run_times(g["ticks"], period), g["failure_time"], lead=lead).tolist(),
+            "safe_max": [float(np.max(x)) if len(x) else 0.0 for x, f in zip(
+                r, g["failure_time"]) if not np.isfinite(f)]}
+            for r, g in zip(risks[k], data[k])] for k in ("calibrate", "held_out")}
         results[variant.name] = row
         models[variant.name] = (model, platt, chosen.threshold)
         log(f"monitor: {variant.name}: threshold {chosen.threshold:.3f}, held-out miss "
@@ -368,6 +375,28 @@ def _pct(r):
             f"({r['count']}/{r['of']})")
 
 
+def threshold_tradeoff(row: dict, alphas=(0.1, 0.2, 0.3, 0.5)) -> list:
+    """For each target ``alpha``: the conformal threshold from a variant's calibration
+    scores (`row["scores"]`, as `run_monitor_study` records them) and what it gives on
+    the held-out environments, pooled: ``[alpha, threshold, miss count, warnable
+    failing runs, needless count, runs that did not fail]`` (threshold None when the
+    calibration environments are too few for that alpha)."""
+    out = []
+    calibrate, held_out = row["scores"]["calibrate"], row["scores"]["held_out"]
+    for alpha in alphas:
+        try:
+            tau = conformal_threshold([np.asarray(e["warning"]) for e in calibrate],
+                                      alpha).threshold
+        except ValueError:
+            out.append([alpha, None, 0, 0, 0, 0])
+            continue
+        warning = np.concatenate([e["warning"] for e in held_out] + [[]])
+        safe = np.concatenate([e["safe_max"] for e in held_out] + [[]])
+        out.append([alpha, tau, int(np.sum(warning < tau)), len(warning),
+                    int(np.sum(safe >= tau)), len(safe)])
+    return out
+
+
 def study_blocks(result: dict) -> list:
     """The study's findings as blocks a page renders: ``("heading", text)``,
     ``("text", text)`` and ``("table", header, rows)``: held-out environments pooled
@@ -423,6 +452,18 @@ def study_blocks(result: dict) -> list:
                    ("table", ["monitor", "threshold", "miss % [95 % CI]",
                               "needless flags % [95 % CI]", "worst AUROC, fails within 4 s",
                               "ECE", "Brier"], rows)]
+    if all("scores" in row for row in result["variants"].values()):
+        rows = []
+        for name, row in result["variants"].items():
+            for alpha, tau, missed, warnable_runs, needless, safe in threshold_tradeoff(row):
+                rows.append([name, f"{alpha:g}", "-" if tau is None else f"{tau:.3f}",
+                             _pct(rate(missed, warnable_runs)) if tau is not None else "-",
+                             _pct(rate(needless, safe)) if tau is not None else "-"])
+        blocks += [("heading", "The price of the guarantee: each target alpha's conformal "
+                               "threshold on the calibration environments, and what it gives "
+                               "on the held-out ones (pooled)"),
+                   ("table", ["monitor", "alpha", "threshold", "miss % [95 % CI]",
+                              "needless flags % [95 % CI]"], rows)]
     rows = []
     for group in ("held_out", "also_held_out"):
         for e, b, o in zip(kept[group]["environments"],

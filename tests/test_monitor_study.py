@@ -63,8 +63,15 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     assert json.loads((tmp_path / "out" / "monitor.json").read_text())["kept"] == result["kept"]
     assert set(result["variants"]) == {"one frame", "GRU 3 + signals"}
     assert result["lead_s"] == pytest.approx(5.0 / 3.0)
+    from reachwatch.pipeline.monitor_study import threshold_tradeoff
     for name, row in result["variants"].items():
         assert 0 <= row["threshold"] <= 1
+        # the recorded scores give back the chosen threshold and its held-out figures
+        alpha, tau, missed, warnable, needless, safe = threshold_tradeoff(row, (0.5,))[0]
+        pooled = row["held_out"]["pooled"]
+        assert tau == row["threshold"] and (missed, warnable) == (
+            pooled["miss"]["count"], pooled["miss"]["of"])
+        assert (needless, safe) == (pooled["needless"]["count"], pooled["needless"]["of"])
         assert row["held_out"]["pooled"]["needless"]["of"] + row["held_out"]["pooled"]["miss"][
             "of"] == 6
     # the kept monitor (and the single-frame one) are checkpoints with their calibration
