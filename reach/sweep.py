@@ -232,6 +232,7 @@ def _thread_probe(factory, probe: Probe, key: str, state_dim: int) -> "_DiagramP
     probes = getattr(_THREAD, "probes", None)
     if probes is None:
         probes = _THREAD.probes = collections.OrderedDict()
+    key = (key, int(state_dim))           # the diagram checks the grid's dimension once
     if key not in probes:
         probes[key] = _DiagramProbe(factory, probe, state_dim)
         while len(probes) > KEPT_DIAGRAMS:
