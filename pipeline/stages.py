@@ -283,6 +283,13 @@ class Run:
         return [load_dataset(self.path(self.outputs["dataset"]["folders"][e.name])) for e in envs]
 
 
+def controller_name(scenario) -> str:
+    """The controller under test as tables name it: TaxiNet, or the user's factory
+    (its function's name)."""
+    factory = scenario.controller.factory
+    return factory.rpartition(":")[2] if factory else "TaxiNet"
+
+
 def stage_train(run: Run) -> dict:
     """The detector on BRT labels, and the same detector on prediction-error labels
     (baseline a), each with its operating threshold."""
@@ -373,13 +380,15 @@ def stage_evaluate(run: Run) -> dict:
             subsets[UNIFORM_STARTS] = d.sources != SOURCE_PATH
             subsets[READ_ALONG] = d.sources == SOURCE_PATH
         env_rows, scores = evaluate_environment(d, detectors, device=spec.detector.device,
-                                                subsets=subsets, target_recall=ceiling_recall)
+                                                subsets=subsets, target_recall=ceiling_recall,
+                                                controller=controller_name(spec.scenario))
         rows += env_rows
         if np.any(d.sources != SOURCE_BRT):       # also scored against the BRT's verdicts
             as_brt = dc.replace(d, labels=d.brt_labels,
                                 manifest={**d.manifest, "labels": {"source": "brt"}})
             rows += evaluate_environment(as_brt, detectors, device=spec.detector.device,
-                                         subsets=subsets, target_recall=ceiling_recall)[0]
+                                         subsets=subsets, target_recall=ceiling_recall,
+                                         controller=controller_name(spec.scenario))[0]
         predictions = {r["method"]: scores[r["method"]] >= r["threshold"]
                        for r in env_rows if r["states"] == "all"}
         margin = plot_error_vs_margin({m: (d.values, d.labels, p) for m, p in predictions.items()},

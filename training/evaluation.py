@@ -43,7 +43,7 @@ class Detector:
 
 
 def evaluate_environment(data, detectors, *, device="", subsets=None,
-                         target_recall=0.95) -> tuple:
+                         target_recall=0.95, controller="TaxiNet") -> tuple:
     """``(rows, scores)`` for one `LabelledData`: rows (dicts with `COLUMNS`) for each
     detector at its own threshold, then the baselines at the threshold maximising F1 on
     the same states (oracle-tuned, i.e. as generous to them as possible); ``scores``
@@ -55,7 +55,8 @@ def evaluate_environment(data, detectors, *, device="", subsets=None,
     threshold reaching ``target_recall`` on these very samples, chosen with their labels
     (an oracle; NaN without positives). It is what the method's ranking allows at that
     recall, so a detector's accuracy far below it was lost by its threshold, not by
-    its scores."""
+    its scores. ``controller`` names the controller whose estimate error is a baseline
+    (when the dataset stores its estimates as TaxiNet's)."""
     env, labels, rows = data.manifest["environment"], data.labels, []
     label_info = data.manifest.get("labels", {})
     source = labels_name(label_info.get("source", "brt"), label_info.get("paths"))
@@ -72,7 +73,7 @@ def evaluate_environment(data, detectors, *, device="", subsets=None,
     thresholds = {det.name: det.threshold for det in detectors}
     baselines = []
     if has_pose_estimate(data):
-        baselines.append("TaxiNet prediction error (best threshold)")
+        baselines.append(f"{controller} prediction error (best threshold)")
         scores[baselines[-1]] = prediction_error(data.states, data.estimates)
     if data.ensemble.shape[1] >= 2:
         baselines.append(f"ensemble of {data.ensemble.shape[1]} variance (best threshold)")
