@@ -25,6 +25,24 @@ from reachwatch.systems.files import file_hash
 FORMAT = 1
 
 
+def _versions() -> dict:
+    """The versions of what renders and computes a result beside reachwatch's own code:
+    drake (its renderer, VTK, comes with it), torch and numpy, and reachwatch. Part of
+    every fingerprint, so a cache filled under one stack is not reused under another."""
+    from importlib.metadata import PackageNotFoundError, version
+    out = {}
+    for name in ("reachwatch", "drake", "torch", "numpy"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+#: What every fingerprint carries besides `FORMAT` (see `_versions`).
+STACK = _versions()
+
+
 class Unfingerprintable(ValueError):
     """A factory argument whose content cannot be summarised."""
 
@@ -93,6 +111,7 @@ def canonical(value, where="factory"):
 
 
 def fingerprint(*parts) -> str:
-    """SHA-256 (hex) of ``parts`` reduced by `canonical`, with the format number."""
-    text = json.dumps([FORMAT] + [canonical(p) for p in parts], sort_keys=True)
+    """SHA-256 (hex) of ``parts`` reduced by `canonical`, with the format number and the
+    software stack (`STACK`)."""
+    text = json.dumps([FORMAT, STACK] + [canonical(p) for p in parts], sort_keys=True)
     return _bytes_digest(text.encode())

@@ -345,3 +345,24 @@ def test_solver_parameters_are_checked(kwargs, match):
     g = paper_grid(B, (5, 3, 5))
     with pytest.raises(ValueError, match=match):
         solve_brt(g, TaxiDynamics(half_width=B), np.zeros(g.shape), device="cpu", **kwargs)
+
+
+def test_a_cache_filled_under_another_software_stack_is_not_reused(monkeypatch):
+    """Fingerprints (and so sweep and real-loop cache keys) carry the versions of
+    reachwatch, drake (its renderer), torch and numpy."""
+    import sys
+
+    from reachwatch.reach.outcomes import outcomes_key
+    fp = sys.modules["reachwatch.reach.fingerprint"]      # the module (the package exports
+    # a function of the same name)
+    assert set(fp.STACK) == {"reachwatch", "drake", "torch", "numpy"} and fp.STACK["drake"]
+    grid = Grid(lo=[0.0, 0.0], hi=[1.0, 1.0], shape=[3, 3])
+    probe = Probe(plant="plant", control_port="controller.u")
+    factory = functools.partial(dict, a=1)
+    rollout = functools.partial(dict, b=2)
+    before = (fp.fingerprint(factory), sweep_key(factory, grid, probe),
+              outcomes_key(rollout, np.zeros((2, 2))))
+    monkeypatch.setattr(fp, "STACK", {**fp.STACK, "drake": "0.0.0"})
+    after = (fp.fingerprint(factory), sweep_key(factory, grid, probe),
+             outcomes_key(rollout, np.zeros((2, 2))))
+    assert all(a != b for a, b in zip(before, after))
