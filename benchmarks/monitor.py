@@ -18,8 +18,8 @@ import dataclasses as dc
 import time
 
 from reachwatch.diagrams import load_scenario
-from reachwatch.pipeline.monitor_study import (MonitorStudySpec, markdown_tables,
-                                               run_monitor_study)
+from reachwatch.pipeline.monitor_sections import markdown_tables
+from reachwatch.pipeline.monitor_study import MonitorStudySpec, run_monitor_study
 from reachwatch.systems import Environment, RandomEnvironments
 
 

@@ -14,7 +14,7 @@ from .fidelity_sections import fidelity_section, map_selection_section, monte_ca
 from .detector_sections import (detector_verdicts, percent_text as _pct, target_section,
                                 threshold_section)
 from .guard_sections import guard_section
-from .monitor_study import monitor_section
+from .monitor_sections import monitor_section
 from .summary_section import summary_section
 from .stages import Run
 

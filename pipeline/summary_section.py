@@ -6,9 +6,10 @@ the guarded real loop, and its calibration."""
 
 import json
 
-from reachwatch.reach.fidelity import wilson_interval
+from reachwatch.training.monitor_eval import rate
 
 from .fidelity_sections import LABEL_TARGET, labels_meet_target
+from .monitor_sections import rate_text
 
 #: The monitor study's targets: a miss rate and a needless-stop rate of at most 10 %
 #: whose 95 % upper bounds stay within 13 %, and a calibration error of at most 0.05.
@@ -16,11 +17,9 @@ MONITOR_TARGETS = {"miss": (0.10, 0.13), "needless": (0.10, 0.13), "ece": 0.05}
 
 
 def _interval(count, of):
-    if not of:
-        return "-", None, None
-    lo, hi = wilson_interval(count, of)
-    return f"{100 * count / of:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}] ({count}/{of})", \
-        count / of, hi
+    """``(text, rate, upper bound)`` of ``count`` of ``of`` (Wilson 95 %)."""
+    r = rate(count, of)
+    return (rate_text(r), None, None) if not of else (rate_text(r), r["rate"], r["hi"])
 
 
 def _verdict(ok):

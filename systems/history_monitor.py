@@ -77,10 +77,11 @@ class HistoryMonitorConfig:
         """The per-frame resize and normalisation (the detector's, at this size)."""
         return DetectorConfig(height=self.height, width=self.width)
 
-    def history_ticks(self, tick: int) -> np.ndarray:
-        """The ticks whose frames the risk at ``tick`` reads (oldest first, clamped at 0)."""
+    def history_ticks(self, tick) -> np.ndarray:
+        """The ticks whose frames the risk at ``tick`` reads (oldest first, clamped at 0);
+        for an array of ticks, one row each."""
         offsets = np.arange(self.frames - 1, -1, -1) * self.stride
-        return np.maximum(tick - offsets, 0)
+        return np.maximum(np.asarray(tick)[..., None] - offsets, 0)
 
 
 def platt(q, a: float = 1.0, b: float = 0.0):
@@ -157,8 +158,7 @@ class HistoryRiskModel(nn.Module):
         ``(T, features)`` (`encode_frames`) and ``signals`` ``(T, signals)``."""
         self.eval()
         features = torch.as_tensor(features, dtype=torch.float32)
-        index = torch.from_numpy(np.stack([self.config.history_ticks(t)
-                                           for t in range(len(features))]))
+        index = torch.from_numpy(self.config.history_ticks(np.arange(len(features))))
         sig = (torch.as_tensor(np.asarray(signals, np.float32))[index]
                if self.config.signals else None)
         raw = torch.sigmoid(self.head_logits(features[index], sig)).double().numpy()

@@ -11,7 +11,8 @@ import pytest
 
 from reachwatch.diagrams import load_scenario
 from reachwatch.diagrams.checkpoints import load_history_monitor
-from reachwatch.pipeline.monitor_study import markdown_tables, run_monitor_study
+from reachwatch.pipeline.monitor_sections import markdown_tables
+from reachwatch.pipeline.monitor_study import run_monitor_study
 from reachwatch.pipeline.spec import dump_run_spec, load_run_spec
 from reachwatch.training.conformal import conformal_threshold
 from tiny_run import TINY
@@ -63,7 +64,7 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     assert json.loads((tmp_path / "out" / "monitor.json").read_text())["kept"] == result["kept"]
     assert set(result["variants"]) == {"one frame", "GRU 3 + signals"}
     assert result["lead_s"] == pytest.approx(5.0 / 3.0)
-    from reachwatch.pipeline.monitor_study import threshold_tradeoff
+    from reachwatch.pipeline.monitor_sections import threshold_tradeoff
     for name, row in result["variants"].items():
         assert 0 <= row["threshold"] <= 1
         # the recorded scores give back the chosen threshold and its held-out figures
@@ -91,7 +92,7 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     assert "Guarded real loop" in text and "oracle (privileged)" in text
     assert "at most 50.0 %" in text
 
-    from reachwatch.pipeline.monitor_study import monitor_section
+    from reachwatch.pipeline.monitor_sections import monitor_section
     from reachwatch.pipeline.report import Page
 
     class Run:                                   # what the report section reads of a run

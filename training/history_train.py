@@ -3,7 +3,7 @@ stages that every variant shares: (1) the per-frame encoder, trained as a
 single-frame monitor on the runs' ticks; (2) with the encoder frozen, each variant's
 head (one frame, stacked frames, a GRU; with or without the online signals) on the
 encoded runs. The label of a tick is "the run fails within ``within`` s"
-(`reach.outcomes.fails_within` of `time_to_failure`): a censored tick (the run ended
+(`reachwatch.training.monitor_eval.run_labels`): a censored tick (the run ended
 sooner without failing) is left out, never called safe.
 
 ``runs`` is a dict of arrays as `reachwatch.taxi.history.record_runs` returns them
@@ -17,8 +17,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from reachwatch.reach.outcomes import fails_within, time_to_failure
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel
+
+from .monitor_eval import run_labels
 
 
 @dc.dataclass
@@ -42,17 +43,8 @@ def tick_labels(runs: dict, *, period: float, duration: float, within: float) ->
     length = runs["frames"].shape[1]
     out = np.full((len(ticks), length), -1, np.int8)
     for r, n in enumerate(ticks):
-        if n == 0:
-            continue
-        ttf, observed = time_to_failure(np.arange(n) * period, failure[r], duration)
-        out[r, :n] = fails_within(ttf, observed, within)
+        out[r, :n] = run_labels(n, failure[r], period=period, duration=duration, within=within)
     return out
-
-
-def _windows(config: HistoryMonitorConfig, ticks: np.ndarray) -> np.ndarray:
-    """``(N, frames)`` history ticks of each tick in ``ticks`` (clamped at 0)."""
-    offsets = np.arange(config.frames - 1, -1, -1) * config.stride
-    return np.maximum(ticks[:, None] - offsets[None, :], 0)
 
 
 def _pos_weight(labels) -> torch.Tensor:
@@ -141,7 +133,7 @@ def train_head(encoder: HistoryRiskModel, features: np.ndarray, runs: dict,
     seen = features[rows, cols]
     model.feature_mean.copy_(torch.from_numpy(seen.mean(axis=0)))
     model.feature_std.copy_(torch.from_numpy(np.maximum(seen.std(axis=0), 1e-3)))
-    history = _windows(config, cols)
+    history = config.history_ticks(cols)
     x = torch.from_numpy(features[rows[:, None], history])
     s = (torch.from_numpy(np.asarray(runs["signals"], np.float32)[..., :config.signals]
                           [rows[:, None], history]) if config.signals else None)

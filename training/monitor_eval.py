@@ -5,8 +5,8 @@ oracle monitor that flags exactly when the true time to failure drops to ``lead`
 
 Up to its first flag a guarded loop is the loop alone, so on runs of the loop alone
 the miss rate read here is the guarded loop's; whether a timely flag prevents the
-failure, and how often a flag stops the aircraft for nothing, the guarded real loop
-answers (`reachwatch.taxi.fidelity.mission_rollouts`)."""
+failure, and how often a flag stops the plant for nothing, only runs of the guarded
+real loop answer."""
 
 import numpy as np
 
@@ -15,6 +15,27 @@ from reachwatch.reach.outcomes import fails_within, time_to_failure
 
 from .conformal import warning_scores
 from .metrics import auroc
+
+
+def run_labels(ticks: int, failure_time, *, period: float, duration: float,
+               within: float) -> np.ndarray:
+    """The labels of one run's ``ticks`` ticks (``period`` s apart, the run ``duration``
+    s long unless it failed at ``failure_time``): `fails_within` ``within`` s of
+    `time_to_failure`, -1 where censoring leaves it unknown."""
+    return fails_within(*time_to_failure(np.arange(int(ticks)) * period, failure_time,
+                                         duration), within)
+
+
+def labelled_ticks(risks, ticks, failure_times, *, period: float, duration: float,
+                   within: float):
+    """``(labels, risks)`` of every tick of the runs whose label the runs settle
+    (`run_labels` >= 0), concatenated."""
+    labels, scores = [np.zeros(0, np.int8)], [np.zeros(0)]
+    for risk, n, failure in zip(risks, ticks, failure_times):
+        label = run_labels(n, failure, period=period, duration=duration, within=within)
+        labels.append(label[label >= 0])
+        scores.append(np.asarray(risk, float)[label >= 0])
+    return np.concatenate(labels), np.concatenate(scores)
 
 
 def run_times(ticks, period: float) -> list:
@@ -76,11 +97,6 @@ def tick_auroc(risks, ticks, failure_times, *, period: float, duration: float,
                within: float) -> float:
     """AUROC of the per-tick risk for "fails within ``within`` s" over the ticks whose
     label the runs settle (censored ticks left out); NaN with one class."""
-    labels, scores = [], []
-    for risk, n, failure in zip(risks, ticks, failure_times):
-        label = fails_within(*time_to_failure(np.arange(int(n)) * period, failure, duration),
-                             within)
-        labels.append(label[label >= 0])
-        scores.append(np.asarray(risk)[label >= 0])
-    labels, scores = np.concatenate(labels), np.concatenate(scores)
+    labels, scores = labelled_ticks(risks, ticks, failure_times, period=period,
+                                    duration=duration, within=within)
     return auroc(labels == 1, scores) if len(labels) else float("nan")

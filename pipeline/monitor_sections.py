@@ -1,0 +1,162 @@
+"""The monitor study's findings as a page shows them (`study_blocks`): the report's
+section (`monitor_section`) and the benchmark's Markdown (`markdown_tables`) render the
+same blocks. `pipeline.monitor_study` computes what they show."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from reachwatch.training.conformal import conformal_threshold
+from reachwatch.training.monitor_eval import rate
+
+
+def rate_text(r):
+    """A `rate` as ``"12.5 % [4.1, 29.9] (3/24)"`` (Wilson 95 %), ``"-"`` without trials."""
+    if not r["of"]:
+        return "-"
+    return (f"{100 * r['rate']:.1f} % [{100 * r['lo']:.1f}, {100 * r['hi']:.1f}] "
+            f"({r['count']}/{r['of']})")
+
+
+def threshold_tradeoff(row: dict, alphas=(0.1, 0.2, 0.3, 0.5)) -> list:
+    """For each target ``alpha``: the conformal threshold from a variant's calibration
+    scores (`row["scores"]`, as `run_monitor_study` records them) and what it gives on
+    the held-out environments, pooled: ``[alpha, threshold, miss count, warnable
+    failing runs, needless count, runs that did not fail]`` (threshold None when the
+    calibration environments are too few for that alpha)."""
+    out = []
+    calibrate, held_out = row["scores"]["calibrate"], row["scores"]["held_out"]
+    for alpha in alphas:
+        try:
+            tau = conformal_threshold([np.asarray(e["warning"]) for e in calibrate],
+                                      alpha).threshold
+        except ValueError:
+            out.append([alpha, None, 0, 0, 0, 0])
+            continue
+        warning = np.concatenate([e["warning"] for e in held_out] + [[]])
+        safe = np.concatenate([e["safe_max"] for e in held_out] + [[]])
+        out.append([alpha, tau, int(np.sum(warning < tau)), len(warning),
+                    int(np.sum(safe >= tau)), len(safe)])
+    return out
+
+
+def study_blocks(result: dict) -> list:
+    """The study's findings as blocks a page renders: ``("heading", text)``,
+    ``("text", text)`` and ``("table", header, rows)``: held-out environments pooled
+    per variant (with the oracle and the prediction-error baseline), the guarantee, the
+    guarded real loop, and the kept variant per environment."""
+    blocks = []
+    guarded_header = ["monitor", "runs", "failures alone", "failures guarded",
+                      "prevented % [95 % CI]", "needless stops % [95 % CI]",
+                      "distance guarded / alone"]
+    if result["guarded"]:
+        blocks += [("heading", "Guarded real loop (braking), pooled over the held-out "
+                               "environments of the family"),
+                   ("table", guarded_header, [
+                       [name, c["runs"], c["failed_alone"], c["failed_guarded"],
+                        rate_text(c["prevented_rate"]), rate_text(c["needless_rate"]),
+                        f"{c['distance_guarded_m'] / max(1e-9, c['distance_alone_m']):.3f}"]
+                       for name, c in result["guarded"].items()])]
+    kept = result["variants"][result["kept"]]
+    warnable = result["oracle"]["held_out"]["pooled"]["warnable"]
+    if warnable["of"]:
+        blocks.append(("text", f"Of the held-out environments' failing runs, "
+                               f"{rate_text(warnable)} lasted at least {result['lead_s']:.2f} s: "
+                               f"only those can be warned in time by any monitor with this "
+                               f"fallback (the ceiling; the oracle warns them all). Miss rates "
+                               f"below are over those warnable runs."))
+    blocks += [("text", kept["statement"]),
+               ("text", f"For one new environment: with probability 90 % its miss rate is at "
+                        f"most {100 * kept['per_environment_bound_90']:.1f} % (a quantile of the "
+                        f"calibration environments' miss rates; exchangeable environments).")]
+    for group, title in (("held_out", "held-out environments of the family"),
+                         ("also_held_out", "named environments outside the family (no "
+                                           "guarantee: not drawn from it)")):
+        first = next(iter(result["variants"].values()))[group]
+        if not first["environments"]:
+            continue
+        rows = []
+        for name, row in result["variants"].items():
+            r = row[group]
+            aurocs = [e["auroc_4s"] for e in r["environments"] if np.isfinite(e["auroc_4s"])]
+            rows.append([name + (" (kept)" if name == result["kept"] else ""),
+                         f"{row['threshold']:.3f}", rate_text(r["pooled"]["miss"]),
+                         rate_text(r["pooled"]["needless"]),
+                         f"{min(aurocs):.3f}" if aurocs else "-", f"{r['ece']:.3f}",
+                         f"{r['brier']:.3f}"])
+        o = result["oracle"][group]["pooled"]
+        base = [b for b in result["prediction_error_auroc_4s"][group] if np.isfinite(b)]
+        rows += [["oracle (privileged)", "-", rate_text(o["miss"]), rate_text(o["needless"]), "-", "-", "-"],
+                 ["prediction error (privileged)", "-", "-", "-",
+                  f"{min(base):.3f}" if base else "-", "-", "-"]]
+        blocks += [("heading", f"Offline on recorded runs, pooled over the {title}; a miss is "
+                               f"a failing run with no flag {result['lead_s']:.2f} s before it "
+                               f"fails"),
+                   ("table", ["monitor", "threshold", "miss % [95 % CI]",
+                              "needless flags % [95 % CI]", "worst AUROC, fails within 4 s",
+                              "ECE", "Brier"], rows)]
+    if all("scores" in row for row in result["variants"].values()):
+        rows = []
+        for name, row in result["variants"].items():
+            for alpha, tau, missed, warnable_runs, needless, safe in threshold_tradeoff(row):
+                rows.append([name, f"{alpha:g}", "-" if tau is None else f"{tau:.3f}",
+                             rate_text(rate(missed, warnable_runs)) if tau is not None else "-",
+                             rate_text(rate(needless, safe)) if tau is not None else "-"])
+        blocks += [("heading", "The price of the guarantee: each target alpha's conformal "
+                               "threshold on the calibration environments, and what it gives "
+                               "on the held-out ones (pooled)"),
+                   ("table", ["monitor", "alpha", "threshold", "miss % [95 % CI]",
+                              "needless flags % [95 % CI]"], rows)]
+    rows = []
+    for group in ("held_out", "also_held_out"):
+        for e, b, o in zip(kept[group]["environments"],
+                           result["prediction_error_auroc_4s"][group],
+                           result["oracle"][group]["environments"]):
+            fails = result["failing_runs"][group][e["environment"]]
+            rows.append([e["environment"], f"{fails[0]}/{fails[1]} ({o['warnable']['count']})",
+                         rate_text(e["miss"]),
+                         rate_text(e["needless"]), f"{e['auroc_4s']:.3f}", f"{b:.3f}",
+                         rate_text(o["miss"])])
+    blocks += [("heading", f"{result['kept']} (the kept variant), per environment"),
+               ("table", ["environment", "failing runs (warnable)", "miss % [95 % CI]",
+                          "needless flags % [95 % CI]", "AUROC, fails within 4 s",
+                          "prediction-error AUROC", "oracle miss"], rows)]
+    return blocks
+
+
+def markdown_tables(result: dict) -> str:
+    """`study_blocks` as Markdown."""
+    lines = []
+    for block in study_blocks(result):
+        if block[0] == "heading":
+            lines += [f"#### {block[1]}", ""]
+        elif block[0] == "text":
+            lines += [block[1], ""]
+        else:
+            header, rows = block[1], block[2]
+            lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+            lines += ["| " + " | ".join(map(str, r)) + " |" for r in rows] + [""]
+    return "\n".join(lines)
+
+
+def monitor_section(page, run):
+    """The report's section on the monitor study (when the run has one)."""
+    outputs = run.outputs.get("monitor") or {}
+    if not outputs:
+        return
+    result = json.loads(run.path(outputs["result"]).read_text())
+    page.section("Runtime monitor on environments it has never seen", "monitor")
+    page.text(f"A monitor over the image history predicts the risk of failing within "
+              f"{result['within_s']:g} s; its threshold is chosen on calibration environments "
+              f"of the random family before any held-out environment is seen. The fallback "
+              f"brakes and needs {result['lead_s']:.2f} s. Variants kept: {result['kept']} "
+              f"(fewest needless flags on the calibration environments).")
+    for block in study_blocks(result):
+        if block[0] in ("heading", "text"):
+            page.text(block[1])
+        else:
+            page.table(block[1], block[2])
+    if result.get("reliability_figure"):
+        page.images([str(Path(outputs["result"]).parent / result["reliability_figure"])],
+                    "reliability of the risk on the held-out environments")
