@@ -58,7 +58,7 @@ class ControllerConfig:
     def __fingerprint__(self):
         """What a sweep of this controller depends on: every field, plus the source
         file of a user factory (an edited controller never reuses a stale table)."""
-        from .controller import factory_code_hash
+        from .user_code import factory_code_hash
         return {**{f.name: getattr(self, f.name) for f in dc.fields(self)},
                 "factory_code": factory_code_hash(self.factory)}
 

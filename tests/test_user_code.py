@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from reachwatch.diagrams import CONTROL_PORT, ControllerConfig, load_scenario
-from reachwatch.diagrams.controller import factory_code_hash, make_controller, resolve_factory
+from reachwatch.diagrams.controller import make_controller, resolve_factory
+from reachwatch.diagrams.user_code import factory_code_hash
 from reachwatch.reach import InlineExecutor, default_executor, stop_executor
 from reachwatch.taxi import paper_grid, sweep_closed_loop, taxi_sweep_key
 
@@ -151,8 +152,8 @@ def test_a_missing_file_or_function_is_one_line(tmp_path):
 
 
 def test_a_huge_folder_is_refused(tmp_path, monkeypatch):
-    from reachwatch.diagrams import controller
-    monkeypatch.setattr(controller, "MAX_SOURCE_ENTRIES", 5)
+    from reachwatch.diagrams import user_code
+    monkeypatch.setattr(user_code, "MAX_SOURCE_ENTRIES", 5)
     factory = _controller(tmp_path)
     for i in range(6):
         (tmp_path / "mine" / f"data_{i}.txt").write_text("")

@@ -1,0 +1,323 @@
+"""A user's controller code: loading a factory named as ``path/to/file.py:function``
+or ``package.module:function``, with the file's folder importable while it loads and
+while the factory runs (in any process, nothing left in ``sys.path`` or
+``sys.modules``), compiled from source; and its fingerprint (`factory_code_hash`),
+which covers every ``.py`` file of that folder, or of a user's package, so an edit
+anywhere in the controller's code changes the key of its sweeps."""
+
+import contextlib
+import functools
+import hashlib
+import importlib
+import importlib.abc
+import importlib.machinery
+import importlib.metadata
+import importlib.util
+import inspect
+import json
+import os
+import sys
+import sysconfig
+import threading
+import traceback
+from pathlib import Path
+
+from reachwatch.systems.checks import clip, is_file
+
+
+#: Bounds on the folder of a controller's files, all of whose ``.py`` files are read
+#: at every resolution (a factory file left in a home directory is a mistake).
+MAX_SOURCE_ENTRIES = 10_000     # files and folders looked at
+MAX_SOURCE_FILES = 1_000        # .py files
+MAX_SOURCE_BYTES = 20 << 20     # their total size
+
+#: Held while user code is importable (the import machinery is process-wide).
+_LOCK = threading.RLock()
+
+
+def _split(spec: str):
+    target, sep, name = spec.rpartition(":")
+    if not sep or not target or not name.isidentifier():
+        raise ValueError(f"controller.factory must be 'package.module:function' or "
+                         f"'path/to/file.py:function', got '{spec}'")
+    return target, name
+
+
+def _pruned(name: str) -> bool:
+    return name.startswith(".") or name == "__pycache__" or not name.isidentifier()
+
+
+def _source_files(root: Path, where: str):
+    """``(relative path, path)`` of every ``.py`` file under ``root`` an import from it
+    can reach, sorted; folders that no import can name (hidden, ``__pycache__``, not
+    identifiers) and virtual environments are skipped."""
+    found, entries, size = [], 0, 0
+    for folder, dirs, files in os.walk(root):
+        entries += len(dirs) + len(files)
+        if entries > MAX_SOURCE_ENTRIES:
+            raise ValueError(f"{where}: the folder {clip(root, 200)} holds more than "
+                             f"{MAX_SOURCE_ENTRIES} files; put the controller's files in a "
+                             f"folder of their own")
+        dirs[:] = sorted(d for d in dirs if not _pruned(d)
+                         and not os.path.exists(os.path.join(folder, d, "pyvenv.cfg")))
+        for name in files:
+            path = Path(folder, name)
+            if name.endswith(".py") and path.is_file():
+                found.append((path.relative_to(root).as_posix(), path))
+                size += path.stat().st_size
+        if len(found) > MAX_SOURCE_FILES or size > MAX_SOURCE_BYTES:
+            raise ValueError(f"{where}: the folder {clip(root, 200)} holds more than "
+                             f"{MAX_SOURCE_FILES} .py files or {MAX_SOURCE_BYTES >> 20} MiB of "
+                             f"them; put the controller's files in a folder of their own")
+    return sorted(found)
+
+
+def source_digest(root, where="controller.factory") -> str:
+    """SHA-256 of every ``.py`` file under ``root`` (relative paths and contents)."""
+    digest = hashlib.sha256()
+    for relative, path in _source_files(Path(root), where):
+        try:
+            content = path.read_bytes()
+        except OSError as e:
+            raise ValueError(f"{where}: cannot read {clip(path, 200)} ({e.strerror})") from None
+        digest.update(f"{relative}\0{hashlib.sha256(content).hexdigest()}\0".encode())
+    return digest.hexdigest()
+
+
+class _SourceLoader(importlib.machinery.SourceFileLoader):
+    """Compiles a user's file from its source every time: a cached ``.pyc`` is trusted
+    by the file's size and whole-second time, so an edit that keeps both would run the
+    old code."""
+
+    def get_code(self, fullname):
+        path = self.get_filename(fullname)
+        return self.source_to_code(self.get_data(path), path)
+
+
+def _only_namespace(name: str) -> bool:
+    """Whether nothing but a namespace package named ``name`` is on ``sys.path`` (a
+    module or regular package there comes first, as next to a script)."""
+    found = importlib.machinery.PathFinder.find_spec(name)
+    return found is None or found.loader is None
+
+
+class _FolderFinder(importlib.abc.MetaPathFinder):
+    """Finds modules and packages in one folder, the way Python finds them next to a
+    script it runs; records what it found."""
+
+    def __init__(self, folder: Path):
+        self.folder, self.found = folder, set()
+
+    def find_spec(self, fullname, path=None, target=None):
+        tail = fullname.rpartition(".")[2]
+        bases = [self.folder] if path is None else [
+            Path(p) for p in path if isinstance(p, str) and Path(p).is_relative_to(self.folder)]
+        for base in bases:
+            package, module = base / tail / "__init__.py", base / f"{tail}.py"
+            if package.is_file():
+                spec = importlib.util.spec_from_file_location(
+                    fullname, package, loader=_SourceLoader(fullname, str(package)),
+                    submodule_search_locations=[str(package.parent)])
+            elif module.is_file():
+                spec = importlib.util.spec_from_file_location(
+                    fullname, module, loader=_SourceLoader(fullname, str(module)))
+            elif (base / tail).is_dir() and (path is not None or _only_namespace(fullname)):
+                spec = importlib.machinery.ModuleSpec(fullname, None, is_package=True)
+                spec.submodule_search_locations = [str(base / tail)]     # a namespace package
+            else:
+                continue
+            self.found.add(fullname)
+            return spec
+        return None
+
+
+class _UserCode:
+    """A factory file's folder, the digest of its code, and the modules imported from
+    it, kept out of ``sys.modules`` (two controllers may each have a ``helpers.py``; an
+    edited one is imported afresh) except while the factory is imported or called."""
+
+    def __init__(self, folder: Path, digest: str):
+        self.folder, self.digest, self.modules = folder, digest, {}
+
+    @contextlib.contextmanager
+    def importable(self):
+        with _LOCK:
+            finder = _FolderFinder(self.folder)
+            shown = {n: m for n, m in self.modules.items() if n not in sys.modules}
+            sys.modules.update(shown)
+            meta = sys.meta_path
+            meta.insert(meta.index(importlib.machinery.PathFinder)
+                        if importlib.machinery.PathFinder in meta else len(meta), finder)
+            try:
+                yield
+            finally:
+                meta.remove(finder)
+                for name in finder.found | set(shown):
+                    if name in sys.modules:
+                        self.modules[name] = sys.modules.pop(name)
+
+
+_USER_CODE = {}     # module name of a loaded factory file -> its _UserCode
+
+
+def importable(module):
+    """A context in which the folder of the factory file ``module`` was loaded from is
+    importable (a no-op for any other module)."""
+    user = _USER_CODE.get(getattr(module, "__name__", None))
+    return user.importable() if user else contextlib.nullcontext()
+
+
+def _failure(spec: str, error: BaseException, folder=None) -> ValueError:
+    """One line naming the factory, the error and where in the user's code it arose."""
+    place = ""
+    for frame in traceback.extract_tb(error.__traceback__)[::-1]:
+        if folder is None or Path(frame.filename).is_relative_to(folder):
+            place = f" at {clip(frame.filename, 200)}:{frame.lineno}"
+            break
+    if isinstance(error, SyntaxError) and error.filename:
+        place = f" at {clip(error.filename, 200)}:{error.lineno}"
+    message = error.msg if isinstance(error, SyntaxError) else error
+    hint = (f"; a module it imports must be installed or in {clip(folder, 200)}"
+            if isinstance(error, ImportError) and folder is not None else "")
+    return ValueError(f"controller.factory '{clip(spec, 200)}': importing it failed: "
+                      f"{type(error).__name__}: {clip(message, 300)}{place}{hint}")
+
+
+def _load_file(spec: str, target: str):
+    if not is_file(target):
+        raise ValueError(f"controller.factory: file not found: {clip(target, 200)}")
+    path = Path(target).resolve()
+    digest = source_digest(path.parent)
+    name = (f"reachwatch_user_{path.stem if path.stem.isidentifier() else 'factory'}_"
+            f"{hashlib.sha256(str(path).encode()).hexdigest()[:8]}_{digest[:16]}")
+    with _LOCK:
+        if name not in sys.modules:
+            user = _UserCode(path.parent, digest)
+            module_spec = importlib.util.spec_from_file_location(
+                name, path, loader=_SourceLoader(name, str(path)))
+            module = importlib.util.module_from_spec(module_spec)
+            sys.modules[name] = module
+            try:
+                with user.importable():
+                    module_spec.loader.exec_module(module)
+            except Exception as e:
+                del sys.modules[name]
+                raise _failure(spec, e, path.parent) from e
+            except BaseException:
+                del sys.modules[name]
+                raise
+            _USER_CODE[name] = user
+        return sys.modules[name]
+
+
+def _installed(location) -> bool:
+    """Whether ``location`` (a module's file or folder) is part of Python or of an
+    installed distribution rather than a user's source tree."""
+    path = Path(location).resolve()
+    if {"site-packages", "dist-packages"} & set(path.parts):
+        return True
+    paths = sysconfig.get_paths()
+    return any(path.is_relative_to(Path(paths[k]).resolve())
+               for k in ("stdlib", "platstdlib") if k in paths)
+
+
+def _package_root(target: str):
+    """The folder of the top-level package the imported module ``target`` belongs to (a
+    top-level module: its file) when it is a user's source tree, not reachwatch (its own
+    code is versioned by `reachwatch.reach.fingerprint.FORMAT`) nor installed; else None."""
+    top = target.partition(".")[0]
+    file = getattr(sys.modules.get(target), "__file__", None)
+    if top == "reachwatch" or not file or not os.path.isfile(file) or _installed(file):
+        return None
+    node = Path(file).resolve()
+    node = node.parent if node.name == "__init__.py" else node
+    for _ in range(target.count(".")):
+        node = node.parent
+    return node if (node.stem if node.is_file() else node.name) == top else None
+
+
+_IMPORTED = {}      # a user's top-level package -> the digest of its tree when first used
+
+
+def _package_digest(spec: str, target: str):
+    """The digest of the user's package (or module's folder) ``target`` belongs to, or
+    None for reachwatch and installed ones; an error if it changed since this process
+    imported it (the code in memory is not the code on disk)."""
+    root = _package_root(target)
+    if root is None:
+        return None
+    digest = source_digest(root.parent if root.is_file() else root)
+    if _IMPORTED.setdefault(root, digest) != digest:
+        raise ValueError(f"controller.factory '{clip(spec, 200)}': files of {clip(root, 200)} "
+                         f"changed since this process imported them; start a new process")
+    return digest
+
+
+def _module(spec: str, target: str):
+    if target.endswith(".py"):
+        return _load_file(spec, target)
+    try:
+        module = importlib.import_module(target)
+    except ImportError as e:
+        raise ValueError(f"controller.factory: cannot import '{target}' ({clip(e, 300)}); "
+                         f"install the package or name a file as 'path/to/file.py:function'"
+                         ) from None
+    except Exception as e:
+        raise _failure(spec, e) from e
+    _package_digest(spec, target)
+    return module
+
+
+def resolve(spec: str):
+    """``(module, function)`` a non-empty factory string names."""
+    target, name = _split(spec)
+    module = _module(spec, target)
+    function = getattr(module, name, None)
+    if not callable(function):
+        raise ValueError(f"controller.factory: '{target}' has no function '{name}'")
+    if not (inspect.isfunction(function) or inspect.isclass(function)
+            or inspect.ismethod(function)):
+        raise ValueError(f"controller.factory: '{spec}' is a {type(function).__name__}, not a "
+                         f"Python function or class that takes the ControllerConfig and "
+                         f"returns a Drake System")
+    return module, function
+
+
+@functools.lru_cache(maxsize=None)
+def _versions():
+    return importlib.metadata.packages_distributions()
+
+
+def _version(top: str) -> str:
+    names = _versions().get(top, [])
+    try:
+        return ",".join(f"{n}=={importlib.metadata.version(n)}" for n in sorted(set(names)))
+    except importlib.metadata.PackageNotFoundError:
+        return ""
+
+
+def factory_code_hash(spec: str) -> str:
+    """SHA-256 of the code the factory ``spec`` names can run (so a sweep of an edited
+    controller is never answered from a stale cache): every ``.py`` file in a factory
+    file's folder and below it; for ``package.module``, every ``.py`` file of a user's
+    package (or of a top-level module's folder), or an installed package's version and
+    the factory's own file. '' for TaxiNet's, whose content is its checkpoint and gains."""
+    if not spec:
+        return ""
+    target, _ = _split(spec)
+    module, function = resolve(spec)
+    if target.endswith(".py"):
+        content = {"folder": _USER_CODE[module.__name__].digest}      # the code loaded
+    else:
+        digest = _package_digest(spec, target)
+        if digest is not None:
+            content = {"package": digest}
+        else:
+            try:
+                source = Path(inspect.getsourcefile(function)).read_bytes()
+            except (OSError, TypeError):
+                source = inspect.getsource(function).encode()
+            top = target.partition(".")[0]
+            content = {"module": top, "version": _version(top),
+                       "source": hashlib.sha256(source).hexdigest()}
+    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
