@@ -331,31 +331,48 @@ def read_text_file(filename, what="scenario file") -> str:
     return text
 
 
-def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario"):
-    """Load and validate a scenario (``schema`` instance) from a YAML file or string
-    (an empty string means all defaults; an empty file is an error); errors name fields
-    as ``root.field.subfield``, and a key written twice is an error. Every float must
-    be finite, every seed >= 0; a float written as text that PyYAML takes for a string
-    (``1e-4``) is read as the number."""
-    where = str(filename) if filename is not None else "<yaml>"
-    if filename is not None:
-        data = read_text_file(filename)
-    elif len(data) > MAX_FILE_BYTES:
+def read_yaml(data: str, where: str, *, drake=True):
+    """The data of the YAML text ``data`` (at most `MAX_FILE_BYTES`; a key written twice,
+    or aliases expanding past `MAX_NODES` values, is an error); a ScenarioError starting
+    with ``where`` otherwise. ``drake``: also parse it with Drake's loader (which the
+    typed load uses)."""
+    if len(data) > MAX_FILE_BYTES:
         raise ScenarioError(f"{where}: {len(data)} characters; a scenario is at most "
                             f"{MAX_FILE_BYTES}")
     try:
-        raw = yaml.load(data, Loader=_UniqueKeyLoader) if data.strip() else {}
-        if raw:
+        raw = yaml.load(data, Loader=_UniqueKeyLoader) if data.strip() else None
+        if raw and drake:
             yaml_load_data(data)
     except ScenarioError as e:
         raise ScenarioError(clip(f"{where}: {e}")) from None
     except Exception as e:  # PyYAML's or Drake's parser error
         raise ScenarioError(clip(f"{where}: not valid YAML: {e}")) from None
+    return raw
+
+
+def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario", edit=None):
+    """Load and validate a scenario (``schema`` instance) from a YAML file or string
+    (an empty string means all defaults; an empty file is an error); errors name fields
+    as ``root.field.subfield``, and a key written twice is an error. Every float must
+    be finite, every seed >= 0; a float written as text that PyYAML takes for a string
+    (``1e-4``) is read as the number. ``edit``: None, or an object whose ``apply(raw,
+    schema, root)`` returns the raw data changed (e.g. command-line overlays) and whose
+    ``where`` says how errors name it; it runs before every check, so the changed
+    values are checked as the file's are."""
+    where = (str(filename) if filename is not None else "<yaml>" if data.strip()
+             else "the built-in defaults")
+    if filename is not None:
+        data = read_text_file(filename)
+    raw = read_yaml(data, where)
+    raw = {} if raw is None else raw
+    if edit is not None:
+        where = f"{where} {edit.where}"
+        raw = edit.apply(raw, schema, root)
     later, converted = [], []
     try:
-        raw = _check(raw if raw is not None else {}, schema, root, later, converted)
-        if converted:           # Drake's loader reads the text again: give it the numbers
-            data = yaml.safe_dump(raw, default_flow_style=None)
+        raw = _check(raw, schema, root, later, converted)
+        if converted or edit is not None:   # Drake's loader reads the text again: give
+            data = yaml.safe_dump(raw, default_flow_style=None)     # it the numbers
         scenario = yaml_load_typed(schema=schema, data=data) if raw else schema()
         scenario.validate()
     except (ScenarioError, ValueError) as e:     # ScenarioError is a ValueError

@@ -11,6 +11,7 @@ import signal
 import sys
 import threading
 
+from .overlays import add_overlay_arguments
 from . import (commands, console, evaluate_commands, guard_commands, reach_commands,
                run_commands, simulate_commands, taxinet_commands)
 
@@ -30,6 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     render = sub.add_parser("render", help="render the wing-camera image of a scenario, "
                             "or a contact sheet of every environment")
     render.add_argument("--scenario", help="scenario YAML (default: built-in defaults)")
+    add_overlay_arguments(render)
     render.add_argument("--out", required=True, help="output folder")
     render.add_argument("--contact-sheet", action="store_true",
                         help="render all 5 runways x hours 9, 17, 21 x clear/overcast "
@@ -39,6 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     graph = sub.add_parser("graph", help="export the scenario's diagram graph "
                            "(.dot; .svg/.png with graphviz)")
     graph.add_argument("--scenario", help="scenario YAML (default: built-in defaults)")
+    add_overlay_arguments(graph)
     graph.add_argument("--out", required=True, help="output folder")
     graph.add_argument("--max-depth", type=int, default=2, help="Graphviz nesting depth")
     graph.set_defaults(func=commands.graph)

@@ -42,10 +42,19 @@ horizon_seconds = number_type(float, 0.0, True, "a finite number > 0 of at most 
 mission_multiple = number_type(float, 1.0, False, "a multiple of the horizon in [1, 100]", most=100.0)
 
 
-def scenario_from_args(args):
-    """The ``--scenario`` file, or the built-in defaults when none is given."""
+def scenario_from_args(args, schema=None, root="scenario"):
+    """The ``--scenario`` file (``schema``: a `Scenario` by default), or the built-in
+    defaults when none is given, with the command's overlays (``--set``,
+    ``--scenario-text``) applied before it is checked."""
     from reachwatch.diagrams import Scenario, load_scenario
-    return load_scenario(args.scenario) if args.scenario else Scenario().validate()
+
+    from .overlays import Overlays
+    schema = schema or Scenario
+    overlays = Overlays(getattr(args, "overlays", None))
+    if not args.scenario and not overlays:
+        return schema().validate()
+    return load_scenario(args.scenario, data=None if args.scenario else "", schema=schema,
+                         root=root, edit=overlays or None)
 
 
 def check_detector(scenario, path) -> None:

@@ -4,6 +4,7 @@ to its evaluate stage, configured from the command line)."""
 import dataclasses as dc
 
 from .console import log
+from .overlays import add_overlay_arguments
 from .commands import count, grid_nodes, positive_int, scenario_from_args, seed_number
 
 #: What the parser shows of the library, here so that building it needs no torch (a
@@ -36,6 +37,7 @@ def add_parsers(sub):
     p = sub.add_parser("evaluate", help="BRTs, BRT-labelled datasets, the anomaly detector, "
                        "baselines and the paper's Table 2 on held-out environments")
     p.add_argument("--scenario", help="scenario YAML for camera/controller settings")
+    add_overlay_arguments(p)
     p.add_argument("--train", nargs="+", default=None,
                    help="training environments RUNWAY:HOUR:SKY (default: "
                    "training_environments(), the paper's 12)")

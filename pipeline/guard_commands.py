@@ -7,8 +7,10 @@ import time
 from pathlib import Path
 
 from .commands import (check_detector, count, grid_nodes, horizon_seconds, mission_multiple,
-                       open_share, output_folder, positive_int, seed_number)
+                       open_share, output_folder, positive_int, scenario_from_args,
+                       seed_number)
 from .console import log
+from .overlays import add_overlay_arguments
 
 #: ``reachwatch.systems.DEFAULT_FALLBACKS``, here so that the parser needs no torch
 #: (a test keeps the two the same).
@@ -23,6 +25,7 @@ def add_parsers(sub):
                        "threshold sweeps, from one sweep of the guarded diagram")
     g.add_argument("--scenario", required=True, help="scenario YAML with monitor.detector "
                    "(the detector checkpoint the guarded loop runs)")
+    add_overlay_arguments(g)
     g.add_argument("--shape", type=grid_nodes, nargs=3, default=[41, 41, 41],
                    metavar=("NPX", "NPY", "NTHETA"),
                    help="grid nodes over the paper's box (default: 41 41 41)")
@@ -84,7 +87,6 @@ def _monitor_settings(monitor) -> str:
 
 
 def guard_command(args):
-    from reachwatch.diagrams import load_scenario
     from reachwatch.reach.liveness import liveness_figures, percent, same_distance
     from reachwatch.systems.files import atomic_write_bytes, cache_root
     from reachwatch.taxi import UNGUARDED, fallback_rollouts, paper_grid, sweep_guarded
@@ -94,7 +96,7 @@ def guard_command(args):
     from .executors import open_executor
     from .online_stages import budget_threshold, guard_check, noisy_guard_figures
 
-    scenario = load_scenario(args.scenario)
+    scenario = scenario_from_args(args)
     check_detector(scenario, args.scenario)      # before the sweep, not after it
     grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
     cache = Path(args.cache) if args.cache else cache_root()

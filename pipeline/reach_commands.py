@@ -5,6 +5,7 @@ import time
 from pathlib import Path
 
 from .console import log, progress_enabled
+from .overlays import add_overlay_arguments
 from .commands import (count, grid_nodes, horizon_seconds, non_negative_float, number_type,
                        output_folder, positive_float, positive_int, scenario_from_args,
                        seed_number)
@@ -21,6 +22,7 @@ solved_py = number_type(float, 250.0, False, "a finite number of metres >= 250",
 
 def _grid_args(parser):
     parser.add_argument("--scenario", help="scenario YAML (environment, camera, controller)")
+    add_overlay_arguments(parser)
     parser.add_argument("--shape", type=grid_nodes, nargs=3, default=[41, 41, 41],
                         metavar=("NPX", "NPY", "NTHETA"),
                         help="grid nodes over the solved box (paper: 101 101 101)")

@@ -15,7 +15,7 @@ from .executors import open_executor
 from .fidelity_stages import check_downtrack_room, stage_fidelity
 from .online_stages import stage_guard, stage_incremental
 from .report import write_report
-from .spec import RunSpec, digest, load_run_spec
+from .spec import RunSpec, digest
 from .brt_stages import stage_solve, stage_sweep
 from .dataset_stages import stage_dataset
 from .monitor_study import stage_monitor
@@ -106,7 +106,8 @@ def check_slice(spec: RunSpec, only, until: str):
 
 
 def run_command(args):
-    spec = load_run_spec(args.scenario)
+    from .commands import scenario_from_args
+    spec = scenario_from_args(args, schema=RunSpec, root="run")    # with its overlays
     until = args.until or (SLICE_UNTIL if args.only else "report")
     started = time.time()
     with open_executor(args.executor) as executor:

@@ -1,6 +1,8 @@
 """``reachwatch run``'s arguments; the command itself is `reachwatch.pipeline.run`'s
 ``run_command``, imported when it runs (so that building the parser needs no torch)."""
 
+from .overlays import add_overlay_arguments
+
 #: ``reachwatch.pipeline.run``'s ``STAGES`` and ``SLICE_UNTIL``, here for the parser's
 #: ``--until`` (a test keeps them the same).
 STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "monitor",
@@ -13,6 +15,7 @@ def add_parsers(sub):
                        "datasets, detector, Table 2, guarded loop, incremental training, "
                        "report (re-runs skip finished stages; killed runs resume)")
     p.add_argument("--scenario", required=True, help="run file (e.g. scenarios/demo.yaml)")
+    add_overlay_arguments(p, "run")
     p.add_argument("--out", required=True, help="run directory (reused)")
     p.add_argument("--executor", default="local", help="local (one worker per core) | "
                    "local:N | inline | dask://HOST:PORT (a Dask cluster must see the run "

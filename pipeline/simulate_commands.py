@@ -5,12 +5,14 @@ import io
 
 from .commands import check_detector, output_folder, scenario_from_args
 from .console import log
+from .overlays import add_overlay_arguments
 
 
 def add_parsers(sub):
     sim = sub.add_parser("simulate", help="run the closed loop from the scenario's start "
                          "state; write the trajectory (CSV, NPZ) and a top-view plot")
     sim.add_argument("--scenario", help="scenario YAML (default: built-in defaults)")
+    add_overlay_arguments(sim)
     sim.add_argument("--out", required=True, help="output folder")
     sim.add_argument("--loop", choices=["nominal", "guarded"], default="nominal",
                      help="guarded: also run the loop guarded by the detector and fallback "

@@ -4,6 +4,7 @@ import dataclasses as dc
 from pathlib import Path
 
 from .console import bar, log
+from .overlays import add_overlay_arguments
 from .commands import count, output_file, positive_int, scenario_from_args, seed_number
 
 #: ``TaxiNetTrainConfig``'s samples and epochs, here so that the parser needs no torch
@@ -36,6 +37,7 @@ def add_parsers(sub):
     evaluate.add_argument("--checkpoint", default=None,
                           help="TaxiNet checkpoint (default: the shipped reference TaxiNet)")
     evaluate.add_argument("--scenario", help="scenario YAML for camera/controller settings")
+    add_overlay_arguments(evaluate)
     evaluate.add_argument("--samples", type=positive_int, default=200,
                           help="random states per environment for the estimation error")
     evaluate.add_argument("--starts", type=count, default=100,
