@@ -17,6 +17,8 @@ it. The function takes the `ControllerConfig` and returns the System. An empty
 A factory file may import the modules next to it, and its fingerprint covers every file
 of its folder (`reachwatch.diagrams.user_code`)."""
 
+import re
+
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import Diagram, DiagramBuilder, PortDataType, System
 from pydrake.systems.sensors import ImageRgba8U
@@ -122,10 +124,37 @@ def make_controller(config) -> System:
     except TypeError as e:
         if not config.factory:
             raise
-        raise ValueError(f"{where}: calling it with the ControllerConfig failed (TypeError: "
-                         f"{clip(e, 200)}); a factory takes the config and returns a Drake "
-                         f"System") from e
+        raise parameter_error(where, config.parameters, e, factory) or ValueError(
+            f"{where}: calling it with the ControllerConfig failed (TypeError: "
+            f"{clip(e, 200)}); a factory takes the config and returns a Drake System") from e
     return check_controller(system, where)
+
+
+def parameter_error(where, parameters, error: TypeError, factory=None):
+    """A ValueError naming the parameter when ``error`` is Python's complaint, about a
+    call the function ``factory`` made itself (one that passes ``**config.parameters``
+    on), of an unknown keyword argument that ``parameters`` holds or of missing
+    arguments; else None."""
+    code = getattr(factory, "__code__", None)
+    last = error.__traceback__
+    while last is not None and last.tb_next is not None:
+        last = last.tb_next
+    if code is not None and (last is None or last.tb_frame.f_code is not code):
+        return None             # raised deeper down: not about the factory's parameters
+    text = str(error)
+    unknown = re.search(r"unexpected keyword argument '(\w+)'", text)
+    if unknown and unknown.group(1) in parameters:
+        return ValueError(f"{where}: controller.parameters.{unknown.group(1)} is not a "
+                          f"parameter it takes (TypeError: {clip(text, 200)})")
+    missing = re.search(r"missing \d+ required (?:positional |keyword-only )?arguments?: (.+)",
+                        text)
+    if missing:
+        names = re.findall(r"'(\w+)'", missing.group(1))
+        if names:
+            return ValueError(f"{where}: controller.parameters lacks "
+                              f"{', '.join(names)}, which it needs (TypeError: "
+                              f"{clip(text, 200)})")
+    return None
 
 
 def has_estimate(system) -> bool:

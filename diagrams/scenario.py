@@ -46,7 +46,10 @@ class ControllerConfig:
     this config; empty = TaxiNet + P-controller, see `reachwatch.diagrams.controller`);
     ``parameters``: numbers for that function. ``checkpoint`` empty = the shipped
     reference TaxiNet; gains in deg per m and deg per deg (TaxiNet's P-controller and
-    the privileged oracle); ``period`` s (the steering is held that long); ``speed`` m/s."""
+    the privileged oracle); ``period`` s (the steering is held that long); ``speed`` m/s.
+    A factory is code: the commands that build the controller (simulate, sweep, brt,
+    evaluate, guard, run) import and run it, so run only scenario files you trust;
+    loading a file, ``render`` and ``graph`` check its form alone and run none of it."""
     factory: str = ""
     parameters: Dict[str, float] = dc.field(default_factory=dict)
     checkpoint: str = ""
@@ -63,9 +66,11 @@ class ControllerConfig:
                 "factory_code": factory_code_hash(self.factory)}
 
     def validate(self):
-        if self.factory:
-            from .controller import resolve_factory
-            resolve_factory(self.factory)          # a bad name fails before any work
+        if self.factory:        # its form only: the factory is imported when it is built
+            from .user_code import _split
+            target, _ = _split(self.factory)
+            if target.endswith(".py") and not is_file(target):
+                raise ValueError(f"controller.factory: file not found: {clip(target, 200)}")
         for name, value in self.parameters.items():
             if not math.isfinite(value):
                 raise ValueError(f"controller.parameters.{short(name)} must be finite, got {value}")

@@ -42,19 +42,26 @@ horizon_seconds = number_type(float, 0.0, True, "a finite number > 0 of at most 
 mission_multiple = number_type(float, 1.0, False, "a multiple of the horizon in [1, 100]", most=100.0)
 
 
-def scenario_from_args(args, schema=None, root="scenario"):
+def scenario_from_args(args, schema=None, root="scenario", *, controller=False):
     """The ``--scenario`` file (``schema``: a `Scenario` by default), or the built-in
     defaults when none is given, with the command's overlays (``--set``,
-    ``--scenario-text``) applied before it is checked."""
-    from reachwatch.diagrams import Scenario, load_scenario
+    ``--scenario-text``) applied before it is checked. Loading it runs no code of a
+    ``controller.factory``; ``controller``: the command builds the controller, so
+    import its factory now (a broken one fails before any work)."""
+    from reachwatch.diagrams import Scenario, load_scenario, resolve_factory
 
     from .overlays import Overlays
     schema = schema or Scenario
     overlays = Overlays(getattr(args, "overlays", None))
     if not args.scenario and not overlays:
-        return schema().validate()
-    return load_scenario(args.scenario, data=None if args.scenario else "", schema=schema,
-                         root=root, edit=overlays or None)
+        loaded = schema().validate()
+    else:
+        loaded = load_scenario(args.scenario, data=None if args.scenario else "",
+                               schema=schema, root=root, edit=overlays or None)
+    if controller:
+        resolve_factory((loaded if isinstance(loaded, Scenario) else loaded.scenario)
+                        .controller.factory)
+    return loaded
 
 
 def check_detector(scenario, path) -> None:

@@ -103,7 +103,7 @@ def evaluate_command(args):
     height, width = args.input_size
     detector = DetectorConfig(arch=args.arch, height=height, width=width)
     spec = RunSpec(
-        name="evaluate", scenario=scenario_from_args(args),
+        name="evaluate", scenario=scenario_from_args(args, controller=True),
         train=[parse_environment(t) for t in args.train or _names(training_environments())],
         test=[parse_environment(t) for t in args.test or _names(test_environments())],
         grid=list(args.shape),

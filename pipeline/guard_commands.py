@@ -96,7 +96,7 @@ def guard_command(args):
     from .executors import open_executor
     from .online_stages import budget_threshold, guard_check, noisy_guard_figures
 
-    scenario = scenario_from_args(args)
+    scenario = scenario_from_args(args, controller=True)
     check_detector(scenario, args.scenario)      # before the sweep, not after it
     grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
     cache = Path(args.cache) if args.cache else cache_root()

@@ -86,7 +86,7 @@ def _sweep(args):
     from reachwatch.taxi import paper_grid, sweep_closed_loop
 
     from .executors import open_executor
-    scenario = scenario_from_args(args)
+    scenario = scenario_from_args(args, controller=True)
     grid = paper_grid(scenario.environment.half_width, tuple(args.shape),
                       theta_deg=args.solved_theta_deg, py_max=args.solved_py_max)
     started = time.time()

@@ -107,7 +107,7 @@ def check_slice(spec: RunSpec, only, until: str):
 
 def run_command(args):
     from .commands import scenario_from_args
-    spec = scenario_from_args(args, schema=RunSpec, root="run")    # with its overlays
+    spec = scenario_from_args(args, schema=RunSpec, root="run", controller=True)
     until = args.until or (SLICE_UNTIL if args.only else "report")
     started = time.time()
     with open_executor(args.executor) as executor:

@@ -40,7 +40,7 @@ def simulate_command(args):
     from reachwatch.diagrams.plots import plot_runway_top_view
     from reachwatch.systems.files import atomic_write_bytes
     from reachwatch.taxi import simulate_guarded
-    scenario = scenario_from_args(args)
+    scenario = scenario_from_args(args, controller=True)
     if args.loop == "guarded":
         check_detector(scenario, args.scenario)
     out = output_folder(args.out)

@@ -240,7 +240,8 @@ def test_two_environments_of_one_name_must_be_the_same():
 def test_a_factory_that_is_no_python_function_or_fails_on_the_config_is_one_error(tmp_path, capsys):
     path = tmp_path / "s.yaml"
     path.write_text("controller: {factory: 'os:system'}\n")
-    assert cli.main(["render", "--scenario", str(path), "--out", str(tmp_path / "o")]) == 2
+    # (a command that builds the controller: rendering alone does not import it)
+    assert cli.main(["simulate", "--scenario", str(path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "controller.factory: 'os:system' is a builtin_function_or_method" in err
     assert err.count("\n") == 1 and not (tmp_path / "o").exists()

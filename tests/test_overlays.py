@@ -1,6 +1,7 @@
 """Overlays (``--set KEY=VALUE``, ``--scenario-text YAML``) on scenario and run files:
 applied to the file's data before it is checked, so overlaid values meet the file's
-checks and a run's key and ``run.yaml`` are those of the file they make."""
+checks and a run's key and ``run.yaml`` are those of the file they make; and a scenario
+naming a controller factory is loaded without running the factory's code."""
 
 import json
 
@@ -131,3 +132,55 @@ def test_run_file_overlays_reach_the_keys_and_a_repeat_is_cached(tmp_path, capsy
     assert cli.main(argv + ["--set", "scenario.controller.parameters.steering=0.1"]) == 0
     again = json.loads(records[0].read_text())
     assert again["key"] != first[records[0].stem]["key"] and again["outputs"]["rendered"] == 27
+
+
+def test_loading_a_scenario_runs_no_factory_code(tmp_path, capsys):
+    """A scenario file naming a factory is data until a command builds the controller:
+    loading it, rendering and exporting the open-loop world import nothing of it."""
+    marker, factory = _factory(tmp_path)
+    path = tmp_path / "s.yaml"
+    path.write_text(f"camera: {{width: 64, height: 36}}\nduration: 0.1\n"
+                    f"controller: {{factory: '{factory}', parameters: {{steering: 0.02}}}}\n")
+    scenario = _scenario(["render", "--scenario", str(path), "--out", "o"])
+    assert scenario.controller.factory == factory
+    assert cli.main(["render", "--scenario", str(path), "--out", str(tmp_path / "r")]) == 0
+    assert cli.main(["graph", "--scenario", str(path), "--out", str(tmp_path / "g")]) == 0
+    assert not marker.exists()
+    # a command that needs the controller imports it, and it runs
+    assert cli.main(["simulate", "--scenario", str(path), "--out", str(tmp_path / "sim"),
+                     "--no-meshcat"]) == 0
+    assert marker.exists() and list((tmp_path / "sim").glob("*_trajectory.csv"))
+
+
+def test_a_bad_factory_name_is_one_line_when_loaded_its_code_when_needed(tmp_path, capsys):
+    path = tmp_path / "s.yaml"
+    for factory, message in (("nowhere.py:make", "controller.factory: file not found: nowhere.py"),
+                             ("constant.make", "controller.factory must be 'package.module:"
+                                               "function' or 'path/to/file.py:function'")):
+        path.write_text(f"controller: {{factory: '{factory}'}}\n")
+        assert message in _one_line_error(
+            capsys, ["render", "--scenario", str(path), "--out", str(tmp_path / "o")])
+    # code that fails on import: not run to render; one line where it is first needed
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    (folder / "f.py").write_text("raise RuntimeError('boom')\n")
+    path.write_text(f"camera: {{width: 64, height: 36}}\ncontroller: {{factory: "
+                    f"'{folder / 'f.py'}:make'}}\n")
+    assert cli.main(["render", "--scenario", str(path), "--out", str(tmp_path / "r")]) == 0
+    err = _one_line_error(capsys, ["simulate", "--scenario", str(path), "--out",
+                                   str(tmp_path / "sim"), "--no-meshcat"])
+    assert "importing it failed: RuntimeError: boom" in err
+
+
+@pytest.mark.parametrize("parameters, message", [
+    ("{steering: 0.0, gain: 2.0}", "controller.parameters.gain is not a parameter it takes"),
+    ("{}", "controller.parameters lacks steering, which it needs"),
+])
+def test_a_factorys_bad_parameters_are_one_line_naming_them(tmp_path, capsys, parameters,
+                                                            message):
+    _, factory = _factory(tmp_path)
+    err = _one_line_error(capsys, [
+        "simulate", "--out", str(tmp_path / "sim"), "--no-meshcat",
+        "--scenario-text", f"{{camera: {{width: 64, height: 36}}, duration: 0.1, controller: "
+                           f"{{factory: '{factory}', parameters: {parameters}}}}}"])
+    assert f"controller.factory '{factory}': {message} (TypeError: " in err
