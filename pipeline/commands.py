@@ -6,6 +6,7 @@ this package's light modules at the top, and its heavy imports inside the functi
 that run a command."""
 
 import argparse
+import copy
 import math
 import os
 from pathlib import Path
@@ -40,6 +41,43 @@ seed_number = number_type(int, 0, False, "a seed (a whole number in [0, 21474836
 grid_nodes = number_type(int, 0, True, "a whole number of grid nodes in [1, 401]", most=401)
 horizon_seconds = number_type(float, 0.0, True, "a finite number > 0 of at most 120 s", most=120.0)
 mission_multiple = number_type(float, 1.0, False, "a multiple of the horizon in [1, 100]", most=100.0)
+
+
+class RunFileDefault:
+    """A flag's default that is the run file's: the value of ``path`` (e.g.
+    ``"guard.check_starts"``; several paths: a list of their values) in a run file of
+    defaults, passed through ``convert``. Read from the schema's dataclass defaults when
+    the command runs (`fill_run_file_defaults`), so that the parser imports no schema
+    and the two cannot drift apart; ``--help`` names the field."""
+
+    def __init__(self, path, convert=None):
+        self.paths = (path,) if isinstance(path, str) else tuple(path)
+        self.convert = convert
+
+    def __str__(self):
+        return f"the run file's {' and '.join(self.paths)}"
+
+    __repr__ = __str__
+
+    def value(self):
+        from .overlays import key_parts
+        from .spec import RunSpec
+        values = []
+        for path in self.paths:
+            node = RunSpec()
+            for part in key_parts(path):
+                node = node[part] if isinstance(part, int) else getattr(node, part)
+            values.append(copy.deepcopy(node))
+        value = values[0] if len(values) == 1 else values
+        return self.convert(value) if self.convert else value
+
+
+def fill_run_file_defaults(args):
+    """Replace every `RunFileDefault` left in ``args`` (a flag not given) by its value."""
+    for name, value in vars(args).items():
+        if isinstance(value, RunFileDefault):
+            setattr(args, name, value.value())
+    return args
 
 
 def scenario_from_args(args, schema=None, root="scenario", *, controller=False):

@@ -5,15 +5,14 @@ import dataclasses as dc
 
 from .console import log
 from .overlays import add_overlay_arguments
-from .commands import count, grid_nodes, positive_int, scenario_from_args, seed_number
+from .commands import (RunFileDefault, count, grid_nodes, positive_int, scenario_from_args,
+                       seed_number)
 
 #: What the parser shows of the library, here so that building it needs no torch (a
 #: test keeps each the same as ``reachwatch.training``'s): the label sources and
-#: ``--distrusted`` choices, the dataset's images per environment and the detector's
-#: epochs.
+#: ``--distrusted`` choices.
 LABEL_SOURCES = ("brt", "rollout", "hybrid", "trajectory")
 DISTRUSTED_CHOICES = ("rollout", "trajectory")
-DATASET_SAMPLES, DETECTOR_EPOCHS = 2000, 6
 
 
 def parse_environment(text: str):
@@ -44,39 +43,63 @@ def add_parsers(sub):
     p.add_argument("--test", nargs="+", default=None,
                    help="held-out environments (default: test_environments(), the paper's "
                    "18 held-out environments)")
-    p.add_argument("--shape", type=grid_nodes, nargs=3, default=[21, 21, 21], help="BRT grid")
-    p.add_argument("--samples", type=positive_int, default=DATASET_SAMPLES, help="images per environment")
-    p.add_argument("--arch", choices=["small_cnn", "efficientnet_b0"], default="small_cnn",
-                   help="anomaly detector architecture (default: small_cnn)")
-    p.add_argument("--input-size", type=positive_int, nargs=2, default=[96, 160],
-                   metavar=("H", "W"),
-                   help="the detector's input image size in pixels (default: 96 160)")
-    p.add_argument("--pretrained", default="", help="local EfficientNet-B0 ImageNet state_dict "
-                   "file (never downloaded)")
-    p.add_argument("--epochs", type=positive_int, default=DETECTOR_EPOCHS,
-                   help=f"detector training epochs (default: {DETECTOR_EPOCHS})")
-    p.add_argument("--threshold", type=float, default=0.5,
-                   help="decision threshold when --target-recall is 0")
-    p.add_argument("--target-recall", type=float, default=0.95,
+    # every default below is the run file's (`RunFileDefault`), as --help says
+    p.add_argument("--shape", type=grid_nodes, nargs=3, default=RunFileDefault("grid"),
+                   help="BRT grid (default: %(default)s)")
+    p.add_argument("--samples", type=positive_int, default=RunFileDefault("dataset.samples"),
+                   help="images per environment (default: %(default)s)")
+    p.add_argument("--arch", choices=["small_cnn", "efficientnet_b0"],
+                   default=RunFileDefault("detector.detector.arch"),
+                   help="anomaly detector architecture (default: %(default)s)")
+    p.add_argument("--input-size", type=positive_int, nargs=2, metavar=("H", "W"),
+                   default=RunFileDefault(("dataset.height", "dataset.width")),
+                   help="the detector's input image size in pixels (default: %(default)s)")
+    p.add_argument("--pretrained", default=RunFileDefault("detector.pretrained_path"),
+                   help="local EfficientNet-B0 ImageNet state_dict file (never downloaded; "
+                   "default: %(default)s)")
+    p.add_argument("--epochs", type=positive_int, default=RunFileDefault("detector.epochs"),
+                   help="detector training epochs (default: %(default)s)")
+    p.add_argument("--threshold", type=float, default=RunFileDefault("detector.threshold"),
+                   help="decision threshold when --target-recall is 0 (default: %(default)s)")
+    p.add_argument("--target-recall", type=float,
+                   default=RunFileDefault("detector.target_recall"),
                    help="operate at the highest threshold reaching this recall on the "
-                        "training validation split (0: use --threshold)")
-    p.add_argument("--ensemble", type=count, default=5, help="TaxiNets in the ensemble baseline")
-    p.add_argument("--seed", type=seed_number, default=0,
-                   help="seed of the datasets' samples and of the detector's training")
-    p.add_argument("--labels", choices=LABEL_SOURCES, default="brt",
+                        "training validation split (0: use --threshold; default: %(default)s)")
+    p.add_argument("--ensemble", type=count, default=RunFileDefault("ensemble.seeds", len),
+                   help="TaxiNets in the ensemble baseline (default: as many as %(default)s)")
+    p.add_argument("--seed", type=seed_number,
+                   default=RunFileDefault(("dataset.seed", "detector.seed"), _one_seed),
+                   help="seed of the datasets' samples and of the detector's training "
+                   "(default: %(default)s)")
+    p.add_argument("--labels", choices=LABEL_SOURCES,
+                   default=RunFileDefault("dataset.labels.source"),
                    help="label source: the BRT, the real loop from every state, rollouts "
                    "where the BRT is not trusted, or the real loop's runs and the states "
-                   "they pass through (see docs/concepts.md#label-sources)")
-    p.add_argument("--distrusted", choices=DISTRUSTED_CHOICES, default="rollout",
+                   "they pass through (see docs/concepts.md#label-sources; default: "
+                   "%(default)s)")
+    p.add_argument("--distrusted", choices=DISTRUSTED_CHOICES,
+                   default=RunFileDefault("dataset.labels.distrusted"),
                    help="with --labels hybrid: where the audit distrusts the map, roll out "
-                   "every sample it calls safe, or label by runs read along (trajectory)")
-    p.add_argument("--check-starts", type=count, default=50, help="real-loop runs per "
-                   "environment checking the BRT and the labels (0: no check)")
-    p.add_argument("--max-box-exits", type=float, default=0.05, help="refuse BRT labels where "
-                   "more than this share of the checked runs leave the solved box")
+                   "every sample it calls safe, or label by runs read along (trajectory; "
+                   "default: %(default)s)")
+    p.add_argument("--check-starts", type=count, default=RunFileDefault("fidelity.starts"),
+                   help="real-loop runs per environment checking the BRT and the labels "
+                   "(0: no check; default: %(default)s)")
+    p.add_argument("--max-box-exits", type=float,
+                   default=RunFileDefault("fidelity.max_box_exits"),
+                   help="refuse BRT labels where more than this share of the checked runs "
+                   "leave the solved box (default: %(default)s)")
     p.add_argument("--executor", default="inline", help="local (one worker per core) | local:N | inline | dask://HOST:PORT")
     p.add_argument("--out", required=True, help="output folder (reused: finished work is skipped)")
     p.set_defaults(func=evaluate_command)
+
+
+def _one_seed(seeds):
+    """The run file's dataset and detector seeds, which ``--seed`` sets both of."""
+    if len(set(seeds)) != 1:
+        raise ValueError(f"--seed sets dataset.seed and detector.seed, whose defaults "
+                         f"differ ({seeds}); give --seed")
+    return seeds[0]
 
 
 def target_text(rows, groups, config) -> str:

@@ -6,16 +6,11 @@ import json
 import time
 from pathlib import Path
 
-from .commands import (check_detector, count, grid_nodes, horizon_seconds, mission_multiple,
-                       open_share, output_folder, positive_int, scenario_from_args,
-                       seed_number)
+from .commands import (RunFileDefault, check_detector, count, grid_nodes, horizon_seconds,
+                       mission_multiple, open_share, output_folder, positive_int,
+                       scenario_from_args, seed_number)
 from .console import log
 from .overlays import add_overlay_arguments
-
-#: ``reachwatch.systems.DEFAULT_FALLBACKS``, here so that the parser needs no torch
-#: (a test keeps the two the same).
-DEFAULT_FALLBACKS = ("slow_down", "brake", "slow_down+dead_reckoning", "slow_down+oracle")
-
 
 def add_parsers(sub):
     g = sub.add_parser("guard", help="failure sets (fraction of grid starts that leave the "
@@ -26,41 +21,52 @@ def add_parsers(sub):
     g.add_argument("--scenario", required=True, help="scenario YAML with monitor.detector "
                    "(the detector checkpoint the guarded loop runs)")
     add_overlay_arguments(g)
-    g.add_argument("--shape", type=grid_nodes, nargs=3, default=[41, 41, 41],
+    # every default below is the run file's (`RunFileDefault`), as --help says
+    g.add_argument("--shape", type=grid_nodes, nargs=3, default=RunFileDefault("grid"),
                    metavar=("NPX", "NPY", "NTHETA"),
-                   help="grid nodes over the paper's box (default: 41 41 41)")
-    g.add_argument("--horizon", type=horizon_seconds, default=8.0, help="s")
+                   help="grid nodes over the paper's box (default: %(default)s)")
+    g.add_argument("--horizon", type=horizon_seconds, default=RunFileDefault("horizon"),
+                   help="s (default: %(default)s)")
     g.add_argument("--fallbacks", nargs="+", type=_fallback,
-                   default=list(DEFAULT_FALLBACKS),
+                   default=RunFileDefault("guard.strategies"),
                    help="speed strategy, optionally '+' the steering while flagged "
                         "(dead_reckoning; oracle is privileged, a reference only); "
-                        f"default: {' '.join(DEFAULT_FALLBACKS)}")
-    g.add_argument("--tradeoff-points", type=positive_int, default=9,
-                   help="detector thresholds on the trade-off curve")
-    g.add_argument("--check-starts", type=count, default=0,
+                        "default: %(default)s")
+    g.add_argument("--tradeoff-points", type=positive_int,
+                   default=RunFileDefault("guard.tradeoff_points"),
+                   help="detector thresholds on the trade-off curve (default: %(default)s)")
+    g.add_argument("--check-starts", type=count, default=RunFileDefault("guard.check_starts"),
                    help="also run the real Drake loops (alone and each fallback) from this "
-                        "many seeded random on-runway starts; cached and resumable")
-    g.add_argument("--seed", type=seed_number, default=2000, help="seed of the check starts")
-    g.add_argument("--noise-starts", type=count, default=20,
+                        "many seeded random on-runway starts; cached and resumable (default: "
+                        "%(default)s; 0: no real-loop check)")
+    g.add_argument("--seed", type=seed_number, default=RunFileDefault("guard.check_seed"),
+                   help="seed of the check starts (default: %(default)s)")
+    g.add_argument("--noise-starts", type=count, default=RunFileDefault("guard.noise_starts"),
                    help="with --check-starts: fit the detector's variation between grid "
                         "nodes on this many other real runs of the controller alone and show "
-                        "the tables with it beside the real loop (0 = no fit)")
-    g.add_argument("--noise-seed", type=seed_number, default=4000,
-                   help="seed of the noise fit's starts and of the noise")
-    g.add_argument("--flag-budget", type=open_share, default=None,
+                        "the tables with it beside the real loop (0 = no fit; default: "
+                        "%(default)s)")
+    g.add_argument("--noise-seed", type=seed_number, default=RunFileDefault("guard.noise_seed"),
+                   help="seed of the noise fit's starts and of the noise (default: "
+                        "%(default)s)")
+    g.add_argument("--flag-budget", type=open_share, default=RunFileDefault("guard.flag_budget"),
                    help="set the detector threshold without labels: the one at which the "
                         "first fallback flags this share of its control ticks in the tables "
                         "(with the score noise when --noise-starts fits it), instead of the "
-                        "scenario's")
-    g.add_argument("--flag-budget-starts", type=positive_int, default=600,
-                   help="on-runway starts the flag budget is rolled out from")
-    g.add_argument("--flag-budget-seed", type=seed_number, default=7000,
-                   help="seed of the flag budget's starts")
-    g.add_argument("--mission-limit", type=mission_multiple, default=3.0,
+                        "scenario's (default: %(default)s; null: the scenario's)")
+    g.add_argument("--flag-budget-starts", type=positive_int,
+                   default=RunFileDefault("guard.flag_budget_starts"),
+                   help="on-runway starts the flag budget is rolled out from (default: "
+                        "%(default)s)")
+    g.add_argument("--flag-budget-seed", type=seed_number,
+                   default=RunFileDefault("guard.flag_budget_seed"),
+                   help="seed of the flag budget's starts (default: %(default)s)")
+    g.add_argument("--mission-limit", type=mission_multiple,
+                   default=RunFileDefault("guard.mission_limit"),
                    help="also judge failures by distance: runs go on past the horizon, for "
                         "up to this many horizons, until they cover the distance the "
                         "controller alone covers within it (a slower aircraft on the same "
-                        "path otherwise fails only later)")
+                        "path otherwise fails only later; default: %(default)s)")
     g.add_argument("--out", required=True, help="output folder (guard_ENV.json, the "
                    "failure-set and trade-off plots)")
     g.add_argument("--executor", default="local", help="local (one worker per core) | local:N | inline | dask://HOST:PORT")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from .console import log, progress_enabled
 from .overlays import add_overlay_arguments
-from .commands import (count, grid_nodes, horizon_seconds, non_negative_float, number_type,
+from .commands import (RunFileDefault, count, grid_nodes, horizon_seconds, non_negative_float, number_type,
                        output_folder, positive_float, positive_int, scenario_from_args,
                        seed_number)
 
@@ -23,15 +23,19 @@ solved_py = number_type(float, 250.0, False, "a finite number of metres >= 250",
 def _grid_args(parser):
     parser.add_argument("--scenario", help="scenario YAML (environment, camera, controller)")
     add_overlay_arguments(parser)
-    parser.add_argument("--shape", type=grid_nodes, nargs=3, default=[41, 41, 41],
+    parser.add_argument("--shape", type=grid_nodes, nargs=3, default=RunFileDefault("grid"),
                         metavar=("NPX", "NPY", "NTHETA"),
-                        help="grid nodes over the solved box (paper: 101 101 101)")
-    parser.add_argument("--solved-theta-deg", type=solved_theta, default=28.0, metavar="DEG",
+                        help="grid nodes over the solved box (paper: 101 101 101; default: "
+                        "%(default)s)")
+    parser.add_argument("--solved-theta-deg", type=solved_theta, metavar="DEG",
+                        default=RunFileDefault("solved_theta_deg"),
                         help="sweep and solve over |theta| <= DEG (the paper's box: 28); at "
-                        "night the loop turns far past 28 deg within the horizon")
-    parser.add_argument("--solved-py-max", type=solved_py, default=250.0, metavar="M",
+                        "night the loop turns far past 28 deg within the horizon (default: "
+                        "%(default)s)")
+    parser.add_argument("--solved-py-max", type=solved_py, metavar="M",
+                        default=RunFileDefault("solved_py_max"),
                         help="sweep and solve over py <= M (the paper's box: 250); a start "
-                        "near 250 runs past it within the horizon")
+                        "near 250 runs past it within the horizon (default: %(default)s)")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--executor", default="local", help="local (one worker per core) | local:N | inline | dask://HOST:PORT")
     parser.add_argument("--cache", default=None, help="sweep cache folder "
@@ -48,29 +52,36 @@ def add_parsers(sub):
     b = sub.add_parser("brt", help="sweep, solve the HJB-VI, write the value function and "
                        "slice plots, print BRT volume and agreement with rollouts")
     _grid_args(b)
-    b.add_argument("--accuracy", choices=sorted(ACCURACIES), default="semi_lagrangian",
-                   help="HJB-VI scheme: semi_lagrangian (default; dynamic programming on the "
+    b.add_argument("--accuracy", choices=sorted(ACCURACIES), default=RunFileDefault("accuracy"),
+                   help="HJB-VI scheme: semi_lagrangian (dynamic programming on the "
                    "sampled-data loop), low (first-order upwind, Euler), high / very_high "
-                   "(WENO5, TVD-RK2 / RK3)")
-    b.add_argument("--periods-per-step", type=positive_int, default=40,
+                   "(WENO5, TVD-RK2 / RK3); default: %(default)s")
+    b.add_argument("--periods-per-step", type=positive_int,
+                   default=RunFileDefault("periods_per_step"),
                    help="semi_lagrangian: control periods per step; each step interpolates V "
-                   "once, so fewer, longer steps blur a coarse grid's BRT less")
-    b.add_argument("--horizon", type=horizon_seconds, default=8.0, help="s")
+                   "once, so fewer, longer steps blur a coarse grid's BRT less (default: "
+                   "%(default)s)")
+    b.add_argument("--horizon", type=horizon_seconds, default=RunFileDefault("horizon"),
+                   help="s (default: %(default)s)")
     b.add_argument("--refine", type=number_type(int, 0, False, "a whole number in [0, 5]",
-                                                most=5), default=0,
+                                                most=5), default=RunFileDefault("refine.levels"),
                    help="adaptive refinement levels: each halves the spacing and renders new "
-                   "nodes only where the BRT's boundary passes within --refine-band")
-    b.add_argument("--refine-band", type=positive_float, default=2.0, help="m")
-    b.add_argument("--robust-spread", type=non_negative_float, default=None, metavar="DEG",
+                   "nodes only where the BRT's boundary passes within --refine-band (default: "
+                   "%(default)s)")
+    b.add_argument("--refine-band", type=positive_float, default=RunFileDefault("refine.band"),
+                   help="m (default: %(default)s)")
+    b.add_argument("--robust-spread", type=non_negative_float, metavar="DEG",
+                   default=RunFileDefault("robust.min_spread_deg"),
                    help="solve a robust BRT: where the swept steering ranges over more than "
-                   "DEG across a node's neighbours, take its worst value in that range")
+                   "DEG across a node's neighbours, take its worst value in that range "
+                   "(default: %(default)s; null: no robust BRT)")
     b.add_argument("--drake-starts", type=count, default=0,
                    help="also check the BRT against the real Drake closed loop (rendering "
                    "every tick) from this many seeded random on-runway starts, with 95 %% "
                    "Wilson intervals; each start costs a full-horizon simulation, so 50 "
                    "take minutes (default: 0, no check; cached and resumable)")
-    b.add_argument("--seed", type=seed_number, default=0,
-                   help="seed of the --drake-starts starts")
+    b.add_argument("--seed", type=seed_number, default=RunFileDefault("fidelity.seed"),
+                   help="seed of the --drake-starts starts (default: %(default)s)")
     b.set_defaults(func=brt_command)
 
 

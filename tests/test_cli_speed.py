@@ -52,20 +52,14 @@ def test_the_console_entry_point_prints_help():
 
 
 def test_the_parser_copies_of_library_constants_match_the_library():
-    from reachwatch.pipeline import (evaluate_commands, guard_commands, reach_commands, run,
-                                     run_commands, taxinet_commands)
+    from reachwatch.pipeline import (evaluate_commands, reach_commands, run, run_commands,
+                                     taxinet_commands)
     from reachwatch.reach import ACCURACIES
-    from reachwatch.systems import DEFAULT_FALLBACKS
-    from reachwatch.training.dataset import DatasetSpec
-    from reachwatch.training.detector_train import DetectorTrainConfig
     from reachwatch.training.labels import DISTRUSTED_CHOICES, LABEL_SOURCES
     from reachwatch.training.taxinet_train import TaxiNetTrainConfig
-    assert tuple(guard_commands.DEFAULT_FALLBACKS) == tuple(DEFAULT_FALLBACKS)
     assert sorted(reach_commands.ACCURACIES) == sorted(ACCURACIES)
     assert tuple(evaluate_commands.LABEL_SOURCES) == tuple(LABEL_SOURCES)
     assert tuple(evaluate_commands.DISTRUSTED_CHOICES) == tuple(DISTRUSTED_CHOICES)
-    assert evaluate_commands.DATASET_SAMPLES == DatasetSpec.samples
-    assert evaluate_commands.DETECTOR_EPOCHS == DetectorTrainConfig.epochs
     assert taxinet_commands.TRAIN_SAMPLES == TaxiNetTrainConfig.samples
     assert taxinet_commands.TRAIN_EPOCHS == TaxiNetTrainConfig.epochs
     assert tuple(run_commands.STAGES) == tuple(run.STAGES)
