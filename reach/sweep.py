@@ -66,18 +66,32 @@ def _count_state(counter):
         counter.value += 1
 
 
-def _watch_parent(parent_pid: int, interval: float):
-    while True:
+#: The pool's initializer, run by `exec` in each spawned worker before anything of
+#: reachwatch is imported there: importing it loads Drake and torch (about 1 GB and
+#: seconds), and a worker whose driver dies meanwhile must not live on. It starts a
+#: thread that ends the worker within ``interval`` seconds of the driver's death
+#: (however it died, SIGKILL too: the worker is then re-parented), then imports
+#: `_init_worker` and runs it. Text, so that unpickling the initializer imports nothing.
+_WORKER_START = """
+import os, threading, time
+
+def watch_parent(parent_pid, interval):
+    while os.getppid() == parent_pid:
         time.sleep(interval)
-        if os.getppid() != parent_pid:      # the driver died (even by SIGKILL): stop now
-            os._exit(3)
+    os._exit(3)
+
+threading.Thread(target=watch_parent, args=(parent_pid, interval), daemon=True,
+                 name="reachwatch-parent-watchdog").start()
+from reachwatch.reach.sweep import _init_worker
+_init_worker(counter, threads)
+"""
 
 
-def _init_worker(counter, parent_pid: int, interval: float = 0.5, threads: int = None):
-    """In each spawned worker: count evaluated states into the shared ``counter``,
-    leave Ctrl-C to the driver (it stops the pool), exit as soon as the driver is
-    gone, however it died, and (``threads``) cap the worker's OpenMP / torch threads so
-    that the workers together do not oversubscribe the cores."""
+def _init_worker(counter, threads: int = None):
+    """In each spawned worker (after `_WORKER_START`'s watchdog): count evaluated
+    states into the shared ``counter``, leave Ctrl-C to the driver (it stops the pool),
+    and (``threads``) cap the worker's OpenMP / torch threads so that the workers
+    together do not oversubscribe the cores."""
     global _ON_STATE
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _ON_STATE = functools.partial(_count_state, counter)
@@ -86,8 +100,6 @@ def _init_worker(counter, parent_pid: int, interval: float = 0.5, threads: int =
         torch = sys.modules.get("torch")
         if torch is not None:                              # imported already (spawn's main)
             torch.set_num_threads(threads)
-    threading.Thread(target=_watch_parent, args=(parent_pid, interval), daemon=True,
-                     name="reachwatch-parent-watchdog").start()
 
 
 def usable_cores() -> int:
@@ -124,8 +136,8 @@ def default_executor(max_workers: int = None) -> cf.Executor:
     workers sweep about 1.7 times as fast as one (``benchmarks/sweep.py
     --workers``); results do not depend on the count. Each worker builds its diagram
     once, reports every evaluated state to ``executor.progress_counter``, runs its
-    share of the cores' OpenMP / torch threads, ignores SIGINT and exits when this
-    process dies."""
+    share of the cores' OpenMP / torch threads, ignores SIGINT and, from its first moment,
+    checks every 0.1 s that this process is alive and exits when it is not."""
     if max_workers is None:
         max_workers = default_worker_count()
     if isinstance(max_workers, bool) or not isinstance(max_workers, (int, np.integer)) \
@@ -135,8 +147,11 @@ def default_executor(max_workers: int = None) -> cf.Executor:
     counter = context.Value("q", 0)
     threads = max(1, usable_cores() // int(max_workers))
     executor = cf.ProcessPoolExecutor(max_workers=int(max_workers), mp_context=context,
-                                      initializer=_init_worker,
-                                      initargs=(counter, os.getpid(), 0.5, threads))
+                                      initializer=exec,
+                                      initargs=(_WORKER_START,
+                                                {"counter": counter, "threads": threads,
+                                                 "parent_pid": os.getpid(),
+                                                 "interval": 0.1}))
     executor.progress_counter = counter
     return executor
 

@@ -93,3 +93,46 @@ def test_a_small_batch_makes_four_chunks(tmp_path):
         out = run_outcomes(rollout, starts, cache_dir=tmp_path, progress=False)
         assert len(list((tmp_path / out.key).glob("chunk_*.npz"))) == chunks
         np.testing.assert_array_equal(out.failed, np.abs(starts[:, 0] + 0.5) >= 1.0)
+
+
+_DRIVER = """
+import time
+from reachwatch.reach.sweep import default_executor
+pool = default_executor(2)
+for _ in range(2):                      # each submit to a busy pool spawns one worker
+    pool.submit(time.sleep, 0)
+print(" ".join(str(pid) for pid in pool._processes), flush=True)
+time.sleep(120)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rpartition(")")[2].split()[0] != "Z"      # a zombie is gone
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="reads /proc")
+def test_workers_exit_soon_after_the_driver_is_killed_even_while_importing():
+    """SIGKILL the driver while its two fresh workers still import Drake and torch
+    (seconds, ~1 GB each): both are gone within 1.5 s (they poll every 0.1 s)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    driver = subprocess.Popen([sys.executable, "-c", _DRIVER], stdout=subprocess.PIPE, text=True)
+    try:
+        pids = [int(pid) for pid in driver.stdout.readline().split()]
+    finally:
+        driver.kill()
+        driver.wait()
+    assert len(pids) == 2 and all(_alive(pid) for pid in pids)     # still starting
+    deadline = time.monotonic() + 1.5
+    while any(_alive(pid) for pid in pids) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    left = [pid for pid in pids if _alive(pid)]
+    for pid in left:                    # leave nothing behind, even when failing
+        os.kill(pid, signal.SIGKILL)
+    assert not left, f"workers {left} outlived their killed driver by 1.5 s"
