@@ -82,8 +82,10 @@ def text_argument(flag: str):
 
 def add_overlay_arguments(parser, what="scenario"):
     """``--set`` and ``--scenario-text`` (spelt ``--scenario_text`` too, as Drake's
-    tools do; for a run file also ``--run-text``), both into ``args.overlays`` in the
-    order given."""
+    tools do; for a run file, ``what`` "run" or "scenario or run", also ``--run-text``),
+    all into ``args.overlays`` in the order given; an overlay's errors name the flag
+    it was given as."""
+    run = "run" in what.split()
     parser.add_argument("--set", dest="overlays", action="append", type=set_argument,
                         metavar="KEY=VALUE",
                         help=f"change one field of the {what} file, e.g. --set "
@@ -91,13 +93,15 @@ def add_overlay_arguments(parser, what="scenario"):
                              f"(dotted keys, list items by index, VALUE read as YAML; "
                              f"repeatable; checked as the file is)")
     example = ("{guard: {check_starts: 0}}" if what == "run" else "{controller: {speed: 3.0}}")
-    names = ("--scenario-text", "--scenario_text") + (
-        ("--run-text", "--run_text") if what == "run" else ())
-    parser.add_argument(*names, dest="overlays",
+    parser.add_argument("--scenario-text", "--scenario_text", dest="overlays",
                         action="append", type=text_argument("--scenario-text"),
                         metavar="YAML",
                         help=f"a YAML mapping merged into the {what} file (mappings key by "
                              f"key, other values replaced), e.g. '{example}'; repeatable")
+    if run:
+        parser.add_argument("--run-text", "--run_text", dest="overlays", action="append",
+                            type=text_argument("--run-text"), metavar="YAML",
+                            help="the same as --scenario-text, for a run file")
 
 
 class Overlays:

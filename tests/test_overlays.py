@@ -99,6 +99,17 @@ def test_a_bad_overlay_is_one_line_with_rc_2(tmp_path, capsys, argv, message):
     assert not (tmp_path / "o").exists()
 
 
+def test_a_text_overlays_error_names_the_flag_it_was_given_as(tmp_path, capsys):
+    path = tmp_path / "run.yaml"
+    path.write_text("train: [{runway: KMWH, hour: 9.0, sky: clear}]\n")
+    for flag in ("--run-text", "--run_text", "--scenario-text"):
+        err = _one_line_error(capsys, ["run", "--scenario", str(path), "--out",
+                                       str(tmp_path / "o"), flag, "{grid2: [3, 3, 3]}"])
+        canonical = flag.replace("_", "-")
+        assert f"{canonical}: run.grid2: unknown field of RunSpec" in err
+        assert ("--run-text" in err) == (canonical == "--run-text")
+
+
 def test_set_refuses_what_is_not_key_value(capsys):
     with pytest.raises(SystemExit):
         cli.build_parser().parse_args(["render", "--out", "o", "--set", "grid"])
