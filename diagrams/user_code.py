@@ -35,10 +35,10 @@ MAX_SOURCE_BYTES = 20 << 20     # their total size
 _LOCK = threading.RLock()
 
 
-def _split(spec: str):
+def _split(spec: str, where="controller.factory"):
     target, sep, name = spec.rpartition(":")
     if not sep or not target or not name.isidentifier():
-        raise ValueError(f"controller.factory must be 'package.module:function' or "
+        raise ValueError(f"{where} must be 'package.module:function' or "
                          f"'path/to/file.py:function', got '{spec}'")
     return target, name
 
@@ -167,7 +167,7 @@ def importable(module):
     return user.importable() if user else contextlib.nullcontext()
 
 
-def _failure(spec: str, error: BaseException, folder=None) -> ValueError:
+def _failure(spec: str, error: BaseException, folder=None, where="controller.factory") -> ValueError:
     """One line naming the factory, the error and where in the user's code it arose."""
     place = ""
     for frame in traceback.extract_tb(error.__traceback__)[::-1]:
@@ -179,15 +179,15 @@ def _failure(spec: str, error: BaseException, folder=None) -> ValueError:
     message = error.msg if isinstance(error, SyntaxError) else error
     hint = (f"; a module it imports must be installed or in {clip(folder, 200)}"
             if isinstance(error, ImportError) and folder is not None else "")
-    return ValueError(f"controller.factory '{clip(spec, 200)}': importing it failed: "
+    return ValueError(f"{where} '{clip(spec, 200)}': importing it failed: "
                       f"{type(error).__name__}: {clip(message, 300)}{place}{hint}")
 
 
-def _load_file(spec: str, target: str):
+def _load_file(spec: str, target: str, where="controller.factory"):
     if not is_file(target):
-        raise ValueError(f"controller.factory: file not found: {clip(target, 200)}")
+        raise ValueError(f"{where}: file not found: {clip(target, 200)}")
     path = Path(target).resolve()
-    digest = source_digest(path.parent)
+    digest = source_digest(path.parent, where)
     name = (f"reachwatch_user_{path.stem if path.stem.isidentifier() else 'factory'}_"
             f"{hashlib.sha256(str(path).encode()).hexdigest()[:8]}_{digest[:16]}")
     with _LOCK:
@@ -202,7 +202,7 @@ def _load_file(spec: str, target: str):
                     module_spec.loader.exec_module(module)
             except Exception as e:
                 del sys.modules[name]
-                raise _failure(spec, e, path.parent) from e
+                raise _failure(spec, e, path.parent, where) from e
             except BaseException:
                 del sys.modules[name]
                 raise
@@ -239,47 +239,49 @@ def _package_root(target: str):
 _IMPORTED = {}      # a user's top-level package -> the digest of its tree when first used
 
 
-def _package_digest(spec: str, target: str):
+def _package_digest(spec: str, target: str, where="controller.factory"):
     """The digest of the user's package (or module's folder) ``target`` belongs to, or
     None for reachwatch and installed ones; an error if it changed since this process
     imported it (the code in memory is not the code on disk)."""
     root = _package_root(target)
     if root is None:
         return None
-    digest = source_digest(root.parent if root.is_file() else root)
+    digest = source_digest(root.parent if root.is_file() else root, where)
     if _IMPORTED.setdefault(root, digest) != digest:
-        raise ValueError(f"controller.factory '{clip(spec, 200)}': files of {clip(root, 200)} "
+        raise ValueError(f"{where} '{clip(spec, 200)}': files of {clip(root, 200)} "
                          f"changed since this process imported them; start a new process")
     return digest
 
 
-def _module(spec: str, target: str):
+def _module(spec: str, target: str, where="controller.factory"):
     if target.endswith(".py"):
-        return _load_file(spec, target)
+        return _load_file(spec, target, where)
     try:
         module = importlib.import_module(target)
     except ImportError as e:
-        raise ValueError(f"controller.factory: cannot import '{target}' ({clip(e, 300)}); "
+        raise ValueError(f"{where}: cannot import '{target}' ({clip(e, 300)}); "
                          f"install the package or name a file as 'path/to/file.py:function'"
                          ) from None
     except Exception as e:
-        raise _failure(spec, e) from e
-    _package_digest(spec, target)
+        raise _failure(spec, e, where=where) from e
+    _package_digest(spec, target, where)
     return module
 
 
-def resolve(spec: str):
-    """``(module, function)`` a non-empty factory string names."""
-    target, name = _split(spec)
-    module = _module(spec, target)
+def resolve(spec: str, where="controller.factory"):
+    """``(module, function)`` a non-empty factory string names; errors name the run
+    file's field ``where``."""
+    target, name = _split(spec, where)
+    module = _module(spec, target, where)
     function = getattr(module, name, None)
     if not callable(function):
-        raise ValueError(f"controller.factory: '{target}' has no function '{name}'")
+        raise ValueError(f"{where}: '{target}' has no function '{name}'")
     if not (inspect.isfunction(function) or inspect.isclass(function)
             or inspect.ismethod(function)):
-        raise ValueError(f"controller.factory: '{spec}' is a {type(function).__name__}, not a "
-                         f"Python function or class that takes the ControllerConfig and "
-                         f"returns a Drake System")
+        raise ValueError(f"{where}: '{spec}' is a {type(function).__name__}, not a "
+                         f"Python function or class" + (
+                             " that takes the ControllerConfig and returns a Drake System"
+                             if where == "controller.factory" else ""))
     return module, function
 
 
@@ -296,7 +298,7 @@ def _version(top: str) -> str:
         return ""
 
 
-def factory_code_hash(spec: str) -> str:
+def factory_code_hash(spec: str, where="controller.factory") -> str:
     """SHA-256 of the code the factory ``spec`` names can run (so a sweep of an edited
     controller is never answered from a stale cache): every ``.py`` file in a factory
     file's folder and below it; for ``package.module``, every ``.py`` file of a user's
@@ -304,12 +306,12 @@ def factory_code_hash(spec: str) -> str:
     the factory's own file. '' for TaxiNet's, whose content is its checkpoint and gains."""
     if not spec:
         return ""
-    target, _ = _split(spec)
-    module, function = resolve(spec)
+    target, _ = _split(spec, where)
+    module, function = resolve(spec, where)
     if target.endswith(".py"):
         content = {"folder": _USER_CODE[module.__name__].digest}      # the code loaded
     else:
-        digest = _package_digest(spec, target)
+        digest = _package_digest(spec, target, where)
         if digest is not None:
             content = {"package": digest}
         else:

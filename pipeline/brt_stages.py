@@ -14,11 +14,8 @@ import numpy as np
 from reachwatch.diagrams import CONTROL_PORT
 from reachwatch.reach import (compare_verdicts, min_target_along_rollouts, select_map,
                              sign_agreement, solve_brt)
+from reachwatch.reach.robust import control_bounds
 from reachwatch.systems.files import atomic_write_bytes
-from reachwatch.taxi import (dynamics_for, on_runway_starts, refine_closed_loop, steering_bounds,
-                             sweep_closed_loop, taxi_sweep_key)
-from reachwatch.taxi.fidelity import real_outcomes
-from reachwatch.taxi.plots import plot_brt_slices
 
 from .spec import digest
 from .stages import Run
@@ -28,8 +25,8 @@ def sweep_env(run: Run, env, *, checkpoint=None) -> dict:
     """Sweep ``env``'s closed loop over the grid (chunks cached in ``sweeps/``)."""
     scenario, grid = run.scenario_for(env, checkpoint), run.solved_grid_for(env)
     started = time.time()
-    table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
-                              progress=run.progress)
+    table = run.application.sweep(scenario, grid, cache_dir=run.sweep_cache,
+                                  executor=run.executor, progress=run.progress)
     return {"sweep": table.key, "states": int(grid.size), "rendered": int(table.computed),
             "sweep_seconds": round(time.time() - started, 1)}
 
@@ -50,9 +47,9 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     found best (`select_map_by_runs`)."""
     spec = run.spec
     scenario, grid = run.scenario_for(env, checkpoint), run.solved_grid_for(env)
-    table = sweep_closed_loop(scenario, grid, cache_dir=run.sweep_cache,
-                              executor=run.executor, progress=False)
-    dynamics = dynamics_for(scenario)
+    table = run.application.sweep(scenario, grid, cache_dir=run.sweep_cache,
+                                  executor=run.executor, progress=False)
+    dynamics = run.application.dynamics(scenario)
     solved = [0.0]
 
     def solve(table, spread=spec.robust.min_spread_deg):
@@ -60,18 +57,18 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
         vf = solve_brt(table.grid, dynamics, table[CONTROL_PORT], horizon=spec.horizon,
                        accuracy=spec.accuracy, period=scenario.controller.period,
                        periods_per_step=spec.periods_per_step,
-                       control_bounds=steering_bounds(table, spread,
-                                                      neighbourhood=spec.robust.neighbourhood))
+                       control_bounds=control_bounds(table, CONTROL_PORT, spread,
+                                                     neighbourhood=spec.robust.neighbourhood))
         solved[0] += time.time() - started
         return vf
     refine = spec.refine
     started = time.time()
-    levels = refine_closed_loop(
+    levels = run.application.refine(
         scenario, table, solve=solve, levels=refine.levels, band=refine.band,
         variation=None if refine.variation_deg is None else np.deg2rad(refine.variation_deg),
         cache_dir=run.sweep_cache, executor=run.executor, progress=run.progress)
     refine_seconds = time.time() - started - solved[0]
-    key = table.key                            # the sweep's (`taxi_sweep_key`)
+    key = table.key                            # the sweep's (`Application.sweep_key`)
     vf, table = levels[-1].solution, levels[-1].table
     spread = spec.robust.min_spread_deg
     chosen = None
@@ -100,9 +97,9 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
         out["refine_seconds"] = round(refine_seconds, 1)
     reference = min_target_along_rollouts(grid, dynamics, steering, grid.states(),
                                           horizon=spec.horizon, hold=scenario.controller.period)
-    figure = plot_brt_slices({f"{env.name}{label}": vf}, py=spec.slice_py,
-                             path=run.path(f"figures/brt_{env.name}{label.replace(' ', '_')}.png"),
-                             half_width=env.half_width)
+    figure = run.application.plot_slices(
+        {f"{env.name}{label}": vf}, scenario=scenario, at=spec.slice_py,
+        path=run.path(f"figures/brt_{env.name}{label.replace(' ', '_')}.png"))
     return {**out, "rollout_agreement": sign_agreement(vf.values.ravel(), reference),
             "solve_seconds": round(solved[0], 2), "figure": run.rel(figure)}
 
@@ -122,11 +119,11 @@ def select_map_by_runs(run: Run, env, scenario, levels, solve):
             if spread != own:
                 candidates.append((f"level {i}, robust {spread:g} deg", level,
                                    solve(level.table, spread), spread))
-    starts = on_runway_starts(run.grid_for(env), selection.starts, selection.seed,
-                              half_width=env.half_width)
-    outcomes = real_outcomes(scenario, starts, grid=run.solved_grid_for(env),
-                             duration=spec.horizon, cache_dir=run.path("outcomes"),
-                             executor=run.executor, progress=run.progress)
+    starts = run.application.starts(scenario, run.grid_for(env), selection.starts,
+                                    selection.seed)
+    outcomes = run.application.real_outcomes(
+        scenario, starts, grid=run.solved_grid_for(env), duration=spec.horizon,
+        cache_dir=run.path("outcomes"), executor=run.executor, progress=run.progress)
     scores = [compare_verdicts(vf.in_brt(starts), outcomes.failed, outcomes["left_box"])
               for _, _, vf, _ in candidates]
     kept = select_map(scores, costs=[level.rendered for _, level, _, _ in candidates],
@@ -140,7 +137,7 @@ def select_map_by_runs(run: Run, env, scenario, levels, solve):
 
 def sweep_stage_key(run: Run, env) -> str:
     """The key of ``env``'s sweep record: its sweep's content key (no rendering)."""
-    return taxi_sweep_key(run.scenario_for(env), run.solved_grid_for(env))
+    return run.application.sweep_key(run.scenario_for(env), run.solved_grid_for(env))
 
 
 def solve_stage_key(run: Run, sweep_key: str) -> str:

@@ -5,6 +5,7 @@ its folder is known before it is built, and a killed build resumes there)."""
 import concurrent.futures as cf
 
 from reachwatch.reach import ValueFunction
+from reachwatch.reach.application import load_application
 from reachwatch.training.dataset import build_dataset, dataset_folder, label_summary, load_dataset
 from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
 
@@ -34,11 +35,13 @@ def ensemble_paths(run: Run) -> list:
     return [folder / f"taxinet_seed{s}.pt" for s in spec.seeds]
 
 
-def _build(root, scenario, value_path, spec, ensemble, progress, box=None):
-    """One dataset (module-level so a process pool or Dask worker can run it); a folder
-    whose arrays are not the ones its manifest recorded is built again."""
+def _build(root, scenario, value_path, spec, ensemble, progress, box=None, application=""):
+    """One dataset (module-level so a process pool or Dask worker can run it; the
+    application travels as the string it is loaded from); a folder whose arrays are not
+    the ones its manifest recorded is built again."""
     return str(build_dataset(root, scenario, ValueFunction.load(value_path), spec,
-                             ensemble=ensemble, progress=progress, box=box, rebuild=True))
+                             ensemble=ensemble, progress=progress, box=box, rebuild=True,
+                             application=load_application(application)))
 
 
 def _label_box(run: Run, env):
@@ -55,7 +58,8 @@ def dataset_folder_for(run: Run, env, value_path, ensemble) -> str:
     known before it is built."""
     folder = dataset_folder(run.path("datasets"), run.scenario_for(env),
                             ValueFunction.load(value_path), run.spec.dataset_spec_for(env),
-                            ensemble=[str(p) for p in ensemble], box=_label_box(run, env))
+                            ensemble=[str(p) for p in ensemble], box=_label_box(run, env),
+                            application=run.application)
     return run.rel(folder)
 
 
@@ -67,7 +71,8 @@ def stage_dataset(run: Run) -> dict:
     futures = {e.name: run.executor.submit(
         _build, str(run.path("datasets")), run.scenario_for(e),
         str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset_spec_for(e),
-        [str(p) for p in ensemble], run.progress, _label_box(run, e)) for e in envs}
+        [str(p) for p in ensemble], run.progress, _label_box(run, e), run.spec.application)
+        for e in envs}
     bar = run.bar()                  # hours at study scale: how many environments are done
     finished = cf.as_completed(futures.values())
     names, data = {future: name for name, future in futures.items()}, {}

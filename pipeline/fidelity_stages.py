@@ -1,6 +1,7 @@
 """The fidelity stage of ``reachwatch run``: every environment's BRT, swept table and
 labels checked against the real Drake loop (rendering at every tick) from seeded
-uniform random on-runway starts, with 95 % Wilson intervals.
+uniform random starts (the application's: on the runway for the taxi), with 95 %
+Wilson intervals.
 
 The split says where an error comes from: the swept table as a model of the real
 loop (table rollouts vs real), the solver against its own table (BRT vs table
@@ -11,8 +12,7 @@ import time
 import numpy as np
 
 from reachwatch.reach import compare_verdicts, min_target_along_rollouts
-from reachwatch.taxi import dynamics_for, on_runway_starts, paper_grid
-from reachwatch.taxi.fidelity import OPEN_AXES, real_outcomes
+from reachwatch.reach.application import load_application
 from reachwatch.training.dataset import load_dataset
 from reachwatch.training.labels import SOURCE_PATH, hybrid_rolls_out
 
@@ -24,40 +24,21 @@ class BoxExitError(RuntimeError):
     """The real loop leaves the solved box too often for BRT labels to mean anything."""
 
 
-def downtrack_exit_share(spec: RunSpec) -> float:
-    """The share of the check starts (uniform in py over the paper's box) that begin
-    closer to the solved box's far end (``solved_py_max``) than the loop travels within
-    the horizon at nominal speed, heading at most the paper's 28 deg: those that do not
-    fail first leave the box through py. Known before anything is swept."""
-    paper = paper_grid(1.0, (2, 2, 2))
-    lo, hi = float(paper.lo[1]), float(paper.hi[1])
-    travel = spec.scenario.controller.speed * spec.horizon * np.cos(paper.hi[2])
-    return float(np.clip((hi + travel - spec.solved_py_max) / (hi - lo), 0.0, 1.0))
-
-
-def downtrack_room_needed(spec: RunSpec) -> float:
-    """The ``solved_py_max`` (m) that no check start can run past within the horizon:
-    the paper box's far end plus the nominal speed x horizon."""
-    return float(paper_grid(1.0, (2, 2, 2)).hi[1]) + spec.scenario.controller.speed * spec.horizon
-
-
 def check_downtrack_room(spec: RunSpec):
     """Raise `BoxExitError` before the sweeps when the fidelity check is bound to refuse
-    the run's BRT labels for lack of room downtrack (`downtrack_exit_share` above
-    ``fidelity.max_box_exits``), instead of after them."""
+    the run's BRT labels for lack of room in the solved box (the application's
+    ``box_exit_share`` above ``fidelity.max_box_exits``), instead of after them."""
     check = spec.fidelity
     if check.starts == 0 or spec.dataset.labels.source != "brt":
         return
-    share = downtrack_exit_share(spec)
-    if share > check.max_box_exits:
-        reach = downtrack_room_needed(spec)
+    exits = load_application(spec.application).box_exit_share(
+        spec.scenario, spec.horizon, theta_deg=float(spec.solved_theta_deg),
+        py_max=float(spec.solved_py_max))
+    if exits is not None and exits["share"] > check.max_box_exits:
         raise BoxExitError(
-            f"solved_py_max {spec.solved_py_max:g} m leaves no room downtrack: about "
-            f"{100 * share:.0f} % of the fidelity check's starts would run past it within the "
-            f"{spec.horizon:g} s horizon at {spec.scenario.controller.speed:g} m/s, more than "
-            f"fidelity.max_box_exits ({100 * check.max_box_exits:.0f} %), so the check would "
-            f"refuse the BRT labels after every sweep had run. Set solved_py_max: {reach:g} "
-            f"(the paper box's end plus the horizon's travel), label with dataset.labels.source: "
+            f"{exits['problem']}, more than fidelity.max_box_exits "
+            f"({100 * check.max_box_exits:.0f} %), so the check would refuse the BRT labels "
+            f"after every sweep had run. {exits['fix']}, label with dataset.labels.source: "
             f"hybrid or rollout, or raise fidelity.max_box_exits to accept it")
 
 
@@ -91,7 +72,7 @@ def fidelity_env(run: Run, env) -> dict:
     """Real-loop outcomes from ``run.spec.fidelity.starts`` starts (``more_starts``
     where those find the BRT or the labels wrong) and the BRT, the table rollouts and
     (for train/test environments) the labels compared with them."""
-    spec, check = run.spec, run.spec.fidelity
+    spec, check, application = run.spec, run.spec.fidelity, run.application
     scenario, grid = run.scenario_for(env), run.grid_for(env)
     vf = run.value_function(env.name)
     labels = run.outputs.get("dataset", {}).get("labels", {}).get(env.name)
@@ -99,9 +80,10 @@ def fidelity_env(run: Run, env) -> dict:
 
     def real(states):
         # box exits are counted against the solved box (wider than the paper's if asked)
-        return real_outcomes(scenario, states, grid=run.solved_grid_for(env),
-                             duration=spec.horizon, cache_dir=run.path("outcomes"),
-                             executor=run.executor, progress=run.progress).fields
+        return application.real_outcomes(
+            scenario, states, grid=run.solved_grid_for(env), duration=spec.horizon,
+            cache_dir=run.path("outcomes"), executor=run.executor,
+            progress=run.progress).fields
 
     def any_wrong(states, failed):
         wrong = vf.in_brt(states) != failed
@@ -110,7 +92,7 @@ def fidelity_env(run: Run, env) -> dict:
         return bool(wrong.any())
 
     started = time.time()
-    starts = on_runway_starts(grid, check.starts, check.seed, half_width=env.half_width)
+    starts = application.starts(scenario, grid, check.starts, check.seed)
     outcomes = real(starts)
     # The labels' audit (other runs) found the map wrong: its figure needs the longer
     # check whatever the first runs say, and choosing so does not bias the check.
@@ -121,8 +103,7 @@ def fidelity_env(run: Run, env) -> dict:
                    "check" if any_wrong(starts, outcomes["failed"].astype(bool)) else None)
     extended = because is not None
     if extended:      # the same draw, longer: its first rows are the runs above
-        more = on_runway_starts(grid, check.more_starts, check.seed,
-                                half_width=env.half_width)[check.starts:]
+        more = application.starts(scenario, grid, check.more_starts, check.seed)[check.starts:]
         extra = real(more)
         starts = np.concatenate([starts, more])
         outcomes = {k: np.concatenate([outcomes[k], extra[k]]) for k in outcomes}
@@ -131,8 +112,8 @@ def fidelity_env(run: Run, env) -> dict:
     predicted = vf.in_brt(starts)
     solved_grid, steering = run.steering_table(env)
     lowest, table_left = min_target_along_rollouts(
-        solved_grid, dynamics_for(scenario), steering, starts, horizon=spec.horizon,
-        hold=scenario.controller.period, box_axes=OPEN_AXES)
+        solved_grid, application.dynamics(scenario), steering, starts, horizon=spec.horizon,
+        hold=scenario.controller.period, box_axes=application.open_axes)
     table_fails = lowest <= 0
     out = {"starts": int(len(starts)), "seed": int(check.seed),
            "brt": compare_verdicts(predicted, real_failed, outcomes["left_box"]).as_dict(),
@@ -173,9 +154,9 @@ def check_path_labels(run: Run, env, count: int) -> dict:
     rows = np.sort(np.random.default_rng(check.seed).choice(
         along, size=min(count, len(along)), replace=False))
     states = np.asarray(data.states[rows], float)
-    outcomes = real_outcomes(run.scenario_for(env), states, grid=run.solved_grid_for(env),
-                             duration=run.spec.horizon, cache_dir=run.path("outcomes"),
-                             executor=run.executor, progress=run.progress)
+    outcomes = run.application.real_outcomes(
+        run.scenario_for(env), states, grid=run.solved_grid_for(env), duration=run.spec.horizon,
+        cache_dir=run.path("outcomes"), executor=run.executor, progress=run.progress)
     return {**compare_verdicts(np.asarray(data.labels[rows]) == 1, outcomes.failed,
                                outcomes["left_box"]).as_dict(),
             "frames": int(np.sum(outcomes["ticks"]))}

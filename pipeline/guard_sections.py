@@ -4,8 +4,7 @@ check beside the tables, and the showcase nominal-vs-guarded run."""
 
 import numpy as np
 
-from reachwatch.reach.liveness import percent
-from reachwatch.taxi import UNGUARDED
+from reachwatch.reach.liveness import UNGUARDED, percent
 
 from .detector_sections import percent_text as _pct
 

@@ -12,6 +12,7 @@ from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.diagrams.scenario import dump_scenario
 from reachwatch.reach.liveness import check_mission_limit
 from reachwatch.reach import ACCURACIES
+from reachwatch.reach.application import load_application
 from reachwatch.reach.dynamics import positive, split_horizon
 from reachwatch.systems import DEFAULT_FALLBACKS, Environment, RandomEnvironments, fallback_parts
 from reachwatch.systems.checks import short
@@ -211,8 +212,13 @@ class RunSpec:
     labels come from (null: ``dataset.labels``, as the training environments'). The
     detector trains on ``dataset.labels`` either way; a true-label source here (e.g.
     ``hybrid``) scores a detector trained on cheap BRT labels against the real loop,
-    and Table 2 then also scores it against the BRT's verdicts on the same states."""
+    and Table 2 then also scores it against the BRT's verdicts on the same states.
+    ``application``: the closed loop studied (`reachwatch.reach.application`), named
+    like a controller factory (``package.module:name`` or ``path/to/file.py:name``:
+    an ``Application`` subclass or a function of no arguments returning one); empty =
+    the taxi (`reachwatch.taxi.application.TaxiApplication`)."""
     name: str = "run"
+    application: str = ""
     scenario: Scenario = dc.field(default_factory=Scenario)
     train: List[Environment] = dc.field(default_factory=list)
     test: List[Environment] = dc.field(default_factory=list)
@@ -240,6 +246,7 @@ class RunSpec:
     def validate(self):
         """Raise ValueError naming the first bad field; return self."""
         self.scenario.validate()
+        application = load_application(self.application)    # a bad name fails before any work
         self.train_random.validate("train_random")
         self.test_random.validate("test_random")
         if not self.train and not self.train_random.count:
@@ -265,9 +272,10 @@ class RunSpec:
         if len(set(names)) != len(names):
             twice = sorted({n for n in names if names.count(n) > 1})
             raise ValueError(f"train/test: an environment is listed twice: {short(twice)}")
-        if len(self.grid) != 3 or min(self.grid) < 3 or max(self.grid) > MAX_GRID:
-            raise ValueError(f"grid must be 3 sizes [n_px, n_py, n_theta], each >= 3 and <= "
-                             f"{MAX_GRID}, got {short(self.grid)}")
+        axes = application.axes
+        if len(self.grid) != len(axes) or min(self.grid) < 3 or max(self.grid) > MAX_GRID:
+            raise ValueError(f"grid must be {len(axes)} sizes [{', '.join('n_' + a for a in axes)}], "
+                             f"each >= 3 and <= {MAX_GRID}, got {short(self.grid)}")
         split_horizon(self.horizon, self.scenario.controller.period)   # finite, > 0
         if self.horizon > MAX_HORIZON:
             raise ValueError(f"horizon must be a finite number > 0 s and at most "

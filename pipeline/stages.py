@@ -15,12 +15,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from reachwatch.diagrams import CONTROL_PORT, file_hash, load_detector
 from reachwatch.reach import Grid, InlineExecutor, ValueFunction
-from reachwatch.taxi import dynamics_for, paper_grid, sweep_closed_loop
-from reachwatch.taxi.grid import AXES
+from reachwatch.reach.application import load_application
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
 from reachwatch.training.dataset import load_dataset
@@ -62,6 +60,8 @@ class Run:
     def __init__(self, spec: RunSpec, root, *, executor=None, progress=True, log=_log.info,
                  sweep_cache=None, only=None):
         self.spec, self.root = spec, Path(root)
+        # The closed loop studied (the taxi unless the run file names another).
+        self.application = load_application(spec.application)
         # A slice: the per-environment stages for these environments alone (None: all).
         self.only = None if only is None else set(only)
         # Sweeps are keyed by content, so runs may share one cache folder.
@@ -244,15 +244,16 @@ class Run:
         return scenario
 
     def grid_for(self, env) -> Grid:
-        """The paper's box (where states are labelled and checked) at the run's shape."""
-        return paper_grid(env.half_width, tuple(self.spec.grid))
+        """The application's box (where states are labelled and checked; the taxi's:
+        the paper's) at the run's shape."""
+        return self.application.grid(self.scenario_for(env), tuple(self.spec.grid))
 
     def solved_grid_for(self, env) -> Grid:
-        """The box swept and solved over: the paper's, with |theta| up to
-        ``solved_theta_deg`` and py up to ``solved_py_max``."""
-        return paper_grid(env.half_width, tuple(self.spec.grid),
-                          theta_deg=float(self.spec.solved_theta_deg),
-                          py_max=float(self.spec.solved_py_max))
+        """The box swept and solved over: the application's, widened by the run file
+        (the taxi's: |theta| up to ``solved_theta_deg`` and py up to ``solved_py_max``)."""
+        return self.application.grid(self.scenario_for(env), tuple(self.spec.grid),
+                                     theta_deg=float(self.spec.solved_theta_deg),
+                                     py_max=float(self.spec.solved_py_max))
 
     def environments(self):
         """Every environment whose BRT the run needs (train, test, guard, incremental),
@@ -273,10 +274,11 @@ class Run:
         if saved:
             with np.load(self.path(saved)) as data:
                 steering, lo, hi = data["steering"], data["lo"], data["hi"]
-            return Grid(lo=lo, hi=hi, shape=steering.shape[:3], names=AXES), steering
+            axes = self.application.axes
+            return Grid(lo=lo, hi=hi, shape=steering.shape[:len(axes)], names=axes), steering
         scenario, grid = self.scenario_for(env), self.solved_grid_for(env)
-        table = sweep_closed_loop(scenario, grid, cache_dir=self.sweep_cache,
-                                  executor=self.executor, progress=False)
+        table = self.application.sweep(scenario, grid, cache_dir=self.sweep_cache,
+                                       executor=self.executor, progress=False)
         return grid, table[CONTROL_PORT]
 
     def datasets(self, envs):
@@ -373,8 +375,7 @@ def stage_evaluate(run: Run) -> dict:
     ceiling_recall = spec.detector.judged_recall
     for env, d in zip(held_out, run.datasets(held_out)):
         # States that have not failed yet: for the taxi, the aircraft still on the runway.
-        inside = dynamics_for(run.scenario_for(env)).target(
-            torch.as_tensor(d.states, dtype=torch.float64)).numpy() > 0
+        inside = ~run.application.failed(run.scenario_for(env), d.states)
         subsets = {NOT_FAILED: inside}
         if np.any(d.sources == SOURCE_PATH):      # read-along states: each kind alone too
             subsets[UNIFORM_STARTS] = d.sources != SOURCE_PATH
@@ -393,10 +394,9 @@ def stage_evaluate(run: Run) -> dict:
                        for r in env_rows if r["states"] == "all"}
         margin = plot_error_vs_margin({m: (d.values, d.labels, p) for m, p in predictions.items()},
                                       run.path(f"figures/error_vs_margin_{env.name}.png"))
-        overlay = plot_overlay(run.value_function(env.name), d.states, d.labels,
-                               predictions[detectors[0].name], py=spec.slice_py,
-                               half_width=env.half_width,
-                               path=run.path(f"figures/overlay_{env.name}.png"),
+        overlay = plot_overlay(run.application, run.scenario_for(env), run.value_function(env.name),
+                               d.states, d.labels, predictions[detectors[0].name],
+                               at=spec.slice_py, path=run.path(f"figures/overlay_{env.name}.png"),
                                title=f"{env.name}: {detectors[0].name}")
         thresholds = {r["method"]: r["threshold"] for r in env_rows if r["states"] == "all"}
         roc = plot_roc({m: (d.labels, scores[m], t) for m, t in thresholds.items()},

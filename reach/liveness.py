@@ -11,6 +11,10 @@ import numpy as np
 
 from .fidelity import wilson_interval
 
+#: The key of the controller alone (no detector, no fallback) among the outcomes of
+#: each fallback.
+UNGUARDED = "unguarded"
+
 #: The per-start fields of `MissionOutcomes` (all arrays of one length).
 MISSION_FIELDS = ("failed", "stopped", "ever_stopped", "distance", "flagged_ticks", "ticks")
 #: Its optional fields, judged by distance instead of time (see `MissionOutcomes`).

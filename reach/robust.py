@@ -34,3 +34,14 @@ def local_range(grid: Grid, table, *, size: int = 3, min_spread: float = 0.0):
     spread = (hi - lo).reshape(grid.shape + (-1,)).max(axis=-1)
     wide = (spread > min_spread).reshape(grid.shape + (1,) * (table.ndim - grid.ndim))
     return np.where(wide, lo, table), np.where(wide, hi, table)
+
+
+def control_bounds(table, port: str, min_spread_deg, *, neighbourhood: int = 3):
+    """``control_bounds`` for a robust `solve_brt` of a swept ``table`` (a `SweepTable`):
+    the `local_range` of its control output ``port`` (rad) where that ranges over more
+    than ``min_spread_deg`` across a node's ``neighbourhood``; None (a nominal solve)
+    when ``min_spread_deg`` is None."""
+    if min_spread_deg is None:
+        return None
+    return local_range(table.grid, table[port], size=neighbourhood,
+                       min_spread=np.deg2rad(min_spread_deg))

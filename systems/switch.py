@@ -3,8 +3,6 @@
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from .plant import NOMINAL_SPEED_MPS
-
 STRATEGIES = ("slow_down", "brake")
 #: Steering while flagged: the controller's own, the P-controller on the dead-reckoned
 #: estimate (honest), or on the true state (privileged, a reference only).
@@ -35,12 +33,12 @@ def fallback_name(strategy: str, steering: str = "taxinet") -> str:
     return strategy if steering == "taxinet" else f"{strategy}+{steering}"
 
 
-def next_speed(speed, flagged, *, strategy="slow_down", nominal=NOMINAL_SPEED_MPS,
-               slow_down_step=0.01, brake_deceleration=1.0, resume_acceleration=0.0,
-               period=0.05):
+def next_speed(speed, flagged, *, nominal, strategy="slow_down", slow_down_step=0.01,
+               brake_deceleration=1.0, resume_acceleration=0.0, period=0.05):
     """Speed (m/s) for the next tick. ``slow_down`` (the paper): -0.01 m/s per tick
     while flagged; ``brake``: -``brake_deceleration`` m/s^2 while flagged. Both stop at
-    0. When the image is clear the speed returns to ``nominal`` at once
+    0. When the image is clear the speed returns to ``nominal`` (m/s, the loop's own
+    speed) at once
     (``resume_acceleration`` = 0, the paper's rule), or climbs back at
     ``resume_acceleration`` m/s^2: then one clear frame in a run of flagged ones costs
     the braking one tick's worth of speed instead of all of it. Works on arrays."""
@@ -86,9 +84,8 @@ class FallbackSwitch(LeafSystem):
     (privileged information, for comparison only).
     """
 
-    def __init__(self, *, strategy="slow_down", steering="taxinet", period=0.05,
-                 nominal_speed=NOMINAL_SPEED_MPS, slow_down_step=0.01, brake_deceleration=1.0,
-                 resume_acceleration=0.0):
+    def __init__(self, *, nominal_speed, strategy="slow_down", steering="taxinet", period=0.05,
+                 slow_down_step=0.01, brake_deceleration=1.0, resume_acceleration=0.0):
         super().__init__()
         if strategy not in STRATEGIES:
             raise ValueError(f"FallbackSwitch: strategy must be one of {STRATEGIES}, got "

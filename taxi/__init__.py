@@ -8,10 +8,11 @@ from .grid import TaxiGridSpec, paper_grid
 from .guarded import (UNGUARDED, fallback_rollouts, guarded_rollouts, perfect_detector_scores,
                       p_controller_policy)
 from .guarded_run import simulate_guarded
+from .application import TaxiApplication
 from .sweeps import (refine_closed_loop, resolved, steering_bounds, taxi_probe, sweep_closed_loop,
                      sweep_guarded, taxi_sweep_key)
 
-__all__ = ["TaxiDynamics", "dynamics_for", "on_runway_starts", "real_loop_fidelity", "TaxiGridSpec", "paper_grid",
+__all__ = ["TaxiApplication", "TaxiDynamics", "dynamics_for", "on_runway_starts", "real_loop_fidelity", "TaxiGridSpec", "paper_grid",
            "UNGUARDED", "fallback_rollouts", "guarded_rollouts", "perfect_detector_scores",
            "p_controller_policy", "mission_rollouts", "real_missions", "simulate_guarded", "refine_closed_loop", "resolved", "steering_bounds", "taxi_probe", "sweep_closed_loop",
            "sweep_guarded", "taxi_sweep_key"]

@@ -15,16 +15,14 @@ from reachwatch.diagrams import CONTROL_PORT, DETECTOR, ESTIMATE_PORT
 from reachwatch.reach.dynamics import positive, rk4_step, split_horizon
 from reachwatch.reach.grid import check_states
 from reachwatch.reach.interpolate import GridInterpolator
-from reachwatch.reach.liveness import (MissionOutcomes, check_mission_limit, liveness_figures,
-                                       threshold_for_flag_budget)
+from reachwatch.reach.liveness import (UNGUARDED, MissionOutcomes, check_mission_limit,
+                                       liveness_figures, threshold_for_flag_budget)
 from reachwatch.reach.score_noise import sigmoid
 from reachwatch.systems import (ProportionalController, check_k_of_n, confirmed_flags,
                                 fallback_parts, next_speed, propagate_estimate)
 
 from .dynamics import dynamics_for
 
-#: The key of the controller alone (no detector, no fallback) in failure sets.
-UNGUARDED = "unguarded"
 SCORE_PORT = f"{DETECTOR}.score"
 
 

@@ -5,15 +5,14 @@ import copy
 import functools
 from pathlib import Path
 
-import numpy as np
-
 from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, ESTIMATE_PORT, PLANT, REFERENCE_TAXINET,
                                  make_closed_loop_diagram, make_controller,
                                  make_guarded_diagram)
 from reachwatch.diagrams.controller import has_estimate
 from reachwatch.diagrams.scenario import InitialState, MonitorConfig, Scenario
-from reachwatch.reach import Grid, Probe, SweepTable, local_range, sweep, sweep_key
+from reachwatch.reach import Grid, Probe, SweepTable, sweep, sweep_key
 from reachwatch.reach.refine import refine_adaptively
+from reachwatch.reach.robust import control_bounds
 
 def taxi_probe(scenario, *, guarded=False) -> Probe:
     """What a taxi sweep reads: the steering, the controller's estimate when it declares
@@ -105,11 +104,5 @@ def refine_closed_loop(scenario, table: SweepTable, *, solve, levels: int, band:
 
 
 def steering_bounds(table: SweepTable, min_spread_deg, *, neighbourhood: int = 3):
-    """``control_bounds`` for a robust `solve_brt` of a swept ``table``: the
-    `reach.local_range` of its steering where that ranges over more than
-    ``min_spread_deg`` across a node's ``neighbourhood``; None (a nominal solve) when
-    ``min_spread_deg`` is None."""
-    if min_spread_deg is None:
-        return None
-    return local_range(table.grid, table[CONTROL_PORT], size=neighbourhood,
-                       min_spread=np.deg2rad(min_spread_deg))
+    """`reach.robust.control_bounds` of the steering of a swept ``table``."""
+    return control_bounds(table, CONTROL_PORT, min_spread_deg, neighbourhood=neighbourhood)

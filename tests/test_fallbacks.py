@@ -76,7 +76,7 @@ def test_dead_reckoning_tick_by_tick():
 
 def test_switch_steers_from_the_fallback_input_only_while_flagged():
     for mode in ("dead_reckoning", "oracle"):
-        switch = FallbackSwitch(steering=mode)
+        switch = FallbackSwitch(nominal_speed=5.0, steering=mode)
         context = switch.CreateDefaultContext()
         switch.get_steering_angle_input_port().FixValue(context, [0.1])
         switch.get_fallback_steering_angle_input_port().FixValue(context, [-0.2])
@@ -128,7 +128,8 @@ def _scheduled_loop(steering, flagged_ticks, bias, x0, duration=3.0):
     corrupt = builder.AddSystem(_Corrupt(bias))
     p = builder.AddSystem(ProportionalController(px_gain=controller.px_gain,
                                                  theta_gain=controller.theta_gain))
-    switch = builder.AddSystem(FallbackSwitch(strategy="slow_down", steering=steering))
+    switch = builder.AddSystem(FallbackSwitch(nominal_speed=controller.speed, strategy="slow_down",
+                                              steering=steering))
     hold = builder.AddSystem(ZeroOrderHold(PERIOD, 1))
     builder.Connect(plant.get_state_output_port(), truth.get_state_input_port())
     builder.Connect(truth.get_estimate_output_port(), corrupt.get_input_port(0))

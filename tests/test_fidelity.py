@@ -192,7 +192,7 @@ def test_label_verdicts_follow_each_source_and_box_exits_refuse_brt_labels():
 
 
 def test_the_check_extends_to_more_starts_only_where_its_first_runs_find_a_wrong_verdict(
-        tmp_path, monkeypatch):
+        tmp_path):
     """``fidelity.more_starts``: an environment whose first ``starts`` runs all agree
     with the map keeps them; one where a run contradicts it is checked on the longer
     draw, whose first rows are the same runs (the fake loop counts what it is asked)."""
@@ -202,6 +202,7 @@ def test_the_check_extends_to_more_starts_only_where_its_first_runs_find_a_wrong
     from reachwatch.pipeline import fidelity_stages
     from reachwatch.pipeline.spec import FidelitySpec, digest, load_run_spec
     from reachwatch.reach.outcomes import Outcomes
+    from reachwatch.taxi.application import TaxiApplication
 
     spec = load_run_spec(data="""
 name: extend
@@ -220,7 +221,10 @@ fidelity: {starts: 4, more_starts: 10}
         n = len(states)
         return Outcomes({"failed": failed, "left_box": np.zeros(n, bool),
                          "max_abs_theta": np.zeros(n), "ticks": np.full(n, 7)}, key="fake")
-    monkeypatch.setattr(fidelity_stages, "real_outcomes", fake_real_outcomes)
+
+    class FakeLoop(TaxiApplication):                   # the taxi with the fake real loop
+        def real_outcomes(self, scenario, states, **kw):
+            return fake_real_outcomes(scenario, states, **kw)
 
     class Map:                                           # the BRT: |px| >= 5 m fails
         def at(self, states):
@@ -235,7 +239,8 @@ fidelity: {starts: 4, more_starts: 10}
         return scenario
     solved = paper_grid(11.0, (3, 3, 3), theta_deg=70.0, py_max=290.0)
     run = types.SimpleNamespace(
-        spec=spec, outputs={"dataset": {"labels": {}}}, executor=None, progress=False,
+        spec=spec, application=FakeLoop(), outputs={"dataset": {"labels": {}}}, executor=None,
+        progress=False,
         scenario_for=scenario_for, path=lambda p: tmp_path / p,
         grid_for=lambda env: paper_grid(env.half_width, (5, 3, 5)),
         solved_grid_for=lambda env: solved, value_function=lambda name: Map(),

@@ -11,7 +11,7 @@ from reachwatch.systems import FallbackSwitch, next_speed
 def _switch_ticks(flags, **kwargs):
     """Speed after each 0.05 s tick of a FallbackSwitch simulated alone."""
     from pydrake.systems.analysis import Simulator
-    switch = FallbackSwitch(**kwargs)
+    switch = FallbackSwitch(**{"nominal_speed": 5.0, **kwargs})
     simulator = Simulator(switch)
     context = simulator.get_mutable_context()
     switch.get_steering_angle_input_port().FixValue(context, [0.1])
@@ -34,7 +34,7 @@ def test_brake_schedule_and_floor():
     speeds = _switch_ticks([1] * 120, strategy="brake", brake_deceleration=1.0)
     np.testing.assert_allclose(speeds[:3], [4.95, 4.90, 4.85])
     assert speeds.min() == 0.0 and np.all(np.diff(speeds) <= 0)
-    np.testing.assert_allclose(next_speed(np.array([0.005, 3.0]), [True, False]), [0.0, 5.0])
+    np.testing.assert_allclose(next_speed(np.array([0.005, 3.0]), [True, False], nominal=5.0), [0.0, 5.0])
 
 
 def test_resume_acceleration_tick_by_tick():
@@ -50,19 +50,19 @@ def test_resume_acceleration_tick_by_tick():
     # The table rollouts use the same rule as the LeafSystem.
     v, table = 5.0, []
     for f in flags:
-        v = float(next_speed(v, f, strategy="brake", brake_deceleration=1.0,
+        v = float(next_speed(v, f, strategy="brake", nominal=5.0, brake_deceleration=1.0,
                              resume_acceleration=2.0))
         table.append(v)
     np.testing.assert_allclose(table, gradual)
     for bad in (-1.0, float("nan"), "fast"):
         with pytest.raises(ValueError, match=f"resume_acceleration.*got {bad!r}"):
-            FallbackSwitch(resume_acceleration=bad)
+            FallbackSwitch(nominal_speed=5.0, resume_acceleration=bad)
     with pytest.raises(ValueError, match="monitor.resume_acceleration"):
         load_scenario(data="monitor: {resume_acceleration: -2.0}\n")
 
 
 def test_switch_steering_modes_and_errors():
-    switch = FallbackSwitch(steering="oracle")
+    switch = FallbackSwitch(nominal_speed=5.0, steering="oracle")
     context = switch.CreateDefaultContext()
     switch.get_steering_angle_input_port().FixValue(context, [0.1])
     switch.get_anomaly_input_port().FixValue(context, [1.0])
@@ -73,7 +73,7 @@ def test_switch_steering_modes_and_errors():
     switch.get_anomaly_input_port().FixValue(context, [0.0])
     assert switch.get_steering_angle_output_port().Eval(context)[0] == pytest.approx(0.1)
     with pytest.raises(ValueError, match="strategy"):
-        FallbackSwitch(strategy="teleport")
+        FallbackSwitch(nominal_speed=5.0, strategy="teleport")
 
 
 def _scenario(detector_path, threshold, strategy="brake"):

@@ -31,12 +31,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from reachwatch.diagrams import ControllerProbe, StateRenderer, file_hash, load_taxinet, make_controller
+from reachwatch.diagrams import ControllerProbe, file_hash, make_controller
 from reachwatch.diagrams.controller import has_estimate
+from reachwatch.reach.application import load_application
 from reachwatch.reach.fingerprint import fingerprint
-from reachwatch.taxi import on_runway_starts, resolved
-from reachwatch.taxi.fidelity import real_outcomes, real_paths
-from reachwatch.systems import TaxiNet, resize_for_detector
+from reachwatch.systems import resize_for_detector
 from reachwatch.systems.files import atomic_write_bytes
 
 from .labels import (FALLBACK_FIELDS, NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
@@ -76,9 +75,11 @@ def _value_hash(value_function) -> str:
 
 
 def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(),
-                   box=None) -> Path:
-    """The content-addressed folder of a dataset under ``root``."""
-    scenario = resolved(scenario)
+                   box=None, application=None) -> Path:
+    """The content-addressed folder of a dataset under ``root`` (``application``: the
+    closed loop, `reachwatch.reach.application`; None = the default, the taxi)."""
+    application = application or load_application()
+    scenario = application.resolved(scenario)
     spec_parts = spec.key()
     if not spec.labels.reads_along:
         for name in TRAJECTORY_FIELDS:
@@ -93,6 +94,8 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
              "ensemble": [file_hash(p) for p in ensemble]}
     if box is not None:
         parts["box"] = np.asarray(box, float).tolist()
+    if application.key() is not None:      # the default's keys are those of before
+        parts["application"] = application.key()
     if spec.labels.reads_along:
         parts["runs"] = 1       # runs.npy, which datasets of read-along states before it lacked
     digest = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
@@ -215,21 +218,23 @@ def runs_cache(folder) -> Path:
     return Path(folder).parent / "rollouts"
 
 
-def _real_loop(scenario, value_function, states, folder: Path, progress):
-    """``run_loop`` for `assign_labels`: the real closed loop from ``states[index]``,
-    cached in `runs_cache`."""
+def _real_loop(application, scenario, value_function, states, folder: Path, progress):
+    """``run_loop`` for `assign_labels`: the application's real closed loop from
+    ``states[index]``, cached in `runs_cache`."""
     def run_loop(index):
-        outcome = real_outcomes(scenario, states[index], grid=value_function.grid,
+        outcome = application.real_outcomes(scenario, states[index], grid=value_function.grid,
                                 duration=value_function.horizon, cache_dir=runs_cache(folder),
                                 progress=progress)
         return outcome.failed, int(np.sum(outcome["ticks"]))
     return run_loop
 
 
-def _real_paths(scenario, value_function, labels: LabelSpec, folder: Path, progress):
-    """``run_paths`` for `trajectory_samples`: `real_paths` cached in `runs_cache`."""
+def _real_paths(application, scenario, value_function, labels: LabelSpec, folder: Path,
+                progress):
+    """``run_paths`` for `trajectory_samples`: the application's ``real_paths``, cached
+    in `runs_cache`."""
     def run_paths(starts):
-        return real_paths(scenario, starts, grid=value_function.grid,
+        return application.real_paths(scenario, starts, grid=value_function.grid,
                           horizon=value_function.horizon, extend=labels.extend,
                           stride=labels.stride, cache_dir=runs_cache(folder),
                           progress=progress).fields
@@ -237,15 +242,19 @@ def _real_paths(scenario, value_function, labels: LabelSpec, folder: Path, progr
 
 
 def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpec(), *,
-                  ensemble=(), progress=True, box=None, rebuild=False) -> Path:
+                  ensemble=(), progress=True, box=None, rebuild=False,
+                  application=None) -> Path:
     """Render, estimate and label ``spec.samples`` uniform states of ``box`` (``(lo,
     hi)``, inside the value function's grid; default: the whole grid) in
     ``scenario``'s environment, and with ``trajectory`` labels the states their runs
     pass through (`trajectory_samples`); returns the dataset folder (reused or resumed when it
     already exists). A folder whose arrays are not the ones its manifest recorded
     (edited, truncated or missing since) is a ValueError naming the file, or with
-    ``rebuild`` is built again from the start."""
-    scenario = resolved(scenario)
+    ``rebuild`` is built again from the start. ``application``: the closed loop
+    (`reachwatch.reach.application`; None = the default, the taxi): its failure rule,
+    start distribution, real loop and camera."""
+    application = application or load_application()
+    scenario = application.resolved(scenario)
     grid = value_function.grid
     if box is not None:
         lo, hi = (np.asarray(b, float) for b in box)
@@ -255,7 +264,7 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
                              f"non-empty box inside the BRT's grid {grid}")
     else:
         lo, hi = grid.lo, grid.hi
-    folder = dataset_folder(root, scenario, value_function, spec, ensemble, box)
+    folder = dataset_folder(root, scenario, value_function, spec, ensemble, box, application)
     folder.mkdir(parents=True, exist_ok=True)
     manifest_path = folder / "manifest.json"
     estimator = manifest = None     # the controller is built only when there is work for it
@@ -289,26 +298,27 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
         inside = lambda x: np.all((x >= lo) & (x <= hi), axis=1)       # noqa: E731
         if spec.labels.source == "trajectory":
             states, labels, sources, label_info, runs = trajectory_samples(
-                states, spec.labels, _real_paths(scenario, value_function, spec.labels,
-                                                 folder, progress), inside)
+                states, spec.labels, _real_paths(application, scenario, value_function,
+                                                 spec.labels, folder, progress), inside)
             values, n = value_function.at(states), len(states)
         else:
             values = value_function.at(states)
             n, labels, sources, label_info = assign_labels(
-                values, np.abs(states[:, 0]) < scenario.environment.half_width, spec.labels,
-                _real_loop(scenario, value_function, states, folder, progress))
+                values, ~application.failed(scenario, states), spec.labels,
+                _real_loop(application, scenario, value_function, states, folder, progress))
             if label_info.get("labelled_by") == "trajectory":    # the audit distrusts the map
                 states, labels, sources, read, runs = trajectory_samples(
                     states[:spec.labels.distrusted_starts], spec.labels,
-                    _real_paths(scenario, value_function, spec.labels, folder, progress), inside)
+                    _real_paths(application, scenario, value_function, spec.labels, folder,
+                                progress), inside)
                 label_info = {**read, **label_info}
                 values, n = value_function.at(states), len(states)
             else:
                 states, values, runs = states[:n], values[:n], np.full(n, NO_RUN, np.int64)
         if spec.labels.paths:
-            out = _real_paths(scenario, value_function, spec.labels, folder, progress)(
-                on_runway_starts((lo, hi), spec.labels.paths, [spec.seed, 1],
-                                 half_width=scenario.environment.half_width))
+            out = _real_paths(application, scenario, value_function, spec.labels, folder,
+                              progress)(application.starts(scenario, (lo, hi), spec.labels.paths,
+                                                           [spec.seed, 1]))
             along, anomalous, left_out, along_runs = read_along(out, inside)
             states = np.concatenate([states, along])
             values = np.concatenate([values, value_function.at(along)])
@@ -354,16 +364,15 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     todo = [c for c in chunks if c[0] not in manifest["chunks_done"]]
     if todo:
         estimate, _ = estimator or _estimator(make_controller(scenario.controller))
-        renderer = StateRenderer(environment=scenario.environment, camera=scenario.camera)
-        ensemble_nets = [TaxiNet(model=m, preprocess_config=p) for m, p, _ in
-                         (load_taxinet(c) for c in ensemble)]
+        renderer = application.renderer(scenario)
+        ensemble_nets = [application.ensemble_estimator(c) for c in ensemble]
         bar = tqdm(total=n, initial=n - sum(e - s for s, e in todo), unit="image",
                    desc=f"dataset {scenario.environment.name}", disable=not progress)
         for s, e in todo:
             full = np.stack([renderer.render(x) for x in states[s:e]])
             arrays["estimates"][s:e] = estimate(full)
-            for j, net in enumerate(ensemble_nets):
-                arrays["ensemble"][s:e, j] = net.estimate(full)
+            for j, estimate_member in enumerate(ensemble_nets):
+                arrays["ensemble"][s:e, j] = estimate_member(full)
             arrays["images"][s:e] = resize_for_detector(full, spec)    # as the detector system does
             for a in arrays.values():
                 a.flush()

@@ -1,11 +1,11 @@
 """Evaluation figures: error rate against the distance to the BRT boundary,
-flagged/misclassified states over a BRT slice, ROC curves, and example images."""
+flagged/misclassified states over a state slice (drawn by the application), ROC curves,
+and example images."""
 
 import matplotlib.pyplot as plt
 import numpy as np
 
 from reachwatch.diagrams.plots import save_figure
-from reachwatch.taxi.plots import plot_brt_slices
 
 from .metrics import auroc, roc_points
 
@@ -30,16 +30,17 @@ def plot_error_vs_margin(results, path, bins=(0, 0.25, 0.5, 1, 2, 4, 8, 100)):
     return save_figure(fig, path)
 
 
-def plot_overlay(value_function, states, labels, predictions, *, py, path, title="",
-                 half_width=None):
-    """States near the ``py`` slice over the BRT: flagged vs not, misclassified marked."""
+def plot_overlay(application, scenario, value_function, states, labels, predictions, *, at,
+                 path, title=""):
+    """States near the application's state slice through ``at`` over the BRT (its
+    ``plot_slices``): flagged vs not, misclassified marked."""
     labels, predictions = np.asarray(labels).astype(bool), np.asarray(predictions).astype(bool)
     points = [("flagged", states[predictions & (labels == predictions)], "r."),
               ("not flagged", states[~predictions & (labels == predictions)], "b."),
               ("missed (false negative)", states[labels & ~predictions], "kx"),
               ("false alarm", states[~labels & predictions], "m+")]
-    return plot_brt_slices({title or "BRT": value_function}, py=py, path=path, points=points,
-                           half_width=half_width)
+    return application.plot_slices({title or "BRT": value_function}, scenario=scenario, at=at,
+                                    path=path, points=points)
 
 
 def plot_roc(curves, path, title=""):

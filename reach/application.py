@@ -1,0 +1,268 @@
+"""An application: one closed loop the pipeline studies, and what the generic core
+needs to know about it. The pipeline, training and the report call these methods and
+know nothing about the plant; the taxi (`reachwatch.taxi.application`) is the default
+implementation, and a run file names another as ``application: package.module:name``
+or ``application: path/to/file.py:name`` (a subclass of `Application`, or a function
+of no arguments returning one), loaded like a controller factory: its folder is
+importable in the driver and in every worker, and its fingerprint covers every
+``.py`` file of that folder or package (`reachwatch.diagrams.user_code`).
+
+It lives in ``reach`` because its methods speak reach's terms (a `Dynamics`, a
+`Grid`, a `Probe`, swept tables and `Outcomes`), and the layers above it (training,
+the pipeline) are the ones that call it.
+
+What an application is given everywhere is the run's ``scenario`` (a
+`reachwatch.diagrams.Scenario`: environment, camera, controller, monitor), the same
+object its loop is built from."""
+
+import abc
+import dataclasses as dc
+import functools
+import importlib
+import inspect
+
+import numpy as np
+
+from .fingerprint import fingerprint
+from .sweep import sweep, sweep_key
+
+#: The application a run file without an ``application`` key studies.
+DEFAULT_APPLICATION = "reachwatch.taxi.application:TaxiApplication"
+
+
+class Application(abc.ABC):
+    """What the pipeline needs from a closed loop. Subclasses define the abstract
+    methods; the others have generic defaults. Every method takes the ``scenario`` the
+    loop is built from; ``states`` are ``(N, n)`` arrays in the order of `axes`."""
+
+    #: A short name for logs and reports (e.g. ``"taxi"``).
+    name = "application"
+    #: The state's axis names, in order (e.g. ``("px", "py", "theta")``).
+    axes = ()
+    #: The axes along which a run may leave the grid's box without failing (its
+    #: ``left_box`` counts the runs that did, where the swept table is clamped).
+    open_axes = ()
+    #: Set by `load_application`: the string the application was loaded from ("" for
+    #: the default). Workers load it again from this.
+    spec = ""
+
+    # --- the loop -----------------------------------------------------------------
+    @abc.abstractmethod
+    def loop_diagram(self, scenario, *, guarded: bool = False):
+        """The closed-loop Drake diagram of ``scenario``: the plant, its camera, the
+        controller (``reachwatch.diagrams.make_controller(scenario.controller)``);
+        ``guarded``: with the monitor and fallback of ``scenario.monitor`` too. It
+        exports ``state`` (the plant's state) as the loops of `reachwatch.diagrams` do."""
+
+    @abc.abstractmethod
+    def probe(self, scenario, *, guarded: bool = False):
+        """The `Probe` a sweep reads the loop with: the plant subsystem whose continuous
+        state the grid sets, the control port, and (``guarded``) the detector's score."""
+
+    def loop_factory(self, scenario, *, guarded: bool = False):
+        """A picklable, fingerprintable function of no arguments building
+        `loop_diagram` (what sweeps run in workers and key their caches by)."""
+        return functools.partial(build_loop, ApplicationRef(self.spec), scenario, guarded)
+
+    def resolved(self, scenario):
+        """``scenario`` with its file paths made absolute (default: as it is)."""
+        return scenario
+
+    # --- the plant ----------------------------------------------------------------
+    @abc.abstractmethod
+    def dynamics(self, scenario):
+        """The plant's `reachwatch.reach.Dynamics` for the solver (its ``target`` > 0
+        is the safe set)."""
+
+    def failed(self, scenario, states) -> np.ndarray:
+        """The failure rule: whether each state has failed (default: the dynamics'
+        ``target(x) <= 0``)."""
+        import torch
+        target = self.dynamics(scenario).target(torch.as_tensor(np.asarray(states, float)))
+        return np.asarray(target) <= 0
+
+    # --- the grid and the starts --------------------------------------------------
+    @abc.abstractmethod
+    def grid(self, scenario, shape, **widen):
+        """The `Grid` states are labelled and checked on, at ``shape``; ``widen``: the
+        run file's widening of the solved box (``theta_deg``, ``py_max`` for the taxi;
+        an application may ignore them)."""
+
+    def starts(self, scenario, box, count: int, seed) -> np.ndarray:
+        """``count`` seeded start states of ``box`` (a `Grid` or ``(lo, hi)``): the
+        start distribution of checks and datasets. Default: uniform in the box, less
+        nothing (an application restricts it to states not yet failed)."""
+        lo, hi = (box.lo, box.hi) if hasattr(box, "lo") else box
+        lo, hi = np.array(lo, float), np.array(hi, float)
+        return lo + np.random.default_rng(seed).uniform(size=(count, len(lo))) * (hi - lo)
+
+    def box_exit_share(self, scenario, horizon: float, **widen):
+        """Known before anything is swept: the share of the check's starts bound to
+        leave the solved box (the `grid` widened by ``widen``) within ``horizon`` s
+        without failing, as ``{"share", "problem", "fix"}`` (the last two: sentences
+        naming the run-file keys), or None when unknown (default)."""
+        return None
+
+    # --- sweeps -------------------------------------------------------------------
+    def sweep_name(self, scenario, *, guarded: bool = False) -> str:
+        return scenario.environment.name + ("_guarded" if guarded else "")
+
+    def sweep(self, scenario, grid, *, guarded: bool = False, cache_dir, executor=None,
+              chunk_size: int = 1024, progress: bool = True):
+        """The loop's `probe` outputs at every node of ``grid`` (`reach.sweep`)."""
+        return sweep(self.loop_factory(scenario, guarded=guarded), grid,
+                     probe=self.probe(scenario, guarded=guarded),
+                     name=self.sweep_name(scenario, guarded=guarded), cache_dir=cache_dir,
+                     executor=executor, chunk_size=chunk_size, progress=progress,
+                     label=f"{'guarded ' if guarded else ''}{scenario.environment.name} "
+                           f"{'x'.join(map(str, grid.shape))}")
+
+    def sweep_key(self, scenario, grid, *, guarded: bool = False) -> str:
+        """The cache folder of `sweep` (no rendering)."""
+        return sweep_key(self.loop_factory(scenario, guarded=guarded), grid,
+                         self.probe(scenario, guarded=guarded),
+                         name=self.sweep_name(scenario, guarded=guarded))
+
+    def refine(self, scenario, table, *, solve, levels: int, band: float, variation=None,
+               cache_dir, executor=None, progress: bool = True):
+        """`reach.refine.refine_adaptively` of a swept ``table``."""
+        from .refine import refine_adaptively
+        return refine_adaptively(self.loop_factory(scenario), table, probe=self.probe(scenario),
+                                 solve=solve, levels=levels, band=band, variation=variation,
+                                 cache_dir=cache_dir, executor=executor, progress=progress,
+                                 label=scenario.environment.name)
+
+    # --- the real loop --------------------------------------------------------------
+    def real_outcomes(self, scenario, starts, *, grid, duration: float, cache_dir,
+                      executor=None, progress: bool = True):
+        """`reach.outcomes.Outcomes` of the real loop from each start for ``duration``
+        s: per start ``failed``, ``failure_time``, ``left_box`` (along `open_axes` of
+        ``grid``'s box), ``max_abs_theta`` or another spread, ``ticks`` (frames
+        rendered); cached by content under ``cache_dir``."""
+        raise ValueError(f"the application '{self.name}' runs no real loop (it defines no "
+                         f"real_outcomes): set fidelity.starts: 0, map_selection.starts: 0 "
+                         f"and dataset.labels.source: brt")
+
+    def real_paths(self, scenario, starts, *, grid, horizon: float, extend: float,
+                   stride: int, cache_dir, executor=None, progress: bool = True):
+        """Like `real_outcomes`, with the states each run passes through and their labels
+        (``path_state``, ``path_label``): what trajectory labels read."""
+        raise ValueError(f"the application '{self.name}' reads no labels along real runs (it "
+                         f"defines no real_paths): label with dataset.labels.source: brt")
+
+    # --- images -----------------------------------------------------------------------
+    def renderer(self, scenario):
+        """An object whose ``render(state)`` is the camera's RGB image ``(H, W, 3)``
+        uint8 at one state (what datasets store). Default: the loop's camera, set by
+        `render_at_states` through `probe`'s plant and `camera_port`."""
+        return _LoopRenderer(self.loop_diagram(scenario), self.probe(scenario).plant,
+                             self.camera_port)
+
+    #: The loop's camera image port (``"system.port"``), for the default `renderer`.
+    camera_port = "wing_camera.color_image"
+
+    def ensemble_estimator(self, checkpoint):
+        """A function ``(N, H, W, 3) images -> (N, 2)`` estimates of one member of the
+        ensemble baseline (a checkpoint of the controller's estimator)."""
+        raise ValueError(f"the application '{self.name}' has no ensemble baseline: set "
+                         f"ensemble.seeds: []")
+
+    # --- plots ------------------------------------------------------------------------
+    def plot_slices(self, value_functions, *, scenario, at, path, title="", points=None):
+        """One panel per (label, `ValueFunction`) of a 2-D slice of the state space
+        through ``at`` (the run file's ``slice_py`` for the taxi); ``points``: optional
+        (label, states, matplotlib style) overlays. Returns the figure's path."""
+        raise ValueError(f"the application '{self.name}' draws no state slices")
+
+    def plot_failure_sets(self, failures, grid, horizon, *, scenario, at, path, title=""):
+        """`plot_slices` of failure sets (``{label: bool per grid node}``)."""
+        from .value_function import ValueFunction
+        sets = {k: ValueFunction(grid, np.where(np.asarray(v).reshape(grid.shape), -1.0, 1.0),
+                                 horizon, "rollouts") for k, v in failures.items()}
+        return self.plot_slices(sets, scenario=scenario, at=at, path=path, title=title)
+
+    # --- fallbacks ----------------------------------------------------------------------
+    #: ``fallback_rollouts(...)`` of the guarded loop on the grid, or None when the
+    #: application has none (the guard stage then needs the real loop).
+    fallback_rollouts = None
+
+    # --- identity -------------------------------------------------------------------------
+    def key(self):
+        """What the application adds to the keys of cached results: None for the
+        default (so the taxi's keys are those of before applications), else its spec
+        and the fingerprint of its code."""
+        return None if not self.spec else ApplicationRef(self.spec).__fingerprint__()
+
+
+class _LoopRenderer:
+    def __init__(self, diagram, plant, image_port):
+        self.diagram, self.plant, self.image_port = diagram, plant, image_port
+
+    def render(self, state):
+        from reachwatch.diagrams import render_at_states
+        return render_at_states(self.diagram, plant=self.plant, image_port=self.image_port,
+                                states=np.asarray(state, float)[None])[0]
+
+
+@dc.dataclass(frozen=True)
+class ApplicationRef:
+    """An application by the string it is loaded from: picklable (a worker loads it
+    again) and fingerprinted by the code it names."""
+    spec: str
+
+    def __fingerprint__(self):
+        from reachwatch.diagrams.user_code import factory_code_hash
+        return {"spec": self.spec,
+                "code": factory_code_hash(self.spec, where="application") if self.spec else ""}
+
+    def load(self) -> Application:
+        return load_application(self.spec)
+
+
+def build_loop(ref: ApplicationRef, scenario, guarded: bool):
+    """``ref``'s `Application.loop_diagram` of ``scenario`` (a sweep's factory)."""
+    application = ref.load()
+    from reachwatch.diagrams import user_code
+    with user_code.importable(inspect.getmodule(type(application))):
+        return application.loop_diagram(scenario, guarded=guarded)
+
+
+_LOADED = {}
+
+
+def load_application(spec: str = "") -> Application:
+    """The application ``spec`` names (``package.module:name`` or
+    ``path/to/file.py:name``: an `Application` subclass, or a function of no arguments
+    returning an instance); "" = the taxi (`DEFAULT_APPLICATION`). A ValueError in one
+    line when it cannot be loaded or is not an application."""
+    spec = str(spec or "")
+    from reachwatch.diagrams import user_code
+    if spec:
+        code = user_code.factory_code_hash(spec, where="application")
+        module, factory = user_code.resolve(spec, where="application")
+    else:
+        code = ""
+        target, _, name = DEFAULT_APPLICATION.partition(":")
+        module = importlib.import_module(target)
+        factory = getattr(module, name)
+    if (spec, code) in _LOADED:
+        return _LOADED[spec, code]
+    try:
+        with user_code.importable(module):
+            application = factory()
+    except TypeError as e:
+        raise ValueError(f"application '{spec}': calling it with no arguments failed "
+                         f"(TypeError: {e}); name an Application subclass or a function "
+                         f"of no arguments that returns one") from e
+    if not isinstance(application, Application):
+        raise ValueError(f"application '{spec}': it returned a {type(application).__name__}, "
+                         f"not a reachwatch.reach.application.Application")
+    application.spec = spec
+    _LOADED[spec, code] = application
+    return application
+
+
+def application_key(application: Application):
+    """`Application.key` as a short digest, or None for the default."""
+    key = application.key()
+    return None if key is None else fingerprint(key)[:16]

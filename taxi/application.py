@@ -1,0 +1,113 @@
+"""The taxi as an `Application`: the default closed loop of ``reachwatch run``. Any
+controller steers the taxiing aircraft (`reachwatch.systems.TaxiPlant`) on the runway
+of ``scenario.environment``, seen by the wing camera; it fails when it leaves the
+runway (``|px| >= half_width``). Every method hands over to the taxi's own modules,
+so sweeps, runs and datasets keep the cache keys they had before applications."""
+
+import numpy as np
+
+from reachwatch.diagrams import StateRenderer, load_taxinet, make_closed_loop_diagram, make_guarded_diagram
+from reachwatch.reach.application import Application
+from reachwatch.systems import TaxiNet
+
+from . import fidelity, guarded, plots, sweeps
+from .dynamics import dynamics_for
+from .grid import AXES, paper_grid
+
+
+class TaxiApplication(Application):
+    """The TaxiNet paper's taxiing aircraft (state [px m, py m, theta rad])."""
+
+    name = "taxi"
+    axes = AXES
+    open_axes = fidelity.OPEN_AXES
+
+    def loop_diagram(self, scenario, *, guarded=False):
+        return (make_guarded_diagram if guarded else make_closed_loop_diagram)(scenario)
+
+    def probe(self, scenario, *, guarded=False):
+        return sweeps.taxi_probe(scenario, guarded=guarded)
+
+    @property
+    def own_loop(self) -> bool:
+        """Whether the loop is the taxi's own (a subclass may build another, and then
+        gets the generic sweeps and no taxi real-loop runs)."""
+        return type(self).loop_diagram is TaxiApplication.loop_diagram
+
+    def loop_factory(self, scenario, *, guarded=False):
+        # the taxi's own factory: sweeps keep the keys they had before applications
+        return (sweeps._factory(scenario, guarded) if self.own_loop else
+                super().loop_factory(scenario, guarded=guarded))
+
+    def resolved(self, scenario):
+        return sweeps.resolved(scenario)
+
+    def dynamics(self, scenario):
+        return dynamics_for(scenario)
+
+    def failed(self, scenario, states):
+        return np.abs(np.asarray(states, float)[:, 0]) >= scenario.environment.half_width
+
+    def grid(self, scenario, shape, *, theta_deg=28.0, py_max=250.0):
+        return paper_grid(scenario.environment.half_width, tuple(shape), theta_deg=float(theta_deg),
+                          py_max=float(py_max))
+
+    def box_exit_share(self, scenario, horizon, *, theta_deg=28.0, py_max=250.0):
+        """The share of the check starts (uniform in py over the paper's box) that begin
+        closer to the solved box's far end (``py_max``) than the loop travels within
+        ``horizon`` at nominal speed, heading at most the paper's 28 deg: those that do
+        not fail first leave the box through py."""
+        paper = paper_grid(1.0, (2, 2, 2))
+        lo, hi = float(paper.lo[1]), float(paper.hi[1])
+        speed = scenario.controller.speed
+        share = float(np.clip((hi + speed * horizon * np.cos(paper.hi[2]) - py_max) / (hi - lo),
+                              0.0, 1.0))
+        needed = hi + speed * horizon      # no start can run past it within the horizon
+        return {"share": share,
+                "problem": f"solved_py_max {py_max:g} m leaves no room downtrack: about "
+                           f"{100 * share:.0f} % of the fidelity check's starts would run past "
+                           f"it within the {horizon:g} s horizon at {speed:g} m/s",
+                "fix": f"Set solved_py_max: {needed:g} (the paper box's end plus the "
+                       f"horizon's travel)"}
+
+    def starts(self, scenario, box, count, seed):
+        return fidelity.on_runway_starts(box, count, seed,
+                                         half_width=scenario.environment.half_width)
+
+    def real_outcomes(self, scenario, starts, *, grid, duration, cache_dir, executor=None,
+                      progress=True):
+        if not self.own_loop:
+            return super().real_outcomes(scenario, starts, grid=grid, duration=duration,
+                                         cache_dir=cache_dir, executor=executor,
+                                         progress=progress)
+        return fidelity.real_outcomes(scenario, starts, grid=grid, duration=duration,
+                                      cache_dir=cache_dir, executor=executor, progress=progress)
+
+    def real_paths(self, scenario, starts, *, grid, horizon, extend, stride, cache_dir,
+                   executor=None, progress=True):
+        if not self.own_loop:
+            return super().real_paths(scenario, starts, grid=grid, horizon=horizon,
+                                      extend=extend, stride=stride, cache_dir=cache_dir,
+                                      executor=executor, progress=progress)
+        return fidelity.real_paths(scenario, starts, grid=grid, horizon=horizon, extend=extend,
+                                   stride=stride, cache_dir=cache_dir, executor=executor,
+                                   progress=progress)
+
+    def renderer(self, scenario):
+        if not self.own_loop:
+            return super().renderer(scenario)
+        return StateRenderer(environment=scenario.environment, camera=scenario.camera)
+
+    def ensemble_estimator(self, checkpoint):
+        model, preprocess, _ = load_taxinet(checkpoint)
+        return TaxiNet(model=model, preprocess_config=preprocess).estimate
+
+    def plot_slices(self, value_functions, *, scenario, at, path, title="", points=None):
+        return plots.plot_brt_slices(value_functions, py=at, path=path, title=title,
+                                     points=points, half_width=scenario.environment.half_width)
+
+    def plot_failure_sets(self, failures, grid, horizon, *, scenario, at, path, title=""):
+        return plots.plot_failure_sets(failures, grid, horizon, py=at, path=path, title=title,
+                                       half_width=scenario.environment.half_width)
+
+    fallback_rollouts = staticmethod(guarded.fallback_rollouts)

@@ -1,0 +1,137 @@
+"""The application interface: the taxi is the default and keeps its keys; a user's
+application, named in the run file like a controller factory, is loaded from its
+folder, fingerprinted by every file there, and swept by the generic machinery."""
+
+import textwrap
+
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import CONTROL_PORT, load_scenario
+from reachwatch.pipeline.spec import load_run_spec
+from reachwatch.reach import InlineExecutor
+from reachwatch.reach.application import Application, load_application
+from reachwatch.taxi import on_runway_starts, paper_grid, sweep_closed_loop, taxi_sweep_key
+from reachwatch.taxi.application import TaxiApplication
+from reachwatch.training.dataset import DatasetSpec, dataset_folder
+
+RUN = """
+train: [{runway: KMWH, hour: 9.0, sky: clear}]
+test: [{runway: KSFO, hour: 21.0, sky: clear}]
+"""
+
+APP = """
+import numpy as np
+
+import helpers
+from reachwatch.taxi.application import TaxiApplication
+
+
+class Rebuilt(TaxiApplication):
+    '''The taxi's loop, built through the generic machinery (its own loop_diagram).'''
+    name = "rebuilt"
+
+    def loop_diagram(self, scenario, *, guarded=False):
+        return super().loop_diagram(scenario, guarded=guarded)
+
+    def failed(self, scenario, states):
+        return np.abs(np.asarray(states)[:, 0]) >= helpers.EDGE
+
+
+class FourAxes(Rebuilt):
+    axes = ("px", "py", "theta", "v")
+
+
+def not_one():
+    return 42
+"""
+
+
+def _user_app(tmp_path, edge=3.0):
+    folder = tmp_path / "app"
+    folder.mkdir(exist_ok=True)
+    (folder / "loop.py").write_text(textwrap.dedent(APP))
+    (folder / "helpers.py").write_text(f"EDGE = {edge}\n")
+    return str(folder / "loop.py")
+
+
+def test_the_taxi_is_the_default_application_and_keeps_its_keys(tmp_path):
+    taxi = load_application("")
+    assert isinstance(taxi, TaxiApplication) and taxi.key() is None
+    scenario = load_scenario(data="")
+    B = scenario.environment.half_width
+    grid = taxi.grid(scenario, (5, 3, 5))
+    assert grid == paper_grid(B, (5, 3, 5)) and taxi.axes == ("px", "py", "theta")
+    assert taxi.grid(scenario, (5, 3, 5), theta_deg=40.0, py_max=300.0) == paper_grid(
+        B, (5, 3, 5), theta_deg=40.0, py_max=300.0)
+    for guarded in (False, True):       # the sweep keys of before applications
+        assert taxi.sweep_key(scenario, grid, guarded=guarded) == taxi_sweep_key(
+            scenario, grid, guarded=guarded)
+    np.testing.assert_array_equal(taxi.starts(scenario, grid, 20, 7),
+                                  on_runway_starts(grid, 20, 7, half_width=B))
+    states = np.array([[B - 0.1, 150.0, 0.0], [-B, 150.0, 0.0], [B + 2, 120.0, 0.3]])
+    np.testing.assert_array_equal(taxi.failed(scenario, states), [False, True, True])
+    # the generic failure rule (the dynamics' target) agrees with the taxi's own
+    np.testing.assert_array_equal(Application.failed(taxi, scenario, states), [False, True, True])
+    # datasets: the default application adds nothing to their folder's key
+    from reachwatch.reach import ValueFunction
+    vf = ValueFunction(grid, np.ones(grid.shape), 1.0, "test")
+    assert dataset_folder(tmp_path, scenario, vf, DatasetSpec()) == dataset_folder(
+        tmp_path, scenario, vf, DatasetSpec(), application=taxi)
+
+
+def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tmp_path):
+    spec = f"{_user_app(tmp_path)}:Rebuilt"
+    app = load_application(spec)
+    assert isinstance(app, Application) and app.name == "rebuilt" and app.spec == spec
+    scenario = load_scenario(data="")
+    grid = app.grid(scenario, (3, 3, 3))
+    states = np.array([[2.9, 150.0, 0.0], [3.0, 150.0, 0.0]])
+    np.testing.assert_array_equal(app.failed(scenario, states), [False, True])   # helpers.EDGE
+    key, sweep_key = app.key(), app.sweep_key(scenario, grid)
+    assert key is not None and sweep_key != taxi_sweep_key(scenario, grid)
+    from reachwatch.reach import ValueFunction
+    vf = ValueFunction(grid, np.ones(grid.shape), 1.0, "test")
+    assert dataset_folder(tmp_path, scenario, vf, DatasetSpec(), application=app) != \
+        dataset_folder(tmp_path, scenario, vf, DatasetSpec())
+    # its own loop: no taxi real-loop runs behind its back
+    with pytest.raises(ValueError, match="'rebuilt' runs no real loop"):
+        app.real_outcomes(scenario, states, grid=grid, duration=1.0, cache_dir=tmp_path)
+    # editing a helper file (not the one named) re-keys its sweeps and its results
+    _user_app(tmp_path, edge=4.0)
+    edited = load_application(spec)
+    np.testing.assert_array_equal(edited.failed(scenario, states), [False, False])
+    assert edited.key() != key and edited.sweep_key(scenario, grid) != sweep_key
+    # named in a run file; its axes set the grid's length
+    assert load_run_spec(data=RUN + f"application: '{spec}'\n").application == spec
+    four = spec.replace(":Rebuilt", ":FourAxes")
+    with pytest.raises(ValueError, match=r"grid must be 4 sizes \[n_px, n_py, n_theta, n_v\]"):
+        load_run_spec(data=RUN + f"application: '{four}'\n")
+    load_run_spec(data=RUN + f"application: '{four}'\ngrid: [3, 3, 3, 3]\n")
+
+
+@pytest.mark.parametrize("name, why", [
+    (":Missing", "application: '.*loop.py' has no function 'Missing'"),
+    (":not_one", "it returned a int, not a reachwatch.reach.application.Application"),
+    ("nowhere.py:Rebuilt", "application: file not found: nowhere.py"),
+])
+def test_a_bad_application_is_one_line_naming_the_key(tmp_path, name, why):
+    path = _user_app(tmp_path)
+    spec = path + name if name.startswith(":") else name
+    with pytest.raises(ValueError, match=why) as error:
+        load_run_spec(data=RUN + f"application: '{spec}'\n")
+    assert "\n" not in str(error.value)
+
+
+def test_the_generic_sweep_of_a_user_application_is_the_taxis_table(tmp_path):
+    """A user's application swept through `Application.sweep` (its loop built in the
+    worker from the string it was loaded from) gives the taxi's own table."""
+    app = load_application(f"{_user_app(tmp_path)}:Rebuilt")
+    scenario = load_scenario(data="")
+    grid = paper_grid(scenario.environment.half_width, (3, 2, 3))
+    mine = app.sweep(scenario, grid, cache_dir=tmp_path / "sweeps", executor=InlineExecutor(),
+                     progress=False)
+    taxi = sweep_closed_loop(scenario, grid, cache_dir=tmp_path / "sweeps",
+                             executor=InlineExecutor(), progress=False)
+    assert mine.key != taxi.key and mine.computed == taxi.computed == grid.size
+    np.testing.assert_allclose(mine[CONTROL_PORT], taxi[CONTROL_PORT])

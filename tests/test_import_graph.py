@@ -1,0 +1,151 @@
+"""The import graph, read from the source (every import statement, those inside
+functions too): the layers systems -> diagrams -> reach -> training -> pipeline only
+import downwards, and the generic core knows nothing about the taxi: no module of
+reach/, training/, the generic parts of systems/ or the pipeline's stage engine
+imports `reachwatch.taxi` or a taxi-specific module of systems/. What the taxi needs
+there goes through its application (`reachwatch.reach.application`)."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+#: Lowest first; a module may import its own layer and those below it. The taxi is an
+#: application beside training: built on reach, diagrams and systems, imported by none
+#: of the generic core.
+LAYERS = {"systems": 0, "diagrams": 1, "reach": 2, "taxi": 3, "training": 3, "pipeline": 4}
+
+#: The modules of systems/ that are the taxi's: its plant and kinematics, TaxiNet and
+#: its networks, the runway, its scene, lights and environments, the aircraft's camera.
+TAXI_SYSTEMS = {"plant", "taxinet", "models", "runway", "environment", "random_environments",
+                "scene", "lighting", "camera", "dead_reckoning"}
+
+#: The pipeline's front ends (argument parsing and one-off commands), not its stage
+#: engine: they may call the taxi directly.
+FRONT_ENDS = {"cli", "commands", "reference", "guard_commands", "reach_commands",
+              "simulate_commands", "taxinet_commands", "evaluate_commands", "run_commands"}
+
+#: Modules of the generic core that still import taxi code, each with why. Shrinking
+#: this list is progress; a module may leave it, never join it silently.
+ALLOWED = {
+    # TaxiNet's own trainers (the default controller's training and fine-tuning), which
+    # belong with the taxi application
+    "training.taxinet_train": "TaxiNet's trainer",
+    "training.taxinet_eval": "TaxiNet's evaluation",
+    "training.incremental": "TaxiNet's fine-tuning",
+    # the run file's schema: its environments are the taxi's runways
+    "pipeline.spec": "Environment, RandomEnvironments",
+    # stage modules not yet moved behind the application
+    "pipeline.online_stages": "the guard and incremental stages: the taxi's guarded "
+                              "table rollouts, missions and score noise",
+    "pipeline.monitor_study": "the monitor study: the taxi's recorded runs and missions",
+}
+
+
+def _modules():
+    for package in LAYERS:
+        for path in sorted((ROOT / package).glob("*.py")):
+            yield package, path.stem, path
+
+
+def _exports(package: str) -> dict:
+    """``{name: module}`` of what ``package/__init__.py`` re-exports from its modules."""
+    tree = ast.parse((ROOT / package / "__init__.py").read_text())
+    return {alias.asname or alias.name: node.module for node in ast.walk(tree)
+            if isinstance(node, ast.ImportFrom) and node.level == 1 and node.module
+            for alias in node.names}
+
+
+EXPORTS = {package: _exports(package) for package in LAYERS}
+
+
+def _target(package: str, rest: str, names=()):
+    """``(package, module)`` pairs an import of ``reachwatch.package[.rest]`` (names
+    ``names`` from it) reaches; module None for the package alone."""
+    if rest:
+        return [(package, rest.split(".")[0])]
+    found = []
+    for name in names:
+        if (ROOT / package / f"{name}.py").is_file():
+            found.append((package, name))
+        else:
+            found.append((package, EXPORTS[package].get(name)))
+    return found or [(package, None)]
+
+
+def imports(package: str, path: Path):
+    """``(line, package, module)`` of every reachwatch module ``path`` imports."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                parts = alias.name.split(".")
+                if parts[0] == "reachwatch" and len(parts) > 1 and parts[1] in LAYERS:
+                    out += [(node.lineno, *t) for t in _target(parts[1], ".".join(parts[2:]))]
+        elif isinstance(node, ast.ImportFrom):
+            names = [a.name for a in node.names]
+            if node.level == 1:
+                if node.module:
+                    out += [(node.lineno, *t) for t in _target(package, node.module)]
+                else:
+                    out += [(node.lineno, *t) for t in _target(package, "", names)]
+            elif node.module and node.module.split(".")[0] == "reachwatch":
+                parts = node.module.split(".")
+                if len(parts) > 1 and parts[1] in LAYERS:
+                    out += [(node.lineno, *t) for t in _target(parts[1], ".".join(parts[2:]),
+                                                              names)]
+    return out
+
+
+def _generic(package: str, module: str) -> bool:
+    """Whether a module belongs to the generic core that must not know the taxi."""
+    if package == "systems":
+        return module not in TAXI_SYSTEMS and module != "__init__"
+    if package in ("reach", "training"):
+        return True
+    return package == "pipeline" and module not in FRONT_ENDS
+
+
+def _taxi(package: str, module) -> bool:
+    return package == "taxi" or (package == "systems" and module in TAXI_SYSTEMS)
+
+
+def test_the_layers_only_import_downwards():
+    wrong = [f"{package}/{module}.py:{line} imports reachwatch.{to}"
+             f"{'.' + str(what) if what else ''}"
+             for package, module, path in _modules()
+             for line, to, what in imports(package, path)
+             if LAYERS[to] > LAYERS[package] or (package, to) in (("taxi", "training"),
+                                                                    ("training", "taxi"))]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_generic_core_imports_no_taxi_code():
+    wrong = [f"{package}/{module}.py:{line} imports reachwatch.{to}.{what}"
+             for package, module, path in _modules()
+             if _generic(package, module) and f"{package}.{module}" not in ALLOWED
+             for line, to, what in imports(package, path) if _taxi(to, what)]
+    assert not wrong, "\n".join(wrong)
+
+
+@pytest.mark.parametrize("name", sorted(ALLOWED))
+def test_every_allowed_module_still_needs_it(name):
+    """An allowed module that no longer imports taxi code leaves the list."""
+    package, module = name.split(".")
+    path = ROOT / package / f"{module}.py"
+    assert path.is_file(), f"{name} is gone: remove it from ALLOWED"
+    assert any(_taxi(to, what) for _, to, what in imports(package, path)), (
+        f"{name} imports no taxi code any more: remove it from ALLOWED")
+
+
+def test_the_reader_sees_what_it_must(tmp_path):
+    """The parser itself: re-exports, relative and lazy imports are resolved to the
+    module that defines the name."""
+    path = tmp_path / "probe.py"
+    path.write_text("from reachwatch.systems import TaxiPlant, checks\n"
+                    "from .stages import Run\n"
+                    "def f():\n    import reachwatch.taxi.fidelity\n")
+    found = {(to, what) for _, to, what in imports("pipeline", path)}
+    assert found == {("systems", "plant"), ("systems", "checks"), ("pipeline", "stages"),
+                     ("taxi", "fidelity")}
