@@ -181,6 +181,78 @@ def tick_times(duration: float, period: float) -> np.ndarray:
     return np.arange(int(np.floor(duration / period + 1e-9)) + 1) * period
 
 
+class LoopRun:
+    """One run of `simulate`, advanced a control tick at a time: `advance` steps the
+    Simulator to the next tick, `sample` reads the exported ports there, `trajectory`
+    returns the run. `simulate` is ``while run.advance(): run.sample()``; a caller may
+    interleave several runs (`reachwatch.diagrams.lockstep`) and compute things at a
+    tick between the two calls. Arguments are `simulate`'s."""
+
+    def __init__(self, diagram: Diagram, *, initial_state, duration: float, period: float,
+                 half_width: float, stop_on_failure: bool = True, context=None,
+                 stop_when=None, record=None):
+        self.times = tick_times(duration, period)
+        self.duration, self.half_width, self.stop_when = duration, half_width, stop_when
+        self.simulator, self.failure = start_simulator(
+            diagram, initial_state=initial_state, half_width=half_width,
+            stop_on_failure=stop_on_failure, context=context)
+        self.context = self.simulator.get_context()
+        self.ports = {name: _output(diagram, name) for name in LOOP_OUTPUTS}
+        self.rows = {name: [] for name, port in self.ports.items() if port is not None}
+        self.record = dict(record or {})
+        for name in self.record:
+            if not diagram.HasOutputPort(name):
+                raise ValueError(f"record: the loop '{diagram.get_name()}' exports no output "
+                                 f"port '{name}'")
+        self.recorded = {name: [] for name in self.record}
+        self.record_ports = {name: diagram.GetOutputPort(name) for name in self.record}
+        self.tick = 0                    # the index in ``times`` of the next tick
+        self.done = False
+
+    def advance(self) -> bool:
+        """Steps to the next tick; False (and `done`) when the run has ended: every tick
+        logged, stopped after the last sample, or stopped between ticks (failure)."""
+        if self.done or self.tick >= len(self.times):
+            self.done = True
+            return False
+        t = self.times[self.tick]
+        if t > 0:
+            self.simulator.AdvanceTo(min(t, self.duration))
+        if "t" in self.failure and self.context.get_time() < t - 1e-12:
+            self.done = True             # stopped between ticks: no sample at t
+            return False
+        return True
+
+    def sample(self):
+        """Reads the exported ports (and ``record``) at the tick `advance` reached."""
+        for name in self.rows:
+            self.rows[name].append(self.ports[name].Eval(self.context).copy())
+        for name, fn in self.record.items():
+            self.recorded[name].append(np.asarray(fn(self.record_ports[name].Eval(self.context))))
+        self.tick += 1
+        if "t" in self.failure or (self.stop_when is not None and self.stop_when(self.rows)):
+            self.done = True
+
+    def trajectory(self) -> Trajectory:
+        """The run logged so far."""
+        rows, times, half_width = self.rows, self.times, self.half_width
+        n = len(rows["state"])
+        x = np.array(rows["state"]).reshape(n, -1)
+        failed = bool(np.any(np.abs(x[:, 0]) >= half_width)) or "t" in self.failure
+        t_fail = self.failure.get("t", float("nan"))
+        if failed and np.isnan(t_fail):
+            t_fail = float(times[np.argmax(np.abs(x[:, 0]) >= half_width)])
+        estimate = (np.array(rows["estimate"]).reshape(n, -1) if "estimate" in rows
+                    else np.zeros((n, 0)))
+        extra = {name: np.array(rows[name]).reshape(n, -1)[:, 0]
+                 for name in ("speed", "anomaly", "score") if name in rows}
+        return Trajectory(time=times[:n], state=x, estimate=estimate, half_width=half_width,
+                          failed=failed, failure_time=t_fail,
+                          records=({k: np.stack(v) for k, v in self.recorded.items()}
+                                   if self.record else None),
+                          **extra)
+
+
 def simulate(diagram: Diagram, *, initial_state, duration: float, period: float,
              half_width: float, stop_on_failure: bool = True, context=None,
              stop_when=None, record=None) -> Trajectory:
@@ -192,42 +264,10 @@ def simulate(diagram: Diagram, *, initial_state, duration: float, period: float,
 
     ``record`` ({exported output port name: function of its value}) reads more ports at
     every tick, e.g. ``{"color_image": lambda image: image.data.copy()}``; the results
-    are stacked in ``Trajectory.records``."""
-    times = tick_times(duration, period)
-    simulator, failure = start_simulator(diagram, initial_state=initial_state,
-                                         half_width=half_width,
-                                         stop_on_failure=stop_on_failure, context=context)
-    context = simulator.get_context()
-    ports = {name: _output(diagram, name) for name in LOOP_OUTPUTS}
-    rows = {name: [] for name, port in ports.items() if port is not None}
-    record = dict(record or {})
-    for name in record:
-        if not diagram.HasOutputPort(name):
-            raise ValueError(f"record: the loop '{diagram.get_name()}' exports no output port "
-                             f"'{name}'")
-    recorded = {name: [] for name in record}
-    record_ports = {name: diagram.GetOutputPort(name) for name in record}
-    for t in times:
-        if t > 0:
-            simulator.AdvanceTo(min(t, duration))
-        if "t" in failure and context.get_time() < t - 1e-12:
-            break                        # stopped between ticks: no sample at t
-        for name in rows:
-            rows[name].append(ports[name].Eval(context).copy())
-        for name, fn in record.items():
-            recorded[name].append(np.asarray(fn(record_ports[name].Eval(context))))
-        if "t" in failure or (stop_when is not None and stop_when(rows)):
-            break
-    n = len(rows["state"])
-    x = np.array(rows["state"]).reshape(n, -1)
-    failed = bool(np.any(np.abs(x[:, 0]) >= half_width)) or "t" in failure
-    t_fail = failure.get("t", float("nan"))
-    if failed and np.isnan(t_fail):
-        t_fail = float(times[np.argmax(np.abs(x[:, 0]) >= half_width)])
-    estimate = np.array(rows["estimate"]).reshape(n, -1) if "estimate" in rows else np.zeros((n, 0))
-    extra = {name: np.array(rows[name]).reshape(n, -1)[:, 0]
-             for name in ("speed", "anomaly", "score") if name in rows}
-    return Trajectory(time=times[:n], state=x, estimate=estimate, half_width=half_width,
-                      failed=failed, failure_time=t_fail,
-                      records={k: np.stack(v) for k, v in recorded.items()} if record else None,
-                      **extra)
+    are stacked in ``Trajectory.records``. `LoopRun` is the same run a tick at a time."""
+    run = LoopRun(diagram, initial_state=initial_state, duration=duration, period=period,
+                  half_width=half_width, stop_on_failure=stop_on_failure, context=context,
+                  stop_when=stop_when, record=record)
+    while run.advance():
+        run.sample()
+    return run.trajectory()

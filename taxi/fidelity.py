@@ -12,8 +12,9 @@ import numpy as np
 import torch
 
 from reachwatch.diagrams import (CONTROLLER, MonitorConfig, add_detector, make_closed_loop_diagram,
-                                 make_guarded_diagram, simulate)
+                                 make_guarded_diagram)
 from reachwatch.diagrams.controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
+from reachwatch.diagrams.lockstep import loop_copies, simulate_lockstep
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.interpolate import GridInterpolator
@@ -29,11 +30,18 @@ from .sweeps import resolved
 #: the run has failed, and it stops there.
 OPEN_AXES = (1, 2)
 
-#: Per worker *thread*: ``loops`` ((make, scenario fingerprint) -> (diagram, context)),
-#: built once by the thread that runs it. Two threads never share a Context (a
-#: Simulator on it would see the other's time) nor a VTK/EGL render context (it
-#: renders only on the thread that created it).
+#: Per worker *thread*: ``loops`` ((make, scenario fingerprint) -> copies of the loop,
+#: each ``(diagram, context)``), built once by the thread that runs them. Two threads
+#: never share a Context (a Simulator on it would see the other's time) nor a VTK/EGL
+#: render context (it renders only on the thread that created it).
 _LOOPS = threading.local()
+
+#: Real-loop runs a worker thread advances together, tick by tick
+#: (`reachwatch.diagrams.lockstep`): their frames render one after another and the
+#: controller sees them as one batch. The runs are identical to one at a time
+#: (tests/test_lockstep.py); each needs its own copy of the loop (about 70 MB at
+#: 200x360), built on the thread's first batch. 1: one run at a time.
+LOCKSTEP = 4
 
 
 def on_runway_starts(box, count: int, seed, *, half_width: float) -> np.ndarray:
@@ -47,35 +55,66 @@ def on_runway_starts(box, count: int, seed, *, half_width: float) -> np.ndarray:
     return lo + rng.uniform(size=(count, len(lo))) * (hi - lo)
 
 
-def _loop(scenario, make):
-    """The diagram ``make(scenario)`` and a context for it, built once per thread (a
-    Dask worker runs tasks on several threads of one process)."""
+def _loops(scenario, make, count: int = 1) -> list:
+    """``count`` copies ``(diagram, context)`` of the loop ``make(scenario)``, built once
+    per thread (a Dask worker runs tasks on several threads of one process). A thread
+    keeps the extra copies of one loop only: asking for several of one drops those of
+    the others (their first copies stay, as before lockstep)."""
     loops = getattr(_LOOPS, "loops", None)
     if loops is None:
         loops = _LOOPS.loops = {}
     key = (make.__name__, fingerprint(scenario))
-    if key not in loops:
-        diagram = make(scenario)
-        loops[key] = diagram, diagram.CreateDefaultContext()
-    return loops[key]
+    copies = loops.setdefault(key, [])
+    if count > 1:
+        for other, kept in loops.items():
+            if other != key:
+                del kept[1:]
+    if len(copies) < count:
+        copies.extend(loop_copies(lambda: make(scenario), count - len(copies)))
+    return copies[:max(1, count)]
 
 
-def taxi_rollouts(scenario, duration: float, grid, states) -> dict:
+def _loop(scenario, make):
+    """The diagram ``make(scenario)`` and a context for it, built once per thread."""
+    return _loops(scenario, make)[0]
+
+
+def _lockstep(lockstep) -> int:
+    count = LOCKSTEP if lockstep is None else lockstep
+    if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
+        raise ValueError(f"lockstep must be a whole number >= 1 (runs advanced together), "
+                         f"got {count!r}")
+    return int(count)
+
+
+def _real_runs(scenario, make, states, *, lockstep=None, **settings) -> list:
+    """`simulate` of the loop ``make(scenario)`` from each of ``states``, `LOCKSTEP` runs
+    (or ``lockstep``) at a time on this thread's copies of the loop (`_loops`)."""
+    if len(states) == 0:
+        return []
+    copies = _loops(scenario, make, min(_lockstep(lockstep), len(states)))
+    return simulate_lockstep(copies, initial_states=states, **settings)
+
+
+def taxi_rollouts(scenario, duration: float, grid, states, *, lockstep=None) -> dict:
     """Runs the real closed loop of ``scenario`` from each start for ``duration`` s
     (stopping at failure, |px| >= B). Returns per start ``failed``, ``failure_time``
     (s, NaN if none), ``left_box`` (the run left ``grid``'s box in py or theta),
     ``max_abs_theta`` (rad) and ``ticks`` (frames rendered). Use it through
     `real_outcomes`, which caches it; ``functools.partial(taxi_rollouts, scenario,
-    duration, grid)`` is a picklable rollout function for `run_outcomes`."""
-    diagram, context = _loop(scenario, make_closed_loop_diagram)
+    duration, grid)`` is a picklable rollout function for `run_outcomes`. ``lockstep``:
+    runs advanced together (default `LOCKSTEP`; the results do not depend on it)."""
     B = scenario.environment.half_width
+    states = np.asarray(states, float)
+    on = np.abs(states[:, 0]) < B
+    runs = iter(_real_runs(scenario, make_closed_loop_diagram, states[on], lockstep=lockstep,
+                           duration=duration, period=scenario.controller.period, half_width=B))
     out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
-    for x in np.asarray(states, float):
-        if abs(x[0]) >= B:                      # already off the runway
+    for x, on_runway in zip(states, on):
+        if not on_runway:                       # already off the runway
             row = (True, 0.0, False, abs(x[2]), 0)
         else:
-            run = simulate(diagram, initial_state=x, duration=duration,
-                           period=scenario.controller.period, half_width=B, context=context)
+            run = next(runs)
             row = (run.failed, run.failure_time, left_box(run.state, grid, axes=OPEN_AXES),
                    float(np.max(np.abs(run.state[:, 2]))),
                    len(run.time))
@@ -105,7 +144,8 @@ def check_memoryless(diagram):
             f"with dataset.labels.source: rollout instead")
 
 
-def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, states) -> dict:
+def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, states, *,
+               lockstep=None) -> dict:
     """Like `taxi_rollouts`, but each run lasts ``horizon + extend`` s (stopping at
     failure), and the states it passes through at the ticks `path_points` keeps are
     labelled by the same run (`reach.outcomes.path_labels`). Per start: ``failed``
@@ -114,12 +154,16 @@ def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, state
     (frames rendered), ``path_state`` ``(m, 3)`` (NaN where the run had ended) and
     ``path_label`` ``(m,)`` (1 anomalous, 0 safe, -1 unknown); row 0 of both is the
     start itself. Exact for the taxi's loop: TaxiNet and the P-controller keep no state,
-    and the steering hold is reset at every control tick."""
-    diagram, context = _loop(scenario, make_closed_loop_diagram)
+    and the steering hold is reset at every control tick. ``lockstep`` as in
+    `taxi_rollouts`."""
+    diagram, _ = _loop(scenario, make_closed_loop_diagram)
     check_memoryless(diagram)
     B, period = scenario.environment.half_width, scenario.controller.period
     points = path_points(horizon, extend, stride, period)
     states = np.asarray(states, float)
+    runs = iter(_real_runs(scenario, make_closed_loop_diagram,
+                           states[np.abs(states[:, 0]) < B], lockstep=lockstep,
+                           duration=horizon + extend, period=period, half_width=B))
     out = {"failed": np.zeros(len(states), bool), "failure_time": np.full(len(states), np.nan),
            "left_box": np.zeros(len(states), bool), "max_abs_theta": np.zeros(len(states)),
            "ticks": np.zeros(len(states), int),
@@ -131,8 +175,7 @@ def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, state
             out["max_abs_theta"][i] = abs(x[2])
             out["path_state"][i, 0], out["path_label"][i, 0] = x, 1
             continue
-        run = simulate(diagram, initial_state=x, duration=horizon + extend, period=period,
-                       half_width=B, context=context)
+        run = next(runs)
         labels = path_labels(run.time, run.failure_time if run.failed else None,
                              horizon + extend, horizon)
         within = run.time <= horizon + 1e-9
@@ -192,7 +235,8 @@ def real_loop_fidelity(scenario, value_function, starts, *, cache_dir, duration=
 PARKED_SECONDS = 1.0
 
 
-def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=None) -> dict:
+def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=None, *,
+                     lockstep=None) -> dict:
     """Runs the real loop of ``scenario`` from each start for ``duration`` s, stopping
     at failure: the controller alone (``fallback=None``) or guarded by the detector of
     ``scenario.monitor`` with the fallback named ``fallback`` (e.g. ``"brake"``,
@@ -204,29 +248,30 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
     covered the distance the controller alone covers within it (its speed x
     ``duration``), fails, stands still for `PARKED_SECONDS` or reaches
     ``mission_limit * duration`` s, and the same-distance fields are returned too; the
-    others are read from its first ``duration`` s, as without it."""
+    others are read from its first ``duration`` s, as without it. ``lockstep`` as in
+    `taxi_rollouts`."""
     if mission_limit is not None:
         mission_limit = check_mission_limit(mission_limit)
-    if fallback is None:
-        diagram, context = _loop(scenario, make_closed_loop_diagram)
-    else:
-        guarded = copy.deepcopy(scenario)
-        guarded.monitor.strategy, guarded.monitor.steering = fallback_parts(fallback)
-        diagram, context = _loop(guarded, make_guarded_diagram)
+    loop, make = scenario, make_closed_loop_diagram
+    if fallback is not None:
+        loop, make = copy.deepcopy(scenario), make_guarded_diagram
+        loop.monitor.strategy, loop.monitor.steering = fallback_parts(fallback)
     B, period = scenario.environment.half_width, scenario.controller.period
     nominal = scenario.controller.speed
     goal = nominal * duration
     names = MISSION_FIELDS + (SAME_DISTANCE_FIELDS if mission_limit is not None else ())
     out = {name: [] for name in names}
-    for x in np.asarray(states, float):
+    states = np.asarray(states, float)
+    runs = iter(_real_runs(loop, make, states[np.abs(states[:, 0]) < B], lockstep=lockstep,
+                           period=period, half_width=B,
+                           duration=duration * (mission_limit or 1.0),
+                           stop_when=(None if mission_limit is None else
+                                      lambda i: _mission_done(goal, nominal, period))))
+    for x in states:
         if abs(x[0]) >= B:                      # already off the runway
             row = (True, False, False, 0.0, 0, 0, True, False)
         else:
-            run = simulate(diagram, initial_state=x, period=period, half_width=B,
-                           context=context,
-                           duration=duration * (mission_limit or 1.0),
-                           stop_when=(None if mission_limit is None else
-                                      _mission_done(goal, nominal, period)))
+            run = next(runs)
             speed = (np.full(len(run.time), nominal) if run.speed is None
                      else np.asarray(run.speed, float).reshape(-1))
             k = int(np.sum(run.time <= duration + 1e-9))      # the ticks within the horizon
@@ -303,25 +348,26 @@ def make_watched_loop(scenario):
     return make_closed_loop_diagram(scenario, prebuild_callback=watch)
 
 
-def score_paths(scenario, duration: float, states) -> dict:
+def score_paths(scenario, duration: float, states, *, lockstep=None) -> dict:
     """From each start, the real closed loop of the controller alone for ``duration``
     s (stopping at failure), and the detector's score of the image at every logged
     tick (``scenario.monitor.detector``, `make_watched_loop`): ``state`` ``(n, T, 3)``
     and ``score`` ``(n, T)``, NaN after a run ends; ``ticks`` ``(n,)``.
     ``functools.partial(score_paths, scenario, duration)`` is a picklable rollout
-    function for `map_states`."""
+    function for `map_states`. ``lockstep`` as in `taxi_rollouts`."""
     scenario = resolved(scenario)
-    diagram, context = _loop(scenario, make_watched_loop)
     period, B = scenario.controller.period, scenario.environment.half_width
     length = int(np.floor(duration / period + 1e-9)) + 2
     states = np.asarray(states, float)
+    runs = iter(_real_runs(scenario, make_watched_loop, states[np.abs(states[:, 0]) < B],
+                           lockstep=lockstep, duration=duration, period=period,
+                           half_width=B))
     out = {"state": np.full((len(states), length, 3), np.nan),
            "score": np.full((len(states), length), np.nan), "ticks": np.zeros(len(states), int)}
     for i, x in enumerate(states):
         if abs(x[0]) >= B:                      # already off the runway: no path
             continue
-        run = simulate(diagram, initial_state=x, duration=duration, period=period,
-                       half_width=B, context=context)
+        run = next(runs)
         n = min(len(run.time), length)
         out["state"][i, :n] = np.asarray(run.state, float)[:n]
         out["score"][i, :n] = np.asarray(run.score, float)[:n]
