@@ -16,6 +16,7 @@ import yaml
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_data, yaml_load_typed
 
 from reachwatch.systems import CameraConfig, Environment
+from reachwatch.systems.bounds import MAX_INT, bounded, check_bounds, seed_field
 from reachwatch.systems.checks import clip, is_file, short
 
 #: Bounds on a scenario's numbers (a value past them is a mistake, or would hang a run).
@@ -23,20 +24,19 @@ MAX_DURATION = 3600.0       # s of simulated time
 MAX_PERIOD = 10.0           # s between control updates
 MAX_SPEED = 100.0           # m/s
 MAX_FLAG_WINDOW = 1000      # control ticks of the k-of-n rule
+MAX_POSITION = 10000.0      # m (or deg) of a start state's coordinates
 #: The largest scenario or run file read (bytes), and the most YAML nodes its aliases
 #: may expand to (a small file of nested aliases otherwise expands without bound).
 MAX_FILE_BYTES = 1 << 20
 MAX_NODES = 100_000
-#: The largest whole number a field may hold, and the range of seeds.
-MAX_INT = 2 ** 31 - 1
 
 
 @dc.dataclass
 class InitialState:
     """Start state in the units configs speak: px m, py m, theta deg."""
-    px: float = 0.0
-    py: float = 110.0
-    theta_deg: float = 0.0
+    px: float = bounded(0.0, -MAX_POSITION, MAX_POSITION, unit="m")
+    py: float = bounded(110.0, -MAX_POSITION, MAX_POSITION, unit="m")
+    theta_deg: float = bounded(0.0, -MAX_POSITION, MAX_POSITION, unit="deg")
 
 
 @dc.dataclass
@@ -53,10 +53,10 @@ class ControllerConfig:
     factory: str = ""
     parameters: Dict[str, float] = dc.field(default_factory=dict)
     checkpoint: str = ""
-    px_gain: float = -0.74
-    theta_gain: float = -0.44
-    period: float = 0.05
-    speed: float = 5.0
+    px_gain: float = bounded(-0.74, -1000.0, 1000.0, unit="deg/m")
+    theta_gain: float = bounded(-0.44, -1000.0, 1000.0, unit="deg/deg")
+    period: float = bounded(0.05, 0.0, MAX_PERIOD, low_open=True, unit="s")
+    speed: float = bounded(5.0, 0.0, MAX_SPEED, unit="m/s")
 
     def __fingerprint__(self):
         """What a sweep of this controller depends on: every field, plus the source
@@ -74,16 +74,7 @@ class ControllerConfig:
         for name, value in self.parameters.items():
             if not math.isfinite(value):
                 raise ValueError(f"controller.parameters.{short(name)} must be finite, got {value}")
-        for name in ("px_gain", "theta_gain"):
-            if not (math.isfinite(getattr(self, name)) and abs(getattr(self, name)) <= 1000):
-                raise ValueError(f"controller.{name} must be a finite number within +-1000, got "
-                                 f"{getattr(self, name)}")
-        if not (math.isfinite(self.period) and 0 < self.period <= MAX_PERIOD):
-            raise ValueError(f"controller.period must be a finite number > 0 s and at most "
-                             f"{MAX_PERIOD:g} s, got {self.period}")
-        if not (math.isfinite(self.speed) and 0 <= self.speed <= MAX_SPEED):
-            raise ValueError(f"controller.speed must be >= 0 m/s and at most {MAX_SPEED:g} m/s, "
-                             f"got {self.speed}")
+        check_bounds(self, "controller.")
         if self.checkpoint and not is_file(self.checkpoint):
             raise ValueError(f"controller.checkpoint: file not found: {clip(self.checkpoint, 200)}")
         return self
@@ -100,40 +91,29 @@ class MonitorConfig:
     of the last ``flag_window`` control ticks had a score at or above the threshold (1 of
     1: every raw flag)."""
     detector: str = ""
-    threshold: float = 0.5
+    threshold: float = bounded(0.5, 0.0, 1.0)
     strategy: str = "slow_down"
     steering: str = "taxinet"
-    brake_deceleration: float = 1.0
-    resume_acceleration: float = 0.0
-    flags_needed: int = 1
-    flag_window: int = 1
+    brake_deceleration: float = bounded(1.0, 0.0, 100.0, low_open=True, unit="m/s^2")
+    resume_acceleration: float = bounded(0.0, 0.0, unit="m/s^2")
+    flags_needed: int = bounded(1, 1, MAX_FLAG_WINDOW, whole=True, note="<= flag_window")
+    flag_window: int = bounded(1, 1, MAX_FLAG_WINDOW, whole=True, unit="ticks")
 
     def validate(self):
-        from reachwatch.systems import STEERING, STRATEGIES, check_k_of_n, check_resume_acceleration
+        from reachwatch.systems import STEERING, STRATEGIES, check_k_of_n
+        check_bounds(self, "monitor.")      # each state keeps its window's flags
         try:
             check_k_of_n(self.flags_needed, self.flag_window)
         except ValueError as e:
             raise ValueError(f"monitor.flags_needed / monitor.flag_window: {e}") from None
-        if self.flag_window > MAX_FLAG_WINDOW:      # each state keeps its window's flags
-            raise ValueError(f"monitor.flag_window must be at most {MAX_FLAG_WINDOW} control "
-                             f"ticks, got {self.flag_window}")
-        try:
-            check_resume_acceleration(self.resume_acceleration)
-        except ValueError as e:
-            raise ValueError(f"monitor.{e}") from None
         if self.strategy not in STRATEGIES:
             raise ValueError(f"monitor.strategy must be one of {STRATEGIES}, got "
                              f"'{self.strategy}'")
         if self.steering not in STEERING:
             raise ValueError(f"monitor.steering must be one of {STEERING}, got "
                              f"'{self.steering}'")
-        if not 0.0 <= self.threshold <= 1.0:
-            raise ValueError(f"monitor.threshold must be in [0, 1], got {self.threshold}")
         if self.detector and not is_file(self.detector):
             raise ValueError(f"monitor.detector: file not found: {clip(self.detector, 200)}")
-        if not (math.isfinite(self.brake_deceleration) and 0 < self.brake_deceleration <= 100):
-            raise ValueError(f"monitor.brake_deceleration must be a number in (0, 100] m/s^2, "
-                             f"got {self.brake_deceleration}")
         return self
 
 
@@ -145,8 +125,8 @@ class Scenario:
     initial_state: InitialState = dc.field(default_factory=InitialState)
     controller: ControllerConfig = dc.field(default_factory=ControllerConfig)
     monitor: MonitorConfig = dc.field(default_factory=MonitorConfig)
-    duration: float = 10.0
-    seed: int = 0
+    duration: float = bounded(10.0, 0.0, MAX_DURATION, low_open=True, unit="s")
+    seed: int = seed_field()
     shadows: bool = False
 
     def validate(self):
@@ -155,14 +135,8 @@ class Scenario:
         self.camera.validate()
         self.controller.validate()
         self.monitor.validate()
-        if not (math.isfinite(self.duration) and 0 < self.duration <= MAX_DURATION):
-            raise ValueError(f"duration must be > 0 s and at most {MAX_DURATION:g} s, got "
-                             f"{self.duration}")
-        for name in ("px", "py", "theta_deg"):
-            value = getattr(self.initial_state, name)
-            if not (math.isfinite(value) and abs(value) <= 10000):
-                raise ValueError(f"initial_state.{name} must be a finite number within "
-                                 f"+-10000, got {value}")
+        check_bounds(self)
+        check_bounds(self.initial_state, "initial_state.")
         return self
 
 

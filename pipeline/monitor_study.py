@@ -24,6 +24,7 @@ import numpy as np
 from reachwatch.diagrams import MonitorConfig, save_checkpoint
 from reachwatch.systems import (TEMPORAL_MODELS, Environment, HistoryMonitorConfig,
                                 RandomEnvironments)
+from reachwatch.systems.bounds import bounded, bounded_as, check_bounds
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.taxi import on_runway_starts, paper_grid
 from reachwatch.taxi.fidelity import real_missions
@@ -48,8 +49,8 @@ class MonitorVariant:
     ``temporal`` (`reachwatch.systems.TEMPORAL_MODELS`), with or without the online
     ``signals`` (the controller's estimate and steering)."""
     name: str = "single frame"
-    frames: int = 1
-    stride: int = 1
+    frames: int = bounded_as(1, HistoryMonitorConfig, "frames")
+    stride: int = bounded_as(1, HistoryMonitorConfig, "stride")
     temporal: str = "stack"
     signals: bool = False
 
@@ -80,20 +81,22 @@ class MonitorStudySpec:
     one with the fewest needless flags on the calibration environments."""
     kind: str = "detector"
     family: RandomEnvironments = dc.field(default_factory=lambda: RandomEnvironments(seed=11))
-    train: int = 12
-    calibrate: int = 10
-    held_out: int = 6
+    train: int = bounded(12, 1, 1000, whole=True)
+    calibrate: int = bounded(10, 1, 1000, whole=True, note=">= 1 / alpha - 1")
+    held_out: int = bounded(6, 1, 1000, whole=True)
     also_held_out: List[Environment] = dc.field(default_factory=list)
-    runs: int = 30
-    duration: float = 8.0
-    within: float = 3.0
-    brake_deceleration: float = 3.0
-    alpha: float = 0.1
-    height: int = 48
-    width: int = 80
-    epochs: int = 6
-    head_epochs: int = 40
-    guarded_runs: int = 0
+    runs: int = bounded(30, 1, 100_000, whole=True)
+    duration: float = bounded(8.0, 0.0, 600.0, low_open=True, unit="s")
+    within: float = bounded(3.0, 0.0, 600.0, low_open=True, high_open=True, unit="s",
+                            note="< duration")
+    brake_deceleration: float = bounded(3.0, 0.0, 100.0, low_open=True, unit="m/s^2")
+    alpha: float = bounded(0.1, 0.0, 1.0, low_open=True, high_open=True,
+                           note=">= 1 / (calibrate + 1)")
+    height: int = bounded(48, 16, 512, whole=True, unit="px")
+    width: int = bounded(80, 16, 512, whole=True, unit="px")
+    epochs: int = bounded(6, 1, 10_000, whole=True)
+    head_epochs: int = bounded(40, 1, 100_000, whole=True)
+    guarded_runs: int = bounded(0, 0, 100_000, whole=True)
     variants: List[MonitorVariant] = dc.field(default_factory=default_variants)
 
     @property
@@ -103,27 +106,11 @@ class MonitorStudySpec:
     def validate(self, where="monitor"):
         if self.kind not in MONITOR_KINDS:
             raise ValueError(f"{where}.kind must be one of {MONITOR_KINDS}, got {self.kind!r}")
-        for name, least, most in (("train", 1, 1000), ("calibrate", 1, 1000),
-                                  ("held_out", 1, 1000), ("runs", 1, 100_000),
-                                  ("height", 16, 512), ("width", 16, 512), ("epochs", 1, 10_000),
-                                  ("head_epochs", 1, 100_000), ("guarded_runs", 0, 100_000)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or not least <= value <= most:
-                raise ValueError(f"{where}.{name} must be a whole number in [{least}, {most}], "
-                                 f"got {value!r}")
-        for name, most in (("duration", 600.0), ("within", 600.0),
-                           ("brake_deceleration", 100.0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not (np.isfinite(value) and 0 < value <= most):
-                raise ValueError(f"{where}.{name} must be a number in (0, {most:g}], got {value!r}")
+        check_bounds(self, f"{where}.")
         if self.within >= self.duration:
             raise ValueError(f"{where}.within ({self.within:g} s) must be shorter than "
                              f"{where}.duration ({self.duration:g} s): a run that does not "
                              f"fail says nothing of its last {self.within:g} s")
-        if isinstance(self.alpha, bool) or not isinstance(self.alpha, (int, float)) \
-                or not 0 < self.alpha < 1:
-            raise ValueError(f"{where}.alpha must be in (0, 1), got {self.alpha!r}")
         if (self.calibrate + 1) * self.alpha < 1:
             raise ValueError(f"{where}.calibrate: {self.calibrate} environments cannot bound the "
                              f"miss rate at alpha {self.alpha:g} (the bound is at least "
@@ -138,7 +125,8 @@ class MonitorStudySpec:
         if not self.variants or len(set(names)) != len(names):
             raise ValueError(f"{where}.variants must list at least one variant, each name "
                              f"once, got {names[:8]}")
-        for v in self.variants:
+        for i, v in enumerate(self.variants):
+            check_bounds(v, f"{where}.variants[{i}].")
             if v.temporal not in TEMPORAL_MODELS:
                 raise ValueError(f"{where}.variants: {v.name!r} temporal must be one of "
                                  f"{TEMPORAL_MODELS}, got {v.temporal!r}")

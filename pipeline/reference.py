@@ -1,6 +1,8 @@
 """The run-file reference, generated from the schema: every key of a run file
 (`RunSpec`) and of a scenario file (`Scenario`, the run file's ``scenario``), with its
-type, its default and the docstring of the dataclass that defines it.
+type, its default, its bounds and the docstring of the dataclass that defines it.
+The bounds are the fields' `reachwatch.systems.bounds.Bound` declarations, the same
+ones the schema's ``validate`` enforces.
 
     python -m reachwatch.pipeline.reference docs/reference/run-file.md
 
@@ -14,6 +16,8 @@ import sys
 import textwrap
 import typing
 from pathlib import Path
+
+from reachwatch.systems.bounds import bound_of
 
 HEADER = """\
 # Run-file reference
@@ -32,7 +36,11 @@ is done. Units: metres, seconds, and degrees wherever a key's name ends in `_deg
 
 Each section below is one dataclass; "where" gives the keys at which it appears
 (`[]`: each item of a list). Its docstring describes the keys; the table gives their
-types and defaults.
+types, defaults and bounds. A bound is the range a value must lie in (`[a, b]`: both
+ends allowed, `(a, b]`: `a` itself refused), then its unit; for a list, how many items
+it holds and the range of each; after a semicolon, a condition on other keys. A value
+outside its bound is refused when the file is loaded, with a one-line error naming the
+key. A number without a bound may be any finite number.
 """
 
 
@@ -128,11 +136,12 @@ def reference_markdown() -> str:
         if doc:
             lines.append(doc + "\n")
         hints = typing.get_type_hints(cls)
-        lines.append("| key | type | default |")
-        lines.append("|---|---|---|")
+        lines.append("| key | type | default | bounds |")
+        lines.append("|---|---|---|---|")
         for field in dc.fields(cls):
+            bound = bound_of(field)
             lines.append(f"| `{field.name}` | {_cell(_type_name(hints[field.name]))} | "
-                         f"{_cell(_default(field))} |")
+                         f"{_cell(_default(field))} | {_cell(bound.text() if bound else '')} |")
         lines.append("")
     return "\n".join(lines).rstrip() + "\n"
 

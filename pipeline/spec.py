@@ -5,16 +5,14 @@ e.g. ``run.detector.epoch: unknown field``)."""
 import dataclasses as dc
 import hashlib
 import json
-import math
 from typing import Dict, List, Optional
 
 from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.diagrams.scenario import dump_scenario
-from reachwatch.reach.liveness import check_mission_limit
 from reachwatch.reach import ACCURACIES
 from reachwatch.reach.application import load_application
-from reachwatch.reach.dynamics import positive, split_horizon
 from reachwatch.systems import DEFAULT_FALLBACKS, Environment, RandomEnvironments, fallback_parts
+from reachwatch.systems.bounds import MAX_INT, bounded, check_bounds, seed_field
 from reachwatch.systems.checks import short
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.labels import LabelSpec
@@ -33,9 +31,11 @@ MAX_STARTS = 1_000_000
 @dc.dataclass
 class EnsembleSpec:
     """The ensemble-variance baseline: TaxiNets differing only in their seed."""
-    seeds: List[int] = dc.field(default_factory=lambda: [1, 2, 3, 4, 5])
-    samples: int = 4000
-    epochs: int = 400
+    seeds: List[int] = bounded(default_factory=lambda: [1, 2, 3, 4, 5], low=0, high=MAX_INT,
+                               whole=True, each=True, items=(0, 32),
+                               note="none, or 2 or more different seeds")
+    samples: int = bounded(4000, 1, 1_000_000, whole=True)
+    epochs: int = bounded(400, 1, 100_000, whole=True)
 
 
 @dc.dataclass
@@ -62,18 +62,18 @@ class GuardSpec:
     on-runway starts seeded ``flag_budget_seed`` (`taxi.guarded.flag_budget_threshold`)."""
     environments: List[Environment] = dc.field(default_factory=list)
     strategies: List[str] = dc.field(default_factory=lambda: list(DEFAULT_FALLBACKS))
-    candidates: int = 5
-    online_seconds: float = 2.0
+    candidates: int = bounded(5, 0, MAX_STARTS, whole=True)
+    online_seconds: float = bounded(2.0, 0.0, 3600.0, low_open=True, unit="s")
     meshcat_html: bool = True
-    check_starts: int = 200
-    check_seed: int = 2000
-    tradeoff_points: int = 9
-    mission_limit: float = 3.0
-    noise_starts: int = 20
-    noise_seed: int = 4000
-    flag_budget: Optional[float] = None
-    flag_budget_starts: int = 600
-    flag_budget_seed: int = 7000
+    check_starts: int = bounded(200, 0, MAX_STARTS, whole=True)
+    check_seed: int = seed_field(2000)
+    tradeoff_points: int = bounded(9, 0, MAX_STARTS, whole=True)
+    mission_limit: float = bounded(3.0, 1.0, 100.0, unit="horizons")
+    noise_starts: int = bounded(20, 0, MAX_STARTS, whole=True)
+    noise_seed: int = seed_field(4000)
+    flag_budget: Optional[float] = bounded(None, 0.0, 1.0, low_open=True, high_open=True)
+    flag_budget_starts: int = bounded(600, 1, MAX_STARTS, whole=True)
+    flag_budget_seed: int = seed_field(7000)
 
 
 @dc.dataclass
@@ -91,10 +91,10 @@ class FidelitySpec:
     where it does not. An extension chosen by the first runs leans the environment's
     rates slightly towards error (one chosen by the audit does not); the report says
     which environments were extended, and why."""
-    starts: int = 50
-    seed: int = 1000
-    max_box_exits: float = 0.05
-    more_starts: int = 0
+    starts: int = bounded(50, 0, MAX_STARTS, whole=True)
+    seed: int = seed_field(1000)
+    max_box_exits: float = bounded(0.05, 0.0, 1.0)
+    more_starts: int = bounded(0, 0, MAX_STARTS, whole=True, note="0 or above starts")
 
     def key(self) -> dict:
         """What the fidelity stage's key reads: every field, ``more_starts`` only when
@@ -115,20 +115,12 @@ class RefineSpec:
     render the new nodes only in the cells where the BRT's boundary passes within
     ``band`` m or the steering varies by more than ``variation_deg`` across the cell
     (None: the band alone)."""
-    levels: int = 0
-    band: float = 2.0
-    variation_deg: Optional[float] = None
+    levels: int = bounded(0, 0, 5, whole=True)
+    band: float = bounded(2.0, 0.0, 1000.0, unit="m")
+    variation_deg: Optional[float] = bounded(None, 0.0, low_open=True, unit="deg")
 
     def validate(self):
-        if isinstance(self.levels, bool) or not isinstance(self.levels, int) or \
-                not 0 <= self.levels <= 5:
-            raise ValueError(f"refine.levels must be a whole number >= 0 (at most 5), got "
-                             f"{self.levels!r}")
-        if isinstance(self.band, bool) or not isinstance(self.band, (int, float)) or not math.isfinite(self.band) or not 0 <= self.band <= 1000:
-            raise ValueError(f"refine.band must be a finite number of metres >= 0, got "
-                             f"{self.band!r}")
-        if self.variation_deg is not None:
-            positive("refine.variation_deg", self.variation_deg)
+        return check_bounds(self, "refine.")
 
 
 @dc.dataclass
@@ -138,24 +130,18 @@ class RobustSpec:
     node (None = off), the solver lets it take the worst value in that range
     (`solve_brt`'s ``control_bounds``), since its interpolation there says little about
     the controller between the nodes."""
-    min_spread_deg: Optional[float] = None
-    neighbourhood: int = 3
+    min_spread_deg: Optional[float] = bounded(None, 0.0, unit="deg")
+    neighbourhood: int = bounded(3, 3, 21, whole=True, unit="nodes", note="odd")
 
     @property
     def enabled(self) -> bool:
         return self.min_spread_deg is not None
 
     def validate(self):
-        if self.min_spread_deg is not None:
-            if isinstance(self.min_spread_deg, bool) or not isinstance(
-                    self.min_spread_deg, (int, float)) or not math.isfinite(
-                    self.min_spread_deg) or self.min_spread_deg < 0:
-                raise ValueError(f"robust.min_spread_deg must be a finite number of degrees "
-                                 f">= 0 (or null for no robust BRT), got {self.min_spread_deg!r}")
-        if isinstance(self.neighbourhood, bool) or not isinstance(self.neighbourhood, int) \
-                or not 3 <= self.neighbourhood <= 21 or self.neighbourhood % 2 == 0:
-            raise ValueError(f"robust.neighbourhood must be an odd whole number of nodes >= 3 "
-                             f"(at most 21), got {self.neighbourhood!r}")
+        check_bounds(self, "robust.")
+        if self.neighbourhood % 2 == 0:
+            raise ValueError(f"robust.neighbourhood must be an odd whole number of nodes, got "
+                             f"{self.neighbourhood!r}")
 
 
 @dc.dataclass
@@ -168,31 +154,14 @@ class MapSelectionSpec:
     map with the fewest false-unsafe + ``false_safe_weight`` x false-safe verdicts
     there is kept (ties: fewer false-safe, then fewer renders). 0 starts: off, the last
     level is kept."""
-    starts: int = 0
-    seed: int = 2000
-    robust_spreads_deg: List[float] = dc.field(default_factory=list)
-    false_safe_weight: float = 2.0
+    starts: int = bounded(0, 0, MAX_STARTS, whole=True)
+    seed: int = seed_field(2000)
+    robust_spreads_deg: List[float] = bounded(default_factory=list, low=0.0, high=360.0,
+                                              unit="deg", each=True, items=(0, 16))
+    false_safe_weight: float = bounded(2.0, 1.0, 1000.0)
 
     def validate(self):
-        if isinstance(self.starts, bool) or not isinstance(self.starts, int) or \
-                not 0 <= self.starts <= MAX_STARTS:
-            raise ValueError(f"map_selection.starts must be a whole number >= 0 (at most "
-                             f"{MAX_STARTS}), got {self.starts!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"map_selection.seed must be a whole number >= 0, got {self.seed!r}")
-        if len(self.robust_spreads_deg) > 16:
-            raise ValueError(f"map_selection.robust_spreads_deg must list at most 16 spreads, "
-                             f"got {len(self.robust_spreads_deg)}")
-        for spread in self.robust_spreads_deg:
-            if isinstance(spread, bool) or not isinstance(spread, (int, float)) or \
-                    not math.isfinite(spread) or not 0 <= spread <= 360:
-                raise ValueError(f"map_selection.robust_spreads_deg must list finite numbers "
-                                 f"of degrees >= 0, got {spread!r}")
-        weight = self.false_safe_weight
-        if isinstance(weight, bool) or not isinstance(weight, (int, float)) or \
-                not math.isfinite(weight) or not 1 <= weight <= 1000:
-            raise ValueError(f"map_selection.false_safe_weight must be a finite number >= 1, "
-                             f"got {weight!r}")
+        return check_bounds(self, "map_selection.")
 
 
 @dc.dataclass
@@ -224,13 +193,14 @@ class RunSpec:
     test: List[Environment] = dc.field(default_factory=list)
     train_random: RandomEnvironments = dc.field(default_factory=RandomEnvironments)
     test_random: RandomEnvironments = dc.field(default_factory=RandomEnvironments)
-    grid: List[int] = dc.field(default_factory=lambda: [21, 11, 21])
-    horizon: float = 8.0
+    grid: List[int] = bounded(default_factory=lambda: [21, 11, 21], low=3, high=MAX_GRID,
+                              whole=True, each=True, note="one size per state axis")
+    horizon: float = bounded(8.0, 0.0, MAX_HORIZON, low_open=True, unit="s")
     accuracy: str = "semi_lagrangian"
-    periods_per_step: int = 40
-    solved_theta_deg: float = 28.0
-    solved_py_max: float = 250.0
-    slice_py: float = 175.0
+    periods_per_step: int = bounded(40, 1, 10_000, whole=True)
+    solved_theta_deg: float = bounded(28.0, 28.0, 180.0, unit="deg")
+    solved_py_max: float = bounded(250.0, 250.0, 10_000.0, unit="m")
+    slice_py: float = bounded(175.0, 0.0, unit="m", note="<= solved_py_max")
     dataset: DatasetSpec = dc.field(default_factory=DatasetSpec)
     held_out_labels: Optional[LabelSpec] = None
     detector: DetectorTrainConfig = dc.field(default_factory=DetectorTrainConfig)
@@ -246,6 +216,7 @@ class RunSpec:
     def validate(self):
         """Raise ValueError naming the first bad field; return self."""
         self.scenario.validate()
+        check_bounds(self)
         application = load_application(self.application)    # a bad name fails before any work
         self.train_random.validate("train_random")
         self.test_random.validate("test_random")
@@ -276,16 +247,9 @@ class RunSpec:
         if len(self.grid) != len(axes) or min(self.grid) < 3 or max(self.grid) > MAX_GRID:
             raise ValueError(f"grid must be {len(axes)} sizes [{', '.join('n_' + a for a in axes)}], "
                              f"each >= 3 and <= {MAX_GRID}, got {short(self.grid)}")
-        split_horizon(self.horizon, self.scenario.controller.period)   # finite, > 0
-        if self.horizon > MAX_HORIZON:
-            raise ValueError(f"horizon must be a finite number > 0 s and at most "
-                             f"{MAX_HORIZON:g} s, got {self.horizon}")
         if self.accuracy not in ACCURACIES:
             raise ValueError(f"accuracy must be one of {sorted(ACCURACIES)}, got "
                              f"'{self.accuracy}'")
-        positive("periods_per_step", self.periods_per_step, integer=True)
-        if self.periods_per_step > 10_000:
-            raise ValueError(f"periods_per_step must be at most 10000, got {self.periods_per_step}")
         self.refine.validate()
         self.robust.validate()
         self.map_selection.validate()
@@ -293,16 +257,7 @@ class RunSpec:
             raise ValueError(f"map_selection.seed {self.map_selection.seed} equals "
                              f"fidelity.seed: the check would judge the map on the runs that "
                              f"chose it; give the selection another seed")
-        if isinstance(self.solved_theta_deg, bool) or not isinstance(
-                self.solved_theta_deg, (int, float)) or not 28.0 <= self.solved_theta_deg <= 180.0:
-            raise ValueError(f"solved_theta_deg must be a number of degrees in [28, 180] (the "
-                             f"paper's box is +-28), got {self.solved_theta_deg!r}")
-        if isinstance(self.solved_py_max, bool) or not isinstance(
-                self.solved_py_max, (int, float)) or not 250.0 <= self.solved_py_max <= 10_000:
-            raise ValueError(f"solved_py_max must be a finite number of metres >= 250 (the "
-                             f"paper's box ends at py = 250; at most 10000), got "
-                             f"{self.solved_py_max!r}")
-        if not 0 <= self.slice_py <= self.solved_py_max:
+        if not self.slice_py <= self.solved_py_max:
             raise ValueError(f"slice_py must be a number of metres in [0, solved_py_max "
                              f"{self.solved_py_max:g}], got {self.slice_py!r}")
         self.dataset.validate()
@@ -314,39 +269,17 @@ class RunSpec:
         if self.detector.threshold_folds > n_train:
             raise ValueError(f"detector.threshold_folds {self.detector.threshold_folds}: there "
                              f"are only {n_train} training environments to leave out")
-        for name, most in (("samples", 1_000_000), ("epochs", 100_000)):
-            value = getattr(self.ensemble, name)
-            if value < 1 or value > most:
-                raise ValueError(f"ensemble.{name} must be >= 1 (at most {most}), got {value}")
-        if len(self.ensemble.seeds) > 32 or len(set(self.ensemble.seeds)) != len(self.ensemble.seeds):
-            raise ValueError(f"ensemble.seeds must list at most 32 different seeds, got "
+        check_bounds(self.ensemble, "ensemble.")
+        if len(set(self.ensemble.seeds)) != len(self.ensemble.seeds):
+            raise ValueError(f"ensemble.seeds must list different seeds, got "
                              f"{short(self.ensemble.seeds)}")
-        if self.guard.candidates < 0:
-            raise ValueError(f"guard.candidates must be >= 0, got {self.guard.candidates}")
-        positive("guard.online_seconds", self.guard.online_seconds)
-        if self.guard.online_seconds > 3600:
-            raise ValueError(f"guard.online_seconds must be at most 3600 s, got "
-                             f"{self.guard.online_seconds}")
-        try:
-            mission_limit = check_mission_limit(self.guard.mission_limit)
-        except ValueError as e:
-            raise ValueError(f"guard.{e}") from None
-        if mission_limit > 100:
-            raise ValueError(f"guard.mission_limit must be at most 100 horizons, got "
-                             f"{self.guard.mission_limit}")
-        if isinstance(self.fidelity.starts, bool) or not isinstance(self.fidelity.starts, int) \
-                or not 0 <= self.fidelity.starts <= MAX_STARTS:
-            raise ValueError(f"fidelity.starts must be a whole number >= 0 (at most "
-                             f"{MAX_STARTS}), got {self.fidelity.starts!r}")
+        check_bounds(self.guard, "guard.")
+        check_bounds(self.fidelity, "fidelity.")
         more = self.fidelity.more_starts
-        if isinstance(more, bool) or not isinstance(more, int) or more < 0 \
-                or (more and more <= self.fidelity.starts) or more > MAX_STARTS:
+        if more and more <= self.fidelity.starts:
             raise ValueError(f"fidelity.more_starts must be 0 (never extend the check) or a "
                              f"whole number above fidelity.starts ({self.fidelity.starts}), "
                              f"got {more!r}")
-        if not 0 <= self.fidelity.max_box_exits <= 1:
-            raise ValueError(f"fidelity.max_box_exits must be a fraction in [0, 1], got "
-                             f"{self.fidelity.max_box_exits!r}")
         if [self.dataset.height, self.dataset.width] != [self.detector.detector.height,
                                                          self.detector.detector.width]:
             raise ValueError(f"dataset image size {[self.dataset.height, self.dataset.width]} "
@@ -361,26 +294,9 @@ class RunSpec:
                 raise ValueError(f"guard.strategies[{i}]: {e}") from None
         if len(set(self.guard.strategies)) != len(self.guard.strategies):
             raise ValueError(f"guard.strategies: each fallback once, got {self.guard.strategies}")
-        for name in ("candidates", "check_starts", "tradeoff_points", "noise_starts"):
-            value = getattr(self.guard, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"guard.{name} must be a whole number >= 0, got {value!r}")
-            if value > MAX_STARTS:
-                raise ValueError(f"guard.{name} must be a whole number >= 0 (at most "
-                                 f"{MAX_STARTS}), got {value!r}")
-        if self.guard.flag_budget is not None:
-            budget = self.guard.flag_budget
-            if isinstance(budget, bool) or not isinstance(budget, (int, float)) \
-                    or not 0 < budget < 1:
-                raise ValueError(f"guard.flag_budget is a share of control ticks in (0, 1) "
-                                 f"(or null for the training threshold), got {budget!r}")
-            if not self.guard.strategies:
-                raise ValueError("guard.flag_budget: the budget is set on the first of "
-                                 "guard.strategies, and there are none")
-            starts = self.guard.flag_budget_starts
-            if isinstance(starts, bool) or not isinstance(starts, int) or not 1 <= starts <= MAX_STARTS:
-                raise ValueError(f"guard.flag_budget_starts must be a whole number >= 1 (at most "
-                                 f"{MAX_STARTS}), got {starts!r}")
+        if self.guard.flag_budget is not None and not self.guard.strategies:
+            raise ValueError("guard.flag_budget: the budget is set on the first of "
+                             "guard.strategies, and there are none")
         for i, env in enumerate(self.guard.environments):
             try:
                 env.validate()

@@ -11,11 +11,16 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import CameraInfo, RgbdSensor
 
+from .bounds import bounded, check_bounds
 from .ports import weak_callback
 
 
 def _make_pose_vector():
     return AbstractValue.Make(FramePoseVector())
+
+
+#: The farthest a camera's clipping range reaches (m).
+MAX_RANGE = 1e5
 
 
 @dc.dataclass
@@ -26,35 +31,24 @@ class CameraConfig:
     above the ground; ``yaw_out_deg`` turns the camera outward (right), and
     ``pitch_down_deg`` tilts it down. Image size in pixels, FOV horizontal.
     """
-    width: int = 360
-    height: int = 200
-    fov_x_deg: float = 80.0
-    right: float = 2.17
-    up: float = 0.42
-    forward: float = 0.0
-    reference_height: float = 1.5
-    yaw_out_deg: float = 5.0
-    pitch_down_deg: float = 5.0
-    near: float = 0.5
-    far: float = 3000.0
+    width: int = bounded(360, 8, 4096, whole=True, unit="px")
+    height: int = bounded(200, 8, 4096, whole=True, unit="px")
+    fov_x_deg: float = bounded(80.0, 1.0, 170.0, unit="deg")
+    right: float = bounded(2.17, -100.0, 100.0, unit="m")
+    up: float = bounded(0.42, -100.0, 100.0, unit="m")
+    forward: float = bounded(0.0, -100.0, 100.0, unit="m")
+    reference_height: float = bounded(1.5, -100.0, 100.0, unit="m")
+    yaw_out_deg: float = bounded(5.0, -180.0, 180.0, unit="deg")
+    pitch_down_deg: float = bounded(5.0, -90.0, 90.0, unit="deg")
+    near: float = bounded(0.5, 0.0, MAX_RANGE, low_open=True, high_open=True, unit="m",
+                          note="< far")
+    far: float = bounded(3000.0, 0.0, MAX_RANGE, low_open=True, unit="m", note="> near")
 
     def validate(self):
-        if not (isinstance(self.width, int) and isinstance(self.height, int)
-                and 8 <= self.width <= 4096 and 8 <= self.height <= 4096):
-            raise ValueError(f"camera width/height must be integers in [8, 4096], got "
-                             f"{self.width}x{self.height}")
-        if not 1.0 <= self.fov_x_deg <= 170.0:
-            raise ValueError(f"camera.fov_x_deg must be in [1, 170], got {self.fov_x_deg}")
-        if not 0 < self.near < self.far <= 1e5:
-            raise ValueError(f"camera needs 0 < near < far <= 100000 m, got {self.near}, "
+        check_bounds(self, "camera.")
+        if not self.near < self.far:
+            raise ValueError(f"camera.near must be < camera.far, got near {self.near}, far "
                              f"{self.far}")
-        for name, most in (("right", 100.0), ("up", 100.0), ("forward", 100.0),
-                           ("reference_height", 100.0), ("yaw_out_deg", 180.0),
-                           ("pitch_down_deg", 90.0)):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and abs(value) <= most):
-                raise ValueError(f"camera.{name} must be a finite number within +-{most:g}, "
-                                 f"got {value}")
         return self
 
     @property

@@ -15,6 +15,7 @@ from pydrake.systems.sensors import ImageRgba8U
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
+from .bounds import bounded, check_bounds
 from .checks import short
 
 
@@ -23,30 +24,21 @@ class DetectorConfig:
     """Architecture and input size (pixels). ``small_cnn`` is the CPU default;
     `DetectorConfig.paper()` is EfficientNet-B0 at 224x224 (the paper)."""
     arch: str = "small_cnn"
-    height: int = 96
-    width: int = 160
-    channels: List[int] = dc.field(default_factory=lambda: [16, 32, 64, 96])
-    stem_stride: int = 1
+    height: int = bounded(96, 16, 1024, whole=True, unit="px")
+    width: int = bounded(160, 16, 1024, whole=True, unit="px")
+    channels: List[int] = bounded(default_factory=lambda: [16, 32, 64, 96], low=1, high=1024,
+                                  whole=True, each=True, items=(1, 8))
+    stem_stride: int = bounded(1, 1, 2, whole=True)
 
     @classmethod
     def paper(cls) -> "DetectorConfig":
         return cls(arch="efficientnet_b0", height=224, width=224)
 
-    def validate(self):
+    def validate(self, where="detector.detector"):
         if self.arch not in ("small_cnn", "efficientnet_b0"):
-            raise ValueError(f"detector arch must be small_cnn or efficientnet_b0, got "
+            raise ValueError(f"{where}.arch must be small_cnn or efficientnet_b0, got "
                              f"{short(self.arch)}")
-        if self.stem_stride not in (1, 2):
-            raise ValueError(f"detector stem_stride must be 1 or 2, got {self.stem_stride}")
-        if not (16 <= self.height <= 1024 and 16 <= self.width <= 1024):
-            raise ValueError(f"detector input must be 16..1024 pixels a side, got "
-                             f"{self.height}x{self.width}")
-        if not (1 <= len(self.channels) <= 8 and all(
-                isinstance(c, int) and not isinstance(c, bool) and 1 <= c <= 1024
-                for c in self.channels)):
-            raise ValueError(f"detector channels must list 1 to 8 whole numbers in [1, 1024], "
-                             f"got {short(self.channels)}")
-        return self
+        return check_bounds(self, f"{where}.")
 
 
 def resize_for_detector(images: np.ndarray, config: DetectorConfig) -> np.ndarray:

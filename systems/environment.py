@@ -5,7 +5,8 @@ import dataclasses as dc
 import math
 from typing import Optional
 
-from .checks import check_name, short
+from .bounds import bounded, check_bounds
+from .checks import short
 from .runway import RUNWAYS, RunwaySpec
 
 SKIES = ("clear", "overcast")
@@ -20,7 +21,7 @@ class Environment:
     [0, 24); ``sky`` is clear or overcast.
     """
     runway: str = "KMWH"
-    hour: float = 9.0
+    hour: float = bounded(9.0, 0.0, 24.0, high_open=True, unit="h")
     sky: str = "clear"
     runway_spec: Optional[RunwaySpec] = None
 
@@ -31,13 +32,10 @@ class Environment:
                 f"environment.runway: unknown runway {short(self.runway)}; the catalog has "
                 f"{sorted(RUNWAYS)}, or describe your own under environment.runway_spec")
         if self.runway_spec is not None:
-            check_name("environment.runway_spec.name", self.runway_spec.name)
-        if isinstance(self.hour, bool) or not isinstance(self.hour, (int, float)) \
-                or not 0.0 <= self.hour < 24.0:
-            raise ValueError(f"environment.hour must be in [0, 24), got {short(self.hour)}")
+            self.runway_spec.validate("environment.runway_spec")
+        check_bounds(self, "environment.")
         if self.sky not in SKIES:
             raise ValueError(f"environment.sky must be one of {SKIES}, got {short(self.sky)}")
-        self.spec()
         return self
 
     def spec(self) -> RunwaySpec:

@@ -18,6 +18,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from pydrake.systems.sensors import ImageRgba8U
 from torch import nn
 
+from .bounds import bounded, check_bounds
 from .detector import DetectorConfig, detector_input, inference_model, resize_for_detector
 
 #: How the per-frame features of the history are combined: ``stack`` concatenates them
@@ -33,43 +34,30 @@ class HistoryMonitorConfig:
     (0: images only), standardised with ``signal_mean`` / ``signal_std``; ``temporal``
     one of `TEMPORAL_MODELS` with ``hidden`` units. ``within`` (s) is the T of "fails
     within T s" that the risk predicts."""
-    frames: int = 8
-    stride: int = 1
-    height: int = 48
-    width: int = 80
-    channels: List[int] = dc.field(default_factory=lambda: [16, 32, 48])
-    features: int = 32
-    signals: int = 0
+    frames: int = bounded(8, 1, 64, whole=True)
+    stride: int = bounded(1, 1, 100, whole=True, unit="ticks")
+    height: int = bounded(48, 16, 512, whole=True, unit="px")
+    width: int = bounded(80, 16, 512, whole=True, unit="px")
+    channels: List[int] = bounded(default_factory=lambda: [16, 32, 48], low=1, high=512,
+                                  whole=True, each=True, items=(1, None))
+    features: int = bounded(32, 1, 1024, whole=True)
+    signals: int = bounded(0, 0, 64, whole=True)
     signal_mean: List[float] = dc.field(default_factory=list)
     signal_std: List[float] = dc.field(default_factory=list)
     temporal: str = "stack"
-    hidden: int = 32
-    within: float = 2.0
+    hidden: int = bounded(32, 1, 1024, whole=True)
+    within: float = bounded(2.0, 0.0, low_open=True, unit="s")
 
     def validate(self):
-        for name, least, most in (("frames", 1, 64), ("stride", 1, 100), ("features", 1, 1024),
-                                  ("signals", 0, 64), ("hidden", 1, 1024)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or not least <= value <= most:
-                raise ValueError(f"history monitor {name} must be a whole number in "
-                                 f"[{least}, {most}], got {value!r}")
+        check_bounds(self, "history monitor ")
         if self.temporal not in TEMPORAL_MODELS:
             raise ValueError(f"history monitor temporal must be one of {TEMPORAL_MODELS}, got "
                              f"{self.temporal!r}")
-        if not (16 <= self.height <= 512 and 16 <= self.width <= 512):
-            raise ValueError(f"history monitor input must be 16..512 pixels a side, got "
-                             f"{self.height}x{self.width}")
-        if not self.channels or any(not isinstance(c, int) or not 1 <= c <= 512
-                                    for c in self.channels):
-            raise ValueError(f"history monitor channels must be whole numbers in [1, 512], got "
-                             f"{self.channels!r}")
         if len(self.signal_mean) not in (0, self.signals) or \
                 len(self.signal_std) != len(self.signal_mean):
             raise ValueError(f"history monitor signal_mean and signal_std need {self.signals} "
                              f"numbers each (or none), got {len(self.signal_mean)} and "
                              f"{len(self.signal_std)}")
-        if not (np.isfinite(self.within) and self.within > 0):
-            raise ValueError(f"history monitor within must be a number > 0 s, got {self.within}")
         return self
 
     @property

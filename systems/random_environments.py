@@ -8,14 +8,24 @@ environments on any machine, and each is an ordinary `Environment` with its own
 """
 
 import dataclasses as dc
-import math
 from typing import List
 
 import numpy as np
 
+from .bounds import bounded, check_bounds, seed_field
 from .checks import short
 from .environment import SKIES, Environment
 from .runway import SURFACES, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, TaxiwayLine
+
+
+#: The most environments one family may hold (each is swept, solved and labelled).
+MAX_COUNT = 1000
+
+
+def _range_of(lo, hi) -> dict:
+    """The bound of a ``[low, high]`` range inside ``[lo, hi]`` (low <= high is checked
+    by `_check_ranges`)."""
+    return dict(low=lo, high=hi, each=True, items=(2, 2), note="low <= high")
 
 
 @dc.dataclass
@@ -27,35 +37,30 @@ class RandomRunwayRanges:
     ``threshold_stripes``, ``taxiway_lines`` and ``buildings`` (counts). Grass and
     building colours, paint widths, dash patterns and the touchdown zone are drawn from
     fixed plausible ranges."""
-    half_width: List[float] = dc.field(default_factory=lambda: [8.0, 30.0])
-    length: List[float] = dc.field(default_factory=lambda: [1500.0, 4000.0])
-    heading_deg: List[float] = dc.field(default_factory=lambda: [0.0, 360.0])
-    pavement_tone: List[float] = dc.field(default_factory=lambda: [0.18, 0.65])
-    roughness: List[float] = dc.field(default_factory=lambda: [0.3, 0.6])
+    half_width: List[float] = bounded(default_factory=lambda: [8.0, 30.0],
+                                      **_range_of(1.0, 100.0), unit="m")
+    length: List[float] = bounded(default_factory=lambda: [1500.0, 4000.0],
+                                  **_range_of(600.0, 6000.0), unit="m")
+    heading_deg: List[float] = bounded(default_factory=lambda: [0.0, 360.0],
+                                       **_range_of(0.0, 360.0), unit="deg")
+    pavement_tone: List[float] = bounded(default_factory=lambda: [0.18, 0.65],
+                                         **_range_of(0.0, 1.0))
+    roughness: List[float] = bounded(default_factory=lambda: [0.3, 0.6], **_range_of(0.0, 1.0))
     surfaces: List[str] = dc.field(default_factory=lambda: list(SURFACES))
-    lights: float = 0.9
-    threshold_stripes: List[int] = dc.field(default_factory=lambda: [0, 16])
-    taxiway_lines: List[int] = dc.field(default_factory=lambda: [0, 3])
-    buildings: List[int] = dc.field(default_factory=lambda: [0, 8])
+    lights: float = bounded(0.9, 0.0, 1.0)
+    threshold_stripes: List[int] = bounded(default_factory=lambda: [0, 16],
+                                           **_range_of(0, 40), whole=True)
+    taxiway_lines: List[int] = bounded(default_factory=lambda: [0, 3], **_range_of(0, 8),
+                                       whole=True)
+    buildings: List[int] = bounded(default_factory=lambda: [0, 8], **_range_of(0, 20),
+                                   whole=True)
 
     def validate(self, where="runway"):
-        limits = {"half_width": (1.0, 100.0), "length": (600.0, 6000.0),
-                  "heading_deg": (0.0, 360.0), "pavement_tone": (0.0, 1.0),
-                  "roughness": (0.0, 1.0)}
-        for name, (lo, hi) in limits.items():
-            _range(f"{where}.{name}", getattr(self, name), lo, hi)
-        for name, hi in (("threshold_stripes", 40), ("taxiway_lines", 8), ("buildings", 20)):
-            _range(f"{where}.{name}", getattr(self, name), 0, hi, whole=True)
+        _check_ranges(self, where)
         if not self.surfaces or any(s not in SURFACES for s in self.surfaces):
             raise ValueError(f"{where}.surfaces must list some of {SURFACES}, got "
                              f"{short(self.surfaces)}")
-        if not _number(self.lights) or not 0.0 <= self.lights <= 1.0:
-            raise ValueError(f"{where}.lights must be a chance in [0, 1], got {self.lights!r}")
         return self
-
-
-#: The most environments one family may hold (each is swept, solved and labelled).
-MAX_COUNT = 1000
 
 
 @dc.dataclass
@@ -64,21 +69,17 @@ class RandomEnvironments:
     time, rounded to 0.1 h), a sky from ``skies`` with equal odds, and a runway from
     ``runway``. Names are ``{prefix}{seed}-{i}`` plus hour and sky, so two families
     with different seeds never share a name."""
-    count: int = 0
-    seed: int = 0
-    hours: List[float] = dc.field(default_factory=lambda: [0.0, 24.0])
+    count: int = bounded(0, 0, MAX_COUNT, whole=True)
+    seed: int = seed_field()
+    hours: List[float] = bounded(default_factory=lambda: [0.0, 24.0], **_range_of(0.0, 24.0),
+                                 unit="h")
     skies: List[str] = dc.field(default_factory=lambda: list(SKIES))
     runway: RandomRunwayRanges = dc.field(default_factory=RandomRunwayRanges)
     prefix: str = "RND"
 
     def validate(self, where="random"):
         """Raise ValueError naming the first bad field (as ``where.field``); return self."""
-        for name, most in (("count", MAX_COUNT), ("seed", 2 ** 31 - 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= most:
-                raise ValueError(f"{where}.{name} must be a whole number >= 0 (at most {most}), "
-                                 f"got {short(value)}")
-        _range(f"{where}.hours", self.hours, 0.0, 24.0)
+        _check_ranges(self, where)
         if not self.skies or any(s not in SKIES for s in self.skies):
             raise ValueError(f"{where}.skies must list some of {SKIES}, got {short(self.skies)}")
         if not (isinstance(self.prefix, str) and self.prefix.isascii() and self.prefix.isalnum()
@@ -131,15 +132,12 @@ def random_runway(rng: np.random.Generator, ranges: RandomRunwayRanges, name: st
                       building_tone=[u([0.3, 0.8]) for _ in range(3)]).validate()
 
 
-def _number(value):
-    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
-
-
-def _range(where, value, lo, hi, *, whole=False):
-    """Check a ``[low, high]`` range inside ``[lo, hi]``."""
-    kind = "whole numbers" if whole else "numbers"
-    ok = (isinstance(value, (list, tuple)) and len(value) == 2
-          and all(_number(v) and (not whole or float(v).is_integer()) for v in value))
-    if not ok or not lo <= value[0] <= value[1] <= hi:
-        raise ValueError(f"{where} must be [low, high], {kind} with {lo} <= low <= high <= "
-                         f"{hi}, got {short(value)}")
+def _check_ranges(obj, where):
+    """`check_bounds` of ``obj``'s fields, and each ``[low, high]`` range in order."""
+    check_bounds(obj, f"{where}.")
+    for f in dc.fields(obj):
+        bound = f.metadata.get("bound")
+        value = getattr(obj, f.name)
+        if bound is not None and bound.items == (2, 2) and value[0] > value[1]:
+            raise ValueError(f"{where}.{f.name} must be [low, high] with low <= high, got "
+                             f"{short(value)}")

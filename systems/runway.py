@@ -5,142 +5,100 @@ colours as linear RGB in [0, 1], angles in degrees.
 """
 
 import dataclasses as dc
-import math
 from typing import List
 
+from .bounds import bounded, check_bounds, seed_field
 from .checks import check_name, short
 
 SURFACES = ("asphalt", "concrete")
+
+#: Bounds of a `RunwaySpec` (m; hangars).
+MAX_HALF_WIDTH = 200.0
+MAX_LENGTH = 20000.0
+MAX_BUILDINGS = 50
+#: A colour: three numbers in [0, 1] (linear RGB).
+RGB = dict(low=0.0, high=1.0, each=True, items=(3, 3))
 
 
 @dc.dataclass
 class SurfaceSpec:
     """Pavement and surroundings appearance."""
     kind: str = "asphalt"                    # asphalt | concrete
-    tone: List[float] = dc.field(default_factory=lambda: [0.30, 0.30, 0.31])
-    roughness: float = 0.5                   # texture contrast in [0, 1]
-    grass_tone: List[float] = dc.field(default_factory=lambda: [0.30, 0.42, 0.20])
-    texture_seed: int = 0
+    tone: List[float] = bounded(default_factory=lambda: [0.30, 0.30, 0.31], **RGB)
+    roughness: float = bounded(0.5, 0.0, 1.0)    # texture contrast
+    grass_tone: List[float] = bounded(default_factory=lambda: [0.30, 0.42, 0.20], **RGB)
+    texture_seed: int = seed_field()
 
 
 @dc.dataclass
 class MarkingsSpec:
     """White paint (downtrack positions in m from the threshold, py = 0)."""
     edge_lines: bool = True
-    edge_line_width: float = 0.9
+    edge_line_width: float = bounded(0.9, 0.0, 10.0, unit="m")
     centreline: bool = True
-    centreline_width: float = 0.9
-    dash_length: float = 36.0
-    dash_gap: float = 24.0
-    threshold_stripes: int = 8               # piano keys at py in [6, 36]; 0 = none
-    touchdown_zone: List[float] = dc.field(default_factory=lambda: [150.0, 300.0, 450.0])
-    paint: List[float] = dc.field(default_factory=lambda: [0.92, 0.92, 0.90])
+    centreline_width: float = bounded(0.9, 0.0, 10.0, unit="m")
+    dash_length: float = bounded(36.0, 1.0, MAX_LENGTH, unit="m")
+    dash_gap: float = bounded(24.0, 0.0, MAX_LENGTH, unit="m")
+    threshold_stripes: int = bounded(8, 0, 40, whole=True)   # piano keys at py in [6, 36]
+    touchdown_zone: List[float] = bounded(default_factory=lambda: [150.0, 300.0, 450.0],
+                                          low=0.0, high=MAX_LENGTH, unit="m", each=True,
+                                          items=(0, 20))
+    paint: List[float] = bounded(default_factory=lambda: [0.92, 0.92, 0.90], **RGB)
 
 
 @dc.dataclass
 class LightsSpec:
     """Runway-edge lights, lit at night."""
     enabled: bool = True
-    spacing: float = 60.0                    # m between lights along each edge
-    offset: float = 1.5                      # m outside the pavement edge
-    color: List[float] = dc.field(default_factory=lambda: [1.0, 0.92, 0.70])
+    spacing: float = bounded(60.0, 5.0, MAX_LENGTH, unit="m")   # between lights along each edge
+    offset: float = bounded(1.5, 0.0, 100.0, unit="m")          # outside the pavement edge
+    color: List[float] = bounded(default_factory=lambda: [1.0, 0.92, 0.70], **RGB)
 
 
 @dc.dataclass
 class TaxiwayLine:
     """A yellow lead-in line leaving the centreline at ``start`` (m downtrack)."""
-    start: float = 200.0
-    side: int = 1                            # +1 exits to the left (+px), -1 right
-    radius: float = 60.0                     # turn radius (m)
-    turn_deg: float = 60.0                   # total turn before running straight
-    width: float = 0.5
+    start: float = bounded(200.0, -MAX_LENGTH, MAX_LENGTH, unit="m")
+    side: int = bounded(1, -1, 1, whole=True, note="+1 or -1")   # +1 exits to the left (+px)
+    radius: float = bounded(60.0, 0.0, 1000.0, low_open=True, unit="m")   # turn radius
+    turn_deg: float = bounded(60.0, -360.0, 360.0, unit="deg")   # total turn, then straight
+    width: float = bounded(0.5, 0.0, 10.0, unit="m")
 
 
 @dc.dataclass
 class RunwaySpec:
     """A procedural runway. ``half_width`` is B of the failure set ``|px| >= B``."""
     name: str = "CUSTOM"
-    half_width: float = 10.0
-    length: float = 2000.0
-    heading_deg: float = 0.0                 # compass heading; sets where the sun is
+    half_width: float = bounded(10.0, 0.0, MAX_HALF_WIDTH, low_open=True, unit="m")
+    length: float = bounded(2000.0, 300.0, MAX_LENGTH, low_open=True, unit="m")
+    heading_deg: float = bounded(0.0, -360.0, 360.0, unit="deg")   # compass; sets the sun
     surface: SurfaceSpec = dc.field(default_factory=SurfaceSpec)
     markings: MarkingsSpec = dc.field(default_factory=MarkingsSpec)
     lights: LightsSpec = dc.field(default_factory=LightsSpec)
-    taxiway_lines: List[TaxiwayLine] = dc.field(default_factory=list)
-    buildings: int = 4                       # hangars beside the runway
-    building_tone: List[float] = dc.field(default_factory=lambda: [0.62, 0.60, 0.56])
+    taxiway_lines: List[TaxiwayLine] = bounded(default_factory=list, items=(0, 20))
+    buildings: int = bounded(4, 0, MAX_BUILDINGS, whole=True)   # hangars beside the runway
+    building_tone: List[float] = bounded(default_factory=lambda: [0.62, 0.60, 0.56], **RGB)
 
-    def validate(self):
-        """Raise ValueError naming the first bad field. Sizes are bounded so that the
-        scene stays a few thousand shapes (the pavement is tiled in ~8 m slabs, the
-        centreline dashed, lights and taxiway lines built piece by piece)."""
-        check_name("runway_spec.name", self.name)
-
-        def bad(field, why):
-            raise ValueError(f"runway '{self.name}': {field} {why}")
-
-        def number(field, value, lo, hi, *, lo_open=False):
-            ok = (not isinstance(value, bool) and isinstance(value, (int, float))
-                  and math.isfinite(value) and lo <= value <= hi and not (lo_open and value == lo))
-            if not ok:
-                bad(field, f"must be a number in {'(' if lo_open else '['}{lo:g}, {hi:g}], got "
-                           f"{short(value)}")
-
-        def whole(field, value, hi):
-            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= hi:
-                bad(field, f"must be a whole number in [0, {hi}], got {short(value)}")
-
-        number("half_width", self.half_width, 0.0, MAX_HALF_WIDTH, lo_open=True)
-        if not self.length > 300:
-            bad("length", f"must be > 300 m, got {short(self.length)}")
-        number("length", self.length, 300.0, MAX_LENGTH)
-        number("heading_deg", self.heading_deg, -360.0, 360.0)
+    def validate(self, where="runway_spec"):
+        """Raise ValueError naming the first bad field (as ``where.field``). Sizes are
+        bounded so that the scene stays a few thousand shapes (the pavement is tiled in
+        ~8 m slabs, the centreline dashed, lights and taxiway lines built piece by
+        piece)."""
+        check_name(f"{where}.name", self.name)
+        where = f"{where}."
+        check_bounds(self, where)
         if self.surface.kind not in SURFACES:
-            bad("surface.kind", f"must be one of {SURFACES}, got {short(self.surface.kind)}")
-        number("surface.roughness", self.surface.roughness, 0.0, 1.0)
-        whole("surface.texture_seed", self.surface.texture_seed, 2 ** 31 - 1)
-        for field, rgb in [("surface.tone", self.surface.tone),
-                           ("surface.grass_tone", self.surface.grass_tone),
-                           ("markings.paint", self.markings.paint),
-                           ("lights.color", self.lights.color),
-                           ("building_tone", self.building_tone)]:
-            if len(rgb) != 3 or not all(0.0 <= c <= 1.0 for c in rgb):
-                bad(field, f"must be 3 numbers in [0, 1], got {short(rgb)}")
-        if not (self.markings.dash_length > 0 and self.markings.dash_gap >= 0):
-            bad("markings.dash_length/dash_gap", "must be > 0 and >= 0")
-        number("markings.dash_length", self.markings.dash_length, 1.0, MAX_LENGTH)
-        number("markings.dash_gap", self.markings.dash_gap, 0.0, MAX_LENGTH)
-        number("markings.edge_line_width", self.markings.edge_line_width, 0.0, 10.0)
-        number("markings.centreline_width", self.markings.centreline_width, 0.0, 10.0)
-        whole("markings.threshold_stripes", self.markings.threshold_stripes, 40)
-        if len(self.markings.touchdown_zone) > 20:
-            bad("markings.touchdown_zone", f"lists at most 20 positions, got "
-                                           f"{len(self.markings.touchdown_zone)}")
-        for i, x in enumerate(self.markings.touchdown_zone):
-            number(f"markings.touchdown_zone[{i}]", x, 0.0, MAX_LENGTH)
-        if not self.lights.spacing > 0:
-            bad("lights.spacing", f"must be > 0 m, got {short(self.lights.spacing)}")
-        number("lights.spacing", self.lights.spacing, 5.0, MAX_LENGTH)
-        number("lights.offset", self.lights.offset, 0.0, 100.0)
-        if len(self.taxiway_lines) > 20:
-            bad("taxiway_lines", f"lists at most 20 lines, got {len(self.taxiway_lines)}")
+            raise ValueError(f"{where}surface.kind must be one of {SURFACES}, got "
+                             f"{short(self.surface.kind)}")
+        for part in ("surface", "markings", "lights"):
+            check_bounds(getattr(self, part), f"{where}{part}.")
         for i, line in enumerate(self.taxiway_lines):
+            check_bounds(line, f"{where}taxiway_lines[{i}].")
             if line.side not in (-1, 1):
-                bad(f"taxiway_lines[{i}].side", f"must be +1 or -1, got {short(line.side)}")
-            if not line.radius > 0:
-                bad(f"taxiway_lines[{i}].radius", f"must be > 0 m, got {short(line.radius)}")
-            number(f"taxiway_lines[{i}].radius", line.radius, 0.0, 1000.0, lo_open=True)
-            number(f"taxiway_lines[{i}].start", line.start, -MAX_LENGTH, MAX_LENGTH)
-            number(f"taxiway_lines[{i}].turn_deg", line.turn_deg, -360.0, 360.0)
-            number(f"taxiway_lines[{i}].width", line.width, 0.0, 10.0)
-        whole("buildings", self.buildings, MAX_BUILDINGS)
+                raise ValueError(f"{where}taxiway_lines[{i}].side must be +1 or -1, got "
+                                 f"{short(line.side)}")
         return self
 
-
-#: Bounds of a `RunwaySpec` (m; hangars).
-MAX_HALF_WIDTH = 200.0
-MAX_LENGTH = 20000.0
-MAX_BUILDINGS = 50
 
 
 def _catalog():

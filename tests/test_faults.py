@@ -222,8 +222,8 @@ def test_truncated_dataset_array_names_the_file(tmp_path):
     ("# only a comment\n\n", "is empty; write '{}' for all defaults"),
     (b"\x89PNG\r\n\x1a\n\x00\x00binary", "not a text YAML file"),
     (b"\xff\xfe junk", "not a UTF-8 text YAML file"),
-    ("controller: {period: 0.0}\n", "controller.period must be a finite number > 0"),
-    ("controller: {period: .inf}\n", "controller.period must be a finite number > 0"),
+    ("controller: {period: 0.0}\n", "controller.period must be a finite number in \\(0, 10\\] s"),
+    ("controller: {period: .inf}\n", "controller.period must be a finite number in \\(0, 10\\] s"),
 ])
 def test_bad_scenario_files(tmp_path, text, message):
     path = tmp_path / "s.yaml"
@@ -234,17 +234,17 @@ def test_bad_scenario_files(tmp_path, text, message):
 
 
 @pytest.mark.parametrize("edit, message", [
-    (("epochs: 1", "epochs: 0"), "detector.epochs must be a whole number >= 1"),
+    (("epochs: 1", "epochs: 0"), "detector.epochs must be a whole number in [1, 100000]"),
     (("batch_size: 8", "batch_size: 8\n  validation_fraction: 1.5"),
-     "detector.validation_fraction must be in [0, 1)"),
-    (("batch_size: 8", "batch_size: 8\n  target_recall: 2.0"), "detector.target_recall must be in [0, 1]"),
+     "detector.validation_fraction must be a finite number in [0, 1)"),
+    (("batch_size: 8", "batch_size: 8\n  target_recall: 2.0"), "detector.target_recall must be a finite number in [0, 1]"),
     (("batch_size: 8", "batch_size: 8\n  validation_fraction: 0.0"), "needs a validation split"),
-    (("horizon: 4.0", "horizon: .inf"), "horizon must be a finite number > 0"),
-    (("horizon: 4.0", "horizon: 0.0"), "horizon must be a finite number > 0"),
-    (("chunk_size: 16", "chunk_size: 0"), "dataset.chunk_size must be a whole number >= 1"),
+    (("horizon: 4.0", "horizon: .inf"), "horizon must be a finite number in (0, 120] s"),
+    (("horizon: 4.0", "horizon: 0.0"), "horizon must be a finite number in (0, 120] s"),
+    (("chunk_size: 16", "chunk_size: 0"), "dataset.chunk_size must be a whole number in [1, 100000]"),
     (("online_seconds: 0.2", "online_seconds: 0.0"), "guard.online_seconds must be"),
     (("ensemble: {seeds: [1, 2], samples: 48", "ensemble: {seeds: [1, 2], samples: 0"),
-     "ensemble.samples must be >= 1"),
+     "ensemble.samples must be a whole number in [1, 1000000]"),
 ])
 def test_bad_run_files_are_named_and_exit_2(tmp_path, edit, message):
     assert edit[0] in TINY

@@ -47,15 +47,15 @@ def test_draws_stay_in_their_ranges_and_vary():
 
 
 @pytest.mark.parametrize("edit, message", [
-    ({"count": -1}, "random.count must be a whole number >= 0"),
-    ({"hours": [10.0, 30.0]}, "random.hours must be [low, high]"),
-    ({"hours": [12.0, 10.0]}, "random.hours must be [low, high]"),
+    ({"count": -1}, "random.count must be a whole number in [0, 1000]"),
+    ({"hours": [10.0, 30.0]}, "random.hours[1] must be a finite number in [0, 24] h"),
+    ({"hours": [12.0, 10.0]}, "random.hours must be [low, high] with low <= high"),
     ({"skies": ["foggy"]}, "random.skies must list some of"),
     ({"prefix": "R-1"}, "random.prefix must be letters and digits"),
-    ({"runway": RandomRunwayRanges(half_width=[0.0, 5.0])}, "random.runway.half_width must be"),
+    ({"runway": RandomRunwayRanges(half_width=[0.0, 5.0])}, "random.runway.half_width[0] must be"),
     ({"runway": RandomRunwayRanges(surfaces=["gravel"])}, "random.runway.surfaces must list"),
-    ({"runway": RandomRunwayRanges(buildings=[1.5, 3])}, "random.runway.buildings must be [low, high], whole"),
-    ({"runway": RandomRunwayRanges(lights=1.5)}, "random.runway.lights must be a chance"),
+    ({"runway": RandomRunwayRanges(buildings=[1.5, 3])}, "random.runway.buildings[0] must be a whole number"),
+    ({"runway": RandomRunwayRanges(lights=1.5)}, "random.runway.lights must be a finite number in [0, 1]"),
 ])
 def test_bad_fields_are_named(edit, message):
     with pytest.raises(ValueError, match=re.escape(message)):
@@ -78,7 +78,7 @@ def test_a_run_file_asks_for_families():
     assert spec.guard_environments()[0].name == held_out[0].name
     with pytest.raises(ScenarioError, match="test_random.seed 0 equals train_random.seed"):
         load_run_spec(data=RUN.replace("seed: 7", "seed: 0"))
-    with pytest.raises(ScenarioError, match=re.escape("train_random.runway.length must be")):
+    with pytest.raises(ScenarioError, match=re.escape("train_random.runway.length[0] must be")):
         load_run_spec(data=RUN.replace("half_width: [9, 20]", "length: [100, 200]"))
     with pytest.raises(ScenarioError, match="test: list at least one held-out"):
         load_run_spec(data=RUN.replace("test_random: {count: 2, seed: 7}", ""))

@@ -36,10 +36,11 @@ from reachwatch.diagrams.controller import has_estimate
 from reachwatch.reach.application import load_application
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.systems import resize_for_detector
+from reachwatch.systems.bounds import bounded, check_bounds, seed_field
 from reachwatch.systems.files import atomic_write_bytes
 
 from .labels import (FALLBACK_FIELDS, NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
-                     TRAJECTORY_FIELDS, LabelSpec, assign_labels, check_whole_number,
+                     TRAJECTORY_FIELDS, LabelSpec, assign_labels,
                      read_along, trajectory_samples)
 
 FORMAT = "reachwatch.dataset/3"
@@ -50,11 +51,11 @@ _log = logging.getLogger("reachwatch")
 class DatasetSpec:
     """How many states, which seed, how they are labelled, and the stored image size
     (the detector's input)."""
-    samples: int = 2000
-    seed: int = 0
-    height: int = 96
-    width: int = 160
-    chunk_size: int = 256
+    samples: int = bounded(2000, 10, 10_000_000, whole=True)
+    seed: int = seed_field()
+    height: int = bounded(96, 16, 1024, whole=True, unit="px", note="= detector.detector.height")
+    width: int = bounded(160, 16, 1024, whole=True, unit="px", note="= detector.detector.width")
+    chunk_size: int = bounded(256, 1, 100_000, whole=True)
     labels: LabelSpec = dc.field(default_factory=LabelSpec)
 
     def key(self) -> dict:
@@ -62,9 +63,7 @@ class DatasetSpec:
         return {**dc.asdict(self), "labels": self.labels.key()}
 
     def validate(self, where="dataset"):
-        for name, least, most in (("samples", 10, 10_000_000), ("height", 16, 1024),
-                                  ("width", 16, 1024), ("chunk_size", 1, 100_000)):
-            check_whole_number(f"{where}.{name}", getattr(self, name), least, most)
+        check_bounds(self, f"{where}.")
         self.labels.validate(f"{where}.labels")
         return self
 

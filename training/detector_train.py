@@ -9,6 +9,7 @@ from torch import nn
 
 from reachwatch.diagrams import load_detector, save_checkpoint
 from reachwatch.systems import DetectorConfig, build_detector, detector_input
+from reachwatch.systems.bounds import bounded, check_bounds, seed_field
 from reachwatch.systems.checks import clip, is_file, short
 
 from .metrics import HELD_OUT_RULES, binary_metrics, held_out_threshold, recall_threshold
@@ -18,25 +19,27 @@ from .metrics import HELD_OUT_RULES, binary_metrics, held_out_threshold, recall_
 class DetectorTrainConfig:
     """Everything that determines a trained detector (same config + data = same weights)."""
     detector: DetectorConfig = dc.field(default_factory=DetectorConfig)
-    epochs: int = 6
-    batch_size: int = 64
-    learning_rate: float = 3e-4
+    epochs: int = bounded(6, 1, 100_000, whole=True)
+    batch_size: int = bounded(64, 1, 65_536, whole=True)
+    learning_rate: float = bounded(3e-4, 0.0, 10.0, low_open=True)
     #: Share of the training images kept back to choose the threshold. Samples on one
     #: real run (a dataset's read-along states, ``runs``) are near-copies of each
     #: other, so a run goes to one side whole.
-    validation_fraction: float = 0.2
-    seed: int = 0
-    threshold: float = 0.5
+    validation_fraction: float = bounded(0.2, 0.0, 1.0, high_open=True,
+                                         note="> 0 with target_recall")
+    seed: int = seed_field()
+    threshold: float = bounded(0.5, 0.0, 1.0)
     #: > 0: operate at the highest threshold whose recall on the validation split is at
     #: least this (safety first: a missed anomaly costs more than a false alarm).
-    target_recall: float = 0.95
+    target_recall: float = bounded(0.95, 0.0, 1.0)
     #: > 0 (with target_recall): choose the threshold on environments the detector has
     #: not seen. The training datasets are split into this many contiguous groups in
     #: their listed order (as many as datasets: leave-one-environment-out); a detector
     #: trained without each group scores it, and `held_out_threshold` picks the
     #: threshold by ``threshold_rule`` (every_group | pooled). Costs one extra training
     #: per group; the deployed detector is still trained on every dataset.
-    threshold_folds: int = 0
+    threshold_folds: int = bounded(0, 0, whole=True,
+                                   note="0, or 2 to the number of training environments")
     threshold_rule: str = "every_group"
     pretrained_path: str = ""
     #: Random per-image colour gains, brightness and contrast in training, so lighting
@@ -56,26 +59,13 @@ class DetectorTrainConfig:
 
     def validate(self, where="detector"):
         """Raise ValueError naming the first bad field (as ``where.field``); return self."""
-        self.detector.validate()
-        for name, most in (("epochs", 100_000), ("batch_size", 65_536)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= most:
-                raise ValueError(f"{where}.{name} must be a whole number >= 1 (at most {most}), "
-                                 f"got {value!r}")
-        if not (np.isfinite(self.learning_rate) and 0 < self.learning_rate <= 10):
-            raise ValueError(f"{where}.learning_rate must be a finite number > 0 (at most 10), "
-                             f"got {self.learning_rate}")
-        if not 0.0 <= self.validation_fraction < 1.0:
-            raise ValueError(f"{where}.validation_fraction must be in [0, 1), got "
-                             f"{self.validation_fraction}")
-        if not 0.0 <= self.target_recall <= 1.0:
-            raise ValueError(f"{where}.target_recall must be in [0, 1] (0: use threshold), "
-                             f"got {self.target_recall}")
+        self.detector.validate(f"{where}.detector")
+        check_bounds(self, f"{where}.")
         if self.target_recall > 0 and self.validation_fraction == 0:
             raise ValueError(f"{where}.target_recall {self.target_recall} needs a validation "
                              f"split: set {where}.validation_fraction > 0")
         folds = self.threshold_folds
-        if isinstance(folds, bool) or not isinstance(folds, int) or folds < 0 or folds == 1:
+        if folds == 1:
             raise ValueError(f"{where}.threshold_folds must be 0 (validation split) or a whole "
                              f"number >= 2 of environment groups, got {folds!r}")
         if folds and not self.target_recall:
@@ -88,8 +78,6 @@ class DetectorTrainConfig:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{where}.{name} must be true or false, got "
                                  f"{getattr(self, name)!r}")
-        if not 0.0 <= self.threshold <= 1.0:
-            raise ValueError(f"{where}.threshold must be in [0, 1], got {self.threshold}")
         if self.pretrained_path and self.detector.arch != "efficientnet_b0":
             raise ValueError(f"{where}.pretrained_path: pretrained weights apply to "
                              f"detector.arch efficientnet_b0 only, got {short(self.detector.arch)}")

@@ -8,7 +8,6 @@ staying on. Their frames are re-rendered at the camera resolution TaxiNet reads
 (datasets store them at the detector's smaller size)."""
 
 import dataclasses as dc
-import math
 import time
 from typing import List
 
@@ -17,6 +16,7 @@ import torch
 
 from reachwatch.diagrams import StateRenderer, load_checkpoint, load_taxinet, save_checkpoint
 from reachwatch.systems import CameraConfig, Environment, TaxiNetConfig
+from reachwatch.systems.bounds import bounded, check_bounds, seed_field
 from reachwatch.systems.models import preprocess_batched
 
 from .taxinet_data import render_states, sample_states, targets
@@ -30,25 +30,18 @@ class IncrementalConfig:
     enabled: bool = True
     environment: Environment = dc.field(
         default_factory=lambda: Environment("KMWH", 17.0, "clear"))
-    anomalies: int = 2000          # at most this many mined states (spread over datasets)
-    replay: int = 2000             # nominal-condition (KMWH 9 h clear) frames replayed
-    epochs: int = 60
-    batch_size: int = 256
-    learning_rate: float = 3e-4
-    seed: int = 0
+    #: At most this many mined states (spread over datasets).
+    anomalies: int = bounded(2000, 0, 1_000_000, whole=True)
+    #: Nominal-condition (KMWH 9 h clear) frames replayed.
+    replay: int = bounded(2000, 0, 1_000_000, whole=True)
+    epochs: int = bounded(60, 1, 100_000, whole=True)
+    batch_size: int = bounded(256, 1, 65_536, whole=True)
+    learning_rate: float = bounded(3e-4, 0.0, 10.0, low_open=True)
+    seed: int = seed_field()
 
     def validate(self):
         self.environment.validate()
-        for name, most in (("anomalies", 1_000_000), ("replay", 1_000_000),
-                           ("epochs", 100_000), ("batch_size", 65_536)):
-            value = getattr(self, name)
-            if value < 0 or (name in ("epochs", "batch_size") and value < 1) or value > most:
-                raise ValueError(f"incremental.{name} must be positive (at most {most}), got "
-                                 f"{value}")
-        if not (math.isfinite(self.learning_rate) and 0 < self.learning_rate <= 10):
-            raise ValueError(f"incremental.learning_rate must be a finite number > 0 (at most "
-                             f"10), got {self.learning_rate}")
-        return self
+        return check_bounds(self, "incremental.")
 
 
 def mine_anomalies(datasets, limit: int, rng: np.random.Generator) -> List[tuple]:

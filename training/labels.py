@@ -8,6 +8,7 @@ import dataclasses as dc
 
 import numpy as np
 
+from reachwatch.systems.bounds import bounded, check_bounds
 from reachwatch.systems.checks import short
 
 LABEL_SOURCES = ("brt", "rollout", "hybrid", "trajectory")
@@ -35,16 +36,6 @@ def labels_name(source: str, paths) -> str:
     with " + read-along" when ``paths`` added states read along real runs, so that such
     labels never share a name with the source's alone."""
     return f"{source} + read-along" if paths else source
-
-
-def check_whole_number(where, value, least, most=None):
-    """Raise ValueError naming ``where`` unless ``value`` is an int >= ``least`` (and <=
-    ``most`` when given)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < least or (
-            most is not None and value > most):
-        bound = "" if most is None else f" and <= {most}"
-        raise ValueError(f"{where} must be a whole number >= {least}{bound}, got "
-                         f"{short(value)}")
 
 
 @dc.dataclass
@@ -105,17 +96,17 @@ class LabelSpec:
     would need more keeps only its first samples, as many as the cap allows (they are
     still uniform), and its manifest says how many it kept."""
     source: str = "brt"
-    audit: int = 50
-    more_audit: int = 0
-    band: float = 2.0
-    band_factor: float = 2.0
-    max_band: float = 6.0
-    max_rollouts: int = 0
-    extend: float = 8.0
-    stride: int = 8
-    paths: int = 0
+    audit: int = bounded(50, 0, MAX_RUNS, whole=True, note=">= 1 for hybrid")
+    more_audit: int = bounded(0, 0, MAX_RUNS, whole=True, note="0 or above audit")
+    band: float = bounded(2.0, 0.0, 1000.0, unit="m")
+    band_factor: float = bounded(2.0, 0.0, 1000.0)
+    max_band: float = bounded(6.0, 0.0, 1000.0, unit="m", note=">= band")
+    max_rollouts: int = bounded(0, 0, 100 * MAX_RUNS, whole=True)
+    extend: float = bounded(8.0, 0.0, 600.0, unit="s")
+    stride: int = bounded(8, 1, 10_000, whole=True)
+    paths: int = bounded(0, 0, MAX_RUNS, whole=True)
     distrusted: str = "rollout"
-    distrusted_starts: int = 100
+    distrusted_starts: int = bounded(100, 1, MAX_RUNS, whole=True)
 
     @property
     def falls_back_to_trajectory(self) -> bool:
@@ -141,8 +132,7 @@ class LabelSpec:
         if self.source not in LABEL_SOURCES:
             raise ValueError(f"{where}.source must be one of {LABEL_SOURCES}, got "
                              f"{short(self.source)}")
-        check_whole_number(f"{where}.audit", self.audit, 0, MAX_RUNS)
-        check_whole_number(f"{where}.more_audit", self.more_audit, 0, MAX_RUNS)
+        check_bounds(self, f"{where}.")
         if self.more_audit and (self.audit < 1 or self.more_audit <= self.audit):
             raise ValueError(f"{where}.more_audit must be 0 (an audit of {where}.audit runs) "
                              f"or a whole number above {where}.audit ({self.audit}, at least "
@@ -151,21 +141,10 @@ class LabelSpec:
             raise ValueError(f"{where}.audit must be >= 1 for the hybrid source: an audit of "
                              f"no runs would trust every map unchecked (use source: brt for "
                              f"the map's labels alone)")
-        check_whole_number(f"{where}.max_rollouts", self.max_rollouts, 0, 100 * MAX_RUNS)
-        check_whole_number(f"{where}.stride", self.stride, 1, 10_000)
-        check_whole_number(f"{where}.paths", self.paths, 0, MAX_RUNS)
-        check_whole_number(f"{where}.distrusted_starts", self.distrusted_starts, 1, MAX_RUNS)
         if self.distrusted not in DISTRUSTED_CHOICES:
             raise ValueError(f"{where}.distrusted must be one of {DISTRUSTED_CHOICES} (what "
                              f"the hybrid source does where its audit distrusts the map), "
                              f"got {short(self.distrusted)}")
-        for name, most in (("band", 1000.0), ("band_factor", 1000.0), ("max_band", 1000.0),
-                           ("extend", 600.0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not np.isfinite(value) or value < 0 or value > most:
-                raise ValueError(f"{where}.{name} must be a finite number >= 0 (at most "
-                                 f"{most:g}), got {short(value)}")
         if self.max_band < self.band:
             raise ValueError(f"{where}.max_band ({self.max_band} m) must be at least band "
                              f"({self.band} m)")
