@@ -244,7 +244,7 @@ class RunSpec:
             twice = sorted({n for n in names if names.count(n) > 1})
             raise ValueError(f"train/test: an environment is listed twice: {short(twice)}")
         axes = application.axes
-        if len(self.grid) != len(axes) or min(self.grid) < 3 or max(self.grid) > MAX_GRID:
+        if len(self.grid) != len(axes):             # each size: check_bounds above
             raise ValueError(f"grid must be {len(axes)} sizes [{', '.join('n_' + a for a in axes)}], "
                              f"each >= 3 and <= {MAX_GRID}, got {short(self.grid)}")
         if self.accuracy not in ACCURACIES:
