@@ -8,13 +8,14 @@ t - stride, t`` (ticks before the run's first repeat its first frame), so the sa
 function of a recorded run (`HistoryRiskModel.risk_sequence`) gives what the system
 outputs online, tick by tick."""
 
+import contextlib
 import dataclasses as dc
 from typing import List
 
 import numpy as np
 import torch
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 from pydrake.systems.sensors import ImageRgba8U
 from torch import nn
 
@@ -114,14 +115,20 @@ class HistoryRiskModel(nn.Module):
         x = detector_input(images, self.config.image_config)
         return self.project(self.encoder(x).mean(dim=(2, 3)))
 
+    def head_input(self, features: torch.Tensor, signals: torch.Tensor = None) -> torch.Tensor:
+        """Raw ``features`` ``(..., features)`` and ``signals`` ``(..., signals)`` ->
+        what the temporal model reads per frame ``(..., features + signals)``: both
+        standardised, side by side (element-wise, so one frame's row is the same numbers
+        whether it comes alone or in a batch)."""
+        features = (features - self.feature_mean) / self.feature_std
+        if self.config.signals:
+            return torch.cat([features, (signals - self.signal_mean) / self.signal_std], dim=-1)
+        return features
+
     def head_logits(self, features: torch.Tensor, signals: torch.Tensor = None) -> torch.Tensor:
         """``features`` ``(N, frames, features)`` and ``signals`` ``(N, frames, signals)``
         (both raw; standardised here) -> logits ``(N,)``."""
-        features = (features - self.feature_mean) / self.feature_std
-        if self.config.signals:
-            x = torch.cat([features, (signals - self.signal_mean) / self.signal_std], dim=-1)
-        else:
-            x = features
+        x = self.head_input(features, signals)
         if self.config.temporal == "gru":
             return self.head(self.gru(x)[0][:, -1]).squeeze(-1)
         return self.head(x.flatten(1)).squeeze(-1)
@@ -161,6 +168,23 @@ class HistoryRiskModel(nn.Module):
         return self.risk_from_features(self.encode_frames(frames), signals, calibration)
 
 
+@contextlib.contextmanager
+def one_torch_thread():
+    """Runs the block in torch's inference mode on one intra-op thread, then gives the
+    caller's thread count back. A monitor's per-frame network is a few small layers:
+    a second thread saves little there and costs a wake-up and a wait per layer; on a
+    loaded machine the wait runs to milliseconds when that thread is not scheduled."""
+    threads = torch.get_num_threads()
+    if threads != 1:
+        torch.set_num_threads(1)
+    try:
+        with torch.inference_mode():
+            yield
+    finally:
+        if threads != 1:
+            torch.set_num_threads(threads)
+
+
 class HistoryMonitor(LeafSystem):
     """The risk that the loop fails within ``config.within`` s, from the image history.
 
@@ -175,14 +199,20 @@ class HistoryMonitor(LeafSystem):
         - score
         - frame_features
 
-    Every ``period`` s (the control tick) the current frame's features and signals join
-    the history kept in the discrete state (the last ``(frames - 1) * stride + 1``
-    ticks). ``score`` is the calibrated risk at the current time, from the kept
-    history and the current frame (so the fallback switch, updated at the same tick,
-    sees this tick's frame); ``anomaly`` is 1.0 when ``score >= threshold``;
-    ``frame_features`` the current frame's features and signals (computed once a tick:
-    Drake caches the port). Ports
-    are named as `AnomalyDetector`'s, so either monitors a guarded loop."""
+    Every ``period`` s (the control tick) the current frame is encoded once (its
+    features and signals: ``frame_features``, which Drake caches) and joins what the
+    discrete state keeps. ``score`` is the calibrated risk at the current time, from the
+    kept state and the current frame (so the fallback switch, updated at the same tick,
+    sees this tick's frame); ``anomaly`` is 1.0 when ``score >= threshold``. Ports are
+    named as `AnomalyDetector`'s, so either monitors a guarded loop.
+
+    What the state keeps depends on the temporal model. ``stack``: the rows of the last
+    ``(frames - 1) * stride`` ticks. ``gru``: the GRU's hidden state in each window
+    still open, that is the windows of the next ``(frames - 1) * stride`` ticks, each
+    begun from zero at its first tick; a tick advances the ``frames`` windows that
+    hold it by one step, together, instead of re-running a window of ``frames`` steps.
+    Either way ``score`` is the offline `HistoryRiskModel.risk_sequence` of the run
+    (the same function, up to float rounding)."""
 
     def __init__(self, *, model: HistoryRiskModel, threshold: float, period: float,
                  calibration=(1.0, 0.0)):
@@ -197,17 +227,27 @@ class HistoryMonitor(LeafSystem):
         self._platt = tuple(float(v) for v in calibration)
         c = self._config
         self._width = c.features + c.signals
-        self._slots = (c.frames - 1) * c.stride          # past ticks kept
+        self._gru = c.temporal == "gru"
+        self._slots = (c.frames - 1) * c.stride          # past ticks kept / open windows
+        self._kept = c.hidden if self._gru else self._width
         self._image_port = self.DeclareAbstractInputPort(
             "color_image", AbstractValue.Make(ImageRgba8U()))
         self._signals_port = (self.DeclareVectorInputPort("signals", c.signals)
                               if c.signals else None)
-        # [ticks seen so far, then the kept ticks' rows, oldest first]
+        # [ticks seen so far, then a row per kept tick (stack: its features, oldest
+        # first) or per open window (gru: its hidden state, the next tick's first)]
         self._history = self.DeclareDiscreteState(BasicVector(
-            np.zeros(1 + self._slots * self._width)))
+            np.zeros(1 + self._slots * self._kept)))
         self._row_port = self.DeclareVectorOutputPort(
             "frame_features", self._width, self._calc_row,
             prerequisites_of_calc={self.all_input_ports_ticket()})
+        if self._gru:
+            self._windows = self.DeclareCacheEntry(
+                "the open GRU windows advanced by this tick's frame", ValueProducer(
+                    allocate=lambda: AbstractValue.Make(np.zeros((self._slots + 1, c.hidden),
+                                                                 np.float32)),
+                    calc=self._calc_windows),
+                {self.all_input_ports_ticket(), self.xd_ticket()})
         if self._slots:
             self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         self._score_port = self.DeclareVectorOutputPort("score", 1, self._calc_score)
@@ -229,18 +269,18 @@ class HistoryMonitor(LeafSystem):
     def get_score_output_port(self):
         return self._score_port
 
-    @torch.no_grad()
     def _calc_row(self, context, row):
         rgba = self._image_port.Eval(context).data
         image = resize_for_detector(rgba[None], self._config.image_config)
-        features = self._model.encode(torch.from_numpy(image))[0].numpy()
+        with one_torch_thread():
+            features = self._model.encode(torch.from_numpy(image))[0].numpy()
         if self._signals_port is not None:
             features = np.concatenate([features, self._signals_port.Eval(context)])
         row.SetFromVector(features.astype(float))
 
     def _rows(self, context):
         """The rows of the kept ticks and the current one, ``(slots + 1, width)``, with
-        ticks before the run's first filled by its first row."""
+        ticks before the run's first filled by its first row (``stack``)."""
         current = self._row_port.Eval(context)
         state = context.get_discrete_state(self._history).get_value()
         seen = int(round(state[0]))
@@ -251,18 +291,52 @@ class HistoryMonitor(LeafSystem):
             rows[:self._slots - seen] = first
         return rows
 
+    def _calc_windows(self, context, value):
+        """The hidden states ``(slots + 1, hidden)`` of the windows of ticks ``t ..
+        t + slots`` after this tick ``t``'s frame (``gru``): row ``d`` is the window of
+        tick ``t + d``; row 0 is complete. Rows ``d = 0, stride, ..`` hold tick ``t``
+        and step; the others wait. At the run's first tick every window has seen the
+        first frame at each of its ticks so far (the ticks before it repeat it)."""
+        c = self._config
+        row = torch.from_numpy(self._row_port.Eval(context).astype(np.float32))
+        state = context.get_discrete_state(self._history).get_value()
+        with one_torch_thread():
+            x = self._model.head_input(row[:c.features], row[c.features:])
+            if state[0] == 0:
+                # the window of tick d has read the first frame frames - ceil(d / stride)
+                # times; steps[i] is the state after i + 1 of them
+                steps = self._model.gru(x.expand(1, c.frames, -1))[0][0]
+                repeats = c.frames - -(-np.arange(self._slots + 1) // c.stride)
+                windows = steps[torch.from_numpy(repeats - 1)]
+            else:
+                windows = torch.cat([torch.from_numpy(
+                    state[1:].astype(np.float32).reshape(self._slots, c.hidden)),
+                    torch.zeros(1, c.hidden)])                  # the newest begins at zero
+                due = windows[::c.stride]
+                windows[::c.stride] = self._model.gru(
+                    x.expand(len(due), 1, -1), due[None].contiguous())[1][0]
+        value.set_value(windows.numpy())
+
     def _update(self, context, discrete_state):
         state = context.get_discrete_state(self._history).get_value()
-        rows = self._rows(context)
-        out = np.concatenate([[min(state[0] + 1, self._slots)], rows[1:].reshape(-1)])
+        if self._gru:
+            kept = self._windows.Eval(context)[1:]
+        else:
+            kept = self._rows(context)[1:]
+        out = np.concatenate([[min(state[0] + 1, self._slots)], kept.reshape(-1)])
         discrete_state.get_mutable_vector(self._history).SetFromVector(out)
 
-    @torch.no_grad()
     def _calc_score(self, context, output):
         c = self._config
-        rows = self._rows(context)[::-1][::c.stride][::-1]       # every stride-th, newest last
-        x = torch.from_numpy(rows.astype(np.float32))[None]
-        logit = self._model.head_logits(x[..., :c.features], x[..., c.features:])
+        if self._gru:
+            complete = torch.from_numpy(self._windows.Eval(context)[:1])
+            with one_torch_thread():
+                logit = self._model.head(complete).squeeze(-1)
+        else:
+            rows = self._rows(context)[::-1][::c.stride][::-1]   # every stride-th, newest last
+            x = torch.from_numpy(rows.astype(np.float32))[None]
+            with one_torch_thread():
+                logit = self._model.head_logits(x[..., :c.features], x[..., c.features:])
         output.SetAtIndex(0, float(platt(float(torch.sigmoid(logit)[0]), *self._platt)))
 
     def _calc_anomaly(self, context, output):

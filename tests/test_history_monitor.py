@@ -83,3 +83,83 @@ def test_config_and_checkpoint_errors(tmp_path):
                                                                 channels=[4], features=4))
     with pytest.raises(CheckpointError, match="holds a 'history_monitor' model, not a 'detector'"):
         load_detector(path)
+
+
+def _step_monitor(monitor, frames, signals, on_tick=None):
+    """Drives ``monitor`` tick by tick on RGBA ``frames`` (and ``signals``) without a
+    loop: its score at each tick, then its periodic update."""
+    from pydrake.systems.sensors import ImageRgba8U
+    context = monitor.CreateDefaultContext()
+    scores = []
+    for t, frame in enumerate(frames):
+        image = ImageRgba8U(frame.shape[1], frame.shape[0])
+        image.mutable_data[:] = frame
+        monitor.get_color_image_input_port().FixValue(context, image)
+        if monitor.get_signals_input_port() is not None:
+            monitor.get_signals_input_port().FixValue(context, signals[t])
+        scores.append(monitor.get_score_output_port().Eval(context)[0])
+        assert monitor.get_anomaly_output_port().Eval(context)[0] == float(scores[-1] >= 0.5)
+        if context.get_discrete_state_vector().size() > 1:      # history kept
+            context.SetDiscreteState(monitor.EvalUniquePeriodicDiscreteUpdate(context))
+        if on_tick is not None:
+            on_tick(t)
+    return np.array(scores)
+
+
+@pytest.mark.parametrize("temporal, frames, stride, signals", [
+    ("gru", 4, 3, 2), ("gru", 5, 1, 0), ("gru", 1, 1, 1), ("gru", 2, 4, 0), ("stack", 3, 2, 1)])
+def test_the_system_steps_to_the_offline_risk_at_every_tick(temporal, frames, stride, signals):
+    """Stride, one frame, runs shorter and longer than the history: no render needed."""
+    from reachwatch.systems import HistoryMonitor
+    config = HistoryMonitorConfig(frames=frames, stride=stride, height=16, width=24,
+                                  channels=[4, 6], features=5, signals=signals,
+                                  signal_mean=[0.2] * signals, signal_std=[1.5] * signals,
+                                  temporal=temporal, hidden=6)
+    torch.manual_seed(1)
+    model = HistoryRiskModel(config).eval()
+    for p in model.parameters():
+        p.data.mul_(2.0)
+    rng = np.random.default_rng(0)
+    ticks = 3 + (frames - 1) * stride + 2 * stride
+    images = (rng.integers(0, 256, (ticks, 20, 30, 4)) *       # brightness moves the risk
+              rng.uniform(0.0, 1.0, (ticks, 1, 1, 1))).astype(np.uint8)
+    sig = rng.normal(size=(ticks, signals))
+    monitor = HistoryMonitor(model=model, threshold=0.5, period=0.05, calibration=(0.7, 0.1))
+    online = _step_monitor(monitor, images, sig)
+    offline = model.risk_sequence(images, sig.astype(np.float32),
+                                  calibration=lambda q: platt(q, 0.7, 0.1))
+    np.testing.assert_allclose(online, offline, rtol=1e-5, atol=1e-6)
+    assert np.ptp(offline) > 1e-3
+
+
+def test_each_tick_encodes_its_frame_once_and_steps_the_gru_once():
+    """Once a tick: the encoder on the current frame, and (past the first tick) one GRU
+    step of the open windows together, not a re-run of the window; in one torch thread,
+    the caller's thread count given back."""
+    from reachwatch.systems import HistoryMonitor
+    config = HistoryMonitorConfig(frames=6, stride=2, height=16, width=24, channels=[4],
+                                  features=4, temporal="gru", hidden=5)
+    torch.manual_seed(0)
+    monitor = HistoryMonitor(model=HistoryRiskModel(config).eval(), threshold=0.5,
+                             period=0.05)
+    model = monitor._model
+    calls = {"encode": [], "gru": []}
+    model.encoder.register_forward_pre_hook(
+        lambda m, args: calls["encode"].append(torch.get_num_threads()))
+    model.gru.register_forward_pre_hook(
+        lambda m, args: calls["gru"].append((tuple(args[0].shape), torch.get_num_threads())))
+    per_tick = []
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        _step_monitor(monitor, np.zeros((8, 20, 30, 4), np.uint8), None,
+                      on_tick=lambda t: per_tick.append(
+                          (len(calls["encode"]), len(calls["gru"]))))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads)
+    assert per_tick == [(t + 1, t + 1) for t in range(8)]
+    assert calls["encode"] == [1] * 8
+    # tick 0: the first frame through every window at once; then one step of the 6 windows
+    # that hold the tick (batch 6, sequence 1)
+    assert calls["gru"] == [((1, 6, 4), 1)] + [((6, 1, 4), 1)] * 7
