@@ -89,11 +89,11 @@ class MonitorStudySpec:
     duration: float = bounded(8.0, 0.0, 600.0, low_open=True, unit="s")
     within: float = bounded(3.0, 0.0, 600.0, low_open=True, high_open=True, unit="s",
                             note="< duration")
-    brake_deceleration: float = bounded(3.0, 0.0, 100.0, low_open=True, unit="m/s^2")
+    brake_deceleration: float = bounded_as(3.0, MonitorConfig, "brake_deceleration")
     alpha: float = bounded(0.1, 0.0, 1.0, low_open=True, high_open=True,
                            note=">= 1 / (calibrate + 1)")
-    height: int = bounded(48, 16, 512, whole=True, unit="px")
-    width: int = bounded(80, 16, 512, whole=True, unit="px")
+    height: int = bounded_as(48, HistoryMonitorConfig, "height")
+    width: int = bounded_as(80, HistoryMonitorConfig, "width")
     epochs: int = bounded(6, 1, 10_000, whole=True)
     head_epochs: int = bounded(40, 1, 100_000, whole=True)
     guarded_runs: int = bounded(0, 0, 100_000, whole=True)

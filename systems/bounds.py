@@ -139,9 +139,11 @@ def bounded(default=dc.MISSING, low=None, high=None, *, default_factory=dc.MISSI
                     metadata={"bound": Bound(low, high, **bound)})
 
 
-def bounded_as(default, cls, name: str):
-    """A field with ``default`` bounded as the field ``name`` of the dataclass ``cls``."""
-    return dc.field(default=default, metadata={"bound": bounds(cls)[name]})
+def bounded_as(default, cls, name: str, **changes):
+    """A field with ``default`` bounded as the field ``name`` of the dataclass ``cls``
+    (with ``changes`` to its `Bound`, e.g. a ``note``): one quantity, one declaration."""
+    return dc.field(default=default,
+                    metadata={"bound": dc.replace(bounds(cls)[name], **changes)})
 
 
 def seed_field(default: int = 0):

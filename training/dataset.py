@@ -35,8 +35,8 @@ from reachwatch.diagrams import ControllerProbe, file_hash, make_controller
 from reachwatch.diagrams.controller import has_estimate
 from reachwatch.reach.application import load_application
 from reachwatch.reach.fingerprint import fingerprint
-from reachwatch.systems import resize_for_detector
-from reachwatch.systems.bounds import bounded, check_bounds, seed_field
+from reachwatch.systems import DetectorConfig, resize_for_detector
+from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
 from reachwatch.systems.files import atomic_write_bytes
 
 from .labels import (FALLBACK_FIELDS, NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
@@ -53,8 +53,8 @@ class DatasetSpec:
     (the detector's input)."""
     samples: int = bounded(2000, 10, 10_000_000, whole=True)
     seed: int = seed_field()
-    height: int = bounded(96, 16, 1024, whole=True, unit="px", note="= detector.detector.height")
-    width: int = bounded(160, 16, 1024, whole=True, unit="px", note="= detector.detector.width")
+    height: int = bounded_as(96, DetectorConfig, "height", note="= detector.detector.height")
+    width: int = bounded_as(160, DetectorConfig, "width", note="= detector.detector.width")
     chunk_size: int = bounded(256, 1, 100_000, whole=True)
     labels: LabelSpec = dc.field(default_factory=LabelSpec)
 
