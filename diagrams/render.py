@@ -56,12 +56,14 @@ class StateRenderer:
         return image.data[..., :3].copy()
 
 
-def render_at_states(diagram, *, plant: str, image_port: str, states) -> np.ndarray:
+def render_at_states(diagram, *, plant: str, image_port: str, states,
+                     context=None) -> np.ndarray:
     """RGB images ``(N, H, W, 3)`` uint8 of any diagram's camera at ``states``: sets the
     continuous state of the subsystem ``plant`` and evaluates the image port named
-    ``"system.port"`` (one reused Context; no Simulator). For a plant of any state
-    dimension, where `StateRenderer` is the taxi's."""
-    context = diagram.CreateDefaultContext()
+    ``"system.port"`` (one reused Context, ``context`` when given, so that calls one
+    state at a time share it; no Simulator). For a plant of any state dimension, where
+    `StateRenderer` is the taxi's."""
+    context = diagram.CreateDefaultContext() if context is None else context
     plant_context = diagram.GetSubsystemByName(plant).GetMyMutableContextFromRoot(context)
     system_name, _, port_name = image_port.partition(".")
     system = diagram.GetSubsystemByName(system_name)

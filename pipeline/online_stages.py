@@ -302,6 +302,10 @@ def guard_environment(run: Run, env) -> dict:
 
 def stage_guard(run: Run) -> dict:
     out = {}
+    if run.application.fallback_rollouts is None:      # nothing to roll the fallbacks out on
+        run.log(f"[guard] skipped: the application '{run.application.name}' has no fallback "
+                f"rollouts")
+        return out
     for env in run.spec.guard_environments():
         # content keys: a detector or BRT rebuilt with other bytes guards again
         key = digest(run.content_key("train"), run.content_key(f"solve_{env.name}"),

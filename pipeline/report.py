@@ -4,7 +4,7 @@ relative path, so the run directory can be moved or served as it is."""
 
 import html
 
-from reachwatch.diagrams import export_graph, write_png, make_closed_loop_diagram, make_guarded_diagram
+from reachwatch.diagrams import export_graph, write_png
 from reachwatch.diagrams.contact_sheet import environment_sheet
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.evaluation import COLUMNS, format_cell
@@ -94,8 +94,9 @@ def graphs(run: Run):
     scenario = run.scenario_for(run.spec.held_out_environments()[0])
     scenario.monitor.detector = str(run.path(run.outputs["train"]["detector"]))
     out = {}
-    for name, diagram in (("closed_loop", make_closed_loop_diagram(scenario)),
-                          ("guarded", make_guarded_diagram(scenario))):
+    loop = run.application.loop_diagram     # the taxi's unless the run names another
+    for name, diagram in (("closed_loop", loop(scenario)),
+                          ("guarded", loop(scenario, guarded=True))):
         written = export_graph(diagram, run.path(f"figures/diagram_{name}"), formats=("dot", "svg"))
         out[name] = run.rel(written[-1])
     return out

@@ -195,13 +195,16 @@ class Application(abc.ABC):
 
 
 class _LoopRenderer:
+    """`render_at_states` of one loop, one state at a time, on one reused Context."""
+
     def __init__(self, diagram, plant, image_port):
         self.diagram, self.plant, self.image_port = diagram, plant, image_port
+        self.context = diagram.CreateDefaultContext()
 
     def render(self, state):
         from reachwatch.diagrams import render_at_states
         return render_at_states(self.diagram, plant=self.plant, image_port=self.image_port,
-                                states=np.asarray(state, float)[None])[0]
+                                states=np.asarray(state, float)[None], context=self.context)[0]
 
 
 @dc.dataclass(frozen=True)

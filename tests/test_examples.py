@@ -75,6 +75,29 @@ def test_grass_follower_through_reachwatch_run(tmp_path, monkeypatch):
     assert set(record["outputs"]["volumes"]) == {"unguarded", "slow_down", "brake", "slow_down+oracle"}
 
 
+def test_speed_car_through_reachwatch_run(tmp_path, monkeypatch):
+    """Example (b) as an application: a 4-state plant through ``reachwatch run`` to a
+    report, with its own run file and application and no library edit."""
+    monkeypatch.chdir(ROOT)                    # the run file's application path is relative
+    spec = _tiny(load_run_spec(ROOT / "examples" / "speed_car" / "run.yaml"))
+    spec.grid, spec.horizon, spec.dataset.samples = [3, 3, 3, 3], 2.0, 10
+    spec.fidelity.starts = 0                   # the application runs no real loop
+    path = tmp_path / "tiny.yaml"
+    path.write_text(dump_run_spec(spec))
+    out = tmp_path / "out"
+    assert main(["-q", "run", "--scenario", str(path), "--out", str(out),
+                 "--executor", "inline"]) == 0
+    report = (out / "report.md").read_text()
+    assert "speed_car" in report and "| KSFO_21h_overcast | test | 3x3x3x3 | 81 |" in report
+    assert "Table 2" in report and (out / "figures" / "overlay_KSFO_21h_overcast.png").is_file()
+    assert not list((out / "stages").glob("guard_*.json"))      # no fallback rollouts: skipped
+    states = np.load(next((out / "datasets").glob("KMWH_9h_clear_*")) / "states.npy")
+    assert states.shape == (10, 4)
+    # the car's own loop was swept: its plant and the application's code key the sweep
+    record = json.loads((out / "stages" / "sweep_KMWH_9h_clear.json").read_text())
+    assert record["key"].startswith("KMWH_9h_clear_3x3x3x3_")
+
+
 def _speed_car():
     import importlib.util
     spec = importlib.util.spec_from_file_location(
