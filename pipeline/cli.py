@@ -12,8 +12,8 @@ import sys
 import threading
 
 from .overlays import add_overlay_arguments
-from . import (commands, console, evaluate_commands, guard_commands, reach_commands,
-               run_commands, simulate_commands, taxinet_commands)
+from . import (commands, console, evaluate_commands, graph_commands, guard_commands,
+               reach_commands, run_commands, simulate_commands, taxinet_commands)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -38,14 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "at the scenario's state into one PNG")
     render.set_defaults(func=commands.render)
 
-    graph = sub.add_parser("graph", help="export the scenario's diagram graph "
-                           "(.dot; .svg/.png with graphviz)")
-    graph.add_argument("--scenario", help="scenario YAML (default: built-in defaults)")
-    add_overlay_arguments(graph)
-    graph.add_argument("--out", required=True, help="output folder")
-    graph.add_argument("--max-depth", type=int, default=2, help="Graphviz nesting depth")
-    graph.set_defaults(func=commands.graph)
-
+    graph_commands.add_parsers(sub)
     taxinet_commands.add_parsers(sub)
     simulate_commands.add_parsers(sub)
     reach_commands.add_parsers(sub)

@@ -150,11 +150,3 @@ def render(args):
                           shadows=scenario.shadows).render(state)
     log.info(write_png(out / f"{scenario.environment.name}.png", image))
 
-
-def graph(args):
-    from reachwatch.diagrams import export_graph, make_world_diagram
-    scenario = scenario_from_args(args)
-    out = output_folder(args.out)
-    diagram = make_world_diagram(scenario)
-    for path in export_graph(diagram, out / "world", max_depth=args.max_depth):
-        log.info(path)

@@ -147,7 +147,8 @@ def test_run_file_overlays_reach_the_keys_and_a_repeat_is_cached(tmp_path, capsy
 
 def test_loading_a_scenario_runs_no_factory_code(tmp_path, capsys):
     """A scenario file naming a factory is data until a command builds the controller:
-    loading it, rendering and exporting the open-loop world import nothing of it."""
+    loading it, rendering and exporting the open-loop world import nothing of it; the
+    graph of the closed loop builds the controller, so it imports and runs it."""
     marker, factory = _factory(tmp_path)
     path = tmp_path / "s.yaml"
     path.write_text(f"camera: {{width: 64, height: 36}}\nduration: 0.1\n"
@@ -155,8 +156,11 @@ def test_loading_a_scenario_runs_no_factory_code(tmp_path, capsys):
     scenario = _scenario(["render", "--scenario", str(path), "--out", "o"])
     assert scenario.controller.factory == factory
     assert cli.main(["render", "--scenario", str(path), "--out", str(tmp_path / "r")]) == 0
-    assert cli.main(["graph", "--scenario", str(path), "--out", str(tmp_path / "g")]) == 0
+    assert cli.main(["graph", "--loop", "world", "--scenario", str(path), "--out",
+                     str(tmp_path / "g")]) == 0
     assert not marker.exists()
+    assert cli.main(["graph", "--scenario", str(path), "--out", str(tmp_path / "g")]) == 0
+    assert marker.exists() and "name=controller" in (tmp_path / "g" / "closed_loop.dot").read_text()
     # a command that needs the controller imports it, and it runs
     assert cli.main(["simulate", "--scenario", str(path), "--out", str(tmp_path / "sim"),
                      "--no-meshcat"]) == 0
