@@ -48,8 +48,9 @@ class ControllerConfig:
     reference TaxiNet; gains in deg per m and deg per deg (TaxiNet's P-controller and
     the privileged oracle); ``period`` s (the steering is held that long); ``speed`` m/s.
     A factory is code: the commands that build the controller (simulate, sweep, brt,
-    evaluate, guard, run) import and run it, so run only scenario files you trust;
-    loading a file, ``render`` and ``graph`` check its form alone and run none of it."""
+    evaluate, guard, run, and graph to draw the loop) import and run it, so run only
+    scenario files you trust; loading a file, ``render`` and ``graph --loop world``
+    check its form alone and run none of it."""
     factory: str = ""
     parameters: Dict[str, float] = dc.field(default_factory=dict)
     checkpoint: str = ""
