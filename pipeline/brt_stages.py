@@ -15,6 +15,7 @@ from reachwatch.diagrams import CONTROL_PORT
 from reachwatch.reach import (compare_verdicts, min_target_along_rollouts, select_map,
                              sign_agreement, solve_brt)
 from reachwatch.reach.robust import control_bounds
+from reachwatch.reach.sweep import cached_table_digest
 from reachwatch.systems.files import atomic_write_bytes
 
 from .spec import digest
@@ -140,11 +141,18 @@ def sweep_stage_key(run: Run, env) -> str:
     return run.application.sweep_key(run.scenario_for(env), run.solved_grid_for(env))
 
 
-def solve_stage_key(run: Run, sweep_key: str) -> str:
-    """The key of an environment's solve record, from its sweep record's key."""
-    spec = run.spec
-    return digest(sweep_key, spec.horizon, spec.accuracy, spec.periods_per_step, spec.slice_py,
-                  *([spec.refine] if spec.refine.levels else []),
+def solve_stage_key(run: Run, env, *, sweep: bool = False) -> str:
+    """The key of ``env``'s solve record: the content of the table it solves, its sweep
+    as cached now (`cached_table_digest`; None when a chunk is missing or fails its
+    checksum, and with ``sweep`` those are swept again first), and the solve's settings.
+    An edited table is solved again; without ``sweep`` nothing is rendered to find out."""
+    spec, size, sweep_key = run.spec, run.solved_grid_for(env).size, sweep_stage_key(run, env)
+    table = cached_table_digest(run.sweep_cache, sweep_key, size)
+    if table is None and sweep:
+        sweep_env(run, env)
+        table = cached_table_digest(run.sweep_cache, sweep_key, size)
+    return digest(sweep_key, table, spec.horizon, spec.accuracy, spec.periods_per_step,
+                  spec.slice_py, *([spec.refine] if spec.refine.levels else []),
                   *([spec.robust] if spec.robust.enabled else []),
                   *([spec.map_selection] if spec.map_selection.starts else []))
 
@@ -162,7 +170,7 @@ def stage_solve(run: Run) -> dict:
     """The BRT of every environment the run needs, from its sweep."""
     out = {}
     for env in run.environments():
-        key = solve_stage_key(run, run.records[f"sweep_{env.name}"]["key"])
+        key = solve_stage_key(run, env, sweep=True)
         out[env.name] = {**run.outputs[f"sweep_{env.name}"], **run.stage(
             f"solve_{env.name}", key, lambda env=env: solve_env(run, env))}
     return out

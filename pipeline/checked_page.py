@@ -5,14 +5,15 @@ environments still to check. A study run in slices so reads its per-environment
 figures as they come, and they are the figures the whole run will report.
 
 A record counts when its key is the one the run would compute now, all the way down:
-the sweep's content key, the solve's, the dataset's content-addressed folder (with a
-manifest) and the check's settings. Nothing is rendered to find out."""
+the sweep's content key and its table as cached, the solve's, the dataset's
+content-addressed folder (with a manifest) and the check's settings. Nothing is
+rendered to find out."""
 
 import json
 
 from reachwatch.systems.files import atomic_write_bytes
 
-from .brt_stages import solve_stage_key, sweep_stage_key
+from .brt_stages import solve_stage_key
 from .fidelity_stages import fidelity_stage_key
 from .dataset_stages import dataset_folder_for, ensemble_paths
 from .fidelity_sections import fidelity_section, labels_meet_target
@@ -35,8 +36,7 @@ def checked_environments(run: Run) -> dict:
         if not run.path(f"stages/fidelity_{env.name}.json").is_file():
             unchecked.append(env.name)
             continue
-        solve_key = solve_stage_key(run, sweep_stage_key(run, env))
-        solve = run.recorded(f"solve_{env.name}", solve_key)
+        solve = run.recorded(f"solve_{env.name}", solve_stage_key(run, env))
         folder, manifest = None, None
         if solve is None:
             stale[env.name] = "its BRT is not the run file's (sweep or solve inputs changed)"
@@ -52,7 +52,7 @@ def checked_environments(run: Run) -> dict:
                 stale[env.name] = f"its dataset ({folder}) is not there"
                 continue
             manifest = json.loads(path.read_text())
-        record = run.recorded(f"fidelity_{env.name}", fidelity_stage_key(run, solve_key, folder))
+        record = run.recorded(f"fidelity_{env.name}", fidelity_stage_key(run, solve, folder))
         if record is None:
             stale[env.name] = "the check's settings or its dataset changed"
             continue

@@ -162,10 +162,14 @@ def check_path_labels(run: Run, env, count: int) -> dict:
             "frames": int(np.sum(outcomes["ticks"]))}
 
 
-def fidelity_stage_key(run: Run, solve_key: str, folder) -> str:
-    """The key of an environment's fidelity record, from its solve record's key and its
-    dataset's folder (None without a dataset)."""
-    return digest(solve_key, run.spec.fidelity.key(), folder)
+def fidelity_stage_key(run: Run, solve: dict, folder) -> str:
+    """The key of an environment's fidelity record: the content of what it checks, its
+    solve record's (key, and the hash of every file it names: the value function and
+    table) and its dataset's arrays (the ``.npy`` files of ``folder``, None without a
+    dataset; its manifest names the run directory), and the check's settings. A BRT or
+    dataset made again with other bytes is checked again."""
+    arrays = folder and {k: v for k, v in run.output_files(folder).items() if k.endswith(".npy")}
+    return digest(solve["key"], solve["files"], run.spec.fidelity.key(), folder, arrays)
 
 
 def stage_fidelity(run: Run) -> dict:
@@ -177,7 +181,7 @@ def stage_fidelity(run: Run) -> dict:
         return out
     folders = run.outputs.get("dataset", {}).get("folders", {})
     for env in run.environments():
-        key = fidelity_stage_key(run, run.records[f"solve_{env.name}"]["key"],
+        key = fidelity_stage_key(run, run.records[f"solve_{env.name}"],
                                  folders.get(env.name))
         out[env.name] = run.stage(f"fidelity_{env.name}", key,
                                   lambda env=env: fidelity_env(run, env))

@@ -19,7 +19,6 @@ import os
 import signal
 import sys
 import threading
-import time
 import warnings
 from pathlib import Path
 from typing import Callable, Tuple
@@ -360,6 +359,27 @@ def _chunk_ok(path: Path, start: int, stop: int, ports: int) -> bool:
                 checksum_ok(arrays))
     except Exception:   # missing, truncated, corrupt or lacking a port: recompute it
         return False
+
+
+def cached_table_digest(cache_dir, key: str, size: int):
+    """SHA-256 (hex) of the content of the sweep ``key`` as cached under ``cache_dir``
+    now: every chunk's `chunk_checksum`, in order. None unless its chunks cover the
+    ``size`` nodes one after another and each matches the checksum stored with it.
+    What a stage that reads the table keys on (an edited table is read again, not the
+    result made from the old one adopted), found without evaluating anything."""
+    folder, digest, stop, index = Path(cache_dir) / key, hashlib.sha256(), 0, 0
+    while stop < size:
+        try:
+            with np.load(_chunk_path(folder, index), allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+            start, end = int(arrays["start"]), int(arrays["stop"])
+        except Exception:      # missing, truncated or not a chunk
+            return None
+        if start != stop or end <= start or not checksum_ok(arrays):
+            return None
+        digest.update(chunk_checksum(arrays).encode())
+        stop, index = end, index + 1
+    return digest.hexdigest() if stop == size else None
 
 
 def sweep_key(factory: Callable, grid: Grid, probe: Probe, *, name: str = None) -> str:

@@ -215,3 +215,73 @@ def test_an_outcome_chunk_whose_numbers_were_edited_is_run_again(tmp_path):
     assert computed == 2
     np.testing.assert_array_equal(again["y"], states ** 2)
     assert set(again) == {"y"}
+
+
+def _rewrite_chunk(path, change):
+    """Rewrite a chunk file with ``change(arrays)`` and a checksum that matches (a table
+    made elsewhere, or edited by a tool that knows the format)."""
+    from reachwatch.reach.sweep import CHECKSUM, store_chunk_file
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files if k != CHECKSUM}
+    change(arrays)
+    store_chunk_file(path, arrays)
+
+
+def test_a_sweep_table_edited_with_a_valid_checksum_is_solved_again(base, tmp_path):
+    """The solve's key follows the content of the sweep table it reads, not only the
+    sweep's key: an edited table (its checksum rewritten) solves again instead of the
+    BRT of the old one being adopted; a chunk deleted since is swept again first, so
+    the same table keeps its BRT."""
+    out = _copy(base, tmp_path)
+    chunk = out / "sweeps" / base[1][f"sweep_{TRAIN_ENV}"]["sweep"] / "chunk_000000.npz"
+    original = base[1]["solve"][TRAIN_ENV]["brt_fraction"]
+
+    def hard_left(arrays):
+        arrays["port0"] = np.full_like(arrays["port0"], 0.6)
+    _rewrite_chunk(chunk, hard_left)
+    run, log = _run(out, "solve")
+    assert _ran(log) == {f"solve_{TRAIN_ENV}"}
+    assert "its inputs changed" in _why(log, f"solve_{TRAIN_ENV}")
+    assert run.outputs["solve"][TRAIN_ENV]["brt_fraction"] != original
+    _, log = _run(out, "solve")
+    assert _ran(log) == set()
+    chunk.unlink()                        # swept again: the original table, its BRT
+    run, log = _run(out, "solve")
+    assert run.outputs["solve"][TRAIN_ENV]["brt_fraction"] == original
+    assert chunk.is_file()
+    _, log = _run(out, "solve")
+    assert _ran(log) == set()
+
+
+def test_a_brt_solved_again_with_other_bytes_is_checked_again(base, tmp_path, monkeypatch):
+    """The fidelity check's key follows the content of the BRT it checks (the solve's
+    files), not only the solve's key: a value function solved again (its old file
+    edited) that comes out with other bytes, as on another machine, is checked again."""
+    out = _copy(base, tmp_path)
+    text = TEXT.replace("fidelity: {starts: 0", "fidelity: {starts: 1")
+    run = lambda: run_pipeline(load_run_spec(data=text), out, progress=False,  # noqa: E731
+                               log=log.append, until="fidelity")
+    log = []
+    run()
+    assert f"fidelity_{TRAIN_ENV}" in _ran(log)
+    from reachwatch.pipeline import brt_stages
+    from reachwatch.reach import ValueFunction
+    solve = brt_stages.solve_env
+
+    def other_bytes(run, env, **kw):
+        result = solve(run, env, **kw)
+        vf = ValueFunction.load(run.path(result["value"]))
+        vf.metadata["solved_on"] = "another machine"            # same values, other bytes
+        vf.save(run.path(result["value"]))
+        return result
+    monkeypatch.setattr(brt_stages, "solve_env", other_bytes)
+    value = out / base[1]["solve"][TRAIN_ENV]["value"]
+    value.write_bytes(value.read_bytes() + b"edited")
+    log.clear()
+    run()
+    assert f"solve_{TRAIN_ENV}" in _ran(log)
+    assert "its inputs changed" in _why(log, f"fidelity_{TRAIN_ENV}")
+    assert "fidelity_KSFO_17h_clear" not in _ran(log)
+    log.clear()
+    run()
+    assert _ran(log) == set()
