@@ -10,6 +10,7 @@ import torch
 
 from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram,
                                  make_state_feedback_diagram, save_checkpoint, simulate)
+from reachwatch.diagrams.closed_loop import start_simulator
 from reachwatch.diagrams.lockstep import batch_systems, loop_copies, simulate_lockstep
 from reachwatch.systems import PreprocessConfig, TaxiNet, TaxiNetConfig, build_taxinet
 from reachwatch.taxi import fidelity
@@ -130,3 +131,30 @@ def test_real_loop_runs_do_not_depend_on_lockstep(tiny_scenario):
     assert ticks[0] == 7 and 0 < ticks[1] < 7 and ticks[-1] == 0
     with pytest.raises(ValueError, match="lockstep must be a whole number"):
         fidelity.taxi_rollouts(scenario, 0.3, grid, starts, lockstep=0)
+
+
+def test_a_reused_context_starts_afresh_but_keeps_its_render_engine(tiny_scenario):
+    """A run on a reused Context equals one on a fresh Context, and starting it resets
+    every system but the SceneGraph, whose geometry state (render engines) stays: a
+    geometry removed in the Context is still gone after the start (resetting the
+    SceneGraph too cloned the render engine for every run)."""
+    B = tiny_scenario.environment.half_width
+    settings = dict(duration=0.3, period=0.05, half_width=B)
+    diagram = make_closed_loop_diagram(tiny_scenario)
+    context = diagram.CreateDefaultContext()
+    fresh = simulate(diagram, initial_state=STARTS[0], **settings)
+    simulate(diagram, initial_state=STARTS[1], context=context, **settings)
+    assert _same(simulate(diagram, initial_state=STARTS[0], context=context, **settings), fresh)
+    scene_graph = diagram.GetSubsystemByName("scene_graph")
+    scene_context = scene_graph.GetMyMutableContextFromRoot(context)
+
+    def geometries():
+        return scene_graph.get_query_output_port().Eval(scene_context).inspector()
+
+    first = geometries().GetAllGeometryIds()[0]
+    source = next(s for s in geometries().GetAllSourceIds()
+                  if geometries().BelongsToSource(first, s))
+    count = len(geometries().GetAllGeometryIds())
+    scene_graph.RemoveGeometry(context=scene_context, source_id=source, geometry_id=first)
+    start_simulator(diagram, initial_state=STARTS[0], context=context)
+    assert len(geometries().GetAllGeometryIds()) == count - 1
