@@ -74,9 +74,11 @@ def _clip(text: str) -> str:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     console.setup(-1 if args.quiet else (1 if args.verbose else 0))
     import reachwatch.systems  # noqa: F401  (first: process-wide settings before torch loads)
+    commands.check_run_file_flags(parser, args)     # a flag as its run-file key is bounded
     commands.fill_run_file_defaults(args)
     previous = signal.getsignal(signal.SIGTERM)
     if threading.current_thread() is threading.main_thread():

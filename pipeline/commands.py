@@ -72,6 +72,55 @@ class RunFileDefault:
         return self.convert(value) if self.convert else value
 
 
+def _declared_bound(path: str):
+    """The `Bound` declared for the run-file key ``path`` (``guard.check_starts``), or
+    None."""
+    import dataclasses as dc
+    import typing
+
+    from reachwatch.systems.bounds import bound_of
+
+    from .spec import RunSpec
+    schema, field = RunSpec, None
+    for part in path.split("."):
+        fields = {f.name: f for f in dc.fields(schema)} if dc.is_dataclass(schema) else {}
+        if part not in fields:
+            return None
+        field = fields[part]
+        hint = typing.get_type_hints(schema)[part]
+        schema = next((a for a in (hint, *typing.get_args(hint)) if dc.is_dataclass(a)), hint)
+    return bound_of(field)
+
+
+def _invoked_actions(parser, args):
+    """The actions of the (sub)command ``args`` invoked, with the parser that owns each."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            chosen = action.choices.get(getattr(args, action.dest, None))
+            if chosen is not None:
+                yield from _invoked_actions(chosen, args)
+        else:
+            yield parser, action
+
+
+def check_run_file_flags(parser, args):
+    """Refuse a given flag that sets a run-file key (its default a `RunFileDefault` of
+    one key) with a value outside that key's declared bound, as the run file would:
+    ``parser.error`` naming the flag and the key (exit 2), before any work."""
+    for owner, action in _invoked_actions(parser, args):
+        default = action.default
+        value = getattr(args, action.dest, default)
+        if not isinstance(default, RunFileDefault) or isinstance(value, RunFileDefault) \
+                or len(default.paths) != 1 or default.convert is not None or value is None:
+            continue
+        bound = _declared_bound(default.paths[0])
+        if bound is not None:
+            try:
+                bound.check(default.paths[0], value)
+            except ValueError as e:
+                owner.error(f"argument {'/'.join(action.option_strings)}: {e}")
+
+
 def fill_run_file_defaults(args):
     """Replace every `RunFileDefault` left in ``args`` (a flag not given) by its value."""
     for name, value in vars(args).items():

@@ -40,7 +40,8 @@ types, defaults and bounds. A bound is the range a value must lie in (`[a, b]`: 
 ends allowed, `(a, b]`: `a` itself refused), then its unit; for a list, how many items
 it holds and the range of each; after a semicolon, a condition on other keys. A value
 outside its bound is refused when the file is loaded, with a one-line error naming the
-key. A number without a bound may be any finite number.
+key, and so is a command-line flag that sets the key (e.g. `guard --check-starts` for
+`guard.check_starts`). A number without a bound may be any finite number.
 """
 
 

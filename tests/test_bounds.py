@@ -339,3 +339,62 @@ def test_the_reference_prints_each_declared_bound():
         section = text.split(f"## {cls.__name__}\n", 1)[1].split("\n## ", 1)[0]
         row = next(line for line in section.splitlines() if line.startswith(f"| `{name}` |"))
         assert row.rstrip(" |").endswith(bound.text().replace("|", "\\|")), row
+
+
+def _bounded_flags():
+    """``(command, action, key, Bound)`` of every flag that sets one run-file key with a
+    declared bound (its default a `RunFileDefault`)."""
+    import argparse
+
+    from reachwatch.pipeline import cli
+    from reachwatch.pipeline.commands import RunFileDefault, _declared_bound
+    out = []
+    for name, sub in next(a for a in cli.build_parser()._actions
+                          if isinstance(a, argparse._SubParsersAction)).choices.items():
+        for action in sub._actions:
+            default = action.default
+            if isinstance(default, RunFileDefault) and len(default.paths) == 1 \
+                    and default.convert is None:
+                bound = _declared_bound(default.paths[0])
+                if bound is not None and bound.has_range:
+                    out.append(pytest.param(name, action, default.paths[0], bound,
+                                            id=f"{name} {action.option_strings[0]}"))
+    return out
+
+
+@pytest.mark.parametrize("command, action, key, bound", _bounded_flags())
+def test_a_flag_that_sets_a_run_file_key_is_bounded_as_the_key(command, action, key, bound,
+                                                                capsys):
+    """Past the flag's own type check, the key's declaration refuses what a run file
+    would refuse (exit 2, naming the flag and the key) and takes what it takes."""
+    import argparse
+
+    from reachwatch.pipeline import cli
+    from reachwatch.pipeline.commands import check_run_file_flags
+    parser = cli.build_parser()
+    for end in _ends(bound):
+        inside, outside = _at(bound, end), _outside(bound, end)
+        if bound.each:
+            inside, outside = [inside] * action.nargs, [outside] * action.nargs
+        check_run_file_flags(parser, argparse.Namespace(command=command,
+                                                        **{action.dest: inside}))
+        with pytest.raises(SystemExit) as refused:
+            check_run_file_flags(parser, argparse.Namespace(command=command,
+                                                            **{action.dest: outside}))
+        last = capsys.readouterr().err.strip().splitlines()[-1]
+        assert refused.value.code == 2
+        assert last.startswith(f"reachwatch {command}: error: argument {action.option_strings[0]}")
+        assert key in last, last
+
+
+def test_the_command_line_refuses_a_flag_outside_its_keys_bound_before_any_work(tmp_path,
+                                                                                   capsys):
+    from reachwatch.pipeline import cli
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as refused:
+        cli.main(["evaluate", "--out", str(out), "--samples", "5"])
+    assert refused.value.code == 2 and not out.exists()
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "reachwatch evaluate: error: argument --samples: dataset.samples must be a whole "
+        "number in [10, 10000000], got 5")
+    assert len(_bounded_flags()) >= 20
