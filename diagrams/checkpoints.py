@@ -7,12 +7,14 @@ only tensors and plain Python values. Written atomically.
 import dataclasses as dc
 import io
 import json
+import math
 from pathlib import Path
 
 import torch
 
 from reachwatch.systems import (DetectorConfig, HistoryMonitorConfig, HistoryRiskModel,
                                 PreprocessConfig, TaxiNetConfig, build_detector, build_taxinet)
+from reachwatch.systems.checks import short
 from reachwatch.systems.files import atomic_write_bytes, file_hash  # noqa: F401  (re-exported)
 
 FORMAT = "reachwatch.checkpoint"
@@ -71,7 +73,29 @@ def load_checkpoint(path, *, kind) -> dict:
     missing = {"state_dict", "model_config", "preprocess", "metadata"} - set(payload)
     if missing:
         raise CheckpointError(f"{path} lacks {sorted(missing)}")
+    _check_numbers(path, payload)
     return payload
+
+
+def _check_numbers(path, payload):
+    """Raise `CheckpointError` when a checkpoint's weights hold NaN or infinite values, or
+    a history monitor's Platt ``calibration`` is not two finite numbers: such a model
+    answers NaN, which never reaches a threshold, so a monitor would never warn."""
+    weights = payload["state_dict"]
+    if not isinstance(weights, dict) or not isinstance(payload["metadata"], dict):
+        raise CheckpointError(f"{path}: its state_dict and metadata must be mappings")
+    for name, value in weights.items():
+        if isinstance(value, torch.Tensor) and value.is_floating_point() \
+                and not bool(torch.isfinite(value).all()):
+            raise CheckpointError(f"{path}: weight {short(name)} holds NaN or infinite "
+                                  f"values; the checkpoint is corrupt (train it again)")
+    calibration = payload["metadata"].get("calibration", (1.0, 0.0))
+    if payload["kind"] == "history_monitor" and not (
+            isinstance(calibration, (list, tuple)) and len(calibration) == 2 and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                for v in calibration)):
+        raise CheckpointError(f"{path}: its calibration must be two finite numbers [a, b], "
+                              f"got {short(calibration)}")
 
 
 def _config(cls, data, path, what):

@@ -48,3 +48,24 @@ def is_file(path) -> bool:
         return Path(path).is_file()
     except (OSError, ValueError):
         return False
+
+
+def check_torch_device(where: str, name) -> str:
+    """``name`` if torch can compute on it here (empty: CUDA when present, else the CPU);
+    else a ValueError naming ``where``: a device that is not one, or a CUDA (or MPS)
+    device this machine does not have, is refused before any work, not at training."""
+    import torch
+    try:
+        device = torch.device(name or "cpu")
+    except (RuntimeError, TypeError, ValueError):
+        raise ValueError(f"{where} must be a torch device such as cpu, cuda or cuda:1 (or "
+                         f"empty for CUDA when present), got {short(name)}") from None
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if (device.index or 0) >= count:
+            have = f"has {count} CUDA device{'s' * (count != 1)}" if count else "has no CUDA device"
+            raise ValueError(f"{where} is {short(name)}, and this machine {have}; use cpu, or "
+                             f"leave it empty for CUDA when present")
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"{where} is {short(name)}, and MPS is not available here; use cpu")
+    return name

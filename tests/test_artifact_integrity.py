@@ -285,3 +285,37 @@ def test_a_brt_solved_again_with_other_bytes_is_checked_again(base, tmp_path, mo
     log.clear()
     run()
     assert _ran(log) == set()
+
+
+def _history_checkpoint(path, *, nan_weight=False, calibration=(1.0, 0.0)):
+    from reachwatch.diagrams import save_checkpoint
+    from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel
+    config = HistoryMonitorConfig(height=16, width=24, frames=2)
+    model = HistoryRiskModel(config)
+    if nan_weight:
+        with torch.no_grad():
+            next(iter(model.parameters()))[0] = float("nan")
+    return save_checkpoint(path, kind="history_monitor", model=model, model_config=config,
+                           preprocess_config=None,
+                           metadata={"threshold": 0.5, "calibration": calibration})
+
+
+@pytest.mark.parametrize("nan_weight, calibration, message", [
+    (True, (1.0, 0.0), r"weight 'encoder\.0\.weight' holds NaN or infinite values"),
+    (False, (float("nan"), 0.0), r"its calibration must be two finite numbers \[a, b\], got \[nan, 0\.0\]"),
+    (False, "ab", r"its calibration must be two finite numbers \[a, b\], got 'ab'"),
+])
+def test_a_monitor_checkpoint_that_would_answer_nan_is_refused(tmp_path, nan_weight,
+                                                                calibration, message):
+    """NaN weights or calibration make a monitor answer NaN, which never reaches its
+    threshold: it would never warn. Refused where any checkpoint is read, so also by the
+    cheap check commands make before their work (`checkpoint_kind`)."""
+    from reachwatch.diagrams.checkpoints import (CheckpointError, checkpoint_kind,
+                                                 load_history_monitor)
+    good = _history_checkpoint(tmp_path / "good.pt")
+    assert checkpoint_kind(good) == "history_monitor" and load_history_monitor(good)
+    bad = _history_checkpoint(tmp_path / "bad.pt", nan_weight=nan_weight, calibration=calibration)
+    for read in (load_history_monitor, checkpoint_kind):
+        with pytest.raises(CheckpointError, match=message) as e:
+            read(bad)
+        assert "\n" not in str(e.value) and len(str(e.value)) < 300

@@ -310,3 +310,12 @@ def test_bad_command_line_environments_and_executors_are_one_error(tmp_path, cap
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1
     assert not out.exists()
+
+
+def test_a_device_this_machine_lacks_is_refused_before_any_work():
+    """A CUDA device the machine does not have failed at the train stage, after the
+    sweeps and datasets, with a traceback; now it is refused where the file is loaded."""
+    with pytest.raises(ScenarioError, match=re.escape("detector.device is 'cuda:99', and this "
+                                                      "machine has")):
+        load_run_spec(data=TINY.replace("device: cpu", "device: 'cuda:99'"))
+    assert load_run_spec(data=TINY).detector.device == "cpu"

@@ -10,7 +10,7 @@ from torch import nn
 from reachwatch.diagrams import load_detector, save_checkpoint
 from reachwatch.systems import DetectorConfig, build_detector, detector_input
 from reachwatch.systems.bounds import bounded, check_bounds, seed_field
-from reachwatch.systems.checks import clip, is_file, short
+from reachwatch.systems.checks import check_torch_device, clip, is_file, short
 
 from .metrics import HELD_OUT_RULES, binary_metrics, held_out_threshold, recall_threshold
 
@@ -84,12 +84,7 @@ class DetectorTrainConfig:
         if self.pretrained_path and not is_file(self.pretrained_path):
             raise ValueError(f"{where}.pretrained_path: file not found: "
                              f"{clip(self.pretrained_path, 200)}")
-        try:
-            torch.device(self.device or "cpu")
-        except (RuntimeError, TypeError, ValueError):
-            raise ValueError(f"{where}.device must be a torch device such as cpu, cuda or "
-                             f"cuda:1 (or empty for CUDA when present), got "
-                             f"{short(self.device)}") from None
+        check_torch_device(f"{where}.device", self.device)
         return self
 
 
