@@ -62,7 +62,19 @@ class Application(abc.ABC):
     def loop_factory(self, scenario, *, guarded: bool = False):
         """A picklable, fingerprintable function of no arguments building
         `loop_diagram` (what sweeps run in workers and key their caches by)."""
-        return functools.partial(build_loop, ApplicationRef(self.spec), scenario, guarded)
+        return functools.partial(build_loop, ApplicationRef(self._loaded_as()), scenario,
+                                 guarded)
+
+    def _loaded_as(self) -> str:
+        """`spec`, which workers load the application by; a ValueError for an instance
+        made directly rather than by `load_application` (the default's name would load
+        the taxi in its place)."""
+        kind = f"{type(self).__module__}:{type(self).__qualname__}"
+        if not self.spec and kind != DEFAULT_APPLICATION:
+            raise ValueError(f"application {kind}: load it with load_application("
+                             f"'path/to/file.py:{type(self).__qualname__}') (or name it in the "
+                             f"run file), so that workers and cache keys find its code")
+        return self.spec
 
     def resolved(self, scenario):
         """``scenario`` with its file paths made absolute (default: as it is)."""
@@ -191,7 +203,8 @@ class Application(abc.ABC):
         """What the application adds to the keys of cached results: None for the
         default (so the taxi's keys are those of before applications), else its spec
         and the fingerprint of its code."""
-        return None if not self.spec else ApplicationRef(self.spec).__fingerprint__()
+        spec = self._loaded_as()
+        return None if not spec else ApplicationRef(spec).__fingerprint__()
 
 
 class _LoopRenderer:

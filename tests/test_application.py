@@ -94,6 +94,11 @@ def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tm
     vf = ValueFunction(grid, np.ones(grid.shape), 1.0, "test")
     assert dataset_folder(tmp_path, scenario, vf, DatasetSpec(), application=app) != \
         dataset_folder(tmp_path, scenario, vf, DatasetSpec())
+    # made directly, not loaded by name: refused where workers or keys need its name
+    with pytest.raises(ValueError, match="load it with load_application"):
+        type(app)().sweep_key(scenario, grid)
+    with pytest.raises(ValueError, match="load it with load_application"):
+        type(app)().key()
     # its own loop: no taxi real-loop runs behind its back
     with pytest.raises(ValueError, match="'rebuilt' runs no real loop"):
         app.real_outcomes(scenario, states, grid=grid, duration=1.0, cache_dir=tmp_path)
