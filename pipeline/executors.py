@@ -5,6 +5,7 @@ process's `PINNED` versions, and may run any number of threads)."""
 
 import contextlib
 import importlib.metadata
+import re
 
 from reachwatch.reach import InlineExecutor, default_executor
 from reachwatch.reach.sweep import stop_executor
@@ -47,6 +48,22 @@ def check_worker_versions(client, spec: str = "dask"):
                              f"install the same versions on every worker")
 
 
+#: ``HOST:PORT`` of a Dask scheduler: a host name or IPv4 address, or an IPv6 one in
+#: brackets, and a port.
+_ADDRESS = re.compile(r"(?:[A-Za-z0-9_.-]{1,253}|\[[0-9A-Fa-f:.]{2,45}\]):[0-9]{1,5}")
+
+
+def dask_address(spec: str) -> str:
+    """The ``HOST:PORT`` of ``--executor dask://HOST:PORT`` (or ``tcp://``); a one-line
+    ValueError for anything else, before a client is made (dask would answer a bad
+    address with its own words, or a connection attempt)."""
+    address = spec.split("://", 1)[1]
+    if not _ADDRESS.fullmatch(address) or not 1 <= int(address.rpartition(":")[2]) <= 65535:
+        raise ValueError(f"--executor dask://HOST:PORT needs a host and a port in [1, 65535] "
+                         f"(an IPv6 host in brackets), got {short(spec)}")
+    return address
+
+
 def make_executor(spec: str, *, connect_timeout: float = 10.0):
     """An executor and a ``close(abort=False)`` callable for ``spec``; ``abort`` stops
     local workers at once instead of letting their current chunk finish."""
@@ -66,7 +83,7 @@ def make_executor(spec: str, *, connect_timeout: float = 10.0):
         except ImportError:
             raise ValueError("--executor dask://... needs dask: pip install "
                              "'reachwatch[distributed]'") from None
-        address = "tcp://" + spec.split("://", 1)[1]
+        address = "tcp://" + dask_address(spec)
         try:
             client = Client(address, timeout=f"{connect_timeout}s")
         except (OSError, TimeoutError) as e:

@@ -25,6 +25,7 @@ from reachwatch.diagrams import MonitorConfig, save_checkpoint
 from reachwatch.systems import (TEMPORAL_MODELS, Environment, HistoryMonitorConfig,
                                 RandomEnvironments)
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds
+from reachwatch.systems.checks import check_label, short
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.taxi import on_runway_starts, paper_grid
 from reachwatch.taxi.fidelity import real_missions
@@ -121,6 +122,13 @@ class MonitorStudySpec:
                 env.validate()
             except ValueError as e:
                 raise ValueError(f"{where}.also_held_out[{i}]: {e}") from None
+        named = [e.name for e in self.also_held_out]
+        if len(set(named)) != len(named):      # rows by name: one would count twice
+            twice = sorted({n for n in named if named.count(n) > 1})
+            raise ValueError(f"{where}.also_held_out lists an environment name twice: "
+                             f"{short(twice)}")
+        for i, v in enumerate(self.variants):
+            check_label(f"{where}.variants[{i}].name", v.name)
         names = [v.name for v in self.variants]
         if not self.variants or len(set(names)) != len(names):
             raise ValueError(f"{where}.variants must list at least one variant, each name "

@@ -13,7 +13,7 @@ from reachwatch.reach import ACCURACIES
 from reachwatch.reach.application import load_application
 from reachwatch.systems import DEFAULT_FALLBACKS, Environment, RandomEnvironments, fallback_parts
 from reachwatch.systems.bounds import MAX_INT, bounded, check_bounds, seed_field
-from reachwatch.systems.checks import short
+from reachwatch.systems.checks import check_label, short
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.labels import LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
@@ -216,7 +216,12 @@ class RunSpec:
     def validate(self):
         """Raise ValueError naming the first bad field; return self."""
         self.scenario.validate()
+        check_label("name", self.name)
         check_bounds(self)
+        if self.horizon < self.scenario.controller.period:
+            raise ValueError(f"horizon ({self.horizon:g} s) must be at least one control period "
+                             f"(scenario.controller.period {self.scenario.controller.period:g} s): "
+                             f"within a shorter one the controller never acts")
         application = load_application(self.application)    # a bad name fails before any work
         self.train_random.validate("train_random")
         self.test_random.validate("test_random")

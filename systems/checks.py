@@ -40,6 +40,20 @@ def check_name(where: str, name) -> str:
     return name
 
 
+#: How long a name that only labels things (a run's, a monitor variant's) may be.
+MAX_LABEL = 200
+
+
+def check_label(where: str, text) -> str:
+    """``text`` if it can title a report and label a table row: 1 to `MAX_LABEL`
+    printable characters (no newline, tab or other control or format character); else
+    a ValueError naming ``where``."""
+    if not (isinstance(text, str) and 1 <= len(text) <= MAX_LABEL and text.isprintable()):
+        raise ValueError(f"{where} must be 1 to {MAX_LABEL} printable characters on one line "
+                         f"(it labels the report), got {short(text)}")
+    return text
+
+
 def is_file(path) -> bool:
     """Whether ``path`` names a regular file; False, not an error, for a name the system
     refuses (too long, a NUL byte)."""

@@ -319,3 +319,42 @@ def test_a_device_this_machine_lacks_is_refused_before_any_work():
                                                       "machine has")):
         load_run_spec(data=TINY.replace("device: cpu", "device: 'cuda:99'"))
     assert load_run_spec(data=TINY).detector.device == "cpu"
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("name: tiny", "name: ''"), "name must be 1 to 200 printable characters on one line"),
+    (("name: tiny", "name: \"a\\nb\""), "name must be 1 to 200 printable characters on one line"),
+    (("name: tiny", "name: \"x\\u202ey\""), "name must be 1 to 200 printable characters on one line"),
+    (("name: tiny", "name: " + "n" * 5000), "name must be 1 to 200 printable characters on one line"),
+    (("name: tiny", "name: tiny\nmonitor: {kind: history, variants: [{name: \"a\\nb\"}]}"),
+     "monitor.variants[0].name must be 1 to 200 printable characters on one line"),
+    (("name: tiny", "name: tiny\nmonitor: {kind: history, also_held_out: ["
+                    "{runway: KMWH, hour: 21.0, sky: clear}, {runway: KMWH, hour: 21.0, sky: clear}]}"),
+     "monitor.also_held_out lists an environment name twice: ['KMWH_21h_clear']"),
+    (("horizon: 4.0", "horizon: 0.01"),
+     "horizon (0.01 s) must be at least one control period (scenario.controller.period 0.05 s)"),
+    (("horizon: 4.0", "horizon: 1.0e-9"), "horizon (1e-09 s) must be at least one control period"),
+])
+def test_labels_monitor_environments_and_horizons_that_make_no_sense_are_refused(edit, message):
+    """Each was accepted: a run name of 5000 characters or with a newline titled the
+    report, a monitor environment listed twice counted twice in its pooled rates, and a
+    horizon shorter than a control period ran the whole study (rc 0) on a loop whose
+    controller never acts."""
+    assert edit[0] in TINY
+    with pytest.raises(ScenarioError, match=re.escape(message)) as e:
+        load_run_spec(data=TINY.replace(*edit))
+    assert "\n" not in str(e.value) and len(str(e.value)) < 300
+    assert load_run_spec(data=TINY.replace("name: tiny", "name: 'Étude de nuit (KMWH)'"))
+
+
+@pytest.mark.parametrize("spec", ["dask://:::bad", "tcp://", "dask://host:notaport",
+                                  "dask://host:0", "dask://host:99999", "dask://" + "x" * 5000,
+                                  "dask://host:8786\n"])
+def test_a_malformed_dask_address_is_one_line_naming_the_option(spec):
+    """Dask answered these in its own words (not naming --executor: "missing port number
+    in address ''"), or left a half-made client behind; now one line, no client made."""
+    from reachwatch.pipeline.executors import make_executor
+    with pytest.raises(ValueError, match=re.escape("--executor dask://HOST:PORT needs a host "
+                                                   "and a port in [1, 65535]")) as e:
+        make_executor(spec, connect_timeout=0.5)
+    assert "\n" not in str(e.value) and len(str(e.value)) < 300
