@@ -58,7 +58,8 @@ class Environment:
 
 def hour_text(hour: float) -> str:
     """``hour`` as environment names write it: ``9``, ``17p5``; as many digits as it
-    takes to name the hour itself (23.9999999 is not 24)."""
+    takes to name the hour itself (23.9999999 is not 24); -0.0 is 0, as it is."""
+    hour = hour + 0.0          # -0.0 + 0.0 is 0.0: one hour, one name
     text = f"{hour:g}"
     if math.isfinite(hour) and float(text) != hour:
         text = repr(float(hour))

@@ -358,3 +358,16 @@ def test_a_malformed_dask_address_is_one_line_naming_the_option(spec):
                                                    "and a port in [1, 65535]")) as e:
         make_executor(spec, connect_timeout=0.5)
     assert "\n" not in str(e.value) and len(str(e.value)) < 300
+
+
+def test_hour_minus_zero_is_hour_zero_and_cannot_hide_a_training_environment_in_test():
+    """``hour: -0.0`` was named ``KMWH_-0h_clear``: the same environment as a training
+    ``KMWH_0h_clear`` under another name, so the run tested on a training environment
+    (rc 0). One hour, one name: the duplicate is refused."""
+    assert Environment("KMWH", -0.0).name == Environment("KMWH", 0.0).name == "KMWH_0h_clear"
+    text = TINY.replace("test: [{runway: KSFO, hour: 17.0, sky: clear}]",
+                        "test: [{runway: KMWH, hour: -0.0, sky: clear}]").replace(
+        "train: [{runway: KMWH, hour: 9.0", "train: [{runway: KMWH, hour: 0.0")
+    with pytest.raises(ScenarioError, match=re.escape("train/test: an environment is listed "
+                                                      "twice: ['KMWH_0h_clear']")):
+        load_run_spec(data=text)
