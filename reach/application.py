@@ -16,6 +16,7 @@ What an application is given everywhere is the run's ``scenario`` (a
 object its loop is built from."""
 
 import abc
+import copy
 import dataclasses as dc
 import functools
 import importlib
@@ -62,8 +63,8 @@ class Application(abc.ABC):
     def loop_factory(self, scenario, *, guarded: bool = False):
         """A picklable, fingerprintable function of no arguments building
         `loop_diagram` (what sweeps run in workers and key their caches by)."""
-        return functools.partial(build_loop, ApplicationRef(self._loaded_as()), scenario,
-                                 guarded)
+        return functools.partial(build_loop, ApplicationRef(self._loaded_as()),
+                                 sweep_scenario(self.resolved(scenario), guarded), guarded)
 
     def _loaded_as(self) -> str:
         """`spec`, which workers load the application by; a ValueError for an instance
@@ -233,6 +234,19 @@ class ApplicationRef:
 
     def load(self) -> Application:
         return load_application(self.spec)
+
+
+def sweep_scenario(scenario, guarded: bool = False):
+    """What a swept table of ``scenario``'s loop depends on, and nothing else: a copy
+    whose start state, duration, seed and fallback settings are the defaults (a sweep
+    sets the state and reads ports that do not depend on them; a guarded one keeps the
+    monitor's detector), so a run that changes them reuses its sweeps."""
+    scenario = copy.deepcopy(scenario)
+    defaults = type(scenario)()
+    scenario.initial_state, scenario.duration, scenario.seed = (
+        defaults.initial_state, defaults.duration, defaults.seed)
+    scenario.monitor = type(scenario.monitor)(detector=scenario.monitor.detector if guarded else "")
+    return scenario
 
 
 def build_loop(ref: ApplicationRef, scenario, guarded: bool):

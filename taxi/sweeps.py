@@ -9,8 +9,9 @@ from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, ESTIMATE_PORT, PLANT, R
                                  make_closed_loop_diagram, make_controller,
                                  make_guarded_diagram)
 from reachwatch.diagrams.controller import has_estimate
-from reachwatch.diagrams.scenario import InitialState, MonitorConfig, Scenario
+from reachwatch.diagrams.scenario import Scenario
 from reachwatch.reach import Grid, Probe, SweepTable, sweep, sweep_key
+from reachwatch.reach.application import sweep_scenario
 from reachwatch.reach.refine import refine_adaptively
 from reachwatch.reach.robust import control_bounds
 
@@ -41,16 +42,11 @@ def resolved(scenario):
 
 
 def _sweep_scenario(scenario, guarded=False) -> Scenario:
-    """What a swept table depends on, and nothing else: the start state, duration,
-    seed and fallback settings are reset (a sweep sets the state and reads ports that
-    do not depend on them), the runway is written out in full so a changed catalog
-    entry changes the fingerprint, and the checkpoint paths are absolute."""
-    scenario = resolved(scenario)
-    defaults = Scenario()
-    scenario.initial_state, scenario.duration, scenario.seed = (
-        InitialState(), defaults.duration, defaults.seed)
+    """`reach.application.sweep_scenario` of ``scenario`` with its checkpoint paths
+    absolute and its runway written out in full, so a changed catalog entry changes the
+    fingerprint."""
+    scenario = sweep_scenario(resolved(scenario), guarded)
     scenario.environment.runway_spec = scenario.environment.spec()
-    scenario.monitor = MonitorConfig(detector=scenario.monitor.detector if guarded else "")
     return scenario
 
 

@@ -90,6 +90,10 @@ def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tm
     np.testing.assert_array_equal(app.failed(scenario, states), [False, True])   # helpers.EDGE
     key, sweep_key = app.key(), app.sweep_key(scenario, grid)
     assert key is not None and sweep_key != taxi_sweep_key(scenario, grid)
+    # what a sweep does not read leaves its key; the controller does not
+    assert app.sweep_key(load_scenario(data="monitor: {threshold: 0.3, strategy: brake}\n"
+                                            "duration: 5.0\nseed: 3\n"), grid) == sweep_key
+    assert app.sweep_key(load_scenario(data="controller: {speed: 4.0}\n"), grid) != sweep_key
     from reachwatch.reach import ValueFunction
     vf = ValueFunction(grid, np.ones(grid.shape), 1.0, "test")
     assert dataset_folder(tmp_path, scenario, vf, DatasetSpec(), application=app) != \
