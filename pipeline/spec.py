@@ -167,8 +167,9 @@ class MapSelectionSpec:
 @dc.dataclass
 class RunSpec:
     """A whole study. ``scenario`` holds camera, controller and fallback settings
-    (its environment and start are ignored); grids are ``[n_px, n_py, n_theta]``
-    over the paper's box; ``horizon`` s; ``periods_per_step``: control periods per
+    (its environment and start are ignored); grids are one size per axis of the
+    application's box (the taxi's: ``[n_px, n_py, n_theta]`` over the paper's box);
+    ``horizon`` s; ``periods_per_step``: control periods per
     step of the ``semi_lagrangian`` solver (each step interpolates V once: on the
     demo's 21x9x21 night grids, 4 per step called 14-17 % of the checked starts safe
     that failed in the real loop, 40 per step 6-9 %). ``solved_theta_deg`` widens the
