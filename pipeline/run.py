@@ -8,6 +8,7 @@ and resumes its chunked work when it was killed."""
 
 import time
 
+from reachwatch.systems.checks import short
 
 from .checked_page import write_checked_page
 from .console import log, progress_enabled
@@ -97,8 +98,10 @@ def check_slice(spec: RunSpec, only, until: str):
     unknown = [n for n in only if n not in names]
     if not only or unknown:
         what = ("no environment given" if not only else
-                f"no environment named {', '.join(map(repr, unknown))} in run '{spec.name}'")
-        raise ValueError(f"--only: {what}; its environments are: {', '.join(names)}")
+                f"no environment named {', '.join(short(n, 60) for n in unknown[:3])}"
+                f"{' ...' if len(unknown) > 3 else ''} in run '{spec.name}'")
+        listed = ", ".join(names[:12]) + (f", ... ({len(names)} in all)" if len(names) > 12 else "")
+        raise ValueError(f"--only: {what}; its environments are: {listed}")
     if STAGES.index(until) > STAGES.index(SLICE_UNTIL):
         raise ValueError(f"--only runs a slice up to {SLICE_UNTIL} at most (--until sweep, solve, "
                          f"dataset or {SLICE_UNTIL}): the stages after it pool every environment "

@@ -371,3 +371,14 @@ def test_hour_minus_zero_is_hour_zero_and_cannot_hide_a_training_environment_in_
     with pytest.raises(ScenarioError, match=re.escape("train/test: an environment is listed "
                                                       "twice: ['KMWH_0h_clear']")):
         load_run_spec(data=text)
+
+
+def test_an_unknown_only_name_is_shown_short_and_the_runs_names_kept():
+    """A 100 000-character ``--only`` name filled the 600-character error line, cutting
+    off the list of the run's environments that the message is for."""
+    from reachwatch.pipeline.run import check_slice
+    with pytest.raises(ValueError) as e:
+        check_slice(load_run_spec(data=TINY), ["K" * 100_000, "a\nb"], "fidelity")
+    message = str(e.value)
+    assert len(message) < 300 and "\n" not in message
+    assert message.endswith("its environments are: KMWH_9h_clear, KSFO_17h_clear, KMWH_17h_clear")
