@@ -219,10 +219,13 @@ class RunSpec:
         self.scenario.validate()
         check_label("name", self.name)
         check_bounds(self)
-        if self.horizon < self.scenario.controller.period:
-            raise ValueError(f"horizon ({self.horizon:g} s) must be at least one control period "
-                             f"(scenario.controller.period {self.scenario.controller.period:g} s): "
-                             f"within a shorter one the controller never acts")
+        period = self.scenario.controller.period
+        for where, seconds in (("horizon", self.horizon),
+                               ("guard.online_seconds", self.guard.online_seconds)):
+            if seconds < period:
+                raise ValueError(f"{where} ({seconds:g} s) must be at least one control period "
+                                 f"(scenario.controller.period {period:g} s): within a shorter "
+                                 f"one the controller never acts")
         application = load_application(self.application)    # a bad name fails before any work
         self.train_random.validate("train_random")
         self.test_random.validate("test_random")

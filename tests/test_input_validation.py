@@ -334,12 +334,15 @@ def test_a_device_this_machine_lacks_is_refused_before_any_work():
     (("horizon: 4.0", "horizon: 0.01"),
      "horizon (0.01 s) must be at least one control period (scenario.controller.period 0.05 s)"),
     (("horizon: 4.0", "horizon: 1.0e-9"), "horizon (1e-09 s) must be at least one control period"),
+    (("online_seconds: 0.2", "online_seconds: 1.0e-12"),
+     "guard.online_seconds (1e-12 s) must be at least one control period"),
 ])
 def test_labels_monitor_environments_and_horizons_that_make_no_sense_are_refused(edit, message):
     """Each was accepted: a run name of 5000 characters or with a newline titled the
-    report, a monitor environment listed twice counted twice in its pooled rates, and a
+    report, a monitor environment listed twice counted twice in its pooled rates, a
     horizon shorter than a control period ran the whole study (rc 0) on a loop whose
-    controller never acts."""
+    controller never acts, and an online timing that short divided by zero at the guard
+    stage, after the sweeps, datasets and training."""
     assert edit[0] in TINY
     with pytest.raises(ScenarioError, match=re.escape(message)) as e:
         load_run_spec(data=TINY.replace(*edit))
