@@ -35,14 +35,15 @@ def main():
     parser.add_argument("--duration", type=float, default=4.0, help="seconds simulated per round")
     parser.add_argument("--rounds", type=int, default=15, help="rounds (median ratio)")
     parser.add_argument("--torch-threads", type=int, default=0,
-                        help="torch.set_num_threads for the run (0: torch's default)")
+                        help="torch.set_num_threads for the run (0: torch's default); a "
+                             "history monitor runs its network on one thread whatever this says")
     args = parser.parse_args()
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     print(f"online benchmark: KMWH 9h clear, 200x360, {args.rounds} rounds of "
           f"{args.duration:g} s, both loops side by side in alternating 0.5 s blocks; "
-          f"medians over rounds; {torch.get_num_threads()} torch threads (paper: 33 Hz "
-          f"alone vs 25 Hz guarded)")
+          f"medians over rounds; {torch.get_num_threads()} torch threads, 1 in a history "
+          f"monitor (paper: 33 Hz alone vs 25 Hz guarded)")
     print(f"{'detector':<34} {'alone /s':>10} {'guarded /s':>12} {'+ms/tick':>9} {'ratio':>6} "
           f"{'range':>9}")
     with tempfile.TemporaryDirectory() as folder:
