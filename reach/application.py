@@ -21,6 +21,7 @@ import dataclasses as dc
 import functools
 import importlib
 import inspect
+import threading
 
 import numpy as np
 
@@ -148,13 +149,18 @@ class Application(abc.ABC):
     # --- the real loop --------------------------------------------------------------
     def real_outcomes(self, scenario, starts, *, grid, duration: float, cache_dir,
                       executor=None, progress: bool = True):
-        """`reach.outcomes.Outcomes` of the real loop from each start for ``duration``
-        s: per start ``failed``, ``failure_time``, ``left_box`` (along `open_axes` of
-        ``grid``'s box), ``max_abs_theta`` or another spread, ``ticks`` (frames
-        rendered); cached by content under ``cache_dir``."""
-        raise ValueError(f"the application '{self.name}' runs no real loop (it defines no "
-                         f"real_outcomes): set fidelity.starts: 0, map_selection.starts: 0 "
-                         f"and dataset.labels.source: brt")
+        """`reach.outcomes.Outcomes` of the real loop (`loop_diagram`, rendering at
+        every tick) from each start for ``duration`` s: per start ``failed``,
+        ``failure_time`` (s, NaN if none), ``left_box`` (along `open_axes` of ``grid``'s
+        box), ``max_abs_theta`` (rad: the taxi's heading; NaN for a plant without one)
+        and ``ticks`` (frames rendered); cached by content under ``cache_dir``. Default:
+        `loop_rollouts`, which judges `failed` at the control ticks (the taxi's own
+        stops at the crossing itself)."""
+        from .outcomes import run_outcomes
+        rollout = functools.partial(loop_rollouts, ApplicationRef(self._loaded_as()),
+                                    self.resolved(scenario), float(duration), grid)
+        return run_outcomes(rollout, starts, cache_dir=cache_dir, executor=executor,
+                            progress=progress, label=scenario.environment.name)
 
     def real_paths(self, scenario, starts, *, grid, horizon: float, extend: float,
                    stride: int, cache_dir, executor=None, progress: bool = True):
@@ -247,6 +253,43 @@ def sweep_scenario(scenario, guarded: bool = False):
         defaults.initial_state, defaults.duration, defaults.seed)
     scenario.monitor = type(scenario.monitor)(detector=scenario.monitor.detector if guarded else "")
     return scenario
+
+
+_LOOPS = threading.local()      # per worker thread: (spec, scenario) -> (app, diagram, context)
+
+
+def loop_rollouts(ref: ApplicationRef, scenario, duration: float, grid, states) -> dict:
+    """The real loop of ``ref``'s application from each start for ``duration`` s,
+    stopping at the first control tick where its `Application.failed` holds: the
+    fields of `Application.real_outcomes`. One diagram and Context per worker thread
+    (a Context, and a render context, never crosses threads)."""
+    from reachwatch.diagrams import simulate
+    from .fidelity import left_box
+    loops = getattr(_LOOPS, "loops", None)
+    if loops is None:
+        loops = _LOOPS.loops = {}
+    key = fingerprint(ref, scenario)
+    if key not in loops:
+        application = ref.load()
+        diagram = build_loop(ref, scenario, False)
+        loops[key] = application, diagram, diagram.CreateDefaultContext()
+    application, diagram, context = loops[key]
+    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
+    out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
+    for x in np.asarray(states, float):
+        if failed(x):                                   # already failed
+            row = (True, 0.0, False, np.nan, 0)
+        else:
+            run = simulate(diagram, initial_state=x, duration=duration,
+                           period=scenario.controller.period, half_width=1e300,
+                           stop_on_failure=False, context=context,
+                           stop_when=lambda rows: failed(rows["state"][-1]))
+            end = failed(run.state[-1])
+            row = (end, float(run.time[-1]) if end else np.nan,
+                   left_box(run.state, grid, axes=application.open_axes), np.nan, len(run.time))
+        for k, v in zip(out, row):
+            out[k].append(v)
+    return {k: np.asarray(v) for k, v in out.items()}
 
 
 def build_loop(ref: ApplicationRef, scenario, guarded: bool):

@@ -104,8 +104,9 @@ def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tm
     with pytest.raises(ValueError, match="load it with load_application"):
         type(app)().key()
     # its own loop: no taxi real-loop runs behind its back
-    with pytest.raises(ValueError, match="'rebuilt' runs no real loop"):
-        app.real_outcomes(scenario, states, grid=grid, duration=1.0, cache_dir=tmp_path)
+    with pytest.raises(ValueError, match="'rebuilt' reads no labels along real runs"):
+        app.real_paths(scenario, states, grid=grid, horizon=1.0, extend=1.0, stride=1,
+                       cache_dir=tmp_path)
     # editing a helper file (not the one named) re-keys its sweeps and its results
     _user_app(tmp_path, edge=4.0)
     edited = load_application(spec)
@@ -144,3 +145,24 @@ def test_the_generic_sweep_of_a_user_application_is_the_taxis_table(tmp_path):
                              executor=InlineExecutor(), progress=False)
     assert mine.key != taxi.key and mine.computed == taxi.computed == grid.size
     np.testing.assert_allclose(mine[CONTROL_PORT], taxi[CONTROL_PORT])
+
+
+def test_the_generic_real_loop_judges_the_failure_rule_at_the_ticks(tmp_path):
+    """`Application.real_outcomes` by default runs `loop_diagram` and stops at the first
+    control tick where the application's failure rule holds: on the taxi's own loop and
+    rule it agrees with the taxi's real loop (which stops at the crossing itself: its
+    failure time is at most one period earlier)."""
+    scenario = load_scenario(data="")
+    B = scenario.environment.half_width
+    app = load_application(f"{_user_app(tmp_path, edge=B)}:Rebuilt")
+    grid = paper_grid(B, (3, 3, 3))
+    starts = np.array([[0.0, 150.0, 0.0], [B - 0.5, 150.0, 0.4], [B + 1.0, 150.0, 0.0]])
+    mine = app.real_outcomes(scenario, starts, grid=grid, duration=1.0,
+                             cache_dir=tmp_path / "mine", progress=False)
+    taxi = load_application().real_outcomes(scenario, starts, grid=grid, duration=1.0,
+                                            cache_dir=tmp_path / "taxi", progress=False)
+    np.testing.assert_array_equal(mine.failed, [False, True, True])
+    np.testing.assert_array_equal(mine.failed, taxi.failed)
+    assert mine["ticks"][0] == taxi["ticks"][0] == 21 and mine["ticks"][2] == 0
+    assert 0 < taxi["failure_time"][1] <= mine["failure_time"][1] <= taxi["failure_time"][1] + 0.05
+    assert abs(int(mine["ticks"][1]) - int(taxi["ticks"][1])) <= 1

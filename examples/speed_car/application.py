@@ -1,9 +1,8 @@
 """The speed car (speed_car.py) as an application of ``reachwatch run``: a 4-state
 plant ([px m, py m, theta rad, v m/s], its speed lagging the command) under the wing
 camera on a catalog runway, steered by the run file's controller. It fails where it
-leaves the runway (|px| >= half-width). No real-loop runs and no fallback table
-rollouts: the run file sets ``fidelity.starts: 0`` and ``dataset.labels.source: brt``,
-and the guard stage is skipped.
+leaves the runway (|px| >= half-width), judged at the control ticks in its real loop
+(the generic one). It has no fallback table rollouts: the guard stage is skipped.
 
     reachwatch run --scenario examples/speed_car/run.yaml --out out/speed_car
 
