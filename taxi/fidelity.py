@@ -43,6 +43,13 @@ _LOOPS = threading.local()
 #: 200x360), built on the thread's first batch. 1: one run at a time.
 LOCKSTEP = 4
 
+#: torch's threads while real-loop runs go on (restored after; 0: torch's own setting).
+#: TaxiNet's tensors are small: a second thread saves little, and on a loaded two-core
+#: machine each of its ops waits for that thread to be scheduled (measured there at
+#: 200x360: TaxiNet 40-74 ms per tick on two threads, 4.2-4.7 ms on one;
+#: benchmarks/lockstep.py). The estimates are the same bits either way (measured).
+LOOP_TORCH_THREADS = 1
+
 
 def on_runway_starts(box, count: int, seed, *, half_width: float) -> np.ndarray:
     """``count`` seeded uniform random states of ``box`` (a `Grid`'s box, or ``(lo,
@@ -89,11 +96,18 @@ def _lockstep(lockstep) -> int:
 
 def _real_runs(scenario, make, states, *, lockstep=None, **settings) -> list:
     """`simulate` of the loop ``make(scenario)`` from each of ``states``, `LOCKSTEP` runs
-    (or ``lockstep``) at a time on this thread's copies of the loop (`_loops`)."""
+    (or ``lockstep``) at a time on this thread's copies of the loop (`_loops`), on
+    `LOOP_TORCH_THREADS` torch threads."""
     if len(states) == 0:
         return []
     copies = _loops(scenario, make, min(_lockstep(lockstep), len(states)))
-    return simulate_lockstep(copies, initial_states=states, **settings)
+    threads = torch.get_num_threads()
+    if LOOP_TORCH_THREADS:
+        torch.set_num_threads(LOOP_TORCH_THREADS)
+    try:
+        return simulate_lockstep(copies, initial_states=states, **settings)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def taxi_rollouts(scenario, duration: float, grid, states, *, lockstep=None) -> dict:

@@ -108,21 +108,27 @@ def test_a_loop_without_batch_entry_points_runs_one_system_at_a_time(tiny_scenar
         simulate_lockstep(mixed, initial_states=STARTS, **settings)
 
 
-def test_real_loop_runs_do_not_depend_on_lockstep(tiny_scenario):
+def test_real_loop_runs_do_not_depend_on_lockstep_nor_torch_threads(tiny_scenario, monkeypatch):
     """taxi_rollouts, taxi_paths and the missions (their stop test keeps state per run)
-    give the same arrays one run at a time and two at a time; a start already off the
-    runway is skipped either way."""
+    give the same arrays one run at a time on torch's threads and two at a time on
+    `LOOP_TORCH_THREADS` (1, restored after); a start off the runway is skipped."""
     scenario = dc.replace(tiny_scenario)
     B = scenario.environment.half_width
     grid = paper_grid(B, (3, 3, 3))
     starts = np.array(STARTS[1:4] + [[B + 1.0, 100.0, 0.0]])
+    before, seen = torch.get_num_threads(), []
+    prepare = TaxiNet.prepare_batch
+    monkeypatch.setattr(TaxiNet, "prepare_batch", lambda self, pairs: (
+        seen.append(torch.get_num_threads()), prepare(self, pairs))[1])
     runs = {}
-    for lockstep in (1, 2):
+    for lockstep, threads in ((1, 0), (2, 1)):
+        monkeypatch.setattr(fidelity, "LOOP_TORCH_THREADS", threads)
         runs[lockstep] = (
             fidelity.taxi_rollouts(scenario, 0.3, grid, starts, lockstep=lockstep),
             fidelity.taxi_paths(scenario, 0.2, 0.1, 2, grid, starts, lockstep=lockstep),
             fidelity.mission_rollouts(scenario, None, 0.2, starts, mission_limit=1.5,
                                       lockstep=lockstep))
+    assert seen and set(seen) == {1} and torch.get_num_threads() == before
     for one, two in zip(runs[1], runs[2]):
         assert one.keys() == two.keys()
         for name in one:
