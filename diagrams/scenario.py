@@ -327,6 +327,11 @@ def read_yaml(data: str, where: str, *, drake=True):
             yaml_load_data(data)
     except ScenarioError as e:
         raise ScenarioError(clip(f"{where}: {e}")) from None
+    except ValueError as e:  # an integer of thousands of digits (Python's own limit)
+        if "integer string conversion" not in str(e):
+            raise ScenarioError(clip(f"{where}: not valid YAML: {e}")) from None
+        raise ScenarioError(clip(f"{where}: a number of thousands of digits; numbers here "
+                                 f"are at most {MAX_INT} in size")) from None
     except Exception as e:  # PyYAML's or Drake's parser error
         raise ScenarioError(clip(f"{where}: not valid YAML: {e}")) from None
     return raw

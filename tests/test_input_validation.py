@@ -177,6 +177,10 @@ def test_yaml_alias_bombs_are_refused_quickly_and_briefly():
     with pytest.raises(ScenarioError, match="holds more than 100000 values") as info:
         load_scenario(data="grid:\n" + "- 1\n" * 200_000)
     assert "alias" not in str(info.value).split("(")[0] and time.time() - started < 10
+    # a number of 500,000 digits: one line in our words, not Python's advice
+    with pytest.raises(ScenarioError, match="a number of thousands of digits") as info:
+        load_scenario(data="camera: {width: " + "9" * 500_000 + "}")
+    assert "set_int_max_str_digits" not in str(info.value)
     # an alias that stands for a little is still fine
     s = load_scenario(data="environment: {hour: &h 17.0}\ninitial_state: {theta_deg: *h}\n")
     assert s.environment.hour == s.initial_state.theta_deg == 17.0
