@@ -5,6 +5,10 @@ camera-port render rate measured in the same run.
 At 64x128 the loop uses a TaxiNet with random weights (timing does not depend on the
 weights; the shipped checkpoint is for 200x360).
 
+This is one long run at a time on torch's default threads; `benchmarks/lockstep.py` times
+the real-loop runs as `reachwatch.taxi.fidelity` makes them (several runs in lockstep,
+one torch thread) against the render rate.
+
     python benchmarks/closed_loop.py [--duration 8] [--runs 3]
 """
 

@@ -10,8 +10,9 @@ the same runs N at a time for each N. A tick is one rendered frame (one logged r
 run), and a mode's rate counts every second of its runs, their starts included. Ratios
 are to the render rate of the same round, and "x one" to the first one-at-a-time mode's
 rate of the same round; the table gives medians and ranges over the rounds after a
-warm-up round. With several ``--torch-threads`` each count is a mode of its own. Every mode's runs are compared with the first
-one-at-a-time runs (time, state, estimate, failure: equal, NaN equal to NaN).
+warm-up round. With several ``--torch-threads`` each count is a mode of its own. Every
+mode's runs are compared with the first one-at-a-time runs (time, state, estimate,
+failure: equal, NaN equal to NaN).
 
 ``--breakdown`` then times the parts of one more pass of each mode: the renders, TaxiNet
 (preprocessing and network), the plant's derivatives (Python), the runs' starts, and

@@ -41,8 +41,8 @@ def _same(a, b):
                for f in FIELDS)
 
 
-def test_lockstep_runs_equal_one_at_a_time_and_the_controller_sees_batches(tiny_scenario,
-                                                                            monkeypatch):
+def test_lockstep_runs_equal_one_at_a_time_and_the_controller_sees_batches(
+        tiny_scenario, monkeypatch):
     B = tiny_scenario.environment.half_width
     settings = dict(duration=0.4, period=0.05, half_width=B)
     diagram = make_closed_loop_diagram(tiny_scenario)
