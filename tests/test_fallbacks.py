@@ -298,7 +298,7 @@ def test_guard_command_reports_liveness_and_the_real_loop_check(detector_path, t
     path = tmp_path / "guarded.yaml"
     path.write_text(f"monitor: {{detector: {detector_path}, threshold: 0.5, "
                     f"resume_acceleration: 2.0}}\n")
-    assert main(["-q", "guard", "--scenario", str(path), "--shape", "3", "2", "3", "--horizon",
+    assert main(["-q", "guard", "--scenario", str(path), "--shape", "3", "3", "3", "--horizon",
                  "2", "--fallbacks", "brake", "slow_down+dead_reckoning", "--tradeoff-points",
                  "2", "--check-starts", "2", "--noise-starts", "3", "--flag-budget", "0.4",
                  "--flag-budget-starts", "20", "--executor", "inline", "--cache",
