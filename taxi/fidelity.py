@@ -46,8 +46,8 @@ LOCKSTEP = 4
 #: torch's threads while real-loop runs go on (restored after; 0: torch's own setting).
 #: TaxiNet's tensors are small: a second thread saves little, and on a loaded two-core
 #: machine each of its ops waits for that thread to be scheduled (measured there at
-#: 200x360: TaxiNet 40-74 ms per tick on two threads, 4.2-4.7 ms on one;
-#: benchmarks/lockstep.py). The estimates are the same bits either way (measured).
+#: 200x360, one run at a time: TaxiNet 33-74 ms per tick on two threads, 3.1-4.7 ms on
+#: one; benchmarks/lockstep.py). The estimates are the same bits either way (measured).
 LOOP_TORCH_THREADS = 1
 
 
