@@ -219,13 +219,6 @@ class RunSpec:
         self.scenario.validate()
         check_label("name", self.name)
         check_bounds(self)
-        period = self.scenario.controller.period
-        for where, seconds in (("horizon", self.horizon),
-                               ("guard.online_seconds", self.guard.online_seconds)):
-            if seconds < period:
-                raise ValueError(f"{where} ({seconds:g} s) must be at least one control period "
-                                 f"(scenario.controller.period {period:g} s): within a shorter "
-                                 f"one the controller never acts")
         application = load_application(self.application)    # a bad name fails before any work
         self.train_random.validate("train_random")
         self.test_random.validate("test_random")
@@ -284,6 +277,13 @@ class RunSpec:
                              f"{short(self.ensemble.seeds)}")
         check_bounds(self.guard, "guard.")
         check_bounds(self.fidelity, "fidelity.")
+        period = self.scenario.controller.period
+        for where, seconds in (("horizon", self.horizon),
+                               ("guard.online_seconds", self.guard.online_seconds)):
+            if seconds < period:
+                raise ValueError(f"{where} ({seconds:g} s) must be at least one control period "
+                                 f"(scenario.controller.period {period:g} s): within a shorter "
+                                 f"one the controller never acts")
         more = self.fidelity.more_starts
         if more and more <= self.fidelity.starts:
             raise ValueError(f"fidelity.more_starts must be 0 (never extend the check) or a "

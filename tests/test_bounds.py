@@ -40,6 +40,9 @@ COMPANIONS = {
     ("run.detector.validation_fraction", "low"): {"run.detector.target_recall": 0.0},
     ("run.monitor.within", "high"): {"run.monitor.duration": 600.0},
     ("run.monitor.calibrate", "low"): {"run.monitor.alpha": 0.5},
+    # horizon and guard.online_seconds are at least one control period
+    ("run.scenario.controller.period", "high"): {"run.horizon": 120.0,
+                                                 "run.guard.online_seconds": 10.0},
 }
 #: Ends that a relation keeps from being reached at all: the value tested inside
 #: instead, and what it needs. ``monitor.duration`` must exceed ``monitor.within`` (> 0),
@@ -48,6 +51,8 @@ INSIDE_INSTEAD = {
     ("run.monitor.duration", "low"): (1e-3, {"run.monitor.within": 5e-4}),
     ("run.scenario.camera.far", "low"): (1e-3, {"run.scenario.camera.near": 5e-4}),
     ("run.monitor.alpha", "low"): (1 / 1001, {"run.monitor.calibrate": 1000}),
+    ("run.horizon", "low"): (1e-3, {"run.scenario.controller.period": 1e-3}),
+    ("run.guard.online_seconds", "low"): (1e-3, {"run.scenario.controller.period": 1e-3}),
 }
 
 
