@@ -26,6 +26,8 @@ from reachwatch.systems import PreprocessConfig, TaxiNetConfig, build_taxinet
 
 
 def checkpoint_for(height, width, folder):
+    """The shipped TaxiNet at 200x360, else a seeded random one (timing does not depend
+    on the weights)."""
     if (height, width) == (200, 360):
         return REFERENCE_TAXINET
     torch.manual_seed(0)

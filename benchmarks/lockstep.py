@@ -28,32 +28,18 @@ import collections
 import os
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from reachwatch.diagrams import (REFERENCE_TAXINET, StateRenderer, load_scenario,
-                                 make_closed_loop_diagram, save_checkpoint)
+from reachwatch.diagrams import StateRenderer, load_scenario, make_closed_loop_diagram
 from reachwatch.diagrams import closed_loop
 from reachwatch.diagrams.lockstep import loop_copies, simulate_lockstep
-from reachwatch.systems import (PreprocessConfig, TaxiNet, TaxiNetConfig, TaxiPlant,
-                                build_taxinet)
+from reachwatch.systems import TaxiNet, TaxiPlant
+
+from closed_loop import checkpoint_for   # the shipped or a seeded random TaxiNet
 
 FIELDS = ("time", "state", "estimate", "failed", "failure_time")
-
-
-def checkpoint_for(height, width, folder):
-    """The shipped TaxiNet at 200x360, else a seeded random one (timing does not depend
-    on the weights)."""
-    if (height, width) == (200, 360):
-        return REFERENCE_TAXINET
-    torch.manual_seed(0)
-    path = Path(folder) / f"random_{height}x{width}.pt"
-    save_checkpoint(path, kind="taxinet", model=build_taxinet(TaxiNetConfig(), PreprocessConfig()),
-                    model_config=TaxiNetConfig(), preprocess_config=PreprocessConfig(),
-                    metadata={"image_size": [height, width]})
-    return path
 
 
 def same_runs(a, b) -> bool:

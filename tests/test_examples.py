@@ -56,16 +56,22 @@ def test_a_system_without_the_ports_is_refused():
         make_controller(ControllerConfig(factory="not_a_module_xyz:make"))
 
 
-def test_grass_follower_through_reachwatch_run(tmp_path, monkeypatch):
-    """Example (a): a classical controller on the taxi plant, run file to report."""
-    monkeypatch.chdir(ROOT)                    # the run file's factory path is relative
-    spec = _tiny(load_run_spec(GRASS / "run.yaml"))
-    spec.guard.environments = []
+def _run_to_report(spec, tmp_path):
+    """``reachwatch run`` on ``spec`` (written to a file) inline; its output folder."""
     path = tmp_path / "tiny.yaml"
     path.write_text(dump_run_spec(spec))
     out = tmp_path / "out"
     assert main(["-q", "run", "--scenario", str(path), "--out", str(out),
                  "--executor", "inline"]) == 0
+    return out
+
+
+def test_grass_follower_through_reachwatch_run(tmp_path, monkeypatch):
+    """Example (a): a classical controller on the taxi plant, run file to report."""
+    monkeypatch.chdir(ROOT)                    # the run file's factory path is relative
+    spec = _tiny(load_run_spec(GRASS / "run.yaml"))
+    spec.guard.environments = []
+    out = _run_to_report(spec, tmp_path)
     report = (out / "report.md").read_text()
     assert "grass_follower" in report and "Table 2" in report
     assert "prediction-error labels" not in report        # no pose estimate: no such baseline
@@ -82,11 +88,7 @@ def test_speed_car_through_reachwatch_run(tmp_path, monkeypatch):
     spec = _tiny(load_run_spec(ROOT / "examples" / "speed_car" / "run.yaml"))
     spec.grid, spec.horizon, spec.dataset.samples = [3, 3, 3, 3], 2.0, 10
     spec.fidelity.starts = 0                   # the application runs no real loop
-    path = tmp_path / "tiny.yaml"
-    path.write_text(dump_run_spec(spec))
-    out = tmp_path / "out"
-    assert main(["-q", "run", "--scenario", str(path), "--out", str(out),
-                 "--executor", "inline"]) == 0
+    out = _run_to_report(spec, tmp_path)
     report = (out / "report.md").read_text()
     assert "speed_car" in report and "| KSFO_21h_overcast | test | 3x3x3x3 | 81 |" in report
     assert "Table 2" in report and (out / "figures" / "overlay_KSFO_21h_overcast.png").is_file()
