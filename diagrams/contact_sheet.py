@@ -1,4 +1,4 @@
-"""A labelled grid of wing-camera images over runways x hours x skies."""
+"""A labelled grid of camera images over environments (runways x hours x skies)."""
 
 import cv2
 import numpy as np
@@ -11,16 +11,20 @@ DEFAULT_HOURS = (9.0, 17.0, 21.0)
 
 
 def environment_sheet(environments, *, per_row: int, state=(0.0, 150.0, 0.0),
-                      camera: CameraConfig = None, captions=None, progress=None) -> np.ndarray:
+                      camera: CameraConfig = None, captions=None, progress=None,
+                      render=None) -> np.ndarray:
     """RGB uint8 grid of the camera view of each `Environment` at ``state``
     [px m, py m, theta rad], ``per_row`` tiles a row (the last row padded black), each
-    captioned (default: the environment's name); ``progress`` wraps the iterable."""
+    captioned (default: the environment's name); ``progress`` wraps the iterable.
+    ``render``: a function of an environment returning its RGB view, in place of the
+    taxi's wing camera at ``state`` (another plant's camera)."""
     environments = list(environments)
     captions = captions or [e.name for e in environments]
+    render = render or (lambda env: StateRenderer(environment=env, camera=camera).render(state))
     tiles = []
     for env, caption in (progress(list(zip(environments, captions))) if progress
                          else zip(environments, captions)):
-        tile = np.ascontiguousarray(StateRenderer(environment=env, camera=camera).render(state))
+        tile = np.ascontiguousarray(render(env))
         cv2.putText(tile, caption, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 0, 255), 1,
                     cv2.LINE_AA)
         tiles.append(tile)

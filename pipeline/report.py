@@ -83,6 +83,11 @@ LABEL_SOURCE_TEXT = {
                   "where the loop goes, not uniform"}
 
 
+def view(application, scenario):
+    """The application's camera view of ``scenario`` at its `view_state`."""
+    return application.renderer(scenario).render(application.view_state(scenario))
+
+
 def environment_roles(spec) -> dict:
     """``{name: "train" | "test"}`` of a run's labelled environments."""
     return {**{e.name: "test" for e in spec.held_out_environments()},
@@ -132,7 +137,8 @@ def write_report(run: Run) -> dict:
     summary_section(page, run)
     page.section("Environments", "environments")
     sheet = write_png(run.path("figures/environments.png"), environment_sheet(
-        run.environments(), per_row=4, camera=spec.scenario.camera))
+        run.environments(), per_row=4, render=lambda env: view(run.application,
+                                                               run.scenario_for(env))))
     page.text("Training: " + ", ".join(e.name for e in spec.training_environments()) +
               ". Held out: " + ", ".join(e.name for e in spec.held_out_environments()) + ".")
     page.images([run.rel(sheet)])

@@ -180,6 +180,12 @@ class Application(abc.ABC):
     #: The loop's camera image port (``"system.port"``), for the default `renderer`.
     camera_port = "wing_camera.color_image"
 
+    def view_state(self, scenario) -> np.ndarray:
+        """A state to show the camera's view at (the report's figure of the
+        environments): default the middle of the `grid`'s box."""
+        grid = self.grid(scenario, (3,) * len(self.axes))
+        return (np.asarray(grid.lo, float) + np.asarray(grid.hi, float)) / 2
+
     def ensemble_estimator(self, checkpoint):
         """A function ``(N, H, W, 3) images -> (N, 2)`` estimates of one member of the
         ensemble baseline (a checkpoint of the controller's estimator)."""

@@ -168,3 +168,8 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     # the real-loop check ran the cart's own loop from 2 starts per environment
     record = json.loads((out / "stages" / "fidelity_KMWH_21h_clear.json").read_text())
     assert record["outputs"]["starts"] == 2 and record["outputs"]["frames"] > 0
+    # the environments figure is the cart's camera: both rails in view
+    import cv2
+    sheet = cv2.imread(str(out / "figures" / "environments.png"))[:, :48].astype(int)
+    b, g, r = sheet[..., 0], sheet[..., 1], sheet[..., 2]
+    assert ((r > g + 40) & (r > b + 40)).any() and ((b > r + 40) & (b > g + 40)).any()
