@@ -2,7 +2,10 @@
 real Drake loop per environment, and the label target each environment is judged
 against (the whole run's report and a slice's page both draw it)."""
 
+import numpy as np
+
 from reachwatch.reach import wilson_interval
+from reachwatch.reach.application import load_application
 from reachwatch.training.dataset import label_frames
 
 from .fidelity_stages import labels_every_state_by_its_run
@@ -15,8 +18,8 @@ def _rate(record, name):
 
 
 def monte_carlo(record) -> str:
-    """The on-runway failure set of a `fidelity_env` record: the BRT map's share of the
-    check starts and the real loop's (a Monte-Carlo estimate), each with its 95 %
+    """The failure set over the check's starts of a `fidelity_env` record: the BRT
+    map's share of the check starts and the real loop's (a Monte-Carlo estimate), each with its 95 %
     Wilson interval."""
     n, brt = record["brt"]["n"], record["brt"]
     (a, b), (c, d) = (wilson_interval(brt["predicted_failures"], n),
@@ -32,9 +35,9 @@ def map_selection_section(page, spec, solved: dict):
     chosen = {n: r["map_selection"] for n, r in solved.items() if r.get("map_selection")}
     if not chosen:
         return
-    selection = spec.map_selection
+    selection, starts = spec.map_selection, load_application(spec.application).starts_text()
     page.text(f"Each environment's map was chosen among its refinement levels and robust "
-              f"variants by {selection.starts} real-loop runs from seeded on-runway starts "
+              f"variants by {selection.starts} real-loop runs from seeded {starts} "
               f"(seed {selection.seed}): the fewest false-unsafe + "
               f"{selection.false_safe_weight:g} x false-safe verdicts there, then the fewest "
               f"renders. The fidelity check below judges the kept map on other starts.")
@@ -67,28 +70,34 @@ def fidelity_section(page, spec, results: dict, made: dict, roles: dict):
         f", {spec.fidelity.more_starts} where the first {spec.fidelity.starts} found the BRT or "
         f"the labels wrong or the labels' audit had distrusted the map (fidelity.more_starts; "
         f"{'; '.join(reasons) or 'none was'})")
+    application = load_application(spec.application)
+    open_axes = " or ".join(application.axes[i] for i in application.open_axes)
     page.text(f"The real closed loop (rendering and the controller at every tick) from "
-              f"{spec.fidelity.starts} seeded uniform on-runway starts per environment{more} "
-              f"(|px| < B; starts already off the runway agree with any BRT), run for "
+              f"{spec.fidelity.starts} seeded uniform {application.starts_text()} per "
+              f"environment{more} ({application.starts_note}), run for "
               f"{spec.horizon:g} s. False-safe: the BRT called the start safe and the real "
-              f"loop left the runway, the error a safety tool must not make. 'Table "
-              f"rollouts = real': the swept table integrated from the same starts, i.e. the "
-              f"table as a model of the loop; 'BRT = table rollouts': the solver against its "
-              f"table; 'left the box': runs leaving the solved box in py or theta, where the "
+              f"loop {application.failure_words}, the error a safety tool must not make. "
+              f"'Table rollouts = real': the swept table integrated from the same starts, i.e. "
+              f"the table as a model of the loop; 'BRT = table rollouts': the solver against "
+              f"its table; 'left the box': runs leaving the solved box"
+              f"{f' in {open_axes}' if open_axes else ''}, where the "
               f"table is clamped to its edge. Every rate in % with its 95 % Wilson interval.")
+    # the real runs' largest |theta|: the taxi's heading (NaN for a plant without one)
+    theta = any(np.isfinite(v) for r in results.values() for v in r["real_max_abs_theta_deg"])
     page.table(["environment", "role", "starts", "real failures", "BRT agreement",
                 "false-safe", "false-unsafe", "table rollouts = real", "BRT = table rollouts",
-                "real runs left the box", "table rollouts left the box", "real max |theta| deg (median / 90 % / max)",
-                "renders"],
+                "real runs left the box", "table rollouts left the box",
+                *(["real max |theta| deg (median / 90 % / max)"] if theta else []), "renders"],
                [[n, roles.get(n, "extra"), r["starts"], r["brt"]["real_failures"],
                  _rate(r["brt"], "agree"), _rate(r["brt"], "false_safe"),
                  _rate(r["brt"], "false_unsafe"), _rate(r["table_rollouts"], "agree"),
                  f"{100 * r['brt_vs_table_rollouts']:.1f}", _rate(r["brt"], "box_exits"),
                  _rate(r["table_rollouts"], "box_exits"),
-                 " / ".join(f"{v:g}" for v in r["real_max_abs_theta_deg"]), r["frames"]]
+                 *([" / ".join(f"{v:g}" for v in r["real_max_abs_theta_deg"])] if theta else []),
+                 r["frames"]]
                 for n, r in results.items()])
-    page.text("The failure set over the same on-runway starts: the share the BRT map puts "
-              "in the BRT, and the share that failed in the real loop (a Monte-Carlo "
+    page.text(f"The failure set over the same {application.starts_text()}: the share the BRT "
+              "map puts in the BRT, and the share that failed in the real loop (a Monte-Carlo "
               "estimate of the true failure set, independent of the map): " + "; ".join(
                   f"{n}: {monte_carlo(r)}" for n, r in results.items()) + ".")
     crowded = [n for n, r in results.items()

@@ -6,6 +6,7 @@ import html
 
 from reachwatch.diagrams import export_graph, write_png
 from reachwatch.diagrams.contact_sheet import environment_sheet
+from reachwatch.reach.application import load_application
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.evaluation import COLUMNS, format_cell
 
@@ -111,10 +112,11 @@ def labels_paragraph(spec, o) -> str:
     """What the datasets hold and where their labels come from, and the detector trained
     on them (the report's "Labels and the detector" text)."""
     labels, paths = spec.dataset.labels, spec.dataset.labels.paths
+    states = load_application(spec.application).starts_text("states")
     return (f"{spec.dataset.samples} uniform states per environment, labels from "
             f"'{labels.source}' ({LABEL_SOURCE_TEXT[labels.source]}); "
             + (f"besides them, the states that {paths} more real run{'s' * (paths != 1)} per "
-               f"environment pass through (from uniform on-runway states, {labels.extend:g} s "
+               f"environment pass through (from uniform {states}, {labels.extend:g} s "
                f"past the horizon, every {labels.stride}th tick), labelled by those runs, and "
                f"each run's states kept on one side of the detector's validation split; "
                if paths else "") +
@@ -149,11 +151,13 @@ def write_report(run: Run) -> dict:
         else:
             page.images([path], f"{name} diagram", wide=True)
     page.section("Backward reachable tubes", "brts")
-    page.text(f"Grid {spec.grid} over the paper's box, horizon {spec.horizon:g} s, solver "
-              f"{spec.accuracy}; 'BRT = table rollouts': sign agreement of the BRT with RK4 "
-              f"rollouts of the swept table from every node (the solver against its own "
-              f"model of the loop, not against the real loop: see the next section); "
-              f"slices at py = {spec.slice_py:g} m.")
+    application = run.application
+    slices = application.slice_words.format(at=spec.slice_py)
+    page.text(f"Grid {spec.grid} over {application.box_words}, horizon {spec.horizon:g} s, "
+              f"solver {spec.accuracy}; 'BRT = table rollouts': sign agreement of the BRT with "
+              f"RK4 rollouts of the swept table from every node (the solver against its own "
+              f"model of the loop, not against the real loop: see the next section)"
+              + (f"; {slices}." if slices else "."))
     roles = environment_roles(spec)
     if spec.refine.levels:
         page.text(f"Each table was refined adaptively {spec.refine.levels} time(s): each level "

@@ -206,6 +206,24 @@ class Application(abc.ABC):
                                  horizon, "rollouts") for k, v in failures.items()}
         return self.plot_slices(sets, scenario=scenario, at=at, path=path, title=title)
 
+    # --- words for reports --------------------------------------------------------------
+    #: What the report puts before "starts" and "states" drawn where the plant has not
+    #: failed (the taxi's: "on-runway"; "" = nothing).
+    start_word = ""
+    #: What a run that failed did, after "the real loop" (the taxi's: "left the runway").
+    failure_words = "failed"
+    #: The report's note on the check's starts (the taxi's names its failure rule).
+    starts_note = "a start that has already failed agrees with any BRT"
+    #: The box the grid spans, as the report names it (the taxi's: "the paper's box").
+    box_words = "the application's box"
+    #: Where `plot_slices` cuts the state space, formatted with ``at`` (the taxi's:
+    #: "slices at py = {at:g} m"); "" = the report says nothing.
+    slice_words = ""
+
+    def starts_text(self, noun="starts") -> str:
+        """``noun`` qualified by `start_word` (``"on-runway starts"``)."""
+        return f"{self.start_word} {noun}" if self.start_word else noun
+
     # --- fallbacks ----------------------------------------------------------------------
     #: ``fallback_rollouts(...)`` of the guarded loop on the grid, or None when the
     #: application has none (the guard stage then needs the real loop).

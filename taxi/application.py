@@ -22,6 +22,12 @@ class TaxiApplication(Application):
     axes = AXES
     open_axes = fidelity.OPEN_AXES
 
+    start_word = "on-runway"
+    failure_words = "left the runway"
+    starts_note = "|px| < B; starts already off the runway agree with any BRT"
+    box_words = "the paper's box"
+    slice_words = "slices at py = {at:g} m"
+
     def loop_diagram(self, scenario, *, guarded=False):
         return (make_guarded_diagram if guarded else make_closed_loop_diagram)(scenario)
 

@@ -168,6 +168,11 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     # the real-loop check ran the cart's own loop from 2 starts per environment
     record = json.loads((out / "stages" / "fidelity_KMWH_21h_clear.json").read_text())
     assert record["outputs"]["starts"] == 2 and record["outputs"]["frames"] > 0
+    # the report speaks of the cart, not the taxi (the run file itself names runways)
+    text = report.split("## Configuration")[0]
+    for words in ("runway", "TaxiNet", "aircraft", "paper's box", "py = ", "|theta|"):
+        assert words not in text, words
+    assert "left the box': runs leaving the solved box in theta," in text
     # the environments figure is the cart's camera: both rails in view
     import cv2
     sheet = cv2.imread(str(out / "figures" / "environments.png"))[:, :48].astype(int)
