@@ -13,16 +13,16 @@ deterministic that runs the loop the labels are about will do.
 is all it remembers (its controller has no state of its own), the run from a state it
 passes through is the rest of the same run."""
 
-import concurrent.futures as cf
 import dataclasses as dc
+import functools
 import hashlib
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from .chunks import FolderStore, InlineExecutor, run_chunks, split
 from .fingerprint import fingerprint
-from .sweep import CHECKSUM, InlineExecutor, checksum_ok, in_flight, store_chunk_file
 
 
 @dc.dataclass
@@ -54,10 +54,6 @@ def outcomes_key(rollout, states) -> str:
     return f"{getattr(base, '__name__', 'rollout')}_{len(states)}_{fingerprint(rollout)[:16]}_{digest}"
 
 
-def _chunk(folder: Path, index: int) -> Path:
-    return folder / f"chunk_{index:06d}.npz"
-
-
 def _run_chunk(fn, states, required) -> dict:
     """``fn(states)``'s arrays, checked: a worker returns them and the driver writes the
     cache, so no worker needs the driver's filesystem."""
@@ -73,24 +69,13 @@ def _run_chunk(fn, states, required) -> dict:
     return arrays
 
 
-def _store(path: Path, arrays: dict) -> Path:
-    return store_chunk_file(path, arrays)         # with its checksum
-
-
-def _load(path: Path, rows: int, required):
-    """The chunk's arrays, or None when it is missing, corrupt, short, or its numbers
-    no longer match its checksum."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except Exception:       # missing, truncated or corrupt: run it again
-        return None
-    if not checksum_ok(arrays):
-        return None
-    arrays.pop(CHECKSUM, None)
-    if any(n not in arrays for n in required) or any(len(a) != rows for a in arrays.values()):
-        return None
-    return arrays
+def _fits(required):
+    """Whether a stored chunk holds every ``required`` array and only arrays with one
+    row per state (else it is run again)."""
+    def fits(chunk, arrays) -> bool:
+        return (all(n in arrays for n in required) and
+                all(len(a) == chunk.rows for a in arrays.values()))
+    return fits
 
 
 def default_chunk_size(count: int) -> int:
@@ -126,44 +111,23 @@ def map_states(fn, states, *, cache_dir, chunk_size: int = None, executor=None,
     key = outcomes_key(fn, states)
     folder = Path(cache_dir) / key
     folder.mkdir(parents=True, exist_ok=True)
-    bounds = [(i, s, min(s + chunk_size, len(states)))
-              for i, s in enumerate(range(0, len(states), chunk_size))]
-    done = {i: _load(_chunk(folder, i), e - s, required) for i, s, e in bounds}
-    todo = [b for b in bounds if done[b[0]] is None]
-    computed = sum(e - s for _, s, e in todo)
-    bar = tqdm(total=len(states), initial=len(states) - computed, unit=unit,
-               desc=label or key, disable=not progress)
-    executor = executor or InlineExecutor()
-    max_in_flight = max_in_flight or in_flight(executor)
-    pending = {}
-
-    def finish(finished):
-        for future in finished:
-            arrays = future.result()             # re-raises a worker's error
-            i, first, last = pending.pop(future)
-            _store(_chunk(folder, i), arrays)
-            done[i] = arrays
-            bar.update(last - first)
-
-    try:       # a bounded window of chunks in flight; the bar moves as each finishes
-        for i, s, e in todo:
-            pending[executor.submit(_run_chunk, fn, states[s:e], required)] = (i, s, e)
-            finish([f for f in pending if f.done()])
-            while len(pending) >= max_in_flight:
-                finish(cf.wait(pending, return_when=cf.FIRST_COMPLETED).done)
-        while pending:
-            finish(cf.wait(pending, return_when=cf.FIRST_COMPLETED).done)
-    finally:
-        bar.close()
+    chunks = split(len(states), chunk_size)
+    store = FolderStore(folder, _fits(required), keep=True)
+    ran = run_chunks(_run_chunk, chunks, store,
+                     args=lambda c: (fn, states[c.start:c.stop], required), executor=executor,
+                     default=InlineExecutor, max_in_flight=max_in_flight, caller="map_states",
+                     bar=functools.partial(tqdm, total=len(states), unit=unit,
+                                           desc=label or key, disable=not progress))
+    computed = sum(c.rows for c in ran)
     fields = None
-    for i, s, e in bounds:
-        arrays = done[i] if done[i] is not None else _load(_chunk(folder, i), e - s, required)
+    for chunk in chunks:
+        arrays = store.read(chunk)
         if arrays is None:
-            raise RuntimeError(f"chunk {i} of {key} did not finish")
+            raise RuntimeError(f"chunk {chunk.index} of {key} did not finish")
         if fields is None:
             fields = {k: np.empty((len(states),) + a.shape[1:], a.dtype) for k, a in arrays.items()}
         for k, a in arrays.items():
-            fields[k][s:e] = a
+            fields[k][chunk.start:chunk.stop] = a
     return fields, key, computed
 
 

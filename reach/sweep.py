@@ -4,15 +4,13 @@ and evaluate the control output port (and any others) at every node.
 Works for any diagram: name the subsystem whose continuous state is the grid state
 and the ports to read (``"system.port"``). Chunked; each finished chunk is written
 atomically under ``cache_dir/key/``, so a killed sweep resumes and a repeated one
-costs nothing. Chunks run on any `concurrent.futures.Executor`."""
+costs nothing. Chunks run on any `concurrent.futures.Executor` (`reach.chunks`)."""
 
 import collections
 import concurrent.futures as cf
-import concurrent.futures.process  # noqa: F401  (BrokenProcessPool)
 import dataclasses as dc
 import functools
 import hashlib
-import io
 import json
 import multiprocessing
 import os
@@ -28,6 +26,10 @@ from tqdm import tqdm
 
 from reachwatch.systems.files import atomic_write_bytes
 
+# (also re-exported: where they lived before `reach.chunks` ran every chunked job)
+from .chunks import (CHECKSUM, FolderStore, InlineExecutor, checksum_ok,  # noqa: F401
+                     chunk_checksum, chunk_path, executor_threads, in_flight, row_done,
+                     run_chunks, set_row_hook, split, stop_executor, store_chunk_file)
 from .fingerprint import Unfingerprintable, fingerprint
 from .grid import Grid
 
@@ -43,21 +45,6 @@ class Probe:
     @property
     def ports(self):
         return (self.control_port,) + tuple(self.extra_ports)
-
-
-class InlineExecutor(cf.Executor):
-    """Runs each task at submit time in this process (small sweeps, tests)."""
-
-    def submit(self, fn, /, *args, **kwargs):
-        future = cf.Future()
-        try:
-            future.set_result(fn(*args, **kwargs))
-        except BaseException as e:  # delivered through the future, like a pool would
-            future.set_exception(e)
-        return future
-
-
-_ON_STATE = None      # called once per evaluated state (progress), when set
 
 
 def _count_state(counter):
@@ -91,9 +78,8 @@ def _init_worker(counter, threads: int = None):
     states into the shared ``counter``, leave Ctrl-C to the driver (it stops the pool),
     and (``threads``) cap the worker's OpenMP / torch threads so that the workers
     together do not oversubscribe the cores."""
-    global _ON_STATE
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _ON_STATE = functools.partial(_count_state, counter)
+    set_row_hook(functools.partial(_count_state, counter))
     if threads is not None:
         os.environ["OMP_NUM_THREADS"] = str(threads)      # read when torch is imported
         torch = sys.modules.get("torch")
@@ -155,23 +141,6 @@ def default_executor(max_workers: int = None) -> cf.Executor:
     return executor
 
 
-def stop_executor(executor, *, abort: bool = False):
-    """Shut ``executor`` down; with ``abort``, cancel queued work and kill a process
-    pool's workers now instead of waiting for their current chunk (finished chunks are
-    on disk already)."""
-    if executor is None or not hasattr(executor, "shutdown"):
-        return
-    if abort and isinstance(executor, cf.ProcessPoolExecutor):
-        processes = list((getattr(executor, "_processes", None) or {}).values())
-        for process in processes:
-            process.terminate()
-        executor.shutdown(wait=False, cancel_futures=True)
-        for process in processes:
-            process.join(5)
-    else:
-        executor.shutdown(wait=True, cancel_futures=abort)
-
-
 def _subsystem(diagram, name):
     if not diagram.HasSubsystemNamed(name):
         names = sorted(s.get_name() for s in diagram.GetSystems())
@@ -210,8 +179,7 @@ class _DiagramProbe:
                 self.plant_context.SetContinuousState(x)
                 for k, (port, ctx) in enumerate(self.ports):
                     out[k][i] = port.Eval(ctx)
-                if _ON_STATE is not None:
-                    _ON_STATE()
+                row_done()
             return out
 
 
@@ -255,10 +223,6 @@ def _thread_probe(factory, probe: Probe, key: str, state_dim: int) -> "_DiagramP
     return probes[key]
 
 
-def _chunk_path(folder: Path, index: int) -> Path:
-    return folder / f"chunk_{index:06d}.npz"
-
-
 def run_chunk(factory, probe: Probe, key: str, grid: Grid, start: int, stop: int) -> dict:
     """The chunk of nodes ``start:stop`` (flat C order): its arrays, which the driver
     writes (a worker needs no filesystem shared with it)."""
@@ -266,62 +230,6 @@ def run_chunk(factory, probe: Probe, key: str, grid: Grid, start: int, stop: int
         grid.states(np.arange(start, stop)))
     return {"start": np.asarray(start), "stop": np.asarray(stop),
             **{f"port{k}": np.asarray(a) for k, a in enumerate(arrays)}}
-
-
-#: The entry of a chunk file holding `chunk_checksum` of its other arrays.
-CHECKSUM = "checksum"
-
-
-def chunk_checksum(arrays: dict) -> str:
-    """SHA-256 (hex) of a chunk's arrays (all but `CHECKSUM`): names, dtypes, shapes and
-    bytes. Stored in the chunk file when written and compared when it is read, so a
-    chunk whose numbers changed since (its shape kept) is computed again."""
-    digest = hashlib.sha256()
-    for name in sorted(k for k in arrays if k != CHECKSUM):
-        a = np.ascontiguousarray(arrays[name])
-        digest.update(f"{name}:{a.dtype.str}:{a.shape};".encode())
-        digest.update(a.tobytes())
-    return digest.hexdigest()
-
-
-def checksum_ok(arrays: dict) -> bool:
-    """Whether a chunk's arrays match the `CHECKSUM` they were stored with (a chunk
-    written before chunks carried one is taken as it is)."""
-    return CHECKSUM not in arrays or str(arrays[CHECKSUM]) == chunk_checksum(arrays)
-
-
-def store_chunk_file(path: Path, arrays: dict) -> Path:
-    """Write a chunk's ``arrays`` (an ``.npz``, atomically) with their `chunk_checksum`."""
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays, **{CHECKSUM: np.asarray(chunk_checksum(arrays))})
-    return atomic_write_bytes(path, buffer.getvalue())
-
-
-def _store_chunk(folder: Path, index: int, arrays: dict) -> Path:
-    return store_chunk_file(_chunk_path(folder, index), arrays)
-
-
-def executor_threads(executor) -> int:
-    """How many chunks ``executor`` runs at once: 1 inline, a pool's workers, a Dask
-    cluster's threads (as connected now); 1 when it cannot tell."""
-    if isinstance(executor, InlineExecutor) or executor is None:
-        return 1
-    workers = getattr(executor, "_max_workers", None)
-    if workers:
-        return int(workers)
-    client = getattr(executor, "_client", None)
-    if client is not None:
-        try:
-            return max(1, int(sum(client.nthreads().values())))
-        except Exception:            # a client that cannot say: one at a time is safe
-            return 1
-    return 1
-
-
-def in_flight(executor, least: int = 4) -> int:
-    """Chunks to keep in flight on ``executor``: twice its threads (so none idles while
-    a finished chunk comes back), at least ``least``."""
-    return max(least, 2 * executor_threads(executor))
 
 
 def evaluate_states(factory, probe: Probe, key: str, states) -> dict:
@@ -348,17 +256,13 @@ class SweepTable:
         return self.tables[port]
 
 
-def _chunk_ok(path: Path, start: int, stop: int, ports: int) -> bool:
-    """A chunk file is used only if it covers ``start:stop`` with every port's rows and
-    its arrays match the checksum they were written with (`checksum_ok`)."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-        return (int(arrays["start"]) == start and int(arrays["stop"]) == stop and
-                all(len(arrays[f"port{k}"]) == stop - start for k in range(ports)) and
-                checksum_ok(arrays))
-    except Exception:   # missing, truncated, corrupt or lacking a port: recompute it
-        return False
+def _fits(ports: int):
+    """Whether a chunk file covers its chunk's rows with every port's (it is used only
+    then, and when its arrays match the checksum they were written with)."""
+    def fits(chunk, arrays) -> bool:
+        return (int(arrays["start"]) == chunk.start and int(arrays["stop"]) == chunk.stop
+                and all(len(arrays[f"port{k}"]) == chunk.rows for k in range(ports)))
+    return fits
 
 
 def cached_table_digest(cache_dir, key: str, size: int):
@@ -370,7 +274,7 @@ def cached_table_digest(cache_dir, key: str, size: int):
     folder, digest, stop, index = Path(cache_dir) / key, hashlib.sha256(), 0, 0
     while stop < size:
         try:
-            with np.load(_chunk_path(folder, index), allow_pickle=False) as data:
+            with np.load(chunk_path(folder, index), allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
             start, end = int(arrays["start"]), int(arrays["stop"])
         except Exception:      # missing, truncated or not a chunk
@@ -435,77 +339,29 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
         raise ValueError(f"chunk_size must be a whole number >= 1, got {chunk_size!r}")
     if len(probe.ports) < 1:
         raise ValueError("the probe names no port to read")
-    global _ON_STATE
     checked, key = key is not None, key or sweep_key(factory, grid, probe, name=name)
     folder = Path(cache_dir).absolute() / key
     folder.mkdir(parents=True, exist_ok=True)
     if checked:            # a derived key is the fingerprint; a given one must match it
         _check_fingerprint(folder, factory, grid, probe, key)
-    bounds = [(i, s, min(s + chunk_size, grid.size))
-              for i, s in enumerate(range(0, grid.size, chunk_size))]
-    nports = len(probe.ports)
-    todo = [b for b in bounds if not _chunk_ok(_chunk_path(folder, b[0]), b[1], b[2], nports)]
-    computed = sum(b[2] - b[1] for b in todo)
-    bar = tqdm(total=grid.size, initial=grid.size - computed, unit="state",
-               desc=f"sweep {label or key}", disable=not progress)
-    owned = executor is None and todo
-    executor = executor or (default_executor() if todo else None)
-    max_in_flight = max_in_flight or in_flight(executor, least=8)
+    chunks, nports = split(grid.size, chunk_size), len(probe.ports)
+    store = FolderStore(folder, _fits(nports))
     diagram_key = probe_key(factory, probe, key)
-    counter = getattr(executor, "progress_counter", None)
-    counted = counter.value if counter is not None else 0
-    inline = isinstance(executor, InlineExecutor)
-    previous_hook = _ON_STATE
-    if inline:
-        _ON_STATE = functools.partial(bar.update, 1)
-    pending = {}
-
-    def show():
-        if counter is not None:
-            bar.update(min(counter.value - counted, computed) - (bar.n - (grid.size - computed)))
-
-    def finish(done):
-        for future in done:
-            arrays = future.result()             # re-raises a worker's error
-            i, s, e = pending.pop(future)
-            _store_chunk(folder, i, arrays)
-            if counter is None and not inline:
-                bar.update(e - s)
-        show()
-
-    try:   # a bounded window of chunks in flight: progress shows, an abort stops soon
-        for i, s, e in todo:
-            pending[executor.submit(run_chunk, factory, probe, diagram_key, grid, s, e)] = (i, s, e)
-            finish([f for f in pending if f.done()])
-            while len(pending) >= max_in_flight:
-                finish(cf.wait(pending, timeout=0.25, return_when=cf.FIRST_COMPLETED).done)
-        while pending:
-            finish(cf.wait(pending, timeout=0.25, return_when=cf.FIRST_COMPLETED).done)
-    except cf.process.BrokenProcessPool as e:
-        if owned:
-            stop_executor(executor, abort=True)
-            owned = False
-        raise RuntimeError(
-            "a sweep worker process died; finished chunks are kept and a re-run resumes. "
-            "Workers are spawned: a script calling sweep must guard its top level with "
-            "`if __name__ == '__main__':` (or pass executor=InlineExecutor())") from e
-    except BaseException:
-        if owned:
-            stop_executor(executor, abort=True)
-            owned = False
-        raise
-    finally:
-        _ON_STATE = previous_hook
-        bar.close()
-        if owned:
-            stop_executor(executor)
+    ran = run_chunks(
+        run_chunk, chunks, store,
+        args=lambda c: (factory, probe, diagram_key, grid, c.start, c.stop),
+        executor=executor, default=default_executor, per_row=True,
+        bar=functools.partial(tqdm, total=grid.size, unit="state",
+                              desc=f"sweep {label or key}", disable=not progress),
+        max_in_flight=max_in_flight, least=8, caller="sweep")
+    computed = sum(c.rows for c in ran)
     tables = None
-    for i, s, e in bounds:
-        with np.load(_chunk_path(folder, i)) as data:
+    for chunk in chunks:
+        with np.load(store.path(chunk)) as data:
             arrays = [data[f"port{k}"] for k in range(nports)]
         if tables is None:
             tables = [np.empty((grid.size, a.shape[1])) for a in arrays]
         for table, a in zip(tables, arrays):
-            table[s:e] = a
+            table[chunk.start:chunk.stop] = a
     return SweepTable(grid=grid, key=key, computed=computed, tables={
         name: t.reshape(grid.shape + (t.shape[1],)) for name, t in zip(probe.ports, tables)})

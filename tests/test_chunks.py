@@ -1,0 +1,127 @@
+"""The one chunked runner (`reach.chunks.run_chunks`) behind sweeps, rollout batches and
+dataset images: finished chunks are kept when a later one fails and a re-run runs only
+the rest; a chunk file whose numbers changed is run again; a dead worker pool is one
+line naming the caller, and an executor the runner made is stopped at once."""
+
+import concurrent.futures as cf
+
+import numpy as np
+import pytest
+
+from reachwatch.reach.chunks import (FolderStore, InlineExecutor, chunk_path, row_done,
+                                     run_chunks, split, store_chunk_file)
+
+
+def _squares(start, stop, fail_at=None):
+    if start == fail_at:
+        raise RuntimeError(f"chunk at {start} failed")
+    rows = np.arange(start, stop)
+    for _ in rows:
+        row_done()
+    return {"x": rows, "y": rows ** 2}
+
+
+def _run(folder, calls, fail_at=None, **kw):
+    def args(chunk):
+        calls.append(chunk.index)
+        return chunk.start, chunk.stop, fail_at
+    store = FolderStore(folder, keep=True)
+    ran = run_chunks(_squares, split(10, 3), store, args=args, **kw)
+    return ran, store
+
+
+def test_a_failed_chunk_keeps_those_before_it_and_a_rerun_runs_the_rest(tmp_path):
+    calls = []
+    with pytest.raises(RuntimeError, match="chunk at 6 failed"):
+        _run(tmp_path, calls, fail_at=6)
+    assert calls == [0, 1, 2] and sorted(p.name for p in tmp_path.iterdir()) == [
+        "chunk_000000.npz", "chunk_000001.npz"]
+    calls.clear()
+    ran, store = _run(tmp_path, calls)
+    assert calls == [2, 3] and [c.index for c in ran] == [2, 3]
+    y = np.concatenate([store.read(c)["y"] for c in split(10, 3)])
+    np.testing.assert_array_equal(y, np.arange(10) ** 2)
+    calls.clear()
+    assert _run(tmp_path, calls)[0] == [] and calls == []          # all stored: nothing runs
+
+
+def test_a_chunk_file_whose_numbers_changed_is_run_again(tmp_path):
+    _run(tmp_path, [])
+    path = chunk_path(tmp_path, 1)
+    with np.load(path) as data:
+        edited = {k: data[k] for k in data.files}
+    edited["y"] = edited["y"] + 1                    # same shape, its old checksum kept
+    np.savez(path, **edited)
+    chunk_path(tmp_path, 3).write_bytes(b"torn")     # and a torn write
+    calls = []
+    ran, store = _run(tmp_path, calls)
+    assert calls == [1, 3]
+    np.testing.assert_array_equal(store.read(split(10, 3)[1])["y"], [9, 16, 25])
+    store_chunk_file(path, {"x": np.arange(3)})      # a chunk that does not fit its rows
+    fits = lambda chunk, arrays: len(arrays["x"]) == chunk.rows and "y" in arrays  # noqa: E731
+    assert not FolderStore(tmp_path, fits).valid(split(10, 3)[1])
+    assert FolderStore(tmp_path, fits).valid(split(10, 3)[0])
+
+
+def test_the_bar_moves_per_row_inline_and_per_chunk_otherwise(tmp_path):
+    class Bar:
+        def __init__(self, initial=0):
+            self.n, self.updates = initial, []
+
+        def update(self, k):
+            self.n += k
+            self.updates.append(k)
+
+        def close(self):
+            pass
+    bars = []
+
+    def bar(**kw):
+        bars.append(Bar(**kw))
+        return bars[-1]
+    store = FolderStore(tmp_path / "a")
+    run_chunks(_squares, split(10, 3), store, args=lambda c: (c.start, c.stop),
+               executor=InlineExecutor(), bar=bar, per_row=True)
+    assert bars[-1].updates == [1] * 10
+    (tmp_path / "a" / "chunk_000002.npz").unlink()
+    run_chunks(_squares, split(10, 3), store, args=lambda c: (c.start, c.stop),
+               executor=InlineExecutor(), bar=bar)
+    assert (bars[-1].n, bars[-1].updates) == (10, [3])     # began at 7 stored rows
+
+
+class _DeadPool(cf.Executor):
+    """A pool whose workers died: every future fails as a broken process pool does."""
+
+    def __init__(self):
+        self.stopped = []
+
+    def submit(self, fn, /, *args, **kwargs):
+        future = cf.Future()
+        future.set_exception(cf.process.BrokenProcessPool("a child process terminated"))
+        return future
+
+    def shutdown(self, wait=True, *, cancel_futures=False):
+        self.stopped.append(cancel_futures)
+
+
+def test_a_dead_pool_is_one_line_and_an_owned_executor_is_stopped_at_once(tmp_path):
+    made = []
+
+    def default():
+        made.append(_DeadPool())
+        return made[-1]
+    with pytest.raises(RuntimeError, match=r"^a my_job worker process died; finished chunks "
+                                           r"are kept and a re-run resumes\. .*__main__"):
+        run_chunks(_squares, split(10, 3), FolderStore(tmp_path),
+                   args=lambda c: (c.start, c.stop), default=default, caller="my_job")
+    assert len(made) == 1 and made[0].stopped == [True]          # cancelled, once
+    given = _DeadPool()
+    with pytest.raises(RuntimeError, match="a my_job worker process died"):
+        run_chunks(_squares, split(10, 3), FolderStore(tmp_path),
+                   args=lambda c: (c.start, c.stop), executor=given, caller="my_job")
+    assert given.stopped == []                         # the caller's executor is left alone
+    made.clear()
+    store = FolderStore(tmp_path / "done")
+    run_chunks(_squares, split(10, 3), store, args=lambda c: (c.start, c.stop))
+    run_chunks(_squares, split(10, 3), store, args=lambda c: (c.start, c.stop), default=default)
+    assert made == []                                  # nothing to run: no executor made
