@@ -312,6 +312,13 @@ class RunSpec:
             except ValueError as e:
                 raise ValueError(f"guard.environments[{i}]: {e}") from None
         self.incremental.validate()
+        taxi_loop = getattr(application, "own_loop", False)     # the taxi's own loop
+        for on, key, off in (
+                (self.monitor.enabled, "monitor.kind: history", "monitor: {kind: detector}"),
+                (self.incremental.enabled, "incremental.enabled", "incremental: {enabled: false}")):
+            if on and not taxi_loop:
+                raise ValueError(f"{key}: that stage studies the taxi's own loop, not the "
+                                 f"application '{application.name}'; set {off}")
         if self.incremental.enabled and self.scenario.controller.factory:
             raise ValueError("incremental.enabled: incremental training fine-tunes TaxiNet, "
                              "and scenario.controller.factory names another controller; set "
