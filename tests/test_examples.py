@@ -167,6 +167,7 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     assert "cart" in report and "| KMWH_21h_clear | test | 5x5 | 25 |" in report
     assert "Table 2" in report and (out / "figures" / "overlay_KMWH_21h_clear.png").is_file()
     assert not list((out / "stages").glob("guard_*.json"))      # no fallback rollouts: skipped
+    assert "Not run: the application 'cart' has no fallback rollouts" in report
     states = np.load(next((out / "datasets").glob("KMWH_9h_clear_*")) / "states.npy")
     assert states.shape == (10, 2) and np.all(np.abs(states[:, 0]) <= 0.5)
     # the real-loop check ran the cart's own loop from 2 starts per environment
