@@ -7,8 +7,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
 from pydrake.systems.primitives import Multiplexer, ZeroOrderHold
 
 from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, FlagFilter,
-                                HistoryMonitor, fallback_name, ProportionalController,
-                                TrueStateEstimator)
+                                HistoryMonitor, ProportionalController, TrueStateEstimator)
 
 from .checkpoints import checkpoint_kind, load_detector, load_history_monitor
 from .closed_loop import add_controller, export_loop_ports
@@ -87,9 +86,7 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller,
                             period=controller.period, steering_port=steering_port,
                             estimate_port=estimate_port)
     switch = builder.AddNamedSystem(SWITCH, FallbackSwitch(
-        strategy=monitor.strategy, steering=monitor.steering, period=controller.period,
-        nominal_speed=controller.speed, brake_deceleration=monitor.brake_deceleration,
-        resume_acceleration=monitor.resume_acceleration))
+        monitor.fallback, nominal_speed=controller.speed, period=controller.period))
     builder.Connect(steering_port, switch.get_steering_angle_input_port())
     anomaly = detector.get_anomaly_output_port()
     if monitor.flag_window > 1:
@@ -145,6 +142,7 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
     ``state_estimator`` and ``oracle_p_controller`` (privileged). With ``meshcat``
     (a `Meshcat`), a `MeshcatVisualizer` of the perception scene is added."""
     monitor, controller = scenario.monitor, scenario.controller
+    fallback = monitor.fallback
     if not monitor.detector:
         raise ValueError("monitor.detector: the guarded loop needs a detector "
                          "checkpoint (train one with 'reachwatch evaluate')")
@@ -159,7 +157,7 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
         controller=controller,
         estimate_port=vision.GetOutputPort(ESTIMATE_OUTPUT) if has_estimate(vision) else None)
     hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(controller.period, 1))
-    if monitor.steering == "oracle":
+    if fallback.steering == "oracle":
         estimator = builder.AddNamedSystem("state_estimator", TrueStateEstimator())
         oracle = builder.AddNamedSystem("oracle_p_controller", ProportionalController(
             px_gain=controller.px_gain, theta_gain=controller.theta_gain))
@@ -167,7 +165,7 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
         builder.Connect(estimator.get_estimate_output_port(), oracle.get_estimate_input_port())
         builder.Connect(oracle.get_steering_angle_output_port(),
                         switch.get_fallback_steering_angle_input_port())
-    elif monitor.steering == "dead_reckoning":
+    elif fallback.steering == "dead_reckoning":
         if not has_estimate(vision):
             raise ValueError("monitor.steering: dead_reckoning carries the controller's "
                              "'estimate' output forward, and this controller has none")
@@ -187,5 +185,5 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
         MeshcatVisualizer.AddToBuilder(builder, world.scene_graph, meshcat,
                                        MeshcatVisualizerParams(role=Role.kPerception))
     diagram = builder.Build()
-    diagram.set_name(f"guarded_{fallback_name(monitor.strategy, monitor.steering)}")
+    diagram.set_name(f"guarded_{fallback.name}")
     return diagram

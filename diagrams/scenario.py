@@ -81,11 +81,20 @@ class ControllerConfig:
         return self
 
 
+#: How `MonitorConfig` stores a steering mode (`systems.STEERING`) where its name
+#: changed: the controller keeping its steering is stored under its older name
+#: ``taxinet``, as every cache key made before holds it, so that ``controller`` and
+#: ``taxinet`` in a run file are one setting with one key.
+STORED_STEERING = {"controller": "taxinet"}
+
+
 @dc.dataclass
 class MonitorConfig:
     """The runtime monitor of the guarded loop: detector checkpoint and threshold, fallback strategy
-    (``slow_down`` | ``brake``), steering while flagged (``taxinet`` | ``dead_reckoning``:
-    the last trusted estimate carried forward | ``oracle``: the true state, privileged),
+    (``slow_down`` | ``brake``), steering while flagged (``controller``: the controller
+    keeps steering, stored as ``taxinet``, its older name, so that the cache keys of
+    existing runs stay put | ``dead_reckoning``: the last trusted estimate carried
+    forward | ``oracle``: the true state, privileged),
     brake deceleration (m/s^2), how fast the speed comes back once the image is clear
     (``resume_acceleration`` m/s^2; 0 = at once, the paper's rule), and the k-of-n rule
     that confirms flags: the loop counts a tick as flagged when at least ``flags_needed``
@@ -100,19 +109,34 @@ class MonitorConfig:
     flags_needed: int = bounded(1, 1, MAX_FLAG_WINDOW, whole=True, note="<= flag_window")
     flag_window: int = bounded(1, 1, MAX_FLAG_WINDOW, whole=True, unit="ticks")
 
+    @property
+    def fallback(self):
+        """The `systems.Fallback` this monitor switches to while flagged."""
+        from reachwatch.systems import Fallback
+        return Fallback(self.strategy, self.steering, brake_deceleration=self.brake_deceleration,
+                        resume_acceleration=self.resume_acceleration)
+
+    def with_fallback(self, fallback) -> "MonitorConfig":
+        """A copy whose strategy and steering are those of ``fallback`` (a name such as
+        ``"slow_down+dead_reckoning"``, or a `systems.Fallback`); the other settings
+        are this monitor's."""
+        from reachwatch.systems import Fallback
+        chosen = Fallback.parse(fallback)
+        return dc.replace(self, strategy=chosen.strategy,
+                          steering=STORED_STEERING.get(chosen.steering, chosen.steering))
+
     def validate(self):
-        from reachwatch.systems import STEERING, STRATEGIES, check_k_of_n
+        from reachwatch.systems import check_k_of_n
         check_bounds(self, "monitor.")      # each state keeps its window's flags
         try:
             check_k_of_n(self.flags_needed, self.flag_window)
         except ValueError as e:
             raise ValueError(f"monitor.flags_needed / monitor.flag_window: {e}") from None
-        if self.strategy not in STRATEGIES:
-            raise ValueError(f"monitor.strategy must be one of {STRATEGIES}, got "
-                             f"'{self.strategy}'")
-        if self.steering not in STEERING:
-            raise ValueError(f"monitor.steering must be one of {STEERING}, got "
-                             f"'{self.steering}'")
+        try:
+            steering = self.fallback.steering
+        except ValueError as e:
+            raise ValueError(f"monitor.{e}") from None
+        self.steering = STORED_STEERING.get(steering, steering)
         if self.detector and not is_file(self.detector):
             raise ValueError(f"monitor.detector: file not found: {clip(self.detector, 200)}")
         return self

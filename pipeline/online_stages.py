@@ -102,8 +102,7 @@ def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
         return record
     shown = moving_save or stop_save or delayed or tried[0]
     shown_scenario = copy.deepcopy(scenario)
-    shown_scenario.monitor.strategy, shown_scenario.monitor.steering = fallback_parts(
-        shown["fallback"])
+    shown_scenario.monitor = shown_scenario.monitor.with_fallback(shown["fallback"])
     shown_scenario.initial_state = _state(shown["start"])
     nominal, guarded, paths = simulate_guarded(shown_scenario, run.path("figures"),
                                                meshcat_html=spec.guard.meshcat_html)
@@ -282,7 +281,7 @@ def guard_environment(run: Run, env) -> dict:
     run_record = showcase_run(run, scenario, on_grid, grid, env)
     # Both loops side by side in alternating blocks; the median per-round ratio (the VM drifts).
     shown = copy.deepcopy(scenario)
-    shown.monitor.strategy, shown.monitor.steering = fallback_parts(
+    shown.monitor = shown.monitor.with_fallback(
         run_record.get("strategy") or (fallbacks[0] if fallbacks else "slow_down"))
     alone, guarded_rate = paired_rates(make_closed_loop_diagram(shown), make_guarded_diagram(shown),
                                        rounds=3, duration=spec.guard.online_seconds,

@@ -1,12 +1,25 @@
-"""The fallback switch: when the detector flags the image, trade speed for safety."""
+"""The fallback switch: when the detector flags the image, trade speed for safety.
+
+A fallback is defined once, by `Fallback`: its speed strategy, its steering while
+flagged and their parameters, read from a name such as ``"slow_down+dead_reckoning"``
+by `Fallback.parse`. Its two rules work on arrays: `Fallback.next_speed` (the speed of
+the next tick) and `Fallback.steering_angle` (whose steering is applied). The Drake
+`FallbackSwitch` and the table rollouts of the guarded loop both call them, so the two
+cannot drift apart."""
+
+import dataclasses as dc
 
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 STRATEGIES = ("slow_down", "brake")
-#: Steering while flagged: the controller's own, the P-controller on the dead-reckoned
-#: estimate (honest), or on the true state (privileged, a reference only).
-STEERING = ("taxinet", "dead_reckoning", "oracle")
+#: Steering while flagged: the controller's own (``controller``: the flag only changes
+#: the speed), the P-controller on the dead-reckoned estimate (honest), or on the true
+#: state (privileged, a reference only).
+STEERING = ("controller", "dead_reckoning", "oracle")
+#: Older names of the steering modes, still read (run files and ``--fallbacks`` written
+#: when the taxi's TaxiNet was the only controller).
+STEERING_ALIASES = {"taxinet": "controller"}
 
 
 #: The fallbacks compared by default: the paper's slow-down, braking, dead reckoning
@@ -15,22 +28,122 @@ STEERING = ("taxinet", "dead_reckoning", "oracle")
 DEFAULT_FALLBACKS = ("slow_down", "brake", "slow_down+dead_reckoning", "slow_down+oracle")
 
 
+def check_resume_acceleration(value) -> float:
+    """``value`` as a float >= 0 (m/s^2; 0 = back to nominal speed at once), or ValueError."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = float("nan")
+    if not (np.isfinite(number) and number >= 0):
+        raise ValueError(f"resume_acceleration must be a number >= 0 m/s^2 (0 = back to the "
+                         f"nominal speed at once), got {value!r}")
+    return number
+
+
+def _positive(name, value, unit) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = float("nan")
+    if not (np.isfinite(number) and number > 0):
+        raise ValueError(f"{name} must be a number > 0 {unit}, got {value!r}")
+    return number
+
+
+@dc.dataclass(frozen=True)
+class Fallback:
+    """What the guarded loop does while the detector flags the image.
+
+    ``strategy``: ``slow_down`` (the paper: -``slow_down_step`` m/s per tick) or
+    ``brake`` (-``brake_deceleration`` m/s^2), both stopping at 0; once the image is
+    clear the speed returns to nominal at once (``resume_acceleration`` = 0, the
+    paper's rule) or climbs back at ``resume_acceleration`` m/s^2. ``steering``:
+    ``controller`` (the controller keeps steering), ``dead_reckoning`` or ``oracle``
+    (the loop's fallback steering takes over while flagged; see `FallbackSwitch`).
+    ``taxinet`` is read as ``controller``. Invalid fields raise one ValueError naming
+    the field."""
+    strategy: str = "slow_down"
+    steering: str = "controller"
+    slow_down_step: float = 0.01
+    brake_deceleration: float = 1.0
+    resume_acceleration: float = 0.0
+
+    def __post_init__(self):
+        steering = STEERING_ALIASES.get(self.steering, self.steering)
+        if self.strategy not in STRATEGIES:
+            raise ValueError(f"strategy must be one of {STRATEGIES}, got '{self.strategy}'")
+        if steering not in STEERING:
+            raise ValueError(f"steering must be one of {STEERING}, got '{self.steering}'")
+        set_ = lambda name, value: object.__setattr__(self, name, value)   # noqa: E731
+        set_("steering", steering)
+        set_("slow_down_step", _positive("slow_down_step", self.slow_down_step, "m/s"))
+        set_("brake_deceleration",
+             _positive("brake_deceleration", self.brake_deceleration, "m/s^2"))
+        set_("resume_acceleration", check_resume_acceleration(self.resume_acceleration))
+
+    @classmethod
+    def parse(cls, name, **params) -> "Fallback":
+        """The fallback named ``name``: a speed strategy alone (``"slow_down"``, the
+        controller keeps steering) or ``"strategy+steering"`` (e.g.
+        ``"slow_down+dead_reckoning"``, ``"slow_down+oracle"``); ``params`` set the
+        other fields. A `Fallback` is returned as it is (with ``params`` replaced)."""
+        if isinstance(name, Fallback):
+            return dc.replace(name, **params)
+        strategy, plus, steering = str(name).partition("+")
+        steering = steering if plus else "controller"
+        try:
+            cls(strategy, steering)                           # the name alone
+        except ValueError:
+            raise ValueError(f"fallback '{name}': write a speed strategy {STRATEGIES}, "
+                             f"optionally followed by '+' and a steering {STEERING[1:]} (e.g. "
+                             f"'slow_down+dead_reckoning')") from None
+        return cls(strategy, steering, **params)
+
+    @property
+    def name(self) -> str:
+        """The name `parse` reads back (the speed strategy alone when the controller
+        keeps steering)."""
+        return (self.strategy if self.steering == "controller"
+                else f"{self.strategy}+{self.steering}")
+
+    @property
+    def takes_over_steering(self) -> bool:
+        """Whether a steering other than the controller's is applied while flagged."""
+        return self.steering != "controller"
+
+    def next_speed(self, speed, flagged, *, nominal, period):
+        """Speed (m/s) for the next tick of a loop ticking every ``period`` s at
+        ``nominal`` m/s (`next_speed`). Works on arrays."""
+        return next_speed(speed, flagged, nominal=nominal, period=period,
+                          strategy=self.strategy, slow_down_step=self.slow_down_step,
+                          brake_deceleration=self.brake_deceleration,
+                          resume_acceleration=self.resume_acceleration)
+
+    def steering_angle(self, flagged, own, fallback=None):
+        """The steering applied (rad): ``own`` (the controller's) where the image is
+        clear or this fallback keeps the controller steering; ``fallback`` (its
+        steering mode's angle) where flagged otherwise. ``fallback`` may be None only
+        where nothing is flagged. Works on arrays."""
+        flagged, own = np.asarray(flagged, bool), np.asarray(own, float)
+        if not self.takes_over_steering:
+            return own
+        if fallback is None:
+            if flagged.any():
+                raise ValueError(f"steering '{self.steering}' needs the fallback's steering "
+                                 f"while flagged")
+            return own
+        return np.where(flagged, np.asarray(fallback, float), own)
+
+
 def fallback_parts(name: str):
-    """``(strategy, steering)`` of a fallback's name: a speed strategy alone
-    (``"slow_down"``, TaxiNet keeps steering) or ``"strategy+steering"`` (e.g.
-    ``"slow_down+dead_reckoning"``, ``"slow_down+oracle"``)."""
-    strategy, _, steering = str(name).partition("+")
-    steering = steering or "taxinet"
-    if strategy not in STRATEGIES or steering not in STEERING:
-        raise ValueError(f"fallback '{name}': write a speed strategy {STRATEGIES}, optionally "
-                         f"followed by '+' and a steering {STEERING[1:]} (e.g. "
-                         f"'slow_down+dead_reckoning')")
-    return strategy, steering
+    """``(strategy, steering)`` of a fallback's name (`Fallback.parse`)."""
+    fallback = Fallback.parse(name)
+    return fallback.strategy, fallback.steering
 
 
-def fallback_name(strategy: str, steering: str = "taxinet") -> str:
-    """The inverse of `fallback_parts`."""
-    return strategy if steering == "taxinet" else f"{strategy}+{steering}"
+def fallback_name(strategy: str, steering: str = "controller") -> str:
+    """The inverse of `fallback_parts` (`Fallback.name`)."""
+    return Fallback(strategy, steering).name
 
 
 def next_speed(speed, flagged, *, nominal, strategy="slow_down", slow_down_step=0.01,
@@ -49,18 +162,6 @@ def next_speed(speed, flagged, *, nominal, strategy="slow_down", slow_down_step=
     return np.where(flagged, np.maximum(speed - step, 0.0), resumed)
 
 
-def check_resume_acceleration(value) -> float:
-    """``value`` as a float >= 0 (m/s^2; 0 = back to nominal speed at once), or ValueError."""
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        number = float("nan")
-    if not (np.isfinite(number) and number >= 0):
-        raise ValueError(f"resume_acceleration must be a number >= 0 m/s^2 (0 = back to the "
-                         f"nominal speed at once), got {value!r}")
-    return number
-
-
 class FallbackSwitch(LeafSystem):
     """Hands control to the fallback while the anomaly detector flags the image.
 
@@ -75,44 +176,42 @@ class FallbackSwitch(LeafSystem):
         - steering_angle
         - speed
 
-    ``speed`` (m/s) is discrete state, updated once per ``period`` s from ``anomaly``
-    (1 = flagged) by `next_speed`. Steering passes the nominal (TaxiNet) steering
-    through while the image is clear. While it is flagged, ``steering="dead_reckoning"``
-    or ``"oracle"`` steer with ``fallback_steering_angle`` instead: the diagram feeds it
-    the P-controller on the `DeadReckoning` estimate (honest: the last trusted
-    estimate carried forward with the known steering and speed) or on the *true* state
-    (privileged information, for comparison only).
+    ``fallback``: a `Fallback` or its name (default ``slow_down``), its fields given as
+    keywords otherwise (``strategy=``, ``steering=``, ``brake_deceleration=`` ...);
+    ``nominal_speed``: the loop's own speed (m/s), which the application gives. ``speed``
+    (m/s) is discrete state, updated once per ``period`` s from ``anomaly`` (1 = flagged)
+    by `Fallback.next_speed`. The steering output is `Fallback.steering_angle`: the
+    controller's ``steering_angle`` passes through while the image is clear; while it is
+    flagged, ``steering="dead_reckoning"`` or ``"oracle"`` steer with
+    ``fallback_steering_angle`` instead: the diagram feeds it the P-controller on the
+    `DeadReckoning` estimate (honest: the last trusted estimate carried forward with the
+    known steering and speed) or on the *true* state (privileged information, for
+    comparison only).
     """
 
-    def __init__(self, *, nominal_speed, strategy="slow_down", steering="taxinet", period=0.05,
-                 slow_down_step=0.01, brake_deceleration=1.0, resume_acceleration=0.0):
+    def __init__(self, fallback=None, *, nominal_speed, period=0.05, **fields):
         super().__init__()
-        if strategy not in STRATEGIES:
-            raise ValueError(f"FallbackSwitch: strategy must be one of {STRATEGIES}, got "
-                             f"'{strategy}'")
-        if steering not in STEERING:
-            raise ValueError(f"FallbackSwitch: steering must be one of {STEERING}, got "
-                             f"'{steering}'")
+        self._fallback = (Fallback(**fields) if fallback is None
+                          else Fallback.parse(fallback, **fields))
         if not period > 0:
             raise ValueError(f"FallbackSwitch: period must be > 0 s, got {period}")
-        self._params = dict(strategy=strategy, nominal=float(nominal_speed),
-                            slow_down_step=float(slow_down_step),
-                            brake_deceleration=float(brake_deceleration),
-                            resume_acceleration=check_resume_acceleration(resume_acceleration),
-                            period=float(period))
-        self._steering_mode = steering
+        self._nominal, self._period = float(nominal_speed), float(period)
         self._steering_in = self.DeclareVectorInputPort("steering_angle", 1)
         self._anomaly_in = self.DeclareVectorInputPort("anomaly", 1)
         self._fallback_in = self.DeclareVectorInputPort("fallback_steering_angle", 1)
-        self._speed_index = self.DeclareDiscreteState(BasicVector([float(nominal_speed)]))
+        self._speed_index = self.DeclareDiscreteState(BasicVector([self._nominal]))
         self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update_speed)
         self._steering_out = self.DeclareVectorOutputPort("steering_angle", 1,
                                                           self._calc_steering)
         self._speed_out = self.DeclareStateOutputPort("speed", self._speed_index)
 
     @property
+    def fallback(self) -> Fallback:
+        return self._fallback
+
+    @property
     def strategy(self):
-        return self._params["strategy"]
+        return self._fallback.strategy
 
     def get_steering_angle_input_port(self):
         return self._steering_in
@@ -134,14 +233,17 @@ class FallbackSwitch(LeafSystem):
 
     def _update_speed(self, context, discrete_state):
         speed = context.get_discrete_state(self._speed_index).GetAtIndex(0)
-        discrete_state.get_mutable_vector(self._speed_index).SetAtIndex(
-            0, float(next_speed(speed, self._flagged(context), **self._params)))
+        discrete_state.get_mutable_vector(self._speed_index).SetAtIndex(0, float(
+            self._fallback.next_speed(speed, self._flagged(context), nominal=self._nominal,
+                                      period=self._period)))
 
     def _calc_steering(self, context, output):
-        if self._steering_mode != "taxinet" and self._flagged(context):
+        flagged = self._flagged(context)
+        fallback = None
+        if flagged and self._fallback.takes_over_steering:
             if not self._fallback_in.HasValue(context):
-                raise ValueError(f"FallbackSwitch: steering='{self._steering_mode}' needs the "
-                                 f"'fallback_steering_angle' input connected")
-            output.SetFromVector(self._fallback_in.Eval(context))
-        else:
-            output.SetFromVector(self._steering_in.Eval(context))
+                raise ValueError(f"FallbackSwitch: steering='{self._fallback.steering}' needs "
+                                 f"the 'fallback_steering_angle' input connected")
+            fallback = self._fallback_in.Eval(context)
+        output.SetFromVector(self._fallback.steering_angle(
+            flagged, self._steering_in.Eval(context), fallback))

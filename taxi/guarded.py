@@ -8,6 +8,8 @@ the fallback's steering mode, dynamics integrated with RK4 over the tick). A sta
 if ``|px| >= B`` within the horizon; what it did until then (distance, stops, flagged
 ticks) is its liveness (`reach.liveness`)."""
 
+import dataclasses as dc
+
 import numpy as np
 import torch
 
@@ -18,8 +20,8 @@ from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.reach.liveness import (UNGUARDED, MissionOutcomes, check_mission_limit,
                                        liveness_figures, threshold_for_flag_budget)
 from reachwatch.reach.score_noise import sigmoid
-from reachwatch.systems import (ProportionalController, check_k_of_n, confirmed_flags,
-                                fallback_parts, next_speed, propagate_estimate)
+from reachwatch.systems import (Fallback, ProportionalController, check_k_of_n, confirmed_flags,
+                                propagate_estimate)
 
 from .dynamics import dynamics_for
 
@@ -28,7 +30,7 @@ SCORE_PORT = f"{DETECTOR}.score"
 
 @torch.no_grad()
 def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, threshold=0.5,
-                     strategy="slow_down", steering="taxinet", estimate_table=None,
+                     strategy="slow_down", steering="controller", estimate_table=None,
                      policy=None, horizon=8.0, period=0.05, substeps=2, starts=None,
                      flags_needed=1, flag_window=1, mission_limit=None, score_noise=None,
                      seed=0, **strategy_params) -> MissionOutcomes:
@@ -36,7 +38,10 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
     steering, score and estimate are interpolated from tables of ``grid``.
     ``score_table=None`` = no detector (the controller alone).
 
-    While flagged, ``steering`` is ``"taxinet"`` (the table's steering), ``"oracle"``
+    ``strategy``, ``steering`` and ``strategy_params`` are the fields of the
+    `systems.Fallback` applied, by the rules the Drake `FallbackSwitch` applies
+    (`Fallback.next_speed`, `Fallback.steering_angle`). While flagged, ``steering`` is
+    ``"controller"`` (the table's steering; also read as ``"taxinet"``), ``"oracle"``
     (``policy`` of the true ``[px m, theta deg]``) or ``"dead_reckoning"`` (``policy``
     of the last unflagged estimate from ``estimate_table``, carried forward with the
     steering and speed applied since, as `DeadReckoning` does). ``policy`` maps
@@ -53,9 +58,9 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
     variation between grid nodes to the interpolated score, as noise that moves with
     the distance travelled (seeded by ``seed``), as the real loop's score does."""
     flags_needed, flag_window = check_k_of_n(flags_needed, flag_window)
-    if steering not in ("taxinet", "oracle", "dead_reckoning"):
-        raise ValueError(f"steering must be taxinet, oracle or dead_reckoning, got '{steering}'")
-    if steering != "taxinet" and policy is None:
+    fallback = Fallback(strategy, steering, **strategy_params)
+    steering = fallback.steering
+    if fallback.takes_over_steering and policy is None:
         raise ValueError(f"steering '{steering}' needs a policy (estimate -> steering)")
     if steering == "dead_reckoning" and estimate_table is None:
         raise ValueError("steering 'dead_reckoning' needs the estimate table")
@@ -109,18 +114,20 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
                 score_now[rows] = score_noise.apply(score_now[rows], noise[rows])
             flagged, history = confirmed_flags(score_now >= threshold, history, flags_needed)
         if score is not None:
-            v = next_speed(v, flagged, strategy=strategy, nominal=nominal, period=period,
-                           **strategy_params)
+            v = fallback.next_speed(v, flagged, nominal=nominal, period=period)
+            taken = None                 # the fallback's steering mode's angle
             if steering == "oracle":
                 truth = np.stack([x[:, 0].numpy(), np.rad2deg(x[:, 2].numpy())], axis=-1)
-                u = np.where(flagged, policy(truth), u)
+                taken = policy(truth)
             elif steering == "dead_reckoning":
                 seen = np.zeros((n, 2))
                 seen[rows] = np.stack([interpolate(e).numpy() for e in estimates], axis=-1)
                 carried = propagate_estimate(base, u_prev, v_prev, period,
                                              wheelbase=dynamics.wheelbase)
                 belief = np.where((flagged & trusted)[:, None], carried, seen)
-                u = np.where(flagged, policy(belief), u)
+                taken = policy(belief)
+            u = fallback.steering_angle(flagged, u, taken)
+            if steering == "dead_reckoning":
                 base, u_prev, v_prev = belief, u, v.copy()
                 trusted |= ~flagged
         ticks += active
@@ -165,7 +172,7 @@ def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=N
                       score_noise=None, seed=0) -> dict:
     """{UNGUARDED | fallback name: `MissionOutcomes`} from the swept tables of the
     guarded diagram (`sweep_guarded`), at every grid node or at ``starts``. A fallback
-    name is a speed strategy with an optional steering (`systems.fallback_parts`).
+    name is a speed strategy with an optional steering (`systems.Fallback.parse`).
     ``mission_limit``: also the same-distance figures (`guarded_rollouts`). ``scores``
     (per grid node) replaces the swept detector's scores, e.g. with a perfect
     detector's (`perfect_detector_scores`). ``alone``: the controller alone's outcomes
@@ -179,17 +186,16 @@ def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=N
     out = {UNGUARDED: alone if alone is not None else
            guarded_rollouts(grid, dynamics, tables[CONTROL_PORT], None, **kw)}
     for name in fallbacks:
-        strategy, steering = fallback_parts(name)
-        if steering == "dead_reckoning" and ESTIMATE_PORT not in tables.tables:
+        fallback = Fallback.parse(name, brake_deceleration=scenario.monitor.brake_deceleration,
+                                  resume_acceleration=scenario.monitor.resume_acceleration)
+        if fallback.steering == "dead_reckoning" and ESTIMATE_PORT not in tables.tables:
             raise ValueError(f"fallback '{name}' needs the controller's estimate, and the "
                              f"controller of this scenario has no 'estimate' output")
         out[name] = guarded_rollouts(
             grid, dynamics, tables[CONTROL_PORT], tables[SCORE_PORT] if scores is None else scores,
             threshold=scenario.monitor.threshold if threshold is None else threshold,
-            strategy=strategy, steering=steering, policy=policy,
+            **dc.asdict(fallback), policy=policy,
             estimate_table=tables[ESTIMATE_PORT] if ESTIMATE_PORT in tables.tables else None,
-            brake_deceleration=scenario.monitor.brake_deceleration,
-            resume_acceleration=scenario.monitor.resume_acceleration,
             flags_needed=scenario.monitor.flags_needed, flag_window=scenario.monitor.flag_window,
             score_noise=score_noise, seed=seed, **kw)
     return out

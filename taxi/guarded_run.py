@@ -9,7 +9,6 @@ from reachwatch.diagrams import (Scenario, initial_state_vector, make_closed_loo
                                  make_guarded_diagram, simulate)
 from reachwatch.diagrams.plots import plot_guarded_run
 from reachwatch.diagrams.replay import meshcat_replay_html
-from reachwatch.systems import fallback_name
 from reachwatch.systems.files import atomic_write_bytes
 
 
@@ -26,7 +25,7 @@ def simulate_guarded(scenario: Scenario, out: Path, *, meshcat_html=True):
     nominal, guarded = (simulate(d, initial_state=x0, duration=scenario.duration,
                                  period=scenario.controller.period, half_width=B)
                         for d in diagrams)
-    fallback = fallback_name(scenario.monitor.strategy, scenario.monitor.steering)
+    fallback = scenario.monitor.fallback.name
     name = f"{scenario.environment.name}_{fallback.replace('+', '_')}"
     paths = [plot_guarded_run(nominal, guarded, half_width=B, path=out / f"guarded_{name}.png",
                               title=f"{scenario.environment.name}: alone "

@@ -83,7 +83,7 @@ def test_switch_steers_from_the_fallback_input_only_while_flagged():
         for flag, expected in ((1.0, -0.2), (0.0, 0.1)):
             switch.get_anomaly_input_port().FixValue(context, [flag])
             assert switch.get_steering_angle_output_port().Eval(context)[0] == pytest.approx(expected)
-    assert fallback_parts("brake") == ("brake", "taxinet")
+    assert fallback_parts("brake") == ("brake", "controller")
     assert fallback_parts("slow_down+dead_reckoning") == ("slow_down", "dead_reckoning")
     with pytest.raises(ValueError, match="'slow_down\\+gps'"):
         fallback_parts("slow_down+gps")
@@ -161,7 +161,7 @@ def test_dead_reckoning_rides_out_a_corrupted_estimate_in_a_drake_loop():
     x0, bias, flagged = [3.0, 0.0, np.deg2rad(-8.0)], [-8.0, -20.0], range(10, 60)
     reference = _scheduled_loop("dead_reckoning", flagged, [0.0, 0.0], x0)
     reckoned = _scheduled_loop("dead_reckoning", flagged, bias, x0)
-    own = _scheduled_loop("taxinet", flagged, bias, x0)
+    own = _scheduled_loop("controller", flagged, bias, x0)
     np.testing.assert_allclose(reckoned, reference, atol=1e-4)
     assert np.max(np.abs(own[:, 0] - reference[:, 0])) > 2.0
 
