@@ -4,7 +4,7 @@ its folder is known before it is built, and a killed build resumes there)."""
 
 import concurrent.futures as cf
 
-from reachwatch.reach import ValueFunction
+from reachwatch.reach import InlineExecutor, ValueFunction
 from reachwatch.reach.application import load_application
 from reachwatch.training.dataset import build_dataset, dataset_folder, label_summary, load_dataset
 from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
@@ -35,13 +35,14 @@ def ensemble_paths(run: Run) -> list:
     return [folder / f"taxinet_seed{s}.pt" for s in spec.seeds]
 
 
-def _build(root, scenario, value_path, spec, ensemble, progress, box=None, application=""):
-    """One dataset (module-level so a process pool or Dask worker can run it; the
-    application travels as the string it is loaded from); a folder whose arrays are not
-    the ones its manifest recorded is built again."""
+def _build(root, scenario, value_path, spec, ensemble, progress, box=None, application="",
+           executor=None):
+    """One dataset, built here with its image chunks and real-loop runs on ``executor``
+    (their arrays come back here, where the dataset is written); a folder whose arrays
+    are not the ones its manifest recorded is built again."""
     return str(build_dataset(root, scenario, ValueFunction.load(value_path), spec,
                              ensemble=ensemble, progress=progress, box=box, rebuild=True,
-                             application=load_application(application)))
+                             application=load_application(application), executor=executor))
 
 
 def _label_box(run: Run, env):
@@ -65,23 +66,30 @@ def dataset_folder_for(run: Run, env, value_path, ensemble) -> str:
 
 def stage_dataset(run: Run) -> dict:
     """The ensemble baseline's TaxiNets, then one labelled dataset per train/test
-    environment (`RunSpec.dataset_spec_for`), built on the run's executor."""
+    environment (`RunSpec.dataset_spec_for`): each written here, its image chunks and
+    real-loop runs done on the run's executor. Inline, one environment after another;
+    else each environment's build is a thread here, so that all feed the executor."""
     ensemble = _ensemble(run)
     envs = run.selected(run.spec.training_environments() + run.spec.held_out_environments())
-    futures = {e.name: run.executor.submit(
-        _build, str(run.path("datasets")), run.scenario_for(e),
-        str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset_spec_for(e),
-        [str(p) for p in ensemble], run.progress, _label_box(run, e), run.spec.application)
-        for e in envs}
-    bar = run.bar()                  # hours at study scale: how many environments are done
-    finished = cf.as_completed(futures.values())
-    names, data = {future: name for name, future in futures.items()}, {}
-    for future in (bar(finished, total=len(futures), desc="datasets", unit="environment")
-                   if bar else finished):
-        if future.exception() is None:     # a failed build raises below, once all are done
-            data[names[future]] = load_dataset(future.result())
-            run.log(f"[dataset_{names[future]}] labelled: "
-                    f"{label_summary(data[names[future]].manifest)}")
+    builds = (InlineExecutor() if isinstance(run.executor, InlineExecutor)
+              else cf.ThreadPoolExecutor(max(1, len(envs)), thread_name_prefix="dataset"))
+    try:
+        futures = {e.name: builds.submit(
+            _build, str(run.path("datasets")), run.scenario_for(e),
+            str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset_spec_for(e),
+            [str(p) for p in ensemble], run.progress, _label_box(run, e), run.spec.application,
+            run.executor) for e in envs}
+        bar = run.bar()              # hours at study scale: how many environments are done
+        finished = cf.as_completed(futures.values())
+        names, data = {future: name for name, future in futures.items()}, {}
+        for future in (bar(finished, total=len(futures), desc="datasets", unit="environment")
+                       if bar else finished):
+            if future.exception() is None:   # a failed build raises below, once all are done
+                data[names[future]] = load_dataset(future.result())
+                run.log(f"[dataset_{names[future]}] labelled: "
+                        f"{label_summary(data[names[future]].manifest)}")
+    finally:     # (interrupted: a build thread ends when the executor is stopped)
+        builds.shutdown(wait=False, cancel_futures=True)
     folders = {name: run.rel(f.result()) for name, f in futures.items()}
     data = {name: data[name] for name in futures}          # the environments' order
     return {"ensemble": [run.rel(p) for p in ensemble], "folders": folders,

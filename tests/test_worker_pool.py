@@ -1,6 +1,6 @@
 """The default worker pool: one spawned worker per usable core, each with its share of
-the cores' threads; tables do not depend on the number of workers; small batches of
-rollouts still split into chunks that the workers share."""
+the cores' threads; tables and dataset images do not depend on the number of workers;
+small batches of rollouts still split into chunks that the workers share."""
 
 import functools
 import os
@@ -23,23 +23,54 @@ def _worker_threads(_):
     return os.getpid(), os.environ.get("OMP_NUM_THREADS"), torch.get_num_threads()
 
 
-def test_two_workers_sweep_the_same_table_and_split_the_threads(tmp_path):
+@pytest.fixture(scope="module")
+def pool():
+    """Two spawned workers, shared by the tests that need them (each imports Drake and
+    torch when it starts: seconds)."""
+    pool = default_executor(2)
+    yield pool
+    stop_executor(pool)
+
+
+def test_two_workers_sweep_the_same_table_and_split_the_threads(tmp_path, pool):
     g = paper_grid(10.0, (4, 3, 3))
     inline = sweep(_feedback_factory(), g, key="inline", cache_dir=tmp_path, probe=FEEDBACK,
                    executor=InlineExecutor(), progress=False)
-    pool = default_executor(2)
-    try:
-        table = sweep(_feedback_factory(), g, key="pool", cache_dir=tmp_path, probe=FEEDBACK,
-                      executor=pool, chunk_size=5, progress=False)
-        assert pool.progress_counter.value == g.size
-        threads = [pool.submit(_worker_threads, i).result() for i in range(4)]
-    finally:
-        stop_executor(pool)
+    counted = pool.progress_counter.value
+    table = sweep(_feedback_factory(), g, key="pool", cache_dir=tmp_path, probe=FEEDBACK,
+                  executor=pool, chunk_size=5, progress=False)
+    assert pool.progress_counter.value - counted == g.size
+    threads = [pool.submit(_worker_threads, i).result() for i in range(4)]
     for port in FEEDBACK.ports:
         np.testing.assert_array_equal(table[port], inline[port])
     share = max(1, usable_cores() // 2)
     assert {t[1:] for t in threads} == {(str(share), share)}
     assert all(pid != os.getpid() for pid, _, _ in threads)
+
+
+def test_a_dataset_rendered_by_workers_has_the_pixels_of_one_rendered_here(tmp_path, pool):
+    """Image chunks are tasks (`dataset_images.render_chunk`) whose arrays come back to
+    the driver, which writes them: spawned workers render and estimate the same numbers,
+    and the folder is the same, manifest and all."""
+    from reachwatch.diagrams import load_scenario
+    from reachwatch.reach import solve_brt
+    from reachwatch.taxi import TaxiDynamics
+    from reachwatch.training.dataset import DatasetSpec, build_dataset, load_dataset
+    grid = paper_grid(10.0, (5, 3, 5))
+    px, _, th = grid.mesh()
+    brt = solve_brt(grid, TaxiDynamics(half_width=10.0),
+                    np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th) + 8.0), horizon=2.0,
+                    device="cpu")
+    scenario, spec = load_scenario(data=""), DatasetSpec(samples=10, seed=5, height=24,
+                                                          width=40, chunk_size=4)
+    here = load_dataset(build_dataset(tmp_path / "here", scenario, brt, spec, progress=False))
+    there = load_dataset(build_dataset(tmp_path / "there", scenario, brt, spec,
+                                       progress=False, executor=pool), verify=True)
+    assert here.folder.name == there.folder.name and here.manifest == there.manifest
+    assert here.manifest["chunks_done"] == [0, 4, 8]
+    for name in ("images", "estimates", "ensemble", "states", "labels"):
+        np.testing.assert_array_equal(getattr(here, name), getattr(there, name))
+    assert here.images.any() and here.estimates.shape == (10, 2)
 
 
 @pytest.mark.parametrize("workers", [0, -1, 1.5, True])

@@ -23,6 +23,7 @@ atomically, so an interrupted build resumes. It also records the hash of every a
 is refused, or built again (`build_dataset`'s ``rebuild``), never reused."""
 
 import dataclasses as dc
+import functools
 import hashlib
 import json
 import logging
@@ -31,13 +32,16 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from reachwatch.diagrams import ControllerProbe, file_hash, make_controller
-from reachwatch.diagrams.controller import has_estimate
-from reachwatch.reach.application import load_application
+from reachwatch.diagrams import file_hash, make_controller
+from reachwatch.reach.application import ApplicationRef, load_application
+from reachwatch.reach.chunks import InlineExecutor, run_chunks, split
 from reachwatch.reach.fingerprint import fingerprint
-from reachwatch.systems import DetectorConfig, resize_for_detector
+from reachwatch.systems import DetectorConfig
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
-from reachwatch.systems.files import atomic_write_bytes
+
+from .dataset_files import (FILLED, LABELLED, ImageStore, array_hashes, changed_arrays, clear,
+                            finished, open_array, read_manifest, write_manifest)
+from .dataset_images import ImageSource, ImageTools, estimator, render_chunk
 
 from .labels import (FALLBACK_FIELDS, NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
                      TRAJECTORY_FIELDS, LabelSpec, assign_labels,
@@ -101,88 +105,6 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
     return Path(root) / f"{scenario.environment.name}_{spec.samples}_{digest}"
 
 
-def _open_array(folder: Path, name: str, rows_shape: tuple, mmap_mode=None) -> np.ndarray:
-    """``folder/name.npy``, checked against the leading ``rows_shape``; a truncated,
-    corrupt or misshapen file is a ValueError naming it. (numpy's ``r+`` memmap would
-    silently zero-extend a truncated file, so every file is first opened read-only.)"""
-    path = folder / f"{name}.npy"
-    try:
-        array = np.load(path, mmap_mode="r" if mmap_mode else None, allow_pickle=False)
-        if mmap_mode not in (None, "r"):
-            del array
-            array = np.load(path, mmap_mode=mmap_mode, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as e:
-        raise ValueError(f"{path} is unreadable (truncated or corrupt: {e}); delete "
-                         f"{folder} to rebuild the dataset") from None
-    if array.shape[:len(rows_shape)] != tuple(rows_shape):
-        raise ValueError(f"{path} holds shape {array.shape}, the manifest says "
-                         f"{tuple(rows_shape)}; delete {folder} to rebuild the dataset")
-    return array
-
-
-def _read_manifest(folder: Path) -> dict:
-    try:
-        return json.loads((folder / "manifest.json").read_text())
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{folder} is not a readable reachwatch dataset ({type(e).__name__}: "
-                         f"{e}); delete it to rebuild the dataset") from None
-
-
-def _write_manifest(folder, manifest):
-    atomic_write_bytes(folder / "manifest.json", json.dumps(manifest, indent=1).encode())
-
-
-#: The arrays written once, when a dataset is begun (its labels); the others are filled
-#: chunk by chunk (`FILLED`).
-LABELLED = ("states", "values", "labels", "sources", "runs")
-FILLED = ("images", "estimates", "ensemble")
-
-
-def _array_hashes(folder: Path, names) -> dict:
-    """``{name: file_hash}`` of the ``folder/name.npy`` that exist among ``names``."""
-    return {name: file_hash(folder / f"{name}.npy") for name in names
-            if (folder / f"{name}.npy").is_file()}
-
-
-def _changed_arrays(folder: Path, manifest: dict, names=None) -> str:
-    """Why the arrays of ``folder`` (those of ``names``; default all) no longer are the
-    ones its manifest recorded (``manifest["hashes"]``), or "" when they are."""
-    for name, want in manifest.get("hashes", {}).items():
-        if names is not None and name not in names:
-            continue
-        path = folder / f"{name}.npy"
-        if not path.is_file():
-            return f"{path} is missing"
-        if file_hash(path) != want:
-            return f"{path} changed since the dataset was built"
-    return ""
-
-
-def _finished(manifest: dict, spec: "DatasetSpec") -> bool:
-    return len(manifest["chunks_done"]) >= -(-manifest["samples"] // spec.chunk_size)
-
-
-def _clear(folder: Path):
-    """Remove the dataset in ``folder`` (its manifest first, so that a build stopped
-    half way through this begins anew)."""
-    (folder / "manifest.json").unlink(missing_ok=True)
-    for path in folder.glob("*.npy"):
-        path.unlink()
-
-
-def _estimator(controller):
-    """A function ``(N, H, W, 3) images -> (N, k)`` estimates of ``controller`` (one batch
-    when it offers ``estimate(images)``, as TaxiNet's does; else image by image through
-    its ``estimate`` port), and k."""
-    if not has_estimate(controller):
-        return (lambda images: np.zeros((len(images), 0))), 0
-    size = controller.GetOutputPort("estimate").size()
-    if callable(getattr(controller, "estimate", None)):
-        return controller.estimate, size
-    probe = ControllerProbe(controller)
-    return (lambda images: np.stack([probe.outputs(image)[1] for image in images])), size
-
-
 def label_frames(label_info) -> int:
     """The frames the real loop rendered to label a dataset, from its manifest's
     ``labels`` record: the rollouts' (a hybrid's include its audit), the audit's where
@@ -217,32 +139,33 @@ def runs_cache(folder) -> Path:
     return Path(folder).parent / "rollouts"
 
 
-def _real_loop(application, scenario, value_function, states, folder: Path, progress):
+def _real_loop(application, scenario, value_function, folder: Path, progress, executor,
+               states):
     """``run_loop`` for `assign_labels`: the application's real closed loop from
-    ``states[index]``, cached in `runs_cache`."""
+    ``states[index]``, cached in `runs_cache`, run on ``executor``."""
     def run_loop(index):
         outcome = application.real_outcomes(scenario, states[index], grid=value_function.grid,
                                 duration=value_function.horizon, cache_dir=runs_cache(folder),
-                                progress=progress)
+                                executor=executor, progress=progress)
         return outcome.failed, int(np.sum(outcome["ticks"]))
     return run_loop
 
 
-def _real_paths(application, scenario, value_function, labels: LabelSpec, folder: Path,
-                progress):
+def _real_paths(application, scenario, value_function, folder: Path, progress, executor,
+                labels: LabelSpec):
     """``run_paths`` for `trajectory_samples`: the application's ``real_paths``, cached
-    in `runs_cache`."""
+    in `runs_cache`, run on ``executor``."""
     def run_paths(starts):
         return application.real_paths(scenario, starts, grid=value_function.grid,
                           horizon=value_function.horizon, extend=labels.extend,
                           stride=labels.stride, cache_dir=runs_cache(folder),
-                          progress=progress).fields
+                          executor=executor, progress=progress).fields
     return run_paths
 
 
 def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpec(), *,
                   ensemble=(), progress=True, box=None, rebuild=False,
-                  application=None) -> Path:
+                  application=None, executor=None) -> Path:
     """Render, estimate and label ``spec.samples`` uniform states of ``box`` (``(lo,
     hi)``, inside the value function's grid; default: the whole grid) in
     ``scenario``'s environment, and with ``trajectory`` labels the states their runs
@@ -251,7 +174,10 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     (edited, truncated or missing since) is a ValueError naming the file, or with
     ``rebuild`` is built again from the start. ``application``: the closed loop
     (`reachwatch.reach.application`; None = the default, the taxi): its failure rule,
-    start distribution, real loop and camera."""
+    start distribution, real loop and camera. ``executor``: where the image chunks
+    (`dataset_images.render_chunk`) and the real loop's runs go (default: here, one
+    after another); this process writes what comes back, so workers need no
+    filesystem shared with it."""
     application = application or load_application()
     scenario = application.resolved(scenario)
     grid = value_function.grid
@@ -266,21 +192,22 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
     folder = dataset_folder(root, scenario, value_function, spec, ensemble, box, application)
     folder.mkdir(parents=True, exist_ok=True)
     manifest_path = folder / "manifest.json"
-    estimator = manifest = None     # the controller is built only when there is work for it
+    inline = executor is None or isinstance(executor, InlineExecutor)
+    tools = manifest = None     # the renderer is built only when there is work for it
     if manifest_path.exists():
         # Reused (or resumed) only when its arrays are the ones its manifest recorded:
         # else refused in one line, or with ``rebuild`` built again.
         try:
-            manifest = _read_manifest(folder)
+            manifest = read_manifest(folder)
             k, n = manifest["estimate_size"], manifest["samples"]
             for name in LABELLED[:4]:
-                _open_array(folder, name, (n,))
-            arrays = {name: _open_array(folder, name, shape, "r+") for name, shape in (
+                open_array(folder, name, (n,))
+            arrays = {name: open_array(folder, name, shape, "r+") for name, shape in (
                 ("images", (n, spec.height, spec.width, 3)), ("estimates", (n, k)),
                 ("ensemble", (n, len(ensemble), 2)))}
             # (the filled arrays' hashes are those of the finished dataset)
-            why = _changed_arrays(folder, manifest,
-                                  None if _finished(manifest, spec) else LABELLED)
+            why = changed_arrays(folder, manifest,
+                                  None if finished(manifest, spec) else LABELLED)
             if why:
                 raise ValueError(f"{why}; delete {folder} to rebuild the dataset")
         except ValueError as e:
@@ -289,35 +216,33 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
             _log.warning(f"dataset {folder.name}: {str(e).split('; delete')[0]}; "
                          f"building it again")
             arrays = None
-            _clear(folder)
+            clear(folder)
             manifest = None
     if manifest is None:
         rng = np.random.default_rng(spec.seed)
         states = lo + rng.uniform(size=(spec.samples, grid.ndim)) * (hi - lo)
         inside = lambda x: np.all((x >= lo) & (x <= hi), axis=1)       # noqa: E731
+        real = (application, scenario, value_function, folder, progress, executor)
         if spec.labels.source == "trajectory":
             states, labels, sources, label_info, runs = trajectory_samples(
-                states, spec.labels, _real_paths(application, scenario, value_function,
-                                                 spec.labels, folder, progress), inside)
+                states, spec.labels, _real_paths(*real, spec.labels), inside)
             values, n = value_function.at(states), len(states)
         else:
             values = value_function.at(states)
             n, labels, sources, label_info = assign_labels(
                 values, ~application.failed(scenario, states), spec.labels,
-                _real_loop(application, scenario, value_function, states, folder, progress))
+                _real_loop(*real, states))
             if label_info.get("labelled_by") == "trajectory":    # the audit distrusts the map
                 states, labels, sources, read, runs = trajectory_samples(
                     states[:spec.labels.distrusted_starts], spec.labels,
-                    _real_paths(application, scenario, value_function, spec.labels, folder,
-                                progress), inside)
+                    _real_paths(*real, spec.labels), inside)
                 label_info = {**read, **label_info}
                 values, n = value_function.at(states), len(states)
             else:
                 states, values, runs = states[:n], values[:n], np.full(n, NO_RUN, np.int64)
         if spec.labels.paths:
-            out = _real_paths(application, scenario, value_function, spec.labels, folder,
-                              progress)(application.starts(scenario, (lo, hi), spec.labels.paths,
-                                                           [spec.seed, 1]))
+            out = _real_paths(*real, spec.labels)(application.starts(
+                scenario, (lo, hi), spec.labels.paths, [spec.seed, 1]))
             along, anomalous, left_out, along_runs = read_along(out, inside)
             states = np.concatenate([states, along])
             values = np.concatenate([values, value_function.at(along)])
@@ -329,8 +254,9 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
                                    "left_out": left_out, "frames": frames,
                                    "frames_per_label": round(frames / max(1, len(along)), 2)}
             n = len(states)
-        estimator = _estimator(make_controller(scenario.controller))
-        k = estimator[1]
+        if inline:      # renders here: built once, for the estimate size and the images
+            tools = ImageTools.build(application, scenario, ensemble)
+        k = tools.estimate_size if tools else estimator(make_controller(scenario.controller))[1]
         np.save(folder / "states.npy", states)
         np.save(folder / "values.npy", values)
         np.save(folder / "labels.npy", labels)
@@ -356,38 +282,28 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
                     "spec": dc.asdict(spec), "controller": dc.asdict(scenario.controller),
                     "estimate_size": k,
                     "ensemble": [str(p) for p in ensemble], "chunks_done": [],
-                    "hashes": _array_hashes(folder, LABELLED)}
-        _write_manifest(folder, manifest)
+                    "hashes": array_hashes(folder, LABELLED)}
+        write_manifest(folder, manifest)
     states = np.load(folder / "states.npy")
-    chunks = [(s, min(s + spec.chunk_size, n)) for s in range(0, n, spec.chunk_size)]
-    todo = [c for c in chunks if c[0] not in manifest["chunks_done"]]
-    if todo:
-        estimate, _ = estimator or _estimator(make_controller(scenario.controller))
-        renderer = application.renderer(scenario)
-        ensemble_nets = [application.ensemble_estimator(c) for c in ensemble]
-        bar = tqdm(total=n, initial=n - sum(e - s for s, e in todo), unit="image",
-                   desc=f"dataset {scenario.environment.name}", disable=not progress)
-        for s, e in todo:
-            full = np.stack([renderer.render(x) for x in states[s:e]])
-            arrays["estimates"][s:e] = estimate(full)
-            for j, estimate_member in enumerate(ensemble_nets):
-                arrays["ensemble"][s:e, j] = estimate_member(full)
-            arrays["images"][s:e] = resize_for_detector(full, spec)    # as the detector system does
-            for a in arrays.values():
-                a.flush()
-            manifest["chunks_done"].append(s)
-            if _finished(manifest, spec):          # the filled arrays are final now
-                manifest["hashes"] = {**manifest.get("hashes", {}),
-                                      **_array_hashes(folder, FILLED)}
-            _write_manifest(folder, manifest)
-            bar.update(e - s)
-        bar.close()
+    chunks = split(n, spec.chunk_size)
+    store = ImageStore(folder, manifest, arrays, spec.chunk_size)
+    if not all(store.valid(c) for c in chunks):
+        if inline and tools is None:
+            tools = ImageTools.build(application, scenario, ensemble)
+        source = ImageSource(None if inline else ApplicationRef(application._loaded_as()),
+                             scenario, tuple(str(p) for p in ensemble), spec.height,
+                             spec.width, folder.name, tools)
+        run_chunks(render_chunk, chunks, store,
+                   args=lambda c: (source, states[c.start:c.stop]), executor=executor,
+                   caller="build_dataset",
+                   bar=functools.partial(tqdm, total=n, unit="image", disable=not progress,
+                                         desc=f"dataset {scenario.environment.name}"))
     elif not set(LABELLED[:4] + FILLED) <= set(manifest.get("hashes", {})):
         # built before datasets recorded their arrays' hashes: recorded now, so that
         # a later edit is found
-        manifest["hashes"] = {**_array_hashes(folder, LABELLED + FILLED),
+        manifest["hashes"] = {**array_hashes(folder, LABELLED + FILLED),
                               **manifest.get("hashes", {})}
-        _write_manifest(folder, manifest)
+        write_manifest(folder, manifest)
     return folder
 
 
@@ -439,15 +355,15 @@ def load_dataset(folder, verify: bool = False) -> LabelledData:
     an array differs from the one its manifest recorded (the images checked too with
     ``verify``)."""
     folder = Path(folder)
-    manifest = _read_manifest(folder)
+    manifest = read_manifest(folder)
     if manifest.get("format") != FORMAT:
         raise ValueError(f"{folder}: unknown dataset format {manifest.get('format')}")
     spec = DatasetSpec(**manifest["spec"])
-    if not _finished(manifest, spec):
+    if not finished(manifest, spec):
         raise ValueError(f"{folder} is incomplete ({len(manifest['chunks_done'])} chunks); "
                          f"run build_dataset again to resume it")
     n = manifest["samples"]
-    load = lambda name, shape, mode=None: _open_array(folder, name, shape, mode)  # noqa: E731
+    load = lambda name, shape, mode=None: open_array(folder, name, shape, mode)  # noqa: E731
     data = LabelledData(folder, manifest,
                         load("images", (n, spec.height, spec.width, 3), "r"),
                         load("states", (n,)), load("values", (n,)), load("labels", (n,)),
@@ -456,7 +372,7 @@ def load_dataset(folder, verify: bool = False) -> LabelledData:
                         load("runs", (n,)) if (folder / "runs.npy").exists() else None)
     # Every array but the images (the bulk) is checked against the manifest at every
     # load; the images too with ``verify`` (build_dataset checks all before reusing).
-    why = _changed_arrays(folder, manifest, None if verify else LABELLED + FILLED[1:])
+    why = changed_arrays(folder, manifest, None if verify else LABELLED + FILLED[1:])
     if why:
         raise ValueError(f"{why}; delete {folder} to rebuild the dataset")
     return data
