@@ -7,7 +7,8 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
 from pydrake.systems.primitives import Multiplexer, ZeroOrderHold
 
 from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, FlagFilter,
-                                HistoryMonitor, ProportionalController, TrueStateEstimator)
+                                HistoryMonitor, ProportionalController, TrueStateEstimator,
+                                fallback_name)
 
 from .checkpoints import checkpoint_kind, load_detector, load_history_monitor
 from .closed_loop import add_controller, export_loop_ports
@@ -142,7 +143,6 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
     ``state_estimator`` and ``oracle_p_controller`` (privileged). With ``meshcat``
     (a `Meshcat`), a `MeshcatVisualizer` of the perception scene is added."""
     monitor, controller = scenario.monitor, scenario.controller
-    fallback = monitor.fallback
     if not monitor.detector:
         raise ValueError("monitor.detector: the guarded loop needs a detector "
                          "checkpoint (train one with 'reachwatch evaluate')")
@@ -157,7 +157,7 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
         controller=controller,
         estimate_port=vision.GetOutputPort(ESTIMATE_OUTPUT) if has_estimate(vision) else None)
     hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(controller.period, 1))
-    if fallback.steering == "oracle":
+    if monitor.steering == "oracle":
         estimator = builder.AddNamedSystem("state_estimator", TrueStateEstimator())
         oracle = builder.AddNamedSystem("oracle_p_controller", ProportionalController(
             px_gain=controller.px_gain, theta_gain=controller.theta_gain))
@@ -165,7 +165,7 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
         builder.Connect(estimator.get_estimate_output_port(), oracle.get_estimate_input_port())
         builder.Connect(oracle.get_steering_angle_output_port(),
                         switch.get_fallback_steering_angle_input_port())
-    elif fallback.steering == "dead_reckoning":
+    elif monitor.steering == "dead_reckoning":
         if not has_estimate(vision):
             raise ValueError("monitor.steering: dead_reckoning carries the controller's "
                              "'estimate' output forward, and this controller has none")
@@ -185,5 +185,5 @@ def make_guarded_diagram(scenario, *, meshcat=None) -> Diagram:
         MeshcatVisualizer.AddToBuilder(builder, world.scene_graph, meshcat,
                                        MeshcatVisualizerParams(role=Role.kPerception))
     diagram = builder.Build()
-    diagram.set_name(f"guarded_{fallback.name}")
+    diagram.set_name(f"guarded_{fallback_name(monitor.strategy, monitor.steering)}")
     return diagram

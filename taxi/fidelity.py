@@ -22,6 +22,7 @@ from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, Mis
                                        check_mission_limit)
 from reachwatch.reach.outcomes import Outcomes, map_states, path_labels, run_outcomes
 from reachwatch.reach.score_noise import fit_score_noise
+from reachwatch.systems import fallback_parts
 
 from .sweeps import resolved
 
@@ -268,7 +269,7 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
     loop, make = scenario, make_closed_loop_diagram
     if fallback is not None:
         loop, make = copy.deepcopy(scenario), make_guarded_diagram
-        loop.monitor = loop.monitor.with_fallback(fallback)
+        loop.monitor.strategy, loop.monitor.steering = fallback_parts(fallback)
     B, period = scenario.environment.half_width, scenario.controller.period
     nominal = scenario.controller.speed
     goal = nominal * duration
