@@ -312,7 +312,9 @@ class RunSpec:
             except ValueError as e:
                 raise ValueError(f"guard.environments[{i}]: {e}") from None
         self.incremental.validate()
-        taxi_loop = getattr(application, "own_loop", False)     # the taxi's own loop
+        # a TaxiApplication, its subclasses too (only they have own_loop): these stages
+        # run the taxi's own loop, whatever the application's
+        taxi_loop = hasattr(application, "own_loop")
         for on, key, off in (
                 (self.monitor.enabled, "monitor.kind: history", "monitor: {kind: detector}"),
                 (self.incremental.enabled, "incremental.enabled", "incremental: {enabled: false}")):
