@@ -4,6 +4,7 @@ import json
 from dataclasses import replace as dc_replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -164,7 +165,8 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     spec.monitor.kind = "detector"
     out = _run_to_report(spec, tmp_path)
     report = (out / "report.md").read_text()
-    assert "cart" in report and "| KMWH_21h_clear | test | 5x5 | 25 |" in report
+    assert report.startswith("# reachwatch run 'cart'")
+    assert "| KMWH_21h_clear | test | 5x5 | 25 |" in report
     assert "Table 2" in report and (out / "figures" / "overlay_KMWH_21h_clear.png").is_file()
     assert not list((out / "stages").glob("guard_*.json"))      # no fallback rollouts: skipped
     assert "Not run: the application 'cart' has no fallback rollouts" in report
@@ -179,7 +181,6 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
         assert words not in text, words
     assert "left the box': runs leaving the solved box in theta," in text
     # the environments figure is the cart's camera: both rails in view
-    import cv2
     sheet = cv2.imread(str(out / "figures" / "environments.png"))[:, :48].astype(int)
     b, g, r = sheet[..., 0], sheet[..., 1], sheet[..., 2]
     assert ((r > g + 40) & (r > b + 40)).any() and ((b > r + 40) & (b > g + 40)).any()
