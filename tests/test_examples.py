@@ -177,9 +177,10 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     assert record["outputs"]["starts"] == 2 and record["outputs"]["frames"] > 0
     # the report speaks of the cart, not the taxi (the run file itself names runways)
     text = report.split("## Configuration")[0]
-    for words in ("runway", "TaxiNet", "aircraft", "paper's box", "py = ", "|theta|"):
+    for words in ("runway", "TaxiNet", "aircraft", "paper's box", "py = ", "max |theta|"):
         assert words not in text, words
     assert "left the box': runs leaving the solved box in theta," in text
+    assert "the real loop reached a rail" in text and "Grid [5, 5] over the track (y" in text
     # the environments figure is the cart's camera: both rails in view
     sheet = cv2.imread(str(out / "figures" / "environments.png"))[:, :48].astype(int)
     b, g, r = sheet[..., 0], sheet[..., 1], sheet[..., 2]

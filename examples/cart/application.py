@@ -68,7 +68,9 @@ class CartApplication(Application):
     name = "cart"
     axes = ("y", "theta")
     open_axes = (1,)        # a run may turn past the grid's headings without failing
-    camera_port = "camera.color_image"
+    # the report's words for the cart (where the taxi's say "left the runway", ...)
+    failure_words = "reached a rail"
+    box_words = "the track (y from rail to rail, |theta| <= 40 deg)"
 
     def loop_diagram(self, scenario, *, guarded=False):
         return make_cart_loop(scenario, scenario.monitor if guarded else None)
