@@ -57,3 +57,50 @@ def kmwh_day_brt():
     table = np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th))
     return scenario, solve_brt(grid, TaxiDynamics(half_width=B), table, horizon=1.0,
                                device="cpu")
+
+
+#: The cache folders of a run directory that hold rendered work, keyed by content
+#: (sweep chunks, real-loop outcome chunks, datasets): what `seed_caches` copies.
+RENDERED_CACHES = ("sweeps", "outcomes", "datasets")
+
+
+def _shared_root(tmp_path_factory):
+    """The session's temporary folder, shared by pytest-xdist's workers."""
+    root = tmp_path_factory.getbasetemp()
+    return root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """The whole tiny run (tests/tiny_run.py), rendered from nothing once per session
+    (once for all xdist workers): ``(folder, log)``. Tests read it and never write it;
+    a test that changes a run copies the folder, or seeds a new run folder with its
+    rendered caches (`seed_caches`), whose content keys make them safe to share."""
+    import json
+    from filelock import FileLock
+    from reachwatch.pipeline.run import run_pipeline
+    from reachwatch.pipeline.spec import load_run_spec
+    from tiny_run import TINY
+    root = _shared_root(tmp_path_factory)
+    out, record = root / "tiny_run", root / "tiny_run.log.json"
+    with FileLock(str(root / "tiny_run.lock")):
+        if not record.exists():
+            log = []
+            run_pipeline(load_run_spec(data=TINY), out, progress=False, log=log.append)
+            record.write_text(json.dumps(log))
+    return out, json.loads(record.read_text())
+
+
+@pytest.fixture(scope="session")
+def seed_caches(tiny_run):
+    """``seed_caches(folder)``: copy the tiny run's rendered caches into a new run
+    folder, so that a test of the pipeline's logic does not render again what the
+    session's tiny run rendered (anything else it needs is rendered as usual)."""
+    import shutil
+
+    def seed(folder):
+        for name in RENDERED_CACHES:
+            if (tiny_run[0] / name).is_dir():
+                shutil.copytree(tiny_run[0] / name, folder / name, dirs_exist_ok=True)
+        return folder
+    return seed

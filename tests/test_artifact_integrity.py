@@ -41,9 +41,9 @@ def _why(log, stage):
 
 
 @pytest.fixture(scope="module")
-def base(tmp_path_factory):
+def base(tmp_path_factory, seed_caches):
     """A tiny run up to evaluate, copied by each test that edits it."""
-    out = tmp_path_factory.mktemp("base")
+    out = seed_caches(tmp_path_factory.mktemp("base"))
     run, _ = _run(out, "evaluate")
     return out, run.outputs
 

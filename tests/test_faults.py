@@ -96,8 +96,8 @@ def test_bad_chunk_size_is_an_error(tmp_path, chunk_size):
 # --- run directories: deleted, truncated, torn, read-only --------------------------------
 
 @pytest.fixture(scope="module")
-def solved_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("run")
+def solved_run(tmp_path_factory, seed_caches):
+    out = seed_caches(tmp_path_factory.mktemp("run"))
     run_pipeline(load_run_spec(data=TINY), out, until="solve", progress=False, log=lambda m: None)
     return out
 

@@ -33,7 +33,8 @@ def _ran(log):
 
 
 def test_random_families_a_held_out_threshold_and_held_out_labels_run_through_the_pipeline(
-        tmp_path):
+        tmp_path, seed_caches):
+    seed_caches(tmp_path)
     text = (TINY.replace("test: [{runway: KSFO, hour: 17.0, sky: clear}]",
                          "train_random: {count: 1, seed: 0}\ntest_random: {count: 1, seed: 1}\n"
                          "held_out_labels: {source: rollout, max_rollouts: 6}")
@@ -70,8 +71,14 @@ def test_random_families_a_held_out_threshold_and_held_out_labels_run_through_th
     assert [r["positives"] for r in own] == [int(data.labels.sum()), int(data.brt_labels.sum())]
 
 
-def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_path):
-    run, log = _run(tmp_path)
+def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tiny_run, tmp_path):
+    # the session's tiny run (rendered from nothing, tests/conftest.py), copied here
+    shutil.copytree(tiny_run[0], tmp_path, dirs_exist_ok=True)
+    log = tiny_run[1]
+    records = {p.name: p.stat().st_mtime for p in (tmp_path / "stages").iterdir()}
+    run, again = _run(tmp_path)                                # nothing changed: all skipped
+    assert _ran(again) == set()
+    assert {p.name: p.stat().st_mtime for p in (tmp_path / "stages").iterdir()} == records
     html = (tmp_path / "report.html").read_text()
     md = (tmp_path / "report.md").read_text()
     for anchor in SECTIONS:
@@ -161,13 +168,10 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     assert (tmp_path / inc["checkpoint"]).is_file()
     assert _ran(log) >= {"dataset", "train", "evaluate", "incremental", "report",
                          "sweep_KMWH_9h_clear", "solve_KSFO_17h_clear", "guard_KSFO_17h_clear"}
-    records = {p.name: p.stat().st_mtime for p in (tmp_path / "stages").iterdir()}
 
-    _, log = _run(tmp_path)                                    # nothing changed: all skipped
-    assert _ran(log) == set()
-    assert {p.name: p.stat().st_mtime for p in (tmp_path / "stages").iterdir()} == records
-
-    _, log = _run(tmp_path, TINY.replace("epochs: 1", "epochs: 2"))   # detector changed
+    # the detector changed (the guard's real-loop check left out: it would only render)
+    _, log = _run(tmp_path, TINY.replace("epochs: 1", "epochs: 2").replace("check_starts: 2",
+                                                                           "check_starts: 0"))
     assert _ran(log) == {"train", "evaluate", "guard_KSFO_17h_clear", "report"}
     assert not any("sweep_" in m and "running" in m for m in log)
 
@@ -186,10 +190,13 @@ def test_tiny_run_end_to_end_skips_finished_stages_and_reruns_downstream(tmp_pat
     assert f"The threshold {guard['threshold']:.3g} was set here, without labels" in md
 
 
-def test_a_slice_runs_its_environments_alone_with_the_whole_runs_records(tmp_path, capsys):
+def test_a_slice_runs_its_environments_alone_with_the_whole_runs_records(tmp_path, capsys,
+                                                                         seed_caches):
     """``only``: the per-environment stages (sweep, solve, dataset, fidelity) for the
     named environments alone, each with the record the whole run gives it; stages that
     pool every environment are refused, and so are names the run lacks."""
+    seed_caches(tmp_path / "whole")
+    seed_caches(tmp_path / "part")
     whole, _ = _run(tmp_path / "whole", until="fidelity")
     part, log = _run(tmp_path / "part", until="fidelity", only=["KSFO_17h_clear"])
     assert any("a slice of 1 of the run's 3 environments, up to fidelity: KSFO_17h_clear" in m
@@ -252,10 +259,12 @@ def test_a_slice_runs_its_environments_alone_with_the_whole_runs_records(tmp_pat
     assert not (tmp_path / "part" / "stages" / "train.json").exists()
 
 
-def test_refined_run_solves_and_checks_on_the_refined_table(tmp_path):
+def test_refined_run_solves_and_checks_on_the_refined_table(tmp_path, seed_caches):
+    seed_caches(tmp_path)
     text = TINY.replace("horizon: 4.0", "horizon: 4.0\nrefine: {levels: 1, band: 1.0}\n"
                                         "solved_theta_deg: 56\nsolved_py_max: 290")
-    run, _ = _run(tmp_path, text, until="fidelity")
+    # the held-out environment alone (a slice): the others would check the same again
+    run, _ = _run(tmp_path, text, until="fidelity", only=["KSFO_17h_clear"])
     solved = run.outputs["solve"]["KSFO_17h_clear"]
     # the tables and the BRT cover |theta| <= 56 deg and py <= 290 m; the labelled states
     # stay within the paper's box (28 deg, 250 m)
@@ -274,12 +283,13 @@ def test_refined_run_solves_and_checks_on_the_refined_table(tmp_path):
     assert run.outputs["fidelity"]["KSFO_17h_clear"]["table_rollouts"]["n"] == 3
 
 
-def test_map_selection_keeps_the_level_and_variant_its_own_runs_find_best(tmp_path):
+def test_map_selection_keeps_the_level_and_variant_its_own_runs_find_best(tmp_path, seed_caches):
+    seed_caches(tmp_path)
     from reachwatch.reach import Fidelity, select_map
     from reachwatch.taxi import on_runway_starts
     text = TINY.replace("horizon: 4.0", "horizon: 4.0\nrefine: {levels: 1, band: 1.0}\n"
                         "map_selection: {starts: 6, seed: 7, robust_spreads_deg: [0]}")
-    run, _ = _run(tmp_path, text, until="solve")
+    run, _ = _run(tmp_path, text, until="solve", only=["KSFO_17h_clear"])  # one is enough
     env = run.spec.test[0]
     solved = run.outputs["solve"][env.name]
     chosen = solved["map_selection"]
@@ -317,7 +327,8 @@ def test_map_selection_keeps_the_level_and_variant_its_own_runs_find_best(tmp_pa
         load_run_spec(data=text.replace("seed: 7", "seed: 1000"))
 
 
-def test_killed_run_resumes_at_the_failed_stage(tmp_path, monkeypatch):
+def test_killed_run_resumes_at_the_failed_stage(tmp_path, monkeypatch, seed_caches):
+    seed_caches(tmp_path)
     from reachwatch.pipeline import stages
     calls = []
 
@@ -357,10 +368,10 @@ def test_until_stops_and_dask_executor_runs_the_heavy_stages(tmp_path):
     assert STAGES[-1] == "report"
 
 
-def test_a_robust_run_solves_robust_brts_from_the_same_sweeps(tmp_path):
+def test_a_robust_run_solves_robust_brts_from_the_same_sweeps(tmp_path, seed_caches):
     """``robust`` changes the solve only: the same sweeps, a BRT at least as large in
     every environment, saved under its own name and said in the metadata."""
-    sweeps = tmp_path / "sweeps"
+    sweeps = seed_caches(tmp_path) / "sweeps"
     nominal, _ = _run(tmp_path / "nominal", until="solve", sweep_cache=sweeps)
     chunks = {p: p.stat().st_mtime for p in sweeps.rglob("*") if p.is_file()}
     robust, _ = _run(tmp_path / "robust", TINY.replace("horizon: 4.0", "horizon: 4.0\nrobust: "
