@@ -18,8 +18,11 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -e ".[dev,distributed]"
 	touch $(STAMP)
 
+# Tests run on TEST_WORKERS processes (pytest-xdist); 0 runs them in this one.
+TEST_WORKERS ?= 2
+
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist worksteal
 
 demo: $(STAMP)
 	$(BIN)/reachwatch run --scenario scenarios/demo.yaml --out $(OUT)
