@@ -104,3 +104,10 @@ def seed_caches(tiny_run):
                 shutil.copytree(tiny_run[0] / name, folder / name, dirs_exist_ok=True)
         return folder
     return seed
+
+
+def pytest_collection_modifyitems(config, items):
+    """The tests that read the session's tiny run go first: under pytest-xdist the
+    first worker renders it at once while the other runs the rest, and no worker
+    waits on it later (the order is otherwise the files' own)."""
+    items.sort(key=lambda item: "tiny_run" not in getattr(item, "fixturenames", ()))

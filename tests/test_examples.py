@@ -72,6 +72,8 @@ def test_grass_follower_through_reachwatch_run(tmp_path, monkeypatch):
     monkeypatch.chdir(ROOT)                    # the run file's factory path is relative
     spec = _tiny(load_run_spec(GRASS / "run.yaml"))
     spec.guard.environments = []
+    # its vision reads any image size: a small camera renders the tiny run faster
+    spec.scenario.camera = dc_replace(spec.scenario.camera, width=120, height=64)
     out = _run_to_report(spec, tmp_path)
     report = (out / "report.md").read_text()
     assert "grass_follower" in report and "Table 2" in report
