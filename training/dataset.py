@@ -77,6 +77,24 @@ def _value_hash(value_function) -> str:
                           .tobytes()).hexdigest()[:16]
 
 
+#: The camera placement (every field but the image size) and lighting that datasets were
+#: rendered with when their key held the camera's size alone: `camera_view` keys only
+#: what differs from it, so those datasets keep their folders.
+KEYED_VIEW = {"fov_x_deg": 80.0, "right": 2.17, "up": 0.42, "forward": 0.0,
+              "reference_height": 1.5, "yaw_out_deg": 5.0, "pitch_down_deg": 5.0,
+              "near": 0.5, "far": 3000.0, "shadows": False}
+
+
+def camera_view(scenario) -> dict:
+    """What a dataset's images depend on in ``scenario``'s camera besides its size (its
+    placement, field of view, clipping) and its shadows, where they differ from
+    `KEYED_VIEW`."""
+    view = {**dc.asdict(scenario.camera), "shadows": bool(scenario.shadows)}
+    return {name: value for name, value in view.items()
+            if name not in ("height", "width")
+            and (name not in KEYED_VIEW or KEYED_VIEW[name] != value)}
+
+
 def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(),
                    box=None, application=None) -> Path:
     """The content-addressed folder of a dataset under ``root`` (``application``: the
@@ -95,6 +113,8 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
              "camera": [scenario.camera.height, scenario.camera.width],
              "controller": fingerprint(scenario.controller),
              "ensemble": [file_hash(p) for p in ensemble]}
+    if camera_view(scenario):      # a camera placed otherwise renders other images
+        parts["view"] = camera_view(scenario)
     if box is not None:
         parts["box"] = np.asarray(box, float).tolist()
     if application.key() is not None:      # the default's keys are those of before

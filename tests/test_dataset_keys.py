@@ -1,0 +1,44 @@
+"""A dataset's folder is keyed by everything its images depend on: the camera's
+placement and the shadows too, not only the image size (a loop whose BRT ignores the
+camera, such as the privileged oracle's, would otherwise reuse images of another view)."""
+
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import load_scenario
+from reachwatch.reach import ValueFunction
+from reachwatch.taxi import paper_grid
+from reachwatch.training.dataset import KEYED_VIEW, DatasetSpec, camera_view, dataset_folder
+
+
+@pytest.fixture(scope="module")
+def value_function():
+    grid = paper_grid(10.0, (3, 3, 3))
+    return ValueFunction(grid, np.linspace(-1.0, 1.0, grid.size).reshape(grid.shape), 2.0,
+                         "test")
+
+
+def _folder(tmp_path, value_function, text=""):
+    return dataset_folder(tmp_path, load_scenario(data=text), value_function, DatasetSpec())
+
+
+@pytest.mark.parametrize("text", [
+    "camera: {fov_x_deg: 60.0}\n", "camera: {pitch_down_deg: 12.0}\n",
+    "camera: {right: 1.0, up: 0.8}\n", "camera: {near: 0.2}\n", "shadows: true\n"])
+def test_a_camera_placed_otherwise_or_shadows_key_another_dataset(tmp_path, value_function,
+                                                                   text):
+    assert _folder(tmp_path, value_function, text) != _folder(tmp_path, value_function)
+
+
+def test_the_default_view_keys_nothing_new_and_the_loop_settings_leave_the_key(
+        tmp_path, value_function):
+    """The default camera adds nothing to the key (datasets built before it held the
+    view keep their folders); the start, duration and monitor change no image."""
+    assert camera_view(load_scenario(data="")) == {}
+    assert set(KEYED_VIEW) == set(camera_view(load_scenario(data=(
+        "camera: {fov_x_deg: 61, right: 1, up: 1, forward: 1, reference_height: 1, "
+        "yaw_out_deg: 1, pitch_down_deg: 1, near: 0.1, far: 100}\nshadows: true\n"))))
+    same = ("camera: {fov_x_deg: 80.0}\n", "duration: 3.0\nseed: 4\n",
+            "initial_state: {py: 200.0}\n", "monitor: {threshold: 0.7}\n")
+    assert {_folder(tmp_path, value_function, t) for t in same} == {
+        _folder(tmp_path, value_function)}
