@@ -102,7 +102,8 @@ class TaxiApplication(Application):
     def renderer(self, scenario):
         if not self.own_loop:
             return super().renderer(scenario)
-        return StateRenderer(environment=scenario.environment, camera=scenario.camera)
+        return StateRenderer(environment=scenario.environment, camera=scenario.camera,
+                             shadows=scenario.shadows)   # as the loop renders
 
     def view_state(self, scenario):
         return np.array([0.0, 150.0, 0.0])      # where the environments figure looked

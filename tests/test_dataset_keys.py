@@ -42,3 +42,16 @@ def test_the_default_view_keys_nothing_new_and_the_loop_settings_leave_the_key(
             "initial_state: {py: 200.0}\n", "monitor: {threshold: 0.7}\n")
     assert {_folder(tmp_path, value_function, t) for t in same} == {
         _folder(tmp_path, value_function)}
+
+
+def test_the_taxis_dataset_images_are_what_its_loops_camera_sees_shadows_included():
+    """The taxi's dataset renderer (a StateRenderer, for speed) renders the pixels of
+    the closed loop's own camera (the generic renderer): shadows too, so that a
+    detector trained on a run with ``shadows: true`` sees the shadows it will see."""
+    from reachwatch.reach.application import Application, load_application
+    taxi = load_application()
+    scenario = taxi.resolved(load_scenario(data="camera: {width: 64, height: 32}\n"
+                                                "shadows: true\nenvironment: {hour: 17.0}\n"))
+    state = np.array([1.0, 150.0, 0.1])
+    np.testing.assert_array_equal(taxi.renderer(scenario).render(state),
+                                  Application.renderer(taxi, scenario).render(state))
