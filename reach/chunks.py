@@ -7,7 +7,8 @@ filesystem with this process); the driver stores each finished chunk (`FolderSto
 one ``.npz`` per chunk, written atomically with its `chunk_checksum`; or any object
 with ``valid(chunk)`` and ``store(chunk, arrays)``) and skips the chunks stored
 already, so a killed job resumes and a repeated one costs nothing. A bounded window
-of chunks is in flight (progress shows, an abort stops soon)."""
+of chunks is in flight (progress shows, an abort stops soon). A store's folder may be
+an fsspec URL (`reachwatch.systems.files.cache_location`): only this process reads it."""
 
 import concurrent.futures as cf
 import concurrent.futures.process  # noqa: F401  (BrokenProcessPool)
@@ -20,7 +21,7 @@ from typing import Callable
 
 import numpy as np
 
-from reachwatch.systems.files import atomic_write_bytes
+from reachwatch.systems.files import cache_join, cache_location, read_location, write_location
 
 
 class InlineExecutor(cf.Executor):
@@ -139,28 +140,41 @@ def checksum_ok(arrays: dict) -> bool:
     return CHECKSUM not in arrays or str(arrays[CHECKSUM]) == chunk_checksum(arrays)
 
 
-def store_chunk_file(path: Path, arrays: dict) -> Path:
-    """Write a chunk's ``arrays`` (an ``.npz``, atomically) with their `chunk_checksum`."""
+def store_chunk_file(path, arrays: dict):
+    """Write a chunk's ``arrays`` (an ``.npz``, atomically: `write_location`) with their
+    `chunk_checksum`; ``path`` is local or an fsspec URL."""
     buffer = io.BytesIO()
     np.savez(buffer, **arrays, **{CHECKSUM: np.asarray(chunk_checksum(arrays))})
-    return atomic_write_bytes(path, buffer.getvalue())
+    return write_location(path, buffer.getvalue())
 
 
-def chunk_path(folder: Path, index: int) -> Path:
-    """The file of chunk ``index`` in a `FolderStore`'s ``folder``."""
-    return Path(folder) / f"chunk_{index:06d}.npz"
+def read_chunk_file(path, names=None) -> dict:
+    """The arrays ``names`` (default: all, `CHECKSUM` too) of the chunk file ``path``:
+    a local file is loaded as it lies, an fsspec URL's object read whole first. Raises
+    what loading raises (missing, truncated, not an ``.npz``, an array it lacks)."""
+    path = cache_location(path)
+    source = path if isinstance(path, Path) else io.BytesIO(read_location(path))
+    with np.load(source, allow_pickle=False) as data:
+        return {k: data[k] for k in (data.files if names is None else names)}
+
+
+def chunk_path(folder, index: int):
+    """The file of chunk ``index`` in a `FolderStore`'s ``folder`` (a `Path`, or a URL
+    string for a folder given as one)."""
+    return cache_join(folder, f"chunk_{index:06d}.npz")
 
 
 class FolderStore:
-    """Chunks as files ``folder/chunk_000000.npz``, ... (`store_chunk_file`). A stored
+    """Chunks as files ``folder/chunk_000000.npz``, ... (`store_chunk_file`); ``folder``
+    is a local path or an fsspec URL (``memory://...``, ``s3://...``). A stored
     chunk is valid when it loads, matches its checksum, and ``fits(chunk, arrays)``
     (default: always); ``keep``: hold the arrays read or stored, for `read`."""
 
     def __init__(self, folder, fits: Callable = None, keep: bool = False):
-        self.folder, self.fits = Path(folder), fits
+        self.folder, self.fits = cache_location(folder), fits
         self.kept = {} if keep else None
 
-    def path(self, chunk: Chunk) -> Path:
+    def path(self, chunk: Chunk):
         return chunk_path(self.folder, chunk.index)
 
     def read(self, chunk: Chunk):
@@ -169,8 +183,7 @@ class FolderStore:
         if self.kept is not None and chunk.index in self.kept:
             return self.kept[chunk.index]
         try:
-            with np.load(self.path(chunk), allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
+            arrays = read_chunk_file(self.path(chunk))
             if not checksum_ok(arrays):
                 return None
             arrays.pop(CHECKSUM, None)

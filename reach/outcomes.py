@@ -16,11 +16,11 @@ passes through is the rest of the same run."""
 import dataclasses as dc
 import functools
 import hashlib
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from reachwatch.systems.files import cache_join, make_folder
 from .chunks import FolderStore, InlineExecutor, run_chunks, split
 from .fingerprint import fingerprint
 
@@ -98,7 +98,8 @@ def map_states(fn, states, *, cache_dir, chunk_size: int = None, executor=None,
     chunks are in flight (default: twice the executor's worker threads, `in_flight`).
     The progress bar moves per chunk. Returns
     ``(fields, key, computed)``: the arrays of all states in order, the cache folder
-    name, and the states this call ran (0 when every chunk was cached)."""
+    name, and the states this call ran (0 when every chunk was cached). ``cache_dir``
+    is a local folder or an fsspec URL (``memory://...``, ``s3://...``)."""
     states = np.asarray(states, float)
     if states.ndim != 2 or len(states) == 0 or not np.all(np.isfinite(states)):
         raise ValueError(f"states must be a non-empty (N, ndim) array of finite numbers, got "
@@ -109,8 +110,8 @@ def map_states(fn, states, *, cache_dir, chunk_size: int = None, executor=None,
         raise ValueError(f"chunk_size must be a whole number >= 1, got {chunk_size!r}")
     required = tuple(required)
     key = outcomes_key(fn, states)
-    folder = Path(cache_dir) / key
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = cache_join(cache_dir, key)
+    make_folder(folder)
     chunks = split(len(states), chunk_size)
     store = FolderStore(folder, _fits(required), keep=True)
     ran = run_chunks(_run_chunk, chunks, store,

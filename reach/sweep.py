@@ -24,12 +24,12 @@ from typing import Callable, Tuple
 import numpy as np
 from tqdm import tqdm
 
-from reachwatch.systems.files import atomic_write_bytes
+from reachwatch.systems.files import cache_join, cache_location, make_folder, read_location, write_location
 
 # (also re-exported: where they lived before `reach.chunks` ran every chunked job)
 from .chunks import (CHECKSUM, FolderStore, InlineExecutor, checksum_ok,  # noqa: F401
-                     chunk_checksum, chunk_path, executor_threads, in_flight, row_done,
-                     run_chunks, set_row_hook, split, stop_executor, store_chunk_file)
+                     chunk_checksum, chunk_path, executor_threads, in_flight, read_chunk_file,
+                     row_done, run_chunks, set_row_hook, split, stop_executor, store_chunk_file)
 from .fingerprint import Unfingerprintable, fingerprint
 from .grid import Grid
 
@@ -270,12 +270,12 @@ def cached_table_digest(cache_dir, key: str, size: int):
     now: every chunk's `chunk_checksum`, in order. None unless its chunks cover the
     ``size`` nodes one after another and each matches the checksum stored with it.
     What a stage that reads the table keys on (an edited table is read again, not the
-    result made from the old one adopted), found without evaluating anything."""
-    folder, digest, stop, index = Path(cache_dir) / key, hashlib.sha256(), 0, 0
+    result made from the old one adopted), found without evaluating anything.
+    ``cache_dir``: a local folder or an fsspec URL, as `sweep` takes."""
+    folder, digest, stop, index = cache_join(cache_dir, key), hashlib.sha256(), 0, 0
     while stop < size:
         try:
-            with np.load(chunk_path(folder, index), allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
+            arrays = read_chunk_file(chunk_path(folder, index))
             start, end = int(arrays["start"]), int(arrays["stop"])
         except Exception:      # missing, truncated or not a chunk
             return None
@@ -295,7 +295,7 @@ def sweep_key(factory: Callable, grid: Grid, probe: Probe, *, name: str = None) 
     return f"{name}_{'x'.join(map(str, grid.shape))}_{fingerprint(factory, grid.key(), probe)[:20]}"
 
 
-def _check_fingerprint(folder: Path, factory, grid, probe, key):
+def _check_fingerprint(folder, factory, grid, probe, key):
     """Records what a user-keyed cache folder was filled from, and refuses to reuse it
     for anything else."""
     try:
@@ -304,18 +304,22 @@ def _check_fingerprint(folder: Path, factory, grid, probe, key):
         warnings.warn(f"sweep key '{key}' cannot be checked against its cache ({e}); a "
                       f"changed controller under the same key would reuse a stale table")
         mine = None
-    path = folder / "fingerprint.json"
-    if path.is_file():
+    path = cache_join(folder, "fingerprint.json")
+    try:
+        recorded = read_location(path)
+    except OSError:                       # none yet (or unreadable: written again below)
+        recorded = None
+    if recorded is not None:
         try:
-            theirs = json.loads(path.read_text()).get("fingerprint")
-        except (OSError, ValueError):
+            theirs = json.loads(recorded).get("fingerprint")
+        except (ValueError, AttributeError):
             theirs = None
         if mine is not None and theirs is not None and theirs != mine:
             raise ValueError(f"sweep key '{key}' names a cache ({folder}) filled from another "
                              f"factory, grid or probe (fingerprint {theirs[:12]}, this sweep "
                              f"{mine[:12]}); use another key, or key=None to derive one")
-    if mine is not None and not path.is_file():
-        atomic_write_bytes(path, json.dumps({"fingerprint": mine}).encode())
+    if mine is not None and recorded is None:
+        write_location(path, json.dumps({"fingerprint": mine}).encode())
 
 
 def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = None,
@@ -334,18 +338,24 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
     (default: `in_flight`, twice the executor's threads, at least 8).
     The progress bar (``label``, default the key) moves per state on this process and
     on `default_executor`, per chunk on others. ``table.computed`` counts the states
-    evaluated by this call (0 when every chunk was cached)."""
+    evaluated by this call (0 when every chunk was cached). ``cache_dir`` is a local
+    folder or an fsspec URL (``memory://...``, ``s3://bucket/sweeps`` with s3fs): only
+    this process reads and writes it."""
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a whole number >= 1, got {chunk_size!r}")
     if len(probe.ports) < 1:
         raise ValueError("the probe names no port to read")
     checked, key = key is not None, key or sweep_key(factory, grid, probe, name=name)
-    folder = Path(cache_dir).absolute() / key
-    folder.mkdir(parents=True, exist_ok=True)
+    base = cache_location(cache_dir)
+    local = isinstance(base, Path)
+    folder = cache_join(base.absolute() if local else base, key)
+    make_folder(folder)
     if checked:            # a derived key is the fingerprint; a given one must match it
         _check_fingerprint(folder, factory, grid, probe, key)
     chunks, nports = split(grid.size, chunk_size), len(probe.ports)
-    store = FolderStore(folder, _fits(nports))
+    # Local chunks are loaded again at the end (memory stays one table); a URL's are
+    # kept as read or stored, so no object is downloaded twice.
+    store = FolderStore(folder, _fits(nports), keep=not local)
     diagram_key = probe_key(factory, probe, key)
     ran = run_chunks(
         run_chunk, chunks, store,
@@ -356,9 +366,12 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
         max_in_flight=max_in_flight, least=8, caller="sweep")
     computed = sum(c.rows for c in ran)
     tables = None
+    names = [f"port{k}" for k in range(nports)]
     for chunk in chunks:
-        with np.load(store.path(chunk)) as data:
-            arrays = [data[f"port{k}"] for k in range(nports)]
+        kept = store.read(chunk) if not local else read_chunk_file(store.path(chunk), names)
+        if kept is None:
+            raise RuntimeError(f"chunk {chunk.index} of {key} did not finish")
+        arrays = [kept[name] for name in names]
         if tables is None:
             tables = [np.empty((grid.size, a.shape[1])) for a in arrays]
         for table, a in zip(tables, arrays):

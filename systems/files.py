@@ -38,3 +38,77 @@ def atomic_write_bytes(path, data: bytes) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+# --- cache locations: a local folder or an fsspec URL ----------------------------------
+# A cache (sweep chunks, batches of rollouts) is read and written by the driver alone, so
+# it may live anywhere fsspec reaches (``memory://``, ``s3://`` with s3fs installed, a
+# chained ``simplecache::s3://...``): no worker needs the driver's filesystem. A local
+# path (or a ``file://`` URL, made one) takes the plain file calls it always did;
+# fsspec is imported only for a URL.
+
+def is_url(location) -> bool:
+    """Whether ``location`` is an fsspec URL (``memory://...``, ``s3://...``, a chained
+    ``a::b://...``) rather than a local path."""
+    return isinstance(location, str) and ("://" in location or "::" in location)
+
+
+def cache_location(location):
+    """A cache folder as reachwatch holds it: a local path, or a ``file://`` URL, as a
+    `Path`; any other fsspec URL as its string, unchanged."""
+    if isinstance(location, Path):
+        return location
+    location = os.fspath(location)
+    if location.startswith("file://") and "::" not in location:
+        from fsspec.implementations.local import LocalFileSystem
+        return Path(LocalFileSystem._strip_protocol(location))
+    return location if is_url(location) else Path(location)
+
+
+def cache_join(base, *parts):
+    """``base/part/...`` for a cache location: a `Path` for a local one, the URL string
+    with ``/``-joined parts for any other (never ``Path(url)``, which breaks ``//``)."""
+    base = cache_location(base)
+    if isinstance(base, Path):
+        return base.joinpath(*parts)
+    return "/".join([base.rstrip("/"), *parts])
+
+
+def _url_fs(url):
+    import fsspec                     # only for a URL: a local cache never imports it
+    return fsspec.core.url_to_fs(url)
+
+
+def make_folder(location):
+    """Create the cache folder ``location`` (and its parents) if missing."""
+    location = cache_location(location)
+    if isinstance(location, Path):
+        location.mkdir(parents=True, exist_ok=True)
+    else:                             # a no-op on object stores, which have no folders
+        fs, path = _url_fs(location)
+        fs.makedirs(path, exist_ok=True)
+
+
+def read_location(location) -> bytes:
+    """The bytes of the file or object ``location``; FileNotFoundError (an OSError)
+    when there is none."""
+    location = cache_location(location)
+    if isinstance(location, Path):
+        return location.read_bytes()
+    fs, path = _url_fs(location)
+    return fs.cat_file(path)
+
+
+def write_location(location, data: bytes):
+    """Write ``data`` to the file or object ``location`` atomically: a reader sees the
+    old content or the new, never part of it."""
+    location = cache_location(location)
+    if isinstance(location, Path):
+        return atomic_write_bytes(location, data)
+    # An object store (S3, GCS, Azure) puts an object whole or not at all, so one call
+    # writing all the bytes is atomic there; a temporary object and a rename would be
+    # a copy and a delete, not atomic. (A filesystem without that guarantee, say SFTP,
+    # could leave a partial file; chunks carry a checksum, so one is computed again.)
+    fs, path = _url_fs(location)
+    fs.pipe_file(path, data)
+    return location
