@@ -4,7 +4,6 @@ import argparse
 import dataclasses as dc
 import json
 import time
-from pathlib import Path
 
 from .commands import (RunFileDefault, check_detector, count, grid_nodes, horizon_seconds,
                        mission_multiple, open_share, output_folder, positive_int,
@@ -94,7 +93,7 @@ def _monitor_settings(monitor) -> str:
 
 def guard_command(args):
     from reachwatch.reach.liveness import liveness_figures, percent, same_distance
-    from reachwatch.systems.files import atomic_write_bytes, cache_root
+    from reachwatch.systems.files import atomic_write_bytes, cache_join, cache_root
     from reachwatch.taxi import UNGUARDED, fallback_rollouts, paper_grid, sweep_guarded
     from reachwatch.taxi.guarded import tradeoff_curves, tradeoff_row
     from reachwatch.taxi.plots import plot_failure_sets, plot_tradeoff
@@ -105,17 +104,17 @@ def guard_command(args):
     scenario = scenario_from_args(args, controller=True)
     check_detector(scenario, args.scenario)      # before the sweep, not after it
     grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
-    cache = Path(args.cache) if args.cache else cache_root()
+    cache = args.cache or cache_root()
     check, budget = {}, None
     with open_executor(args.executor) as executor:
         out = output_folder(args.out)
-        tables = sweep_guarded(scenario, grid, cache_dir=cache / "sweeps", executor=executor)
+        tables = sweep_guarded(scenario, grid, cache_dir=cache_join(cache, "sweeps"), executor=executor)
         if args.flag_budget is not None:
             budget = budget_threshold(scenario, grid, tables, args.fallbacks[0], args.flag_budget,
                                       starts=args.flag_budget_starts, seed=args.flag_budget_seed,
                                       horizon=args.horizon, mission_limit=args.mission_limit,
                                       noise_starts=args.noise_starts, noise_seed=args.noise_seed,
-                                      cache_dir=cache / "outcomes", executor=executor)
+                                      cache_dir=cache_join(cache, "outcomes"), executor=executor)
             scenario.monitor.threshold = budget["threshold"]
             log.info(f"flag budget {100 * args.flag_budget:g} % of the ticks of "
                      f"{args.fallbacks[0]}: threshold {budget['threshold']:.3f} (the scenario's "
@@ -124,7 +123,7 @@ def guard_command(args):
         if args.check_starts:
             check = guard_check(scenario, grid, tables, args.fallbacks,
                                 starts=args.check_starts, seed=args.seed, horizon=args.horizon,
-                                mission_limit=args.mission_limit, cache_dir=cache / "outcomes",
+                                mission_limit=args.mission_limit, cache_dir=cache_join(cache, "outcomes"),
                                 executor=executor, noise_starts=args.noise_starts,
                                 noise_seed=args.noise_seed)
     started = time.time()

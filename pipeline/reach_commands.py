@@ -128,7 +128,7 @@ def sweep_command(args):
 def brt_command(args):
     from reachwatch.diagrams import CONTROL_PORT
     from reachwatch.reach import min_target_along_rollouts, sign_agreement, solve_brt
-    from reachwatch.systems.files import cache_root
+    from reachwatch.systems.files import cache_join, cache_root
     from reachwatch.taxi import (dynamics_for, on_runway_starts, paper_grid, refine_closed_loop,
                                  steering_bounds)
     from reachwatch.taxi.plots import plot_brt_slices
@@ -172,7 +172,7 @@ def brt_command(args):
         starts = on_runway_starts(paper_grid(half_width, (2, 2, 2)), args.drake_starts,
                                   args.seed, half_width=half_width)
         fidelity = real_loop_fidelity(scenario, vf, starts, duration=args.horizon,
-                                      cache_dir=Path(args.cache or cache_root()) / "outcomes",
+                                      cache_dir=cache_join(args.cache or cache_root(), "outcomes"),
                                       progress=progress_enabled())
         log.info(f"the real Drake closed loop (rendering every tick) from random on-runway "
                  f"starts, 95 % Wilson intervals: {fidelity.summary()}")

@@ -22,8 +22,9 @@ def add_parsers(sub):
                    "directory at the same path)")
     p.add_argument("--until", choices=STAGES, help=f"last stage to run (default: report, "
                    f"or {SLICE_UNTIL} with --only)")
-    p.add_argument("--sweep-cache", help="folder of sweep chunks shared between runs "
-                   "(keyed by content; default OUT/sweeps)")
+    p.add_argument("--sweep-cache", help="folder or fsspec URL (memory://, s3://... "
+                   "with s3fs) of sweep chunks shared between runs (keyed by content; "
+                   "default OUT/sweeps)")
     p.add_argument("--only", nargs="+", metavar="ENV", help="run a slice: these environments "
                    "alone (names as the report gives them, e.g. KSFO_21h_overcast), up to "
                    f"--until {SLICE_UNTIL} at most; their records are the whole run's")

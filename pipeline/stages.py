@@ -19,7 +19,7 @@ import numpy as np
 from reachwatch.diagrams import CONTROL_PORT, file_hash, load_detector
 from reachwatch.reach import Grid, InlineExecutor, ValueFunction
 from reachwatch.reach.application import load_application
-from reachwatch.systems.files import atomic_write_bytes
+from reachwatch.systems.files import atomic_write_bytes, cache_location
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
 from reachwatch.training.dataset import load_dataset
 from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH, labels_name
@@ -64,8 +64,9 @@ class Run:
         self.application = load_application(spec.application)
         # A slice: the per-environment stages for these environments alone (None: all).
         self.only = None if only is None else set(only)
-        # Sweeps are keyed by content, so runs may share one cache folder.
-        self.sweep_cache = Path(sweep_cache) if sweep_cache else self.root / "sweeps"
+        # Sweeps are keyed by content, so runs may share one cache folder; it may be an
+        # fsspec URL (kept a string: `cache_location`), read and written here alone.
+        self.sweep_cache = cache_location(sweep_cache) if sweep_cache else self.root / "sweeps"
         self.executor = executor or InlineExecutor()
         self.progress, self.log = progress, log
         self.outputs, self.records = {}, {}
