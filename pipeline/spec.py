@@ -11,7 +11,8 @@ from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.diagrams.scenario import dump_scenario
 from reachwatch.reach import ACCURACIES
 from reachwatch.reach.application import load_application
-from reachwatch.systems import DEFAULT_FALLBACKS, Environment, RandomEnvironments, fallback_parts
+from reachwatch.systems import (DEFAULT_FALLBACKS, Environment, Fallback, RandomEnvironments,
+                                fallback_parts)
 from reachwatch.systems.bounds import MAX_INT, bounded, check_bounds, seed_field
 from reachwatch.systems.checks import check_label, short
 from reachwatch.training.dataset import DatasetSpec
@@ -296,13 +297,17 @@ class RunSpec:
                              f"{[self.detector.detector.height, self.detector.detector.width]}")
         if len(self.ensemble.seeds) == 1:
             raise ValueError("ensemble.seeds: an ensemble needs >= 2 seeds (or [] for none)")
-        for i, name in enumerate(self.guard.strategies):
+        named = list(self.guard.strategies)
+        for i, name in enumerate(named):
             try:
                 fallback_parts(name)
             except ValueError as e:
                 raise ValueError(f"guard.strategies[{i}]: {e}") from None
+        # one name per fallback ('slow_down', 'slow_down+controller', 'slow_down+taxinet'
+        # are one), so that one fallback has one key, one report row and one set of runs
+        self.guard.strategies = [Fallback.parse(name).name for name in named]
         if len(set(self.guard.strategies)) != len(self.guard.strategies):
-            raise ValueError(f"guard.strategies: each fallback once, got {self.guard.strategies}")
+            raise ValueError(f"guard.strategies: each fallback once, got {named}")
         if self.guard.flag_budget is not None and not self.guard.strategies:
             raise ValueError("guard.flag_budget: the budget is set on the first of "
                              "guard.strategies, and there are none")

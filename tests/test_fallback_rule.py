@@ -59,6 +59,24 @@ def test_the_older_steering_name_keeps_the_run_files_keys():
         load_scenario(data="monitor: {steering: gps}\n")
 
 
+
+def test_the_guard_names_each_fallback_once_whatever_its_steering_is_called():
+    """``guard.strategies`` spelled with ``+controller``, ``+taxinet`` or the strategy
+    alone is one fallback: one name in the run spec (so one stage key, one report row,
+    one set of real runs), and two spellings of it in one list are refused."""
+    from tiny_run import TINY
+    from reachwatch.diagrams import ScenarioError
+    from reachwatch.pipeline.spec import load_run_spec
+    spell = lambda names: load_run_spec(data=TINY.replace(  # noqa: E731
+        "guard: {candidates: 2", f"guard: {{strategies: [{names}], candidates: 2"))
+    specs = [spell(names) for names in ("slow_down, brake+dead_reckoning",
+                                        "slow_down+controller, brake+dead_reckoning",
+                                        "slow_down+taxinet, brake+dead_reckoning")]
+    assert {tuple(s.guard.strategies) for s in specs} == {("slow_down", "brake+dead_reckoning")}
+    assert len({digest(s.guard) for s in specs}) == 1
+    with pytest.raises(ScenarioError, match="guard.strategies: each fallback once"):
+        spell("slow_down, slow_down+controller")
+
 def _switch_ticks(fallback, flags, nominal=5.0):
     """The FallbackSwitch alone, its inputs fixed per tick: the steering it applies at
     each tick and the speed it applies over that tick."""
