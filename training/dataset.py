@@ -5,7 +5,7 @@ ensemble's, V(x), and a label per state from the source `LabelSpec` names
 (``V <= 0``), the real closed loop run from the state, a hybrid of both, or the
 real loop's runs from uniform states and the states they pass through.
 
-On disk, one folder per (environment, BRT, sampling, labels, image size,
+On disk, one folder per (environment, camera, BRT, sampling, labels, image size,
 controllers): ``manifest.json`` plus ``.npy`` arrays (``images.npy`` is a uint8
 memmap ``(N, H, W, 3)``; ``states.npy`` [px m, py m, theta rad]; ``values.npy`` m;
 ``labels.npy`` uint8, 1 = anomalous; ``sources.npy`` uint8, where each label came from
