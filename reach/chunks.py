@@ -253,13 +253,27 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
             bar.update(min(counter.value - counted, computed) - (bar.n - (rows - computed)))
 
     def finish(done):
+        error = None
         for future in done:
-            arrays = future.result()             # re-raises a worker's error
             chunk = pending.pop(future)
+            try:
+                arrays = future.result()
+            except BaseException as e:           # raised once the others done are stored
+                error = error or e
+                continue
             store.store(chunk, arrays)
             if counter is None and not hooked:
                 bar.update(chunk.rows)
         show()
+        if error is not None:
+            raise error
+
+    def keep_finished():
+        """On an error: store the chunks that finished meanwhile, cancel the rest."""
+        for future, chunk in list(pending.items()):
+            if not future.cancel() and future.done() and future.exception() is None:
+                store.store(chunk, future.result())
+        pending.clear()
 
     def wait():
         finish(cf.wait(pending, timeout=0.25, return_when=cf.FIRST_COMPLETED).done)
@@ -273,6 +287,7 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
         while pending:
             wait()
     except cf.process.BrokenProcessPool as e:
+        keep_finished()
         if owned:
             stop_executor(executor, abort=True)
             owned = False
@@ -282,6 +297,7 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
             f"level with `if __name__ == '__main__':` (or pass executor=InlineExecutor())"
         ) from e
     except BaseException:
+        keep_finished()
         if owned:
             stop_executor(executor, abort=True)
             owned = False

@@ -125,3 +125,25 @@ def test_a_dead_pool_is_one_line_and_an_owned_executor_is_stopped_at_once(tmp_pa
     run_chunks(_squares, split(10, 3), store, args=lambda c: (c.start, c.stop))
     run_chunks(_squares, split(10, 3), store, args=lambda c: (c.start, c.stop), default=default)
     assert made == []                                  # nothing to run: no executor made
+
+
+def _slow_squares(start, stop, fail_at=None, ran=None):
+    import time
+    ran.append(start)
+    if start:                                # the first chunk is done at once
+        time.sleep(0.1)
+    if start == fail_at:
+        raise RuntimeError(f"chunk at {start} failed")
+    return {"x": np.arange(start, stop)}
+
+
+def test_after_a_failed_chunk_the_finished_ones_are_stored_and_the_rest_cancelled(tmp_path):
+    """A caller's executor: the chunks that finished are stored, the chunks still
+    waiting in its queue never run (before, all 40 ran after the failure)."""
+    ran = []
+    store = FolderStore(tmp_path)
+    with cf.ThreadPoolExecutor(2) as pool, pytest.raises(RuntimeError, match="at 1 failed"):
+        run_chunks(_slow_squares, split(40, 1), store, executor=pool, max_in_flight=40,
+                   args=lambda c: (c.start, c.stop, 1, ran))
+    stored = {int(p.stem.split("_")[1]) for p in tmp_path.iterdir()}
+    assert 0 in stored and stored <= set(ran) - {1} and len(ran) <= 6
