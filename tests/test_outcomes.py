@@ -89,3 +89,21 @@ def test_runs_of_the_controller_alone_are_cached_without_the_monitor(tmp_path):
     other = load_scenario(data="environment: {runway: KMWH, hour: 21.0, sky: clear}\n")
     real_missions(other, starts, duration=1.0, cache_dir=tmp_path / "missions", progress=False)
     assert len(list((tmp_path / "missions").iterdir())) == 2      # the environment counts
+
+
+def _row_index(states):
+    return {"row": states[:, 0].copy()}
+
+
+def test_a_batch_cached_with_another_chunk_size_is_not_read_into_the_wrong_rows(tmp_path):
+    """The key holds the states, not the chunk size: before, 10 states run in chunks of
+    8 and then of 2 read rows 8-9's values into rows 2-3."""
+    from reachwatch.reach.outcomes import map_states
+    states = np.stack([np.arange(10.0), np.zeros(10)], axis=1)
+    for size in (8, 2, 3):
+        fields, _, _ = map_states(_row_index, states, cache_dir=tmp_path, chunk_size=size,
+                                  progress=False)
+        np.testing.assert_array_equal(fields["row"], np.arange(10.0))
+    fields, _, computed = map_states(_row_index, states, cache_dir=tmp_path, chunk_size=3,
+                                     progress=False)
+    assert computed == 0 and set(fields) == {"row"}      # cached, the rows entry not a field
