@@ -75,12 +75,13 @@ def add_parsers(sub):
 
 
 def _fallback(text):
-    from reachwatch.systems import fallback_parts
+    """A fallback's one name (`Fallback.parse`), as the run file keeps it: a misspelt
+    name is a clear error before any work, and spellings of one fallback are one."""
+    from reachwatch.systems import Fallback
     try:
-        fallback_parts(text)        # a clear error for a misspelt name, before any work
+        return Fallback.parse(text).name
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
-    return text
 
 
 def _monitor_settings(monitor) -> str:

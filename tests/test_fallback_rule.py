@@ -207,3 +207,15 @@ def test_the_table_rollouts_apply_the_drake_switchs_rule():
     # the controller steers off the runway near its edge; the fallback's steering, taking
     # over while flagged, keeps those starts on
     assert failures["controller"] > 0 and failures["dead_reckoning"] == failures["oracle"] == 0
+
+
+def test_guard_fallbacks_flag_names_each_fallback_once():
+    """``guard --fallbacks`` keeps a fallback's one name, as the run file does: before,
+    ``slow_down+taxinet`` stayed as spelled and keyed its runs apart from ``slow_down``."""
+    import argparse
+    from reachwatch.pipeline.guard_commands import _fallback
+    assert {_fallback(n) for n in ("slow_down", "slow_down+taxinet", "slow_down+controller")} \
+        == {"slow_down"}
+    assert _fallback("brake+dead_reckoning") == "brake+dead_reckoning"
+    with pytest.raises(argparse.ArgumentTypeError, match="fallback 'brak'"):
+        _fallback("brak")
