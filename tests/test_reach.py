@@ -250,7 +250,7 @@ def test_sweep_on_dask_local_cluster(tmp_path):
     distributed = pytest.importorskip("dask.distributed")
     g = paper_grid(B, (4, 3, 3))
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                                  host="127.0.0.1", dashboard_address=None) as cluster, \
+                                  host="127.0.0.1", dashboard_address="127.0.0.1:0") as cluster, \
             distributed.Client(cluster) as client:
         table = sweep(_feedback_factory(), g, key="dask", cache_dir=tmp_path, probe=FEEDBACK,
                       chunk_size=10, executor=client.get_executor(), progress=False)

@@ -35,7 +35,7 @@ def two_thread_worker(tmp_path_factory):
     elsewhere.mkdir()
     log_path = root / "worker.log"
     with distributed.LocalCluster(n_workers=0, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster:
+                                  dashboard_address="127.0.0.1:0") as cluster:
         address = cluster.scheduler_address
         env = dict(os.environ, OMP_NUM_THREADS="1")
         with open(log_path, "wb") as log:
