@@ -11,8 +11,7 @@ from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.diagrams.scenario import dump_scenario
 from reachwatch.reach import ACCURACIES
 from reachwatch.reach.application import load_application
-from reachwatch.systems import (DEFAULT_FALLBACKS, Environment, Fallback, RandomEnvironments,
-                                fallback_parts)
+from reachwatch.systems import DEFAULT_FALLBACKS, Environment, Fallback, RandomEnvironments
 from reachwatch.systems.bounds import MAX_INT, bounded, check_bounds, seed_field
 from reachwatch.systems.checks import check_label, short
 from reachwatch.training.dataset import DatasetSpec
@@ -297,15 +296,15 @@ class RunSpec:
                              f"{[self.detector.detector.height, self.detector.detector.width]}")
         if len(self.ensemble.seeds) == 1:
             raise ValueError("ensemble.seeds: an ensemble needs >= 2 seeds (or [] for none)")
-        named = list(self.guard.strategies)
-        for i, name in enumerate(named):
-            try:
-                fallback_parts(name)
-            except ValueError as e:
-                raise ValueError(f"guard.strategies[{i}]: {e}") from None
         # one name per fallback ('slow_down', 'slow_down+controller', 'slow_down+taxinet'
         # are one), so that one fallback has one key, one report row and one set of runs
-        self.guard.strategies = [Fallback.parse(name).name for name in named]
+        named, strategies = list(self.guard.strategies), []
+        for i, name in enumerate(named):
+            try:
+                strategies.append(Fallback.parse(name).name)
+            except ValueError as e:
+                raise ValueError(f"guard.strategies[{i}]: {e}") from None
+        self.guard.strategies = strategies
         if len(set(self.guard.strategies)) != len(self.guard.strategies):
             raise ValueError(f"guard.strategies: each fallback once, got {named}")
         if self.guard.flag_budget is not None and not self.guard.strategies:

@@ -164,14 +164,22 @@ def chunk_path(folder, index: int):
     return cache_join(folder, f"chunk_{index:06d}.npz")
 
 
+#: The entry of a chunk file that holds the rows ``[start, stop)`` it covers (written by a
+#: `FolderStore` made with ``rows=True``).
+ROWS = "_rows"
+
+
 class FolderStore:
     """Chunks as files ``folder/chunk_000000.npz``, ... (`store_chunk_file`); ``folder``
     is a local path or an fsspec URL (``memory://...``, ``s3://...``). A stored
-    chunk is valid when it loads, matches its checksum, and ``fits(chunk, arrays)``
-    (default: always); ``keep``: hold the arrays read or stored, for `read`."""
+    chunk is valid when it loads, matches its checksum, covers the chunk's rows where
+    its file says which (`ROWS`), and ``fits(chunk, arrays)`` (default: always);
+    ``rows``: write `ROWS` into each chunk file, so that a chunk written with another
+    chunk size is run again rather than read into the wrong rows (for a job whose key
+    does not hold its chunk size); ``keep``: hold the arrays read or stored, for `read`."""
 
-    def __init__(self, folder, fits: Callable = None, keep: bool = False):
-        self.folder, self.fits = cache_location(folder), fits
+    def __init__(self, folder, fits: Callable = None, keep: bool = False, rows: bool = False):
+        self.folder, self.fits, self.rows = cache_location(folder), fits, rows
         self.kept = {} if keep else None
 
     def path(self, chunk: Chunk):
@@ -187,6 +195,9 @@ class FolderStore:
             if not checksum_ok(arrays):
                 return None
             arrays.pop(CHECKSUM, None)
+            covered = arrays.pop(ROWS, None)
+            if covered is not None and covered.tolist() != [chunk.start, chunk.stop]:
+                return None
             if self.fits is not None and not self.fits(chunk, arrays):
                 return None
         except Exception:   # missing, truncated, corrupt or lacking an array: run it again
@@ -199,7 +210,8 @@ class FolderStore:
         return self.read(chunk) is not None
 
     def store(self, chunk: Chunk, arrays: dict):
-        store_chunk_file(self.path(chunk), arrays)
+        store_chunk_file(self.path(chunk), {**arrays, ROWS: np.array([chunk.start, chunk.stop])}
+                         if self.rows else arrays)
         if self.kept is not None:
             self.kept[chunk.index] = arrays
 

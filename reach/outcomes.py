@@ -69,37 +69,13 @@ def _run_chunk(fn, states, required) -> dict:
     return arrays
 
 
-#: The entry of an outcome chunk file that holds the rows ``[start, stop)`` it covers.
-ROWS = "_rows"
-
-
 def _fits(required):
     """Whether a stored chunk holds every ``required`` array and only arrays with one
     row per state (else it is run again)."""
     def fits(chunk, arrays) -> bool:
         return (all(n in arrays for n in required) and
-                all(len(a) == chunk.rows for k, a in arrays.items() if k != ROWS))
+                all(len(a) == chunk.rows for a in arrays.values()))
     return fits
-
-
-class _RowsStore(FolderStore):
-    """A `FolderStore` whose chunk files also hold the rows they cover (`ROWS`), so a
-    chunk written with another chunk size is run again rather than read into the wrong
-    rows (the cache key does not hold the chunk size). A file written before chunks
-    held it is taken by its row count, as before."""
-
-    def store(self, chunk, arrays: dict):
-        super().store(chunk, {**arrays, ROWS: np.array([chunk.start, chunk.stop])})
-
-    def read(self, chunk):
-        arrays = super().read(chunk)
-        if arrays is None:
-            return None
-        if ROWS in arrays and arrays[ROWS].tolist() != [chunk.start, chunk.stop]:
-            if self.kept is not None:
-                self.kept.pop(chunk.index, None)
-            return None
-        return {k: a for k, a in arrays.items() if k != ROWS}
 
 
 def default_chunk_size(count: int) -> int:
@@ -137,7 +113,8 @@ def map_states(fn, states, *, cache_dir, chunk_size: int = None, executor=None,
     folder = cache_join(cache_dir, key)
     make_folder(folder)
     chunks = split(len(states), chunk_size)
-    store = _RowsStore(folder, _fits(required), keep=True)
+    # the key holds the states, not the chunk size: each file says which rows it holds
+    store = FolderStore(folder, _fits(required), keep=True, rows=True)
     ran = run_chunks(_run_chunk, chunks, store,
                      args=lambda c: (fn, states[c.start:c.stop], required), executor=executor,
                      default=InlineExecutor, max_in_flight=max_in_flight, caller="map_states",
