@@ -18,6 +18,7 @@ import dataclasses as dc
 import time
 
 from reachwatch.diagrams import load_scenario
+from reachwatch.pipeline.executors import make_executor
 from reachwatch.pipeline.monitor_sections import markdown_tables
 from reachwatch.pipeline.monitor_study import MonitorStudySpec, run_monitor_study
 from reachwatch.systems import Environment, RandomEnvironments
@@ -41,6 +42,9 @@ def main():
                    metavar=("HEIGHT", "WIDTH"), help="frame size the monitor reads")
     p.add_argument("--nights", action="store_true",
                    help="also judge on the paper's held-out 21 h environments (KSFO, KEWR)")
+    p.add_argument("--executor", default="local",
+                   help="where the real-loop runs render: local, local:N, inline or "
+                        "dask://HOST:PORT (as `reachwatch run --executor`)")
     p.add_argument("--cache", default="/tmp/reachwatch-monitor-cache")
     p.add_argument("--out", default="/tmp/reachwatch-monitor")
     args = p.parse_args()
@@ -58,7 +62,17 @@ def main():
         p.error(str(e))
     scenario = load_scenario(args.scenario) if args.scenario else load_scenario(data="")
     started = time.time()
-    result = run_monitor_study(spec, scenario, args.out, cache_dir=args.cache)
+    try:
+        executor, close = make_executor(args.executor)
+    except ValueError as e:
+        p.error(str(e))
+    try:
+        result = run_monitor_study(spec, scenario, args.out, cache_dir=args.cache,
+                                   executor=executor)
+    except BaseException:
+        close(abort=True)
+        raise
+    close()
     print()
     print(markdown_tables(result))
     print(f"wrote {args.out}/monitor.json in {time.time() - started:.0f} s")

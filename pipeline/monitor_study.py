@@ -14,6 +14,7 @@ seen. Every real-loop batch is cached by content: a rerun with other training
 settings renders nothing."""
 
 import dataclasses as dc
+import io
 import json
 import time
 from pathlib import Path
@@ -227,7 +228,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     train_features = np.concatenate(features["train"])
     judged = ("calibrate", "held_out", "also_held_out")
 
-    results, models = {}, {}
+    results, models, all_risks = {}, {}, {}
     for variant in spec.variants:
         config = dc.replace(base, frames=variant.frames, stride=variant.stride,
                             temporal=variant.temporal,
@@ -241,6 +242,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         except ValueError:                      # one class among the calibration ticks
             platt = PlattCalibration()
         risks = {k: [[platt(r) for r in group] for group in v] for k, v in raw.items()}
+        all_risks[variant.name] = risks
         env_scores = [warning_scores(r, run_times(g["ticks"], period), g["failure_time"],
                                      lead=lead)
                       for r, g in zip(risks["calibrate"], data["calibrate"])]
@@ -294,6 +296,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
 
     kept = min(results, key=lambda n: results[n]["calibration_needless"])
     out_dir.mkdir(parents=True, exist_ok=True)
+    _save_risks(out_dir / "risks.npz", data, all_risks, judged)
     checkpoints = {}
     for name in dict.fromkeys([kept, spec.variants[0].name]):
         model, platt, threshold = models[name]
@@ -319,6 +322,30 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     atomic_write_bytes(out_dir / "monitor.json",
                        json.dumps(result, indent=1, default=float).encode())
     return result
+
+
+def _save_risks(path, data, all_risks, judged):
+    """Every variant's calibrated risk at every tick of the judged environments' runs,
+    with the runs' ticks, failure times and environments, so that another flag rule can
+    be read off the study without rendering again: ``{split}/ticks``,
+    ``{split}/failure_time``, ``{split}/environment`` (index into ``{split}/names``) per
+    run and ``{variant}/{split}/risk`` (the runs' ticks, concatenated)."""
+    arrays = {}
+    for k in judged:
+        groups = data[k]
+        arrays[f"{k}/ticks"] = np.concatenate([g["ticks"] for g in groups] + [np.zeros(0, int)])
+        arrays[f"{k}/failure_time"] = np.concatenate([g["failure_time"] for g in groups]
+                                                     + [np.zeros(0)])
+        arrays[f"{k}/environment"] = np.concatenate(
+            [np.full(len(g["ticks"]), i) for i, g in enumerate(groups)] + [np.zeros(0, int)])
+        arrays[f"{k}/names"] = np.array([g["name"] for g in groups], dtype=str)
+        for name, risks in all_risks.items():
+            arrays[f"{name}/{k}/risk"] = np.concatenate(
+                [np.asarray(r, np.float32) for group in risks[k] for r in group]
+                + [np.zeros(0, np.float32)])
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    atomic_write_bytes(path, buffer.getvalue())
 
 
 def _guarded(spec, scenario, held_out, models, checkpoints, *, cache_dir, executor, progress,

@@ -83,6 +83,14 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     assert set(result["guarded"]) == set(result["checkpoints"])
     for counts in result["guarded"].values():
         assert counts["runs"] == 2 and counts["failed_guarded"] <= counts["runs"]
+    # every variant's risk at every tick is kept, run by run, for other flag rules
+    import numpy as np
+    with np.load(tmp_path / "out" / "risks.npz") as saved:
+        ticks = saved["held_out/ticks"]
+        assert len(ticks) == 6 and len(saved["held_out/failure_time"]) == 6
+        for name in result["variants"]:
+            assert len(saved[f"{name}/held_out/risk"]) == ticks.sum()
+            assert len(saved[f"{name}/calibrate/risk"]) == saved["calibrate/ticks"].sum()
     # a rerun renders nothing new and gives the same figures (cached by content, seeded)
     again = run_monitor_study(spec, scenario, tmp_path / "again", cache_dir=tmp_path / "cache",
                               progress=False, log=lambda m: None)
