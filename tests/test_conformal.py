@@ -107,3 +107,19 @@ def test_flag_outcomes_count_misses_among_warnable_runs_only():
     oracle = flag_outcomes(oracle_risks(ticks, failures, period=0.05, lead=0.2), ticks,
                            failures, period=0.05, threshold=0.5, lead=0.2)
     assert system_figures(oracle)["miss"]["count"] == 0 and not oracle["flagged"][2:].any()
+
+
+def test_a_confirmed_flag_needs_that_many_ticks_in_a_row():
+    from reachwatch.training.monitor_eval import confirmed_risks, flag_outcomes
+    spike, held = np.r_[0.1, 0.9, 0.1, 0.1, 0.1], np.r_[0.1, 0.6, 0.8, 0.7, 0.2]
+    two = confirmed_risks([spike, held, np.zeros(0), np.r_[0.9]], 2)
+    np.testing.assert_allclose(two[0], [0, 0.1, 0.1, 0.1, 0.1])
+    np.testing.assert_allclose(two[1], [0, 0.1, 0.6, 0.7, 0.2])
+    assert len(two[2]) == 0 and two[3].tolist() == [0.0]   # one tick cannot confirm
+    np.testing.assert_allclose(confirmed_risks([held], 1)[0], held)
+    # a single spike no longer flags a run that does not fail; a held warning still does
+    out = flag_outcomes(two[:2], [5, 5], [float("nan"), 0.25], period=0.05, threshold=0.5,
+                        lead=0.05)
+    assert out["flagged"].tolist() == [False, True] and out["warned"].tolist() == [False, True]
+    with pytest.raises(ValueError, match="confirm must be a whole number"):
+        confirmed_risks([held], 0)

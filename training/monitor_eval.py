@@ -60,6 +60,28 @@ def flag_outcomes(risks, ticks, failure_times, *, period: float, threshold: floa
     return {"failed": failed, "warnable": warnable, "warned": warned, "flagged": flagged}
 
 
+def confirmed_risks(risks, confirm: int) -> list:
+    """The risk a flag rule that needs ``confirm`` ticks in a row acts on: at each tick
+    the smallest risk of the last ``confirm`` ticks (0 before the run has that many), so
+    a threshold on it flags exactly when ``confirm`` consecutive risks reach it. Every
+    figure here (misses, needless flags, conformal thresholds) applies to it unchanged;
+    ``confirm`` 1 is the risk itself."""
+    if isinstance(confirm, bool) or not isinstance(confirm, (int, np.integer)) or confirm < 1:
+        raise ValueError(f"confirm must be a whole number of ticks >= 1, got {confirm!r}")
+    out = []
+    for risk in risks:
+        risk = np.asarray(risk, float)
+        if confirm == 1 or len(risk) == 0:
+            out.append(risk.copy())
+            continue
+        held = np.zeros_like(risk)
+        if len(risk) >= confirm:
+            windows = np.lib.stride_tricks.sliding_window_view(risk, confirm)
+            held[confirm - 1:] = windows.min(axis=1)
+        out.append(held)
+    return out
+
+
 def oracle_risks(ticks, failure_times, *, period: float, lead: float) -> list:
     """The oracle monitor's risk per tick: 1 where the true time to failure is at most
     ``lead`` s plus one tick (the last tick that still leaves the fallback its need,

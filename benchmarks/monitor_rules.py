@@ -1,0 +1,105 @@
+"""Flag rules read off a finished monitor study without rendering again: for each
+variant and each confirmation (a flag needs ``k`` ticks in a row at or above the
+threshold, `reachwatch.training.monitor_eval.confirmed_risks`), the conformal
+threshold fixed on the study's calibration environments at each ``alpha``, and what it
+gives on the held-out environments (pooled miss rate and needless-flag rate, Wilson 95 %
+intervals) and on the named environments outside the family. The rule to keep is
+chosen on the calibration environments alone (fewest needless flags among the rules
+whose threshold exists), as the study chooses its variant; the held-out figures are
+printed beside it, never used to choose.
+
+    python benchmarks/monitor.py ... --out /tmp/reachwatch-monitor    # the study first
+    python benchmarks/monitor_rules.py /tmp/reachwatch-monitor --confirm 1 2 3 5
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from reachwatch.training.conformal import conformal_threshold, warning_scores
+from reachwatch.training.monitor_eval import (confirmed_risks, flag_outcomes, run_times,
+                                              system_figures)
+
+
+def _split(saved, variant, split):
+    """Per environment: ``(risks per run, ticks, failure_times)`` of ``split``."""
+    ticks = saved[f"{split}/ticks"]
+    failure = saved[f"{split}/failure_time"]
+    env = saved[f"{split}/environment"]
+    flat = saved[f"{variant}/{split}/risk"].astype(float)
+    runs = np.split(flat, np.cumsum(ticks)[:-1]) if len(ticks) else []
+    return [([runs[i] for i in np.flatnonzero(env == e)], ticks[env == e], failure[env == e])
+            for e in range(len(saved[f"{split}/names"]))]
+
+
+def _figures(groups, threshold, *, period, lead):
+    pooled = {"failed": [], "warnable": [], "warned": [], "flagged": []}
+    for risks, ticks, failure in groups:
+        out = flag_outcomes(risks, ticks, failure, period=period, threshold=threshold, lead=lead)
+        for k in pooled:
+            pooled[k].append(out[k])
+    return system_figures({k: np.concatenate(v) if v else np.zeros(0, bool)
+                           for k, v in pooled.items()})
+
+
+def _text(rate):
+    if not rate["of"]:
+        return "-"
+    return (f"{100 * rate['rate']:.1f} [{100 * rate['lo']:.1f}, {100 * rate['hi']:.1f}] "
+            f"({rate['count']}/{rate['of']})")
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("study", help="the study's output folder (monitor.json, risks.npz)")
+    p.add_argument("--confirm", type=int, nargs="+", default=[1, 2, 3, 5],
+                   help="ticks in a row a flag needs")
+    p.add_argument("--alphas", type=float, nargs="+", default=[0.1, 0.2])
+    p.add_argument("--period", type=float, default=0.05, help="the control period (s)")
+    args = p.parse_args()
+    folder = Path(args.study)
+    result = json.loads((folder / "monitor.json").read_text())
+    lead = result["lead_s"]
+    rows, chosen = [], {}
+    with np.load(folder / "risks.npz") as saved:
+        splits = [s for s in ("calibrate", "held_out", "also_held_out")
+                  if f"{s}/ticks" in saved.files]
+        for variant in result["variants"]:
+            data = {s: _split(saved, variant, s) for s in splits}
+            for k in args.confirm:
+                held = {s: [(confirmed_risks(r, k), t, f) for r, t, f in g]
+                        for s, g in data.items()}
+                scores = [warning_scores(r, run_times(t, args.period), f, lead=lead)
+                          for r, t, f in held["calibrate"]]
+                for alpha in args.alphas:
+                    try:
+                        tau = conformal_threshold(scores, alpha).threshold
+                    except ValueError:
+                        continue
+                    figures = {s: _figures(g, tau, period=args.period, lead=lead)
+                               for s, g in held.items()}
+                    row = (variant, k, alpha, tau, figures)
+                    rows.append(row)
+                    needless = figures["calibrate"]["needless"]["rate"]
+                    if alpha not in chosen or needless < chosen[alpha][4]["calibrate"][
+                            "needless"]["rate"]:
+                        chosen[alpha] = row
+    print(f"lead {lead:.2f} s; thresholds fixed on the calibration environments")
+    print("| variant | confirm (ticks) | alpha | threshold | calibration miss % | calibration "
+          "needless % | held-out miss % [95 % CI] | held-out needless % [95 % CI] | outside "
+          "the family: miss % | needless % |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for variant, k, alpha, tau, f in rows:
+        mark = " (kept)" if chosen.get(alpha) == (variant, k, alpha, tau, f) else ""
+        outside = f.get("also_held_out", {"miss": {"of": 0}, "needless": {"of": 0}})
+        print(f"| {variant}{mark} | {k} | {alpha:g} | {tau:.3f} | "
+              f"{100 * f['calibrate']['miss']['rate']:.1f} | "
+              f"{100 * f['calibrate']['needless']['rate']:.1f} | {_text(f['held_out']['miss'])} | "
+              f"{_text(f['held_out']['needless'])} | {_text(outside['miss'])} | "
+              f"{_text(outside['needless'])} |")
+
+
+if __name__ == "__main__":
+    main()
