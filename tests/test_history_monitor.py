@@ -163,3 +163,41 @@ def test_each_tick_encodes_its_frame_once_and_steps_the_gru_once():
     # tick 0: the first frame through every window at once; then one step of the 6 windows
     # that hold the tick (batch 6, sequence 1)
     assert calls["gru"] == [((1, 6, 4), 1)] + [((6, 1, 4), 1)] * 7
+
+
+@pytest.mark.parametrize("temporal, confirm", [("gru", 3), ("stack", 2)])
+def test_a_confirmed_flag_is_the_offline_rule_tick_by_tick(temporal, confirm):
+    """``anomaly`` with ``confirm`` ticks in a row is `confirmed_risks` of the offline
+    risk at the threshold, at every tick; the score itself is unchanged."""
+    from pydrake.systems.sensors import ImageRgba8U
+    from reachwatch.systems import HistoryMonitor
+    from reachwatch.training.monitor_eval import confirmed_risks
+    config = HistoryMonitorConfig(frames=3, stride=1, height=16, width=24, channels=[4],
+                                  features=4, temporal=temporal, hidden=5)
+    torch.manual_seed(2)
+    model = HistoryRiskModel(config).eval()
+    for p in model.parameters():
+        p.data.mul_(3.0)
+    rng = np.random.default_rng(1)
+    images = (rng.integers(0, 256, (30, 20, 30, 4)) *
+              rng.uniform(0.0, 1.0, (30, 1, 1, 1))).astype(np.uint8)
+    offline = model.risk_sequence(images, np.zeros((30, 0), np.float32))
+    threshold = float(np.median(offline))
+    monitor = HistoryMonitor(model=model, threshold=threshold, period=0.05, confirm=confirm)
+    assert monitor.confirm == confirm
+    context = monitor.CreateDefaultContext()
+    flags, scores = [], []
+    for frame in images:
+        image = ImageRgba8U(frame.shape[1], frame.shape[0])
+        image.mutable_data[:] = frame
+        monitor.get_color_image_input_port().FixValue(context, image)
+        scores.append(monitor.get_score_output_port().Eval(context)[0])
+        flags.append(monitor.get_anomaly_output_port().Eval(context)[0])
+        context.SetDiscreteState(monitor.EvalUniquePeriodicDiscreteUpdate(context))
+    np.testing.assert_allclose(scores, offline, rtol=1e-5, atol=1e-6)
+    expected = confirmed_risks([np.asarray(scores)], confirm)[0] >= threshold
+    assert np.array_equal(np.asarray(flags) == 1.0, expected)
+    single = np.asarray(scores) >= threshold
+    assert expected.sum() < single.sum() and expected.any()     # the rule mattered here
+    with pytest.raises(ValueError, match="confirm must be a whole number"):
+        HistoryMonitor(model=model, threshold=0.5, period=0.05, confirm=0)
