@@ -11,26 +11,25 @@ Environment ``i`` of the family depends only on the family's seed and ``i``: the
 first ``train`` are for training, the next ``calibrate`` for calibration, the rest
 held out, so the split and the threshold are fixed before a held-out environment is
 seen. Every real-loop batch is cached by content: a rerun with other training
-settings renders nothing."""
+settings renders nothing.
+
+The loop is the application's (`reachwatch.reach.application.Application`): its
+`starts` in its `grid`'s box, its `recorded_runs` and its guarded and unguarded
+`missions`; the study's schema (`MonitorStudySpec`, with the environment family) is
+the run file's (`reachwatch.pipeline.spec`)."""
 
 import dataclasses as dc
 import io
 import json
 import time
 from pathlib import Path
-from typing import List
 
 import numpy as np
 
 from reachwatch.diagrams import MonitorConfig, save_checkpoint
-from reachwatch.systems import (TEMPORAL_MODELS, Environment, HistoryMonitorConfig,
-                                RandomEnvironments)
-from reachwatch.systems.bounds import bounded, bounded_as, check_bounds
-from reachwatch.systems.checks import check_label, short
+from reachwatch.reach.application import application_key, load_application
+from reachwatch.systems import HistoryMonitorConfig
 from reachwatch.systems.files import atomic_write_bytes
-from reachwatch.taxi import on_runway_starts, paper_grid
-from reachwatch.taxi.fidelity import real_missions
-from reachwatch.taxi.history import recorded_runs
 from reachwatch.training.baselines import prediction_error
 from reachwatch.training.conformal import (PlattCalibration, brier_score, conformal_threshold,
                                            expected_calibration_error, per_environment_bound,
@@ -41,130 +40,27 @@ from reachwatch.training.monitor_eval import (flag_outcomes, labelled_ticks, ora
                                               run_times, system_figures, tick_auroc)
 
 from .monitor_sections import rate_text
+from .spec import MONITOR_KINDS, MonitorStudySpec, MonitorVariant, default_variants  # noqa: F401
 
-MONITOR_KINDS = ("detector", "history")
-
-
-@dc.dataclass
-class MonitorVariant:
-    """One monitor to train: ``frames`` frames ``stride`` ticks apart, combined by
-    ``temporal`` (`reachwatch.systems.TEMPORAL_MODELS`), with or without the online
-    ``signals`` (the controller's estimate and steering)."""
-    name: str = "single frame"
-    frames: int = bounded_as(1, HistoryMonitorConfig, "frames")
-    stride: int = bounded_as(1, HistoryMonitorConfig, "stride")
-    temporal: str = "stack"
-    signals: bool = False
+__all__ = ["MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "default_variants",
+           "run_monitor_study", "stage_monitor"]
 
 
-def default_variants() -> List[MonitorVariant]:
-    return [MonitorVariant("single frame"),
-            MonitorVariant("stacked 8 (1.4 s)", frames=8, stride=4),
-            MonitorVariant("GRU 16 (0.75 s)", frames=16, temporal="gru"),
-            MonitorVariant("stacked 8 (1.4 s) + signals", frames=8, stride=4, signals=True),
-            MonitorVariant("GRU 16 (0.75 s) + signals", frames=16, temporal="gru", signals=True)]
-
-
-@dc.dataclass
-class MonitorStudySpec:
-    """Which monitor guards the loop and how it is judged. ``kind``: ``detector`` (the
-    single-image detector of ``detector:`` and ``guard:``; this study is off) or
-    ``history`` (this study). The family (``family``: its ``seed``, hours, skies and
-    runways; its ``count`` is ``train + calibrate + held_out``) gives ``train``,
-    ``calibrate`` and ``held_out`` environments in that order; ``also_held_out`` are
-    named environments outside the family (e.g. the paper's nights), judged with the
-    same threshold but outside its guarantee. Each environment records ``runs`` real
-    runs of ``duration`` s from seeded uniform starts in the paper's box. The risk is
-    that of failing within ``within`` s; the fallback brakes at ``brake_deceleration``
-    m/s^2, so a warning counts when it comes at least speed / deceleration s before
-    the failure; the threshold bounds the expected miss rate at ``alpha``.
-    ``guarded_runs`` (0: none) starts per held-out environment also run in the guarded
-    real loop with the kept variant and the single-frame one. The kept variant is the
-    one with the fewest needless flags on the calibration environments."""
-    kind: str = "detector"
-    family: RandomEnvironments = dc.field(default_factory=lambda: RandomEnvironments(seed=11))
-    train: int = bounded(12, 1, 1000, whole=True)
-    calibrate: int = bounded(10, 1, 1000, whole=True, note=">= 1 / alpha - 1")
-    held_out: int = bounded(6, 1, 1000, whole=True)
-    also_held_out: List[Environment] = dc.field(default_factory=list)
-    runs: int = bounded(30, 1, 100_000, whole=True)
-    duration: float = bounded(8.0, 0.0, 600.0, low_open=True, unit="s")
-    within: float = bounded(3.0, 0.0, 600.0, low_open=True, high_open=True, unit="s",
-                            note="< duration")
-    brake_deceleration: float = bounded_as(3.0, MonitorConfig, "brake_deceleration")
-    alpha: float = bounded(0.1, 0.0, 1.0, low_open=True, high_open=True,
-                           note=">= 1 / (calibrate + 1)")
-    height: int = bounded_as(48, HistoryMonitorConfig, "height")
-    width: int = bounded_as(80, HistoryMonitorConfig, "width")
-    epochs: int = bounded(6, 1, 10_000, whole=True)
-    head_epochs: int = bounded(40, 1, 100_000, whole=True)
-    guarded_runs: int = bounded(0, 0, 100_000, whole=True)
-    variants: List[MonitorVariant] = dc.field(default_factory=default_variants)
-
-    @property
-    def enabled(self) -> bool:
-        return self.kind == "history"
-
-    def validate(self, where="monitor"):
-        if self.kind not in MONITOR_KINDS:
-            raise ValueError(f"{where}.kind must be one of {MONITOR_KINDS}, got {self.kind!r}")
-        check_bounds(self, f"{where}.")
-        if self.within >= self.duration:
-            raise ValueError(f"{where}.within ({self.within:g} s) must be shorter than "
-                             f"{where}.duration ({self.duration:g} s): a run that does not "
-                             f"fail says nothing of its last {self.within:g} s")
-        if (self.calibrate + 1) * self.alpha < 1:
-            raise ValueError(f"{where}.calibrate: {self.calibrate} environments cannot bound the "
-                             f"miss rate at alpha {self.alpha:g} (the bound is at least "
-                             f"1/(calibrate+1)); use at least {int(np.ceil(1 / self.alpha - 1))}")
-        self.family.validate(f"{where}.family")
-        for i, env in enumerate(self.also_held_out):
-            try:
-                env.validate()
-            except ValueError as e:
-                raise ValueError(f"{where}.also_held_out[{i}]: {e}") from None
-        named = [e.name for e in self.also_held_out]
-        if len(set(named)) != len(named):      # rows by name: one would count twice
-            twice = sorted({n for n in named if named.count(n) > 1})
-            raise ValueError(f"{where}.also_held_out lists an environment name twice: "
-                             f"{short(twice)}")
-        for i, v in enumerate(self.variants):
-            check_label(f"{where}.variants[{i}].name", v.name)
-        names = [v.name for v in self.variants]
-        if not self.variants or len(set(names)) != len(names):
-            raise ValueError(f"{where}.variants must list at least one variant, each name "
-                             f"once, got {names[:8]}")
-        for i, v in enumerate(self.variants):
-            check_bounds(v, f"{where}.variants[{i}].")
-            if v.temporal not in TEMPORAL_MODELS:
-                raise ValueError(f"{where}.variants: {v.name!r} temporal must be one of "
-                                 f"{TEMPORAL_MODELS}, got {v.temporal!r}")
-            HistoryMonitorConfig(frames=v.frames, stride=v.stride, temporal=v.temporal).validate()
-        return self
-
-    def environments(self):
-        """``{"train", "calibrate", "held_out", "also_held_out"}``: lists of environments."""
-        family = dc.replace(self.family, count=self.train + self.calibrate + self.held_out)
-        envs = family.environments()
-        return {"train": envs[:self.train],
-                "calibrate": envs[self.train:self.train + self.calibrate],
-                "held_out": envs[self.train + self.calibrate:],
-                "also_held_out": list(self.also_held_out)}
-
-
-def _record(spec, scenario, environments, first, *, cache_dir, executor, progress):
-    """Recorded runs of each environment: the starts of the ``i``-th environment (counted
-    from ``first``: its place in the family, or after it) seeded by the family's seed
-    and ``i``."""
+def _record(spec, application, scenario, environments, first, *, cache_dir, executor,
+            progress):
+    """Recorded runs of each environment: the application's `starts` in its `grid`'s
+    box, those of the ``i``-th environment (counted from ``first``: its place in the
+    family, or after it) seeded by the family's seed and ``i``."""
     out = []
     for i, environment in enumerate(environments):
-        B = environment.half_width
-        grid = paper_grid(B, (3, 3, 3))
+        here = dc.replace(scenario, environment=environment)
+        box = application.grid(here, (3,) * len(application.axes))
         seed = [spec.family.seed, first + i]
-        starts = on_runway_starts((grid.lo, grid.hi), spec.runs, seed, half_width=B)
-        runs = recorded_runs(dc.replace(scenario, environment=environment), starts,
-                             duration=spec.duration, height=spec.height, width=spec.width,
-                             cache_dir=cache_dir, executor=executor, progress=progress)
+        starts = application.starts(here, (box.lo, box.hi), spec.runs, seed)
+        runs = application.recorded_runs(here, starts, duration=spec.duration,
+                                         height=spec.height, width=spec.width,
+                                         cache_dir=cache_dir, executor=executor,
+                                         progress=progress)
         out.append({**runs, "starts": starts, "name": environment.name,
                     "environment": environment})
     return out
@@ -199,10 +95,12 @@ def _judge(groups, risks, *, threshold, period, lead, duration):
 
 
 def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, executor=None,
-                      progress=True, log=print) -> dict:
-    """The whole study (see the module); writes ``monitor.json`` and the kept and
-    single-frame monitors' checkpoints to ``out_dir``; returns the results."""
+                      progress=True, log=print, application=None) -> dict:
+    """The whole study (see the module) of ``application``'s loop (an `Application`;
+    None: the default, the taxi); writes ``monitor.json`` and the kept and single-frame
+    monitors' checkpoints to ``out_dir``; returns the results."""
     spec.validate()
+    application = load_application() if application is None else application
     started = time.time()
     out_dir, cache_dir = Path(out_dir), Path(cache_dir)
     period, speed = scenario.controller.period, scenario.controller.speed
@@ -210,7 +108,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     split = spec.environments()
     first = {"train": 0, "calibrate": spec.train, "held_out": spec.train + spec.calibrate,
              "also_held_out": spec.train + spec.calibrate + spec.held_out}
-    data = {k: _record(spec, scenario, envs, first[k], cache_dir=cache_dir / "runs",
+    data = {k: _record(spec, application, scenario, envs, first[k], cache_dir=cache_dir / "runs",
                        executor=executor, progress=progress) for k, envs in split.items()}
     log(f"monitor: recorded {sum(len(g['ticks']) for v in data.values() for g in v)} runs, "
         f"{sum(int(g['ticks'].sum()) for v in data.values() for g in v)} ticks; lead "
@@ -306,7 +204,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                         metadata={"calibration": [platt.a, platt.b], "threshold": threshold,
                                   "within_s": spec.within, "lead_s": lead, "variant": name})
         checkpoints[name] = str(path)
-    guarded = (_guarded(spec, scenario, data["held_out"], models, checkpoints,
+    guarded = (_guarded(spec, application, scenario, data["held_out"], models, checkpoints,
                         cache_dir=cache_dir / "missions", executor=executor, progress=progress,
                         log=log) if spec.guarded_runs else {})
     result = {"lead_s": lead, "within_s": spec.within, "alpha": spec.alpha, "kept": kept,
@@ -348,14 +246,16 @@ def _save_risks(path, data, all_risks, judged):
     atomic_write_bytes(path, buffer.getvalue())
 
 
-def _guarded(spec, scenario, held_out, models, checkpoints, *, cache_dir, executor, progress,
-             log):
+def _guarded(spec, application, scenario, held_out, models, checkpoints, *, cache_dir, executor,
+             progress, log):
     """The guarded real loop (braking) with each saved monitor against the loop alone,
-    from the first ``guarded_runs`` recorded starts of each held-out environment."""
+    from the first ``guarded_runs`` recorded starts of each held-out environment (the
+    application's `missions`)."""
     # the loop alone once per environment: every monitor is judged against the same runs
-    alone_runs = [real_missions(dc.replace(scenario, environment=g["environment"]),
-                                g["starts"][:spec.guarded_runs], duration=spec.duration,
-                                cache_dir=cache_dir, executor=executor, progress=progress)
+    alone_runs = [application.missions(dc.replace(scenario, environment=g["environment"]),
+                                       g["starts"][:spec.guarded_runs], duration=spec.duration,
+                                       cache_dir=cache_dir, executor=executor,
+                                       progress=progress)
                   for g in held_out]
     rows = {}
     for name, path in checkpoints.items():
@@ -368,8 +268,9 @@ def _guarded(spec, scenario, held_out, models, checkpoints, *, cache_dir, execut
                 detector=path, threshold=threshold, strategy="brake",
                 brake_deceleration=spec.brake_deceleration))
             starts = g["starts"][:spec.guarded_runs]
-            guarded = real_missions(sc, starts, fallback="brake", duration=spec.duration,
-                                    cache_dir=cache_dir, executor=executor, progress=progress)
+            guarded = application.missions(sc, starts, fallback="brake",
+                                           duration=spec.duration, cache_dir=cache_dir,
+                                           executor=executor, progress=progress)
             env = {"environment": g["name"], "runs": len(starts),
                    "failed_alone": int(alone.failed.sum()),
                    "failed_guarded": int(guarded.failed.sum()),
@@ -393,19 +294,22 @@ def _guarded(spec, scenario, held_out, models, checkpoints, *, cache_dir, execut
 
 def stage_monitor(run) -> dict:
     """The run's ``monitor`` stage: the study when ``monitor.kind`` is ``history``
-    (keyed by the study's settings and the scenario's content, checkpoints and
-    controller code included), nothing (no record) otherwise."""
+    (keyed by the study's settings, the scenario's content, checkpoints and controller
+    code included, and the application's code unless it is the default), nothing (no
+    record) otherwise."""
     spec = run.spec.monitor
     if not spec.enabled:
         return {}
     from reachwatch.reach.fingerprint import fingerprint
-    from reachwatch.taxi.fidelity import without_monitor
     from .spec import digest
-    key = digest(spec, fingerprint(without_monitor(run.spec.scenario)))
+    application = run.application
+    own = application_key(application)          # None for the default (the taxi)
+    key = digest(spec, fingerprint(application.without_monitor(run.spec.scenario)),
+                 *([own] if own else []))
 
     def study():
         run_monitor_study(spec, run.spec.scenario, run.path("monitor"),
                           cache_dir=run.path("monitor_cache"), executor=run.executor,
-                          progress=run.progress, log=run.log)
+                          progress=run.progress, log=run.log, application=application)
         return {"result": "monitor/monitor.json"}
     return run.stage("monitor", key, study)

@@ -10,7 +10,7 @@ from reachwatch.diagrams import StateRenderer, load_taxinet, make_closed_loop_di
 from reachwatch.reach.application import Application
 from reachwatch.systems import TaxiNet
 
-from . import fidelity, guarded, plots, sweeps
+from . import fidelity, guarded, history, plots, sweeps
 from .dynamics import dynamics_for
 from .grid import AXES, paper_grid
 
@@ -98,6 +98,24 @@ class TaxiApplication(Application):
         return fidelity.real_paths(scenario, starts, grid=grid, horizon=horizon, extend=extend,
                                    stride=stride, cache_dir=cache_dir, executor=executor,
                                    progress=progress)
+
+    def recorded_runs(self, scenario, starts, *, duration, height, width, cache_dir,
+                      executor=None, progress=True):
+        if not self.own_loop:
+            return super().recorded_runs(scenario, starts, duration=duration, height=height,
+                                         width=width, cache_dir=cache_dir, executor=executor,
+                                         progress=progress)
+        return history.recorded_runs(scenario, starts, duration=duration, height=height,
+                                     width=width, cache_dir=cache_dir, executor=executor,
+                                     progress=progress)
+
+    def missions(self, scenario, starts, *, fallback=None, duration, cache_dir, executor=None,
+                 progress=True):
+        if not self.own_loop:
+            return super().missions(scenario, starts, fallback=fallback, duration=duration,
+                                    cache_dir=cache_dir, executor=executor, progress=progress)
+        return fidelity.real_missions(scenario, starts, fallback=fallback, duration=duration,
+                                      cache_dir=cache_dir, executor=executor, progress=progress)
 
     def renderer(self, scenario):
         if not self.own_loop:

@@ -13,8 +13,11 @@ plant for the solver (`dynamics`: its ``target`` > 0 is the safe set), the failu
 (`failed`), the box states are labelled and checked on (`grid`), where starts are
 drawn (`starts`), how images are made (`renderer`) and how the state space is drawn
 (`plot_slices`). The real-loop check uses the generic `real_outcomes` (the cart's loop,
-judged by `failed` at every control tick). There are no fallback table rollouts, so
-the guard stage is skipped, and no ensemble baseline (set ``ensemble.seeds: []``)."""
+judged by `failed` at every control tick), and the monitor study (``monitor: {kind:
+history}``) the generic `recorded_runs` and `missions`, which read the loop's camera
+(`camera_port`) and the controller's steering (`probe`'s control port). There are no
+fallback table rollouts, so the guard stage is skipped, and no ensemble baseline (set
+``ensemble.seeds: []``)."""
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -71,6 +74,7 @@ class CartApplication(Application):
     # the report's words for the cart (where the taxi's say "left the runway", ...)
     failure_words = "reached a rail"
     box_words = "the track (y from rail to rail, |theta| <= 40 deg)"
+    camera_port = "camera.color_image"      # what the monitor study records
 
     def loop_diagram(self, scenario, *, guarded=False):
         return make_cart_loop(scenario, scenario.monitor if guarded else None)
