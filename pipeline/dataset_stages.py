@@ -7,7 +7,6 @@ import concurrent.futures as cf
 from reachwatch.reach import InlineExecutor, ValueFunction
 from reachwatch.reach.application import load_application
 from reachwatch.training.dataset import build_dataset, dataset_folder, label_summary, load_dataset
-from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
 
 from .spec import digest
 from .stages import Run
@@ -17,20 +16,25 @@ def _ensemble(run: Run):
     paths = ensemble_paths(run)
     if not all(p.exists() for p in paths):
         spec = run.spec.ensemble
-        train_taxinet_ensemble(_ensemble_config(run), paths[0].parent, spec.seeds,
-                               progress=run.bar())
+        run.application.train_ensemble(_ensemble_config(run), paths[0].parent, spec.seeds,
+                                       progress=run.bar())
     return paths
 
 
-def _ensemble_config(run: Run) -> TaxiNetTrainConfig:
+def _ensemble_config(run: Run):
+    """The application's training config of the ensemble's members (its fields key
+    their folder: the taxi's is a `TaxiNetTrainConfig`)."""
     spec = run.spec.ensemble
-    return TaxiNetTrainConfig(camera=run.spec.scenario.camera, samples=spec.samples,
-                              epochs=spec.epochs)
+    return run.application.ensemble_config(run.spec.scenario, samples=spec.samples,
+                                           epochs=spec.epochs)
 
 
 def ensemble_paths(run: Run) -> list:
-    """The checkpoints of the ensemble baseline's TaxiNets (trained or not yet)."""
+    """The checkpoints of the ensemble baseline's members (trained or not yet); none
+    without seeds (an application without an ensemble baseline is not asked)."""
     spec = run.spec.ensemble
+    if not spec.seeds:
+        return []
     folder = run.path(f"ensemble/{digest(_ensemble_config(run), spec.seeds)}")
     return [folder / f"taxinet_seed{s}.pt" for s in spec.seeds]
 

@@ -117,7 +117,7 @@ def evaluate_command(args):
     from reachwatch.training.dataset import DatasetSpec
     from reachwatch.training.detector_train import DetectorTrainConfig
     from reachwatch.training.evaluation import markdown_table
-    from reachwatch.training.incremental import IncrementalConfig
+    from .spec import IncrementalConfig
     from reachwatch.training.labels import LabelSpec
 
     from .executors import open_executor

@@ -54,7 +54,7 @@ def add_parsers(sub):
 
 def train_command(args):
     from reachwatch.diagrams import REFERENCE_TAXINET
-    from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet
+    from reachwatch.taxi.taxinet_train import TaxiNetTrainConfig, train_taxinet
     out = Path(args.out)
     if out.resolve() == REFERENCE_TAXINET.resolve():
         raise ValueError(f"--out {args.out} is the shipped reference TaxiNet, which the "
@@ -76,7 +76,7 @@ def evaluate_command(args):
     from reachwatch.diagrams import REFERENCE_TAXINET, load_taxinet
     from reachwatch.systems import RUNWAYS, SKIES, Environment
     from reachwatch.systems.files import atomic_write_bytes
-    from reachwatch.training.taxinet_eval import evaluate_taxinet, format_reports
+    from reachwatch.taxi.taxinet_eval import evaluate_taxinet, format_reports
     base = scenario_from_args(args)
     runways = args.runways or list(RUNWAYS)
     checkpoint = args.checkpoint or str(REFERENCE_TAXINET)

@@ -80,6 +80,32 @@ def test_the_taxi_is_the_default_application_and_keeps_its_keys(tmp_path):
         tmp_path, scenario, vf, DatasetSpec(), application=taxi)
 
 
+def test_the_ensemble_baseline_is_the_applications(tmp_path):
+    """The taxi's members are TaxiNets trained with the config their folder was always
+    keyed by; an application without an ensemble baseline says so in one line, and a
+    run without seeds never asks it."""
+    from reachwatch.pipeline.dataset_stages import ensemble_paths
+    from reachwatch.pipeline.spec import EnsembleSpec, RunSpec, digest
+    from reachwatch.pipeline.stages import Run
+    from reachwatch.taxi.taxinet_train import TaxiNetTrainConfig
+    scenario = load_scenario(data="camera: {width: 64, height: 32}\n")
+    taxi = load_application("")
+    config = taxi.ensemble_config(scenario, samples=48, epochs=2)
+    assert config == TaxiNetTrainConfig(camera=scenario.camera, samples=48, epochs=2)
+    run = Run(RunSpec(scenario=scenario, ensemble=EnsembleSpec(seeds=[3, 5], samples=48,
+                                                                epochs=2)), tmp_path / "run")
+    assert [p.relative_to(run.root).as_posix() for p in ensemble_paths(run)] == [
+        f"ensemble/{digest(config, [3, 5])}/taxinet_seed{s}.pt" for s in (3, 5)]
+    none = r"^the application 'taxi' has no ensemble baseline: set ensemble.seeds: \[\]$"
+    with pytest.raises(ValueError, match=none):         # the generic defaults
+        Application.ensemble_config(taxi, scenario, samples=1, epochs=1)
+    with pytest.raises(ValueError, match=none):
+        Application.train_ensemble(taxi, config, tmp_path, [1])
+    run.application = None                      # not asked: nothing to train
+    run.spec.ensemble.seeds = []
+    assert ensemble_paths(run) == []
+
+
 def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tmp_path):
     spec = f"{_user_app(tmp_path)}:Rebuilt"
     app = load_application(spec)

@@ -56,7 +56,7 @@ def test_the_parser_copies_of_library_constants_match_the_library():
                                      taxinet_commands)
     from reachwatch.reach import ACCURACIES
     from reachwatch.training.labels import DISTRUSTED_CHOICES, LABEL_SOURCES
-    from reachwatch.training.taxinet_train import TaxiNetTrainConfig
+    from reachwatch.taxi.taxinet_train import TaxiNetTrainConfig
     assert sorted(reach_commands.ACCURACIES) == sorted(ACCURACIES)
     assert tuple(evaluate_commands.LABEL_SOURCES) == tuple(LABEL_SOURCES)
     assert tuple(evaluate_commands.DISTRUSTED_CHOICES) == tuple(DISTRUSTED_CHOICES)

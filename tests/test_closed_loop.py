@@ -4,7 +4,7 @@ import pytest
 from reachwatch.diagrams import (CONTROL_PORT, PLANT, REFERENCE_TAXINET, ScenarioError,
                                  load_scenario, make_closed_loop_diagram, simulate)
 from reachwatch.pipeline.cli import main
-from reachwatch.training.taxinet_train import TaxiNetTrainConfig, train_taxinet
+from reachwatch.taxi.taxinet_train import TaxiNetTrainConfig, train_taxinet
 from reachwatch.diagrams import load_taxinet
 from reachwatch.systems import CameraConfig
 

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from reachwatch.systems import CameraConfig, Environment
-from reachwatch.training.incremental import IncrementalConfig, fine_tune_taxinet, mine_anomalies
+from reachwatch.pipeline.spec import IncrementalConfig
+from reachwatch.taxi.incremental import fine_tune_taxinet, mine_anomalies
 
 
 def _data(px, labels):

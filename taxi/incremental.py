@@ -7,7 +7,6 @@ Mined states are those labelled anomalous (``V <= 0``) that still lie on the run
 staying on. Their frames are re-rendered at the camera resolution TaxiNet reads
 (datasets store them at the detector's smaller size)."""
 
-import dataclasses as dc
 import time
 from typing import List
 
@@ -16,32 +15,10 @@ import torch
 
 from reachwatch.diagrams import StateRenderer, load_checkpoint, load_taxinet, save_checkpoint
 from reachwatch.systems import CameraConfig, Environment, TaxiNetConfig
-from reachwatch.systems.bounds import bounded, check_bounds, seed_field
 from reachwatch.systems.models import preprocess_batched
 
 from .taxinet_data import render_states, sample_states, targets
 from .taxinet_train import estimation_errors, fit_regressor
-
-
-@dc.dataclass
-class IncrementalConfig:
-    """What to mine, how much nominal data to replay, how long to fine-tune, and the
-    held-out ``environment`` whose BRT is recomputed with the fine-tuned TaxiNet."""
-    enabled: bool = True
-    environment: Environment = dc.field(
-        default_factory=lambda: Environment("KMWH", 17.0, "clear"))
-    #: At most this many mined states (spread over datasets).
-    anomalies: int = bounded(2000, 0, 1_000_000, whole=True)
-    #: Nominal-condition (KMWH 9 h clear) frames replayed.
-    replay: int = bounded(2000, 0, 1_000_000, whole=True)
-    epochs: int = bounded(60, 1, 100_000, whole=True)
-    batch_size: int = bounded(256, 1, 65_536, whole=True)
-    learning_rate: float = bounded(3e-4, 0.0, 10.0, low_open=True)
-    seed: int = seed_field()
-
-    def validate(self):
-        self.environment.validate()
-        return check_bounds(self, "incremental.")
 
 
 def mine_anomalies(datasets, limit: int, rng: np.random.Generator) -> List[tuple]:
@@ -57,11 +34,14 @@ def mine_anomalies(datasets, limit: int, rng: np.random.Generator) -> List[tuple
     return mined
 
 
-def fine_tune_taxinet(checkpoint, mined, config: IncrementalConfig, camera: CameraConfig,
+def fine_tune_taxinet(checkpoint, mined, config, camera: CameraConfig,
                       out_path, *, progress=None) -> dict:
     """Fine-tune the TaxiNet in ``checkpoint`` on ``mined`` states (from
     `mine_anomalies`) plus ``config.replay`` nominal frames; write ``out_path``
-    and return its metadata (counts, errors on the mined states before/after)."""
+    and return its metadata (counts, errors on the mined states before/after).
+    ``config``: the run file's ``incremental`` section
+    (`reachwatch.pipeline.spec.IncrementalConfig`), read for ``replay``, ``epochs``,
+    ``batch_size``, ``learning_rate`` and ``seed``."""
     started = time.time()
     model, preprocess_config, meta = load_taxinet(checkpoint)
     model_config = TaxiNetConfig(**load_checkpoint(checkpoint, kind="taxinet")["model_config"])
