@@ -25,7 +25,7 @@ from reachwatch.taxi.fidelity import real_score_noise
 from reachwatch.taxi.guarded import (SCORE_PORT, flag_budget_threshold, tradeoff_curves,
                                      tradeoff_row)
 from reachwatch.taxi.plots import plot_brt_slices, plot_failure_sets, plot_tradeoff
-from reachwatch.training.incremental import fine_tune_taxinet, mine_anomalies
+from reachwatch.taxi.incremental import fine_tune_taxinet, mine_anomalies
 
 from .spec import digest
 from .brt_stages import solve_env, sweep_env
