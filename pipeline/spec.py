@@ -19,7 +19,6 @@ from reachwatch.systems.checks import check_label, short
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.labels import LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
-from reachwatch.training.incremental import IncrementalConfig
 
 
 #: Bounds of a run file's sizes: nodes per grid axis, horizon (s), real-loop starts.
@@ -36,6 +35,28 @@ class EnsembleSpec:
                                note="none, or 2 or more different seeds")
     samples: int = bounded(4000, 1, 1_000_000, whole=True)
     epochs: int = bounded(400, 1, 100_000, whole=True)
+
+
+@dc.dataclass
+class IncrementalConfig:
+    """What to mine, how much nominal data to replay, how long to fine-tune, and the
+    held-out ``environment`` whose BRT is recomputed with the fine-tuned TaxiNet (the
+    incremental stage, `reachwatch.taxi.incremental`)."""
+    enabled: bool = True
+    environment: Environment = dc.field(
+        default_factory=lambda: Environment("KMWH", 17.0, "clear"))
+    #: At most this many mined states (spread over datasets).
+    anomalies: int = bounded(2000, 0, 1_000_000, whole=True)
+    #: Nominal-condition (KMWH 9 h clear) frames replayed.
+    replay: int = bounded(2000, 0, 1_000_000, whole=True)
+    epochs: int = bounded(60, 1, 100_000, whole=True)
+    batch_size: int = bounded(256, 1, 65_536, whole=True)
+    learning_rate: float = bounded(3e-4, 0.0, 10.0, low_open=True)
+    seed: int = seed_field()
+
+    def validate(self):
+        self.environment.validate()
+        return check_bounds(self, "incremental.")
 
 
 @dc.dataclass

@@ -240,6 +240,20 @@ class Application(abc.ABC):
         raise ValueError(f"the application '{self.name}' has no ensemble baseline: set "
                          f"ensemble.seeds: []")
 
+    def ensemble_config(self, scenario, *, samples: int, epochs: int):
+        """How the ensemble baseline's members are trained (the run file's ``ensemble``:
+        ``samples`` labelled images, ``epochs``): a dataclass whose fields, with the
+        seeds, key the folder `train_ensemble` writes them to."""
+        raise ValueError(f"the application '{self.name}' has no ensemble baseline: set "
+                         f"ensemble.seeds: []")
+
+    def train_ensemble(self, config, folder, seeds, *, progress=None) -> list:
+        """Train one member of the ensemble baseline per seed of ``seeds`` from
+        ``config`` (`ensemble_config`), each written to ``folder/taxinet_seed{seed}.pt``
+        (the names the dataset stage looks for); returns their paths."""
+        raise ValueError(f"the application '{self.name}' has no ensemble baseline: set "
+                         f"ensemble.seeds: []")
+
     # --- plots ------------------------------------------------------------------------
     def plot_slices(self, value_functions, *, scenario, at, path, title="", points=None):
         """One panel per (label, `ValueFunction`) of a 2-D slice of the state space

@@ -13,6 +13,7 @@ from reachwatch.systems import TaxiNet
 from . import fidelity, guarded, history, plots, sweeps
 from .dynamics import dynamics_for
 from .grid import AXES, paper_grid
+from .taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
 
 
 class TaxiApplication(Application):
@@ -129,6 +130,12 @@ class TaxiApplication(Application):
     def ensemble_estimator(self, checkpoint):
         model, preprocess, _ = load_taxinet(checkpoint)
         return TaxiNet(model=model, preprocess_config=preprocess).estimate
+
+    def ensemble_config(self, scenario, *, samples, epochs):
+        return TaxiNetTrainConfig(camera=scenario.camera, samples=samples, epochs=epochs)
+
+    def train_ensemble(self, config, folder, seeds, *, progress=None):
+        return train_taxinet_ensemble(config, folder, seeds, progress=progress)
 
     def plot_slices(self, value_functions, *, scenario, at, path, title="", points=None):
         return plots.plot_brt_slices(value_functions, py=at, path=path, title=title,
