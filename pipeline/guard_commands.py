@@ -92,64 +92,71 @@ def _monitor_settings(monitor) -> str:
             f"{monitor.flags_needed} of {monitor.flag_window}")
 
 
+def guard_spec(args, scenario):
+    """The run file the flags describe (`RunSpec`): ``scenario`` as the run's scenario
+    and its one guard environment, ``--shape`` as its grid, ``--horizon`` and the
+    ``guard`` section from the other flags; every key no flag sets is the run file's
+    default."""
+    from reachwatch.systems.bounds import check_bounds
+
+    from .spec import GuardSpec, RunSpec
+    spec = RunSpec(name="guard", scenario=scenario, test=[scenario.environment],
+                   grid=list(args.shape), horizon=args.horizon,
+                   guard=GuardSpec(environments=[scenario.environment],
+                                   strategies=list(args.fallbacks),
+                                   tradeoff_points=args.tradeoff_points,
+                                   check_starts=args.check_starts, check_seed=args.seed,
+                                   noise_starts=args.noise_starts, noise_seed=args.noise_seed,
+                                   flag_budget=args.flag_budget,
+                                   flag_budget_starts=args.flag_budget_starts,
+                                   flag_budget_seed=args.flag_budget_seed,
+                                   mission_limit=args.mission_limit))
+    check_bounds(spec.guard, "guard.")
+    return spec
+
+
 def guard_command(args):
-    from reachwatch.reach.liveness import liveness_figures, percent, same_distance
+    """The run's guard stage (`online_stages.guard_figures` and `guard_plots`) on the
+    scenario's environment, at the scenario's detector and threshold, with its figures
+    logged and written to ``--out``."""
+    from reachwatch.reach.application import load_application
+    from reachwatch.reach.liveness import UNGUARDED, percent, same_distance
     from reachwatch.systems.files import atomic_write_bytes, cache_join, cache_root
-    from reachwatch.taxi import UNGUARDED, fallback_rollouts, paper_grid, sweep_guarded
-    from reachwatch.taxi.guarded import tradeoff_curves, tradeoff_row
-    from reachwatch.taxi.plots import plot_failure_sets, plot_tradeoff
 
     from .executors import open_executor
-    from .online_stages import budget_threshold, guard_check, noisy_guard_figures
+    from .online_stages import guard_figures, guard_plots
 
     scenario = scenario_from_args(args, controller=True)
     check_detector(scenario, args.scenario)      # before the sweep, not after it
-    grid = paper_grid(scenario.environment.half_width, tuple(args.shape))
+    spec = guard_spec(args, scenario)
+    fallbacks = spec.guard.strategies
+    application = load_application(spec.application)
+    grid = application.grid(scenario, tuple(spec.grid))
     cache = args.cache or cache_root()
-    check, budget = {}, None
+    started = time.time()
     with open_executor(args.executor) as executor:
         out = output_folder(args.out)
-        tables = sweep_guarded(scenario, grid, cache_dir=cache_join(cache, "sweeps"), executor=executor)
-        if args.flag_budget is not None:
-            budget = budget_threshold(scenario, grid, tables, args.fallbacks[0], args.flag_budget,
-                                      starts=args.flag_budget_starts, seed=args.flag_budget_seed,
-                                      horizon=args.horizon, mission_limit=args.mission_limit,
-                                      noise_starts=args.noise_starts, noise_seed=args.noise_seed,
-                                      cache_dir=cache_join(cache, "outcomes"), executor=executor)
-            scenario.monitor.threshold = budget["threshold"]
-            log.info(f"flag budget {100 * args.flag_budget:g} % of the ticks of "
-                     f"{args.fallbacks[0]}: threshold {budget['threshold']:.3f} (the scenario's "
-                     f"{budget['scenario_threshold']:.3f}), {100 * budget['flagged_ticks']:.1f} % "
-                     f"flagged in the tables{' with the score noise' if budget['score_noise'] else ''}")
-        if args.check_starts:
-            check = guard_check(scenario, grid, tables, args.fallbacks,
-                                starts=args.check_starts, seed=args.seed, horizon=args.horizon,
-                                mission_limit=args.mission_limit, cache_dir=cache_join(cache, "outcomes"),
-                                executor=executor, noise_starts=args.noise_starts,
-                                noise_seed=args.noise_seed)
-    started = time.time()
-    runs = fallback_rollouts(scenario, grid, tables, args.horizon, args.fallbacks,
-                             mission_limit=args.mission_limit)
+        figures = guard_figures(application, scenario, grid, spec,
+                                sweep_cache=cache_join(cache, "sweeps"),
+                                outcomes_cache=cache_join(cache, "outcomes"), executor=executor)
+    budget, check = figures["budget"], figures["check"] or {}
+    volumes, liveness = figures["volumes"], figures["liveness"]
+    if budget is not None:
+        log.info(f"flag budget {100 * spec.guard.flag_budget:g} % of the ticks of "
+                 f"{fallbacks[0]}: threshold {budget['threshold']:.3f} (the scenario's "
+                 f"{budget['scenario_threshold']:.3f}), {100 * budget['flagged_ticks']:.1f} % "
+                 f"flagged in the tables{' with the score noise' if budget['score_noise'] else ''}")
     name = scenario.environment.name
-    volumes = {k: float(v.failed.mean()) for k, v in runs.items()}
-    liveness = {f: liveness_figures(runs[UNGUARDED], runs[f]) for f in args.fallbacks}
-    curves = tradeoff_curves(scenario, grid, tables, args.horizon, args.fallbacks,
-                             args.tradeoff_points, mission_limit=args.mission_limit,
-                             alone=runs[UNGUARDED])
-    noisy_liveness, noisy = noisy_guard_figures(check, scenario, grid, tables, args.horizon,
-                                                args.fallbacks, args.tradeoff_points,
-                                                mission_limit=args.mission_limit,
-                                                alone=runs[UNGUARDED])
-    log.info(f"{name}, grid {list(grid.shape)}, horizon {args.horizon:g} s, detector "
+    log.info(f"{name}, grid {list(grid.shape)}, horizon {spec.horizon:g} s, detector "
              f"{scenario.monitor.detector} (threshold {scenario.monitor.threshold}); "
-             f"{_monitor_settings(scenario.monitor)}; rollouts {time.time() - started:.1f} s")
+             f"{_monitor_settings(scenario.monitor)}; {time.time() - started:.1f} s")
     log.info(f"  controller alone: failure set {100 * volumes[UNGUARDED]:.2f}% of the grid")
     for f, v in liveness.items():
         log.info(f"  {f}: failure set {percent(v['failure_set'])}, ended stopped "
                  f"{percent(v['ended_stopped'])}, needless stops {percent(v['needless_stops'])}, "
                  f"distance {v['distance_ratio']:.2f} x alone, ticks flagged "
                  f"{100 * v['flagged_ticks']:.1f}%; {same_distance(v)}")
-    for f, v in noisy_liveness.items():
+    for f, v in figures["noisy_liveness"].items():
         log.info(f"  {f}, + score noise: failure set {percent(v['failure_set'])}, ended stopped "
                  f"{percent(v['ended_stopped'])}, needless stops {percent(v['needless_stops'])}; "
                  f"{same_distance(v)}")
@@ -170,15 +177,9 @@ def guard_command(args):
                      f"needless stops {percent(v['needless_stops'])}; {same_distance(v)}")
     atomic_write_bytes(out / f"guard_{name}.json", json.dumps(
         {"monitor": dc.asdict(scenario.monitor), "flag_budget": budget, "volumes": volumes,
-         "liveness": liveness, "liveness_with_noise": noisy_liveness, "tradeoff": curves,
-         "tradeoff_with_noise": noisy, "check": check},
+         "liveness": liveness, "liveness_with_noise": figures["noisy_liveness"],
+         "tradeoff": figures["curves"], "tradeoff_with_noise": figures["noisy"],
+         "check": check},
         indent=1).encode())
-    plot_failure_sets({k: v.failed for k, v in runs.items()}, grid, args.horizon, py=175.0,
-                      path=out / f"guard_{name}.png", half_width=scenario.environment.half_width,
-                      title=f"{name}: failing start states (grey)")
-    plot_tradeoff(curves, alone=volumes[UNGUARDED], path=out / f"tradeoff_{name}.png",
-                  noisy_curves=noisy,
-                  noisy_operating={f: tradeoff_row(v) for f, v in noisy_liveness.items()},
-                  operating={f: tradeoff_row(v) for f, v in liveness.items()},
-                  title=f"{name}: failures against liveness as the threshold sweeps")
+    guard_plots(application, scenario, grid, spec, figures, out)
     log.info(f"wrote {out / f'guard_{name}.json'}, guard_{name}.png and tradeoff_{name}.png")

@@ -9,22 +9,14 @@ import dataclasses as dc
 import numpy as np
 from scipy.ndimage import uniform_filter
 
-from reachwatch.diagrams import (file_hash, load_taxinet,
-                                 make_closed_loop_diagram, make_guarded_diagram, paired_rates,
-                                 simulate)
+from reachwatch.diagrams import file_hash, load_taxinet, paired_rates, simulate
 from reachwatch.diagrams.plots import plot_runway_top_view
-from reachwatch.diagrams.scenario import InitialState
 from reachwatch.reach import ValueFunction
-from reachwatch.reach.liveness import liveness_figures
+from reachwatch.reach.application import load_application
+from reachwatch.reach.guard import perfect_detector_scores, plot_tradeoff, tradeoff_row
+from reachwatch.reach.liveness import UNGUARDED, liveness_figures
 from reachwatch.reach.score_noise import ScoreNoise
 from reachwatch.systems import fallback_parts
-from reachwatch.taxi import (UNGUARDED, fallback_rollouts, mission_rollouts, on_runway_starts,
-                             perfect_detector_scores, real_missions, resolved, simulate_guarded,
-                             sweep_guarded)
-from reachwatch.taxi.fidelity import real_score_noise
-from reachwatch.taxi.guarded import (SCORE_PORT, flag_budget_threshold, tradeoff_curves,
-                                     tradeoff_row)
-from reachwatch.taxi.plots import plot_brt_slices, plot_failure_sets, plot_tradeoff
 from reachwatch.taxi.incremental import fine_tune_taxinet, mine_anomalies
 
 from .spec import digest
@@ -40,10 +32,6 @@ def robust_starts(mask, grid, limit):
     index = np.flatnonzero(mask.ravel())
     px = np.abs(grid.states(index)[:, 0])
     return index[np.lexsort((px, -support[index]))][:limit]
-
-
-def _state(x):
-    return InitialState(px=float(x[0]), py=float(x[1]), theta_deg=float(np.rad2deg(x[2])))
 
 
 def showcase_candidates(on_grid, fallbacks, grid, limit):
@@ -73,13 +61,13 @@ def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
     covers without failing), else the first real save by stopping, else the first start
     the fallback only makes fail later, else the first start tried; its plot,
     trajectories and replay."""
-    spec = run.spec
+    spec, application = run.spec, run.application
     tried, moving_save, stop_save, delayed = [], None, None, None
     for name, node in showcase_candidates(on_grid, spec.guard.strategies, grid,
                                           spec.guard.candidates):
         x0 = grid.states([node])[0]
-        alone, guarded = (mission_rollouts(scenario, f, spec.horizon, x0[None],
-                                           mission_limit=spec.guard.mission_limit)
+        alone, guarded = (application.mission_rollouts(scenario, f, spec.horizon, x0[None],
+                                                       mission_limit=spec.guard.mission_limit)
                           for f in (None, name))
         entry = {"fallback": name, "start": [float(v) for v in x0],
                  "nominal_fails": bool(alone["failed"][0]),
@@ -103,9 +91,8 @@ def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
     shown = moving_save or stop_save or delayed or tried[0]
     shown_scenario = copy.deepcopy(scenario)
     shown_scenario.monitor = shown_scenario.monitor.with_fallback(shown["fallback"])
-    shown_scenario.initial_state = _state(shown["start"])
-    nominal, guarded, paths = simulate_guarded(shown_scenario, run.path("figures"),
-                                               meshcat_html=spec.guard.meshcat_html)
+    nominal, guarded, paths = application.simulate_guarded(
+        shown_scenario, shown["start"], run.path("figures"), meshcat_html=spec.guard.meshcat_html)
     record.update(strategy=shown["fallback"], start=shown["start"],
                   nominal_fails=nominal.failed, guarded_fails=guarded.failed,
                   lowest_speed=float(np.min(guarded.speed)),
@@ -115,19 +102,25 @@ def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
     return record
 
 
+def _taxi_unless(application):
+    """``application``, or the default one (the taxi) for callers that name none."""
+    return application if application is not None else load_application("")
+
+
 def fit_guard_noise(scenario, grid, tables, *, noise_starts: int, noise_seed: int,
-                    horizon: float, cache_dir, executor=None, progress=True):
+                    horizon: float, cache_dir, executor=None, progress=True, application=None):
     """The detector's variation between the nodes of the guarded sweep ``tables``
-    (`real_score_noise`), fitted on ``noise_starts`` real runs of the controller alone
-    from on-runway starts seeded ``noise_seed``: ``(noise, record)``, the record holding
-    the fit (mean, sigma, length, runs, ticks, seed); ``(None, record)`` with the reason
-    when it cannot be fitted."""
-    calibration = on_runway_starts(grid, noise_starts, noise_seed,
-                                   half_width=scenario.environment.half_width)
+    (`Application.real_score_noise`), fitted on ``noise_starts`` real runs of the
+    controller alone from the application's starts (`Application.starts`) seeded
+    ``noise_seed``: ``(noise, record)``, the record holding the fit (mean, sigma,
+    length, runs, ticks, seed); ``(None, record)`` with the reason when it cannot be
+    fitted. ``application``: default the taxi."""
+    application = _taxi_unless(application)
+    calibration = application.starts(scenario, grid, noise_starts, noise_seed)
     try:
-        noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], calibration,
-                                      duration=horizon, cache_dir=cache_dir, executor=executor,
-                                      progress=progress)
+        noise, fit = application.real_score_noise(
+            scenario, grid, tables[application.score_port], calibration, duration=horizon,
+            cache_dir=cache_dir, executor=executor, progress=progress)
     except ValueError as e:
         return None, {"error": str(e), "runs": noise_starts, "seed": noise_seed}
     return noise, {**dc.asdict(noise), **fit, "seed": noise_seed}
@@ -135,23 +128,25 @@ def fit_guard_noise(scenario, grid, tables, *, noise_starts: int, noise_seed: in
 
 def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, horizon: float,
                 mission_limit, cache_dir, executor=None, progress=True, noise_starts: int = 0,
-                noise_seed: int = 4000, noise_seeds: int = 1) -> dict:
-    """Every fallback and the controller alone in the real Drake loops from ``starts``
-    seeded on-runway starts, beside the tables' figures from the same starts; with
-    ``noise_starts``, also beside the tables with the detector's variation between
-    nodes (`reach.score_noise`) fitted on that many other real runs of the controller
-    alone (starts and noise seeded ``noise_seed``; with ``noise_seeds`` > 1 the tables
-    are also rolled out with the noise seeded ``noise_seed + 1, ...``, kept per fallback
-    as ``table_with_noise_by_seed``). A fit that fails is recorded with its reason and
-    the check goes on."""
+                noise_seed: int = 4000, noise_seeds: int = 1, application=None) -> dict:
+    """Every fallback and the controller alone in the real loops (`Application.missions`)
+    from ``starts`` seeded starts (`Application.starts`), beside the tables' figures
+    from the same starts; with ``noise_starts``, also beside the tables with the
+    detector's variation between nodes (`reach.score_noise`) fitted on that many other
+    real runs of the controller alone (starts and noise seeded ``noise_seed``; with
+    ``noise_seeds`` > 1 the tables are also rolled out with the noise seeded
+    ``noise_seed + 1, ...``, kept per fallback as ``table_with_noise_by_seed``). A fit
+    that fails is recorded with its reason and the check goes on. ``application``:
+    default the taxi."""
     if noise_seeds < 1:
         raise ValueError(f"noise_seeds must be >= 1, got {noise_seeds}")
-    points = on_runway_starts(grid, starts, seed, half_width=scenario.environment.half_width)
-    table = fallback_rollouts(scenario, grid, tables, horizon, fallbacks, starts=points,
-                              mission_limit=mission_limit)
-    real = {f: real_missions(scenario, points, fallback=None if f == UNGUARDED else f,
-                             duration=horizon, mission_limit=mission_limit, cache_dir=cache_dir,
-                             executor=executor, progress=progress)
+    application = _taxi_unless(application)
+    points = application.starts(scenario, grid, starts, seed)
+    table = application.fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
+                                          starts=points, mission_limit=mission_limit)
+    real = {f: application.missions(scenario, points, fallback=None if f == UNGUARDED else f,
+                                    duration=horizon, mission_limit=mission_limit,
+                                    cache_dir=cache_dir, executor=executor, progress=progress)
             for f in [UNGUARDED, *fallbacks]}
     check = {"starts": len(points), "seed": seed,
              "fallbacks": {f: {"table": liveness_figures(table[UNGUARDED], table[f]),
@@ -161,12 +156,14 @@ def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, ho
         return check
     noise, check["score_noise"] = fit_guard_noise(
         scenario, grid, tables, noise_starts=noise_starts, noise_seed=noise_seed,
-        horizon=horizon, cache_dir=cache_dir, executor=executor, progress=progress)
+        horizon=horizon, cache_dir=cache_dir, executor=executor, progress=progress,
+        application=application)
     if noise is None:
         return check
-    noisy = [fallback_rollouts(scenario, grid, tables, horizon, fallbacks, starts=points,
-                               mission_limit=mission_limit, score_noise=noise,
-                               seed=noise_seed + k, alone=table[UNGUARDED])
+    noisy = [application.fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
+                                           starts=points, mission_limit=mission_limit,
+                                           score_noise=noise, seed=noise_seed + k,
+                                           alone=table[UNGUARDED])
              for k in range(noise_seeds)]
     for f in fallbacks:
         figures = [liveness_figures(table[UNGUARDED], n[f]) for n in noisy]
@@ -177,122 +174,160 @@ def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, ho
 
 
 def noisy_guard_figures(check, scenario, grid, tables, horizon, fallbacks, points: int, *,
-                        mission_limit, alone=None):
+                        mission_limit, alone=None, application=None):
     """The guard's figures on the grid again with the score noise that ``check`` (a
     `guard_check` record) fitted, seeded as its check: ``(liveness, curves)``, the
     `liveness_figures` of each fallback at the scenario's threshold and the trade-off
-    curves (`tradeoff_curves`, when ``points``); ``({}, {})`` when the check fitted no
-    noise (no check, no noise runs, or a failed fit)."""
+    curves (`Application.tradeoff_curves`, when ``points``); ``({}, {})`` when the check
+    fitted no noise (no check, no noise runs, or a failed fit). ``application``: default
+    the taxi."""
     fit = (check or {}).get("score_noise")
     if not fit or "error" in fit:
         return {}, {}
+    application = _taxi_unless(application)
     noise = ScoreNoise(sigma=fit["sigma"], length=fit["length"], mean=fit["mean"])
     kw = dict(mission_limit=mission_limit, score_noise=noise, seed=fit["seed"])
-    runs = fallback_rollouts(scenario, grid, tables, horizon, fallbacks, alone=alone, **kw)
+    runs = application.fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
+                                         alone=alone, **kw)
     liveness = {f: liveness_figures(runs[UNGUARDED], runs[f]) for f in fallbacks}
-    curves = (tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points,
-                              alone=runs[UNGUARDED], **kw) if points else {})
+    curves = (application.tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points,
+                                          alone=runs[UNGUARDED], **kw) if points else {})
     return liveness, curves
 
 
 def budget_threshold(scenario, grid, tables, fallback: str, budget: float, *, starts: int,
                      seed: int, horizon: float, mission_limit, noise_starts: int,
-                     noise_seed: int, cache_dir, executor=None, progress=True) -> dict:
+                     noise_seed: int, cache_dir, executor=None, progress=True,
+                     application=None) -> dict:
     """A flag budget turned into this environment's detector threshold, without labels:
-    `flag_budget_threshold` for ``fallback`` from ``starts`` on-runway starts seeded
+    `Application.flag_budget_threshold` for ``fallback`` from ``starts`` starts seeded
     ``seed``, in the tables with the score noise fitted on ``noise_starts`` real runs of
     the controller alone (`fit_guard_noise`; without it when 0 or when the fit fails).
-    Its record, with the scenario's own threshold beside it and how the noise fit went."""
+    Its record, with the scenario's own threshold beside it and how the noise fit went.
+    ``application``: default the taxi."""
+    application = _taxi_unless(application)
     noise, fit = None, None
     if noise_starts:
         noise, fit = fit_guard_noise(scenario, grid, tables, noise_starts=noise_starts,
                                      noise_seed=noise_seed, horizon=horizon, cache_dir=cache_dir,
-                                     executor=executor, progress=progress)
-    points = on_runway_starts(grid, starts, seed, half_width=scenario.environment.half_width)
-    chosen = flag_budget_threshold(scenario, grid, tables, horizon, fallback, budget,
-                                   starts=points, mission_limit=mission_limit,
-                                   score_noise=noise, seed=noise_seed)
+                                     executor=executor, progress=progress,
+                                     application=application)
+    points = application.starts(scenario, grid, starts, seed)
+    chosen = application.flag_budget_threshold(scenario, grid, tables, horizon, fallback, budget,
+                                               starts=points, mission_limit=mission_limit,
+                                               score_noise=noise, seed=noise_seed)
     return {**chosen, "seed": seed, "score_noise": noise is not None, "score_noise_fit": fit,
             "scenario_threshold": scenario.monitor.threshold}
 
 
-def real_loop_check(run: Run, scenario, grid, tables, env) -> dict:
-    """`guard_check` with the run file's ``guard`` settings."""
-    guard = run.spec.guard
-    return guard_check(scenario, grid, tables, guard.strategies, starts=guard.check_starts,
-                       seed=guard.check_seed, horizon=run.spec.horizon,
-                       mission_limit=guard.mission_limit, cache_dir=run.path("outcomes"),
-                       executor=run.executor, progress=run.progress,
-                       noise_starts=guard.noise_starts, noise_seed=guard.noise_seed)
+def guard_figures(application, scenario, grid, spec, *, sweep_cache, outcomes_cache,
+                  executor=None, progress=True) -> dict:
+    """The guard's figures of one environment, what ``reachwatch run``'s guard stage and
+    ``reachwatch guard`` share, with the settings of ``spec`` (a `RunSpec`: its
+    ``horizon`` and ``guard``): the guarded sweep of ``scenario`` over ``grid``
+    (``tables``, cached under ``sweep_cache``); with ``guard.flag_budget``, the
+    threshold it sets without labels (``budget``, `budget_threshold`; the scenario's
+    monitor is set to it); the controller alone's and each fallback's outcomes on the
+    grid (``on_grid``), their failure sets (``volumes``) and ``liveness``; the
+    trade-off ``curves`` (none for 0 ``guard.tradeoff_points``); the real-loop ``check``
+    (`guard_check`, real runs cached under ``outcomes_cache``; None for 0
+    ``guard.check_starts``) and the grid's figures with the score noise it fitted
+    (``noisy_liveness``, ``noisy``: `noisy_guard_figures`)."""
+    guard, horizon = spec.guard, spec.horizon
+    fallbacks = guard.strategies
+    tables = application.sweep(scenario, grid, guarded=True, cache_dir=sweep_cache,
+                               executor=executor, progress=progress)
+    budget = None
+    if guard.flag_budget is not None:          # the threshold, set here without labels
+        budget = budget_threshold(scenario, grid, tables, fallbacks[0], guard.flag_budget,
+                                  starts=guard.flag_budget_starts, seed=guard.flag_budget_seed,
+                                  horizon=horizon, mission_limit=guard.mission_limit,
+                                  noise_starts=guard.noise_starts, noise_seed=guard.noise_seed,
+                                  cache_dir=outcomes_cache, executor=executor,
+                                  progress=progress, application=application)
+        scenario.monitor.threshold = budget["threshold"]
+    on_grid = application.fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
+                                            mission_limit=guard.mission_limit)
+    alone = on_grid[UNGUARDED]
+    curves = (application.tradeoff_curves(scenario, grid, tables, horizon, fallbacks,
+                                           guard.tradeoff_points,
+                                           mission_limit=guard.mission_limit, alone=alone)
+              if guard.tradeoff_points else {})
+    check = (guard_check(scenario, grid, tables, fallbacks, starts=guard.check_starts,
+                         seed=guard.check_seed, horizon=horizon,
+                         mission_limit=guard.mission_limit, cache_dir=outcomes_cache,
+                         executor=executor, progress=progress,
+                         noise_starts=guard.noise_starts, noise_seed=guard.noise_seed,
+                         application=application)
+             if guard.check_starts else None)
+    noisy_liveness, noisy = noisy_guard_figures(
+        check, scenario, grid, tables, horizon, fallbacks, guard.tradeoff_points,
+        mission_limit=guard.mission_limit, alone=alone, application=application)
+    return {"tables": tables, "budget": budget, "on_grid": on_grid,
+            "volumes": {k: float(v.failed.mean()) for k, v in on_grid.items()},
+            "liveness": {f: liveness_figures(alone, on_grid[f]) for f in fallbacks},
+            "curves": curves, "check": check, "noisy_liveness": noisy_liveness, "noisy": noisy}
+
+
+def guard_plots(application, scenario, grid, spec, figures, folder):
+    """The figures of `guard_figures` (``figures``) of ``scenario``'s environment, in
+    ``folder``: its failure sets (``guard_ENV.png``, `Application.plot_failure_sets` at
+    ``spec.slice_py``) and, when it has trade-off curves, their plot
+    (``tradeoff_ENV.png``). Returns their paths (None for no trade-off plot)."""
+    name, threshold = scenario.environment.name, scenario.monitor.threshold
+    slices = application.plot_failure_sets(
+        {k: v.failed for k, v in figures["on_grid"].items()}, grid, spec.horizon,
+        scenario=scenario, at=spec.slice_py, path=folder / f"guard_{name}.png",
+        title=f"{name}: failing start states (grey), detector at threshold {threshold:.3g}")
+    if not figures["curves"]:
+        return slices, None
+    tradeoff = plot_tradeoff(
+        figures["curves"], alone=figures["volumes"][UNGUARDED], noisy_curves=figures["noisy"],
+        operating={f: tradeoff_row(v, threshold) for f, v in figures["liveness"].items()},
+        noisy_operating={f: tradeoff_row(v, threshold)
+                         for f, v in figures["noisy_liveness"].items()},
+        path=folder / f"tradeoff_{name}.png",
+        title=f"{name}: failures against liveness as the detector threshold sweeps (star: "
+              f"threshold {threshold:.3g})")
+    return slices, tradeoff
 
 
 def guard_environment(run: Run, env) -> dict:
-    spec, trained = run.spec, run.outputs["train"]
+    spec, trained, application = run.spec, run.outputs["train"], run.application
     scenario = run.scenario_for(env)
     scenario.monitor.detector = str(run.path(trained["detector"]))
     scenario.monitor.threshold = float(trained["threshold"])
     scenario.duration = spec.horizon
-    scenario = resolved(scenario)
+    scenario = application.resolved(scenario)
     grid = run.grid_for(env)
     fallbacks = spec.guard.strategies
-    tables = sweep_guarded(scenario, grid, cache_dir=run.sweep_cache, executor=run.executor,
-                           progress=run.progress)
-    budget = None
-    if spec.guard.flag_budget is not None:          # the threshold, set here without labels
-        guard = spec.guard
-        budget = budget_threshold(scenario, grid, tables, guard.strategies[0], guard.flag_budget,
-                                  starts=guard.flag_budget_starts, seed=guard.flag_budget_seed,
-                                  horizon=spec.horizon, mission_limit=guard.mission_limit,
-                                  noise_starts=guard.noise_starts, noise_seed=guard.noise_seed,
-                                  cache_dir=run.path("outcomes"), executor=run.executor,
-                                  progress=run.progress)
-        scenario.monitor.threshold = budget["threshold"]
-    on_grid = fallback_rollouts(scenario, grid, tables, spec.horizon, fallbacks,
-                                mission_limit=spec.guard.mission_limit)
-    volumes = {k: float(v.failed.mean()) for k, v in on_grid.items()}
-    liveness = {f: liveness_figures(on_grid[UNGUARDED], on_grid[f]) for f in fallbacks}
-    perfect = fallback_rollouts(scenario, grid, tables, spec.horizon, fallbacks, threshold=0.0,
-                                scores=perfect_detector_scores(run.value_function(env.name), grid),
-                                mission_limit=spec.guard.mission_limit, alone=on_grid[UNGUARDED])
-    perfect_liveness = {f: liveness_figures(perfect[UNGUARDED], perfect[f]) for f in fallbacks}
-    slices = plot_failure_sets({k: v.failed for k, v in on_grid.items()}, grid, spec.horizon,
-                               py=spec.slice_py, half_width=env.half_width,
-                               path=run.path(f"figures/guard_{env.name}.png"),
-                               title=f"{env.name}: failing start states (grey), detector at "
-                                     f"threshold {scenario.monitor.threshold:.3g}")
-    curves = tradeoff_curves(scenario, grid, tables, spec.horizon, fallbacks,
-                             spec.guard.tradeoff_points, mission_limit=spec.guard.mission_limit,
-                             alone=on_grid[UNGUARDED]) if spec.guard.tradeoff_points else {}
-    check = (real_loop_check(run, scenario, grid, tables, env)
-             if spec.guard.check_starts else None)
-    noisy_liveness, noisy = noisy_guard_figures(
-        check, scenario, grid, tables, spec.horizon, fallbacks, spec.guard.tradeoff_points,
+    figures = guard_figures(application, scenario, grid, spec, sweep_cache=run.sweep_cache,
+                            outcomes_cache=run.path("outcomes"), executor=run.executor,
+                            progress=run.progress)
+    on_grid, tables = figures["on_grid"], figures["tables"]
+    perfect = application.fallback_rollouts(
+        scenario, grid, tables, spec.horizon, fallbacks, threshold=0.0,
+        scores=perfect_detector_scores(run.value_function(env.name), grid),
         mission_limit=spec.guard.mission_limit, alone=on_grid[UNGUARDED])
-    operating = {f: tradeoff_row(liveness[f], scenario.monitor.threshold) for f in fallbacks}
-    tradeoff = (plot_tradeoff(curves, operating=operating, alone=volumes[UNGUARDED],
-                              noisy_curves=noisy,
-                              noisy_operating={f: tradeoff_row(v, scenario.monitor.threshold)
-                                               for f, v in noisy_liveness.items()},
-                              path=run.path(f"figures/tradeoff_{env.name}.png"),
-                              title=f"{env.name}: failures against liveness as the detector "
-                                    f"threshold sweeps (star: threshold "
-                                    f"{scenario.monitor.threshold:.3g})")
-                if curves else None)
+    perfect_liveness = {f: liveness_figures(perfect[UNGUARDED], perfect[f]) for f in fallbacks}
+    slices, tradeoff = guard_plots(application, scenario, grid, spec, figures,
+                                   run.path("figures"))
     run_record = showcase_run(run, scenario, on_grid, grid, env)
     # Both loops side by side in alternating blocks; the median per-round ratio (the VM drifts).
     shown = copy.deepcopy(scenario)
     shown.monitor = shown.monitor.with_fallback(
         run_record.get("strategy") or (fallbacks[0] if fallbacks else "slow_down"))
-    alone, guarded_rate = paired_rates(make_closed_loop_diagram(shown), make_guarded_diagram(shown),
+    alone, guarded_rate = paired_rates(application.loop_diagram(shown),
+                                       application.loop_diagram(shown, guarded=True),
                                        rounds=3, duration=spec.guard.online_seconds,
                                        period=scenario.controller.period)
-    return {"threshold": scenario.monitor.threshold, "flag_budget": budget,
-            "volumes": volumes, "liveness": liveness,
-            "liveness_with_noise": noisy_liveness,
+    return {"threshold": scenario.monitor.threshold, "flag_budget": figures["budget"],
+            "volumes": figures["volumes"], "liveness": figures["liveness"],
+            "liveness_with_noise": figures["noisy_liveness"],
             "perfect_detector": perfect_liveness,
-            "tradeoff": curves, "tradeoff_with_noise": noisy,
+            "tradeoff": figures["curves"], "tradeoff_with_noise": figures["noisy"],
             "tradeoff_figure": run.rel(tradeoff) if tradeoff else None,
-            "check": check, "figure": run.rel(slices), "run": run_record,
+            "check": figures["check"], "figure": run.rel(slices), "run": run_record,
             "online": {"alone_ticks_per_s": float(np.median(alone)),
                        "guarded_ticks_per_s": float(np.median(guarded_rate)),
                        "ratio": float(np.median(np.asarray(guarded_rate) / np.asarray(alone))),
@@ -321,7 +356,7 @@ def incremental(run: Run) -> dict:
     train = spec.training_environments()
     mined = mine_anomalies(list(zip(train, run.datasets(train))), config.anomalies,
                            np.random.default_rng(config.seed))
-    base = resolved(run.scenario_for(env)).controller.checkpoint
+    base = run.application.resolved(run.scenario_for(env)).controller.checkpoint
     path = run.path(f"incremental/taxinet_{digest(config, run.outputs['dataset'], file_hash(base))}.pt")
     seconds = None
     if not path.exists():
@@ -334,11 +369,11 @@ def incremental(run: Run) -> dict:
     grid = before_vf.grid
     saved = (before_vf.values.ravel() <= 0) & (after_vf.values.ravel() > 0)
     star = grid.states(robust_starts(saved, grid, 1))
-    figure = plot_brt_slices({"vanilla TaxiNet": before_vf, "fine-tuned TaxiNet": after_vf},
-                             py=spec.slice_py, half_width=env.half_width,
-                             path=run.path(f"figures/incremental_{env.name}.png"),
-                             points=[("start (saved by fine-tuning)", star, "m*")] if len(star)
-                             else None)
+    figure = run.application.plot_slices(
+        {"vanilla TaxiNet": before_vf, "fine-tuned TaxiNet": after_vf},
+        scenario=run.scenario_for(env), at=spec.slice_py,
+        path=run.path(f"figures/incremental_{env.name}.png"),
+        points=[("start (saved by fine-tuning)", star, "m*")] if len(star) else None)
     result = {"environment": env.name, "checkpoint": run.rel(path),
               "before": run.outputs["solve"][env.name]["brt_fraction"],
               "after": after["brt_fraction"], "after_record": after, "figure": run.rel(figure),
@@ -350,7 +385,7 @@ def incremental(run: Run) -> dict:
         trajectories = []
         for label, checkpoint in (("vanilla TaxiNet", base), ("fine-tuned TaxiNet", path)):
             scenario = run.scenario_for(env, checkpoint)
-            t = simulate(make_closed_loop_diagram(scenario), initial_state=star[0],
+            t = simulate(run.application.loop_diagram(scenario), initial_state=star[0],
                          period=scenario.controller.period,
                          duration=spec.horizon, half_width=env.half_width)
             trajectories.append((t, f"{label}{' (fails)' if t.failed else ''}"))

@@ -185,16 +185,24 @@ class Application(abc.ABC):
         return fields
 
     def missions(self, scenario, starts, *, fallback=None, duration: float, cache_dir,
-                 executor=None, progress: bool = True):
+                 executor=None, progress: bool = True, mission_limit=None):
         """`reach.liveness.MissionOutcomes` of the real loop from each start for
         ``duration`` s, stopping at failure: the controller alone (``fallback=None``) or
         guarded (`loop_diagram` with ``guarded``) by ``scenario.monitor``'s detector with
         the fallback named ``fallback`` (e.g. ``"brake"``). Cached by content under
         ``cache_dir``; the controller alone's runs are keyed without the monitor. Default:
         `loop_missions`, which judges `failed` at the control ticks and reads the
-        guarded loop's exported ``speed`` and ``anomaly``."""
+        guarded loop's exported ``speed`` and ``anomaly``. ``mission_limit`` (the guard's
+        check; None: none): the runs also go on past the horizon, for up to that many
+        horizons, until they cover the distance the controller alone covers within it,
+        and the same-distance fields are filled (`reach.liveness.SAME_DISTANCE_FIELDS`);
+        the default has no such runs."""
         from .liveness import MISSION_FIELDS, MissionOutcomes
         from .outcomes import map_states
+        if mission_limit is not None:
+            raise NotImplementedError(f"Application.missions: the application '{self.name}' "
+                                      f"judges no real runs by distance (mission_limit); set "
+                                      f"guard.check_starts: 0")
         scenario = self.resolved(scenario) if fallback else self.without_monitor(scenario)
         rollout = functools.partial(loop_missions, ApplicationRef(self._loaded_as()),
                                     scenario, fallback, float(duration))
@@ -286,10 +294,77 @@ class Application(abc.ABC):
         """``noun`` qualified by `start_word` (``"on-runway starts"``)."""
         return f"{self.start_word} {noun}" if self.start_word else noun
 
-    # --- fallbacks ----------------------------------------------------------------------
-    #: ``fallback_rollouts(...)`` of the guarded loop on the grid, or None when the
-    #: application has none (the guard stage then needs the real loop).
+    # --- the guard: fallbacks (the guard stage, ``reachwatch guard``) -------------------
+    #: ``fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=None,
+    #: starts=None, mission_limit=None, scores=None, alone=None, score_noise=None,
+    #: seed=0)`` (a staticmethod): {`reach.liveness.UNGUARDED` | fallback name:
+    #: `reach.liveness.MissionOutcomes`} of the loop rolled out in the guarded sweep's
+    #: ``tables`` (`sweep` with ``guarded``) from every node of ``grid`` or from
+    #: ``starts``, at ``threshold`` (None: ``scenario.monitor``'s) on the swept scores or
+    #: on ``scores``; ``alone``: the controller alone's outcomes, when already rolled out;
+    #: ``score_noise``, ``seed``: the detector's variation between nodes
+    #: (`reach.score_noise.ScoreNoise`). None when the application has none: the guard
+    #: stage is then skipped.
     fallback_rollouts = None
+    #: The port of the detector's score among the guarded sweep's tables.
+    score_port = "anomaly_detector.score"
+
+    def _table_rollouts(self, scenario, grid, tables, horizon):
+        """`fallback_rollouts` of these tables: the ``rollouts`` of `reach.guard`."""
+        if self.fallback_rollouts is None:
+            raise NotImplementedError(f"Application.fallback_rollouts: the application "
+                                      f"'{self.name}' has no fallback rollouts")
+        return lambda fallbacks, **settings: self.fallback_rollouts(
+            scenario, grid, tables, horizon, fallbacks, **settings)
+
+    def tradeoff_curves(self, scenario, grid, tables, horizon, fallbacks, points: int, *,
+                        mission_limit=None, alone=None, score_noise=None, seed=0) -> dict:
+        """{fallback: rows} of the failure set against liveness over ``grid``'s nodes as
+        the detector threshold sweeps ``points`` quantiles of the swept scores
+        (`reach.guard.tradeoff_curves` of `fallback_rollouts`)."""
+        from .guard import tradeoff_curves
+        return tradeoff_curves(self._table_rollouts(scenario, grid, tables, horizon),
+                               tables[self.score_port], fallbacks, points,
+                               mission_limit=mission_limit, alone=alone,
+                               score_noise=score_noise, seed=seed)
+
+    def flag_budget_threshold(self, scenario, grid, tables, horizon, fallback: str,
+                              budget: float, *, starts, mission_limit=None, score_noise=None,
+                              seed=0, alone=None) -> dict:
+        """The threshold at which ``fallback``'s loop, rolled out in the tables from
+        ``starts``, flags ``budget`` of its control ticks, without labels
+        (`reach.guard.flag_budget_threshold` of `fallback_rollouts`)."""
+        from .guard import flag_budget_threshold
+        return flag_budget_threshold(self._table_rollouts(scenario, grid, tables, horizon),
+                                     fallback, budget, starts=starts,
+                                     mission_limit=mission_limit, score_noise=score_noise,
+                                     seed=seed, alone=alone)
+
+    def real_score_noise(self, scenario, grid, score_table, starts, *, duration: float,
+                         cache_dir, executor=None, progress: bool = True):
+        """The detector's variation between the nodes of the guarded sweep: a
+        `reach.score_noise.ScoreNoise` fitted (`fit_score_noise`) to how the detector's
+        score along real runs of the controller alone from ``starts`` (cached under
+        ``cache_dir``) departs from ``score_table`` (the sweep's `score_port` on ``grid``)
+        at the same states; ``(noise, {"runs", "ticks"})``. A ValueError when it cannot
+        be fitted."""
+        raise NotImplementedError(f"Application.real_score_noise: the application "
+                                  f"'{self.name}' fits no score noise; set guard.noise_starts: 0")
+
+    def mission_rollouts(self, scenario, fallback, duration: float, states, *,
+                         mission_limit=None) -> dict:
+        """The fields of `missions` from ``states``, run here and not cached (the guard
+        stage's showcase tries a few candidate starts)."""
+        raise NotImplementedError(f"Application.mission_rollouts: the application "
+                                  f"'{self.name}' has no showcase runs; set guard.candidates: 0")
+
+    def simulate_guarded(self, scenario, start, folder, *, meshcat_html: bool = True):
+        """The controller alone and the guarded loop of ``scenario`` (its monitor's
+        fallback) from ``start`` (a state) for ``scenario.duration`` s, with their figure
+        (and files) written to ``folder``: ``(alone, guarded, paths)``, two
+        `reachwatch.diagrams.Trajectory` (``guarded`` with ``speed`` and ``anomaly``)."""
+        raise NotImplementedError(f"Application.simulate_guarded: the application "
+                                  f"'{self.name}' has no showcase runs; set guard.candidates: 0")
 
     # --- identity -------------------------------------------------------------------------
     def key(self):

@@ -10,7 +10,7 @@ from reachwatch.diagrams import StateRenderer, load_taxinet, make_closed_loop_di
 from reachwatch.reach.application import Application
 from reachwatch.systems import TaxiNet
 
-from . import fidelity, guarded, history, plots, sweeps
+from . import fidelity, guarded, guarded_run, history, plots, sweeps
 from .dynamics import dynamics_for
 from .grid import AXES, paper_grid
 from .taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
@@ -111,12 +111,14 @@ class TaxiApplication(Application):
                                      progress=progress)
 
     def missions(self, scenario, starts, *, fallback=None, duration, cache_dir, executor=None,
-                 progress=True):
+                 progress=True, mission_limit=None):
         if not self.own_loop:
             return super().missions(scenario, starts, fallback=fallback, duration=duration,
-                                    cache_dir=cache_dir, executor=executor, progress=progress)
+                                    cache_dir=cache_dir, executor=executor, progress=progress,
+                                    mission_limit=mission_limit)
         return fidelity.real_missions(scenario, starts, fallback=fallback, duration=duration,
-                                      cache_dir=cache_dir, executor=executor, progress=progress)
+                                      cache_dir=cache_dir, executor=executor, progress=progress,
+                                      mission_limit=mission_limit)
 
     def renderer(self, scenario):
         if not self.own_loop:
@@ -145,4 +147,28 @@ class TaxiApplication(Application):
         return plots.plot_failure_sets(failures, grid, horizon, py=at, path=path, title=title,
                                        half_width=scenario.environment.half_width)
 
+    # --- the guard (the guard stage, ``reachwatch guard``) -----------------------------
     fallback_rollouts = staticmethod(guarded.fallback_rollouts)
+
+    def real_score_noise(self, scenario, grid, score_table, starts, *, duration, cache_dir,
+                         executor=None, progress=True):
+        if not self.own_loop:
+            return super().real_score_noise(scenario, grid, score_table, starts,
+                                            duration=duration, cache_dir=cache_dir,
+                                            executor=executor, progress=progress)
+        return fidelity.real_score_noise(scenario, grid, score_table, starts, duration=duration,
+                                         cache_dir=cache_dir, executor=executor,
+                                         progress=progress)
+
+    def mission_rollouts(self, scenario, fallback, duration, states, *, mission_limit=None):
+        if not self.own_loop:
+            return super().mission_rollouts(scenario, fallback, duration, states,
+                                            mission_limit=mission_limit)
+        return fidelity.mission_rollouts(scenario, fallback, duration, states,
+                                         mission_limit=mission_limit)
+
+    def simulate_guarded(self, scenario, start, folder, *, meshcat_html=True):
+        if not self.own_loop:
+            return super().simulate_guarded(scenario, start, folder, meshcat_html=meshcat_html)
+        return guarded_run.simulate_guarded(guarded_run.starting_at(scenario, start), folder,
+                                            meshcat_html=meshcat_html)

@@ -14,12 +14,12 @@ import numpy as np
 import torch
 
 from reachwatch.diagrams import CONTROL_PORT, DETECTOR, ESTIMATE_PORT
+from reachwatch.reach import guard
 from reachwatch.reach.dynamics import positive, rk4_step, split_horizon
 from reachwatch.reach.grid import check_states
+from reachwatch.reach.guard import perfect_detector_scores, tradeoff_row  # noqa: F401
 from reachwatch.reach.interpolate import GridInterpolator
-from reachwatch.reach.liveness import (UNGUARDED, MissionOutcomes, check_mission_limit,
-                                       liveness_figures, threshold_for_flag_budget)
-from reachwatch.reach.score_noise import sigmoid
+from reachwatch.reach.liveness import UNGUARDED, MissionOutcomes, check_mission_limit
 from reachwatch.systems import (Fallback, ProportionalController, check_k_of_n, confirmed_flags,
                                 propagate_estimate)
 
@@ -201,91 +201,31 @@ def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=N
     return out
 
 
-def perfect_detector_scores(value_function, grid) -> np.ndarray:
-    """Per node of ``grid``: ``-V``, the score of a perfect detector for the BRT of
-    ``value_function``: at threshold 0 it flags exactly where the (interpolated) BRT
-    holds the state, the label the detector is trained on. With these scores the
-    fallbacks' figures say what a perfect detector would leave to the fallback: the
-    part of the gap that no better detector closes."""
-    return -np.asarray(value_function.at(grid.states()), float).reshape(grid.shape)
+def _rollouts(scenario, grid, tables, horizon):
+    """`fallback_rollouts` of ``scenario``'s tables: the ``rollouts`` of `reach.guard`."""
+    return lambda fallbacks, **settings: fallback_rollouts(scenario, grid, tables, horizon,
+                                                           fallbacks, **settings)
 
 
 def tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points: int, *,
                     mission_limit=None, alone=None, score_noise=None, seed=0) -> dict:
-    """{fallback: rows} of the failure set against liveness as the detector threshold
-    sweeps the range of the swept scores (``points`` thresholds at evenly spaced
-    quantiles of the scores, from flagging every node to flagging almost none), each
-    row ``{threshold, failure_set, ended_stopped, needless_stops, distance_ratio,
-    flagged_ticks}`` over the grid's nodes; with ``mission_limit``, also the same-distance
-    figures (``same_distance_failure_set``, ``short_of_distance``). ``alone``: the
-    controller alone's outcomes on the grid, when already computed (as `fallback_rollouts`).
-    ``score_noise``, ``seed``: every point rolled out with the detector's variation
-    between nodes (`fallback_rollouts`), the same draw at every threshold."""
-    scores = np.asarray(tables[SCORE_PORT], float).ravel()
-    thresholds = np.unique(np.quantile(scores, np.linspace(0.0, 1.0, max(points, 2))))
-    curves = {name: [] for name in fallbacks}
-    for threshold in thresholds:
-        runs = fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
-                                 threshold=float(threshold), mission_limit=mission_limit,
-                                 alone=alone, score_noise=score_noise, seed=seed)
-        alone = runs[UNGUARDED]          # the same for every threshold
-        for name in fallbacks:
-            curves[name].append(tradeoff_row(liveness_figures(runs[UNGUARDED], runs[name]),
-                                             float(threshold)))
-    return curves
-
-
-#: The flag budget searches the detector's logit, not its score: over +-16 (scores from
-#: 1e-7 to 1 - 1e-7), bisected to 0.005 (a score step of at most 0.00125). A detector
-#: sure of itself on an environment puts the budget's threshold near 1, e.g. 0.988,
-#: where a search on the score to 1e-3 would step the logit by 0.08 at a time.
-FLAG_BUDGET_LOGIT_RANGE = 16.0
-FLAG_BUDGET_LOGIT_TOLERANCE = 0.005
+    """`reach.guard.tradeoff_curves` of the taxi's swept tables (`sweep_guarded`) over
+    the grid's nodes: {fallback: rows} of the failure set against liveness as the
+    detector threshold sweeps the range of the swept scores; ``mission_limit``,
+    ``alone``, ``score_noise`` and ``seed`` as in `fallback_rollouts`."""
+    return guard.tradeoff_curves(_rollouts(scenario, grid, tables, horizon),
+                                 tables[SCORE_PORT], fallbacks, points,
+                                 mission_limit=mission_limit, alone=alone,
+                                 score_noise=score_noise, seed=seed)
 
 
 def flag_budget_threshold(scenario, grid, tables, horizon, fallback: str, budget: float, *,
                           starts, mission_limit=None, score_noise=None, seed=0,
                           alone=None) -> dict:
-    """The threshold at which ``fallback``'s guarded loop, rolled out in the swept tables
-    from ``starts`` (optionally with the detector's variation between nodes,
-    ``score_noise`` seeded ``seed``), flags ``budget`` of its control ticks
-    (`reach.liveness.threshold_for_flag_budget`): no labels needed, only the detector's
-    scores in the environment, a probability in [0, 1], searched on its logit
-    (``FLAG_BUDGET_LOGIT_RANGE``). Returns ``{threshold, flagged_ticks, budget, fallback,
-    starts, steps}``; ``alone`` as in `fallback_rollouts`."""
-    shares = {}
-
-    def share(logit):
-        nonlocal alone
-        if logit not in shares:
-            runs = fallback_rollouts(scenario, grid, tables, horizon, [fallback],
-                                     threshold=float(sigmoid(logit)), starts=starts,
-                                     mission_limit=mission_limit, alone=alone,
-                                     score_noise=score_noise, seed=seed)
-            alone = runs[UNGUARDED]      # the same at every threshold: rolled out once
-            shares[logit] = liveness_figures(alone, runs[fallback])["flagged_ticks"]
-        return shares[logit]
-
-    top = share(FLAG_BUDGET_LOGIT_RANGE)
-    if top is not None and top > budget:
-        raise ValueError(
-            f"even at threshold {float(sigmoid(FLAG_BUDGET_LOGIT_RANGE)):.7f} the {fallback} "
-            f"loop flags {100 * top:.1f} % of its ticks, over the flag budget of "
-            f"{100 * budget:g} %: the detector's score is 1 (or within 1e-7 of it) on that "
-            f"share of the ticks")
-    logit, flagged, steps = threshold_for_flag_budget(
-        share, budget, low=-FLAG_BUDGET_LOGIT_RANGE, high=FLAG_BUDGET_LOGIT_RANGE,
-        tolerance=FLAG_BUDGET_LOGIT_TOLERANCE)
-    return {"threshold": float(sigmoid(logit)), "flagged_ticks": flagged,
-            "budget": float(budget), "fallback": fallback, "starts": len(starts),
-            "steps": [(float(sigmoid(z)), s) for z, s in steps]}
-
-
-def tradeoff_row(figures: dict, threshold=None) -> dict:
-    """One point of a trade-off curve from `liveness_figures`."""
-    return {"threshold": threshold, "failure_set": figures["failure_set"]["rate"],
-            "ended_stopped": figures["ended_stopped"]["rate"],
-            "needless_stops": figures["needless_stops"]["rate"],
-            "distance_ratio": figures["distance_ratio"], "flagged_ticks": figures["flagged_ticks"],
-            **{name: figures[name]["rate"] for name in ("same_distance_failure_set",
-                                                        "short_of_distance") if name in figures}}
+    """`reach.guard.flag_budget_threshold` in the taxi's swept tables: the threshold at
+    which ``fallback``'s guarded loop, rolled out from ``starts`` (optionally with the
+    detector's variation between nodes, ``score_noise`` seeded ``seed``), flags
+    ``budget`` of its control ticks."""
+    return guard.flag_budget_threshold(_rollouts(scenario, grid, tables, horizon), fallback,
+                                       budget, starts=starts, mission_limit=mission_limit,
+                                       score_noise=score_noise, seed=seed, alone=alone)

@@ -1,15 +1,25 @@
 """The showcase run of the guarded loop: the controller alone and guarded from one start,
 with a plot, the trajectories and a Meshcat replay."""
 
+import copy
 from pathlib import Path
 
 import numpy as np
 
 from reachwatch.diagrams import (Scenario, initial_state_vector, make_closed_loop_diagram,
                                  make_guarded_diagram, simulate)
+from reachwatch.diagrams.scenario import InitialState
 from reachwatch.diagrams.plots import plot_guarded_run
 from reachwatch.diagrams.replay import meshcat_replay_html
 from reachwatch.systems.files import atomic_write_bytes
+
+
+def starting_at(scenario: Scenario, start) -> Scenario:
+    """A copy of ``scenario`` starting at ``start`` ([px m, py m, theta rad])."""
+    scenario = copy.deepcopy(scenario)
+    scenario.initial_state = InitialState(px=float(start[0]), py=float(start[1]),
+                                          theta_deg=float(np.rad2deg(start[2])))
+    return scenario
 
 
 def simulate_guarded(scenario: Scenario, out: Path, *, meshcat_html=True):
