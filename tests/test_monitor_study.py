@@ -5,6 +5,7 @@ offline and in the guarded real loop), its kept monitor a checkpoint the guarded
 takes, and its tables render."""
 
 import json
+from dataclasses import replace as dc_replace
 
 import numpy as np
 import pytest
@@ -128,3 +129,82 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
 def test_the_threshold_is_the_conformal_one_of_the_calibration_scores():
     scores = [np.array([0.3, 0.7]), np.array([0.9])]
     assert conformal_threshold(scores, 0.5).threshold == pytest.approx(0.7)
+
+
+CART_STUDY = """
+monitor:
+  kind: history
+  family: {seed: 5}
+  train: 1
+  calibrate: 1
+  held_out: 1
+  alpha: 0.5
+  runs: 12
+  duration: 1.5
+  within: 0.5
+  height: 16
+  width: 24
+  epochs: 1
+  head_epochs: 2
+  guarded_runs: 2
+  variants:
+    - {name: one frame}
+    - {name: stacked 2 + signals, frames: 2, signals: true}
+"""
+
+
+def test_the_cart_runs_the_study_through_the_generic_application(tmp_path, monkeypatch):
+    """Another application's loop (examples/cart) through the study: the generic
+    `Application.recorded_runs` reads its camera and steering inside its loop, and the
+    generic `Application.missions` runs it alone and guarded by the study's monitors."""
+    from pathlib import Path
+    from reachwatch.reach.application import load_application
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)                         # the run file's paths are relative
+    text = (root / "examples" / "cart" / "run.yaml").read_text()
+    spec = load_run_spec(data=text.replace("width: 160, height: 80", "width: 48, height: 24")
+                         + CART_STUDY)                # validates: not refused for the cart
+    scenario, cart = spec.scenario, load_application(spec.application)
+    # the recording: from the start, every tick until the first one on a rail
+    env = spec.monitor.environments()["train"][0]
+    here = dc_replace(scenario, environment=env)
+    starts = np.array([[0.0, 0.0], [0.4, 0.69]])    # straight on; turned near a rail
+    runs = cart.recorded_runs(here, starts, duration=1.0, height=16, width=24,
+                              cache_dir=tmp_path / "rec", progress=False)
+    assert runs["frames"].shape == (2, 11, 16, 24, 3) and runs["signals"].shape == (2, 11, 1)
+    np.testing.assert_allclose(runs["state"][:, 0], starts)
+    assert list(runs["failed"]) == [False, True] and runs["ticks"][0] == 11
+    n = runs["ticks"][1]
+    assert 1 < n < 11 and abs(runs["state"][1, n - 1, 0]) >= 0.5 > abs(runs["state"][1, n - 2, 0])
+    assert runs["failure_time"][1] == pytest.approx((n - 1) * scenario.controller.period)
+    assert np.isnan(runs["state"][1, n:]).all() and not runs["frames"][1, n:].any()
+    assert runs["frames"][0, 0].std() > 0                   # a rendered view, not a blank
+    assert runs["signals"][1, 0, 0] < 0                      # steers away from the left rail
+
+    result = run_monitor_study(spec.monitor, scenario, tmp_path / "out",
+                               cache_dir=tmp_path / "cache", progress=False, log=lambda m: None,
+                               application=cart)
+    assert set(result["variants"]) == {"one frame", "stacked 2 + signals"}
+    assert result["lead_s"] == pytest.approx(1.0 / 3.0)
+    for row in result["variants"].values():
+        pooled = row["held_out"]["pooled"]
+        assert pooled["needless"]["of"] + pooled["miss"]["of"] == 12
+    for name, file in result["checkpoints"].items():
+        model, config, meta = load_history_monitor(tmp_path / "out" / file)
+        assert config.signals == (1 if "signals" in name else 0)   # the cart's steering
+    assert set(result["guarded"]) == set(result["checkpoints"])
+    for counts in result["guarded"].values():
+        assert counts["runs"] == 2 and counts["failed_guarded"] <= counts["runs"]
+        assert counts["distance_guarded_m"] <= counts["distance_alone_m"] + 1e-9
+    # the generic missions: a monitor that flags every tick brakes the cart from the start
+    from reachwatch.diagrams import MonitorConfig
+    held = dc_replace(scenario, environment=spec.monitor.environments()["held_out"][0])
+    alone = cart.missions(held, starts, duration=1.5, cache_dir=tmp_path / "m", progress=False)
+    always = MonitorConfig(detector=str(tmp_path / "out" / result["checkpoints"]["one frame"]),
+                           threshold=0.0, strategy="brake", brake_deceleration=3.0)
+    braked = cart.missions(dc_replace(held, monitor=always), starts, fallback="brake",
+                           duration=1.5, cache_dir=tmp_path / "m", progress=False)
+    assert list(alone.failed) == [False, True] and not alone.flagged_ticks.any()
+    assert alone.distance[0] == pytest.approx(1.5) and not alone.ever_stopped[0]
+    assert braked.flagged_ticks[0] == braked.ticks[0] == 15 and braked.stopped[0]
+    assert braked.distance[0] < 0.5 * alone.distance[0]
