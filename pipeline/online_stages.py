@@ -17,7 +17,6 @@ from reachwatch.reach.guard import perfect_detector_scores, plot_tradeoff, trade
 from reachwatch.reach.liveness import UNGUARDED, liveness_figures
 from reachwatch.reach.score_noise import ScoreNoise
 from reachwatch.systems import fallback_parts
-from reachwatch.taxi.incremental import fine_tune_taxinet, mine_anomalies
 
 from .spec import digest
 from .brt_stages import solve_env, sweep_env
@@ -353,15 +352,14 @@ def incremental(run: Run) -> dict:
     spec, config = run.spec, run.spec.incremental
     env = config.environment
     progress = run.bar()
-    train = spec.training_environments()
-    mined = mine_anomalies(list(zip(train, run.datasets(train))), config.anomalies,
-                           np.random.default_rng(config.seed))
     base = run.application.resolved(run.scenario_for(env)).controller.checkpoint
     path = run.path(f"incremental/taxinet_{digest(config, run.outputs['dataset'], file_hash(base))}.pt")
     seconds = None
     if not path.exists():
-        seconds = fine_tune_taxinet(base, mined, config, spec.scenario.camera, path,
-                                    progress=progress)["fine_tune_seconds"]
+        train = spec.training_environments()
+        seconds = run.application.fine_tune(
+            run.scenario_for(env), base, list(zip(train, run.datasets(train))), config, path,
+            progress=progress)["fine_tune_seconds"]
     meta = {**load_taxinet(path)[2], "fine_tune_seconds": seconds}
     after = {**sweep_env(run, env, checkpoint=path),
              **solve_env(run, env, checkpoint=path, label=" fine-tuned")}

@@ -366,6 +366,15 @@ class Application(abc.ABC):
         raise NotImplementedError(f"Application.simulate_guarded: the application "
                                   f"'{self.name}' has no showcase runs; set guard.candidates: 0")
 
+    # --- incremental training (the incremental stage) ----------------------------------
+    def fine_tune(self, scenario, checkpoint, datasets, config, path, *, progress=None) -> dict:
+        """The controller's estimator in ``checkpoint`` fine-tuned on the anomalous
+        states of ``datasets`` (``[(Environment, LabelledData)]``, the training
+        environments') as the run file's ``incremental`` section ``config`` says, written
+        to ``path``; returns its metadata (``fine_tune_seconds`` among it)."""
+        raise NotImplementedError(f"Application.fine_tune: the application '{self.name}' "
+                                  f"fine-tunes no controller; set incremental: {{enabled: false}}")
+
     # --- identity -------------------------------------------------------------------------
     def key(self):
         """What the application adds to the keys of cached results: None for the

@@ -172,3 +172,11 @@ class TaxiApplication(Application):
             return super().simulate_guarded(scenario, start, folder, meshcat_html=meshcat_html)
         return guarded_run.simulate_guarded(guarded_run.starting_at(scenario, start), folder,
                                             meshcat_html=meshcat_html)
+
+    # --- incremental training (the incremental stage) ----------------------------------
+    def fine_tune(self, scenario, checkpoint, datasets, config, path, *, progress=None):
+        """TaxiNet fine-tuned on the mined anomalies (`taxi.incremental`)."""
+        from .incremental import fine_tune_taxinet, mine_anomalies
+        mined = mine_anomalies(datasets, config.anomalies, np.random.default_rng(config.seed))
+        return fine_tune_taxinet(checkpoint, mined, config, scenario.camera, path,
+                                 progress=progress)
