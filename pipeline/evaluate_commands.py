@@ -1,17 +1,56 @@
 """``reachwatch evaluate``: the paper's Table 2 with baselines (``reachwatch run`` up
 to its evaluate stage, configured from the command line)."""
 
+import argparse
+import collections.abc
 import dataclasses as dc
+import importlib
 
 from .console import log
 from .overlays import add_overlay_arguments
 from .commands import (RunFileDefault, count, grid_nodes, positive_int, scenario_from_args,
                        seed_number)
 
+
+class LibraryNames(collections.abc.Sequence):
+    """The names ``module.attribute`` holds (a registry's live names), read when first
+    asked for, so that building the parser (``--help``) imports none of the library."""
+
+    def __init__(self, module: str, attribute: str):
+        self._where = (module, attribute)
+
+    def _names(self) -> tuple:
+        module, attribute = self._where
+        return tuple(getattr(importlib.import_module(module), attribute))
+
+    def __getitem__(self, index):
+        return self._names()[index]
+
+    def __len__(self):
+        return len(self._names())
+
+    def __contains__(self, name):
+        return name in self._names()
+
+    def __repr__(self):
+        return repr(self._names())
+
+
+#: The registered label sources (`reachwatch.training.labels.LABEL_SOURCES`).
+LABEL_SOURCES = LibraryNames("reachwatch.training.labels", "LABEL_SOURCES")
+
+
+def label_source_name(text: str) -> str:
+    """``--labels``: a registered label source (read only when one is given, not by
+    ``--help``, whose choices argparse would list)."""
+    if text not in LABEL_SOURCES:
+        raise argparse.ArgumentTypeError(f"invalid label source '{text}' (choose from "
+                                         f"{', '.join(LABEL_SOURCES)})")
+    return text
+
+
 #: What the parser shows of the library, here so that building it needs no torch (a
-#: test keeps each the same as ``reachwatch.training``'s): the label sources and
-#: ``--distrusted`` choices.
-LABEL_SOURCES = ("brt", "rollout", "hybrid", "trajectory")
+#: test keeps it the same as ``reachwatch.training``'s): the ``--distrusted`` choices.
 DISTRUSTED_CHOICES = ("rollout", "trajectory")
 
 
@@ -71,11 +110,12 @@ def add_parsers(sub):
                    default=RunFileDefault(("dataset.seed", "detector.seed"), _one_seed),
                    help="seed of the datasets' samples and of the detector's training "
                    "(default: %(default)s)")
-    p.add_argument("--labels", choices=LABEL_SOURCES,
+    p.add_argument("--labels", type=label_source_name, metavar="SOURCE",
                    default=RunFileDefault("dataset.labels.source"),
-                   help="label source: the BRT, the real loop from every state, rollouts "
-                   "where the BRT is not trusted, or the real loop's runs and the states "
-                   "they pass through (see docs/concepts.md#label-sources; default: "
+                   help="label source: brt (the BRT), rollout (the real loop from every "
+                   "state), hybrid (rollouts where the BRT is not trusted), trajectory (the "
+                   "real loop's runs and the states they pass through), or another "
+                   "registered one (see docs/concepts.md#label-sources; default: "
                    "%(default)s)")
     p.add_argument("--distrusted", choices=DISTRUSTED_CHOICES,
                    default=RunFileDefault("dataset.labels.distrusted"),

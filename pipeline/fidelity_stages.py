@@ -14,7 +14,8 @@ import numpy as np
 from reachwatch.reach import compare_verdicts, min_target_along_rollouts
 from reachwatch.reach.application import load_application
 from reachwatch.training.dataset import load_dataset
-from reachwatch.training.labels import SOURCE_PATH, hybrid_rolls_out
+from reachwatch.training.labels import (SOURCE_PATH, label_verdicts,  # noqa: F401
+                                        labels_every_state_by_its_run)
 
 from .spec import RunSpec, digest
 from .stages import Run
@@ -40,32 +41,6 @@ def check_downtrack_room(spec: RunSpec):
             f"({100 * check.max_box_exits:.0f} %), so the check would refuse the BRT labels "
             f"after every sweep had run. {exits['fix']}, label with dataset.labels.source: "
             f"hybrid or rollout, or raise fidelity.max_box_exits to accept it")
-
-
-def labels_every_state_by_its_run(labels: dict) -> bool:
-    """Whether a labels record (a manifest's, or a `fidelity_env` one) comes from a rule
-    that labels every state by a run of the real loop from it (``rollout``,
-    ``trajectory``, or a hybrid that fell back to trajectory labels): at a fresh state
-    its verdict is that state's own run, so it agrees by construction."""
-    return (labels.get("source") in ("rollout", "trajectory")
-            or labels.get("labelled_by") == "trajectory")
-
-
-def label_verdicts(labels: dict, band: float, values, real_failed) -> np.ndarray:
-    """What a dataset's labelling rule (``labels``: its manifest's record of the
-    source and the audit; ``band`` m where the audit recorded none) gives at fresh
-    states with BRT values ``values`` whose real outcomes are ``real_failed``: the real
-    outcome where the rule rolls out, the BRT's verdict elsewhere. A hybrid whose audit
-    distrusted the map and fell back to trajectory labels (``labelled_by``) rolls out
-    everywhere."""
-    brt = np.asarray(values) <= 0
-    if labels["source"] == "brt":
-        return brt
-    if labels_every_state_by_its_run(labels):
-        return np.asarray(real_failed, bool)             # a fresh uniform state: its own run
-    audit = labels["audit"]
-    rolled = hybrid_rolls_out(values, audit.get("band", band), audit["map_trusted"])
-    return np.where(rolled, real_failed, brt)
 
 
 def fidelity_env(run: Run, env) -> dict:

@@ -9,6 +9,7 @@ from reachwatch.diagrams.contact_sheet import environment_sheet
 from reachwatch.reach.application import load_application
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.evaluation import COLUMNS, format_cell
+from reachwatch.training.labels import label_source
 
 from .brt_stages import sweep_rate
 from .fidelity_sections import fidelity_section, map_selection_section, monte_carlo
@@ -71,19 +72,6 @@ class Page:
         return "\n".join(self.html) + "</body></html>\n", "\n".join(self.md)
 
 
-LABEL_SOURCE_TEXT = {
-    "brt": "anomalous iff V(x) <= 0: as right as the BRT map",
-    "rollout": "the real Drake loop run from every state: exact",
-    "hybrid": "the real Drake loop within a band of the BRT's boundary as wide as an "
-              "audit of the map measures its errors to reach, or wherever the map calls a "
-              "state safe when the audit finds a false-safe verdict or errors too far out "
-              "to trust it; V(x) <= 0 elsewhere",
-    "trajectory": "the real Drake loop run from every uniform state for longer than the "
-                  "horizon, and the states each run passes through labelled by the same run: "
-                  "exact for a loop whose state is all it remembers; those added states are "
-                  "where the loop goes, not uniform"}
-
-
 def view(application, scenario):
     """The application's camera view of ``scenario`` at its `view_state`."""
     return application.renderer(scenario).render(application.view_state(scenario))
@@ -114,14 +102,14 @@ def labels_paragraph(spec, o) -> str:
     labels, paths = spec.dataset.labels, spec.dataset.labels.paths
     states = load_application(spec.application).starts_text("states")
     return (f"{spec.dataset.samples} uniform states per environment, labels from "
-            f"'{labels.source}' ({LABEL_SOURCE_TEXT[labels.source]}); "
+            f"'{labels.source}' ({label_source(labels.source).text}); "
             + (f"besides them, the states that {paths} more real run{'s' * (paths != 1)} per "
                f"environment pass through (from uniform {states}, {labels.extend:g} s "
                f"past the horizon, every {labels.stride}th tick), labelled by those runs, and "
                f"each run's states kept on one side of the detector's validation split; "
                if paths else "") +
             (f"the held-out environments' labels from '{spec.held_out_labels.source}' "
-             f"({LABEL_SOURCE_TEXT[spec.held_out_labels.source]}; Table 2 scores against "
+             f"({label_source(spec.held_out_labels.source).text}; Table 2 scores against "
              f"them and against the BRT's verdicts on the same states); "
              if spec.held_out_labels is not None else "") +
             "positives per environment: " + ", ".join(

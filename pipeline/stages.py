@@ -22,7 +22,7 @@ from reachwatch.reach.application import load_application
 from reachwatch.systems.files import atomic_write_bytes, cache_location
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
 from reachwatch.training.dataset import load_dataset
-from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH, labels_name
+from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH, label_source, labels_name
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
 from reachwatch.training.evaluation import (NOT_FAILED, READ_ALONG, UNIFORM_STARTS, Detector,
@@ -358,8 +358,7 @@ def stage_evaluate(run: Run) -> dict:
     """Table 2 on the held-out environments, error-vs-margin and overlay figures."""
     spec, trained = run.spec, run.outputs["train"]
     detectors = []
-    source = labels_name({"brt": "BRT", "rollout": "real-loop", "hybrid": "hybrid",
-                          "trajectory": "real-loop trajectory"}[spec.dataset.labels.source],
+    source = labels_name(label_source(spec.dataset.labels.source).table_name,
                          spec.dataset.labels.paths)
     candidates = [(f"detector ({source} labels)", trained["detector"], trained["threshold"])]
     if "prediction_error_detector" in trained:

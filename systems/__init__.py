@@ -32,9 +32,9 @@ from .history_monitor import (TEMPORAL_MODELS, HistoryMonitor, HistoryMonitorCon
                               HistoryRiskModel, platt)
 from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
 from .ports import weak_callback
-from .switch import (DEFAULT_FALLBACKS, STEERING, STEERING_ALIASES, STRATEGIES, Fallback,
-                     FallbackSwitch, check_resume_acceleration, fallback_name, fallback_parts,
-                     next_speed)
+from .switch import (DEFAULT_FALLBACKS, STEERING, STEERING_ALIASES, STRATEGIES,
+                     STRATEGY_REGISTRY, Fallback, FallbackSwitch, SpeedStrategy,
+                     check_resume_acceleration, fallback_name, fallback_parts, next_speed)
 from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, TaxiNet,
                       TrueStateEstimator)
 
@@ -49,6 +49,6 @@ __all__ = [
     "SurfaceSpec", "TaxiwayLine", "add_runway_scene", "ESTIMATE_UNITS", "PreprocessConfig",
     "SmallTaxiCNN", "TaxiNetConfig", "TinyTaxiNet", "build_taxinet", "preprocess",
     "PX_GAIN_DEG_PER_M", "THETA_GAIN", "ProportionalController", "TaxiNet", "TrueStateEstimator", "AnomalyDetector",
-    "DetectorConfig", "SmallDetectorCNN", "build_detector", "detector_input", "resize_for_detector", "STEERING", "STEERING_ALIASES", "STRATEGIES", "Fallback", "FallbackSwitch",
+    "DetectorConfig", "SmallDetectorCNN", "build_detector", "detector_input", "resize_for_detector", "STEERING", "STEERING_ALIASES", "STRATEGIES", "STRATEGY_REGISTRY", "SpeedStrategy", "Fallback", "FallbackSwitch",
     "next_speed", "check_resume_acceleration", "DEFAULT_FALLBACKS", "fallback_name", "fallback_parts", "DeadReckoning", "propagate_estimate",
 ]

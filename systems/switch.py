@@ -5,14 +5,56 @@ flagged and their parameters, read from a name such as ``"slow_down+dead_reckoni
 by `Fallback.parse`. Its two rules work on arrays: `Fallback.next_speed` (the speed of
 the next tick) and `Fallback.steering_angle` (whose steering is applied). The Drake
 `FallbackSwitch` and the table rollouts of the guarded loop both call them, so the two
-cannot drift apart."""
+cannot drift apart.
+
+The speed strategies are `SpeedStrategy` entries of the registry `STRATEGY_REGISTRY`
+(``slow_down`` and ``brake`` here): a new one is a module that registers its rule, and
+`Fallback`, the switch, the table rollouts, run files and ``--fallbacks`` take its name."""
 
 import dataclasses as dc
+from typing import Callable, Optional, Tuple
 
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-STRATEGIES = ("slow_down", "brake")
+from .registry import Registry
+
+
+@dc.dataclass(frozen=True)
+class SpeedStrategy:
+    """A fallback's speed rule while flagged, registered by ``name`` in
+    `STRATEGY_REGISTRY`. ``flagged(speed, fallback, period)``: the speed (m/s, arrays) of
+    the next tick while the image is flagged, from this tick's ``speed``, the `Fallback`
+    (its fields are the rule's parameters) and the control ``period`` (s); `Fallback`
+    stops it at 0, and the rule once the image is clear is the same for every strategy
+    (`Fallback.next_speed`). ``params``: the `Fallback` fields the rule reads (each
+    checked by `Fallback`); ``check(fallback)``: a further check of them for this
+    strategy (raise a one-line ValueError), or None; ``text``: what it does, in a
+    sentence, for help and reports. The name is all that cache keys and run files hold
+    of a strategy: give a changed rule a new name."""
+    name: str
+    flagged: Callable
+    text: str = ""
+    params: Tuple[str, ...] = ()
+    check: Optional[Callable] = None
+
+    def describe(self) -> str:
+        """``name``, its text and the `Fallback` fields it reads, in one line."""
+        reads = f" (reads {', '.join(self.params)})" if self.params else ""
+        return f"{self.name}: {self.text}{reads}"
+
+
+#: The registered speed strategies (`SpeedStrategy`), by name.
+STRATEGY_REGISTRY = Registry("speed strategy")
+STRATEGY_REGISTRY.register(SpeedStrategy(
+    "slow_down", lambda speed, fallback, period: speed - fallback.slow_down_step,
+    "the paper's rule: -slow_down_step m/s per tick", ("slow_down_step",)))
+STRATEGY_REGISTRY.register(SpeedStrategy(
+    "brake", lambda speed, fallback, period: speed - fallback.brake_deceleration * period,
+    "-brake_deceleration m/s^2", ("brake_deceleration",)))
+#: The registered speed strategies' names (a live view: it prints and compares like the
+#: tuple of them, ``('slow_down', 'brake')`` until another is registered).
+STRATEGIES = STRATEGY_REGISTRY.names
 #: Steering while flagged: the controller's own (``controller``: the flag only changes
 #: the speed), the P-controller on the dead-reckoned estimate (honest), or on the true
 #: state (privileged, a reference only).
@@ -54,10 +96,11 @@ def _positive(name, value, unit) -> float:
 class Fallback:
     """What the guarded loop does while the detector flags the image.
 
-    ``strategy``: ``slow_down`` (the paper: -``slow_down_step`` m/s per tick) or
-    ``brake`` (-``brake_deceleration`` m/s^2), both stopping at 0; once the image is
-    clear the speed returns to nominal at once (``resume_acceleration`` = 0, the
-    paper's rule) or climbs back at ``resume_acceleration`` m/s^2. ``steering``:
+    ``strategy``: ``slow_down`` (the paper: -``slow_down_step`` m/s per tick),
+    ``brake`` (-``brake_deceleration`` m/s^2) or another `SpeedStrategy` registered in
+    `STRATEGY_REGISTRY`, all stopping at 0; once the image is clear the speed returns
+    to nominal at once (``resume_acceleration`` = 0, the paper's rule) or climbs back
+    at ``resume_acceleration`` m/s^2. ``steering``:
     ``controller`` (the controller keeps steering), ``dead_reckoning`` or ``oracle``
     (the loop's fallback steering takes over while flagged; see `FallbackSwitch`).
     ``taxinet`` is read as ``controller``. Invalid fields raise one ValueError naming
@@ -70,7 +113,7 @@ class Fallback:
 
     def __post_init__(self):
         steering = STEERING_ALIASES.get(self.steering, self.steering)
-        if self.strategy not in STRATEGIES:
+        if self.strategy not in STRATEGY_REGISTRY:
             raise ValueError(f"strategy must be one of {STRATEGIES}, got '{self.strategy}'")
         if steering not in STEERING:
             raise ValueError(f"steering must be one of {STEERING}, got '{self.steering}'")
@@ -80,6 +123,9 @@ class Fallback:
         set_("brake_deceleration",
              _positive("brake_deceleration", self.brake_deceleration, "m/s^2"))
         set_("resume_acceleration", check_resume_acceleration(self.resume_acceleration))
+        check = STRATEGY_REGISTRY.get(self.strategy).check
+        if check is not None:
+            check(self)
 
     @classmethod
     def parse(cls, name, **params) -> "Fallback":
@@ -91,12 +137,11 @@ class Fallback:
             return dc.replace(name, **params)
         strategy, plus, steering = str(name).partition("+")
         steering = steering if plus else "controller"
-        try:
-            cls(strategy, steering)                           # the name alone
-        except ValueError:
+        if strategy not in STRATEGY_REGISTRY or \
+                STEERING_ALIASES.get(steering, steering) not in STEERING:    # the name alone
             raise ValueError(f"fallback '{name}': write a speed strategy {STRATEGIES}, "
                              f"optionally followed by '+' and a steering {STEERING[1:]} (e.g. "
-                             f"'slow_down+dead_reckoning')") from None
+                             f"'slow_down+dead_reckoning')")
         return cls(strategy, steering, **params)
 
     @property
@@ -111,13 +156,23 @@ class Fallback:
         """Whether a steering other than the controller's is applied while flagged."""
         return self.steering != "controller"
 
+    @property
+    def speed_strategy(self) -> SpeedStrategy:
+        """The registered `SpeedStrategy` named ``strategy``."""
+        return STRATEGY_REGISTRY.get(self.strategy)
+
     def next_speed(self, speed, flagged, *, nominal, period):
         """Speed (m/s) for the next tick of a loop ticking every ``period`` s at
-        ``nominal`` m/s (`next_speed`). Works on arrays."""
-        return next_speed(speed, flagged, nominal=nominal, period=period,
-                          strategy=self.strategy, slow_down_step=self.slow_down_step,
-                          brake_deceleration=self.brake_deceleration,
-                          resume_acceleration=self.resume_acceleration)
+        ``nominal`` m/s: while flagged, the speed strategy's rule, stopping at 0; when
+        the image is clear, ``nominal`` at once (``resume_acceleration`` = 0, the
+        paper's rule), or climbing back at ``resume_acceleration`` m/s^2: then one
+        clear frame in a run of flagged ones costs the braking one tick's worth of speed
+        instead of all of it. Works on arrays."""
+        speed, flagged = np.asarray(speed, float), np.asarray(flagged, bool)
+        slowed = self.speed_strategy.flagged(speed, self, period)
+        resumed = (np.full_like(speed, nominal) if not self.resume_acceleration else
+                   np.minimum(speed + self.resume_acceleration * period, nominal))
+        return np.where(flagged, np.maximum(slowed, 0.0), resumed)
 
     def steering_angle(self, flagged, own, fallback=None):
         """The steering applied (rad): ``own`` (the controller's) where the image is
@@ -148,18 +203,16 @@ def fallback_name(strategy: str, steering: str = "controller") -> str:
 
 def next_speed(speed, flagged, *, nominal, strategy="slow_down", slow_down_step=0.01,
                brake_deceleration=1.0, resume_acceleration=0.0, period=0.05):
-    """Speed (m/s) for the next tick. ``slow_down`` (the paper): -0.01 m/s per tick
-    while flagged; ``brake``: -``brake_deceleration`` m/s^2 while flagged. Both stop at
-    0. When the image is clear the speed returns to ``nominal`` (m/s, the loop's own
-    speed) at once
-    (``resume_acceleration`` = 0, the paper's rule), or climbs back at
-    ``resume_acceleration`` m/s^2: then one clear frame in a run of flagged ones costs
-    the braking one tick's worth of speed instead of all of it. Works on arrays."""
-    speed, flagged = np.asarray(speed, float), np.asarray(flagged, bool)
-    step = slow_down_step if strategy == "slow_down" else brake_deceleration * period
-    resumed = (np.full_like(speed, nominal) if not resume_acceleration else
-               np.minimum(speed + resume_acceleration * period, nominal))
-    return np.where(flagged, np.maximum(speed - step, 0.0), resumed)
+    """Speed (m/s) for the next tick (`Fallback.next_speed` of the fallback with these
+    fields). ``slow_down`` (the paper): -0.01 m/s per tick while flagged; ``brake``:
+    -``brake_deceleration`` m/s^2 while flagged; any other registered strategy by its
+    rule. All stop at 0. When the image is clear the speed returns to ``nominal`` (m/s,
+    the loop's own speed) at once (``resume_acceleration`` = 0, the paper's rule), or
+    climbs back at ``resume_acceleration`` m/s^2. Works on arrays."""
+    return Fallback(strategy, slow_down_step=slow_down_step,
+                    brake_deceleration=brake_deceleration,
+                    resume_acceleration=resume_acceleration).next_speed(
+        speed, flagged, nominal=nominal, period=period)
 
 
 class FallbackSwitch(LeafSystem):

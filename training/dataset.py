@@ -44,8 +44,7 @@ from .dataset_files import (FILLED, LABELLED, ImageStore, array_hashes, changed_
 from .dataset_images import ImageSource, ImageTools, estimator, render_chunk
 
 from .labels import (FALLBACK_FIELDS, NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
-                     TRAJECTORY_FIELDS, LabelSpec, assign_labels,
-                     read_along, trajectory_samples)
+                     TRAJECTORY_FIELDS, LabelInputs, LabelSpec, label_samples, read_along)
 
 FORMAT = "reachwatch.dataset/3"
 _log = logging.getLogger("reachwatch")
@@ -159,12 +158,11 @@ def runs_cache(folder) -> Path:
     return Path(folder).parent / "rollouts"
 
 
-def _real_loop(application, scenario, value_function, folder: Path, progress, executor,
-               states):
-    """``run_loop`` for `assign_labels`: the application's real closed loop from
-    ``states[index]``, cached in `runs_cache`, run on ``executor``."""
-    def run_loop(index):
-        outcome = application.real_outcomes(scenario, states[index], grid=value_function.grid,
+def _real_loop(application, scenario, value_function, folder: Path, progress, executor):
+    """``run_loop`` for `label_samples`: the application's real closed loop from
+    ``states``, cached in `runs_cache`, run on ``executor``."""
+    def run_loop(states):
+        outcome = application.real_outcomes(scenario, states, grid=value_function.grid,
                                 duration=value_function.horizon, cache_dir=runs_cache(folder),
                                 executor=executor, progress=progress)
         return outcome.failed, int(np.sum(outcome["ticks"]))
@@ -173,7 +171,7 @@ def _real_loop(application, scenario, value_function, folder: Path, progress, ex
 
 def _real_paths(application, scenario, value_function, folder: Path, progress, executor,
                 labels: LabelSpec):
-    """``run_paths`` for `trajectory_samples`: the application's ``real_paths``, cached
+    """``run_paths`` for `label_samples`: the application's ``real_paths``, cached
     in `runs_cache`, run on ``executor``."""
     def run_paths(starts):
         return application.real_paths(scenario, starts, grid=value_function.grid,
@@ -243,23 +241,11 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
         states = lo + rng.uniform(size=(spec.samples, grid.ndim)) * (hi - lo)
         inside = lambda x: np.all((x >= lo) & (x <= hi), axis=1)       # noqa: E731
         real = (application, scenario, value_function, folder, progress, executor)
-        if spec.labels.source == "trajectory":
-            states, labels, sources, label_info, runs = trajectory_samples(
-                states, spec.labels, _real_paths(*real, spec.labels), inside)
-            values, n = value_function.at(states), len(states)
-        else:
-            values = value_function.at(states)
-            n, labels, sources, label_info = assign_labels(
-                values, ~application.failed(scenario, states), spec.labels,
-                _real_loop(*real, states))
-            if label_info.get("labelled_by") == "trajectory":    # the audit distrusts the map
-                states, labels, sources, read, runs = trajectory_samples(
-                    states[:spec.labels.distrusted_starts], spec.labels,
-                    _real_paths(*real, spec.labels), inside)
-                label_info = {**read, **label_info}
-                values, n = value_function.at(states), len(states)
-            else:
-                states, values, runs = states[:n], values[:n], np.full(n, NO_RUN, np.int64)
+        states, values, labels, sources, label_info, runs = label_samples(LabelInputs(
+            states, spec.labels, value_function.at,
+            lambda x: ~application.failed(scenario, x), _real_loop(*real),
+            _real_paths(*real, spec.labels), inside))
+        n = len(states)
         if spec.labels.paths:
             out = _real_paths(*real, spec.labels)(application.starts(
                 scenario, (lo, hi), spec.labels.paths, [spec.seed, 1]))

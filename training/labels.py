@@ -2,16 +2,27 @@
 outcome from each sampled state, a hybrid that rolls out only where an audit distrusts
 the map, or the outcomes read along longer real runs. Pure functions of BRT values and
 of what a ``run_loop`` / ``run_paths`` callable reports; nothing here renders or knows
-the plant (`training.dataset` supplies the taxi's real loop)."""
+the plant (`training.dataset` supplies the taxi's real loop).
+
+The sources are `LabelSource` entries of the registry `LABEL_SOURCE_REGISTRY` (the four
+above, registered at the end of this module): the dataset builder labels through
+`label_samples`, and run files, ``--labels``, the fidelity check and the report read
+the registered names, rules and words, so a new source is a module that registers one."""
 
 import dataclasses as dc
+from typing import Callable, NamedTuple, Optional
 
 import numpy as np
 
 from reachwatch.systems.bounds import bounded, check_bounds
 from reachwatch.systems.checks import short
+from reachwatch.systems.registry import Registry
 
-LABEL_SOURCES = ("brt", "rollout", "hybrid", "trajectory")
+#: The registered label sources (`LabelSource`), by name.
+LABEL_SOURCE_REGISTRY = Registry("label source")
+#: Their names (a live view: it prints and compares like the tuple of them, ``('brt',
+#: 'rollout', 'hybrid', 'trajectory')`` until another is registered).
+LABEL_SOURCES = LABEL_SOURCE_REGISTRY.names
 #: Values of ``sources.npy``: the label is the BRT's verdict, the real loop's outcome
 #: from the sampled state, or the outcome read along a real run that passed through it.
 SOURCE_BRT, SOURCE_ROLLOUT, SOURCE_PATH = 0, 1, 2
@@ -115,10 +126,10 @@ class LabelSpec:
 
     @property
     def reads_along(self) -> bool:
-        """Whether the samples may include states read along real runs (``trajectory``
-        labels, ``paths``, or a hybrid that falls back to trajectory labels): such
-        datasets record each sample's run."""
-        return self.source == "trajectory" or self.paths > 0 or self.falls_back_to_trajectory
+        """Whether the samples may include states read along real runs (``paths``, or a
+        source whose `LabelSource.reads_along` says so: ``trajectory`` labels, a hybrid
+        that falls back to them): such datasets record each sample's run."""
+        return bool(label_source(self.source).reads_along(self)) or self.paths > 0
 
     def key(self) -> dict:
         """What keys a dataset built with these labels: every field, ``more_audit`` only
@@ -129,7 +140,7 @@ class LabelSpec:
         return fields
 
     def validate(self, where="dataset.labels"):
-        if self.source not in LABEL_SOURCES:
+        if self.source not in LABEL_SOURCE_REGISTRY:
             raise ValueError(f"{where}.source must be one of {LABEL_SOURCES}, got "
                              f"{short(self.source)}")
         check_bounds(self, f"{where}.")
@@ -137,10 +148,9 @@ class LabelSpec:
             raise ValueError(f"{where}.more_audit must be 0 (an audit of {where}.audit runs) "
                              f"or a whole number above {where}.audit ({self.audit}, at least "
                              f"1), got {self.more_audit}")
-        if self.source == "hybrid" and self.audit == 0:
-            raise ValueError(f"{where}.audit must be >= 1 for the hybrid source: an audit of "
-                             f"no runs would trust every map unchecked (use source: brt for "
-                             f"the map's labels alone)")
+        check = label_source(self.source).check
+        if check is not None:
+            check(self, where)
         if self.distrusted not in DISTRUSTED_CHOICES:
             raise ValueError(f"{where}.distrusted must be one of {DISTRUSTED_CHOICES} (what "
                              f"the hybrid source does where its audit distrusts the map), "
@@ -149,6 +159,99 @@ class LabelSpec:
             raise ValueError(f"{where}.max_band ({self.max_band} m) must be at least band "
                              f"({self.band} m)")
         return self
+
+
+class LabelInputs(NamedTuple):
+    """What a `LabelSource` labels from: ``states`` ``(N, n)``, the uniform samples in
+    order; ``labels`` the `LabelSpec`; ``values_at(states)`` the BRT's values;
+    ``on_runway(states)`` where the loop has not failed yet (bool); ``run_loop(states)
+    -> (failed, frames)`` the real loop from each state for the BRT's horizon;
+    ``run_paths(starts) -> dict`` the real loop's runs read along (`trajectory_samples`);
+    ``inside(states)`` whether states lie in the dataset's box (bool). The callables
+    that run the loop render; the rest are pure."""
+    states: np.ndarray
+    labels: LabelSpec
+    values_at: Callable
+    on_runway: Callable
+    run_loop: Callable
+    run_paths: Callable
+    inside: Callable
+
+
+class Labelled(NamedTuple):
+    """A source's labels: the samples' ``states``, their BRT ``values``, ``labels``
+    (uint8, 1 = anomalous), ``sources`` (uint8: `SOURCE_BRT`, `SOURCE_ROLLOUT`,
+    `SOURCE_PATH`), ``info`` (the manifest's ``labels`` record, ``source`` included)
+    and ``runs`` (the run each sample lies on, `NO_RUN` for none)."""
+    states: np.ndarray
+    values: np.ndarray
+    labels: np.ndarray
+    sources: np.ndarray
+    info: dict
+    runs: np.ndarray
+
+
+def _never(*_):
+    return False
+
+
+@dc.dataclass(frozen=True, kw_only=True)
+class LabelSource:
+    """A label source, registered by ``name`` in `LABEL_SOURCE_REGISTRY`:
+
+    - ``label(inputs: LabelInputs) -> Labelled``: the dataset's samples and labels;
+    - ``verdicts(record, band, values, real_failed) -> bool array``: what this rule
+      gives at fresh states with BRT values ``values`` whose real outcomes are
+      ``real_failed`` (``record``: the manifest's ``labels`` record; ``band`` m where
+      it recorded none): the fidelity check compares them with the real loop;
+    - ``text``: what the labels are, for the report; ``table_name``: how tables name a
+      detector trained on them (default ``name``);
+    - ``reads_along(spec) -> bool``: whether its samples may include states read along
+      runs (their run is recorded, and `TRAJECTORY_FIELDS` keyed);
+    - ``by_own_run(record) -> bool``: whether a fresh state's label is its own run's
+      outcome (then it agrees with the real loop by construction);
+    - ``check(spec, where)``: a further check of the `LabelSpec` for this source (a
+      one-line ValueError), or None.
+
+    The name is all that dataset keys and run files hold of a source (with the
+    `LabelSpec` fields): give a changed rule a new name."""
+    name: str
+    label: Callable
+    verdicts: Callable
+    text: str
+    table_name: str = ""
+    reads_along: Callable = _never
+    by_own_run: Callable = _never
+    check: Optional[Callable] = None
+
+    def __post_init__(self):
+        if not self.table_name:
+            object.__setattr__(self, "table_name", self.name)
+
+
+def label_source(name) -> LabelSource:
+    """The registered `LabelSource` named ``name``, or a one-line ValueError."""
+    if name not in LABEL_SOURCE_REGISTRY:
+        raise ValueError(f"label source must be one of {LABEL_SOURCES}, got {short(name)}")
+    return LABEL_SOURCE_REGISTRY.get(name)
+
+
+def label_samples(inputs: LabelInputs) -> Labelled:
+    """The labels of ``inputs.states`` by their source (``inputs.labels.source``):
+    `LabelSource.label` of the registered one."""
+    return label_source(inputs.labels.source).label(inputs)
+
+
+def label_verdicts(record: dict, band: float, values, real_failed) -> np.ndarray:
+    """`LabelSource.verdicts` of the source that made ``record`` (a manifest's
+    ``labels`` record)."""
+    return np.asarray(label_source(record["source"]).verdicts(record, band, values,
+                                                              real_failed), bool)
+
+
+def labels_every_state_by_its_run(record: dict) -> bool:
+    """`LabelSource.by_own_run` of the source that made ``record``."""
+    return bool(label_source(record.get("source", "brt")).by_own_run(record))
 
 
 def audited_band(values, failed, *, band: float, band_factor: float, max_band: float):
@@ -218,7 +321,11 @@ def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
     A ``hybrid`` source with ``distrusted: trajectory`` stops after an audit that
     distrusts the map and returns ``(0, None, None, info)``, ``info["labelled_by"]``
     being ``"trajectory"``: the caller labels the environment by `trajectory_samples`
-    (it renders; this module does not)."""
+    (it renders; this module does not). Only these three sources label this way (the
+    registered ones label through `label_samples`)."""
+    if labels.source not in ("brt", "rollout", "hybrid"):
+        raise ValueError(f"assign_labels labels the brt, rollout and hybrid sources, not "
+                         f"{short(labels.source)} (see label_samples)")
     values, on_runway = np.asarray(values, float), np.asarray(on_runway, bool)
     n = len(values)
     brt = (values <= 0).astype(np.uint8)
@@ -295,3 +402,74 @@ def read_along(out, inside, *, first: int = 0):
     keep = (settled >= 0) & np.all(np.isfinite(along), axis=1)
     keep[keep] = np.asarray(inside(along[keep]), bool)
     return along[keep], settled[keep] == 1, int(np.sum(settled >= 0) - keep.sum()), runs[keep]
+
+
+def _assigned(inputs: LabelInputs) -> Labelled:
+    """``brt``, ``rollout`` and ``hybrid`` labels (`assign_labels`); a hybrid whose
+    audit distrusts the map with ``distrusted: trajectory`` labels by
+    `trajectory_samples` from the first ``distrusted_starts`` samples instead."""
+    states, spec = np.asarray(inputs.states, float), inputs.labels
+    values = inputs.values_at(states)
+    n, labels, sources, info = assign_labels(
+        values, inputs.on_runway(states), spec, lambda index: inputs.run_loop(states[index]))
+    if info.get("labelled_by") == "trajectory":          # the audit distrusts the map
+        states, labels, sources, read, runs = trajectory_samples(
+            states[:spec.distrusted_starts], spec, inputs.run_paths, inputs.inside)
+        return Labelled(states, inputs.values_at(states), labels, sources,
+                        {**read, **info}, runs)
+    return Labelled(states[:n], values[:n], labels, sources, info,
+                    np.full(n, NO_RUN, np.int64))
+
+
+def _trajectory(inputs: LabelInputs) -> Labelled:
+    states, labels, sources, info, runs = trajectory_samples(
+        inputs.states, inputs.labels, inputs.run_paths, inputs.inside)
+    return Labelled(states, inputs.values_at(states), labels, sources, info, runs)
+
+
+def _check_hybrid(spec: LabelSpec, where: str):
+    if spec.audit == 0:
+        raise ValueError(f"{where}.audit must be >= 1 for the hybrid source: an audit of "
+                         f"no runs would trust every map unchecked (use source: brt for "
+                         f"the map's labels alone)")
+
+
+def _hybrid_verdicts(record, band, values, real_failed):
+    if record.get("labelled_by") == "trajectory":        # rolled out everywhere
+        return np.asarray(real_failed, bool)
+    audit = record["audit"]
+    rolled = hybrid_rolls_out(values, audit.get("band", band), audit["map_trusted"])
+    return np.where(rolled, real_failed, np.asarray(values) <= 0)
+
+
+def _real(record, band, values, real_failed):
+    return np.asarray(real_failed, bool)             # a fresh uniform state: its own run
+
+
+def _always(*_):
+    return True
+
+
+LABEL_SOURCE_REGISTRY.register(LabelSource(
+    name="brt", label=_assigned, table_name="BRT",
+    verdicts=lambda record, band, values, real_failed: np.asarray(values) <= 0,
+    text="anomalous iff V(x) <= 0: as right as the BRT map"))
+LABEL_SOURCE_REGISTRY.register(LabelSource(
+    name="rollout", label=_assigned, table_name="real-loop", verdicts=_real,
+    by_own_run=_always, text="the real Drake loop run from every state: exact"))
+LABEL_SOURCE_REGISTRY.register(LabelSource(
+    name="hybrid", label=_assigned, table_name="hybrid", verdicts=_hybrid_verdicts,
+    reads_along=lambda spec: spec.falls_back_to_trajectory,
+    by_own_run=lambda record: record.get("labelled_by") == "trajectory",
+    check=_check_hybrid,
+    text="the real Drake loop within a band of the BRT's boundary as wide as an audit of "
+         "the map measures its errors to reach, or wherever the map calls a state safe "
+         "when the audit finds a false-safe verdict or errors too far out to trust it; "
+         "V(x) <= 0 elsewhere"))
+LABEL_SOURCE_REGISTRY.register(LabelSource(
+    name="trajectory", label=_trajectory, table_name="real-loop trajectory",
+    verdicts=_real, reads_along=_always, by_own_run=_always,
+    text="the real Drake loop run from every uniform state for longer than the horizon, "
+         "and the states each run passes through labelled by the same run: exact for a "
+         "loop whose state is all it remembers; those added states are where the loop "
+         "goes, not uniform"))
