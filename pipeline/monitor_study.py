@@ -36,8 +36,9 @@ from reachwatch.training.conformal import (PlattCalibration, brier_score, confor
                                            reliability_curve, warning_scores)
 from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
                                                tick_labels, train_encoder, train_head)
-from reachwatch.training.monitor_eval import (flag_outcomes, labelled_ticks, oracle_risks, rate,
-                                              run_times, system_figures, tick_auroc)
+from reachwatch.training.monitor_eval import (confirmed_risks, flag_outcomes, labelled_ticks,
+                                              oracle_risks, rate, run_times, system_figures,
+                                              tick_auroc)
 
 from .monitor_sections import rate_text
 from .spec import MONITOR_KINDS, MonitorStudySpec, MonitorVariant, default_variants  # noqa: F401
@@ -79,12 +80,13 @@ def _labelled(groups, risks, *, period, duration, within):
             np.concatenate([p[1] for p in pairs] + [np.zeros(0)]))
 
 
-def _judge(groups, risks, *, threshold, period, lead, duration):
-    """Per environment and pooled system figures at ``threshold``."""
+def _judge(groups, risks, *, threshold, period, lead, duration, flags=None):
+    """Per environment and pooled system figures at ``threshold`` (flags read from
+    ``flags``, the risks a confirmation rule acts on, when given; AUROC from ``risks``)."""
     per_env, pooled = [], {"failed": [], "warnable": [], "warned": [], "flagged": []}
-    for r, g in zip(risks, groups):
-        out = flag_outcomes(r, g["ticks"], g["failure_time"], period=period,
-                            threshold=threshold, lead=lead)
+    for i, (r, g) in enumerate(zip(risks, groups)):
+        out = flag_outcomes(r if flags is None else flags[i], g["ticks"], g["failure_time"],
+                            period=period, threshold=threshold, lead=lead)
         for key in pooled:
             pooled[key].append(out[key])
         per_env.append({"environment": g["name"], **system_figures(out),
@@ -92,6 +94,32 @@ def _judge(groups, risks, *, threshold, period, lead, duration):
                                                duration=duration, within=4.0)})
     return per_env, system_figures({k: np.concatenate(v) if v else np.zeros(0, bool)
                                     for k, v in pooled.items()})
+
+
+def _confirmed_threshold(spec, calibrate, risks, *, period, lead):
+    """Of ``spec.confirm``'s flag rules, the one with the fewest needless flags on the
+    calibration environments at its conformal threshold (fixed there): ``(confirm,
+    flags, threshold, calibration figures)``, ``flags`` the risks the rule acts on per
+    split (`confirmed_risks`). A rule whose threshold cannot reach alpha is skipped."""
+    best, refused = None, None
+    for confirm in spec.confirm:
+        flags = {k: [confirmed_risks(group, confirm) for group in v] for k, v in risks.items()}
+        env_scores = [warning_scores(r, run_times(g["ticks"], period), g["failure_time"],
+                                     lead=lead) for r, g in zip(flags["calibrate"], calibrate)]
+        try:
+            chosen = conformal_threshold(env_scores, spec.alpha)
+        except ValueError as e:
+            refused = refused or e
+            continue
+        calibration, pooled = _judge(calibrate, risks["calibrate"], threshold=chosen.threshold,
+                                     period=period, lead=lead, duration=spec.duration,
+                                     flags=flags["calibrate"])
+        needless = pooled["needless"]["count"] / max(1, pooled["needless"]["of"])
+        if best is None or needless < best[4]:
+            best = (confirm, flags, chosen, calibration, needless)
+    if best is None:
+        raise refused
+    return best[:4]
 
 
 def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, executor=None,
@@ -141,12 +169,8 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
             platt = PlattCalibration()
         risks = {k: [[platt(r) for r in group] for group in v] for k, v in raw.items()}
         all_risks[variant.name] = risks
-        env_scores = [warning_scores(r, run_times(g["ticks"], period), g["failure_time"],
-                                     lead=lead)
-                      for r, g in zip(risks["calibrate"], data["calibrate"])]
-        chosen = conformal_threshold(env_scores, spec.alpha)
-        calibration, _ = _judge(data["calibrate"], risks["calibrate"], threshold=chosen.threshold,
-                                period=period, lead=lead, duration=spec.duration)
+        confirm, flags, chosen, calibration = _confirmed_threshold(
+            spec, data["calibrate"], risks, period=period, lead=lead)
         needless = [c["needless"] for c in calibration]
         row = {"threshold": chosen.threshold, "statement": chosen.statement(lead),
                "calibration_miss_rate": chosen.calibration_miss_rate,
@@ -154,10 +178,11 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                    [c["miss"]["rate"] if c["miss"]["of"] else 0.0 for c in calibration], 0.1),
                "calibration_needless": sum(n["count"] for n in needless) / max(
                    1, sum(n["of"] for n in needless)),
-               "platt": [platt.a, platt.b]}
+               "platt": [platt.a, platt.b], "confirm": confirm}
         for k in ("held_out", "also_held_out"):
             per_env, pooled = _judge(data[k], risks[k], threshold=chosen.threshold,
-                                     period=period, lead=lead, duration=spec.duration)
+                                     period=period, lead=lead, duration=spec.duration,
+                                     flags=flags[k])
             y, p = _labelled(data[k], risks[k], period=period, duration=spec.duration,
                              within=spec.within)
             row[k] = {"environments": per_env, "pooled": pooled,
@@ -165,15 +190,16 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                       "brier": brier_score(p, y == 1) if len(y) else float("nan"),
                       "reliability": [a.tolist() for a in reliability_curve(p, y == 1)]
                       if len(y) else []}
-        # what any threshold does: each environment's warnable failing runs' warning
-        # scores and its other runs' largest risk (a run is flagged iff it is >= tau)
+        # what any threshold does with the kept rule: each environment's warnable failing
+        # runs' warning scores and its other runs' largest flag risk (a run is flagged
+        # iff it is >= tau)
         row["scores"] = {k: [{"warning": warning_scores(
             r, run_times(g["ticks"], period), g["failure_time"], lead=lead).tolist(),
             "safe_max": [float(np.max(x)) if len(x) else 0.0 for x, f in zip(
                 r, g["failure_time"]) if not np.isfinite(f)]}
-            for r, g in zip(risks[k], data[k])] for k in ("calibrate", "held_out")}
+            for r, g in zip(flags[k], data[k])] for k in ("calibrate", "held_out")}
         results[variant.name] = row
-        models[variant.name] = (model, platt, chosen.threshold)
+        models[variant.name] = (model, platt, chosen.threshold, confirm)
         log(f"monitor: {variant.name}: threshold {chosen.threshold:.3f}, held-out miss "
             f"{rate_text(row['held_out']['pooled']['miss'])}, needless "
             f"{rate_text(row['held_out']['pooled']['needless'])}")
@@ -197,12 +223,13 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     _save_risks(out_dir / "risks.npz", data, all_risks, judged)
     checkpoints = {}
     for name in dict.fromkeys([kept, spec.variants[0].name]):
-        model, platt, threshold = models[name]
+        model, platt, threshold, confirm = models[name]
         path = out_dir / f"monitor_{len(checkpoints)}.pt"
         save_checkpoint(path, kind="history_monitor", model=model, model_config=model.config,
                         preprocess_config=None,
                         metadata={"calibration": [platt.a, platt.b], "threshold": threshold,
-                                  "within_s": spec.within, "lead_s": lead, "variant": name})
+                                  "within_s": spec.within, "lead_s": lead, "variant": name,
+                                  **({"confirm": confirm} if confirm != 1 else {})})
         checkpoints[name] = str(path)
     guarded = (_guarded(spec, application, scenario, data["held_out"], models, checkpoints,
                         cache_dir=cache_dir / "missions", executor=executor, progress=progress,
@@ -304,7 +331,7 @@ def stage_monitor(run) -> dict:
     from .spec import digest
     application = run.application
     own = application_key(application)          # None for the default (the taxi)
-    key = digest(spec, fingerprint(application.without_monitor(run.spec.scenario)),
+    key = digest(spec.keyed(), fingerprint(application.without_monitor(run.spec.scenario)),
                  *([own] if own else []))
 
     def study():

@@ -16,6 +16,7 @@ from reachwatch.systems import (DEFAULT_FALLBACKS, TEMPORAL_MODELS, Environment,
                                 HistoryMonitorConfig, RandomEnvironments)
 from reachwatch.systems.bounds import MAX_INT, bounded, bounded_as, check_bounds, seed_field
 from reachwatch.systems.checks import check_label, short
+from reachwatch.systems.history_monitor import MAX_CONFIRM
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.labels import LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
@@ -222,8 +223,11 @@ class MonitorStudySpec:
     m/s^2, so a warning counts when it comes at least speed / deceleration s before
     the failure; the threshold bounds the expected miss rate at ``alpha``.
     ``guarded_runs`` (0: none) starts per held-out environment also run in the guarded
-    real loop with the kept variant and the single-frame one. The kept variant is the
-    one with the fewest needless flags on the calibration environments."""
+    real loop with the kept variant and the single-frame one. ``confirm`` lists the flag
+    rules tried: a flag needs that many ticks in a row at or above the threshold; each
+    variant keeps the rule with the fewest needless flags on the calibration
+    environments (its threshold fixed there too). The kept variant is the one with the
+    fewest needless flags on the calibration environments."""
     kind: str = "detector"
     family: RandomEnvironments = dc.field(default_factory=lambda: RandomEnvironments(seed=11))
     train: int = bounded(12, 1, 1000, whole=True)
@@ -243,10 +247,19 @@ class MonitorStudySpec:
     head_epochs: int = bounded(40, 1, 100_000, whole=True)
     guarded_runs: int = bounded(0, 0, 100_000, whole=True)
     variants: List[MonitorVariant] = dc.field(default_factory=default_variants)
+    confirm: List[int] = dc.field(default_factory=lambda: [1])
 
     @property
     def enabled(self) -> bool:
         return self.kind == "history"
+
+    def keyed(self) -> dict:
+        """The study's settings as its key sees them: ``confirm`` only where it is not
+        the default ``[1]`` (studies keyed before it existed keep their key)."""
+        out = dc.asdict(self)
+        if list(self.confirm) == [1]:
+            del out["confirm"]
+        return out
 
     def validate(self, where="monitor"):
         if self.kind not in MONITOR_KINDS:
@@ -271,6 +284,11 @@ class MonitorStudySpec:
             twice = sorted({n for n in named if named.count(n) > 1})
             raise ValueError(f"{where}.also_held_out lists an environment name twice: "
                              f"{short(twice)}")
+        if (not self.confirm or len(set(self.confirm)) != len(self.confirm) or any(
+                isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= MAX_CONFIRM
+                for k in self.confirm)):
+            raise ValueError(f"{where}.confirm must list whole numbers of ticks in "
+                             f"[1, {MAX_CONFIRM}], each once, got {short(self.confirm)}")
         for i, v in enumerate(self.variants):
             check_label(f"{where}.variants[{i}].name", v.name)
         names = [v.name for v in self.variants]
