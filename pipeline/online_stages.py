@@ -1,7 +1,10 @@
 """The online stages of ``reachwatch run``: guard (the guarded loop's failure
 sets and liveness per fallback, their trade-off as the threshold sweeps, the same
-figures from the real Drake loops, a real nominal-vs-guarded run, the online rate) and incremental (TaxiNet
-fine-tuned on mined anomalies, the held-out BRT recomputed)."""
+figures from the real Drake loops, a real nominal-vs-guarded run, the online rate) and
+incremental (the controller fine-tuned on mined anomalies, the held-out BRT
+recomputed). Both reach the plant through the run's application
+(`reachwatch.reach.application`); ``reachwatch guard`` is a front end of the guard
+stage's `guard_figures` and `guard_plots`."""
 
 import copy
 import dataclasses as dc
@@ -101,7 +104,7 @@ def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
     return record
 
 
-def _taxi_unless(application):
+def _or_default(application):
     """``application``, or the default one (the taxi) for callers that name none."""
     return application if application is not None else load_application("")
 
@@ -114,7 +117,7 @@ def fit_guard_noise(scenario, grid, tables, *, noise_starts: int, noise_seed: in
     ``noise_seed``: ``(noise, record)``, the record holding the fit (mean, sigma,
     length, runs, ticks, seed); ``(None, record)`` with the reason when it cannot be
     fitted. ``application``: default the taxi."""
-    application = _taxi_unless(application)
+    application = _or_default(application)
     calibration = application.starts(scenario, grid, noise_starts, noise_seed)
     try:
         noise, fit = application.real_score_noise(
@@ -139,7 +142,7 @@ def guard_check(scenario, grid, tables, fallbacks, *, starts: int, seed: int, ho
     default the taxi."""
     if noise_seeds < 1:
         raise ValueError(f"noise_seeds must be >= 1, got {noise_seeds}")
-    application = _taxi_unless(application)
+    application = _or_default(application)
     points = application.starts(scenario, grid, starts, seed)
     table = application.fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
                                           starts=points, mission_limit=mission_limit)
@@ -183,7 +186,7 @@ def noisy_guard_figures(check, scenario, grid, tables, horizon, fallbacks, point
     fit = (check or {}).get("score_noise")
     if not fit or "error" in fit:
         return {}, {}
-    application = _taxi_unless(application)
+    application = _or_default(application)
     noise = ScoreNoise(sigma=fit["sigma"], length=fit["length"], mean=fit["mean"])
     kw = dict(mission_limit=mission_limit, score_noise=noise, seed=fit["seed"])
     runs = application.fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
@@ -204,7 +207,7 @@ def budget_threshold(scenario, grid, tables, fallback: str, budget: float, *, st
     the controller alone (`fit_guard_noise`; without it when 0 or when the fit fails).
     Its record, with the scenario's own threshold beside it and how the noise fit went.
     ``application``: default the taxi."""
-    application = _taxi_unless(application)
+    application = _or_default(application)
     noise, fit = None, None
     if noise_starts:
         noise, fit = fit_guard_noise(scenario, grid, tables, noise_starts=noise_starts,
