@@ -30,20 +30,8 @@ FRONT_ENDS = {"cli", "commands", "reference", "guard_commands", "reach_commands"
 #: it may import, and why. Shrinking this list is progress; a module may leave it or
 #: import fewer, never join it or import more silently.
 ALLOWED = {
-    # TaxiNet's own trainers (the default controller's training and fine-tuning), which
-    # belong with the taxi application
-    "training.taxinet_train": {"systems.camera", "systems.environment", "systems.models"},
-    "training.taxinet_eval": {"systems.camera", "systems.taxinet"},
-    "training.incremental": {"systems.camera", "systems.environment", "systems.models"},
     # the run file's schema: its environments are the taxi's runways
     "pipeline.spec": {"systems.environment", "systems.random_environments"},
-    # stage modules not yet moved behind the application: the guard and incremental
-    # stages (the taxi's guarded table rollouts, missions, score noise, showcase run) and
-    # the monitor study (the taxi's recorded runs and missions)
-    "pipeline.online_stages": {"taxi.fidelity", "taxi.guarded", "taxi.guarded_run",
-                               "taxi.plots", "taxi.sweeps"},
-    "pipeline.monitor_study": {"systems.environment", "systems.random_environments",
-                               "taxi.fidelity", "taxi.grid", "taxi.history"},
 }
 
 
