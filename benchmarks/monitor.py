@@ -9,8 +9,8 @@ prediction error; with ``--guarded-runs`` also in the guarded real loop with bra
 The study is `reachwatch.pipeline.monitor_study` (``monitor: {kind: history}`` in a
 run file runs the same); this prints its tables.
 
-    python benchmarks/monitor.py --train 2 --calibrate 4 --held-out 1 --alpha 0.25 \\
-        --runs 4 --duration 4 --within 2 --epochs 1 --head-epochs 2   # a smoke run, minutes
+    python benchmarks/monitor.py --seed 4 --train 1 --calibrate 1 --held-out 1 --alpha 0.5 \\
+        --runs 6 --duration 2 --within 1 --size 16 24 --epochs 1 --head-epochs 2  # smoke, ~1 min
 """
 
 import argparse
@@ -40,6 +40,10 @@ def main():
                    help="braking m/s^2: the fallback")
     p.add_argument("--size", type=int, nargs=2, default=[defaults.height, defaults.width],
                    metavar=("HEIGHT", "WIDTH"), help="frame size the monitor reads")
+    p.add_argument("--confirm", type=int, nargs="+", default=defaults.confirm,
+                   help="flag rules tried: ticks in a row at or above the threshold (each "
+                        "variant keeps the one with the fewest needless flags on the "
+                        "calibration environments)")
     p.add_argument("--nights", action="store_true",
                    help="also judge on the paper's held-out 21 h environments (KSFO, KEWR)")
     p.add_argument("--executor", default="local",
@@ -54,6 +58,7 @@ def main():
         duration=args.duration, within=args.within, alpha=args.alpha,
         brake_deceleration=args.brake, height=args.size[0], width=args.size[1],
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
+        confirm=args.confirm,
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])
     try:
