@@ -85,7 +85,8 @@ def main(argv=None) -> int:
         signal.signal(signal.SIGTERM, _terminate)
     try:
         return args.func(args) or 0
-    except (ValueError, FileNotFoundError) as e:  # bad input: say what, exit 2
+    except (ValueError, FileNotFoundError, NotImplementedError) as e:
+        # bad input, or an application without what the run asks of it: say what, exit 2
         print(_clip(f"reachwatch {args.command}: error: {e}"), file=sys.stderr)
         return 2
     except (PermissionError, FileExistsError, NotADirectoryError, IsADirectoryError) as e:

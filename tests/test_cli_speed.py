@@ -137,3 +137,32 @@ def test_simulate_guarded_without_a_detector_fails_before_it_writes(tmp_path, ca
     assert cli.main(["simulate", "--loop", "guarded", "--out", str(tmp_path / "o")]) == 2
     assert "monitor.detector is not set" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_an_application_without_a_method_is_one_line_not_a_traceback(monkeypatch, capsys,
+                                                                    tmp_path):
+    """A stage asking an application for what it does not implement (its one-line
+    NotImplementedError) ends the command with exit 2 and that line."""
+    def missing(args):
+        raise NotImplementedError("CartApplication.fallback_rollouts is not implemented; "
+                                  "set guard.candidates: 0")
+    argv = ["guard", "--scenario", str(tmp_path / "s.yaml"), "--out", str(tmp_path / "out")]
+    parser = cli.build_parser()
+    args = parser.parse_args(argv)
+    monkeypatch.setattr(cli, "build_parser", lambda: _Fixed(parser, args, missing))
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "fallback_rollouts is not implemented" in err
+
+
+class _Fixed:
+    """A parser that returns ``args`` with ``func`` replaced."""
+    def __init__(self, parser, args, func):
+        self._parser, self._args, self._func = parser, args, func
+
+    def parse_args(self, argv):
+        self._args.func = self._func
+        return self._args
+
+    def __getattr__(self, name):
+        return getattr(self._parser, name)
