@@ -55,8 +55,7 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
             raise ValueError("monitor.detector: a history monitor needs the control period")
         system = builder.AddNamedSystem(DETECTOR, HistoryMonitor(
             model=model, threshold=monitor.threshold, period=period,
-            calibration=metadata.get("calibration", (1.0, 0.0)),
-            confirm=int(metadata.get("confirm", 1))))
+            calibration=metadata.get("calibration", (1.0, 0.0))))
         if config.signals:
             signals_port = (None if steering_port is None else add_monitor_signals(
                 builder, steering_port=steering_port, estimate_port=estimate_port))

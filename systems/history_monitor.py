@@ -25,8 +25,6 @@ from .detector import DetectorConfig, detector_input, inference_model, resize_fo
 #: How the per-frame features of the history are combined: ``stack`` concatenates them
 #: into a small MLP (one frame: the single-frame monitor), ``gru`` runs a GRU over them.
 TEMPORAL_MODELS = ("stack", "gru")
-#: The most ticks in a row a flag may need (`HistoryMonitor`'s ``confirm``).
-MAX_CONFIRM = 100
 
 
 @dc.dataclass
@@ -205,9 +203,7 @@ class HistoryMonitor(LeafSystem):
     features and signals: ``frame_features``, which Drake caches) and joins what the
     discrete state keeps. ``score`` is the calibrated risk at the current time, from the
     kept state and the current frame (so the fallback switch, updated at the same tick,
-    sees this tick's frame); ``anomaly`` is 1.0 when ``score >= threshold`` at this tick
-    and the ``confirm - 1`` before it (default 1: this tick alone; offline the same rule
-    is `reachwatch.training.monitor_eval.confirmed_risks`). Ports are
+    sees this tick's frame); ``anomaly`` is 1.0 when ``score >= threshold``. Ports are
     named as `AnomalyDetector`'s, so either monitors a guarded loop.
 
     What the state keeps depends on the temporal model. ``stack``: the rows of the last
@@ -219,15 +215,10 @@ class HistoryMonitor(LeafSystem):
     (the same function, up to float rounding)."""
 
     def __init__(self, *, model: HistoryRiskModel, threshold: float, period: float,
-                 calibration=(1.0, 0.0), confirm: int = 1):
+                 calibration=(1.0, 0.0)):
         super().__init__()
         if not 0.0 <= threshold <= 1.0:
             raise ValueError(f"HistoryMonitor: threshold must be in [0, 1], got {threshold}")
-        if isinstance(confirm, bool) or not isinstance(confirm, (int, np.integer)) or not (
-                1 <= confirm <= MAX_CONFIRM):
-            raise ValueError(f"HistoryMonitor: confirm must be a whole number of ticks in "
-                             f"[1, {MAX_CONFIRM}], got {confirm!r}")
-        self._confirm = int(confirm)
         if not (np.isfinite(period) and period > 0):
             raise ValueError(f"HistoryMonitor: period must be > 0 s, got {period}")
         self._model = inference_model(model)        # Conv-BN folded, channels-last
@@ -257,11 +248,7 @@ class HistoryMonitor(LeafSystem):
                                                                  np.float32)),
                     calc=self._calc_windows),
                 {self.all_input_ports_ticket(), self.xd_ticket()})
-        # ticks in a row, before this one, whose score reached the threshold (at most
-        # confirm - 1 counted): a flag needs confirm ticks in a row
-        self._streak = (self.DeclareDiscreteState(BasicVector(np.zeros(1)))
-                        if self._confirm > 1 else None)
-        if self._slots or self._streak is not None:
+        if self._slots:
             self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         self._score_port = self.DeclareVectorOutputPort("score", 1, self._calc_score)
         self._anomaly_port = self.DeclareVectorOutputPort("anomaly", 1, self._calc_anomaly)
@@ -269,11 +256,6 @@ class HistoryMonitor(LeafSystem):
     @property
     def threshold(self) -> float:
         return self._threshold
-
-    @property
-    def confirm(self) -> int:
-        """Ticks in a row the score must reach the threshold for before ``anomaly``."""
-        return self._confirm
 
     def get_color_image_input_port(self):
         return self._image_port
@@ -336,13 +318,6 @@ class HistoryMonitor(LeafSystem):
         value.set_value(windows.numpy())
 
     def _update(self, context, discrete_state):
-        if self._streak is not None:
-            streak = context.get_discrete_state(self._streak).get_value()[0]
-            reached = self._score_port.Eval(context)[0] >= self._threshold
-            discrete_state.get_mutable_vector(self._streak).SetFromVector(
-                [min(streak + 1, self._confirm - 1) if reached else 0.0])
-        if not self._slots:
-            return
         state = context.get_discrete_state(self._history).get_value()
         if self._gru:
             kept = self._windows.Eval(context)[1:]
@@ -365,7 +340,4 @@ class HistoryMonitor(LeafSystem):
         output.SetAtIndex(0, float(platt(float(torch.sigmoid(logit)[0]), *self._platt)))
 
     def _calc_anomaly(self, context, output):
-        flagged = self._score_port.Eval(context)[0] >= self._threshold
-        if flagged and self._streak is not None:
-            flagged = context.get_discrete_state(self._streak).get_value()[0] >= self._confirm - 1
-        output.SetAtIndex(0, 1.0 if flagged else 0.0)
+        output.SetAtIndex(0, 1.0 if self._score_port.Eval(context)[0] >= self._threshold else 0.0)
