@@ -20,6 +20,7 @@ from reachwatch.systems.files import atomic_write_bytes
 
 from .spec import digest
 from .stages import Run
+from .together import each_environment
 
 
 def sweep_env(run: Run, env, *, checkpoint=None) -> dict:
@@ -158,12 +159,16 @@ def solve_stage_key(run: Run, env, *, sweep: bool = False) -> str:
 
 
 def stage_sweep(run: Run) -> dict:
-    """Sweep every environment the run needs (one record each, keyed by content)."""
-    out = {}
-    for env in run.environments():
-        out[env.name] = run.stage(f"sweep_{env.name}", sweep_stage_key(run, env),
-                                  lambda env=env: sweep_env(run, env))
-    return out
+    """Sweep every environment the run needs (one record each, keyed by content), all
+    their chunks together on the run's executor (`each_environment`; inline, one
+    after another)."""
+    return each_environment(run, run.environments(), _sweep_record,
+                            what="sweep of environment")
+
+
+def _sweep_record(run: Run, env) -> dict:
+    return run.stage(f"sweep_{env.name}", sweep_stage_key(run, env),
+                     lambda: sweep_env(run, env))
 
 
 def stage_solve(run: Run) -> dict:

@@ -2,14 +2,15 @@
 labelled dataset per train/test environment, each in a content-addressed folder (so
 its folder is known before it is built, and a killed build resumes there)."""
 
-import concurrent.futures as cf
+import functools
 
-from reachwatch.reach import InlineExecutor, ValueFunction
+from reachwatch.reach import ValueFunction
 from reachwatch.reach.application import load_application
 from reachwatch.training.dataset import build_dataset, dataset_folder, label_summary, load_dataset
 
 from .spec import digest
 from .stages import Run
+from .together import each_environment
 
 
 def _ensemble(run: Run):
@@ -71,32 +72,26 @@ def dataset_folder_for(run: Run, env, value_path, ensemble) -> str:
 def stage_dataset(run: Run) -> dict:
     """The ensemble baseline's TaxiNets, then one labelled dataset per train/test
     environment (`RunSpec.dataset_spec_for`): each written here, its image chunks and
-    real-loop runs done on the run's executor. Inline, one environment after another;
-    else each environment's build is a thread here, so that all feed the executor."""
+    real-loop runs done on the run's executor, every environment's at once
+    (`each_environment`; inline, one environment after another)."""
     ensemble = _ensemble(run)
     envs = run.selected(run.spec.training_environments() + run.spec.held_out_environments())
-    builds = (InlineExecutor() if isinstance(run.executor, InlineExecutor)
-              else cf.ThreadPoolExecutor(max(1, len(envs)), thread_name_prefix="dataset"))
-    try:
-        futures = {e.name: builds.submit(
-            _build, str(run.path("datasets")), run.scenario_for(e),
-            str(run.path(run.outputs["solve"][e.name]["value"])), run.spec.dataset_spec_for(e),
-            [str(p) for p in ensemble], run.progress, _label_box(run, e), run.spec.application,
-            run.executor) for e in envs}
-        bar = run.bar()              # hours at study scale: how many environments are done
-        finished = cf.as_completed(futures.values())
-        names, data = {future: name for name, future in futures.items()}, {}
-        for future in (bar(finished, total=len(futures), desc="datasets", unit="environment")
-                       if bar else finished):
-            if future.exception() is None:   # a failed build raises below, once all are done
-                data[names[future]] = load_dataset(future.result())
-                run.log(f"[dataset_{names[future]}] labelled: "
-                        f"{label_summary(data[names[future]].manifest)}")
-    finally:     # (interrupted: a build thread ends when the executor is stopped)
-        builds.shutdown(wait=False, cancel_futures=True)
-    folders = {name: run.rel(f.result()) for name, f in futures.items()}
-    data = {name: data[name] for name in futures}          # the environments' order
-    return {"ensemble": [run.rel(p) for p in ensemble], "folders": folders,
+    bar = run.bar()              # hours at study scale: how many environments are done
+
+    def build(run: Run, env):
+        folder = _build(str(run.path("datasets")), run.scenario_for(env),
+                        str(run.path(run.outputs["solve"][env.name]["value"])),
+                        run.spec.dataset_spec_for(env), [str(p) for p in ensemble],
+                        run.progress, _label_box(run, env), run.spec.application, run.executor)
+        data = load_dataset(folder)
+        run.log(f"[dataset_{env.name}] labelled: {label_summary(data.manifest)}")
+        return folder, data
+    built = each_environment(run, envs, build, what="dataset of environment",
+                             bar=bar and functools.partial(bar, None, desc="datasets",
+                                                           unit="environment"))
+    data = {name: d for name, (_, d) in built.items()}
+    return {"ensemble": [run.rel(p) for p in ensemble],
+            "folders": {name: run.rel(folder) for name, (folder, _) in built.items()},
             "positives": {name: float(d.labels.mean()) for name, d in data.items()},
             "labels": {name: {**d.manifest["labels"], "counts": d.manifest["label_counts"]}
                        for name, d in data.items()}}

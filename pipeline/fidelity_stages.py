@@ -19,6 +19,7 @@ from reachwatch.training.labels import (SOURCE_PATH, label_verdicts,  # noqa: F4
 
 from .spec import RunSpec, digest
 from .stages import Run
+from .together import each_environment
 
 
 class BoxExitError(RuntimeError):
@@ -148,20 +149,23 @@ def fidelity_stage_key(run: Run, solve: dict, folder) -> str:
 
 
 def stage_fidelity(run: Run) -> dict:
-    """`fidelity_env` for every environment the run needs (one record each); raises
-    `BoxExitError` when BRT labels are used where more than ``fidelity.max_box_exits``
-    of the real runs leave the solved box."""
-    check, out = run.spec.fidelity, {}
+    """`fidelity_env` for every environment the run needs (one record each), all
+    their real-loop runs together on the run's executor (`each_environment`; inline,
+    one after another); raises `BoxExitError` when BRT labels are used where more than
+    ``fidelity.max_box_exits`` of the real runs leave the solved box."""
+    check = run.spec.fidelity
     if check.starts == 0:
-        return out
-    folders = run.outputs.get("dataset", {}).get("folders", {})
-    for env in run.environments():
-        key = fidelity_stage_key(run, run.records[f"solve_{env.name}"],
-                                 folders.get(env.name))
-        out[env.name] = run.stage(f"fidelity_{env.name}", key,
-                                  lambda env=env: fidelity_env(run, env))
+        return {}
+    out = each_environment(run, run.environments(), _fidelity_record,
+                           what="fidelity check of environment")
     check_box_exits(out, check.max_box_exits)
     return out
+
+
+def _fidelity_record(run: Run, env) -> dict:
+    folder = run.outputs.get("dataset", {}).get("folders", {}).get(env.name)
+    key = fidelity_stage_key(run, run.records[f"solve_{env.name}"], folder)
+    return run.stage(f"fidelity_{env.name}", key, lambda: fidelity_env(run, env))
 
 
 def check_box_exits(results: dict, max_box_exits: float):
