@@ -25,9 +25,20 @@ cores the machine gives right then (1.00 on an idle two-core machine), the ceili
 the 2-worker efficiency. The scheduler and every worker bind to 127.0.0.1 and are
 stopped on the way out.
 
+With ``--together N`` it measures this alone instead: N environments' sweeps (grid
+``--shape``, chunks ``--chunk``) on one pool (``--together-executor``, default
+``local:2``), one after another (each a batch of chunks of its own, as the sweep and
+fidelity stages ran before) and together (`reachwatch.reach.chunks.run_together`, as
+they run now: every environment's chunks in one window), the two taking turns in each
+round; it prints the median walls, the median per-round ratio of one after another to
+together (above 1: together is faster) and whether every table is identical to the
+first round's one-after-another ones.
+
     python benchmarks/scale.py [--shape 9 5 9] [--starts 32] [--duration 1]
                                [--rounds 3] [--sim-workers 32] [--sim-processes 4]
                                [--sim-cost 0.05] [--sim-chunk 8] [--sim-tasks 8]
+    python benchmarks/scale.py --together 4 [--together-executor local:2]
+                               [--shape 9 5 9] [--chunk 0] [--rounds 3]
 """
 
 import argparse
@@ -47,6 +58,7 @@ import torch
 from reachwatch.diagrams import load_scenario
 from reachwatch.pipeline.executors import make_executor
 from reachwatch.reach import InlineExecutor
+from reachwatch.reach.chunks import executor_threads, run_together
 from reachwatch.reach.outcomes import default_chunk_size, map_states
 from reachwatch.taxi import on_runway_starts, paper_grid, sweep_closed_loop
 from reachwatch.taxi.fidelity import real_outcomes
@@ -158,13 +170,22 @@ def main():
     parser.add_argument("--sim-tasks", type=int, default=8, help="tasks per simulated worker")
     parser.add_argument("--skip-real", action="store_true",
                         help="only the overhead measurement")
+    parser.add_argument("--together", type=int, default=0, metavar="N",
+                        help="only this: N environments swept one after another vs together "
+                             "on one pool, and the ratio (0: skip)")
+    parser.add_argument("--together-executor", default="local:2",
+                        help="the pool of --together (an --executor value: local:N, dask://...)")
     args = parser.parse_args()
+    if args.together < 0 or (args.together and args.rounds < 1):
+        parser.error("--together must be >= 0, and with it --rounds >= 1")
     if args.sim_workers and args.sim_workers % args.sim_processes:
         parser.error("--sim-workers must be a multiple of --sim-processes")
     if args.inline_threads:
         torch.set_num_threads(args.inline_threads)
     with tempfile.TemporaryDirectory(prefix="scale_") as folder:
         root = Path(folder)
+        if args.together:
+            return together_ratio(args, root)
         if not args.skip_real:
             throughput(args, root)
         if args.sim_workers:
@@ -238,6 +259,60 @@ def throughput(args, root: Path):
           f"cores), load average {os.getloadavg()[0]:.1f}")
     print("speedup: over inline; efficiency: rate_N / (N x rate of 1 worker), both the median "
           "of per-round ratios; warm-up: round 0's rate, diagram builds included")
+
+
+#: The environments of ``--together`` (cycled, a later lap at other hours).
+TOGETHER_ENVIRONMENTS = [("KMWH", 9.0), ("KSFO", 17.0), ("KATL", 12.0), ("KMWH", 17.0),
+                         ("KSFO", 9.0), ("KATL", 17.0)]
+
+
+def together_ratio(args, root: Path):
+    """``--together N``: the environments' sweeps on one pool, one after another and
+    together (`run_together`), taking turns in each round after a warm-up round."""
+    names = []
+    for k in range(args.together):
+        runway, hour = TOGETHER_ENVIRONMENTS[k % len(TOGETHER_ENVIRONMENTS)]
+        names.append(f"runway: {runway}, hour: {hour + k // len(TOGETHER_ENVIRONMENTS):g}, "
+                     f"sky: clear")
+    scenarios = [load_scenario(data=f"environment: {{{name}}}\n") for name in names]
+    grids = [paper_grid(s.environment.half_width, tuple(args.shape)) for s in scenarios]
+    chunk = args.chunk or -(-grids[0].size // 16)
+    modes = ["one after another", "together"]
+    walls, identical, first = {m: [] for m in modes}, {m: True for m in modes}, None
+    executor, close = make_executor(args.together_executor)
+    try:
+        threads = executor_threads(executor)
+        for round_ in range(args.rounds + 1):          # round 0: warm-up, diagrams built
+            for mode in modes[round_ % 2:] + modes[:round_ % 2]:   # each goes first in turn
+                cache = root / "together" / f"{mode.replace(' ', '_')}_{round_}"
+                sweeps = [functools.partial(sweep_closed_loop, s, g, cache_dir=cache,
+                                            chunk_size=chunk, executor=executor, progress=False)
+                          for s, g in zip(scenarios, grids)]
+                t = time.perf_counter()
+                if mode == "together":
+                    tables = run_together([(s.environment.name, fn) for s, fn in
+                                           zip(scenarios, sweeps)], executor,
+                                          what="sweep of environment")
+                else:
+                    tables = [fn() for fn in sweeps]
+                walls[mode].append(time.perf_counter() - t)
+                tables = [{p: table[p] for p in table.tables} for table in tables]
+                first = first or tables
+                identical[mode] &= all(same(a, b) for a, b in zip(tables, first))
+    finally:
+        close()
+    timed = {m: np.array(walls[m][1:]) for m in modes}
+    print(f"together benchmark: {args.together} environments ({'; '.join(names)}), 200x360; "
+          f"sweep grid {args.shape} each ({grids[0].size} states, {-(-grids[0].size // chunk)} "
+          f"chunks of {chunk}) on {args.together_executor} ({threads} thread(s)); "
+          f"{os.cpu_count()} CPUs; medians of {args.rounds} interleaved round(s) after a "
+          f"warm-up round")
+    for mode in modes:
+        print(f"{mode:<18} wall {np.median(timed[mode]):7.1f} s  warm-up {walls[mode][0]:7.1f} s"
+              f"  identical {identical[mode]}")
+    ratio = np.median(timed["one after another"] / timed["together"])
+    print(f"one after another / together: {ratio:.2f} (median of per-round ratios; above 1: "
+          f"together is faster), load average {os.getloadavg()[0]:.1f}")
 
 
 def overhead(args, root: Path):
