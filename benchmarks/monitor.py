@@ -24,6 +24,13 @@ from reachwatch.pipeline.monitor_study import MonitorStudySpec, run_monitor_stud
 from reachwatch.systems import Environment, RandomEnvironments
 
 
+def _rule(parser, text):
+    k, _, n = text.partition("/")
+    if not (k.isdigit() and n.isdigit()):
+        parser.error(f"--flag-rules takes K/N pairs such as 2/3, got {text!r}")
+    return [int(k), int(n)]
+
+
 def main():
     defaults = MonitorStudySpec()
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -40,10 +47,10 @@ def main():
                    help="braking m/s^2: the fallback")
     p.add_argument("--size", type=int, nargs=2, default=[defaults.height, defaults.width],
                    metavar=("HEIGHT", "WIDTH"), help="frame size the monitor reads")
-    p.add_argument("--confirm", type=int, nargs="+", default=defaults.confirm,
-                   help="flag rules tried: ticks in a row at or above the threshold (each "
-                        "variant keeps the one with the fewest needless flags on the "
-                        "calibration environments)")
+    p.add_argument("--flag-rules", nargs="+", default=["1/1"], metavar="K/N",
+                   help="k-of-n flag rules tried (flag when K of the last N ticks reach the "
+                        "threshold); each variant keeps the one with the fewest needless "
+                        "flags on the calibration environments")
     p.add_argument("--nights", action="store_true",
                    help="also judge on the paper's held-out 21 h environments (KSFO, KEWR)")
     p.add_argument("--executor", default="local",
@@ -58,7 +65,7 @@ def main():
         duration=args.duration, within=args.within, alpha=args.alpha,
         brake_deceleration=args.brake, height=args.size[0], width=args.size[1],
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
-        confirm=args.confirm,
+        flag_rules=[_rule(p, r) for r in args.flag_rules],
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])
     try:

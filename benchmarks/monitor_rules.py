@@ -1,6 +1,7 @@
 """Flag rules read off a finished monitor study without rendering again: for each
-variant and each confirmation (a flag needs ``k`` ticks in a row at or above the
-threshold, `reachwatch.training.monitor_eval.confirmed_risks`), the conformal
+variant and each k-of-n rule (flag when at least ``k`` of the last ``n`` ticks reached
+the threshold, the guard's `FlagFilter`; offline
+`reachwatch.training.monitor_eval.k_of_n_risks`), the conformal
 threshold fixed on the study's calibration environments at each ``alpha``, and what it
 gives on the held-out environments (pooled miss rate and needless-flag rate, Wilson 95 %
 intervals) and on the named environments outside the family. The rule to keep is
@@ -9,7 +10,7 @@ whose threshold exists), as the study chooses its variant; the held-out figures 
 printed beside it, never used to choose.
 
     python benchmarks/monitor.py ... --out /tmp/reachwatch-monitor    # the study first
-    python benchmarks/monitor_rules.py /tmp/reachwatch-monitor --confirm 1 2 3 5
+    python benchmarks/monitor_rules.py /tmp/reachwatch-monitor --rules 1/1 2/2 2/3 3/3
 """
 
 import argparse
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from reachwatch.training.conformal import conformal_threshold, warning_scores
-from reachwatch.training.monitor_eval import (confirmed_risks, flag_outcomes, run_times,
+from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, run_times,
                                               system_figures)
 
 
@@ -54,8 +55,8 @@ def _text(rate):
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("study", help="the study's output folder (monitor.json, risks.npz)")
-    p.add_argument("--confirm", type=int, nargs="+", default=[1, 2, 3, 5],
-                   help="ticks in a row a flag needs")
+    p.add_argument("--rules", nargs="+", default=["1/1", "2/2", "2/3", "3/3", "3/5"],
+                   metavar="K/N", help="k-of-n flag rules")
     p.add_argument("--alphas", type=float, nargs="+", default=[0.1, 0.2])
     p.add_argument("--period", type=float, default=0.05, help="the control period (s)")
     args = p.parse_args()
@@ -68,8 +69,9 @@ def main():
                   if f"{s}/ticks" in saved.files]
         for variant in result["variants"]:
             data = {s: _split(saved, variant, s) for s in splits}
-            for k in args.confirm:
-                held = {s: [(confirmed_risks(r, k), t, f) for r, t, f in g]
+            for rule in args.rules:
+                k, n = (int(v) for v in rule.split("/"))
+                held = {s: [(k_of_n_risks(r, k, n), t, f) for r, t, f in g]
                         for s, g in data.items()}
                 scores = [warning_scores(r, run_times(t, args.period), f, lead=lead)
                           for r, t, f in held["calibrate"]]
@@ -80,21 +82,21 @@ def main():
                         continue
                     figures = {s: _figures(g, tau, period=args.period, lead=lead)
                                for s, g in held.items()}
-                    row = (variant, k, alpha, tau, figures)
+                    row = (variant, rule, alpha, tau, figures)
                     rows.append(row)
                     needless = figures["calibrate"]["needless"]["rate"]
                     if alpha not in chosen or needless < chosen[alpha][4]["calibrate"][
                             "needless"]["rate"]:
                         chosen[alpha] = row
     print(f"lead {lead:.2f} s; thresholds fixed on the calibration environments")
-    print("| variant | confirm (ticks) | alpha | threshold | calibration miss % | calibration "
+    print("| variant | flag rule (k/n) | alpha | threshold | calibration miss % | calibration "
           "needless % | held-out miss % [95 % CI] | held-out needless % [95 % CI] | outside "
           "the family: miss % | needless % |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    for variant, k, alpha, tau, f in rows:
-        mark = " (kept)" if chosen.get(alpha) == (variant, k, alpha, tau, f) else ""
+    for variant, rule, alpha, tau, f in rows:
+        mark = " (kept)" if chosen.get(alpha) == (variant, rule, alpha, tau, f) else ""
         outside = f.get("also_held_out", {"miss": {"of": 0}, "needless": {"of": 0}})
-        print(f"| {variant}{mark} | {k} | {alpha:g} | {tau:.3f} | "
+        print(f"| {variant}{mark} | {rule} | {alpha:g} | {tau:.3f} | "
               f"{100 * f['calibrate']['miss']['rate']:.1f} | "
               f"{100 * f['calibrate']['needless']['rate']:.1f} | {_text(f['held_out']['miss'])} | "
               f"{_text(f['held_out']['needless'])} | {_text(outside['miss'])} | "

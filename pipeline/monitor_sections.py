@@ -82,7 +82,8 @@ def study_blocks(result: dict) -> list:
             aurocs = [e["auroc_4s"] for e in r["environments"] if np.isfinite(e["auroc_4s"])]
             rows.append([name + (" (kept)" if name == result["kept"] else ""),
                          f"{row['threshold']:.3f}" + (
-                             f" x {row['confirm']} ticks" if row.get("confirm", 1) != 1 else ""),
+                             " ({} of {} ticks)".format(*row["flag_rule"])
+                             if row.get("flag_rule", [1, 1]) != [1, 1] else ""),
                          rate_text(r["pooled"]["miss"]),
                          rate_text(r["pooled"]["needless"]),
                          f"{min(aurocs):.3f}" if aurocs else "-", f"{r['ece']:.3f}",

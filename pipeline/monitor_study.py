@@ -36,7 +36,7 @@ from reachwatch.training.conformal import (PlattCalibration, brier_score, confor
                                            reliability_curve, warning_scores)
 from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
                                                tick_labels, train_encoder, train_head)
-from reachwatch.training.monitor_eval import (confirmed_risks, flag_outcomes, labelled_ticks,
+from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, labelled_ticks,
                                               oracle_risks, rate, run_times, system_figures,
                                               tick_auroc)
 
@@ -82,7 +82,7 @@ def _labelled(groups, risks, *, period, duration, within):
 
 def _judge(groups, risks, *, threshold, period, lead, duration, flags=None):
     """Per environment and pooled system figures at ``threshold`` (flags read from
-    ``flags``, the risks a confirmation rule acts on, when given; AUROC from ``risks``)."""
+    ``flags``, the risks a k-of-n flag rule acts on, when given; AUROC from ``risks``)."""
     per_env, pooled = [], {"failed": [], "warnable": [], "warned": [], "flagged": []}
     for i, (r, g) in enumerate(zip(risks, groups)):
         out = flag_outcomes(r if flags is None else flags[i], g["ticks"], g["failure_time"],
@@ -96,14 +96,14 @@ def _judge(groups, risks, *, threshold, period, lead, duration, flags=None):
                                     for k, v in pooled.items()})
 
 
-def _confirmed_threshold(spec, calibrate, risks, *, period, lead):
-    """Of ``spec.confirm``'s flag rules, the one with the fewest needless flags on the
-    calibration environments at its conformal threshold (fixed there): ``(confirm,
+def _flag_rule_threshold(spec, calibrate, risks, *, period, lead):
+    """Of ``spec.flag_rules``' k-of-n rules, the one with the fewest needless flags on
+    the calibration environments at its conformal threshold (fixed there): ``([k, n],
     flags, threshold, calibration figures)``, ``flags`` the risks the rule acts on per
-    split (`confirmed_risks`). A rule whose threshold cannot reach alpha is skipped."""
+    split (`k_of_n_risks`). A rule whose threshold cannot reach alpha is skipped."""
     best, refused = None, None
-    for confirm in spec.confirm:
-        flags = {k: [confirmed_risks(group, confirm) for group in v] for k, v in risks.items()}
+    for k, n in spec.flag_rules:
+        flags = {s: [k_of_n_risks(group, k, n) for group in v] for s, v in risks.items()}
         env_scores = [warning_scores(r, run_times(g["ticks"], period), g["failure_time"],
                                      lead=lead) for r, g in zip(flags["calibrate"], calibrate)]
         try:
@@ -116,7 +116,7 @@ def _confirmed_threshold(spec, calibrate, risks, *, period, lead):
                                      flags=flags["calibrate"])
         needless = pooled["needless"]["count"] / max(1, pooled["needless"]["of"])
         if best is None or needless < best[4]:
-            best = (confirm, flags, chosen, calibration, needless)
+            best = ([int(k), int(n)], flags, chosen, calibration, needless)
     if best is None:
         raise refused
     return best[:4]
@@ -169,7 +169,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
             platt = PlattCalibration()
         risks = {k: [[platt(r) for r in group] for group in v] for k, v in raw.items()}
         all_risks[variant.name] = risks
-        confirm, flags, chosen, calibration = _confirmed_threshold(
+        rule, flags, chosen, calibration = _flag_rule_threshold(
             spec, data["calibrate"], risks, period=period, lead=lead)
         needless = [c["needless"] for c in calibration]
         row = {"threshold": chosen.threshold, "statement": chosen.statement(lead),
@@ -178,7 +178,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                    [c["miss"]["rate"] if c["miss"]["of"] else 0.0 for c in calibration], 0.1),
                "calibration_needless": sum(n["count"] for n in needless) / max(
                    1, sum(n["of"] for n in needless)),
-               "platt": [platt.a, platt.b], "confirm": confirm}
+               "platt": [platt.a, platt.b], "flag_rule": rule}
         for k in ("held_out", "also_held_out"):
             per_env, pooled = _judge(data[k], risks[k], threshold=chosen.threshold,
                                      period=period, lead=lead, duration=spec.duration,
@@ -199,7 +199,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                 r, g["failure_time"]) if not np.isfinite(f)]}
             for r, g in zip(flags[k], data[k])] for k in ("calibrate", "held_out")}
         results[variant.name] = row
-        models[variant.name] = (model, platt, chosen.threshold, confirm)
+        models[variant.name] = (model, platt, chosen.threshold, rule)
         log(f"monitor: {variant.name}: threshold {chosen.threshold:.3f}, held-out miss "
             f"{rate_text(row['held_out']['pooled']['miss'])}, needless "
             f"{rate_text(row['held_out']['pooled']['needless'])}")
@@ -223,13 +223,13 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     _save_risks(out_dir / "risks.npz", data, all_risks, judged)
     checkpoints = {}
     for name in dict.fromkeys([kept, spec.variants[0].name]):
-        model, platt, threshold, confirm = models[name]
+        model, platt, threshold, rule = models[name]
         path = out_dir / f"monitor_{len(checkpoints)}.pt"
         save_checkpoint(path, kind="history_monitor", model=model, model_config=model.config,
                         preprocess_config=None,
                         metadata={"calibration": [platt.a, platt.b], "threshold": threshold,
                                   "within_s": spec.within, "lead_s": lead, "variant": name,
-                                  **({"confirm": confirm} if confirm != 1 else {})})
+                                  **({"flag_rule": rule} if rule != [1, 1] else {})})
         checkpoints[name] = str(path)
     guarded = (_guarded(spec, application, scenario, data["held_out"], models, checkpoints,
                         cache_dir=cache_dir / "missions", executor=executor, progress=progress,
@@ -286,13 +286,14 @@ def _guarded(spec, application, scenario, held_out, models, checkpoints, *, cach
                   for g in held_out]
     rows = {}
     for name, path in checkpoints.items():
-        threshold = models[name][2]
+        threshold, (flags_needed, flag_window) = models[name][2:]
         counts = {"runs": 0, "failed_alone": 0, "failed_guarded": 0, "prevented": 0,
                   "safe_alone": 0, "needless_stops": 0, "distance_alone_m": 0.0,
                   "distance_guarded_m": 0.0, "environments": []}
         for g, alone in zip(held_out, alone_runs):
             sc = dc.replace(scenario, environment=g["environment"], monitor=MonitorConfig(
                 detector=path, threshold=threshold, strategy="brake",
+                flags_needed=flags_needed, flag_window=flag_window,
                 brake_deceleration=spec.brake_deceleration))
             starts = g["starts"][:spec.guarded_runs]
             guarded = application.missions(sc, starts, fallback="brake",

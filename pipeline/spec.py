@@ -9,14 +9,14 @@ import math
 from typing import Dict, List, Optional
 
 from reachwatch.diagrams import MonitorConfig, Scenario, load_scenario
-from reachwatch.diagrams.scenario import dump_scenario
+from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW, dump_scenario
 from reachwatch.reach import ACCURACIES
 from reachwatch.reach.application import load_application
 from reachwatch.systems import (DEFAULT_FALLBACKS, TEMPORAL_MODELS, Environment, Fallback,
                                 HistoryMonitorConfig, RandomEnvironments)
 from reachwatch.systems.bounds import MAX_INT, bounded, bounded_as, check_bounds, seed_field
 from reachwatch.systems.checks import check_label, short
-from reachwatch.systems.history_monitor import MAX_CONFIRM
+from reachwatch.systems.flag_filter import check_k_of_n
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.labels import LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
@@ -223,11 +223,12 @@ class MonitorStudySpec:
     m/s^2, so a warning counts when it comes at least speed / deceleration s before
     the failure; the threshold bounds the expected miss rate at ``alpha``.
     ``guarded_runs`` (0: none) starts per held-out environment also run in the guarded
-    real loop with the kept variant and the single-frame one. ``confirm`` lists the flag
-    rules tried: a flag needs that many ticks in a row at or above the threshold; each
-    variant keeps the rule with the fewest needless flags on the calibration
-    environments (its threshold fixed there too). The kept variant is the one with the
-    fewest needless flags on the calibration environments."""
+    real loop with the kept variant and the single-frame one. ``flag_rules`` lists the
+    k-of-n rules tried, ``[flags_needed, flag_window]`` each (the guard's `FlagFilter`:
+    flag when at least k of the last n ticks reached the threshold); each variant keeps
+    the rule with the fewest needless flags on the calibration environments, its
+    threshold fixed there too, and its guarded runs use it. The kept variant is the one
+    with the fewest needless flags on the calibration environments."""
     kind: str = "detector"
     family: RandomEnvironments = dc.field(default_factory=lambda: RandomEnvironments(seed=11))
     train: int = bounded(12, 1, 1000, whole=True)
@@ -247,18 +248,18 @@ class MonitorStudySpec:
     head_epochs: int = bounded(40, 1, 100_000, whole=True)
     guarded_runs: int = bounded(0, 0, 100_000, whole=True)
     variants: List[MonitorVariant] = dc.field(default_factory=default_variants)
-    confirm: List[int] = dc.field(default_factory=lambda: [1])
+    flag_rules: List[List[int]] = dc.field(default_factory=lambda: [[1, 1]])
 
     @property
     def enabled(self) -> bool:
         return self.kind == "history"
 
     def keyed(self) -> dict:
-        """The study's settings as its key sees them: ``confirm`` only where it is not
-        the default ``[1]`` (studies keyed before it existed keep their key)."""
+        """The study's settings as its key sees them: ``flag_rules`` only where it is not
+        the default ``[[1, 1]]`` (studies keyed before it existed keep their key)."""
         out = dc.asdict(self)
-        if list(self.confirm) == [1]:
-            del out["confirm"]
+        if [list(r) for r in self.flag_rules] == [[1, 1]]:
+            del out["flag_rules"]
         return out
 
     def validate(self, where="monitor"):
@@ -284,11 +285,16 @@ class MonitorStudySpec:
             twice = sorted({n for n in named if named.count(n) > 1})
             raise ValueError(f"{where}.also_held_out lists an environment name twice: "
                              f"{short(twice)}")
-        if (not self.confirm or len(set(self.confirm)) != len(self.confirm) or any(
-                isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= MAX_CONFIRM
-                for k in self.confirm)):
-            raise ValueError(f"{where}.confirm must list whole numbers of ticks in "
-                             f"[1, {MAX_CONFIRM}], each once, got {short(self.confirm)}")
+        rules = [tuple(r) if isinstance(r, (list, tuple)) else (r,) for r in self.flag_rules]
+        try:
+            if not rules or len(set(rules)) != len(rules) or any(len(r) != 2 for r in rules):
+                raise ValueError("a list of [flags_needed, flag_window] pairs, each once")
+            for k, n in rules:
+                check_k_of_n(k, n)
+                if n > MAX_FLAG_WINDOW:
+                    raise ValueError(f"flag_window at most {MAX_FLAG_WINDOW} ticks")
+        except ValueError as e:
+            raise ValueError(f"{where}.flag_rules: {e}, got {short(self.flag_rules)}") from None
         for i, v in enumerate(self.variants):
             check_label(f"{where}.variants[{i}].name", v.name)
         names = [v.name for v in self.variants]

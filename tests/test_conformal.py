@@ -109,17 +109,27 @@ def test_flag_outcomes_count_misses_among_warnable_runs_only():
     assert system_figures(oracle)["miss"]["count"] == 0 and not oracle["flagged"][2:].any()
 
 
-def test_a_confirmed_flag_needs_that_many_ticks_in_a_row():
-    from reachwatch.training.monitor_eval import confirmed_risks, flag_outcomes
-    spike, held = np.r_[0.1, 0.9, 0.1, 0.1, 0.1], np.r_[0.1, 0.6, 0.8, 0.7, 0.2]
-    two = confirmed_risks([spike, held, np.zeros(0), np.r_[0.9]], 2)
-    np.testing.assert_allclose(two[0], [0, 0.1, 0.1, 0.1, 0.1])
-    np.testing.assert_allclose(two[1], [0, 0.1, 0.6, 0.7, 0.2])
-    assert len(two[2]) == 0 and two[3].tolist() == [0.0]   # one tick cannot confirm
-    np.testing.assert_allclose(confirmed_risks([held], 1)[0], held)
+def test_k_of_n_risks_flag_what_the_flag_filter_confirms():
+    """A threshold on `k_of_n_risks` flags exactly the ticks the FlagFilter's array rule
+    (`confirmed_flags`) confirms from the raw flags, at every tick, for any threshold > 0."""
+    from reachwatch.systems import confirmed_flags
+    from reachwatch.training.monitor_eval import flag_outcomes, k_of_n_risks
+    rng = np.random.default_rng(3)
+    runs = [rng.uniform(0, 1, n) for n in (0, 1, 4, 25, 40)]
+    for k, n in ((1, 1), (2, 2), (2, 3), (3, 5), (1, 4)):
+        filtered = k_of_n_risks(runs, k, n)
+        for tau in (0.2, 0.5, 0.8):
+            for risk, held in zip(runs, filtered):
+                assert len(held) == len(risk)
+                history, expected = np.zeros((1, n - 1), bool), []
+                for r in risk:
+                    confirmed, history = confirmed_flags([r >= tau], history, k)
+                    expected.append(bool(confirmed[0]))
+                assert (held >= tau).tolist() == expected
     # a single spike no longer flags a run that does not fail; a held warning still does
-    out = flag_outcomes(two[:2], [5, 5], [float("nan"), 0.25], period=0.05, threshold=0.5,
-                        lead=0.05)
+    spike, held = np.r_[0.1, 0.9, 0.1, 0.1, 0.1], np.r_[0.1, 0.6, 0.8, 0.7, 0.2]
+    out = flag_outcomes(k_of_n_risks([spike, held], 2, 2), [5, 5], [float("nan"), 0.25],
+                        period=0.05, threshold=0.5, lead=0.05)
     assert out["flagged"].tolist() == [False, True] and out["warned"].tolist() == [False, True]
-    with pytest.raises(ValueError, match="confirm must be a whole number"):
-        confirmed_risks([held], 0)
+    with pytest.raises(ValueError, match="k-of-n flag rule"):
+        k_of_n_risks([held], 3, 2)

@@ -48,8 +48,10 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
     assert not load_run_spec(data=TINY).monitor.enabled            # off by default
     # the default rule leaves the key as it was before rules could be chosen
     import dataclasses as dc
-    assert "confirm" not in spec.monitor.keyed() and dc.asdict(spec.monitor)["confirm"] == [1]
-    assert dc.replace(spec.monitor, confirm=[1, 2]).keyed()["confirm"] == [1, 2]
+    assert "flag_rules" not in spec.monitor.keyed()
+    assert dc.asdict(spec.monitor)["flag_rules"] == [[1, 1]]
+    assert dc.replace(spec.monitor, flag_rules=[[1, 1], [2, 3]]).keyed()["flag_rules"] == [
+        [1, 1], [2, 3]]
     for edit, message in ((("kind: history", "kind: lstm"), "monitor.kind must be one of"),
                           (("alpha: 0.5", "alpha: 0.1"), "monitor.calibrate: 1 environments "
                                                          "cannot bound"),
@@ -57,8 +59,10 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
                           (("{name: one frame}", "{name: GRU 3 + signals}"),
                            "monitor.variants must list"),
                           (("runs: 6", "runs: 0"), "monitor.runs must be a whole number"),
-                          (("runs: 6", "runs: 6\n  confirm: [2, 2]"), "monitor.confirm must list"),
-                          (("runs: 6", "runs: 6\n  confirm: [0]"), "monitor.confirm must list")):
+                          (("runs: 6", "runs: 6\n  flag_rules: [[2, 2], [2, 2]]"),
+                           "monitor.flag_rules: a list of"),
+                          (("runs: 6", "runs: 6\n  flag_rules: [[3, 2]]"),
+                           "monitor.flag_rules: the k-of-n flag rule needs")):
         with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
             load_run_spec(data=TINY + STUDY.replace(*edit))
 
@@ -103,20 +107,21 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
                               progress=False, log=lambda m: None)
     for part in ("variants", "guarded", "oracle"):           # NaN where a group is empty
         assert json.dumps(again[part], sort_keys=True) == json.dumps(result[part], sort_keys=True)
-    # flags confirmed over ticks in a row: each variant keeps the rule with the fewest
-    # needless flags on the calibration environments, never more than the single tick's
+    # k-of-n flag rules: each variant keeps the rule with the fewest needless flags on the
+    # calibration environments (never more than 1-of-1's), and its guarded runs use it
     import dataclasses as dc
-    confirmed = run_monitor_study(dc.replace(spec, confirm=[1, 3]), scenario, tmp_path / "conf",
-                                  cache_dir=tmp_path / "cache", progress=False,
-                                  log=lambda m: None)
-    for name, row in confirmed["variants"].items():
-        assert row["confirm"] in (1, 3) and result["variants"][name]["confirm"] == 1
+    ruled = run_monitor_study(dc.replace(spec, flag_rules=[[1, 1], [3, 3]]), scenario,
+                              tmp_path / "rules", cache_dir=tmp_path / "cache", progress=False,
+                              log=lambda m: None)
+    for name, row in ruled["variants"].items():
+        assert row["flag_rule"] in ([1, 1], [3, 3]) and result["variants"][name]["flag_rule"] == [
+            1, 1]
         assert row["calibration_needless"] <= result["variants"][name]["calibration_needless"]
-        if row["confirm"] == 1:
+        if row["flag_rule"] == [1, 1]:
             assert row["threshold"] == result["variants"][name]["threshold"]
-    for name, file in confirmed["checkpoints"].items():
-        _, _, meta = load_history_monitor(tmp_path / "conf" / file)
-        assert meta.get("confirm", 1) == confirmed["variants"][name]["confirm"]
+    for name, file in ruled["checkpoints"].items():
+        _, _, meta = load_history_monitor(tmp_path / "rules" / file)
+        assert meta.get("flag_rule", [1, 1]) == ruled["variants"][name]["flag_rule"]
     text = markdown_tables(result)
     assert "Guarded real loop" in text and "oracle (privileged)" in text
     assert "at most 50.0 %" in text

@@ -11,6 +11,7 @@ real loop answer."""
 import numpy as np
 
 from reachwatch.reach.fidelity import wilson_interval
+from reachwatch.systems.flag_filter import check_k_of_n
 from reachwatch.reach.outcomes import fails_within, time_to_failure
 
 from .conformal import warning_scores
@@ -60,25 +61,24 @@ def flag_outcomes(risks, ticks, failure_times, *, period: float, threshold: floa
     return {"failed": failed, "warnable": warnable, "warned": warned, "flagged": flagged}
 
 
-def confirmed_risks(risks, confirm: int) -> list:
-    """The risk a flag rule that needs ``confirm`` ticks in a row acts on: at each tick
-    the smallest risk of the last ``confirm`` ticks (0 before the run has that many), so
-    a threshold on it flags exactly when ``confirm`` consecutive risks reach it. Every
-    figure here (misses, needless flags, conformal thresholds) applies to it unchanged;
-    ``confirm`` 1 is the risk itself."""
-    if isinstance(confirm, bool) or not isinstance(confirm, (int, np.integer)) or confirm < 1:
-        raise ValueError(f"confirm must be a whole number of ticks >= 1, got {confirm!r}")
+def k_of_n_risks(risks, flags_needed: int, window: int) -> list:
+    """The risk the k-of-n flag rule (`reachwatch.systems.FlagFilter`: flag when at
+    least ``flags_needed`` of the last ``window`` ticks reached the threshold, ticks
+    before the run's first clear) acts on: at each tick the ``flags_needed``-th largest
+    risk of the last ``window`` ticks (0 for ticks before the first). A threshold above
+    0 on it flags exactly the ticks the filter confirms, so every figure here (misses,
+    needless flags, conformal thresholds) applies to a filtered monitor unchanged;
+    1-of-1 is the risk itself."""
+    k, n = check_k_of_n(flags_needed, window)
     out = []
     for risk in risks:
         risk = np.asarray(risk, float)
-        if confirm == 1 or len(risk) == 0:
+        if n == 1 or len(risk) == 0:
             out.append(risk.copy())
             continue
-        held = np.zeros_like(risk)
-        if len(risk) >= confirm:
-            windows = np.lib.stride_tricks.sliding_window_view(risk, confirm)
-            held[confirm - 1:] = windows.min(axis=1)
-        out.append(held)
+        padded = np.concatenate([np.zeros(n - 1), risk])
+        windows = np.lib.stride_tricks.sliding_window_view(padded, n)
+        out.append(np.sort(windows, axis=1)[:, n - k])
     return out
 
 
