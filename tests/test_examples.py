@@ -186,3 +186,23 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     sheet = cv2.imread(str(out / "figures" / "environments.png"))[:, :48].astype(int)
     b, g, r = sheet[..., 0], sheet[..., 1], sheet[..., 2]
     assert ((r > g + 40) & (r > b + 40)).any() and ((b > r + 40) & (b > g + 40)).any()
+
+
+def test_speed_car_guards_with_a_history_monitor_reading_the_controllers_signals(tmp_path):
+    """The speed car's guarded loop offers a history monitor the same online signals a
+    recording stores (the controller's estimate, then its steering)."""
+    import torch
+    from reachwatch.diagrams import MonitorConfig, save_checkpoint
+    from reachwatch.systems import Environment, HistoryMonitorConfig, HistoryRiskModel
+    config = HistoryMonitorConfig(height=16, width=24, channels=[4], features=4, signals=3,
+                                  signal_mean=[0.0] * 3, signal_std=[1.0] * 3)
+    torch.manual_seed(0)
+    path = tmp_path / "history.pt"
+    save_checkpoint(path, kind="history_monitor", model=HistoryRiskModel(config).eval(),
+                    model_config=config, preprocess_config=None,
+                    metadata={"calibration": [1.0, 0.0], "threshold": 0.5})
+    car = _speed_car()
+    diagram = car.make_car_loop(car.CarConfig(environment=Environment("KMWH", 9.0, "clear"),
+                                              monitor=MonitorConfig(detector=str(path))))
+    signals = diagram.GetSubsystemByName("monitor_signals")
+    assert signals.get_output_port(0).size() == 3

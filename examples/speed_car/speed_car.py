@@ -97,6 +97,8 @@ def make_car_loop(config: CarConfig):
     if config.monitor.detector:
         monitor = add_monitor(builder, image_port=world.camera.color_image_output_port(),
                               steering_port=controller.GetOutputPort("steering_angle"),
+                              estimate_port=(controller.GetOutputPort("estimate")
+                                             if controller.HasOutputPort("estimate") else None),
                               monitor=config.monitor, controller=config.controller)
         builder.Connect(monitor.switch.get_steering_angle_output_port(), hold.get_input_port())
         builder.Connect(monitor.switch.get_speed_output_port(), car.GetInputPort("speed_command"))
