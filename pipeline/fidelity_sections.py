@@ -7,8 +7,7 @@ import numpy as np
 from reachwatch.reach import wilson_interval
 from reachwatch.reach.application import load_application
 from reachwatch.training.dataset import label_frames
-
-from .fidelity_stages import labels_every_state_by_its_run
+from reachwatch.training.labels import labels_every_state_by_its_run
 
 
 def _rate(record, name):

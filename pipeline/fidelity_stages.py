@@ -14,8 +14,7 @@ import numpy as np
 from reachwatch.reach import compare_verdicts, min_target_along_rollouts
 from reachwatch.reach.application import load_application
 from reachwatch.training.dataset import load_dataset
-from reachwatch.training.labels import (SOURCE_PATH, label_verdicts,  # noqa: F401
-                                        labels_every_state_by_its_run)
+from reachwatch.training.labels import SOURCE_PATH, label_verdicts
 
 from .spec import RunSpec, digest
 from .stages import Run

@@ -120,7 +120,7 @@ def _no_loop(*_):
 
 def _inputs(spec, states, run_loop=_no_loop, run_paths=_no_loop):
     return LabelInputs(states, spec, values_at=lambda x: x[:, 0] - 2.0,
-                       on_runway=lambda x: x[:, 1] < 0.9, run_loop=run_loop,
+                       not_failed=lambda x: x[:, 1] < 0.9, run_loop=run_loop,
                        run_paths=run_paths, inside=lambda x: x[:, 1] < 0.8)
 
 

@@ -164,7 +164,7 @@ class LabelSpec:
 class LabelInputs(NamedTuple):
     """What a `LabelSource` labels from: ``states`` ``(N, n)``, the uniform samples in
     order; ``labels`` the `LabelSpec`; ``values_at(states)`` the BRT's values;
-    ``on_runway(states)`` where the loop has not failed yet (bool); ``run_loop(states)
+    ``not_failed(states)`` where the loop has not failed yet (bool); ``run_loop(states)
     -> (failed, frames)`` the real loop from each state for the BRT's horizon;
     ``run_paths(starts) -> dict`` the real loop's runs read along (`trajectory_samples`);
     ``inside(states)`` whether states lie in the dataset's box (bool). The callables
@@ -172,7 +172,7 @@ class LabelInputs(NamedTuple):
     states: np.ndarray
     labels: LabelSpec
     values_at: Callable
-    on_runway: Callable
+    not_failed: Callable
     run_loop: Callable
     run_paths: Callable
     inside: Callable
@@ -279,7 +279,7 @@ def hybrid_rolls_out(values, band: float, map_trusted: bool) -> np.ndarray:
     return (np.abs(values) < band) | ((values > 0) & (not map_trusted))
 
 
-def _audit(values, on_runway, labels: LabelSpec, run, failed):
+def _audit(values, not_failed, labels: LabelSpec, run, failed):
     """The ``hybrid`` source's audit: ``run(index)`` runs the real loop from the first
     ``labels.audit`` on-runway states (and on, a batch of ``labels.audit`` at a time up
     to ``labels.more_audit``, while the map stays trusted) and records each outcome in
@@ -287,7 +287,7 @@ def _audit(values, on_runway, labels: LabelSpec, run, failed):
     record being what the manifest keeps: samples, real failures, false-safe verdicts,
     the largest error, whether the map is trusted and the band (``labels.band`` when it
     is not); with ``more_audit``, also the batches run."""
-    candidates = np.flatnonzero(on_runway)
+    candidates = np.flatnonzero(not_failed)
     size = min(max(labels.audit, labels.more_audit), len(candidates))
     audit, batches, trusted = candidates[:0], 0, True
     while len(audit) < size and trusted:
@@ -311,9 +311,9 @@ def _audit(values, on_runway, labels: LabelSpec, run, failed):
     return audit, audit_failed, record
 
 
-def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
+def assign_labels(values, not_failed, labels: LabelSpec, run_loop):
     """Labels and their sources for states with BRT values ``values`` under
-    ``labels.source``; ``on_runway`` marks the states where the loop has not failed
+    ``labels.source``; ``not_failed`` marks the states where the loop has not failed
     yet (the audit's candidates) and ``run_loop(index) -> (failed, frames)`` runs the
     real loop from the states at ``index`` (called at most twice: the audit, then the
     rest). Returns ``(n kept, labels, sources, info)``.
@@ -326,7 +326,7 @@ def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
     if labels.source not in ("brt", "rollout", "hybrid"):
         raise ValueError(f"assign_labels labels the brt, rollout and hybrid sources, not "
                          f"{short(labels.source)} (see label_samples)")
-    values, on_runway = np.asarray(values, float), np.asarray(on_runway, bool)
+    values, not_failed = np.asarray(values, float), np.asarray(not_failed, bool)
     n = len(values)
     brt = (values <= 0).astype(np.uint8)
     info = {"source": labels.source}
@@ -345,12 +345,12 @@ def assign_labels(values, on_runway, labels: LabelSpec, run_loop):
     if labels.source == "rollout":
         roll = np.arange(n)
     else:
-        audit, audit_failed, info["audit"] = _audit(values, on_runway, labels, run, failed)
+        audit, audit_failed, info["audit"] = _audit(values, not_failed, labels, run, failed)
         band, trusted = info["audit"]["band"], info["audit"]["map_trusted"]
         if not trusted and labels.falls_back_to_trajectory:
             info.update(labelled_by="trajectory", audit_frames=frames)
             return 0, None, None, info
-        uncertain = hybrid_rolls_out(values, band, trusted) & on_runway
+        uncertain = hybrid_rolls_out(values, band, trusted) & not_failed
         roll = np.union1d(audit, np.flatnonzero(uncertain)).astype(int)
     if labels.max_rollouts and len(roll) > labels.max_rollouts:
         n = int(roll[labels.max_rollouts])     # the first sample whose rollout is over the cap
@@ -411,7 +411,7 @@ def _assigned(inputs: LabelInputs) -> Labelled:
     states, spec = np.asarray(inputs.states, float), inputs.labels
     values = inputs.values_at(states)
     n, labels, sources, info = assign_labels(
-        values, inputs.on_runway(states), spec, lambda index: inputs.run_loop(states[index]))
+        values, inputs.not_failed(states), spec, lambda index: inputs.run_loop(states[index]))
     if info.get("labelled_by") == "trajectory":          # the audit distrusts the map
         states, labels, sources, read, runs = trajectory_samples(
             states[:spec.distrusted_starts], spec, inputs.run_paths, inputs.inside)
