@@ -5,7 +5,7 @@ its folder is known before it is built, and a killed build resumes there)."""
 import functools
 
 from reachwatch.reach import ValueFunction
-from reachwatch.reach.application import load_application
+from reachwatch.reach.application import application_key, load_application
 from reachwatch.training.dataset import build_dataset, dataset_folder, label_summary, load_dataset
 
 from .spec import digest
@@ -32,11 +32,15 @@ def _ensemble_config(run: Run):
 
 def ensemble_paths(run: Run) -> list:
     """The checkpoints of the ensemble baseline's members (trained or not yet); none
-    without seeds (an application without an ensemble baseline is not asked)."""
+    without seeds (an application without an ensemble baseline is not asked). Their
+    folder is keyed by the training config, the seeds and, for an application other
+    than the default, its code (`application_key`: its `train_ensemble` trains them)."""
     spec = run.spec.ensemble
     if not spec.seeds:
         return []
-    folder = run.path(f"ensemble/{digest(_ensemble_config(run), spec.seeds)}")
+    own = application_key(run.application)          # None for the default (the taxi)
+    folder = run.path(f"ensemble/{digest(_ensemble_config(run), spec.seeds)}" if own is None
+                      else f"ensemble/{digest(_ensemble_config(run), spec.seeds, own)}")
     return [folder / f"taxinet_seed{s}.pt" for s in spec.seeds]
 
 

@@ -192,3 +192,34 @@ def test_the_generic_real_loop_judges_the_failure_rule_at_the_ticks(tmp_path):
     assert mine["ticks"][0] == taxi["ticks"][0] == 21 and mine["ticks"][2] == 0
     assert 0 < taxi["failure_time"][1] <= mine["failure_time"][1] <= taxi["failure_time"][1] + 0.05
     assert abs(int(mine["ticks"][1]) - int(taxi["ticks"][1])) <= 1
+
+
+def test_an_applications_ensemble_folder_is_keyed_by_its_code(tmp_path):
+    """The ensemble baseline's folder: the default application's key as before (the
+    config and seeds), another application's also its code (its `train_ensemble`)."""
+    from types import SimpleNamespace
+    from reachwatch.pipeline.dataset_stages import ensemble_paths
+    from reachwatch.pipeline.spec import digest
+
+    class Fake:
+        def __init__(self, key):
+            self.code = key
+
+        def key(self):
+            return self.code
+
+        def ensemble_config(self, scenario, *, samples, epochs):
+            return {"samples": samples, "epochs": epochs}
+
+    def folder(key, seeds=(0, 1)):
+        spec = SimpleNamespace(ensemble=SimpleNamespace(seeds=list(seeds), samples=8, epochs=1),
+                               scenario=None)
+        run = SimpleNamespace(spec=spec, application=Fake(key), path=lambda p: tmp_path / p)
+        paths = ensemble_paths(run)
+        assert len({p.parent for p in paths}) == min(len(seeds), 1) and len(paths) == len(seeds)
+        return paths[0].parent if paths else None
+
+    assert folder(None) == tmp_path / "ensemble" / digest({"samples": 8, "epochs": 1}, [0, 1])
+    assert len({folder(None), folder({"code": "a"}), folder({"code": "b"})}) == 3
+    assert folder({"code": "a"}) == folder({"code": "a"})
+    assert folder({"code": "a"}, seeds=()) is None
