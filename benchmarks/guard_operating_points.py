@@ -41,8 +41,8 @@ from reachwatch.pipeline.executors import open_executor
 from reachwatch.pipeline.online_stages import fit_guard_noise
 from reachwatch.reach.liveness import liveness_figures
 from reachwatch.systems.switch import fallback_parts
-from reachwatch.taxi import UNGUARDED, fallback_rollouts, on_runway_starts, sweep_guarded
-from reachwatch.taxi.guarded import flag_budget_threshold
+from reachwatch.taxi import (UNGUARDED, TaxiApplication, fallback_rollouts, on_runway_starts,
+                             sweep_guarded)
 
 
 def rule(text):
@@ -126,7 +126,7 @@ def main():
         guarded.monitor.validate()
         if budgets:                       # "scale" is the point's flag budget
             try:
-                threshold = flag_budget_threshold(
+                threshold = TaxiApplication().flag_budget_threshold(
                     guarded, grid, tables, horizon, fallback, scale, starts=starts,
                     mission_limit=args.mission_limit, score_noise=noise,
                     seed=args.calibration_seed, alone=alone)["threshold"]

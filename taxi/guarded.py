@@ -14,10 +14,8 @@ import numpy as np
 import torch
 
 from reachwatch.diagrams import CONTROL_PORT, DETECTOR, ESTIMATE_PORT
-from reachwatch.reach import guard
 from reachwatch.reach.dynamics import positive, rk4_step, split_horizon
 from reachwatch.reach.grid import check_states
-from reachwatch.reach.guard import perfect_detector_scores, tradeoff_row  # noqa: F401
 from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.reach.liveness import UNGUARDED, MissionOutcomes, check_mission_limit
 from reachwatch.systems import (Fallback, ProportionalController, check_k_of_n, confirmed_flags,
@@ -175,7 +173,7 @@ def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=N
     name is a speed strategy with an optional steering (`systems.Fallback.parse`).
     ``mission_limit``: also the same-distance figures (`guarded_rollouts`). ``scores``
     (per grid node) replaces the swept detector's scores, e.g. with a perfect
-    detector's (`perfect_detector_scores`). ``alone``: the controller alone's outcomes
+    detector's (`reach.guard.perfect_detector_scores`). ``alone``: the controller alone's outcomes
     from the same starts and settings when already computed (they do not depend on the
     detector), reused instead of rolled out again. ``score_noise``, ``seed``: the
     detector's variation between nodes (`guarded_rollouts`)."""
@@ -199,33 +197,3 @@ def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=N
             flags_needed=scenario.monitor.flags_needed, flag_window=scenario.monitor.flag_window,
             score_noise=score_noise, seed=seed, **kw)
     return out
-
-
-def _rollouts(scenario, grid, tables, horizon):
-    """`fallback_rollouts` of ``scenario``'s tables: the ``rollouts`` of `reach.guard`."""
-    return lambda fallbacks, **settings: fallback_rollouts(scenario, grid, tables, horizon,
-                                                           fallbacks, **settings)
-
-
-def tradeoff_curves(scenario, grid, tables, horizon, fallbacks, points: int, *,
-                    mission_limit=None, alone=None, score_noise=None, seed=0) -> dict:
-    """`reach.guard.tradeoff_curves` of the taxi's swept tables (`sweep_guarded`) over
-    the grid's nodes: {fallback: rows} of the failure set against liveness as the
-    detector threshold sweeps the range of the swept scores; ``mission_limit``,
-    ``alone``, ``score_noise`` and ``seed`` as in `fallback_rollouts`."""
-    return guard.tradeoff_curves(_rollouts(scenario, grid, tables, horizon),
-                                 tables[SCORE_PORT], fallbacks, points,
-                                 mission_limit=mission_limit, alone=alone,
-                                 score_noise=score_noise, seed=seed)
-
-
-def flag_budget_threshold(scenario, grid, tables, horizon, fallback: str, budget: float, *,
-                          starts, mission_limit=None, score_noise=None, seed=0,
-                          alone=None) -> dict:
-    """`reach.guard.flag_budget_threshold` in the taxi's swept tables: the threshold at
-    which ``fallback``'s guarded loop, rolled out from ``starts`` (optionally with the
-    detector's variation between nodes, ``score_noise`` seeded ``seed``), flags
-    ``budget`` of its control ticks."""
-    return guard.flag_budget_threshold(_rollouts(scenario, grid, tables, horizon), fallback,
-                                       budget, starts=starts, mission_limit=mission_limit,
-                                       score_noise=score_noise, seed=seed, alone=alone)

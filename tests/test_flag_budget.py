@@ -8,8 +8,10 @@ from reachwatch.diagrams import CONTROL_PORT, load_scenario
 from reachwatch.reach import Grid
 from reachwatch.reach.liveness import liveness_figures, threshold_for_flag_budget
 from reachwatch.reach.score_noise import sigmoid
-from reachwatch.taxi import UNGUARDED, fallback_rollouts, p_controller_policy
-from reachwatch.taxi.guarded import SCORE_PORT, flag_budget_threshold
+from reachwatch.taxi import UNGUARDED, TaxiApplication, fallback_rollouts, p_controller_policy
+from reachwatch.taxi.guarded import SCORE_PORT
+
+flag_budget_threshold = TaxiApplication().flag_budget_threshold
 
 
 def test_flag_budget_threshold_known_answer():

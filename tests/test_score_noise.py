@@ -132,7 +132,8 @@ def test_score_along_real_runs_and_the_fit_from_them(detector_path, tmp_path):
     assert len(list((tmp_path / "outcomes").iterdir())) == 1
     # the trade-off curves with noise: a vanishing noise gives the plain curves back; the
     # fitted one keeps the thresholds and moves the figures
-    from reachwatch.taxi.guarded import tradeoff_curves
+    from reachwatch.taxi import TaxiApplication
+    tradeoff_curves = TaxiApplication().tradeoff_curves
     kw = dict(mission_limit=2.0)
     plain = tradeoff_curves(scenario, grid, tables, 1.0, ["brake"], 3, **kw)
     faint = tradeoff_curves(scenario, grid, tables, 1.0, ["brake"], 3,

@@ -8,7 +8,8 @@ from reachwatch.diagrams import load_scenario
 from reachwatch.reach import Grid
 from reachwatch.reach.liveness import MISSION_FIELDS, SAME_DISTANCE_FIELDS, liveness_figures
 from reachwatch.taxi import dynamics_for, guarded_rollouts
-from reachwatch.taxi.guarded import p_controller_policy, perfect_detector_scores
+from reachwatch.reach.guard import perfect_detector_scores
+from reachwatch.taxi.guarded import p_controller_policy
 
 
 def _tables(grid, steering, score):
