@@ -187,7 +187,6 @@ def label_target_text(results) -> str:
             (f"; missed in {', '.join(missed)}." if missed else ".") + note)
 
 
-
 def label_renders(info) -> list:
     """``[labels, frames, frames per label]`` of a dataset's label record (its manifest's
     ``labels`` with ``counts``; frames as `label_frames` counts them; "-" where

@@ -80,8 +80,8 @@ class GuardSpec:
     ``flag_budget`` (None: the detector's threshold from training): instead, set the
     threshold per guard environment, without labels, to the one at which the first of
     ``strategies`` flags that share of its control ticks in the tables (with the score
-    noise when ``noise_starts`` fits it), rolled out from ``flag_budget_starts``
-    on-runway starts seeded ``flag_budget_seed`` (`taxi.guarded.flag_budget_threshold`)."""
+    noise when ``noise_starts`` fits it), rolled out from ``flag_budget_starts`` of the
+    application's starts seeded ``flag_budget_seed`` (`Application.flag_budget_threshold`)."""
     environments: List[Environment] = dc.field(default_factory=list)
     strategies: List[str] = dc.field(default_factory=lambda: list(DEFAULT_FALLBACKS))
     candidates: int = bounded(5, 0, MAX_STARTS, whole=True)
