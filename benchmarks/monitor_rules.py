@@ -9,8 +9,17 @@ chosen on the calibration environments alone (fewest needless flags among the ru
 whose threshold exists), as the study chooses its variant; the held-out figures are
 printed beside it, never used to choose.
 
+With ``--rank-within-environment`` each risk is first replaced by its rank among the
+risks of the same environment's other runs (the share of their ticks below it; no
+label is read, leave-one-run-out): a label-free normalisation of each environment's
+shift, as a user could fit it from unlabelled runs in a new environment. The
+conformal threshold is then fixed on the ranks of the calibration environments, which
+stay exchangeable with the held-out ones (each environment's ranks use only its own
+unlabelled runs).
+
     python benchmarks/monitor.py ... --out /tmp/reachwatch-monitor    # the study first
     python benchmarks/monitor_rules.py /tmp/reachwatch-monitor --rules 1/1 2/2 2/3 3/3
+    python benchmarks/monitor_rules.py /tmp/reachwatch-monitor --rank-within-environment
 """
 
 import argparse
@@ -33,6 +42,18 @@ def _split(saved, variant, split):
     runs = np.split(flat, np.cumsum(ticks)[:-1]) if len(ticks) else []
     return [([runs[i] for i in np.flatnonzero(env == e)], ticks[env == e], failure[env == e])
             for e in range(len(saved[f"{split}/names"]))]
+
+
+def _ranked(group):
+    """``group`` with each run's risks replaced by their ranks among the ticks of the
+    environment's other runs (leave-one-run-out; no label read)."""
+    risks, ticks, failure = group
+    ranks = []
+    for i, risk in enumerate(risks):
+        others = np.sort(np.concatenate([r for j, r in enumerate(risks) if j != i]
+                                        or [np.zeros(0)]))
+        ranks.append(np.searchsorted(others, risk, side="right") / max(len(others), 1))
+    return ranks, ticks, failure
 
 
 def _figures(groups, threshold, *, period, lead):
@@ -59,6 +80,9 @@ def main():
                    metavar="K/N", help="k-of-n flag rules")
     p.add_argument("--alphas", type=float, nargs="+", default=[0.1, 0.2])
     p.add_argument("--period", type=float, default=0.05, help="the control period (s)")
+    p.add_argument("--rank-within-environment", action="store_true",
+                   help="replace each risk by its rank among the risks of the same "
+                        "environment's other runs (label-free) before the threshold")
     args = p.parse_args()
     folder = Path(args.study)
     result = json.loads((folder / "monitor.json").read_text())
@@ -69,6 +93,8 @@ def main():
                   if f"{s}/ticks" in saved.files]
         for variant in result["variants"]:
             data = {s: _split(saved, variant, s) for s in splits}
+            if args.rank_within_environment:
+                data = {s: [_ranked(g) for g in groups] for s, groups in data.items()}
             for rule in args.rules:
                 k, n = (int(v) for v in rule.split("/"))
                 held = {s: [(k_of_n_risks(r, k, n), t, f) for r, t, f in g]
@@ -88,7 +114,9 @@ def main():
                     if alpha not in chosen or needless < chosen[alpha][4]["calibrate"][
                             "needless"]["rate"]:
                         chosen[alpha] = row
-    print(f"lead {lead:.2f} s; thresholds fixed on the calibration environments")
+    print(f"lead {lead:.2f} s; thresholds fixed on the calibration environments"
+          + ("; risks ranked within each environment (label-free)"
+             if args.rank_within_environment else ""))
     print("| variant | flag rule (k/n) | alpha | threshold | calibration miss % | calibration "
           "needless % | held-out miss % [95 % CI] | held-out needless % [95 % CI] | outside "
           "the family: miss % | needless % |")
