@@ -48,11 +48,12 @@ def _ranked(group):
     """``group`` with each run's risks replaced by their ranks among the ticks of the
     environment's other runs (leave-one-run-out; no label read)."""
     risks, ticks, failure = group
+    every = np.sort(np.concatenate(risks)) if risks else np.zeros(0)
     ranks = []
-    for i, risk in enumerate(risks):
-        others = np.sort(np.concatenate([r for j, r in enumerate(risks) if j != i]
-                                        or [np.zeros(0)]))
-        ranks.append(np.searchsorted(others, risk, side="right") / max(len(others), 1))
+    for risk in risks:      # ticks at or below, in every run less in this one
+        below = (np.searchsorted(every, risk, side="right")
+                 - np.searchsorted(np.sort(risk), risk, side="right"))
+        ranks.append(below / max(len(every) - len(risk), 1))
     return ranks, ticks, failure
 
 
