@@ -15,7 +15,7 @@ import torch
 from reachwatch.systems import (DetectorConfig, HistoryMonitorConfig, HistoryRiskModel,
                                 PreprocessConfig, TaxiNetConfig, build_detector, build_taxinet)
 from reachwatch.systems.checks import short
-from reachwatch.systems.files import atomic_write_bytes, file_hash  # noqa: F401  (re-exported)
+from reachwatch.systems.files import atomic_write_bytes, file_hash, local_copy  # noqa: F401  (file_hash re-exported)
 
 FORMAT = "reachwatch.checkpoint"
 VERSION = 1
@@ -52,7 +52,7 @@ def _plain(metadata: dict) -> dict:
 def load_checkpoint(path, *, kind) -> dict:
     """The raw checkpoint dict of ``kind`` (a name, or a tuple of accepted names);
     raises `CheckpointError` saying what is wrong."""
-    path = Path(path)
+    path = Path(local_copy(path))      # a checkpoint that came with the running task
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
     try:

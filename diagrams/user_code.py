@@ -23,6 +23,7 @@ import traceback
 from pathlib import Path
 
 from reachwatch.systems.checks import clip, is_file
+from reachwatch.systems.files import local_copy
 
 
 #: Bounds on the folder of a controller's files, all of whose ``.py`` files are read
@@ -254,8 +255,8 @@ def _package_digest(spec: str, target: str, where="controller.factory"):
 
 
 def _module(spec: str, target: str, where="controller.factory"):
-    if target.endswith(".py"):
-        return _load_file(spec, target, where)
+    if target.endswith(".py"):        # its folder's copy, when it came with the task
+        return _load_file(spec, local_copy(target), where)
     try:
         module = importlib.import_module(target)
     except ImportError as e:

@@ -1,7 +1,8 @@
 """``--executor`` values: ``local`` (a spawned process pool, one worker per usable
 core), ``local:N`` (N workers), ``inline`` (this process), ``dask://HOST:PORT`` (an
 existing Dask scheduler; needs the ``distributed`` extra; its workers must have this
-process's `PINNED` versions, and may run any number of threads)."""
+process's `PINNED` versions, and may run any number of threads; each task brings the
+files its arguments name, `ShippingExecutor`)."""
 
 import contextlib
 import importlib.metadata
@@ -94,7 +95,8 @@ def make_executor(spec: str, *, connect_timeout: float = 10.0):
         except BaseException:
             client.close()
             raise
-        return client.get_executor(), lambda abort=False: client.close()
+        from .shipping_executor import ShippingExecutor
+        return ShippingExecutor(client), lambda abort=False: client.close()
     raise ValueError(f"--executor must be local, local:N, inline or dask://HOST:PORT, got "
                      f"{short(spec)}")
 

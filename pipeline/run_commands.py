@@ -18,8 +18,9 @@ def add_parsers(sub):
     add_overlay_arguments(p, "run")
     p.add_argument("--out", required=True, help="run directory (reused)")
     p.add_argument("--executor", default="local", help="local (one worker per core) | "
-                   "local:N | inline | dask://HOST:PORT (a Dask cluster must see the run "
-                   "directory at the same path)")
+                   "local:N | inline | dask://HOST:PORT (a Dask scheduler; its workers get "
+                   "the files each task names with it and return results, so they need "
+                   "neither the run directory nor this machine's paths)")
     p.add_argument("--until", choices=STAGES, help=f"last stage to run (default: report, "
                    f"or {SLICE_UNTIL} with --only)")
     p.add_argument("--sweep-cache", help="folder or fsspec URL (memory://, s3://... "

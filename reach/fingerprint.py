@@ -19,7 +19,7 @@ import os
 
 import numpy as np
 
-from reachwatch.systems.files import file_hash
+from reachwatch.systems.files import file_hash, local_copy
 
 #: Bump when what a sweep computes changes for the same inputs.
 FORMAT = 1
@@ -71,7 +71,7 @@ def canonical(value, where="factory"):
         return value if math.isfinite(value) else repr(value)
     if isinstance(value, (str, os.PathLike)):
         text = os.fspath(value)
-        if text and len(text) < 4096 and "\n" not in text and os.path.isfile(text):
+        if text and len(text) < 4096 and "\n" not in text and os.path.isfile(local_copy(text)):
             return {"file": file_hash(text, 64)}
         return text
     if isinstance(value, (np.integer, np.floating, np.bool_)):

@@ -58,8 +58,10 @@ def is_file(path) -> bool:
     """Whether ``path`` names a regular file; False, not an error, for a name the system
     refuses (too long, a NUL byte)."""
     from pathlib import Path
+
+    from .files import local_copy      # a file that came with the running task
     try:
-        return Path(path).is_file()
+        return Path(local_copy(path)).is_file()
     except (OSError, ValueError):
         return False
 

@@ -1,5 +1,8 @@
-"""Files: atomic writes (a reader never sees a half-written file) and content hashes."""
+"""Files: atomic writes (a reader never sees a half-written file), content hashes, and
+the copies of files that came with a task (`local_copy`)."""
 
+import contextlib
+import contextvars
 import hashlib
 import os
 import tempfile
@@ -16,7 +19,7 @@ def file_hash(path, length: int = 16) -> str:
     """SHA-256 (hex, first ``length`` digits) of a file's bytes, read in blocks: the
     cache key of a checkpoint, and how a stage record recognises its output files."""
     digest = hashlib.sha256()
-    with open(path, "rb") as f:
+    with open(local_copy(path), "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()[:length]
@@ -112,3 +115,34 @@ def write_location(location, data: bytes):
     fs, path = _url_fs(location)
     fs.pipe_file(path, data)
     return location
+
+
+# --- files that came with a task ------------------------------------------------------
+# A task sent to a worker on another machine (or started in another directory) carries
+# the files its arguments name (`reachwatch.diagrams.shipping`): the worker writes them
+# into a folder of its own and runs the task inside `shipped_copies`, and every place
+# that opens a file a task names (a checkpoint, a user's code, a fingerprint) asks
+# `local_copy` first, so no path of the driver's is ever opened there.
+
+_SHIPPED = contextvars.ContextVar("reachwatch_shipped_copies", default=None)
+
+
+def local_copy(path):
+    """The copy of ``path`` (as a task names it) that came with the running task, as a
+    string; ``path`` itself, unchanged, outside such a task or for a path it did not
+    bring."""
+    copies = _SHIPPED.get()
+    if not copies or not isinstance(path, (str, os.PathLike)):
+        return path
+    return copies.get(os.fspath(path), path)
+
+
+@contextlib.contextmanager
+def shipped_copies(copies: dict):
+    """Within: `local_copy` answers each path of ``copies`` (``{as named: local copy}``)
+    with its copy, in this thread and context only."""
+    token = _SHIPPED.set(dict(copies))
+    try:
+        yield
+    finally:
+        _SHIPPED.reset(token)

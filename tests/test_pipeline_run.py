@@ -348,10 +348,12 @@ def test_killed_run_resumes_at_the_failed_stage(tmp_path, monkeypatch, seed_cach
 
 def test_until_stops_and_dask_executor_runs_the_heavy_stages(tmp_path):
     distributed = pytest.importorskip("dask.distributed")
+    from reachwatch.pipeline.shipping_executor import ShippingExecutor
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                                   host="127.0.0.1", dashboard_address="127.0.0.1:0") as cluster, \
             distributed.Client(cluster) as client:
-        run, _ = _run(tmp_path, until="dataset", executor=client.get_executor())
+        # the dataset's tasks bring the ensemble's checkpoints (ShippingExecutor)
+        run, _ = _run(tmp_path, until="dataset", executor=ShippingExecutor(client))
     assert set(run.outputs) >= {"sweep", "solve", "dataset"} and "train" not in run.outputs
     assert sorted(json.loads(p.read_text())["stage"] for p in (tmp_path / "stages").iterdir()) \
         == sorted(["dataset"] + [f"{s}_{e}" for s in ("sweep", "solve") for e in

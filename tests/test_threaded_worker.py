@@ -7,6 +7,7 @@ and left nodes with wrong steering, and runs sharing one Context broke each othe
 Simulator ('Simulation time has changed since last Initialize()')."""
 
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -14,10 +15,13 @@ import time
 import numpy as np
 import pytest
 
-from reachwatch.diagrams import load_scenario
+from reachwatch.diagrams import REFERENCE_TAXINET, load_scenario
 from reachwatch.pipeline import executors
 from reachwatch.pipeline.executors import make_executor
+from reachwatch.diagrams.user_code import factory_code_hash
 from reachwatch.reach import InlineExecutor
+from reachwatch.systems.checks import is_file
+from reachwatch.systems.files import local_copy
 from reachwatch.taxi import on_runway_starts, paper_grid, sweep_closed_loop
 from reachwatch.taxi.fidelity import real_outcomes
 
@@ -37,7 +41,8 @@ def two_thread_worker(tmp_path_factory):
     with distributed.LocalCluster(n_workers=0, processes=True, host="127.0.0.1",
                                   dashboard_address="127.0.0.1:0") as cluster:
         address = cluster.scheduler_address
-        env = dict(os.environ, OMP_NUM_THREADS="1")
+        env = dict(os.environ, OMP_NUM_THREADS="1",
+                   REACHWATCH_CACHE=str(root / "worker_cache"))
         with open(log_path, "wb") as log:
             worker = subprocess.Popen(
                 [sys.executable, "-m", "distributed.cli.dask_worker", address,
@@ -97,6 +102,71 @@ def test_a_two_thread_worker_sweeps_and_runs_the_real_loop_as_this_process_does(
         assert np.array_equal(dask_runs[name], values, equal_nan=True), name
     assert runs["ticks"].min() > 1             # real runs, not starts already off the runway
     assert "eglMakeCurrent" not in log_path.read_text(errors="replace")
+
+
+FACTORY = """\
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+from pydrake.systems.sensors import ImageRgba8U
+
+import lane_vision
+
+
+class Offset(LeafSystem):
+    def __init__(self):
+        super().__init__()
+        self.DeclareAbstractInputPort("color_image", AbstractValue.Make(ImageRgba8U()))
+        self.DeclareVectorOutputPort("steering_angle", 1, self._steer)
+
+    def _steer(self, context, output):
+        output.SetAtIndex(0, lane_vision.OFFSET)
+
+
+def make(config):
+    return Offset()
+"""
+
+
+def test_a_worker_elsewhere_runs_the_relative_files_it_was_sent(tmp_path, monkeypatch,
+                                                                two_thread_worker):
+    """A controller over two files and a checkpoint, named relative to the driver's
+    directory: the worker, started in a directory of its own, has no such paths, and
+    runs them from the copies its tasks brought, as this process does."""
+    address, _ = two_thread_worker
+    driver = tmp_path / "driver"
+    (driver / "mine").mkdir(parents=True)
+    (driver / "mine" / "follower.py").write_text(FACTORY)
+    (driver / "mine" / "lane_vision.py").write_text("OFFSET = 0.05\n")
+    shutil.copyfile(REFERENCE_TAXINET, driver / "taxinet.pt")
+    monkeypatch.chdir(driver)
+    mine = load_scenario(data=SCENARIO + "controller: {factory: 'mine/follower.py:make'}\n")
+    taxinet = load_scenario(data=SCENARIO + "controller: {checkpoint: taxinet.pt}\n")
+    B = mine.environment.half_width
+    grid = paper_grid(B, (3, 3, 3))
+    starts = on_runway_starts(grid, 4, 0, half_width=B)
+    inline = sweep_closed_loop(mine, grid, cache_dir="inline_sweeps", executor=InlineExecutor(),
+                               chunk_size=9, progress=False)
+    runs = real_outcomes(taxinet, starts, grid=grid, duration=0.5, executor=InlineExecutor(),
+                         cache_dir="inline_runs", progress=False)
+    executor, close = make_executor("dask://" + address.split("://", 1)[1])
+    try:     # the worker's directory has neither: it answers from the copies it was sent
+        code = "mine/follower.py:make"
+        assert executor.submit(factory_code_hash, code).result() == factory_code_hash(code)
+        assert executor.submit(is_file, "taxinet.pt").result()
+        copy = executor.submit(local_copy, "taxinet.pt").result()
+        assert "/worker_cache/shipped/" in copy and copy.endswith("/taxinet.pt"), copy
+        dask = sweep_closed_loop(mine, grid, cache_dir="dask_sweeps", executor=executor,
+                                 chunk_size=9, progress=False)
+        dask_runs = real_outcomes(taxinet, starts, grid=grid, duration=0.5, executor=executor,
+                                  cache_dir="dask_runs", progress=False)
+    finally:
+        close()
+    assert dask.computed == inline.computed == grid.size
+    for port, table in inline.tables.items():
+        assert np.array_equal(dask.tables[port], table), port
+    assert dask_runs.computed == runs.computed == len(starts)
+    for name, values in runs.fields.items():
+        assert np.array_equal(dask_runs[name], values, equal_nan=True), name
 
 
 def test_a_worker_with_other_versions_is_refused_in_one_line(monkeypatch, two_thread_worker):

@@ -1,0 +1,206 @@
+"""Files a task names, sent with it: a worker on another machine, or started in another
+directory, reads the driver's checkpoints and a user's code from the copy that came
+with the task, never from a path of the driver's (which it may not have, or may have
+with other content: a silent wrong answer).
+
+On the driver, `pack` walks a task's arguments as a fingerprint does (dataclasses,
+`functools.partial`, lists, tuples, dicts) and collects every string that names an
+existing file (a checkpoint, say) and every ``path/to/file.py:name`` (a user's factory:
+every ``.py`` file of that file's folder goes with it, the files its fingerprint
+covers). On the worker, `run_shipped` writes each folder once, atomically, into
+``<cache>/shipped/<its digest>/`` and runs the task inside
+`reachwatch.systems.files.shipped_copies`, so that every place opening a path the task
+names (`local_copy`) opens the copy instead. A factory given as
+``package.module:function`` is not sent: install the package on every worker."""
+
+import dataclasses as dc
+import functools
+import hashlib
+import os
+import re
+import shutil
+import threading
+import uuid
+from pathlib import Path
+
+from reachwatch.systems.checks import clip
+from reachwatch.systems.files import cache_root, shipped_copies
+
+from .user_code import _source_files
+
+#: The most bytes one task may bring (its files are held in memory on both sides).
+MAX_SHIPPED_BYTES = 1 << 30
+
+_FACTORY_FILE = re.compile(r"(.+\.py):[A-Za-z_]\w*")
+
+
+@dc.dataclass(frozen=True)
+class ShippedFolder:
+    """Files sent together, as they lie relative to their folder: ``files`` is
+    ``((relative path, bytes), ...)`` sorted; ``digest`` names their content."""
+    digest: str
+    files: tuple
+
+
+@dc.dataclass(frozen=True)
+class Shipment:
+    """What a task brings: its ``folders``, and ``names``, ``((path as the task names
+    it, folder digest, relative path in that folder), ...)``."""
+    folders: tuple
+    names: tuple
+
+    @property
+    def digest(self) -> str:
+        return hashlib.sha256(repr((sorted(f.digest for f in self.folders),
+                                    self.names)).encode()).hexdigest()
+
+
+def _folder(root: Path, files) -> ShippedFolder:
+    """The folder of ``files`` (``[(relative, path)]``) read now."""
+    read, digest = [], hashlib.sha256()
+    for relative, path in sorted(files):
+        try:
+            data = Path(path).read_bytes()
+        except OSError as e:
+            raise ValueError(f"a task names {clip(path, 200)}, which cannot be read to send "
+                             f"it to the workers ({e.strerror})") from None
+        read.append((relative, data))
+        digest.update(f"{relative}\0{hashlib.sha256(data).hexdigest()}\0".encode())
+    return ShippedFolder(digest.hexdigest(), tuple(read))
+
+
+def _signature(files) -> tuple:
+    """What says the files are unchanged since they were read: each one's path, size,
+    modification time and inode."""
+    out = []
+    for _, path in files:
+        stat = os.stat(path)
+        out.append((os.fspath(path), stat.st_size, stat.st_mtime_ns, stat.st_ino))
+    return tuple(out)
+
+
+def _named(value, found: dict, depth: int = 0):
+    """Add to ``found`` (``{path as named: "file" | "code"}``) the files ``value`` names."""
+    if depth > 12 or value is None or isinstance(value, (bool, int, float, bytes)):
+        return
+    if isinstance(value, (str, os.PathLike)):
+        text = os.fspath(value)
+        if not isinstance(text, str) or not text or len(text) >= 4096 or "\n" in text:
+            return
+        code = _FACTORY_FILE.fullmatch(text)
+        if code is not None and os.path.isfile(code.group(1)):
+            found[code.group(1)] = "code"
+        elif os.path.isfile(text):
+            found.setdefault(text, "file")
+        return
+    if dc.is_dataclass(value) and not isinstance(value, type):
+        for field in dc.fields(value):
+            if field.compare:           # not a cache of live objects (a renderer)
+                _named(getattr(value, field.name), found, depth + 1)
+    elif isinstance(value, functools.partial):
+        _named(value.args, found, depth + 1)
+        _named(value.keywords, found, depth + 1)
+    elif isinstance(value, (list, tuple, set, frozenset)):
+        for item in value:
+            _named(item, found, depth + 1)
+    elif isinstance(value, dict):
+        for item in value.values():
+            _named(item, found, depth + 1)
+
+
+class Packer:
+    """Builds the `Shipment` of a task's arguments; a file or folder unchanged since it
+    was last read (same size, time and inode) is not read again."""
+
+    def __init__(self):
+        self._read = {}         # path as named -> (signature, folder, relative)
+        self._lock = threading.Lock()
+
+    def _entry(self, named: str, kind: str):
+        path = Path(named)
+        if kind == "code":      # the factory file's folder, as its fingerprint reads it
+            files = _source_files(path.parent, where=f"the code of {clip(named, 200)}")
+        else:
+            files = [(path.name, path)]
+        signature = _signature(files)
+        with self._lock:
+            kept = self._read.get(named)
+        if kept is not None and kept[0] == signature:
+            return kept[1], kept[2]
+        folder = _folder(path.parent, files)
+        entry = (signature, folder, path.name)
+        with self._lock:
+            self._read[named] = entry
+        return folder, path.name
+
+    def pack(self, *values):
+        """The `Shipment` of the files ``values`` name; None when they name none."""
+        found = {}
+        _named(values, found)
+        if not found:
+            return None
+        folders, names, size = {}, [], 0
+        for named in sorted(found):
+            folder, relative = self._entry(named, found[named])
+            if folder.digest not in folders:
+                folders[folder.digest] = folder
+                size += sum(len(data) for _, data in folder.files)
+            names.append((named, folder.digest, relative))
+        if size > MAX_SHIPPED_BYTES:
+            raise ValueError(f"a task names {size >> 20} MiB of files to send to the workers "
+                             f"(at most {MAX_SHIPPED_BYTES >> 20} MiB): "
+                             f"{clip(', '.join(sorted(found)), 300)}")
+        return Shipment(tuple(folders[d] for d in sorted(folders)), tuple(names))
+
+
+def pack(*values):
+    """The `Shipment` of the files ``values`` name (see the module); None for none."""
+    return Packer().pack(*values)
+
+
+_UNPACKED = set()               # folder digests written and checked by this process
+_UNPACK_LOCK = threading.Lock()
+
+
+def _folder_digest(base: Path) -> str:
+    digest = hashlib.sha256()
+    for path in sorted(p for p in base.rglob("*") if p.is_file()):
+        relative = path.relative_to(base).as_posix()
+        digest.update(f"{relative}\0{hashlib.sha256(path.read_bytes()).hexdigest()}\0".encode())
+    return digest.hexdigest()
+
+
+def unpack(shipment: Shipment, root=None) -> dict:
+    """Write ``shipment``'s folders under ``root`` (default ``<cache>/shipped``), each
+    once per content: into a temporary folder renamed into place, so a reader sees a
+    whole folder or none; one found already is checked against its digest once per
+    process and written again when it differs. Returns ``{path as named: its copy}``."""
+    root = Path(root) if root is not None else cache_root() / "shipped"
+    with _UNPACK_LOCK:
+        for folder in shipment.folders:
+            target = root / folder.digest
+            if (root, folder.digest) in _UNPACKED:
+                continue
+            if target.is_dir() and _folder_digest(target) != folder.digest:
+                shutil.rmtree(target, ignore_errors=True)         # edited or torn: again
+            if not target.is_dir():
+                staging = root / f".{folder.digest}.{uuid.uuid4().hex}"
+                try:
+                    for relative, data in folder.files:
+                        path = staging / relative
+                        path.parent.mkdir(parents=True, exist_ok=True)
+                        path.write_bytes(data)
+                    os.rename(staging, target)
+                except OSError:
+                    shutil.rmtree(staging, ignore_errors=True)
+                    if not target.is_dir():       # not another process's copy: a real error
+                        raise
+            _UNPACKED.add((root, folder.digest))
+    return {named: str(root / digest / relative) for named, digest, relative in shipment.names}
+
+
+def run_shipped(shipment: Shipment, fn, /, *args, **kwargs):
+    """``fn(*args, **kwargs)`` with the files of ``shipment`` in place of the paths the
+    arguments name (a worker's side of `pack`)."""
+    with shipped_copies(unpack(shipment)):
+        return fn(*args, **kwargs)

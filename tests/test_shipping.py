@@ -1,0 +1,114 @@
+"""Files a task names travel with it (`reachwatch.diagrams.shipping`): a checkpoint and
+a user's controller over two files are read from the copy that came with the task, so
+the task runs after the driver's files are gone, and an edit sends new content."""
+
+import shutil
+
+import pytest
+
+from reachwatch.diagrams import REFERENCE_TAXINET, load_checkpoint, load_scenario
+from reachwatch.diagrams.controller import make_controller
+from reachwatch.diagrams.shipping import MAX_SHIPPED_BYTES, Packer, pack, run_shipped, unpack
+from reachwatch.systems.checks import is_file
+from reachwatch.systems.files import local_copy
+
+FACTORY = """\
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+from pydrake.systems.sensors import ImageRgba8U
+
+import lane_vision
+
+
+class Offset(LeafSystem):
+    def __init__(self):
+        super().__init__()
+        self.DeclareAbstractInputPort("color_image", AbstractValue.Make(ImageRgba8U()))
+        self.DeclareVectorOutputPort("steering_angle", 1, self._steer)
+
+    def _steer(self, context, output):
+        output.SetAtIndex(0, lane_vision.OFFSET)
+
+
+def make(config):
+    return Offset()
+"""
+
+
+@pytest.fixture(autouse=True)
+def own_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("REACHWATCH_CACHE", str(tmp_path / "worker_cache"))
+
+
+def _controller_files(folder, offset):
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "follower.py").write_text(FACTORY)
+    (folder / "lane_vision.py").write_text(f"OFFSET = {offset}\n")
+    (folder / "notes.txt").write_text("not code: not sent")
+    return f"{folder / 'follower.py'}:make"
+
+
+def _offset(scenario):
+    from reachwatch.diagrams.controller import CONTROL_OUTPUT
+    system = make_controller(scenario.controller)
+    return float(system.GetOutputPort(CONTROL_OUTPUT).Eval(system.CreateDefaultContext())[0])
+
+
+def _checkpoint_kind(scenario):
+    assert is_file(scenario.controller.checkpoint)
+    return load_checkpoint(scenario.controller.checkpoint, kind="taxinet")["kind"]
+
+
+def test_a_task_runs_on_the_files_it_brought_after_the_drivers_are_gone(tmp_path):
+    factory = _controller_files(tmp_path / "driver" / "mine", "0.25")
+    checkpoint = tmp_path / "driver" / "taxinet.pt"
+    shutil.copyfile(REFERENCE_TAXINET, checkpoint)
+    scenario = load_scenario(data=f"controller: {{factory: '{factory}', "
+                                  f"checkpoint: '{checkpoint}'}}\n")
+    shipment = pack(scenario)
+    named = {name for name, _, _ in shipment.names}
+    assert named == {str(tmp_path / "driver" / "mine" / "follower.py"), str(checkpoint)}
+    sent = {relative for folder in shipment.folders for relative, _ in folder.files}
+    assert sent == {"follower.py", "lane_vision.py", "taxinet.pt"}     # no notes.txt
+    shutil.rmtree(tmp_path / "driver")
+    assert run_shipped(shipment, _offset, scenario) == 0.25
+    assert run_shipped(shipment, _checkpoint_kind, scenario) == "taxinet"
+    assert local_copy(str(checkpoint)) == str(checkpoint)      # outside the task: as named
+    with pytest.raises(ValueError, match="file not found"):
+        _offset(scenario)
+
+
+def test_an_edited_helper_is_sent_again_and_a_tampered_copy_rewritten(tmp_path):
+    factory = _controller_files(tmp_path / "mine", "0.25")
+    scenario = load_scenario(data=f"controller: {{factory: '{factory}'}}\n")
+    packer = Packer()
+    first = packer.pack(scenario)
+    assert packer.pack(scenario) == first
+    (tmp_path / "mine" / "lane_vision.py").write_text("OFFSET = 0.5\n")
+    second = packer.pack(scenario)
+    assert second.digest != first.digest
+    assert run_shipped(first, _offset, scenario) == 0.25
+    assert run_shipped(second, _offset, scenario) == 0.5
+    copies = tmp_path / "copies"
+    unpack(first, copies)
+    copy = copies / first.folders[0].digest / "lane_vision.py"
+    copy.write_text("OFFSET = 9.0\n")              # a copy edited by hand
+    fresh = tmp_path / "other_process"
+    shutil.copytree(copies, fresh)
+    import reachwatch.diagrams.shipping as shipping
+    shipping._UNPACKED.clear()                     # as a new worker process finds it
+    where = unpack(first, fresh)
+    assert (fresh / first.folders[0].digest / "lane_vision.py").read_text() == "OFFSET = 0.25\n"
+    assert set(where) == {str(tmp_path / "mine" / "follower.py")}
+
+
+def test_plain_values_bring_nothing_and_too_much_is_one_line(tmp_path, monkeypatch):
+    assert pack(1, "not a file", {"a": [2.0, "KMWH"]}) is None
+    big = tmp_path / "big.pt"
+    big.write_bytes(b"0" * 2048)
+    import reachwatch.diagrams.shipping as shipping
+    monkeypatch.setattr(shipping, "MAX_SHIPPED_BYTES", 1024)
+    with pytest.raises(ValueError) as error:
+        pack({"checkpoint": str(big)})
+    assert "\n" not in str(error.value) and "big.pt" in str(error.value)
+    assert MAX_SHIPPED_BYTES >= 1 << 20
