@@ -1,8 +1,8 @@
 """``--executor`` values: ``local`` (a spawned process pool, one worker per usable
 core), ``local:N`` (N workers), ``inline`` (this process), ``dask://HOST:PORT`` (an
 existing Dask scheduler; needs the ``distributed`` extra; its workers must have this
-process's `PINNED` versions, and may run any number of threads; each task brings the
-files its arguments name, `ShippingExecutor`)."""
+process's `PINNED` versions and render stack, and may run any number of threads; each
+task brings the files its arguments name, `ShippingExecutor`)."""
 
 import contextlib
 import importlib.metadata
@@ -47,6 +47,36 @@ def check_worker_versions(client, spec: str = "dask"):
             raise ValueError(f"--executor {spec}: the worker at {worker} has "
                              f"{_describe(versions)}, this process {_describe(mine)}; "
                              f"install the same versions on every worker")
+    check_worker_render_stacks(client, spec)
+
+
+def _worker_render_stack() -> dict:
+    """A worker's `render_stack` (imported there: the worker's own, whatever this
+    process's module holds)."""
+    from reachwatch.diagrams.render_stack import render_stack
+    return render_stack()
+
+
+def _stack_text(stack) -> str:
+    return f"probe {stack['probe'][:12]} with {', '.join(stack['libraries']) or 'no GL library seen'}"
+
+
+def check_worker_render_stacks(client, spec: str = "dask"):
+    """Raise a one-line ValueError when a worker now connected to ``client`` renders
+    the probe scene (`reachwatch.diagrams.render_stack`) to other pixels, or with other
+    GL libraries, than this process: its sweeps and real-loop runs would be cached under
+    keys this process computes, for images it would not render."""
+    from reachwatch.diagrams.render_stack import render_stack
+    mine = render_stack()
+    answers = client.run(_worker_render_stack, on_error="return")
+    for worker, theirs in sorted(answers.items()):
+        if not isinstance(theirs, dict):
+            raise ValueError(f"--executor {spec}: the worker at {worker} cannot render "
+                             f"({short(theirs, 200)}); install Mesa EGL or a GPU driver there")
+        if theirs != mine:
+            raise ValueError(f"--executor {spec}: the worker at {worker} renders with "
+                             f"{_stack_text(theirs)}, this process with {_stack_text(mine)}; "
+                             f"run the driver and every worker on the same GL driver")
 
 
 #: ``HOST:PORT`` of a Dask scheduler: a host name or IPv4 address, or an IPv6 one in

@@ -39,8 +39,16 @@ def _versions() -> dict:
     return out
 
 
-#: What every fingerprint carries besides `FORMAT` (see `_versions`).
+#: What every fingerprint carries besides `FORMAT` (see `_versions`) and the render
+#: stack (`reachwatch.diagrams.render_stack`).
 STACK = _versions()
+
+
+def _stack() -> dict:
+    """`STACK` and this process's render stack (its probe image is rendered once, at
+    the first fingerprint): results rendered by another GL driver are another key."""
+    from reachwatch.diagrams.render_stack import render_stack
+    return {**STACK, "render": render_stack()}
 
 
 class Unfingerprintable(ValueError):
@@ -112,6 +120,6 @@ def canonical(value, where="factory"):
 
 def fingerprint(*parts) -> str:
     """SHA-256 (hex) of ``parts`` reduced by `canonical`, with the format number and the
-    software stack (`STACK`)."""
-    text = json.dumps([FORMAT, STACK] + [canonical(p) for p in parts], sort_keys=True)
+    software stack (`STACK` and the render stack, `_stack`)."""
+    text = json.dumps([FORMAT, _stack()] + [canonical(p) for p in parts], sort_keys=True)
     return _bytes_digest(text.encode())

@@ -366,3 +366,24 @@ def test_a_cache_filled_under_another_software_stack_is_not_reused(monkeypatch):
     after = (fp.fingerprint(factory), sweep_key(factory, grid, probe),
              outcomes_key(rollout, np.zeros((2, 2))))
     assert all(a != b for a, b in zip(before, after))
+
+
+def test_a_cache_filled_under_another_render_stack_is_not_reused(monkeypatch):
+    """Fingerprints carry the render stack: the probe scene's pixels and the GL
+    libraries that drew them (another driver may draw one scene otherwise)."""
+    import sys
+
+    from reachwatch.diagrams import render_stack as stack_module
+    fp = sys.modules["reachwatch.reach.fingerprint"]
+    stack = stack_module.render_stack()
+    assert len(stack["probe"]) == 32 and stack == stack_module.render_stack()
+    size = stack_module.PROBE_SIZE         # the probe draws something: lit, shaded shapes
+    image = np.frombuffer(stack_module._probe_image(), np.uint8).reshape(size, size, 4)
+    drawn = np.abs(image[..., :3].astype(int) - image[0, 0, :3]).sum(-1) > 30
+    assert 0.05 < drawn.mean() < 0.5 and len(np.unique(image[drawn][:, :3], axis=0)) > 20
+    factory = functools.partial(dict, a=1)
+    before = fp.fingerprint(factory)
+    assert before == fp.fingerprint(factory)
+    for other in ({**stack, "probe": "0" * 32}, {**stack, "libraries": ["libEGL_nvidia.so.0"]}):
+        monkeypatch.setattr(stack_module, "render_stack", lambda other=other: other)
+        assert fp.fingerprint(factory) != before

@@ -179,3 +179,20 @@ def test_a_worker_with_other_versions_is_refused_in_one_line(monkeypatch, two_th
     message = str(error.value)
     assert "\n" not in message and "drake 1" in message and "drake 0.0.0" in message
     assert "install the same versions on every worker" in message
+
+
+def test_a_worker_that_renders_otherwise_is_refused_in_one_line(monkeypatch, two_thread_worker):
+    """The worker renders the probe scene to the pixels this process does (one machine);
+    told that this process renders otherwise, the driver refuses the worker."""
+    address, _ = two_thread_worker
+    from reachwatch.diagrams import render_stack as stack_module
+    real = stack_module.render_stack()
+    close = make_executor("dask://" + address.split("://", 1)[1])[1]
+    close()                                       # the same stack: accepted
+    monkeypatch.setattr(stack_module, "render_stack",
+                        lambda: {**real, "probe": "0" * 32, "libraries": ["libnvidia-glcore.so.1"]})
+    with pytest.raises(ValueError) as error:
+        make_executor("dask://" + address.split("://", 1)[1])
+    message = str(error.value)
+    assert "\n" not in message and "renders with probe " in message
+    assert "libnvidia-glcore" in message and "same GL driver" in message
