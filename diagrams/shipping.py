@@ -20,6 +20,7 @@ import os
 import re
 import shutil
 import threading
+import time
 import uuid
 from pathlib import Path
 
@@ -69,13 +70,23 @@ def _folder(root: Path, files) -> ShippedFolder:
     return ShippedFolder(digest.hexdigest(), tuple(read))
 
 
+#: A file changed less than this long before it was read may change again within the
+#: same timestamp (a coarse clock): it is read again at the next task (as git does).
+RACY_SECONDS = 2.0
+
+
 def _signature(files) -> tuple:
     """What says the files are unchanged since they were read: each one's path, size,
-    modification time and inode."""
-    out = []
+    inode, modification and change times (the change time moves at every write and
+    cannot be set back, as ``cp -p`` or ``touch -d`` set a modification time); None
+    when one changed too recently to tell (`RACY_SECONDS`)."""
+    out, now = [], time.time_ns()
     for _, path in files:
         stat = os.stat(path)
-        out.append((os.fspath(path), stat.st_size, stat.st_mtime_ns, stat.st_ino))
+        if now - max(stat.st_mtime_ns, stat.st_ctime_ns) < RACY_SECONDS * 1e9:
+            return None
+        out.append((os.fspath(path), stat.st_size, stat.st_ino, stat.st_mtime_ns,
+                    stat.st_ctime_ns))
     return tuple(out)
 
 
@@ -117,15 +128,16 @@ class Packer:
         self._lock = threading.Lock()
 
     def _entry(self, named: str, kind: str):
-        path = Path(named)
-        if kind == "code":      # the factory file's folder, as its fingerprint reads it
+        if kind == "code":      # the factory file's folder, as its loader and fingerprint
+            path = Path(named).resolve()        # read it: a link's target's folder
             files = _source_files(path.parent, where=f"the code of {clip(named, 200)}")
         else:
+            path = Path(named)
             files = [(path.name, path)]
         signature = _signature(files)
         with self._lock:
             kept = self._read.get(named)
-        if kept is not None and kept[0] == signature:
+        if kept is not None and signature is not None and kept[0] == signature:
             return kept[1], kept[2]
         folder = _folder(path.parent, files)
         entry = (signature, folder, path.name)
@@ -158,43 +170,63 @@ def pack(*values):
     return Packer().pack(*values)
 
 
-_UNPACKED = set()               # folder digests written and checked by this process
+_UNPACKED = set()               # (root, folder digest) written and checked by this process
 _UNPACK_LOCK = threading.Lock()
 
 
-def _folder_digest(base: Path) -> str:
+def _copy_digest(target: Path, folder: ShippedFolder) -> str:
+    """The digest of the copy at ``target`` of ``folder``'s files (those alone: a file
+    the code wrote beside them is not its content); '' when one is missing."""
     digest = hashlib.sha256()
-    for path in sorted(p for p in base.rglob("*") if p.is_file()):
-        relative = path.relative_to(base).as_posix()
-        digest.update(f"{relative}\0{hashlib.sha256(path.read_bytes()).hexdigest()}\0".encode())
+    for relative, _ in folder.files:
+        try:
+            data = (target / relative).read_bytes()
+        except OSError:
+            return ""
+        digest.update(f"{relative}\0{hashlib.sha256(data).hexdigest()}\0".encode())
     return digest.hexdigest()
+
+
+def _write(root: Path, folder: ShippedFolder):
+    """Write ``folder`` to ``root/<digest>`` through a temporary folder renamed into
+    place; a copy there that differs (edited, torn) is first renamed aside, so no
+    reader sees a folder half removed."""
+    target = root / folder.digest
+    if target.is_dir() and _copy_digest(target, folder) != folder.digest:
+        aside = root / f".{folder.digest}.stale.{uuid.uuid4().hex}"
+        try:
+            os.rename(target, aside)
+        except OSError:
+            pass                                 # another process moved it first
+        shutil.rmtree(aside, ignore_errors=True)
+    if target.is_dir():
+        return
+    staging = root / f".{folder.digest}.{uuid.uuid4().hex}"
+    try:
+        for relative, data in folder.files:
+            path = staging / relative
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(data)
+        os.rename(staging, target)
+    except OSError:
+        shutil.rmtree(staging, ignore_errors=True)
+        if not target.is_dir():           # not another process's copy: a real error
+            raise
 
 
 def unpack(shipment: Shipment, root=None) -> dict:
     """Write ``shipment``'s folders under ``root`` (default ``<cache>/shipped``), each
-    once per content: into a temporary folder renamed into place, so a reader sees a
-    whole folder or none; one found already is checked against its digest once per
-    process and written again when it differs. Returns ``{path as named: its copy}``."""
+    once per content (`_write`); a copy found there is checked against its digest once
+    per process. Returns ``{path as named: its copy}``."""
     root = Path(root) if root is not None else cache_root() / "shipped"
     with _UNPACK_LOCK:
         for folder in shipment.folders:
-            target = root / folder.digest
-            if (root, folder.digest) in _UNPACKED:
+            if (root, folder.digest) in _UNPACKED and (root / folder.digest).is_dir():
                 continue
-            if target.is_dir() and _folder_digest(target) != folder.digest:
-                shutil.rmtree(target, ignore_errors=True)         # edited or torn: again
-            if not target.is_dir():
-                staging = root / f".{folder.digest}.{uuid.uuid4().hex}"
-                try:
-                    for relative, data in folder.files:
-                        path = staging / relative
-                        path.parent.mkdir(parents=True, exist_ok=True)
-                        path.write_bytes(data)
-                    os.rename(staging, target)
-                except OSError:
-                    shutil.rmtree(staging, ignore_errors=True)
-                    if not target.is_dir():       # not another process's copy: a real error
-                        raise
+            _write(root, folder)
+            if _copy_digest(root / folder.digest, folder) != folder.digest:
+                raise OSError(f"the copy of shipped files at {root / folder.digest} does not "
+                              f"match what was sent; another process is changing it")
             _UNPACKED.add((root, folder.digest))
     return {named: str(root / digest / relative) for named, digest, relative in shipment.names}
 

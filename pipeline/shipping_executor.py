@@ -6,6 +6,9 @@ from distributed.cfexecutor import ClientExecutor
 
 from reachwatch.diagrams.shipping import Packer, run_shipped
 
+#: Shipments whose futures the executor holds (a task in flight holds its own too).
+KEPT = 8
+
 
 class ShippingExecutor(ClientExecutor):
     """A Dask client's executor whose tasks bring the files their arguments name
@@ -17,11 +20,19 @@ class ShippingExecutor(ClientExecutor):
         super().__init__(client, **kwargs)
         self._packer, self._sent = Packer(), {}
 
+    def _scattered(self, shipment):
+        """The cluster's future of ``shipment``: scattered once, again when the worker
+        holding it was lost; the `KEPT` most recently used are held."""
+        sent = self._sent.pop(shipment.digest, None)
+        if sent is None or sent.status != "finished":
+            sent = self._client.scatter(shipment, hash=False)
+        self._sent[shipment.digest] = sent
+        while len(self._sent) > KEPT:            # the oldest first (dicts keep order)
+            self._sent.pop(next(iter(self._sent)))
+        return sent
+
     def submit(self, fn, /, *args, **kwargs):
         shipment = self._packer.pack(fn, args, kwargs)
         if shipment is None:
             return super().submit(fn, *args, **kwargs)
-        sent = self._sent.get(shipment.digest)
-        if sent is None:
-            sent = self._sent[shipment.digest] = self._client.scatter(shipment, hash=False)
-        return super().submit(run_shipped, sent, fn, *args, **kwargs)
+        return super().submit(run_shipped, self._scattered(shipment), fn, *args, **kwargs)

@@ -102,6 +102,37 @@ def test_an_edited_helper_is_sent_again_and_a_tampered_copy_rewritten(tmp_path):
     assert set(where) == {str(tmp_path / "mine" / "follower.py")}
 
 
+def test_a_same_size_edit_with_its_old_time_put_back_is_sent(tmp_path, monkeypatch):
+    """The packer reads a file again when its change time moved, though its size and
+    modification time are what they were (``cp -p``, ``touch -d``)."""
+    import os
+
+    import reachwatch.diagrams.shipping as shipping
+    monkeypatch.setattr(shipping, "RACY_SECONDS", 0.0)
+    checkpoint = tmp_path / "model.pt"
+    checkpoint.write_bytes(b"AAA")
+    stat = checkpoint.stat()
+    os.utime(checkpoint, ns=(stat.st_atime_ns, stat.st_mtime_ns - 10**10))  # older
+    stat = checkpoint.stat()
+    packer = Packer()
+    first = packer.pack(str(checkpoint))
+    checkpoint.write_bytes(b"BBB")
+    os.utime(checkpoint, ns=(stat.st_atime_ns, stat.st_mtime_ns))           # put back
+    assert (checkpoint.stat().st_mtime_ns, checkpoint.stat().st_size) == (
+        stat.st_mtime_ns, stat.st_size)
+    second = packer.pack(str(checkpoint))
+    assert second.folders[0].files == (("model.pt", b"BBB"),) and second != first
+
+
+def test_a_file_changed_just_now_is_read_again_at_every_task(tmp_path):
+    checkpoint = tmp_path / "model.pt"
+    checkpoint.write_bytes(b"AAA")
+    packer = Packer()
+    packer.pack(str(checkpoint))
+    checkpoint.write_bytes(b"BBB")          # within the same clock tick, the same size
+    assert packer.pack(str(checkpoint)).folders[0].files == (("model.pt", b"BBB"),)
+
+
 def test_plain_values_bring_nothing_and_too_much_is_one_line(tmp_path, monkeypatch):
     assert pack(1, "not a file", {"a": [2.0, "KMWH"]}) is None
     big = tmp_path / "big.pt"
