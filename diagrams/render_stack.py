@@ -4,38 +4,52 @@ driver, another Mesa) may render one scene to different pixels, so every fingerp
 carries `render_stack` (a cache filled on one is not reused on the other) and a Dask
 worker whose stack differs from the driver's is refused before any work."""
 
-import functools
 import hashlib
 import os
+import threading
 
 #: The probe image's size (pixels); small, so the probe costs one render's setup.
 PROBE_SIZE = 48
 
-#: Shared libraries, by the start of their file name, that draw the image: the EGL and
-#: GLX vendor libraries and the drivers (Mesa's gallium and DRI drivers, NVIDIA's),
-#: whose file names carry their versions. Not the dispatchers (libglvnd's libGL,
-#: libEGL), which draw nothing, nor LLVM, which other libraries (triton) may load too.
-RENDER_LIBRARIES = ("libEGL_", "libGLX_", "libgallium", "libnvidia-egl", "libnvidia-glcore",
-                    "libnvidia-gl", "swrast_dri", "kms_swrast_dri", "radeonsi_dri",
-                    "iris_dri", "zink_dri", "nouveau_dri", "virtio_gpu_dri")
+#: The drivers that draw the image, by the start of their file name: Mesa's gallium
+#: and DRI drivers, NVIDIA's GL cores. Each one loaded is named in the render stack
+#: with a hash of its file (a Mesa build's file names carry no version); Mesa's
+#: llvmpipe also by the LLVM it compiles with (``libLLVM-15``: named, not hashed).
+#: Not the dispatchers (libglvnd's libGL, libEGL) nor the EGL or GLX vendor front ends,
+#: which draw nothing and which a process may load either or both of.
+RENDER_DRIVERS = ("libgallium", "swrast_dri", "kms_swrast_dri", "radeonsi_dri", "iris_dri",
+                  "zink_dri", "nouveau_dri", "virtio_gpu_dri", "libnvidia-glcore",
+                  "libnvidia-eglcore")
+COMPILERS = ("libLLVM",)
 
 
-def _probe_image():
+def _probe_image(*, shadows: bool = False):
     """The RGBA bytes of a fixed scene (a box and a sphere, lit and coloured) rendered
-    by a fresh `RenderEngineVtk`."""
+    by a fresh `RenderEngineVtk`; with ``shadows``, by one that casts shadows in
+    physically based shading, as a scenario with ``shadows`` renders."""
     import numpy as np
-    from pydrake.geometry import (Box, ClippingRange, ColorRenderCamera, GeometryInstance, MakePhongIllustrationProperties,
+    from pydrake.geometry import (Box, ClippingRange, ColorRenderCamera, GeometryInstance,
+                                  LightParameter, MakePhongIllustrationProperties,
                                   MakeRenderEngineVtk, PerceptionProperties, RenderCameraCore,
                                   RenderEngineVtkParams, RenderLabel, Rgba, SceneGraph,
                                   Sphere)
     from pydrake.math import RigidTransform, RollPitchYaw
     from pydrake.systems.sensors import CameraInfo
 
+    params = RenderEngineVtkParams()
+    if shadows:
+        params.lights = [LightParameter(type="directional", frame="world",
+                                        direction=[0.4, 0.3, -1.0], color=Rgba(1, 1, 1),
+                                        intensity=1.0)]
+        params.cast_shadows = True
+        params.shadow_map_size = 256
+        params.force_to_pbr = True
     scene_graph = SceneGraph()
-    scene_graph.AddRenderer("probe", MakeRenderEngineVtk(RenderEngineVtkParams()))
+    scene_graph.AddRenderer("probe", MakeRenderEngineVtk(params))
     source = scene_graph.RegisterSource("render_stack")
     shapes = [(Box(1.0, 0.6, 0.4), [0.0, 0.0, 0.0], Rgba(0.8, 0.3, 0.2, 1.0)),
-              (Sphere(0.35), [0.7, 0.3, 0.2], Rgba(0.2, 0.5, 0.9, 1.0))]
+              (Sphere(0.35), [0.7, 0.3, 0.2], Rgba(0.2, 0.5, 0.9, 1.0)),
+              (Box(4.0, 4.0, 0.02), [0.0, 0.0, -0.21], Rgba(0.6, 0.6, 0.55, 1.0))]
     for i, (shape, position, color) in enumerate(shapes):
         instance = GeometryInstance(RigidTransform(position), shape, f"shape{i}")
         perception = PerceptionProperties()
@@ -49,35 +63,61 @@ def _probe_image():
     core = RenderCameraCore("probe", CameraInfo(PROBE_SIZE, PROBE_SIZE, 0.9),
                             ClippingRange(0.1, 10.0), RigidTransform())
     camera = ColorRenderCamera(core, False)
-    # the camera looks along its z axis, from above and in front, at the two shapes
+    # the camera looks along its z axis, from above and in front, at the shapes
     pose = RigidTransform(RollPitchYaw(-2.0, 0.0, 0.4), [1.2, -2.6, 1.6])
     image = query.RenderColorImage(camera, scene_graph.world_frame_id(), pose)
     return np.asarray(image.data).tobytes()
 
 
-def _loaded_libraries() -> list:
-    """File names of the rendering libraries (`RENDER_LIBRARIES`) mapped into this
-    process, sorted; empty where ``/proc/self/maps`` is not readable."""
+def _file_digest(path: str) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 22), b""):
+            digest.update(block)
+    return digest.hexdigest()[:16]
+
+
+def _loaded_libraries() -> dict:
+    """``{file name: hash of the file}`` of the drivers (`RENDER_DRIVERS`) mapped into
+    this process, and ``{file name: ""}`` of the `COMPILERS`; empty where
+    ``/proc/self/maps`` is not readable."""
     try:
         with open("/proc/self/maps") as maps:
-            names = {os.path.basename(line.split()[-1]) for line in maps
-                     if len(line.split()) >= 6 and "/" in line.split()[-1]}
+            paths = {line.split()[-1] for line in maps
+                     if len(line.split()) >= 6 and line.split()[-1].startswith("/")}
     except OSError:
-        return []
-    return sorted(n for n in names if n.startswith(RENDER_LIBRARIES))
+        return {}
+    found = {}
+    for path in sorted(paths):
+        name = os.path.basename(path)
+        if name.startswith(RENDER_DRIVERS):
+            try:
+                found[name] = _file_digest(path)
+            except OSError:
+                found[name] = "unreadable"
+        elif name.startswith(COMPILERS):
+            found[name] = ""
+    return found
 
 
-@functools.lru_cache(maxsize=None)
+_LOCK = threading.Lock()
+_STACK = []
+
+
 def render_stack() -> dict:
-    """``{"probe": SHA-256 of the probe scene's pixels, "libraries": the rendering
-    libraries loaded to draw it}``, once per process. A probe that cannot render raises
-    a one-line RuntimeError: reachwatch renders every label it makes."""
-    try:
-        pixels = _probe_image()
-    except Exception as e:
-        raise RuntimeError(f"rendering a probe image failed ({type(e).__name__}: "
-                           f"{str(e).splitlines()[0][:200] if str(e) else ''}); reachwatch "
-                           f"needs Drake's VTK renderer (headless: Mesa EGL or a GPU "
-                           f"driver)") from None
-    return {"probe": hashlib.sha256(pixels).hexdigest()[:32],
-            "libraries": _loaded_libraries()}
+    """``{"probe": SHA-256 of the probe scene's pixels, plain and with shadows,
+    "libraries": the drivers that drew them (`_loaded_libraries`)}``, once per process.
+    A probe that cannot render raises a one-line RuntimeError: reachwatch renders every
+    label it makes."""
+    with _LOCK:
+        if not _STACK:
+            try:
+                pixels = _probe_image() + _probe_image(shadows=True)
+            except Exception as e:
+                raise RuntimeError(f"rendering a probe image failed ({type(e).__name__}: "
+                                   f"{str(e).splitlines()[0][:200] if str(e) else ''}); "
+                                   f"reachwatch needs Drake's VTK renderer (headless: Mesa "
+                                   f"EGL or a GPU driver)") from None
+            _STACK.append({"probe": hashlib.sha256(pixels).hexdigest()[:32],
+                           "libraries": _loaded_libraries()})
+        return dict(_STACK[0])

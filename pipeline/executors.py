@@ -58,7 +58,9 @@ def _worker_render_stack() -> dict:
 
 
 def _stack_text(stack) -> str:
-    return f"probe {stack['probe'][:12]} with {', '.join(stack['libraries']) or 'no GL library seen'}"
+    libraries = ", ".join(f"{name}{' ' + digest[:8] if digest else ''}"
+                          for name, digest in sorted(stack["libraries"].items()))
+    return f"probe {stack['probe'][:12]} with {libraries or 'no GL driver seen'}"
 
 
 def check_worker_render_stacks(client, spec: str = "dask"):

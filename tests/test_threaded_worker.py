@@ -190,7 +190,8 @@ def test_a_worker_that_renders_otherwise_is_refused_in_one_line(monkeypatch, two
     close = make_executor("dask://" + address.split("://", 1)[1])[1]
     close()                                       # the same stack: accepted
     monkeypatch.setattr(stack_module, "render_stack",
-                        lambda: {**real, "probe": "0" * 32, "libraries": ["libnvidia-glcore.so.1"]})
+                        lambda: {**real, "probe": "0" * 32,
+                                 "libraries": {"libnvidia-glcore.so.550": "0" * 16}})
     with pytest.raises(ValueError) as error:
         make_executor("dask://" + address.split("://", 1)[1])
     message = str(error.value)
