@@ -9,6 +9,7 @@ and resumes its chunked work when it was killed."""
 import time
 
 from reachwatch.systems.checks import short
+from reachwatch.systems.files import is_url
 
 from .checked_page import write_checked_page
 from .console import log, progress_enabled
@@ -16,6 +17,7 @@ from .executors import open_executor
 from .fidelity_stages import check_downtrack_room, stage_fidelity
 from .online_stages import stage_guard, stage_incremental
 from .report import write_report
+from .run_mirror import RunMirror
 from .spec import RunSpec, digest
 from .brt_stages import stage_solve, stage_sweep
 from .dataset_stages import stage_dataset
@@ -32,7 +34,7 @@ SLICE_UNTIL = "fidelity"
 
 
 def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=True,
-                 log=log.info, sweep_cache=None, only=None) -> Run:
+                 log=log.info, sweep_cache=None, only=None, after_stage=None) -> Run:
     """Run (or resume) every stage up to ``until``; returns the `Run` with its records.
 
     ``only`` (environment names) runs a slice: the per-environment stages (sweep,
@@ -41,7 +43,8 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     can so run in pieces, on machines that share nothing, and its per-environment
     figures be read as they come: a slice up to fidelity writes ``checked.html`` (and
     ``.md``), the fidelity section over every environment checked so far in ``out``
-    (`write_checked_page`)."""
+    (`write_checked_page`). ``after_stage(name)`` is called after each stage (a
+    `RunMirror` pushes the run directory to its URL there)."""
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got '{until}'")
     spec.validate()
@@ -80,6 +83,8 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     }
     for name in STAGES[:STAGES.index(until) + 1]:
         run.outputs[name] = steps[name]()
+        if after_stage is not None:
+            after_stage(name)
     if only is not None and until == SLICE_UNTIL and spec.fidelity.starts:
         page = write_checked_page(run)
         log(f"checked so far: {len(page['checks'])} of the run's "
@@ -113,12 +118,35 @@ def run_command(args):
     spec = scenario_from_args(args, schema=RunSpec, root="run", controller=True)
     until = args.until or (SLICE_UNTIL if args.only else "report")
     started = time.time()
-    with open_executor(args.executor) as executor:
-        run = run_pipeline(spec, args.out, executor=executor, until=until,
-                           sweep_cache=args.sweep_cache, only=args.only,
-                           progress=progress_enabled(),
-                           log=lambda m: log.info(f"{time.time() - started:7.1f} s  {m}"))
+
+    def stamp(message):
+        log.info(f"{time.time() - started:7.1f} s  {message}")
+
+    mirror, out = None, args.out
+    if is_url(args.out):
+        mirror = RunMirror(args.out, getattr(args, "work_dir", None))
+        stamp(f"{args.out}: working in {mirror.local}; fetched {mirror.pull()} files")
+        out = mirror.local
+
+    def push(stage):
+        if mirror is not None:
+            stamp(f"[{stage}] {mirror.push()} files put to {mirror.url}")
+
+    try:
+        with open_executor(args.executor) as executor:
+            run = run_pipeline(spec, out, executor=executor, until=until,
+                               sweep_cache=args.sweep_cache, only=args.only,
+                               progress=progress_enabled(), log=stamp, after_stage=push)
+    except BaseException:  # what finished before an error or an interrupt is put there too
+        try:
+            push("end")
+        except Exception as e:     # the run's own error is the one to see
+            log.warning(f"could not put the working directory to {args.out}: "
+                        f"{type(e).__name__}: {e}")
+        raise
+    push("end")
     log.info(f"run '{spec.name}' up to {until} finished in {time.time() - started:.0f} s")
     if "report" in run.outputs and run.outputs["report"]:
         log.info(f"report: {run.path(run.outputs['report']['html'])} "
-                 f"(and {run.path(run.outputs['report']['md'])})")
+                 f"(and {run.path(run.outputs['report']['md'])})"
+                 + (f", put to {mirror.url}" if mirror is not None else ""))

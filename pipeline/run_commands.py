@@ -16,7 +16,12 @@ def add_parsers(sub):
                        "report (re-runs skip finished stages; killed runs resume)")
     p.add_argument("--scenario", required=True, help="run file (e.g. scenarios/demo.yaml)")
     add_overlay_arguments(p, "run")
-    p.add_argument("--out", required=True, help="run directory (reused)")
+    p.add_argument("--out", required=True, help="run directory (reused), or an fsspec URL "
+                   "(s3://bucket/study with s3fs, file:///..., memory://...): the run works "
+                   "in a local copy (--work-dir), fetched from it first and put to it after "
+                   "every stage")
+    p.add_argument("--work-dir", help="with --out URL: the local working copy (default "
+                   "$REACHWATCH_CACHE/runs/<digest of the URL>)")
     p.add_argument("--executor", default="local", help="local (one worker per core) | "
                    "local:N | inline | dask://HOST:PORT (a Dask scheduler; its workers get "
                    "the files each task names with it and return results, so they need "

@@ -5,6 +5,7 @@ import contextlib
 import contextvars
 import hashlib
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -25,21 +26,30 @@ def file_hash(path, length: int = 16) -> str:
     return digest.hexdigest()[:length]
 
 
-def atomic_write_bytes(path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` via a temporary file in the same folder + rename."""
-    path = Path(path)
+@contextlib.contextmanager
+def _replacing(path: Path):
+    """A temporary file's name beside ``path``, which replaces ``path`` (with a new
+    file's mode, not mkstemp's 0600) when the block ends without an error."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
     try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
+        yield tmp
         umask = os.umask(0)
         os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)          # mkstemp's 0600 is not what users expect
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def atomic_write_bytes(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` via a temporary file in the same folder + rename."""
+    path = Path(path)
+    with _replacing(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(data)
     return path
 
 
@@ -100,6 +110,52 @@ def read_location(location) -> bytes:
         return location.read_bytes()
     fs, path = _url_fs(location)
     return fs.cat_file(path)
+
+
+def list_location(location) -> dict:
+    """``{relative path: size in bytes}`` of every file under the folder ``location``
+    (local or an fsspec URL); empty when there is none."""
+    location = cache_location(location)
+    if isinstance(location, Path):
+        if not location.is_dir():
+            return {}
+        return {p.relative_to(location).as_posix(): p.stat().st_size
+                for p in location.rglob("*") if p.is_file()}
+    fs, root = _url_fs(location)
+    try:
+        found = fs.find(root, detail=True)
+    except FileNotFoundError:
+        return {}
+    root = root.rstrip("/")
+    return {path[len(root):].lstrip("/"): int(info.get("size") or 0)
+            for path, info in found.items() if info.get("type") == "file"
+            and path.startswith(root + "/")}
+
+
+def put_location(path, location):
+    """Copy the local file ``path`` to the file or object ``location`` whole: a reader
+    sees the old content or the new (a local target through a rename; an object store
+    puts an object whole), streamed, not read into memory."""
+    location = cache_location(location)
+    if isinstance(location, Path):
+        with _replacing(location) as tmp:
+            shutil.copyfile(path, tmp)
+        return location
+    fs, remote = _url_fs(location)
+    fs.put_file(os.fspath(path), remote)
+    return location
+
+
+def get_location(location, path):
+    """Copy the file or object ``location`` to the local file ``path``, atomically."""
+    source = cache_location(location)
+    with _replacing(Path(path)) as tmp:
+        if isinstance(source, Path):
+            shutil.copyfile(source, tmp)
+        else:
+            fs, remote = _url_fs(source)
+            fs.get_file(remote, tmp)
+    return Path(path)
 
 
 def write_location(location, data: bytes):
