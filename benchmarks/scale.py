@@ -16,8 +16,12 @@ machine; ``--sim-processes 32`` gives 32 single-thread workers where it fits). B
 window, no cache), the same cost in smaller chunks, and zero-cost tasks (the task
 rate the driver and scheduler sustain).
 
+A fourth row runs 2 workers whose renderers (Mesa's llvmpipe) each take every core,
+``LP_NUM_THREADS`` = the CPU count, as they did before the driver shared the cores out
+among the workers of a host (`reach.sweep.render_threads`), and the ratio of the two.
+
 The VM's speed drifts, so the executors take turns within each round (inline, 1
-worker, 2 workers, then the next round) and each ratio is the median over rounds of
+worker, 2 workers, all-core renders, then the next round) and each ratio is the median over rounds of
 that round's ratio. A worker builds its diagram on its first chunk (seconds): round 0
 is a warm-up that includes it, reported apart and left out of the medians. After each
 round, two pure-Python processes spin side by side against one alone: the share of two
@@ -79,7 +83,8 @@ def _stop(process, grace: float = 10.0):
 
 
 @contextlib.contextmanager
-def dask_cluster(root: Path, processes: int, threads: int = 1, timeout: float = 180.0):
+def dask_cluster(root: Path, processes: int, threads: int = 1, timeout: float = 180.0,
+                 env: dict = None):
     """A ``dask scheduler`` and ``processes`` ``dask worker`` subprocesses of
     ``threads`` threads each (no nanny), all on 127.0.0.1, each worker with its own
     working and local directory under ``root``; yields ``(address, seconds to start)``
@@ -87,7 +92,7 @@ def dask_cluster(root: Path, processes: int, threads: int = 1, timeout: float = 
     root.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     file = root / "scheduler.json"
-    env = {**os.environ, **SINGLE_THREAD}
+    env = {**os.environ, **SINGLE_THREAD, **(env or {})}
     children = []
     try:
         log = open(root / "scheduler.log", "wb")
@@ -192,19 +197,30 @@ def main():
             overhead(args, root / "sim")
 
 
+#: The row of two workers whose renderers each take every core (``LP_NUM_THREADS`` =
+#: the CPU count), beside the default that shares the cores out; the width of the
+#: table's first column.
+ALL_CORE = "2 workers, all-core renders"
+WIDTH = len(ALL_CORE)
+
+
 def throughput(args, root: Path):
     scenario = load_scenario(data=f"environment: {{{args.environment}}}\n")
     B = scenario.environment.half_width
     grid = paper_grid(B, tuple(args.shape))
     chunk = args.chunk or -(-grid.size // 16)
     starts = on_runway_starts(grid, args.starts, 0, half_width=B)
-    names = ["inline", "1 worker", "2 workers"]
-    workers = {"inline": None, "1 worker": 1, "2 workers": 2}
+    names = ["inline", "1 worker", "2 workers", ALL_CORE]
+    workers = {"inline": None, "1 worker": 1, "2 workers": 2, ALL_CORE: 2}
     with contextlib.ExitStack() as stack:
         executors, start_s = {"inline": InlineExecutor()}, {}
         for name in names[1:]:
+            # the last: workers whose renderer takes every core, as before the driver
+            # shared them out (`reach.sweep.render_threads`)
+            env = {"LP_NUM_THREADS": str(os.cpu_count())} if name == ALL_CORE else None
             address, start_s[name] = stack.enter_context(
-                dask_cluster(root / name.replace(" ", "_"), workers[name]))
+                dask_cluster(root / name.replace(" ", "_").replace(",", ""), workers[name],
+                             env=env))
             executor, close = make_executor(f"dask://{address.split('://', 1)[1]}")
             stack.callback(close)
             executors[name] = executor
@@ -214,8 +230,9 @@ def throughput(args, root: Path):
         results = {n: [] for n in names}
         ceiling = []
         for round_ in range(args.rounds + 1):          # round 0: warm-up, diagrams built
-            for name in names[round_ % 3:] + names[:round_ % 3]:   # each goes first in turn
-                cache = root / "cache" / f"{name.replace(' ', '_')}_{round_}"   # fresh each time
+            turn = round_ % len(names)
+            for name in names[turn:] + names[:turn]:   # each goes first in turn
+                cache = root / "cache" / f"{names.index(name)}_{round_}"   # fresh each time
                 t = time.perf_counter()
                 table = sweep_closed_loop(scenario, grid, cache_dir=cache, chunk_size=chunk,
                                           executor=executors[name], progress=False)
@@ -238,7 +255,7 @@ def throughput(args, root: Path):
           f"inline {torch.get_num_threads()} torch thread(s), workers 1 each; medians of "
           f"{args.rounds} interleaved rounds after a warm-up round")
     print("clusters started in: " + ", ".join(f"{n} {s:.1f} s" for n, s in start_s.items()))
-    print(f"{'executor':<10} {'sweep st/s':>10} {'warm-up':>8} {'speedup':>8} {'effic.':>7}  "
+    print(f"{'executor':<{WIDTH}} {'sweep st/s':>10} {'warm-up':>8} {'speedup':>8} {'effic.':>7}  "
           f"{'loop runs/s':>11} {'warm-up':>8} {'speedup':>8} {'effic.':>7}  identical")
     for name in names:
         cells = []
@@ -253,7 +270,10 @@ def throughput(args, root: Path):
             else:
                 cells.append(f"{np.median(timed):10.1f} {rates[name][0]:8.1f} {'1.00x':>8} "
                              f"{'':>7}")
-        print(f"{name:<10} {cells[0]}  {cells[1]}  {identical[name]}")
+        print(f"{name:<{WIDTH}} {cells[0]}  {cells[1]}  {identical[name]}")
+    for rates, what in ((sweep_rate, "sweep"), (loop_rate, "real loop")):
+        shared = np.median(np.array(rates["2 workers"][1:]) / np.array(rates[ALL_CORE][1:]))
+        print(f"2 workers, render threads shared out / all-core renders ({what}): {shared:.2f}")
     print(f"machine ceiling: 2 spinning processes ran {np.median(ceiling[1:]):.2f} of twice one "
           f"(median of rounds; range {min(ceiling):.2f}-{max(ceiling):.2f}; 1.00 = two free "
           f"cores), load average {os.getloadavg()[0]:.1f}")

@@ -50,9 +50,42 @@ def check_worker_versions(client, spec: str = "dask"):
     check_worker_render_stacks(client, spec)
 
 
-def _worker_render_stack() -> dict:
+def render_shares(client) -> dict:
+    """``{worker address: render threads}``: each host's usable cores shared among the
+    threads of all workers on that host (at least 1 each), as the local pool shares
+    them (`reachwatch.reach.sweep.render_threads`)."""
+    workers = client.scheduler_info(n_workers=-1)["workers"] if _takes_n_workers(client) \
+        else client.scheduler_info()["workers"]
+    cores = client.run(_usable_cores, on_error="return")
+    per_host = {}
+    for address, info in workers.items():
+        host = info.get("host") or address
+        per_host[host] = per_host.get(host, 0) + int(info.get("nthreads") or 1)
+    shares = {}
+    for address, info in workers.items():
+        host = info.get("host") or address
+        count = cores.get(address)
+        count = count if isinstance(count, int) else 1
+        shares[address] = max(1, count // max(1, per_host[host]))
+    return shares
+
+
+def _takes_n_workers(client) -> bool:
+    import inspect
+    return "n_workers" in inspect.signature(client.scheduler_info).parameters
+
+
+def _usable_cores() -> int:
+    from reachwatch.reach.sweep import usable_cores
+    return usable_cores()
+
+
+def _worker_render_stack(render_threads: int) -> dict:
     """A worker's `render_stack` (imported there: the worker's own, whatever this
-    process's module holds)."""
+    process's module holds), its renderer first given ``render_threads`` threads
+    unless ``LP_NUM_THREADS`` is set there."""
+    from reachwatch.reach.sweep import render_threads as set_render_threads
+    set_render_threads(render_threads)
     from reachwatch.diagrams.render_stack import render_stack
     return render_stack()
 
@@ -70,7 +103,11 @@ def check_worker_render_stacks(client, spec: str = "dask"):
     keys this process computes, for images it would not render."""
     from reachwatch.diagrams.render_stack import render_stack
     mine = render_stack()
-    answers = client.run(_worker_render_stack, on_error="return")
+    shares = render_shares(client)
+    answers = {}
+    for share in sorted(set(shares.values())):
+        answers.update(client.run(_worker_render_stack, share, on_error="return",
+                                  workers=[w for w, s in shares.items() if s == share]))
     for worker, theirs in sorted(answers.items()):
         if not isinstance(theirs, dict):
             raise ValueError(f"--executor {spec}: the worker at {worker} cannot render "
