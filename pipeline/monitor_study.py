@@ -233,7 +233,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         checkpoints[name] = str(path)
     guarded = (_guarded(spec, application, scenario, data["held_out"], models, checkpoints,
                         cache_dir=cache_dir / "missions", executor=executor, progress=progress,
-                        log=log) if spec.guarded_runs else {})
+                        log=log, lead=lead) if spec.guarded_runs else {})
     result = {"lead_s": lead, "within_s": spec.within, "alpha": spec.alpha, "kept": kept,
               "failing_runs": failing, "variants": results, "oracle": oracle,
               "prediction_error_auroc_4s": baseline, "guarded": guarded,
@@ -274,10 +274,10 @@ def _save_risks(path, data, all_risks, judged):
 
 
 def _guarded(spec, application, scenario, held_out, models, checkpoints, *, cache_dir, executor,
-             progress, log):
+             progress, log, lead):
     """The guarded real loop (braking) with each saved monitor against the loop alone,
     from the first ``guarded_runs`` recorded starts of each held-out environment (the
-    application's `missions`)."""
+    application's `missions`); and the oracle monitor's row (`_oracle_guarded`)."""
     # the loop alone once per environment: every monitor is judged against the same runs
     alone_runs = [application.missions(dc.replace(scenario, environment=g["environment"]),
                                        g["starts"][:spec.guarded_runs], duration=spec.duration,
@@ -317,7 +317,83 @@ def _guarded(spec, application, scenario, held_out, models, checkpoints, *, cach
         log(f"monitor: guarded real loop, {name}: failures {counts['failed_alone']} alone -> "
             f"{counts['failed_guarded']} guarded of {counts['runs']} runs; prevented "
             f"{rate_text(counts['prevented_rate'])}; needless stops {rate_text(counts['needless_rate'])}")
+    if checkpoints:
+        rows[ORACLE] = _oracle_guarded(spec, application, scenario, held_out, alone_runs,
+                                       next(iter(checkpoints.values())), lead=lead,
+                                       cache_dir=cache_dir, executor=executor,
+                                       progress=progress)
+        counts = rows[ORACLE]
+        log(f"monitor: guarded real loop, {ORACLE}: failures {counts['failed_alone']} alone -> "
+            f"{counts['failed_guarded']} guarded of {counts['runs']} runs; prevented "
+            f"{rate_text(counts['prevented_rate'])}")
     return rows
+
+
+#: The guarded-loop row of the oracle monitor.
+ORACLE = "oracle (privileged)"
+
+
+def oracle_flag_ticks(ticks, failure_times, *, period: float, lead: float) -> np.ndarray:
+    """The control tick at which the oracle monitor (`oracle_risks`) first flags each
+    recorded run: -1 for a run that does not fail."""
+    risks = oracle_risks(ticks, failure_times, period=period, lead=lead)
+    return np.array([int(np.argmax(r >= 0.5)) if np.any(r >= 0.5) else -1 for r in risks])
+
+
+def _oracle_guarded(spec, application, scenario, held_out, alone_runs, detector, *, lead,
+                    cache_dir, executor, progress) -> dict:
+    """The oracle monitor in the guarded real loop: it flags a run from the tick its true
+    time to failure leaves the fallback just its need (`oracle_flag_ticks`) and never a
+    run that does not fail. Until that tick the guarded loop is the loop alone, so each
+    failing run goes on from its recorded state at that tick in the guarded loop flagged
+    at every tick (a monitor with threshold 0, braking), for what is left of the run;
+    it fails if it leaves the safe set before the run's end. This takes the loop's state
+    to be the state a recording holds (true of a loop whose controller keeps no state of
+    its own across ticks; `tests/test_monitor_study.py` checks the taxi's). A safe run is
+    the loop alone's (no stop, its distance)."""
+    period = scenario.controller.period
+    counts = {"runs": 0, "failed_alone": 0, "failed_guarded": 0, "prevented": 0,
+              "safe_alone": 0, "needless_stops": 0, "distance_alone_m": 0.0,
+              "distance_guarded_m": 0.0, "environments": []}
+    for g, alone in zip(held_out, alone_runs):
+        n = len(alone.failed)
+        ticks, failure = g["ticks"][:n], g["failure_time"][:n]
+        flag = oracle_flag_ticks(ticks, failure, period=period, lead=lead)
+        failing = np.flatnonzero(flag >= 0)
+        # a run the oracle does not flag runs as the loop alone does
+        fails, distance = np.asarray(alone.failed, bool).copy(), np.asarray(alone.distance, float).copy()
+        if len(failing):
+            sc = dc.replace(scenario, environment=g["environment"], monitor=MonitorConfig(
+                detector=detector, threshold=0.0, strategy="brake", flags_needed=1,
+                flag_window=1, brake_deceleration=spec.brake_deceleration))
+            states = np.stack([g["state"][i, flag[i]] for i in failing])
+            here = dc.replace(scenario, environment=g["environment"])
+            rest = application.missions(here, states, duration=spec.duration,
+                                        cache_dir=cache_dir, executor=executor,
+                                        progress=progress)
+            braked = application.missions(sc, states, fallback="brake", duration=spec.duration,
+                                          cache_dir=cache_dir, executor=executor,
+                                          progress=progress)
+            left = spec.duration - flag[failing] * period
+            # a run stops at its failure: its last tick is the failure's
+            fails[failing] = braked.failed & ((braked.ticks - 1) * period < left - 1e-9)
+            # before the flag it covered what the loop alone covers less what the loop
+            # alone covers from the flag's state on
+            distance[failing] = alone.distance[failing] - rest.distance + braked.distance
+        env = {"environment": g["name"], "runs": n, "failed_alone": int(alone.failed.sum()),
+               "failed_guarded": int(fails.sum()),
+               "prevented": int(np.sum(alone.failed & ~fails)),
+               "safe_alone": int(np.sum(~alone.failed)), "needless_stops": 0,
+               # recorded failing, not failing alone in the missions (or the other way)
+               "recordings_disagree": int(np.sum((flag >= 0) != alone.failed))}
+        counts["environments"].append(env)
+        for key in ("runs", "failed_alone", "failed_guarded", "prevented", "safe_alone"):
+            counts[key] += env[key]
+        counts["distance_alone_m"] += float(alone.distance.sum())
+        counts["distance_guarded_m"] += float(distance.sum())
+    counts["prevented_rate"] = rate(counts["prevented"], counts["failed_alone"])
+    counts["needless_rate"] = rate(0, counts["safe_alone"])
+    return counts
 
 
 def stage_monitor(run) -> dict:

@@ -13,7 +13,7 @@ import pytest
 from reachwatch.diagrams import load_scenario
 from reachwatch.diagrams.checkpoints import load_history_monitor
 from reachwatch.pipeline.monitor_sections import markdown_tables
-from reachwatch.pipeline.monitor_study import run_monitor_study
+from reachwatch.pipeline.monitor_study import ORACLE, oracle_flag_ticks, run_monitor_study
 from reachwatch.pipeline.spec import dump_run_spec, load_run_spec
 from reachwatch.training.conformal import conformal_threshold
 from tiny_run import TINY
@@ -90,8 +90,14 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     for name, file in result["checkpoints"].items():
         model, config, meta = load_history_monitor(tmp_path / "out" / file)
         assert meta["variant"] == name and meta["threshold"] == result["variants"][name]["threshold"]
-    # the guarded real loop ran from the held-out starts, for each saved monitor
-    assert set(result["guarded"]) == set(result["checkpoints"])
+    # the guarded real loop ran from the held-out starts, for each saved monitor and the
+    # oracle, which stops no safe run and covers a safe run's whole distance
+    assert set(result["guarded"]) == set(result["checkpoints"]) | {ORACLE}
+    oracle = result["guarded"][ORACLE]
+    assert oracle["needless_stops"] == 0 and oracle["runs"] == 2
+    assert oracle["prevented"] + oracle["failed_guarded"] == oracle["failed_alone"]
+    if oracle["failed_alone"] == 0:
+        assert oracle["distance_guarded_m"] == oracle["distance_alone_m"]
     for counts in result["guarded"].values():
         assert counts["runs"] == 2 and counts["failed_guarded"] <= counts["runs"]
     # every variant's risk at every tick is kept, run by run, for other flag rules
@@ -217,7 +223,7 @@ def test_the_cart_runs_the_study_through_the_generic_application(tmp_path, monke
     for name, file in result["checkpoints"].items():
         model, config, meta = load_history_monitor(tmp_path / "out" / file)
         assert config.signals == (1 if "signals" in name else 0)   # the cart's steering
-    assert set(result["guarded"]) == set(result["checkpoints"])
+    assert set(result["guarded"]) == set(result["checkpoints"]) | {ORACLE}
     for counts in result["guarded"].values():
         assert counts["runs"] == 2 and counts["failed_guarded"] <= counts["runs"]
         assert counts["distance_guarded_m"] <= counts["distance_alone_m"] + 1e-9
@@ -233,3 +239,61 @@ def test_the_cart_runs_the_study_through_the_generic_application(tmp_path, monke
     assert alone.distance[0] == pytest.approx(1.5) and not alone.ever_stopped[0]
     assert braked.flagged_ticks[0] == braked.ticks[0] == 15 and braked.stopped[0]
     assert braked.distance[0] < 0.5 * alone.distance[0]
+
+
+def test_the_oracle_goes_on_from_a_recorded_state_as_the_loop_alone_does(tmp_path):
+    """The oracle's guarded runs start at its flag from the recorded state there: the
+    loop alone started from a recorded state of a failing run fails when the recording
+    did, so that state is all the loop carries; the oracle flags one lead (and a tick)
+    before the failure; braking from its flag, flagged at every tick, saves the run."""
+    from reachwatch.diagrams import MonitorConfig
+    from reachwatch.reach.application import load_application
+    application = load_application()
+    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    period = scenario.controller.period
+    B = scenario.environment.half_width
+    starts = np.array([[B - 3.0, 100.0, 0.6], [-(B - 5.0), 100.0, -0.8]])  # heading out
+    runs = application.recorded_runs(scenario, starts, duration=3.0, height=16, width=24,
+                                     cache_dir=tmp_path / "runs", progress=False)
+    failure = runs["failure_time"]
+    assert np.all(np.isfinite(failure)) and np.all(failure > 0.5)
+    lead = 0.5
+    flag = oracle_flag_ticks(runs["ticks"], failure, period=period, lead=lead)
+    assert np.allclose(flag * period, np.ceil((failure - lead - period - 1e-9) / period) * period)
+    states = np.stack([runs["state"][i, k] for i, k in enumerate(flag)])
+    alone = application.missions(scenario, states, duration=3.0, cache_dir=tmp_path / "m",
+                                 progress=False)
+    assert alone.failed.all()
+    assert np.allclose((alone.ticks - 1) * period, failure - flag * period, atol=1e-6)
+    detector = tmp_path / "always.pt"          # any history monitor: threshold 0 flags all
+    _save_tiny_history_monitor(detector)
+    braked = application.missions(
+        dc_replace(scenario, monitor=MonitorConfig(detector=str(detector), threshold=0.0,
+                                                   strategy="brake", brake_deceleration=3.0)),
+        states, fallback="brake", duration=3.0, cache_dir=tmp_path / "m", progress=False)
+    assert np.all(braked.flagged_ticks == braked.ticks)
+    assert np.all(braked.distance < alone.distance)
+    # the guarded-loop row of the oracle from those recordings: braking from one stop's
+    # lead (5/3 s at 3 m/s^2) before each failure
+    from types import SimpleNamespace
+    from reachwatch.pipeline.monitor_study import _oracle_guarded
+    group = {**runs, "environment": scenario.environment, "name": scenario.environment.name}
+    from_start = application.missions(scenario, starts, duration=3.0, cache_dir=tmp_path / "m",
+                                      progress=False)
+    row = _oracle_guarded(SimpleNamespace(duration=3.0, brake_deceleration=3.0), application,
+                          scenario, [group], [from_start], str(detector), lead=5.0 / 3.0,
+                          cache_dir=tmp_path / "m", executor=None, progress=False)
+    env = row["environments"][0]
+    assert (row["failed_alone"], env["recordings_disagree"], row["needless_stops"]) == (2, 0, 0)
+    assert row["prevented"] + row["failed_guarded"] == 2 and row["prevented"] >= 1
+    assert 0 < row["distance_guarded_m"] < row["distance_alone_m"]
+
+
+def _save_tiny_history_monitor(path):
+    from reachwatch.diagrams import save_checkpoint
+    from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel
+    config = HistoryMonitorConfig(height=16, width=24)
+    model = HistoryRiskModel(config)
+    save_checkpoint(path, kind="history_monitor", model=model, model_config=config,
+                    preprocess_config=None, metadata={"calibration": [1.0, 0.0],
+                                                      "threshold": 0.0})
