@@ -6,18 +6,13 @@ same key (a digest of its inputs: the settings it reads and, for the stages befo
 outputs it reads, `Run.content_key`: their keys and the content of every file they wrote),
 and resumes its chunked work when it was killed."""
 
-import time
-
 from reachwatch.systems.checks import short
-from reachwatch.systems.files import is_url
 
 from .checked_page import write_checked_page
-from .console import log, progress_enabled
-from .executors import open_executor
+from .console import log
 from .fidelity_stages import check_downtrack_room, stage_fidelity
 from .online_stages import stage_guard, stage_incremental
 from .report import write_report
-from .run_mirror import RunMirror
 from .spec import RunSpec, digest
 from .brt_stages import stage_solve, stage_sweep
 from .dataset_stages import stage_dataset
@@ -111,42 +106,3 @@ def check_slice(spec: RunSpec, only, until: str):
         raise ValueError(f"--only runs a slice up to {SLICE_UNTIL} at most (--until sweep, solve, "
                          f"dataset or {SLICE_UNTIL}): the stages after it pool every environment "
                          f"(the detector trains on all of them), got --until {until}")
-
-
-def run_command(args):
-    from .commands import scenario_from_args
-    spec = scenario_from_args(args, schema=RunSpec, root="run", controller=True)
-    until = args.until or (SLICE_UNTIL if args.only else "report")
-    started = time.time()
-
-    def stamp(message):
-        log.info(f"{time.time() - started:7.1f} s  {message}")
-
-    mirror, out = None, args.out
-    if is_url(args.out):
-        mirror = RunMirror(args.out, getattr(args, "work_dir", None))
-        stamp(f"{args.out}: working in {mirror.local}; fetched {mirror.pull()} files")
-        out = mirror.local
-
-    def push(stage):
-        if mirror is not None:
-            stamp(f"[{stage}] {mirror.push()} files put to {mirror.url}")
-
-    try:
-        with open_executor(args.executor) as executor:
-            run = run_pipeline(spec, out, executor=executor, until=until,
-                               sweep_cache=args.sweep_cache, only=args.only,
-                               progress=progress_enabled(), log=stamp, after_stage=push)
-    except BaseException:  # what finished before an error or an interrupt is put there too
-        try:
-            push("end")
-        except Exception as e:     # the run's own error is the one to see
-            log.warning(f"could not put the working directory to {args.out}: "
-                        f"{type(e).__name__}: {e}")
-        raise
-    push("end")
-    log.info(f"run '{spec.name}' up to {until} finished in {time.time() - started:.0f} s")
-    if "report" in run.outputs and run.outputs["report"]:
-        log.info(f"report: {run.path(run.outputs['report']['html'])} "
-                 f"(and {run.path(run.outputs['report']['md'])})"
-                 + (f", put to {mirror.url}" if mirror is not None else ""))

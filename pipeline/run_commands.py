@@ -1,5 +1,6 @@
-"""``reachwatch run``'s arguments; the command itself is `reachwatch.pipeline.run`'s
-``run_command``, imported when it runs (so that building the parser needs no torch)."""
+"""``reachwatch run``'s arguments and the command, a front end of
+`reachwatch.pipeline.run.run_pipeline`, imported when it runs (so that building the
+parser needs no torch)."""
 
 from .overlays import add_overlay_arguments
 
@@ -38,5 +39,50 @@ def add_parsers(sub):
 
 
 def run_command(args):
-    from .run import run_command
-    return run_command(args)
+    """``reachwatch run``: the run file (with its overlays) to the stages up to
+    ``--until``, in ``--out`` (a folder, or an fsspec URL through a `RunMirror`)."""
+    import time
+
+    from reachwatch.systems.files import is_url
+
+    from .commands import scenario_from_args
+    from .console import log, progress_enabled
+    from .executors import open_executor
+    from .run import run_pipeline
+    from .run_mirror import RunMirror
+    from .spec import RunSpec
+    spec = scenario_from_args(args, schema=RunSpec, root="run", controller=True)
+    until = args.until or (SLICE_UNTIL if args.only else "report")
+    started = time.time()
+
+    def stamp(message):
+        log.info(f"{time.time() - started:7.1f} s  {message}")
+
+    mirror, out = None, args.out
+    if is_url(args.out):
+        mirror = RunMirror(args.out, getattr(args, "work_dir", None))
+        stamp(f"{args.out}: working in {mirror.local}; fetched {mirror.pull()} files")
+        out = mirror.local
+
+    def push(stage):
+        if mirror is not None:
+            stamp(f"[{stage}] {mirror.push()} files put to {mirror.url}")
+
+    try:
+        with open_executor(args.executor) as executor:
+            run = run_pipeline(spec, out, executor=executor, until=until,
+                               sweep_cache=args.sweep_cache, only=args.only,
+                               progress=progress_enabled(), log=stamp, after_stage=push)
+    except BaseException:  # what finished before an error or an interrupt is put there too
+        try:
+            push("end")
+        except Exception as e:     # the run's own error is the one to see
+            log.warning(f"could not put the working directory to {args.out}: "
+                        f"{type(e).__name__}: {e}")
+        raise
+    push("end")
+    log.info(f"run '{spec.name}' up to {until} finished in {time.time() - started:.0f} s")
+    if "report" in run.outputs and run.outputs["report"]:
+        log.info(f"report: {run.path(run.outputs['report']['html'])} "
+                 f"(and {run.path(run.outputs['report']['md'])})"
+                 + (f", put to {mirror.url}" if mirror is not None else ""))
