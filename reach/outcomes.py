@@ -6,8 +6,9 @@ nothing.
 A rollout function is any picklable callable ``rollout(states) -> dict`` mapping
 ``(n, ndim)`` starts to arrays with ``n`` rows: ``failed`` (bool) is required;
 ``failure_time`` (s), ``left_box`` (bool) and ``ticks`` (frames rendered) are read
-when present. The taxi's is `reachwatch.taxi.fidelity.taxi_rollouts`; anything
-deterministic that runs the loop the labels are about will do.
+when present. An application's is its `Application.real_outcomes` rollout (the
+generic one is `reachwatch.reach.application.loop_rollouts`); anything deterministic
+that runs the loop the labels are about will do.
 
 `path_labels` reads labels for every tick of one longer run: for a loop whose state
 is all it remembers (its controller has no state of its own), the run from a state it

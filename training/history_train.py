@@ -6,9 +6,10 @@ encoded runs. The label of a tick is "the run fails within ``within`` s"
 (`reachwatch.training.monitor_eval.run_labels`): a censored tick (the run ended
 sooner without failing) is left out, never called safe.
 
-``runs`` is a dict of arrays as `reachwatch.taxi.history.record_runs` returns them
-(``frames`` ``(R, T, h, w, 3)``, ``signals`` ``(R, T, m)``, ``ticks``,
-``failure_time``), recorded at ``period`` s a tick for ``duration`` s."""
+``runs`` is a dict of arrays as an application's
+`reachwatch.reach.application.Application.recorded_runs` returns them (``frames``
+``(R, T, h, w, 3)``, ``signals`` ``(R, T, m)``, ``ticks``, ``failure_time``), recorded
+at ``period`` s a tick for ``duration`` s."""
 
 import copy
 import dataclasses as dc
