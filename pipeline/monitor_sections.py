@@ -50,14 +50,15 @@ def study_blocks(result: dict) -> list:
     guarded_header = ["monitor", "runs", "failures alone", "failures guarded",
                       "prevented % [95 % CI]", "needless stops % [95 % CI]",
                       "distance guarded / alone"]
-    if result["guarded"]:
-        blocks += [("heading", "Guarded real loop (braking), pooled over the held-out "
-                               "environments of the family"),
-                   ("table", guarded_header, [
-                       [name, c["runs"], c["failed_alone"], c["failed_guarded"],
-                        rate_text(c["prevented_rate"]), rate_text(c["needless_rate"]),
-                        f"{c['distance_guarded_m'] / max(1e-9, c['distance_alone_m']):.3f}"]
-                       for name, c in result["guarded"].items()])]
+    for key, where in (("guarded", "the held-out environments of the family"),
+                       ("guarded_also_held_out", "the named environments outside the family")):
+        if result.get(key):
+            blocks += [("heading", f"Guarded real loop (braking), pooled over {where}"),
+                       ("table", guarded_header, [
+                           [name, c["runs"], c["failed_alone"], c["failed_guarded"],
+                            rate_text(c["prevented_rate"]), rate_text(c["needless_rate"]),
+                            f"{c['distance_guarded_m'] / max(1e-9, c['distance_alone_m']):.3f}"]
+                           for name, c in result[key].items()])]
     kept = result["variants"][result["kept"]]
     warnable = result["oracle"]["held_out"]["pooled"]["warnable"]
     if warnable["of"]:

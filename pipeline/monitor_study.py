@@ -231,12 +231,14 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                                   "within_s": spec.within, "lead_s": lead, "variant": name,
                                   **({"flag_rule": rule} if rule != [1, 1] else {})})
         checkpoints[name] = str(path)
-    guarded = (_guarded(spec, application, scenario, data["held_out"], models, checkpoints,
-                        cache_dir=cache_dir / "missions", executor=executor, progress=progress,
-                        log=log, lead=lead) if spec.guarded_runs else {})
+    guarded = {k: _guarded(spec, application, scenario, data[k], models, checkpoints,
+                           cache_dir=cache_dir / "missions", executor=executor,
+                           progress=progress, log=log, lead=lead)
+               if spec.guarded_runs and data[k] else {} for k in ("held_out", "also_held_out")}
     result = {"lead_s": lead, "within_s": spec.within, "alpha": spec.alpha, "kept": kept,
               "failing_runs": failing, "variants": results, "oracle": oracle,
-              "prediction_error_auroc_4s": baseline, "guarded": guarded,
+              "prediction_error_auroc_4s": baseline, "guarded": guarded["held_out"],
+              "guarded_also_held_out": guarded["also_held_out"],
               "checkpoints": {k: Path(v).name for k, v in checkpoints.items()},
               "seconds": round(time.time() - started, 1)}
     from reachwatch.training.figures import plot_reliability
@@ -276,8 +278,9 @@ def _save_risks(path, data, all_risks, judged):
 def _guarded(spec, application, scenario, held_out, models, checkpoints, *, cache_dir, executor,
              progress, log, lead):
     """The guarded real loop (braking) with each saved monitor against the loop alone,
-    from the first ``guarded_runs`` recorded starts of each held-out environment (the
-    application's `missions`); and the oracle monitor's row (`_oracle_guarded`)."""
+    from the first ``guarded_runs`` recorded starts of each environment of ``held_out``
+    (the held-out family's, or those outside it; the application's `missions`); and the
+    oracle monitor's row (`_oracle_guarded`)."""
     # the loop alone once per environment: every monitor is judged against the same runs
     alone_runs = [application.missions(dc.replace(scenario, environment=g["environment"]),
                                        g["starts"][:spec.guarded_runs], duration=spec.duration,

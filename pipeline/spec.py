@@ -222,8 +222,9 @@ class MonitorStudySpec:
     that of failing within ``within`` s; the fallback brakes at ``brake_deceleration``
     m/s^2, so a warning counts when it comes at least speed / deceleration s before
     the failure; the threshold bounds the expected miss rate at ``alpha``.
-    ``guarded_runs`` (0: none) starts per held-out environment also run in the guarded
-    real loop with the kept variant and the single-frame one. ``flag_rules`` lists the
+    ``guarded_runs`` (0: none) starts per held-out environment (of the family, and
+    outside it) also run in the guarded real loop with the kept variant, the
+    single-frame one and the oracle. ``flag_rules`` lists the
     k-of-n rules tried, ``[flags_needed, flag_window]`` each (the guard's `FlagFilter`:
     flag when at least k of the last n ticks reached the threshold); each variant keeps
     the rule with the fewest needless flags on the calibration environments, its

@@ -68,7 +68,9 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
 
 
 def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
-    spec = load_run_spec(data=TINY + STUDY).monitor
+    spec = load_run_spec(data=TINY + STUDY.replace(
+        "  guarded_runs: 2", "  guarded_runs: 2\n  also_held_out: [{runway: KSFO, hour: 21.0, "
+                             "sky: overcast}]")).monitor
     scenario = load_scenario(data="")
     result = run_monitor_study(spec, scenario, tmp_path / "out", cache_dir=tmp_path / "cache",
                                progress=False, log=lambda m: None)
@@ -98,6 +100,10 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     assert oracle["prevented"] + oracle["failed_guarded"] == oracle["failed_alone"]
     if oracle["failed_alone"] == 0:
         assert oracle["distance_guarded_m"] == oracle["distance_alone_m"]
+    # and from the starts of the environment outside the family, the same rows
+    night = result["guarded_also_held_out"]
+    assert set(night) == set(result["guarded"]) and night[ORACLE]["needless_stops"] == 0
+    assert [e["environment"] for e in night[ORACLE]["environments"]] == ["KSFO_21h_overcast"]
     for counts in result["guarded"].values():
         assert counts["runs"] == 2 and counts["failed_guarded"] <= counts["runs"]
     # every variant's risk at every tick is kept, run by run, for other flag rules
@@ -130,6 +136,7 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
         assert meta.get("flag_rule", [1, 1]) == ruled["variants"][name]["flag_rule"]
     text = markdown_tables(result)
     assert "Guarded real loop" in text and "oracle (privileged)" in text
+    assert "pooled over the named environments outside the family" in text
     assert "at most 50.0 %" in text
 
     from reachwatch.pipeline.monitor_sections import monitor_section
