@@ -332,6 +332,10 @@ def _guarded(spec, application, scenario, held_out, models, checkpoints, *, cach
     return rows
 
 
+#: Bumped when the study's results change for the same inputs (2: the oracle's and the
+#: nights' guarded rows), so that a run's monitor stage is run again.
+STUDY_FORMAT = 2
+
 #: The guarded-loop row of the oracle monitor.
 ORACLE = "oracle (privileged)"
 
@@ -363,8 +367,16 @@ def _oracle_guarded(spec, application, scenario, held_out, alone_runs, detector,
         ticks, failure = g["ticks"][:n], g["failure_time"][:n]
         flag = oracle_flag_ticks(ticks, failure, period=period, lead=lead)
         failing = np.flatnonzero(flag >= 0)
+        # the recordings and the loop alone must agree on which runs fail (a start
+        # already off the safe set fails alone with no recorded tick): else the loop is
+        # not deterministic, and the oracle's row would be wrong
+        disagree = int(np.sum((flag >= 0) != (np.asarray(alone.failed, bool) & (ticks > 0))))
+        if disagree:
+            raise RuntimeError(f"the oracle in the guarded loop: in {g['name']}, {disagree} "
+                               f"recorded runs and the loop alone's disagree on failing")
         # a run the oracle does not flag runs as the loop alone does
-        fails, distance = np.asarray(alone.failed, bool).copy(), np.asarray(alone.distance, float).copy()
+        fails = np.asarray(alone.failed, bool).copy()
+        distance = np.asarray(alone.distance, float).copy()
         if len(failing):
             sc = dc.replace(scenario, environment=g["environment"], monitor=MonitorConfig(
                 detector=detector, threshold=0.0, strategy="brake", flags_needed=1,
@@ -378,17 +390,24 @@ def _oracle_guarded(spec, application, scenario, held_out, alone_runs, detector,
                                           cache_dir=cache_dir, executor=executor,
                                           progress=progress)
             left = spec.duration - flag[failing] * period
-            # a run stops at its failure: its last tick is the failure's
-            fails[failing] = braked.failed & ((braked.ticks - 1) * period < left - 1e-9)
+            # from the flag's state the loop alone must fail when the recording did
+            after = (rest.ticks - 1) * period
+            if not (rest.failed.all() and np.allclose(after, failure[failing] - flag[failing]
+                                                      * period, atol=period / 2)):
+                raise RuntimeError(f"the oracle in the guarded loop: in {g['name']}, the loop "
+                                   f"alone from a recorded state does not fail as recorded: its "
+                                   f"state is more than the recorded one")
+            # a run stops at its failure: its last tick is the failure's; one failing by
+            # the run's end (as missions count it) counts
+            fails[failing] = braked.failed & ((braked.ticks - 1) * period <= left + 1e-9)
             # before the flag it covered what the loop alone covers less what the loop
             # alone covers from the flag's state on
             distance[failing] = alone.distance[failing] - rest.distance + braked.distance
         env = {"environment": g["name"], "runs": n, "failed_alone": int(alone.failed.sum()),
                "failed_guarded": int(fails.sum()),
                "prevented": int(np.sum(alone.failed & ~fails)),
-               "safe_alone": int(np.sum(~alone.failed)), "needless_stops": 0,
-               # recorded failing, not failing alone in the missions (or the other way)
-               "recordings_disagree": int(np.sum((flag >= 0) != alone.failed))}
+               # the oracle flags no run that does not fail (checked above)
+               "safe_alone": int(np.sum(~alone.failed)), "needless_stops": 0}
         counts["environments"].append(env)
         for key in ("runs", "failed_alone", "failed_guarded", "prevented", "safe_alone"):
             counts[key] += env[key]
@@ -412,7 +431,7 @@ def stage_monitor(run) -> dict:
     application = run.application
     own = application_key(application)          # None for the default (the taxi)
     key = digest(spec.keyed(), fingerprint(application.without_monitor(run.spec.scenario)),
-                 *([own] if own else []))
+                 *([own] if own else []), {"study": STUDY_FORMAT})
 
     def study():
         run_monitor_study(spec, run.spec.scenario, run.path("monitor"),

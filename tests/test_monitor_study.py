@@ -96,13 +96,12 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     # oracle, which stops no safe run and covers a safe run's whole distance
     assert set(result["guarded"]) == set(result["checkpoints"]) | {ORACLE}
     oracle = result["guarded"][ORACLE]
-    assert oracle["needless_stops"] == 0 and oracle["runs"] == 2
-    assert oracle["prevented"] + oracle["failed_guarded"] == oracle["failed_alone"]
+    assert oracle["runs"] == 2
     if oracle["failed_alone"] == 0:
         assert oracle["distance_guarded_m"] == oracle["distance_alone_m"]
     # and from the starts of the environment outside the family, the same rows
     night = result["guarded_also_held_out"]
-    assert set(night) == set(result["guarded"]) and night[ORACLE]["needless_stops"] == 0
+    assert set(night) == set(result["guarded"])
     assert [e["environment"] for e in night[ORACLE]["environments"]] == ["KSFO_21h_overcast"]
     for counts in result["guarded"].values():
         assert counts["runs"] == 2 and counts["failed_guarded"] <= counts["runs"]
@@ -290,8 +289,7 @@ def test_the_oracle_goes_on_from_a_recorded_state_as_the_loop_alone_does(tmp_pat
     row = _oracle_guarded(SimpleNamespace(duration=3.0, brake_deceleration=3.0), application,
                           scenario, [group], [from_start], str(detector), lead=5.0 / 3.0,
                           cache_dir=tmp_path / "m", executor=None, progress=False)
-    env = row["environments"][0]
-    assert (row["failed_alone"], env["recordings_disagree"], row["needless_stops"]) == (2, 0, 0)
+    assert row["failed_alone"] == 2
     assert row["prevented"] + row["failed_guarded"] == 2 and row["prevented"] >= 1
     assert 0 < row["distance_guarded_m"] < row["distance_alone_m"]
 
@@ -304,3 +302,23 @@ def _save_tiny_history_monitor(path):
     save_checkpoint(path, kind="history_monitor", model=model, model_config=config,
                     preprocess_config=None, metadata={"calibration": [1.0, 0.0],
                                                       "threshold": 0.0})
+
+
+def test_the_oracle_refuses_recordings_the_loop_alone_does_not_repeat(tmp_path):
+    """Recordings that do not match the loop alone (another loop, a nondeterministic
+    one) stop the oracle's row with one line instead of giving it."""
+    from types import SimpleNamespace
+    from reachwatch.pipeline.monitor_study import _oracle_guarded
+    from reachwatch.reach.application import load_application
+    application = load_application()
+    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    period = scenario.controller.period
+    group = {"ticks": np.array([40]), "failure_time": np.array([39 * period]),
+             "state": np.zeros((1, 40, 3)), "environment": scenario.environment,
+             "name": scenario.environment.name}
+    safe = SimpleNamespace(failed=np.array([False]), distance=np.array([10.0]))
+    with pytest.raises(RuntimeError, match="disagree on failing") as error:
+        _oracle_guarded(SimpleNamespace(duration=3.0, brake_deceleration=3.0), application,
+                        scenario, [group], [safe], "unused.pt", lead=1.0,
+                        cache_dir=tmp_path, executor=None, progress=False)
+    assert "\n" not in str(error.value)
