@@ -57,13 +57,18 @@ def render_shares(client) -> dict:
     workers = client.scheduler_info(n_workers=-1)["workers"] if _takes_n_workers(client) \
         else client.scheduler_info()["workers"]
     cores = client.run(_usable_cores, on_error="return")
+    from distributed.comm import get_address_host
+
+    def host_of(address, info):
+        return info.get("host") or get_address_host(address)
+
     per_host = {}
     for address, info in workers.items():
-        host = info.get("host") or address
+        host = host_of(address, info)
         per_host[host] = per_host.get(host, 0) + int(info.get("nthreads") or 1)
     shares = {}
     for address, info in workers.items():
-        host = info.get("host") or address
+        host = host_of(address, info)
         count = cores.get(address)
         count = count if isinstance(count, int) else 1
         shares[address] = max(1, count // max(1, per_host[host]))

@@ -9,12 +9,14 @@ on the same machine resumes them); elsewhere it starts that stage again."""
 
 import hashlib
 import json
+import os
 from pathlib import Path
 
 from reachwatch.systems.files import (atomic_write_bytes, cache_join, cache_root, get_location,
                                       is_url, list_location, put_location)
 
-#: The working directory's own record of what it pushed: ``{relative: [size, mtime_ns]}``.
+#: The working directory's own record of what it put to its URL (the URL, and
+#: ``{relative: [size, mtime_ns, inode]}``).
 PUSHED = ".pushed.json"
 
 #: How many files `RunMirror.push` puts between two saves of `PUSHED`.
@@ -49,19 +51,23 @@ class RunMirror:
                              f"{self.url}: {e.strerror}") from None
 
     def _pushed(self) -> dict:
+        """What this working directory last put to (or fetched from) this URL; nothing
+        for another URL (a working directory reused for a second run is put whole)."""
         try:
-            return json.loads((self.local / PUSHED).read_text())
+            saved = json.loads((self.local / PUSHED).read_text())
         except (OSError, ValueError):
             return {}
+        return saved.get("files", {}) if saved.get("url") == self.url else {}
 
     def _signature(self, relative: str):
-        stat = (self.local / relative).stat()
-        return [stat.st_size, stat.st_mtime_ns]
+        stat = (self.local / relative).stat()      # an atomic rewrite is a new inode
+        return [stat.st_size, stat.st_mtime_ns, stat.st_ino]
 
     def pull(self) -> int:
         """Fetch each file at the URL the working directory lacks or holds at another
-        size, and every record; returns how many were fetched. A file fetched counts as
-        pushed."""
+        size, and every record, but never over a file changed here and not put yet (it
+        is newer) nor a hidden one (a temporary file a killed put left); returns how
+        many were fetched. A file fetched counts as put."""
         try:
             remote = list_location(self.url)
         except OSError as e:
@@ -70,6 +76,10 @@ class RunMirror:
         pushed, fetched = self._pushed(), 0
         for relative, size in sorted(remote.items()):
             target = self.local / relative
+            if os.path.basename(relative).startswith("."):
+                continue                          # a temporary file a killed put left
+            if target.is_file() and pushed.get(relative) != self._signature(relative):
+                continue                          # work here not put yet: it is newer
             if not (_is_record(relative) or not target.is_file()
                     or target.stat().st_size != size):
                 continue
@@ -103,4 +113,5 @@ class RunMirror:
         return len(changed)
 
     def _save(self, pushed: dict):
-        atomic_write_bytes(self.local / PUSHED, json.dumps(pushed, sort_keys=True).encode())
+        atomic_write_bytes(self.local / PUSHED, json.dumps(
+            {"url": self.url, "files": pushed}, sort_keys=True).encode())

@@ -52,6 +52,12 @@ def test_push_puts_what_changed_records_last_and_pull_fetches_it_elsewhere(
     assert elsewhere.push() == 0                               # fetched counts as put
     assert elsewhere.pull() == 2                               # the records, every time
     assert (tmp_path / "elsewhere" / PUSHED).is_file() and PUSHED not in list_location(url)
+    # a record changed here and not put yet is newer than the URL's: not fetched over
+    (tmp_path / "elsewhere" / "stages" / "sweep.json").write_text('{"key": 22}')
+    assert elsewhere.pull() == 1
+    assert (tmp_path / "elsewhere" / "stages" / "sweep.json").read_text() == '{"key": 22}'
+    # a working directory used for another URL puts everything there
+    assert RunMirror(url + "_other", work).push() == 3
 
 
 def test_a_url_that_cannot_be_a_mirror_is_one_line(tmp_path):
