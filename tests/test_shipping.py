@@ -11,28 +11,7 @@ from reachwatch.diagrams.controller import make_controller
 from reachwatch.diagrams.shipping import MAX_SHIPPED_BYTES, Packer, pack, run_shipped, unpack
 from reachwatch.systems.checks import is_file
 from reachwatch.systems.files import local_copy
-
-FACTORY = """\
-from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import LeafSystem
-from pydrake.systems.sensors import ImageRgba8U
-
-import lane_vision
-
-
-class Offset(LeafSystem):
-    def __init__(self):
-        super().__init__()
-        self.DeclareAbstractInputPort("color_image", AbstractValue.Make(ImageRgba8U()))
-        self.DeclareVectorOutputPort("steering_angle", 1, self._steer)
-
-    def _steer(self, context, output):
-        output.SetAtIndex(0, lane_vision.OFFSET)
-
-
-def make(config):
-    return Offset()
-"""
+from lane_follower import FACTORY
 
 
 @pytest.fixture(autouse=True)

@@ -24,6 +24,7 @@ from reachwatch.systems.checks import is_file
 from reachwatch.systems.files import local_copy
 from reachwatch.taxi import on_runway_starts, paper_grid, sweep_closed_loop
 from reachwatch.taxi.fidelity import real_outcomes
+from lane_follower import FACTORY
 
 distributed = pytest.importorskip("dask.distributed")
 
@@ -102,29 +103,6 @@ def test_a_two_thread_worker_sweeps_and_runs_the_real_loop_as_this_process_does(
         assert np.array_equal(dask_runs[name], values, equal_nan=True), name
     assert runs["ticks"].min() > 1             # real runs, not starts already off the runway
     assert "eglMakeCurrent" not in log_path.read_text(errors="replace")
-
-
-FACTORY = """\
-from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import LeafSystem
-from pydrake.systems.sensors import ImageRgba8U
-
-import lane_vision
-
-
-class Offset(LeafSystem):
-    def __init__(self):
-        super().__init__()
-        self.DeclareAbstractInputPort("color_image", AbstractValue.Make(ImageRgba8U()))
-        self.DeclareVectorOutputPort("steering_angle", 1, self._steer)
-
-    def _steer(self, context, output):
-        output.SetAtIndex(0, lane_vision.OFFSET)
-
-
-def make(config):
-    return Offset()
-"""
 
 
 def test_a_worker_elsewhere_runs_the_relative_files_it_was_sent(tmp_path, monkeypatch,

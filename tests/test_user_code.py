@@ -16,30 +16,7 @@ from reachwatch.diagrams.controller import make_controller, resolve_factory
 from reachwatch.diagrams.user_code import factory_code_hash
 from reachwatch.reach import InlineExecutor, default_executor, stop_executor
 from reachwatch.taxi import paper_grid, sweep_closed_loop, taxi_sweep_key
-
-FACTORY = """\
-from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import LeafSystem
-from pydrake.systems.sensors import ImageRgba8U
-
-import lane_vision
-
-
-class Offset(LeafSystem):
-    def __init__(self):
-        super().__init__()
-        self.DeclareAbstractInputPort("color_image", AbstractValue.Make(ImageRgba8U()))
-        self.DeclareVectorOutputPort("steering_angle", 1, self._steer)
-
-    def _steer(self, context, output):
-        output.SetAtIndex(0, lane_vision.OFFSET)
-
-
-def make(config):
-    from lane_vision import OFFSET         # an import inside the factory finds it too
-    assert OFFSET == lane_vision.OFFSET
-    return Offset()
-"""
+from lane_follower import FACTORY
 
 
 def _controller(tmp_path, offset="0.0"):
