@@ -27,6 +27,18 @@ def _version(name: str):
         return None
 
 
+def process_identity() -> dict:
+    """This process's `PINNED` versions and render stack: what a worker must share with
+    the driver (`check_worker_versions`, and every task on a Dask worker)."""
+    from reachwatch.diagrams.render_stack import render_stack
+    return {"versions": {name: _version(name) for name in PINNED}, "render": render_stack()}
+
+
+def describe_identity(identity: dict) -> str:
+    """`process_identity` in words, on one line."""
+    return f"{_describe(identity['versions'])}, renders with {_stack_text(identity['render'])}"
+
+
 def _describe(versions) -> str:
     return ", ".join(f"{name} {versions[name] or 'missing'}" for name in PINNED)
 

@@ -6,19 +6,39 @@ from distributed.cfexecutor import ClientExecutor
 
 from reachwatch.diagrams.shipping import Packer, run_shipped
 
+from .executors import describe_identity, process_identity
+
 #: Shipments whose futures the executor holds (a task in flight holds its own too).
 KEPT = 8
+
+
+def run_on_worker(expected: dict, shipment, fn, /, *args, **kwargs):
+    """A task on a worker: refused, in one line, when the worker's versions or render
+    stack (`process_identity`) differ from the driver's ``expected`` (a worker that
+    joined after the driver checked those connected); else ``fn(*args, **kwargs)``,
+    with ``shipment``'s files (`run_shipped`) when it brings some."""
+    mine = process_identity()
+    if mine != expected:
+        raise RuntimeError(f"this worker has {describe_identity(mine)}, the driver "
+                           f"{describe_identity(expected)}: it joined with another install; "
+                           f"stop it, or install the same versions and GL driver there")
+    if shipment is None:
+        return fn(*args, **kwargs)
+    return run_shipped(shipment, fn, *args, **kwargs)
 
 
 class ShippingExecutor(ClientExecutor):
     """A Dask client's executor whose tasks bring the files their arguments name
     (checkpoints, a user's code: `reachwatch.diagrams.shipping`), so that no worker
     opens a path of the driver's. Each distinct set of files is scattered to the
-    cluster once and handed to its tasks as a future."""
+    cluster once and handed to its tasks as a future. Every task checks first that its
+    worker has the driver's versions and render stack (`run_on_worker`): a worker that
+    joins after the driver's check is refused at its first task, before any result."""
 
     def __init__(self, client, **kwargs):
         super().__init__(client, **kwargs)
         self._packer, self._sent = Packer(), {}
+        self._expected = process_identity()
 
     def _scattered(self, shipment):
         """The cluster's future of ``shipment``: scattered once, again when the worker
@@ -33,6 +53,5 @@ class ShippingExecutor(ClientExecutor):
 
     def submit(self, fn, /, *args, **kwargs):
         shipment = self._packer.pack(fn, args, kwargs)
-        if shipment is None:
-            return super().submit(fn, *args, **kwargs)
-        return super().submit(run_shipped, self._scattered(shipment), fn, *args, **kwargs)
+        sent = None if shipment is None else self._scattered(shipment)
+        return super().submit(run_on_worker, self._expected, sent, fn, *args, **kwargs)

@@ -175,3 +175,21 @@ def test_a_worker_that_renders_otherwise_is_refused_in_one_line(monkeypatch, two
     message = str(error.value)
     assert "\n" not in message and "renders with probe " in message
     assert "libnvidia-glcore" in message and "same GL driver" in message
+
+
+def test_a_task_on_a_worker_unlike_the_driver_is_refused_in_one_line(two_thread_worker):
+    """A worker that joins after the driver's check is refused at its first task: every
+    task compares its worker's versions and render stack with the driver's."""
+    address, _ = two_thread_worker
+    executor, close = make_executor("dask://" + address.split("://", 1)[1])
+    try:
+        assert executor.submit(is_file, "no such file").result() is False
+        executor._expected = {**executor._expected,         # as if it joined late
+                              "render": {**executor._expected["render"], "probe": "0" * 32}}
+        with pytest.raises(RuntimeError) as error:
+            executor.submit(is_file, "no such file").result()
+    finally:
+        close()
+    message = str(error.value)
+    assert "\n" not in message and "joined with another install" in message
+    assert "probe 000000000000" in message
