@@ -8,6 +8,8 @@ import hashlib
 import os
 import threading
 
+from reachwatch.systems.files import file_hash
+
 #: The probe image's size (pixels); small, so the probe costs one render's setup.
 PROBE_SIZE = 48
 
@@ -69,14 +71,6 @@ def _probe_image(*, shadows: bool = False):
     return np.asarray(image.data).tobytes()
 
 
-def _file_digest(path: str) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 22), b""):
-            digest.update(block)
-    return digest.hexdigest()[:16]
-
-
 def _loaded_libraries() -> dict:
     """``{file name: hash of the file}`` of the drivers (`RENDER_DRIVERS`) mapped into
     this process, and ``{file name: ""}`` of the `COMPILERS`; empty where
@@ -92,7 +86,7 @@ def _loaded_libraries() -> dict:
         name = os.path.basename(path)
         if name.startswith(RENDER_DRIVERS):
             try:
-                found[name] = _file_digest(path)
+                found[name] = file_hash(path, 16)
             except OSError:
                 found[name] = "unreadable"
         elif name.startswith(COMPILERS):

@@ -27,7 +27,7 @@ from pathlib import Path
 from reachwatch.systems.checks import clip
 from reachwatch.systems.files import cache_root, shipped_copies
 
-from .user_code import _source_files
+from .user_code import _source_files, files_digest
 
 #: The most bytes one task may bring (its files are held in memory on both sides).
 MAX_SHIPPED_BYTES = 1 << 30
@@ -56,18 +56,16 @@ class Shipment:
                                     self.names)).encode()).hexdigest()
 
 
-def _folder(root: Path, files) -> ShippedFolder:
+def _folder(files) -> ShippedFolder:
     """The folder of ``files`` (``[(relative, path)]``) read now."""
-    read, digest = [], hashlib.sha256()
+    read = []
     for relative, path in sorted(files):
         try:
-            data = Path(path).read_bytes()
+            read.append((relative, Path(path).read_bytes()))
         except OSError as e:
             raise ValueError(f"a task names {clip(path, 200)}, which cannot be read to send "
                              f"it to the workers ({e.strerror})") from None
-        read.append((relative, data))
-        digest.update(f"{relative}\0{hashlib.sha256(data).hexdigest()}\0".encode())
-    return ShippedFolder(digest.hexdigest(), tuple(read))
+    return ShippedFolder(files_digest(read), tuple(read))
 
 
 #: A file changed less than this long before it was read may change again within the
@@ -139,7 +137,7 @@ class Packer:
             kept = self._read.get(named)
         if kept is not None and signature is not None and kept[0] == signature:
             return kept[1], kept[2]
-        folder = _folder(path.parent, files)
+        folder = _folder(files)
         entry = (signature, folder, path.name)
         with self._lock:
             self._read[named] = entry
@@ -177,14 +175,11 @@ _UNPACK_LOCK = threading.Lock()
 def _copy_digest(target: Path, folder: ShippedFolder) -> str:
     """The digest of the copy at ``target`` of ``folder``'s files (those alone: a file
     the code wrote beside them is not its content); '' when one is missing."""
-    digest = hashlib.sha256()
-    for relative, _ in folder.files:
-        try:
-            data = (target / relative).read_bytes()
-        except OSError:
-            return ""
-        digest.update(f"{relative}\0{hashlib.sha256(data).hexdigest()}\0".encode())
-    return digest.hexdigest()
+    try:
+        return files_digest([(relative, (target / relative).read_bytes())
+                             for relative, _ in folder.files])
+    except OSError:
+        return ""
 
 
 def _write(root: Path, folder: ShippedFolder):

@@ -73,16 +73,26 @@ def _source_files(root: Path, where: str):
     return sorted(found)
 
 
-def source_digest(root, where="controller.factory") -> str:
-    """SHA-256 of every ``.py`` file under ``root`` (relative paths and contents)."""
+def files_digest(files) -> str:
+    """SHA-256 of ``files``, ``[(relative path, bytes)]`` in order: their paths and
+    contents (what a folder of code is, whether read here or sent to a worker)."""
     digest = hashlib.sha256()
-    for relative, path in _source_files(Path(root), where):
-        try:
-            content = path.read_bytes()
-        except OSError as e:
-            raise ValueError(f"{where}: cannot read {clip(path, 200)} ({e.strerror})") from None
+    for relative, content in files:
         digest.update(f"{relative}\0{hashlib.sha256(content).hexdigest()}\0".encode())
     return digest.hexdigest()
+
+
+def _read(path: Path, where: str) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as e:
+        raise ValueError(f"{where}: cannot read {clip(path, 200)} ({e.strerror})") from None
+
+
+def source_digest(root, where="controller.factory") -> str:
+    """SHA-256 of every ``.py`` file under ``root`` (relative paths and contents)."""
+    return files_digest((relative, _read(path, where))
+                        for relative, path in _source_files(Path(root), where))
 
 
 class _SourceLoader(importlib.machinery.SourceFileLoader):

@@ -5,6 +5,7 @@ process's `PINNED` versions and render stack, and may run any number of threads;
 task brings the files its arguments name, `ShippingExecutor`)."""
 
 import contextlib
+import functools
 import importlib.metadata
 import re
 
@@ -29,9 +30,15 @@ def _version(name: str):
 
 def process_identity() -> dict:
     """This process's `PINNED` versions and render stack: what a worker must share with
-    the driver (`check_worker_versions`, and every task on a Dask worker)."""
+    the driver (`check_worker_versions`, and every task on a Dask worker). Both are read
+    once per process (installed versions do not change under a running process)."""
     from reachwatch.diagrams.render_stack import render_stack
-    return {"versions": {name: _version(name) for name in PINNED}, "render": render_stack()}
+    return {"versions": dict(_pinned_versions()), "render": render_stack()}
+
+
+@functools.lru_cache(maxsize=1)
+def _pinned_versions() -> tuple:
+    return tuple((name, _version(name)) for name in PINNED)
 
 
 def describe_identity(identity: dict) -> str:

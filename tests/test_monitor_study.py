@@ -13,7 +13,8 @@ import pytest
 from reachwatch.diagrams import load_scenario
 from reachwatch.diagrams.checkpoints import load_history_monitor
 from reachwatch.pipeline.monitor_sections import markdown_tables
-from reachwatch.pipeline.monitor_study import ORACLE, oracle_flag_ticks, run_monitor_study
+from reachwatch.pipeline.monitor_guarded import ORACLE, oracle_flag_ticks
+from reachwatch.pipeline.monitor_study import run_monitor_study
 from reachwatch.pipeline.spec import dump_run_spec, load_run_spec
 from reachwatch.training.conformal import conformal_threshold
 from tiny_run import TINY
@@ -282,7 +283,7 @@ def test_the_oracle_goes_on_from_a_recorded_state_as_the_loop_alone_does(tmp_pat
     # the guarded-loop row of the oracle from those recordings: braking from one stop's
     # lead (5/3 s at 3 m/s^2) before each failure
     from types import SimpleNamespace
-    from reachwatch.pipeline.monitor_study import _oracle_guarded
+    from reachwatch.pipeline.monitor_guarded import _oracle_guarded
     group = {**runs, "environment": scenario.environment, "name": scenario.environment.name}
     from_start = application.missions(scenario, starts, duration=3.0, cache_dir=tmp_path / "m",
                                       progress=False)
@@ -308,7 +309,7 @@ def test_the_oracle_refuses_recordings_the_loop_alone_does_not_repeat(tmp_path):
     """Recordings that do not match the loop alone (another loop, a nondeterministic
     one) stop the oracle's row with one line instead of giving it."""
     from types import SimpleNamespace
-    from reachwatch.pipeline.monitor_study import _oracle_guarded
+    from reachwatch.pipeline.monitor_guarded import _oracle_guarded
     from reachwatch.reach.application import load_application
     application = load_application()
     scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
