@@ -40,7 +40,8 @@ from reachwatch.diagrams import load_detector
 from reachwatch.pipeline.spec import digest, load_run_spec
 from reachwatch.pipeline.stages import Run
 from reachwatch.reach.value_function import ValueFunction
-from reachwatch.taxi.fidelity import path_points, real_paths
+from reachwatch.reach.outcomes import path_points
+from reachwatch.taxi.fidelity import real_paths
 from reachwatch.training.dataset import build_dataset, load_dataset, runs_cache
 from reachwatch.training.detector_train import detector_scores, train_detector
 from reachwatch.training.metrics import accuracy_at_recall, auroc, binary_metrics

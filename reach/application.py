@@ -21,7 +21,6 @@ import dataclasses as dc
 import functools
 import importlib
 import inspect
-import threading
 
 import numpy as np
 
@@ -156,6 +155,7 @@ class Application(abc.ABC):
         and ``ticks`` (frames rendered); cached by content under ``cache_dir``. Default:
         `loop_rollouts`, which judges `failed` at the control ticks (the taxi's own
         stops at the crossing itself)."""
+        from .loop_runs import loop_rollouts
         from .outcomes import run_outcomes
         rollout = functools.partial(loop_rollouts, ApplicationRef(self._loaded_as()),
                                     self.resolved(scenario), float(duration), grid)
@@ -175,6 +175,7 @@ class Application(abc.ABC):
         ``cache_dir`` (the scenario without its monitor, the horizon, the frame size and
         the starts). Default: `loop_recordings`, which reads `camera_port` and `probe`'s
         control port inside `loop_diagram` and judges `failed` at the control ticks."""
+        from .loop_runs import loop_recordings
         from .outcomes import map_states
         scenario = self.without_monitor(scenario)
         rollout = functools.partial(loop_recordings, ApplicationRef(self._loaded_as()),
@@ -198,6 +199,7 @@ class Application(abc.ABC):
         and the same-distance fields are filled (`reach.liveness.SAME_DISTANCE_FIELDS`);
         the default has no such runs."""
         from .liveness import MISSION_FIELDS, MissionOutcomes
+        from .loop_runs import loop_missions
         from .outcomes import map_states
         if mission_limit is not None:
             raise NotImplementedError(f"Application.missions: the application '{self.name}' "
@@ -221,9 +223,18 @@ class Application(abc.ABC):
     def real_paths(self, scenario, starts, *, grid, horizon: float, extend: float,
                    stride: int, cache_dir, executor=None, progress: bool = True):
         """Like `real_outcomes`, with the states each run passes through and their labels
-        (``path_state``, ``path_label``): what trajectory labels read."""
-        raise ValueError(f"the application '{self.name}' reads no labels along real runs (it "
-                         f"defines no real_paths): label with dataset.labels.source: brt")
+        (``path_state``, ``path_label``): what trajectory labels read. Each run lasts
+        ``horizon + extend`` s and keeps every ``stride``-th tick up to ``extend`` s;
+        cached by content under ``cache_dir``, keyed without the monitor. Default:
+        `reach.loop_runs.loop_paths`, which needs a controller that keeps no state of
+        its own."""
+        from .loop_runs import loop_paths
+        from .outcomes import run_outcomes
+        scenario = self.without_monitor(scenario)
+        rollout = functools.partial(loop_paths, ApplicationRef(self._loaded_as()), scenario,
+                                    float(horizon), float(extend), int(stride), grid)
+        return run_outcomes(rollout, starts, cache_dir=cache_dir, executor=executor,
+                            progress=progress, label=f"{scenario.environment.name} paths")
 
     # --- images -----------------------------------------------------------------------
     def renderer(self, scenario):
@@ -423,154 +434,6 @@ def sweep_scenario(scenario, guarded: bool = False):
         defaults.initial_state, defaults.duration, defaults.seed)
     scenario.monitor = type(scenario.monitor)(detector=scenario.monitor.detector if guarded else "")
     return scenario
-
-
-_LOOPS = threading.local()      # per worker thread: (spec, scenario) -> (app, diagram, context)
-
-
-def _thread_loop(ref: ApplicationRef, scenario, guarded: bool = False):
-    """``(application, diagram, context)`` of ``ref``'s loop of ``scenario``, built once
-    per worker thread (a Context, and a render context, never crosses threads)."""
-    loops = getattr(_LOOPS, "loops", None)
-    if loops is None:
-        loops = _LOOPS.loops = {}
-    key = fingerprint(ref, scenario) if not guarded else fingerprint(ref, scenario, "guarded")
-    if key not in loops:
-        application = ref.load()
-        diagram = build_loop(ref, scenario, guarded)
-        loops[key] = application, diagram, diagram.CreateDefaultContext()
-    return loops[key]
-
-
-def _subsystem_port(application, diagram, name: str, what: str):
-    """The output port ``name`` (``"system.port"``) of a subsystem of ``diagram``; a
-    ValueError naming the application's attribute ``what`` when there is none."""
-    system, _, port = str(name).partition(".")
-    if not (diagram.HasSubsystemNamed(system) and
-            diagram.GetSubsystemByName(system).HasOutputPort(port)):
-        raise ValueError(f"the application '{application.name}': its loop has no output port "
-                         f"'{name}' (its {what}); set {what} to the loop's 'system.port'")
-    system = diagram.GetSubsystemByName(system)
-    return system, system.GetOutputPort(port)
-
-
-def loop_recordings(ref: ApplicationRef, scenario, duration: float, height: int, width: int,
-                    states) -> dict:
-    """The fields of `Application.recorded_runs`: the controller alone's loop of
-    ``ref``'s application from each start, the camera's image (`Application.camera_port`)
-    resized to ``height`` x ``width`` and the online signals (the controller's
-    ``estimate`` when it has one, then its steering: `Application.probe`'s control port)
-    read inside the loop at every control tick, stopping at the first tick where
-    `Application.failed` holds."""
-    from reachwatch.diagrams.closed_loop import LoopRun
-    from reachwatch.diagrams.controller import ESTIMATE_OUTPUT
-    from reachwatch.systems import DetectorConfig, resize_for_detector
-    application, diagram, context = _thread_loop(ref, scenario)
-    camera = _subsystem_port(application, diagram, application.camera_port, "camera_port")
-    controller, steering = _subsystem_port(application, diagram,
-                                           application.probe(scenario).control_port,
-                                           "probe's control_port")
-    signals = ([(controller, controller.GetOutputPort(ESTIMATE_OUTPUT))]
-               if controller.HasOutputPort(ESTIMATE_OUTPUT) else []) + [(controller, steering)]
-    size = DetectorConfig(height=height, width=width)
-    period = scenario.controller.period
-    length = int(np.floor(duration / period + 1e-9)) + 1
-    states = np.asarray(states, float)
-    m = sum(port.size() for _, port in signals)
-    out = {"frames": np.zeros((len(states), length, height, width, 3), np.uint8),
-           "signals": np.full((len(states), length, m), np.nan),
-           "state": np.full((len(states), length, states.shape[1]), np.nan),
-           "ticks": np.zeros(len(states), int), "failed": np.zeros(len(states), bool),
-           "failure_time": np.full(len(states), np.nan)}
-    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
-    read = lambda system, port, root: port.Eval(system.GetMyContextFromRoot(root))  # noqa: E731
-    for i, x in enumerate(states):
-        if failed(x):                                   # already failed: no run
-            out["failed"][i], out["failure_time"][i] = True, 0.0
-            continue
-        run = LoopRun(diagram, initial_state=x, duration=duration, period=period,
-                      half_width=1e300, stop_on_failure=False, context=context,
-                      stop_when=lambda rows: failed(rows["state"][-1]))
-        frames, online = [], []
-        while run.advance():
-            frames.append(resize_for_detector(read(*camera, run.context).data[None], size)[0])
-            online.append(np.concatenate([np.asarray(read(s, p, run.context), float).ravel()
-                                          for s, p in signals]))
-            run.sample()
-        trajectory = run.trajectory()
-        n = min(len(trajectory.time), length)
-        out["frames"][i, :n] = np.stack(frames)[:n, ..., :3]
-        out["signals"][i, :n] = np.stack(online)[:n]
-        out["state"][i, :n] = trajectory.state[:n]
-        out["ticks"][i] = n
-        out["failed"][i] = end = failed(trajectory.state[n - 1])
-        out["failure_time"][i] = float(trajectory.time[n - 1]) if end else np.nan
-    return out
-
-
-def loop_missions(ref: ApplicationRef, scenario, fallback, duration: float, states) -> dict:
-    """The `reach.liveness.MissionOutcomes` fields of `Application.missions`: the loop of
-    ``ref``'s application (guarded by ``scenario.monitor`` with the fallback named
-    ``fallback``, or the controller alone for None) from each start for ``duration`` s,
-    stopping at the first control tick where `Application.failed` holds. The speed
-    logged at a tick (the guarded loop's exported ``speed``, else the controller's) is
-    the speed applied since the previous one."""
-    from reachwatch.diagrams import simulate
-    from reachwatch.systems import fallback_parts
-    from .liveness import MISSION_FIELDS
-    if fallback is not None:
-        scenario = copy.deepcopy(scenario)
-        scenario.monitor.strategy, scenario.monitor.steering = fallback_parts(fallback)
-    application, diagram, context = _thread_loop(ref, scenario, fallback is not None)
-    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
-    period, nominal = scenario.controller.period, scenario.controller.speed
-    out = {name: [] for name in MISSION_FIELDS}
-    for x in np.asarray(states, float):
-        if failed(x):                                   # already failed
-            row = (True, False, False, 0.0, 0, 0)
-        else:
-            run = simulate(diagram, initial_state=x, duration=duration, period=period,
-                           half_width=1e300, stop_on_failure=False, context=context,
-                           stop_when=lambda rows: failed(rows["state"][-1]))
-            k = len(run.time)
-            speed = (np.full(k, nominal) if run.speed is None
-                     else np.asarray(run.speed, float).reshape(-1))
-            end = failed(run.state[-1])
-            acting = run.time < duration - 1e-9
-            flags = (np.zeros(k, bool) if run.anomaly is None
-                     else np.asarray(run.anomaly, float).reshape(-1) >= 0.5)
-            row = (end, not end and speed[-1] <= 0, bool(np.any(speed[1:] <= 0)),
-                   float(np.sum(speed[1:] * np.diff(run.time))), int(np.sum(flags & acting)),
-                   int(np.sum(acting)))
-        for name, value in zip(MISSION_FIELDS, row):
-            out[name].append(value)
-    return {name: np.asarray(value) for name, value in out.items()}
-
-
-def loop_rollouts(ref: ApplicationRef, scenario, duration: float, grid, states) -> dict:
-    """The real loop of ``ref``'s application from each start for ``duration`` s,
-    stopping at the first control tick where its `Application.failed` holds: the
-    fields of `Application.real_outcomes`. One diagram and Context per worker thread
-    (a Context, and a render context, never crosses threads)."""
-    from reachwatch.diagrams import simulate
-    from .fidelity import left_box
-    application, diagram, context = _thread_loop(ref, scenario)
-    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
-    out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
-    for x in np.asarray(states, float):
-        if failed(x):                                   # already failed
-            row = (True, 0.0, False, np.nan, 0)
-        else:
-            run = simulate(diagram, initial_state=x, duration=duration,
-                           period=scenario.controller.period, half_width=1e300,
-                           stop_on_failure=False, context=context,
-                           stop_when=lambda rows: failed(rows["state"][-1]))
-            end = failed(run.state[-1])
-            row = (end, float(run.time[-1]) if end else np.nan,
-                   left_box(run.state, grid, axes=application.open_axes), np.nan, len(run.time))
-        for k, v in zip(out, row):
-            out[k].append(v)
-    return {k: np.asarray(v) for k, v in out.items()}
 
 
 def build_loop(ref: ApplicationRef, scenario, guarded: bool):

@@ -7,7 +7,7 @@ A rollout function is any picklable callable ``rollout(states) -> dict`` mapping
 ``(n, ndim)`` starts to arrays with ``n`` rows: ``failed`` (bool) is required;
 ``failure_time`` (s), ``left_box`` (bool) and ``ticks`` (frames rendered) are read
 when present. An application's is its `Application.real_outcomes` rollout (the
-generic one is `reachwatch.reach.application.loop_rollouts`); anything deterministic
+generic one is `reachwatch.reach.loop_runs.loop_rollouts`); anything deterministic
 that runs the loop the labels are about will do.
 
 `path_labels` reads labels for every tick of one longer run: for a loop whose state
@@ -193,3 +193,23 @@ def path_labels(time, failure_time: float, duration: float, horizon: float) -> n
     on the run's: the real loop's logged ticks are control ticks, and a loop whose
     controller keeps its own state (a filter, a frame history) breaks the premise."""
     return fails_within(*time_to_failure(time, failure_time, duration), horizon)
+
+
+def path_points(horizon: float, extend: float, stride: int, period: float) -> np.ndarray:
+    """The ticks at which labels are read along a run (`Application.real_paths`): every
+    ``stride``-th tick from the start (tick 0) up to ``extend`` s, the stretch whose
+    horizon the run of ``horizon + extend`` s covers."""
+    return np.arange(int(np.floor(extend / (stride * period) + 1e-9)) + 1) * int(stride)
+
+
+def check_memoryless(controller):
+    """Raise ValueError when the loop's ``controller`` (a Drake System) keeps state of
+    its own (a filter, a frame history): then the run from a state a longer run passed
+    through is not the rest of that run, and labels read along runs would be guesses."""
+    states = controller.CreateDefaultContext().num_total_states()
+    if states:
+        raise ValueError(
+            f"trajectory labels need a controller that keeps no state of its own, but "
+            f"'{controller.get_name()}' ({type(controller).__name__}) has {states}: a run "
+            f"from a state a longer run passed through would not repeat that run. Label "
+            f"with dataset.labels.source: rollout instead")

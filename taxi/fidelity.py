@@ -20,7 +20,8 @@ from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes,
                                        check_mission_limit)
-from reachwatch.reach.outcomes import Outcomes, map_states, path_labels, run_outcomes
+from reachwatch.reach.outcomes import (Outcomes, check_memoryless, map_states, path_labels,
+                                       path_points, run_outcomes)
 from reachwatch.reach.score_noise import fit_score_noise
 from reachwatch.systems import fallback_parts
 
@@ -137,27 +138,6 @@ def taxi_rollouts(scenario, duration: float, grid, states, *, lockstep=None) -> 
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def path_points(horizon: float, extend: float, stride: int, period: float) -> np.ndarray:
-    """The ticks `taxi_paths` keeps along a run: every ``stride``-th tick from the start
-    (tick 0) up to ``extend`` s, the stretch whose horizon the run of ``horizon +
-    extend`` s covers."""
-    return np.arange(int(np.floor(extend / (stride * period) + 1e-9)) + 1) * int(stride)
-
-
-def check_memoryless(diagram):
-    """Raise ValueError when the loop's ``controller`` keeps state of its own (a filter,
-    a frame history): then the run from a state a longer run passed through is not the
-    rest of that run, and labels read along runs would be guesses."""
-    controller = diagram.GetSubsystemByName(CONTROLLER)
-    states = controller.CreateDefaultContext().num_total_states()
-    if states:
-        raise ValueError(
-            f"trajectory labels need a controller that keeps no state of its own, but "
-            f"'{controller.get_name()}' ({type(controller).__name__}) has {states}: a run "
-            f"from a state a longer run passed through would not repeat that run. Label "
-            f"with dataset.labels.source: rollout instead")
-
-
 def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, states, *,
                lockstep=None) -> dict:
     """Like `taxi_rollouts`, but each run lasts ``horizon + extend`` s (stopping at
@@ -171,7 +151,7 @@ def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, state
     and the steering hold is reset at every control tick. ``lockstep`` as in
     `taxi_rollouts`."""
     diagram, _ = _loop(scenario, make_closed_loop_diagram)
-    check_memoryless(diagram)
+    check_memoryless(diagram.GetSubsystemByName(CONTROLLER))
     B, period = scenario.environment.half_width, scenario.controller.period
     points = path_points(horizon, extend, stride, period)
     states = np.asarray(states, float)

@@ -7,8 +7,8 @@ import pytest
 from pydrake.systems.framework import LeafSystem
 
 from reachwatch.diagrams import make_closed_loop_diagram, simulate
-from reachwatch.reach.outcomes import path_labels
-from reachwatch.taxi.fidelity import check_memoryless, on_runway_starts, path_points
+from reachwatch.reach.outcomes import check_memoryless, path_labels, path_points
+from reachwatch.taxi.fidelity import on_runway_starts
 from reachwatch.training.dataset import DatasetSpec, build_dataset, dataset_folder, load_dataset
 from reachwatch.training.labels import (NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
                                         LabelSpec, trajectory_samples)
@@ -90,7 +90,43 @@ def test_a_controller_with_state_is_refused():
     builder.AddNamedSystem("controller", _Counter())
     diagram = builder.Build()
     with pytest.raises(ValueError, match="keeps no state.*has 1.*source: rollout"):
-        check_memoryless(diagram)
+        check_memoryless(diagram.GetSubsystemByName("controller"))
+
+
+def test_any_application_labels_the_states_its_runs_pass_through(tmp_path, monkeypatch):
+    """The generic `Application.real_paths` (`reach.loop_runs.loop_paths`) on another
+    plant (examples/cart): each label read along a run is the outcome of the cart's
+    loop started at that state, checked by starting it there; a run that fails late
+    labels its early states safe and its late ones anomalous."""
+    from dataclasses import replace as dc_replace
+    from pathlib import Path
+    from reachwatch.pipeline.spec import load_run_spec
+    from reachwatch.reach.application import load_application
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)                         # the run file's paths are relative
+    text = (root / "examples" / "cart" / "run.yaml").read_text()
+    spec = load_run_spec(data=text.replace("width: 160, height: 80", "width: 48, height: 24"))
+    cart = load_application(spec.application)
+    scenario = dc_replace(spec.scenario, environment=spec.train[0])
+    grid = cart.grid(scenario, [5, 5])
+    # straight on; turned hard (fails late); near a rail turned out (fails at once); on a rail
+    starts = np.array([[0.0, 0.0], [0.0, 1.3], [0.35, 0.9], [0.5, 0.0]])
+    horizon, extend = 0.5, 1.0
+    paths = cart.real_paths(scenario, starts, grid=grid, horizon=horizon, extend=extend,
+                            stride=1, cache_dir=tmp_path / "paths", progress=False).fields
+    assert paths["path_state"].shape == (4, 11, 2)
+    np.testing.assert_allclose(paths["path_state"][:, 0], starts)
+    labels = paths["path_label"]
+    assert (labels[0] == 0).all()
+    assert labels[1, 0] == 0 and labels[1, -1] == -1 and (labels[1] == 1).any()
+    assert labels[2, 0] == 1 and labels[3].tolist() == [1] + [-1] * 10
+    alone = cart.real_outcomes(scenario, starts, grid=grid, duration=horizon,
+                               cache_dir=tmp_path / "runs", progress=False)
+    assert paths["failed"].tolist() == alone.failed.tolist() == [False, False, True, True]
+    known = labels >= 0
+    again = cart.real_outcomes(scenario, paths["path_state"][known], grid=grid,
+                               duration=horizon, cache_dir=tmp_path / "runs", progress=False)
+    np.testing.assert_array_equal(again.failed, labels[known] == 1)
 
 
 def test_trajectory_labels_equal_direct_simulation_of_the_real_loop(tmp_path, kmwh_day_brt):

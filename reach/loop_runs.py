@@ -1,0 +1,216 @@
+"""The generic real loop of an application, run from given starts: the runners behind
+`Application.real_outcomes`, `real_paths`, `recorded_runs` and `missions` for any
+loop the application builds (the taxi has faster ones of its own, in
+`reachwatch.taxi.fidelity`). Each takes ``ref`` (an `ApplicationRef`: picklable, a
+worker loads the application again), the scenario and the run's settings, then the
+``states`` of one chunk, and returns that chunk's fields (`reach.outcomes.map_states`).
+Every control tick renders; a run stops at the first tick where `Application.failed`
+holds."""
+
+import copy
+import threading
+
+import numpy as np
+
+from .application import build_loop
+from .fingerprint import fingerprint
+from .outcomes import check_memoryless, path_labels, path_points
+
+_LOOPS = threading.local()      # per worker thread: (spec, scenario) -> (app, diagram, context)
+
+
+def _thread_loop(ref, scenario, guarded: bool = False):
+    """``(application, diagram, context)`` of ``ref``'s loop of ``scenario``, built once
+    per worker thread (a Context, and a render context, never crosses threads)."""
+    loops = getattr(_LOOPS, "loops", None)
+    if loops is None:
+        loops = _LOOPS.loops = {}
+    key = fingerprint(ref, scenario) if not guarded else fingerprint(ref, scenario, "guarded")
+    if key not in loops:
+        application = ref.load()
+        diagram = build_loop(ref, scenario, guarded)
+        loops[key] = application, diagram, diagram.CreateDefaultContext()
+    return loops[key]
+
+
+def _subsystem_port(application, diagram, name: str, what: str):
+    """The output port ``name`` (``"system.port"``) of a subsystem of ``diagram``; a
+    ValueError naming the application's attribute ``what`` when there is none."""
+    system, _, port = str(name).partition(".")
+    if not (diagram.HasSubsystemNamed(system) and
+            diagram.GetSubsystemByName(system).HasOutputPort(port)):
+        raise ValueError(f"the application '{application.name}': its loop has no output port "
+                         f"'{name}' (its {what}); set {what} to the loop's 'system.port'")
+    system = diagram.GetSubsystemByName(system)
+    return system, system.GetOutputPort(port)
+
+
+def loop_recordings(ref, scenario, duration: float, height: int, width: int,
+                    states) -> dict:
+    """The fields of `Application.recorded_runs`: the controller alone's loop of
+    ``ref``'s application from each start, the camera's image (`Application.camera_port`)
+    resized to ``height`` x ``width`` and the online signals (the controller's
+    ``estimate`` when it has one, then its steering: `Application.probe`'s control port)
+    read inside the loop at every control tick, stopping at the first tick where
+    `Application.failed` holds."""
+    from reachwatch.diagrams.closed_loop import LoopRun
+    from reachwatch.diagrams.controller import ESTIMATE_OUTPUT
+    from reachwatch.systems import DetectorConfig, resize_for_detector
+    application, diagram, context = _thread_loop(ref, scenario)
+    camera = _subsystem_port(application, diagram, application.camera_port, "camera_port")
+    controller, steering = _subsystem_port(application, diagram,
+                                           application.probe(scenario).control_port,
+                                           "probe's control_port")
+    signals = ([(controller, controller.GetOutputPort(ESTIMATE_OUTPUT))]
+               if controller.HasOutputPort(ESTIMATE_OUTPUT) else []) + [(controller, steering)]
+    size = DetectorConfig(height=height, width=width)
+    period = scenario.controller.period
+    length = int(np.floor(duration / period + 1e-9)) + 1
+    states = np.asarray(states, float)
+    m = sum(port.size() for _, port in signals)
+    out = {"frames": np.zeros((len(states), length, height, width, 3), np.uint8),
+           "signals": np.full((len(states), length, m), np.nan),
+           "state": np.full((len(states), length, states.shape[1]), np.nan),
+           "ticks": np.zeros(len(states), int), "failed": np.zeros(len(states), bool),
+           "failure_time": np.full(len(states), np.nan)}
+    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
+    read = lambda system, port, root: port.Eval(system.GetMyContextFromRoot(root))  # noqa: E731
+    for i, x in enumerate(states):
+        if failed(x):                                   # already failed: no run
+            out["failed"][i], out["failure_time"][i] = True, 0.0
+            continue
+        run = LoopRun(diagram, initial_state=x, duration=duration, period=period,
+                      half_width=1e300, stop_on_failure=False, context=context,
+                      stop_when=lambda rows: failed(rows["state"][-1]))
+        frames, online = [], []
+        while run.advance():
+            frames.append(resize_for_detector(read(*camera, run.context).data[None], size)[0])
+            online.append(np.concatenate([np.asarray(read(s, p, run.context), float).ravel()
+                                          for s, p in signals]))
+            run.sample()
+        trajectory = run.trajectory()
+        n = min(len(trajectory.time), length)
+        out["frames"][i, :n] = np.stack(frames)[:n, ..., :3]
+        out["signals"][i, :n] = np.stack(online)[:n]
+        out["state"][i, :n] = trajectory.state[:n]
+        out["ticks"][i] = n
+        out["failed"][i] = end = failed(trajectory.state[n - 1])
+        out["failure_time"][i] = float(trajectory.time[n - 1]) if end else np.nan
+    return out
+
+
+def loop_missions(ref, scenario, fallback, duration: float, states) -> dict:
+    """The `reach.liveness.MissionOutcomes` fields of `Application.missions`: the loop of
+    ``ref``'s application (guarded by ``scenario.monitor`` with the fallback named
+    ``fallback``, or the controller alone for None) from each start for ``duration`` s,
+    stopping at the first control tick where `Application.failed` holds. The speed
+    logged at a tick (the guarded loop's exported ``speed``, else the controller's) is
+    the speed applied since the previous one."""
+    from reachwatch.diagrams import simulate
+    from reachwatch.systems import fallback_parts
+    from .liveness import MISSION_FIELDS
+    if fallback is not None:
+        scenario = copy.deepcopy(scenario)
+        scenario.monitor.strategy, scenario.monitor.steering = fallback_parts(fallback)
+    application, diagram, context = _thread_loop(ref, scenario, fallback is not None)
+    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
+    period, nominal = scenario.controller.period, scenario.controller.speed
+    out = {name: [] for name in MISSION_FIELDS}
+    for x in np.asarray(states, float):
+        if failed(x):                                   # already failed
+            row = (True, False, False, 0.0, 0, 0)
+        else:
+            run = simulate(diagram, initial_state=x, duration=duration, period=period,
+                           half_width=1e300, stop_on_failure=False, context=context,
+                           stop_when=lambda rows: failed(rows["state"][-1]))
+            k = len(run.time)
+            speed = (np.full(k, nominal) if run.speed is None
+                     else np.asarray(run.speed, float).reshape(-1))
+            end = failed(run.state[-1])
+            acting = run.time < duration - 1e-9
+            flags = (np.zeros(k, bool) if run.anomaly is None
+                     else np.asarray(run.anomaly, float).reshape(-1) >= 0.5)
+            row = (end, not end and speed[-1] <= 0, bool(np.any(speed[1:] <= 0)),
+                   float(np.sum(speed[1:] * np.diff(run.time))), int(np.sum(flags & acting)),
+                   int(np.sum(acting)))
+        for name, value in zip(MISSION_FIELDS, row):
+            out[name].append(value)
+    return {name: np.asarray(value) for name, value in out.items()}
+
+
+def loop_rollouts(ref, scenario, duration: float, grid, states) -> dict:
+    """The real loop of ``ref``'s application from each start for ``duration`` s,
+    stopping at the first control tick where its `Application.failed` holds: the
+    fields of `Application.real_outcomes`. One diagram and Context per worker thread
+    (a Context, and a render context, never crosses threads)."""
+    from reachwatch.diagrams import simulate
+    from .fidelity import left_box
+    application, diagram, context = _thread_loop(ref, scenario)
+    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
+    out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
+    for x in np.asarray(states, float):
+        if failed(x):                                   # already failed
+            row = (True, 0.0, False, np.nan, 0)
+        else:
+            run = simulate(diagram, initial_state=x, duration=duration,
+                           period=scenario.controller.period, half_width=1e300,
+                           stop_on_failure=False, context=context,
+                           stop_when=lambda rows: failed(rows["state"][-1]))
+            end = failed(run.state[-1])
+            row = (end, float(run.time[-1]) if end else np.nan,
+                   left_box(run.state, grid, axes=application.open_axes), np.nan, len(run.time))
+        for k, v in zip(out, row):
+            out[k].append(v)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def loop_paths(ref, scenario, horizon: float, extend: float, stride: int, grid,
+               states) -> dict:
+    """The fields of `Application.real_paths`: like `loop_rollouts`, but each run lasts
+    ``horizon + extend`` s (stopping at failure), and the states it passes through at
+    the ticks `path_points` keeps are labelled by the same run
+    (`reach.outcomes.path_labels`). Per start: ``failed`` (within ``horizon``),
+    ``failure_time`` (s, NaN if none within the whole run), ``left_box`` (within
+    ``horizon``), ``max_abs_theta`` (NaN: no heading is known here), ``ticks``,
+    ``path_state`` ``(m, n)`` (NaN where the run had ended) and ``path_label`` ``(m,)``
+    (1 anomalous, 0 safe, -1 unknown); row 0 of both is the start itself. Exact when the
+    plant's state is all the loop remembers between control ticks: the controller (the
+    system of `Application.probe`'s control port) must keep no state of its own
+    (`check_memoryless`)."""
+    from reachwatch.diagrams import simulate
+    from .fidelity import left_box
+    application, diagram, context = _thread_loop(ref, scenario)
+    controller, _ = _subsystem_port(application, diagram,
+                                    application.probe(scenario).control_port,
+                                    "probe's control_port")
+    check_memoryless(controller)
+    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
+    period, duration = scenario.controller.period, horizon + extend
+    points = path_points(horizon, extend, stride, period)
+    states = np.asarray(states, float)
+    n = len(states)
+    out = {"failed": np.zeros(n, bool), "failure_time": np.full(n, np.nan),
+           "left_box": np.zeros(n, bool), "max_abs_theta": np.full(n, np.nan),
+           "ticks": np.zeros(n, int),
+           "path_state": np.full((n, len(points), states.shape[1]), np.nan),
+           "path_label": np.full((n, len(points)), -1, np.int8)}
+    for i, x in enumerate(states):
+        if failed(x):                                   # already failed: no run
+            out["failed"][i], out["failure_time"][i] = True, 0.0
+            out["path_state"][i, 0], out["path_label"][i, 0] = x, 1
+            continue
+        run = simulate(diagram, initial_state=x, duration=duration, period=period,
+                       half_width=1e300, stop_on_failure=False, context=context,
+                       stop_when=lambda rows: failed(rows["state"][-1]))
+        end = failed(run.state[-1])
+        failure_time = float(run.time[-1]) if end else None
+        labels = path_labels(run.time, failure_time, duration, horizon)
+        within = run.time <= horizon + 1e-9
+        kept = points[points < len(run.time)]
+        out["failed"][i] = labels[0] == 1
+        out["failure_time"][i] = np.nan if failure_time is None else failure_time
+        out["left_box"][i] = left_box(run.state[within], grid, axes=application.open_axes)
+        out["ticks"][i] = len(run.time)
+        out["path_state"][i, :len(kept)] = run.state[kept]
+        out["path_label"][i, :len(kept)] = labels[kept]
+    return out
