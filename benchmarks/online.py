@@ -26,6 +26,9 @@ from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram, make_g
                                  paired_rates, save_checkpoint)
 from reachwatch.systems import DetectorConfig, HistoryMonitorConfig, HistoryRiskModel, build_detector
 
+#: Where each round starts: states near the centreline, [px m, py m, theta rad].
+NEAR_CENTRELINE = [[0.5 * (k % 3), 110.0 + 10.0 * k, np.deg2rad(2.0 * (k % 3))] for k in range(5)]
+
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -79,7 +82,8 @@ def main():
                 make_guarded_diagram(load_scenario(
                     data=f"monitor: {{detector: {path}, threshold: 1.0}}\n"))
             alone, guard = paired_rates(nominal, guarded, rounds=args.rounds,
-                                        duration=args.duration, period=0.05)
+                                        duration=args.duration, period=0.05,
+                                        starts=NEAR_CENTRELINE)
             ratio = guard / alone
             extra_ms = float(np.median(1e3 / guard - 1e3 / alone))
             print(f"{name:<34} {np.median(alone):10.1f} {np.median(guard):12.1f} "

@@ -16,18 +16,18 @@ def _ticks(simulator, period):
 
 
 def paired_rates(reference, candidate, *, rounds: int, duration: float, period: float,
-                 block: float = 0.5, starts=None):
+                 starts, block: float = 0.5):
     """Control ticks (one every ``period`` s) per wall second of ``reference`` and
     ``candidate`` (closed-loop diagrams exporting ``state``) in each of ``rounds`` rounds. In a round both run ``duration``
-    s from the same start, ``starts[k % len(starts)]`` ([px m, py m, theta rad];
-    default: a few states near the centreline), advanced ``block`` s at a time, in turn,
+    s from the same start, ``starts[k % len(starts)]`` (states of the loop's plant),
+    advanced ``block`` s at a time, in turn,
     the one going first alternating. Returns two arrays of ``rounds`` rates; their
     per-round ratio is the figure to report."""
     if rounds < 1 or duration <= 0 or block <= 0 or period <= 0:
         raise ValueError(f"paired_rates needs rounds >= 1, duration > 0 s, period > 0 s and "
                          f"block > 0 s, got {rounds}, {duration}, {period}, {block}")
-    starts = starts if starts is not None else [
-        [0.5 * (k % 3), 110.0 + 10.0 * k, np.deg2rad(2.0 * (k % 3))] for k in range(5)]
+    if len(starts) < 1:
+        raise ValueError("paired_rates needs at least one start")
     diagrams = (reference, candidate)
     contexts = [d.CreateDefaultContext() for d in diagrams]
     rates = np.zeros((2, rounds))

@@ -31,27 +31,30 @@ def _cut_inside(figures):
     return "-" if cut is None else f"{100 * cut:.0f}"
 
 
-def guard_section(page, env, g, spec, *, alone_checked=None):
+def guard_section(page, env, g, spec, application, *, alone_checked=None):
     """Failure sets with their liveness per fallback, the trade-off curve, the real-loop
-    check and the showcase run of one guard environment (the stage record ``g``);
-    ``alone_checked``: ``(starts, text)``, the controller alone's failure set in the
-    real loop from the fidelity stage, when it ran."""
-    page.text(f"{env}: fraction of grid starts that leave the runway within "
+    check and the showcase run of one guard environment (the stage record ``g``), in
+    ``application``'s words; ``alone_checked``: ``(starts, text)``, the controller
+    alone's failure set in the real loop from the fidelity stage, when it ran."""
+    fail, starts_text = application.fail_words, application.starts_text()
+    cut_column = f"cut, {application.start_word or 'unfailed'} starts %"
+    page.text(f"{env}: fraction of grid starts that {fail} within "
               f"{spec.horizon:g} s (detector threshold {g['threshold']:.3g}), and what each "
               f"fallback costs: starts ended stopped, needless stops (of the starts the "
               f"controller alone survives, those the fallback ends stopped), harmed (of those, "
               f"the ones it makes fail), saves that keep moving (of the starts the controller "
               f"alone fails), distance travelled relative to the controller alone, and ticks "
               f"flagged. 'oracle' steers with the true state: a privileged reference, not a result. "
-              f"Slowing down does not change the aircraft's path (its turn rate scales with "
-              f"speed), only when it gets somewhere: a slower aircraft can leave the runway "
-              f"after the horizon instead of within it. So the last two columns judge the same "
-              f"runs by distance: the share that leaves the runway before covering the distance "
+              f"Slowing down does not change the path of a plant whose turn rate scales with "
+              f"its speed (a car, say), only when it gets somewhere: slowed "
+              f"runs can {fail} after the horizon instead of within it. So the last two columns "
+              f"judge the same runs by distance: the share of runs that {fail} before covering "
+              f"the distance "
               f"the controller alone covers in {spec.horizon:g} s (the runs going on past the "
               f"horizon), and the share that never covers it (parked or crawling). Grid "
-              f"nodes off the runway fail before the first tick and no fallback can save "
-              f"them, yet they count in every failure set; the column 'cut, on-runway "
-              f"starts' gives the cut at the same distance over the other nodes.")
+              f"nodes that have already failed fail before the first tick and no fallback can "
+              f"save them, yet they count in every failure set; the column "
+              f"'{cut_column[:-2]}' gives the cut at the same distance over the other nodes.")
     budget = g.get("flag_budget")
     if budget:
         page.text(f"The threshold {g['threshold']:.3g} was set here, without labels, from a "
@@ -59,7 +62,7 @@ def guard_section(page, env, g, spec, *, alone_checked=None):
                   f"{100 * budget['budget']:g} % of its control ticks in the tables "
                   f"({'with' if budget['score_noise'] else 'without'} the score noise; "
                   f"{100 * budget['flagged_ticks']:.1f} % at the threshold chosen, from "
-                  f"{budget['starts']} on-runway starts), instead of the training's "
+                  f"{budget['starts']} {starts_text}), instead of the training's "
                   f"{budget['scenario_threshold']:.3g}. A budget bounds how often the guard "
                   f"intervenes, not how many of its interventions are saves: the columns "
                   f"below say that.")
@@ -79,8 +82,7 @@ def guard_section(page, env, g, spec, *, alone_checked=None):
                          _share(v.get("short_of_distance")), _cut_inside(v)])
     page.table(["closed loop", "failure set %", "ended stopped %", "needless stops %",
                 "harmed %", "saved, moving %", "distance / alone", "ticks flagged %",
-                "fails at the same distance %", "short of the distance %",
-                "cut, on-runway starts %"], rows)
+                "fails at the same distance %", "short of the distance %", cut_column], rows)
     perfect = g.get("perfect_detector")
     if perfect:
         page.text("The same fallbacks with a perfect detector, one that flags exactly the "
@@ -89,7 +91,7 @@ def guard_section(page, env, g, spec, *, alone_checked=None):
                   "detector's share.")
         page.table(["fallback, perfect detector", "failure set %", "ended stopped %",
                     "needless stops %", "ticks flagged %", "fails at the same distance %",
-                    "short of the distance %", "cut, on-runway starts %"],
+                    "short of the distance %", cut_column],
                    [[f, _share(v["failure_set"]), _share(v["ended_stopped"]),
                      _share(v["needless_stops"]), _ticks(v),
                      _share(v.get("same_distance_failure_set")), _share(v.get("short_of_distance")),
@@ -98,8 +100,8 @@ def guard_section(page, env, g, spec, *, alone_checked=None):
     if alone_checked:
         starts, text = alone_checked
         page.text(f"The controller alone in the real loop, from {starts} random "
-                  f"on-runway starts (the grid figures above count every node, off-runway "
-                  f"ones too): {text}.")
+                  f"{starts_text} (the grid figures above count every node, failed ones "
+                  f"too): {text}.")
     if noisy:
         page.text("Rows '+ score noise' and, in the trade-off figure, the dashed curves and "
                   "hollow stars: the same tables rolled out with the detector's variation "
@@ -111,7 +113,7 @@ def guard_section(page, env, g, spec, *, alone_checked=None):
     check = g.get("check")
     if check:
         page.text(f"The same figures in the real Drake loops (rendering and the detector at "
-                  f"every tick) from {check['starts']} seeded random on-runway starts (seed "
+                  f"every tick) from {check['starts']} seeded random {starts_text} (seed "
                   f"{check['seed']}), beside the tables' rollouts from the same starts; "
                   f"95 % Wilson intervals.")
         noise = check.get("score_noise")
@@ -151,14 +153,14 @@ def guard_section(page, env, g, spec, *, alone_checked=None):
     verdict = ("a save that keeps moving, confirmed in the real Drake loops" if save == "moving"
                else "confirmed in the real Drake loops, but the only save found is a stop: the "
                     "guarded loop ends at standstill" if save == "stop"
-               else "NOT a save: in the real Drake loops the guarded aircraft only leaves the "
-                    "runway later, past the horizon, on the same path" if any(
+               else f"NOT a save: in the real Drake loops the guarded run only goes on to "
+                    f"{fail} later, past the horizon, on the same path" if any(
                         t.get("guarded_fails_later") for t in r["tried"])
                else "NOT confirmed in the real Drake loops (the tables are coarse)")
     page.text(f"Nominal vs guarded ({r['strategy']}) from the start {np.round(r['start'], 2)} "
-              f"[px m, py m, theta rad], chosen from the tables ({len(r['tried'])} tried), "
-              f"{verdict}: the controller alone {'fails' if r['nominal_fails'] else 'stays on'}, "
-              f"guarded {'fails' if r['guarded_fails'] else 'stays on'}; lowest speed "
+              f"[{', '.join(application.axes)}], chosen from the tables ({len(r['tried'])} tried), "
+              f"{verdict}: the controller alone {'fails' if r['nominal_fails'] else 'does not fail'}, "
+              f"guarded {'fails' if r['guarded_fails'] else 'does not fail'}; lowest speed "
               f"{r['lowest_speed']:.2f} m/s, final speed {r.get('final_speed', float('nan')):.2f} "
               f"m/s, {r['flagged_ticks']} of {r.get('ticks', '?')} ticks flagged.")
     page.images([p for p in r["files"] if p.endswith(".png")])

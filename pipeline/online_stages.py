@@ -15,7 +15,7 @@ from scipy.ndimage import uniform_filter
 from reachwatch.diagrams import file_hash, load_taxinet, paired_rates, simulate
 from reachwatch.diagrams.plots import plot_runway_top_view
 from reachwatch.reach import ValueFunction
-from reachwatch.reach.application import load_application
+from reachwatch.reach.application import application_key, load_application
 from reachwatch.reach.guard import perfect_detector_scores, plot_tradeoff, tradeoff_row
 from reachwatch.reach.liveness import UNGUARDED, liveness_figures
 from reachwatch.reach.score_noise import ScoreNoise
@@ -322,7 +322,8 @@ def guard_environment(run: Run, env) -> dict:
     alone, guarded_rate = paired_rates(application.loop_diagram(shown),
                                        application.loop_diagram(shown, guarded=True),
                                        rounds=3, duration=spec.guard.online_seconds,
-                                       period=scenario.controller.period)
+                                       period=scenario.controller.period,
+                                       starts=application.starts(scenario, grid, 5, seed=0))
     return {"threshold": scenario.monitor.threshold, "flag_budget": figures["budget"],
             "volumes": figures["volumes"], "liveness": figures["liveness"],
             "liveness_with_noise": figures["noisy_liveness"],
@@ -338,14 +339,19 @@ def guard_environment(run: Run, env) -> dict:
 
 def stage_guard(run: Run) -> dict:
     out = {}
-    if run.application.fallback_rollouts is None:      # nothing to roll the fallbacks out on
+    if not run.application.rolls_out_fallbacks(run.application.resolved(run.spec.scenario)):
         run.log(f"[guard] skipped: the application '{run.application.name}' has no fallback "
                 f"rollouts")
         return out
+    # an application other than the default (the taxi) keys the stage by its code too:
+    # its dynamics drive the table rollouts at the fallback's speed, which the BRT
+    # (solved at the nominal speed) does not see
+    own = application_key(run.application)
     for env in run.spec.guard_environments():
         # content keys: a detector or BRT rebuilt with other bytes guards again
         key = digest(run.content_key("train"), run.content_key(f"solve_{env.name}"),
-                     run.spec.guard, run.spec.scenario.monitor, run.spec.horizon)
+                     run.spec.guard, run.spec.scenario.monitor, run.spec.horizon,
+                     *([own] if own is not None else []))
         out[env.name] = run.stage(f"guard_{env.name}", key,
                                   lambda env=env: guard_environment(run, env))
     return out

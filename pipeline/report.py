@@ -195,13 +195,14 @@ def write_report(run: Run) -> dict:
     page.section("Failure modes: error rate against distance to the BRT boundary", "margin")
     page.images([f["error_vs_margin"] for f in o["evaluate"]["figures"].values()])
     page.section("Safety pipeline", "guard")
-    if not o["guard"] and application.fallback_rollouts is None:
+    if not o["guard"] and not application.rolls_out_fallbacks(
+            application.resolved(spec.scenario)):
         page.text(f"Not run: the application '{application.name}' has no fallback rollouts "
                   f"(the guard stage rolls its fallbacks out on the guarded loop's swept "
-                  f"tables).")
+                  f"tables, at the speed the fallback sets: its dynamics take no speed).")
     for env, g in o["guard"].items():
         checked = (o.get("fidelity") or {}).get(env)
-        guard_section(page, env, g, spec,
+        guard_section(page, env, g, spec, application,
                       alone_checked=checked and (checked["starts"], monte_carlo(checked)))
     if o.get("incremental"):
         inc = o["incremental"]

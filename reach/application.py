@@ -196,18 +196,14 @@ class Application(abc.ABC):
         guarded loop's exported ``speed`` and ``anomaly``. ``mission_limit`` (the guard's
         check; None: none): the runs also go on past the horizon, for up to that many
         horizons, until they cover the distance the controller alone covers within it,
-        and the same-distance fields are filled (`reach.liveness.SAME_DISTANCE_FIELDS`);
-        the default has no such runs."""
+        and the same-distance fields are filled (`reach.liveness.SAME_DISTANCE_FIELDS`)."""
         from .liveness import MISSION_FIELDS, MissionOutcomes
         from .loop_runs import loop_missions
         from .outcomes import map_states
-        if mission_limit is not None:
-            raise NotImplementedError(f"Application.missions: the application '{self.name}' "
-                                      f"judges no real runs by distance (mission_limit); set "
-                                      f"guard.check_starts: 0")
         scenario = self.resolved(scenario) if fallback else self.without_monitor(scenario)
         rollout = functools.partial(loop_missions, ApplicationRef(self._loaded_as()),
-                                    scenario, fallback, float(duration))
+                                    scenario, fallback, float(duration),
+                                    mission_limit=mission_limit)
         fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
                                   progress=progress, unit="run", required=MISSION_FIELDS,
                                   label=f"real loop {scenario.environment.name} "
@@ -293,6 +289,8 @@ class Application(abc.ABC):
     start_word = ""
     #: What a run that failed did, after "the real loop" (the taxi's: "left the runway").
     failure_words = "failed"
+    #: The same, after "runs that" (the taxi's: "leave the runway").
+    fail_words = "fail"
     #: The report's note on the check's starts (the taxi's names its failure rule).
     starts_note = "a start that has already failed agrees with any BRT"
     #: The box the grid spans, as the report names it (the taxi's: "the paper's box").
@@ -306,25 +304,54 @@ class Application(abc.ABC):
         return f"{self.start_word} {noun}" if self.start_word else noun
 
     # --- the guard: fallbacks (the guard stage, ``reachwatch guard``) -------------------
-    #: ``fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=None,
-    #: starts=None, mission_limit=None, scores=None, alone=None, score_noise=None,
-    #: seed=0)`` (a staticmethod): {`reach.liveness.UNGUARDED` | fallback name:
-    #: `reach.liveness.MissionOutcomes`} of the loop rolled out in the guarded sweep's
-    #: ``tables`` (`sweep` with ``guarded``) from every node of ``grid`` or from
-    #: ``starts``, at ``threshold`` (None: ``scenario.monitor``'s) on the swept scores or
-    #: on ``scores``; ``alone``: the controller alone's outcomes, when already rolled out;
-    #: ``score_noise``, ``seed``: the detector's variation between nodes
-    #: (`reach.score_noise.ScoreNoise`). None when the application has none: the guard
-    #: stage is then skipped.
-    fallback_rollouts = None
     #: The port of the detector's score among the guarded sweep's tables.
     score_port = "anomaly_detector.score"
+    #: ``true_estimate(states) -> (n, k)``: what the controller estimates, at its true
+    #: value (the ``oracle`` steering of a fallback); None: that steering is refused.
+    true_estimate = None
+    #: ``carry_estimate(estimate, steering, speed, period) -> estimate``: an estimate
+    #: carried forward by the plant's kinematics over a period (the ``dead_reckoning``
+    #: steering); None: that steering is refused.
+    carry_estimate = None
+
+    def fallback_policy(self, scenario):
+        """What a fallback that takes over the steering (``oracle``, ``dead_reckoning``)
+        steers with: a function of ``(n, k)`` estimates to steering (rad); None (the
+        default) = no such fallback."""
+        return None
+
+    def fallback_rollouts(self, scenario, grid, tables, horizon, fallbacks, **settings) -> dict:
+        """{`reach.liveness.UNGUARDED` | fallback name: `reach.liveness.MissionOutcomes`}
+        of the loop rolled out in the guarded sweep's ``tables`` (`sweep` with
+        ``guarded``) from every node of ``grid`` or from ``starts``: the generic
+        `reach.guarded_rollouts.fallback_rollouts` with the application's `dynamics`
+        (which must take a ``speed``: `rolls_out_fallbacks`), its probe's control port,
+        `score_port`, the controller's ``estimate`` port when it has one, and
+        `fallback_policy`, `true_estimate` and `carry_estimate`. ``settings``:
+        ``threshold`` (None: ``scenario.monitor``'s), ``starts``, ``mission_limit``,
+        ``scores`` (instead of the swept ones), ``alone`` (the controller alone's
+        outcomes, when already rolled out), ``score_noise`` and ``seed`` (the detector's
+        variation between nodes, `reach.score_noise.ScoreNoise`)."""
+        from .guarded_rollouts import fallback_rollouts
+        control_port = self.probe(scenario, guarded=True).control_port
+        return fallback_rollouts(
+            tables, grid, horizon, fallbacks, dynamics=self.dynamics(scenario),
+            period=scenario.controller.period, monitor=scenario.monitor,
+            control_port=control_port, score_port=self.score_port,
+            estimate_port=f"{control_port.partition('.')[0]}.estimate",
+            policy=self.fallback_policy(scenario), truth=self.true_estimate,
+            carry=self.carry_estimate, **settings)
+
+    def rolls_out_fallbacks(self, scenario) -> bool:
+        """Whether the guard stage can roll the fallbacks out in the swept tables: the
+        application defines its own `fallback_rollouts`, or its `dynamics` take a
+        ``speed`` (`reach.guarded_rollouts.takes_speed`). Else the stage is skipped."""
+        from .guarded_rollouts import takes_speed
+        return (type(self).fallback_rollouts is not Application.fallback_rollouts
+                or takes_speed(self.dynamics(scenario)))
 
     def _table_rollouts(self, scenario, grid, tables, horizon):
         """`fallback_rollouts` of these tables: the ``rollouts`` of `reach.guard`."""
-        if self.fallback_rollouts is None:
-            raise NotImplementedError(f"Application.fallback_rollouts: the application "
-                                      f"'{self.name}' has no fallback rollouts")
         return lambda fallbacks, **settings: self.fallback_rollouts(
             scenario, grid, tables, horizon, fallbacks, **settings)
 
@@ -366,8 +393,10 @@ class Application(abc.ABC):
                          mission_limit=None) -> dict:
         """The fields of `missions` from ``states``, run here and not cached (the guard
         stage's showcase tries a few candidate starts)."""
-        raise NotImplementedError(f"Application.mission_rollouts: the application "
-                                  f"'{self.name}' has no showcase runs; set guard.candidates: 0")
+        from .loop_runs import loop_missions
+        scenario = self.resolved(scenario) if fallback else self.without_monitor(scenario)
+        return loop_missions(ApplicationRef(self._loaded_as()), scenario, fallback,
+                             float(duration), states, mission_limit=mission_limit)
 
     def simulate_guarded(self, scenario, start, folder, *, meshcat_html: bool = True):
         """The controller alone and the guarded loop of ``scenario`` (its monitor's

@@ -229,3 +229,32 @@ def threshold_for_flag_budget(flagged_share, budget: float, *, low: float = 0.0,
         else:
             below = middle
     return above, top, steps
+
+
+#: A guarded run at standstill this long (s) is parked for good: its image, and so its
+#: flag and its speed, no longer change.
+PARKED_SECONDS = 1.0
+
+
+def travelled(time, speed, failure_time=None):
+    """Metres travelled over the logged ticks (a tick's speed applies since the previous
+    one), plus the stretch from the last tick to ``failure_time`` when given."""
+    distance = float(np.sum(speed[1:] * np.diff(time)))
+    if failure_time is not None and failure_time > time[-1]:
+        distance += float(speed[-1] * (failure_time - time[-1]))
+    return distance
+
+
+def mission_done(goal: float, nominal: float, period: float):
+    """A real run's ``stop_when`` (`reachwatch.diagrams.simulate`) for a mission: true
+    once the run has covered ``goal`` m, or has stood still for `PARKED_SECONDS`."""
+    parked_ticks = max(1, int(round(PARKED_SECONDS / period)))
+    seen = {"distance": 0.0, "still": 0}
+
+    def done(rows):                      # called once per tick, after its row is read
+        speed = float(np.ravel(rows["speed"][-1])[0]) if "speed" in rows else nominal
+        if len(rows["state"]) > 1:       # the first row is the start: nothing travelled
+            seen["distance"] += speed * period
+        seen["still"] = seen["still"] + 1 if speed <= 0 else 0
+        return seen["distance"] >= goal * (1 - 1e-9) or seen["still"] >= parked_ticks
+    return done

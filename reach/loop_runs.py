@@ -99,41 +99,58 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     return out
 
 
-def loop_missions(ref, scenario, fallback, duration: float, states) -> dict:
+def loop_missions(ref, scenario, fallback, duration: float, states,
+                  mission_limit=None) -> dict:
     """The `reach.liveness.MissionOutcomes` fields of `Application.missions`: the loop of
     ``ref``'s application (guarded by ``scenario.monitor`` with the fallback named
     ``fallback``, or the controller alone for None) from each start for ``duration`` s,
     stopping at the first control tick where `Application.failed` holds. The speed
     logged at a tick (the guarded loop's exported ``speed``, else the controller's) is
-    the speed applied since the previous one."""
+    the speed applied since the previous one.
+
+    With ``mission_limit`` (a number >= 1) a run goes on past the horizon until it has
+    covered the distance the controller alone covers within it (its speed x
+    ``duration``), fails, stands still for `reach.liveness.PARKED_SECONDS` or reaches
+    ``mission_limit * duration`` s, and the same-distance fields are returned too; the
+    others are read from its first ``duration`` s, as without it."""
     from reachwatch.diagrams import simulate
     from reachwatch.systems import fallback_parts
-    from .liveness import MISSION_FIELDS
+    from .liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, check_mission_limit,
+                           mission_done, travelled)
+    if mission_limit is not None:
+        mission_limit = check_mission_limit(mission_limit)
     if fallback is not None:
         scenario = copy.deepcopy(scenario)
         scenario.monitor.strategy, scenario.monitor.steering = fallback_parts(fallback)
     application, diagram, context = _thread_loop(ref, scenario, fallback is not None)
     failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
     period, nominal = scenario.controller.period, scenario.controller.speed
-    out = {name: [] for name in MISSION_FIELDS}
+    goal = nominal * duration
+    names = MISSION_FIELDS + (SAME_DISTANCE_FIELDS if mission_limit is not None else ())
+    out = {name: [] for name in names}
     for x in np.asarray(states, float):
         if failed(x):                                   # already failed
-            row = (True, False, False, 0.0, 0, 0)
+            row = (True, False, False, 0.0, 0, 0, True, False)
         else:
-            run = simulate(diagram, initial_state=x, duration=duration, period=period,
-                           half_width=1e300, stop_on_failure=False, context=context,
-                           stop_when=lambda rows: failed(rows["state"][-1]))
-            k = len(run.time)
-            speed = (np.full(k, nominal) if run.speed is None
+            done = None if mission_limit is None else mission_done(goal, nominal, period)
+            run = simulate(diagram, initial_state=x, duration=duration * (mission_limit or 1.0),
+                           period=period, half_width=1e300, stop_on_failure=False,
+                           context=context,
+                           stop_when=lambda rows: failed(rows["state"][-1]) or
+                           (done is not None and done(rows)))
+            speed = (np.full(len(run.time), nominal) if run.speed is None
                      else np.asarray(run.speed, float).reshape(-1))
+            k = int(np.sum(run.time <= duration + 1e-9))      # the ticks within the horizon
             end = failed(run.state[-1])
-            acting = run.time < duration - 1e-9
+            within = end and run.time[-1] <= duration + 1e-9
+            acting = run.time[:k] < duration - 1e-9
             flags = (np.zeros(k, bool) if run.anomaly is None
-                     else np.asarray(run.anomaly, float).reshape(-1) >= 0.5)
-            row = (end, not end and speed[-1] <= 0, bool(np.any(speed[1:] <= 0)),
-                   float(np.sum(speed[1:] * np.diff(run.time))), int(np.sum(flags & acting)),
-                   int(np.sum(acting)))
-        for name, value in zip(MISSION_FIELDS, row):
+                     else np.asarray(run.anomaly, float).reshape(-1)[:k] >= 0.5)
+            row = (within, not within and speed[k - 1] <= 0, bool(np.any(speed[1:k] <= 0)),
+                   travelled(run.time[:k], speed[:k]), int(np.sum(flags & acting)),
+                   int(np.sum(acting)), end,
+                   not end and travelled(run.time, speed) < goal * (1 - 1e-9))
+        for name, value in zip(names, row):
             out[name].append(value)
     return {name: np.asarray(value) for name, value in out.items()}
 

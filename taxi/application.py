@@ -25,6 +25,7 @@ class TaxiApplication(Application):
 
     start_word = "on-runway"
     failure_words = "left the runway"
+    fail_words = "leave the runway"
     starts_note = "|px| < B; starts already off the runway agree with any BRT"
     box_words = "the paper's box"
     slice_words = "slices at py = {at:g} m"

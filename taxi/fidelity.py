@@ -19,7 +19,7 @@ from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes,
-                                       check_mission_limit)
+                                       check_mission_limit, mission_done, travelled)
 from reachwatch.reach.outcomes import (Outcomes, check_memoryless, map_states, path_labels,
                                        path_points, run_outcomes)
 from reachwatch.reach.score_noise import fit_score_noise
@@ -224,11 +224,6 @@ def real_loop_fidelity(scenario, value_function, starts, *, cache_dir, duration=
                             outcomes["left_box"])
 
 
-#: A guarded run at standstill this long (s) is parked for good: its image, and so its
-#: flag and its speed, no longer change.
-PARKED_SECONDS = 1.0
-
-
 def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=None, *,
                      lockstep=None) -> dict:
     """Runs the real loop of ``scenario`` from each start for ``duration`` s, stopping
@@ -240,7 +235,7 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
 
     With ``mission_limit`` (a number >= 1) a run goes on past the horizon until it has
     covered the distance the controller alone covers within it (its speed x
-    ``duration``), fails, stands still for `PARKED_SECONDS` or reaches
+    ``duration``), fails, stands still for `reach.liveness.PARKED_SECONDS` or reaches
     ``mission_limit * duration`` s, and the same-distance fields are returned too; the
     others are read from its first ``duration`` s, as without it. ``lockstep`` as in
     `taxi_rollouts`."""
@@ -260,7 +255,7 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
                            period=period, half_width=B,
                            duration=duration * (mission_limit or 1.0),
                            stop_when=(None if mission_limit is None else
-                                      lambda i: _mission_done(goal, nominal, period))))
+                                      lambda i: mission_done(goal, nominal, period))))
     for x in states:
         if abs(x[0]) >= B:                      # already off the runway
             row = (True, False, False, 0.0, 0, 0, True, False)
@@ -270,41 +265,17 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
                      else np.asarray(run.speed, float).reshape(-1))
             k = int(np.sum(run.time <= duration + 1e-9))      # the ticks within the horizon
             failed = run.failed and run.failure_time <= duration + 1e-9
-            distance = _distance(run.time[:k], speed[:k], run.failure_time if failed else None)
+            distance = travelled(run.time[:k], speed[:k], run.failure_time if failed else None)
             acting = run.time[:k] < duration - 1e-9
             flags = (np.zeros(k, bool) if run.anomaly is None
                      else np.asarray(run.anomaly, float).reshape(-1)[:k] >= 0.5)
-            whole = _distance(run.time, speed, run.failure_time if run.failed else None)
+            whole = travelled(run.time, speed, run.failure_time if run.failed else None)
             row = (failed, not failed and speed[k - 1] <= 0, bool(np.any(speed[1:k] <= 0)),
                    distance, int(np.sum(flags & acting)), int(np.sum(acting)),
                    run.failed, not run.failed and whole < goal * (1 - 1e-9))
         for name, value in zip(names, row):
             out[name].append(value)
     return {name: np.asarray(value) for name, value in out.items()}
-
-
-def _distance(time, speed, failure_time=None):
-    """Metres travelled over the logged ticks (a tick's speed applies since the previous
-    one), plus the stretch from the last tick to ``failure_time`` when given."""
-    distance = float(np.sum(speed[1:] * np.diff(time)))
-    if failure_time is not None and failure_time > time[-1]:
-        distance += float(speed[-1] * (failure_time - time[-1]))
-    return distance
-
-
-def _mission_done(goal: float, nominal: float, period: float):
-    """`simulate`'s ``stop_when`` for a mission: true once the run has covered ``goal``
-    m, or has stood still for `PARKED_SECONDS`."""
-    parked_ticks = max(1, int(round(PARKED_SECONDS / period)))
-    seen = {"distance": 0.0, "still": 0}
-
-    def done(rows):                      # called once per tick, after its row is read
-        speed = float(np.ravel(rows["speed"][-1])[0]) if "speed" in rows else nominal
-        if len(rows["state"]) > 1:       # the first row is the start: nothing travelled
-            seen["distance"] += speed * period
-        seen["still"] = seen["still"] + 1 if speed <= 0 else 0
-        return seen["distance"] >= goal * (1 - 1e-9) or seen["still"] >= parked_ticks
-    return done
 
 
 def real_missions(scenario, starts, *, fallback=None, duration: float, cache_dir,
@@ -384,7 +355,7 @@ def real_score_noise(scenario, grid, score_table, starts, *, duration: float, ca
                               progress=progress, unit="run", required=("score", "state"),
                               label=f"detector score along real runs {scenario.environment.name}")
     table = np.asarray(score_table, float).reshape(grid.shape)
-    real, interpolated, travelled = [], [], []
+    real, interpolated, along = [], [], []
     for path, scores, ticks in zip(fields["state"], fields["score"], fields["ticks"]):
         if ticks < 2:
             continue
@@ -392,7 +363,7 @@ def real_score_noise(scenario, grid, score_table, starts, *, duration: float, ca
         real.append(scores[:ticks])
         interpolated.append(GridInterpolator(grid, torch.as_tensor(path))(
             torch.as_tensor(table)).numpy())
-        travelled.append(np.concatenate([[0.0], np.cumsum(np.linalg.norm(
+        along.append(np.concatenate([[0.0], np.cumsum(np.linalg.norm(
             np.diff(path[:, :2], axis=0), axis=1))]))
-    noise = fit_score_noise(real, interpolated, travelled)
+    noise = fit_score_noise(real, interpolated, along)
     return noise, {"runs": len(real), "ticks": int(sum(len(r) for r in real))}

@@ -1,161 +1,40 @@
-"""Failure sets and liveness of the guarded loop, where speed becomes a state.
+"""The taxi's guarded loop rolled out in its swept tables (`reach.guarded_rollouts`):
+what the generic rollouts need from the taxi, namely its dynamics, its ports, the
+P-controller the fallback steers with, the true ``[px m, theta deg]`` of a state (the
+``oracle`` steering) and the aircraft's kinematics carrying an estimate forward (the
+``dead_reckoning`` steering)."""
 
-The image does not depend on speed, so the swept tables of steering, estimate and
-detector score on the 3-D grid are enough: from every start at the nominal speed, the
-sampled-data loop is rolled out tick by tick (steering, estimate and flag read from the
-tables, speed updated by the fallback strategy, the steering while flagged chosen by
-the fallback's steering mode, dynamics integrated with RK4 over the tick). A start fails
-if ``|px| >= B`` within the horizon; what it did until then (distance, stops, flagged
-ticks) is its liveness (`reach.liveness`)."""
-
-import dataclasses as dc
+import functools
 
 import numpy as np
-import torch
 
 from reachwatch.diagrams import CONTROL_PORT, DETECTOR, ESTIMATE_PORT
-from reachwatch.reach.dynamics import positive, rk4_step, split_horizon
-from reachwatch.reach.grid import check_states
-from reachwatch.reach.interpolate import GridInterpolator
-from reachwatch.reach.liveness import UNGUARDED, MissionOutcomes, check_mission_limit
-from reachwatch.systems import (Fallback, ProportionalController, check_k_of_n, confirmed_flags,
-                                propagate_estimate)
+from reachwatch.reach import guarded_rollouts as generic
+from reachwatch.reach.liveness import UNGUARDED
+from reachwatch.systems import ProportionalController, propagate_estimate
 
 from .dynamics import dynamics_for
 
 SCORE_PORT = f"{DETECTOR}.score"
 
-
-@torch.no_grad()
-def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, threshold=0.5,
-                     strategy="slow_down", steering="controller", estimate_table=None,
-                     policy=None, horizon=8.0, period=0.05, substeps=2, starts=None,
-                     flags_needed=1, flag_window=1, mission_limit=None, score_noise=None,
-                     seed=0, **strategy_params) -> MissionOutcomes:
-    """`MissionOutcomes` per start (default: every grid node, C order) of the loop whose
-    steering, score and estimate are interpolated from tables of ``grid``.
-    ``score_table=None`` = no detector (the controller alone).
-
-    ``strategy``, ``steering`` and ``strategy_params`` are the fields of the
-    `systems.Fallback` applied, by the rules the Drake `FallbackSwitch` applies
-    (`Fallback.next_speed`, `Fallback.steering_angle`). While flagged, ``steering`` is
-    ``"controller"`` (the table's steering; also read as ``"taxinet"``), ``"oracle"``
-    (``policy`` of the true ``[px m, theta deg]``) or ``"dead_reckoning"`` (``policy``
-    of the last unflagged estimate from ``estimate_table``, carried forward with the
-    steering and speed applied since, as `DeadReckoning` does). ``policy`` maps
-    ``(n, 2)`` estimates to steering (rad). A tick counts as flagged when at least
-    ``flags_needed`` of the last ``flag_window`` ticks' scores reached the threshold,
-    as `FlagFilter` confirms them.
-
-    With ``mission_limit`` (a number >= 1), the rollouts also go on past the horizon, up
-    to ``mission_limit * horizon`` s, until each start has covered the distance the
-    controller alone covers within the horizon (nominal speed x horizon), and fill the
-    same-distance fields of `MissionOutcomes`; the other fields stay the horizon's.
-
-    ``score_noise`` (a `reach.score_noise.ScoreNoise`) adds, per start, the detector's
-    variation between grid nodes to the interpolated score, as noise that moves with
-    the distance travelled (seeded by ``seed``), as the real loop's score does."""
-    flags_needed, flag_window = check_k_of_n(flags_needed, flag_window)
-    fallback = Fallback(strategy, steering, **strategy_params)
-    steering = fallback.steering
-    if fallback.takes_over_steering and policy is None:
-        raise ValueError(f"steering '{steering}' needs a policy (estimate -> steering)")
-    if steering == "dead_reckoning" and estimate_table is None:
-        raise ValueError("steering 'dead_reckoning' needs the estimate table")
-    as_t = lambda a: torch.as_tensor(np.asarray(a, float), dtype=torch.float64)   # noqa: E731
-    x = as_t(grid.states() if starts is None else check_states(starts, grid.ndim, "start")
-             ).reshape(-1, grid.ndim).clone()      # updated in place: never the caller's array
-    n = len(x)
-    steer = as_t(steering_table).reshape(grid.shape)
-    score = None if score_table is None else as_t(score_table).reshape(grid.shape)
-    estimates = (None if estimate_table is None else
-                 [as_t(column).reshape(grid.shape)
-                  for column in np.asarray(estimate_table, float).reshape(-1, 2).T])
-    nominal = dynamics.speed
-    v = np.full(n, nominal)
-    alive = (dynamics.target(x) > 0).numpy()
-    failed = ~alive
-    distance, flagged_ticks, ticks = np.zeros(n), np.zeros(n, int), np.zeros(n, int)
-    ever_stopped = np.zeros(n, bool)
-    base, u_prev, v_prev, trusted = np.zeros((n, 2)), np.zeros(n), v.copy(), np.zeros(n, bool)
-    history = np.zeros((n, flag_window - 1), bool)
-    whole, tail = split_horizon(horizon, period)
-    steps = [period] * whole + ([tail] if tail > 0 else [])
-    goal = nominal * horizon                      # the controller alone's distance
-    if mission_limit is not None:
-        limit = check_mission_limit(mission_limit)
-        steps += [period] * max(0, int(np.ceil((limit - 1) * horizon / period - 1e-9)))
-    covered, parked = np.zeros(n, bool), np.zeros(n, bool)
-    rng, noise, moved = np.random.default_rng(seed), None, np.zeros(n)
-    substeps = positive("substeps", substeps, integer=True)
-    at_horizon = None
-    for k, dt in enumerate(steps):       # a last partial period when it does not divide
-        if k == whole + (tail > 0):      # the horizon's figures, before going on
-            at_horizon = _snapshot(failed, v, ever_stopped, distance, flagged_ticks, ticks)
-        active = alive & ~covered & ~parked
-        if not active.any():
-            break
-        # Only the active starts are interpolated and integrated: an ended start's
-        # state, score and speed no longer reach any figure (its outcome is settled,
-        # and the horizon's snapshot holds its speed from its last active tick).
-        rows = np.flatnonzero(active)
-        index = torch.as_tensor(rows)
-        interpolate = GridInterpolator(grid, x[index])
-        u = np.zeros(n)
-        u[rows] = interpolate(steer).numpy()
-        flagged = np.zeros(n, bool)
-        if score is not None:
-            score_now = np.zeros(n)
-            score_now[rows] = interpolate(score).numpy()
-            if score_noise is not None:          # stepped for every start: the same draws
-                noise = score_noise.step(noise, moved, rng)
-                score_now[rows] = score_noise.apply(score_now[rows], noise[rows])
-            flagged, history = confirmed_flags(score_now >= threshold, history, flags_needed)
-        if score is not None:
-            v = fallback.next_speed(v, flagged, nominal=nominal, period=period)
-            taken = None                 # the fallback's steering mode's angle
-            if steering == "oracle":
-                truth = np.stack([x[:, 0].numpy(), np.rad2deg(x[:, 2].numpy())], axis=-1)
-                taken = policy(truth)
-            elif steering == "dead_reckoning":
-                seen = np.zeros((n, 2))
-                seen[rows] = np.stack([interpolate(e).numpy() for e in estimates], axis=-1)
-                carried = propagate_estimate(base, u_prev, v_prev, period,
-                                             wheelbase=dynamics.wheelbase)
-                belief = np.where((flagged & trusted)[:, None], carried, seen)
-                taken = policy(belief)
-            u = fallback.steering_angle(flagged, u, taken)
-            if steering == "dead_reckoning":
-                base, u_prev, v_prev = belief, u, v.copy()
-                trusted |= ~flagged
-        ticks += active
-        flagged_ticks += active & flagged
-        ever_stopped |= active & (v <= 0)
-        moved = np.where(active, v * dt, 0.0)
-        distance += moved
-        h = dt / substeps
-        u_t, v_t, y = as_t(u[rows])[:, None], as_t(v[rows]), x[index]
-        for _ in range(substeps):
-            y = rk4_step(lambda z: dynamics.vector_field(z, u_t, speed=v_t), y, h)
-        x[index] = y
-        out = (dynamics.target(x) <= 0).numpy()
-        failed |= active & out
-        alive &= ~(active & out)
-        if mission_limit is not None:
-            covered |= alive & (distance >= goal * (1 - 1e-9))
-            if k + 1 >= whole + (tail > 0):   # past the horizon: standing still while
-                parked |= active & flagged & (v <= 0)     # flagged is for good
-    if at_horizon is None:
-        at_horizon = _snapshot(failed, v, ever_stopped, distance, flagged_ticks, ticks)
-    h_failed, h_v, h_ever, h_distance, h_flagged, h_ticks = at_horizon
-    same = {} if mission_limit is None else dict(failed_same_distance=failed,
-                                                 short_of_distance=~failed & ~covered)
-    return MissionOutcomes(failed=h_failed, stopped=~h_failed & (h_v <= 0), ever_stopped=h_ever,
-                           distance=h_distance, flagged_ticks=h_flagged, ticks=h_ticks, **same)
+__all__ = ["SCORE_PORT", "UNGUARDED", "fallback_rollouts", "guarded_rollouts",
+           "p_controller_policy", "true_estimate"]
 
 
-def _snapshot(*arrays):
-    return tuple(np.array(a, copy=True) for a in arrays)
+def true_estimate(states) -> np.ndarray:
+    """What TaxiNet estimates, at its true value: ``[px m, theta deg]`` of ``(n, 3)``
+    states."""
+    states = np.asarray(states, float)
+    return np.stack([states[:, 0], np.rad2deg(states[:, 2])], axis=-1)
+
+
+def guarded_rollouts(grid, dynamics, steering_table, score_table=None, **settings):
+    """`reach.guarded_rollouts.guarded_rollouts` of the taxi: the ``oracle`` steering
+    reads `true_estimate`, and ``dead_reckoning`` carries an estimate forward by the
+    aircraft's kinematics (`systems.propagate_estimate` at ``dynamics.wheelbase``)."""
+    return generic.guarded_rollouts(
+        grid, dynamics, steering_table, score_table, truth=true_estimate,
+        carry=functools.partial(propagate_estimate, wheelbase=dynamics.wheelbase), **settings)
 
 
 def p_controller_policy(controller):
@@ -165,35 +44,16 @@ def p_controller_policy(controller):
     return lambda estimate: np.deg2rad(p.steering_deg(estimate))
 
 
-def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, *, threshold=None,
-                      starts=None, mission_limit=None, scores=None, alone=None,
-                      score_noise=None, seed=0) -> dict:
-    """{UNGUARDED | fallback name: `MissionOutcomes`} from the swept tables of the
-    guarded diagram (`sweep_guarded`), at every grid node or at ``starts``. A fallback
-    name is a speed strategy with an optional steering (`systems.Fallback.parse`).
-    ``mission_limit``: also the same-distance figures (`guarded_rollouts`). ``scores``
-    (per grid node) replaces the swept detector's scores, e.g. with a perfect
-    detector's (`reach.guard.perfect_detector_scores`). ``alone``: the controller alone's outcomes
-    from the same starts and settings when already computed (they do not depend on the
-    detector), reused instead of rolled out again. ``score_noise``, ``seed``: the
-    detector's variation between nodes (`guarded_rollouts`)."""
+def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, **settings) -> dict:
+    """`reach.guarded_rollouts.fallback_rollouts` of the taxi's guarded sweep
+    (`sweep_guarded`) in ``scenario``: its dynamics, control period, monitor, ports,
+    P-controller policy and the taxi's `guarded_rollouts` hooks. ``settings``:
+    ``threshold``, ``starts``, ``mission_limit``, ``scores``, ``alone``, ``score_noise``,
+    ``seed``, as there."""
     dynamics = dynamics_for(scenario)
-    kw = dict(horizon=horizon, period=scenario.controller.period, starts=starts,
-              mission_limit=mission_limit)
-    policy = p_controller_policy(scenario.controller)
-    out = {UNGUARDED: alone if alone is not None else
-           guarded_rollouts(grid, dynamics, tables[CONTROL_PORT], None, **kw)}
-    for name in fallbacks:
-        fallback = Fallback.parse(name, brake_deceleration=scenario.monitor.brake_deceleration,
-                                  resume_acceleration=scenario.monitor.resume_acceleration)
-        if fallback.steering == "dead_reckoning" and ESTIMATE_PORT not in tables.tables:
-            raise ValueError(f"fallback '{name}' needs the controller's estimate, and the "
-                             f"controller of this scenario has no 'estimate' output")
-        out[name] = guarded_rollouts(
-            grid, dynamics, tables[CONTROL_PORT], tables[SCORE_PORT] if scores is None else scores,
-            threshold=scenario.monitor.threshold if threshold is None else threshold,
-            **dc.asdict(fallback), policy=policy,
-            estimate_table=tables[ESTIMATE_PORT] if ESTIMATE_PORT in tables.tables else None,
-            flags_needed=scenario.monitor.flags_needed, flag_window=scenario.monitor.flag_window,
-            score_noise=score_noise, seed=seed, **kw)
-    return out
+    return generic.fallback_rollouts(
+        tables, grid, horizon, fallbacks, dynamics=dynamics,
+        period=scenario.controller.period, monitor=scenario.monitor,
+        control_port=CONTROL_PORT, score_port=SCORE_PORT, estimate_port=ESTIMATE_PORT,
+        policy=p_controller_policy(scenario.controller), truth=true_estimate,
+        carry=functools.partial(propagate_estimate, wheelbase=dynamics.wheelbase), **settings)

@@ -129,10 +129,12 @@ def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tm
         type(app)().sweep_key(scenario, grid)
     with pytest.raises(ValueError, match="load it with load_application"):
         type(app)().key()
-    # its own loop: no taxi real-loop runs behind its back
-    with pytest.raises(ValueError, match="'rebuilt' reads no labels along real runs"):
-        app.real_paths(scenario, states, grid=grid, horizon=1.0, extend=1.0, stride=1,
-                       cache_dir=tmp_path)
+    # its own loop: labels along runs come from the generic runner on that loop (judged by
+    # its failure rule, no heading read), not from the taxi's runs behind its back
+    paths = app.real_paths(scenario, states, grid=grid, horizon=0.1, extend=0.1, stride=1,
+                           cache_dir=tmp_path, progress=False).fields
+    assert paths["failed"].tolist() == [False, True] and np.isnan(paths["max_abs_theta"]).all()
+    assert paths["path_label"][1].tolist() == [1, -1, -1]
     # editing a helper file (not the one named) re-keys its sweeps and its results
     _user_app(tmp_path, edge=4.0)
     edited = load_application(spec)

@@ -161,6 +161,7 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     spec = _tiny(load_run_spec(ROOT / "examples" / "cart" / "run.yaml"))
     spec.grid, spec.horizon, spec.dataset.samples = [5, 5], 2.0, 10
     spec.scenario.camera.height, spec.scenario.camera.width = 24, 48
+    spec.guard.candidates = spec.guard.noise_starts = 0        # as its run file says
     spec.monitor.kind = "history"              # the monitor study runs the cart's loop too
     spec.validate()                            # (tests/test_monitor_study.py runs it)
     spec.monitor.kind = "detector"
@@ -169,8 +170,15 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     assert report.startswith("# reachwatch run 'cart'")
     assert "| KMWH_21h_clear | test | 5x5 | 25 |" in report
     assert "Table 2" in report and (out / "figures" / "overlay_KMWH_21h_clear.png").is_file()
-    assert not list((out / "stages").glob("guard_*.json"))      # no fallback rollouts: skipped
-    assert "Not run: the application 'cart' has no fallback rollouts" in report
+    # the guard: the generic table rollouts of the cart's speed fallbacks, checked in its
+    # real loop from the same starts
+    guard = json.loads((out / "stages" / "guard_KMWH_21h_clear.json").read_text())["outputs"]
+    assert set(guard["liveness"]) == {"slow_down", "brake"}
+    check = guard["check"]["fallbacks"]["brake"]
+    assert guard["check"]["starts"] == 1 and check["real"]["starts"] == 1
+    assert "same_distance_failure_set" in check["real"]      # the generic missions' distance
+    assert "Not run: the application 'cart' has no fallback rollouts" not in report
+    assert "fraction of grid starts that reach a rail within 2 s" in report
     states = np.load(next((out / "datasets").glob("KMWH_9h_clear_*")) / "states.npy")
     assert states.shape == (10, 2) and np.all(np.abs(states[:, 0]) <= 0.5)
     # the real-loop check ran the cart's own loop from 2 starts per environment

@@ -77,13 +77,8 @@ def test_the_guard_needs_of_an_application_and_what_it_does_not_implement(tmp_pa
             (lambda: Application.real_score_noise(taxi, scenario, grid, None, states,
                                                   duration=1.0, cache_dir=tmp_path),
              "real_score_noise", "guard.noise_starts: 0"),
-            (lambda: Application.mission_rollouts(taxi, scenario, None, 1.0, states),
-             "mission_rollouts", "guard.candidates: 0"),
             (lambda: Application.simulate_guarded(taxi, scenario, states[0], tmp_path),
              "simulate_guarded", "guard.candidates: 0"),
-            (lambda: Application.missions(taxi, scenario, states, duration=1.0,
-                                          cache_dir=tmp_path, mission_limit=2.0),
-             "missions", "guard.check_starts: 0"),
             (lambda: Application.fine_tune(taxi, scenario, None, [], None, tmp_path),
              "fine_tune", "incremental: {enabled: false}")):
         with pytest.raises(NotImplementedError, match=rf"^Application\.{name}: .*'taxi'.* "

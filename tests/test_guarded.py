@@ -189,13 +189,17 @@ def test_paired_rates_alternates_blocks_and_checks_arguments(monkeypatch):
         assert [(c[1], c[2]) for c in r if c[0] == "advance"] == [
             ("ref", 0.5), ("cand", 0.5), ("cand", 1.0), ("ref", 1.0)]
     with pytest.raises(ValueError, match="rounds >= 1"):
-        paired_rates(reference, candidate, rounds=0, duration=1.0, period=0.05)
+        paired_rates(reference, candidate, rounds=0, duration=1.0, period=0.05, starts=starts)
     with pytest.raises(ValueError, match="block > 0"):
-        paired_rates(reference, candidate, rounds=1, duration=1.0, period=0.05, block=0.0)
+        paired_rates(reference, candidate, rounds=1, duration=1.0, period=0.05, block=0.0,
+                     starts=starts)
+    with pytest.raises(ValueError, match="at least one start"):
+        paired_rates(reference, candidate, rounds=1, duration=1.0, period=0.05, starts=[])
 
 
 def test_paired_rates_times_real_runs():
     from reachwatch.diagrams import make_state_feedback_diagram, paired_rates
     diagram = make_state_feedback_diagram(load_scenario(data=""))
-    ref, cand = paired_rates(diagram, diagram, rounds=2, duration=0.2, period=0.05, block=0.1)
+    ref, cand = paired_rates(diagram, diagram, rounds=2, duration=0.2, period=0.05, block=0.1,
+                             starts=[[0.0, 110.0, 0.0]])
     assert ref.shape == cand.shape == (2,) and np.all(ref > 0) and np.all(cand > 0)

@@ -246,6 +246,19 @@ def test_the_cart_runs_the_study_through_the_generic_application(tmp_path, monke
     assert alone.distance[0] == pytest.approx(1.5) and not alone.ever_stopped[0]
     assert braked.flagged_ticks[0] == braked.ticks[0] == 15 and braked.stopped[0]
     assert braked.distance[0] < 0.5 * alone.distance[0]
+    # with a mission limit the runs go on past the horizon, judged by distance too; the
+    # showcase's uncached runs are the same runs
+    limited = cart.missions(dc_replace(held, monitor=always), starts, fallback="brake",
+                            duration=1.5, mission_limit=2.0, cache_dir=tmp_path / "m",
+                            progress=False)
+    # braked to a stop from the first tick, both park short of the distance (the one
+    # turned near a rail stops 0.12 m on, before it)
+    assert limited.short_of_distance.tolist() == [True, True]
+    assert not limited.failed_same_distance.any() and not limited.failed.any()
+    again = cart.mission_rollouts(dc_replace(held, monitor=always), "brake", 1.5, starts,
+                                  mission_limit=2.0)
+    for name, value in again.items():
+        np.testing.assert_array_equal(value, getattr(limited, name))
 
 
 def test_the_oracle_goes_on_from_a_recorded_state_as_the_loop_alone_does(tmp_path):

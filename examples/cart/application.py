@@ -15,9 +15,11 @@ drawn (`starts`), how images are made (`renderer`) and how the state space is dr
 (`plot_slices`). The real-loop check uses the generic `real_outcomes` (the cart's loop,
 judged by `failed` at every control tick), and the monitor study (``monitor: {kind:
 history}``) the generic `recorded_runs` and `missions`, which read the loop's camera
-(`camera_port`) and the controller's steering (`probe`'s control port). There are no
-fallback table rollouts, so the guard stage is skipped, and no ensemble baseline (set
-``ensemble.seeds: []``)."""
+(`camera_port`) and the controller's steering (`probe`'s control port). The guard stage
+rolls the fallbacks out in the guarded sweep's tables by the generic
+`fallback_rollouts` (the cart's dynamics take the speed the fallback sets) and checks
+them in the cart's real loop (the generic `missions`). There is no ensemble baseline
+(set ``ensemble.seeds: []``) and no showcase run (``guard.candidates: 0``)."""
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -42,9 +44,12 @@ class CartDynamics(Dynamics):
     def __init__(self, speed):
         self.speed = speed
 
-    def vector_field(self, x, u):
-        return torch.stack([self.speed * torch.sin(x[..., 1]),
-                            self.speed / WHEELBASE * torch.tan(u[..., 0])], dim=-1)
+    def vector_field(self, x, u, speed=None):
+        """``speed`` (m/s per state) overrides the controller's: the guard's rollouts
+        drive the cart at the speed its fallback sets."""
+        v = self.speed if speed is None else speed
+        return torch.stack([v * torch.sin(x[..., 1]), v / WHEELBASE * torch.tan(u[..., 0])],
+                           dim=-1)
 
     def target(self, x):
         return HALF_WIDTH - x[..., 0].abs()
@@ -73,6 +78,7 @@ class CartApplication(Application):
     open_axes = (1,)        # a run may turn past the grid's headings without failing
     # the report's words for the cart (where the taxi's say "left the runway", ...)
     failure_words = "reached a rail"
+    fail_words = "reach a rail"
     box_words = "the track (y from rail to rail, |theta| <= 40 deg)"
     camera_port = "camera.color_image"      # what the monitor study records
 

@@ -2,7 +2,8 @@
 plant ([px m, py m, theta rad, v m/s], its speed lagging the command) under the wing
 camera on a catalog runway, steered by the run file's controller. It fails where it
 leaves the runway (|px| >= half-width), judged at the control ticks in its real loop
-(the generic one). It has no fallback table rollouts: the guard stage is skipped.
+(the generic one). Its speed is a state, so its dynamics take no speed a fallback
+sets: the guard stage, which rolls fallbacks out at such a speed, is skipped.
 
     reachwatch run --scenario examples/speed_car/run.yaml --out out/speed_car
 

@@ -1,0 +1,128 @@
+"""The guard's table rollouts for any plant (`reach.guarded_rollouts`): an application
+whose dynamics take a speed gets them from the base `Application`; one whose dynamics
+do not is told so in one line, and the guard stage skips it."""
+
+import numpy as np
+import pytest
+import torch
+
+from reachwatch.diagrams import MonitorConfig, load_scenario
+from reachwatch.reach import Dynamics, Grid, Probe
+from reachwatch.reach.application import Application
+from reachwatch.reach.guarded_rollouts import guarded_rollouts, takes_speed
+from reachwatch.reach.liveness import UNGUARDED
+from reachwatch.reach.sweep import SweepTable
+
+
+class Unicycle(Dynamics):
+    """``y' = v sin(theta)``, ``theta' = u``: fails at ``|y| >= 1``."""
+    state_dim, control_dim = 2, 1
+
+    def __init__(self, speed=2.0, *, with_speed=True):
+        self.speed, self.with_speed = speed, with_speed
+
+    def vector_field(self, x, u, speed=None):
+        v = self.speed if speed is None else speed
+        return torch.stack([v * torch.sin(x[..., 1]), u[..., 0] + 0 * v], dim=-1)
+
+    def target(self, x):
+        return 1.0 - x[..., 0].abs()
+
+
+class NoSpeed(Dynamics):
+    state_dim, control_dim, speed = 2, 1, 2.0
+
+    def vector_field(self, x, u):
+        return torch.stack([self.speed * torch.sin(x[..., 1]), u[..., 0]], dim=-1)
+
+    def target(self, x):
+        return 1.0 - x[..., 0].abs()
+
+
+class Toy(Application):
+    """An application known only by its dynamics and ports (no loop is built here)."""
+    name = "toy"
+    score_port = "monitor.score"
+
+    def __init__(self, dynamics):
+        self._dynamics = dynamics
+
+    def loop_diagram(self, scenario, *, guarded=False):
+        raise AssertionError("the table rollouts build no loop")
+
+    def probe(self, scenario, *, guarded=False):
+        return Probe(plant="plant", control_port="steer.u", extra_ports=("monitor.score",))
+
+    def dynamics(self, scenario):
+        return self._dynamics
+
+    def grid(self, scenario, shape, **widen):
+        return Grid(lo=[-1.0, -1.0], hi=[1.0, 1.0], shape=shape)
+
+
+def _tables(grid, score):
+    """No steering anywhere (the heading holds), the detector's score as given."""
+    return SweepTable(grid=grid, tables={"steer.u": np.zeros(grid.shape + (1,)),
+                                         "monitor.score": np.reshape(score, grid.shape + (1,))},
+                      key="hand-made")
+
+
+def test_speed_fallbacks_roll_out_for_any_plant_that_takes_a_speed():
+    scenario = load_scenario(data="")
+    scenario.controller.period = 0.1
+    scenario.monitor = MonitorConfig(threshold=0.5, brake_deceleration=4.0)
+    toy = Toy(Unicycle())
+    grid = toy.grid(scenario, [3, 3])
+    starts = np.array([[0.5, 0.5], [0.0, 0.0]])      # heading for the edge; along the middle
+    assert toy.rolls_out_fallbacks(scenario)
+    never = toy.fallback_rollouts(scenario, grid, _tables(grid, np.zeros(9)), 1.0,
+                                  ["brake"], starts=starts)
+    always = toy.fallback_rollouts(scenario, grid, _tables(grid, np.ones(9)), 1.0,
+                                   ["brake", "slow_down"], starts=starts)
+    alone = never[UNGUARDED]
+    # alone (and never flagged): 2 m/s for 1 s; y = 0.5 + 2 sin(0.5) t reaches 1 at 0.52 s
+    assert alone.failed.tolist() == [True, False] and alone.distance[1] == pytest.approx(2.0)
+    assert never["brake"].failed.tolist() == alone.failed.tolist()
+    # braking at 4 m/s^2, flagged from the first tick: each tick's speed drops by 0.4
+    # m/s before it is applied, so 0.1 s x (1.6 + 1.2 + 0.8 + 0.4) m/s = 0.4 m, and y
+    # stays below 0.5 + 0.4 sin(0.5) < 1
+    braked = always["brake"]
+    assert braked.failed.tolist() == [False, False] and braked.stopped.all()
+    assert braked.distance == pytest.approx([0.4, 0.4])
+    assert braked.flagged_ticks.tolist() == braked.ticks.tolist() == [10, 10]
+    assert always["slow_down"].distance[1] < alone.distance[1]
+
+
+def test_a_plant_without_a_speed_is_told_in_one_line():
+    scenario = load_scenario(data="")
+    toy = Toy(NoSpeed())
+    grid = toy.grid(scenario, [3, 3])
+    assert takes_speed(Unicycle()) and not takes_speed(NoSpeed())
+    assert not toy.rolls_out_fallbacks(scenario)
+    with pytest.raises(ValueError, match=r"^NoSpeed cannot be rolled out at the fallback's "
+                                         r"speed: give it .*speed=None\) that uses") as e:
+        toy.fallback_rollouts(scenario, grid, _tables(grid, np.ones(9)), 1.0, ["brake"])
+    assert "\n" not in str(e.value)
+
+
+def test_steering_fallbacks_need_the_applications_hooks():
+    """``oracle`` steers with `Application.fallback_policy` of `true_estimate`; an
+    application that defines neither is refused in one line, not rolled out wrong."""
+    scenario = load_scenario(data="")
+    toy = Toy(Unicycle())
+    grid = toy.grid(scenario, [3, 3])
+    with pytest.raises(ValueError, match="steering 'oracle' needs a policy"):
+        toy.fallback_rollouts(scenario, grid, _tables(grid, np.ones(9)), 1.0,
+                              ["slow_down+oracle"])
+    with pytest.raises(ValueError, match="needs the controller's estimate"):
+        toy.fallback_rollouts(scenario, grid, _tables(grid, np.ones(9)), 1.0,
+                              ["slow_down+dead_reckoning"])
+    toy.fallback_policy = lambda scenario: (lambda estimate: -2.0 * estimate[:, 1])
+    toy.true_estimate = lambda states: np.asarray(states, float)
+    runs = toy.fallback_rollouts(scenario, grid, _tables(grid, np.ones(9)), 1.0,
+                                 ["slow_down+oracle"], starts=np.array([[0.5, 0.5]]))
+    assert not runs["slow_down+oracle"].failed[0] and runs[UNGUARDED].failed[0]
+    plain = guarded_rollouts(grid, Unicycle(), np.zeros(9), np.ones(9), steering="oracle",
+                             policy=lambda e: -2.0 * e[:, 1], truth=lambda x: x,
+                             starts=np.array([[0.5, 0.5]]), horizon=1.0, period=0.1)
+    assert plain.failed.tolist() == [False]
