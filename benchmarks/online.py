@@ -25,9 +25,7 @@ import torch
 from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram, make_guarded_diagram,
                                  paired_rates, save_checkpoint)
 from reachwatch.systems import DetectorConfig, HistoryMonitorConfig, HistoryRiskModel, build_detector
-
-#: Where each round starts: states near the centreline, [px m, py m, theta rad].
-NEAR_CENTRELINE = [[0.5 * (k % 3), 110.0 + 10.0 * k, np.deg2rad(2.0 * (k % 3))] for k in range(5)]
+from reachwatch.taxi.application import NEAR_CENTRELINE
 
 
 def main():

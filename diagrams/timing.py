@@ -26,7 +26,7 @@ def paired_rates(reference, candidate, *, rounds: int, duration: float, period: 
     if rounds < 1 or duration <= 0 or block <= 0 or period <= 0:
         raise ValueError(f"paired_rates needs rounds >= 1, duration > 0 s, period > 0 s and "
                          f"block > 0 s, got {rounds}, {duration}, {period}, {block}")
-    if len(starts) < 1:
+    if starts is None or len(starts) < 1:
         raise ValueError("paired_rates needs at least one start")
     diagrams = (reference, candidate)
     contexts = [d.CreateDefaultContext() for d in diagrams]

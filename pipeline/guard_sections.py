@@ -150,6 +150,8 @@ def guard_section(page, env, g, spec, application, *, alone_checked=None):
                   "fallback saves it, so no nominal-vs-guarded run to show.")
         return
     save = r.get("save")
+    units = tuple(application.axis_units) + ("",) * len(application.axes)
+    axes = ", ".join(f"{a} {u}".strip() for a, u in zip(application.axes, units))
     verdict = ("a save that keeps moving, confirmed in the real Drake loops" if save == "moving"
                else "confirmed in the real Drake loops, but the only save found is a stop: the "
                     "guarded loop ends at standstill" if save == "stop"
@@ -158,7 +160,7 @@ def guard_section(page, env, g, spec, application, *, alone_checked=None):
                         t.get("guarded_fails_later") for t in r["tried"])
                else "NOT confirmed in the real Drake loops (the tables are coarse)")
     page.text(f"Nominal vs guarded ({r['strategy']}) from the start {np.round(r['start'], 2)} "
-              f"[{', '.join(application.axes)}], chosen from the tables ({len(r['tried'])} tried), "
+              f"[{axes}], chosen from the tables ({len(r['tried'])} tried), "
               f"{verdict}: the controller alone {'fails' if r['nominal_fails'] else 'does not fail'}, "
               f"guarded {'fails' if r['guarded_fails'] else 'does not fail'}; lowest speed "
               f"{r['lowest_speed']:.2f} m/s, final speed {r.get('final_speed', float('nan')):.2f} "

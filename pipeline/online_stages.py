@@ -323,7 +323,7 @@ def guard_environment(run: Run, env) -> dict:
                                        application.loop_diagram(shown, guarded=True),
                                        rounds=3, duration=spec.guard.online_seconds,
                                        period=scenario.controller.period,
-                                       starts=application.starts(scenario, grid, 5, seed=0))
+                                       starts=application.timing_starts(scenario, grid))
     return {"threshold": scenario.monitor.threshold, "flag_budget": figures["budget"],
             "volumes": figures["volumes"], "liveness": figures["liveness"],
             "liveness_with_noise": figures["noisy_liveness"],

@@ -471,6 +471,10 @@ class RunSpec:
                 env.validate()
             except ValueError as e:
                 raise ValueError(f"guard.environments[{i}]: {e}") from None
+        if self.guard_environments():
+            application.check_guard(self.scenario, self.guard.strategies,
+                                    candidates=self.guard.candidates,
+                                    noise_starts=self.guard.noise_starts)
         self.incremental.validate()
         # a TaxiApplication, its subclasses too (only they have own_loop): the incremental
         # stage runs the taxi's own loop, whatever the application's (the monitor study

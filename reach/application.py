@@ -40,6 +40,9 @@ class Application(abc.ABC):
     name = "application"
     #: The state's axis names, in order (e.g. ``("px", "py", "theta")``).
     axes = ()
+    #: Their units, in the same order, as reports write a state (e.g. ``("m", "m",
+    #: "rad")``; () = none said).
+    axis_units = ()
     #: The axes along which a run may leave the grid's box without failing (its
     #: ``left_box`` counts the runs that did, where the swept table is clamped).
     open_axes = ()
@@ -197,15 +200,17 @@ class Application(abc.ABC):
         check; None: none): the runs also go on past the horizon, for up to that many
         horizons, until they cover the distance the controller alone covers within it,
         and the same-distance fields are filled (`reach.liveness.SAME_DISTANCE_FIELDS`)."""
-        from .liveness import MISSION_FIELDS, MissionOutcomes
+        from .liveness import MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes
         from .loop_runs import loop_missions
         from .outcomes import map_states
         scenario = self.resolved(scenario) if fallback else self.without_monitor(scenario)
+        limit = None if mission_limit is None else float(mission_limit)
         rollout = functools.partial(loop_missions, ApplicationRef(self._loaded_as()),
-                                    scenario, fallback, float(duration),
-                                    mission_limit=mission_limit)
+                                    scenario, fallback, float(duration), mission_limit=limit)
         fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
-                                  progress=progress, unit="run", required=MISSION_FIELDS,
+                                  progress=progress, unit="run",
+                                  required=MISSION_FIELDS + (SAME_DISTANCE_FIELDS
+                                                             if limit is not None else ()),
                                   label=f"real loop {scenario.environment.name} "
                                         f"{fallback or 'alone'}")
         return MissionOutcomes.from_fields(fields)
@@ -248,6 +253,11 @@ class Application(abc.ABC):
         environments): default the middle of the `grid`'s box."""
         grid = self.grid(scenario, (3,) * len(self.axes))
         return (np.asarray(grid.lo, float) + np.asarray(grid.hi, float)) / 2
+
+    def timing_starts(self, scenario, grid) -> np.ndarray:
+        """The starts the guard stage times the loop alone and guarded from (the online
+        tick rates), one per round in turn. Default: 5 seeded `starts` in ``grid``'s box."""
+        return self.starts(scenario, grid, 5, 0)
 
     def ensemble_estimator(self, checkpoint):
         """A function ``(N, H, W, 3) images -> (N, 2)`` estimates of one member of the
@@ -306,12 +316,13 @@ class Application(abc.ABC):
     # --- the guard: fallbacks (the guard stage, ``reachwatch guard``) -------------------
     #: The port of the detector's score among the guarded sweep's tables.
     score_port = "anomaly_detector.score"
-    #: ``true_estimate(states) -> (n, k)``: what the controller estimates, at its true
-    #: value (the ``oracle`` steering of a fallback); None: that steering is refused.
+    #: ``true_estimate(states) -> (n, k)`` (a staticmethod): what the controller
+    #: estimates, at its true value (the ``oracle`` steering of a fallback); None: that
+    #: steering is refused.
     true_estimate = None
-    #: ``carry_estimate(estimate, steering, speed, period) -> estimate``: an estimate
-    #: carried forward by the plant's kinematics over a period (the ``dead_reckoning``
-    #: steering); None: that steering is refused.
+    #: ``carry_estimate(estimate, steering, speed, period) -> estimate`` (a
+    #: staticmethod): an estimate carried forward by the plant's kinematics over a period
+    #: (the ``dead_reckoning`` steering); None: that steering is refused.
     carry_estimate = None
 
     def fallback_policy(self, scenario):
@@ -332,13 +343,14 @@ class Application(abc.ABC):
         ``scores`` (instead of the swept ones), ``alone`` (the controller alone's
         outcomes, when already rolled out), ``score_noise`` and ``seed`` (the detector's
         variation between nodes, `reach.score_noise.ScoreNoise`)."""
+        from reachwatch.diagrams.controller import ESTIMATE_OUTPUT
         from .guarded_rollouts import fallback_rollouts
         control_port = self.probe(scenario, guarded=True).control_port
         return fallback_rollouts(
             tables, grid, horizon, fallbacks, dynamics=self.dynamics(scenario),
             period=scenario.controller.period, monitor=scenario.monitor,
             control_port=control_port, score_port=self.score_port,
-            estimate_port=f"{control_port.partition('.')[0]}.estimate",
+            estimate_port=f"{control_port.partition('.')[0]}.{ESTIMATE_OUTPUT}",
             policy=self.fallback_policy(scenario), truth=self.true_estimate,
             carry=self.carry_estimate, **settings)
 
@@ -349,6 +361,36 @@ class Application(abc.ABC):
         from .guarded_rollouts import takes_speed
         return (type(self).fallback_rollouts is not Application.fallback_rollouts
                 or takes_speed(self.dynamics(scenario)))
+
+    def check_guard(self, scenario, strategies, *, candidates: int = 0, noise_starts: int = 0,
+                    skipped: bool = True):
+        """Before anything is swept: a ValueError in one line naming the run-file key when
+        the guard stage would ask the application for what it does not have (a steering
+        fallback without its hooks, showcase runs, a score-noise fit). When it cannot
+        roll fallbacks out at all (`rolls_out_fallbacks`), nothing if the stage is then
+        ``skipped``, else the reason."""
+        from reachwatch.systems import Fallback
+        from .guarded_rollouts import check_takes_speed
+        if not self.rolls_out_fallbacks(scenario):
+            if not skipped:
+                check_takes_speed(self.dynamics(scenario))
+            return
+        if type(self).fallback_rollouts is Application.fallback_rollouts:
+            needs = {"oracle": ("fallback_policy", "true_estimate"),
+                     "dead_reckoning": ("fallback_policy", "carry_estimate")}
+            for name in strategies:
+                missing = [hook for hook in needs.get(Fallback.parse(name).steering, ())
+                           if (self.fallback_policy(scenario) if hook == "fallback_policy"
+                               else getattr(self, hook)) is None]
+                if missing:
+                    raise ValueError(f"guard.strategies: '{name}' needs the application's "
+                                     f"{' and '.join(missing)}, and '{self.name}' defines "
+                                     f"none; leave it out")
+        for key, count, method in (("guard.candidates", candidates, "simulate_guarded"),
+                                   ("guard.noise_starts", noise_starts, "real_score_noise")):
+            if count and getattr(type(self), method) is getattr(Application, method):
+                raise ValueError(f"{key}: the application '{self.name}' defines no {method}; "
+                                 f"set {key}: 0")
 
     def _table_rollouts(self, scenario, grid, tables, horizon):
         """`fallback_rollouts` of these tables: the ``rollouts`` of `reach.guard`."""

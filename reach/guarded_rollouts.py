@@ -81,12 +81,14 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
     steering = fallback.steering
     check_takes_speed(dynamics)
     if fallback.takes_over_steering and policy is None:
-        raise ValueError(f"steering '{steering}' needs a policy (estimate -> steering)")
+        raise ValueError(f"steering '{steering}' needs a policy (estimate -> steering: an "
+                         f"application's fallback_policy)")
     if steering == "oracle" and truth is None:
-        raise ValueError("steering 'oracle' needs the true estimate of a state (truth)")
+        raise ValueError("steering 'oracle' needs the true estimate of a state (truth: an "
+                         "application's true_estimate)")
     if steering == "dead_reckoning" and (estimate_table is None or carry is None):
         raise ValueError("steering 'dead_reckoning' needs the estimate table and how an "
-                         "estimate is carried forward (carry)")
+                         "estimate is carried forward (carry: an application's carry_estimate)")
     as_t = lambda a: torch.as_tensor(np.asarray(a, float), dtype=torch.float64)   # noqa: E731
     x = as_t(grid.states() if starts is None else check_states(starts, grid.ndim, "start")
              ).reshape(-1, grid.ndim).clone()      # updated in place: never the caller's array
@@ -209,7 +211,7 @@ def fallback_rollouts(tables, grid, horizon, fallbacks, *, dynamics, period, mon
                                   resume_acceleration=monitor.resume_acceleration)
         if fallback.steering == "dead_reckoning" and estimates is None:
             raise ValueError(f"fallback '{name}' needs the controller's estimate, and the "
-                             f"controller of this scenario has no 'estimate' output")
+                             f"swept tables have none ({estimate_port or 'no estimate port'})")
         out[name] = guarded_rollouts(
             grid, dynamics, tables[control_port], tables[score_port] if scores is None else scores,
             threshold=monitor.threshold if threshold is None else threshold,

@@ -245,9 +245,12 @@ def travelled(time, speed, failure_time=None):
     return distance
 
 
-def mission_done(goal: float, nominal: float, period: float):
+def mission_done(goal: float, nominal: float, period: float, horizon: float):
     """A real run's ``stop_when`` (`reachwatch.diagrams.simulate`) for a mission: true
-    once the run has covered ``goal`` m, or has stood still for `PARKED_SECONDS`."""
+    once the run has covered ``goal`` m, or, past ``horizon`` s, once it has stood
+    still for `PARKED_SECONDS` (within the horizon a parked run goes on, so its ticks
+    and flagged ticks there are those of a run without a mission limit, as the table
+    rollouts count them)."""
     parked_ticks = max(1, int(round(PARKED_SECONDS / period)))
     seen = {"distance": 0.0, "still": 0}
 
@@ -256,5 +259,6 @@ def mission_done(goal: float, nominal: float, period: float):
         if len(rows["state"]) > 1:       # the first row is the start: nothing travelled
             seen["distance"] += speed * period
         seen["still"] = seen["still"] + 1 if speed <= 0 else 0
-        return seen["distance"] >= goal * (1 - 1e-9) or seen["still"] >= parked_ticks
+        past = (len(rows["state"]) - 1) * period >= horizon - 1e-9
+        return seen["distance"] >= goal * (1 - 1e-9) or (past and seen["still"] >= parked_ticks)
     return done

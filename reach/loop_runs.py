@@ -132,7 +132,8 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
         if failed(x):                                   # already failed
             row = (True, False, False, 0.0, 0, 0, True, False)
         else:
-            done = None if mission_limit is None else mission_done(goal, nominal, period)
+            done = (None if mission_limit is None else
+                    mission_done(goal, nominal, period, duration))
             run = simulate(diagram, initial_state=x, duration=duration * (mission_limit or 1.0),
                            period=period, half_width=1e300, stop_on_failure=False,
                            context=context,

@@ -16,11 +16,18 @@ from .grid import AXES, paper_grid
 from .taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
 
 
+#: Where the guard stage times the taxi's loops: near the centreline, [px m, py m,
+#: theta rad] (runs that stay on the runway for the whole timing).
+NEAR_CENTRELINE = np.array([[0.5 * (k % 3), 110.0 + 10.0 * k, np.deg2rad(2.0 * (k % 3))]
+                            for k in range(5)])
+
+
 class TaxiApplication(Application):
     """The TaxiNet paper's taxiing aircraft (state [px m, py m, theta rad])."""
 
     name = "taxi"
     axes = AXES
+    axis_units = ("m", "m", "rad")
     open_axes = fidelity.OPEN_AXES
 
     start_word = "on-runway"
@@ -77,6 +84,9 @@ class TaxiApplication(Application):
                            f"it within the {horizon:g} s horizon at {speed:g} m/s",
                 "fix": f"Set solved_py_max: {needed:g} (the paper box's end plus the "
                        f"horizon's travel)"}
+
+    def timing_starts(self, scenario, grid):
+        return NEAR_CENTRELINE
 
     def starts(self, scenario, box, count, seed):
         return fidelity.on_runway_starts(box, count, seed,

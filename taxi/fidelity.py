@@ -255,7 +255,7 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
                            period=period, half_width=B,
                            duration=duration * (mission_limit or 1.0),
                            stop_when=(None if mission_limit is None else
-                                      lambda i: mission_done(goal, nominal, period))))
+                                      lambda i: mission_done(goal, nominal, period, duration))))
     for x in states:
         if abs(x[0]) >= B:                      # already off the runway
             row = (True, False, False, 0.0, 0, 0, True, False)

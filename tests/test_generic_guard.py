@@ -126,3 +126,44 @@ def test_steering_fallbacks_need_the_applications_hooks():
                              policy=lambda e: -2.0 * e[:, 1], truth=lambda x: x,
                              starts=np.array([[0.5, 0.5]]), horizon=1.0, period=0.1)
     assert plain.failed.tolist() == [False]
+
+
+def test_the_guard_is_checked_before_anything_is_swept():
+    """`Application.check_guard`: what the guard stage would ask of an application that
+    lacks it is refused in one line naming the run-file key; the taxi has it all."""
+    from reachwatch.reach.application import load_application
+    scenario = load_scenario(data="")
+    toy = Toy(Unicycle())
+    toy.check_guard(scenario, ["slow_down", "brake"])
+    for strategies, key, hooks in ((["slow_down+oracle"], "guard.strategies",
+                                    "fallback_policy and true_estimate"),
+                                   (["brake", "slow_down+dead_reckoning"], "guard.strategies",
+                                    "fallback_policy and carry_estimate")):
+        with pytest.raises(ValueError, match=rf"^{key}: '.*' needs the application's {hooks}, "
+                                             rf"and 'toy' defines none; leave it out$"):
+            toy.check_guard(scenario, strategies)
+    with pytest.raises(ValueError, match=r"^guard.candidates: .* no simulate_guarded; set "
+                                         r"guard.candidates: 0$"):
+        toy.check_guard(scenario, ["brake"], candidates=2)
+    with pytest.raises(ValueError, match=r"^guard.noise_starts: .* no real_score_noise; set "
+                                         r"guard.noise_starts: 0$"):
+        toy.check_guard(scenario, ["brake"], noise_starts=5)
+    # the stage is skipped for a plant without a speed, unless it was asked for
+    Toy(NoSpeed()).check_guard(scenario, ["slow_down+oracle"], candidates=2)
+    with pytest.raises(ValueError, match="^NoSpeed cannot be rolled out"):
+        Toy(NoSpeed()).check_guard(scenario, ["brake"], skipped=False)
+    load_application("").check_guard(scenario, ["slow_down+oracle", "slow_down+dead_reckoning"],
+                                     candidates=5, noise_starts=20)
+
+
+def test_a_run_file_asking_the_cart_for_a_steering_fallback_is_refused(monkeypatch):
+    from pathlib import Path
+    from reachwatch.pipeline.spec import load_run_spec
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)                         # the run file's paths are relative
+    text = (root / "examples" / "cart" / "run.yaml").read_text()
+    load_run_spec(data=text)
+    with pytest.raises(ValueError, match="guard.strategies: 'slow_down\\+oracle' needs the "
+                                         "application's fallback_policy and true_estimate"):
+        load_run_spec(data=text.replace("strategies: [slow_down, brake]",
+                                        "strategies: [slow_down, slow_down+oracle]"))

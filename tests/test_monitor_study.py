@@ -255,6 +255,10 @@ def test_the_cart_runs_the_study_through_the_generic_application(tmp_path, monke
     # turned near a rail stops 0.12 m on, before it)
     assert limited.short_of_distance.tolist() == [True, True]
     assert not limited.failed_same_distance.any() and not limited.failed.any()
+    # parked within the horizon, a run goes on to it: its ticks there are those without
+    # a mission limit
+    np.testing.assert_array_equal(limited.ticks, braked.ticks)
+    np.testing.assert_array_equal(limited.flagged_ticks, braked.flagged_ticks)
     again = cart.mission_rollouts(dc_replace(held, monitor=always), "brake", 1.5, starts,
                                   mission_limit=2.0)
     for name, value in again.items():

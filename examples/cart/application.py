@@ -75,6 +75,7 @@ class CartRenderer:
 class CartApplication(Application):
     name = "cart"
     axes = ("y", "theta")
+    axis_units = ("m", "rad")
     open_axes = (1,)        # a run may turn past the grid's headings without failing
     # the report's words for the cart (where the taxi's say "left the runway", ...)
     failure_words = "reached a rail"
