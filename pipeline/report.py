@@ -207,9 +207,12 @@ def write_report(run: Run) -> dict:
     if o.get("incremental"):
         inc = o["incremental"]
         page.section("Incremental training", "incremental")
-        page.text(f"TaxiNet fine-tuned on {inc['fine_tune']['mined_states']} anomalous "
-                  f"on-runway states mined from the training datasets plus "
-                  f"{inc['fine_tune']['replayed_states']} nominal frames; BRT of {inc['environment']} "
+        tuned, mined = inc["fine_tune"], application.starts_text("states")
+        how = (f" on {tuned['mined_states']} anomalous {mined} mined from the training "
+               f"datasets plus {tuned['replayed_states']} nominal frames"
+               if tuned.get("mined_states") is not None else
+               " on the training datasets' anomalies")
+        page.text(f"{application.controller_words} fine-tuned{how}; BRT of {inc['environment']} "
                   f"(held out): {_pct(inc['before'])}% before, {_pct(inc['after'])}% after.")
         page.images([inc["figure"], inc.get("star", {}).get("figure")])
     page.section("Benchmarks measured in this run", "benchmarks")

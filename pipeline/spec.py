@@ -41,8 +41,9 @@ class EnsembleSpec:
 @dc.dataclass
 class IncrementalConfig:
     """What to mine, how much nominal data to replay, how long to fine-tune, and the
-    held-out ``environment`` whose BRT is recomputed with the fine-tuned TaxiNet (the
-    incremental stage, `reachwatch.taxi.incremental`)."""
+    held-out ``environment`` whose BRT is recomputed with the fine-tuned controller (the
+    incremental stage: the application's ``fine_tune``; the taxi's fine-tunes TaxiNet,
+    `reachwatch.taxi.incremental`)."""
     enabled: bool = True
     environment: Environment = dc.field(
         default_factory=lambda: Environment("KMWH", 17.0, "clear"))
@@ -476,17 +477,8 @@ class RunSpec:
                                     candidates=self.guard.candidates,
                                     noise_starts=self.guard.noise_starts)
         self.incremental.validate()
-        # a TaxiApplication, its subclasses too (only they have own_loop): the incremental
-        # stage runs the taxi's own loop, whatever the application's (the monitor study
-        # runs any application's, through its recorded_runs and missions)
-        if self.incremental.enabled and not hasattr(application, "own_loop"):
-            raise ValueError(f"incremental.enabled: that stage studies the taxi's own loop, "
-                             f"not the application '{application.name}'; set incremental: "
-                             f"{{enabled: false}}")
-        if self.incremental.enabled and self.scenario.controller.factory:
-            raise ValueError("incremental.enabled: incremental training fine-tunes TaxiNet, "
-                             "and scenario.controller.factory names another controller; set "
-                             "incremental: {enabled: false}")
+        if self.incremental.enabled:
+            application.check_incremental(self.scenario)
         return self
 
     def _check_same_names(self):

@@ -449,13 +449,55 @@ class Application(abc.ABC):
                                   f"'{self.name}' has no showcase runs; set guard.candidates: 0")
 
     # --- incremental training (the incremental stage) ----------------------------------
+    #: How reports and figures name the controller whose estimator is fine-tuned (the
+    #: taxi's: "TaxiNet").
+    controller_words = "controller"
+    #: The fine-tuned checkpoint's file name stem in the run's ``incremental/`` folder.
+    fine_tuned_name = "controller"
+
+    def check_incremental(self, scenario):
+        """Before anything runs: a ValueError in one line when the incremental stage
+        cannot fine-tune this application's controller (default: unless `fine_tune` is
+        defined)."""
+        if type(self).fine_tune is Application.fine_tune:
+            raise ValueError(f"incremental.enabled: the application '{self.name}' defines no "
+                             f"fine_tune; set incremental: {{enabled: false}}")
+
     def fine_tune(self, scenario, checkpoint, datasets, config, path, *, progress=None) -> dict:
-        """The controller's estimator in ``checkpoint`` fine-tuned on the anomalous
-        states of ``datasets`` (``[(Environment, LabelledData)]``, the training
-        environments') as the run file's ``incremental`` section ``config`` says, written
-        to ``path``; returns its metadata (``fine_tune_seconds`` among it)."""
+        """The controller's estimator in ``checkpoint`` ("" when the scenario names
+        none) fine-tuned on the anomalous states of ``datasets`` (``[(Environment,
+        LabelledData)]``, the training environments') as the run file's ``incremental``
+        section ``config`` says, written to ``path`` (the loop reads it as
+        ``scenario.controller.checkpoint``); returns its metadata (JSON-able;
+        ``fine_tune_seconds`` among it, ``mined_states`` and ``replayed_states`` when it
+        mined and replayed states, for the report)."""
         raise NotImplementedError(f"Application.fine_tune: the application '{self.name}' "
                                   f"fine-tunes no controller; set incremental: {{enabled: false}}")
+
+    def fine_tuned_metadata(self, path) -> dict:
+        """The metadata `fine_tune` returned for the checkpoint at ``path``, read again when
+        the stage reuses it: default the JSON file the stage wrote beside it."""
+        import json
+        from pathlib import Path
+        side = Path(f"{path}.json")
+        return json.loads(side.read_text()) if side.is_file() else {}
+
+    def run_from(self, scenario, start, duration: float):
+        """``(trajectory, failed)``: the loop of ``scenario`` from the state ``start`` for
+        ``duration`` s, stopped at the first control tick where `failed` holds (the
+        incremental stage's runs from its starred start). ``trajectory``: a
+        `reachwatch.diagrams.Trajectory`."""
+        from reachwatch.diagrams import simulate
+        failed = lambda x: bool(self.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
+        run = simulate(self.loop_diagram(scenario), initial_state=start, duration=duration,
+                       period=scenario.controller.period, half_width=1e300,
+                       stop_on_failure=False, stop_when=lambda rows: failed(rows["state"][-1]))
+        return run, failed(run.state[-1])
+
+    def plot_runs(self, runs, *, scenario, path, title=""):
+        """A figure of ``runs`` (``[(Trajectory, label)]``) from one start; its path, or
+        None (the default: no figure)."""
+        return None
 
     # --- identity -------------------------------------------------------------------------
     def key(self):

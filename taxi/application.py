@@ -185,6 +185,31 @@ class TaxiApplication(Application):
                                             meshcat_html=meshcat_html)
 
     # --- incremental training (the incremental stage) ----------------------------------
+    controller_words = "TaxiNet"
+    fine_tuned_name = "taxinet"
+
+    def check_incremental(self, scenario):
+        if scenario.controller.factory:
+            raise ValueError("incremental.enabled: incremental training fine-tunes TaxiNet, "
+                             "and scenario.controller.factory names another controller; set "
+                             "incremental: {enabled: false}")
+
+    def fine_tuned_metadata(self, path):
+        return load_taxinet(path)[2]
+
+    def run_from(self, scenario, start, duration):
+        """The taxi's run, stopped where it crosses the runway's edge."""
+        from reachwatch.diagrams import simulate
+        run = simulate(self.loop_diagram(scenario), initial_state=start,
+                       period=scenario.controller.period, duration=duration,
+                       half_width=scenario.environment.half_width)
+        return run, run.failed
+
+    def plot_runs(self, runs, *, scenario, path, title=""):
+        from reachwatch.diagrams.plots import plot_runway_top_view
+        return plot_runway_top_view(runs, half_width=scenario.environment.half_width,
+                                    path=path, title=title)
+
     def fine_tune(self, scenario, checkpoint, datasets, config, path, *, progress=None):
         """TaxiNet fine-tuned on the mined anomalies (`taxi.incremental`)."""
         from .incremental import fine_tune_taxinet, mine_anomalies

@@ -196,6 +196,65 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     assert ((r > g + 40) & (r > b + 40)).any() and ((b > r + 40) & (b > g + 40)).any()
 
 
+TUNED_CART = '''
+from pathlib import Path
+from reachwatch.reach.application import load_application
+
+CartApplication = type(load_application("examples/cart/application.py:CartApplication"))
+
+
+class TunedCart(CartApplication):
+    """The cart with a fine-tuning of its own: it writes what it was given."""
+    def fine_tune(self, scenario, checkpoint, datasets, config, path, *, progress=None):
+        mined = sum(int((d.labels == 1).sum()) for _, d in datasets)
+        Path(path).write_text(f"{checkpoint!r} tuned on {mined} of {len(datasets)} datasets")
+        return {"mined_states": mined, "replayed_states": 0, "fine_tune_seconds": 0.5}
+'''
+
+
+def test_any_application_fine_tunes_through_the_incremental_stage(tmp_path, monkeypatch):
+    """The incremental stage for an application other than the taxi: its `fine_tune`
+    gets the training datasets and writes the checkpoint the loop is swept and solved
+    with again; the report says what it returned, in the application's words; the
+    cart itself, which defines no fine-tuning, is refused in one line."""
+    monkeypatch.chdir(ROOT)                    # the run file's paths are relative
+    (tmp_path / "tuned_cart.py").write_text(TUNED_CART)
+    spec = _tiny(load_run_spec(ROOT / "examples" / "cart" / "run.yaml"))
+    spec.grid, spec.horizon, spec.dataset.samples = [5, 5], 2.0, 10
+    spec.scenario.camera.height, spec.scenario.camera.width = 24, 48
+    spec.guard.candidates = spec.guard.noise_starts = spec.guard.check_starts = 0
+    spec.fidelity.starts = 0
+    spec.incremental.enabled, spec.incremental.environment = True, spec.test[0]
+    with pytest.raises(ValueError, match=r"^incremental.enabled: the application 'cart' "
+                                         r"defines no fine_tune; set incremental: "
+                                         r"\{enabled: false\}$"):
+        spec.validate()
+    spec.application = f"{tmp_path / 'tuned_cart.py'}:TunedCart"
+    spec.validate()
+    out = _run_to_report(spec, tmp_path)
+    inc = json.loads((out / "stages" / "incremental.json").read_text())["outputs"]
+    train = tuple(f"{e.name}_" for e in spec.training_environments())
+    labels = [np.load(d / "labels.npy") for d in (out / "datasets").iterdir()
+              if d.name.startswith(train)]
+    mined = sum(int((v == 1).sum()) for v in labels)
+    assert len(labels) == len(train) and inc["environment"] == "KMWH_21h_clear"
+    assert inc["fine_tune"]["mined_states"] == mined
+    assert inc["fine_tune"]["fine_tune_seconds"] == 0.5
+    assert (out / inc["checkpoint"]).read_text() == f"'' tuned on {mined} of {len(train)} datasets"
+    assert Path(inc["checkpoint"]).name.startswith("controller_")
+    assert inc["after_record"]["brt_fraction"] == inc["after"]
+    report = (out / "report.md").read_text()
+    assert f"controller fine-tuned on {mined} anomalous states mined from the training" in report
+    # the starred start's runs, for an application that says nothing more: stopped at
+    # the first tick past a rail, and no figure
+    from reachwatch.reach.application import load_application
+    tuned = load_application(spec.application)
+    scenario = dc_replace(spec.scenario, environment=spec.test[0])
+    run, failed = tuned.run_from(scenario, [0.4, 0.69], 1.0)
+    assert failed and abs(run.state[-1, 0]) >= 0.5 > abs(run.state[-2, 0])
+    assert tuned.plot_runs([(run, "x")], scenario=scenario, path=tmp_path / "r.png") is None
+
+
 def test_speed_car_guards_with_a_history_monitor_reading_the_controllers_signals(tmp_path):
     """The speed car's guarded loop offers a history monitor the same online signals a
     recording stores (the controller's estimate, then its steering)."""
