@@ -11,7 +11,8 @@ from reachwatch.systems.checks import short
 from .checked_page import write_checked_page
 from .console import log
 from .fidelity_stages import check_downtrack_room, stage_fidelity
-from .online_stages import stage_guard, stage_incremental
+from .incremental_stage import stage_incremental
+from .online_stages import stage_guard
 from .report import write_report
 from .spec import RunSpec, digest
 from .brt_stages import stage_solve, stage_sweep
