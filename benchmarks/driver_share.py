@@ -11,7 +11,10 @@ fresh ``$REACHWATCH_CACHE`` and run directory under ``--out``), timing every
 `run_chunks` call and every stage; a stage's chunked seconds are the union of the
 `run_chunks` intervals inside it (the calls of environments run together overlap).
 Inline, a chunk's time is what a worker would spend on it, so the driver's share of a
-study on a cluster of N workers is at least driver / (driver + chunked / N)."""
+study on a cluster of N workers is at least driver / (driver + chunked / N). Inline,
+the driver's cache writes inside a `run_chunks` call count as chunked, and what a stage
+builds before its chunks (a renderer, networks, which each worker builds again on a
+cluster) counts as the driver's."""
 
 import argparse
 import os

@@ -4,11 +4,12 @@ the held-out environment's BRT recomputed with it, before and after side by side
 the loop from a start the fine-tuning saves."""
 
 import json
+import os
 from pathlib import Path
 
 from reachwatch.diagrams import file_hash
 from reachwatch.reach import ValueFunction
-from reachwatch.reach.application import application_key
+from reachwatch.reach.application import Application, application_key
 from reachwatch.systems.files import atomic_write_bytes
 
 from .brt_stages import solve_env, sweep_env
@@ -32,14 +33,24 @@ def incremental(run: Run) -> dict:
     path = run.path(f"incremental/{application.fine_tuned_name}_{name}.pt")
     seconds = None
     if not path.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
+        # fine_tune writes beside the checkpoint's name, and the checkpoint takes its name
+        # only once it and its metadata are both written: a checkpoint there is complete
+        partial = path.with_name(f"{path.name}.partial")
+        partial.parent.mkdir(parents=True, exist_ok=True)
+        partial.unlink(missing_ok=True)
         train = spec.training_environments()
         meta = application.fine_tune(run.scenario_for(env), base,
-                                     list(zip(train, run.datasets(train))), config, path,
+                                     list(zip(train, run.datasets(train))), config, partial,
                                      progress=progress)
+        if not partial.is_file():
+            raise ValueError(f"incremental: the application '{application.name}''s fine_tune "
+                             f"wrote no checkpoint at the path it was given ({partial})")
         seconds = meta.get("fine_tune_seconds")
-        atomic_write_bytes(Path(f"{path}.json"), json.dumps(
-            {k: v for k, v in meta.items() if k != "fine_tune_seconds"}, default=str).encode())
+        if type(application).fine_tuned_metadata is Application.fine_tuned_metadata:
+            atomic_write_bytes(Path(f"{path}.json"), json.dumps(
+                {k: v for k, v in meta.items() if k != "fine_tune_seconds"},
+                default=str).encode())
+        os.replace(partial, path)
     meta = {**application.fine_tuned_metadata(path), "fine_tune_seconds": seconds}
     after = {**sweep_env(run, env, checkpoint=path),
              **solve_env(run, env, checkpoint=path, label=" fine-tuned")}

@@ -333,6 +333,12 @@ def guard_environment(run: Run, env) -> dict:
                        "image": [scenario.camera.height, scenario.camera.width]}}
 
 
+#: In the guard stage's key: 2 since a real run judged by distance that parks within the
+#: horizon goes on to it (`reach.liveness.mission_done`), so records of before are run
+#: again.
+GUARD_FORMAT = 2
+
+
 def stage_guard(run: Run) -> dict:
     out = {}
     if not run.application.rolls_out_fallbacks(run.application.resolved(run.spec.scenario)):
@@ -347,7 +353,7 @@ def stage_guard(run: Run) -> dict:
         # content keys: a detector or BRT rebuilt with other bytes guards again
         key = digest(run.content_key("train"), run.content_key(f"solve_{env.name}"),
                      run.spec.guard, run.spec.scenario.monitor, run.spec.horizon,
-                     *([own] if own is not None else []))
+                     {"guard_format": GUARD_FORMAT}, *([own] if own is not None else []))
         out[env.name] = run.stage(f"guard_{env.name}", key,
                                   lambda env=env: guard_environment(run, env))
     return out

@@ -208,8 +208,9 @@ def write_report(run: Run) -> dict:
         inc = o["incremental"]
         page.section("Incremental training", "incremental")
         tuned, mined = inc["fine_tune"], application.starts_text("states")
+        replayed = tuned.get("replayed_states")
         how = (f" on {tuned['mined_states']} anomalous {mined} mined from the training "
-               f"datasets plus {tuned['replayed_states']} nominal frames"
+               f"datasets" + (f" plus {replayed} nominal frames" if replayed is not None else "")
                if tuned.get("mined_states") is not None else
                " on the training datasets' anomalies")
         page.text(f"{application.controller_words} fine-tuned{how}; BRT of {inc['environment']} "

@@ -378,12 +378,12 @@ class Application(abc.ABC):
         if type(self).fallback_rollouts is Application.fallback_rollouts:
             needs = {"oracle": ("fallback_policy", "true_estimate"),
                      "dead_reckoning": ("fallback_policy", "carry_estimate")}
-            for name in strategies:
+            for i, name in enumerate(strategies):
                 missing = [hook for hook in needs.get(Fallback.parse(name).steering, ())
                            if (self.fallback_policy(scenario) if hook == "fallback_policy"
                                else getattr(self, hook)) is None]
                 if missing:
-                    raise ValueError(f"guard.strategies: '{name}' needs the application's "
+                    raise ValueError(f"guard.strategies[{i}]: '{name}' needs the application's "
                                      f"{' and '.join(missing)}, and '{self.name}' defines "
                                      f"none; leave it out")
         for key, count, method in (("guard.candidates", candidates, "simulate_guarded"),

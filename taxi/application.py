@@ -85,6 +85,17 @@ class TaxiApplication(Application):
                 "fix": f"Set solved_py_max: {needed:g} (the paper box's end plus the "
                        f"horizon's travel)"}
 
+    def check_guard(self, scenario, strategies, *, candidates=0, noise_starts=0, skipped=True):
+        if not self.own_loop:           # its showcase and score-noise runs are the taxi's
+            for key, count in (("guard.candidates", candidates),
+                               ("guard.noise_starts", noise_starts)):
+                if count:
+                    raise ValueError(f"{key}: the application '{self.name}' builds a loop of "
+                                     f"its own, and the taxi's showcase and score-noise runs "
+                                     f"are of the taxi's; set {key}: 0")
+        super().check_guard(scenario, strategies, candidates=candidates,
+                            noise_starts=noise_starts, skipped=skipped)
+
     def timing_starts(self, scenario, grid):
         return NEAR_CENTRELINE
 

@@ -242,6 +242,9 @@ def test_any_application_fine_tunes_through_the_incremental_stage(tmp_path, monk
     assert inc["fine_tune"]["fine_tune_seconds"] == 0.5
     assert (out / inc["checkpoint"]).read_text() == f"'' tuned on {mined} of {len(train)} datasets"
     assert Path(inc["checkpoint"]).name.startswith("controller_")
+    # its metadata beside it, and nothing half-written left
+    assert json.loads((out / f"{inc['checkpoint']}.json").read_text())["mined_states"] == mined
+    assert not list((out / "incremental").glob("*.partial"))
     assert inc["after_record"]["brt_fraction"] == inc["after"]
     report = (out / "report.md").read_text()
     assert f"controller fine-tuned on {mined} anomalous states mined from the training" in report

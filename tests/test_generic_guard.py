@@ -135,9 +135,10 @@ def test_the_guard_is_checked_before_anything_is_swept():
     scenario = load_scenario(data="")
     toy = Toy(Unicycle())
     toy.check_guard(scenario, ["slow_down", "brake"])
-    for strategies, key, hooks in ((["slow_down+oracle"], "guard.strategies",
+    for strategies, key, hooks in ((["slow_down+oracle"], r"guard.strategies\[0\]",
                                     "fallback_policy and true_estimate"),
-                                   (["brake", "slow_down+dead_reckoning"], "guard.strategies",
+                                   (["brake", "slow_down+dead_reckoning"],
+                                    r"guard.strategies\[1\]",
                                     "fallback_policy and carry_estimate")):
         with pytest.raises(ValueError, match=rf"^{key}: '.*' needs the application's {hooks}, "
                                              rf"and 'toy' defines none; leave it out$"):
@@ -163,7 +164,25 @@ def test_a_run_file_asking_the_cart_for_a_steering_fallback_is_refused(monkeypat
     monkeypatch.chdir(root)                         # the run file's paths are relative
     text = (root / "examples" / "cart" / "run.yaml").read_text()
     load_run_spec(data=text)
-    with pytest.raises(ValueError, match="guard.strategies: 'slow_down\\+oracle' needs the "
+    with pytest.raises(ValueError, match="guard.strategies\\[1\\]: 'slow_down\\+oracle' needs the "
                                          "application's fallback_policy and true_estimate"):
         load_run_spec(data=text.replace("strategies: [slow_down, brake]",
                                         "strategies: [slow_down, slow_down+oracle]"))
+
+
+def test_a_taxi_with_a_loop_of_its_own_is_refused_the_taxis_own_runs():
+    """A subclass of the taxi that builds another loop gets the generic showcase and
+    score-noise methods, which it does not have: refused before any sweep."""
+    from reachwatch.taxi.application import TaxiApplication
+
+    class OwnLoop(TaxiApplication):
+        def loop_diagram(self, scenario, *, guarded=False):
+            return super().loop_diagram(scenario, guarded=guarded)
+
+    scenario = load_scenario(data="")
+    OwnLoop().check_guard(scenario, ["brake", "slow_down+oracle"])
+    TaxiApplication().check_guard(scenario, ["brake"], candidates=1, noise_starts=1)
+    for key in ("candidates", "noise_starts"):
+        with pytest.raises(ValueError, match=rf"^guard.{key}: .*'taxi' builds a loop of its "
+                                             rf"own.*set guard.{key}: 0$"):
+            OwnLoop().check_guard(scenario, ["brake"], **{key: 1})
