@@ -222,7 +222,10 @@ class MonitorStudySpec:
     runs of ``duration`` s from seeded uniform starts in the paper's box. The risk is
     that of failing within ``within`` s; the fallback brakes at ``brake_deceleration``
     m/s^2, so a warning counts when it comes at least speed / deceleration s before
-    the failure; the threshold bounds the expected miss rate at ``alpha``.
+    the failure; the threshold bounds the expected miss rate at ``alpha``. The default
+    ``within`` (4 s, for braking's 1.67 s from 5 m/s at 3 m/s^2) is the one of 2, 3, 4
+    and 5 s whose kept variant flagged the fewest safe runs of the calibration
+    environments in a study of the random family (seed 11); set it for your fallback.
     ``guarded_runs`` (0: none) starts per held-out environment (of the family, and
     outside it) also run in the guarded real loop with the kept variant, the
     single-frame one and the oracle. ``flag_rules`` lists the
@@ -239,7 +242,7 @@ class MonitorStudySpec:
     also_held_out: List[Environment] = dc.field(default_factory=list)
     runs: int = bounded(30, 1, 100_000, whole=True)
     duration: float = bounded(8.0, 0.0, 600.0, low_open=True, unit="s")
-    within: float = bounded(3.0, 0.0, 600.0, low_open=True, high_open=True, unit="s",
+    within: float = bounded(4.0, 0.0, 600.0, low_open=True, high_open=True, unit="s",
                             note="< duration")
     brake_deceleration: float = bounded_as(3.0, MonitorConfig, "brake_deceleration")
     alpha: float = bounded(0.1, 0.0, 1.0, low_open=True, high_open=True,
