@@ -18,6 +18,7 @@ from reachwatch.training.dataset import DatasetSpec, dataset_folder
 RUN = """
 train: [{runway: KMWH, hour: 9.0, sky: clear}]
 test: [{runway: KSFO, hour: 21.0, sky: clear}]
+guard: {candidates: 0, noise_starts: 0}
 """
 
 APP = """

@@ -142,7 +142,9 @@ def test_graph_of_a_run_file_is_its_applications_loop(tmp_path, detector_path, c
     run.write_text(f"application: '{folder / 'loop.py'}:Named'\n"
                    f"scenario: {{camera: {{width: 64, height: 32}}}}\n"
                    f"train: [{{runway: KMWH, hour: 9.0, sky: clear}}]\n"
-                   f"test: [{{runway: KSFO, hour: 17.0, sky: clear}}]\n")
+                   f"test: [{{runway: KSFO, hour: 17.0, sky: clear}}]\n"
+                   # a loop of its own has none of the taxi's showcase and noise runs
+                   f"guard: {{candidates: 0, noise_starts: 0}}\n")
     loop, names = _graph(tmp_path, "--run", str(run))
     assert loop == "closed_loop" and {"cart_on_a_track", "controller"} <= names
     loop, names = _graph(tmp_path, "--run", str(run), "--set",
