@@ -487,12 +487,9 @@ class Application(abc.ABC):
         ``duration`` s, stopped at the first control tick where `failed` holds (the
         incremental stage's runs from its starred start). ``trajectory``: a
         `reachwatch.diagrams.Trajectory`."""
-        from reachwatch.diagrams import simulate
-        failed = lambda x: bool(self.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
-        run = simulate(self.loop_diagram(scenario), initial_state=start, duration=duration,
-                       period=scenario.controller.period, half_width=1e300,
-                       stop_on_failure=False, stop_when=lambda rows: failed(rows["state"][-1]))
-        return run, failed(run.state[-1])
+        from .loop_runs import failure_rule, run_until_failed
+        return run_until_failed(self.loop_diagram(scenario), scenario,
+                                failure_rule(self, scenario), start, duration)
 
     def plot_runs(self, runs, *, scenario, path, title=""):
         """A figure of ``runs`` (``[(Trajectory, label)]``) from one start; its path, or

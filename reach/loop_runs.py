@@ -1,7 +1,7 @@
 """The generic real loop of an application, run from given starts: the runners behind
 `Application.real_outcomes`, `real_paths`, `recorded_runs` and `missions` for any
-loop the application builds (the taxi has faster ones of its own, in
-`reachwatch.taxi.fidelity`). Each takes ``ref`` (an `ApplicationRef`: picklable, a
+loop the application builds (an application may bring faster ones of its own). Each
+takes ``ref`` (an `ApplicationRef`: picklable, a
 worker loads the application again), the scenario and the run's settings, then the
 ``states`` of one chunk, and returns that chunk's fields (`reach.outcomes.map_states`).
 Every control tick renders; a run stops at the first tick where `Application.failed`
@@ -31,6 +31,24 @@ def _thread_loop(ref, scenario, guarded: bool = False):
         diagram = build_loop(ref, scenario, guarded)
         loops[key] = application, diagram, diagram.CreateDefaultContext()
     return loops[key]
+
+
+def failure_rule(application, scenario):
+    """``failed(x) -> bool`` of one state: `Application.failed` of ``scenario``."""
+    return lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])
+
+
+def run_until_failed(diagram, scenario, failed, start, duration: float, *, context=None,
+                     done=None):
+    """``(trajectory, failed)``: the loop ``diagram`` of ``scenario`` from the state
+    ``start`` for ``duration`` s, stopped at the first control tick where ``failed``
+    (`failure_rule`) holds, or where ``done(rows)`` says so; ``context``: a reused one."""
+    from reachwatch.diagrams import simulate
+    run = simulate(diagram, initial_state=start, duration=duration,
+                   period=scenario.controller.period, half_width=1e300, stop_on_failure=False,
+                   context=context, stop_when=lambda rows: failed(rows["state"][-1]) or
+                   (done is not None and done(rows)))
+    return run, failed(run.state[-1])
 
 
 def _subsystem_port(application, diagram, name: str, what: str):
@@ -73,7 +91,7 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
            "state": np.full((len(states), length, states.shape[1]), np.nan),
            "ticks": np.zeros(len(states), int), "failed": np.zeros(len(states), bool),
            "failure_time": np.full(len(states), np.nan)}
-    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
+    failed = failure_rule(application, scenario)
     read = lambda system, port, root: port.Eval(system.GetMyContextFromRoot(root))  # noqa: E731
     for i, x in enumerate(states):
         if failed(x):                                   # already failed: no run
@@ -113,7 +131,6 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
     ``duration``), fails, stands still for `reach.liveness.PARKED_SECONDS` or reaches
     ``mission_limit * duration`` s, and the same-distance fields are returned too; the
     others are read from its first ``duration`` s, as without it."""
-    from reachwatch.diagrams import simulate
     from reachwatch.systems import fallback_parts
     from .liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, check_mission_limit,
                            mission_done, travelled)
@@ -123,7 +140,7 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
         scenario = copy.deepcopy(scenario)
         scenario.monitor.strategy, scenario.monitor.steering = fallback_parts(fallback)
     application, diagram, context = _thread_loop(ref, scenario, fallback is not None)
-    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
+    failed = failure_rule(application, scenario)
     period, nominal = scenario.controller.period, scenario.controller.speed
     goal = nominal * duration
     names = MISSION_FIELDS + (SAME_DISTANCE_FIELDS if mission_limit is not None else ())
@@ -134,15 +151,12 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
         else:
             done = (None if mission_limit is None else
                     mission_done(goal, nominal, period, duration))
-            run = simulate(diagram, initial_state=x, duration=duration * (mission_limit or 1.0),
-                           period=period, half_width=1e300, stop_on_failure=False,
-                           context=context,
-                           stop_when=lambda rows: failed(rows["state"][-1]) or
-                           (done is not None and done(rows)))
+            run, end = run_until_failed(diagram, scenario, failed, x,
+                                        duration * (mission_limit or 1.0), context=context,
+                                        done=done)
             speed = (np.full(len(run.time), nominal) if run.speed is None
                      else np.asarray(run.speed, float).reshape(-1))
             k = int(np.sum(run.time <= duration + 1e-9))      # the ticks within the horizon
-            end = failed(run.state[-1])
             within = end and run.time[-1] <= duration + 1e-9
             acting = run.time[:k] < duration - 1e-9
             flags = (np.zeros(k, bool) if run.anomaly is None
@@ -161,20 +175,16 @@ def loop_rollouts(ref, scenario, duration: float, grid, states) -> dict:
     stopping at the first control tick where its `Application.failed` holds: the
     fields of `Application.real_outcomes`. One diagram and Context per worker thread
     (a Context, and a render context, never crosses threads)."""
-    from reachwatch.diagrams import simulate
     from .fidelity import left_box
     application, diagram, context = _thread_loop(ref, scenario)
-    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
+    failed = failure_rule(application, scenario)
     out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
     for x in np.asarray(states, float):
         if failed(x):                                   # already failed
             row = (True, 0.0, False, np.nan, 0)
         else:
-            run = simulate(diagram, initial_state=x, duration=duration,
-                           period=scenario.controller.period, half_width=1e300,
-                           stop_on_failure=False, context=context,
-                           stop_when=lambda rows: failed(rows["state"][-1]))
-            end = failed(run.state[-1])
+            run, end = run_until_failed(diagram, scenario, failed, x, duration,
+                                        context=context)
             row = (end, float(run.time[-1]) if end else np.nan,
                    left_box(run.state, grid, axes=application.open_axes), np.nan, len(run.time))
         for k, v in zip(out, row):
@@ -195,14 +205,13 @@ def loop_paths(ref, scenario, horizon: float, extend: float, stride: int, grid,
     plant's state is all the loop remembers between control ticks: the controller (the
     system of `Application.probe`'s control port) must keep no state of its own
     (`check_memoryless`)."""
-    from reachwatch.diagrams import simulate
     from .fidelity import left_box
     application, diagram, context = _thread_loop(ref, scenario)
     controller, _ = _subsystem_port(application, diagram,
                                     application.probe(scenario).control_port,
                                     "probe's control_port")
     check_memoryless(controller)
-    failed = lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])  # noqa: E731
+    failed = failure_rule(application, scenario)
     period, duration = scenario.controller.period, horizon + extend
     points = path_points(horizon, extend, stride, period)
     states = np.asarray(states, float)
@@ -217,10 +226,7 @@ def loop_paths(ref, scenario, horizon: float, extend: float, stride: int, grid,
             out["failed"][i], out["failure_time"][i] = True, 0.0
             out["path_state"][i, 0], out["path_label"][i, 0] = x, 1
             continue
-        run = simulate(diagram, initial_state=x, duration=duration, period=period,
-                       half_width=1e300, stop_on_failure=False, context=context,
-                       stop_when=lambda rows: failed(rows["state"][-1]))
-        end = failed(run.state[-1])
+        run, end = run_until_failed(diagram, scenario, failed, x, duration, context=context)
         failure_time = float(run.time[-1]) if end else None
         labels = path_labels(run.time, failure_time, duration, horizon)
         within = run.time <= horizon + 1e-9
