@@ -14,13 +14,17 @@ warm-up round. With several ``--torch-threads`` each count is a mode of its own.
 mode's runs are compared with the first one-at-a-time runs (time, state, estimate,
 failure: equal, NaN equal to NaN).
 
+``--engines-in-turn`` adds, for each N, N cameras (N render engines, as N copies of the
+loop hold) rendering the same frames in turn: what rendering alone costs the way N runs
+in lockstep render, without the loop.
+
 ``--breakdown`` then times the parts of one more pass of each mode: the renders, TaxiNet
 (preprocessing and network), the plant's derivatives (Python), the runs' starts, and
 the rest (Drake's Simulator, port evaluation, the other Python systems, logging).
 
     python benchmarks/lockstep.py [--starts 8] [--duration 2] [--sizes 2 4 8]
                                   [--rounds 5] [--camera 200x360] [--torch-threads 0]
-                                  [--breakdown]
+                                  [--breakdown] [--engines-in-turn]
 """
 
 import argparse
@@ -105,6 +109,9 @@ def main():
                              "(0: torch's default)")
     parser.add_argument("--breakdown", action="store_true",
                         help="also time the parts of one more pass of each mode")
+    parser.add_argument("--engines-in-turn", action="store_true",
+                        help="also time N cameras (render engines) rendering the same frames "
+                             "in turn, frame i on camera i mod N, as N runs in lockstep do")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     default_threads = torch.get_num_threads()
@@ -137,6 +144,17 @@ def main():
                 renderer.render(x)
 
         modes = {"render alone": render_alone}
+        if args.engines_in_turn:
+            cameras = [renderer] + [StateRenderer(environment=scenario.environment,
+                                                  camera=scenario.camera)
+                                    for _ in range(max(args.sizes) - 1)]
+
+            def render_in_turn(n):
+                for i, x in enumerate(visited):
+                    cameras[i % n].render(x)
+
+            modes.update({f"render, {n} in turn": (lambda n=n: render_in_turn(n))
+                          for n in args.sizes})
         for t in threads:
             tag = "" if threads == [default_threads] else f", {t} thr"
             modes[f"one at a time{tag}"] = lambda t=t: runs(1, t)
@@ -163,18 +181,18 @@ def main():
         render = np.array(rates["render alone"])
         print(f"{'mode':<22} {'ticks/s':>8} {'range':>13} {'/render':>8} {'range':>11} "
               f"{'x one':>6}  identical")
-        one = np.array(rates[names[1]])
+        one = np.array(rates[next(n for n in names if n.startswith("one at a time"))])
         for name in names:
             r = np.array(rates[name])
             ratio, speedup = r / render, r / one
             print(f"{name:<22} {np.median(r):8.1f} {r.min():6.1f}-{r.max():<6.1f} "
                   f"{np.median(ratio):8.2f} {ratio.min():5.2f}-{ratio.max():<5.2f} "
                   f"{np.median(speedup):6.2f}  "
-                  f"{'' if name == 'render alone' else identical[name]}")
+                  f"{'' if name.startswith('render') else identical[name]}")
         print(f"load average {os.getloadavg()[0]:.1f}")
         if args.breakdown:
             print("breakdown, ms per tick (one more pass of each mode):")
-            for name in names[1:]:
+            for name in [n for n in names if not n.startswith("render")]:
                 with Parts() as parts:
                     started = time.perf_counter()
                     modes[name]()

@@ -6,9 +6,9 @@ import functools
 
 from reachwatch.reach import ValueFunction
 from reachwatch.reach.application import application_key, load_application
+from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.training.dataset import build_dataset, dataset_folder, label_summary, load_dataset
 
-from .spec import digest
 from .stages import Run
 from .together import each_environment
 
@@ -33,14 +33,16 @@ def _ensemble_config(run: Run):
 def ensemble_paths(run: Run) -> list:
     """The checkpoints of the ensemble baseline's members (trained or not yet); none
     without seeds (an application without an ensemble baseline is not asked). Their
-    folder is keyed by the training config, the seeds and, for an application other
-    than the default, its code (`application_key`: its `train_ensemble` trains them)."""
+    folder is keyed by the training config, the seeds, the software and render stack
+    (`reach.fingerprint.fingerprint`: members trained on another machine's renders, or
+    by another torch, are not reused) and, for an application other than the default,
+    its code (`application_key`: its `train_ensemble` trains them)."""
     spec = run.spec.ensemble
     if not spec.seeds:
         return []
     own = application_key(run.application)          # None for the default (the taxi)
-    folder = run.path(f"ensemble/{digest(_ensemble_config(run), spec.seeds)}" if own is None
-                      else f"ensemble/{digest(_ensemble_config(run), spec.seeds, own)}")
+    key = fingerprint(_ensemble_config(run), list(spec.seeds), own)[:16]
+    folder = run.path(f"ensemble/{key}")
     return [folder / f"taxinet_seed{s}.pt" for s in spec.seeds]
 
 

@@ -2,6 +2,7 @@
 application, named in the run file like a controller factory, is loaded from its
 folder, fingerprinted by every file there, and swept by the generic machinery."""
 
+import importlib
 import textwrap
 
 import numpy as np
@@ -81,12 +82,14 @@ def test_the_taxi_is_the_default_application_and_keeps_its_keys(tmp_path):
         tmp_path, scenario, vf, DatasetSpec(), application=taxi)
 
 
-def test_the_ensemble_baseline_is_the_applications(tmp_path):
+def test_the_ensemble_baseline_is_the_applications(tmp_path, monkeypatch):
     """The taxi's members are TaxiNets trained with the config their folder was always
     keyed by; an application without an ensemble baseline says so in one line, and a
     run without seeds never asks it."""
     from reachwatch.pipeline.dataset_stages import ensemble_paths
-    from reachwatch.pipeline.spec import EnsembleSpec, RunSpec, digest
+    from reachwatch.pipeline.spec import EnsembleSpec, RunSpec
+    from reachwatch.reach.fingerprint import fingerprint
+    fingerprints = importlib.import_module("reachwatch.reach.fingerprint")
     from reachwatch.pipeline.stages import Run
     from reachwatch.taxi.taxinet_train import TaxiNetTrainConfig
     scenario = load_scenario(data="camera: {width: 64, height: 32}\n")
@@ -95,8 +98,14 @@ def test_the_ensemble_baseline_is_the_applications(tmp_path):
     assert config == TaxiNetTrainConfig(camera=scenario.camera, samples=48, epochs=2)
     run = Run(RunSpec(scenario=scenario, ensemble=EnsembleSpec(seeds=[3, 5], samples=48,
                                                                 epochs=2)), tmp_path / "run")
-    assert [p.relative_to(run.root).as_posix() for p in ensemble_paths(run)] == [
-        f"ensemble/{digest(config, [3, 5])}/taxinet_seed{s}.pt" for s in (3, 5)]
+    paths = [p.relative_to(run.root).as_posix() for p in ensemble_paths(run)]
+    assert paths == [f"ensemble/{fingerprint(config, [3, 5], None)[:16]}/taxinet_seed{s}.pt"
+                     for s in (3, 5)]
+    # members trained under another torch (or another render stack) are not reused
+    monkeypatch.setitem(fingerprints.STACK, "torch", "0.0-elsewhere")
+    elsewhere = [p.relative_to(run.root).as_posix() for p in ensemble_paths(run)]
+    assert elsewhere != paths and [p.rsplit("/", 1)[1] for p in elsewhere] == [
+        p.rsplit("/", 1)[1] for p in paths]
     none = r"^the application 'taxi' has no ensemble baseline: set ensemble.seeds: \[\]$"
     with pytest.raises(ValueError, match=none):         # the generic defaults
         Application.ensemble_config(taxi, scenario, samples=1, epochs=1)
@@ -198,11 +207,12 @@ def test_the_generic_real_loop_judges_the_failure_rule_at_the_ticks(tmp_path):
 
 
 def test_an_applications_ensemble_folder_is_keyed_by_its_code(tmp_path):
-    """The ensemble baseline's folder: the default application's key as before (the
-    config and seeds), another application's also its code (its `train_ensemble`)."""
+    """The ensemble baseline's folder: the default application's key is the config, the
+    seeds and the software stack, another application's also its code (its
+    `train_ensemble`)."""
     from types import SimpleNamespace
     from reachwatch.pipeline.dataset_stages import ensemble_paths
-    from reachwatch.pipeline.spec import digest
+    from reachwatch.reach.fingerprint import fingerprint
 
     class Fake:
         def __init__(self, key):
@@ -222,7 +232,8 @@ def test_an_applications_ensemble_folder_is_keyed_by_its_code(tmp_path):
         assert len({p.parent for p in paths}) == min(len(seeds), 1) and len(paths) == len(seeds)
         return paths[0].parent if paths else None
 
-    assert folder(None) == tmp_path / "ensemble" / digest({"samples": 8, "epochs": 1}, [0, 1])
+    assert folder(None) == tmp_path / "ensemble" / fingerprint(
+        {"samples": 8, "epochs": 1}, [0, 1], None)[:16]
     assert len({folder(None), folder({"code": "a"}), folder({"code": "b"})}) == 3
     assert folder({"code": "a"}) == folder({"code": "a"})
     assert folder({"code": "a"}, seeds=()) is None
