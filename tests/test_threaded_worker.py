@@ -105,10 +105,12 @@ def test_a_two_thread_worker_sweeps_and_runs_the_real_loop_as_this_process_does(
     assert runs["ticks"].min() > 1             # real runs, not starts already off the runway
     # The old failure (renders on a thread other than the one that built the diagram)
     # logged eglMakeCurrent warnings beside wrong nodes. In about one full-suite run in
-    # four the worker logs such a warning while every node and run above is identical;
-    # its cause is not found (not reproduced alone, under load, with engines built
-    # concurrently or dropped while another thread renders), so it is reported, with
-    # the log around it, and the identity above is what this test asserts.
+    # four the worker logs such a warning (error 12290, EGL_BAD_ACCESS) while every node
+    # and run above is identical. The same warning comes when a render window is
+    # destroyed on a thread other than the one its context is current on (reproduced
+    # with windows kept past their thread's end), so it is likely a diagram that Python's
+    # cycle collector freed on another thread; which one was not found. It is reported,
+    # with the log around it, and the identity above is what this test asserts.
     lines = log_path.read_text(errors="replace").splitlines()
     egl = [i for i, line in enumerate(lines) if "eglMakeCurrent" in line]
     if egl:
