@@ -91,11 +91,16 @@ def test_speed_car_through_reachwatch_run(tmp_path, monkeypatch):
     spec = _tiny(load_run_spec(ROOT / "examples" / "speed_car" / "run.yaml"))
     spec.grid, spec.horizon, spec.dataset.samples = [3, 3, 3, 3], 2.0, 10
     spec.fidelity.starts = 0                   # the application runs no real loop
+    spec.guard.candidates = spec.guard.noise_starts = 0        # as its run file says
     out = _run_to_report(spec, tmp_path)
     report = (out / "report.md").read_text()
     assert "speed_car" in report and "| KSFO_21h_overcast | test | 3x3x3x3 | 81 |" in report
     assert "Table 2" in report and (out / "figures" / "overlay_KSFO_21h_overcast.png").is_file()
-    assert not list((out / "stages").glob("guard_*.json"))      # no fallback rollouts: skipped
+    # the guard: its speed fallbacks rolled out in the tables of the car's guarded loop
+    # (its speed, a state, lags the command they set) and checked in its real loop
+    guard = json.loads((out / "stages" / "guard_KSFO_21h_overcast.json").read_text())["outputs"]
+    assert set(guard["liveness"]) == {"slow_down", "brake"}
+    assert guard["check"]["starts"] == 1 and guard["check"]["fallbacks"]["brake"]["real"]["starts"] == 1
     states = np.load(next((out / "datasets").glob("KMWH_9h_clear_*")) / "states.npy")
     assert states.shape == (10, 4)
     # the car's own loop was swept: its plant and the application's code key the sweep

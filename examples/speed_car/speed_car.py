@@ -53,18 +53,21 @@ class LagCar(LeafSystem):
 
 
 class LagCarDynamics(Dynamics):
-    """The same car for the solver: the swept steering, the nominal speed command."""
+    """The same car for the solver: the swept steering, the nominal speed command
+    ``speed``; ``vector_field(..., speed=)`` takes another command per state (what a
+    fallback that slows down or brakes sets), which the car's speed lags."""
     state_dim, control_dim = 4, 1
 
     def __init__(self, *, half_width, speed, wheelbase=5.0, time_constant=1.0):
         self.half_width, self.speed = half_width, speed
         self.wheelbase, self.time_constant = wheelbase, time_constant
 
-    def vector_field(self, x, u):
+    def vector_field(self, x, u, speed=None):
         theta, v = x[..., 2], x[..., 3]
+        command = self.speed if speed is None else speed
         return torch.stack([v * torch.sin(theta), v * torch.cos(theta),
                             v / self.wheelbase * torch.tan(u[..., 0]),
-                            (self.speed - v) / self.time_constant], dim=-1)
+                            (command - v) / self.time_constant], dim=-1)
 
     def target(self, x):
         return self.half_width - x[..., 0].abs()
