@@ -20,7 +20,7 @@ from reachwatch.systems.files import atomic_write_bytes, file_hash, local_copy  
 FORMAT = "reachwatch.checkpoint"
 VERSION = 1
 #: The reference TaxiNet shipped with the package (see `reachwatch taxinet train`).
-REFERENCE_TAXINET = Path(__file__).parent / "checkpoints" / "taxinet_tiny.pt"
+REFERENCE_TAXINET = Path(__file__).parent / "weights" / "taxinet_tiny.pt"
 
 
 class CheckpointError(ValueError):
