@@ -19,6 +19,38 @@ def save_figure(fig, path):
     return atomic_write_bytes(path, buffer.getvalue())
 
 
+def plot_runs_over_time(runs, *, axes, path, title="", units=()):
+    """Any plant's runs against time, one panel per state axis (``axes``: their names,
+    ``units`` theirs where given) and, where a run logged them, its speed and its
+    flagged ticks; a line per run in one colour per run (``runs``: ``[(Trajectory,
+    label)]``), a failed run's last tick crossed."""
+    panels = list(axes) + [name for name in ("speed", "anomaly")
+                           if any(getattr(t, name) is not None for t, _ in runs)]
+    fig, grid = plt.subplots(len(panels), 1, figsize=(8, 1.7 * len(panels) + 0.6),
+                             sharex=True, squeeze=False)
+    units = dict(zip(axes, units))
+    units["speed"] = "m/s"
+    for ax, panel in zip(grid[:, 0], panels):
+        for i, (trajectory, label) in enumerate(runs):
+            values = (trajectory.state[:, list(axes).index(panel)] if panel in axes
+                      else getattr(trajectory, panel))
+            if values is None:
+                continue
+            values = np.asarray(values, float).reshape(len(trajectory.time), -1)[:, 0]
+            ax.plot(trajectory.time, values, lw=1.8, label=label, color=f"C{i}",
+                    drawstyle="steps-post" if panel == "anomaly" else "default")
+            if trajectory.failed and panel in axes:
+                ax.plot(trajectory.time[-1], values[-1], "x", color="tab:red", ms=9, mew=2)
+        unit = units.get(panel, "")
+        ax.set_ylabel("flagged" if panel == "anomaly" else f"{panel} ({unit})" if unit else panel)
+    grid[-1, 0].set_xlabel("time (s)")
+    grid[0, 0].legend(loc="upper right", fontsize=8)
+    if title:
+        grid[0, 0].set_title(title, fontsize=9)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
 def plot_runway_top_view(trajectories, *, half_width: float, path, title=""):
     """Top view of ``trajectories`` (`Trajectory`, label) on the runway: downtrack
     py along x, crosstrack px up (left of the centreline), edges at +-B, the failure

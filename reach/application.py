@@ -366,7 +366,7 @@ class Application(abc.ABC):
                     skipped: bool = True):
         """Before anything is swept: a ValueError in one line naming the run-file key when
         the guard stage would ask the application for what it does not have (a steering
-        fallback without its hooks, showcase runs, a score-noise fit). When it cannot
+        fallback without its hooks, a score-noise fit). When it cannot
         roll fallbacks out at all (`rolls_out_fallbacks`), nothing if the stage is then
         ``skipped``, else the reason."""
         from reachwatch.systems import Fallback
@@ -386,11 +386,9 @@ class Application(abc.ABC):
                     raise ValueError(f"guard.strategies[{i}]: '{name}' needs the application's "
                                      f"{' and '.join(missing)}, and '{self.name}' defines "
                                      f"none; leave it out")
-        for key, count, method in (("guard.candidates", candidates, "simulate_guarded"),
-                                   ("guard.noise_starts", noise_starts, "real_score_noise")):
-            if count and getattr(type(self), method) is getattr(Application, method):
-                raise ValueError(f"{key}: the application '{self.name}' defines no {method}; "
-                                 f"set {key}: 0")
+        if noise_starts and type(self).real_score_noise is Application.real_score_noise:
+            raise ValueError(f"guard.noise_starts: the application '{self.name}' defines no "
+                             f"real_score_noise; set guard.noise_starts: 0")
 
     def _table_rollouts(self, scenario, grid, tables, horizon):
         """`fallback_rollouts` of these tables: the ``rollouts`` of `reach.guard`."""
@@ -444,9 +442,36 @@ class Application(abc.ABC):
         """The controller alone and the guarded loop of ``scenario`` (its monitor's
         fallback) from ``start`` (a state) for ``scenario.duration`` s, with their figure
         (and files) written to ``folder``: ``(alone, guarded, paths)``, two
-        `reachwatch.diagrams.Trajectory` (``guarded`` with ``speed`` and ``anomaly``)."""
-        raise NotImplementedError(f"Application.simulate_guarded: the application "
-                                  f"'{self.name}' has no showcase runs; set guard.candidates: 0")
+        `reachwatch.diagrams.Trajectory` (``guarded`` with ``speed`` and ``anomaly``),
+        each ``failed`` by `failed`. By default both loops (`loop_diagram`) run until
+        the first control tick where `failed` holds, drawn by `plot_runs` or, where that
+        draws nothing, against time (`reachwatch.diagrams.plots.plot_runs_over_time`);
+        ``meshcat_html`` (a replay) is the taxi's."""
+        from pathlib import Path
+        from reachwatch.diagrams.plots import plot_runs_over_time
+        from .loop_runs import failure_rule, run_until_failed
+        rule = failure_rule(self, scenario)
+        runs = []
+        for loop, guarded in ((self.without_monitor(scenario), False),
+                              (self.resolved(scenario), True)):
+            run, failed = run_until_failed(self.loop_diagram(loop, guarded=guarded), loop, rule,
+                                           start, scenario.duration)
+            runs.append(dc.replace(run, failed=bool(failed)))
+        alone, guarded = runs
+        if guarded.speed is None or guarded.anomaly is None:
+            raise ValueError(f"the application '{self.name}': its guarded loop exports no "
+                             f"'speed' and 'anomaly' (reachwatch.diagrams.export_loop_ports), "
+                             f"which the showcase run reads; set guard.candidates: 0")
+        name = f"guarded_{scenario.environment.name}"
+        labelled = [(alone, "controller alone"),
+                    (guarded, f"guarded ({scenario.monitor.fallback.name})")]
+        path = Path(folder) / f"{name}.png"
+        title = f"{scenario.environment.name}: from {np.round(np.asarray(start, float), 2)}"
+        drawn = self.plot_runs(labelled, scenario=scenario, path=path, title=title)
+        if drawn is None:
+            drawn = plot_runs_over_time(labelled, axes=self.axes, units=self.axis_units,
+                                        path=path, title=title)
+        return alone, guarded, [drawn]
 
     # --- incremental training (the incremental stage) ----------------------------------
     #: How reports and figures name the controller whose estimator is fine-tuned (the

@@ -86,13 +86,10 @@ class TaxiApplication(Application):
                        f"horizon's travel)"}
 
     def check_guard(self, scenario, strategies, *, candidates=0, noise_starts=0, skipped=True):
-        if not self.own_loop:           # its showcase and score-noise runs are the taxi's
-            for key, count in (("guard.candidates", candidates),
-                               ("guard.noise_starts", noise_starts)):
-                if count:
-                    raise ValueError(f"{key}: the application '{self.name}' builds a loop of "
-                                     f"its own, and the taxi's showcase and score-noise runs "
-                                     f"are of the taxi's; set {key}: 0")
+        if not self.own_loop and noise_starts:   # the taxi's score-noise runs are of its loop
+            raise ValueError(f"guard.noise_starts: the application '{self.name}' builds a loop "
+                             f"of its own, and the taxi's score-noise runs are of the taxi's; "
+                             f"set guard.noise_starts: 0")
         super().check_guard(scenario, strategies, candidates=candidates,
                             noise_starts=noise_starts, skipped=skipped)
 

@@ -91,7 +91,7 @@ def test_speed_car_through_reachwatch_run(tmp_path, monkeypatch):
     spec = _tiny(load_run_spec(ROOT / "examples" / "speed_car" / "run.yaml"))
     spec.grid, spec.horizon, spec.dataset.samples = [3, 3, 3, 3], 2.0, 10
     spec.fidelity.starts = 0                   # the application runs no real loop
-    spec.guard.candidates = spec.guard.noise_starts = 0        # as its run file says
+    spec.guard.noise_starts = 0                # as its run file says
     out = _run_to_report(spec, tmp_path)
     report = (out / "report.md").read_text()
     assert "speed_car" in report and "| KSFO_21h_overcast | test | 3x3x3x3 | 81 |" in report
@@ -166,7 +166,7 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     spec = _tiny(load_run_spec(ROOT / "examples" / "cart" / "run.yaml"))
     spec.grid, spec.horizon, spec.dataset.samples = [5, 5], 2.0, 10
     spec.scenario.camera.height, spec.scenario.camera.width = 24, 48
-    spec.guard.candidates = spec.guard.noise_starts = 0        # as its run file says
+    spec.guard.noise_starts = 0                # as its run file says
     spec.monitor.kind = "history"              # the monitor study runs the cart's loop too
     spec.validate()                            # (tests/test_monitor_study.py runs it)
     spec.monitor.kind = "detector"
@@ -199,6 +199,20 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     sheet = cv2.imread(str(out / "figures" / "environments.png"))[:, :48].astype(int)
     b, g, r = sheet[..., 0], sheet[..., 1], sheet[..., 2]
     assert ((r > g + 40) & (r > b + 40)).any() and ((b > r + 40) & (b > g + 40)).any()
+    # the generic showcase: the cart alone and braking, with the run's detector flagging
+    # every tick, from one start; drawn against time (the cart defines no plot_runs)
+    from reachwatch.reach.application import load_application
+    cart = load_application(spec.application)
+    trained = json.loads((out / "stages" / "train.json").read_text())["outputs"]
+    shown = dc_replace(spec.scenario, environment=spec.test[0], duration=1.0)
+    shown.monitor = dc_replace(shown.monitor, detector=str(out / trained["detector"]),
+                               threshold=0.0).with_fallback("brake")
+    alone, guarded, paths = cart.simulate_guarded(shown, [0.1, 0.0], tmp_path / "shown")
+    assert len(alone.time) == len(guarded.time) == 11 and not alone.failed
+    assert np.all(np.asarray(guarded.anomaly).ravel()[1:] >= 0.5)
+    speed = np.asarray(guarded.speed).ravel()
+    assert speed[0] == shown.controller.speed and speed[-1] < speed[1] < speed[0]
+    assert [p.name for p in paths] == ["guarded_KMWH_21h_clear.png"] and paths[0].is_file()
 
 
 TUNED_CART = '''
