@@ -131,8 +131,7 @@ def guard_command(args):
     spec = guard_spec(args, scenario)
     fallbacks = spec.guard.strategies
     application = load_application(spec.application)
-    application.check_guard(scenario, fallbacks, noise_starts=spec.guard.noise_starts,
-                            skipped=False)
+    application.check_guard(scenario, fallbacks, skipped=False)
     grid = application.grid(scenario, tuple(spec.grid))
     cache = args.cache or cache_root()
     started = time.time()

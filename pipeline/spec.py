@@ -476,9 +476,7 @@ class RunSpec:
             except ValueError as e:
                 raise ValueError(f"guard.environments[{i}]: {e}") from None
         if self.guard_environments():
-            application.check_guard(self.scenario, self.guard.strategies,
-                                    candidates=self.guard.candidates,
-                                    noise_starts=self.guard.noise_starts)
+            application.check_guard(self.scenario, self.guard.strategies)
         self.incremental.validate()
         if self.incremental.enabled:
             application.check_incremental(self.scenario)

@@ -362,13 +362,12 @@ class Application(abc.ABC):
         return (type(self).fallback_rollouts is not Application.fallback_rollouts
                 or takes_speed(self.dynamics(scenario)))
 
-    def check_guard(self, scenario, strategies, *, candidates: int = 0, noise_starts: int = 0,
-                    skipped: bool = True):
+    def check_guard(self, scenario, strategies, *, skipped: bool = True):
         """Before anything is swept: a ValueError in one line naming the run-file key when
         the guard stage would ask the application for what it does not have (a steering
-        fallback without its hooks, a score-noise fit). When it cannot
-        roll fallbacks out at all (`rolls_out_fallbacks`), nothing if the stage is then
-        ``skipped``, else the reason."""
+        fallback without its hooks). When it cannot roll fallbacks out at all
+        (`rolls_out_fallbacks`), nothing if the stage is then ``skipped``, else the
+        reason."""
         from reachwatch.systems import Fallback
         from .guarded_rollouts import check_takes_speed
         if not self.rolls_out_fallbacks(scenario):
@@ -386,9 +385,6 @@ class Application(abc.ABC):
                     raise ValueError(f"guard.strategies[{i}]: '{name}' needs the application's "
                                      f"{' and '.join(missing)}, and '{self.name}' defines "
                                      f"none; leave it out")
-        if noise_starts and type(self).real_score_noise is Application.real_score_noise:
-            raise ValueError(f"guard.noise_starts: the application '{self.name}' defines no "
-                             f"real_score_noise; set guard.noise_starts: 0")
 
     def _table_rollouts(self, scenario, grid, tables, horizon):
         """`fallback_rollouts` of these tables: the ``rollouts`` of `reach.guard`."""
@@ -425,9 +421,41 @@ class Application(abc.ABC):
         score along real runs of the controller alone from ``starts`` (cached under
         ``cache_dir``) departs from ``score_table`` (the sweep's `score_port` on ``grid``)
         at the same states; ``(noise, {"runs", "ticks"})``. A ValueError when it cannot
-        be fitted."""
-        raise NotImplementedError(f"Application.real_score_noise: the application "
-                                  f"'{self.name}' fits no score noise; set guard.noise_starts: 0")
+        be fitted. Default: the runs of `reach.loop_runs.loop_scores` (the guarded loop,
+        whose fallback never engages), the distance travelled taken as the nominal speed
+        times the time, as the table rollouts move the noise; a run whose fallback
+        engaged all the same is left out (``{"left_out"}`` counts them)."""
+        import torch
+        from .interpolate import GridInterpolator
+        from .loop_runs import loop_scores
+        from .outcomes import map_states
+        from .score_noise import fit_score_noise
+        scenario = self.resolved(scenario)
+        scenario.monitor = type(scenario.monitor)(detector=scenario.monitor.detector)
+        rollout = functools.partial(loop_scores, ApplicationRef(self._loaded_as()), scenario,
+                                    float(duration))
+        fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
+                                  progress=progress, unit="run",
+                                  required=("state", "score", "ticks", "engaged"),
+                                  label=f"detector score along real runs "
+                                        f"{scenario.environment.name}")
+        table = torch.as_tensor(np.asarray(score_table, float).reshape(grid.shape))
+        step = scenario.controller.speed * scenario.controller.period
+        real, interpolated, along, left_out = [], [], [], 0
+        for path, scores, ticks, engaged in zip(fields["state"], fields["score"],
+                                                fields["ticks"], fields["engaged"]):
+            if engaged:
+                left_out += 1
+                continue
+            if ticks < 2:
+                continue
+            real.append(scores[:ticks])
+            interpolated.append(GridInterpolator(grid, torch.as_tensor(path[:ticks]))(table)
+                                .numpy())
+            along.append(step * np.arange(ticks))
+        noise = fit_score_noise(real, interpolated, along)
+        return noise, {"runs": len(real), "ticks": int(sum(len(r) for r in real)),
+                       "left_out": left_out}
 
     def mission_rollouts(self, scenario, fallback, duration: float, states, *,
                          mission_limit=None) -> dict:

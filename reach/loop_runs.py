@@ -1,5 +1,6 @@
 """The generic real loop of an application, run from given starts: the runners behind
-`Application.real_outcomes`, `real_paths`, `recorded_runs` and `missions` for any
+`Application.real_outcomes`, `real_paths`, `recorded_runs`, `missions` and
+`real_score_noise` for any
 loop the application builds (an application may bring faster ones of its own). Each
 takes ``ref`` (an `ApplicationRef`: picklable, a
 worker loads the application again), the scenario and the run's settings, then the
@@ -8,6 +9,7 @@ Every control tick renders; a run stops at the first tick where `Application.fai
 holds."""
 
 import copy
+import dataclasses as dc
 import threading
 
 import numpy as np
@@ -168,6 +170,51 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
         for name, value in zip(names, row):
             out[name].append(value)
     return {name: np.asarray(value) for name, value in out.items()}
+
+
+def loop_scores(ref, scenario, duration: float, states) -> dict:
+    """The detector's score along the controller alone's runs, for
+    `Application.real_score_noise`: ``ref``'s guarded loop, whose monitor never engages
+    its fallback (``scenario.monitor``'s threshold at 1 and the longest k-of-n window),
+    from each start for ``duration`` s, stopping at the first control tick where
+    `Application.failed` holds; at every tick the state and the detector's score
+    (`Application.score_port`). Per start: ``state`` ``(T, d)`` and ``score`` ``(T,)``
+    (NaN after the run ends), ``ticks``, and ``engaged``: whether the speed still left
+    the nominal one at some tick (such a run is not the controller alone's)."""
+    from reachwatch.diagrams.closed_loop import LoopRun
+    from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW
+    scenario = copy.deepcopy(scenario)
+    scenario.monitor = dc.replace(scenario.monitor, threshold=1.0,
+                                  flags_needed=MAX_FLAG_WINDOW, flag_window=MAX_FLAG_WINDOW)
+    application, diagram, context = _thread_loop(ref, scenario, True)
+    detector, score = _subsystem_port(application, diagram, application.score_port,
+                                      "score_port")
+    failed = failure_rule(application, scenario)
+    period, nominal = scenario.controller.period, scenario.controller.speed
+    length = int(np.floor(duration / period + 1e-9)) + 1
+    states = np.asarray(states, float)
+    out = {"state": np.full((len(states), length, states.shape[1]), np.nan),
+           "score": np.full((len(states), length), np.nan),
+           "ticks": np.zeros(len(states), int), "engaged": np.zeros(len(states), bool)}
+    for i, x in enumerate(states):
+        if failed(x):                                   # already failed: no run
+            continue
+        run = LoopRun(diagram, initial_state=x, duration=duration, period=period,
+                      half_width=1e300, stop_on_failure=False, context=context,
+                      stop_when=lambda rows: failed(rows["state"][-1]))
+        scores = []
+        while run.advance():
+            scores.append(float(np.ravel(score.Eval(
+                detector.GetMyContextFromRoot(run.context)))[0]))
+            run.sample()
+        trajectory = run.trajectory()
+        n = min(len(trajectory.time), length)
+        out["state"][i, :n] = trajectory.state[:n]
+        out["score"][i, :n] = scores[:n]
+        out["ticks"][i] = n
+        out["engaged"][i] = (trajectory.speed is not None and
+                             bool(np.any(np.asarray(trajectory.speed, float) != nominal)))
+    return out
 
 
 def loop_rollouts(ref, scenario, duration: float, grid, states) -> dict:

@@ -85,14 +85,6 @@ class TaxiApplication(Application):
                 "fix": f"Set solved_py_max: {needed:g} (the paper box's end plus the "
                        f"horizon's travel)"}
 
-    def check_guard(self, scenario, strategies, *, candidates=0, noise_starts=0, skipped=True):
-        if not self.own_loop and noise_starts:   # the taxi's score-noise runs are of its loop
-            raise ValueError(f"guard.noise_starts: the application '{self.name}' builds a loop "
-                             f"of its own, and the taxi's score-noise runs are of the taxi's; "
-                             f"set guard.noise_starts: 0")
-        super().check_guard(scenario, strategies, candidates=candidates,
-                            noise_starts=noise_starts, skipped=skipped)
-
     def timing_starts(self, scenario, grid):
         return NEAR_CENTRELINE
 

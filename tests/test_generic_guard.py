@@ -143,16 +143,11 @@ def test_the_guard_is_checked_before_anything_is_swept():
         with pytest.raises(ValueError, match=rf"^{key}: '.*' needs the application's {hooks}, "
                                              rf"and 'toy' defines none; leave it out$"):
             toy.check_guard(scenario, strategies)
-    toy.check_guard(scenario, ["brake"], candidates=2)   # the generic showcase runs
-    with pytest.raises(ValueError, match=r"^guard.noise_starts: .* no real_score_noise; set "
-                                         r"guard.noise_starts: 0$"):
-        toy.check_guard(scenario, ["brake"], noise_starts=5)
     # the stage is skipped for a plant without a speed, unless it was asked for
-    Toy(NoSpeed()).check_guard(scenario, ["slow_down+oracle"], candidates=2)
+    Toy(NoSpeed()).check_guard(scenario, ["slow_down+oracle"])
     with pytest.raises(ValueError, match="^NoSpeed cannot be rolled out"):
         Toy(NoSpeed()).check_guard(scenario, ["brake"], skipped=False)
-    load_application("").check_guard(scenario, ["slow_down+oracle", "slow_down+dead_reckoning"],
-                                     candidates=5, noise_starts=20)
+    load_application("").check_guard(scenario, ["slow_down+oracle", "slow_down+dead_reckoning"])
 
 
 def test_a_run_file_asking_the_cart_for_a_steering_fallback_is_refused(monkeypatch):
@@ -166,21 +161,3 @@ def test_a_run_file_asking_the_cart_for_a_steering_fallback_is_refused(monkeypat
                                          "application's fallback_policy and true_estimate"):
         load_run_spec(data=text.replace("strategies: [slow_down, brake]",
                                         "strategies: [slow_down, slow_down+oracle]"))
-
-
-def test_a_taxi_with_a_loop_of_its_own_is_refused_the_taxis_own_runs():
-    """A subclass of the taxi that builds another loop gets the generic showcase, and no
-    score-noise fit (the taxi's runs its own loop): refused before any sweep."""
-    from reachwatch.taxi.application import TaxiApplication
-
-    class OwnLoop(TaxiApplication):
-        def loop_diagram(self, scenario, *, guarded=False):
-            return super().loop_diagram(scenario, guarded=guarded)
-
-    scenario = load_scenario(data="")
-    OwnLoop().check_guard(scenario, ["brake", "slow_down+oracle"])
-    TaxiApplication().check_guard(scenario, ["brake"], candidates=1, noise_starts=1)
-    OwnLoop().check_guard(scenario, ["brake"], candidates=1)
-    with pytest.raises(ValueError, match=r"^guard.noise_starts: .*'taxi' builds a loop of its "
-                                         r"own.*set guard.noise_starts: 0$"):
-        OwnLoop().check_guard(scenario, ["brake"], noise_starts=1)

@@ -71,16 +71,9 @@ def test_the_guard_needs_of_an_application_and_what_it_does_not_implement(tmp_pa
     taxi = load_application("")
     assert taxi.score_port == SCORE_PORT            # the taxi's guarded sweep's port
     scenario = load_scenario(data="")
-    states = np.array([[0.0, 150.0, 0.0]])
-    grid = taxi.grid(scenario, (3, 3, 3))
     for call, name, key in (
-            (lambda: Application.real_score_noise(taxi, scenario, grid, None, states,
-                                                  duration=1.0, cache_dir=tmp_path),
-             "real_score_noise", "guard.noise_starts: 0"),
-            (lambda: Application.simulate_guarded(taxi, scenario, states[0], tmp_path),
-             "simulate_guarded", "guard.candidates: 0"),
             (lambda: Application.fine_tune(taxi, scenario, None, [], None, tmp_path),
-             "fine_tune", "incremental: {enabled: false}")):
+             "fine_tune", "incremental: {enabled: false}"),):
         with pytest.raises(NotImplementedError, match=rf"^Application\.{name}: .*'taxi'.* "
                                                       rf"set {re.escape(key)}$") as e:
             call()
