@@ -159,7 +159,12 @@ class TaxiApplication(Application):
                                        half_width=scenario.environment.half_width)
 
     # --- the guard (the guard stage, ``reachwatch guard``) -----------------------------
-    fallback_rollouts = staticmethod(guarded.fallback_rollouts)
+    # the generic table rollouts (`Application.fallback_rollouts`) with the taxi's hooks
+    true_estimate = staticmethod(guarded.true_estimate)
+    carry_estimate = staticmethod(guarded.carry_estimate)
+
+    def fallback_policy(self, scenario):
+        return guarded.p_controller_policy(scenario.controller)
 
     def real_score_noise(self, scenario, grid, score_table, starts, *, duration, cache_dir,
                          executor=None, progress=True):

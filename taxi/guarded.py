@@ -1,5 +1,5 @@
 """The taxi's guarded loop rolled out in its swept tables (`reach.guarded_rollouts`):
-what the generic rollouts need from the taxi, namely its dynamics, its ports, the
+the hooks the generic rollouts take from the taxi's application, namely the
 P-controller the fallback steers with, the true ``[px m, theta deg]`` of a state (the
 ``oracle`` steering) and the aircraft's kinematics carrying an estimate forward (the
 ``dead_reckoning`` steering)."""
@@ -8,17 +8,15 @@ import functools
 
 import numpy as np
 
-from reachwatch.diagrams import CONTROL_PORT, DETECTOR, ESTIMATE_PORT
+from reachwatch.diagrams import DETECTOR
 from reachwatch.reach import guarded_rollouts as generic
 from reachwatch.reach.liveness import UNGUARDED
-from reachwatch.systems import ProportionalController, propagate_estimate
-
-from .dynamics import dynamics_for
+from reachwatch.systems import WHEELBASE_M, ProportionalController, propagate_estimate
 
 SCORE_PORT = f"{DETECTOR}.score"
 
-__all__ = ["SCORE_PORT", "UNGUARDED", "fallback_rollouts", "guarded_rollouts",
-           "p_controller_policy", "true_estimate"]
+__all__ = ["SCORE_PORT", "UNGUARDED", "carry_estimate", "fallback_rollouts",
+           "guarded_rollouts", "p_controller_policy", "true_estimate"]
 
 
 def true_estimate(states) -> np.ndarray:
@@ -44,16 +42,18 @@ def p_controller_policy(controller):
     return lambda estimate: np.deg2rad(p.steering_deg(estimate))
 
 
+#: An estimate ``[px m, theta deg]`` carried forward by the aircraft's kinematics over a
+#: period (the ``dead_reckoning`` steering): `systems.propagate_estimate` at the taxi
+#: dynamics' wheelbase.
+carry_estimate = functools.partial(propagate_estimate, wheelbase=float(WHEELBASE_M))
+
+
 def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, **settings) -> dict:
-    """`reach.guarded_rollouts.fallback_rollouts` of the taxi's guarded sweep
-    (`sweep_guarded`) in ``scenario``: its dynamics, control period, monitor, ports,
-    P-controller policy and the taxi's `guarded_rollouts` hooks. ``settings``:
-    ``threshold``, ``starts``, ``mission_limit``, ``scores``, ``alone``, ``score_noise``,
-    ``seed``, as there."""
-    dynamics = dynamics_for(scenario)
-    return generic.fallback_rollouts(
-        tables, grid, horizon, fallbacks, dynamics=dynamics,
-        period=scenario.controller.period, monitor=scenario.monitor,
-        control_port=CONTROL_PORT, score_port=SCORE_PORT, estimate_port=ESTIMATE_PORT,
-        policy=p_controller_policy(scenario.controller), truth=true_estimate,
-        carry=functools.partial(propagate_estimate, wheelbase=dynamics.wheelbase), **settings)
+    """`Application.fallback_rollouts` of the taxi (`TaxiApplication`) as a function:
+    the generic rollouts of its guarded sweep (`sweep_guarded`) in ``scenario`` with its
+    dynamics, ports, the P-controller the fallback steers with (`p_controller_policy`),
+    `true_estimate` and `carry_estimate`. ``settings``: ``threshold``, ``starts``,
+    ``mission_limit``, ``scores``, ``alone``, ``score_noise``, ``seed``, as there."""
+    from .application import TaxiApplication
+    return TaxiApplication().fallback_rollouts(scenario, grid, tables, horizon, fallbacks,
+                                               **settings)
