@@ -24,25 +24,24 @@ def plot_runs_over_time(runs, *, axes, path, title="", units=()):
     ``units`` theirs where given) and, where a run logged them, its speed and its
     flagged ticks; a line per run in one colour per run (``runs``: ``[(Trajectory,
     label)]``), a failed run's last tick crossed."""
-    panels = list(axes) + [name for name in ("speed", "anomaly")
-                           if any(getattr(t, name) is not None for t, _ in runs)]
+    units = list(units) + [""] * len(axes)
+    panels = [(axis, j, units[j]) for j, axis in enumerate(axes)]       # state components
+    panels += [(name, None, unit) for name, unit in (("speed", "m/s"), ("anomaly", ""))
+               if any(getattr(t, name) is not None for t, _ in runs)]   # logged ones
     fig, grid = plt.subplots(len(panels), 1, figsize=(8, 1.7 * len(panels) + 0.6),
                              sharex=True, squeeze=False)
-    units = dict(zip(axes, units))
-    units["speed"] = "m/s"
-    for ax, panel in zip(grid[:, 0], panels):
+    for ax, (name, j, unit) in zip(grid[:, 0], panels):
         for i, (trajectory, label) in enumerate(runs):
-            values = (trajectory.state[:, list(axes).index(panel)] if panel in axes
-                      else getattr(trajectory, panel))
+            values = trajectory.state[:, j] if j is not None else getattr(trajectory, name)
             if values is None:
                 continue
             values = np.asarray(values, float).reshape(len(trajectory.time), -1)[:, 0]
             ax.plot(trajectory.time, values, lw=1.8, label=label, color=f"C{i}",
-                    drawstyle="steps-post" if panel == "anomaly" else "default")
-            if trajectory.failed and panel in axes:
+                    drawstyle="default" if j is not None or name == "speed" else "steps-post")
+            if trajectory.failed and j is not None:
                 ax.plot(trajectory.time[-1], values[-1], "x", color="tab:red", ms=9, mew=2)
-        unit = units.get(panel, "")
-        ax.set_ylabel("flagged" if panel == "anomaly" else f"{panel} ({unit})" if unit else panel)
+        text = "flagged" if j is None and name == "anomaly" else name
+        ax.set_ylabel(f"{text} ({unit})" if unit else text)
     grid[-1, 0].set_xlabel("time (s)")
     grid[0, 0].legend(loc="upper right", fontsize=8)
     if title:

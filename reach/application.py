@@ -430,8 +430,9 @@ class Application(abc.ABC):
         from .loop_runs import loop_scores
         from .outcomes import map_states
         from .score_noise import fit_score_noise
-        scenario = self.resolved(scenario)
-        scenario.monitor = type(scenario.monitor)(detector=scenario.monitor.detector)
+        # a copy: `resolved` may return the caller's scenario, whose monitor it goes on with
+        scenario = dc.replace(self.resolved(scenario),
+                              monitor=type(scenario.monitor)(detector=scenario.monitor.detector))
         rollout = functools.partial(loop_scores, ApplicationRef(self._loaded_as()), scenario,
                                     float(duration))
         fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
@@ -453,6 +454,10 @@ class Application(abc.ABC):
             interpolated.append(GridInterpolator(grid, torch.as_tensor(path[:ticks]))(table)
                                 .numpy())
             along.append(step * np.arange(ticks))
+        if not real:
+            raise ValueError(f"no real run of the controller alone lasted two control ticks "
+                             f"to fit the score noise on ({len(fields['ticks'])} runs, "
+                             f"{left_out} left out because the fallback engaged)")
         noise = fit_score_noise(real, interpolated, along)
         return noise, {"runs": len(real), "ticks": int(sum(len(r) for r in real)),
                        "left_out": left_out}

@@ -156,6 +156,11 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
             run, end = run_until_failed(diagram, scenario, failed, x,
                                         duration * (mission_limit or 1.0), context=context,
                                         done=done)
+            if fallback is not None and (run.speed is None or run.anomaly is None):
+                raise ValueError(f"the application '{application.name}': its guarded loop "
+                                 f"exports no 'speed' and 'anomaly' "
+                                 f"(reachwatch.diagrams.export_loop_ports), which its real "
+                                 f"runs are judged by")
             speed = (np.full(len(run.time), nominal) if run.speed is None
                      else np.asarray(run.speed, float).reshape(-1))
             k = int(np.sum(run.time <= duration + 1e-9))      # the ticks within the horizon

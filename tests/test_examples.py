@@ -1,5 +1,6 @@
 """The worked examples in examples/, end to end at a tiny size."""
 
+import copy
 import json
 from dataclasses import replace as dc_replace
 from pathlib import Path
@@ -217,6 +218,14 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     speed = np.asarray(guarded.speed).ravel()
     assert speed[0] == shown.controller.speed and speed[-1] < speed[1] < speed[0]
     assert [p.name for p in paths] == ["guarded_KMWH_21h_clear.png"] and paths[0].is_file()
+    # the generic score-noise fit runs on a copy: the caller's monitor stays as it was
+    before = copy.deepcopy(shown.monitor)
+    grid = cart.grid(shown, (5, 5))
+    fitted, fit = cart.real_score_noise(shown, grid, np.full(grid.shape, 0.5),
+                                        cart.starts(shown, grid, 3, 0), duration=1.0,
+                                        cache_dir=tmp_path / "noise", progress=False)
+    assert shown.monitor == before and fit["runs"] == 3 and fit["left_out"] == 0
+    assert 10 <= fit["ticks"] <= 33 and np.isfinite(fitted.sigma)
 
 
 TUNED_CART = '''
@@ -299,3 +308,34 @@ def test_speed_car_guards_with_a_history_monitor_reading_the_controllers_signals
                                               monitor=MonitorConfig(detector=str(path))))
     signals = diagram.GetSubsystemByName("monitor_signals")
     assert signals.get_output_port(0).size() == 3
+
+
+BLIND_CART = '''
+from reachwatch.reach.application import load_application
+
+CartApplication = type(load_application("examples/cart/application.py:CartApplication"))
+
+
+class BlindCart(CartApplication):
+    """The cart whose "guarded" loop is its loop alone: it exports no speed, no flags."""
+    def loop_diagram(self, scenario, *, guarded=False):
+        return super().loop_diagram(scenario, guarded=False)
+'''
+
+
+def test_a_guarded_loop_without_speed_and_flags_is_refused_not_read_as_never_flagging(
+        tmp_path, monkeypatch):
+    """A guarded real run is judged by the speed and flags its loop exports: a loop that
+    exports neither is a one-line error, not a run that never flagged at full speed."""
+    from reachwatch.reach.application import load_application
+    monkeypatch.chdir(ROOT)                    # the application's path is relative
+    (tmp_path / "blind_cart.py").write_text(BLIND_CART)
+    blind = load_application(f"{tmp_path / 'blind_cart.py'}:BlindCart")
+    spec = load_run_spec(ROOT / "examples" / "cart" / "run.yaml")
+    scenario = dc_replace(spec.scenario, environment=spec.test[0])
+    scenario.camera.height, scenario.camera.width = 24, 48
+    alone = blind.mission_rollouts(scenario, None, 0.3, np.array([[0.1, 0.0]]))
+    assert alone["ticks"].tolist() == [3]
+    with pytest.raises(ValueError, match=r"^the application 'cart': its guarded loop exports "
+                                         r"no 'speed' and 'anomaly' .*judged by$"):
+        blind.mission_rollouts(scenario, "brake", 0.3, np.array([[0.1, 0.0]]))

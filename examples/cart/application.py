@@ -17,9 +17,11 @@ judged by `failed` at every control tick), and the monitor study (``monitor: {ki
 history}``) the generic `recorded_runs` and `missions`, which read the loop's camera
 (`camera_port`) and the controller's steering (`probe`'s control port). The guard stage
 rolls the fallbacks out in the guarded sweep's tables by the generic
-`fallback_rollouts` (the cart's dynamics take the speed the fallback sets) and checks
-them in the cart's real loop (the generic `missions`). There is no ensemble baseline
-(set ``ensemble.seeds: []``) and no showcase run (``guard.candidates: 0``)."""
+`fallback_rollouts` (the cart's dynamics take the speed the fallback sets), checks
+them in the cart's real loop (the generic `missions`), fits the detector's variation
+between nodes on real runs (the generic `real_score_noise`) and shows one start alone
+and guarded (the generic `simulate_guarded`, drawn against time). There is no ensemble
+baseline (set ``ensemble.seeds: []``)."""
 
 import matplotlib.pyplot as plt
 import numpy as np
