@@ -425,11 +425,9 @@ class Application(abc.ABC):
         whose fallback never engages), the distance travelled taken as the nominal speed
         times the time, as the table rollouts move the noise; a run whose fallback
         engaged all the same is left out (``{"left_out"}`` counts them)."""
-        import torch
-        from .interpolate import GridInterpolator
         from .loop_runs import loop_scores
         from .outcomes import map_states
-        from .score_noise import fit_score_noise
+        from .score_noise import fit_score_noise_on_runs
         # a copy: `resolved` may return the caller's scenario, whose monitor it goes on with
         scenario = dc.replace(self.resolved(scenario),
                               monitor=type(scenario.monitor)(detector=scenario.monitor.detector))
@@ -440,27 +438,11 @@ class Application(abc.ABC):
                                   required=("state", "score", "ticks", "engaged"),
                                   label=f"detector score along real runs "
                                         f"{scenario.environment.name}")
-        table = torch.as_tensor(np.asarray(score_table, float).reshape(grid.shape))
         step = scenario.controller.speed * scenario.controller.period
-        real, interpolated, along, left_out = [], [], [], 0
-        for path, scores, ticks, engaged in zip(fields["state"], fields["score"],
-                                                fields["ticks"], fields["engaged"]):
-            if engaged:
-                left_out += 1
-                continue
-            if ticks < 2:
-                continue
-            real.append(scores[:ticks])
-            interpolated.append(GridInterpolator(grid, torch.as_tensor(path[:ticks]))(table)
-                                .numpy())
-            along.append(step * np.arange(ticks))
-        if not real:
-            raise ValueError(f"no real run of the controller alone lasted two control ticks "
-                             f"to fit the score noise on ({len(fields['ticks'])} runs, "
-                             f"{left_out} left out because the fallback engaged)")
-        noise = fit_score_noise(real, interpolated, along)
-        return noise, {"runs": len(real), "ticks": int(sum(len(r) for r in real)),
-                       "left_out": left_out}
+        noise, fit = fit_score_noise_on_runs(
+            grid, score_table, fields["state"], fields["score"], fields["ticks"],
+            lambda path: step * np.arange(len(path)), left_out=fields["engaged"])
+        return noise, {**fit, "left_out": int(np.sum(fields["engaged"]))}
 
     def mission_rollouts(self, scenario, fallback, duration: float, states, *,
                          mission_limit=None) -> dict:

@@ -53,6 +53,21 @@ def run_until_failed(diagram, scenario, failed, start, duration: float, *, conte
     return run, failed(run.state[-1])
 
 
+def run_reading(diagram, scenario, failed, start, duration: float, read, *, context=None):
+    """``(trajectory, readings)``: like `run_until_failed`, with ``read(root_context)``
+    called at every control tick the run logs (inside the loop, before the tick's row
+    is read), its results listed in order."""
+    from reachwatch.diagrams.closed_loop import LoopRun
+    run = LoopRun(diagram, initial_state=start, duration=duration,
+                  period=scenario.controller.period, half_width=1e300, stop_on_failure=False,
+                  context=context, stop_when=lambda rows: failed(rows["state"][-1]))
+    readings = []
+    while run.advance():
+        readings.append(read(run.context))
+        run.sample()
+    return run.trajectory(), readings
+
+
 def _subsystem_port(application, diagram, name: str, what: str):
     """The output port ``name`` (``"system.port"``) of a subsystem of ``diagram``; a
     ValueError naming the application's attribute ``what`` when there is none."""
@@ -73,7 +88,6 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     ``estimate`` when it has one, then its steering: `Application.probe`'s control port)
     read inside the loop at every control tick, stopping at the first tick where
     `Application.failed` holds."""
-    from reachwatch.diagrams.closed_loop import LoopRun
     from reachwatch.diagrams.controller import ESTIMATE_OUTPUT
     from reachwatch.systems import DetectorConfig, resize_for_detector
     application, diagram, context = _thread_loop(ref, scenario)
@@ -99,19 +113,14 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
         if failed(x):                                   # already failed: no run
             out["failed"][i], out["failure_time"][i] = True, 0.0
             continue
-        run = LoopRun(diagram, initial_state=x, duration=duration, period=period,
-                      half_width=1e300, stop_on_failure=False, context=context,
-                      stop_when=lambda rows: failed(rows["state"][-1]))
-        frames, online = [], []
-        while run.advance():
-            frames.append(resize_for_detector(read(*camera, run.context).data[None], size)[0])
-            online.append(np.concatenate([np.asarray(read(s, p, run.context), float).ravel()
-                                          for s, p in signals]))
-            run.sample()
-        trajectory = run.trajectory()
+        trajectory, rows = run_reading(
+            diagram, scenario, failed, x, duration, context=context, read=lambda root: (
+                resize_for_detector(read(*camera, root).data[None], size)[0],
+                np.concatenate([np.asarray(read(s, p, root), float).ravel()
+                                for s, p in signals])))
         n = min(len(trajectory.time), length)
-        out["frames"][i, :n] = np.stack(frames)[:n, ..., :3]
-        out["signals"][i, :n] = np.stack(online)[:n]
+        out["frames"][i, :n] = np.stack([frame for frame, _ in rows])[:n, ..., :3]
+        out["signals"][i, :n] = np.stack([online for _, online in rows])[:n]
         out["state"][i, :n] = trajectory.state[:n]
         out["ticks"][i] = n
         out["failed"][i] = end = failed(trajectory.state[n - 1])
@@ -186,7 +195,6 @@ def loop_scores(ref, scenario, duration: float, states) -> dict:
     (`Application.score_port`). Per start: ``state`` ``(T, d)`` and ``score`` ``(T,)``
     (NaN after the run ends), ``ticks``, and ``engaged``: whether the speed still left
     the nominal one at some tick (such a run is not the controller alone's)."""
-    from reachwatch.diagrams.closed_loop import LoopRun
     from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW
     scenario = copy.deepcopy(scenario)
     scenario.monitor = dc.replace(scenario.monitor, threshold=1.0,
@@ -204,15 +212,9 @@ def loop_scores(ref, scenario, duration: float, states) -> dict:
     for i, x in enumerate(states):
         if failed(x):                                   # already failed: no run
             continue
-        run = LoopRun(diagram, initial_state=x, duration=duration, period=period,
-                      half_width=1e300, stop_on_failure=False, context=context,
-                      stop_when=lambda rows: failed(rows["state"][-1]))
-        scores = []
-        while run.advance():
-            scores.append(float(np.ravel(score.Eval(
-                detector.GetMyContextFromRoot(run.context)))[0]))
-            run.sample()
-        trajectory = run.trajectory()
+        trajectory, scores = run_reading(
+            diagram, scenario, failed, x, duration, context=context,
+            read=lambda root: float(np.ravel(score.Eval(detector.GetMyContextFromRoot(root)))[0]))
         n = min(len(trajectory.time), length)
         out["state"][i, :n] = trajectory.state[:n]
         out["score"][i, :n] = scores[:n]

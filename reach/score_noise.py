@@ -103,3 +103,30 @@ def fit_score_noise(real_scores, table_scores, travelled, *, max_lag: int = 64,
     if slope >= 0:
         raise ValueError("the residual's correlation does not fall with distance")
     return ScoreNoise(sigma=sigma, length=-1.0 / slope, mean=centre)
+
+
+def fit_score_noise_on_runs(grid, score_table, states, scores, ticks, travelled, *,
+                            left_out=None):
+    """`fit_score_noise` from recorded real runs: per run its states ``(T, d)``, its
+    detector scores ``(T,)`` and its logged ``ticks`` (the rest padding); the table's
+    score is ``score_table`` (values on ``grid``'s nodes) interpolated at the same
+    states, and ``travelled(states) -> (ticks,)`` the distance up to each tick. Runs of
+    fewer than two ticks, and those ``left_out`` marks, are not used. Returns ``(noise,
+    {"runs", "ticks"})``; a ValueError when no run is left to fit on."""
+    import torch
+    from .interpolate import GridInterpolator
+    table = torch.as_tensor(np.asarray(score_table, float).reshape(grid.shape))
+    skip = np.zeros(len(ticks), bool) if left_out is None else np.asarray(left_out, bool)
+    real, interpolated, along = [], [], []
+    for path, score, n, skipped in zip(states, scores, ticks, skip):
+        if skipped or n < 2:
+            continue
+        path = np.asarray(path, float)[:n]
+        real.append(np.asarray(score, float)[:n])
+        interpolated.append(GridInterpolator(grid, torch.as_tensor(path))(table).numpy())
+        along.append(travelled(path))
+    if not real:
+        raise ValueError(f"no real run lasted two control ticks to fit the score noise on "
+                         f"({len(ticks)} runs, {int(skip.sum())} left out)")
+    return (fit_score_noise(real, interpolated, along),
+            {"runs": len(real), "ticks": int(sum(len(r) for r in real))})

@@ -17,12 +17,11 @@ from reachwatch.diagrams.controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_
 from reachwatch.diagrams.lockstep import loop_copies, simulate_lockstep
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
-from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes,
                                        check_mission_limit, mission_done, travelled)
 from reachwatch.reach.outcomes import (Outcomes, check_memoryless, map_states, path_labels,
                                        path_points, run_outcomes)
-from reachwatch.reach.score_noise import fit_score_noise
+from reachwatch.reach.score_noise import fit_score_noise_on_runs
 from reachwatch.systems import fallback_parts
 
 from .sweeps import resolved
@@ -354,16 +353,7 @@ def real_score_noise(scenario, grid, score_table, starts, *, duration: float, ca
     fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
                               progress=progress, unit="run", required=("score", "state"),
                               label=f"detector score along real runs {scenario.environment.name}")
-    table = np.asarray(score_table, float).reshape(grid.shape)
-    real, interpolated, along = [], [], []
-    for path, scores, ticks in zip(fields["state"], fields["score"], fields["ticks"]):
-        if ticks < 2:
-            continue
-        path = path[:ticks]
-        real.append(scores[:ticks])
-        interpolated.append(GridInterpolator(grid, torch.as_tensor(path))(
-            torch.as_tensor(table)).numpy())
-        along.append(np.concatenate([[0.0], np.cumsum(np.linalg.norm(
+    return fit_score_noise_on_runs(       # distance along the path on the ground (px, py)
+        grid, score_table, fields["state"], fields["score"], fields["ticks"],
+        lambda path: np.concatenate([[0.0], np.cumsum(np.linalg.norm(
             np.diff(path[:, :2], axis=0), axis=1))]))
-    noise = fit_score_noise(real, interpolated, along)
-    return noise, {"runs": len(real), "ticks": int(sum(len(r) for r in real))}
