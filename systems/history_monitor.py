@@ -112,7 +112,11 @@ class HistoryRiskModel(nn.Module):
 
     def encode(self, images: torch.Tensor) -> torch.Tensor:
         """uint8 RGB ``(N, H, W, 3)`` at the configured size -> features ``(N, features)``."""
-        x = detector_input(images, self.config.image_config)
+        return self.encode_input(detector_input(images, self.config.image_config))
+
+    def encode_input(self, x: torch.Tensor) -> torch.Tensor:
+        """Normalised float ``(N, 3, H, W)`` (`detector_input`'s) -> features
+        ``(N, features)``: where training changes the input (colour jitter) first."""
         return self.project(self.encoder(x).mean(dim=(2, 3)))
 
     def head_input(self, features: torch.Tensor, signals: torch.Tensor = None) -> torch.Tensor:

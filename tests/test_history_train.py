@@ -5,6 +5,7 @@ brightness alone is ambiguous) stacked frames learn it and a single frame cannot
 import dataclasses as dc
 
 import numpy as np
+import torch
 
 from reachwatch.systems import HistoryMonitorConfig
 from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
@@ -69,3 +70,53 @@ def test_stacked_frames_see_what_one_frame_cannot():
     stacked = train_head(encoder, features, train, labels, dc.replace(config, frames=4), settings)
     assert score(stacked) > 0.9
     assert score(stacked) > score(single) + 0.1
+
+
+def _shortcut_runs(seed, count, shift):
+    """Runs on a plain ground of grey 110 whose failing runs show a fine checker
+    (+-12) over their last 6 ticks, the whole frame also ``shift`` brighter: where the
+    training environments' light makes failures brighter (``shift`` > 0), brightness
+    alone separates them; an environment with ``shift`` < 0 reverses that cue and
+    keeps the checker."""
+    rng = np.random.default_rng(seed)
+    checker = (np.indices((16, 16)).sum(axis=0) % 2 * 2 - 1).astype(float)
+    frames = np.zeros((count, T, 16, 16, 3), np.uint8)
+    ticks, failure = np.full(count, T), np.full(count, np.nan)
+    for r in range(count):
+        img = 110.0 + rng.normal(0, 2, (T, 16, 16, 3))
+        if r % 2 == 0:
+            end = int(rng.integers(15, T))
+            img[end - 6:end] += shift + 12 * checker[None, :, :, None]
+            ticks[r], failure[r] = end, (end - 1) * PERIOD
+        frames[r] = np.clip(img, 0, 255)
+    return {"frames": frames, "signals": np.zeros((count, T, 1)), "ticks": ticks,
+            "failure_time": failure}
+
+
+def test_colour_jitter_keeps_the_encoder_off_the_training_light():
+    """Trained where failing frames are also brighter, the encoder without colour jitter
+    ranks an environment whose failing frames are darker backwards; with it (the
+    default) it reads the checker and ranks them right. Same seed, same encoder."""
+    within = 0.5
+    train, test = _shortcut_runs(1, 60, 30.0), _shortcut_runs(2, 40, -30.0)
+    labels = tick_labels(train, period=PERIOD, duration=DURATION, within=within)
+    test_labels = tick_labels(test, period=PERIOD, duration=DURATION, within=within)
+    known = test_labels >= 0
+    config = HistoryMonitorConfig(frames=1, height=16, width=16, channels=[8], features=8,
+                                  hidden=16, within=within)
+
+    def held_out_auroc(augment, seed=0):
+        settings = HistoryTrainConfig(epochs=4, batch_size=64, tick_stride=1, augment=augment,
+                                      seed=seed)
+        encoder = train_encoder(train, labels, config, settings)
+        risks = run_risks(encoder, encode_runs(encoder, test), test)
+        flat = np.concatenate([np.pad(r, (0, T - len(r))) for r in risks]).reshape(-1, T)
+        return auroc(test_labels[known], flat[known]), encoder
+
+    assert HistoryTrainConfig().augment
+    plain, _ = held_out_auroc(False)
+    jittered, encoder = held_out_auroc(True)
+    assert plain < 0.2 and jittered > 0.95
+    again = held_out_auroc(True)[1]          # one seed, one encoder
+    for a, b in zip(encoder.state_dict().values(), again.state_dict().values()):
+        assert torch.equal(a, b)

@@ -18,7 +18,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel
+from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel, detector_input
+
+from .detector_train import colour_jitter
 
 from .monitor_eval import run_labels
 
@@ -26,7 +28,10 @@ from .monitor_eval import run_labels
 @dc.dataclass
 class HistoryTrainConfig:
     """Optimisation settings: stage 1 runs ``epochs`` over every ``tick_stride``-th
-    labelled tick; stage 2 ``head_epochs`` over all of them."""
+    labelled tick; stage 2 ``head_epochs`` over all of them. ``augment``: stage 1 sees
+    each frame colour-jittered (`reachwatch.training.detector_train.colour_jitter`:
+    per-frame channel gains, brightness and contrast, drawn from ``seed``), so that
+    the encoder leans less on the training environments' light and paint."""
     epochs: int = 6
     head_epochs: int = 40
     head_learning_rate: float = 3e-3
@@ -35,6 +40,7 @@ class HistoryTrainConfig:
     weight_decay: float = 1e-4
     tick_stride: int = 2
     seed: int = 0
+    augment: bool = True
 
 
 def tick_labels(runs: dict, *, period: float, duration: float, within: float) -> np.ndarray:
@@ -75,13 +81,17 @@ def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
                                   weight_decay=train.weight_decay)
     weight = _pos_weight(labels[rows, cols])
     frames = runs["frames"]
+    jitter = torch.Generator().manual_seed(train.seed) if train.augment else None
     for epoch in range(train.epochs):
         model.train()
         order = rng.permutation(len(rows))
         for i in range(0, len(order), train.batch_size):
             b = order[i:i + train.batch_size]
-            images = torch.from_numpy(frames[rows[b], cols[b]])[:, None]
-            loss = F.binary_cross_entropy_with_logits(model(images), y[b], pos_weight=weight)
+            x = detector_input(torch.from_numpy(frames[rows[b], cols[b]]), config.image_config)
+            if jitter is not None:
+                x = colour_jitter(x, jitter)
+            logits = model.head_logits(model.encode_input(x)[:, None])
+            loss = F.binary_cross_entropy_with_logits(logits, y[b], pos_weight=weight)
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
