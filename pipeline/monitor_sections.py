@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from reachwatch.training.conformal import conformal_threshold
+from reachwatch.training.metrics import auroc
 from reachwatch.training.monitor_eval import rate
 
 
@@ -39,6 +40,25 @@ def threshold_tradeoff(row: dict, alphas=(0.1, 0.2, 0.3, 0.5)) -> list:
         out.append([alpha, tau, int(np.sum(warning < tau)), len(warning),
                     int(np.sum(safe >= tau)), len(safe)])
     return out
+
+
+def run_ranking(row: dict, group: str, miss: float = 0.1) -> dict:
+    """How well a variant's risk (under its kept flag rule) ranks whole runs of
+    ``group`` (``calibrate`` or ``held_out``), pooled, from `row["scores"]`: ``auroc``,
+    a warnable failing run's warning score against a run that did not fail's largest
+    risk (NaN without both); ``needless``, the share of runs that did not fail flagged
+    at the highest threshold that still warns all but ``miss`` of the warnable failing
+    runs, that threshold set on these runs themselves: the fewest needless flags any
+    threshold gives at that miss rate (None without runs of both kinds)."""
+    scores = row["scores"][group]
+    warning = np.sort(np.concatenate([e["warning"] for e in scores] + [[]]))
+    safe = np.concatenate([e["safe_max"] for e in scores] + [[]])
+    if not len(warning) or not len(safe):
+        return {"auroc": float("nan"), "needless": None}
+    tau = warning[int(np.floor(miss * len(warning) + 1e-9))]   # misses: warning < tau
+    labels = np.r_[np.ones(len(warning), bool), np.zeros(len(safe), bool)]
+    return {"auroc": float(auroc(labels, np.r_[warning, safe])),
+            "needless": rate(int(np.sum(safe >= tau)), len(safe))}
 
 
 def study_blocks(result: dict) -> list:
@@ -112,6 +132,17 @@ def study_blocks(result: dict) -> list:
                                "on the held-out ones (pooled)"),
                    ("table", ["monitor", "alpha", "threshold", "miss % [95 % CI]",
                               "needless flags % [95 % CI]"], rows)]
+        rows = []
+        for name, row in result["variants"].items():
+            cal, held = run_ranking(row, "calibrate"), run_ranking(row, "held_out")
+            rows.append([name, f"{cal['auroc']:.3f}", f"{held['auroc']:.3f}",
+                         rate_text(held["needless"]) if held["needless"] else "-"])
+        blocks += [("heading", "How each variant ranks whole runs: a warnable failing run's "
+                               "warning score against the largest risk of a run that did not "
+                               "fail (its flag rule's), pooled"),
+                   ("table", ["monitor", "run AUROC, calibration", "run AUROC, held out",
+                              "needless flags % at a 10 % miss, held out, threshold set on "
+                              "them (the least any threshold gives)"], rows)]
     rows = []
     for group in ("held_out", "also_held_out"):
         for e, b, o in zip(kept[group]["environments"],

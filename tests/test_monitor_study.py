@@ -68,6 +68,23 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
             load_run_spec(data=TINY + STUDY.replace(*edit))
 
 
+def test_run_ranking_pools_environments_and_sets_the_least_needless_threshold():
+    from reachwatch.pipeline.monitor_sections import run_ranking
+    row = {"scores": {"held_out": [{"warning": [0.9, 0.3], "safe_max": [0.1, 0.5]},
+                                   {"warning": [0.8], "safe_max": [0.85, 0.2]}],
+                      "calibrate": [{"warning": [], "safe_max": [0.4]}]}}
+    held = run_ranking(row, "held_out")
+    # pairs a failing run outranks: 0.9 all 4, 0.8 three, 0.3 two, of 12
+    assert held["auroc"] == pytest.approx(9 / 12)
+    # 10 % of 3 warnable runs: none may be missed, so the threshold is the lowest
+    # warning score (0.3), and it flags the safe runs at 0.5 and 0.85
+    assert (held["needless"]["count"], held["needless"]["of"]) == (2, 4)
+    # a third of them may be missed: the threshold rises to 0.8, flagging only 0.85
+    assert run_ranking(row, "held_out", miss=1 / 3)["needless"]["count"] == 1
+    cal = run_ranking(row, "calibrate")                 # no failing run: nothing to rank
+    assert np.isnan(cal["auroc"]) and cal["needless"] is None
+
+
 def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     spec = load_run_spec(data=TINY + STUDY.replace(
         "  guarded_runs: 2", "  guarded_runs: 2\n  also_held_out: [{runway: KSFO, hour: 21.0, "
@@ -137,7 +154,7 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     text = markdown_tables(result)
     assert "Guarded real loop" in text and "oracle (privileged)" in text
     assert "pooled over the named environments outside the family" in text
-    assert "at most 50.0 %" in text
+    assert "at most 50.0 %" in text and "How each variant ranks whole runs" in text
 
     from reachwatch.pipeline.monitor_sections import monitor_section
     from reachwatch.pipeline.report import Page
