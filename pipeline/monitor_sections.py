@@ -135,7 +135,8 @@ def study_blocks(result: dict) -> list:
         rows = []
         for name, row in result["variants"].items():
             cal, held = run_ranking(row, "calibrate"), run_ranking(row, "held_out")
-            rows.append([name, f"{cal['auroc']:.3f}", f"{held['auroc']:.3f}",
+            rows.append([name, *(f"{a:.3f}" if np.isfinite(a) else "-"
+                                 for a in (cal["auroc"], held["auroc"])),
                          rate_text(held["needless"]) if held["needless"] else "-"])
         blocks += [("heading", "How each variant ranks whole runs: a warnable failing run's "
                                "warning score against the largest risk of a run that did not "

@@ -235,8 +235,9 @@ class MonitorStudySpec:
     threshold fixed there too, and its guarded runs use it. The kept variant is the one
     with the fewest needless flags on the calibration environments. ``augment``: the
     per-frame encoder trains on colour-jittered frames (channel gains, brightness and
-    contrast drawn per frame), which on the random family (seed 11) raised the
-    single-frame variant's worst held-out AUROC from 0.70 to 0.89."""
+    contrast drawn per frame), which in a study of the random family (seed 11; train
+    16, calibrate 30, held out 8, 30 runs of 8 s, within 4 s) raised the single-frame
+    variant's worst held-out AUROC from 0.70 to 0.89."""
     kind: str = "detector"
     family: RandomEnvironments = dc.field(default_factory=lambda: RandomEnvironments(seed=11))
     train: int = bounded(12, 1, 1000, whole=True)
