@@ -20,6 +20,13 @@ def rate_text(r):
             f"({r['count']}/{r['of']})")
 
 
+def pooled_scores(entries) -> tuple:
+    """``(warning, safe_max)`` of a group's environments (`row["scores"][group]`, as
+    `run_monitor_study` records them), each pooled into one array."""
+    return (np.concatenate([e["warning"] for e in entries] + [[]]),
+            np.concatenate([e["safe_max"] for e in entries] + [[]]))
+
+
 def threshold_tradeoff(row: dict, alphas=(0.1, 0.2, 0.3, 0.5)) -> list:
     """For each target ``alpha``: the conformal threshold from a variant's calibration
     scores (`row["scores"]`, as `run_monitor_study` records them) and what it gives on
@@ -35,8 +42,7 @@ def threshold_tradeoff(row: dict, alphas=(0.1, 0.2, 0.3, 0.5)) -> list:
         except ValueError:
             out.append([alpha, None, 0, 0, 0, 0])
             continue
-        warning = np.concatenate([e["warning"] for e in held_out] + [[]])
-        safe = np.concatenate([e["safe_max"] for e in held_out] + [[]])
+        warning, safe = pooled_scores(held_out)
         out.append([alpha, tau, int(np.sum(warning < tau)), len(warning),
                     int(np.sum(safe >= tau)), len(safe)])
     return out
@@ -50,9 +56,8 @@ def run_ranking(row: dict, group: str, miss: float = 0.1) -> dict:
     at the highest threshold that still warns all but ``miss`` of the warnable failing
     runs, that threshold set on these runs themselves: the fewest needless flags any
     threshold gives at that miss rate (None without runs of both kinds)."""
-    scores = row["scores"][group]
-    warning = np.sort(np.concatenate([e["warning"] for e in scores] + [[]]))
-    safe = np.concatenate([e["safe_max"] for e in scores] + [[]])
+    warning, safe = pooled_scores(row["scores"][group])
+    warning = np.sort(warning)
     if not len(warning) or not len(safe):
         return {"auroc": float("nan"), "needless": None}
     tau = warning[int(np.floor(miss * len(warning) + 1e-9))]   # misses: warning < tau

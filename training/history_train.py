@@ -21,7 +21,6 @@ import torch.nn.functional as F
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel, detector_input
 
 from .detector_train import colour_jitter
-
 from .monitor_eval import run_labels
 
 
