@@ -1,11 +1,11 @@
 """Content fingerprints of sweep factories: what a cached table was computed from.
 
 A factory (usually ``functools.partial(make_diagram, config)``) is reduced to plain
-JSON: the function's module, name and source text; an object with a
-``__fingerprint__()`` method by what that returns; dataclasses field by field; numpy
-arrays, torch modules and tensors by a hash of their bytes; and any string or path that
-names an existing file by a hash of the file's *contents* (a moved checkpoint keeps
-its fingerprint, a retrained one does not). What cannot be reduced this way raises
+JSON: the function's name and the source text of the module that defines it; an object
+with a ``__fingerprint__()`` method by what that returns; dataclasses field by field;
+numpy arrays, torch modules and tensors by a hash of their bytes; and any string or
+path that names an existing file by a hash of the file's *contents* (a moved
+checkpoint keeps its fingerprint, a retrained one does not). What cannot be reduced this way raises
 `Unfingerprintable`, so a sweep never silently reuses a table made by another
 controller."""
 
@@ -60,10 +60,18 @@ def _bytes_digest(data: bytes) -> str:
 
 
 def _callable(fn):
+    """A function or class by its name and the source of the whole module that defines
+    it: the helpers it calls from that module change its key too (a loop's body moved
+    into a helper beside it is still covered). Where the module's file cannot be read,
+    the function's own source; a builtin has none."""
+    module = inspect.getmodule(fn)
     try:
-        source = inspect.getsource(fn)
+        source = inspect.getsource(module) if module is not None else inspect.getsource(fn)
     except (OSError, TypeError):
-        source = ""
+        try:
+            source = inspect.getsource(fn)
+        except (OSError, TypeError):
+            source = ""
     return {"callable": f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', repr(fn))}",
             "source": _bytes_digest(source.encode())}
 

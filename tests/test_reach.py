@@ -368,6 +368,26 @@ def test_a_cache_filled_under_another_software_stack_is_not_reused(monkeypatch):
     assert all(a != b for a, b in zip(before, after))
 
 
+def test_editing_a_helper_beside_a_factory_changes_its_key(tmp_path, monkeypatch):
+    """A factory's key covers the module that defines it: a helper it calls from the
+    same module (not the factory's own lines) changes the key when edited."""
+    import importlib
+    import sys
+    fp = sys.modules["reachwatch.reach.fingerprint"]
+    monkeypatch.syspath_prepend(str(tmp_path))
+    path = tmp_path / "helper_probe_module.py"
+    keys = []
+    for gain in (1.0, 2.0):
+        path.write_text(f"def helper(x):\n    return {gain} * x\n\n\n"
+                        f"def factory(x):\n    return helper(x)\n")
+        sys.modules.pop("helper_probe_module", None)
+        importlib.invalidate_caches()
+        module = importlib.import_module("helper_probe_module")
+        keys.append(fp.fingerprint(functools.partial(module.factory, 3.0)))
+    sys.modules.pop("helper_probe_module", None)
+    assert keys[0] != keys[1]
+
+
 def test_a_cache_filled_under_another_render_stack_is_not_reused(monkeypatch):
     """Fingerprints carry the render stack: the probe scene's pixels and the GL
     libraries that drew them (another driver may draw one scene otherwise)."""
