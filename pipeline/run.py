@@ -6,6 +6,7 @@ same key (a digest of its inputs: the settings it reads and, for the stages befo
 outputs it reads, `Run.content_key`: their keys and the content of every file they wrote),
 and resumes its chunked work when it was killed."""
 
+from reachwatch.reach.fingerprint import LIBRARY, modules_source_digest
 from reachwatch.systems.checks import short
 
 from .checked_page import write_checked_page
@@ -73,9 +74,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
         "guard": lambda: stage_guard(run),
         "monitor": lambda: stage_monitor(run),
         "incremental": lambda: stage_incremental(run),
-        "report": lambda: run.stage("report", digest(
-            REPORT_FORMAT, {k: run.content_key(k) for k in run.records}),
-            lambda: write_report(run)),
+        "report": lambda: run.stage("report", report_key(run), lambda: write_report(run)),
     }
     for name in STAGES[:STAGES.index(until) + 1]:
         run.outputs[name] = steps[name]()
@@ -90,6 +89,14 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
                f"{len(page['labelled'])}" if page["labelled"] else "")
             + f"; {run.path(page['html'])} (and {page['md']})")
     return run
+
+
+def report_key(run) -> str:
+    """The report stage's key: the keys and outputs of every stage before it, and the
+    source of all of reachwatch (`reach.fingerprint.LIBRARY`): the report costs
+    seconds, and a resumed run whose report code changed writes it anew."""
+    return digest(REPORT_FORMAT, {k: run.content_key(k) for k in run.records},
+                  modules_source_digest(*LIBRARY))
 
 
 def check_slice(spec: RunSpec, only, until: str):

@@ -12,10 +12,13 @@ controller."""
 import dataclasses as dc
 import functools
 import hashlib
+import importlib
 import inspect
 import json
 import math
 import os
+
+from pathlib import Path
 
 import numpy as np
 
@@ -49,6 +52,29 @@ def _stack() -> dict:
     the first fingerprint): results rendered by another GL driver are another key."""
     from reachwatch.diagrams.render_stack import render_stack
     return {**STACK, "render": render_stack()}
+
+
+#: reachwatch's packages, lowest layer first.
+LIBRARY = tuple(f"reachwatch.{name}" for name in
+                ("systems", "diagrams", "reach", "taxi", "training", "pipeline"))
+
+
+def modules_source_digest(*names) -> str:
+    """SHA-256 of the source files of the modules ``names`` (dotted names; a package
+    stands for every ``.py`` file under its folder), with their relative paths: a key
+    that carries it changes whenever that code does (`LIBRARY`: all of reachwatch)."""
+    digest = hashlib.sha256()
+    for name in names:
+        module = importlib.import_module(name)
+        if hasattr(module, "__path__"):
+            files = [(folder, path) for folder in map(Path, module.__path__)
+                     for path in sorted(folder.rglob("*.py"))]
+        else:
+            files = [(Path(module.__file__).parent, Path(module.__file__))]
+        for folder, path in files:
+            digest.update(f"{name}/{path.relative_to(folder).as_posix()}\0".encode())
+            digest.update(path.read_bytes() + b"\0")
+    return digest.hexdigest()
 
 
 class Unfingerprintable(ValueError):

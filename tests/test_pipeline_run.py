@@ -418,3 +418,18 @@ def test_evaluate_command_is_the_run_up_to_evaluate(tmp_path, capsys):
     assert "distrusted: trajectory" in (tmp_path / "run.yaml").read_text()
     assert (tmp_path / "table2.csv").is_file() and (tmp_path / "stages" / "evaluate.json").is_file()
     assert not (tmp_path / "stages" / "guard_KSFO_17h_clear.json").exists()
+
+
+def test_the_report_is_written_anew_when_reachwatch_code_changes(tmp_path, monkeypatch):
+    """The report's key carries the source of all of reachwatch: a resumed run whose
+    report code changed (nothing else) does not keep the old report."""
+    import reachwatch.pipeline.run as run_module
+    from reachwatch.reach.fingerprint import LIBRARY, modules_source_digest
+    run = Run(load_run_spec(data=TINY), tmp_path / "run")
+    before = run_module.report_key(run)
+    assert before == run_module.report_key(run)
+    monkeypatch.setattr(run_module, "modules_source_digest",
+                        lambda *names: modules_source_digest(*names) + "edited")
+    assert run_module.report_key(run) != before
+    assert LIBRARY[0] == "reachwatch.systems" and LIBRARY[-1] == "reachwatch.pipeline"
+

@@ -388,6 +388,24 @@ def test_editing_a_helper_beside_a_factory_changes_its_key(tmp_path, monkeypatch
     assert keys[0] != keys[1]
 
 
+def test_a_module_source_digest_follows_every_file_of_a_package(tmp_path, monkeypatch):
+    """`modules_source_digest`: a package stands for every file under its folder."""
+    import importlib
+    import sys
+    from reachwatch.reach.fingerprint import modules_source_digest
+    package = tmp_path / "digest_probe_package"
+    (package / "inner").mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    (package / "inner" / "helper.py").write_text("X = 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    importlib.invalidate_caches()
+    first = modules_source_digest("digest_probe_package")
+    assert first == modules_source_digest("digest_probe_package")
+    (package / "inner" / "helper.py").write_text("X = 2\n")
+    assert modules_source_digest("digest_probe_package") != first
+    sys.modules.pop("digest_probe_package", None)
+
+
 def test_a_cache_filled_under_another_render_stack_is_not_reused(monkeypatch):
     """Fingerprints carry the render stack: the probe scene's pixels and the GL
     libraries that drew them (another driver may draw one scene otherwise)."""
