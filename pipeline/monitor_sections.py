@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reachwatch.training.conformal import conformal_threshold
+from reachwatch.training.conformal import NoConformalThreshold, conformal_threshold
 from reachwatch.training.metrics import auroc
 from reachwatch.training.monitor_eval import rate
 
@@ -39,7 +39,7 @@ def threshold_tradeoff(row: dict, alphas=(0.1, 0.2, 0.3, 0.5)) -> list:
         try:
             tau = conformal_threshold([np.asarray(e["warning"]) for e in calibrate],
                                       alpha).threshold
-        except ValueError:
+        except NoConformalThreshold:
             out.append([alpha, None, 0, 0, 0, 0])
             continue
         warning, safe = pooled_scores(held_out)

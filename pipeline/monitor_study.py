@@ -126,8 +126,9 @@ def _flag_rule_threshold(spec, calibrate, risks, *, period, lead):
 def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, executor=None,
                       progress=True, log=print, application=None) -> dict:
     """The whole study (see the module) of ``application``'s loop (an `Application`;
-    None: the default, the taxi); writes ``monitor.json`` and the kept and single-frame
-    monitors' checkpoints to ``out_dir``; returns the results."""
+    None: the default, the taxi); writes ``monitor.json`` and the checkpoints of the kept
+    variant and of the first one (``variants[0]``, by default the single frame) to
+    ``out_dir``; returns the results."""
     spec.validate()
     application = load_application() if application is None else application
     started = time.time()
@@ -148,8 +149,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     train = _merged(data["train"])
     labels = tick_labels(train, period=period, duration=spec.duration, within=spec.within)
     base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within)
-    settings = HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs,
-                                  augment=spec.augment)
+    settings = train_settings(spec)
     encoder = train_encoder(train, labels, base, settings,
                             progress=(lambda m: log(f"monitor: {m}")) if progress else None)
     features = {k: [encode_runs(encoder, g) for g in groups] for k, groups in data.items()}
@@ -282,21 +282,43 @@ def _save_risks(path, data, all_risks, judged):
 #: run's monitor stage is run again.
 STUDY_FORMAT = 3
 
+#: The modules whose code trains and judges the study's monitors (the recorded runs
+#: and guarded missions have keys of their own): part of the monitor stage's key.
+STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_monitor",
+              "reachwatch.training.detector_train", "reachwatch.training.history_train",
+              "reachwatch.training.monitor_eval", "reachwatch.training.conformal",
+              "reachwatch.training.baselines", "reachwatch.pipeline.monitor_study",
+              "reachwatch.pipeline.monitor_guarded")
+
+
+def train_settings(spec: MonitorStudySpec) -> HistoryTrainConfig:
+    """The optimisation settings the study trains its monitors with: the run file's
+    ``epochs``, ``head_epochs`` and ``augment``, the rest `HistoryTrainConfig`'s."""
+    return HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs,
+                              augment=spec.augment)
+
+
+def study_key(spec: MonitorStudySpec, application, scenario) -> str:
+    """The monitor stage's key: the study's settings and every training setting
+    (`train_settings`), the scenario's content (checkpoints and controller code
+    included), the application's code unless it is the default, and the source of
+    `STUDY_CODE`."""
+    from reachwatch.reach.fingerprint import fingerprint, modules_source_digest
+    from .spec import digest
+    own = application_key(application)          # None for the default (the taxi)
+    return digest(dc.asdict(spec), dc.asdict(train_settings(spec)),
+                  fingerprint(application.without_monitor(scenario)), *([own] if own else []),
+                  {"study": STUDY_FORMAT, "code": modules_source_digest(*STUDY_CODE)})
+
 
 def stage_monitor(run) -> dict:
     """The run's ``monitor`` stage: the study when ``monitor.kind`` is ``history``
-    (keyed by the study's settings, the scenario's content, checkpoints and controller
-    code included, and the application's code unless it is the default), nothing (no
-    record) otherwise."""
+    (keyed by `study_key`), nothing (no record) otherwise."""
     spec = run.spec.monitor
     if not spec.enabled:
         return {}
-    from reachwatch.reach.fingerprint import fingerprint
-    from .spec import digest
     application = run.application
-    own = application_key(application)          # None for the default (the taxi)
-    key = digest(spec.keyed(), fingerprint(application.without_monitor(run.spec.scenario)),
-                 *([own] if own else []), {"study": STUDY_FORMAT})
+    key = study_key(spec, application, run.spec.scenario)
 
     def study():
         run_monitor_study(spec, run.spec.scenario, run.path("monitor"),

@@ -219,7 +219,8 @@ class MonitorStudySpec:
     ``calibrate`` and ``held_out`` environments in that order; ``also_held_out`` are
     named environments outside the family (e.g. the paper's nights), judged with the
     same threshold but outside its guarantee. Each environment records ``runs`` real
-    runs of ``duration`` s from seeded uniform starts in the paper's box. The risk is
+    runs of ``duration`` s from the application's seeded starts in its grid's box (the
+    taxi's: the paper's box). The risk is
     that of failing within ``within`` s; the fallback brakes at ``brake_deceleration``
     m/s^2, so a warning counts when it comes at least speed / deceleration s before
     the failure; the threshold bounds the expected miss rate at ``alpha``. The default
@@ -264,18 +265,12 @@ class MonitorStudySpec:
     def enabled(self) -> bool:
         return self.kind == "history"
 
-    def keyed(self) -> dict:
-        """The study's settings as its key sees them: ``flag_rules`` only where it is not
-        the default ``[[1, 1]]`` (studies keyed before it existed keep their key)."""
-        out = dc.asdict(self)
-        if [list(r) for r in self.flag_rules] == [[1, 1]]:
-            del out["flag_rules"]
-        return out
-
     def validate(self, where="monitor"):
         if self.kind not in MONITOR_KINDS:
             raise ValueError(f"{where}.kind must be one of {MONITOR_KINDS}, got {self.kind!r}")
         check_bounds(self, f"{where}.")
+        if not isinstance(self.augment, bool):
+            raise ValueError(f"{where}.augment must be true or false, got {short(self.augment)}")
         if self.within >= self.duration:
             raise ValueError(f"{where}.within ({self.within:g} s) must be shorter than "
                              f"{where}.duration ({self.duration:g} s): a run that does not "
@@ -313,6 +308,9 @@ class MonitorStudySpec:
                              f"once, got {names[:8]}")
         for i, v in enumerate(self.variants):
             check_bounds(v, f"{where}.variants[{i}].")
+            if not isinstance(v.signals, bool):
+                raise ValueError(f"{where}.variants[{i}].signals must be true or false, got "
+                                 f"{short(v.signals)}")
             if v.temporal not in TEMPORAL_MODELS:
                 raise ValueError(f"{where}.variants: {v.name!r} temporal must be one of "
                                  f"{TEMPORAL_MODELS}, got {v.temporal!r}")

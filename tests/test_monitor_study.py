@@ -15,7 +15,7 @@ from reachwatch.diagrams.checkpoints import load_history_monitor
 from reachwatch.pipeline.monitor_sections import markdown_tables
 from reachwatch.pipeline.monitor_guarded import ORACLE, oracle_flag_ticks
 from reachwatch.pipeline.monitor_study import run_monitor_study
-from reachwatch.pipeline.spec import dump_run_spec, load_run_spec
+from reachwatch.pipeline.spec import MonitorVariant, dump_run_spec, load_run_spec
 from reachwatch.training.conformal import conformal_threshold
 from tiny_run import TINY
 
@@ -47,12 +47,12 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
         "one frame", "GRU 3 + signals"]
     assert load_run_spec(data=dump_run_spec(spec)).monitor == spec.monitor
     assert not load_run_spec(data=TINY).monitor.enabled            # off by default
-    # the default rule leaves the key as it was before rules could be chosen
     import dataclasses as dc
-    assert "flag_rules" not in spec.monitor.keyed()
     assert dc.asdict(spec.monitor)["flag_rules"] == [[1, 1]]
-    assert dc.replace(spec.monitor, flag_rules=[[1, 1], [2, 3]]).keyed()["flag_rules"] == [
-        [1, 1], [2, 3]]
+    for field, value in (("augment", "no"), ("variants", [MonitorVariant("x", signals=1)])):
+        with pytest.raises(ValueError, match=rf"monitor\.{field}(\[0\]\.signals)? must be "
+                                             rf"true or false, got"):
+            dc.replace(spec.monitor, **{field: value}).validate()
     for edit, message in ((("kind: history", "kind: lstm"), "monitor.kind must be one of"),
                           (("alpha: 0.5", "alpha: 0.1"), "monitor.calibrate: 1 environments "
                                                          "cannot bound"),
@@ -67,6 +67,47 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
         with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
             load_run_spec(data=TINY + STUDY.replace(*edit))
 
+
+
+def test_the_study_key_covers_every_training_setting_and_the_study_code(monkeypatch):
+    """The monitor stage's key changes with ``augment`` (which reaches training), with
+    a training setting the run file does not name, and with the code of `STUDY_CODE`."""
+    import dataclasses as dc
+    import reachwatch.pipeline.monitor_study as study
+    from reachwatch.reach.application import load_application
+    spec = load_run_spec(data=TINY + STUDY)
+    taxi = load_application("")
+    key = lambda monitor: study.study_key(monitor, taxi, spec.scenario)  # noqa: E731
+    before = key(spec.monitor)
+    assert before == key(spec.monitor)
+    off = dc.replace(spec.monitor, augment=False)
+    assert study.train_settings(off).augment is False and study.train_settings(spec.monitor).augment
+    assert key(off) != before
+    settings = study.train_settings
+    monkeypatch.setattr(study, "train_settings",
+                        lambda monitor: dc.replace(settings(monitor), batch_size=64))
+    assert key(spec.monitor) != before
+    monkeypatch.setattr(study, "train_settings", settings)
+    import sys
+    fp = sys.modules["reachwatch.reach.fingerprint"]    # the module, not the function
+    real = fp.modules_source_digest
+    monkeypatch.setattr(fp, "modules_source_digest",
+                        lambda *names: real(*names) + ("!" if set(names) == set(
+                            study.STUDY_CODE) else ""))
+    assert key(spec.monitor) != before
+
+def test_threshold_tradeoff_leaves_a_blank_row_only_where_no_threshold_exists():
+    """Too few calibration environments for an alpha: a row without a threshold; a bad
+    alpha is an error, not a blank row."""
+    from reachwatch.pipeline.monitor_sections import threshold_tradeoff
+    row = {"scores": {"held_out": [{"warning": [0.9, 0.3], "safe_max": [0.1, 0.5]}],
+                      "calibrate": [{"warning": [0.7], "safe_max": [0.4]},
+                                    {"warning": [0.6, 0.8], "safe_max": [0.2]}]}}
+    blank, kept = threshold_tradeoff(row, (0.1, 0.5))
+    assert blank == [0.1, None, 0, 0, 0, 0]             # 2 environments bound no more than 1/3
+    assert kept[1] is not None and kept[3:] == [2, kept[4], 2]
+    with pytest.raises(ValueError, match=r"alpha must be in \(0, 1\), got 1.5"):
+        threshold_tradeoff(row, (1.5,))
 
 def test_run_ranking_pools_environments_and_sets_the_least_needless_threshold():
     from reachwatch.pipeline.monitor_sections import run_ranking

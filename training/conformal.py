@@ -96,13 +96,19 @@ def _losses(env_scores, threshold):
     return np.array([miss_rate(s, threshold) if len(s) else 0.0 for s in env_scores])
 
 
+class NoConformalThreshold(ValueError):
+    """No threshold reaches the target: too few calibration environments for it, or
+    runs that fail before any warning can help."""
+
+
 def conformal_threshold(env_scores: Sequence, alpha: float) -> ConformalThreshold:
     """The largest threshold whose conformal-risk-control bound on the expected miss
     rate of a new environment is at most ``alpha`` (see the module's docstring).
     ``env_scores``: per calibration environment, the `warning_scores` of its failing
     runs (an environment without failures still counts, with loss 0). Raises
     ValueError when no threshold reaches ``alpha`` with so few environments, or (with
-    unwarnable runs scored ``-inf``) so many runs that fail before any warning can help."""
+    unwarnable runs scored ``-inf``) so many runs that fail before any warning can help
+    (both `NoConformalThreshold`), and for an ``alpha`` outside (0, 1)."""
     if not (0 < alpha < 1):
         raise ValueError(f"alpha must be in (0, 1), got {alpha}")
     env_scores = [np.asarray(s, float) for s in env_scores]
@@ -110,9 +116,10 @@ def conformal_threshold(env_scores: Sequence, alpha: float) -> ConformalThreshol
     if n == 0:
         raise ValueError("conformal_threshold needs at least one calibration environment")
     if 1.0 / (n + 1) > alpha:
-        raise ValueError(f"{n} calibration environments cannot bound the miss rate at "
-                         f"{alpha:g}: the bound is at least 1/(n+1) = {1 / (n + 1):.3f}; "
-                         f"use at least {math.ceil(1 / alpha - 1)}")
+        raise NoConformalThreshold(
+            f"{n} calibration environments cannot bound the miss rate at {alpha:g}: the "
+            f"bound is at least 1/(n+1) = {1 / (n + 1):.3f}; use at least "
+            f"{math.ceil(1 / alpha - 1)}")
     # 0 flags every tick, 1 none (risks are probabilities below 1)
     candidates = np.unique(np.concatenate([s[np.isfinite(s)] for s in env_scores] + [[0.0, 1.0]]))
     best = None
@@ -123,10 +130,10 @@ def conformal_threshold(env_scores: Sequence, alpha: float) -> ConformalThreshol
         else:
             break
     if best is None:
-        raise ValueError(f"no threshold bounds the expected miss rate at {alpha:g}: even "
-                         f"flagging every tick misses {np.mean(_losses(env_scores, 0.0)):.3f} "
-                         f"of failing runs per environment (they fail before a warning "
-                         f"can help)")
+        raise NoConformalThreshold(
+            f"no threshold bounds the expected miss rate at {alpha:g}: even flagging every "
+            f"tick misses {np.mean(_losses(env_scores, 0.0)):.3f} of failing runs per "
+            f"environment (they fail before a warning can help)")
     return ConformalThreshold(
         threshold=float(best), alpha=float(alpha), environments=n,
         failing_runs=int(sum(len(s) for s in env_scores)),
