@@ -70,7 +70,9 @@ class GuardSpec:
     detector thresholds, and the same figures from ``check_starts`` seeded random
     on-runway starts in the real Drake loops (each start costs one real run alone and
     one per fallback; 0 = no real-loop check). ``candidates``: table-chosen starts
-    tried in the real loops for the showcase run; ``online_seconds``: simulated
+    tried in the real loops for the showcase run (``meshcat_html``: with a Meshcat
+    replay beside its figure, where the application writes one: the taxi does, the
+    generic `Application.simulate_guarded` does not); ``online_seconds``: simulated
     seconds per round of the online rate. ``mission_limit``: the failure sets are also
     judged by distance (failures before covering the distance the controller alone
     covers within the horizon, the runs going on for up to ``mission_limit`` horizons;
