@@ -127,6 +127,12 @@ def make_controller(config) -> System:
         raise parameter_error(where, config.parameters, e, factory) or ValueError(
             f"{where}: calling it with the ControllerConfig failed (TypeError: "
             f"{clip(e, 200)}); a factory takes the config and returns a Drake System") from e
+    except ValueError:
+        raise                                   # the factory's own one-line complaint
+    except Exception as e:
+        if not config.factory:
+            raise
+        raise user_code.call_failure(config.factory, e, module) from e
     return check_controller(system, where)
 
 

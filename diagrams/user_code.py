@@ -178,7 +178,17 @@ def importable(module):
     return user.importable() if user else contextlib.nullcontext()
 
 
-def _failure(spec: str, error: BaseException, folder=None, where="controller.factory") -> ValueError:
+def call_failure(spec: str, error: BaseException, module=None,
+                 where="controller.factory") -> ValueError:
+    """One line for a user's factory that raised when called: the factory, the error and
+    where in the file of ``module`` (the factory's, when it has a file) it arose."""
+    file = getattr(module, "__file__", None)
+    return _failure(spec, error, Path(file).parent if file else None, where,
+                    doing="calling it")
+
+
+def _failure(spec: str, error: BaseException, folder=None, where="controller.factory",
+             doing="importing it") -> ValueError:
     """One line naming the factory, the error and where in the user's code it arose."""
     place = ""
     for frame in traceback.extract_tb(error.__traceback__)[::-1]:
@@ -190,7 +200,7 @@ def _failure(spec: str, error: BaseException, folder=None, where="controller.fac
     message = error.msg if isinstance(error, SyntaxError) else error
     hint = (f"; a module it imports must be installed or in {clip(folder, 200)}"
             if isinstance(error, ImportError) and folder is not None else "")
-    return ValueError(f"{where} '{clip(spec, 200)}': importing it failed: "
+    return ValueError(f"{where} '{clip(spec, 200)}': {doing} failed: "
                       f"{type(error).__name__}: {clip(message, 300)}{place}{hint}")
 
 

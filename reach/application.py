@@ -621,6 +621,12 @@ def load_application(spec: str = "") -> Application:
         raise ValueError(f"application '{spec}': calling it with no arguments failed "
                          f"(TypeError: {e}); name an Application subclass or a function "
                          f"of no arguments that returns one") from e
+    except ValueError:
+        raise                                   # the application's own one-line complaint
+    except Exception as e:
+        if not spec:
+            raise
+        raise user_code.call_failure(spec, e, module, where="application") from e
     if not isinstance(application, Application):
         raise ValueError(f"application '{spec}': it returned a {type(application).__name__}, "
                          f"not a reachwatch.reach.application.Application")

@@ -185,6 +185,25 @@ def test_a_bad_factory_name_is_one_line_when_loaded_its_code_when_needed(tmp_pat
     err = _one_line_error(capsys, ["simulate", "--scenario", str(path), "--out",
                                    str(tmp_path / "sim"), "--no-meshcat"])
     assert "importing it failed: RuntimeError: boom" in err
+    # code that fails when called: one line naming the factory and the line that raised
+    (folder / "g.py").write_text("def make(config):\n    raise RuntimeError('bang')\n")
+    path.write_text(f"camera: {{width: 64, height: 36}}\ncontroller: {{factory: "
+                    f"'{folder / 'g.py'}:make'}}\n")
+    err = _one_line_error(capsys, ["simulate", "--scenario", str(path), "--out",
+                                   str(tmp_path / "sim"), "--no-meshcat"])
+    assert f"'{folder / 'g.py'}:make': calling it failed: RuntimeError: bang at " \
+           f"{folder / 'g.py'}:2" in err
+
+
+def test_an_application_that_raises_when_built_is_one_line(tmp_path):
+    from reachwatch.reach.application import load_application
+    path = tmp_path / "app.py"
+    path.write_text("from reachwatch.taxi.application import TaxiApplication\n\n\n"
+                    "class App(TaxiApplication):\n    def __init__(self):\n"
+                    "        raise RuntimeError('boom in app')\n")
+    with pytest.raises(ValueError, match=rf"^application '{path}:App': calling it failed: "
+                                         rf"RuntimeError: boom in app at {path}:6$"):
+        load_application(f"{path}:App")
 
 
 @pytest.mark.parametrize("parameters, message", [
