@@ -7,9 +7,11 @@ only once the arguments are parsed."""
 
 import argparse
 import importlib.metadata
+import os
 import signal
 import sys
 import threading
+import time
 
 from .overlays import add_overlay_arguments
 from . import (commands, console, evaluate_commands, graph_commands, guard_commands,
@@ -60,8 +62,38 @@ class Terminated(KeyboardInterrupt):
     like Ctrl-C so that workers are stopped and finished work is kept."""
 
 
-def _terminate(signum, frame):
-    raise Terminated()
+#: Seconds a stopped command has to unwind (stop its workers, close its files) before
+#: the process exits anyway: a thread stopped inside a lock another one waits for
+#: (a progress bar's, a logger's) must not keep it alive. A second signal exits at once.
+STOP_GRACE_S = 30.0
+
+_stopping = threading.Event()
+
+
+def _exit_now(code: int, why: str):
+    try:
+        os.write(2, f"reachwatch: {why}; exiting now; {KEPT}\n".encode())
+    finally:
+        os._exit(code)
+
+
+def _watchdog(code: int):
+    """Exit the process ``STOP_GRACE_S`` after the first stop signal, unless it has."""
+    def wait():
+        time.sleep(STOP_GRACE_S)
+        _exit_now(code, f"still stopping {STOP_GRACE_S:g} s after the signal")
+    threading.Thread(target=wait, name="reachwatch-stop-watchdog", daemon=True).start()
+
+
+def _stop(signum, frame):
+    """SIGTERM and SIGINT: the first raises in the main thread (`Terminated`, or
+    KeyboardInterrupt for Ctrl-C) and starts the watchdog; the second exits at once."""
+    code = 143 if signum == signal.SIGTERM else 130
+    if _stopping.is_set():
+        _exit_now(code, "stopped again")
+    _stopping.set()
+    _watchdog(code)
+    raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
 
 KEPT = ("finished work is kept (stage records, sweep and dataset chunks, checkpoints are "
@@ -80,9 +112,13 @@ def main(argv=None) -> int:
     import reachwatch.systems  # noqa: F401  (first: process-wide settings before torch loads)
     commands.check_run_file_flags(parser, args)     # a flag as its run-file key is bounded
     commands.fill_run_file_defaults(args)
-    previous = signal.getsignal(signal.SIGTERM)
+    signals = (signal.SIGTERM, signal.SIGINT)
+    previous = [signal.getsignal(s) for s in signals]
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _terminate)
+        _stopping.clear()
+        for s, handler in zip(signals, previous):
+            if handler is not signal.SIG_IGN:      # a background job's ignored Ctrl-C stays so
+                signal.signal(s, _stop)
     try:
         return args.func(args) or 0
     except (ValueError, FileNotFoundError, NotImplementedError) as e:
@@ -96,13 +132,20 @@ def main(argv=None) -> int:
                     + (" (a file stands where a folder is needed)" if blocked else "")),
               file=sys.stderr)
         return 2
+    except OSError as e:
+        # the system refused (a name too long, a full or read-only disk): say what, exit 1
+        where = f"{e.filename}: " if e.filename else ""
+        print(_clip(f"reachwatch {args.command}: error: {where}{e.strerror or e}"),
+              file=sys.stderr)
+        return 1
     except KeyboardInterrupt as e:
         what = "terminated" if isinstance(e, Terminated) else "interrupted"
         print(f"reachwatch {args.command}: {what}; {KEPT}", file=sys.stderr)
         return 143 if isinstance(e, Terminated) else 130
     finally:
         if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGTERM, previous)
+            for s, handler in zip(signals, previous):
+                signal.signal(s, handler)
 
 
 if __name__ == "__main__":

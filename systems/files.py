@@ -9,6 +9,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from .checks import clip
+
 
 def cache_root() -> Path:
     """Where reachwatch caches generated assets and sweeps: ``$REACHWATCH_CACHE`` or
@@ -88,8 +90,16 @@ def cache_join(base, *parts):
 
 
 def _url_fs(url):
+    """``(filesystem, path)`` of a URL; a ValueError in one line when its protocol is
+    unknown or needs a package that is not installed (s3fs for ``s3://``)."""
     import fsspec                     # only for a URL: a local cache never imports it
-    return fsspec.core.url_to_fs(url)
+    try:
+        return fsspec.core.url_to_fs(url)
+    except ImportError as e:
+        raise ValueError(f"{clip(url, 200)}: {e} (its fsspec implementation is not "
+                         f"installed)") from None
+    except ValueError as e:
+        raise ValueError(f"{clip(url, 200)}: {e}") from None
 
 
 def make_folder(location):

@@ -141,3 +141,14 @@ def test_a_run_with_a_url_sweep_cache_writes_no_local_sweeps_folder(tmp_path, me
     fs, path = fsspec.core.url_to_fs(memory_url)
     keys = {r["sweep"] for r in run.outputs["sweep"].values()}
     assert len(keys) == 1 and {p.rsplit("/", 1)[1] for p in fs.ls(path, detail=False)} == keys
+
+
+def test_a_url_whose_protocol_is_unknown_or_not_installed_is_one_line():
+    import importlib.util
+    from reachwatch.systems.files import make_folder
+    with pytest.raises(ValueError, match=r"^nosuchproto://x/y: Protocol not known: nosuchproto$"):
+        make_folder("nosuchproto://x/y")
+    if importlib.util.find_spec("s3fs") is None:
+        with pytest.raises(ValueError, match=r"^s3://bucket/x: .*s3fs.* \(its fsspec "
+                                             r"implementation is not installed\)$"):
+            make_folder("s3://bucket/x")

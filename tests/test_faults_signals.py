@@ -108,3 +108,33 @@ def test_cli_stops_on_signals_with_one_line_saying_what_was_kept(tmp_path, sig, 
     lines = [line for line in err.splitlines() if "Traceback" in line or word in line]
     assert lines == [f"reachwatch sweep: {word}; {cli.KEPT}"], err
     _assert_workers_stop(workers, cache)
+
+
+_STUCK = """
+import signal, sys, threading, time
+from reachwatch.pipeline import cli
+cli.STOP_GRACE_S = float(sys.argv[1])
+signal.signal(signal.SIGTERM, cli._stop)
+try:
+    print("ready", flush=True)
+    time.sleep(60)
+except cli.Terminated:
+    threading.Event().wait(60)      # unwinding hangs (e.g. a lock a dead thread held)
+"""
+
+
+@pytest.mark.parametrize("grace, signals, message", [
+    (1.0, 1, "still stopping 1 s after the signal"), (60.0, 2, "stopped again")])
+def test_a_stop_that_hangs_while_unwinding_still_exits(grace, signals, message):
+    """After a stop signal the process exits within `STOP_GRACE_S` even when unwinding
+    hangs, and at once on a second signal, saying so in one line."""
+    process = subprocess.Popen([sys.executable, "-c", _STUCK, str(grace)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "ready"
+    started = time.time()
+    for _ in range(signals):
+        process.send_signal(signal.SIGTERM)
+        time.sleep(0.5)
+    _, err = process.communicate(timeout=30)
+    assert process.returncode == 143 and time.time() - started < 20
+    assert err.strip() == f"reachwatch: {message}; exiting now; {cli.KEPT}"

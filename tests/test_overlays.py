@@ -218,3 +218,13 @@ def test_a_factorys_bad_parameters_are_one_line_naming_them(tmp_path, capsys, pa
         "--scenario-text", f"{{camera: {{width: 64, height: 36}}, duration: 0.1, controller: "
                            f"{{factory: '{factory}', parameters: {parameters}}}}}"])
     assert f"controller.factory '{factory}': {message} (TypeError: " in err
+
+
+def test_a_path_the_system_refuses_is_one_line(tmp_path, capsys):
+    """An OSError the cases above do not name (here a name too long; a full or
+    read-only disk alike): one line with the path and the system's reason, exit 1."""
+    out = tmp_path / ("a" * 300)
+    assert cli.main(["graph", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert err.startswith("reachwatch graph: error: ") and "File name too long" in err
