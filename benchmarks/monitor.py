@@ -51,6 +51,8 @@ def main():
                    help="k-of-n flag rules tried (flag when K of the last N ticks reach the "
                         "threshold); each variant keeps the one with the fewest needless "
                         "flags on the calibration environments")
+    p.add_argument("--train-seed", type=int, default=defaults.seed,
+                   help="the monitors' training seed (weights, batch order, jitter)")
     p.add_argument("--no-augment", action="store_true",
                    help="train the per-frame encoder without colour jitter")
     p.add_argument("--nights", action="store_true",
@@ -68,6 +70,7 @@ def main():
         brake_deceleration=args.brake, height=args.size[0], width=args.size[1],
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
+        seed=args.train_seed,
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])
     try:

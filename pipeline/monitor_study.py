@@ -293,9 +293,10 @@ STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_monitor
 
 def train_settings(spec: MonitorStudySpec) -> HistoryTrainConfig:
     """The optimisation settings the study trains its monitors with: the run file's
-    ``epochs``, ``head_epochs`` and ``augment``, the rest `HistoryTrainConfig`'s."""
+    ``epochs``, ``head_epochs``, ``augment`` and ``seed``, the rest
+    `HistoryTrainConfig`'s."""
     return HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs,
-                              augment=spec.augment)
+                              augment=spec.augment, seed=spec.seed)
 
 
 def study_key(spec: MonitorStudySpec, application, scenario) -> str:

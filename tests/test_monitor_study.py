@@ -83,6 +83,8 @@ def test_the_study_key_covers_every_training_setting_and_the_study_code(monkeypa
     off = dc.replace(spec.monitor, augment=False)
     assert study.train_settings(off).augment is False and study.train_settings(spec.monitor).augment
     assert key(off) != before
+    seeded = load_run_spec(data=TINY + STUDY.replace("  epochs: 1", "  epochs: 1\n  seed: 3"))
+    assert study.train_settings(seeded.monitor).seed == 3 and key(seeded.monitor) != before
     settings = study.train_settings
     monkeypatch.setattr(study, "train_settings",
                         lambda monitor: dc.replace(settings(monitor), batch_size=64))
