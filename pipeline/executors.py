@@ -11,7 +11,7 @@ import re
 
 from reachwatch.reach import InlineExecutor, default_executor
 from reachwatch.reach.sweep import stop_executor
-from reachwatch.systems.checks import short
+from reachwatch.systems.checks import clip, short
 
 #: The most local workers ``local:N`` may start (each is a process with its renderer).
 MAX_WORKERS = 256
@@ -158,6 +158,39 @@ def dask_address(spec: str) -> str:
     return address
 
 
+def _connect(client_type, address: str, spec: str, timeout: float):
+    """A Dask client of the scheduler at ``address``, or a ValueError in one line within
+    about ``timeout`` s: Dask's own timeout covers the connection, not a handshake with
+    a service that is not a scheduler (a web server, the dashboard), which can hang or
+    fail in any way; the client is made in a thread that is given up after the time."""
+    import threading
+    done, out = threading.Event(), {}
+
+    def connect():
+        try:
+            out["client"] = client_type(address, timeout=f"{timeout}s")
+        except BaseException as e:          # delivered to the caller
+            out["error"] = e
+        done.set()
+
+    threading.Thread(target=connect, name="reachwatch-dask-connect", daemon=True).start()
+    hint = ("; the scheduler listens on 8786 by default, its dashboard on 8787"
+            if address.endswith(":8787") else "")
+    if not done.wait(timeout + 5.0):
+        raise ValueError(f"--executor {spec}: something at {address} answered but no Dask "
+                         f"scheduler handshake came within {timeout + 5.0:g} s{hint}")
+    error = out.get("error")
+    if isinstance(error, (OSError, TimeoutError)):
+        raise ValueError(f"--executor {spec}: no Dask scheduler answered at {address} "
+                         f"within {timeout:g} s ({type(error).__name__}){hint}") from None
+    if isinstance(error, Exception):
+        raise ValueError(f"--executor {spec}: {address} did not answer as a Dask scheduler "
+                         f"({type(error).__name__}: {clip(error, 200)}){hint}") from None
+    if error is not None:
+        raise error
+    return out["client"]
+
+
 def make_executor(spec: str, *, connect_timeout: float = 10.0):
     """An executor and a ``close(abort=False)`` callable for ``spec``; ``abort`` stops
     local workers at once instead of letting their current chunk finish."""
@@ -178,11 +211,7 @@ def make_executor(spec: str, *, connect_timeout: float = 10.0):
             raise ValueError("--executor dask://... needs dask: pip install "
                              "'reachwatch[distributed]'") from None
         address = "tcp://" + dask_address(spec)
-        try:
-            client = Client(address, timeout=f"{connect_timeout}s")
-        except (OSError, TimeoutError) as e:
-            raise ValueError(f"--executor {spec}: no Dask scheduler answered at {address} "
-                             f"within {connect_timeout:g} s ({type(e).__name__})") from None
+        client = _connect(Client, address, spec, connect_timeout)
         try:
             check_worker_versions(client, spec)
         except BaseException:

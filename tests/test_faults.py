@@ -295,6 +295,35 @@ def test_unreachable_dask_scheduler_is_one_clear_error():
     assert time.time() - started < 20
 
 
+
+def test_a_service_that_is_not_a_dask_scheduler_is_one_clear_error():
+    """Something that accepts the connection and never speaks Dask (a web server where
+    the scheduler should be, say): Dask's timeout does not cover the handshake; one line
+    within the timeout and 5 s."""
+    pytest.importorskip("dask.distributed")
+    import socket
+    import threading
+    listener = socket.create_server(("127.0.0.1", 0))
+    port, held = listener.getsockname()[1], []
+
+    def accept():
+        try:
+            while True:
+                held.append(listener.accept()[0])      # accepted, never answered
+        except OSError:
+            pass
+    threading.Thread(target=accept, daemon=True).start()
+    started = time.time()
+    try:
+        with pytest.raises(ValueError, match=rf"^--executor dask://127.0.0.1:{port}: .*"
+                                             rf"tcp://127.0.0.1:{port}.*(answer|scheduler)"):
+            make_executor(f"dask://127.0.0.1:{port}", connect_timeout=1.0)
+    finally:
+        listener.close()
+        for connection in held:
+            connection.close()
+    assert time.time() - started < 15
+
 # --- CLI hygiene ---------------------------------------------------------------------------
 
 def test_version_and_quiet_and_verbose(capsys):
