@@ -19,6 +19,7 @@ import numpy as np
 from reachwatch.diagrams import CONTROL_PORT, file_hash, load_detector
 from reachwatch.reach import Grid, InlineExecutor, ValueFunction
 from reachwatch.reach.application import load_application
+from reachwatch.systems.checks import short
 from reachwatch.systems.files import atomic_write_bytes, cache_location
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
 from reachwatch.training.dataset import load_dataset
@@ -52,6 +53,21 @@ def record_check(record: dict) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
+def _check_same_run(spec_path: Path, name: str):
+    """Refuse, in one line, a run directory that holds another run (its recorded run
+    file has another ``name``): its stages' files would be overwritten one by one."""
+    import yaml
+    try:
+        recorded = yaml.safe_load(spec_path.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return                                  # not a run file we can read: rewritten
+    other = recorded.get("name") if isinstance(recorded, dict) else None
+    if isinstance(other, str) and other != name:
+        raise ValueError(f"{spec_path.parent} holds the run {short(other)}, not "
+                         f"{short(name)}: give another --out, or delete {spec_path} to "
+                         f"reuse the directory")
+
+
 class Run:
     """A run directory: the spec (``run.yaml``), artifacts, and one record per
     finished stage (``stages/NAME.json``: key, seconds, outputs, the size and
@@ -73,6 +89,10 @@ class Run:
         text = dump_run_spec(spec).encode()
         spec_path = self.root / "run.yaml"
         if not (spec_path.is_file() and spec_path.read_bytes() == text):
+            if spec_path.is_file():
+                _check_same_run(spec_path, spec.name)
+                log(f"{spec_path}: the run file differs from the last one run here; "
+                    f"the stages whose inputs changed run again")
             self._writable("to record its run file")
             atomic_write_bytes(spec_path, text)
 

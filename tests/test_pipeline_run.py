@@ -433,3 +433,20 @@ def test_the_report_is_written_anew_when_reachwatch_code_changes(tmp_path, monke
     assert run_module.report_key(run) != before
     assert LIBRARY[0] == "reachwatch.systems" and LIBRARY[-1] == "reachwatch.pipeline"
 
+
+
+def test_a_directory_holding_another_run_is_refused_and_kept(tmp_path):
+    """Another run's directory (its recorded run file names another run) is refused in
+    one line, its run file untouched; the same run with an edited file is recorded."""
+    Run(load_run_spec(data=TINY), tmp_path / "run")
+    recorded = (tmp_path / "run" / "run.yaml").read_bytes()
+    other = load_run_spec(data=TINY.replace("name: tiny", "name: other"))
+    with pytest.raises(ValueError, match=r"holds the run 'tiny', not 'other': give another "
+                                         r"--out, or delete .*run.yaml to reuse"):
+        Run(other, tmp_path / "run")
+    assert (tmp_path / "run" / "run.yaml").read_bytes() == recorded
+    lines = []
+    Run(load_run_spec(data=TINY.replace("horizon: 4.0", "horizon: 3.0")), tmp_path / "run",
+        log=lines.append)
+    assert (tmp_path / "run" / "run.yaml").read_bytes() != recorded
+    assert any("the run file differs from the last one run here" in m for m in lines)
