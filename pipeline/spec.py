@@ -223,11 +223,12 @@ class MonitorStudySpec:
     same threshold but outside its guarantee. Each environment records ``runs`` real
     runs of ``duration`` s from the application's seeded starts in its grid's box (the
     taxi's: the paper's box). The risk is that of failing within ``within`` s; the
-    fallback brakes at ``brake_deceleration`` m/s^2, so a warning counts when it comes at least speed / deceleration s before
-    the failure; the threshold bounds the expected miss rate at ``alpha``. The default
-    ``within`` (4 s, for braking's 1.67 s from 5 m/s at 3 m/s^2) is the one of 2, 3, 4
-    and 5 s whose kept variant flagged the fewest safe runs of the calibration
-    environments in a study of the random family (seed 11); set it for your fallback.
+    fallback brakes at ``brake_deceleration`` m/s^2, so a warning counts when it comes
+    at least speed / deceleration s before the failure; the threshold bounds the
+    expected miss rate at ``alpha``. The default ``within`` (4 s, for braking's 1.67 s
+    from 5 m/s at 3 m/s^2) is the one of 2, 3, 4 and 5 s whose kept variant flagged the
+    fewest safe runs of the calibration environments in a study of the random family
+    (seed 11); set it for your fallback.
     ``guarded_runs`` (0: none) starts per held-out environment (of the family, and
     outside it) also run in the guarded real loop with the kept variant, the
     single-frame one and the oracle. ``flag_rules`` lists the

@@ -5,9 +5,9 @@ JSON: the function's name and the source text of the module that defines it; an 
 with a ``__fingerprint__()`` method by what that returns; dataclasses field by field;
 numpy arrays, torch modules and tensors by a hash of their bytes; and any string or
 path that names an existing file by a hash of the file's *contents* (a moved
-checkpoint keeps its fingerprint, a retrained one does not). What cannot be reduced this way raises
-`Unfingerprintable`, so a sweep never silently reuses a table made by another
-controller."""
+checkpoint keeps its fingerprint, a retrained one does not). What cannot be reduced
+this way raises `Unfingerprintable`, so a sweep never silently reuses a table made by
+another controller."""
 
 import dataclasses as dc
 import functools
@@ -60,21 +60,19 @@ LIBRARY = tuple(f"reachwatch.{name}" for name in
 
 
 def modules_source_digest(*names) -> str:
-    """SHA-256 of the source files of the modules ``names`` (dotted names; a package
-    stands for every ``.py`` file under its folder), with their relative paths: a key
+    """SHA-256 of the source of the modules ``names`` (dotted names; a package stands
+    for every ``.py`` file under its folder, `diagrams.user_code.source_digest`): a key
     that carries it changes whenever that code does (`LIBRARY`: all of reachwatch)."""
-    digest = hashlib.sha256()
+    from reachwatch.diagrams.user_code import files_digest, source_digest
+    parts = []
     for name in names:
         module = importlib.import_module(name)
         if hasattr(module, "__path__"):
-            files = [(folder, path) for folder in map(Path, module.__path__)
-                     for path in sorted(folder.rglob("*.py"))]
+            parts += [(f"{name}/{i}", source_digest(folder, where=name).encode())
+                      for i, folder in enumerate(module.__path__)]
         else:
-            files = [(Path(module.__file__).parent, Path(module.__file__))]
-        for folder, path in files:
-            digest.update(f"{name}/{path.relative_to(folder).as_posix()}\0".encode())
-            digest.update(path.read_bytes() + b"\0")
-    return digest.hexdigest()
+            parts.append((name, Path(module.__file__).read_bytes()))
+    return files_digest(parts)
 
 
 class Unfingerprintable(ValueError):
