@@ -22,6 +22,7 @@ from reachwatch.pipeline.executors import make_executor
 from reachwatch.pipeline.monitor_sections import markdown_tables
 from reachwatch.pipeline.monitor_study import MonitorStudySpec, run_monitor_study
 from reachwatch.systems import Environment, RandomEnvironments
+from reachwatch.training.history_train import LR_SCHEDULES
 
 
 def _rule(parser, text):
@@ -53,6 +54,9 @@ def main():
                         "flags on the calibration environments")
     p.add_argument("--train-seed", type=int, default=defaults.seed,
                    help="the monitors' training seed (weights, batch order, jitter)")
+    p.add_argument("--lr-schedule", choices=LR_SCHEDULES, default=defaults.lr_schedule,
+                   help="the monitors' learning rate: constant, or cosine (decays to zero "
+                        "over each training stage)")
     p.add_argument("--no-augment", action="store_true",
                    help="train the per-frame encoder without colour jitter")
     p.add_argument("--nights", action="store_true",
@@ -70,7 +74,7 @@ def main():
         brake_deceleration=args.brake, height=args.size[0], width=args.size[1],
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
-        seed=args.train_seed,
+        seed=args.train_seed, lr_schedule=args.lr_schedule,
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])
     try:

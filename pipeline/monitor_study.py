@@ -293,10 +293,11 @@ STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_monitor
 
 def train_settings(spec: MonitorStudySpec) -> HistoryTrainConfig:
     """The optimisation settings the study trains its monitors with: the run file's
-    ``epochs``, ``head_epochs``, ``augment`` and ``seed``, the rest
+    ``epochs``, ``head_epochs``, ``augment``, ``seed`` and ``lr_schedule``, the rest
     `HistoryTrainConfig`'s."""
     return HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs,
-                              augment=spec.augment, seed=spec.seed)
+                              augment=spec.augment, seed=spec.seed,
+                              lr_schedule=spec.lr_schedule)
 
 
 def study_key(spec: MonitorStudySpec, application, scenario) -> str:

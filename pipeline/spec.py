@@ -20,6 +20,7 @@ from reachwatch.systems.flag_filter import check_k_of_n
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.labels import LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
+from reachwatch.training.history_train import LR_SCHEDULES
 
 
 #: Bounds of a run file's sizes: nodes per grid axis, horizon (s), real-loop starts.
@@ -242,7 +243,8 @@ class MonitorStudySpec:
     16, calibrate 30, held out 8, 30 runs of 8 s, within 4 s) raised the single-frame
     variant's worst held-out AUROC from 0.70 to 0.89. ``seed``: the monitors' training
     seed (initial weights, batch order, jitter); train with a few to see how far one
-    training's figures are from the next's."""
+    training's figures are from the next's. ``lr_schedule``: ``constant`` or ``cosine``
+    (each training stage's learning rate decays to zero over its steps)."""
     kind: str = "detector"
     family: RandomEnvironments = dc.field(default_factory=lambda: RandomEnvironments(seed=11))
     train: int = bounded(12, 1, 1000, whole=True)
@@ -262,6 +264,7 @@ class MonitorStudySpec:
     head_epochs: int = bounded(40, 1, 100_000, whole=True)
     augment: bool = True
     seed: int = seed_field()
+    lr_schedule: str = "constant"
     guarded_runs: int = bounded(0, 0, 100_000, whole=True)
     variants: List[MonitorVariant] = dc.field(default_factory=default_variants)
     flag_rules: List[List[int]] = dc.field(default_factory=lambda: [[1, 1]])
@@ -276,6 +279,9 @@ class MonitorStudySpec:
         check_bounds(self, f"{where}.")
         if not isinstance(self.augment, bool):
             raise ValueError(f"{where}.augment must be true or false, got {short(self.augment)}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"{where}.lr_schedule must be one of {LR_SCHEDULES}, got "
+                             f"{short(self.lr_schedule)}")
         if self.within >= self.duration:
             raise ValueError(f"{where}.within ({self.within:g} s) must be shorter than "
                              f"{where}.duration ({self.duration:g} s): a run that does not "

@@ -5,6 +5,7 @@ brightness alone is ambiguous) stacked frames learn it and a single frame cannot
 import dataclasses as dc
 
 import numpy as np
+import pytest
 import torch
 
 from reachwatch.systems import HistoryMonitorConfig
@@ -122,3 +123,42 @@ def test_colour_jitter_keeps_the_encoder_off_the_training_light():
     again = held_out_auroc(True)[1]          # one seed, one encoder
     for a, b in zip(encoder.state_dict().values(), again.state_dict().values()):
         assert torch.equal(a, b)
+
+
+def test_a_cosine_schedule_decays_each_stage_to_zero(monkeypatch):
+    """``lr_schedule: cosine`` starts each stage at its learning rate and ends it near
+    zero, one scheduler step per optimiser step; ``constant`` keeps the rate; a name
+    neither is refused."""
+    runs = _runs(0, 8)
+    labels = tick_labels(runs, period=PERIOD, duration=DURATION, within=0.5)
+    config = HistoryMonitorConfig(frames=2, height=16, width=16, channels=[4], features=4,
+                                  hidden=4, within=0.5)
+    rates = []
+    step = torch.optim.AdamW.step
+
+    def recording_step(self, *args, **kwargs):
+        rates.append(self.param_groups[0]["lr"])
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.AdamW, "step", recording_step)
+    trained = {}
+    for schedule in ("constant", "cosine"):
+        settings = HistoryTrainConfig(epochs=3, head_epochs=3, batch_size=16, tick_stride=1,
+                                      lr_schedule=schedule)
+        rates.clear()
+        encoder = train_encoder(runs, labels, config, settings)
+        encoder_rates = list(rates)
+        rates.clear()
+        head = train_head(encoder, encode_runs(encoder, runs), runs, labels, config, settings)
+        trained[schedule] = (encoder_rates, list(rates), head)
+    labelled = int(np.sum(labels >= 0))
+    encoder_rates, head_rates, _ = trained["constant"]
+    assert len(encoder_rates) == 3 * -(-labelled // 16) and set(encoder_rates) == {1e-3}
+    assert len(head_rates) == 3 * -(-labelled // 64) and set(head_rates) == {3e-3}
+    encoder_rates, head_rates, _ = trained["cosine"]
+    for got, start in ((encoder_rates, 1e-3), (head_rates, 3e-3)):
+        assert got[0] == start and np.all(np.diff(got) < 0) and got[-1] < 0.05 * start
+    assert len(encoder_rates) == 3 * -(-labelled // 16)
+    with pytest.raises(ValueError, match=r"lr_schedule must be one of \('constant', 'cosine'\), "
+                                         r"got 'step'"):
+        HistoryTrainConfig(lr_schedule="step")

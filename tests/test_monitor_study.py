@@ -53,6 +53,9 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
         with pytest.raises(ValueError, match=rf"monitor\.{field}(\[0\]\.signals)? must be "
                                              rf"true or false, got"):
             dc.replace(spec.monitor, **{field: value}).validate()
+    with pytest.raises(ValueError, match=r"monitor\.lr_schedule must be one of \('constant', "
+                                         r"'cosine'\), got 'linear'"):
+        dc.replace(spec.monitor, lr_schedule="linear").validate()
     for edit, message in ((("kind: history", "kind: lstm"), "monitor.kind must be one of"),
                           (("alpha: 0.5", "alpha: 0.1"), "monitor.calibrate: 1 environments "
                                                          "cannot bound"),
@@ -85,6 +88,10 @@ def test_the_study_key_covers_every_training_setting_and_the_study_code(monkeypa
     assert key(off) != before
     seeded = load_run_spec(data=TINY + STUDY.replace("  epochs: 1", "  epochs: 1\n  seed: 3"))
     assert study.train_settings(seeded.monitor).seed == 3 and key(seeded.monitor) != before
+    cosine = load_run_spec(data=TINY + STUDY.replace("  epochs: 1",
+                                                     "  epochs: 1\n  lr_schedule: cosine"))
+    assert study.train_settings(cosine.monitor).lr_schedule == "cosine"
+    assert key(cosine.monitor) != before
     settings = study.train_settings
     monkeypatch.setattr(study, "train_settings",
                         lambda monitor: dc.replace(settings(monitor), batch_size=64))

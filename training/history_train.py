@@ -30,7 +30,10 @@ class HistoryTrainConfig:
     labelled tick; stage 2 ``head_epochs`` over all of them. ``augment``: stage 1 sees
     each frame colour-jittered (`reachwatch.training.detector_train.colour_jitter`:
     per-frame channel gains, brightness and contrast, drawn from ``seed``), so that
-    the encoder leans less on the training environments' light and paint."""
+    the encoder leans less on the training environments' light and paint.
+    ``lr_schedule``: ``constant`` keeps each stage's learning rate; ``cosine`` decays it
+    to zero over the stage's steps (`torch.optim.lr_scheduler.CosineAnnealingLR`), so
+    the last epochs take small steps and one training ends nearer the next."""
     epochs: int = 6
     head_epochs: int = 40
     head_learning_rate: float = 3e-3
@@ -40,6 +43,23 @@ class HistoryTrainConfig:
     tick_stride: int = 2
     seed: int = 0
     augment: bool = True
+    lr_schedule: str = "constant"
+
+    def __post_init__(self):
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got "
+                             f"{self.lr_schedule!r}")
+
+
+LR_SCHEDULES = ("constant", "cosine")
+
+
+def _schedule(optimiser, train: HistoryTrainConfig, steps: int):
+    """The learning-rate scheduler of ``train.lr_schedule`` over ``steps`` optimiser
+    steps (None: constant)."""
+    if train.lr_schedule == "cosine":
+        return torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=max(1, steps))
+    return None
 
 
 def tick_labels(runs: dict, *, period: float, duration: float, within: float) -> np.ndarray:
@@ -81,6 +101,7 @@ def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
     weight = _pos_weight(labels[rows, cols])
     frames = runs["frames"]
     jitter = torch.Generator().manual_seed(train.seed) if train.augment else None
+    schedule = _schedule(optimiser, train, train.epochs * -(-len(rows) // train.batch_size))
     for epoch in range(train.epochs):
         model.train()
         order = rng.permutation(len(rows))
@@ -94,6 +115,8 @@ def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
+            if schedule is not None:
+                schedule.step()
         if progress:
             progress(f"encoder epoch {epoch + 1}/{train.epochs}: loss {loss.item():.3f}")
     return model.eval()
@@ -152,6 +175,8 @@ def train_head(encoder: HistoryRiskModel, features: np.ndarray, runs: dict,
     optimiser = torch.optim.AdamW(head, lr=train.head_learning_rate,
                                   weight_decay=train.weight_decay)
     weight = _pos_weight(labels[rows, cols])
+    schedule = _schedule(optimiser, train,
+                         train.head_epochs * -(-len(rows) // (4 * train.batch_size)))
     for _ in range(train.head_epochs):
         model.train()
         order = torch.from_numpy(rng.permutation(len(rows)))
@@ -162,6 +187,8 @@ def train_head(encoder: HistoryRiskModel, features: np.ndarray, runs: dict,
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
+            if schedule is not None:
+                schedule.step()
     return model.eval()
 
 
