@@ -5,6 +5,7 @@ import argparse
 from pathlib import Path
 
 from reachwatch.diagrams import load_scenario
+from reachwatch.pipeline.executor_option import add_executor_argument
 from reachwatch.systems.files import cache_root
 from reachwatch.taxi import paper_grid, resolved
 
@@ -24,7 +25,7 @@ def guard_parser(doc: str, *, fallbacks: str, starts: int, seed: int,
     p.add_argument("--noise-seeds", type=int, default=noise_seeds)
     p.add_argument("--mission-limit", type=float, default=3.0)
     p.add_argument("--cache", default=None, help="sweep and rollout cache (default: the user cache)")
-    p.add_argument("--executor", default="local")
+    add_executor_argument(p)
     return p
 
 

@@ -18,6 +18,7 @@ import dataclasses as dc
 import time
 
 from reachwatch.diagrams import load_scenario
+from reachwatch.pipeline.executor_option import add_executor_argument
 from reachwatch.pipeline.executors import make_executor
 from reachwatch.pipeline.monitor_sections import markdown_tables
 from reachwatch.pipeline.monitor_study import MonitorStudySpec, run_monitor_study
@@ -61,9 +62,7 @@ def main():
                    help="train the per-frame encoder without colour jitter")
     p.add_argument("--nights", action="store_true",
                    help="also judge on the paper's held-out 21 h environments (KSFO, KEWR)")
-    p.add_argument("--executor", default="local",
-                   help="where the real-loop runs render: local, local:N, inline or "
-                        "dask://HOST:PORT (as `reachwatch run --executor`)")
+    add_executor_argument(p)
     p.add_argument("--cache", default="/tmp/reachwatch-monitor-cache")
     p.add_argument("--out", default="/tmp/reachwatch-monitor")
     args = p.parse_args()

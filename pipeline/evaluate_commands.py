@@ -7,6 +7,7 @@ import dataclasses as dc
 import importlib
 
 from .console import log
+from .executor_option import add_executor_argument
 from .overlays import add_overlay_arguments
 from .commands import (RunFileDefault, count, grid_nodes, positive_int, scenario_from_args,
                        seed_number)
@@ -129,7 +130,7 @@ def add_parsers(sub):
                    default=RunFileDefault("fidelity.max_box_exits"),
                    help="refuse BRT labels where more than this share of the checked runs "
                    "leave the solved box (default: %(default)s)")
-    p.add_argument("--executor", default="inline", help="local (one worker per core) | local:N | inline | dask://HOST:PORT")
+    add_executor_argument(p, default="inline")
     p.add_argument("--out", required=True, help="output folder (reused: finished work is skipped)")
     p.set_defaults(func=evaluate_command)
 

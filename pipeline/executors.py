@@ -7,14 +7,12 @@ task brings the files its arguments name, `ShippingExecutor`)."""
 import contextlib
 import functools
 import importlib.metadata
-import re
 
 from reachwatch.reach import InlineExecutor, default_executor
 from reachwatch.reach.sweep import stop_executor
 from reachwatch.systems.checks import clip, short
 
-#: The most local workers ``local:N`` may start (each is a process with its renderer).
-MAX_WORKERS = 256
+from .executor_option import MAX_WORKERS, check_executor, dask_address, local_workers  # noqa: F401
 
 #: Distributions a Dask worker must have at the driver's versions: a chunk is cached by
 #: the content it was asked for, not by the code that computed it.
@@ -142,22 +140,6 @@ def check_worker_render_stacks(client, spec: str = "dask"):
                              f"run the driver and every worker on the same GL driver")
 
 
-#: ``HOST:PORT`` of a Dask scheduler: a host name or IPv4 address, or an IPv6 one in
-#: brackets, and a port.
-_ADDRESS = re.compile(r"(?:[A-Za-z0-9_.-]{1,253}|\[[0-9A-Fa-f:.]{2,45}\]):[0-9]{1,5}")
-
-
-def dask_address(spec: str) -> str:
-    """The ``HOST:PORT`` of ``--executor dask://HOST:PORT`` (or ``tcp://``); a one-line
-    ValueError for anything else, before a client is made (dask would answer a bad
-    address with its own words, or a connection attempt)."""
-    address = spec.split("://", 1)[1]
-    if not _ADDRESS.fullmatch(address) or not 1 <= int(address.rpartition(":")[2]) <= 65535:
-        raise ValueError(f"--executor dask://HOST:PORT needs a host and a port in [1, 65535] "
-                         f"(an IPv6 host in brackets), got {short(spec)}")
-    return address
-
-
 def _connect(client_type, address: str, spec: str, timeout: float):
     """A Dask client of the scheduler at ``address``, or a ValueError in one line within
     about ``timeout`` s: Dask's own timeout covers the connection, not a handshake with
@@ -194,13 +176,9 @@ def _connect(client_type, address: str, spec: str, timeout: float):
 def make_executor(spec: str, *, connect_timeout: float = 10.0):
     """An executor and a ``close(abort=False)`` callable for ``spec``; ``abort`` stops
     local workers at once instead of letting their current chunk finish."""
+    check_executor(spec)
     if spec == "local" or spec.startswith("local:"):
-        count = spec.partition(":")[2]
-        if count and not (count.isascii() and count.isdigit() and len(count) <= 6
-                          and 1 <= int(count) <= MAX_WORKERS):
-            raise ValueError(f"--executor local:N needs a whole number of workers N in "
-                             f"[1, {MAX_WORKERS}], got {short(spec)}")
-        executor = default_executor(int(count) if count else None)
+        executor = default_executor(local_workers(spec))
         return executor, lambda abort=False: stop_executor(executor, abort=abort)
     if spec == "inline":
         return InlineExecutor(), lambda abort=False: None
@@ -219,8 +197,7 @@ def make_executor(spec: str, *, connect_timeout: float = 10.0):
             raise
         from .shipping_executor import ShippingExecutor
         return ShippingExecutor(client), lambda abort=False: client.close()
-    raise ValueError(f"--executor must be local, local:N, inline or dask://HOST:PORT, got "
-                     f"{short(spec)}")
+    raise AssertionError(spec)                  # check_executor knows no other form
 
 
 @contextlib.contextmanager

@@ -9,6 +9,7 @@ from .commands import (RunFileDefault, check_detector, count, grid_nodes, horizo
                        mission_multiple, open_share, output_folder, positive_int,
                        scenario_from_args, seed_number)
 from .console import log
+from .executor_option import add_executor_argument
 from .overlays import add_overlay_arguments
 
 def add_parsers(sub):
@@ -68,7 +69,7 @@ def add_parsers(sub):
                         "path otherwise fails only later; default: %(default)s)")
     g.add_argument("--out", required=True, help="output folder (guard_ENV.json, the "
                    "failure-set and trade-off plots)")
-    g.add_argument("--executor", default="local", help="local (one worker per core) | local:N | inline | dask://HOST:PORT")
+    add_executor_argument(g)
     g.add_argument("--cache", default=None, help="cache folder of the guarded sweep and the "
                    "real-loop runs (default: $REACHWATCH_CACHE or ~/.cache/reachwatch)")
     g.set_defaults(func=guard_command)

@@ -5,6 +5,7 @@ import time
 from pathlib import Path
 
 from .console import log, progress_enabled
+from .executor_option import add_executor_argument
 from .overlays import add_overlay_arguments
 from .commands import (RunFileDefault, count, grid_nodes, horizon_seconds, non_negative_float, number_type,
                        output_folder, positive_float, positive_int, scenario_from_args,
@@ -37,7 +38,7 @@ def _grid_args(parser):
                         help="sweep and solve over py <= M (the paper's box: 250); a start "
                         "near 250 runs past it within the horizon (default: %(default)s)")
     parser.add_argument("--out", required=True, help="output folder")
-    parser.add_argument("--executor", default="local", help="local (one worker per core) | local:N | inline | dask://HOST:PORT")
+    add_executor_argument(parser)
     parser.add_argument("--cache", default=None, help="sweep cache folder "
                         "(default: $REACHWATCH_CACHE/sweeps or ~/.cache/reachwatch/sweeps)")
     parser.add_argument("--chunk-size", type=positive_int, default=1024,

@@ -2,6 +2,7 @@
 `reachwatch.pipeline.run.run_pipeline`, imported when it runs (so that building the
 parser needs no torch)."""
 
+from .executor_option import add_executor_argument
 from .overlays import add_overlay_arguments
 
 #: ``reachwatch.pipeline.run``'s ``STAGES`` and ``SLICE_UNTIL``, here for the parser's
@@ -23,10 +24,7 @@ def add_parsers(sub):
                    "every stage")
     p.add_argument("--work-dir", help="with --out URL: the local working copy (default "
                    "$REACHWATCH_CACHE/runs/<digest of the URL>)")
-    p.add_argument("--executor", default="local", help="local (one worker per core) | "
-                   "local:N | inline | dask://HOST:PORT (a Dask scheduler; its workers get "
-                   "the files each task names with it and return results, so they need "
-                   "neither the run directory nor this machine's paths)")
+    add_executor_argument(p)
     p.add_argument("--until", choices=STAGES, help=f"last stage to run (default: report, "
                    f"or {SLICE_UNTIL} with --only)")
     p.add_argument("--sweep-cache", help="folder or fsspec URL (memory://, s3://... "

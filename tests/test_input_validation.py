@@ -307,14 +307,12 @@ def test_bad_numbers_on_the_command_line_are_bounded(tmp_path, capsys, argv, mes
     assert not (tmp_path / "o").exists()
 
 
-def test_bad_command_line_environments_and_executors_are_one_error(tmp_path, capsys):
+def test_bad_command_line_environments_are_one_error(tmp_path, capsys):
     out = tmp_path / "o"
     for argv, message in [
             (["taxinet", "evaluate", "--runways", "XXXX"], "--runways / --hours: environment.runway: "
                                                            "unknown runway 'XXXX'"),
-            (["taxinet", "evaluate", "--hours", "nan"], "environment.hour must be a finite number in [0, 24) h, got nan"),
-            (["brt", "--executor", "local:100000"], "--executor local:N needs a whole number of "
-                                                    "workers N in [1, 256]")]:
+            (["taxinet", "evaluate", "--hours", "nan"], "environment.hour must be a finite number in [0, 24) h, got nan")]:
         assert cli.main(argv + ["--out", str(out)]) == 2
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1
@@ -370,6 +368,26 @@ def test_a_malformed_dask_address_is_one_line_naming_the_option(spec):
                                                    "and a port in [1, 65535]")) as e:
         make_executor(spec, connect_timeout=0.5)
     assert "\n" not in str(e.value) and len(str(e.value)) < 300
+
+
+@pytest.mark.parametrize("command", [["run", "--scenario", "MISSING.yaml", "--out", "OUT"],
+                                     ["guard", "--scenario", "MISSING.yaml"], ["sweep"], ["brt"],
+                                     ["evaluate", "--scenario", "MISSING.yaml", "--out", "OUT"]])
+@pytest.mark.parametrize("spec, message", [
+    ("local:0", "local:N needs a whole number of workers N in [1, 256], got 'local:0'"),
+    ("dask://host", "dask://HOST:PORT needs a host and a port in [1, 65535]"),
+    ("threads", "must be local, local:N, inline or dask://HOST:PORT, got 'threads'")])
+def test_every_executor_option_refuses_a_malformed_value_before_any_file_is_read(
+        command, spec, message, capsys):
+    """One ``--executor`` for every subcommand that runs chunks: a value that cannot
+    name an executor is argparse's one-line error (exit 2), before the run file or
+    scenario (missing here) is read; it was found only after the run file loaded."""
+    with pytest.raises(SystemExit) as e:
+        cli.main([*command, "--executor", spec])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"error: argument --executor: {message}" in err, err
+    assert "MISSING" not in err
 
 
 def test_hour_minus_zero_is_hour_zero_and_cannot_hide_a_training_environment_in_test():
