@@ -145,7 +145,20 @@ def _connect(client_type, address: str, spec: str, timeout: float):
     about ``timeout`` s: Dask's own timeout covers the connection, not a handshake with
     a service that is not a scheduler (a web server, the dashboard), which can hang or
     fail in any way; the client is made in a thread that is given up after the time."""
+    import socket
     import threading
+    host, _, port = address.removeprefix("tcp://").rpartition(":")
+    try:                        # Dask retries a refused connection until its timeout
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except ConnectionRefusedError:
+        raise ValueError(f"--executor {spec}: no Dask scheduler answered at {address}: "
+                         f"connection refused (is the scheduler running, on this port?)"
+                         ) from None
+    except socket.gaierror as e:
+        raise ValueError(f"--executor {spec}: cannot resolve the host {short(host)} "
+                         f"({clip(e, 120)})") from None
+    except OSError:
+        pass                    # unreachable or slow: Dask's own timeout says so
     done, out = threading.Event(), {}
 
     def connect():

@@ -290,9 +290,13 @@ def test_unreachable_dask_scheduler_is_one_clear_error():
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     started = time.time()
-    with pytest.raises(ValueError, match=f"no Dask scheduler answered at tcp://127.0.0.1:{port}"):
+    with pytest.raises(ValueError, match=f"no Dask scheduler answered at tcp://127.0.0.1:{port}: "
+                                         f"connection refused"):
         make_executor(f"dask://127.0.0.1:{port}", connect_timeout=1.0)
     assert time.time() - started < 20
+    with pytest.raises(ValueError, match="^--executor dask://no-such-host.invalid:8786: cannot "
+                                         "resolve the host 'no-such-host.invalid'"):
+        make_executor("dask://no-such-host.invalid:8786", connect_timeout=1.0)
 
 
 
