@@ -42,7 +42,7 @@ from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, label
 
 from .monitor_guarded import guarded_rows
 from .monitor_sections import rate_text
-from .spec import MONITOR_KINDS, MonitorStudySpec, MonitorVariant, default_variants  # noqa: F401
+from .monitor_spec import MONITOR_KINDS, MonitorStudySpec, MonitorVariant, default_variants  # noqa: F401
 
 __all__ = ["MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "default_variants",
            "run_monitor_study", "stage_monitor"]

@@ -32,6 +32,8 @@ FRONT_ENDS = {"cli", "commands", "reference", "guard_commands", "reach_commands"
 ALLOWED = {
     # the run file's schema: its environments are the taxi's runways
     "pipeline.spec": {"systems.environment", "systems.random_environments"},
+    # the same schema's monitor section (split out of pipeline.spec, the same imports)
+    "pipeline.monitor_spec": {"systems.environment", "systems.random_environments"},
 }
 
 
