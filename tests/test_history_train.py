@@ -146,7 +146,10 @@ def test_a_cosine_schedule_decays_each_stage_to_zero(monkeypatch):
         settings = HistoryTrainConfig(epochs=3, head_epochs=3, batch_size=16, tick_stride=1,
                                       lr_schedule=schedule)
         rates.clear()
-        encoder = train_encoder(runs, labels, config, settings)
+        said = []
+        encoder = train_encoder(runs, labels, config, settings, progress=said.append)
+        assert [m.split(":")[0] for m in said] == [f"encoder epoch {e}/3" for e in (1, 2, 3)]
+        assert all(0 < float(m.rpartition("mean loss ")[2]) < 10 for m in said)
         encoder_rates = list(rates)
         rates.clear()
         head = train_head(encoder, encode_runs(encoder, runs), runs, labels, config, settings)

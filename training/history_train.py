@@ -105,6 +105,7 @@ def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
     for epoch in range(train.epochs):
         model.train()
         order = rng.permutation(len(rows))
+        total = 0.0
         for i in range(0, len(order), train.batch_size):
             b = order[i:i + train.batch_size]
             x = detector_input(torch.from_numpy(frames[rows[b], cols[b]]), config.image_config)
@@ -117,8 +118,10 @@ def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
             optimiser.step()
             if schedule is not None:
                 schedule.step()
-        if progress:
-            progress(f"encoder epoch {epoch + 1}/{train.epochs}: loss {loss.item():.3f}")
+            total += loss.item() * len(b)
+        if progress:        # the epoch's mean: one batch's loss is as noisy as its draw
+            progress(f"encoder epoch {epoch + 1}/{train.epochs}: mean loss "
+                     f"{total / len(order):.3f}")
     return model.eval()
 
 
