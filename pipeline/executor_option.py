@@ -7,11 +7,10 @@ import argparse
 import re
 
 
-def short(value) -> str:
-    """`reachwatch.systems.checks.short`, imported only when an error is written:
-    building the command line's parser imports neither drake nor OpenCV."""
-    from reachwatch.systems.checks import short
-    return short(value)
+def short(spec: str) -> str:
+    """``spec`` as an error message shows it: quoted, cut to 60 characters (as
+    `reachwatch.systems.checks.short`, whose package would import drake and OpenCV)."""
+    return repr(spec if len(spec) <= 60 else spec[:28] + "..." + spec[-28:])
 
 #: The most local workers ``local:N`` may start (each is a process with its renderer).
 MAX_WORKERS = 256

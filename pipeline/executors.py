@@ -142,9 +142,12 @@ def check_worker_render_stacks(client, spec: str = "dask"):
 
 def _connect(client_type, address: str, spec: str, timeout: float):
     """A Dask client of the scheduler at ``address``, or a ValueError in one line within
-    about ``timeout`` s: Dask's own timeout covers the connection, not a handshake with
-    a service that is not a scheduler (a web server, the dashboard), which can hang or
-    fail in any way; the client is made in a thread that is given up after the time."""
+    about ``timeout`` s. A plain TCP connection goes first: a refused port, a host that
+    does not resolve or no answer within ``timeout`` is refused at once (Dask retries a
+    refused port until its timeout). Dask's own timeout covers the connection, not a
+    handshake with a service that is not a scheduler (a web server, the dashboard),
+    which can hang or fail in any way; the client is made in a thread that is given up
+    after the time and 5 s."""
     import socket
     import threading
     host, _, port = address.removeprefix("tcp://").rpartition(":")
@@ -157,8 +160,9 @@ def _connect(client_type, address: str, spec: str, timeout: float):
     except socket.gaierror as e:
         raise ValueError(f"--executor {spec}: cannot resolve the host {short(host)} "
                          f"({clip(e, 120)})") from None
-    except OSError:
-        pass                    # unreachable or slow: Dask's own timeout says so
+    except OSError as e:        # a timeout, an unreachable network: Dask could not either
+        raise ValueError(f"--executor {spec}: no Dask scheduler answered at {address} "
+                         f"within {timeout:g} s ({type(e).__name__}: {clip(e, 120)})") from None
     done, out = threading.Event(), {}
 
     def connect():
