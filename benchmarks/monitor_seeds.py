@@ -1,0 +1,138 @@
+"""Several trainings of one monitor study, and the mean of their risks, read off their
+outputs without rendering or training again. Each OUT is a finished
+`benchmarks/monitor.py` study on the same recordings (the same family, split, runs
+and cache) that differs only in how the monitors were trained (``--train-seed``,
+``--lr-schedule``, ``--epochs``). For each variant it prints, per training and for the
+tick-by-tick mean of the trainings' risks (an ensemble of the trainings):
+
+- how the risk ranks ticks, "fails within the study's horizon": AUROC pooled over a
+  split's environments, at the worst environment and the median one;
+- how it ranks whole runs (flag rule 1/1): a warnable failing run's largest risk at
+  least the fallback's lead before it fails against a run that did not fail's largest
+  risk (AUROC), and the fewest needless flags any threshold gives at a 10 % miss, the
+  threshold set on those runs themselves;
+- the system figures: the study's own flag-rule choice and conformal threshold on the
+  calibration environments (`pipeline.monitor_study`), then the pooled miss and
+  needless-flag rates on the held-out environments and on the named ones outside the
+  family. A training's threshold must equal the one its study saved (checked), so
+  ``--period``, ``--duration`` and ``--flag-rules`` must be the study's.
+
+    python benchmarks/monitor.py ... --train-seed 0 --out OUT0     # the studies first
+    python benchmarks/monitor.py ... --train-seed 1 --out OUT1
+    python benchmarks/monitor_seeds.py OUT0 OUT1 --variants "single frame"
+"""
+
+import argparse
+import json
+import types
+
+import numpy as np
+
+from reachwatch.pipeline.monitor_study import _flag_rule_threshold, _judge
+from reachwatch.training.metrics import auroc
+from reachwatch.training.monitor_eval import labelled_ticks, rate
+
+SPLITS = ("calibrate", "held_out", "also_held_out")
+
+
+def _groups(saved, flat: dict):
+    """Per split: the environments (``ticks``, ``failure_time``, ``name``) and each one's
+    risks per run, from ``flat`` (the split's risks of every tick, concatenated)."""
+    groups, risks = {}, {}
+    for split in SPLITS:
+        ticks, failure = saved[f"{split}/ticks"], saved[f"{split}/failure_time"]
+        env, names = saved[f"{split}/environment"], saved[f"{split}/names"]
+        runs = np.split(flat[split], np.cumsum(ticks)[:-1]) if len(ticks) else []
+        groups[split] = [{"ticks": ticks[env == e], "failure_time": failure[env == e],
+                          "name": str(names[e])} for e in range(len(names))]
+        risks[split] = [[runs[i] for i in np.flatnonzero(env == e)] for e in range(len(names))]
+    return groups, risks
+
+
+def _ranking(groups, risks, *, period, duration, within, lead):
+    """Tick AUROC (pooled, worst and median environment), run AUROC and the fewest
+    needless flags at a 10 % miss over the environments ``groups``."""
+    labels, scores, per_env = [], [], []
+    warning, safe = [], []
+    for g, runs in zip(groups, risks):
+        y, r = labelled_ticks(runs, g["ticks"], g["failure_time"], period=period,
+                              duration=duration, within=within)
+        labels.append(y == 1)
+        scores.append(r)
+        if 0 < np.sum(y == 1) < len(y):
+            per_env.append(auroc(y == 1, r))
+        for risk, failure in zip(runs, g["failure_time"]):
+            if not np.isfinite(failure):
+                safe.append(risk.max())
+                continue
+            early = np.arange(len(risk)) * period <= failure - lead + 1e-9
+            if early.any():
+                warning.append(risk[early].max())
+    warning, safe = np.sort(warning), np.asarray(safe)
+    tau = warning[int(np.floor(0.1 * len(warning) + 1e-9))]
+    runs = np.r_[np.ones(len(warning), bool), np.zeros(len(safe), bool)]
+    return (auroc(np.concatenate(labels), np.concatenate(scores)), min(per_env),
+            float(np.median(per_env)), auroc(runs, np.r_[warning, safe]),
+            rate(int(np.sum(safe >= tau)), len(safe)))
+
+
+def _pct(r) -> str:
+    return f"{100 * r['count'] / max(1, r['of']):5.1f} ({r['count']}/{r['of']})"
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("outs", nargs="+", help="finished studies' --out folders")
+    p.add_argument("--variants", nargs="+", help="variants to show (default: all)")
+    p.add_argument("--period", type=float, default=0.05, help="the loop's control period (s)")
+    p.add_argument("--duration", type=float, default=8.0, help="the study's run length (s)")
+    p.add_argument("--flag-rules", nargs="+", default=["1/1", "2/2", "2/3", "3/3", "3/5"],
+                   metavar="K/N", help="the study's --flag-rules")
+    args = p.parse_args()
+    studies = [json.loads(open(f"{out}/monitor.json").read()) for out in args.outs]
+    saved = [np.load(f"{out}/risks.npz", allow_pickle=True) for out in args.outs]
+    first = studies[0]
+    lead, within = first["lead_s"], first["within_s"]
+    for s in saved[1:]:
+        for split in SPLITS:
+            for key in ("ticks", "failure_time", "environment"):
+                if not np.array_equal(s[f"{split}/{key}"], saved[0][f"{split}/{key}"],
+                                      equal_nan=key == "failure_time"):
+                    p.error(f"the studies did not record the same runs ({split}/{key} differ)")
+    spec = types.SimpleNamespace(alpha=first["alpha"], duration=args.duration,
+                                 flag_rules=[list(map(int, r.split("/")))
+                                             for r in args.flag_rules])
+    shape = dict(period=args.period, duration=args.duration, within=within, lead=lead)
+    for variant in args.variants or list(first["variants"]):
+        print(f"\n{variant}: fails within {within:g} s; lead {lead:.2f} s; alpha {spec.alpha:g}")
+        print(f"{'training':28s} {'split':14s} tick AUROC pooled/worst/median  run AUROC  "
+              f"needless at 10 % miss  | rule, threshold: miss %, needless flags %")
+        rows = [(out, {split: s[f"{variant}/{split}/risk"].astype(float) for split in SPLITS},
+                 study["variants"][variant]["threshold"])
+                for out, s, study in zip(args.outs, saved, studies)]
+        if len(rows) > 1:
+            rows.append(("mean of the risks", {split: np.mean([r[1][split] for r in rows], axis=0)
+                                               for split in SPLITS}, None))
+        for name, flat, saved_threshold in rows:
+            groups, risks = _groups(saved[0], flat)
+            rule, flags, chosen, _ = _flag_rule_threshold(spec, groups["calibrate"], risks,
+                                                          period=args.period, lead=lead)
+            if saved_threshold is not None and not np.isclose(chosen.threshold, saved_threshold):
+                p.error(f"{name}: threshold {chosen.threshold:.4f} here, {saved_threshold:.4f} "
+                        f"in its study: give the study's --period, --duration and --flag-rules")
+            for split in SPLITS:
+                if not groups[split]:
+                    continue
+                tick, worst, median, run_auc, needless = _ranking(groups[split], risks[split],
+                                                                  **shape)
+                _, pooled = _judge(groups[split], risks[split], threshold=chosen.threshold,
+                                   period=args.period, lead=lead, duration=args.duration,
+                                   flags=flags[split])
+                print(f"{name:28s} {split:14s} {tick:.3f} / {worst:.3f} / {median:.3f}"
+                      f"        {run_auc:.3f}      {_pct(needless)}  | {rule[0]}/{rule[1]}, "
+                      f"{chosen.threshold:.3f}: {_pct(pooled['miss'])}, "
+                      f"{_pct(pooled['needless'])}")
+
+
+if __name__ == "__main__":
+    main()
