@@ -69,7 +69,11 @@ class MonitorStudySpec:
     variant's worst held-out AUROC from 0.70 to 0.89. ``seed``: the monitors' training
     seed (initial weights, batch order, jitter); train with a few to see how far one
     training's figures are from the next's. ``lr_schedule``: ``constant`` or ``cosine``
-    (each training stage's learning rate decays to zero over its steps)."""
+    (each training stage's learning rate decays to zero over its steps). ``epochs``:
+    the per-frame encoder's; 12 rather than 6 ranked the calibration environments'
+    ticks and whole runs better in every variant, on average over three trainings
+    against five (random family, seed 11, train 16, calibrate 16); the needless flags
+    at the conformal threshold moved both ways. The cosine schedule ranked worse."""
     kind: str = "detector"
     family: RandomEnvironments = dc.field(default_factory=lambda: RandomEnvironments(seed=11))
     train: int = bounded(12, 1, 1000, whole=True)
@@ -85,7 +89,7 @@ class MonitorStudySpec:
                            note=">= 1 / (calibrate + 1)")
     height: int = bounded_as(48, HistoryMonitorConfig, "height")
     width: int = bounded_as(80, HistoryMonitorConfig, "width")
-    epochs: int = bounded(6, 1, 10_000, whole=True)
+    epochs: int = bounded(12, 1, 10_000, whole=True)
     head_epochs: int = bounded(40, 1, 100_000, whole=True)
     augment: bool = True
     seed: int = seed_field()

@@ -34,7 +34,7 @@ class HistoryTrainConfig:
     ``lr_schedule``: ``constant`` keeps each stage's learning rate; ``cosine`` decays it
     to zero over the stage's steps (`torch.optim.lr_scheduler.CosineAnnealingLR`), so
     the last epochs take small steps and one training ends nearer the next."""
-    epochs: int = 6
+    epochs: int = 12
     head_epochs: int = 40
     head_learning_rate: float = 3e-3
     batch_size: int = 128
