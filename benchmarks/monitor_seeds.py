@@ -14,8 +14,10 @@ tick-by-tick mean of the trainings' risks (an ensemble of the trainings):
 - the system figures: the study's own flag-rule choice and conformal threshold on the
   calibration environments (`pipeline.monitor_study`), then the pooled miss and
   needless-flag rates on the held-out environments and on the named ones outside the
-  family. A training's threshold must equal the one its study saved (checked), so
-  ``--period``, ``--duration`` and ``--flag-rules`` must be the study's.
+  family. ``--period``, ``--duration`` and ``--flag-rules`` must be the study's: each
+  training's threshold must equal the one its study saved, and the runs that did not
+  fail must last ``duration`` (both checked); the studies must share their horizon,
+  lead, alpha and variants (checked).
 
     python benchmarks/monitor.py ... --train-seed 0 --out OUT0     # the studies first
     python benchmarks/monitor.py ... --train-seed 1 --out OUT1
@@ -69,15 +71,21 @@ def _ranking(groups, risks, *, period, duration, within, lead):
             if early.any():
                 warning.append(risk[early].max())
     warning, safe = np.sort(warning), np.asarray(safe)
+    labels, scores = np.concatenate(labels), np.concatenate(scores)
+    tick = auroc(labels, scores) if 0 < labels.sum() < len(labels) else np.nan
+    worst, median = (min(per_env), float(np.median(per_env))) if per_env else (np.nan, np.nan)
+    if not len(warning) or not len(safe):         # no run of one kind: nothing to rank
+        return tick, worst, median, np.nan, rate(0, 0)
     tau = warning[int(np.floor(0.1 * len(warning) + 1e-9))]
     runs = np.r_[np.ones(len(warning), bool), np.zeros(len(safe), bool)]
-    return (auroc(np.concatenate(labels), np.concatenate(scores)), min(per_env),
-            float(np.median(per_env)), auroc(runs, np.r_[warning, safe]),
+    return (tick, worst, median, auroc(runs, np.r_[warning, safe]),
             rate(int(np.sum(safe >= tau)), len(safe)))
 
 
 def _pct(r) -> str:
-    return f"{100 * r['count'] / max(1, r['of']):5.1f} ({r['count']}/{r['of']})"
+    if not r["of"]:
+        return "    - (0/0)"
+    return f"{100 * r['count'] / r['of']:5.1f} ({r['count']}/{r['of']})"
 
 
 def main():
@@ -86,13 +94,25 @@ def main():
     p.add_argument("--variants", nargs="+", help="variants to show (default: all)")
     p.add_argument("--period", type=float, default=0.05, help="the loop's control period (s)")
     p.add_argument("--duration", type=float, default=8.0, help="the study's run length (s)")
-    p.add_argument("--flag-rules", nargs="+", default=["1/1", "2/2", "2/3", "3/3", "3/5"],
-                   metavar="K/N", help="the study's --flag-rules")
+    p.add_argument("--flag-rules", nargs="+", default=["1/1"], metavar="K/N",
+                   help="the study's --flag-rules (its default: 1/1)")
     args = p.parse_args()
     studies = [json.loads(open(f"{out}/monitor.json").read()) for out in args.outs]
     saved = [np.load(f"{out}/risks.npz", allow_pickle=True) for out in args.outs]
     first = studies[0]
     lead, within = first["lead_s"], first["within_s"]
+    for out, study in zip(args.outs[1:], studies[1:]):
+        for key in ("lead_s", "within_s", "alpha"):
+            if study[key] != first[key]:
+                p.error(f"{out}: {key} {study[key]:g}, {args.outs[0]}: {first[key]:g}: "
+                        f"the studies must differ only in how they trained")
+        if list(study["variants"]) != list(first["variants"]):
+            p.error(f"{out} trained other variants than {args.outs[0]}")
+    lengths = {int(n) for split in SPLITS for n in saved[0][f"{split}/ticks"][
+        ~np.isfinite(saved[0][f"{split}/failure_time"])]}
+    if lengths and lengths != {round(args.duration / args.period) + 1}:
+        p.error(f"runs that did not fail have {sorted(lengths)} ticks: give the study's "
+                f"--period and --duration (now {args.period:g} s, {args.duration:g} s)")
     for s in saved[1:]:
         for split in SPLITS:
             for key in ("ticks", "failure_time", "environment"):

@@ -285,12 +285,13 @@ STUDY_FORMAT = 3
 #: The modules whose code trains and judges the study's monitors (the recorded runs
 #: and guarded missions have keys of their own): part of the monitor stage's key. A
 #: test (tests/test_import_graph.py) finds the training and monitor modules they
-#: import and fails while one is missing here.
+#: import, and the reach/ modules those import, and fails while one is missing here.
 STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_monitor",
               "reachwatch.training.detector_train", "reachwatch.training.history_train",
               "reachwatch.training.monitor_eval", "reachwatch.training.conformal",
               "reachwatch.training.baselines", "reachwatch.training.metrics",
-              "reachwatch.training.figures", "reachwatch.pipeline.monitor_study",
+              "reachwatch.training.figures", "reachwatch.reach.outcomes",
+              "reachwatch.reach.fidelity", "reachwatch.pipeline.monitor_study",
               "reachwatch.pipeline.monitor_guarded")
 
 
