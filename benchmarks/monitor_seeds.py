@@ -30,9 +30,9 @@ import types
 
 import numpy as np
 
+from reachwatch.pipeline.monitor_sections import run_ranking
 from reachwatch.pipeline.monitor_study import _flag_rule_threshold, _judge
-from reachwatch.training.metrics import auroc
-from reachwatch.training.monitor_eval import labelled_ticks, rate
+from reachwatch.training.monitor_eval import rate, run_scores, tick_auroc
 
 SPLITS = ("calibrate", "held_out", "also_held_out")
 
@@ -53,33 +53,18 @@ def _groups(saved, flat: dict):
 
 def _ranking(groups, risks, *, period, duration, within, lead):
     """Tick AUROC (pooled, worst and median environment), run AUROC and the fewest
-    needless flags at a 10 % miss over the environments ``groups``."""
-    labels, scores, per_env = [], [], []
-    warning, safe = [], []
-    for g, runs in zip(groups, risks):
-        y, r = labelled_ticks(runs, g["ticks"], g["failure_time"], period=period,
-                              duration=duration, within=within)
-        labels.append(y == 1)
-        scores.append(r)
-        if 0 < np.sum(y == 1) < len(y):
-            per_env.append(auroc(y == 1, r))
-        for risk, failure in zip(runs, g["failure_time"]):
-            if not np.isfinite(failure):
-                safe.append(risk.max())
-                continue
-            early = np.arange(len(risk)) * period <= failure - lead + 1e-9
-            if early.any():
-                warning.append(risk[early].max())
-    warning, safe = np.sort(warning), np.asarray(safe)
-    labels, scores = np.concatenate(labels), np.concatenate(scores)
-    tick = auroc(labels, scores) if 0 < labels.sum() < len(labels) else np.nan
+    needless flags at a 10 % miss (`run_ranking`, flag rule 1/1) over ``groups``."""
+    shape = dict(period=period, duration=duration, within=within)
+    pooled = tick_auroc([r for runs in risks for r in runs],
+                        np.concatenate([g["ticks"] for g in groups]),
+                        np.concatenate([g["failure_time"] for g in groups]), **shape)
+    per_env = [a for a in (tick_auroc(runs, g["ticks"], g["failure_time"], **shape)
+                           for g, runs in zip(groups, risks)) if np.isfinite(a)]
     worst, median = (min(per_env), float(np.median(per_env))) if per_env else (np.nan, np.nan)
-    if not len(warning) or not len(safe):         # no run of one kind: nothing to rank
-        return tick, worst, median, np.nan, rate(0, 0)
-    tau = warning[int(np.floor(0.1 * len(warning) + 1e-9))]
-    runs = np.r_[np.ones(len(warning), bool), np.zeros(len(safe), bool)]
-    return (tick, worst, median, auroc(runs, np.r_[warning, safe]),
-            rate(int(np.sum(safe >= tau)), len(safe)))
+    ranked = run_ranking({"scores": {"runs": [
+        run_scores(runs, g["ticks"], g["failure_time"], period=period, lead=lead)
+        for g, runs in zip(groups, risks)]}}, "runs")
+    return pooled, worst, median, ranked["auroc"], ranked["needless"] or rate(0, 0)
 
 
 def _pct(r) -> str:

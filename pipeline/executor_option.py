@@ -12,6 +12,7 @@ def short(spec: str) -> str:
     `reachwatch.systems.checks.short`, whose package would import drake and OpenCV)."""
     return repr(spec if len(spec) <= 60 else spec[:28] + "..." + spec[-28:])
 
+
 #: The most local workers ``local:N`` may start (each is a process with its renderer).
 MAX_WORKERS = 256
 

@@ -12,7 +12,7 @@ from reachwatch.reach import InlineExecutor, default_executor
 from reachwatch.reach.sweep import stop_executor
 from reachwatch.systems.checks import clip, short
 
-from .executor_option import MAX_WORKERS, check_executor, dask_address, local_workers  # noqa: F401
+from .executor_option import check_executor, dask_address, local_workers
 
 #: Distributions a Dask worker must have at the driver's versions: a chunk is cached by
 #: the content it was asked for, not by the code that computed it.

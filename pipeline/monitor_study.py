@@ -37,8 +37,8 @@ from reachwatch.training.conformal import (PlattCalibration, brier_score, confor
 from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
                                                tick_labels, train_encoder, train_head)
 from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, labelled_ticks,
-                                              oracle_risks, run_times, system_figures,
-                                              tick_auroc)
+                                              oracle_risks, run_scores, run_times,
+                                              system_figures, tick_auroc)
 
 from .monitor_guarded import guarded_rows
 from .monitor_sections import rate_text
@@ -195,11 +195,9 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         # what any threshold does with the kept rule: each environment's warnable failing
         # runs' warning scores and its other runs' largest flag risk (a run is flagged
         # iff it is >= tau)
-        row["scores"] = {k: [{"warning": warning_scores(
-            r, run_times(g["ticks"], period), g["failure_time"], lead=lead).tolist(),
-            "safe_max": [float(np.max(x)) if len(x) else 0.0 for x, f in zip(
-                r, g["failure_time"]) if not np.isfinite(f)]}
-            for r, g in zip(flags[k], data[k])] for k in ("calibrate", "held_out")}
+        row["scores"] = {k: [run_scores(r, g["ticks"], g["failure_time"], period=period,
+                                        lead=lead) for r, g in zip(flags[k], data[k])]
+                         for k in ("calibrate", "held_out")}
         results[variant.name] = row
         models[variant.name] = (model, platt, chosen.threshold, rule)
         log(f"monitor: {variant.name}: threshold {chosen.threshold:.3f}, held-out miss "

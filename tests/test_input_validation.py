@@ -357,39 +357,6 @@ def test_labels_monitor_environments_and_horizons_that_make_no_sense_are_refused
     assert load_run_spec(data=TINY.replace("name: tiny", "name: 'Étude de nuit (KMWH)'"))
 
 
-@pytest.mark.parametrize("spec", ["dask://:::bad", "tcp://", "dask://host:notaport",
-                                  "dask://host:0", "dask://host:99999", "dask://" + "x" * 5000,
-                                  "dask://host:8786\n"])
-def test_a_malformed_dask_address_is_one_line_naming_the_option(spec):
-    """Dask answered these in its own words (not naming --executor: "missing port number
-    in address ''"), or left a half-made client behind; now one line, no client made."""
-    from reachwatch.pipeline.executors import make_executor
-    with pytest.raises(ValueError, match=re.escape("--executor dask://HOST:PORT needs a host "
-                                                   "and a port in [1, 65535]")) as e:
-        make_executor(spec, connect_timeout=0.5)
-    assert "\n" not in str(e.value) and len(str(e.value)) < 300
-
-
-@pytest.mark.parametrize("command", [["run", "--scenario", "MISSING.yaml", "--out", "OUT"],
-                                     ["guard", "--scenario", "MISSING.yaml"], ["sweep"], ["brt"],
-                                     ["evaluate", "--scenario", "MISSING.yaml", "--out", "OUT"]])
-@pytest.mark.parametrize("spec, message", [
-    ("local:0", "local:N needs a whole number of workers N in [1, 256], got 'local:0'"),
-    ("dask://host", "dask://HOST:PORT needs a host and a port in [1, 65535]"),
-    ("threads", "must be local, local:N, inline or dask://HOST:PORT, got 'threads'")])
-def test_every_executor_option_refuses_a_malformed_value_before_any_file_is_read(
-        command, spec, message, capsys):
-    """One ``--executor`` for every subcommand that runs chunks: a value that cannot
-    name an executor is argparse's one-line error (exit 2), before the run file or
-    scenario (missing here) is read; it was found only after the run file loaded."""
-    with pytest.raises(SystemExit) as e:
-        cli.main([*command, "--executor", spec])
-    assert e.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert f"error: argument --executor: {message}" in err, err
-    assert "MISSING" not in err
-
-
 def test_hour_minus_zero_is_hour_zero_and_cannot_hide_a_training_environment_in_test():
     """``hour: -0.0`` was named ``KMWH_-0h_clear``: the same environment as a training
     ``KMWH_0h_clear`` under another name, so the run tested on a training environment

@@ -39,6 +39,17 @@ def labelled_ticks(risks, ticks, failure_times, *, period: float, duration: floa
     return np.concatenate(labels), np.concatenate(scores)
 
 
+def run_scores(risks, ticks, failure_times, *, period: float, lead: float) -> dict:
+    """What any threshold does with one environment's runs: ``warning``, each warnable
+    failing run's largest risk at least ``lead`` s before it fails (`warning_scores`),
+    and ``safe_max``, each run that did not fail's largest risk (a run is flagged iff
+    its score is >= the threshold)."""
+    return {"warning": warning_scores(risks, run_times(ticks, period), failure_times,
+                                      lead=lead).tolist(),
+            "safe_max": [float(np.max(x)) if len(x) else 0.0
+                         for x, f in zip(risks, failure_times) if not np.isfinite(f)]}
+
+
 def run_times(ticks, period: float) -> list:
     """Each run's tick times (s), ``ticks[i]`` of them."""
     return [np.arange(int(n)) * period for n in ticks]
