@@ -41,7 +41,7 @@ def main():
     p.add_argument("--seed", type=int, default=defaults.family.seed,
                    help="the random environment family")
     for name in ("train", "calibrate", "held_out", "runs", "epochs", "head_epochs",
-                 "guarded_runs"):
+                 "guarded_runs", "ensemble"):
         p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(defaults, name))
     for name in ("duration", "within", "alpha"):
         p.add_argument(f"--{name}", type=float, default=getattr(defaults, name))
@@ -73,7 +73,7 @@ def main():
         brake_deceleration=args.brake, height=args.size[0], width=args.size[1],
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
-        seed=args.train_seed, lr_schedule=args.lr_schedule,
+        seed=args.train_seed, lr_schedule=args.lr_schedule, ensemble=args.ensemble,
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])
     try:

@@ -1,7 +1,8 @@
 """Online rate: closed-loop control ticks per wall second of TaxiNet alone vs the
 guarded loop (TaxiNet + a monitor + fallback switch), same run, same 200x360 camera.
 The monitors are single-image anomaly detectors and monitors over the image history
-(`HistoryMonitor`, 48x80 frames, as the monitor study trains them); they have random
+(`HistoryMonitor`, 48x80 frames, as the monitor study trains them, and an ensemble of
+them: ``monitor.ensemble``); they have random
 weights unless --detector is given (timing does not depend on the weights) and never
 trigger the fallback (threshold 1), so both loops drive the same path.
 
@@ -12,7 +13,7 @@ first row times TaxiNet alone against a second copy of itself: the method's nois
 (its ratio should read 1.00; on this VM it reads 0.97-1.05).
 
     python benchmarks/online.py [--detector PATH] [--monitors all|detector|history]
-                                [--duration 4] [--rounds 15]
+                                [--duration 4] [--rounds 15] [--ensemble 5]
 """
 
 import argparse
@@ -24,7 +25,8 @@ import torch
 
 from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram, make_guarded_diagram,
                                  paired_rates, save_checkpoint)
-from reachwatch.systems import DetectorConfig, HistoryMonitorConfig, HistoryRiskModel, build_detector
+from reachwatch.systems import (DetectorConfig, HistoryMonitorConfig, HistoryRiskEnsemble,
+                                HistoryRiskModel, build_detector)
 from reachwatch.taxi.application import NEAR_CENTRELINE
 
 
@@ -35,6 +37,8 @@ def main():
                         help="which untrained monitors to time (without --detector)")
     parser.add_argument("--duration", type=float, default=4.0, help="seconds simulated per round")
     parser.add_argument("--rounds", type=int, default=15, help="rounds (median ratio)")
+    parser.add_argument("--ensemble", type=int, default=5,
+                        help="members of the ensemble row (monitor.ensemble)")
     parser.add_argument("--torch-threads", type=int, default=0,
                         help="torch.set_num_threads for the run (0: torch's default); a "
                              "history monitor runs its network on one thread whatever this says")
@@ -45,7 +49,7 @@ def main():
           f"{args.duration:g} s, both loops side by side in alternating 0.5 s blocks; "
           f"medians over rounds; {torch.get_num_threads()} torch threads, 1 in a history "
           f"monitor (paper: 33 Hz alone vs 25 Hz guarded)")
-    print(f"{'detector':<34} {'alone /s':>10} {'guarded /s':>12} {'+ms/tick':>9} {'ratio':>6} "
+    print(f"{'detector':<38} {'alone /s':>10} {'guarded /s':>12} {'+ms/tick':>9} {'ratio':>6} "
           f"{'range':>9}")
     with tempfile.TemporaryDirectory() as folder:
         configs = [("given", args.detector)] if args.detector else []
@@ -62,15 +66,21 @@ def main():
                             model_config=config, preprocess_config=None,
                             metadata={"image_size": [200, 360]})
             configs.append((name, path))
-        for name, config in [] if args.detector or args.monitors == "detector" else [
-                ("history: stacked 8 frames, 48x80", HistoryMonitorConfig(frames=8, stride=4)),
+        one = HistoryMonitorConfig(frames=1)
+        for name, config, members in [] if args.detector or args.monitors == "detector" else [
+                ("history: single frame, 48x80", one, 1),
+                (f"history: ensemble of {args.ensemble} single frames", one, args.ensemble),
+                ("history: stacked 8 frames, 48x80", HistoryMonitorConfig(frames=8, stride=4), 1),
                 ("history: GRU 16 + signals, 48x80", HistoryMonitorConfig(
-                    frames=16, temporal="gru", signals=3))]:
+                    frames=16, temporal="gru", signals=3), 1)]:
             torch.manual_seed(0)
-            path = Path(folder) / f"history_{config.temporal}_{config.frames}.pt"
-            save_checkpoint(path, kind="history_monitor", model=HistoryRiskModel(config).eval(),
+            path = Path(folder) / f"history_{config.temporal}_{config.frames}_{members}.pt"
+            models = [HistoryRiskModel(config).eval() for _ in range(members)]
+            model = models[0] if members == 1 else HistoryRiskEnsemble.of(models)
+            save_checkpoint(path, kind="history_monitor", model=model,
                             model_config=config, preprocess_config=None,
-                            metadata={"calibration": [1.0, 0.0]})
+                            metadata={"calibration": [1.0, 0.0],
+                                      **({"members": members} if members > 1 else {})})
             configs.append((name, path))
         nominal = make_closed_loop_diagram(load_scenario(data=""))
         # First row: TaxiNet alone against a second copy of itself, the method's noise floor.
@@ -84,7 +94,7 @@ def main():
                                         starts=NEAR_CENTRELINE)
             ratio = guard / alone
             extra_ms = float(np.median(1e3 / guard - 1e3 / alone))
-            print(f"{name:<34} {np.median(alone):10.1f} {np.median(guard):12.1f} "
+            print(f"{name:<38} {np.median(alone):10.1f} {np.median(guard):12.1f} "
                   f"{extra_ms:9.2f} {np.median(ratio):6.2f} {ratio.min():5.2f}-{ratio.max():.2f}")
 
 

@@ -12,8 +12,9 @@ from pathlib import Path
 
 import torch
 
-from reachwatch.systems import (DetectorConfig, HistoryMonitorConfig, HistoryRiskModel,
-                                PreprocessConfig, TaxiNetConfig, build_detector, build_taxinet)
+from reachwatch.systems import (DetectorConfig, HistoryMonitorConfig, HistoryRiskEnsemble,
+                                HistoryRiskModel, PreprocessConfig, TaxiNetConfig, build_detector,
+                                build_taxinet, check_members)
 from reachwatch.systems.checks import short
 from reachwatch.systems.files import atomic_write_bytes, file_hash, local_copy  # noqa: F401  (file_hash re-exported)
 
@@ -96,6 +97,11 @@ def _check_numbers(path, payload):
                 for v in calibration)):
         raise CheckpointError(f"{path}: its calibration must be two finite numbers [a, b], "
                               f"got {short(calibration)}")
+    if payload["kind"] == "history_monitor":
+        try:
+            check_members(payload["metadata"].get("members", 1))
+        except ValueError as e:
+            raise CheckpointError(f"{path}: its members: {e}") from None
 
 
 def _config(cls, data, path, what):
@@ -106,11 +112,13 @@ def _config(cls, data, path, what):
 
 
 def _load_model(path, kind, config_cls, build, preprocess_cls=None):
+    """``(model, config, preprocess_config, metadata)``; ``build(config,
+    preprocess_config, metadata)`` makes the untrained model the weights load into."""
     payload = load_checkpoint(path, kind=kind)
     config = _config(config_cls, payload["model_config"], path, "model_config")
     preprocess_config = (_config(preprocess_cls, payload["preprocess"], path, "preprocess")
                          if preprocess_cls else None)
-    model = build(config, preprocess_config) if preprocess_cls else build(config)
+    model = build(config, preprocess_config, payload["metadata"])
     try:
         model.load_state_dict(payload["state_dict"])
     except RuntimeError as e:
@@ -122,13 +130,14 @@ def _load_model(path, kind, config_cls, build, preprocess_cls=None):
 def load_taxinet(path=REFERENCE_TAXINET):
     """``(model, preprocess_config, metadata)`` from a TaxiNet checkpoint (eval mode)."""
     model, _, preprocess_config, metadata = _load_model(
-        path, "taxinet", TaxiNetConfig, build_taxinet, PreprocessConfig)
+        path, "taxinet", TaxiNetConfig, lambda c, p, _: build_taxinet(c, p), PreprocessConfig)
     return model, preprocess_config, metadata
 
 
 def load_detector(path):
     """``(model, detector_config, metadata)`` from an anomaly-detector checkpoint."""
-    model, config, _, metadata = _load_model(path, "detector", DetectorConfig, build_detector)
+    model, config, _, metadata = _load_model(path, "detector", DetectorConfig,
+                                             lambda c, _, __: build_detector(c))
     return model, config, metadata
 
 
@@ -143,7 +152,11 @@ def checkpoint_kind(path, kinds=MONITOR_KINDS) -> str:
 
 def load_history_monitor(path):
     """``(model, config, metadata)`` from a history-monitor checkpoint (eval mode); the
-    metadata holds its ``threshold`` and Platt ``calibration`` ``[a, b]``."""
-    model, config, _, metadata = _load_model(path, "history_monitor", HistoryMonitorConfig,
-                                             HistoryRiskModel)
+    metadata holds its ``threshold``, Platt ``calibration`` ``[a, b]`` and, for an
+    ensemble, its ``members`` (the model is then a `HistoryRiskEnsemble`, else a
+    `HistoryRiskModel`)."""
+    def build(config, _, metadata):
+        members = metadata.get("members", 1)
+        return HistoryRiskModel(config) if members == 1 else HistoryRiskEnsemble(config, members)
+    model, config, _, metadata = _load_model(path, "history_monitor", HistoryMonitorConfig, build)
     return model, config, metadata

@@ -7,8 +7,8 @@ from typing import List
 
 from reachwatch.diagrams import MonitorConfig
 from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW
-from reachwatch.systems import (TEMPORAL_MODELS, Environment, HistoryMonitorConfig,
-                                RandomEnvironments)
+from reachwatch.systems import (MAX_MEMBERS, TEMPORAL_MODELS, Environment,
+                                HistoryMonitorConfig, RandomEnvironments)
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
 from reachwatch.systems.checks import check_label, short
 from reachwatch.systems.flag_filter import check_k_of_n
@@ -68,7 +68,10 @@ class MonitorStudySpec:
     16, calibrate 30, held out 8, 30 runs of 8 s, within 4 s) raised the single-frame
     variant's worst held-out AUROC from 0.70 to 0.89. ``seed``: the monitors' training
     seed (initial weights, batch order, jitter); train with a few to see how far one
-    training's figures are from the next's. ``lr_schedule``: ``constant`` or ``cosine``
+    training's figures are from the next's. ``ensemble``: each variant is that many
+    trainings (seeds ``seed``, ``seed + 1``, ...), their raw risks averaged at every tick
+    before one calibration and threshold (online: one `HistoryMonitor` per member and
+    their `MeanRisk`; each member encodes every frame). ``lr_schedule``: ``constant`` or ``cosine``
     (each training stage's learning rate decays to zero over its steps). ``epochs``:
     the per-frame encoder's; 12 rather than 6 ranked the calibration environments'
     ticks and whole runs better in every variant, on average over three trainings
@@ -93,6 +96,7 @@ class MonitorStudySpec:
     head_epochs: int = bounded(40, 1, 100_000, whole=True)
     augment: bool = True
     seed: int = seed_field()
+    ensemble: int = bounded(1, 1, MAX_MEMBERS, whole=True)
     lr_schedule: str = "constant"
     guarded_runs: int = bounded(0, 0, 100_000, whole=True)
     variants: List[MonitorVariant] = dc.field(default_factory=default_variants)

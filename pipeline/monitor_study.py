@@ -28,7 +28,7 @@ import numpy as np
 
 from reachwatch.diagrams import save_checkpoint
 from reachwatch.reach.application import application_key, load_application
-from reachwatch.systems import HistoryMonitorConfig
+from reachwatch.systems import HistoryMonitorConfig, HistoryRiskEnsemble
 from reachwatch.systems.files import atomic_write_bytes
 from reachwatch.training.baselines import prediction_error
 from reachwatch.training.conformal import (PlattCalibration, brier_score, conformal_threshold,
@@ -81,6 +81,12 @@ def _labelled(groups, risks, *, period, duration, within):
             np.concatenate([p[1] for p in pairs] + [np.zeros(0)]))
 
 
+def _member_mean(per_member):
+    """The members' raw risks averaged per tick: ``per_member[m][env][run]`` (one
+    array per run) -> ``[env][run]`` (one member: its own risks)."""
+    return [[np.mean(runs, axis=0) for runs in zip(*groups)] for groups in zip(*per_member)]
+
+
 def _judge(groups, risks, *, threshold, period, lead, duration, flags=None):
     """Per environment and pooled system figures at ``threshold`` (flags read from
     ``flags``, the risks a k-of-n flag rule acts on, when given; AUROC from ``risks``)."""
@@ -128,7 +134,9 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     """The whole study (see the module) of ``application``'s loop (an `Application`;
     None: the default, the taxi); writes ``monitor.json`` and the checkpoints of the kept
     variant and of the first one (``variants[0]``, by default the single frame) to
-    ``out_dir``; returns the results."""
+    ``out_dir``; returns the results. With ``spec.ensemble`` > 1 each variant is that
+    many trainings (`member_settings`) whose raw risks are averaged per tick, then
+    calibrated and thresholded as one monitor; its checkpoint holds every member."""
     spec.validate()
     application = load_application() if application is None else application
     started = time.time()
@@ -149,20 +157,27 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     train = _merged(data["train"])
     labels = tick_labels(train, period=period, duration=spec.duration, within=spec.within)
     base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within)
-    settings = train_settings(spec)
-    encoder = train_encoder(train, labels, base, settings,
-                            progress=(lambda m: log(f"monitor: {m}")) if progress else None)
-    features = {k: [encode_runs(encoder, g) for g in groups] for k, groups in data.items()}
-    train_features = np.concatenate(features["train"])
     judged = ("calibrate", "held_out", "also_held_out")
+    # each member of the ensemble: its own encoder (seed spec.seed + m) and features
+    members = []
+    for m, settings in enumerate(member_settings(spec)):
+        where = f"member {m + 1}/{spec.ensemble}: " if spec.ensemble > 1 else ""
+        encoder = train_encoder(train, labels, base, settings, progress=(
+            lambda text, where=where: log(f"monitor: {where}{text}")) if progress else None)
+        members.append((encoder, settings, {k: [encode_runs(encoder, g) for g in groups]
+                                            for k, groups in data.items()}))
 
     results, models, all_risks = {}, {}, {}
     for variant in spec.variants:
         config = dc.replace(base, frames=variant.frames, stride=variant.stride,
                             temporal=variant.temporal,
                             signals=train["signals"].shape[-1] if variant.signals else 0)
-        model = train_head(encoder, train_features, train, labels, config, settings)
-        raw = {k: [run_risks(model, f, g) for f, g in zip(features[k], data[k])] for k in judged}
+        heads = [train_head(encoder, np.concatenate(features["train"]), train, labels, config,
+                            settings) for encoder, settings, features in members]
+        per_member = [{k: [run_risks(head, f, g) for f, g in zip(features[k], data[k])]
+                       for k in judged} for head, (_, _, features) in zip(heads, members)]
+        raw = {k: _member_mean([p[k] for p in per_member]) for k in judged}
+        model = heads[0] if len(heads) == 1 else HistoryRiskEnsemble.of(heads)
         y, q = _labelled(data["calibrate"], raw["calibrate"], period=period,
                          duration=spec.duration, within=spec.within)
         try:
@@ -229,6 +244,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                         preprocess_config=None,
                         metadata={"calibration": [platt.a, platt.b], "threshold": threshold,
                                   "within_s": spec.within, "lead_s": lead, "variant": name,
+                                  **({"members": spec.ensemble} if spec.ensemble > 1 else {}),
                                   **({"flag_rule": rule} if rule != [1, 1] else {})})
         checkpoints[name] = str(path)
     guarded = {k: guarded_rows(spec, application, scenario, data[k], models, checkpoints,
@@ -285,6 +301,7 @@ STUDY_FORMAT = 3
 #: test (tests/test_import_graph.py) finds the training and monitor modules they
 #: import, and the reach/ modules those import, and fails while one is missing here.
 STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_monitor",
+              "reachwatch.systems.risk_ensemble",
               "reachwatch.training.detector_train", "reachwatch.training.history_train",
               "reachwatch.training.monitor_eval", "reachwatch.training.conformal",
               "reachwatch.training.baselines", "reachwatch.training.metrics",
@@ -300,6 +317,13 @@ def train_settings(spec: MonitorStudySpec) -> HistoryTrainConfig:
     return HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs,
                               augment=spec.augment, seed=spec.seed,
                               lr_schedule=spec.lr_schedule)
+
+
+def member_settings(spec: MonitorStudySpec) -> list:
+    """`train_settings` of each of the ``spec.ensemble`` members: seeds ``spec.seed``,
+    ``spec.seed + 1``, ... (an ensemble of one is the training of ``spec.seed``)."""
+    settings = train_settings(spec)
+    return [dc.replace(settings, seed=settings.seed + m) for m in range(spec.ensemble)]
 
 
 def study_key(spec: MonitorStudySpec, application, scenario) -> str:

@@ -30,6 +30,7 @@ from .scene import add_runway_scene
 from .dead_reckoning import DeadReckoning, propagate_estimate
 from .history_monitor import (TEMPORAL_MODELS, HistoryMonitor, HistoryMonitorConfig,
                               HistoryRiskModel, platt)
+from .risk_ensemble import MAX_MEMBERS, HistoryRiskEnsemble, MeanRisk, check_members
 from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
 from .ports import weak_callback
 from .switch import (DEFAULT_FALLBACKS, STEERING, STEERING_ALIASES, STRATEGIES,
@@ -40,6 +41,7 @@ from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, Tax
 
 __all__ = [
     "TEMPORAL_MODELS", "HistoryMonitor", "HistoryMonitorConfig", "HistoryRiskModel", "platt",
+    "MAX_MEMBERS", "HistoryRiskEnsemble", "MeanRisk", "check_members",
     "FlagFilter", "check_k_of_n", "confirmed_flags", "weak_callback",
     "RandomEnvironments", "RandomRunwayRanges", "random_runway",
     "AircraftGeometry", "CameraConfig", "make_wing_camera", "SKIES", "Environment",

@@ -207,7 +207,8 @@ class HistoryMonitor(LeafSystem):
     features and signals: ``frame_features``, which Drake caches) and joins what the
     discrete state keeps. ``score`` is the calibrated risk at the current time, from the
     kept state and the current frame (so the fallback switch, updated at the same tick,
-    sees this tick's frame); ``anomaly`` is 1.0 when ``score >= threshold``. Ports are
+    sees this tick's frame; ``calibration`` None: the raw risk, as a `MeanRisk` over
+    an ensemble's members reads it); ``anomaly`` is 1.0 when ``score >= threshold``. Ports are
     named as `AnomalyDetector`'s, so either monitors a guarded loop.
 
     What the state keeps depends on the temporal model. ``stack``: the rows of the last
@@ -228,7 +229,7 @@ class HistoryMonitor(LeafSystem):
         self._model = inference_model(model)        # Conv-BN folded, channels-last
         self._config = model.config
         self._threshold = float(threshold)
-        self._platt = tuple(float(v) for v in calibration)
+        self._platt = None if calibration is None else tuple(float(v) for v in calibration)
         c = self._config
         self._width = c.features + c.signals
         self._gru = c.temporal == "gru"
@@ -341,7 +342,8 @@ class HistoryMonitor(LeafSystem):
             x = torch.from_numpy(rows.astype(np.float32))[None]
             with one_torch_thread():
                 logit = self._model.head_logits(x[..., :c.features], x[..., c.features:])
-        output.SetAtIndex(0, float(platt(float(torch.sigmoid(logit)[0]), *self._platt)))
+        risk = float(torch.sigmoid(logit)[0])
+        output.SetAtIndex(0, risk if self._platt is None else float(platt(risk, *self._platt)))
 
     def _calc_anomaly(self, context, output):
         output.SetAtIndex(0, 1.0 if self._score_port.Eval(context)[0] >= self._threshold else 0.0)

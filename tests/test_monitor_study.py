@@ -66,7 +66,9 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
                           (("runs: 6", "runs: 6\n  flag_rules: [[2, 2], [2, 2]]"),
                            "monitor.flag_rules: a list of"),
                           (("runs: 6", "runs: 6\n  flag_rules: [[3, 2]]"),
-                           "monitor.flag_rules: the k-of-n flag rule needs")):
+                           "monitor.flag_rules: the k-of-n flag rule needs"),
+                          (("runs: 6", "runs: 6\n  ensemble: 0"),
+                           "monitor.ensemble must be a whole number in .1, 32., got 0")):
         with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
             load_run_spec(data=TINY + STUDY.replace(*edit))
 
@@ -88,6 +90,9 @@ def test_the_study_key_covers_every_training_setting_and_the_study_code(monkeypa
     assert key(off) != before
     seeded = load_run_spec(data=TINY + STUDY.replace("  epochs: 1", "  epochs: 1\n  seed: 3"))
     assert study.train_settings(seeded.monitor).seed == 3 and key(seeded.monitor) != before
+    ensemble = load_run_spec(data=TINY + STUDY.replace("  epochs: 1", "  epochs: 1\n  ensemble: 2"))
+    assert [s.seed for s in study.member_settings(ensemble.monitor)] == [0, 1]
+    assert key(ensemble.monitor) != before
     cosine = load_run_spec(data=TINY + STUDY.replace("  epochs: 1",
                                                      "  epochs: 1\n  lr_schedule: cosine"))
     assert study.train_settings(cosine.monitor).lr_schedule == "cosine"
@@ -234,6 +239,38 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
 def test_the_threshold_is_the_conformal_one_of_the_calibration_scores():
     scores = [np.array([0.3, 0.7]), np.array([0.9])]
     assert conformal_threshold(scores, 0.5).threshold == pytest.approx(0.7)
+
+
+def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
+    """``ensemble: 2``: each variant is two trainings (seeds 0 and 1); the risk the study
+    judges at every held-out tick is what its checkpoint (both members) gives offline,
+    and neither member's alone."""
+    import dataclasses as dc
+    from reachwatch.pipeline.monitor_study import _record
+    from reachwatch.reach.application import load_application
+    from reachwatch.systems import HistoryRiskEnsemble, platt
+    spec = dc.replace(load_run_spec(data=TINY + STUDY).monitor, ensemble=2, guarded_runs=0,
+                      variants=[MonitorVariant("one frame")])
+    scenario = load_scenario(data="")
+    result = run_monitor_study(spec, scenario, tmp_path / "out", cache_dir=tmp_path / "cache",
+                               progress=False, log=lambda m: None)
+    model, _, meta = load_history_monitor(tmp_path / "out" / result["checkpoints"]["one frame"])
+    assert isinstance(model, HistoryRiskEnsemble) and meta["members"] == 2
+    held_out = _record(spec, load_application(), scenario, spec.environments()["held_out"],
+                       spec.train + spec.calibrate, cache_dir=tmp_path / "cache" / "runs",
+                       executor=None, progress=False)[0]
+    calibration = lambda q: platt(q, *meta["calibration"])  # noqa: E731
+    mine, each = [], [[] for _ in model.members]
+    for r, n in enumerate(held_out["ticks"]):
+        frames, signals = held_out["frames"][r, :n], held_out["signals"][r, :n, :0]
+        mine.append(model.risk_sequence(frames, signals, calibration))
+        for e, member in zip(each, model.members):
+            e.append(calibration(member.risk_sequence(frames, signals)))
+    with np.load(tmp_path / "out" / "risks.npz") as saved:
+        judged = saved["one frame/held_out/risk"]
+    np.testing.assert_allclose(judged, np.concatenate(mine), rtol=1e-4, atol=1e-6)
+    for e in each:
+        assert np.abs(judged - np.concatenate(e)).max() > 1e-4
 
 
 CART_STUDY = """

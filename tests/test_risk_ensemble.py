@@ -1,0 +1,105 @@
+"""An ensemble of history monitors: online (a `HistoryMonitor` per member and their
+`MeanRisk`, in a real rendered loop) it outputs at each tick the offline mean of its
+members' raw risks, calibrated; its checkpoint holds every member and refuses a bad
+member count by name."""
+
+import numpy as np
+import pytest
+import torch
+
+from reachwatch.diagrams import DETECTOR, load_scenario, save_checkpoint, simulate
+from reachwatch.diagrams.checkpoints import CheckpointError, load_history_monitor
+from reachwatch.systems import (HistoryMonitor, HistoryMonitorConfig, HistoryRiskEnsemble,
+                                HistoryRiskModel, MeanRisk, check_members, platt)
+from reachwatch.taxi.fidelity import make_watched_loop
+from reachwatch.taxi.history import record_runs
+
+
+def _members(config, count, seed=0):
+    out = []
+    for m in range(count):
+        torch.manual_seed(seed + m)
+        model = HistoryRiskModel(config)
+        for p in model.parameters():             # spread the raw risk over (0, 1)
+            p.data.mul_(3.0)
+        out.append(model.eval())
+    return out
+
+
+def _save(path, ensemble, calibration=(0.6, 0.2), members=None):
+    save_checkpoint(path, kind="history_monitor", model=ensemble, model_config=ensemble.config,
+                    preprocess_config=None,
+                    metadata={"calibration": list(calibration), "threshold": 0.5,
+                              "members": len(ensemble.members) if members is None else members})
+    return path
+
+
+def test_online_the_ensemble_outputs_the_calibrated_mean_of_its_members(tmp_path):
+    config = HistoryMonitorConfig(frames=3, stride=2, height=24, width=40, channels=[4, 8],
+                                  features=6, signals=3, signal_mean=[0.1] * 3,
+                                  signal_std=[2.0] * 3, temporal="gru", hidden=8)
+    members = _members(config, 3)
+    path = _save(tmp_path / "ensemble.pt", HistoryRiskEnsemble.of(members))
+    model, _, metadata = load_history_monitor(path)
+    assert isinstance(model, HistoryRiskEnsemble) and len(model.members) == 3
+    for loaded, trained in zip(model.members, members):
+        for a, b in zip(loaded.state_dict().values(), trained.state_dict().values()):
+            assert torch.equal(a, b)
+    scenario = load_scenario(data=f"monitor: {{detector: {path}, threshold: 0.5}}\n")
+    start = np.array([[2.0, 120.0, 0.1]])
+    recorded = record_runs(scenario, 0.6, 24, 40, start)
+    ticks = int(recorded["ticks"][0])
+    diagram = make_watched_loop(scenario)
+    names = {s.get_name() for s in diagram.GetSystems()}
+    assert {DETECTOR, f"{DETECTOR}_member_0", f"{DETECTOR}_member_2"} <= names
+    run = simulate(diagram, initial_state=start[0], duration=0.6, period=0.05,
+                   half_width=scenario.environment.half_width)
+    frames, signals = recorded["frames"][0, :ticks], recorded["signals"][0, :ticks]
+    each = [m.risk_sequence(frames, signals) for m in members]
+    offline = model.risk_sequence(frames, signals, calibration=lambda q: platt(q, 0.6, 0.2))
+    np.testing.assert_allclose(offline, platt(np.mean(each, axis=0), 0.6, 0.2))
+    np.testing.assert_allclose(run.score, offline, rtol=1e-4, atol=1e-5)
+    # the members disagree: the mean is none of them
+    assert min(np.abs(np.mean(each, axis=0) - e).max() for e in each) > 1e-3
+
+
+def test_mean_risk_calibrates_the_mean_and_flags_at_its_threshold():
+    system = MeanRisk(members=2, threshold=0.4, calibration=(2.0, -0.5))
+    context = system.CreateDefaultContext()
+    for a, b in ((0.1, 0.3), (0.6, 0.9), (0.5, 0.5)):
+        system.get_member_input_port(0).FixValue(context, [a])
+        system.get_member_input_port(1).FixValue(context, [b])
+        score = system.get_score_output_port().Eval(context)[0]
+        assert score == pytest.approx(platt((a + b) / 2, 2.0, -0.5))
+        assert system.get_anomaly_output_port().Eval(context)[0] == float(score >= 0.4)
+    # a member monitor without calibration outputs its raw risk
+    config = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4)
+    member = HistoryMonitor(model=_members(config, 1)[0], threshold=0.5, period=0.05,
+                            calibration=None)
+    from pydrake.systems.sensors import ImageRgba8U
+    image = ImageRgba8U(30, 20)
+    image.mutable_data[:] = np.random.default_rng(0).integers(0, 256, (20, 30, 4))
+    context = member.CreateDefaultContext()
+    member.get_color_image_input_port().FixValue(context, image)
+    raw = _members(config, 1)[0].risk_sequence(image.data[None])[0]
+    assert member.get_score_output_port().Eval(context)[0] == pytest.approx(raw, rel=1e-5)
+
+
+@pytest.mark.parametrize("members, message", [
+    (0, "1 to 32 members, got 0"), (33, "got 33"), ("two", "got 'two'"), (True, "got True")])
+def test_a_bad_member_count_is_refused_by_name(tmp_path, members, message):
+    with pytest.raises(ValueError, match=message):
+        check_members(members)
+    config = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4)
+    path = _save(tmp_path / "m.pt", HistoryRiskEnsemble.of(_members(config, 2)), members=members)
+    with pytest.raises(CheckpointError, match=f"its members: .*{message}"):
+        load_history_monitor(path)
+
+
+def test_an_ensemble_is_of_one_config():
+    a = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4)
+    b = HistoryMonitorConfig(frames=2, height=16, width=24, channels=[4], features=4)
+    with pytest.raises(ValueError, match="all of one config; got 2 models with 2 configs"):
+        HistoryRiskEnsemble.of(_members(a, 1) + _members(b, 1))
+    with pytest.raises(ValueError, match="at least one model"):
+        HistoryRiskEnsemble.of([])
