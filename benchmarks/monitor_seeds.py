@@ -31,7 +31,7 @@ import types
 import numpy as np
 
 from reachwatch.pipeline.monitor_sections import run_ranking
-from reachwatch.pipeline.monitor_study import _flag_rule_threshold, _judge
+from reachwatch.pipeline.monitor_study import choose_flag_rule, judge_environments
 from reachwatch.training.monitor_eval import rate, run_scores, tick_auroc
 
 SPLITS = ("calibrate", "held_out", "also_held_out")
@@ -120,8 +120,8 @@ def main():
                                                for split in SPLITS}, None))
         for name, flat, saved_threshold in rows:
             groups, risks = _groups(saved[0], flat)
-            rule, flags, chosen, _ = _flag_rule_threshold(spec, groups["calibrate"], risks,
-                                                          period=args.period, lead=lead)
+            rule, flags, chosen, _ = choose_flag_rule(spec, groups["calibrate"], risks,
+                                                      period=args.period, lead=lead)
             if saved_threshold is not None and not np.isclose(chosen.threshold, saved_threshold):
                 p.error(f"{name}: threshold {chosen.threshold:.4f} here, {saved_threshold:.4f} "
                         f"in its study: give the study's --period, --duration and --flag-rules")
@@ -130,9 +130,9 @@ def main():
                     continue
                 tick, worst, median, run_auc, needless = _ranking(groups[split], risks[split],
                                                                   **shape)
-                _, pooled = _judge(groups[split], risks[split], threshold=chosen.threshold,
-                                   period=args.period, lead=lead, duration=args.duration,
-                                   flags=flags[split])
+                _, pooled = judge_environments(
+                    groups[split], risks[split], threshold=chosen.threshold,
+                    period=args.period, lead=lead, duration=args.duration, flags=flags[split])
                 print(f"{name:28s} {split:14s} {tick:.3f} / {worst:.3f} / {median:.3f}"
                       f"        {run_auc:.3f}      {_pct(needless)}  | {rule[0]}/{rule[1]}, "
                       f"{chosen.threshold:.3f}: {_pct(pooled['miss'])}, "

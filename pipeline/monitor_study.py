@@ -44,8 +44,8 @@ from .monitor_guarded import guarded_rows
 from .monitor_sections import rate_text
 from .monitor_spec import MONITOR_KINDS, MonitorStudySpec, MonitorVariant, default_variants  # noqa: F401
 
-__all__ = ["MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "default_variants",
-           "run_monitor_study", "stage_monitor"]
+__all__ = ["MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "choose_flag_rule",
+           "default_variants", "judge_environments", "run_monitor_study", "stage_monitor"]
 
 
 def _record(spec, application, scenario, environments, first, *, cache_dir, executor,
@@ -87,7 +87,7 @@ def _member_mean(per_member):
     return [[np.mean(runs, axis=0) for runs in zip(*groups)] for groups in zip(*per_member)]
 
 
-def _judge(groups, risks, *, threshold, period, lead, duration, flags=None):
+def judge_environments(groups, risks, *, threshold, period, lead, duration, flags=None):
     """Per environment and pooled system figures at ``threshold`` (flags read from
     ``flags``, the risks a k-of-n flag rule acts on, when given; AUROC from ``risks``)."""
     per_env, pooled = [], {"failed": [], "warnable": [], "warned": [], "flagged": []}
@@ -103,7 +103,7 @@ def _judge(groups, risks, *, threshold, period, lead, duration, flags=None):
                                     for k, v in pooled.items()})
 
 
-def _flag_rule_threshold(spec, calibrate, risks, *, period, lead):
+def choose_flag_rule(spec, calibrate, risks, *, period, lead):
     """Of ``spec.flag_rules``' k-of-n rules, the one with the fewest needless flags on
     the calibration environments at its conformal threshold (fixed there): ``([k, n],
     flags, threshold, calibration figures)``, ``flags`` the risks the rule acts on per
@@ -118,9 +118,9 @@ def _flag_rule_threshold(spec, calibrate, risks, *, period, lead):
         except ValueError as e:
             refused = refused or e
             continue
-        calibration, pooled = _judge(calibrate, risks["calibrate"], threshold=chosen.threshold,
-                                     period=period, lead=lead, duration=spec.duration,
-                                     flags=flags["calibrate"])
+        calibration, pooled = judge_environments(
+            calibrate, risks["calibrate"], threshold=chosen.threshold, period=period,
+            lead=lead, duration=spec.duration, flags=flags["calibrate"])
         needless = pooled["needless"]["count"] / max(1, pooled["needless"]["of"])
         if best is None or needless < best[4]:
             best = ([int(k), int(n)], flags, chosen, calibration, needless)
@@ -186,7 +186,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
             platt = PlattCalibration()
         risks = {k: [[platt(r) for r in group] for group in v] for k, v in raw.items()}
         all_risks[variant.name] = risks
-        rule, flags, chosen, calibration = _flag_rule_threshold(
+        rule, flags, chosen, calibration = choose_flag_rule(
             spec, data["calibrate"], risks, period=period, lead=lead)
         needless = [c["needless"] for c in calibration]
         row = {"threshold": chosen.threshold, "statement": chosen.statement(lead),
@@ -197,9 +197,9 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                    1, sum(n["of"] for n in needless)),
                "platt": [platt.a, platt.b], "flag_rule": rule}
         for k in ("held_out", "also_held_out"):
-            per_env, pooled = _judge(data[k], risks[k], threshold=chosen.threshold,
-                                     period=period, lead=lead, duration=spec.duration,
-                                     flags=flags[k])
+            per_env, pooled = judge_environments(
+                data[k], risks[k], threshold=chosen.threshold, period=period, lead=lead,
+                duration=spec.duration, flags=flags[k])
             y, p = _labelled(data[k], risks[k], period=period, duration=spec.duration,
                              within=spec.within)
             row[k] = {"environments": per_env, "pooled": pooled,
@@ -224,8 +224,8 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         groups = data[k]
         risks = [oracle_risks(g["ticks"], g["failure_time"], period=period, lead=lead)
                  for g in groups]
-        per_env, pooled = _judge(groups, risks, threshold=0.5, period=period, lead=lead,
-                                 duration=spec.duration)
+        per_env, pooled = judge_environments(groups, risks, threshold=0.5, period=period,
+                                             lead=lead, duration=spec.duration)
         oracle[k] = {"environments": per_env, "pooled": pooled}
         baseline[k] = [tick_auroc([prediction_error(g["state"][i, :n], g["signals"][i, :n, :2])
                                    for i, n in enumerate(g["ticks"])], g["ticks"],
