@@ -192,7 +192,10 @@ def monitor_section(page, run):
               f"{result['within_s']:g} s; its threshold is chosen on calibration environments "
               f"of the random family before any held-out environment is seen. The fallback "
               f"brakes and needs {result['lead_s']:.2f} s. Variants kept: {result['kept']} "
-              f"(fewest needless flags on the calibration environments).")
+              f"(fewest needless flags on the calibration environments)."
+              + (f" Each variant is an ensemble: the mean of {result['ensemble']} trainings' "
+                 f"risks (other seeds), calibrated and thresholded as one monitor."
+                 if result.get("ensemble", 1) > 1 else ""))
     for block in study_blocks(result):
         if block[0] in ("heading", "text"):
             page.text(block[1])

@@ -252,6 +252,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                                progress=progress, log=log, lead=lead)
                if spec.guarded_runs and data[k] else {} for k in ("held_out", "also_held_out")}
     result = {"lead_s": lead, "within_s": spec.within, "alpha": spec.alpha, "kept": kept,
+              "ensemble": spec.ensemble,
               "failing_runs": failing, "variants": results, "oracle": oracle,
               "prediction_error_auroc_4s": baseline, "guarded": guarded["held_out"],
               "guarded_also_held_out": guarded["also_held_out"],

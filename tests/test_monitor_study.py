@@ -256,6 +256,7 @@ def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
                                progress=False, log=lambda m: None)
     model, _, meta = load_history_monitor(tmp_path / "out" / result["checkpoints"]["one frame"])
     assert isinstance(model, HistoryRiskEnsemble) and meta["members"] == 2
+    assert result["ensemble"] == 2
     held_out = _record(spec, load_application(), scenario, spec.environments()["held_out"],
                        spec.train + spec.calibrate, cache_dir=tmp_path / "cache" / "runs",
                        executor=None, progress=False)[0]
@@ -271,6 +272,17 @@ def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
     np.testing.assert_allclose(judged, np.concatenate(mine), rtol=1e-4, atol=1e-6)
     for e in each:
         assert np.abs(judged - np.concatenate(e)).max() > 1e-4
+    from reachwatch.pipeline.monitor_sections import monitor_section
+    from reachwatch.pipeline.report import Page
+
+    class Run:                                   # what the report section reads of a run
+        outputs = {"monitor": {"result": "out/monitor.json"}}
+
+        def path(self, relative):
+            return tmp_path / relative
+    page = Page("run")
+    monitor_section(page, Run())
+    assert "the mean of 2 trainings' risks" in page.done()[1]
 
 
 CART_STUDY = """
