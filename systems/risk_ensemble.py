@@ -39,10 +39,10 @@ class HistoryRiskEnsemble(nn.Module):
     def of(cls, models: Sequence[HistoryRiskModel]) -> "HistoryRiskEnsemble":
         """The ensemble of trained ``models`` (one config; their weights are copied)."""
         models = list(models)
-        configs = {repr(m.config) for m in models}
-        if not models or len(configs) != 1:
+        if not models or any(m.config != models[0].config for m in models):
+            configs = len({repr(m.config) for m in models})
             raise ValueError(f"an ensemble needs at least one model, all of one config; got "
-                             f"{len(models)} models with {len(configs)} configs")
+                             f"{len(models)} models with {configs} configs")
         ensemble = cls(models[0].config, len(models))
         for member, model in zip(ensemble.members, models):
             member.load_state_dict(model.state_dict())
