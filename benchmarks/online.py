@@ -25,8 +25,8 @@ import torch
 
 from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram, make_guarded_diagram,
                                  paired_rates, save_checkpoint)
-from reachwatch.systems import (DetectorConfig, HistoryMonitorConfig, HistoryRiskEnsemble,
-                                HistoryRiskModel, build_detector)
+from reachwatch.systems import (MAX_MEMBERS, DetectorConfig, HistoryMonitorConfig,
+                                HistoryRiskEnsemble, HistoryRiskModel, build_detector)
 from reachwatch.taxi.application import NEAR_CENTRELINE
 
 
@@ -43,6 +43,8 @@ def main():
                         help="torch.set_num_threads for the run (0: torch's default); a "
                              "history monitor runs its network on one thread whatever this says")
     args = parser.parse_args()
+    if not 2 <= args.ensemble <= MAX_MEMBERS:
+        parser.error(f"--ensemble takes 2 to {MAX_MEMBERS} members, got {args.ensemble}")
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     print(f"online benchmark: KMWH 9h clear, 200x360, {args.rounds} rounds of "

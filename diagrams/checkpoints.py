@@ -98,10 +98,15 @@ def _check_numbers(path, payload):
         raise CheckpointError(f"{path}: its calibration must be two finite numbers [a, b], "
                               f"got {short(calibration)}")
     if payload["kind"] == "history_monitor":
+        members = payload["metadata"].get("members", 1)
         try:
-            check_members(payload["metadata"].get("members", 1))
+            check_members(members)
         except ValueError as e:
             raise CheckpointError(f"{path}: its members: {e}") from None
+        held = len({name.split(".")[1] for name in weights if name.startswith("members.")}) or 1
+        if held != members:
+            raise CheckpointError(f"{path}: its weights hold {held} member(s) of an ensemble, "
+                                  f"its metadata says members: {members}")
 
 
 def _config(cls, data, path, what):

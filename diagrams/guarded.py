@@ -3,7 +3,7 @@ the fallback switch between the controller and the plant."""
 
 from typing import NamedTuple
 
-from pydrake.systems.framework import Diagram, DiagramBuilder, OutputPort
+from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem, OutputPort
 from pydrake.systems.primitives import Multiplexer, ZeroOrderHold
 
 from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, FlagFilter,
@@ -24,8 +24,9 @@ MONITOR_SIGNALS = "monitor_signals"
 
 class Monitor(NamedTuple):
     """The systems `add_monitor` added, and the port of the flags the switch acts on
-    (the detector's own, or the `FlagFilter`'s when a k-of-n rule confirms them)."""
-    detector: AnomalyDetector
+    (the detector's own, or the `FlagFilter`'s when a k-of-n rule confirms them).
+    ``detector``: an `AnomalyDetector`, a `HistoryMonitor` or an ensemble's `MeanRisk`."""
+    detector: LeafSystem
     switch: FallbackSwitch
     anomaly: OutputPort
 

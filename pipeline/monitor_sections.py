@@ -194,7 +194,7 @@ def monitor_section(page, run):
               f"brakes and needs {result['lead_s']:.2f} s. Variants kept: {result['kept']} "
               f"(fewest needless flags on the calibration environments)."
               + (f" Each variant is an ensemble: the mean of {result['ensemble']} trainings' "
-                 f"risks (other seeds), calibrated and thresholded as one monitor."
+                 f"raw risks (other seeds), calibrated and thresholded as one monitor."
                  if result.get("ensemble", 1) > 1 else ""))
     for block in study_blocks(result):
         if block[0] in ("heading", "text"):

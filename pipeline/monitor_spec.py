@@ -69,7 +69,8 @@ class MonitorStudySpec:
     variant's worst held-out AUROC from 0.70 to 0.89. ``seed``: the monitors' training
     seed (initial weights, batch order, jitter); train with a few to see how far one
     training's figures are from the next's. ``ensemble``: each variant is that many
-    trainings (seeds ``seed``, ``seed + 1``, ...), their raw risks averaged at every tick
+    trainings (seeds ``K * seed`` to ``K * seed + K - 1``: studies with other seeds share
+    no member), their raw risks averaged at every tick
     before one calibration and threshold (online: one `HistoryMonitor` per member and
     their `MeanRisk`; each member encodes every frame). ``lr_schedule``: ``constant`` or ``cosine``
     (each training stage's learning rate decays to zero over its steps). ``epochs``:

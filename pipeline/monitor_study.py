@@ -158,24 +158,24 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     labels = tick_labels(train, period=period, duration=spec.duration, within=spec.within)
     base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within)
     judged = ("calibrate", "held_out", "also_held_out")
-    # each member of the ensemble: its own encoder (seed spec.seed + m) and features
+    # each member of the ensemble: its own encoder (`member_settings`) and features
     members = []
     for m, settings in enumerate(member_settings(spec)):
         where = f"member {m + 1}/{spec.ensemble}: " if spec.ensemble > 1 else ""
         encoder = train_encoder(train, labels, base, settings, progress=(
             lambda text, where=where: log(f"monitor: {where}{text}")) if progress else None)
-        members.append((encoder, settings, {k: [encode_runs(encoder, g) for g in groups]
-                                            for k, groups in data.items()}))
+        features = {k: [encode_runs(encoder, g) for g in groups] for k, groups in data.items()}
+        members.append((encoder, settings, features, np.concatenate(features["train"])))
 
     results, models, all_risks = {}, {}, {}
     for variant in spec.variants:
         config = dc.replace(base, frames=variant.frames, stride=variant.stride,
                             temporal=variant.temporal,
                             signals=train["signals"].shape[-1] if variant.signals else 0)
-        heads = [train_head(encoder, np.concatenate(features["train"]), train, labels, config,
-                            settings) for encoder, settings, features in members]
+        heads = [train_head(encoder, train_features, train, labels, config, settings)
+                 for encoder, settings, _, train_features in members]
         per_member = [{k: [run_risks(head, f, g) for f, g in zip(features[k], data[k])]
-                       for k in judged} for head, (_, _, features) in zip(heads, members)]
+                       for k in judged} for head, (_, _, features, _) in zip(heads, members)]
         raw = {k: _member_mean([p[k] for p in per_member]) for k in judged}
         model = heads[0] if len(heads) == 1 else HistoryRiskEnsemble.of(heads)
         y, q = _labelled(data["calibrate"], raw["calibrate"], period=period,
@@ -321,10 +321,11 @@ def train_settings(spec: MonitorStudySpec) -> HistoryTrainConfig:
 
 
 def member_settings(spec: MonitorStudySpec) -> list:
-    """`train_settings` of each of the ``spec.ensemble`` members: seeds ``spec.seed``,
-    ``spec.seed + 1``, ... (an ensemble of one is the training of ``spec.seed``)."""
-    settings = train_settings(spec)
-    return [dc.replace(settings, seed=settings.seed + m) for m in range(spec.ensemble)]
+    """`train_settings` of each of the ``spec.ensemble`` (K) members: seeds ``K * seed``
+    to ``K * seed + K - 1``, so that studies with other seeds share no member (an
+    ensemble of one is the training of ``spec.seed``)."""
+    settings, k = train_settings(spec), spec.ensemble
+    return [dc.replace(settings, seed=k * settings.seed + m) for m in range(k)]
 
 
 def study_key(spec: MonitorStudySpec, application, scenario) -> str:

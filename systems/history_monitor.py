@@ -208,7 +208,8 @@ class HistoryMonitor(LeafSystem):
     discrete state keeps. ``score`` is the calibrated risk at the current time, from the
     kept state and the current frame (so the fallback switch, updated at the same tick,
     sees this tick's frame; ``calibration`` None: the raw risk, as a `MeanRisk` over
-    an ensemble's members reads it); ``anomaly`` is 1.0 when ``score >= threshold``. Ports are
+    an ensemble's members reads it, whose ``anomaly`` is then no operating flag: the
+    threshold is on the calibrated scale); ``anomaly`` is 1.0 when ``score >= threshold``. Ports are
     named as `AnomalyDetector`'s, so either monitors a guarded loop.
 
     What the state keeps depends on the temporal model. ``stack``: the rows of the last

@@ -39,9 +39,9 @@ class HistoryRiskEnsemble(nn.Module):
     def of(cls, models: Sequence[HistoryRiskModel]) -> "HistoryRiskEnsemble":
         """The ensemble of trained ``models`` (one config; their weights are copied)."""
         models = list(models)
-        if not models or any(m.config != models[0].config for m in models):
+        if len(models) < 2 or any(m.config != models[0].config for m in models):
             configs = len({repr(m.config) for m in models})
-            raise ValueError(f"an ensemble needs at least one model, all of one config; got "
+            raise ValueError(f"an ensemble needs at least two models, all of one config; got "
                              f"{len(models)} models with {configs} configs")
         ensemble = cls(models[0].config, len(models))
         for member, model in zip(ensemble.members, models):
@@ -68,13 +68,13 @@ class MeanRisk(LeafSystem):
         - ...
         - member_{members-1}
         output_ports:
-        - anomaly
         - score
+        - anomaly
 
     ``score`` is ``platt(mean of the inputs, *calibration)``; ``anomaly`` is 1.0 when
     ``score >= threshold``. Each input is one member's raw risk (a `HistoryMonitor`
-    built with ``calibration=None``). Stateless: the members keep the history. Ports
-    are named as `HistoryMonitor`'s, so either monitors a guarded loop."""
+    built with ``calibration=None``). Stateless: the members keep the history. Its
+    outputs are named as `HistoryMonitor`'s, so either monitors a guarded loop."""
 
     def __init__(self, *, members: int, threshold: float, calibration=(1.0, 0.0)):
         super().__init__()

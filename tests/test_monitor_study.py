@@ -92,6 +92,8 @@ def test_the_study_key_covers_every_training_setting_and_the_study_code(monkeypa
     assert study.train_settings(seeded.monitor).seed == 3 and key(seeded.monitor) != before
     ensemble = load_run_spec(data=TINY + STUDY.replace("  epochs: 1", "  epochs: 1\n  ensemble: 2"))
     assert [s.seed for s in study.member_settings(ensemble.monitor)] == [0, 1]
+    assert [s.seed for s in study.member_settings(dc.replace(ensemble.monitor, seed=3))] == [6, 7]
+    assert [s.seed for s in study.member_settings(seeded.monitor)] == [3]
     assert key(ensemble.monitor) != before
     cosine = load_run_spec(data=TINY + STUDY.replace("  epochs: 1",
                                                      "  epochs: 1\n  lr_schedule: cosine"))
@@ -282,7 +284,7 @@ def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
             return tmp_path / relative
     page = Page("run")
     monitor_section(page, Run())
-    assert "the mean of 2 trainings' risks" in page.done()[1]
+    assert "the mean of 2 trainings' raw risks" in page.done()[1]
 
 
 CART_STUDY = """

@@ -96,10 +96,46 @@ def test_a_bad_member_count_is_refused_by_name(tmp_path, members, message):
         load_history_monitor(path)
 
 
+def test_a_checkpoint_whose_weights_hold_other_members_than_it_says_is_refused(tmp_path):
+    config = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4)
+    ensemble = HistoryRiskEnsemble.of(_members(config, 2))
+    for said in (1, 3):
+        path = _save(tmp_path / f"m{said}.pt", ensemble, members=said)
+        with pytest.raises(CheckpointError, match=f"its weights hold 2 member.s. of an ensemble, "
+                                                  f"its metadata says members: {said}"):
+            load_history_monitor(path)
+    single = tmp_path / "single.pt"
+    save_checkpoint(single, kind="history_monitor", model=_members(config, 1)[0],
+                    model_config=config, preprocess_config=None, metadata={"members": 2})
+    with pytest.raises(CheckpointError, match="hold 1 member.s. of an ensemble, its metadata "
+                                              "says members: 2"):
+        load_history_monitor(single)
+
+
+def test_the_guarded_loop_confirms_the_ensembles_flags_and_brakes(tmp_path):
+    """An ensemble checkpoint in ``monitor.detector`` with a k-of-n rule: the members,
+    their `MeanRisk`, the `FlagFilter` and the switch; flagged at every tick (threshold
+    0), the loop brakes to a stop."""
+    from reachwatch.diagrams import make_guarded_diagram
+    config = HistoryMonitorConfig(frames=2, height=16, width=24, channels=[4], features=4)
+    path = _save(tmp_path / "e.pt", HistoryRiskEnsemble.of(_members(config, 2)))
+    scenario = load_scenario(data=f"monitor: {{detector: {path}, threshold: 0.0, strategy: "
+                                  f"brake, brake_deceleration: 3.0, flags_needed: 2, "
+                                  f"flag_window: 3}}\n")
+    diagram = make_guarded_diagram(scenario)
+    names = {s.get_name() for s in diagram.GetSystems()}
+    assert {DETECTOR, f"{DETECTOR}_member_0", f"{DETECTOR}_member_1", "flag_filter",
+            "fallback_switch"} <= names
+    run = simulate(diagram, initial_state=np.array([0.0, 120.0, 0.0]), duration=2.5,
+                   period=0.05, half_width=scenario.environment.half_width)
+    assert run.anomaly[0] == 0 and run.anomaly[1] == 1 and run.anomaly[-1] == 1
+    assert run.speed[-1] == 0.0
+
+
 def test_an_ensemble_is_of_one_config():
     a = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4)
     b = HistoryMonitorConfig(frames=2, height=16, width=24, channels=[4], features=4)
     with pytest.raises(ValueError, match="all of one config; got 2 models with 2 configs"):
         HistoryRiskEnsemble.of(_members(a, 1) + _members(b, 1))
-    with pytest.raises(ValueError, match="at least one model"):
-        HistoryRiskEnsemble.of([])
+    with pytest.raises(ValueError, match="at least two models, all of one config; got 1 "):
+        HistoryRiskEnsemble.of(_members(a, 1))
