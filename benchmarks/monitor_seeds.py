@@ -3,7 +3,9 @@ outputs without rendering or training again. Each OUT is a finished
 `benchmarks/monitor.py` study on the same recordings (the same family, split, runs
 and cache) that differs only in how the monitors were trained (``--train-seed``,
 ``--lr-schedule``, ``--epochs``). For each variant it prints, per training and for the
-tick-by-tick mean of the trainings' risks (an ensemble of the trainings):
+tick-by-tick mean of the trainings' calibrated risks (not what ``monitor.ensemble``
+computes, which averages the members' raw risks and calibrates the mean; a study with
+``--ensemble K`` is one OUT here):
 
 - how the risk ranks ticks, "fails within the study's horizon": AUROC pooled over a
   split's environments, at the worst environment and the median one;

@@ -81,8 +81,7 @@ def main():
             model = models[0] if members == 1 else HistoryRiskEnsemble.of(models)
             save_checkpoint(path, kind="history_monitor", model=model,
                             model_config=config, preprocess_config=None,
-                            metadata={"calibration": [1.0, 0.0],
-                                      **({"members": members} if members > 1 else {})})
+                            metadata={"calibration": [1.0, 0.0]})
             configs.append((name, path))
         nominal = make_closed_loop_diagram(load_scenario(data=""))
         # First row: TaxiNet alone against a second copy of itself, the method's noise floor.

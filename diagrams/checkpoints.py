@@ -30,7 +30,10 @@ class CheckpointError(ValueError):
 
 def save_checkpoint(path, *, kind: str, model: torch.nn.Module, model_config,
                     preprocess_config, metadata: dict) -> Path:
-    """Write a checkpoint of ``kind`` (e.g. ``taxinet``) atomically; returns the path."""
+    """Write a checkpoint of ``kind`` (e.g. ``taxinet``) atomically; returns the path.
+    A `HistoryRiskEnsemble`'s metadata gains its ``members`` (unless given)."""
+    if isinstance(model, HistoryRiskEnsemble):
+        metadata = {"members": len(model.members), **metadata}
     payload = {"format": FORMAT, "version": VERSION, "kind": kind,
                "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
                "model_config": dc.asdict(model_config),

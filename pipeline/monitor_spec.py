@@ -76,8 +76,9 @@ class MonitorStudySpec:
     seed 11, train 16, calibrate 16) ranked the single frame's worst held-out
     environment at 0.89-0.93 where one training ranged 0.61-0.91, and cut the guarded
     loop's needless stops there from 10.9 % to 7.3 %; the loop then ran at 0.64 of its
-    rate without a monitor (one member: 0.91), so the default stays 1. ``lr_schedule``: ``constant`` or ``cosine``
-    (each training stage's learning rate decays to zero over its steps). ``epochs``:
+    rate without a monitor (one member: 0.91), so the default stays 1.
+    ``lr_schedule``: ``constant`` or ``cosine`` (each training stage's learning rate
+    decays to zero over its steps). ``epochs``:
     the per-frame encoder's; 12 rather than 6 ranked the calibration environments'
     ticks and whole runs better in every variant, on average over three trainings
     against five (random family, seed 11, train 16, calibrate 16); the needless flags

@@ -244,7 +244,6 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                         preprocess_config=None,
                         metadata={"calibration": [platt.a, platt.b], "threshold": threshold,
                                   "within_s": spec.within, "lead_s": lead, "variant": name,
-                                  **({"members": spec.ensemble} if spec.ensemble > 1 else {}),
                                   **({"flag_rule": rule} if rule != [1, 1] else {})})
         checkpoints[name] = str(path)
     guarded = {k: guarded_rows(spec, application, scenario, data[k], models, checkpoints,

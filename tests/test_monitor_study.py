@@ -142,6 +142,27 @@ def test_run_ranking_pools_environments_and_sets_the_least_needless_threshold():
     assert np.isnan(cal["auroc"]) and cal["needless"] is None
 
 
+class _Run:
+    """What the report's monitor section reads of a run: its study in ``folder/out``."""
+
+    def __init__(self, folder):
+        self.folder = folder
+        self.outputs = {"monitor": {"result": "out/monitor.json"}}
+
+    def path(self, relative):
+        return self.folder / relative
+
+
+def _monitor_report(folder):
+    """``(html, markdown)`` of the report's monitor section for the study in
+    ``folder/out``."""
+    from reachwatch.pipeline.monitor_sections import monitor_section
+    from reachwatch.pipeline.report import Page
+    page = Page("run")
+    monitor_section(page, _Run(folder))
+    return page.done()
+
+
 def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     spec = load_run_spec(data=TINY + STUDY.replace(
         "  guarded_runs: 2", "  guarded_runs: 2\n  also_held_out: [{runway: KSFO, hour: 21.0, "
@@ -213,22 +234,12 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     assert "pooled over the named environments outside the family" in text
     assert "at most 50.0 %" in text and "How each variant ranks whole runs" in text
 
-    from reachwatch.pipeline.monitor_sections import monitor_section
-    from reachwatch.pipeline.report import Page
-
-    class Run:                                   # what the report section reads of a run
-        outputs = {"monitor": {"result": "out/monitor.json"}}
-
-        def path(self, relative):
-            return tmp_path / relative
-    page = Page("run")
-    monitor_section(page, Run())
-    html, md = page.done()
+    html, md = _monitor_report(tmp_path)
     assert "Runtime monitor on environments it has never seen" in md
     assert "Guarded real loop" in md and html.count("<table>") >= 3
     assert (tmp_path / "out" / result["reliability_figure"]).stat().st_size > 1000
     from reachwatch.pipeline.summary_section import summary_rows
-    rows = {row[0].split(" (")[0].split(",")[0]: row for row in summary_rows(Run())}
+    rows = {row[0].split(" (")[0].split(",")[0]: row for row in summary_rows(_Run(tmp_path))}
     assert rows["labels against the real loop"][1].startswith("not checked")
     miss = result["variants"][result["kept"]]["held_out"]["pooled"]["miss"]
     assert rows["monitor miss rate"][1] == "-" if not miss["of"] else \
@@ -274,17 +285,7 @@ def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
     np.testing.assert_allclose(judged, np.concatenate(mine), rtol=1e-4, atol=1e-6)
     for e in each:
         assert np.abs(judged - np.concatenate(e)).max() > 1e-4
-    from reachwatch.pipeline.monitor_sections import monitor_section
-    from reachwatch.pipeline.report import Page
-
-    class Run:                                   # what the report section reads of a run
-        outputs = {"monitor": {"result": "out/monitor.json"}}
-
-        def path(self, relative):
-            return tmp_path / relative
-    page = Page("run")
-    monitor_section(page, Run())
-    assert "the mean of 2 trainings' raw risks" in page.done()[1]
+    assert "the mean of 2 trainings' raw risks" in _monitor_report(tmp_path)[1]
 
 
 CART_STUDY = """
