@@ -40,8 +40,8 @@ def main():
                    "one: the reference TaxiNet, 200x360 camera)")
     p.add_argument("--seed", type=int, default=defaults.family.seed,
                    help="the random environment family")
-    for name in ("train", "calibrate", "held_out", "runs", "epochs", "head_epochs",
-                 "guarded_runs", "ensemble"):
+    for name in ("train", "calibrate", "held_out", "runs", "held_out_runs", "epochs",
+                 "head_epochs", "guarded_runs", "ensemble"):
         p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(defaults, name))
     for name in ("duration", "within", "alpha"):
         p.add_argument(f"--{name}", type=float, default=getattr(defaults, name))
@@ -69,8 +69,8 @@ def main():
     spec = dc.replace(
         defaults, kind="history", family=RandomEnvironments(seed=args.seed), train=args.train,
         calibrate=args.calibrate, held_out=args.held_out, runs=args.runs,
-        duration=args.duration, within=args.within, alpha=args.alpha,
-        brake_deceleration=args.brake, height=args.size[0], width=args.size[1],
+        held_out_runs=args.held_out_runs, duration=args.duration, within=args.within,
+        alpha=args.alpha, brake_deceleration=args.brake, height=args.size[0], width=args.size[1],
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
         seed=args.train_seed, lr_schedule=args.lr_schedule, ensemble=args.ensemble,

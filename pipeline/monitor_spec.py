@@ -48,7 +48,10 @@ class MonitorStudySpec:
     named environments outside the family (e.g. the paper's nights), judged with the
     same threshold but outside its guarantee. Each environment records ``runs`` real
     runs of ``duration`` s from the application's seeded starts in its grid's box (the
-    taxi's: the paper's box). The risk is that of failing within ``within`` s; the
+    taxi's: the paper's box); each judged one (held out, of the family or outside it)
+    ``held_out_runs`` (0: ``runs``), so that misses are counted over more failing runs
+    without training on more (the taxi's starts are drawn in order: its first ``runs``
+    are the same starts). The risk is that of failing within ``within`` s; the
     fallback brakes at ``brake_deceleration`` m/s^2, so a warning counts when it comes
     at least speed / deceleration s before the failure; the threshold bounds the
     expected miss rate at ``alpha``. The default ``within`` (4 s, for braking's 1.67 s
@@ -90,6 +93,7 @@ class MonitorStudySpec:
     held_out: int = bounded(6, 1, 1000, whole=True)
     also_held_out: List[Environment] = dc.field(default_factory=list)
     runs: int = bounded(30, 1, 100_000, whole=True)
+    held_out_runs: int = bounded(0, 0, 100_000, whole=True, note="0: runs")
     duration: float = bounded(8.0, 0.0, 600.0, low_open=True, unit="s")
     within: float = bounded(4.0, 0.0, 600.0, low_open=True, high_open=True, unit="s",
                             note="< duration")
@@ -112,6 +116,12 @@ class MonitorStudySpec:
     def enabled(self) -> bool:
         return self.kind == "history"
 
+    @property
+    def judged_runs(self) -> int:
+        """Runs recorded per judged (held-out) environment: ``held_out_runs``, or
+        ``runs`` when that is 0."""
+        return self.held_out_runs or self.runs
+
     def validate(self, where="monitor"):
         if self.kind not in MONITOR_KINDS:
             raise ValueError(f"{where}.kind must be one of {MONITOR_KINDS}, got {self.kind!r}")
@@ -125,6 +135,10 @@ class MonitorStudySpec:
             raise ValueError(f"{where}.within ({self.within:g} s) must be shorter than "
                              f"{where}.duration ({self.duration:g} s): a run that does not "
                              f"fail says nothing of its last {self.within:g} s")
+        if self.guarded_runs > self.judged_runs:
+            raise ValueError(f"{where}.guarded_runs ({self.guarded_runs}) must be at most the "
+                             f"runs recorded per held-out environment ({self.judged_runs}: "
+                             f"{where}.held_out_runs, or {where}.runs when that is 0)")
         if (self.calibrate + 1) * self.alpha < 1:
             raise ValueError(f"{where}.calibrate: {self.calibrate} environments cannot bound the "
                              f"miss rate at alpha {self.alpha:g} (the bound is at least "

@@ -48,22 +48,23 @@ __all__ = ["MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "choose_flag_r
            "default_variants", "judge_environments", "run_monitor_study", "stage_monitor"]
 
 
-def _record(spec, application, scenario, environments, first, *, cache_dir, executor,
+def _record(spec, application, scenario, environments, first, *, runs, cache_dir, executor,
             progress):
-    """Recorded runs of each environment: the application's `starts` in its `grid`'s
-    box, those of the ``i``-th environment (counted from ``first``: its place in the
-    family, or after it) seeded by the family's seed and ``i``."""
+    """``runs`` recorded runs of each environment: the application's `starts` in its
+    `grid`'s box, those of the ``i``-th environment (counted from ``first``: its place in
+    the family, or after it) seeded by the family's seed and ``i`` (so that the first
+    ``n`` of more runs are the ``n`` runs' starts)."""
     out = []
     for i, environment in enumerate(environments):
         here = dc.replace(scenario, environment=environment)
         box = application.grid(here, (3,) * len(application.axes))
         seed = [spec.family.seed, first + i]
-        starts = application.starts(here, (box.lo, box.hi), spec.runs, seed)
-        runs = application.recorded_runs(here, starts, duration=spec.duration,
-                                         height=spec.height, width=spec.width,
-                                         cache_dir=cache_dir, executor=executor,
-                                         progress=progress)
-        out.append({**runs, "starts": starts, "name": environment.name,
+        starts = application.starts(here, (box.lo, box.hi), runs, seed)
+        recorded = application.recorded_runs(here, starts, duration=spec.duration,
+                                              height=spec.height, width=spec.width,
+                                              cache_dir=cache_dir, executor=executor,
+                                              progress=progress)
+        out.append({**recorded, "starts": starts, "name": environment.name,
                     "environment": environment})
     return out
 
@@ -146,8 +147,11 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     split = spec.environments()
     first = {"train": 0, "calibrate": spec.train, "held_out": spec.train + spec.calibrate,
              "also_held_out": spec.train + spec.calibrate + spec.held_out}
-    data = {k: _record(spec, application, scenario, envs, first[k], cache_dir=cache_dir / "runs",
-                       executor=executor, progress=progress) for k, envs in split.items()}
+    runs = {"train": spec.runs, "calibrate": spec.runs, "held_out": spec.judged_runs,
+            "also_held_out": spec.judged_runs}
+    data = {k: _record(spec, application, scenario, envs, first[k], runs=runs[k],
+                       cache_dir=cache_dir / "runs", executor=executor, progress=progress)
+            for k, envs in split.items()}
     log(f"monitor: recorded {sum(len(g['ticks']) for v in data.values() for g in v)} runs, "
         f"{sum(int(g['ticks'].sum()) for v in data.values() for g in v)} ticks; lead "
         f"{lead:.2f} s, risk of failing within {spec.within:g} s")

@@ -46,6 +46,10 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
     assert spec.monitor.enabled and [v.name for v in spec.monitor.variants] == [
         "one frame", "GRU 3 + signals"]
     assert load_run_spec(data=dump_run_spec(spec)).monitor == spec.monitor
+    assert spec.monitor.judged_runs == 6
+    more = load_run_spec(data=TINY + STUDY.replace("guarded_runs: 2", "guarded_runs: 7\n"
+                                                   "  held_out_runs: 8")).monitor
+    assert (more.runs, more.judged_runs, more.guarded_runs) == (6, 8, 7)
     assert not load_run_spec(data=TINY).monitor.enabled            # off by default
     import dataclasses as dc
     assert dc.asdict(spec.monitor)["flag_rules"] == [[1, 1]]
@@ -68,7 +72,12 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
                           (("runs: 6", "runs: 6\n  flag_rules: [[3, 2]]"),
                            "monitor.flag_rules: the k-of-n flag rule needs"),
                           (("runs: 6", "runs: 6\n  ensemble: 0"),
-                           "monitor.ensemble must be a whole number in .1, 32., got 0")):
+                           "monitor.ensemble must be a whole number in .1, 32., got 0"),
+                          (("runs: 6", "runs: 6\n  held_out_runs: -1"),
+                           "monitor.held_out_runs must be a whole number"),
+                          (("guarded_runs: 2", "guarded_runs: 7"),
+                           "monitor.guarded_runs (7) must be at most the runs recorded per "
+                           "held-out environment (6: monitor.held_out_runs, or monitor.runs")):
         with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
             load_run_spec(data=TINY + STUDY.replace(*edit))
 
@@ -262,7 +271,8 @@ def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
     from reachwatch.pipeline.monitor_study import _record
     from reachwatch.reach.application import load_application
     from reachwatch.systems import HistoryRiskEnsemble, platt
-    spec = dc.replace(load_run_spec(data=TINY + STUDY).monitor, ensemble=2, guarded_runs=0,
+    spec = load_run_spec(data=TINY + STUDY).monitor
+    spec = dc.replace(spec, ensemble=2, guarded_runs=0, held_out_runs=spec.runs + 1,
                       variants=[MonitorVariant("one frame")])
     scenario = load_scenario(data="")
     result = run_monitor_study(spec, scenario, tmp_path / "out", cache_dir=tmp_path / "cache",
@@ -270,9 +280,12 @@ def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
     model, _, meta = load_history_monitor(tmp_path / "out" / result["checkpoints"]["one frame"])
     assert isinstance(model, HistoryRiskEnsemble) and meta["members"] == 2
     assert result["ensemble"] == 2
+    # held-out environments record held_out_runs, the others runs
+    assert {n for _, n in result["failing_runs"]["held_out"].values()} == {spec.runs + 1}
+    assert {n for _, n in result["failing_runs"]["calibrate"].values()} == {spec.runs}
     held_out = _record(spec, load_application(), scenario, spec.environments()["held_out"],
-                       spec.train + spec.calibrate, cache_dir=tmp_path / "cache" / "runs",
-                       executor=None, progress=False)[0]
+                       spec.train + spec.calibrate, runs=spec.judged_runs,
+                       cache_dir=tmp_path / "cache" / "runs", executor=None, progress=False)[0]
     calibration = lambda q: platt(q, *meta["calibration"])  # noqa: E731
     mine, each = [], [[] for _ in model.members]
     for r, n in enumerate(held_out["ticks"]):
