@@ -92,10 +92,13 @@ def study_blocks(result: dict) -> list:
                                f"only those can be warned in time by any monitor with this "
                                f"fallback (the ceiling; the oracle warns them all). Miss rates "
                                f"below are over those warnable runs."))
-    blocks += [("text", kept["statement"]),
+    blocks += [("text", kept["statement"] + " The flag rule and the kept variant were "
+                        "chosen on the same calibration environments, which the bound does "
+                        "not account for: it is exact for a rule and variant fixed before."),
                ("text", f"For one new environment: with probability 90 % its miss rate is at "
                         f"most {100 * kept['per_environment_bound_90']:.1f} % (a quantile of the "
-                        f"calibration environments' miss rates; exchangeable environments).")]
+                        f"calibration environments' miss rates; exchangeable environments; "
+                        f"optimistic, as the threshold was fitted on the same ones).")]
     for group, title in (("held_out", "held-out environments of the family"),
                          ("also_held_out", "named environments outside the family (no "
                                            "guarantee: not drawn from it)")):

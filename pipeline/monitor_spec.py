@@ -51,7 +51,9 @@ class MonitorStudySpec:
     taxi's: the paper's box); each judged one (held out, of the family or outside it)
     ``held_out_runs`` (0: ``runs``), so that misses are counted over more failing runs
     without training on more (the taxi's starts are drawn in order: its first ``runs``
-    are the same starts). The risk is that of failing within ``within`` s; the
+    are the same starts); the conformal bound speaks of environments with ``runs``
+    runs, the pooled held-out miss rate is per failing run. Each environment's starts
+    have a random stream of their own, not the one the family draws it from. The risk is that of failing within ``within`` s; the
     fallback brakes at ``brake_deceleration`` m/s^2, so a warning counts when it comes
     at least speed / deceleration s before the failure; the threshold bounds the
     expected miss rate at ``alpha``. The default ``within`` (4 s, for braking's 1.67 s

@@ -48,17 +48,29 @@ __all__ = ["MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "choose_flag_r
            "default_variants", "judge_environments", "run_monitor_study", "stage_monitor"]
 
 
+#: The starts' own random stream: environment ``i`` of the family is drawn from ``[seed,
+#: i]`` (`reachwatch.systems.RandomEnvironments`), and starts seeded the same would
+#: repeat its numbers (the first start's lateral offset was the hour's draw). Nonzero:
+#: numpy seeds ``[seed, i, 0]`` as it seeds ``[seed, i]``.
+STARTS_STREAM = 1
+
+
+def starts_seed(spec, index: int) -> list:
+    """The seed of the recorded starts of the study's ``index``-th environment (the
+    family's, then ``also_held_out``'s): its own stream, `STARTS_STREAM`."""
+    return [spec.family.seed, int(index), STARTS_STREAM]
+
+
 def _record(spec, application, scenario, environments, first, *, runs, cache_dir, executor,
             progress):
     """``runs`` recorded runs of each environment: the application's `starts` in its
     `grid`'s box, those of the ``i``-th environment (counted from ``first``: its place in
-    the family, or after it) seeded by the family's seed and ``i`` (so that the first
-    ``n`` of more runs are the ``n`` runs' starts)."""
+    the family, or after it) seeded by `starts_seed`."""
     out = []
     for i, environment in enumerate(environments):
         here = dc.replace(scenario, environment=environment)
         box = application.grid(here, (3,) * len(application.axes))
-        seed = [spec.family.seed, first + i]
+        seed = starts_seed(spec, first + i)
         starts = application.starts(here, (box.lo, box.hi), runs, seed)
         recorded = application.recorded_runs(here, starts, duration=spec.duration,
                                               height=spec.height, width=spec.width,
@@ -296,9 +308,10 @@ def _save_risks(path, data, all_risks, judged):
 
 
 #: Bumped when the study's results change for the same inputs (2: the oracle's and the
-#: nights' guarded rows; 3: the encoder trains on colour-jittered frames), so that a
-#: run's monitor stage is run again.
-STUDY_FORMAT = 3
+#: nights' guarded rows; 3: the encoder trains on colour-jittered frames; 4: the starts
+#: have a random stream of their own, `STARTS_STREAM`), so that a run's monitor stage is
+#: run again.
+STUDY_FORMAT = 4
 
 #: The modules whose code trains and judges the study's monitors (the recorded runs
 #: and guarded missions have keys of their own): part of the monitor stage's key. A

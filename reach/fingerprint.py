@@ -48,15 +48,27 @@ STACK = _versions()
 
 
 def _stack() -> dict:
-    """`STACK` and this process's render stack (its probe image is rendered once, at
-    the first fingerprint): results rendered by another GL driver are another key."""
+    """`STACK`, this process's render stack (its probe image is rendered once, at the
+    first fingerprint: results rendered by another GL driver are another key) and the
+    source of `LOOP_CODE` (an edit there is another key, whatever the version says)."""
     from reachwatch.diagrams.render_stack import render_stack
-    return {**STACK, "render": render_stack()}
+    return {**STACK, "render": render_stack(), "code": _loop_code_digest()}
 
 
 #: reachwatch's packages, lowest layer first.
 LIBRARY = tuple(f"reachwatch.{name}" for name in
                 ("systems", "diagrams", "reach", "taxi", "training", "pipeline"))
+
+#: The packages every loop is built and run from: its systems, its diagrams, the
+#: real-loop runners and the default application. Their source is in every
+#: fingerprint: a factory's own module is not enough when the switch, a monitor or the
+#: plant it wires in changes.
+LOOP_CODE = LIBRARY[:4]
+
+
+@functools.cache
+def _loop_code_digest() -> str:
+    return modules_source_digest(*LOOP_CODE)
 
 
 def modules_source_digest(*names) -> str:

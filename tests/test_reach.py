@@ -368,6 +368,27 @@ def test_a_cache_filled_under_another_software_stack_is_not_reused(monkeypatch):
     assert all(a != b for a, b in zip(before, after))
 
 
+def test_an_edit_to_the_loops_code_is_another_key(monkeypatch):
+    """Fingerprints carry the source of the packages every loop is built from: an edit
+    to the switch, a monitor or the plant (not the factory's own module) changes sweep
+    and real-loop keys."""
+    import sys
+
+    from reachwatch.reach.fingerprint import modules_source_digest
+    from reachwatch.reach.outcomes import outcomes_key
+    fp = sys.modules["reachwatch.reach.fingerprint"]
+    for module in ("reachwatch.systems.switch", "reachwatch.systems.history_monitor",
+                   "reachwatch.systems.flag_filter", "reachwatch.diagrams.guarded",
+                   "reachwatch.reach.loop_runs", "reachwatch.taxi.fidelity"):
+        assert module.rpartition(".")[0] in fp.LOOP_CODE
+    assert fp._loop_code_digest() == modules_source_digest(*fp.LOOP_CODE)
+    rollout = functools.partial(dict, b=2)
+    before = (fp.fingerprint(rollout), outcomes_key(rollout, np.zeros((2, 2))))
+    monkeypatch.setattr(fp, "_loop_code_digest", lambda: "0" * 64)
+    after = (fp.fingerprint(rollout), outcomes_key(rollout, np.zeros((2, 2))))
+    assert all(a != b for a, b in zip(before, after))
+
+
 def test_editing_a_helper_beside_a_factory_changes_its_key(tmp_path, monkeypatch):
     """A factory's key covers the module that defines it: a helper it calls from the
     same module (not the factory's own lines) changes the key when edited."""

@@ -87,9 +87,10 @@ class ConformalThreshold:
         return (f"Threshold {self.threshold:.4g}, fixed on {self.environments} calibration "
                 f"environments ({self.failing_runs} failing runs): on a new environment "
                 f"drawn from the same family, independently of them, the expected share of "
-                f"failing runs flagged less than {lead:.2f} s before they fail is at most "
-                f"{100 * self.alpha:.1f} % (conformal risk control; environments "
-                f"exchangeable, runs within each drawn as in calibration).")
+                f"its warnable failing runs (those lasting at least {lead:.2f} s) flagged "
+                f"less than {lead:.2f} s before they fail is at most {100 * self.alpha:.1f} % "
+                f"(conformal risk control; environments exchangeable, each with as many "
+                f"runs drawn as in calibration).")
 
 
 def _losses(env_scores, threshold):
@@ -145,7 +146,10 @@ def per_environment_bound(env_miss_rates, delta: float) -> float:
     it: with probability at least ``1 - delta`` (over the draw of the calibration
     environments and the new one, all exchangeable) the new one's miss rate is at most
     ``b``, the ``ceil((n + 1)(1 - delta))``-th smallest of the ``n`` calibration
-    environments' miss rates (1.0 when that rank exceeds ``n``: too few to say more)."""
+    environments' miss rates (1.0 when that rank exceeds ``n``: too few to say more).
+    Exact only when the threshold was fixed without these environments too; at a
+    threshold fitted on them (the study's) their rates are not exchangeable with a new
+    one's, and the bound is optimistic."""
     rates = np.sort(np.asarray(env_miss_rates, float))
     if not (0 < delta < 1):
         raise ValueError(f"delta must be in (0, 1), got {delta}")
