@@ -53,10 +53,11 @@ class MonitorStudySpec:
     without training on more (the taxi's starts are drawn in order: its first ``runs``
     are the same starts); the conformal bound speaks of environments with ``runs``
     runs, the pooled held-out miss rate is per failing run. Each environment's starts
-    have a random stream of their own, not the one the family draws it from. The risk is that of failing within ``within`` s; the
-    fallback brakes at ``brake_deceleration`` m/s^2, so a warning counts when it comes
-    at least speed / deceleration s before the failure; the threshold bounds the
-    expected miss rate at ``alpha``. The default ``within`` (4 s, for braking's 1.67 s
+    have a random stream of their own, not the one the family draws it from. The risk
+    is that of failing within ``within`` s; the fallback brakes at
+    ``brake_deceleration`` m/s^2, so a warning counts when it comes at least speed /
+    deceleration s before the failure; the threshold bounds the expected miss rate at
+    ``alpha``. The default ``within`` (4 s, for braking's 1.67 s
     from 5 m/s at 3 m/s^2) is the one of 2, 3, 4 and 5 s whose kept variant flagged the
     fewest safe runs of the calibration environments in a study of the random family
     (seed 11); set it for your fallback.
@@ -146,6 +147,10 @@ class MonitorStudySpec:
                              f"miss rate at alpha {self.alpha:g} (the bound is at least "
                              f"1/(calibrate+1)); use at least {math.ceil(1 / self.alpha - 1)}")
         self.family.validate(f"{where}.family")
+        count = self.train + self.calibrate + self.held_out
+        if self.family.count not in (0, count):
+            raise ValueError(f"{where}.family.count is train + calibrate + held_out here "
+                             f"({count}); leave it out, got {self.family.count}")
         for i, env in enumerate(self.also_held_out):
             try:
                 env.validate()

@@ -75,6 +75,9 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
                            "monitor.ensemble must be a whole number in .1, 32., got 0"),
                           (("runs: 6", "runs: 6\n  held_out_runs: -1"),
                            "monitor.held_out_runs must be a whole number"),
+                          (("{seed: 4}", "{seed: 4, count: 5}"),
+                           "monitor.family.count is train . calibrate . held_out here (3); "
+                           "leave it out, got 5"),
                           (("guarded_runs: 2", "guarded_runs: 7"),
                            "monitor.guarded_runs (7) must be at most the runs recorded per "
                            "held-out environment (6: monitor.held_out_runs, or monitor.runs")):
