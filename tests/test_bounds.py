@@ -40,6 +40,8 @@ COMPANIONS = {
     ("run.detector.validation_fraction", "low"): {"run.detector.target_recall": 0.0},
     ("run.monitor.within", "high"): {"run.monitor.duration": 600.0},
     ("run.monitor.calibrate", "low"): {"run.monitor.alpha": 0.5},
+    # guarded runs come from the recorded starts of each held-out environment
+    ("run.monitor.guarded_runs", "high"): {"run.monitor.held_out_runs": 100_000},
     # horizon and guard.online_seconds are at least one control period
     ("run.scenario.controller.period", "high"): {"run.horizon": 120.0,
                                                  "run.guard.online_seconds": 10.0},
