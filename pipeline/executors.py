@@ -27,11 +27,15 @@ def _version(name: str):
 
 
 def process_identity() -> dict:
-    """This process's `PINNED` versions and render stack: what a worker must share with
-    the driver (`check_worker_versions`, and every task on a Dask worker). Both are read
-    once per process (installed versions do not change under a running process)."""
+    """This process's `PINNED` versions, render stack and the source of the code loops
+    are built from (`reach.fingerprint.loop_code_digest`, part of every cache key): what
+    a worker must share with the driver (`check_worker_versions`, and every task on a
+    Dask worker). Read once per process (installed code does not change under a running
+    process)."""
     from reachwatch.diagrams.render_stack import render_stack
-    return {"versions": dict(_pinned_versions()), "render": render_stack()}
+    from reachwatch.reach.fingerprint import loop_code_digest
+    return {"versions": dict(_pinned_versions()), "render": render_stack(),
+            "code": loop_code_digest()}
 
 
 @functools.lru_cache(maxsize=1)
@@ -41,7 +45,8 @@ def _pinned_versions() -> tuple:
 
 def describe_identity(identity: dict) -> str:
     """`process_identity` in words, on one line."""
-    return f"{_describe(identity['versions'])}, renders with {_stack_text(identity['render'])}"
+    return (f"{_describe(identity['versions'])}, loop code {identity['code'][:12]}, renders "
+            f"with {_stack_text(identity['render'])}")
 
 
 def _describe(versions) -> str:

@@ -13,15 +13,15 @@ KEPT = 8
 
 
 def run_on_worker(expected: dict, shipment, fn, /, *args, **kwargs):
-    """A task on a worker: refused, in one line, when the worker's versions or render
-    stack (`process_identity`) differ from the driver's ``expected`` (a worker that
+    """A task on a worker: refused, in one line, when the worker's versions, loop code
+    or render stack (`process_identity`) differ from the driver's ``expected`` (a worker that
     joined after the driver checked those connected); else ``fn(*args, **kwargs)``,
     with ``shipment``'s files (`run_shipped`) when it brings some."""
     mine = process_identity()
     if mine != expected:
         raise RuntimeError(f"this worker has {describe_identity(mine)}, the driver "
                            f"{describe_identity(expected)}: it joined with another install; "
-                           f"stop it, or install the same versions and GL driver there")
+                           f"stop it, or install the same reachwatch, versions and GL driver there")
     if shipment is None:
         return fn(*args, **kwargs)
     return run_shipped(shipment, fn, *args, **kwargs)

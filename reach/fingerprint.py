@@ -52,7 +52,7 @@ def _stack() -> dict:
     first fingerprint: results rendered by another GL driver are another key) and the
     source of `LOOP_CODE` (an edit there is another key, whatever the version says)."""
     from reachwatch.diagrams.render_stack import render_stack
-    return {**STACK, "render": render_stack(), "code": _loop_code_digest()}
+    return {**STACK, "render": render_stack(), "code": loop_code_digest()}
 
 
 #: reachwatch's packages, lowest layer first.
@@ -67,7 +67,8 @@ LOOP_CODE = LIBRARY[:4]
 
 
 @functools.cache
-def _loop_code_digest() -> str:
+def loop_code_digest() -> str:
+    """`modules_source_digest` of `LOOP_CODE`, read once per process."""
     return modules_source_digest(*LOOP_CODE)
 
 

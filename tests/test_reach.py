@@ -381,10 +381,10 @@ def test_an_edit_to_the_loops_code_is_another_key(monkeypatch):
                    "reachwatch.systems.flag_filter", "reachwatch.diagrams.guarded",
                    "reachwatch.reach.loop_runs", "reachwatch.taxi.fidelity"):
         assert module.rpartition(".")[0] in fp.LOOP_CODE
-    assert fp._loop_code_digest() == modules_source_digest(*fp.LOOP_CODE)
+    assert fp.loop_code_digest() == modules_source_digest(*fp.LOOP_CODE)
     rollout = functools.partial(dict, b=2)
     before = (fp.fingerprint(rollout), outcomes_key(rollout, np.zeros((2, 2))))
-    monkeypatch.setattr(fp, "_loop_code_digest", lambda: "0" * 64)
+    monkeypatch.setattr(fp, "loop_code_digest", lambda: "0" * 64)
     after = (fp.fingerprint(rollout), outcomes_key(rollout, np.zeros((2, 2))))
     assert all(a != b for a, b in zip(before, after))
 

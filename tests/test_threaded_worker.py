@@ -206,3 +206,12 @@ def test_a_task_on_a_worker_unlike_the_driver_is_refused_in_one_line(two_thread_
     message = str(error.value)
     assert "\n" not in message and "joined with another install" in message
     assert "probe 000000000000" in message
+    # another reachwatch source under the same version: refused the same way
+    executor, close = make_executor("dask://" + address.split("://", 1)[1])
+    try:
+        executor._expected = {**executor._expected, "code": "f" * 64}
+        with pytest.raises(RuntimeError) as error:
+            executor.submit(is_file, "no such file").result()
+    finally:
+        close()
+    assert "loop code ffffffffffff" in str(error.value)
