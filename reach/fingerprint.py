@@ -7,7 +7,8 @@ numpy arrays, torch modules and tensors by a hash of their bytes; and any string
 path that names an existing file by a hash of the file's *contents* (a moved
 checkpoint keeps its fingerprint, a retrained one does not). What cannot be reduced
 this way raises `Unfingerprintable`, so a sweep never silently reuses a table made by
-another controller."""
+another controller. Every fingerprint also carries the versions, the render stack and
+the source of the packages loops are built from (`LOOP_CODE`)."""
 
 import dataclasses as dc
 import functools

@@ -1,6 +1,5 @@
-"""The monitor study of a run file (``monitor: {kind: history}``): the spec loads and
-refuses nonsense by name, and the study runs end to end at a tiny size on the real
-rendered loop (record, train every variant, calibrate, conformal threshold, judge
+"""The monitor study of a run file (``monitor: {kind: history}``): the study runs end
+to end at a tiny size on the real rendered loop (record, train every variant, calibrate, conformal threshold, judge
 offline and in the guarded real loop), its kept monitor a checkpoint the guarded loop
 takes, and its tables render."""
 
@@ -15,134 +14,10 @@ from reachwatch.diagrams.checkpoints import load_history_monitor
 from reachwatch.pipeline.monitor_sections import markdown_tables
 from reachwatch.pipeline.monitor_guarded import ORACLE, oracle_flag_ticks
 from reachwatch.pipeline.monitor_study import run_monitor_study
-from reachwatch.pipeline.spec import MonitorVariant, dump_run_spec, load_run_spec
+from reachwatch.pipeline.spec import MonitorVariant, load_run_spec
 from reachwatch.training.conformal import conformal_threshold
-from tiny_run import TINY
+from tiny_run import MONITOR_STUDY, TINY
 
-STUDY = """
-monitor:
-  kind: history
-  family: {seed: 4}
-  train: 1
-  calibrate: 1
-  held_out: 1
-  alpha: 0.5
-  runs: 6
-  duration: 2.0
-  within: 1.0
-  height: 16
-  width: 24
-  epochs: 1
-  head_epochs: 2
-  guarded_runs: 2
-  variants:
-    - {name: one frame}
-    - {name: GRU 3 + signals, frames: 3, stride: 2, temporal: gru, signals: true}
-"""
-
-
-def test_the_study_spec_loads_round_trips_and_names_its_errors():
-    spec = load_run_spec(data=TINY + STUDY)
-    assert spec.monitor.enabled and [v.name for v in spec.monitor.variants] == [
-        "one frame", "GRU 3 + signals"]
-    assert load_run_spec(data=dump_run_spec(spec)).monitor == spec.monitor
-    assert spec.monitor.judged_runs == 6
-    more = load_run_spec(data=TINY + STUDY.replace("guarded_runs: 2", "guarded_runs: 7\n"
-                                                   "  held_out_runs: 8")).monitor
-    assert (more.runs, more.judged_runs, more.guarded_runs) == (6, 8, 7)
-    assert not load_run_spec(data=TINY).monitor.enabled            # off by default
-    import dataclasses as dc
-    assert dc.asdict(spec.monitor)["flag_rules"] == [[1, 1]]
-    for field, value in (("augment", "no"), ("variants", [MonitorVariant("x", signals=1)])):
-        with pytest.raises(ValueError, match=rf"monitor\.{field}(\[0\]\.signals)? must be "
-                                             rf"true or false, got"):
-            dc.replace(spec.monitor, **{field: value}).validate()
-    with pytest.raises(ValueError, match=r"monitor\.lr_schedule must be one of \('constant', "
-                                         r"'cosine'\), got 'linear'"):
-        dc.replace(spec.monitor, lr_schedule="linear").validate()
-    for edit, message in ((("kind: history", "kind: lstm"), "monitor.kind must be one of"),
-                          (("alpha: 0.5", "alpha: 0.1"), "monitor.calibrate: 1 environments "
-                                                         "cannot bound"),
-                          (("within: 1.0", "within: 2.0"), "monitor.within (2 s) must be shorter"),
-                          (("{name: one frame}", "{name: GRU 3 + signals}"),
-                           "monitor.variants must list"),
-                          (("runs: 6", "runs: 0"), "monitor.runs must be a whole number"),
-                          (("runs: 6", "runs: 6\n  flag_rules: [[2, 2], [2, 2]]"),
-                           "monitor.flag_rules: a list of"),
-                          (("runs: 6", "runs: 6\n  flag_rules: [[3, 2]]"),
-                           "monitor.flag_rules: the k-of-n flag rule needs"),
-                          (("runs: 6", "runs: 6\n  ensemble: 0"),
-                           "monitor.ensemble must be a whole number in .1, 32., got 0"),
-                          (("runs: 6", "runs: 6\n  held_out_runs: -1"),
-                           "monitor.held_out_runs must be a whole number"),
-                          (("{seed: 4}", "{seed: 4, count: 5}"),
-                           "monitor.family.count is train . calibrate . held_out here (3); "
-                           "leave it out, got 5"),
-                          (("guarded_runs: 2", "guarded_runs: 7"),
-                           "monitor.guarded_runs (7) must be at most the runs recorded per "
-                           "held-out environment (6: monitor.held_out_runs, or monitor.runs")):
-        with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
-            load_run_spec(data=TINY + STUDY.replace(*edit))
-
-
-
-def test_the_starts_do_not_repeat_the_environments_random_numbers():
-    """Environment ``i`` of the family is drawn from ``[seed, i]``; the study's starts
-    of it have a stream of their own. Seeded the same, the first start's lateral offset
-    followed the hour (correlation 0.94 over 40 environments)."""
-    from reachwatch.pipeline.monitor_study import starts_seed
-    from reachwatch.reach.application import load_application
-    spec = load_run_spec(data=TINY + STUDY).monitor
-    application, scenario = load_application(), load_scenario(data="")
-    hours, offsets = [], []
-    for i, environment in enumerate(dc_replace(spec.family, count=60).environments()):
-        here = dc_replace(scenario, environment=environment)
-        box = application.grid(here, (3, 3, 3))
-        start = application.starts(here, (box.lo, box.hi), 5, starts_seed(spec, i))[0]
-        assert not np.allclose(np.random.default_rng([spec.family.seed, i]).random(3),
-                               np.random.default_rng(starts_seed(spec, i)).random(3))
-        hours.append(environment.hour)
-        offsets.append(start[0] / environment.half_width)
-    assert abs(np.corrcoef(hours, offsets)[0, 1]) < 0.4
-
-
-def test_the_study_key_covers_every_training_setting_and_the_study_code(monkeypatch):
-    """The monitor stage's key changes with ``augment`` (which reaches training), with
-    a training setting the run file does not name, and with the code of `STUDY_CODE`."""
-    import dataclasses as dc
-    import reachwatch.pipeline.monitor_study as study
-    from reachwatch.reach.application import load_application
-    spec = load_run_spec(data=TINY + STUDY)
-    taxi = load_application("")
-    key = lambda monitor: study.study_key(monitor, taxi, spec.scenario)  # noqa: E731
-    before = key(spec.monitor)
-    assert before == key(spec.monitor)
-    off = dc.replace(spec.monitor, augment=False)
-    assert study.train_settings(off).augment is False and study.train_settings(spec.monitor).augment
-    assert key(off) != before
-    seeded = load_run_spec(data=TINY + STUDY.replace("  epochs: 1", "  epochs: 1\n  seed: 3"))
-    assert study.train_settings(seeded.monitor).seed == 3 and key(seeded.monitor) != before
-    ensemble = load_run_spec(data=TINY + STUDY.replace("  epochs: 1", "  epochs: 1\n  ensemble: 2"))
-    assert [s.seed for s in study.member_settings(ensemble.monitor)] == [0, 1]
-    assert [s.seed for s in study.member_settings(dc.replace(ensemble.monitor, seed=3))] == [6, 7]
-    assert [s.seed for s in study.member_settings(seeded.monitor)] == [3]
-    assert key(ensemble.monitor) != before
-    cosine = load_run_spec(data=TINY + STUDY.replace("  epochs: 1",
-                                                     "  epochs: 1\n  lr_schedule: cosine"))
-    assert study.train_settings(cosine.monitor).lr_schedule == "cosine"
-    assert key(cosine.monitor) != before
-    settings = study.train_settings
-    monkeypatch.setattr(study, "train_settings",
-                        lambda monitor: dc.replace(settings(monitor), batch_size=64))
-    assert key(spec.monitor) != before
-    monkeypatch.setattr(study, "train_settings", settings)
-    import sys
-    fp = sys.modules["reachwatch.reach.fingerprint"]    # the module, not the function
-    real = fp.modules_source_digest
-    monkeypatch.setattr(fp, "modules_source_digest",
-                        lambda *names: real(*names) + ("!" if set(names) == set(
-                            study.STUDY_CODE) else ""))
-    assert key(spec.monitor) != before
 
 def test_threshold_tradeoff_leaves_a_blank_row_only_where_no_threshold_exists():
     """Too few calibration environments for an alpha: a row without a threshold; a bad
@@ -196,7 +71,7 @@ def _monitor_report(folder):
 
 
 def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
-    spec = load_run_spec(data=TINY + STUDY.replace(
+    spec = load_run_spec(data=TINY + MONITOR_STUDY.replace(
         "  guarded_runs: 2", "  guarded_runs: 2\n  also_held_out: [{runway: KSFO, hour: 21.0, "
                              "sky: overcast}]")).monitor
     scenario = load_scenario(data="")
@@ -294,7 +169,7 @@ def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
     from reachwatch.pipeline.monitor_study import _record
     from reachwatch.reach.application import load_application
     from reachwatch.systems import HistoryRiskEnsemble, platt
-    spec = load_run_spec(data=TINY + STUDY).monitor
+    spec = load_run_spec(data=TINY + MONITOR_STUDY).monitor
     spec = dc.replace(spec, ensemble=2, guarded_runs=0, held_out_runs=spec.runs + 1,
                       variants=[MonitorVariant("one frame")])
     scenario = load_scenario(data="")

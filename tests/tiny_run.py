@@ -22,3 +22,26 @@ incremental:
   replay: 20
   epochs: 2
 """
+
+
+#: A tiny monitor study (``monitor: {kind: history}``) to append to `TINY`.
+MONITOR_STUDY = """
+monitor:
+  kind: history
+  family: {seed: 4}
+  train: 1
+  calibrate: 1
+  held_out: 1
+  alpha: 0.5
+  runs: 6
+  duration: 2.0
+  within: 1.0
+  height: 16
+  width: 24
+  epochs: 1
+  head_epochs: 2
+  guarded_runs: 2
+  variants:
+    - {name: one frame}
+    - {name: GRU 3 + signals, frames: 3, stride: 2, temporal: gru, signals: true}
+"""
