@@ -66,7 +66,7 @@ def main():
                                    f"{config.stem_stride}.pt")
             save_checkpoint(path, kind="detector", model=build_detector(config),
                             model_config=config, preprocess_config=None,
-                            metadata={"image_size": [200, 360]})
+                            metadata={"image_size": [200, 360], "threshold": 0.5})
             configs.append((name, path))
         one = HistoryMonitorConfig(frames=1)
         for name, config, members in [] if args.detector or args.monitors == "detector" else [
@@ -81,7 +81,7 @@ def main():
             model = models[0] if members == 1 else HistoryRiskEnsemble.of(models)
             save_checkpoint(path, kind="history_monitor", model=model,
                             model_config=config, preprocess_config=None,
-                            metadata={"calibration": [1.0, 0.0]})
+                            metadata={"calibration": [1.0, 0.0], "threshold": 0.5})
             configs.append((name, path))
         nominal = make_closed_loop_diagram(load_scenario(data=""))
         # First row: TaxiNet alone against a second copy of itself, the method's noise floor.

@@ -158,6 +158,12 @@ def checkpoint_kind(path, kinds=MONITOR_KINDS) -> str:
     return load_checkpoint(path, kind=kinds)["kind"]
 
 
+def checkpoint_metadata(path, kinds=MONITOR_KINDS) -> dict:
+    """The metadata of the checkpoint at ``path`` (one of ``kinds``), e.g. the
+    ``threshold`` and ``flag_rule`` a monitor's was chosen with."""
+    return load_checkpoint(path, kind=kinds)["metadata"]
+
+
 def load_history_monitor(path):
     """``(model, config, metadata)`` from a history-monitor checkpoint (eval mode); the
     metadata holds its ``threshold``, Platt ``calibration`` ``[a, b]`` and, for an

@@ -52,7 +52,9 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
     and their `MeanRisk` named ``anomaly_detector``)
     and, when trained with signals, reads the controller's ``estimate_port`` and
     ``steering_port`` through `add_monitor_signals`. Alone (no switch) it watches a
-    loop without acting on it."""
+    loop without acting on it. A null threshold is the checkpoint's own
+    (`MonitorConfig.resolved`)."""
+    monitor = monitor.resolved()
     if checkpoint_kind(monitor.detector) == "history_monitor":
         model, config, metadata = load_history_monitor(monitor.detector)
         if period is None:
@@ -100,7 +102,9 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller,
     ``steering_port``, ticking at ``controller.period`` from ``controller.speed``.
     Returns a `Monitor`; connect the switch's ``steering_angle`` and ``speed`` outputs
     to your plant (and its ``fallback_steering_angle`` input for ``oracle``). A history
-    monitor reads the controller's ``estimate_port`` (when given) and steering."""
+    monitor reads the controller's ``estimate_port`` (when given) and steering. A null
+    threshold or k-of-n rule is the checkpoint's own (`MonitorConfig.resolved`)."""
+    monitor = monitor.resolved()
     detector = add_detector(builder, image_port=image_port, monitor=monitor,
                             period=controller.period, steering_port=steering_port,
                             estimate_port=estimate_port)

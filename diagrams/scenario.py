@@ -10,7 +10,7 @@ import math
 import re
 import typing
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import yaml
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_data, yaml_load_typed
@@ -99,15 +99,19 @@ class MonitorConfig:
     (``resume_acceleration`` m/s^2; 0 = at once, the paper's rule), and the k-of-n rule
     that confirms flags: the loop counts a tick as flagged when at least ``flags_needed``
     of the last ``flag_window`` control ticks had a score at or above the threshold (1 of
-    1: every raw flag)."""
+    1: every raw flag). Left null, the threshold and the k-of-n rule are the checkpoint's
+    own (the threshold it was trained or calibrated to, its ``flag_rule``, else 1 of 1):
+    a checkpoint is never run at a threshold it was not chosen for without a word in
+    the file. `resolved` fills them in."""
     detector: str = ""
-    threshold: float = bounded(0.5, 0.0, 1.0)
+    threshold: Optional[float] = bounded(None, 0.0, 1.0)
     strategy: str = "slow_down"
     steering: str = "taxinet"
     brake_deceleration: float = bounded(1.0, 0.0, 100.0, low_open=True, unit="m/s^2")
     resume_acceleration: float = bounded(0.0, 0.0, unit="m/s^2")
-    flags_needed: int = bounded(1, 1, MAX_FLAG_WINDOW, whole=True, note="<= flag_window")
-    flag_window: int = bounded(1, 1, MAX_FLAG_WINDOW, whole=True, unit="ticks")
+    flags_needed: Optional[int] = bounded(None, 1, MAX_FLAG_WINDOW, whole=True,
+                                          note="<= flag_window; both set or both null")
+    flag_window: Optional[int] = bounded(None, 1, MAX_FLAG_WINDOW, whole=True, unit="ticks")
 
     @property
     def fallback(self):
@@ -125,11 +129,47 @@ class MonitorConfig:
         return dc.replace(self, strategy=chosen.strategy,
                           steering=STORED_STEERING.get(chosen.steering, chosen.steering))
 
+    def resolved(self) -> "MonitorConfig":
+        """A copy whose null ``threshold`` and k-of-n rule are the checkpoint's: its
+        metadata's ``threshold`` and ``flag_rule`` ``[k, n]`` (1 of 1 when it has none,
+        or when there is no checkpoint). A null threshold with a checkpoint that holds
+        none is a one-line ValueError; with no checkpoint it stays null."""
+        if (self.flags_needed is None) != (self.flag_window is None):
+            raise ValueError("monitor.flags_needed / monitor.flag_window: set both or "
+                             "neither (neither: the checkpoint's rule, else 1 of 1)")
+        if self.threshold is not None and self.flag_window is not None:
+            return self
+        metadata = {}
+        if self.detector:
+            from .checkpoints import checkpoint_metadata
+            try:
+                metadata = checkpoint_metadata(self.detector)
+            except ValueError as e:
+                raise ValueError(f"monitor.detector: {e}") from None
+        threshold = self.threshold
+        if threshold is None and self.detector:
+            if not isinstance(metadata.get("threshold"), (int, float)):
+                raise ValueError(f"monitor.threshold: {clip(self.detector, 200)} holds no "
+                                 f"threshold of its own; set monitor.threshold")
+            threshold = float(metadata["threshold"])
+        k, n = ((self.flags_needed, self.flag_window) if self.flag_window is not None
+                else tuple(metadata.get("flag_rule", (1, 1))))
+        return dc.replace(self, threshold=threshold, flags_needed=int(k), flag_window=int(n))
+
     def validate(self):
+        """Raise ValueError naming the first bad field; with a checkpoint named, fill
+        in what `resolved` fills in; return self."""
         from reachwatch.systems import check_k_of_n
         check_bounds(self, "monitor.")      # each state keeps its window's flags
+        if self.detector and not is_file(self.detector):
+            raise ValueError(f"monitor.detector: file not found: {clip(self.detector, 200)}")
+        full = self.resolved()
+        if self.detector:                   # null stays null until a checkpoint is named
+            self.threshold, self.flags_needed, self.flag_window = (
+                full.threshold, full.flags_needed, full.flag_window)
+            check_bounds(self, "monitor.")  # a checkpoint's own values, checked the same
         try:
-            check_k_of_n(self.flags_needed, self.flag_window)
+            check_k_of_n(full.flags_needed, full.flag_window)
         except ValueError as e:
             raise ValueError(f"monitor.flags_needed / monitor.flag_window: {e}") from None
         try:
@@ -137,8 +177,6 @@ class MonitorConfig:
         except ValueError as e:
             raise ValueError(f"monitor.{e}") from None
         self.steering = STORED_STEERING.get(steering, steering)
-        if self.detector and not is_file(self.detector):
-            raise ValueError(f"monitor.detector: file not found: {clip(self.detector, 200)}")
         return self
 
 

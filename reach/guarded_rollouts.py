@@ -201,6 +201,7 @@ def fallback_rollouts(tables, grid, horizon, fallbacks, *, dynamics, period, mon
     ``alone``: the controller alone's outcomes from the same starts and settings when
     already computed (they do not depend on the detector), reused instead of rolled out
     again. ``score_noise``, ``seed``: the detector's variation between nodes."""
+    monitor = monitor.resolved()        # a null threshold or rule: the checkpoint's own
     kw = dict(horizon=horizon, period=period, starts=starts, mission_limit=mission_limit)
     estimates = (tables[estimate_port] if estimate_port and estimate_port in tables.tables
                  else None)

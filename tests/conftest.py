@@ -38,7 +38,7 @@ def detector_path(tmp_path_factory):
     torch.manual_seed(0)
     path = tmp_path_factory.mktemp("det") / "detector.pt"
     save_checkpoint(path, kind="detector", model=build_detector(config), model_config=config,
-                    preprocess_config=None, metadata={"image_size": [200, 360]})
+                    preprocess_config=None, metadata={"image_size": [200, 360], "threshold": 0.5})
     return path
 
 

@@ -26,7 +26,11 @@ from tiny_run import TINY
 SAME = object()
 COMPANIONS = {
     ("run.scenario.camera.near", "high"): {"run.scenario.camera.far": 1e5},
+    # the k-of-n rule is set whole or left to the checkpoint
+    ("run.scenario.monitor.flags_needed", "low"): {"run.scenario.monitor.flag_window": 1},
     ("run.scenario.monitor.flags_needed", "high"): {"run.scenario.monitor.flag_window": 1000},
+    ("run.scenario.monitor.flag_window", "low"): {"run.scenario.monitor.flags_needed": 1},
+    ("run.scenario.monitor.flag_window", "high"): {"run.scenario.monitor.flags_needed": 1},
     ("run.dataset.height", "low"): {"run.detector.detector.height": SAME},
     ("run.dataset.height", "high"): {"run.detector.detector.height": SAME},
     ("run.dataset.width", "low"): {"run.detector.detector.width": SAME},

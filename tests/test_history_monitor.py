@@ -14,14 +14,15 @@ from reachwatch.taxi.fidelity import make_watched_loop
 from reachwatch.taxi.history import record_runs
 
 
-def _checkpoint(path, config, seed=0, calibration=(0.05, 0.3)):
+def _checkpoint(path, config, seed=0, calibration=(0.05, 0.3), **metadata):
     torch.manual_seed(seed)
     model = HistoryRiskModel(config)
     for p in model.parameters():                 # spread the raw risk over (0, 1)
         p.data.mul_(3.0)
     save_checkpoint(path, kind="history_monitor", model=model.eval(), model_config=config,
                     preprocess_config=None,
-                    metadata={"calibration": list(calibration), "threshold": 0.5})
+                    metadata={"calibration": list(calibration), "threshold": 0.5,
+                              **metadata})
     return path
 
 
@@ -51,6 +52,40 @@ def test_online_risk_is_the_offline_function_of_the_recorded_run(tmp_path, tempo
     np.testing.assert_allclose(run.score, offline, rtol=1e-4, atol=1e-5)
     assert np.ptp(offline) > 1e-4                # the history changes the risk
     assert checkpoint_kind(path) == "history_monitor"
+
+
+def test_a_scenario_runs_a_checkpoint_at_its_own_threshold_and_flag_rule(tmp_path):
+    """``monitor.threshold`` and the k-of-n rule left out are the checkpoint's (a study's
+    conformal threshold and flag rule); set, they are the file's; a checkpoint with no
+    threshold of its own is refused in one line unless the file sets one."""
+    from reachwatch.diagrams import MonitorConfig, make_guarded_diagram
+    config = HistoryMonitorConfig(frames=2, height=16, width=24, channels=[4], features=4)
+    path = _checkpoint(tmp_path / "m.pt", config, threshold=0.37, flag_rule=[2, 3])
+    monitor = load_scenario(data=f"monitor: {{detector: {path}}}\n").monitor
+    assert (monitor.threshold, monitor.flags_needed, monitor.flag_window) == (0.37, 2, 3)
+    own = load_scenario(data=f"monitor: {{detector: {path}, threshold: 0.6, flags_needed: 1, "
+                             f"flag_window: 1}}\n").monitor
+    assert (own.threshold, own.flags_needed, own.flag_window) == (0.6, 1, 1)
+    built = MonitorConfig(detector=str(path), strategy="brake")     # never validated
+    names = {s.get_name() for s in make_guarded_diagram(_with_monitor(built)).GetSystems()}
+    assert "flag_filter" in names
+    assert MonitorConfig(strategy="brake").resolved().threshold is None     # nothing to run
+    bare = tmp_path / "bare.pt"
+    save_checkpoint(bare, kind="history_monitor", model=HistoryRiskModel(config).eval(),
+                    model_config=config, preprocess_config=None, metadata={})
+    with pytest.raises(ValueError, match=r"monitor.threshold: \S*bare.pt holds no threshold of "
+                                         r"its own; set monitor.threshold$"):
+        load_scenario(data=f"monitor: {{detector: {bare}}}\n")
+    assert load_scenario(data=f"monitor: {{detector: {bare}, threshold: 0.2}}\n"
+                         ).monitor.flag_window == 1
+    with pytest.raises(ValueError, match="monitor.flags_needed / monitor.flag_window: set both "
+                                         "or neither"):
+        load_scenario(data=f"monitor: {{detector: {path}, flag_window: 5}}\n")
+
+
+def _with_monitor(monitor):
+    import dataclasses as dc
+    return dc.replace(load_scenario(data=""), monitor=monitor)
 
 
 def test_history_ticks_clamp_at_the_run_start():
