@@ -8,6 +8,8 @@ and resumes its chunked work when it was killed."""
 
 from reachwatch.reach.fingerprint import LIBRARY, modules_source_digest
 from reachwatch.systems.checks import short
+from reachwatch.training.dataset import DATASET_CODE
+from reachwatch.training.dataset import FORMAT as DATASET_FORMAT
 
 from .checked_page import write_checked_page
 from .console import log
@@ -61,6 +63,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
             {n: r["value"] for n, r in run.outputs["solve"].items()},
             {n: run.content_key(f"solve_{n}") for n in run.outputs["solve"]}, spec.dataset.key(),
             spec.ensemble, spec.scenario.camera,
+            {"format": DATASET_FORMAT, "code": modules_source_digest(*DATASET_CODE)},
             # only when set, so that runs without it keep their keys
             *([spec.held_out_labels.key()] if spec.held_out_labels is not None else [])),
             lambda: stage_dataset(run)),

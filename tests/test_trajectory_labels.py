@@ -9,7 +9,8 @@ from pydrake.systems.framework import LeafSystem
 from reachwatch.diagrams import make_closed_loop_diagram, simulate
 from reachwatch.reach.outcomes import check_memoryless, path_labels, path_points
 from reachwatch.taxi.fidelity import on_runway_starts
-from reachwatch.training.dataset import DatasetSpec, build_dataset, dataset_folder, load_dataset
+from reachwatch.training.dataset import (PATHS_STREAM, DatasetSpec, build_dataset, dataset_folder,
+                                        load_dataset)
 from reachwatch.training.labels import (NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
                                         LabelSpec, trajectory_samples)
 
@@ -240,7 +241,7 @@ def test_brt_labels_with_paths_add_true_labels_along_real_runs(tmp_path, kmwh_da
     np.testing.assert_array_equal(data.labels[:10], np.asarray(data.values[:10]) <= 0)
     info = data.manifest["labels"]["paths"]
     assert info["runs"] == 3 and info["samples"] == along.sum() > 3
-    starts = on_runway_starts(grid, 3, [5, 1], half_width=B)
+    starts = on_runway_starts(grid, 3, [5, *PATHS_STREAM], half_width=B)
     np.testing.assert_allclose(data.states[10], starts[0])       # each run's start comes first
     assert data.runs[:10].tolist() == [NO_RUN] * 10             # uniform samples: on no run
     for run in range(3):

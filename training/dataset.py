@@ -46,7 +46,18 @@ from .dataset_images import ImageSource, ImageTools, estimator, render_chunk
 from .labels import (FALLBACK_FIELDS, NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
                      TRAJECTORY_FIELDS, LabelInputs, LabelSpec, label_samples, read_along)
 
-FORMAT = "reachwatch.dataset/3"
+#: 4: the path starts have a stream of their own (`PATHS_STREAM`).
+FORMAT = "reachwatch.dataset/4"
+#: The random stream of a dataset's path starts, after its seed: ``[seed, 0, 2]``. A
+#: random family draws its environment ``i`` from ``[seed, i]`` and the monitor study
+#: the starts of environment ``i`` from ``[seed, i, 1]``, so with equal seeds this
+#: stream is none of theirs. Until format 4 it was ``[seed, 1]``: environment 1's.
+PATHS_STREAM = (0, 2)
+#: The modules whose code draws a dataset's states, labels them and stores its images
+#: (the loop's own code is in its controller's fingerprint): with `FORMAT`, part of the
+#: run's dataset stage key, so that an edit to them builds the datasets again.
+DATASET_CODE = ("reachwatch.training.dataset", "reachwatch.training.dataset_files",
+                "reachwatch.training.dataset_images", "reachwatch.training.labels")
 _log = logging.getLogger("reachwatch")
 
 
@@ -248,7 +259,7 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
         n = len(states)
         if spec.labels.paths:
             out = _real_paths(*real, spec.labels)(application.starts(
-                scenario, (lo, hi), spec.labels.paths, [spec.seed, 1]))
+                scenario, (lo, hi), spec.labels.paths, [spec.seed, *PATHS_STREAM]))
             along, anomalous, left_out, along_runs = read_along(out, inside)
             states = np.concatenate([states, along])
             values = np.concatenate([values, value_function.at(along)])
