@@ -90,6 +90,17 @@ def test_platt_scaling_recovers_a_known_miscalibration():
     assert counts.sum() == y.size and np.all(np.abs(mean_p - freq) < 0.03)
 
 
+def test_platt_scaling_never_reverses_a_backward_model():
+    """Raw risks that rank the labels backwards get slope 0 (the base rate for every
+    input), not a negative slope that would turn the risks round."""
+    rng = np.random.default_rng(1)
+    true = rng.uniform(0.05, 0.95, 5000)
+    y = rng.uniform(size=true.size) < true
+    fit = PlattCalibration.fit(1.0 - true, y)
+    assert fit.a == 0.0
+    assert np.allclose(fit(1.0 - true), y.mean(), atol=1e-3)
+
+
 def test_flag_outcomes_count_misses_among_warnable_runs_only():
     from reachwatch.training.monitor_eval import flag_outcomes, oracle_risks, system_figures
     ticks, failures = [10, 3, 10, 10], [0.45, 0.1, float("nan"), float("nan")]

@@ -160,8 +160,10 @@ def per_environment_bound(env_miss_rates, delta: float) -> float:
 @dc.dataclass
 class PlattCalibration:
     """``p = sigmoid(a * logit(q) + b)`` for a model's raw probability ``q`` (Platt
-    scaling: two numbers fitted by maximum likelihood on held-out labels; monotone, so
-    it never reorders risks)."""
+    scaling: two numbers fitted by maximum likelihood on held-out labels). The slope is
+    fitted with ``a >= 0``, so calibration never reorders risks: a model whose raw
+    risks rank the labels backwards gets ``a = 0``, one risk for every input (the base
+    rate), not reversed risks that a threshold would read the wrong way round."""
     a: float = 1.0
     b: float = 0.0
 
@@ -187,7 +189,8 @@ class PlattCalibration:
             r = 1 / (1 + np.exp(-(p[0] * z + p[1]))) - y
             return np.array([np.sum(r * z), np.sum(r)])
 
-        a, b = minimize(nll, np.array([1.0, 0.0]), jac=grad, method="L-BFGS-B").x
+        a, b = minimize(nll, np.array([1.0, 0.0]), jac=grad, method="L-BFGS-B",
+                        bounds=[(0.0, None), (None, None)]).x
         return cls(a=float(a), b=float(b))
 
 
