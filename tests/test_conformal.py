@@ -122,14 +122,15 @@ def test_flag_outcomes_count_misses_among_warnable_runs_only():
 
 def test_k_of_n_risks_flag_what_the_flag_filter_confirms():
     """A threshold on `k_of_n_risks` flags exactly the ticks the FlagFilter's array rule
-    (`confirmed_flags`) confirms from the raw flags, at every tick, for any threshold > 0."""
+    (`confirmed_flags`) confirms from the raw flags, at every tick, for any threshold
+    (0 too: the ticks before a run's k-th are never confirmed)."""
     from reachwatch.systems import confirmed_flags
     from reachwatch.training.monitor_eval import flag_outcomes, k_of_n_risks
     rng = np.random.default_rng(3)
     runs = [rng.uniform(0, 1, n) for n in (0, 1, 4, 25, 40)]
     for k, n in ((1, 1), (2, 2), (2, 3), (3, 5), (1, 4)):
         filtered = k_of_n_risks(runs, k, n)
-        for tau in (0.2, 0.5, 0.8):
+        for tau in (0.0, 0.2, 0.5, 0.8):
             for risk, held in zip(runs, filtered):
                 assert len(held) == len(risk)
                 history, expected = np.zeros((1, n - 1), bool), []

@@ -76,10 +76,10 @@ def k_of_n_risks(risks, flags_needed: int, window: int) -> list:
     """The risk the k-of-n flag rule (`reachwatch.systems.FlagFilter`: flag when at
     least ``flags_needed`` of the last ``window`` ticks reached the threshold, ticks
     before the run's first clear) acts on: at each tick the ``flags_needed``-th largest
-    risk of the last ``window`` ticks (0 for ticks before the first). A threshold above
-    0 on it flags exactly the ticks the filter confirms, so every figure here (misses,
-    needless flags, conformal thresholds) applies to a filtered monitor unchanged;
-    1-of-1 is the risk itself."""
+    risk of the last ``window`` ticks (-inf for ticks before the first, which no
+    threshold reaches). Any threshold, 0 included, on it flags exactly the ticks the
+    filter confirms, so every figure here (misses, needless flags, conformal thresholds)
+    applies to a filtered monitor unchanged; 1-of-1 is the risk itself."""
     k, n = check_k_of_n(flags_needed, window)
     out = []
     for risk in risks:
@@ -87,7 +87,7 @@ def k_of_n_risks(risks, flags_needed: int, window: int) -> list:
         if n == 1 or len(risk) == 0:
             out.append(risk.copy())
             continue
-        padded = np.concatenate([np.zeros(n - 1), risk])
+        padded = np.concatenate([np.full(n - 1, -np.inf), risk])
         windows = np.lib.stride_tricks.sliding_window_view(padded, n)
         out.append(np.sort(windows, axis=1)[:, n - k])
     return out
