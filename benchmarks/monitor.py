@@ -16,6 +16,7 @@ run file runs the same); this prints its tables.
 import argparse
 import dataclasses as dc
 import time
+from pathlib import Path
 
 from reachwatch.diagrams import load_scenario
 from reachwatch.pipeline.executor_option import add_executor_argument
@@ -62,6 +63,11 @@ def main():
                    help="train the per-frame encoder without colour jitter")
     p.add_argument("--nights", action="store_true",
                    help="also judge on the paper's held-out 21 h environments (KSFO, KEWR)")
+    p.add_argument("--detector", default=None, metavar="CHECKPOINT",
+                   help="a single-image detector's checkpoint (e.g. a run's "
+                        "detectors/detector_brt_*.pt) judged beside the variants on the "
+                        "same runs, with a threshold fixed the same way, and in the guarded "
+                        "loop")
     add_executor_argument(p)
     p.add_argument("--cache", default="/tmp/reachwatch-monitor-cache")
     p.add_argument("--out", default="/tmp/reachwatch-monitor")
@@ -80,6 +86,8 @@ def main():
         spec.validate()
     except ValueError as e:
         p.error(str(e))
+    if args.detector and not Path(args.detector).is_file():
+        p.error(f"--detector: file not found: {args.detector}")
     scenario = load_scenario(args.scenario) if args.scenario else load_scenario(data="")
     started = time.time()
     try:
@@ -88,7 +96,7 @@ def main():
         p.error(str(e))
     try:
         result = run_monitor_study(spec, scenario, args.out, cache_dir=args.cache,
-                                   executor=executor)
+                                   executor=executor, detector=args.detector)
     except BaseException:
         close(abort=True)
         raise

@@ -11,6 +11,8 @@ from reachwatch.training.conformal import NoConformalThreshold, conformal_thresh
 from reachwatch.training.metrics import auroc
 from reachwatch.training.monitor_eval import rate
 
+from .monitor_spec import DETECTOR_ROW
+
 
 def rate_text(r):
     """A `rate` as ``"12.5 % [4.1, 29.9] (3/24)"`` (Wilson 95 %), ``"-"`` without trials."""
@@ -66,6 +68,35 @@ def run_ranking(row: dict, group: str, miss: float = 0.1) -> dict:
             "needless": rate(int(np.sum(safe >= tau)), len(safe))}
 
 
+def same_needless(result: dict, group: str = "held_out") -> list:
+    """Each variant against the single-image detector's row (`DETECTOR_ROW`, when the
+    study has one) at the same needless flags, offline over ``group``'s runs, pooled:
+    ``[variant, warned, needless, detector warned, points]``, ``warned`` and ``needless``
+    the variant's `rate`s at its threshold and flag rule, ``detector warned`` the
+    detector's at the lowest threshold that flags no more of the runs that did not fail
+    (that threshold set on these runs themselves, which favours the detector), and
+    ``points`` the difference in warned percent. Empty without a detector row."""
+    detector = result["variants"].get(DETECTOR_ROW)
+    if detector is None or group not in detector.get("scores", {}):
+        return []
+    d_warning, d_safe = pooled_scores(detector["scores"][group])
+    out = []
+    for name, row in result["variants"].items():
+        if name == DETECTOR_ROW or group not in row.get("scores", {}):
+            continue
+        warning, safe = pooled_scores(row["scores"][group])
+        tau = row["threshold"]
+        warned, needless = int(np.sum(warning >= tau)), int(np.sum(safe >= tau))
+        candidates = np.unique(np.r_[d_warning, d_safe, np.inf])
+        allowed = [t for t in candidates if np.sum(d_safe >= t) <= needless]
+        t = min(allowed)
+        d_warned = int(np.sum(d_warning >= t))
+        w, d = rate(warned, len(warning)), rate(d_warned, len(d_warning))
+        out.append([name, w, rate(needless, len(safe)), d,
+                    100 * (w["rate"] - d["rate"]) if len(warning) else float("nan")])
+    return out
+
+
 def study_blocks(result: dict) -> list:
     """The study's findings as blocks a page renders: ``("heading", text)``,
     ``("text", text)`` and ``("table", header, rows)``: held-out environments pooled
@@ -110,7 +141,8 @@ def study_blocks(result: dict) -> list:
             r = row[group]
             aurocs = [e["auroc_4s"] for e in r["environments"] if np.isfinite(e["auroc_4s"])]
             rows.append([name + (" (kept)" if name == result["kept"] else ""),
-                         f"{row['threshold']:.3f}" + (
+                         f"{row['threshold']:.3f}" + (" on its score" if row.get("kind") ==
+                                                      "detector" else "") + (
                              " ({} of {} ticks)".format(*row["flag_rule"])
                              if row.get("flag_rule", [1, 1]) != [1, 1] else ""),
                          rate_text(r["pooled"]["miss"]),
@@ -152,6 +184,22 @@ def study_blocks(result: dict) -> list:
                    ("table", ["monitor", "run AUROC, calibration", "run AUROC, held out",
                               "needless flags % at a 10 % miss, held out, threshold set on "
                               "them (the least any threshold gives)"], rows)]
+    for group, title in (("held_out", "held-out environments of the family"),
+                         ("also_held_out", "named environments outside the family")):
+        if not kept[group]["environments"]:
+            continue
+        rows = [[name, rate_text(w), rate_text(n), rate_text(d),
+                 f"{points:+.1f}" if np.isfinite(points) else "-"]
+                for name, w, n, d, points in same_needless(result, group)]
+        if rows:
+            blocks += [("heading", f"Each variant against the single-image detector at the "
+                                   f"same needless flags, offline, pooled over the {title}: "
+                                   f"the detector's threshold is the lowest that flags no "
+                                   f"more runs that did not fail, set on these runs (in "
+                                   f"the detector's favour)"),
+                       ("table", ["monitor", "warned % [95 % CI]", "needless flags % [95 % CI]",
+                                  "detector warned % [95 % CI]", "points over the detector"],
+                        rows)]
     rows = []
     for group in ("held_out", "also_held_out"):
         for e, b, o in zip(kept[group]["environments"],

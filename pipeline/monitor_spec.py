@@ -16,6 +16,9 @@ from reachwatch.training.history_train import LR_SCHEDULES
 
 
 MONITOR_KINDS = ("detector", "history")
+#: The study's row of the single-image detector judged beside its variants
+#: (``compare_detector``); no variant may take the name.
+DETECTOR_ROW = "single-image detector"
 
 
 @dc.dataclass
@@ -63,7 +66,12 @@ class MonitorStudySpec:
     (seed 11); set it for your fallback.
     ``guarded_runs`` (0: none) starts per held-out environment (of the family, and
     outside it) also run in the guarded real loop with the kept variant, the
-    single-frame one and the oracle. ``flag_rules`` lists the
+    single-frame one and the oracle. ``compare_detector``: the run's single-image
+    detector (``detector:``, trained on its own labels) is judged beside the variants
+    on the same runs (its score at every tick, from runs of the loop alone from the
+    same starts: one more render of every judged run), its threshold and flag rule
+    fixed on the calibration environments the same way, and guards the loop beside
+    them. ``flag_rules`` lists the
     k-of-n rules tried, ``[flags_needed, flag_window]`` each (the guard's `FlagFilter`:
     flag when at least k of the last n ticks reached the threshold); each variant keeps
     the rule with the fewest needless flags on the calibration environments, its
@@ -112,6 +120,7 @@ class MonitorStudySpec:
     ensemble: int = bounded(1, 1, MAX_MEMBERS, whole=True)
     lr_schedule: str = "constant"
     guarded_runs: int = bounded(0, 0, 100_000, whole=True)
+    compare_detector: bool = True
     variants: List[MonitorVariant] = dc.field(default_factory=default_variants)
     flag_rules: List[List[int]] = dc.field(default_factory=lambda: [[1, 1]])
 

@@ -29,7 +29,7 @@ import numpy as np
 from reachwatch.diagrams import save_checkpoint
 from reachwatch.reach.application import application_key, load_application
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskEnsemble
-from reachwatch.systems.files import atomic_write_bytes
+from reachwatch.systems.files import atomic_write_bytes, file_hash
 from reachwatch.training.baselines import prediction_error
 from reachwatch.training.conformal import (PlattCalibration, brier_score, conformal_threshold,
                                            expected_calibration_error, per_environment_bound,
@@ -42,9 +42,10 @@ from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, label
 
 from .monitor_guarded import guarded_rows
 from .monitor_sections import rate_text
-from .monitor_spec import MONITOR_KINDS, MonitorStudySpec, MonitorVariant, default_variants  # noqa: F401
+from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noqa: F401
+                           MonitorVariant, default_variants)
 
-__all__ = ["MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "choose_flag_rule",
+__all__ = ["DETECTOR_ROW", "MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "choose_flag_rule",
            "default_variants", "judge_environments", "run_monitor_study", "stage_monitor"]
 
 
@@ -142,15 +143,100 @@ def choose_flag_rule(spec, calibrate, risks, *, period, lead):
     return best[:4]
 
 
+def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
+    """One monitor's row of the study from its raw risks (``raw[split][env][run]``, one
+    array per run): Platt scaling fitted on the calibration environments' ticks, the
+    k-of-n rule and conformal threshold fixed there (`choose_flag_rule`), and the
+    held-out figures. The threshold reads the calibrated risk (a history monitor's
+    output), or with ``calibrated`` False the raw score (an image detector's output, as
+    its guarded loop reads it; Platt scaling is monotone, so the flags are the same
+    where its slope is positive); calibration error and Brier score are the calibrated
+    risk's either way. Returns ``(row, platt, chosen, rule, risks)``, ``risks`` those the
+    threshold reads."""
+    y, q = _labelled(data["calibrate"], raw["calibrate"], period=period,
+                     duration=spec.duration, within=spec.within)
+    try:
+        platt = PlattCalibration.fit(q, y == 1)
+    except ValueError:                      # one class among the calibration ticks
+        platt = PlattCalibration()
+    probabilities = {k: [[platt(r) for r in group] for group in v] for k, v in raw.items()}
+    risks = probabilities if calibrated else raw
+    rule, flags, chosen, calibration = choose_flag_rule(
+        spec, data["calibrate"], risks, period=period, lead=lead)
+    needless = [c["needless"] for c in calibration]
+    row = {"threshold": chosen.threshold, "statement": chosen.statement(lead),
+           "calibration_miss_rate": chosen.calibration_miss_rate,
+           "per_environment_bound_90": per_environment_bound(
+               [c["miss"]["rate"] if c["miss"]["of"] else 0.0 for c in calibration], 0.1),
+           "calibration_needless": sum(n["count"] for n in needless) / max(
+               1, sum(n["of"] for n in needless)),
+           "platt": [platt.a, platt.b], "flag_rule": rule}
+    for k in ("held_out", "also_held_out"):
+        per_env, pooled = judge_environments(
+            data[k], risks[k], threshold=chosen.threshold, period=period, lead=lead,
+            duration=spec.duration, flags=flags[k])
+        y, p = _labelled(data[k], probabilities[k], period=period, duration=spec.duration,
+                         within=spec.within)
+        row[k] = {"environments": per_env, "pooled": pooled,
+                  "ece": expected_calibration_error(p, y == 1) if len(y) else float("nan"),
+                  "brier": brier_score(p, y == 1) if len(y) else float("nan"),
+                  "reliability": [a.tolist() for a in reliability_curve(p, y == 1)]
+                  if len(y) else []}
+    # what any threshold does with the kept rule: each environment's warnable failing
+    # runs' warning scores and its other runs' largest flag risk (a run is flagged
+    # iff it is >= tau)
+    row["scores"] = {k: [run_scores(r, g["ticks"], g["failure_time"], period=period,
+                                    lead=lead) for r, g in zip(flags[k], data[k])]
+                     for k in ("calibrate", "held_out", "also_held_out")}
+    return row, platt, chosen, rule, risks
+
+
+def _detector_scores(spec, application, scenario, data, detector, splits, *, cache_dir,
+                     executor, progress):
+    """The image detector's score (the checkpoint ``detector``) at every tick of the
+    recorded runs of ``splits``: the application's `score_runs` from the same starts,
+    which must pass through the recorded states (the loop alone is deterministic), else
+    a RuntimeError. ``{split: [env][run]}``, one array per run."""
+    from reachwatch.diagrams import MonitorConfig
+    out = {}
+    for k in splits:
+        out[k] = []
+        for g in data[k]:
+            here = dc.replace(scenario, environment=g["environment"],
+                              monitor=MonitorConfig(detector=str(detector)))
+            scored = application.score_runs(here, g["starts"], duration=spec.duration,
+                                            cache_dir=cache_dir, executor=executor,
+                                            progress=progress)
+            runs = []
+            for i, n in enumerate(g["ticks"]):
+                n = int(n)
+                same = (int(scored["ticks"][i]) >= n and not scored["engaged"][i]
+                        and np.allclose(scored["state"][i, :n], g["state"][i, :n]))
+                if not same:
+                    raise RuntimeError(f"the detector's runs in {g['name']}: run {i} does not "
+                                       f"pass through the recorded states, so its scores "
+                                       f"are not those of the recorded run")
+                runs.append(np.asarray(scored["score"][i, :n], float))
+            out[k].append(runs)
+    return out
+
+
 def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, executor=None,
-                      progress=True, log=print, application=None) -> dict:
+                      progress=True, log=print, application=None, detector=None) -> dict:
     """The whole study (see the module) of ``application``'s loop (an `Application`;
     None: the default, the taxi); writes ``monitor.json`` and the checkpoints of the kept
     variant and of the first one (``variants[0]``, by default the single frame) to
     ``out_dir``; returns the results. With ``spec.ensemble`` > 1 each variant is that
     many trainings (`member_settings`) whose raw risks are averaged per tick, then
-    calibrated and thresholded as one monitor; its checkpoint holds every member."""
+    calibrated and thresholded as one monitor; its checkpoint holds every member.
+    ``detector`` (a single-image detector's checkpoint, e.g. the run's): its scores along
+    the same runs (`DETECTOR_ROW`) are judged beside the variants, with a threshold and
+    flag rule fixed on the calibration environments the same way, and it guards the
+    loop beside them; it is never the kept variant."""
     spec.validate()
+    if detector is not None and DETECTOR_ROW in [v.name for v in spec.variants]:
+        raise ValueError(f"monitor.variants: '{DETECTOR_ROW}' names the detector's row; "
+                         f"call the variant otherwise")
     application = load_application() if application is None else application
     started = time.time()
     out_dir, cache_dir = Path(out_dir), Path(cache_dir)
@@ -194,45 +280,26 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                        for k in judged} for head, (_, _, features, _) in zip(heads, members)]
         raw = {k: _member_mean([p[k] for p in per_member]) for k in judged}
         model = heads[0] if len(heads) == 1 else HistoryRiskEnsemble.of(heads)
-        y, q = _labelled(data["calibrate"], raw["calibrate"], period=period,
-                         duration=spec.duration, within=spec.within)
-        try:
-            platt = PlattCalibration.fit(q, y == 1)
-        except ValueError:                      # one class among the calibration ticks
-            platt = PlattCalibration()
-        risks = {k: [[platt(r) for r in group] for group in v] for k, v in raw.items()}
+        row, platt, chosen, rule, risks = _judge_monitor(spec, data, raw, period=period,
+                                                         lead=lead)
         all_risks[variant.name] = risks
-        rule, flags, chosen, calibration = choose_flag_rule(
-            spec, data["calibrate"], risks, period=period, lead=lead)
-        needless = [c["needless"] for c in calibration]
-        row = {"threshold": chosen.threshold, "statement": chosen.statement(lead),
-               "calibration_miss_rate": chosen.calibration_miss_rate,
-               "per_environment_bound_90": per_environment_bound(
-                   [c["miss"]["rate"] if c["miss"]["of"] else 0.0 for c in calibration], 0.1),
-               "calibration_needless": sum(n["count"] for n in needless) / max(
-                   1, sum(n["of"] for n in needless)),
-               "platt": [platt.a, platt.b], "flag_rule": rule}
-        for k in ("held_out", "also_held_out"):
-            per_env, pooled = judge_environments(
-                data[k], risks[k], threshold=chosen.threshold, period=period, lead=lead,
-                duration=spec.duration, flags=flags[k])
-            y, p = _labelled(data[k], risks[k], period=period, duration=spec.duration,
-                             within=spec.within)
-            row[k] = {"environments": per_env, "pooled": pooled,
-                      "ece": expected_calibration_error(p, y == 1) if len(y) else float("nan"),
-                      "brier": brier_score(p, y == 1) if len(y) else float("nan"),
-                      "reliability": [a.tolist() for a in reliability_curve(p, y == 1)]
-                      if len(y) else []}
-        # what any threshold does with the kept rule: each environment's warnable failing
-        # runs' warning scores and its other runs' largest flag risk (a run is flagged
-        # iff it is >= tau)
-        row["scores"] = {k: [run_scores(r, g["ticks"], g["failure_time"], period=period,
-                                        lead=lead) for r, g in zip(flags[k], data[k])]
-                         for k in ("calibrate", "held_out")}
         results[variant.name] = row
         models[variant.name] = (model, platt, chosen.threshold, rule)
         log(f"monitor: {variant.name}: threshold {chosen.threshold:.3f}, held-out miss "
             f"{rate_text(row['held_out']['pooled']['miss'])}, needless "
+            f"{rate_text(row['held_out']['pooled']['needless'])}")
+    if detector is not None:        # the run's single-image detector, judged the same way
+        raw = _detector_scores(spec, application, scenario, data, detector, judged,
+                               cache_dir=cache_dir / "scores", executor=executor,
+                               progress=progress)
+        row, platt, chosen, rule, risks = _judge_monitor(spec, data, raw, period=period,
+                                                         lead=lead, calibrated=False)
+        row["kind"] = "detector"
+        all_risks[DETECTOR_ROW] = risks
+        results[DETECTOR_ROW] = row
+        models[DETECTOR_ROW] = (None, platt, chosen.threshold, rule)
+        log(f"monitor: {DETECTOR_ROW}: threshold {chosen.threshold:.3f} (its own score), "
+            f"held-out miss {rate_text(row['held_out']['pooled']['miss'])}, needless "
             f"{rate_text(row['held_out']['pooled']['needless'])}")
 
     oracle, baseline = {}, {}
@@ -249,7 +316,8 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                                   within=4.0)
                        if g["signals"].shape[-1] >= 3 else float("nan") for g in groups]
 
-    kept = min(results, key=lambda n: results[n]["calibration_needless"])
+    kept = min((n for n in results if n != DETECTOR_ROW),
+               key=lambda n: results[n]["calibration_needless"])
     out_dir.mkdir(parents=True, exist_ok=True)
     _save_risks(out_dir / "risks.npz", data, all_risks, judged)
     checkpoints = {}
@@ -262,7 +330,8 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                                   "within_s": spec.within, "lead_s": lead, "variant": name,
                                   **({"flag_rule": rule} if rule != [1, 1] else {})})
         checkpoints[name] = str(path)
-    guarded = {k: guarded_rows(spec, application, scenario, data[k], models, checkpoints,
+    guarding = {**checkpoints, **({DETECTOR_ROW: str(detector)} if detector is not None else {})}
+    guarded = {k: guarded_rows(spec, application, scenario, data[k], models, guarding,
                                cache_dir=cache_dir / "missions", executor=executor,
                                progress=progress, log=log, lead=lead)
                if spec.guarded_runs and data[k] else {} for k in ("held_out", "also_held_out")}
@@ -272,6 +341,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
               "prediction_error_auroc_4s": baseline, "guarded": guarded["held_out"],
               "guarded_also_held_out": guarded["also_held_out"],
               "checkpoints": {k: Path(v).name for k, v in checkpoints.items()},
+              **({"detector": str(detector)} if detector is not None else {}),
               "seconds": round(time.time() - started, 1)}
     from reachwatch.training.figures import plot_reliability
     result["reliability_figure"] = Path(plot_reliability(
@@ -284,7 +354,8 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
 
 
 def _save_risks(path, data, all_risks, judged):
-    """Every variant's calibrated risk at every tick of the judged environments' runs,
+    """Every variant's calibrated risk (the detector's row: its raw score, which its
+    threshold reads) at every tick of the judged environments' runs,
     with the runs' ticks, failure times and environments, so that another flag rule can
     be read off the study without rendering again: ``{split}/ticks``,
     ``{split}/failure_time``, ``{split}/environment`` (index into ``{split}/names``) per
@@ -344,31 +415,35 @@ def member_settings(spec: MonitorStudySpec) -> list:
     return [dc.replace(settings, seed=k * settings.seed + m) for m in range(k)]
 
 
-def study_key(spec: MonitorStudySpec, application, scenario) -> str:
+def study_key(spec: MonitorStudySpec, application, scenario, detector=None) -> str:
     """The monitor stage's key: the study's settings and every training setting
     (`train_settings`), the scenario's content (checkpoints and controller code
-    included), the application's code unless it is the default, and the source of
-    `STUDY_CODE`."""
+    included), the application's code unless it is the default, the source of
+    `STUDY_CODE`, and the content of the ``detector`` judged beside (when one is)."""
     from reachwatch.reach.fingerprint import fingerprint, modules_source_digest
     from .spec import digest
     own = application_key(application)          # None for the default (the taxi)
     return digest(dc.asdict(spec), dc.asdict(train_settings(spec)),
                   fingerprint(application.without_monitor(scenario)), *([own] if own else []),
-                  {"study": STUDY_FORMAT, "code": modules_source_digest(*STUDY_CODE)})
+                  {"study": STUDY_FORMAT, "code": modules_source_digest(*STUDY_CODE)},
+                  *([file_hash(detector)] if detector is not None else []))
 
 
 def stage_monitor(run) -> dict:
     """The run's ``monitor`` stage: the study when ``monitor.kind`` is ``history``
-    (keyed by `study_key`), nothing (no record) otherwise."""
+    (keyed by `study_key`), with the run's trained detector judged beside its variants
+    when ``monitor.compare_detector``; nothing (no record) otherwise."""
     spec = run.spec.monitor
     if not spec.enabled:
         return {}
     application = run.application
-    key = study_key(spec, application, run.spec.scenario)
+    detector = (run.path(run.outputs["train"]["detector"]) if spec.compare_detector else None)
+    key = study_key(spec, application, run.spec.scenario, detector)
 
     def study():
         run_monitor_study(spec, run.spec.scenario, run.path("monitor"),
                           cache_dir=run.path("monitor_cache"), executor=run.executor,
-                          progress=run.progress, log=run.log, application=application)
+                          progress=run.progress, log=run.log, application=application,
+                          detector=detector)
         return {"result": "monitor/monitor.json"}
     return run.stage("monitor", key, study)

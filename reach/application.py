@@ -414,6 +414,30 @@ class Application(abc.ABC):
                                      mission_limit=mission_limit, score_noise=score_noise,
                                      seed=seed, alone=alone)
 
+    def score_runs(self, scenario, starts, *, duration: float, cache_dir, executor=None,
+                   progress: bool = True) -> dict:
+        """The detector's score (``scenario.monitor.detector``) at every control tick of
+        the controller alone's real loop from each start for ``duration`` s, stopping at
+        failure. Per start: ``state`` ``(T, n)``, ``score`` ``(T,)`` (NaN after the run
+        ends), ``ticks`` and ``engaged`` (whether the speed left the nominal one all the
+        same: such a run is not the controller alone's). Cached by content under
+        ``cache_dir``, keyed by the detector but not by its threshold or fallback.
+        Default: `reach.loop_runs.loop_scores` (the guarded loop, whose fallback never
+        engages)."""
+        from .loop_runs import loop_scores
+        from .outcomes import map_states
+        # a copy: `resolved` may return the caller's scenario, whose monitor it goes on with
+        scenario = dc.replace(self.resolved(scenario),
+                              monitor=type(scenario.monitor)(detector=scenario.monitor.detector))
+        rollout = functools.partial(loop_scores, ApplicationRef(self._loaded_as()), scenario,
+                                    float(duration))
+        fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
+                                  progress=progress, unit="run",
+                                  required=("state", "score", "ticks", "engaged"),
+                                  label=f"detector score along real runs "
+                                        f"{scenario.environment.name}")
+        return fields
+
     def real_score_noise(self, scenario, grid, score_table, starts, *, duration: float,
                          cache_dir, executor=None, progress: bool = True):
         """The detector's variation between the nodes of the guarded sweep: a
@@ -425,19 +449,9 @@ class Application(abc.ABC):
         whose fallback never engages), the distance travelled taken as the nominal speed
         times the time, as the table rollouts move the noise; a run whose fallback
         engaged all the same is left out (``{"left_out"}`` counts them)."""
-        from .loop_runs import loop_scores
-        from .outcomes import map_states
         from .score_noise import fit_score_noise_on_runs
-        # a copy: `resolved` may return the caller's scenario, whose monitor it goes on with
-        scenario = dc.replace(self.resolved(scenario),
-                              monitor=type(scenario.monitor)(detector=scenario.monitor.detector))
-        rollout = functools.partial(loop_scores, ApplicationRef(self._loaded_as()), scenario,
-                                    float(duration))
-        fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
-                                  progress=progress, unit="run",
-                                  required=("state", "score", "ticks", "engaged"),
-                                  label=f"detector score along real runs "
-                                        f"{scenario.environment.name}")
+        fields = self.score_runs(scenario, starts, duration=duration, cache_dir=cache_dir,
+                                 executor=executor, progress=progress)
         step = scenario.controller.speed * scenario.controller.period
         noise, fit = fit_score_noise_on_runs(
             grid, score_table, fields["state"], fields["score"], fields["ticks"],

@@ -166,6 +166,14 @@ class TaxiApplication(Application):
     def fallback_policy(self, scenario):
         return guarded.p_controller_policy(scenario.controller)
 
+    def score_runs(self, scenario, starts, *, duration, cache_dir, executor=None,
+                   progress=True):
+        if not self.own_loop:
+            return super().score_runs(scenario, starts, duration=duration, cache_dir=cache_dir,
+                                      executor=executor, progress=progress)
+        return fidelity.score_runs(scenario, starts, duration=duration, cache_dir=cache_dir,
+                                   executor=executor, progress=progress)
+
     def real_score_noise(self, scenario, grid, score_table, starts, *, duration, cache_dir,
                          executor=None, progress=True):
         if not self.own_loop:

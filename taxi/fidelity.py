@@ -339,6 +339,21 @@ def score_paths(scenario, duration: float, states, *, lockstep=None) -> dict:
     return out
 
 
+def score_runs(scenario, starts, *, duration: float, cache_dir, executor=None,
+               progress=True) -> dict:
+    """`score_paths` from every start, cached by content under ``cache_dir`` like
+    `real_outcomes`, keyed by the detector but not by the monitor's threshold and
+    fallback settings: the controller alone and the detector's score do not depend on
+    them. Every run is the controller alone's (``engaged`` all False)."""
+    scenario = resolved(scenario)
+    scenario.monitor = MonitorConfig(detector=scenario.monitor.detector)
+    rollout = functools.partial(score_paths, scenario, float(duration))
+    fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
+                              progress=progress, unit="run", required=("score", "state"),
+                              label=f"detector score along real runs {scenario.environment.name}")
+    return {**fields, "engaged": np.zeros(len(fields["ticks"]), bool)}
+
+
 def real_score_noise(scenario, grid, score_table, starts, *, duration: float, cache_dir,
                      executor=None, progress=True):
     """`reach.score_noise.ScoreNoise` fitted (`fit_score_noise`) to how the detector's real score along
@@ -347,12 +362,8 @@ def real_score_noise(scenario, grid, score_table, starts, *, duration: float, ca
     cached like `real_outcomes`, under a key without the monitor's threshold and fallback
     settings: the controller alone and the detector's score do not depend on them.
     Returns ``(noise, {"runs", "ticks"})``."""
-    scenario = resolved(scenario)
-    scenario.monitor = MonitorConfig(detector=scenario.monitor.detector)
-    rollout = functools.partial(score_paths, scenario, float(duration))
-    fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
-                              progress=progress, unit="run", required=("score", "state"),
-                              label=f"detector score along real runs {scenario.environment.name}")
+    fields = score_runs(scenario, starts, duration=duration, cache_dir=cache_dir,
+                        executor=executor, progress=progress)
     return fit_score_noise_on_runs(       # distance along the path on the ground (px, py)
         grid, score_table, fields["state"], fields["score"], fields["ticks"],
         lambda path: np.concatenate([[0.0], np.cumsum(np.linalg.norm(

@@ -114,3 +114,24 @@ def test_the_study_key_covers_every_training_setting_and_the_study_code(monkeypa
                         lambda *names: real(*names) + ("!" if set(names) == set(
                             study.STUDY_CODE) else ""))
     assert key(spec.monitor) != before
+
+
+def test_the_study_key_holds_the_compared_detectors_content(tmp_path):
+    """A study that judges a detector beside its variants is keyed by the detector's
+    bytes, not its path: another detector at the same path runs the study again."""
+    import torch
+
+    import reachwatch.pipeline.monitor_study as study
+    from reachwatch.diagrams import save_checkpoint
+    from reachwatch.reach.application import load_application
+    from reachwatch.systems import DetectorConfig, build_detector
+    spec, taxi = load_run_spec(data=TINY + MONITOR_STUDY), load_application("")
+    path, keys = tmp_path / "detector.pt", []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        config = DetectorConfig(height=16, width=24, channels=[4])
+        save_checkpoint(path, kind="detector", model=build_detector(config), model_config=config,
+                        preprocess_config=None, metadata={"threshold": 0.5})
+        keys.append(study.study_key(spec.monitor, taxi, spec.scenario, path))
+    alone = study.study_key(spec.monitor, taxi, spec.scenario)
+    assert len({alone, *keys}) == 3

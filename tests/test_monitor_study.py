@@ -13,7 +13,7 @@ from reachwatch.diagrams import load_scenario
 from reachwatch.diagrams.checkpoints import load_history_monitor
 from reachwatch.pipeline.monitor_sections import markdown_tables
 from reachwatch.pipeline.monitor_guarded import ORACLE, oracle_flag_ticks
-from reachwatch.pipeline.monitor_study import run_monitor_study
+from reachwatch.pipeline.monitor_study import DETECTOR_ROW, run_monitor_study, starts_seed
 from reachwatch.pipeline.spec import MonitorVariant, load_run_spec
 from reachwatch.training.conformal import conformal_threshold
 from tiny_run import MONITOR_STUDY, TINY
@@ -49,6 +49,26 @@ def test_run_ranking_pools_environments_and_sets_the_least_needless_threshold():
     assert np.isnan(cal["auroc"]) and cal["needless"] is None
 
 
+def test_a_variant_meets_the_detector_at_its_own_needless_flags():
+    """The detector's threshold is the lowest flagging no more runs that did not fail
+    than the variant does at its threshold; warned runs are then compared."""
+    from reachwatch.pipeline.monitor_sections import same_needless
+    variant = {"threshold": 0.5, "scores": {"held_out": [
+        {"warning": [0.9, 0.6, 0.2], "safe_max": [0.1, 0.55]},
+        {"warning": [0.7], "safe_max": [0.3, 0.2]}]}}
+    detector = {"threshold": 0.4, "kind": "detector", "scores": {"held_out": [
+        {"warning": [0.8, 0.35, 0.3], "safe_max": [0.6, 0.5]},
+        {"warning": [0.2], "safe_max": [0.45, 0.1]}]}}
+    result = {"variants": {"GRU": variant, DETECTOR_ROW: detector}}
+    [(name, warned, needless, detector_warned, points)] = same_needless(result)
+    # the variant warns 3 of 4 with 1 of 4 safe runs flagged; the detector flags only
+    # one safe run from 0.5 + (up to 0.6), where it warns only the 0.8 run
+    assert name == "GRU" and (warned["count"], needless["count"]) == (3, 1)
+    assert (detector_warned["count"], detector_warned["of"]) == (1, 4)
+    assert points == pytest.approx(50.0)
+    assert same_needless({"variants": {"GRU": variant}}) == []
+
+
 class _Run:
     """What the report's monitor section reads of a run: its study in ``folder/out``."""
 
@@ -70,15 +90,18 @@ def _monitor_report(folder):
     return page.done()
 
 
-def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
+def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path):
+    """The study with a single-image detector judged beside its variants (the run's,
+    here an untrained one)."""
     spec = load_run_spec(data=TINY + MONITOR_STUDY.replace(
         "  guarded_runs: 2", "  guarded_runs: 2\n  also_held_out: [{runway: KSFO, hour: 21.0, "
                              "sky: overcast}]")).monitor
     scenario = load_scenario(data="")
     result = run_monitor_study(spec, scenario, tmp_path / "out", cache_dir=tmp_path / "cache",
-                               progress=False, log=lambda m: None)
+                               progress=False, log=lambda m: None, detector=detector_path)
     assert json.loads((tmp_path / "out" / "monitor.json").read_text())["kept"] == result["kept"]
-    assert set(result["variants"]) == {"one frame", "GRU 3 + signals"}
+    assert set(result["variants"]) == {"one frame", "GRU 3 + signals", DETECTOR_ROW}
+    assert result["kept"] != DETECTOR_ROW and result["variants"][DETECTOR_ROW]["kind"] == "detector"
     assert result["lead_s"] == pytest.approx(5.0 / 3.0)
     from reachwatch.pipeline.monitor_sections import threshold_tradeoff
     for name, row in result["variants"].items():
@@ -97,7 +120,7 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
         assert meta["variant"] == name and meta["threshold"] == result["variants"][name]["threshold"]
     # the guarded real loop ran from the held-out starts, for each saved monitor and the
     # oracle, which stops no safe run and covers a safe run's whole distance
-    assert set(result["guarded"]) == set(result["checkpoints"]) | {ORACLE}
+    assert set(result["guarded"]) == set(result["checkpoints"]) | {ORACLE, DETECTOR_ROW}
     oracle = result["guarded"][ORACLE]
     assert oracle["runs"] == 2
     if oracle["failed_alone"] == 0:
@@ -116,17 +139,30 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
         for name in result["variants"]:
             assert len(saved[f"{name}/held_out/risk"]) == ticks.sum()
             assert len(saved[f"{name}/calibrate/risk"]) == saved["calibrate/ticks"].sum()
+        # the detector's row reads the detector's own score along the same runs
+        import dataclasses as dc
+        from reachwatch.diagrams import MonitorConfig
+        from reachwatch.reach.application import load_application
+        from reachwatch.taxi.fidelity import score_paths
+        taxi, env = load_application(), spec.environments()["held_out"][0]
+        here = dc.replace(scenario, environment=env,
+                          monitor=MonitorConfig(detector=str(detector_path)))
+        box = taxi.grid(here, (3, 3, 3))
+        first = taxi.starts(here, (box.lo, box.hi), spec.judged_runs,
+                            starts_seed(spec, spec.train + spec.calibrate))[:1]
+        online = score_paths(here, spec.duration, first)
+        np.testing.assert_allclose(saved[f"{DETECTOR_ROW}/held_out/risk"][:ticks[0]],
+                                   online["score"][0, :ticks[0]], rtol=1e-6)
     # a rerun renders nothing new and gives the same figures (cached by content, seeded)
     again = run_monitor_study(spec, scenario, tmp_path / "again", cache_dir=tmp_path / "cache",
-                              progress=False, log=lambda m: None)
+                              progress=False, log=lambda m: None, detector=detector_path)
     for part in ("variants", "guarded", "oracle"):           # NaN where a group is empty
         assert json.dumps(again[part], sort_keys=True) == json.dumps(result[part], sort_keys=True)
     # k-of-n flag rules: each variant keeps the rule with the fewest needless flags on the
     # calibration environments (never more than 1-of-1's), and its guarded runs use it
-    import dataclasses as dc
     ruled = run_monitor_study(dc.replace(spec, flag_rules=[[1, 1], [3, 3]]), scenario,
                               tmp_path / "rules", cache_dir=tmp_path / "cache", progress=False,
-                              log=lambda m: None)
+                              log=lambda m: None, detector=detector_path)
     for name, row in ruled["variants"].items():
         assert row["flag_rule"] in ([1, 1], [3, 3]) and result["variants"][name]["flag_rule"] == [
             1, 1]
@@ -140,6 +176,7 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path):
     assert "Guarded real loop" in text and "oracle (privileged)" in text
     assert "pooled over the named environments outside the family" in text
     assert "at most 50.0 %" in text and "How each variant ranks whole runs" in text
+    assert "against the single-image detector at the same needless flags" in text
 
     html, md = _monitor_report(tmp_path)
     assert "Runtime monitor on environments it has never seen" in md
