@@ -96,7 +96,9 @@ def main():
         p.error(str(e))
     try:
         result = run_monitor_study(spec, scenario, args.out, cache_dir=args.cache,
-                                   executor=executor, detector=args.detector)
+                                   executor=executor,
+                                   detector=Path(args.detector).resolve() if args.detector
+                                   else None)
     except BaseException:
         close(abort=True)
         raise

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
 from reachwatch.training.conformal import conformal_threshold, warning_scores
 from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, run_times,
                                               system_figures)
@@ -112,6 +113,8 @@ def main():
                     row = (variant, rule, alpha, tau, figures)
                     rows.append(row)
                     needless = figures["calibrate"]["needless"]["rate"]
+                    if variant == DETECTOR_ROW:     # judged beside, never kept
+                        continue
                     if alpha not in chosen or needless < chosen[alpha][4]["calibrate"][
                             "needless"]["rate"]:
                         chosen[alpha] = row

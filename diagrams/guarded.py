@@ -53,8 +53,8 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
     and, when trained with signals, reads the controller's ``estimate_port`` and
     ``steering_port`` through `add_monitor_signals`. Alone (no switch) it watches a
     loop without acting on it. A null threshold is the checkpoint's own
-    (`MonitorConfig.resolved`)."""
-    monitor = monitor.resolved()
+    (`MonitorConfig.with_checkpoint_defaults`)."""
+    monitor = monitor.with_checkpoint_defaults()
     if checkpoint_kind(monitor.detector) == "history_monitor":
         model, config, metadata = load_history_monitor(monitor.detector)
         if period is None:
@@ -103,8 +103,8 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller,
     Returns a `Monitor`; connect the switch's ``steering_angle`` and ``speed`` outputs
     to your plant (and its ``fallback_steering_angle`` input for ``oracle``). A history
     monitor reads the controller's ``estimate_port`` (when given) and steering. A null
-    threshold or k-of-n rule is the checkpoint's own (`MonitorConfig.resolved`)."""
-    monitor = monitor.resolved()
+    threshold or k-of-n rule is the checkpoint's own (`MonitorConfig.with_checkpoint_defaults`)."""
+    monitor = monitor.with_checkpoint_defaults()
     detector = add_detector(builder, image_port=image_port, monitor=monitor,
                             period=controller.period, steering_port=steering_port,
                             estimate_port=estimate_port)

@@ -99,10 +99,12 @@ class MonitorConfig:
     (``resume_acceleration`` m/s^2; 0 = at once, the paper's rule), and the k-of-n rule
     that confirms flags: the loop counts a tick as flagged when at least ``flags_needed``
     of the last ``flag_window`` control ticks had a score at or above the threshold (1 of
-    1: every raw flag). Left null, the threshold and the k-of-n rule are the checkpoint's
-    own (the threshold it was trained or calibrated to, its ``flag_rule``, else 1 of 1):
-    a checkpoint is never run at a threshold it was not chosen for without a word in
-    the file. `resolved` fills them in."""
+    1: every raw flag). Left null, the threshold and the k-of-n rule are those the
+    checkpoint records (its metadata's ``threshold`` and ``flag_rule``, else 1 of 1): a
+    monitor study's checkpoint holds its conformal threshold and rule; a detector
+    trained by a run holds the threshold its training chose on its validation split,
+    which a run's train stage may replace (``detector.threshold_folds``): name that one
+    here to use it. `with_checkpoint_defaults` fills them in."""
     detector: str = ""
     threshold: Optional[float] = bounded(None, 0.0, 1.0)
     strategy: str = "slow_down"
@@ -129,7 +131,17 @@ class MonitorConfig:
         return dc.replace(self, strategy=chosen.strategy,
                           steering=STORED_STEERING.get(chosen.steering, chosen.steering))
 
-    def resolved(self) -> "MonitorConfig":
+    @classmethod
+    def watching(cls, detector: str) -> "MonitorConfig":
+        """A monitor of ``detector`` with a fixed placeholder threshold (0.5) and rule (1
+        of 1), for loops that read the detector's score and do not depend on what a
+        threshold does (sweeps, runs that read the score along the loop alone): their
+        cache keys hold the detector and nothing else of the monitor, and a checkpoint
+        without a threshold of its own works there."""
+        return cls(detector=detector, threshold=0.5 if detector else None,
+                   flags_needed=1, flag_window=1)
+
+    def with_checkpoint_defaults(self) -> "MonitorConfig":
         """A copy whose null ``threshold`` and k-of-n rule are the checkpoint's: its
         metadata's ``threshold`` and ``flag_rule`` ``[k, n]`` (1 of 1 when it has none,
         or when there is no checkpoint). A null threshold with a checkpoint that holds
@@ -158,12 +170,12 @@ class MonitorConfig:
 
     def validate(self):
         """Raise ValueError naming the first bad field; with a checkpoint named, fill
-        in what `resolved` fills in; return self."""
+        in what `with_checkpoint_defaults` fills in; return self."""
         from reachwatch.systems import check_k_of_n
         check_bounds(self, "monitor.")      # each state keeps its window's flags
         if self.detector and not is_file(self.detector):
             raise ValueError(f"monitor.detector: file not found: {clip(self.detector, 200)}")
-        full = self.resolved()
+        full = self.with_checkpoint_defaults()
         if self.detector:                   # null stays null until a checkpoint is named
             self.threshold, self.flags_needed, self.flag_window = (
                 full.threshold, full.flags_needed, full.flag_window)

@@ -87,7 +87,10 @@ def same_needless(result: dict, group: str = "held_out") -> list:
         warning, safe = pooled_scores(row["scores"][group])
         tau = row["threshold"]
         warned, needless = int(np.sum(warning >= tau)), int(np.sum(safe >= tau))
-        candidates = np.unique(np.r_[d_warning, d_safe, np.inf])
+        # thresholds the detector can take (a score of -inf is no threshold: its k-of-n
+        # rule cannot flag there at all)
+        candidates = np.unique(np.r_[d_warning[np.isfinite(d_warning)],
+                                     d_safe[np.isfinite(d_safe)], np.inf])
         allowed = [t for t in candidates if np.sum(d_safe >= t) <= needless]
         t = min(allowed)
         d_warned = int(np.sum(d_warning >= t))

@@ -186,6 +186,9 @@ class MonitorStudySpec:
         if not self.variants or len(set(names)) != len(names):
             raise ValueError(f"{where}.variants must list at least one variant, each name "
                              f"once, got {names[:8]}")
+        if DETECTOR_ROW in names:
+            raise ValueError(f"{where}.variants: {DETECTOR_ROW!r} is the name of the "
+                             f"detector's row; call the variant otherwise")
         for i, v in enumerate(self.variants):
             check_bounds(v, f"{where}.variants[{i}].")
             if not isinstance(v.signals, bool):

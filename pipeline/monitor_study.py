@@ -234,9 +234,6 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     flag rule fixed on the calibration environments the same way, and it guards the
     loop beside them; it is never the kept variant."""
     spec.validate()
-    if detector is not None and DETECTOR_ROW in [v.name for v in spec.variants]:
-        raise ValueError(f"monitor.variants: '{DETECTOR_ROW}' names the detector's row; "
-                         f"call the variant otherwise")
     application = load_application() if application is None else application
     started = time.time()
     out_dir, cache_dir = Path(out_dir), Path(cache_dir)
@@ -256,10 +253,15 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     failing = {k: {g["name"]: [int(np.isfinite(g["failure_time"]).sum()), len(g["ticks"])]
                    for g in groups} for k, groups in data.items()}
 
+    judged = ("calibrate", "held_out", "also_held_out")
+    # before any training: runs that do not repeat the recordings fail here, not after it
+    detector_raw = (None if detector is None else _detector_scores(
+        spec, application, scenario, data, detector, judged, cache_dir=cache_dir / "scores",
+        executor=executor, progress=progress))
+
     train = _merged(data["train"])
     labels = tick_labels(train, period=period, duration=spec.duration, within=spec.within)
     base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within)
-    judged = ("calibrate", "held_out", "also_held_out")
     # each member of the ensemble: its own encoder (`member_settings`) and features
     members = []
     for m, settings in enumerate(member_settings(spec)):
@@ -289,10 +291,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
             f"{rate_text(row['held_out']['pooled']['miss'])}, needless "
             f"{rate_text(row['held_out']['pooled']['needless'])}")
     if detector is not None:        # the run's single-image detector, judged the same way
-        raw = _detector_scores(spec, application, scenario, data, detector, judged,
-                               cache_dir=cache_dir / "scores", executor=executor,
-                               progress=progress)
-        row, platt, chosen, rule, risks = _judge_monitor(spec, data, raw, period=period,
+        row, platt, chosen, rule, risks = _judge_monitor(spec, data, detector_raw, period=period,
                                                          lead=lead, calibrated=False)
         row["kind"] = "detector"
         all_risks[DETECTOR_ROW] = risks

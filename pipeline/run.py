@@ -63,7 +63,8 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
             {n: r["value"] for n, r in run.outputs["solve"].items()},
             {n: run.content_key(f"solve_{n}") for n in run.outputs["solve"]}, spec.dataset.key(),
             spec.ensemble, spec.scenario.camera,
-            {"format": DATASET_FORMAT, "code": modules_source_digest(*DATASET_CODE)},
+            {"format": DATASET_FORMAT, "code": modules_source_digest(
+                *DATASET_CODE, "reachwatch.pipeline.dataset_stages")},
             # only when set, so that runs without it keep their keys
             *([spec.held_out_labels.key()] if spec.held_out_labels is not None else [])),
             lambda: stage_dataset(run)),

@@ -428,7 +428,7 @@ class Application(abc.ABC):
         from .outcomes import map_states
         # a copy: `resolved` may return the caller's scenario, whose monitor it goes on with
         scenario = dc.replace(self.resolved(scenario),
-                              monitor=type(scenario.monitor)(detector=scenario.monitor.detector))
+                              monitor=type(scenario.monitor).watching(scenario.monitor.detector))
         rollout = functools.partial(loop_scores, ApplicationRef(self._loaded_as()), scenario,
                                     float(duration))
         fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
@@ -596,7 +596,8 @@ def sweep_scenario(scenario, guarded: bool = False):
     defaults = type(scenario)()
     scenario.initial_state, scenario.duration, scenario.seed = (
         defaults.initial_state, defaults.duration, defaults.seed)
-    scenario.monitor = type(scenario.monitor)(detector=scenario.monitor.detector if guarded else "")
+    scenario.monitor = type(scenario.monitor).watching(
+        scenario.monitor.detector if guarded else "")
     return scenario
 
 

@@ -201,7 +201,9 @@ def fallback_rollouts(tables, grid, horizon, fallbacks, *, dynamics, period, mon
     ``alone``: the controller alone's outcomes from the same starts and settings when
     already computed (they do not depend on the detector), reused instead of rolled out
     again. ``score_noise``, ``seed``: the detector's variation between nodes."""
-    monitor = monitor.resolved()        # a null threshold or rule: the checkpoint's own
+    if threshold is not None:           # given: the checkpoint's own is not needed
+        monitor = dc.replace(monitor, threshold=float(threshold))
+    monitor = monitor.with_checkpoint_defaults()    # a null threshold or rule: the checkpoint's
     kw = dict(horizon=horizon, period=period, starts=starts, mission_limit=mission_limit)
     estimates = (tables[estimate_port] if estimate_port and estimate_port in tables.tables
                  else None)
@@ -215,7 +217,7 @@ def fallback_rollouts(tables, grid, horizon, fallbacks, *, dynamics, period, mon
                              f"swept tables have none ({estimate_port or 'no estimate port'})")
         out[name] = guarded_rollouts(
             grid, dynamics, tables[control_port], tables[score_port] if scores is None else scores,
-            threshold=monitor.threshold if threshold is None else threshold,
+            threshold=monitor.threshold,
             **dc.asdict(fallback), policy=policy, truth=truth, carry=carry,
             estimate_table=estimates, flags_needed=monitor.flags_needed,
             flag_window=monitor.flag_window, score_noise=score_noise, seed=seed, **kw)

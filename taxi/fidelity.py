@@ -346,7 +346,7 @@ def score_runs(scenario, starts, *, duration: float, cache_dir, executor=None,
     fallback settings: the controller alone and the detector's score do not depend on
     them. Every run is the controller alone's (``engaged`` all False)."""
     scenario = resolved(scenario)
-    scenario.monitor = MonitorConfig(detector=scenario.monitor.detector)
+    scenario.monitor = MonitorConfig.watching(scenario.monitor.detector)
     rollout = functools.partial(score_paths, scenario, float(duration))
     fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
                               progress=progress, unit="run", required=("score", "state"),

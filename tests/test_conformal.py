@@ -145,3 +145,9 @@ def test_k_of_n_risks_flag_what_the_flag_filter_confirms():
     assert out["flagged"].tolist() == [False, True] and out["warned"].tolist() == [False, True]
     with pytest.raises(ValueError, match="k-of-n flag rule"):
         k_of_n_risks([held], 3, 2)
+    # a run that fails before a 3-of-3 rule can confirm a flag lead s ahead is warnable
+    # (it has an early enough tick) and missed, at any threshold
+    early = np.r_[0.9, 0.9, 0.9]
+    out = flag_outcomes(k_of_n_risks([early], 3, 3), [3], [0.10], period=0.05,
+                        threshold=0.0, lead=0.05)
+    assert out["warnable"].tolist() == [True] and out["warned"].tolist() == [False]

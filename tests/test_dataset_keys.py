@@ -57,20 +57,22 @@ def test_the_taxis_dataset_images_are_what_its_loops_camera_sees_shadows_include
                                   Application.renderer(taxi, scenario).render(state))
 
 
-def test_the_path_starts_draw_from_a_stream_no_environment_or_study_start_uses():
+def test_a_datasets_states_draw_from_streams_no_environment_or_study_start_uses():
     """With one seed for the dataset, the random family and the monitor study (0 each by
-    default), the dataset's path starts share random numbers with no environment's draw
-    and no study start (they were environment 1's until dataset format 4)."""
+    default), the dataset's uniform states and path starts share random numbers with no
+    environment's draw and no study start (until dataset format 4 they were
+    environment 0's and environment 1's)."""
     import dataclasses as dc
 
     from reachwatch.pipeline.monitor_study import starts_seed
     from reachwatch.pipeline.monitor_spec import MonitorStudySpec
     from reachwatch.systems.random_environments import MAX_COUNT
-    from reachwatch.training.dataset import PATHS_STREAM
+    from reachwatch.training.dataset import PATHS_STREAM, STATES_STREAM
     spec = MonitorStudySpec()
     spec = dc.replace(spec, family=dc.replace(spec.family, seed=0))
     state = lambda seed: tuple(np.random.SeedSequence(seed).generate_state(4))   # noqa: E731
     others = {state([0, i]) for i in range(MAX_COUNT)}
     others |= {state(starts_seed(spec, i)) for i in range(MAX_COUNT)}
-    assert len(others) == 2 * MAX_COUNT and state([0, *PATHS_STREAM]) not in others
-    assert state([0, 1]) in others      # the stream of before: environment 1's
+    ours = {state([0, *PATHS_STREAM]), state([0, *STATES_STREAM])}
+    assert len(others) == 2 * MAX_COUNT and len(ours) == 2 and not ours & others
+    assert {state([0, 1]), state(0)} <= others      # the streams of before: environments 1, 0

@@ -69,15 +69,20 @@ def test_a_scenario_runs_a_checkpoint_at_its_own_threshold_and_flag_rule(tmp_pat
     built = MonitorConfig(detector=str(path), strategy="brake")     # never validated
     names = {s.get_name() for s in make_guarded_diagram(_with_monitor(built)).GetSystems()}
     assert "flag_filter" in names
-    assert MonitorConfig(strategy="brake").resolved().threshold is None     # nothing to run
+    assert MonitorConfig(strategy="brake").with_checkpoint_defaults().threshold is None     # nothing to run
     bare = tmp_path / "bare.pt"
     save_checkpoint(bare, kind="history_monitor", model=HistoryRiskModel(config).eval(),
                     model_config=config, preprocess_config=None, metadata={})
     with pytest.raises(ValueError, match=r"monitor.threshold: \S*bare.pt holds no threshold of "
                                          r"its own; set monitor.threshold$"):
         load_scenario(data=f"monitor: {{detector: {bare}}}\n")
-    assert load_scenario(data=f"monitor: {{detector: {bare}, threshold: 0.2}}\n"
-                         ).monitor.flag_window == 1
+    given = load_scenario(data=f"monitor: {{detector: {bare}, threshold: 0.2}}\n")
+    assert given.monitor.flag_window == 1
+    # loops that only read its score take it as it is (a placeholder threshold)
+    from reachwatch.taxi.fidelity import score_runs
+    scored = score_runs(given, np.array([[0.0, 120.0, 0.0]]), duration=0.1,
+                        cache_dir=tmp_path / "scores", progress=False)
+    assert scored["ticks"][0] == 3 and np.isfinite(scored["score"][0, :3]).all()
     with pytest.raises(ValueError, match="monitor.flags_needed / monitor.flag_window: set both "
                                          "or neither"):
         load_scenario(data=f"monitor: {{detector: {path}, flag_window: 5}}\n")

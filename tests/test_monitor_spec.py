@@ -37,6 +37,9 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
                           (("within: 1.0", "within: 2.0"), "monitor.within (2 s) must be shorter"),
                           (("{name: one frame}", "{name: GRU 3 + signals}"),
                            "monitor.variants must list"),
+                          (("{name: one frame}", "{name: single-image detector}"),
+                           "monitor.variants: 'single-image detector' is the name of the "
+                           "detector's row"),
                           (("runs: 6", "runs: 0"), "monitor.runs must be a whole number"),
                           (("runs: 6", "runs: 6\n  flag_rules: [[2, 2], [2, 2]]"),
                            "monitor.flag_rules: a list of"),

@@ -35,7 +35,7 @@ from tqdm import tqdm
 from reachwatch.diagrams import file_hash, make_controller
 from reachwatch.reach.application import ApplicationRef, load_application
 from reachwatch.reach.chunks import InlineExecutor, run_chunks, split
-from reachwatch.reach.fingerprint import fingerprint
+from reachwatch.reach.fingerprint import fingerprint, modules_source_digest
 from reachwatch.systems import DetectorConfig
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
 
@@ -48,14 +48,17 @@ from .labels import (FALLBACK_FIELDS, NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_RO
 
 #: 4: the path starts have a stream of their own (`PATHS_STREAM`).
 FORMAT = "reachwatch.dataset/4"
-#: The random stream of a dataset's path starts, after its seed: ``[seed, 0, 2]``. A
-#: random family draws its environment ``i`` from ``[seed, i]`` and the monitor study
-#: the starts of environment ``i`` from ``[seed, i, 1]``, so with equal seeds this
-#: stream is none of theirs. Until format 4 it was ``[seed, 1]``: environment 1's.
-PATHS_STREAM = (0, 2)
+#: The random streams of a dataset's uniform states and of its path starts, after its
+#: seed: ``[seed, 0, 3]`` and ``[seed, 0, 2]``. A random family draws its environment
+#: ``i`` from ``[seed, i]`` and the monitor study the starts of environment ``i`` from
+#: ``[seed, i, 1]``, so with equal seeds these streams are none of theirs. Until format
+#: 4 they were ``seed`` (numpy's ``[seed, 0]``: environment 0's) and ``[seed, 1]``
+#: (environment 1's).
+STATES_STREAM, PATHS_STREAM = (0, 3), (0, 2)
 #: The modules whose code draws a dataset's states, labels them and stores its images
-#: (the loop's own code is in its controller's fingerprint): with `FORMAT`, part of the
-#: run's dataset stage key, so that an edit to them builds the datasets again.
+#: (the loop's own code is in its controller's fingerprint): part of a dataset folder's
+#: key (`dataset_folder`) and of the run's dataset stage key, so that an edit to them
+#: builds the datasets again.
 DATASET_CODE = ("reachwatch.training.dataset", "reachwatch.training.dataset_files",
                 "reachwatch.training.dataset_images", "reachwatch.training.labels")
 _log = logging.getLogger("reachwatch")
@@ -118,7 +121,8 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
     if not spec.labels.falls_back_to_trajectory:
         for name in FALLBACK_FIELDS:
             spec_parts["labels"].pop(name)
-    parts = {"format": FORMAT, "env": dc.asdict(scenario.environment),
+    parts = {"format": FORMAT, "code": modules_source_digest(*DATASET_CODE),
+             "env": dc.asdict(scenario.environment),
              "brt": _value_hash(value_function), "spec": spec_parts,
              "camera": [scenario.camera.height, scenario.camera.width],
              "controller": fingerprint(scenario.controller),
@@ -248,7 +252,7 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
             clear(folder)
             manifest = None
     if manifest is None:
-        rng = np.random.default_rng(spec.seed)
+        rng = np.random.default_rng([spec.seed, *STATES_STREAM])
         states = lo + rng.uniform(size=(spec.samples, grid.ndim)) * (hi - lo)
         inside = lambda x: np.all((x >= lo) & (x <= hi), axis=1)       # noqa: E731
         real = (application, scenario, value_function, folder, progress, executor)

@@ -66,7 +66,10 @@ def flag_outcomes(risks, ticks, failure_times, *, period: float, threshold: floa
     times = run_times(ticks, period)
     scores = warning_scores(risks, times, failure_times, lead=lead, warnable_only=False)
     warnable, warned = np.zeros(len(failed), bool), np.zeros(len(failed), bool)
-    warnable[failed] = np.isfinite(scores)
+    # from the tick times alone: a k-of-n rule's risk is -inf at a run's first k-1
+    # ticks, and a run it cannot warn there is a miss, not unwarnable
+    warnable[failed] = [bool(np.any(t <= f - lead + 1e-9))
+                        for t, f in zip(times, failure_times) if np.isfinite(f)]
     warned[failed] = scores >= threshold
     flagged = np.array([bool(len(r)) and bool(np.max(r) >= threshold) for r in risks])
     return {"failed": failed, "warnable": warnable, "warned": warned, "flagged": flagged}
