@@ -204,6 +204,9 @@ def fallback_rollouts(tables, grid, horizon, fallbacks, *, dynamics, period, mon
     if threshold is not None:           # given: the checkpoint's own is not needed
         monitor = dc.replace(monitor, threshold=float(threshold))
     monitor = monitor.with_checkpoint_defaults()    # a null threshold or rule: the checkpoint's
+    if monitor.threshold is None:
+        raise ValueError("monitor.threshold: the monitor names no checkpoint to take a "
+                         "threshold from; set monitor.threshold")
     kw = dict(horizon=horizon, period=period, starts=starts, mission_limit=mission_limit)
     estimates = (tables[estimate_port] if estimate_port and estimate_port in tables.tables
                  else None)

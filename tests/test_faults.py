@@ -365,7 +365,8 @@ def test_bad_detector_never_opens_meshcat(tmp_path, monkeypatch):
     monkeypatch.setattr(guarded_run, "meshcat_replay_html", lambda *a: opened.append(1))
     bad = tmp_path / "detector.pt"
     bad.write_bytes(b"not a checkpoint")
-    scenario = load_scenario(data=f"monitor: {{detector: {bad}}}\nduration: 0.2\n")
     with pytest.raises(ValueError, match="not a readable checkpoint"):
+        # refused as the scenario loads: its threshold would be the checkpoint's
+        scenario = load_scenario(data=f"monitor: {{detector: {bad}}}\nduration: 0.2\n")
         guarded_run.simulate_guarded(scenario, tmp_path)
     assert opened == []

@@ -94,7 +94,7 @@ def test_speed_fallbacks_roll_out_for_any_plant_that_takes_a_speed():
 
 
 def test_a_plant_without_a_speed_is_told_in_one_line():
-    scenario = load_scenario(data="")
+    scenario = load_scenario(data="monitor: {threshold: 0.5}\n")
     toy = Toy(NoSpeed())
     grid = toy.grid(scenario, [3, 3])
     assert takes_speed(Unicycle()) and not takes_speed(NoSpeed())
@@ -107,10 +107,14 @@ def test_a_plant_without_a_speed_is_told_in_one_line():
 
 def test_steering_fallbacks_need_the_applications_hooks():
     """``oracle`` steers with `Application.fallback_policy` of `true_estimate`; an
-    application that defines neither is refused in one line, not rolled out wrong."""
-    scenario = load_scenario(data="")
+    application that defines neither is refused in one line, not rolled out wrong. A
+    monitor with neither a checkpoint nor a threshold is refused too."""
     toy = Toy(Unicycle())
-    grid = toy.grid(scenario, [3, 3])
+    grid = toy.grid(load_scenario(data=""), [3, 3])
+    with pytest.raises(ValueError, match="^monitor.threshold: the monitor names no checkpoint"):
+        toy.fallback_rollouts(load_scenario(data=""), grid, _tables(grid, np.ones(9)), 1.0,
+                              ["brake"])
+    scenario = load_scenario(data="monitor: {threshold: 0.5}\n")
     with pytest.raises(ValueError, match="steering 'oracle' needs a policy"):
         toy.fallback_rollouts(scenario, grid, _tables(grid, np.ones(9)), 1.0,
                               ["slow_down+oracle"])
