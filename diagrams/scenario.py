@@ -10,7 +10,7 @@ import math
 import re
 import typing
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import yaml
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_data, yaml_load_typed
@@ -19,11 +19,12 @@ from reachwatch.systems import CameraConfig, Environment
 from reachwatch.systems.bounds import MAX_INT, bounded, check_bounds, seed_field
 from reachwatch.systems.checks import clip, is_file, short
 
+from .monitor_config import MAX_FLAG_WINDOW, STORED_STEERING, MonitorConfig  # noqa: F401
+
 #: Bounds on a scenario's numbers (a value past them is a mistake, or would hang a run).
 MAX_DURATION = 3600.0       # s of simulated time
 MAX_PERIOD = 10.0           # s between control updates
 MAX_SPEED = 100.0           # m/s
-MAX_FLAG_WINDOW = 1000      # control ticks of the k-of-n rule
 MAX_POSITION = 10000.0      # m (or deg) of a start state's coordinates
 #: The largest scenario or run file read (bytes), and the most YAML nodes its aliases
 #: may expand to (a small file of nested aliases otherwise expands without bound).
@@ -78,117 +79,6 @@ class ControllerConfig:
         check_bounds(self, "controller.")
         if self.checkpoint and not is_file(self.checkpoint):
             raise ValueError(f"controller.checkpoint: file not found: {clip(self.checkpoint, 200)}")
-        return self
-
-
-#: How `MonitorConfig` stores a steering mode (`systems.STEERING`) where its name
-#: changed: the controller keeping its steering is stored under its older name
-#: ``taxinet``, as every cache key made before holds it, so that ``controller`` and
-#: ``taxinet`` in a run file are one setting with one key.
-STORED_STEERING = {"controller": "taxinet"}
-
-
-@dc.dataclass
-class MonitorConfig:
-    """The runtime monitor of the guarded loop: detector checkpoint and threshold, fallback strategy
-    (``slow_down`` | ``brake``), steering while flagged (``controller``: the controller
-    keeps steering, stored as ``taxinet``, its older name, so that the cache keys of
-    existing runs stay put | ``dead_reckoning``: the last trusted estimate carried
-    forward | ``oracle``: the true state, privileged),
-    brake deceleration (m/s^2), how fast the speed comes back once the image is clear
-    (``resume_acceleration`` m/s^2; 0 = at once, the paper's rule), and the k-of-n rule
-    that confirms flags: the loop counts a tick as flagged when at least ``flags_needed``
-    of the last ``flag_window`` control ticks had a score at or above the threshold (1 of
-    1: every raw flag). Left null, the threshold and the k-of-n rule are those the
-    checkpoint records (its metadata's ``threshold`` and ``flag_rule``, else 1 of 1): a
-    monitor study's checkpoint holds its conformal threshold and rule; a detector
-    trained by a run holds the threshold its training chose on its validation split,
-    which a run's train stage may replace (``detector.threshold_folds``): name that one
-    here to use it. `with_checkpoint_defaults` fills them in."""
-    detector: str = ""
-    threshold: Optional[float] = bounded(None, 0.0, 1.0)
-    strategy: str = "slow_down"
-    steering: str = "taxinet"
-    brake_deceleration: float = bounded(1.0, 0.0, 100.0, low_open=True, unit="m/s^2")
-    resume_acceleration: float = bounded(0.0, 0.0, unit="m/s^2")
-    flags_needed: Optional[int] = bounded(None, 1, MAX_FLAG_WINDOW, whole=True,
-                                          note="<= flag_window; both set or both null")
-    flag_window: Optional[int] = bounded(None, 1, MAX_FLAG_WINDOW, whole=True, unit="ticks")
-
-    @property
-    def fallback(self):
-        """The `systems.Fallback` this monitor switches to while flagged."""
-        from reachwatch.systems import Fallback
-        return Fallback(self.strategy, self.steering, brake_deceleration=self.brake_deceleration,
-                        resume_acceleration=self.resume_acceleration)
-
-    def with_fallback(self, fallback) -> "MonitorConfig":
-        """A copy whose strategy and steering are those of ``fallback`` (a name such as
-        ``"slow_down+dead_reckoning"``, or a `systems.Fallback`); the other settings
-        are this monitor's."""
-        from reachwatch.systems import Fallback
-        chosen = Fallback.parse(fallback)
-        return dc.replace(self, strategy=chosen.strategy,
-                          steering=STORED_STEERING.get(chosen.steering, chosen.steering))
-
-    @classmethod
-    def watching(cls, detector: str) -> "MonitorConfig":
-        """A monitor of ``detector`` with a fixed placeholder threshold (0.5) and rule (1
-        of 1), for loops that read the detector's score and do not depend on what a
-        threshold does (sweeps, runs that read the score along the loop alone): their
-        cache keys hold the detector and nothing else of the monitor, and a checkpoint
-        without a threshold of its own works there."""
-        return cls(detector=detector, threshold=0.5 if detector else None,
-                   flags_needed=1, flag_window=1)
-
-    def with_checkpoint_defaults(self) -> "MonitorConfig":
-        """A copy whose null ``threshold`` and k-of-n rule are the checkpoint's: its
-        metadata's ``threshold`` and ``flag_rule`` ``[k, n]`` (1 of 1 when it has none,
-        or when there is no checkpoint). A null threshold with a checkpoint that holds
-        none is a one-line ValueError; with no checkpoint it stays null."""
-        if (self.flags_needed is None) != (self.flag_window is None):
-            raise ValueError("monitor.flags_needed / monitor.flag_window: set both or "
-                             "neither (neither: the checkpoint's rule, else 1 of 1)")
-        if self.threshold is not None and self.flag_window is not None:
-            return self
-        metadata = {}
-        if self.detector:
-            from .checkpoints import checkpoint_metadata
-            try:
-                metadata = checkpoint_metadata(self.detector)
-            except ValueError as e:
-                raise ValueError(f"monitor.detector: {e}") from None
-        threshold = self.threshold
-        if threshold is None and self.detector:
-            if not isinstance(metadata.get("threshold"), (int, float)):
-                raise ValueError(f"monitor.threshold: {clip(self.detector, 200)} holds no "
-                                 f"threshold of its own; set monitor.threshold")
-            threshold = float(metadata["threshold"])
-        k, n = ((self.flags_needed, self.flag_window) if self.flag_window is not None
-                else tuple(metadata.get("flag_rule", (1, 1))))
-        return dc.replace(self, threshold=threshold, flags_needed=int(k), flag_window=int(n))
-
-    def validate(self):
-        """Raise ValueError naming the first bad field; with a checkpoint named, fill
-        in what `with_checkpoint_defaults` fills in; return self."""
-        from reachwatch.systems import check_k_of_n
-        check_bounds(self, "monitor.")      # each state keeps its window's flags
-        if self.detector and not is_file(self.detector):
-            raise ValueError(f"monitor.detector: file not found: {clip(self.detector, 200)}")
-        full = self.with_checkpoint_defaults()
-        if self.detector:                   # null stays null until a checkpoint is named
-            self.threshold, self.flags_needed, self.flag_window = (
-                full.threshold, full.flags_needed, full.flag_window)
-            check_bounds(self, "monitor.")  # a checkpoint's own values, checked the same
-        try:
-            check_k_of_n(full.flags_needed, full.flag_window)
-        except ValueError as e:
-            raise ValueError(f"monitor.flags_needed / monitor.flag_window: {e}") from None
-        try:
-            steering = self.fallback.steering
-        except ValueError as e:
-            raise ValueError(f"monitor.{e}") from None
-        self.steering = STORED_STEERING.get(steering, steering)
         return self
 
 

@@ -31,16 +31,12 @@ from reachwatch.reach.application import application_key, load_application
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskEnsemble
 from reachwatch.systems.files import atomic_write_bytes, file_hash
 from reachwatch.training.baselines import prediction_error
-from reachwatch.training.conformal import (PlattCalibration, brier_score, conformal_threshold,
-                                           expected_calibration_error, per_environment_bound,
-                                           reliability_curve, warning_scores)
 from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
                                                tick_labels, train_encoder, train_head)
-from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, labelled_ticks,
-                                              oracle_risks, run_scores, run_times,
-                                              system_figures, tick_auroc)
+from reachwatch.training.monitor_eval import oracle_risks, tick_auroc
 
 from .monitor_guarded import guarded_rows
+from .monitor_judge import _judge_monitor, choose_flag_rule, judge_environments  # noqa: F401
 from .monitor_sections import rate_text
 from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noqa: F401
                            MonitorVariant, default_variants)
@@ -87,108 +83,10 @@ def _merged(groups):
     return {k: np.concatenate([g[k] for g in groups]) for k in keys}
 
 
-def _labelled(groups, risks, *, period, duration, within):
-    """`labelled_ticks` of every group's runs, concatenated."""
-    pairs = [labelled_ticks(r, g["ticks"], g["failure_time"], period=period, duration=duration,
-                            within=within) for g, r in zip(groups, risks)]
-    return (np.concatenate([p[0] for p in pairs] + [np.zeros(0, np.int8)]),
-            np.concatenate([p[1] for p in pairs] + [np.zeros(0)]))
-
-
 def _member_mean(per_member):
     """The members' raw risks averaged per tick: ``per_member[m][env][run]`` (one
     array per run) -> ``[env][run]`` (one member: its own risks)."""
     return [[np.mean(runs, axis=0) for runs in zip(*groups)] for groups in zip(*per_member)]
-
-
-def judge_environments(groups, risks, *, threshold, period, lead, duration, flags=None):
-    """Per environment and pooled system figures at ``threshold`` (flags read from
-    ``flags``, the risks a k-of-n flag rule acts on, when given; AUROC from ``risks``)."""
-    per_env, pooled = [], {"failed": [], "warnable": [], "warned": [], "flagged": []}
-    for i, (r, g) in enumerate(zip(risks, groups)):
-        out = flag_outcomes(r if flags is None else flags[i], g["ticks"], g["failure_time"],
-                            period=period, threshold=threshold, lead=lead)
-        for key in pooled:
-            pooled[key].append(out[key])
-        per_env.append({"environment": g["name"], **system_figures(out),
-                        "auroc_4s": tick_auroc(r, g["ticks"], g["failure_time"], period=period,
-                                               duration=duration, within=4.0)})
-    return per_env, system_figures({k: np.concatenate(v) if v else np.zeros(0, bool)
-                                    for k, v in pooled.items()})
-
-
-def choose_flag_rule(spec, calibrate, risks, *, period, lead):
-    """Of ``spec.flag_rules``' k-of-n rules, the one with the fewest needless flags on
-    the calibration environments at its conformal threshold (fixed there): ``([k, n],
-    flags, threshold, calibration figures)``, ``flags`` the risks the rule acts on per
-    split (`k_of_n_risks`). A rule whose threshold cannot reach alpha is skipped."""
-    best, refused = None, None
-    for k, n in spec.flag_rules:
-        flags = {s: [k_of_n_risks(group, k, n) for group in v] for s, v in risks.items()}
-        env_scores = [warning_scores(r, run_times(g["ticks"], period), g["failure_time"],
-                                     lead=lead) for r, g in zip(flags["calibrate"], calibrate)]
-        try:
-            chosen = conformal_threshold(env_scores, spec.alpha)
-        except ValueError as e:
-            refused = refused or e
-            continue
-        calibration, pooled = judge_environments(
-            calibrate, risks["calibrate"], threshold=chosen.threshold, period=period,
-            lead=lead, duration=spec.duration, flags=flags["calibrate"])
-        needless = pooled["needless"]["count"] / max(1, pooled["needless"]["of"])
-        if best is None or needless < best[4]:
-            best = ([int(k), int(n)], flags, chosen, calibration, needless)
-    if best is None:
-        raise refused
-    return best[:4]
-
-
-def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
-    """One monitor's row of the study from its raw risks (``raw[split][env][run]``, one
-    array per run): Platt scaling fitted on the calibration environments' ticks, the
-    k-of-n rule and conformal threshold fixed there (`choose_flag_rule`), and the
-    held-out figures. The threshold reads the calibrated risk (a history monitor's
-    output), or with ``calibrated`` False the raw score (an image detector's output, as
-    its guarded loop reads it; Platt scaling is monotone, so the flags are the same
-    where its slope is positive); calibration error and Brier score are the calibrated
-    risk's either way. Returns ``(row, platt, chosen, rule, risks)``, ``risks`` those the
-    threshold reads."""
-    y, q = _labelled(data["calibrate"], raw["calibrate"], period=period,
-                     duration=spec.duration, within=spec.within)
-    try:
-        platt = PlattCalibration.fit(q, y == 1)
-    except ValueError:                      # one class among the calibration ticks
-        platt = PlattCalibration()
-    probabilities = {k: [[platt(r) for r in group] for group in v] for k, v in raw.items()}
-    risks = probabilities if calibrated else raw
-    rule, flags, chosen, calibration = choose_flag_rule(
-        spec, data["calibrate"], risks, period=period, lead=lead)
-    needless = [c["needless"] for c in calibration]
-    row = {"threshold": chosen.threshold, "statement": chosen.statement(lead),
-           "calibration_miss_rate": chosen.calibration_miss_rate,
-           "per_environment_bound_90": per_environment_bound(
-               [c["miss"]["rate"] if c["miss"]["of"] else 0.0 for c in calibration], 0.1),
-           "calibration_needless": sum(n["count"] for n in needless) / max(
-               1, sum(n["of"] for n in needless)),
-           "platt": [platt.a, platt.b], "flag_rule": rule}
-    for k in ("held_out", "also_held_out"):
-        per_env, pooled = judge_environments(
-            data[k], risks[k], threshold=chosen.threshold, period=period, lead=lead,
-            duration=spec.duration, flags=flags[k])
-        y, p = _labelled(data[k], probabilities[k], period=period, duration=spec.duration,
-                         within=spec.within)
-        row[k] = {"environments": per_env, "pooled": pooled,
-                  "ece": expected_calibration_error(p, y == 1) if len(y) else float("nan"),
-                  "brier": brier_score(p, y == 1) if len(y) else float("nan"),
-                  "reliability": [a.tolist() for a in reliability_curve(p, y == 1)]
-                  if len(y) else []}
-    # what any threshold does with the kept rule: each environment's warnable failing
-    # runs' warning scores and its other runs' largest flag risk (a run is flagged
-    # iff it is >= tau)
-    row["scores"] = {k: [run_scores(r, g["ticks"], g["failure_time"], period=period,
-                                    lead=lead) for r, g in zip(flags[k], data[k])]
-                     for k in ("calibrate", "held_out", "also_held_out")}
-    return row, platt, chosen, rule, risks
 
 
 def _detector_scores(spec, application, scenario, data, detector, splits, *, cache_dir,
@@ -394,7 +292,7 @@ STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_monitor
               "reachwatch.training.baselines", "reachwatch.training.metrics",
               "reachwatch.training.figures", "reachwatch.reach.outcomes",
               "reachwatch.reach.fidelity", "reachwatch.pipeline.monitor_study",
-              "reachwatch.pipeline.monitor_guarded")
+              "reachwatch.pipeline.monitor_guarded", "reachwatch.pipeline.monitor_judge")
 
 
 def train_settings(spec: MonitorStudySpec) -> HistoryTrainConfig:
