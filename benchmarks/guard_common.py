@@ -35,6 +35,7 @@ def guarded_setup(p: argparse.ArgumentParser, args):
     scenario = resolved(load_scenario(args.scenario))
     if not scenario.monitor.detector:
         p.error(f"{args.scenario} has no monitor.detector: nothing to guard with")
+    scenario.monitor = scenario.monitor.with_checkpoint_defaults()   # the threshold it shows
     if min(args.starts, args.calibration_starts, args.noise_seeds) < 1:
         p.error("--starts, --calibration-starts and --noise-seeds must be >= 1")
     grid = paper_grid(scenario.environment.half_width, tuple(args.shape))

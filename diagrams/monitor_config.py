@@ -96,20 +96,21 @@ class MonitorConfig:
             threshold = float(metadata["threshold"])
         k, n = ((self.flags_needed, self.flag_window) if self.flag_window is not None
                 else tuple(metadata.get("flag_rule", (1, 1))))
-        return dc.replace(self, threshold=threshold, flags_needed=int(k), flag_window=int(n))
+        full = dc.replace(self, threshold=threshold, flags_needed=int(k), flag_window=int(n))
+        check_bounds(full, "monitor.")      # a checkpoint's own values, checked as a file's
+        return full
 
     def validate(self):
-        """Raise ValueError naming the first bad field; with a checkpoint named, fill
-        in what `with_checkpoint_defaults` fills in; return self."""
+        """Raise ValueError naming the first bad field, the checkpoint's own threshold
+        and rule included; return self. A null threshold or rule stays null here, to be
+        taken from whatever checkpoint the monitor names when a loop is built (a
+        pipeline names its own trained detector later), so that a value read from one
+        checkpoint never stays behind for another."""
         from reachwatch.systems import check_k_of_n
         check_bounds(self, "monitor.")      # each state keeps its window's flags
         if self.detector and not is_file(self.detector):
             raise ValueError(f"monitor.detector: file not found: {clip(self.detector, 200)}")
         full = self.with_checkpoint_defaults()
-        if self.detector:                   # null stays null until a checkpoint is named
-            self.threshold, self.flags_needed, self.flag_window = (
-                full.threshold, full.flags_needed, full.flag_window)
-            check_bounds(self, "monitor.")  # a checkpoint's own values, checked the same
         try:
             check_k_of_n(full.flags_needed, full.flag_window)
         except ValueError as e:

@@ -129,6 +129,7 @@ def guard_command(args):
 
     scenario = scenario_from_args(args, controller=True)
     check_detector(scenario, args.scenario)      # before the sweep, not after it
+    scenario.monitor = scenario.monitor.with_checkpoint_defaults()  # what the log shows
     spec = guard_spec(args, scenario)
     fallbacks = spec.guard.strategies
     application = load_application(spec.application)

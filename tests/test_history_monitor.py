@@ -62,10 +62,21 @@ def test_a_scenario_runs_a_checkpoint_at_its_own_threshold_and_flag_rule(tmp_pat
     config = HistoryMonitorConfig(frames=2, height=16, width=24, channels=[4], features=4)
     path = _checkpoint(tmp_path / "m.pt", config, threshold=0.37, flag_rule=[2, 3])
     monitor = load_scenario(data=f"monitor: {{detector: {path}}}\n").monitor
-    assert (monitor.threshold, monitor.flags_needed, monitor.flag_window) == (0.37, 2, 3)
+    assert (monitor.threshold, monitor.flags_needed, monitor.flag_window) == (None, None, None)
+    full = monitor.with_checkpoint_defaults()
+    assert (full.threshold, full.flags_needed, full.flag_window) == (0.37, 2, 3)
     own = load_scenario(data=f"monitor: {{detector: {path}, threshold: 0.6, flags_needed: 1, "
-                             f"flag_window: 1}}\n").monitor
+                             f"flag_window: 1}}\n").monitor.with_checkpoint_defaults()
     assert (own.threshold, own.flags_needed, own.flag_window) == (0.6, 1, 1)
+    # a pipeline that names another checkpoint later takes that one's rule, not the first's
+    other = _checkpoint(tmp_path / "other.pt", config, threshold=0.8, flag_rule=[1, 1])
+    monitor.detector = str(other)
+    swapped = monitor.with_checkpoint_defaults()
+    assert (swapped.threshold, swapped.flags_needed, swapped.flag_window) == (0.8, 1, 1)
+    high = _checkpoint(tmp_path / "high.pt", config, threshold=1.5, flag_rule=[1, 1])
+    with pytest.raises(ValueError,
+                       match=r"monitor.threshold must be a finite number in \[0, 1\], got 1.5$"):
+        load_scenario(data=f"monitor: {{detector: {high}}}\n")
     built = MonitorConfig(detector=str(path), strategy="brake")     # never validated
     names = {s.get_name() for s in make_guarded_diagram(_with_monitor(built)).GetSystems()}
     assert "flag_filter" in names
@@ -77,7 +88,7 @@ def test_a_scenario_runs_a_checkpoint_at_its_own_threshold_and_flag_rule(tmp_pat
                                          r"its own; set monitor.threshold$"):
         load_scenario(data=f"monitor: {{detector: {bare}}}\n")
     given = load_scenario(data=f"monitor: {{detector: {bare}, threshold: 0.2}}\n")
-    assert given.monitor.flag_window == 1
+    assert given.monitor.with_checkpoint_defaults().flag_window == 1
     # loops that only read its score take it as it is (a placeholder threshold)
     from reachwatch.taxi.fidelity import score_runs
     scored = score_runs(given, np.array([[0.0, 120.0, 0.0]]), duration=0.1,
