@@ -34,7 +34,7 @@ import numpy as np
 
 from reachwatch.pipeline.monitor_sections import run_ranking
 from reachwatch.pipeline.monitor_study import choose_flag_rule, judge_environments
-from reachwatch.training.monitor_eval import rate, run_scores, tick_auroc
+from reachwatch.training.monitor_eval import decisive_scores, rate, tick_auroc
 
 SPLITS = ("calibrate", "held_out", "also_held_out")
 
@@ -64,7 +64,7 @@ def _ranking(groups, risks, *, period, duration, within, lead):
                            for g, runs in zip(groups, risks)) if np.isfinite(a)]
     worst, median = (min(per_env), float(np.median(per_env))) if per_env else (np.nan, np.nan)
     ranked = run_ranking({"scores": {"runs": [
-        run_scores(runs, g["ticks"], g["failure_time"], period=period, lead=lead)
+        decisive_scores(runs, g["ticks"], g["failure_time"], period=period, lead=lead)
         for g, runs in zip(groups, risks)]}}, "runs")
     return pooled, worst, median, ranked["auroc"], ranked["needless"] or rate(0, 0)
 

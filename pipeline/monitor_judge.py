@@ -8,8 +8,9 @@ import numpy as np
 from reachwatch.training.conformal import (PlattCalibration, brier_score, conformal_threshold,
                                            expected_calibration_error, per_environment_bound,
                                            reliability_curve, warning_scores)
-from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, labelled_ticks,
-                                              run_scores, run_times, system_figures, tick_auroc)
+from reachwatch.training.monitor_eval import (decisive_scores, flag_outcomes, k_of_n_risks,
+                                              labelled_ticks, run_times, system_figures,
+                                              tick_auroc)
 
 
 def _labelled(groups, risks, *, period, duration, within):
@@ -104,7 +105,7 @@ def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
     # what any threshold does with the kept rule: each environment's warnable failing
     # runs' warning scores and its other runs' largest flag risk (a run is flagged
     # iff it is >= tau)
-    row["scores"] = {k: [run_scores(r, g["ticks"], g["failure_time"], period=period,
+    row["scores"] = {k: [decisive_scores(r, g["ticks"], g["failure_time"], period=period,
                                     lead=lead) for r, g in zip(flags[k], data[k])]
                      for k in ("calibrate", "held_out", "also_held_out")}
     return row, platt, chosen, rule, risks

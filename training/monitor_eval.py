@@ -39,7 +39,7 @@ def labelled_ticks(risks, ticks, failure_times, *, period: float, duration: floa
     return np.concatenate(labels), np.concatenate(scores)
 
 
-def run_scores(risks, ticks, failure_times, *, period: float, lead: float) -> dict:
+def decisive_scores(risks, ticks, failure_times, *, period: float, lead: float) -> dict:
     """What any threshold does with one environment's runs: ``warning``, each warnable
     failing run's largest risk at least ``lead`` s before it fails (`warning_scores`),
     and ``safe_max``, each run that did not fail's largest risk (a run is flagged iff
