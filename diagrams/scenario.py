@@ -20,6 +20,7 @@ from reachwatch.systems.bounds import MAX_INT, bounded, check_bounds, seed_field
 from reachwatch.systems.checks import clip, is_file, short
 
 from .monitor_config import MAX_FLAG_WINDOW, STORED_STEERING, MonitorConfig  # noqa: F401
+from .schemas import ApplicationEnvironment, slot_field, typed_schema, untyped
 
 #: Bounds on a scenario's numbers (a value past them is a mistake, or would hang a run).
 MAX_DURATION = 3600.0       # s of simulated time
@@ -82,10 +83,15 @@ class ControllerConfig:
         return self
 
 
+def _taxi_default(slot, role):
+    """A scenario file's default environment: the taxi's `Environment()`."""
+    return Environment
+
+
 @dc.dataclass
 class Scenario:
     """One run: environment, camera, start state, controller, duration (s), seed."""
-    environment: Environment = dc.field(default_factory=Environment)
+    environment: ApplicationEnvironment = slot_field("scenario", default_factory=Environment)
     camera: CameraConfig = dc.field(default_factory=CameraConfig)
     initial_state: InitialState = dc.field(default_factory=InitialState)
     controller: ControllerConfig = dc.field(default_factory=ControllerConfig)
@@ -93,6 +99,12 @@ class Scenario:
     duration: float = bounded(10.0, 0.0, MAX_DURATION, low_open=True, unit="s")
     seed: int = seed_field()
     shadows: bool = False
+
+    @classmethod
+    def schema_for(cls, raw) -> type:
+        """The schema a scenario file is loaded with: its environment is the taxi's
+        (`Environment`); a run file's ``scenario`` takes its application's."""
+        return typed_schema(cls, ((ApplicationEnvironment, Environment),), _taxi_default)
 
     def validate(self):
         """Raise ValueError naming the first bad field; return self."""
@@ -309,22 +321,27 @@ def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario",
     (``1e-4``) is read as the number. ``edit``: None, or an object whose ``apply(raw,
     schema, root)`` returns the raw data changed (e.g. command-line overlays) and whose
     ``where`` says how errors name it; it runs before every check, so the changed
-    values are checked as the file's are."""
+    values are checked as the file's are. A ``schema`` with a ``schema_for(raw)``
+    class method (a generic schema with application slots, `schemas`) is loaded as the
+    schema that returns for the data, and handed back as ``schema`` instances
+    (`schemas.untyped`)."""
     where = (str(filename) if filename is not None else "<yaml>" if data.strip()
              else "the built-in defaults")
     if filename is not None:
         data = read_text_file(filename)
     raw = read_yaml(data, where)
     raw = {} if raw is None else raw
-    if edit is not None:
-        where = f"{where} {edit.where}"
-        raw = edit.apply(raw, schema, root)
     later, converted = [], []
     try:
-        raw = _check(raw, schema, root, later, converted)
+        typed = schema.schema_for(raw) if hasattr(schema, "schema_for") else schema
+        if edit is not None:
+            where = f"{where} {edit.where}"
+            raw = edit.apply(raw, typed, root)
+            typed = schema.schema_for(raw) if hasattr(schema, "schema_for") else schema
+        raw = _check(raw, typed, root, later, converted)
         if converted or edit is not None:   # Drake's loader reads the text again: give
             data = yaml.safe_dump(raw, default_flow_style=None)     # it the numbers
-        scenario = yaml_load_typed(schema=schema, data=data) if raw else schema()
+        scenario = untyped(yaml_load_typed(schema=typed, data=data) if raw else typed())
         scenario.validate()
     except (ScenarioError, ValueError) as e:     # ScenarioError is a ValueError
         raise ScenarioError(clip(f"{where}: {e}")) from None
@@ -337,6 +354,10 @@ def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario",
     return scenario
 
 
-def dump_scenario(scenario) -> str:
-    """YAML text of ``scenario`` (round-trips through `load_scenario`)."""
-    return yaml_dump_typed(scenario)
+def dump_scenario(scenario, schema=None) -> str:
+    """YAML text of ``scenario`` (round-trips through `load_scenario`); ``schema``: the
+    schema to write it as (default: its class's ``schema_for``, or its class)."""
+    if schema is None:
+        kind = type(scenario)
+        schema = kind.schema_for({}) if hasattr(kind, "schema_for") else kind
+    return yaml_dump_typed(scenario, schema=schema)

@@ -80,8 +80,10 @@ def _declared_bound(path: str):
 
     from reachwatch.systems.bounds import bound_of
 
-    from .spec import RunSpec
-    schema, field = RunSpec, None
+    from reachwatch.reach.application import load_application
+
+    from .spec import run_file_schema
+    schema, field = run_file_schema(load_application("")), None     # the taxi's environments
     for part in path.split("."):
         fields = {f.name: f for f in dc.fields(schema)} if dc.is_dataclass(schema) else {}
         if part not in fields:

@@ -7,12 +7,15 @@ from typing import List
 
 from reachwatch.diagrams import MonitorConfig
 from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW
-from reachwatch.systems import (MAX_MEMBERS, TEMPORAL_MODELS, Environment,
-                                HistoryMonitorConfig, RandomEnvironments)
+from reachwatch.diagrams.schemas import (ApplicationEnvironment, ApplicationRandomEnvironments,
+                                         slot_field)
+from reachwatch.systems import MAX_MEMBERS, TEMPORAL_MODELS, HistoryMonitorConfig
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
 from reachwatch.systems.checks import check_label, short
 from reachwatch.systems.flag_filter import check_k_of_n
 from reachwatch.training.history_train import LR_SCHEDULES
+
+from .slot_defaults import application_default
 
 
 MONITOR_KINDS = ("detector", "history")
@@ -45,8 +48,9 @@ def default_variants() -> List[MonitorVariant]:
 class MonitorStudySpec:
     """Which monitor guards the loop and how it is judged. ``kind``: ``detector`` (the
     single-image detector of ``detector:`` and ``guard:``; this study is off) or
-    ``history`` (this study). The family (``family``: its ``seed``, hours, skies and
-    runways; its ``count`` is ``train + calibrate + held_out``) gives ``train``,
+    ``history`` (this study). The family (``family``: the application's random
+    family, the taxi's a ``seed``, hours, skies and runways; its ``count`` is ``train +
+    calibrate + held_out``) gives ``train``,
     ``calibrate`` and ``held_out`` environments in that order; ``also_held_out`` are
     named environments outside the family (e.g. the paper's nights), judged with the
     same threshold but outside its guarantee. Each environment records ``runs`` real
@@ -98,11 +102,12 @@ class MonitorStudySpec:
     against five (random family, seed 11, train 16, calibrate 16); the needless flags
     at the conformal threshold moved both ways. The cosine schedule ranked worse."""
     kind: str = "detector"
-    family: RandomEnvironments = dc.field(default_factory=lambda: RandomEnvironments(seed=11))
+    family: ApplicationRandomEnvironments = slot_field(
+        "monitor", application_default(ApplicationRandomEnvironments, "monitor"))
     train: int = bounded(12, 1, 1000, whole=True)
     calibrate: int = bounded(10, 1, 1000, whole=True, note=">= 1 / alpha - 1")
     held_out: int = bounded(6, 1, 1000, whole=True)
-    also_held_out: List[Environment] = dc.field(default_factory=list)
+    also_held_out: List[ApplicationEnvironment] = slot_field("", list)
     runs: int = bounded(30, 1, 100_000, whole=True)
     held_out_runs: int = bounded(0, 0, 100_000, whole=True, note="0: runs")
     duration: float = bounded(8.0, 0.0, 600.0, low_open=True, unit="s")

@@ -42,6 +42,11 @@ it holds and the range of each; after a semicolon, a condition on other keys. A 
 outside its bound is refused when the file is loaded, with a one-line error naming the
 key, and so is a command-line flag that sets the key (e.g. `guard --check-starts` for
 `guard.check_starts`). A number without a bound may be any finite number.
+
+A run file's environments (`train`, `test`, `guard.environments`, ...) and random
+families (`train_random`, ...) are the types of the application it names
+(`Application.environment_type` and `random_environments_type`); this page shows the
+default application's, the taxi's: `Environment` and `RandomEnvironments`.
 """
 
 
@@ -125,10 +130,11 @@ def _cell(text: str) -> str:
 
 def reference_markdown() -> str:
     """The reference page's Markdown, from the schema as it is now."""
-    from reachwatch.pipeline.spec import RunSpec
+    from reachwatch.pipeline.spec import run_file_schema
+    from reachwatch.reach.application import load_application
 
     lines = [HEADER]
-    for cls, paths in _classes(RunSpec, "run"):
+    for cls, paths in _classes(run_file_schema(load_application("")), "run"):
         lines.append(f"## {cls.__name__}\n")
         lines.append("Where: " + ", ".join(f"`{p}`" for p in paths)
                      + (" (the top level of a scenario file)" if cls.__name__ == "Scenario" else "")

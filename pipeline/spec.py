@@ -3,15 +3,18 @@
 e.g. ``run.detector.epoch: unknown field``)."""
 
 import dataclasses as dc
+import functools
 import hashlib
 import json
 from typing import Dict, List, Optional
 
 from reachwatch.diagrams import Scenario, load_scenario
 from reachwatch.diagrams.scenario import dump_scenario
+from reachwatch.diagrams.schemas import (ApplicationEnvironment, ApplicationRandomEnvironments,
+                                         slot_field, typed_schema)
 from reachwatch.reach import ACCURACIES
 from reachwatch.reach.application import load_application
-from reachwatch.systems import DEFAULT_FALLBACKS, Environment, Fallback, RandomEnvironments
+from reachwatch.systems import DEFAULT_FALLBACKS, Fallback
 from reachwatch.systems.bounds import MAX_INT, bounded, check_bounds, seed_field
 from reachwatch.systems.checks import check_label, short
 from reachwatch.training.dataset import DatasetSpec
@@ -19,6 +22,7 @@ from reachwatch.training.labels import LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 
 from .monitor_spec import MONITOR_KINDS, MonitorStudySpec, MonitorVariant, default_variants  # noqa: F401
+from .slot_defaults import SlotDefaults, application_default
 
 
 #: Bounds of a run file's sizes: nodes per grid axis, horizon (s), real-loop starts.
@@ -44,8 +48,8 @@ class IncrementalConfig:
     incremental stage: the application's ``fine_tune``; the taxi's fine-tunes TaxiNet,
     `reachwatch.taxi.incremental`)."""
     enabled: bool = True
-    environment: Environment = dc.field(
-        default_factory=lambda: Environment("KMWH", 17.0, "clear"))
+    environment: ApplicationEnvironment = slot_field(
+        "incremental", application_default(ApplicationEnvironment, "incremental"))
     #: At most this many mined states (spread over datasets).
     anomalies: int = bounded(2000, 0, 1_000_000, whole=True)
     #: Nominal-condition (KMWH 9 h clear) frames replayed.
@@ -84,7 +88,7 @@ class GuardSpec:
     ``strategies`` flags that share of its control ticks in the tables (with the score
     noise when ``noise_starts`` fits it), rolled out from ``flag_budget_starts`` of the
     application's starts seeded ``flag_budget_seed`` (`Application.flag_budget_threshold`)."""
-    environments: List[Environment] = dc.field(default_factory=list)
+    environments: List[ApplicationEnvironment] = slot_field("", list)
     strategies: List[str] = dc.field(default_factory=lambda: list(DEFAULT_FALLBACKS))
     candidates: int = bounded(5, 0, MAX_STARTS, whole=True)
     online_seconds: float = bounded(2.0, 0.0, 3600.0, low_open=True, unit="s")
@@ -200,8 +204,11 @@ class RunSpec:
     box the tables are swept and the BRT solved over to |theta| <= it (the loop turns
     far past the paper's 28 deg at night) and ``solved_py_max`` to py <= it (a loop
     started near py = 250 m goes on past it within the horizon); labelled states and
-    check starts stay in the paper's box. ``train_random`` / ``test_random``: families of random environments
-    (`RandomEnvironments`) added to the listed ``train`` / ``test`` ones; the held-out
+    check starts stay in the paper's box. ``train``, ``test``: environments of the
+    application's own type (`Application.environment_type`; the taxi's `Environment`:
+    a runway, hour and sky). ``train_random`` / ``test_random``: families of random
+    environments (the application's; the taxi's `RandomEnvironments`) added to the
+    listed ``train`` / ``test`` ones; the held-out
     family needs its own seed. ``held_out_labels``: where the held-out environments'
     labels come from (null: ``dataset.labels``, as the training environments'). The
     detector trains on ``dataset.labels`` either way; a true-label source here (e.g.
@@ -214,10 +221,12 @@ class RunSpec:
     name: str = "run"
     application: str = ""
     scenario: Scenario = dc.field(default_factory=Scenario)
-    train: List[Environment] = dc.field(default_factory=list)
-    test: List[Environment] = dc.field(default_factory=list)
-    train_random: RandomEnvironments = dc.field(default_factory=RandomEnvironments)
-    test_random: RandomEnvironments = dc.field(default_factory=RandomEnvironments)
+    train: List[ApplicationEnvironment] = slot_field("", list)
+    test: List[ApplicationEnvironment] = slot_field("", list)
+    train_random: ApplicationRandomEnvironments = slot_field(
+        "train", application_default(ApplicationRandomEnvironments, "train"))
+    test_random: ApplicationRandomEnvironments = slot_field(
+        "test", application_default(ApplicationRandomEnvironments, "test"))
     grid: List[int] = bounded(default_factory=lambda: [21, 11, 21], low=3, high=MAX_GRID,
                               whole=True, each=True, note="one size per state axis")
     horizon: float = bounded(8.0, 0.0, MAX_HORIZON, low_open=True, unit="s")
@@ -264,7 +273,7 @@ class RunSpec:
             raise ValueError(f"test_random.seed {self.test_random.seed} equals "
                              f"train_random.seed: the held-out family would be the training "
                              f"family; give it another seed")
-        self._check_same_names()
+        self._check_same_names(application)
         names = [e.name for e in self.training_environments() + self.held_out_environments()]
         if len(set(names)) != len(names):
             twice = sorted({n for n in names if names.count(n) > 1})
@@ -346,9 +355,10 @@ class RunSpec:
             application.check_incremental(self.scenario)
         return self
 
-    def _check_same_names(self):
+    def _check_same_names(self, application):
         """Raise a ValueError naming both places when two environments of the run share
-        a name but differ (their files and stage records would be mixed up)."""
+        a name but differ (`Application.same_environment`: their files and stage records
+        would be mixed up)."""
         places = [(f"train[{i}]", e) for i, e in enumerate(self.train)]
         places += [(f"test[{i}]", e) for i, e in enumerate(self.test)]
         places += [(f"train_random ({e.name})", e) for e in self.train_random.environments()]
@@ -364,16 +374,15 @@ class RunSpec:
                 raise ValueError(f"{where}: {e}") from None
             if env.name not in first:
                 first[env.name] = (where, env)
-            elif (first[env.name][1].spec(), first[env.name][1].hour) != (env.spec(), env.hour):
+            elif not application.same_environment(first[env.name][1], env):
                 raise ValueError(f"{first[env.name][0]} and {where} are both named "
-                                 f"'{env.name}' but differ (runway_spec); give one runway_spec "
-                                 f"another name")
+                                 f"'{env.name}' but differ; give one of them another name")
 
-    def training_environments(self) -> List[Environment]:
+    def training_environments(self) -> List[ApplicationEnvironment]:
         """``train``, then the ``train_random`` family."""
         return list(self.train) + self.train_random.environments()
 
-    def held_out_environments(self) -> List[Environment]:
+    def held_out_environments(self) -> List[ApplicationEnvironment]:
         """``test``, then the ``test_random`` family (never trained on)."""
         return list(self.test) + self.test_random.environments()
 
@@ -393,10 +402,10 @@ class RunSpec:
             return self.dataset
         return dc.replace(self.dataset, labels=self.held_out_labels)
 
-    def guard_environments(self) -> List[Environment]:
+    def guard_environments(self) -> List[ApplicationEnvironment]:
         return self.guard.environments or self.held_out_environments()[:1]
 
-    def all_environments(self) -> List[Environment]:
+    def all_environments(self) -> List[ApplicationEnvironment]:
         """Every environment whose BRT a run needs: train, test, guard and incremental,
         each once, in that order."""
         envs, seen = [], set()
@@ -409,13 +418,32 @@ class RunSpec:
         return envs
 
 
+    @classmethod
+    def schema_for(cls, raw) -> type:
+        """The schema a run file's data ``raw`` is loaded with: this one with the
+        environments of the application it names (`run_file_schema`)."""
+        name = raw.get("application", "") if isinstance(raw, dict) else ""
+        return run_file_schema(load_application(name if isinstance(name, str) else ""))
+
+
+@functools.lru_cache(maxsize=None)
+def run_file_schema(application) -> type:
+    """`RunSpec` whose environments and random families are ``application``'s
+    (`Application.run_file_types`; `reachwatch.diagrams.schemas.typed_schema`)."""
+    environment, family = application.run_file_types()
+    return typed_schema(RunSpec, ((ApplicationEnvironment, environment),
+                                  (ApplicationRandomEnvironments, family)),
+                        SlotDefaults(application))
+
+
 def load_run_spec(filename=None, *, data=None) -> RunSpec:
     """Load and validate a run specification (YAML file or string)."""
     return load_scenario(filename, data=data, schema=RunSpec, root="run")
 
 
 def dump_run_spec(spec: RunSpec) -> str:
-    return dump_scenario(spec)
+    """YAML text of ``spec`` (round-trips through `load_run_spec`)."""
+    return dump_scenario(spec, schema=run_file_schema(load_application(spec.application)))
 
 
 def digest(*parts) -> str:

@@ -21,6 +21,7 @@ import dataclasses as dc
 import functools
 import importlib
 import inspect
+import sys
 
 import numpy as np
 
@@ -29,6 +30,24 @@ from .sweep import sweep, sweep_key
 
 #: The application a run file without an ``application`` key studies.
 DEFAULT_APPLICATION = "reachwatch.taxi.application:TaxiApplication"
+
+
+@dc.dataclass
+class NoRandomEnvironments:
+    """The random family of an application that draws none: ``count`` stays 0."""
+    count: int = 0
+    seed: int = 0
+    prefix: str = "RND"
+
+    def validate(self, where="random"):
+        if self.count:
+            raise ValueError(f"{where}.count: this application draws no random "
+                             f"environments; list its environments instead")
+        return self
+
+    def environments(self):
+        self.validate("random")
+        return []
 
 
 class Application(abc.ABC):
@@ -49,6 +68,58 @@ class Application(abc.ABC):
     #: Set by `load_application`: the string the application was loaded from ("" for
     #: the default). Workers load it again from this.
     spec = ""
+
+    # --- the run file's environments -------------------------------------------------
+    #: The dataclass a run file's environments are loaded as (``train``, ``test``,
+    #: ``guard.environments``, ``monitor.also_held_out``, ...; the run hands each to
+    #: the loop as ``scenario.environment``): it has a ``name`` (a label: an
+    #: environment's files and report rows are named by it) and ``validate()``, which
+    #: raises a ValueError naming a bad field. None: the application names none, and a
+    #: run file cannot be loaded for it.
+    environment_type = None
+    #: The dataclass of a family of random environments (``train_random``,
+    #: ``test_random``, ``monitor.family``): fields ``count``, ``seed`` and ``prefix``,
+    #: ``validate(where)``, and ``environments()``, the family's `environment_type`
+    #: instances in order, each depending only on ``seed`` and its index. None: the
+    #: application draws none (`NoRandomEnvironments`).
+    random_environments_type = None
+
+    def default_environment(self, role: str):
+        """The environment a run file's field takes when left out (``role``:
+        ``"incremental"``); default: ``environment_type()``."""
+        return self.run_file_types()[0]()
+
+    def default_random_environments(self, role: str):
+        """The family a run file's field takes when left out (``role``: ``"train"``,
+        ``"test"`` or ``"monitor"``); default: none drawn."""
+        return self.run_file_types()[1]()
+
+    def same_environment(self, a, b) -> bool:
+        """Whether two environments a run file names alike are one (two that differ
+        would mix their files and stage records); default ``a == b``."""
+        return a == b
+
+    def run_file_types(self):
+        """``(environment type, random family type)`` a run file is loaded with; a
+        one-line ValueError when the application names no environment type, or one
+        that is not a dataclass importable by its module's name (environments travel
+        to workers inside scenarios: a class defined in an application's own file,
+        which workers import only once a task runs, cannot)."""
+        if self.environment_type is None:
+            raise ValueError(f"application {self.name!r} sets no environment_type: name the "
+                             f"dataclass its run files' environments are (e.g. "
+                             f"reachwatch.systems.Environment, the taxi's runways)")
+        types = (self.environment_type, self.random_environments_type or NoRandomEnvironments)
+        for what, kind in zip(("environment_type", "random_environments_type"), types):
+            module = sys.modules.get(kind.__module__)
+            if (not dc.is_dataclass(kind) or module is None
+                    or getattr(module, kind.__qualname__, None) is not kind
+                    or kind.__module__.startswith("reachwatch_user_")):
+                raise ValueError(f"application {self.name!r}: {what} {kind.__qualname__} must "
+                                 f"be a dataclass defined at the top of an importable module "
+                                 f"(a package, not the application's own file): workers "
+                                 f"unpickle environments by their module's name")
+        return types
 
     # --- the loop -----------------------------------------------------------------
     @abc.abstractmethod

@@ -8,7 +8,7 @@ import numpy as np
 
 from reachwatch.diagrams import StateRenderer, load_taxinet, make_closed_loop_diagram, make_guarded_diagram
 from reachwatch.reach.application import Application
-from reachwatch.systems import TaxiNet
+from reachwatch.systems import Environment, RandomEnvironments, TaxiNet
 
 from . import fidelity, guarded, guarded_run, history, plots, sweeps
 from .dynamics import dynamics_for
@@ -36,6 +36,23 @@ class TaxiApplication(Application):
     starts_note = "|px| < B; starts already off the runway agree with any BRT"
     box_words = "the paper's box"
     slice_words = "slices at py = {at:g} m"
+
+    # a run file's environments: a runway (the catalog's or the user's), hour and sky
+    environment_type = Environment
+    random_environments_type = RandomEnvironments
+
+    def default_environment(self, role):
+        # the incremental stage's held-out environment: KMWH at dusk
+        return Environment("KMWH", 17.0, "clear") if role == "incremental" else Environment()
+
+    def default_random_environments(self, role):
+        # the monitor study's family is drawn from seed 11; the others draw none
+        return RandomEnvironments(seed=11) if role == "monitor" else RandomEnvironments()
+
+    def same_environment(self, a, b):
+        # one name, one runway and hour (a runway_spec that spells out a catalog runway
+        # is that runway)
+        return (a.spec(), a.hour) == (b.spec(), b.hour)
 
     def loop_diagram(self, scenario, *, guarded=False):
         return (make_guarded_diagram if guarded else make_closed_loop_diagram)(scenario)

@@ -16,7 +16,8 @@ import yaml
 
 from reachwatch.diagrams import ScenarioError, load_scenario
 from reachwatch.pipeline.reference import _classes
-from reachwatch.pipeline.spec import RunSpec, load_run_spec
+from reachwatch.pipeline.spec import load_run_spec, run_file_schema
+from reachwatch.reach.application import load_application
 from reachwatch.systems.bounds import Bound, bounds, check_bounds
 from tiny_run import TINY
 
@@ -62,11 +63,15 @@ INSIDE_INSTEAD = {
 }
 
 
+#: The run file's schema with the default application's (the taxi's) environments.
+SCHEMA = run_file_schema(load_application(""))
+
+
 def _cases():
     """``(class, key path, field name, Bound)`` of every bounded field, once per class
     (at the first key where its class appears)."""
     out = []
-    for cls, paths in _classes(RunSpec, "run"):
+    for cls, paths in _classes(SCHEMA, "run"):
         for name, bound in bounds(cls).items():
             out.append((cls, paths[0], name, bound))
     return out
@@ -154,12 +159,12 @@ def _set_field(spec, key_path: str, value):
     """Set ``run.a.b[].c`` on a `RunSpec` (a null dataclass made, a list's first item
     made or used)."""
     parts = key_path.split(".")[1:]
-    node = spec
+    node, schema = spec, SCHEMA
     for part in parts[:-1]:
         listed = part.endswith("[]")
         name = part[:-2] if listed else part
         child = getattr(node, name)
-        kind = _dataclass_of(typing.get_type_hints(type(node))[name])
+        kind = schema = _dataclass_of(typing.get_type_hints(schema)[name])
         if listed:
             if not child:
                 child.append(kind())
@@ -246,7 +251,7 @@ def test_every_numeric_key_of_the_reference_sections_is_declared():
     """A float or int key with no bound is a choice, not an oversight: the ones that may
     be any number are listed here."""
     numeric = (int, float, Optional[int], Optional[float], List[int], List[float])
-    unbounded = {f"{paths[0]}.{f.name}" for cls, paths in _classes(RunSpec, "run")
+    unbounded = {f"{paths[0]}.{f.name}" for cls, paths in _classes(SCHEMA, "run")
                  for f in dc.fields(cls)
                  if typing.get_type_hints(cls)[f.name] in numeric and "bound" not in f.metadata}
     assert unbounded == set(), unbounded

@@ -11,7 +11,11 @@ import pytest
 
 from reachwatch.pipeline import cli
 from reachwatch.pipeline.commands import RunFileDefault, fill_run_file_defaults
-from reachwatch.pipeline.spec import RunSpec
+from reachwatch.pipeline.spec import run_file_schema
+from reachwatch.reach.application import load_application
+
+#: The run file's schema with the default application's (the taxi's) environments.
+SCHEMA = run_file_schema(load_application(""))
 
 #: Flags whose names are run-file fields' but which set something else, and what.
 NOT_THE_RUN_FILES = {
@@ -59,7 +63,7 @@ def _field_names(schema, seen=None) -> set:
 def _schema_default(path: str):
     """The default at ``path`` read from the dataclass fields' declared defaults (not
     from an instance, as `RunFileDefault` reads it)."""
-    schema, value = RunSpec, None
+    schema, value = SCHEMA, None
     for part in path.split("."):
         field = {f.name: f for f in dc.fields(schema)}[part]
         value = (field.default if field.default is not dc.MISSING else field.default_factory())
@@ -68,7 +72,7 @@ def _schema_default(path: str):
 
 
 def test_no_flag_repeats_a_run_file_field_with_a_default_of_its_own():
-    fields = _field_names(RunSpec)
+    fields = _field_names(SCHEMA)
     own = [f"{command} {action.option_strings[0]}"
            for command, action in _options(cli.build_parser()) if action.dest.replace("-", "_") in fields
            and not isinstance(action.default, RunFileDefault)

@@ -8,8 +8,6 @@ there goes through its application (`reachwatch.reach.application`)."""
 import ast
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parents[1]
 #: Lowest first; a module may import its own layer and those below it. The taxi is an
 #: application beside training: built on reach, diagrams and systems, imported by none
@@ -25,17 +23,6 @@ TAXI_SYSTEMS = {"plant", "taxinet", "models", "runway", "environment", "random_e
 #: engine: they may call the taxi directly.
 FRONT_ENDS = {"cli", "commands", "reference", "guard_commands", "reach_commands",
               "simulate_commands", "taxinet_commands", "evaluate_commands", "run_commands"}
-
-#: Modules of the generic core that still import taxi code: each with the taxi modules
-#: it may import, and why. Shrinking this list is progress; a module may leave it or
-#: import fewer, never join it or import more silently.
-ALLOWED = {
-    # the run file's schema: its environments are the taxi's runways
-    "pipeline.spec": {"systems.environment", "systems.random_environments"},
-    # the same schema's monitor section (split out of pipeline.spec, the same imports)
-    "pipeline.monitor_spec": {"systems.environment", "systems.random_environments"},
-}
-
 
 def _modules():
     for package in LAYERS:
@@ -118,21 +105,8 @@ def test_the_layers_only_import_downwards():
 def test_the_generic_core_imports_no_taxi_code():
     wrong = [f"{package}/{module}.py:{line} imports reachwatch.{to}.{what}"
              for package, module, path in _modules() if _generic(package, module)
-             for line, to, what in imports(package, path) if _taxi(to, what)
-             and f"{to}.{what}" not in ALLOWED.get(f"{package}.{module}", ())]
+             for line, to, what in imports(package, path) if _taxi(to, what)]
     assert not wrong, "\n".join(wrong)
-
-
-@pytest.mark.parametrize("name", sorted(ALLOWED))
-def test_every_allowed_import_is_still_made(name):
-    """An allowed module that no longer imports a taxi module on its list leaves the
-    list (or that module does)."""
-    package, module = name.split(".")
-    path = ROOT / package / f"{module}.py"
-    assert path.is_file(), f"{name} is gone: remove it from ALLOWED"
-    used = {f"{to}.{what}" for _, to, what in imports(package, path) if _taxi(to, what)}
-    assert used >= ALLOWED[name], (
-        f"{name} no longer imports {sorted(ALLOWED[name] - used)}: remove them from ALLOWED")
 
 
 def test_the_reader_sees_what_it_must(tmp_path):

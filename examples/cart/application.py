@@ -32,6 +32,7 @@ from reachwatch.diagrams import DETECTOR, render_at_states
 from reachwatch.diagrams.plots import save_figure
 from reachwatch.reach import Dynamics, Grid, Probe
 from reachwatch.reach.application import Application
+from reachwatch.systems import Environment, RandomEnvironments
 
 from cart import HALF_WIDTH, WHEELBASE, add_cart_world, make_cart_loop    # beside it
 
@@ -76,6 +77,10 @@ class CartRenderer:
 
 class CartApplication(Application):
     name = "cart"
+    # its environments light the track by the hour and sky of a runway's (the runway
+    # sets the sun's bearing); a random family draws them as the taxi's does
+    environment_type = Environment
+    random_environments_type = RandomEnvironments
     axes = ("y", "theta")
     axis_units = ("m", "rad")
     open_axes = (1,)        # a run may turn past the grid's headings without failing

@@ -20,6 +20,7 @@ from reachwatch.diagrams import DETECTOR, MonitorConfig
 from reachwatch.diagrams.plots import save_figure
 from reachwatch.reach import Probe
 from reachwatch.reach.application import Application
+from reachwatch.systems import Environment, RandomEnvironments
 
 from speed_car import PROBE, CarConfig, LagCarDynamics, car_grid, make_car_loop  # beside it
 
@@ -31,6 +32,9 @@ class SpeedCar(Application):
     name = "speed_car"
     axes = ("px", "py", "theta", "v")
     open_axes = (1, 2, 3)
+    # its run file's environments are the taxi's runways (hour, sky), random ones too
+    environment_type = Environment
+    random_environments_type = RandomEnvironments
 
     def loop_diagram(self, scenario, *, guarded=False):
         return make_car_loop(CarConfig(

@@ -1,0 +1,33 @@
+"""The defaults of a run file's application slots (`reachwatch.diagrams.schemas`):
+a field holding an environment or a random family takes the application's default for
+its role."""
+
+import dataclasses as dc
+
+from reachwatch.diagrams.schemas import ApplicationEnvironment, ApplicationRandomEnvironments
+from reachwatch.reach.application import Application, load_application
+
+
+@dc.dataclass(frozen=True)
+class SlotDefaults:
+    """``defaults(slot, role)`` of `typed_schema` for ``application`` (None: the
+    default application, loaded when a default is first made): a factory of the
+    application's environment (`Application.default_environment`) or random family
+    (`Application.default_random_environments`) for ``role``."""
+    application: Application = None
+
+    def __call__(self, slot, role):
+        def make():
+            application = self.application or load_application("")
+            if slot is ApplicationEnvironment:
+                return application.default_environment(role)
+            if slot is ApplicationRandomEnvironments:
+                return application.default_random_environments(role)
+            raise TypeError(f"not an application slot: {slot!r}")
+        return make
+
+
+def application_default(slot, role: str):
+    """The default factory of a slot field in a schema built in code: the default
+    application's."""
+    return SlotDefaults()(slot, role)

@@ -1,0 +1,163 @@
+"""A run file's environments are the application's own type: the schema's slots
+(`reachwatch.diagrams.schemas`) take the environment and random family the application
+names, with its defaults, its field errors and its notion of one environment; the
+taxi's runways are only the default application's."""
+
+import dataclasses as dc
+import pickle
+import textwrap
+
+import pytest
+
+from reachwatch.diagrams import ScenarioError
+from reachwatch.diagrams.schemas import ApplicationEnvironment, typed_schema, untyped
+from reachwatch.pipeline.spec import RunSpec, dump_run_spec, load_run_spec
+from reachwatch.systems import Environment, RandomEnvironments
+
+LAB = '''
+import dataclasses as dc
+
+from reachwatch.reach import Grid
+from reachwatch.reach.application import Application
+
+
+@dc.dataclass
+class Lab:
+    """A lab's light: how bright, and whether the blinds are down."""
+    name: str = "lab"
+    brightness: float = 1.0
+    blinds: bool = False
+
+    def validate(self):
+        if not 0.0 <= self.brightness <= 1.0:
+            raise ValueError(f"brightness must be in [0, 1], got {self.brightness}")
+        return self
+
+
+class LabApplication(Application):
+    """Known by its run file's types alone (no loop is built here)."""
+    name = "lab"
+    axes = ("y", "theta")
+    environment_type = Lab
+
+    def default_environment(self, role):
+        return Lab(name=f"{role}_lab", brightness=0.5)
+
+    def loop_diagram(self, scenario, *, guarded=False):
+        raise AssertionError("no loop here")
+
+    def probe(self, scenario, *, guarded=False):
+        raise AssertionError("no loop here")
+
+    def dynamics(self, scenario):
+        raise AssertionError("no loop here")
+
+    def grid(self, scenario, shape, **widen):
+        return Grid(lo=[-1.0, -1.0], hi=[1.0, 1.0], shape=shape)
+
+    def rolls_out_fallbacks(self, scenario):
+        return False                    # the guard stage is skipped
+
+
+class Untyped(LabApplication):
+    environment_type = None
+'''
+
+RUN = """
+application: labapp:LabApplication
+train: [{name: bright, brightness: 0.9}, {name: dim, brightness: 0.2, blinds: true}]
+test: [{name: dark, brightness: 0.0}]
+grid: [5, 5]
+ensemble: {seeds: []}
+incremental: {enabled: false}
+"""
+
+
+@pytest.fixture
+def lab(tmp_path, monkeypatch):
+    (tmp_path / "labapp").mkdir()
+    (tmp_path / "labapp" / "__init__.py").write_text(textwrap.dedent(LAB))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import labapp
+    return labapp
+
+
+def test_a_run_files_environments_are_the_applications_type(lab):
+    spec = load_run_spec(data=RUN)
+    assert type(spec) is RunSpec                 # the generic classes, not the typed ones
+    assert [type(e) for e in spec.train + spec.test] == [lab.Lab] * 3
+    assert spec.train[1] == lab.Lab("dim", 0.2, True)
+    assert [e.name for e in spec.all_environments()] == ["bright", "dim", "dark"]
+    assert spec.incremental.environment == lab.Lab("incremental_lab", 0.5)   # its default
+    assert spec.train_random.count == 0 and spec.train_random.environments() == []
+    assert load_run_spec(data=dump_run_spec(spec)) == spec
+    pickle.loads(pickle.dumps(spec))            # what travels to workers
+
+
+@pytest.mark.parametrize("change, message", [
+    ("train: [{name: a, runway: KMWH}]", r"run.train\[0\].runway: unknown field of Lab; "
+                                         r"known fields: name, brightness, blinds"),
+    ("train: [{name: a, brightness: 2.0}]", r"train\[0\]: brightness must be in \[0, 1\], got 2.0"),
+    ("train_random: {count: 2}", r"train_random.count: this application draws no random "
+                                 r"environments; list its environments instead"),
+    ("test: [{name: bright, brightness: 0.1}]", r"train\[0\] and test\[0\] are both named "
+                                                r"'bright' but differ; give one of them "
+                                                r"another name"),
+    ("application: labapp:Untyped", r"application 'lab' sets no environment_type"),
+])
+def test_a_bad_environment_is_one_line_in_the_applications_terms(lab, change, message):
+    key = change.partition(":")[0]
+    text = "\n".join(line for line in RUN.splitlines() if not line.startswith(f"{key}:"))
+    with pytest.raises(ScenarioError, match=message) as e:
+        load_run_spec(data=f"{text}\n{change}\n")
+    assert "\n" not in str(e.value)
+
+
+def test_an_environment_type_in_the_applications_own_file_is_refused(tmp_path):
+    """Environments travel to workers inside scenarios, by their module's name: a class
+    defined in the application's own file (imported by path) cannot."""
+    (tmp_path / "own.py").write_text(textwrap.dedent(LAB))
+    with pytest.raises(ScenarioError, match=r"application 'lab': environment_type Lab must be "
+                                            r"a dataclass defined at the top of an importable "
+                                            r"module"):
+        load_run_spec(data=RUN.replace("labapp:LabApplication",
+                                       f"{tmp_path / 'own.py'}:LabApplication"))
+
+
+def test_the_taxi_is_the_default_applications_types():
+    spec = load_run_spec(data="train: [{runway: KMWH}]\ntest: [{runway: KSFO, hour: 21.0}]\n")
+    assert type(spec.train[0]) is Environment and type(spec.train_random) is RandomEnvironments
+    assert spec.monitor.family == RandomEnvironments(seed=11)
+    assert spec.incremental.environment == Environment("KMWH", 17.0, "clear")
+    # a spec built in code takes the default application's defaults too
+    assert RunSpec().monitor.family == spec.monitor.family
+    with pytest.raises(ScenarioError, match=r"run.train\[0\].name: unknown field of Environment"):
+        load_run_spec(data="train: [{name: lab}]\ntest: [{runway: KSFO}]\n")
+
+
+def _ksfo(slot, role):
+    return lambda: Environment(runway="KSFO")
+
+
+def test_typed_schema_replaces_slots_and_nothing_else():
+    @dc.dataclass
+    class Inner:
+        where: ApplicationEnvironment = dc.field(default_factory=lambda: "generic",
+                                                 metadata={"reachwatch.application_role": "x"})
+        count: int = 3
+
+    @dc.dataclass
+    class Outer:
+        inner: Inner = dc.field(default_factory=Inner)
+        plain: int = 1
+
+    types = ((ApplicationEnvironment, Environment),)
+    typed = typed_schema(Outer, types, _ksfo)
+    assert typed is typed_schema(Outer, types, _ksfo)       # made once
+    assert issubclass(typed, Outer) and typed.__name__ == "Outer"
+    assert [f.name for f in dc.fields(typed)] == ["inner", "plain"]
+    made = typed()
+    assert made.inner.where == Environment(runway="KSFO") and made.inner.count == 3
+    back = untyped(made)
+    assert type(back) is Outer and type(back.inner) is Inner and back.inner.where.runway == "KSFO"
+    assert typed_schema(Inner, (), _ksfo) is Inner     # nothing to replace: the class itself
