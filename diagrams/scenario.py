@@ -321,7 +321,8 @@ def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario",
     (``1e-4``) is read as the number. ``edit``: None, or an object whose ``apply(raw,
     schema, root)`` returns the raw data changed (e.g. command-line overlays) and whose
     ``where`` says how errors name it; it runs before every check, so the changed
-    values are checked as the file's are. A ``schema`` with a ``schema_for(raw)``
+    values are checked as the file's are (``apply``'s ``schema`` is a function of the
+    data so far returning its schema). A ``schema`` with a ``schema_for(raw)``
     class method (a generic schema with application slots, `schemas`) is loaded as the
     schema that returns for the data, and handed back as ``schema`` instances
     (`schemas.untyped`)."""
@@ -333,11 +334,11 @@ def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario",
     raw = {} if raw is None else raw
     later, converted = [], []
     try:
-        typed = schema.schema_for(raw) if hasattr(schema, "schema_for") else schema
+        schema_of = schema.schema_for if hasattr(schema, "schema_for") else lambda _: schema
         if edit is not None:
             where = f"{where} {edit.where}"
-            raw = edit.apply(raw, typed, root)
-            typed = schema.schema_for(raw) if hasattr(schema, "schema_for") else schema
+            raw = edit.apply(raw, schema_of, root)
+        typed = schema_of(raw)
         raw = _check(raw, typed, root, later, converted)
         if converted or edit is not None:   # Drake's loader reads the text again: give
             data = yaml.safe_dump(raw, default_flow_style=None)     # it the numbers
@@ -359,5 +360,6 @@ def dump_scenario(scenario, schema=None) -> str:
     schema to write it as (default: its class's ``schema_for``, or its class)."""
     if schema is None:
         kind = type(scenario)
-        schema = kind.schema_for({}) if hasattr(kind, "schema_for") else kind
+        schema = (kind.schema_for({f.name: getattr(scenario, f.name) for f in dc.fields(kind)})
+                  if hasattr(kind, "schema_for") else kind)
     return yaml_dump_typed(scenario, schema=schema)

@@ -19,11 +19,19 @@ class SlotDefaults:
     def __call__(self, slot, role):
         def make():
             application = self.application or load_application("")
+            environment, family = application.run_file_types()
             if slot is ApplicationEnvironment:
-                return application.default_environment(role)
-            if slot is ApplicationRandomEnvironments:
-                return application.default_random_environments(role)
-            raise TypeError(f"not an application slot: {slot!r}")
+                made, kind, how = (application.default_environment(role), environment,
+                                   "default_environment")
+            elif slot is ApplicationRandomEnvironments:
+                made, kind, how = (application.default_random_environments(role), family,
+                                   "default_random_environments")
+            else:
+                raise TypeError(f"not an application slot: {slot!r}")
+            if type(made) is not kind:          # e.g. a subclass that changed the type only
+                raise ValueError(f"application {application.name!r}: {how}({role!r}) gave a "
+                                 f"{type(made).__name__}, not its {kind.__name__}")
+            return made
         return make
 
 

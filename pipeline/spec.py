@@ -353,6 +353,17 @@ class RunSpec:
         self.incremental.validate()
         if self.incremental.enabled:
             application.check_incremental(self.scenario)
+            name = self.incremental.environment.name
+            if name in {e.name for e in self.training_environments()}:
+                raise ValueError(f"incremental.environment {short(name)} is a training "
+                                 f"environment; the fine-tuned controller is judged on a "
+                                 f"held-out one: name another")
+        family, trained = self.monitor.family, self.train_random
+        if (self.monitor.enabled and self.monitor.compare_detector and trained.count
+                and (family.seed, family.prefix) == (trained.seed, trained.prefix)):
+            raise ValueError(f"monitor.family.seed {family.seed} equals train_random.seed: the "
+                             f"study would judge the detector on the environments it trained "
+                             f"on; give the family another seed")
         return self
 
     def _check_same_names(self, application):
@@ -443,7 +454,7 @@ def load_run_spec(filename=None, *, data=None) -> RunSpec:
 
 def dump_run_spec(spec: RunSpec) -> str:
     """YAML text of ``spec`` (round-trips through `load_run_spec`)."""
-    return dump_scenario(spec, schema=run_file_schema(load_application(spec.application)))
+    return dump_scenario(spec)      # as `RunSpec.schema_for` its application
 
 
 def digest(*parts) -> str:

@@ -25,6 +25,8 @@ import sys
 
 import numpy as np
 
+from reachwatch.systems.checks import clip
+
 from .fingerprint import fingerprint
 from .sweep import sweep, sweep_key
 
@@ -111,14 +113,22 @@ class Application(abc.ABC):
                              f"reachwatch.systems.Environment, the taxi's runways)")
         types = (self.environment_type, self.random_environments_type or NoRandomEnvironments)
         for what, kind in zip(("environment_type", "random_environments_type"), types):
+            if not (isinstance(kind, type) and dc.is_dataclass(kind)):
+                raise ValueError(f"application {self.name!r}: {what} must be a dataclass "
+                                 f"(the class itself), got {type(kind).__name__} "
+                                 f"{clip(repr(kind), 80)}")
             module = sys.modules.get(kind.__module__)
-            if (not dc.is_dataclass(kind) or module is None
-                    or getattr(module, kind.__qualname__, None) is not kind
+            if (module is None or getattr(module, kind.__qualname__, None) is not kind
                     or kind.__module__.startswith("reachwatch_user_")):
                 raise ValueError(f"application {self.name!r}: {what} {kind.__qualname__} must "
                                  f"be a dataclass defined at the top of an importable module "
                                  f"(a package, not the application's own file): workers "
                                  f"unpickle environments by their module's name")
+            if any(f.default is dc.MISSING and f.default_factory is dc.MISSING
+                   for f in dc.fields(kind) if f.init):
+                raise ValueError(f"application {self.name!r}: {what} {kind.__qualname__} must "
+                                 f"give every field a default (a run file may leave any "
+                                 f"key out)")
         return types
 
     # --- the loop -----------------------------------------------------------------

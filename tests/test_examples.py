@@ -293,7 +293,7 @@ def test_any_application_fine_tunes_through_the_incremental_stage(tmp_path, monk
 ROOM_CART = '''
 import dataclasses as dc
 
-from reachwatch.reach.application import load_application
+from reachwatch.reach.application import Application, load_application
 from reachwatch.systems import Environment
 
 CartApplication = type(load_application("examples/cart/application.py:CartApplication"))
@@ -316,6 +316,11 @@ class RoomCart(CartApplication):
     """The cart in rooms, lit as the track is at the room's hour and sky."""
     environment_type = Room
     random_environments_type = None
+
+    # the generic defaults (the cart's are the taxi's, for its runways)
+    default_environment = Application.default_environment
+    default_random_environments = Application.default_random_environments
+    same_environment = Application.same_environment
 
     @staticmethod
     def _lit(scenario):

@@ -61,6 +61,19 @@ class LabApplication(Application):
 
 class Untyped(LabApplication):
     environment_type = None
+
+
+class AnInstance(LabApplication):
+    environment_type = Lab()
+
+
+@dc.dataclass
+class Needy:
+    name: str
+
+
+class NeedsAName(LabApplication):
+    environment_type = Needy
 '''
 
 RUN = """
@@ -104,6 +117,10 @@ def test_a_run_files_environments_are_the_applications_type(lab):
                                                 r"'bright' but differ; give one of them "
                                                 r"another name"),
     ("application: labapp:Untyped", r"application 'lab' sets no environment_type"),
+    ("application: labapp:AnInstance", r"application 'lab': environment_type must be a "
+                                       r"dataclass \(the class itself\), got Lab"),
+    ("application: labapp:NeedsAName", r"application 'lab': environment_type Needy must give "
+                                       r"every field a default"),
 ])
 def test_a_bad_environment_is_one_line_in_the_applications_terms(lab, change, message):
     key = change.partition(":")[0]
@@ -111,6 +128,41 @@ def test_a_bad_environment_is_one_line_in_the_applications_terms(lab, change, me
     with pytest.raises(ScenarioError, match=message) as e:
         load_run_spec(data=f"{text}\n{change}\n")
     assert "\n" not in str(e.value)
+
+
+def test_overlays_in_order_take_the_schema_of_the_application_they_name(lab, tmp_path):
+    """An overlay that names another application checks the overlays after it, and a
+    text overlay's own keys, against that application's environments."""
+    from argparse import Namespace
+
+    from reachwatch.pipeline.commands import scenario_from_args
+    from reachwatch.pipeline.overlays import Overlay
+    path = tmp_path / "taxi.yaml"
+    path.write_text("train: [{runway: KMWH}]\ntest: [{runway: KSFO}]\n")
+    lab_run = "{application: 'labapp:LabApplication', train: [{name: a}], test: [{name: b}], " \
+              "grid: [5, 5], ensemble: {seeds: []}, incremental: {enabled: false}}"
+    overlays = [Overlay("text", lab_run, "--run-text"),
+                Overlay("set", "train[0].brightness=0.3", "--set")]
+    spec = scenario_from_args(Namespace(scenario=str(path), overlays=overlays),
+                              schema=RunSpec, root="run")
+    assert spec.train == [lab.Lab("a", 0.3)] and spec.test == [lab.Lab("b")]
+
+
+@pytest.mark.parametrize("change, message", [
+    ("{incremental: {environment: {runway: KMWH, hour: 9.0}}}",
+     r"incremental.environment 'KMWH_9h_clear' is a training environment; the fine-tuned "
+     r"controller is judged on a held-out one"),
+    ("{train_random: {count: 2, seed: 11}, monitor: {kind: history}}",
+     r"monitor.family.seed 11 equals train_random.seed: the study would judge the detector "
+     r"on the environments it trained on"),
+])
+def test_environments_judged_as_held_out_must_not_be_trained_on(change, message):
+    from reachwatch.diagrams import load_scenario
+    from reachwatch.pipeline.overlays import Overlay, Overlays
+    text = "train: [{runway: KMWH}]\ntest: [{runway: KSFO}]\n"
+    with pytest.raises(ScenarioError, match=message):
+        load_scenario(data=text, schema=RunSpec, root="run",
+                      edit=Overlays([Overlay("text", change, "--run-text")]))
 
 
 def test_an_environment_type_in_the_applications_own_file_is_refused(tmp_path):
