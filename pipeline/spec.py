@@ -359,11 +359,13 @@ class RunSpec:
                                  f"environment; the fine-tuned controller is judged on a "
                                  f"held-out one: name another")
         family, trained = self.monitor.family, self.train_random
-        if (self.monitor.enabled and self.monitor.compare_detector and trained.count
+        if (self.monitor.enabled and self.monitor.compare_detector
+                and trained.count > self.monitor.train
                 and (family.seed, family.prefix) == (trained.seed, trained.prefix)):
-            raise ValueError(f"monitor.family.seed {family.seed} equals train_random.seed: the "
-                             f"study would judge the detector on the environments it trained "
-                             f"on; give the family another seed")
+            raise ValueError(f"train_random draws {trained.count} environments of "
+                             f"monitor.family, past the study's {self.monitor.train} training "
+                             f"ones: the study would judge the detector on environments it "
+                             f"trained on; give the family another seed")
         return self
 
     def _check_same_names(self, application):

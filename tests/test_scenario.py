@@ -88,9 +88,9 @@ def test_malformed_yaml():
 @pytest.mark.parametrize("path", sorted(
     __import__("pathlib").Path(__file__).parents[1].glob("scenarios/*.yaml")))
 def test_shipped_scenarios_load(path):
-    """Scenario files and run files (those listing train environments) both load."""
+    """Scenario files and run files (those naming training environments) both load."""
     from pydrake.common.yaml import yaml_load_data
-    if "train" in (yaml_load_data(path.read_text()) or {}):
+    if {"train", "train_random"} & set(yaml_load_data(path.read_text()) or {}):
         from reachwatch.pipeline.spec import load_run_spec
         assert load_run_spec(path).validate()
     else:
