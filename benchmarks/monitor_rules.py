@@ -23,11 +23,11 @@ unlabelled runs).
 """
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
+from reachwatch.pipeline.monitor_sections import read_study_result
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
 from reachwatch.training.conformal import conformal_threshold, warning_scores
 from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, run_times,
@@ -87,7 +87,7 @@ def main():
                         "environment's other runs (label-free) before the threshold")
     args = p.parse_args()
     folder = Path(args.study)
-    result = json.loads((folder / "monitor.json").read_text())
+    result = read_study_result(folder / "monitor.json")
     lead = result["lead_s"]
     rows, chosen = [], {}
     with np.load(folder / "risks.npz") as saved:

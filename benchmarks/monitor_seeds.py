@@ -27,12 +27,11 @@ computes, which averages the members' raw risks and calibrates the mean; a study
 """
 
 import argparse
-import json
 import types
 
 import numpy as np
 
-from reachwatch.pipeline.monitor_sections import run_ranking
+from reachwatch.pipeline.monitor_sections import read_study_result, run_ranking
 from reachwatch.pipeline.monitor_study import choose_flag_rule, judge_environments
 from reachwatch.training.monitor_eval import decisive_scores, rate, tick_auroc
 
@@ -84,7 +83,7 @@ def main():
     p.add_argument("--flag-rules", nargs="+", default=["1/1"], metavar="K/N",
                    help="the study's --flag-rules (its default: 1/1)")
     args = p.parse_args()
-    studies = [json.loads(open(f"{out}/monitor.json").read()) for out in args.outs]
+    studies = [read_study_result(f"{out}/monitor.json") for out in args.outs]
     saved = [np.load(f"{out}/risks.npz", allow_pickle=True) for out in args.outs]
     first = studies[0]
     lead, within = first["lead_s"], first["within_s"]

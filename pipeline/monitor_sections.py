@@ -7,11 +7,20 @@ from pathlib import Path
 
 import numpy as np
 
+from reachwatch.systems.files import nan_for_null
 from reachwatch.training.conformal import NoConformalThreshold, conformal_threshold
 from reachwatch.training.metrics import auroc
 from reachwatch.training.monitor_eval import rate
 
 from .monitor_spec import DETECTOR_ROW
+
+
+def read_study_result(path) -> dict:
+    """A monitor study's ``monitor.json``, each null read back as NaN: the study writes
+    a number that is not finite as null (strict JSON, `systems.files.strict_json`): a
+    rate of no runs, or the warning score of a run no flag rule can warn in time (whose
+    -inf and NaN any threshold reads alike: never reached)."""
+    return nan_for_null(json.loads(Path(path).read_text()))
 
 
 def rate_text(r):
@@ -240,7 +249,7 @@ def monitor_section(page, run):
     outputs = run.outputs.get("monitor") or {}
     if not outputs:
         return
-    result = json.loads(run.path(outputs["result"]).read_text())
+    result = read_study_result(run.path(outputs["result"]))
     page.section("Runtime monitor on environments it has never seen", "monitor")
     page.text(f"A monitor over the image history predicts the risk of failing within "
               f"{result['within_s']:g} s; its threshold is chosen on calibration environments "

@@ -20,7 +20,6 @@ the run file's (`reachwatch.pipeline.spec`)."""
 
 import dataclasses as dc
 import io
-import json
 import time
 from pathlib import Path
 
@@ -29,7 +28,7 @@ import numpy as np
 from reachwatch.diagrams import save_checkpoint
 from reachwatch.reach.application import application_key, load_application
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskEnsemble
-from reachwatch.systems.files import atomic_write_bytes, file_hash
+from reachwatch.systems.files import atomic_write_bytes, file_hash, strict_json
 from reachwatch.training.baselines import prediction_error
 from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
                                                tick_labels, train_encoder, train_head)
@@ -245,8 +244,10 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         {name: row["held_out"]["reliability"] for name, row in results.items()
          if row["held_out"]["reliability"]}, out_dir / "reliability.png",
         title=f"held-out environments: risk of failing within {spec.within:g} s")).name
+    # strict JSON: a rate of nothing (NaN) or a run no rule can warn in time (-inf) is
+    # null; `read_study_result` reads nulls back as NaN
     atomic_write_bytes(out_dir / "monitor.json",
-                       json.dumps(result, indent=1, default=float).encode())
+                       strict_json(result, indent=1, default=float).encode())
     return result
 
 

@@ -4,12 +4,11 @@ the judge), and, when the run has a monitor study, the monitor's miss rate on
 held-out environments, the failures it prevents and the needless stops it causes in
 the guarded real loop, and its calibration."""
 
-import json
 
 from reachwatch.training.monitor_eval import rate
 
 from .fidelity_sections import LABEL_TARGET, labels_meet_target
-from .monitor_sections import rate_text
+from .monitor_sections import rate_text, read_study_result
 
 #: The monitor study's targets: a miss rate and a needless-stop rate of at most 10 %
 #: whose 95 % upper bounds stay within 13 %, and a calibration error of at most 0.05.
@@ -51,7 +50,7 @@ def summary_rows(run) -> list:
         rows.append(["monitor on unseen environments", "no monitor study (monitor.kind: "
                      "detector); see the safety pipeline section", "-", "-"])
         return rows
-    result = json.loads(run.path(outputs["result"]).read_text())
+    result = read_study_result(run.path(outputs["result"]))
     kept = result["variants"][result["kept"]]
     miss = kept["held_out"]["pooled"]["miss"]
     text, rate, hi = _interval(miss["count"], miss["of"])

@@ -212,3 +212,36 @@ def shipped_copies(copies: dict):
         yield
     finally:
         _SHIPPED.reset(token)
+
+
+def strict_json(value, **kwargs) -> str:
+    """JSON text of ``value`` that any JSON parser reads: each float that is not finite
+    (NaN, an infinity: Python's JSON would write ``NaN``, ``-Infinity``) is written
+    ``null``, for a document that holds no null of its own; `nan_for_null` reads it
+    back. numpy numbers are written as Python's."""
+    import json
+    import math
+
+    import numpy as np
+
+    def plain(x):
+        if isinstance(x, dict):
+            return {k: plain(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [plain(v) for v in x]
+        if isinstance(x, (float, np.floating)):
+            return float(x) if math.isfinite(x) else None
+        if isinstance(x, np.integer):
+            return int(x)
+        return x
+
+    return json.dumps(plain(value), allow_nan=False, **kwargs)
+
+
+def nan_for_null(value):
+    """Parsed JSON ``value`` (a `strict_json` document) with each null a NaN."""
+    if isinstance(value, dict):
+        return {k: nan_for_null(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [nan_for_null(v) for v in value]
+    return float("nan") if value is None else value

@@ -99,7 +99,15 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     scenario = load_scenario(data="")
     result = run_monitor_study(spec, scenario, tmp_path / "out", cache_dir=tmp_path / "cache",
                                progress=False, log=lambda m: None, detector=detector_path)
-    assert json.loads((tmp_path / "out" / "monitor.json").read_text())["kept"] == result["kept"]
+    # strict JSON (no NaN or -Infinity), its nulls read back as NaN
+    text = (tmp_path / "out" / "monitor.json").read_text()
+    strict = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in monitor.json"))
+    assert strict["kept"] == result["kept"]
+    from reachwatch.pipeline.monitor_sections import read_study_result
+    back = read_study_result(tmp_path / "out" / "monitor.json")
+    assert json.dumps(back, sort_keys=True) == json.dumps(
+        json.loads(json.dumps(result, default=float)), sort_keys=True).replace(
+        "-Infinity", "NaN").replace("Infinity", "NaN")
     assert set(result["variants"]) == {"one frame", "GRU 3 + signals", DETECTOR_ROW}
     assert result["kept"] != DETECTOR_ROW and result["variants"][DETECTOR_ROW]["kind"] == "detector"
     assert result["lead_s"] == pytest.approx(5.0 / 3.0)
@@ -413,3 +421,17 @@ def test_the_oracle_refuses_recordings_the_loop_alone_does_not_repeat(tmp_path):
                         scenario, [group], [safe], "unused.pt", lead=1.0,
                         cache_dir=tmp_path, executor=None, progress=False)
     assert "\n" not in str(error.value)
+
+
+def test_strict_json_writes_non_finite_numbers_as_null_and_reads_them_back_as_nan():
+    import numpy as np
+
+    from reachwatch.systems.files import nan_for_null, strict_json
+    value = {"rate": float("nan"), "scores": [np.float32(0.5), -np.inf, np.inf, 2],
+             "count": np.int64(3), "name": "x"}
+    text = strict_json(value)
+    assert text == ('{"rate": null, "scores": [0.5, null, null, 2], "count": 3, '
+                    '"name": "x"}')
+    back = nan_for_null(json.loads(text))
+    assert np.isnan(back["rate"]) and np.isnan(back["scores"][1:3]).all()
+    assert back["scores"][0] == 0.5 and back["count"] == 3 and back["name"] == "x"
