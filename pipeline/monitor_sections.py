@@ -16,11 +16,24 @@ from .monitor_spec import DETECTOR_ROW
 
 
 def read_study_result(path) -> dict:
-    """A monitor study's ``monitor.json``, each null read back as NaN: the study writes
-    a number that is not finite as null (strict JSON, `systems.files.strict_json`): a
-    rate of no runs, or the warning score of a run no flag rule can warn in time (whose
-    -inf and NaN any threshold reads alike: never reached)."""
-    return nan_for_null(json.loads(Path(path).read_text()))
+    """A monitor study's ``monitor.json`` as the study returned it: the study writes a
+    number that is not finite as null (strict JSON, `systems.files.strict_json`). A null
+    is read back as NaN (a rate of no runs), except in a ``warning`` list of scores,
+    where it is -inf: a warnable run no flag rule can warn in time (missed at every
+    threshold, and ranked below every run)."""
+    return _never_warned(nan_for_null(json.loads(Path(path).read_text())))
+
+
+def _never_warned(value):
+    """``value`` with each NaN of a ``warning`` list -inf (`warning_scores` gives no
+    NaN)."""
+    if isinstance(value, dict):
+        return {k: ([-np.inf if np.isnan(x) else x for x in v]
+                    if k == "warning" and isinstance(v, list) else _never_warned(v))
+                for k, v in value.items()}
+    if isinstance(value, list):
+        return [_never_warned(v) for v in value]
+    return value
 
 
 def rate_text(r):

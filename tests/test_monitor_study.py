@@ -106,8 +106,7 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     from reachwatch.pipeline.monitor_sections import read_study_result
     back = read_study_result(tmp_path / "out" / "monitor.json")
     assert json.dumps(back, sort_keys=True) == json.dumps(
-        json.loads(json.dumps(result, default=float)), sort_keys=True).replace(
-        "-Infinity", "NaN").replace("Infinity", "NaN")
+        json.loads(json.dumps(result, default=float)), sort_keys=True)
     assert set(result["variants"]) == {"one frame", "GRU 3 + signals", DETECTOR_ROW}
     assert result["kept"] != DETECTOR_ROW and result["variants"][DETECTOR_ROW]["kind"] == "detector"
     assert result["lead_s"] == pytest.approx(5.0 / 3.0)
@@ -423,9 +422,12 @@ def test_the_oracle_refuses_recordings_the_loop_alone_does_not_repeat(tmp_path):
     assert "\n" not in str(error.value)
 
 
-def test_strict_json_writes_non_finite_numbers_as_null_and_reads_them_back_as_nan():
+def test_strict_json_writes_non_finite_numbers_as_null_and_reads_them_back(tmp_path):
+    """NaN, and -inf in a list of warning scores (a run no rule can warn in time: missed
+    at every threshold, ranked below every run) come back as they were."""
     import numpy as np
 
+    from reachwatch.pipeline.monitor_sections import read_study_result
     from reachwatch.systems.files import nan_for_null, strict_json
     value = {"rate": float("nan"), "scores": [np.float32(0.5), -np.inf, np.inf, 2],
              "count": np.int64(3), "name": "x"}
@@ -435,3 +437,10 @@ def test_strict_json_writes_non_finite_numbers_as_null_and_reads_them_back_as_na
     back = nan_for_null(json.loads(text))
     assert np.isnan(back["rate"]) and np.isnan(back["scores"][1:3]).all()
     assert back["scores"][0] == 0.5 and back["count"] == 3 and back["name"] == "x"
+    study = {"variants": {"v": {"scores": {"calibrate": [{"warning": [0.3, -np.inf],
+                                                          "safe_max": [0.2]}]},
+                                "held_out": {"pooled": {"miss": {"rate": float("nan")}}}}}}
+    (tmp_path / "monitor.json").write_text(strict_json(study))
+    read = read_study_result(tmp_path / "monitor.json")["variants"]["v"]
+    assert read["scores"]["calibrate"][0]["warning"] == [0.3, -np.inf]
+    assert np.isnan(read["held_out"]["pooled"]["miss"]["rate"])
