@@ -358,14 +358,14 @@ class RunSpec:
                 raise ValueError(f"incremental.environment {short(name)} is a training "
                                  f"environment; the fine-tuned controller is judged on a "
                                  f"held-out one: name another")
-        family, trained = self.monitor.family, self.train_random
-        if (self.monitor.enabled and self.monitor.compare_detector
-                and trained.count > self.monitor.train
-                and (family.seed, family.prefix) == (trained.seed, trained.prefix)):
-            raise ValueError(f"train_random draws {trained.count} environments of "
-                             f"monitor.family, past the study's {self.monitor.train} training "
-                             f"ones: the study would judge the detector on environments it "
-                             f"trained on; give the family another seed")
+        if self.monitor.enabled and self.monitor.compare_detector:
+            judged = {e.name for role, envs in self.monitor.environments().items()
+                      if role != "train" for e in envs}
+            seen = sorted(judged & {e.name for e in self.training_environments()})
+            if seen:
+                raise ValueError(f"monitor: the study would judge the detector on "
+                                 f"environments it trained on ({short(seen)}); give "
+                                 f"monitor.family another seed, or train on others")
         return self
 
     def _check_same_names(self, application):

@@ -153,8 +153,12 @@ def test_overlays_in_order_take_the_schema_of_the_application_they_name(lab, tmp
      r"incremental.environment 'KMWH_9h_clear' is a training environment; the fine-tuned "
      r"controller is judged on a held-out one"),
     ("{train_random: {count: 13, seed: 11}, monitor: {kind: history}}",
-     r"train_random draws 13 environments of monitor.family, past the study's 12 training "
-     r"ones: the study would judge the detector on environments it trained on"),
+     r"monitor: the study would judge the detector on environments it trained on "
+     r"\(\['RND11-12_"),
+    ("{train: [{runway: KSFO, hour: 21.0}], test: [{runway: KMWH}], monitor: {kind: history, "
+     "also_held_out: [{runway: KSFO, hour: 21.0}]}}",
+     r"monitor: the study would judge the detector on environments it trained on "
+     r"\(\['KSFO_21h_clear'\]\)"),
 ])
 def test_environments_judged_as_held_out_must_not_be_trained_on(change, message):
     from reachwatch.diagrams import load_scenario
