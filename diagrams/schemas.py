@@ -27,8 +27,6 @@ class ApplicationRandomEnvironments:
     ``environments()``)."""
 
 
-SLOTS = (ApplicationEnvironment, ApplicationRandomEnvironments)
-
 #: The metadata key of a slot field's role (what its default is for).
 ROLE = "reachwatch.application_role"
 

@@ -21,19 +21,7 @@ def read_study_result(path) -> dict:
     is read back as NaN (a rate of no runs), except in a ``warning`` list of scores,
     where it is -inf: a warnable run no flag rule can warn in time (missed at every
     threshold, and ranked below every run)."""
-    return _never_warned(nan_for_null(json.loads(Path(path).read_text())))
-
-
-def _never_warned(value):
-    """``value`` with each NaN of a ``warning`` list -inf (`warning_scores` gives no
-    NaN)."""
-    if isinstance(value, dict):
-        return {k: ([-np.inf if np.isnan(x) else x for x in v]
-                    if k == "warning" and isinstance(v, list) else _never_warned(v))
-                for k, v in value.items()}
-    if isinstance(value, list):
-        return [_never_warned(v) for v in value]
-    return value
+    return nan_for_null(json.loads(Path(path).read_text()), lists={"warning": -np.inf})
 
 
 def rate_text(r):

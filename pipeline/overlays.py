@@ -121,12 +121,12 @@ class Overlays:
         """``raw`` with the overlays applied in order. ``schema``: the data's schema, or
         a function of the data so far returning it (an overlay that names another
         application gives the overlays after it that application's schema)."""
+        schema_of = (lambda _: schema) if isinstance(schema, type) else schema
         for overlay in self.overlays:
             if overlay.kind == "set":
-                schema_now = schema if isinstance(schema, type) else schema(raw)
-                raw = _apply_set(raw, overlay, schema_now, root)
+                raw = _apply_set(raw, overlay, schema_of(raw), root)
             else:
-                raw = _apply_text(raw, overlay, schema, root)
+                raw = _apply_text(raw, overlay, schema_of, root)
         return raw
 
 
@@ -201,10 +201,10 @@ def _apply_set(raw, overlay: Overlay, schema, root):
     return raw
 
 
-def _apply_text(raw, overlay: Overlay, schema, root):
-    """``raw`` with the text overlay merged in; ``schema`` as `Overlays.apply` takes it
-    (a function: of the data with the overlay's own top-level keys, so that a text
-    naming another application is checked against that application's schema)."""
+def _apply_text(raw, overlay: Overlay, schema_of, root):
+    """``raw`` with the text overlay merged in, checked against ``schema_of`` the data
+    with the overlay's own top-level keys (a text naming another application is checked
+    against that application's schema)."""
     from reachwatch.diagrams.scenario import ScenarioError
     data = _read(overlay.text, overlay.label)
     if data is None:
@@ -212,8 +212,7 @@ def _apply_text(raw, overlay: Overlay, schema, root):
     if not isinstance(data, dict):
         raise ScenarioError(f"{overlay.label}: expected a YAML mapping such as "
                             f"'{{horizon: 4.0}}', got {type(data).__name__}")
-    if not isinstance(schema, type):
-        schema = schema({**raw, **data} if isinstance(raw, dict) else data)
+    schema = schema_of({**raw, **data} if isinstance(raw, dict) else data)
     return _merge(raw, data, schema, root, overlay.label)
 
 

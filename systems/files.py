@@ -238,10 +238,15 @@ def strict_json(value, **kwargs) -> str:
     return json.dumps(plain(value), allow_nan=False, **kwargs)
 
 
-def nan_for_null(value):
-    """Parsed JSON ``value`` (a `strict_json` document) with each null a NaN."""
+def nan_for_null(value, lists=None, null=float("nan")):
+    """Parsed JSON ``value`` (a `strict_json` document) with each null a NaN; ``lists``:
+    ``{key: number}``, the number a null stands for in the list under that key (e.g.
+    -inf where the document's NaN and -inf meant different things)."""
+    lists = lists or {}
     if isinstance(value, dict):
-        return {k: nan_for_null(v) for k, v in value.items()}
+        return {k: nan_for_null(v, lists, lists.get(k, float("nan")) if isinstance(v, list)
+                                else float("nan"))
+                for k, v in value.items()}
     if isinstance(value, list):
-        return [nan_for_null(v) for v in value]
-    return float("nan") if value is None else value
+        return [nan_for_null(v, lists, null) for v in value]
+    return null if value is None else value

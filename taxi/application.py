@@ -22,22 +22,12 @@ NEAR_CENTRELINE = np.array([[0.5 * (k % 3), 110.0 + 10.0 * k, np.deg2rad(2.0 * (
                             for k in range(5)])
 
 
-class TaxiApplication(Application):
-    """The TaxiNet paper's taxiing aircraft (state [px m, py m, theta rad])."""
+class RunwayEnvironments:
+    """A run file's environments as the taxi's: a runway (the catalog's or the user's),
+    hour and sky (`Environment`), random ones drawn as `RandomEnvironments`, with the
+    taxi's defaults. Mixed in before `Application` by any application lit and keyed by
+    runways (the taxi, the speed car, the cart)."""
 
-    name = "taxi"
-    axes = AXES
-    axis_units = ("m", "m", "rad")
-    open_axes = fidelity.OPEN_AXES
-
-    start_word = "on-runway"
-    failure_words = "left the runway"
-    fail_words = "leave the runway"
-    starts_note = "|px| < B; starts already off the runway agree with any BRT"
-    box_words = "the paper's box"
-    slice_words = "slices at py = {at:g} m"
-
-    # a run file's environments: a runway (the catalog's or the user's), hour and sky
     environment_type = Environment
     random_environments_type = RandomEnvironments
 
@@ -53,6 +43,22 @@ class TaxiApplication(Application):
         # one name, one runway and hour (a runway_spec that spells out a catalog runway
         # is that runway)
         return (a.spec(), a.hour) == (b.spec(), b.hour)
+
+
+class TaxiApplication(RunwayEnvironments, Application):
+    """The TaxiNet paper's taxiing aircraft (state [px m, py m, theta rad])."""
+
+    name = "taxi"
+    axes = AXES
+    axis_units = ("m", "m", "rad")
+    open_axes = fidelity.OPEN_AXES
+
+    start_word = "on-runway"
+    failure_words = "left the runway"
+    fail_words = "leave the runway"
+    starts_note = "|px| < B; starts already off the runway agree with any BRT"
+    box_words = "the paper's box"
+    slice_words = "slices at py = {at:g} m"
 
     def loop_diagram(self, scenario, *, guarded=False):
         return (make_guarded_diagram if guarded else make_closed_loop_diagram)(scenario)

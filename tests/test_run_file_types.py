@@ -14,6 +14,8 @@ from reachwatch.diagrams.schemas import ApplicationEnvironment, typed_schema, un
 from reachwatch.pipeline.spec import RunSpec, dump_run_spec, load_run_spec
 from reachwatch.systems import Environment, RandomEnvironments
 
+from test_examples import ROOT, _run_to_report, _tiny
+
 LAB = '''
 import dataclasses as dc
 
@@ -217,3 +219,76 @@ def test_typed_schema_replaces_slots_and_nothing_else():
     back = untyped(made)
     assert type(back) is Outer and type(back.inner) is Inner and back.inner.where.runway == "KSFO"
     assert typed_schema(Inner, (), _ksfo) is Inner     # nothing to replace: the class itself
+
+
+ROOM_CART = '''
+import dataclasses as dc
+
+from reachwatch.reach.application import Application, load_application
+from reachwatch.systems import Environment
+
+CartApplication = type(load_application("examples/cart/application.py:CartApplication"))
+
+
+@dc.dataclass
+class Room:
+    """Where the cart runs: the hour and sky at its windows; no runway."""
+    name: str = "room"
+    hour: float = 9.0
+    sky: str = "clear"
+
+    def validate(self):
+        if self.sky not in ("clear", "overcast"):
+            raise ValueError(f"sky must be clear or overcast, got {self.sky!r}")
+        return self
+
+
+class RoomCart(CartApplication):
+    """The cart in rooms, lit as the track is at the room's hour and sky."""
+    environment_type = Room
+    random_environments_type = None
+
+    # the generic defaults (the cart's are the taxi's, for its runways)
+    default_environment = Application.default_environment
+    default_random_environments = Application.default_random_environments
+    same_environment = Application.same_environment
+
+    @staticmethod
+    def _lit(scenario):
+        room = scenario.environment
+        return dc.replace(scenario, environment=Environment("KMWH", room.hour, room.sky))
+
+    def loop_diagram(self, scenario, *, guarded=False):
+        return super().loop_diagram(self._lit(scenario), guarded=guarded)
+
+    def renderer(self, scenario):
+        return super().renderer(self._lit(scenario))
+'''
+
+
+def test_an_application_with_environments_of_its_own_runs_to_a_report(tmp_path, monkeypatch):
+    """The pipeline and the report know an environment by its name alone: the cart
+    with rooms for environments (no runway anywhere in its run file) goes from its run
+    file to a report."""
+    monkeypatch.chdir(ROOT)                    # the cart's paths are relative
+    (tmp_path / "roomcart").mkdir()
+    (tmp_path / "roomcart" / "__init__.py").write_text(ROOM_CART)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    text = (ROOT / "examples" / "cart" / "run.yaml").read_text().replace(
+        "application: examples/cart/application.py:CartApplication",
+        "application: roomcart:RoomCart")
+    start, end = text.index("\ntrain:\n"), text.index("\ngrid:")
+    text = (text[:start] + "\ntrain: [{name: morning, hour: 9.0}]\n"
+            "test: [{name: evening, hour: 19.5, sky: overcast}]" + text[end:])
+    assert not [line for line in text.splitlines()
+                if "runway" in line and not line.startswith("#")]
+    spec = _tiny(load_run_spec(data=text))
+    assert type(spec.test[0]).__name__ == "Room"
+    spec.grid, spec.horizon, spec.dataset.samples = [5, 5], 2.0, 10
+    spec.scenario.camera.height, spec.scenario.camera.width = 24, 48
+    spec.guard.candidates = spec.guard.noise_starts = spec.guard.check_starts = 0
+    spec.fidelity.starts = 0
+    out = _run_to_report(spec, tmp_path)
+    report = (out / "report.md").read_text()
+    assert "| evening | test | 5x5 | 25 |" in report and "KMWH" not in report
+    assert (out / "stages" / "guard_evening.json").is_file()

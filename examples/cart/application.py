@@ -32,8 +32,7 @@ from reachwatch.diagrams import DETECTOR, render_at_states
 from reachwatch.diagrams.plots import save_figure
 from reachwatch.reach import Dynamics, Grid, Probe
 from reachwatch.reach.application import Application
-from reachwatch.systems import Environment, RandomEnvironments
-from reachwatch.taxi.application import TaxiApplication
+from reachwatch.taxi.application import RunwayEnvironments
 
 from cart import HALF_WIDTH, WHEELBASE, add_cart_world, make_cart_loop    # beside it
 
@@ -76,17 +75,10 @@ class CartRenderer:
                                 states=np.asarray(state, float)[None], context=self.context)[0]
 
 
-class CartApplication(Application):
+class CartApplication(RunwayEnvironments, Application):
+    """Its environments are the taxi's (`RunwayEnvironments`): a runway's hour and sky
+    light the track, the runway sets the sun's bearing."""
     name = "cart"
-    # its environments light the track by the hour and sky of a runway's (the runway
-    # sets the sun's bearing); a random family draws them as the taxi's does
-    environment_type = Environment
-    random_environments_type = RandomEnvironments
-    # and the taxi's defaults for them (the incremental stage's KMWH at dusk, the
-    # monitor study's family from seed 11) and its rule for one name, one environment
-    default_environment = TaxiApplication.default_environment
-    default_random_environments = TaxiApplication.default_random_environments
-    same_environment = TaxiApplication.same_environment
     axes = ("y", "theta")
     axis_units = ("m", "rad")
     open_axes = (1,)        # a run may turn past the grid's headings without failing

@@ -20,8 +20,7 @@ from reachwatch.diagrams import DETECTOR, MonitorConfig
 from reachwatch.diagrams.plots import save_figure
 from reachwatch.reach import Probe
 from reachwatch.reach.application import Application
-from reachwatch.systems import Environment, RandomEnvironments
-from reachwatch.taxi.application import TaxiApplication
+from reachwatch.taxi.application import RunwayEnvironments
 
 from speed_car import PROBE, CarConfig, LagCarDynamics, car_grid, make_car_loop  # beside it
 
@@ -29,16 +28,11 @@ from speed_car import PROBE, CarConfig, LagCarDynamics, car_grid, make_car_loop 
 TIME_CONSTANT = 1.0
 
 
-class SpeedCar(Application):
+class SpeedCar(RunwayEnvironments, Application):
+    """On the taxi's runways, with its environments (`RunwayEnvironments`)."""
     name = "speed_car"
     axes = ("px", "py", "theta", "v")
     open_axes = (1, 2, 3)
-    # its run file's environments are the taxi's runways (hour, sky), random ones too
-    environment_type = Environment
-    random_environments_type = RandomEnvironments
-    default_environment = TaxiApplication.default_environment      # and their defaults
-    default_random_environments = TaxiApplication.default_random_environments
-    same_environment = TaxiApplication.same_environment
 
     def loop_diagram(self, scenario, *, guarded=False):
         return make_car_loop(CarConfig(
