@@ -58,8 +58,14 @@ class ScoreNoise:
         return rho * noise + np.sqrt(1.0 - rho ** 2) * self.sigma * rng.normal(0.0, 1.0, moved.shape)
 
     def apply(self, scores, noise) -> np.ndarray:
-        """``scores`` (in (0, 1)) with ``mean + noise`` added to their logits."""
-        return sigmoid(logit(scores) + self.mean + noise)
+        """``scores`` (in [0, 1]) with ``mean + noise`` added to their logits, as
+        ``s e^d / (1 - s + s e^d)``: without `logit`'s clipping, so a saturated score
+        stays saturated and a score above ``1 - 1e-4`` (or below ``1e-4``) keeps its
+        place against a threshold there (clipped, every such score was moved to the
+        clip, whatever the noise)."""
+        s = np.asarray(scores, float)
+        gain = np.exp(np.clip(self.mean + np.asarray(noise, float), -700.0, 700.0))
+        return s * gain / (1.0 - s + s * gain)
 
 
 def fit_score_noise(real_scores, table_scores, travelled, *, max_lag: int = 64,

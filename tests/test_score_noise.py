@@ -52,6 +52,18 @@ def test_noise_stays_put_at_standstill_and_keeps_its_spread_when_moving():
     assert logit(0.5) == 0.0
 
 
+def test_noise_keeps_saturated_and_extreme_scores_in_place():
+    """Before: `apply` went through `logit`'s clip at 1e-4, so every score above 0.9999
+    came out at 0.9999 whatever the noise: a threshold of 0.99995 was never reached
+    with noise and always without. Now a saturated score stays saturated, and a small
+    noise moves an extreme score by a small amount, on the side of its sign."""
+    model = ScoreNoise(0.5, 2.0)
+    np.testing.assert_array_equal(model.apply([0.0, 1.0], [3.0, -3.0]), [0.0, 1.0])
+    high, low = model.apply([0.99995, 5e-5], [1e-6, -1e-6])
+    assert 0.99995 < high < 0.99995 + 1e-9 and 5e-5 - 1e-9 < low < 5e-5
+    assert np.isfinite(model.apply([0.3, 0.7], [1e4, -1e4])).all()
+
+
 @pytest.mark.parametrize("field, value", [("sigma", 0.0), ("sigma", -1.0), ("length", np.inf),
                                           ("length", True), ("sigma", "0.5"), ("mean", np.nan)])
 def test_bad_noise_parameters_are_named(field, value):
@@ -130,14 +142,16 @@ def test_score_along_real_runs_and_the_fit_from_them(detector_path, tmp_path):
     assert real_score_noise(other, grid, tables[SCORE_PORT], starts, duration=1.0,
                             cache_dir=tmp_path / "outcomes", progress=False) == (noise, fit)
     assert len(list((tmp_path / "outcomes").iterdir())) == 1
-    # the trade-off curves with noise: a vanishing noise gives the plain curves back; the
+    # the trade-off curves with noise: a vanishing noise gives the plain curves back (a
+    # faint upward offset: the quantile thresholds are node scores, so a node's own score
+    # ties with one, and the plain comparison, score >= threshold, flags a tie); the
     # fitted one keeps the thresholds and moves the figures
     from reachwatch.taxi import TaxiApplication
     tradeoff_curves = TaxiApplication().tradeoff_curves
     kw = dict(mission_limit=2.0)
     plain = tradeoff_curves(scenario, grid, tables, 1.0, ["brake"], 3, **kw)
     faint = tradeoff_curves(scenario, grid, tables, 1.0, ["brake"], 3,
-                            score_noise=ScoreNoise(sigma=1e-9, length=1.0), **kw)
+                            score_noise=ScoreNoise(sigma=1e-12, length=1.0, mean=1e-7), **kw)
     assert faint == plain
     noisy = tradeoff_curves(scenario, grid, tables, 1.0, ["brake"], 3, score_noise=noise,
                             seed=1, **kw)
