@@ -16,9 +16,11 @@ machine; ``--sim-processes 32`` gives 32 single-thread workers where it fits). B
 window, no cache), the same cost in smaller chunks, and zero-cost tasks (the task
 rate the driver and scheduler sustain).
 
-A fourth row runs 2 workers whose renderers (Mesa's llvmpipe) each take every core,
+``--workers`` sets the clusters' sizes (default 1 and 2; on a machine with more cores,
+e.g. ``--workers 1 2 4 8``). A last row runs 2 workers whose renderers (Mesa's llvmpipe) each take every core,
 ``LP_NUM_THREADS`` = the CPU count, as they did before the driver shared the cores out
-among the workers of a host (`reach.sweep.render_threads`), and the ratio of the two.
+among the workers of a host (`reach.sweep.render_threads`), and the ratio of the two
+(``--no-all-core`` leaves it out, e.g. where the renderer is not llvmpipe).
 
 The VM's speed drifts, so the executors take turns within each round (inline, 1
 worker, 2 workers, all-core renders, then the next round) and each ratio is the median over rounds of
@@ -39,7 +41,7 @@ together (above 1: together is faster) and whether every table is identical to t
 first round's one-after-another ones.
 
     python benchmarks/scale.py [--shape 9 5 9] [--starts 32] [--duration 1]
-                               [--rounds 3] [--sim-workers 32] [--sim-processes 4]
+                               [--rounds 3] [--workers 1 2] [--no-all-core] [--sim-workers 32] [--sim-processes 4]
                                [--sim-cost 0.05] [--sim-chunk 8] [--sim-tasks 8]
     python benchmarks/scale.py --together 4 [--together-executor local:2]
                                [--shape 9 5 9] [--chunk 0] [--rounds 3]
@@ -60,6 +62,7 @@ import numpy as np
 import torch
 
 from reachwatch.diagrams import load_scenario
+from reachwatch.diagrams.render_stack import render_stack
 from reachwatch.pipeline.executors import make_executor
 from reachwatch.reach import InlineExecutor
 from reachwatch.reach.chunks import executor_threads, run_together
@@ -173,6 +176,11 @@ def main():
     parser.add_argument("--sim-cost", type=float, default=0.05, help="stand-in render cost, s per state")
     parser.add_argument("--sim-chunk", type=int, default=8, help="states per task")
     parser.add_argument("--sim-tasks", type=int, default=8, help="tasks per simulated worker")
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2],
+                        help="the clusters' sizes in single-thread workers (1 must be among them: "
+                             "efficiency is against it)")
+    parser.add_argument("--no-all-core", action="store_true",
+                        help="leave out the row of 2 workers whose renderers take every core")
     parser.add_argument("--skip-real", action="store_true",
                         help="only the overhead measurement")
     parser.add_argument("--together", type=int, default=0, metavar="N",
@@ -183,6 +191,8 @@ def main():
     args = parser.parse_args()
     if args.together < 0 or (args.together and args.rounds < 1):
         parser.error("--together must be >= 0, and with it --rounds >= 1")
+    if 1 not in args.workers or min(args.workers) < 1 or len(set(args.workers)) != len(args.workers):
+        parser.error(f"--workers needs 1 and other distinct sizes >= 1, got {args.workers}")
     if args.sim_workers and args.sim_workers % args.sim_processes:
         parser.error("--sim-workers must be a multiple of --sim-processes")
     if args.inline_threads:
@@ -210,8 +220,11 @@ def throughput(args, root: Path):
     grid = paper_grid(B, tuple(args.shape))
     chunk = args.chunk or -(-grid.size // 16)
     starts = on_runway_starts(grid, args.starts, 0, half_width=B)
-    names = ["inline", "1 worker", "2 workers", ALL_CORE]
-    workers = {"inline": None, "1 worker": 1, "2 workers": 2, ALL_CORE: 2}
+    workers = {"inline": None}
+    workers.update({f"{n} worker{'s' * (n > 1)}": n for n in sorted(args.workers)})
+    if not args.no_all_core:
+        workers[ALL_CORE] = 2
+    names = list(workers)
     with contextlib.ExitStack() as stack:
         executors, start_s = {"inline": InlineExecutor()}, {}
         for name in names[1:]:
@@ -251,7 +264,8 @@ def throughput(args, root: Path):
     print(f"scale benchmark: {args.environment}, 200x360; sweep grid {args.shape} ({grid.size} "
           f"states, chunks of {chunk}); real loop {len(starts)} on-runway starts x "
           f"{args.duration:g} s ({ticks} rendered ticks, chunks of "
-          f"{default_chunk_size(len(starts))}); {os.cpu_count()} CPUs; "
+          f"{default_chunk_size(len(starts))}); {os.cpu_count()} CPUs, renderer "
+          f"{', '.join(sorted(render_stack()['libraries'])) or 'unknown'}; "
           f"inline {torch.get_num_threads()} torch thread(s), workers 1 each; medians of "
           f"{args.rounds} interleaved rounds after a warm-up round")
     print("clusters started in: " + ", ".join(f"{n} {s:.1f} s" for n, s in start_s.items()))
@@ -272,6 +286,8 @@ def throughput(args, root: Path):
                              f"{'':>7}")
         print(f"{name:<{WIDTH}} {cells[0]}  {cells[1]}  {identical[name]}")
     for rates, what in ((sweep_rate, "sweep"), (loop_rate, "real loop")):
+        if ALL_CORE not in rates or "2 workers" not in rates:
+            break
         shared = np.median(np.array(rates["2 workers"][1:]) / np.array(rates[ALL_CORE][1:]))
         print(f"2 workers, render threads shared out / all-core renders ({what}): {shared:.2f}")
     print(f"machine ceiling: 2 spinning processes ran {np.median(ceiling[1:]):.2f} of twice one "
