@@ -270,6 +270,8 @@ def read_text_file(filename, what="scenario file") -> str:
     """The UTF-8 text of ``filename``; ScenarioError naming it when it is missing, not
     a regular file, larger than `MAX_FILE_BYTES`, binary or empty."""
     path = Path(filename)
+    if path.is_dir():
+        raise ScenarioError(clip(f"{filename} is a folder, not a {what}", 300))
     if not is_file(path):
         raise ScenarioError(clip(f"{what} not found: {filename}", 300))
     size = path.stat().st_size
@@ -345,7 +347,10 @@ def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario",
         scenario = untyped(yaml_load_typed(schema=typed, data=data) if raw else typed())
         scenario.validate()
     except (ScenarioError, ValueError) as e:     # ScenarioError is a ValueError
-        raise ScenarioError(clip(f"{where}: {e}")) from None
+        hint = ("this looks like a run file (it has train: or scenario:), which `reachwatch "
+                "run --scenario` reads; " if root == "scenario" and isinstance(raw, dict)
+                and {"train", "scenario"} & set(raw) else "")
+        raise ScenarioError(clip(f"{where}: {hint}{e}")) from None
     except (ArithmeticError, TypeError):        # a non-finite number the checks missed
         if not later:
             raise

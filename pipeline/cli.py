@@ -105,6 +105,11 @@ def _clip(text: str) -> str:
     return clip(text)
 
 
+#: The options that name a file or folder; an empty one is refused.
+PATH_OPTIONS = ("out", "scenario", "cache", "sweep_cache", "work_dir", "checkpoint", "detector",
+                "run")
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -119,6 +124,11 @@ def main(argv=None) -> int:
         for s, handler in zip(signals, previous):
             if handler is not signal.SIG_IGN:      # a background job's ignored Ctrl-C stays so
                 signal.signal(s, _stop)
+    empty = [name for name in PATH_OPTIONS if getattr(args, name, None) == ""]
+    if empty:           # "" would quietly mean the current folder or the built-in defaults
+        print(f"reachwatch {args.command}: error: --{empty[0].replace('_', '-')} is empty: "
+              f"name a path", file=sys.stderr)
+        return 2
     try:
         return args.func(args) or 0
     except (ValueError, FileNotFoundError, NotImplementedError) as e:

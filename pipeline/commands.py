@@ -38,7 +38,7 @@ non_negative_float = number_type(float, 0.0, False, "a finite number >= 0")
 open_share = number_type(float, 0.0, True, "a share in (0, 1)", most=1.0, most_strict=True)
 #: Seeds, grid sizes, horizons and mission limits, bounded as a run file bounds them.
 seed_number = number_type(int, 0, False, "a seed (a whole number in [0, 2147483647])", most=2 ** 31 - 1)
-grid_nodes = number_type(int, 0, True, "a whole number of grid nodes in [1, 401]", most=401)
+grid_nodes = number_type(int, 3, False, "a whole number of grid nodes in [3, 401]", most=401)
 horizon_seconds = number_type(float, 0.0, True, "a finite number > 0 of at most 120 s", most=120.0)
 mission_multiple = number_type(float, 1.0, False, "a multiple of the horizon in [1, 100]", most=100.0)
 

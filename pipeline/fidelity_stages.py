@@ -21,8 +21,9 @@ from .stages import Run
 from .together import each_environment
 
 
-class BoxExitError(RuntimeError):
-    """The real loop leaves the solved box too often for BRT labels to mean anything."""
+class BoxExitError(ValueError):
+    """The real loop leaves the solved box too often for BRT labels to mean anything: the
+    run file's settings do not fit together (the command line says so in one line)."""
 
 
 def check_downtrack_room(spec: RunSpec):

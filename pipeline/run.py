@@ -6,6 +6,7 @@ same key (a digest of its inputs: the settings it reads and, for the stages befo
 outputs it reads, `Run.content_key`: their keys and the content of every file they wrote),
 and resumes its chunked work when it was killed."""
 
+from reachwatch.reach.application import load_application
 from reachwatch.reach.fingerprint import LIBRARY, modules_source_digest
 from reachwatch.systems.checks import short
 from reachwatch.training.dataset import DATASET_CODE
@@ -51,6 +52,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
         check_slice(spec, only, until)
     if STAGES.index(until) >= STAGES.index("fidelity"):
         check_downtrack_room(spec)
+    check_controller_builds(spec)
     run = Run(spec, out, executor=executor, progress=progress, log=log, sweep_cache=sweep_cache,
               only=only)
     if only is not None:
@@ -101,6 +103,16 @@ def report_key(run) -> str:
     seconds, and a resumed run whose report code changed writes it anew."""
     return digest(REPORT_FORMAT, {k: run.content_key(k) for k in run.records},
                   modules_source_digest(*LIBRARY))
+
+
+def check_controller_builds(spec: RunSpec):
+    """Build a user's controller (``scenario.controller.factory``) once before anything is
+    written, so that a parameter its factory does not take (or lacks) is said in one line
+    before the run directory or a sweep changes, not inside the first sweep."""
+    controller = spec.scenario.controller
+    if controller.factory:
+        from reachwatch.diagrams import make_controller
+        make_controller(load_application(spec.application).resolved(spec.scenario).controller)
 
 
 def check_slice(spec: RunSpec, only, until: str):

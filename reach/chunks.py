@@ -521,9 +521,10 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
             stop_executor(executor, abort=True)
             owned = False
         raise RuntimeError(
-            f"a {caller} worker process died; finished chunks are kept and a re-run "
-            f"resumes. Workers are spawned: a script calling {caller} must guard its top "
-            f"level with `if __name__ == '__main__':` (or pass executor=InlineExecutor())"
+            f"a {caller} worker process died (killed, out of memory, or a crash in native "
+            f"code); finished chunks are kept and a re-run resumes. A script calling "
+            f"{caller} without `if __name__ == '__main__':` dies so too: workers are spawned "
+            f"(or pass executor=InlineExecutor())"
         ) from e
     except BaseException:
         keep_finished()

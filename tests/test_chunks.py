@@ -110,8 +110,9 @@ def test_a_dead_pool_is_one_line_and_an_owned_executor_is_stopped_at_once(tmp_pa
     def default():
         made.append(_DeadPool())
         return made[-1]
-    with pytest.raises(RuntimeError, match=r"^a my_job worker process died; finished chunks "
-                                           r"are kept and a re-run resumes\. .*__main__"):
+    with pytest.raises(RuntimeError, match=r"^a my_job worker process died \(killed, out of "
+                                           r"memory, or a crash in native code\); finished "
+                                           r"chunks are kept and a re-run resumes\. .*__main__"):
         run_chunks(_squares, split(10, 3), FolderStore(tmp_path),
                    args=lambda c: (c.start, c.stop), default=default, caller="my_job")
     assert len(made) == 1 and made[0].stopped == [True]          # cancelled, once

@@ -1,0 +1,85 @@
+"""Fault cases a probe of the command line found: each is one line, exit 2, and writes
+nothing."""
+
+import pytest
+
+from reachwatch.pipeline import cli
+from reachwatch.pipeline.run import run_pipeline
+from reachwatch.pipeline.spec import load_run_spec
+from test_overlays import FACTORY
+from tiny_run import TINY
+
+
+def _one_line(capsys, argv) -> str:
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_a_run_without_room_downtrack_is_one_line_on_the_command_line(tmp_path, capsys):
+    """Before: `BoxExitError` was a RuntimeError, which the command line does not catch:
+    a traceback, also for `reachwatch evaluate` with its defaults."""
+    text = TINY.replace("fidelity: {starts: 3, max_box_exits: 1.0}", "fidelity: {starts: 3}")
+    path = tmp_path / "run.yaml"
+    path.write_text(text)
+    err = _one_line(capsys, ["run", "--scenario", str(path), "--out", str(tmp_path / "out")])
+    assert "leaves no room downtrack" in err and "Set solved_py_max: 270" in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["run", "--scenario", "RUN", "--out", ""], "--out"),
+    (["run", "--scenario", "", "--out", "OUT"], "--scenario"),
+    (["run", "--scenario", "RUN", "--out", "OUT", "--sweep-cache", ""], "--sweep-cache"),
+    (["simulate", "--scenario", "", "--out", "OUT"], "--scenario"),
+])
+def test_an_empty_path_is_refused(tmp_path, capsys, monkeypatch, argv, option):
+    """Before: ``--out ''`` wrote the run into the current folder and ``--scenario ''``
+    ran the built-in defaults."""
+    (tmp_path / "run.yaml").write_text(TINY)
+    monkeypatch.chdir(tmp_path)
+    argv = [{"RUN": "run.yaml", "OUT": "out"}.get(a, a) for a in argv]
+    err = _one_line(capsys, argv)
+    assert f"{option} is empty" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.yaml"]
+
+
+def test_a_factory_parameter_it_does_not_take_is_said_before_the_run_directory_changes(tmp_path):
+    """Before: said inside the first sweep, after run.yaml had been overwritten with the
+    failing run file and sweep folders made."""
+    folder = tmp_path / "controller"
+    folder.mkdir()
+    (folder / "constant.py").write_text(FACTORY)
+    factory = f"{folder / 'constant.py'}:make"
+    text = TINY.replace("incremental:\n", "incremental:\n  enabled: false\n") + (
+        f"scenario:\n  controller: {{factory: '{factory}', "
+        f"parameters: {{steering: 0.0, gain: 2.0}}}}\n")
+    with pytest.raises(ValueError, match="controller.parameters.gain is not a parameter it takes"):
+        run_pipeline(load_run_spec(data=text), tmp_path / "out", until="sweep", progress=False,
+                     log=lambda m: None)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("shape", [["0", "0", "0"], ["1", "3", "3"], ["3", "2", "3"]])
+def test_grid_node_counts_are_bounded_alike_at_parse_time_and_in_the_run_file(tmp_path, capsys,
+                                                                             shape):
+    """Before: ``--shape 0 0 0`` was "in [1, 401]" and ``--shape 1 3 3`` "in [3, 401]"."""
+    with pytest.raises(SystemExit) as done:
+        cli.main(["sweep", "--shape", *shape, "--out", str(tmp_path / "out")])
+    assert done.value.code == 2
+    err = capsys.readouterr().err
+    bad = next(s for s in shape if int(s) < 3)
+    assert f"--shape: '{bad}' is not a whole number of grid nodes in [3, 401]" in err, err
+
+
+def test_a_folder_or_a_run_file_given_as_a_scenario_is_named_so(tmp_path, capsys):
+    """Before: a folder was "scenario file not found", and a run file given to `render`
+    "scenario.name: unknown field of Scenario"."""
+    err = _one_line(capsys, ["render", "--scenario", str(tmp_path), "--out", str(tmp_path / "o")])
+    assert f"{tmp_path} is a folder, not a scenario file" in err
+    (tmp_path / "run.yaml").write_text(TINY)
+    err = _one_line(capsys, ["render", "--scenario", str(tmp_path / "run.yaml"),
+                             "--out", str(tmp_path / "o")])
+    assert "this looks like a run file" in err and "reachwatch run --scenario" in err
+    assert not (tmp_path / "o").exists()
