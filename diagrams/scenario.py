@@ -7,6 +7,7 @@ schema first, so every error names the field's full path.
 
 import dataclasses as dc
 import math
+import os
 import re
 import typing
 from pathlib import Path
@@ -270,7 +271,7 @@ def read_text_file(filename, what="scenario file") -> str:
     """The UTF-8 text of ``filename``; ScenarioError naming it when it is missing, not
     a regular file, larger than `MAX_FILE_BYTES`, binary or empty."""
     path = Path(filename)
-    if path.is_dir():
+    if os.path.isdir(path):             # (False, not an error, for a name too long)
         raise ScenarioError(clip(f"{filename} is a folder, not a {what}", 300))
     if not is_file(path):
         raise ScenarioError(clip(f"{what} not found: {filename}", 300))

@@ -40,6 +40,10 @@ open_share = number_type(float, 0.0, True, "a share in (0, 1)", most=1.0, most_s
 seed_number = number_type(int, 0, False, "a seed (a whole number in [0, 2147483647])", most=2 ** 31 - 1)
 grid_nodes = number_type(int, 3, False, "a whole number of grid nodes in [3, 401]", most=401)
 horizon_seconds = number_type(float, 0.0, True, "a finite number > 0 of at most 120 s", most=120.0)
+#: the solved box's bounds, as the run file's ``solved_theta_deg`` and ``solved_py_max``
+solved_theta = number_type(float, 28.0, False, "a number of degrees in [28, 180]", most=180.0)
+solved_py = number_type(float, 250.0, False, "a finite number of metres >= 250",
+                        most=10_000.0)
 mission_multiple = number_type(float, 1.0, False, "a multiple of the horizon in [1, 100]", most=100.0)
 
 

@@ -10,7 +10,7 @@ from .console import log
 from .executor_option import add_executor_argument
 from .overlays import add_overlay_arguments
 from .commands import (RunFileDefault, count, grid_nodes, positive_int, scenario_from_args,
-                       seed_number)
+                       seed_number, solved_py, solved_theta)
 
 
 class LibraryNames(collections.abc.Sequence):
@@ -126,6 +126,14 @@ def add_parsers(sub):
     p.add_argument("--check-starts", type=count, default=RunFileDefault("fidelity.starts"),
                    help="real-loop runs per environment checking the BRT and the labels "
                    "(0: no check; default: %(default)s)")
+    p.add_argument("--solved-theta-deg", type=solved_theta, metavar="DEG",
+                   default=RunFileDefault("solved_theta_deg"),
+                   help="sweep and solve over |theta| <= DEG (the paper's box: 28; default: "
+                   "%(default)s)")
+    p.add_argument("--solved-py-max", type=solved_py, metavar="M", default=PAPER_PY_MAX,
+                   help="sweep and solve over py <= M: the paper's box ends at 250 m, and a "
+                   "check start near it runs past within the horizon (default: %(default)s, "
+                   "room for the default 8 s at 5 m/s)")
     p.add_argument("--max-box-exits", type=float,
                    default=RunFileDefault("fidelity.max_box_exits"),
                    help="refuse BRT labels where more than this share of the checked runs "
@@ -133,6 +141,13 @@ def add_parsers(sub):
     add_executor_argument(p, default="inline")
     p.add_argument("--out", required=True, help="output folder (reused: finished work is skipped)")
     p.set_defaults(func=evaluate_command)
+
+
+#: ``--solved-py-max``'s default: the paper's box end (250 m) and the 40 m the default
+#: horizon (8 s) covers at the default 5 m/s, as the paper's run file has it. The run
+#: file's own default (250) leaves the real-loop check no room, and the check would refuse
+#: the command's defaults.
+PAPER_PY_MAX = 290.0
 
 
 def _one_seed(seeds):
@@ -153,24 +168,22 @@ def target_text(rows, groups, config) -> str:
     return "\n".join(page.md[1:])          # after the page's title
 
 
-def evaluate_command(args):
+def evaluate_spec(args):
+    """The `RunSpec` that ``reachwatch evaluate``'s arguments describe."""
     from reachwatch.systems import DetectorConfig, test_environments, training_environments
     from reachwatch.training.dataset import DatasetSpec
     from reachwatch.training.detector_train import DetectorTrainConfig
-    from reachwatch.training.evaluation import markdown_table
-    from .spec import IncrementalConfig
     from reachwatch.training.labels import LabelSpec
 
-    from .executors import open_executor
-    from .run import run_pipeline
-    from .spec import EnsembleSpec, FidelitySpec, RunSpec
+    from .spec import EnsembleSpec, FidelitySpec, IncrementalConfig, RunSpec
     height, width = args.input_size
     detector = DetectorConfig(arch=args.arch, height=height, width=width)
     spec = RunSpec(
         name="evaluate", scenario=scenario_from_args(args, controller=True),
         train=[parse_environment(t) for t in args.train or _names(training_environments())],
         test=[parse_environment(t) for t in args.test or _names(test_environments())],
-        grid=list(args.shape),
+        grid=list(args.shape), solved_theta_deg=args.solved_theta_deg,
+        solved_py_max=args.solved_py_max,
         dataset=DatasetSpec(samples=args.samples, seed=args.seed, height=height, width=width,
                             labels=LabelSpec(source=args.labels,
                                                 distrusted=args.distrusted)),
@@ -181,6 +194,16 @@ def evaluate_command(args):
         ensemble=EnsembleSpec(seeds=list(range(1, args.ensemble + 1)) if args.ensemble >= 2
                               else []),
         incremental=IncrementalConfig(enabled=False))
+    return spec
+
+
+def evaluate_command(args):
+    from reachwatch.training.evaluation import markdown_table
+
+    from .executors import open_executor
+    from .run import run_pipeline
+    spec = evaluate_spec(args)
+    detector = spec.detector.detector
     with open_executor(args.executor) as executor:
         run = run_pipeline(spec, args.out, executor=executor, until="evaluate")
     rows = run.outputs["evaluate"]["rows"]

@@ -9,16 +9,12 @@ from .executor_option import add_executor_argument
 from .overlays import add_overlay_arguments
 from .commands import (RunFileDefault, count, grid_nodes, horizon_seconds, non_negative_float, number_type,
                        output_folder, positive_float, positive_int, scenario_from_args,
-                       seed_number)
+                       seed_number, solved_py, solved_theta)
 
 #: ``reachwatch.reach.ACCURACIES``' names, here so that the parser needs no torch (a
 #: test keeps the two the same).
 ACCURACIES = ("high", "low", "semi_lagrangian", "very_high")
 
-#: the solved box's bounds, as the run file's ``solved_theta_deg`` and ``solved_py_max``
-solved_theta = number_type(float, 28.0, False, "a number of degrees in [28, 180]", most=180.0)
-solved_py = number_type(float, 250.0, False, "a finite number of metres >= 250",
-                        most=10_000.0)
 
 
 def _grid_args(parser):

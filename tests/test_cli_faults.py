@@ -19,7 +19,7 @@ def _one_line(capsys, argv) -> str:
 
 def test_a_run_without_room_downtrack_is_one_line_on_the_command_line(tmp_path, capsys):
     """Before: `BoxExitError` was a RuntimeError, which the command line does not catch:
-    a traceback, also for `reachwatch evaluate` with its defaults."""
+    a traceback."""
     text = TINY.replace("fidelity: {starts: 3, max_box_exits: 1.0}", "fidelity: {starts: 3}")
     path = tmp_path / "run.yaml"
     path.write_text(text)
@@ -83,3 +83,22 @@ def test_a_folder_or_a_run_file_given_as_a_scenario_is_named_so(tmp_path, capsys
                              "--out", str(tmp_path / "o")])
     assert "this looks like a run file" in err and "reachwatch run --scenario" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_evaluates_defaults_leave_the_check_room_downtrack():
+    """Before: `reachwatch evaluate` took the run file's solved_py_max (250 m, the paper's
+    box end), which the real-loop check refuses at the default 8 s horizon: the command
+    with its defaults stopped at once. It now solves to 290 m, and says so."""
+    from reachwatch.pipeline.commands import fill_run_file_defaults
+    from reachwatch.pipeline.evaluate_commands import evaluate_spec
+    from reachwatch.pipeline.fidelity_stages import BoxExitError, check_downtrack_room
+
+    def spec(*extra):
+        args = cli.build_parser().parse_args(["evaluate", "--out", "unused", *extra])
+        fill_run_file_defaults(args)
+        return evaluate_spec(args)
+    default = spec()
+    assert default.solved_py_max == 290.0 and default.fidelity.starts > 0
+    check_downtrack_room(default)
+    with pytest.raises(BoxExitError, match="solved_py_max 250 m leaves no room downtrack"):
+        check_downtrack_room(spec("--solved-py-max", "250"))
