@@ -16,6 +16,7 @@ from reachwatch.reach import (compare_verdicts, min_target_along_rollouts, selec
                              sign_agreement, solve_brt)
 from reachwatch.reach.robust import control_bounds
 from reachwatch.reach.sweep import cached_table_digest
+from reachwatch.systems.checks import device_kind
 from reachwatch.systems.files import atomic_write_bytes
 
 from .spec import digest
@@ -153,7 +154,7 @@ def solve_stage_key(run: Run, env, *, sweep: bool = False) -> str:
         sweep_env(run, env)
         table = cached_table_digest(run.sweep_cache, sweep_key, size)
     return digest(sweep_key, table, spec.horizon, spec.accuracy, spec.periods_per_step,
-                  spec.slice_py, *([spec.refine] if spec.refine.levels else []),
+                  spec.slice_py, device_kind(),     # the solve's device: CUDA where present *([spec.refine] if spec.refine.levels else []),
                   *([spec.robust] if spec.robust.enabled else []),
                   *([spec.map_selection] if spec.map_selection.starts else []))
 

@@ -8,7 +8,7 @@ and resumes its chunked work when it was killed."""
 
 from reachwatch.reach.application import load_application
 from reachwatch.reach.fingerprint import LIBRARY, modules_source_digest
-from reachwatch.systems.checks import short
+from reachwatch.systems.checks import device_kind, short
 from reachwatch.training.dataset import DATASET_CODE
 from reachwatch.training.dataset import FORMAT as DATASET_FORMAT
 
@@ -71,10 +71,14 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
             *([spec.held_out_labels.key()] if spec.held_out_labels is not None else [])),
             lambda: stage_dataset(run)),
         "fidelity": lambda: stage_fidelity(run),
-        "train": lambda: run.stage("train", digest(run.content_key("dataset"), spec.detector),
+        # the device that trains and scores (CUDA where present, unless told): another
+        # device trains other weights and scores in other last digits
+        "train": lambda: run.stage("train", digest(run.content_key("dataset"), spec.detector,
+                                                   device_kind(spec.detector.device)),
                                    lambda: stage_train(run)),
         "evaluate": lambda: run.stage("evaluate", digest(
             run.content_key("train"), run.content_key("dataset"), spec.slice_py,
+            device_kind(spec.detector.device),
             {e.name: run.content_key(f"solve_{e.name}") for e in spec.held_out_environments()}),
             lambda: stage_evaluate(run)),
         "guard": lambda: stage_guard(run),

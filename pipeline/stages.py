@@ -19,7 +19,7 @@ import numpy as np
 from reachwatch.diagrams import CONTROL_PORT, file_hash, load_detector
 from reachwatch.reach import Grid, InlineExecutor, ValueFunction
 from reachwatch.reach.application import load_application
-from reachwatch.systems.checks import short
+from reachwatch.systems.checks import device_kind, short
 from reachwatch.systems.files import atomic_write_bytes, cache_location
 from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
 from reachwatch.training.dataset import load_dataset
@@ -313,14 +313,23 @@ def controller_name(scenario) -> str:
     return factory.rpartition(":")[2] if factory else "TaxiNet"
 
 
+def detector_weights(config) -> dict:
+    """What a detector's trained weights depend on, which names its checkpoint file: its
+    training settings, not how its threshold is chosen (that changes neither the weights
+    nor the file), and the kind of device that trains it ("" resolved: CUDA when
+    present; another kind trains other weights)."""
+    weights = {k: v for k, v in dc.asdict(config).items() if k not in THRESHOLD_CHOICE}
+    weights["device"] = device_kind(config.device)
+    return weights
+
+
 def stage_train(run: Run) -> dict:
     """The detector on BRT labels, and the same detector on prediction-error labels
     (baseline a), each with its operating threshold."""
     spec, config = run.spec, run.spec.detector
     data = run.datasets(spec.training_environments())
     progress = run.bar()
-    # How the threshold is chosen changes neither the weights nor the file: not in the key.
-    weights = {k: v for k, v in dc.asdict(config).items() if k not in THRESHOLD_CHOICE}
+    weights = detector_weights(config)
     folders = run.outputs["dataset"]["folders"]
     tag = digest(weights, {e.name: folders[e.name] for e in spec.training_environments()})
     brt_path = run.path(f"detectors/detector_brt_{tag}.pt")

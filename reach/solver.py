@@ -22,6 +22,8 @@ import itertools
 import numpy as np
 import torch
 
+from reachwatch.systems.checks import torch_device
+
 from .dynamics import positive, rk4_step, split_horizon
 from .grid import Grid
 from .interpolate import GridInterpolator
@@ -30,12 +32,6 @@ from .value_function import ValueFunction
 
 ACCURACIES = {"low": ("first_order", 1), "high": ("weno5", 2), "very_high": ("weno5", 3),
               "semi_lagrangian": (None, None)}
-
-
-def _device(device):
-    if device is None:
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
 
 
 def _held_flow(dynamics, x, u, period, substeps):
@@ -151,7 +147,7 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
     if not np.all(np.isfinite(table)):
         raise ValueError(f"control table has {np.sum(~np.isfinite(table))} non-finite entries")
     corners = _bound_corners(grid, table, control_bounds, accuracy)
-    device = _device(device)
+    device = torch_device(device)
     as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)     # noqa: E731
     x = as_t(np.stack(grid.mesh(), axis=-1))                           # (*shape, n)
     u = as_t(table.reshape(grid.shape + (-1,)))

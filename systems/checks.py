@@ -66,6 +66,21 @@ def is_file(path) -> bool:
         return False
 
 
+def torch_device(name=None):
+    """The `torch.device` ``name`` names; empty or None: CUDA when present, else the CPU
+    (what a BRT solve and a detector's training use unless told)."""
+    import torch
+    if name:
+        return torch.device(name)
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def device_kind(name=None) -> str:
+    """``"cpu"``, ``"cuda"``, ...: the kind of `torch_device` ``name`` (for cache keys: a
+    result computed on another kind of device differs in its last digits, or more)."""
+    return torch_device(name).type
+
+
 def check_torch_device(where: str, name) -> str:
     """``name`` if torch can compute on it here (empty: CUDA when present, else the CPU);
     else a ValueError naming ``where``: a device that is not one, or a CUDA (or MPS)

@@ -10,7 +10,7 @@ from torch import nn
 from reachwatch.diagrams import load_detector, save_checkpoint
 from reachwatch.systems import DetectorConfig, build_detector, detector_input
 from reachwatch.systems.bounds import bounded, check_bounds, seed_field
-from reachwatch.systems.checks import check_torch_device, clip, is_file, short
+from reachwatch.systems.checks import check_torch_device, clip, is_file, short, torch_device
 
 from .metrics import HELD_OUT_RULES, binary_metrics, held_out_threshold, recall_threshold
 
@@ -93,10 +93,6 @@ class DetectorTrainConfig:
 THRESHOLD_CHOICE = ("threshold_folds", "threshold_rule")
 
 
-def _device(name):
-    return torch.device(name or ("cuda" if torch.cuda.is_available() else "cpu"))
-
-
 def colour_jitter(x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     """Per-image random channel gains (0.7-1.3), brightness (0.5-1.3) and contrast
     (0.7-1.3) on normalised inputs (mean = std = 0.5 convention)."""
@@ -127,7 +123,7 @@ def _batches(datasets, index, batch_size, config, device, generator=None):
 @torch.no_grad()
 def detector_scores(model, config: DetectorConfig, images, *, batch_size=128, device="") -> np.ndarray:
     """Anomaly probabilities for uint8 ``(N, H, W, 3)`` images (memmaps welcome)."""
-    device = _device(device)
+    device = torch_device(device)
     model = model.to(device).eval()
     out = []
     for start in range(0, len(images), batch_size):
@@ -212,7 +208,7 @@ def train_detector(datasets, config: DetectorTrainConfig, out_path, *, labels=No
     config.validate()
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
-    device = _device(config.device)
+    device = torch_device(config.device)
     y_all = np.concatenate(labels if labels is not None else [d.labels for d in datasets])
     y_all = torch.as_tensor(y_all.astype(np.int64))
     val, train = _split(len(y_all), config, rng, run_groups(datasets))
