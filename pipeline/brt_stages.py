@@ -154,7 +154,9 @@ def solve_stage_key(run: Run, env, *, sweep: bool = False) -> str:
         sweep_env(run, env)
         table = cached_table_digest(run.sweep_cache, sweep_key, size)
     return digest(sweep_key, table, spec.horizon, spec.accuracy, spec.periods_per_step,
-                  spec.slice_py, device_kind(),     # the solve's device: CUDA where present *([spec.refine] if spec.refine.levels else []),
+                  spec.slice_py,
+                  device_kind(),            # the solve's device: CUDA where present
+                  *([spec.refine] if spec.refine.levels else []),
                   *([spec.robust] if spec.robust.enabled else []),
                   *([spec.map_selection] if spec.map_selection.starts else []))
 

@@ -33,3 +33,17 @@ def test_the_detectors_weights_and_the_solve_are_keyed_by_the_device_kind(tiny_r
     assert cpu[0] != gpu[0] and cpu[1] != gpu[1]
     assert cpu[1]["device"] == "cpu" and gpu[1]["device"] == "cuda"
     assert detector_weights(DetectorTrainConfig(device="cpu")) == told      # told: kept
+
+
+def test_the_solve_key_covers_its_settings(tiny_run, seed_caches, tmp_path):
+    """Each setting the solve reads is in its key (a refine, robust or map-selection
+    setting dropped from it would reuse the other setting's BRT)."""
+    folder = seed_caches(tmp_path / "run")
+    keys = set()
+    for extra in ("", "refine: {levels: 1}\n", "refine: {levels: 1, band: 3.0}\n",
+                  "horizon: 3.0\n", "periods_per_step: 20\n"):
+        text = TINY.replace("horizon: 4.0\n", "") + ("" if "horizon" in extra else
+                                                     "horizon: 4.0\n") + extra
+        run = Run(load_run_spec(data=text), folder, progress=False, log=lambda m: None)
+        keys.add(solve_stage_key(run, run.spec.training_environments()[0]))
+    assert len(keys) == 5
