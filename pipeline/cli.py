@@ -106,8 +106,7 @@ def _clip(text: str) -> str:
 
 
 #: The options that name a file or folder; an empty one is refused.
-PATH_OPTIONS = ("out", "scenario", "cache", "sweep_cache", "work_dir", "checkpoint", "detector",
-                "run")
+PATH_OPTIONS = ("out", "scenario", "cache", "sweep_cache", "work_dir", "checkpoint", "run")
 
 
 def main(argv=None) -> int:
