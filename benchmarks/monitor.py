@@ -23,7 +23,7 @@ from reachwatch.pipeline.executor_option import add_executor_argument
 from reachwatch.pipeline.executors import make_executor
 from reachwatch.pipeline.monitor_sections import markdown_tables
 from reachwatch.pipeline.monitor_study import MonitorStudySpec, run_monitor_study
-from reachwatch.systems import Environment, RandomEnvironments
+from reachwatch.systems import INPUT_NORMS, Environment, RandomEnvironments
 from reachwatch.training.history_train import LR_SCHEDULES
 
 
@@ -61,6 +61,10 @@ def main():
                         "over each training stage)")
     p.add_argument("--no-augment", action="store_true",
                    help="train the per-frame encoder without colour jitter")
+    p.add_argument("--input-norm", choices=INPUT_NORMS, default=defaults.input_norm,
+                   help="how the encoder normalises each frame: fixed (the detector's "
+                        "per-channel constants) or per_frame (also by the frame's own mean "
+                        "and std)")
     p.add_argument("--nights", action="store_true",
                    help="also judge on the paper's held-out 21 h environments (KSFO, KEWR)")
     p.add_argument("--detector", default=None, metavar="CHECKPOINT",
@@ -79,7 +83,7 @@ def main():
         alpha=args.alpha, brake_deceleration=args.brake, height=args.size[0], width=args.size[1],
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
-        seed=args.train_seed, lr_schedule=args.lr_schedule, ensemble=args.ensemble,
+        input_norm=args.input_norm, seed=args.train_seed, lr_schedule=args.lr_schedule, ensemble=args.ensemble,
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])
     try:

@@ -172,5 +172,11 @@ def load_history_monitor(path):
     def build(config, _, metadata):
         members = metadata.get("members", 1)
         return HistoryRiskModel(config) if members == 1 else HistoryRiskEnsemble(config, members)
-    model, config, _, metadata = _load_model(path, "history_monitor", HistoryMonitorConfig, build)
+    model, config, _, metadata = _load_model(path, "history_monitor", _history_config, build)
     return model, config, metadata
+
+
+def _history_config(**fields) -> HistoryMonitorConfig:
+    """A history monitor's config as its checkpoint holds it; one written before
+    ``input_norm`` existed was trained ``fixed`` (not today's default)."""
+    return HistoryMonitorConfig(**{"input_norm": "fixed", **fields})

@@ -158,7 +158,8 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
 
     train = _merged(data["train"])
     labels = tick_labels(train, period=period, duration=spec.duration, within=spec.within)
-    base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within)
+    base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within,
+                                input_norm=spec.input_norm)
     # each member of the ensemble: its own encoder (`member_settings`) and features
     members = []
     for m, settings in enumerate(member_settings(spec)):

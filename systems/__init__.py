@@ -28,7 +28,7 @@ from .runway import RUNWAYS, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, 
 from .random_environments import RandomEnvironments, RandomRunwayRanges, random_runway
 from .scene import add_runway_scene
 from .dead_reckoning import DeadReckoning, propagate_estimate
-from .history_monitor import (TEMPORAL_MODELS, HistoryMonitor, HistoryMonitorConfig,
+from .history_monitor import (INPUT_NORMS, TEMPORAL_MODELS, HistoryMonitor, HistoryMonitorConfig,
                               HistoryRiskModel, platt)
 from .risk_ensemble import MAX_MEMBERS, HistoryRiskEnsemble, MeanRisk, check_members
 from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
@@ -40,7 +40,7 @@ from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, Tax
                       TrueStateEstimator)
 
 __all__ = [
-    "TEMPORAL_MODELS", "HistoryMonitor", "HistoryMonitorConfig", "HistoryRiskModel", "platt",
+    "INPUT_NORMS", "TEMPORAL_MODELS", "HistoryMonitor", "HistoryMonitorConfig", "HistoryRiskModel", "platt",
     "MAX_MEMBERS", "HistoryRiskEnsemble", "MeanRisk", "check_members",
     "FlagFilter", "check_k_of_n", "confirmed_flags", "weak_callback",
     "RandomEnvironments", "RandomRunwayRanges", "random_runway",

@@ -26,6 +26,15 @@ from .detector import DetectorConfig, detector_input, inference_model, resize_fo
 #: into a small MLP (one frame: the single-frame monitor), ``gru`` runs a GRU over them.
 TEMPORAL_MODELS = ("stack", "gru")
 
+#: How a frame is normalised before the encoder: ``fixed`` only by the detector's fixed
+#: per-channel mean and std (`detector_input`); ``per_frame`` then also by the frame's
+#: own statistics (each channel's mean removed, divided by the frame's std), so a frame's
+#: overall brightness, contrast and colour cast (the hour, the sky) do not reach the
+#: encoder.
+INPUT_NORMS = ("fixed", "per_frame")
+#: Added to a frame's std before dividing by it (a uniform frame stays finite).
+FRAME_STD_FLOOR = 1e-3
+
 
 @dc.dataclass
 class HistoryMonitorConfig:
@@ -34,7 +43,8 @@ class HistoryMonitorConfig:
     (``channels``) into ``features`` numbers; ``signals`` online numbers per tick
     (0: images only), standardised with ``signal_mean`` / ``signal_std``; ``temporal``
     one of `TEMPORAL_MODELS` with ``hidden`` units. ``within`` (s) is the T of "fails
-    within T s" that the risk predicts."""
+    within T s" that the risk predicts. ``input_norm``: one of `INPUT_NORMS` (a
+    checkpoint that does not say was trained ``fixed``)."""
     frames: int = bounded(8, 1, 64, whole=True)
     stride: int = bounded(1, 1, 100, whole=True, unit="ticks")
     height: int = bounded(48, 16, 512, whole=True, unit="px")
@@ -48,12 +58,16 @@ class HistoryMonitorConfig:
     temporal: str = "stack"
     hidden: int = bounded(32, 1, 1024, whole=True)
     within: float = bounded(2.0, 0.0, low_open=True, unit="s")
+    input_norm: str = "per_frame"
 
     def validate(self):
         check_bounds(self, "history monitor ")
         if self.temporal not in TEMPORAL_MODELS:
             raise ValueError(f"history monitor temporal must be one of {TEMPORAL_MODELS}, got "
                              f"{self.temporal!r}")
+        if self.input_norm not in INPUT_NORMS:
+            raise ValueError(f"history monitor input_norm must be one of {INPUT_NORMS}, got "
+                             f"{self.input_norm!r}")
         if len(self.signal_mean) not in (0, self.signals) or \
                 len(self.signal_std) != len(self.signal_mean):
             raise ValueError(f"history monitor signal_mean and signal_std need {self.signals} "
@@ -116,7 +130,11 @@ class HistoryRiskModel(nn.Module):
 
     def encode_input(self, x: torch.Tensor) -> torch.Tensor:
         """Normalised float ``(N, 3, H, W)`` (`detector_input`'s) -> features
-        ``(N, features)``: where training changes the input (colour jitter) first."""
+        ``(N, features)``: where training changes the input (colour jitter) first. With
+        ``input_norm`` ``per_frame`` each frame is standardised on its own here."""
+        if self.config.input_norm == "per_frame":
+            x = ((x - x.mean(dim=(2, 3), keepdim=True))
+                 / (x.std(dim=(1, 2, 3), keepdim=True) + FRAME_STD_FLOOR))
         return self.project(self.encoder(x).mean(dim=(2, 3)))
 
     def head_input(self, features: torch.Tensor, signals: torch.Tensor = None) -> torch.Tensor:

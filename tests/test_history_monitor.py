@@ -18,7 +18,7 @@ def _checkpoint(path, config, seed=0, calibration=(0.05, 0.3), **metadata):
     torch.manual_seed(seed)
     model = HistoryRiskModel(config)
     for p in model.parameters():                 # spread the raw risk over (0, 1)
-        p.data.mul_(3.0)
+        p.data.mul_(2.0)
     save_checkpoint(path, kind="history_monitor", model=model.eval(), model_config=config,
                     preprocess_config=None,
                     metadata={"calibration": list(calibration), "threshold": 0.5,
@@ -26,14 +26,14 @@ def _checkpoint(path, config, seed=0, calibration=(0.05, 0.3), **metadata):
     return path
 
 
-@pytest.mark.parametrize("temporal, frames, stride, signals", [
-    ("stack", 3, 2, 0), ("gru", 4, 1, 3), ("stack", 1, 1, 3)])
+@pytest.mark.parametrize("temporal, frames, stride, signals, input_norm", [
+    ("stack", 3, 2, 0, "per_frame"), ("gru", 4, 1, 3, "per_frame"), ("stack", 1, 1, 3, "fixed")])
 def test_online_risk_is_the_offline_function_of_the_recorded_run(tmp_path, temporal, frames,
-                                                                  stride, signals):
+                                                                  stride, signals, input_norm):
     config = HistoryMonitorConfig(frames=frames, stride=stride, height=24, width=40,
                                   channels=[4, 8], features=6, signals=signals,
                                   signal_mean=[0.1] * signals, signal_std=[2.0] * signals,
-                                  temporal=temporal, hidden=8)
+                                  temporal=temporal, hidden=8, input_norm=input_norm)
     path = _checkpoint(tmp_path / "monitor.pt", config)
     scenario = load_scenario(data=f"monitor: {{detector: {path}, threshold: 0.5}}\n")
     start = np.array([[2.0, 120.0, 0.1]])
@@ -134,6 +134,45 @@ def test_config_and_checkpoint_errors(tmp_path):
                                                                 channels=[4], features=4))
     with pytest.raises(CheckpointError, match="holds a 'history_monitor' model, not a 'detector'"):
         load_detector(path)
+    with pytest.raises(ValueError, match=r"input_norm must be one of \('fixed', 'per_frame'\), "
+                                         r"got 'instance'$"):
+        HistoryMonitorConfig(input_norm="instance").validate()
+
+
+def test_per_frame_normalisation_ignores_a_frames_brightness_contrast_and_colour_cast():
+    """``per_frame``: a frame scaled and shifted (its contrast and brightness, and each
+    channel's offset) encodes as the frame itself; ``fixed`` tells them apart."""
+    torch.manual_seed(0)
+    x = torch.randn(2, 3, 16, 24)
+    changed = 2.5 * x + torch.tensor([0.7, -0.4, 1.1])[:, None, None]
+    for norm, same in (("per_frame", True), ("fixed", False)):
+        model = HistoryRiskModel(HistoryMonitorConfig(height=16, width=24, channels=[4],
+                                                      features=4, input_norm=norm)).eval()
+        with torch.no_grad():
+            close = torch.allclose(model.encode_input(x), model.encode_input(changed),
+                                   atol=1e-5)
+        assert close == same, norm
+
+
+def test_a_checkpoint_from_before_input_norm_loads_as_trained(tmp_path):
+    """A checkpoint whose config does not name ``input_norm`` was trained ``fixed``: it
+    loads so, whatever today's default, and scores as before."""
+    config = HistoryMonitorConfig(height=24, width=40, channels=[4], features=4,
+                                  input_norm="fixed")
+    path = _checkpoint(tmp_path / "old.pt", config)
+    payload = torch.load(path, weights_only=True)
+    del payload["model_config"]["input_norm"]
+    torch.save(payload, path)
+    assert HistoryMonitorConfig().input_norm == "per_frame"
+    model, loaded, _ = load_history_monitor(path)
+    assert loaded.input_norm == "fixed" and loaded == config
+    frames = np.random.default_rng(0).integers(0, 256, (3, 24, 40, 3), dtype=np.uint8)
+    torch.manual_seed(0)
+    fresh = HistoryRiskModel(config)
+    for p in fresh.parameters():
+        p.data.mul_(2.0)
+    np.testing.assert_allclose(model.risk_sequence(frames), fresh.eval().risk_sequence(frames),
+                               rtol=1e-6)
 
 
 def _step_monitor(monitor, frames, signals, on_tick=None):

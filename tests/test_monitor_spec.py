@@ -31,6 +31,9 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
     with pytest.raises(ValueError, match=r"monitor\.lr_schedule must be one of \('constant', "
                                          r"'cosine'\), got 'linear'"):
         dc.replace(spec.monitor, lr_schedule="linear").validate()
+    with pytest.raises(ValueError, match=r"monitor\.input_norm must be one of \('fixed', "
+                                         r"'per_frame'\), got 'instance'"):
+        dc.replace(spec.monitor, input_norm="instance").validate()
     for edit, message in ((("kind: history", "kind: lstm"), "monitor.kind must be one of"),
                           (("alpha: 0.5", "alpha: 0.1"), "monitor.calibrate: 1 environments "
                                                          "cannot bound"),
@@ -105,6 +108,9 @@ def test_the_study_key_covers_every_training_setting_and_the_study_code(monkeypa
                                                      "  epochs: 1\n  lr_schedule: cosine"))
     assert study.train_settings(cosine.monitor).lr_schedule == "cosine"
     assert key(cosine.monitor) != before
+    fixed = load_run_spec(data=TINY + MONITOR_STUDY.replace("  epochs: 1",
+                                                    "  epochs: 1\n  input_norm: fixed"))
+    assert fixed.monitor.input_norm == "fixed" and key(fixed.monitor) != before
     settings = study.train_settings
     monkeypatch.setattr(study, "train_settings",
                         lambda monitor: dc.replace(settings(monitor), batch_size=64))
