@@ -63,7 +63,7 @@ def main():
                    help="train the per-frame encoder without colour jitter")
     p.add_argument("--input-norm", choices=INPUT_NORMS, default=defaults.input_norm,
                    help="how the encoder normalises each frame: fixed (the detector's "
-                        "per-channel constants) or per_frame (also by the frame's own mean "
+                        "constant shift and scale) or per_frame (also by the frame's own mean "
                         "and std)")
     p.add_argument("--nights", action="store_true",
                    help="also judge on the paper's held-out 21 h environments (KSFO, KEWR)")

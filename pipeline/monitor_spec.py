@@ -91,7 +91,7 @@ class MonitorStudySpec:
     (seed 11; train 16, calibrate 16, held out 8, 20 runs of 8 s) it raised the single
     frame's worst AUROC on the paper's 4 nights from 0.49 to 0.64 on average and lowered
     every variant's Brier score there, with the family's held-out figures about as they
-    were (``fixed``: the detector's per-channel constants only). ``seed``: the monitors' training
+    were (``fixed``: the detector's constant shift and scale only). ``seed``: the monitors' training
     seed (initial weights, batch order, jitter); train with a few to see how far one
     training's figures are from the next's. ``ensemble``: each variant is that many
     trainings (seeds ``K * seed`` to ``K * seed + K - 1``: studies with other seeds share

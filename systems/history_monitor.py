@@ -26,8 +26,8 @@ from .detector import DetectorConfig, detector_input, inference_model, resize_fo
 #: into a small MLP (one frame: the single-frame monitor), ``gru`` runs a GRU over them.
 TEMPORAL_MODELS = ("stack", "gru")
 
-#: How a frame is normalised before the encoder: ``fixed`` only by the detector's fixed
-#: per-channel mean and std (`detector_input`); ``per_frame`` then also by the frame's
+#: How a frame is normalised before the encoder: ``fixed`` only by `detector_input`'s
+#: constants (mean = std = 0.5 on every channel); ``per_frame`` then also by the frame's
 #: own statistics (each channel's mean removed, divided by the frame's std), so a frame's
 #: overall brightness, contrast and colour cast (the hour, the sky) do not reach the
 #: encoder.
