@@ -54,9 +54,10 @@ def test_stacked_frames_see_what_one_frame_cannot():
     train, test = _runs(1, 60), _runs(2, 40)
     within = 0.5
     labels = tick_labels(train, period=PERIOD, duration=DURATION, within=within)
+    # the cue is each frame's brightness, which colour jitter would blur and per-frame
+    # standardisation remove on purpose
     config = HistoryMonitorConfig(frames=1, height=16, width=16, channels=[8], features=8,
-                                  hidden=16, within=within)
-    # the cue is each frame's brightness, which colour jitter would blur on purpose
+                                  hidden=16, within=within, input_norm="fixed")
     settings = HistoryTrainConfig(epochs=4, head_epochs=60, batch_size=64, tick_stride=1,
                                   augment=False)
     encoder = train_encoder(train, labels, config, settings)
@@ -97,18 +98,20 @@ def _shortcut_runs(seed, count, shift):
 
 
 def test_colour_jitter_keeps_the_encoder_off_the_training_light():
-    """Trained where failing frames are also brighter, the encoder without colour jitter
-    ranks an environment whose failing frames are darker backwards; with it (the
-    default) it reads the checker and ranks them right. Same seed, same encoder."""
+    """Trained where failing frames are also brighter, an encoder that sees the frames'
+    brightness (``input_norm: fixed``) without colour jitter ranks an environment whose
+    failing frames are darker backwards; with it (the default) it reads the checker and
+    ranks them right. Same seed, same encoder. Standardising each frame (the default
+    ``per_frame``) takes the brightness away without the jitter too."""
     within = 0.5
     train, test = _shortcut_runs(1, 60, 30.0), _shortcut_runs(2, 40, -30.0)
     labels = tick_labels(train, period=PERIOD, duration=DURATION, within=within)
     test_labels = tick_labels(test, period=PERIOD, duration=DURATION, within=within)
     known = test_labels >= 0
     config = HistoryMonitorConfig(frames=1, height=16, width=16, channels=[8], features=8,
-                                  hidden=16, within=within)
+                                  hidden=16, within=within, input_norm="fixed")
 
-    def held_out_auroc(augment, seed=0):
+    def held_out_auroc(augment, seed=0, config=config):
         settings = HistoryTrainConfig(epochs=4, batch_size=64, tick_stride=1, augment=augment,
                                       seed=seed)
         encoder = train_encoder(train, labels, config, settings)
@@ -123,6 +126,7 @@ def test_colour_jitter_keeps_the_encoder_off_the_training_light():
     again = held_out_auroc(True)[1]          # one seed, one encoder
     for a, b in zip(encoder.state_dict().values(), again.state_dict().values()):
         assert torch.equal(a, b)
+    assert held_out_auroc(False, config=dc.replace(config, input_norm="per_frame"))[0] > 0.95
 
 
 def test_a_cosine_schedule_decays_each_stage_to_zero(monkeypatch):
