@@ -20,6 +20,7 @@ the run file's (`reachwatch.pipeline.spec`)."""
 
 import dataclasses as dc
 import io
+import re
 import time
 from pathlib import Path
 
@@ -40,8 +41,9 @@ from .monitor_sections import rate_text
 from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noqa: F401
                            MonitorVariant, default_variants)
 
-__all__ = ["DETECTOR_ROW", "MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "choose_flag_rule",
-           "default_variants", "judge_environments", "run_monitor_study", "stage_monitor"]
+__all__ = ["DETECTOR_ROW", "MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "checkpoint_file",
+           "choose_flag_rule", "default_variants", "judge_environments", "run_monitor_study",
+           "stage_monitor"]
 
 
 #: The starts' own random stream: environment ``i`` of the family is drawn from ``[seed,
@@ -75,6 +77,17 @@ def _record(spec, application, scenario, environments, first, *, runs, cache_dir
         out.append({**recorded, "starts": starts, "name": environment.name,
                     "environment": environment})
     return out
+
+
+def checkpoint_file(variant: str, taken=()) -> str:
+    """The file a study saves ``variant``'s monitor as: named after the variant
+    (``single frame`` -> ``monitor_single-frame.pt``), so that no one takes one
+    variant's file for another's; a name already in ``taken`` gets a number."""
+    slug = re.sub(r"[^a-z0-9]+", "-", variant.lower()).strip("-")[:48].strip("-") or "variant"
+    file, k = f"monitor_{slug}.pt", 2
+    while file in taken:
+        file, k = f"monitor_{slug}-{k}.pt", k + 1
+    return file
 
 
 def _merged(groups):
@@ -220,7 +233,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     checkpoints = {}
     for name in dict.fromkeys([kept, spec.variants[0].name]):
         model, platt, threshold, rule = models[name]
-        path = out_dir / f"monitor_{len(checkpoints)}.pt"
+        path = out_dir / checkpoint_file(name, {Path(p).name for p in checkpoints.values()})
         save_checkpoint(path, kind="history_monitor", model=model, model_config=model.config,
                         preprocess_config=None,
                         metadata={"calibration": [platt.a, platt.b], "threshold": threshold,

@@ -13,7 +13,8 @@ from reachwatch.diagrams import load_scenario
 from reachwatch.diagrams.checkpoints import load_history_monitor
 from reachwatch.pipeline.monitor_sections import markdown_tables
 from reachwatch.pipeline.monitor_guarded import ORACLE, oracle_flag_ticks
-from reachwatch.pipeline.monitor_study import DETECTOR_ROW, run_monitor_study, starts_seed
+from reachwatch.pipeline.monitor_study import (DETECTOR_ROW, checkpoint_file, run_monitor_study,
+                                               starts_seed)
 from reachwatch.pipeline.spec import MonitorVariant, load_run_spec
 from reachwatch.training.conformal import conformal_threshold
 from tiny_run import MONITOR_STUDY, TINY
@@ -121,10 +122,12 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
         assert (needless, safe) == (pooled["needless"]["count"], pooled["needless"]["of"])
         assert row["held_out"]["pooled"]["needless"]["of"] + row["held_out"]["pooled"]["miss"][
             "of"] == 6
-    # the kept monitor (and the single-frame one) are checkpoints with their calibration
+    # the kept monitor (and the single-frame one) are checkpoints with their calibration,
+    # each file named after its variant
     for name, file in result["checkpoints"].items():
         model, config, meta = load_history_monitor(tmp_path / "out" / file)
         assert meta["variant"] == name and meta["threshold"] == result["variants"][name]["threshold"]
+        assert file == checkpoint_file(name)
     # the guarded real loop ran from the held-out starts, for each saved monitor and the
     # oracle, which stops no safe run and covers a safe run's whole distance
     assert set(result["guarded"]) == set(result["checkpoints"]) | {ORACLE, DETECTOR_ROW}
@@ -444,3 +447,12 @@ def test_strict_json_writes_non_finite_numbers_as_null_and_reads_them_back(tmp_p
     read = read_study_result(tmp_path / "monitor.json")["variants"]["v"]
     assert read["scores"]["calibrate"][0]["warning"] == [0.3, -np.inf]
     assert np.isnan(read["held_out"]["pooled"]["miss"]["rate"])
+
+
+def test_a_studys_checkpoint_files_are_named_after_their_variants():
+    assert checkpoint_file("single frame") == "monitor_single-frame.pt"
+    assert checkpoint_file("GRU 16 (0.75 s) + signals") == "monitor_gru-16-0-75-s-signals.pt"
+    assert checkpoint_file("Été ☀") == "monitor_t.pt"
+    assert checkpoint_file("☀") == "monitor_variant.pt"
+    taken = {"monitor_a-b.pt", "monitor_a-b-2.pt"}
+    assert checkpoint_file("a b", taken) == "monitor_a-b-3.pt"
