@@ -83,7 +83,8 @@ def main():
         alpha=args.alpha, brake_deceleration=args.brake, height=args.size[0], width=args.size[1],
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
-        input_norm=args.input_norm, seed=args.train_seed, lr_schedule=args.lr_schedule, ensemble=args.ensemble,
+        input_norm=args.input_norm, seed=args.train_seed, lr_schedule=args.lr_schedule,
+        ensemble=args.ensemble,
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])
     try:

@@ -9,7 +9,8 @@ from reachwatch.diagrams import MonitorConfig
 from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW
 from reachwatch.diagrams.schemas import (ApplicationEnvironment, ApplicationRandomEnvironments,
                                          slot_field)
-from reachwatch.systems import INPUT_NORMS, MAX_MEMBERS, TEMPORAL_MODELS, HistoryMonitorConfig
+from reachwatch.systems import MAX_MEMBERS, TEMPORAL_MODELS, HistoryMonitorConfig
+from reachwatch.systems.history_monitor import check_input_norm
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
 from reachwatch.systems.checks import check_label, short
 from reachwatch.systems.flag_filter import check_k_of_n
@@ -153,9 +154,7 @@ class MonitorStudySpec:
         check_bounds(self, f"{where}.")
         if not isinstance(self.augment, bool):
             raise ValueError(f"{where}.augment must be true or false, got {short(self.augment)}")
-        if self.input_norm not in INPUT_NORMS:
-            raise ValueError(f"{where}.input_norm must be one of {INPUT_NORMS}, got "
-                             f"{short(self.input_norm)}")
+        check_input_norm(f"{where}.", self.input_norm)
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"{where}.lr_schedule must be one of {LR_SCHEDULES}, got "
                              f"{short(self.lr_schedule)}")

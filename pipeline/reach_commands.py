@@ -16,7 +16,6 @@ from .commands import (RunFileDefault, count, grid_nodes, horizon_seconds, non_n
 ACCURACIES = ("high", "low", "semi_lagrangian", "very_high")
 
 
-
 def _grid_args(parser):
     parser.add_argument("--scenario", help="scenario YAML (environment, camera, controller)")
     add_overlay_arguments(parser)

@@ -28,8 +28,8 @@ from .runway import RUNWAYS, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, 
 from .random_environments import RandomEnvironments, RandomRunwayRanges, random_runway
 from .scene import add_runway_scene
 from .dead_reckoning import DeadReckoning, propagate_estimate
-from .history_monitor import (INPUT_NORMS, TEMPORAL_MODELS, HistoryMonitor, HistoryMonitorConfig,
-                              HistoryRiskModel, platt)
+from .history_monitor import (INPUT_NORMS, TEMPORAL_MODELS, HistoryMonitor,
+                              HistoryMonitorConfig, HistoryRiskModel, platt)
 from .risk_ensemble import MAX_MEMBERS, HistoryRiskEnsemble, MeanRisk, check_members
 from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
 from .ports import weak_callback

@@ -20,6 +20,7 @@ from pydrake.systems.sensors import ImageRgba8U
 from torch import nn
 
 from .bounds import bounded, check_bounds
+from .checks import short
 from .detector import DetectorConfig, detector_input, inference_model, resize_for_detector
 
 #: How the per-frame features of the history are combined: ``stack`` concatenates them
@@ -34,6 +35,14 @@ TEMPORAL_MODELS = ("stack", "gru")
 INPUT_NORMS = ("fixed", "per_frame")
 #: Added to a frame's std before dividing by it (a uniform frame stays finite).
 FRAME_STD_FLOOR = 1e-3
+
+
+def check_input_norm(where: str, value) -> str:
+    """``value`` if it is one of `INPUT_NORMS`; else a ValueError naming ``where``
+    (the field's path up to ``input_norm``)."""
+    if value not in INPUT_NORMS:
+        raise ValueError(f"{where}input_norm must be one of {INPUT_NORMS}, got {short(value)}")
+    return value
 
 
 @dc.dataclass
@@ -65,9 +74,7 @@ class HistoryMonitorConfig:
         if self.temporal not in TEMPORAL_MODELS:
             raise ValueError(f"history monitor temporal must be one of {TEMPORAL_MODELS}, got "
                              f"{self.temporal!r}")
-        if self.input_norm not in INPUT_NORMS:
-            raise ValueError(f"history monitor input_norm must be one of {INPUT_NORMS}, got "
-                             f"{self.input_norm!r}")
+        check_input_norm("history monitor ", self.input_norm)
         if len(self.signal_mean) not in (0, self.signals) or \
                 len(self.signal_std) != len(self.signal_mean):
             raise ValueError(f"history monitor signal_mean and signal_std need {self.signals} "
