@@ -14,7 +14,10 @@ unpickles its first chunk, ~1 GB and ~2 s of CPU each, too much 32 times on a sm
 machine; ``--sim-processes 32`` gives 32 single-thread workers where it fits). Beside
 `map_states` it times the same tasks through bare ``client.map`` (Dask alone: no
 window, no cache), the same cost in smaller chunks, and zero-cost tasks (the task
-rate the driver and scheduler sustain).
+rate the driver and scheduler sustain), each on a cluster whose scheduler has each of
+``--sim-saturations`` as its worker-saturation (default 1.0, as the cluster guide starts
+it, and Dask's default 1.1, which queues tasks on busy worker threads). Every other
+cluster here is started at 1.0.
 
 ``--workers`` sets the clusters' sizes (default 1 and 2; on a machine with more cores,
 e.g. ``--workers 1 2 4 8``). A last row runs 2 workers whose renderers (Mesa's llvmpipe) each take every core,
@@ -43,6 +46,7 @@ first round's one-after-another ones.
     python benchmarks/scale.py [--shape 9 5 9] [--starts 32] [--duration 1]
                                [--rounds 3] [--workers 1 2] [--no-all-core] [--sim-workers 32] [--sim-processes 4]
                                [--sim-cost 0.05] [--sim-chunk 8] [--sim-tasks 8]
+                               [--sim-saturations 1.0 1.1]
     python benchmarks/scale.py --together 4 [--together-executor local:2]
                                [--shape 9 5 9] [--chunk 0] [--rounds 3]
 """
@@ -63,7 +67,8 @@ import torch
 
 from reachwatch.diagrams import load_scenario
 from reachwatch.diagrams.render_stack import render_stack
-from reachwatch.pipeline.executors import make_executor
+from reachwatch.pipeline.executors import (SATURATION, SATURATION_VARIABLE, make_executor,
+                                           scheduler_saturation)
 from reachwatch.reach import InlineExecutor
 from reachwatch.reach.chunks import executor_threads, run_together
 from reachwatch.reach.outcomes import default_chunk_size, map_states
@@ -88,14 +93,15 @@ def _stop(process, grace: float = 10.0):
 @contextlib.contextmanager
 def dask_cluster(root: Path, processes: int, threads: int = 1, timeout: float = 180.0,
                  env: dict = None):
-    """A ``dask scheduler`` and ``processes`` ``dask worker`` subprocesses of
+    """A ``dask scheduler`` (worker-saturation `SATURATION` unless ``env`` says
+    otherwise) and ``processes`` ``dask worker`` subprocesses of
     ``threads`` threads each (no nanny), all on 127.0.0.1, each worker with its own
     working and local directory under ``root``; yields ``(address, seconds to start)``
     and stops them all on the way out."""
     root.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     file = root / "scheduler.json"
-    env = {**os.environ, **SINGLE_THREAD, **(env or {})}
+    env = {**os.environ, **SINGLE_THREAD, SATURATION_VARIABLE: repr(SATURATION), **(env or {})}
     children = []
     try:
         log = open(root / "scheduler.log", "wb")
@@ -176,6 +182,9 @@ def main():
     parser.add_argument("--sim-cost", type=float, default=0.05, help="stand-in render cost, s per state")
     parser.add_argument("--sim-chunk", type=int, default=8, help="states per task")
     parser.add_argument("--sim-tasks", type=int, default=8, help="tasks per simulated worker")
+    parser.add_argument("--sim-saturations", type=float, nargs="+", default=[1.0, 1.1],
+                        help="the schedulers' worker-saturation, a cluster each (1.0: the "
+                             "cluster guide's; 1.1: Dask's default)")
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2],
                         help="the clusters' sizes in single-thread workers (1 must be among them: "
                              "efficiency is against it)")
@@ -354,7 +363,8 @@ def together_ratio(args, root: Path):
 def overhead(args, root: Path):
     """Sleep tasks through `map_states` on ``--sim-workers`` worker threads: the stand-in
     cost in chunks of ``--sim-chunk`` states, the same in chunks a quarter that size,
-    and zero-cost tasks (the rate of tasks the driver and scheduler sustain)."""
+    and zero-cost tasks (the rate of tasks the driver and scheduler sustain); on a
+    cluster whose scheduler has each of ``--sim-saturations`` (the rounds take turns)."""
     n, per = args.sim_workers, args.sim_workers // args.sim_processes
     tasks = n * args.sim_tasks
     configs = [(args.sim_cost, args.sim_chunk, False), (args.sim_cost, args.sim_chunk, True),
@@ -364,44 +374,62 @@ def overhead(args, root: Path):
     map_states(functools.partial(stand_in, 0.0), batches[0], cache_dir=root / "cache" / "inline",
                chunk_size=args.sim_chunk, progress=False, required=("failed",))
     driver_ms = (time.perf_counter() - t) / tasks * 1000
-    walls, ok = {c: [] for c in configs}, {c: True for c in configs}
-    with dask_cluster(root, args.sim_processes, per) as (address, start_s):
-        from dask.distributed import Client
-        executor, close = make_executor(f"dask://{address.split('://', 1)[1]}")
-        client = Client(address)
-        try:
-            for round_ in range(args.rounds + 1):      # round 0: warm-up (imports on the workers)
+    saturations = args.sim_saturations
+    runs = [(s, c) for s in saturations for c in configs]
+    walls, ok = {r: [] for r in runs}, {r: True for r in runs}
+    with contextlib.ExitStack() as stack:
+        clusters = {}
+        for s in saturations:
+            address, start_s = stack.enter_context(dask_cluster(
+                root / f"saturation_{s:g}", args.sim_processes, per,
+                env={SATURATION_VARIABLE: repr(float(s))}))
+            from dask.distributed import Client
+            executor, close = make_executor(f"dask://{address.split('://', 1)[1]}")
+            stack.callback(close)
+            client = stack.enter_context(Client(address))
+            told = scheduler_saturation(client)
+            if told != float(s):
+                raise RuntimeError(f"the scheduler started with {SATURATION_VARIABLE}={s:g} "
+                                   f"reports {told}")
+            clusters[s] = (executor, client, start_s)
+        for round_ in range(args.rounds + 1):      # round 0: warm-up (imports on the workers)
+            for s in saturations:
+                executor, client, _ = clusters[s]
                 for (cost, chunk, bare), states in zip(configs, batches):
                     fn = functools.partial(stand_in, cost)
                     t = time.perf_counter()
                     if bare:     # Dask alone: every task submitted at once, no cache, no window
                         parts = client.gather(client.map(
-                            fn, [states[s:s + chunk] for s in range(0, len(states), chunk)],
+                            fn, [states[i:i + chunk] for i in range(0, len(states), chunk)],
                             pure=False))
                         fields = {"sum": np.concatenate([p["sum"] for p in parts])}
                     else:
-                        fields, _, _ = map_states(fn, states, chunk_size=chunk, executor=executor,
-                                                  cache_dir=root / "cache" / f"{round_}_{cost}_{chunk}",
-                                                  progress=False, required=("failed",))
-                    walls[cost, chunk, bare].append(time.perf_counter() - t)
-                    ok[cost, chunk, bare] &= np.array_equal(fields["sum"], states.sum(axis=1))
-        finally:
-            client.close()
-            close()
+                        fields, _, _ = map_states(
+                            fn, states, chunk_size=chunk, executor=executor,
+                            cache_dir=root / "cache" / f"{s:g}_{round_}_{cost}_{chunk}",
+                            progress=False, required=("failed",))
+                    walls[s, (cost, chunk, bare)].append(time.perf_counter() - t)
+                    ok[s, (cost, chunk, bare)] &= np.array_equal(fields["sum"], states.sum(axis=1))
+    starts = ", ".join(f"{s:g}: {clusters[s][2]:.1f} s" for s in saturations)
     print(f"\nscheduling overhead: {n} simulated workers ({args.sim_processes} dask worker "
-          f"processes x {per} thread(s), 127.0.0.1, started in {start_s:.1f} s); {tasks} tasks "
+          f"processes x {per} thread(s), 127.0.0.1; a cluster per scheduler worker-saturation, "
+          f"started in {starts}); {tasks} tasks "
           f"({args.sim_tasks} per worker) that sleep a stand-in render cost per state, through "
-          f"map_states (the driver writes every chunk's cache) or bare client.map; medians of {args.rounds} "
-          f"interleaved rounds after a warm-up ({walls[configs[0]][0]:.1f} s: imports on the workers)")
-    print(f"{'through':<18} {'ms/state':>8} {'states/task':>11} {'task s':>7} {'ideal s':>8} "
-          f"{'wall s':>7} {'overhead':>8} {'tasks/s':>8}  results right")
-    for (cost, chunk, bare), states in zip(configs, batches):
-        wall = float(np.median(walls[cost, chunk, bare][1:]))
+          f"map_states (the driver writes every chunk's cache) or bare client.map; medians of "
+          f"{args.rounds} interleaved rounds after a warm-up "
+          f"({walls[saturations[0], configs[0]][0]:.1f} s: imports on the workers)")
+    print(f"{'saturation':>10} {'through':<18} {'ms/state':>8} {'states/task':>11} {'task s':>7} "
+          f"{'ideal s':>8} {'wall s':>7} {'overhead':>8} {'tasks/s':>8}  results right")
+    for s, ((cost, chunk, bare), states) in ((s, c) for s in saturations
+                                              for c in zip(configs, batches)):
+        wall = float(np.median(walls[s, (cost, chunk, bare)][1:]))
         ideal = len(states) * cost / n
-        print(f"{'client.map (bare)' if bare else 'map_states':<18} {cost * 1000:8g} {chunk:11d} "
-              f"{cost * chunk:7.2f} {ideal:8.2f} {wall:7.2f} {(wall - ideal) / wall:8.1%} "
-              f"{tasks / wall:8.0f}  {ok[cost, chunk, bare]}")
-    print("overhead = (wall - ideal) / wall, ideal = total sleep / workers")
+        print(f"{s:10g} {'client.map (bare)' if bare else 'map_states':<18} {cost * 1000:8g} "
+              f"{chunk:11d} {cost * chunk:7.2f} {ideal:8.2f} {wall:7.2f} "
+              f"{(wall - ideal) / wall:8.1%} {tasks / wall:8.0f}  {ok[s, (cost, chunk, bare)]}")
+    print("overhead = (wall - ideal) / wall, ideal = total sleep / workers; saturation: the "
+          "scheduler's worker-saturation (tasks it sends a worker per thread; Dask's default "
+          "is 1.1, the cluster guide starts it at 1.0)")
     print(f"the driver's own work per chunk (inline, zero-cost tasks): {driver_ms:.2f} ms")
 
 

@@ -39,3 +39,13 @@ def test_every_executor_option_refuses_a_malformed_value_before_any_file_is_read
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert f"error: argument --executor: {message}" in err, err
     assert "MISSING" not in err
+
+
+def test_saturation_advice_names_the_setting_only_where_chunks_would_queue():
+    from reachwatch.pipeline.executors import SATURATION_VARIABLE, saturation_advice
+    for quiet in (None, float("nan"), 1.0, 0.5):
+        assert saturation_advice(quiet) == ""
+    for queues in (1.1, float("inf")):
+        advice = saturation_advice(queues)
+        assert "\n" not in advice and f"{SATURATION_VARIABLE}=1 " in advice
+        assert f"worker-saturation {queues:g}" in advice

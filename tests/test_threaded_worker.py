@@ -215,3 +215,22 @@ def test_a_task_on_a_worker_unlike_the_driver_is_refused_in_one_line(two_thread_
     finally:
         close()
     assert "loop code ffffffffffff" in str(error.value)
+
+
+def test_a_scheduler_that_queues_chunks_on_busy_threads_is_named_in_one_warning(
+        caplog, two_thread_worker):
+    """The fixture's scheduler has Dask's default worker-saturation (1.1 unless the
+    environment sets it): connecting says so in one line with the setting that fixes
+    it; the results do not depend on it, so it is a warning, not a refusal."""
+    address, _ = two_thread_worker
+    with distributed.Client(address) as client:
+        saturation = executors.scheduler_saturation(client)
+    assert saturation == float(os.environ.get(executors.SATURATION_VARIABLE, 1.1))
+    with caplog.at_level("WARNING", logger="reachwatch"):
+        make_executor("dask://" + address.split("://", 1)[1])[1]()
+    lines = [r.getMessage() for r in caplog.records if "worker-saturation" in r.getMessage()]
+    if saturation > executors.SATURATION:
+        assert len(lines) == 1 and "\n" not in lines[0], lines
+        assert f"{executors.SATURATION_VARIABLE}=1" in lines[0]
+    else:
+        assert lines == []
