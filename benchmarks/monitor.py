@@ -65,6 +65,13 @@ def main():
                    help="how the encoder normalises each frame: fixed (the detector's "
                         "constant shift and scale) or per_frame (also by the frame's own mean "
                         "and std)")
+    p.add_argument("--pool", type=int, nargs=2, default=defaults.pool, metavar=("ROWS", "COLS"),
+                   help="the grid the encoder's last feature map is averaged over (1 1: whole)")
+    p.add_argument("--state-targets", type=int, nargs="*", default=defaults.state_targets,
+                   metavar="I", help="state components the encoder also learns to estimate "
+                   "from the frame (the taxi: 0 2, cross-track error and heading; none: off)")
+    p.add_argument("--state-weight", type=float, default=defaults.state_weight,
+                   help="the weight of that estimate's squared error beside the failure loss")
     p.add_argument("--nights", action="store_true",
                    help="also judge on the paper's held-out 21 h environments (KSFO, KEWR)")
     p.add_argument("--detector", default=None, metavar="CHECKPOINT",
@@ -84,7 +91,8 @@ def main():
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
         input_norm=args.input_norm, seed=args.train_seed, lr_schedule=args.lr_schedule,
-        ensemble=args.ensemble,
+        ensemble=args.ensemble, state_targets=list(args.state_targets), pool=list(args.pool),
+        state_weight=args.state_weight,
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])
     try:

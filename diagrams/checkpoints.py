@@ -178,5 +178,6 @@ def load_history_monitor(path):
 
 def _history_config(**fields) -> HistoryMonitorConfig:
     """A history monitor's config as its checkpoint holds it; one written before
-    ``input_norm`` existed was trained ``fixed`` (not today's default)."""
-    return HistoryMonitorConfig(**{"input_norm": "fixed", **fields})
+    ``input_norm`` existed was trained ``fixed`` (not today's default), and one written
+    before ``pool`` averaged the last feature map whole ([1, 1])."""
+    return HistoryMonitorConfig(**{"input_norm": "fixed", "pool": [1, 1], **fields})

@@ -14,7 +14,7 @@ from reachwatch.systems.history_monitor import check_input_norm
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
 from reachwatch.systems.checks import check_label, short
 from reachwatch.systems.flag_filter import check_k_of_n
-from reachwatch.training.history_train import LR_SCHEDULES
+from reachwatch.training.history_train import LR_SCHEDULES, check_state_targets
 
 from .slot_defaults import application_default
 
@@ -108,7 +108,15 @@ class MonitorStudySpec:
     the per-frame encoder's; 12 rather than 6 ranked the calibration environments'
     ticks and whole runs better in every variant, on average over three trainings
     against five (random family, seed 11, train 16, calibrate 16); the needless flags
-    at the conformal threshold moved both ways. The cosine schedule ranked worse."""
+    at the conformal threshold moved both ways. The cosine schedule ranked worse.
+    ``state_targets``: components of the recorded state (the plant's, e.g. the taxi's
+    ``[0, 2]``, cross-track error and heading) that the per-frame encoder also learns to
+    estimate from the frame, a squared error weighted ``state_weight`` beside the
+    failure loss (`reachwatch.training.history_train.HistoryTrainConfig`); ``[]``:
+    none. Privileged, like the labels: read in training only. ``pool``: the grid of
+    cells [rows, columns] the encoder's last feature map is averaged over
+    (`reachwatch.systems.HistoryMonitorConfig`); [1, 1] averages it whole, losing where
+    in the frame a pattern lies."""
     kind: str = "detector"
     family: ApplicationRandomEnvironments = slot_field(
         "monitor", application_default(ApplicationRandomEnvironments, "monitor"))
@@ -126,6 +134,8 @@ class MonitorStudySpec:
                            note=">= 1 / (calibrate + 1)")
     height: int = bounded_as(48, HistoryMonitorConfig, "height")
     width: int = bounded_as(80, HistoryMonitorConfig, "width")
+    pool: List[int] = bounded_as(None, HistoryMonitorConfig, "pool",
+                                 default_factory=lambda: [1, 1])
     epochs: int = bounded(12, 1, 10_000, whole=True)
     head_epochs: int = bounded(40, 1, 100_000, whole=True)
     augment: bool = True
@@ -133,6 +143,8 @@ class MonitorStudySpec:
     seed: int = seed_field()
     ensemble: int = bounded(1, 1, MAX_MEMBERS, whole=True)
     lr_schedule: str = "constant"
+    state_targets: List[int] = dc.field(default_factory=list)
+    state_weight: float = bounded(1.0, 0.0, 1e6, low_open=True, high_open=True)
     guarded_runs: int = bounded(0, 0, 100_000, whole=True)
     compare_detector: bool = True
     variants: List[MonitorVariant] = dc.field(default_factory=default_variants)
@@ -158,6 +170,12 @@ class MonitorStudySpec:
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"{where}.lr_schedule must be one of {LR_SCHEDULES}, got "
                              f"{short(self.lr_schedule)}")
+        check_state_targets(f"{where}.state_targets", self.state_targets)
+        try:
+            HistoryMonitorConfig(height=self.height, width=self.width,
+                                 pool=list(self.pool)).validate()
+        except ValueError as e:
+            raise ValueError(str(e).replace("history monitor ", f"{where}.", 1)) from None
         if self.within >= self.duration:
             raise ValueError(f"{where}.within ({self.within:g} s) must be shorter than "
                              f"{where}.duration ({self.duration:g} s): a run that does not "

@@ -172,7 +172,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     train = _merged(data["train"])
     labels = tick_labels(train, period=period, duration=spec.duration, within=spec.within)
     base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within,
-                                input_norm=spec.input_norm)
+                                input_norm=spec.input_norm, pool=list(spec.pool))
     # each member of the ensemble: its own encoder (`member_settings`) and features
     members = []
     for m, settings in enumerate(member_settings(spec)):
@@ -312,11 +312,13 @@ STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_monitor
 
 def train_settings(spec: MonitorStudySpec) -> HistoryTrainConfig:
     """The optimisation settings the study trains its monitors with: the run file's
-    ``epochs``, ``head_epochs``, ``augment``, ``seed`` and ``lr_schedule``, the rest
-    `HistoryTrainConfig`'s."""
+    ``epochs``, ``head_epochs``, ``augment``, ``seed``, ``lr_schedule``,
+    ``state_targets`` and ``state_weight``, the rest `HistoryTrainConfig`'s."""
     return HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs,
                               augment=spec.augment, seed=spec.seed,
-                              lr_schedule=spec.lr_schedule)
+                              lr_schedule=spec.lr_schedule,
+                              state_targets=tuple(spec.state_targets),
+                              state_weight=spec.state_weight)
 
 
 def member_settings(spec: MonitorStudySpec) -> list:

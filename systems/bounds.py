@@ -139,11 +139,14 @@ def bounded(default=dc.MISSING, low=None, high=None, *, default_factory=dc.MISSI
                     metadata={"bound": Bound(low, high, **bound)})
 
 
-def bounded_as(default, cls, name: str, **changes):
-    """A field with ``default`` bounded as the field ``name`` of the dataclass ``cls``
-    (with ``changes`` to its `Bound`, e.g. a ``note``): one quantity, one declaration."""
-    return dc.field(default=default,
-                    metadata={"bound": dc.replace(bounds(cls)[name], **changes)})
+def bounded_as(default, cls, name: str, *, default_factory=None, **changes):
+    """A field with ``default`` (or ``default_factory``, for a list) bounded as the
+    field ``name`` of the dataclass ``cls`` (with ``changes`` to its `Bound`, e.g. a
+    ``note``): one quantity, one declaration."""
+    metadata = {"bound": dc.replace(bounds(cls)[name], **changes)}
+    if default_factory is not None:
+        return dc.field(default_factory=default_factory, metadata=metadata)
+    return dc.field(default=default, metadata=metadata)
 
 
 def seed_field(default: int = 0):

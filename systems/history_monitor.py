@@ -53,7 +53,12 @@ class HistoryMonitorConfig:
     (0: images only), standardised with ``signal_mean`` / ``signal_std``; ``temporal``
     one of `TEMPORAL_MODELS` with ``hidden`` units. ``within`` (s) is the T of "fails
     within T s" that the risk predicts. ``input_norm``: one of `INPUT_NORMS` (a
-    checkpoint that does not say was trained ``fixed``)."""
+    checkpoint that does not say was trained ``fixed``). ``pool``: the CNN's last
+    feature map is averaged over a grid of ``pool`` = [rows, columns] cells before the
+    projection to ``features``: ``[1, 1]`` averages it whole, so where in the frame a
+    pattern lies (the runway's edge left or right of the centre) is lost; a finer grid
+    keeps it. The grid must fit in the map (``height`` and ``width`` halved once per
+    entry of ``channels``)."""
     frames: int = bounded(8, 1, 64, whole=True)
     stride: int = bounded(1, 1, 100, whole=True, unit="ticks")
     height: int = bounded(48, 16, 512, whole=True, unit="px")
@@ -68,9 +73,17 @@ class HistoryMonitorConfig:
     hidden: int = bounded(32, 1, 1024, whole=True)
     within: float = bounded(2.0, 0.0, low_open=True, unit="s")
     input_norm: str = "per_frame"
+    pool: List[int] = bounded(default_factory=lambda: [1, 1], low=1, high=64, whole=True,
+                              each=True, items=(2, 2))
 
     def validate(self):
         check_bounds(self, "history monitor ")
+        size = [self.height >> len(self.channels), self.width >> len(self.channels)]
+        if self.pool[0] > size[0] or self.pool[1] > size[1]:
+            raise ValueError(f"history monitor pool {list(self.pool)} must fit in the "
+                             f"encoder's last map, {size[0]} x {size[1]} cells at "
+                             f"{self.height} x {self.width} px with {len(self.channels)} "
+                             f"layers")
         if self.temporal not in TEMPORAL_MODELS:
             raise ValueError(f"history monitor temporal must be one of {TEMPORAL_MODELS}, got "
                              f"{self.temporal!r}")
@@ -115,7 +128,8 @@ class HistoryRiskModel(nn.Module):
                        nn.ReLU(inplace=True), nn.MaxPool2d(2)]
             c = out
         self.encoder = nn.Sequential(*layers)
-        self.project = nn.Sequential(nn.Linear(c, config.features), nn.ReLU())
+        self.project = nn.Sequential(nn.Linear(c * config.pool[0] * config.pool[1],
+                                               config.features), nn.ReLU())
         width = config.features + config.signals
         if config.temporal == "gru":
             self.gru = nn.GRU(width, config.hidden, batch_first=True)
@@ -142,7 +156,10 @@ class HistoryRiskModel(nn.Module):
         if self.config.input_norm == "per_frame":
             x = ((x - x.mean(dim=(2, 3), keepdim=True))
                  / (x.std(dim=(1, 2, 3), keepdim=True) + FRAME_STD_FLOOR))
-        return self.project(self.encoder(x).mean(dim=(2, 3)))
+        maps = self.encoder(x)
+        if list(self.config.pool) == [1, 1]:
+            return self.project(maps.mean(dim=(2, 3)))
+        return self.project(nn.functional.adaptive_avg_pool2d(maps, self.config.pool).flatten(1))
 
     def head_input(self, features: torch.Tensor, signals: torch.Tensor = None) -> torch.Tensor:
         """Raw ``features`` ``(..., features)`` and ``signals`` ``(..., signals)`` ->

@@ -33,7 +33,14 @@ class HistoryTrainConfig:
     the encoder leans less on the training environments' light and paint.
     ``lr_schedule``: ``constant`` keeps each stage's learning rate; ``cosine`` decays it
     to zero over the stage's steps (`torch.optim.lr_scheduler.CosineAnnealingLR`), so
-    the last epochs take small steps and one training ends nearer the next."""
+    the last epochs take small steps and one training ends nearer the next.
+    ``state_targets``: components of the runs' recorded ``state`` that stage 1 also
+    teaches the encoder to estimate from the frame (each standardised over the training
+    ticks, a squared error weighted ``state_weight`` beside the failure loss, through a
+    linear read-out dropped after training), so that its features carry what the state
+    is, not only what the training environments' failures looked like; ``[]``: none
+    (the encoder's weights are then those of a training without the option). The state
+    is privileged: it is read in training only, never online."""
     epochs: int = 12
     head_epochs: int = 40
     head_learning_rate: float = 3e-3
@@ -44,11 +51,45 @@ class HistoryTrainConfig:
     seed: int = 0
     augment: bool = True
     lr_schedule: str = "constant"
+    state_targets: tuple = ()
+    state_weight: float = 1.0
 
     def __post_init__(self):
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got "
                              f"{self.lr_schedule!r}")
+        self.state_targets = tuple(check_state_targets("state_targets", self.state_targets))
+        if not (isinstance(self.state_weight, (int, float)) and not isinstance(
+                self.state_weight, bool) and 0 < self.state_weight < 1e6):
+            raise ValueError(f"state_weight must be a number in (0, 1e6), got "
+                             f"{self.state_weight!r}")
+
+
+def check_state_targets(where: str, targets) -> list:
+    """``targets`` as a list of distinct whole numbers >= 0 (state components), or a
+    one-line ValueError naming ``where``."""
+    values = list(targets) if isinstance(targets, (list, tuple)) else None
+    if values is None or any(isinstance(t, bool) or not isinstance(t, (int, np.integer))
+                             or t < 0 for t in values) or len(set(values)) != len(values):
+        raise ValueError(f"{where} must list distinct state components (whole numbers >= 0), "
+                         f"got {targets!r}")
+    return [int(t) for t in values]
+
+
+def _state_read_out(runs: dict, rows, cols, train: HistoryTrainConfig, features: int):
+    """``(targets (N, k) standardised, linear read-out)`` of ``train.state_targets`` at
+    the ticks ``rows, cols``, or ``(None, None)`` without targets."""
+    if not train.state_targets:
+        return None, None
+    state = np.asarray(runs.get("state", np.zeros((0, 0, 0))), float)
+    width = state.shape[-1] if state.ndim == 3 else 0
+    if max(train.state_targets) >= width:
+        raise ValueError(f"state_targets {list(train.state_targets)} name components the "
+                         f"recorded runs do not have (their state has {width})")
+    values = state[rows, cols][:, list(train.state_targets)]
+    values = (values - values.mean(axis=0)) / np.maximum(values.std(axis=0), 1e-6)
+    return (torch.from_numpy(values.astype(np.float32)),
+            torch.nn.Linear(features, len(train.state_targets)))
 
 
 LR_SCHEDULES = ("constant", "cosine")
@@ -96,8 +137,11 @@ def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
                          f"horizon: a monitor needs both kinds (more runs, runs that fail, or "
                          f"runs longer than the horizon)")
     y = torch.from_numpy(labels[rows, cols].astype(np.float32))
-    optimiser = torch.optim.AdamW(model.parameters(), lr=train.learning_rate,
-                                  weight_decay=train.weight_decay)
+    # made after the model, so that without targets its weights are drawn as before
+    state, read_out = _state_read_out(runs, rows, cols, train, config.features)
+    optimiser = torch.optim.AdamW(list(model.parameters()) + (
+        list(read_out.parameters()) if read_out is not None else []),
+        lr=train.learning_rate, weight_decay=train.weight_decay)
     weight = _pos_weight(labels[rows, cols])
     frames = runs["frames"]
     jitter = torch.Generator().manual_seed(train.seed) if train.augment else None
@@ -111,8 +155,11 @@ def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
             x = detector_input(torch.from_numpy(frames[rows[b], cols[b]]), config.image_config)
             if jitter is not None:
                 x = colour_jitter(x, jitter)
-            logits = model.head_logits(model.encode_input(x)[:, None])
+            features = model.encode_input(x)
+            logits = model.head_logits(features[:, None])
             loss = F.binary_cross_entropy_with_logits(logits, y[b], pos_weight=weight)
+            if read_out is not None:
+                loss = loss + train.state_weight * F.mse_loss(read_out(features), state[b])
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
@@ -156,7 +203,8 @@ def train_head(encoder: HistoryRiskModel, features: np.ndarray, runs: dict,
         config = dc.replace(config, signal_mean=mean, signal_std=std)
     config = dc.replace(config, height=encoder.config.height, width=encoder.config.width,
                         channels=list(encoder.config.channels),
-                        features=encoder.config.features)
+                        features=encoder.config.features, pool=list(encoder.config.pool),
+                        input_norm=encoder.config.input_norm)
     torch.manual_seed(train.seed)
     rng = np.random.default_rng(train.seed)
     model = HistoryRiskModel(config)
