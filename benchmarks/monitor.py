@@ -67,9 +67,10 @@ def main():
                         "and std)")
     p.add_argument("--pool", type=int, nargs=2, default=defaults.pool, metavar=("ROWS", "COLS"),
                    help="the grid the encoder's last feature map is averaged over (1 1: whole)")
-    p.add_argument("--state-targets", type=int, nargs="*", default=defaults.state_targets,
-                   metavar="I", help="state components the encoder also learns to estimate "
-                   "from the frame (the taxi: 0 2, cross-track error and heading; none: off)")
+    p.add_argument("--state-targets", type=int, nargs="*", default=None, metavar="I",
+                   help="state components the encoder also learns to estimate from the frame "
+                        "(default: the application's estimated_state, the taxi's 0 2: "
+                        "cross-track error and heading; given with none: off)")
     p.add_argument("--state-weight", type=float, default=defaults.state_weight,
                    help="the weight of that estimate's squared error beside the failure loss")
     p.add_argument("--nights", action="store_true",
@@ -91,7 +92,8 @@ def main():
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
         input_norm=args.input_norm, seed=args.train_seed, lr_schedule=args.lr_schedule,
-        ensemble=args.ensemble, state_targets=list(args.state_targets), pool=list(args.pool),
+        ensemble=args.ensemble, state_targets=(None if args.state_targets is None
+                                                     else list(args.state_targets)), pool=list(args.pool),
         state_weight=args.state_weight,
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])

@@ -175,7 +175,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                                 input_norm=spec.input_norm, pool=list(spec.pool))
     # each member of the ensemble: its own encoder (`member_settings`) and features
     members = []
-    for m, settings in enumerate(member_settings(spec)):
+    for m, settings in enumerate(member_settings(spec, application)):
         where = f"member {m + 1}/{spec.ensemble}: " if spec.ensemble > 1 else ""
         encoder = train_encoder(train, labels, base, settings, progress=(
             lambda text, where=where: log(f"monitor: {where}{text}")) if progress else None)
@@ -310,22 +310,25 @@ STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_monitor
               "reachwatch.pipeline.monitor_guarded", "reachwatch.pipeline.monitor_judge")
 
 
-def train_settings(spec: MonitorStudySpec) -> HistoryTrainConfig:
+def train_settings(spec: MonitorStudySpec, application=None) -> HistoryTrainConfig:
     """The optimisation settings the study trains its monitors with: the run file's
     ``epochs``, ``head_epochs``, ``augment``, ``seed``, ``lr_schedule``,
-    ``state_targets`` and ``state_weight``, the rest `HistoryTrainConfig`'s."""
+    ``state_targets`` (left out: ``application``'s `estimated_state`; None: the default
+    application's) and ``state_weight``, the rest `HistoryTrainConfig`'s."""
+    targets = spec.state_targets
+    if targets is None:
+        targets = (load_application() if application is None else application).estimated_state
     return HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs,
                               augment=spec.augment, seed=spec.seed,
-                              lr_schedule=spec.lr_schedule,
-                              state_targets=tuple(spec.state_targets),
+                              lr_schedule=spec.lr_schedule, state_targets=tuple(targets),
                               state_weight=spec.state_weight)
 
 
-def member_settings(spec: MonitorStudySpec) -> list:
+def member_settings(spec: MonitorStudySpec, application=None) -> list:
     """`train_settings` of each of the ``spec.ensemble`` (K) members: seeds ``K * seed``
     to ``K * seed + K - 1``, so that studies with other seeds share no member (an
     ensemble of one is the training of ``spec.seed``)."""
-    settings, k = train_settings(spec), spec.ensemble
+    settings, k = train_settings(spec, application), spec.ensemble
     return [dc.replace(settings, seed=k * settings.seed + m) for m in range(k)]
 
 
@@ -337,7 +340,7 @@ def study_key(spec: MonitorStudySpec, application, scenario, detector=None) -> s
     from reachwatch.reach.fingerprint import fingerprint, modules_source_digest
     from .spec import digest
     own = application_key(application)          # None for the default (the taxi)
-    return digest(dc.asdict(spec), dc.asdict(train_settings(spec)),
+    return digest(dc.asdict(spec), dc.asdict(train_settings(spec, application)),
                   fingerprint(application.without_monitor(scenario)), *([own] if own else []),
                   {"study": STUDY_FORMAT, "code": modules_source_digest(*STUDY_CODE)},
                   *([file_hash(detector)] if detector is not None else []))

@@ -86,6 +86,11 @@ class Application(abc.ABC):
     #: application draws none (`NoRandomEnvironments`).
     random_environments_type = None
 
+    #: Components of the plant's state that the controller estimates from the camera:
+    #: what a history monitor's encoder also learns to estimate from each frame in
+    #: training when the run file's ``monitor.state_targets`` is left out. Empty: none.
+    estimated_state = ()
+
     def default_environment(self, role: str):
         """The environment a run file's field takes when left out (``role``:
         ``"incremental"``); default: ``environment_type()``."""

@@ -83,7 +83,7 @@ class HistoryMonitorConfig:
             raise ValueError(f"history monitor pool {list(self.pool)} must fit in the "
                              f"encoder's last map, {size[0]} x {size[1]} cells at "
                              f"{self.height} x {self.width} px with {len(self.channels)} "
-                             f"layers")
+                             f"layers (at most [{size[0]}, {size[1]}])")
         if self.temporal not in TEMPORAL_MODELS:
             raise ValueError(f"history monitor temporal must be one of {TEMPORAL_MODELS}, got "
                              f"{self.temporal!r}")

@@ -52,6 +52,7 @@ class TaxiApplication(RunwayEnvironments, Application):
     axes = AXES
     axis_units = ("m", "m", "rad")
     open_axes = fidelity.OPEN_AXES
+    estimated_state = (0, 2)            # TaxiNet's cross-track error and heading
 
     start_word = "on-runway"
     failure_words = "left the runway"

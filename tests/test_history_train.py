@@ -212,7 +212,7 @@ def test_a_pooling_grid_keeps_where_in_the_frame_things_are():
     assert _state_fit(whole, test, 1) < 0.5 and _state_fit(grid, test, 1) > 0.9
     with pytest.raises(ValueError, match=r"^history monitor pool \[1, 9\] must fit in the "
                                          r"encoder's last map, 8 x 8 cells at 16 x 16 px "
-                                         r"with 1 layers$"):
+                                         r"with 1 layers \(at most \[8, 8\]\)$"):
         dc.replace(config, pool=[1, 9]).validate()
 
 

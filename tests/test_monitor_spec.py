@@ -38,7 +38,8 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
                                          r"components \(whole numbers >= 0\), got \[0, 0\]$"):
         dc.replace(spec.monitor, state_targets=[0, 0]).validate()
     with pytest.raises(ValueError, match=r"^monitor\.pool \[1, 11\] must fit in the encoder's "
-                                         r"last map, 6 x 10 cells at 48 x 80 px with 3 layers$"):
+                                         r"last map, 6 x 10 cells at 48 x 80 px with 3 layers "
+                                         r"\(at most \[6, 10\]\)$"):
         dc.replace(spec.monitor, pool=[1, 11], height=48, width=80).validate()
     for edit, message in ((("kind: history", "kind: lstm"), "monitor.kind must be one of"),
                           (("alpha: 0.5", "alpha: 0.1"), "monitor.calibrate: 1 environments "
@@ -117,18 +118,23 @@ def test_the_study_key_covers_every_training_setting_and_the_study_code(monkeypa
     fixed = load_run_spec(data=TINY + MONITOR_STUDY.replace("  epochs: 1",
                                                     "  epochs: 1\n  input_norm: fixed"))
     assert fixed.monitor.input_norm == "fixed" and key(fixed.monitor) != before
-    for line, field, value in (("state_targets: [0, 2]", "state_targets", (0, 2)),
+    # left out: the application's estimated state (the taxi's cross-track error, heading)
+    assert spec.monitor.state_targets is None
+    assert study.train_settings(spec.monitor).state_targets == (0, 2)
+    for line, field, value in (("state_targets: [0]", "state_targets", (0,)),
+                               ("state_targets: []", "state_targets", ()),
                                ("state_weight: 0.5", "state_weight", 0.5)):
         taught = load_run_spec(data=TINY + MONITOR_STUDY.replace("  epochs: 1",
                                                          f"  epochs: 1\n  {line}"))
         assert getattr(study.train_settings(taught.monitor), field) == value
         assert key(taught.monitor) != before
-    gridded = load_run_spec(data=TINY + MONITOR_STUDY.replace("  epochs: 1",
-                                                      "  epochs: 1\n  pool: [2, 2]"))
-    assert gridded.monitor.pool == [2, 2] and key(gridded.monitor) != before
+    assert spec.monitor.pool == [2, 3]
+    whole = load_run_spec(data=TINY + MONITOR_STUDY.replace("pool: [2, 3]", "pool: [1, 1]"))
+    assert whole.monitor.pool == [1, 1] and key(whole.monitor) != before
     settings = study.train_settings
     monkeypatch.setattr(study, "train_settings",
-                        lambda monitor: dc.replace(settings(monitor), batch_size=64))
+                        lambda monitor, application=None: dc.replace(
+                            settings(monitor, application), batch_size=64))
     assert key(spec.monitor) != before
     monkeypatch.setattr(study, "train_settings", settings)
     import sys

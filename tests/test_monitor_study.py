@@ -263,6 +263,7 @@ monitor:
   within: 0.5
   height: 16
   width: 24
+  pool: [1, 1]
   epochs: 1
   head_epochs: 2
   guarded_runs: 2

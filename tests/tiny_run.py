@@ -38,6 +38,7 @@ monitor:
   within: 1.0
   height: 16
   width: 24
+  pool: [2, 3]
   epochs: 1
   head_epochs: 2
   guarded_runs: 2
