@@ -44,6 +44,10 @@ COMPANIONS = {
     ("run.dataset.labels.max_band", "low"): {"run.dataset.labels.band": 0.0},
     ("run.detector.validation_fraction", "low"): {"run.detector.target_recall": 0.0},
     ("run.monitor.within", "high"): {"run.monitor.duration": 600.0},
+    # the pooling grid must fit in the encoder's last map (the frame halved per layer)
+    ("run.monitor.height", "low"): {"run.monitor.pool": [1, 1]},
+    ("run.monitor.width", "low"): {"run.monitor.pool": [1, 1]},
+    ("run.monitor.pool", "high"): {"run.monitor.height": 512, "run.monitor.width": 512},
     ("run.monitor.calibrate", "low"): {"run.monitor.alpha": 0.5},
     # guarded runs come from the recorded starts of each held-out environment
     ("run.monitor.guarded_runs", "high"): {"run.monitor.held_out_runs": 100_000},
