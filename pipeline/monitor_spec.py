@@ -10,11 +10,12 @@ from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW
 from reachwatch.diagrams.schemas import (ApplicationEnvironment, ApplicationRandomEnvironments,
                                          slot_field)
 from reachwatch.systems import MAX_MEMBERS, TEMPORAL_MODELS, HistoryMonitorConfig
-from reachwatch.systems.history_monitor import check_input_norm
+from reachwatch.systems.history_monitor import check_input_norm, check_pool
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
 from reachwatch.systems.checks import check_label, short
 from reachwatch.systems.flag_filter import check_k_of_n
-from reachwatch.training.history_train import LR_SCHEDULES, check_state_targets
+from reachwatch.training.history_train import (LR_SCHEDULES, HistoryTrainConfig,
+                                               check_state_targets)
 
 from .slot_defaults import application_default
 
@@ -149,7 +150,7 @@ class MonitorStudySpec:
     ensemble: int = bounded(1, 1, MAX_MEMBERS, whole=True)
     lr_schedule: str = "constant"
     state_targets: Optional[List[int]] = None
-    state_weight: float = bounded(1.0, 0.0, 1e6, low_open=True, high_open=True)
+    state_weight: float = bounded_as(1.0, HistoryTrainConfig, "state_weight")
     guarded_runs: int = bounded(0, 0, 100_000, whole=True)
     compare_detector: bool = True
     variants: List[MonitorVariant] = dc.field(default_factory=default_variants)
@@ -177,11 +178,8 @@ class MonitorStudySpec:
                              f"{short(self.lr_schedule)}")
         if self.state_targets is not None:
             check_state_targets(f"{where}.state_targets", self.state_targets)
-        try:
-            HistoryMonitorConfig(height=self.height, width=self.width,
-                                 pool=list(self.pool)).validate()
-        except ValueError as e:
-            raise ValueError(str(e).replace("history monitor ", f"{where}.", 1)) from None
+        check_pool(f"{where}.", self.pool, self.height, self.width,
+                   len(HistoryMonitorConfig().channels))
         if self.within >= self.duration:
             raise ValueError(f"{where}.within ({self.within:g} s) must be shorter than "
                              f"{where}.duration ({self.duration:g} s): a run that does not "

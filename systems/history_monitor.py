@@ -45,6 +45,17 @@ def check_input_norm(where: str, value) -> str:
     return value
 
 
+def check_pool(where: str, pool, height: int, width: int, layers: int):
+    """A ValueError naming ``where`` (the field's path up to ``pool``) when the grid
+    ``pool`` does not fit in the last map of an encoder of ``layers`` layers (each
+    halves the frame) at ``height`` x ``width`` px."""
+    size = [int(height) >> int(layers), int(width) >> int(layers)]
+    if pool[0] > size[0] or pool[1] > size[1]:
+        raise ValueError(f"{where}pool {list(pool)} must fit in the encoder's last map, "
+                         f"{size[0]} x {size[1]} cells at {height} x {width} px with "
+                         f"{layers} layers (at most [{size[0]}, {size[1]}])")
+
+
 @dc.dataclass
 class HistoryMonitorConfig:
     """The monitor's network and what it reads: ``frames`` frames ``stride`` ticks
@@ -78,12 +89,7 @@ class HistoryMonitorConfig:
 
     def validate(self):
         check_bounds(self, "history monitor ")
-        size = [self.height >> len(self.channels), self.width >> len(self.channels)]
-        if self.pool[0] > size[0] or self.pool[1] > size[1]:
-            raise ValueError(f"history monitor pool {list(self.pool)} must fit in the "
-                             f"encoder's last map, {size[0]} x {size[1]} cells at "
-                             f"{self.height} x {self.width} px with {len(self.channels)} "
-                             f"layers (at most [{size[0]}, {size[1]}])")
+        check_pool("history monitor ", self.pool, self.height, self.width, len(self.channels))
         if self.temporal not in TEMPORAL_MODELS:
             raise ValueError(f"history monitor temporal must be one of {TEMPORAL_MODELS}, got "
                              f"{self.temporal!r}")
@@ -157,7 +163,7 @@ class HistoryRiskModel(nn.Module):
             x = ((x - x.mean(dim=(2, 3), keepdim=True))
                  / (x.std(dim=(1, 2, 3), keepdim=True) + FRAME_STD_FLOOR))
         maps = self.encoder(x)
-        if list(self.config.pool) == [1, 1]:
+        if list(self.config.pool) == [1, 1]:    # as before the grid: older checkpoints' bits
             return self.project(maps.mean(dim=(2, 3)))
         return self.project(nn.functional.adaptive_avg_pool2d(maps, self.config.pool).flatten(1))
 

@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel, detector_input
+from reachwatch.systems.bounds import bounded, check_bounds
 
 from .detector_train import colour_jitter
 from .monitor_eval import run_labels
@@ -52,17 +53,14 @@ class HistoryTrainConfig:
     augment: bool = True
     lr_schedule: str = "constant"
     state_targets: tuple = ()
-    state_weight: float = 1.0
+    state_weight: float = bounded(1.0, 0.0, 1e6, low_open=True, high_open=True)
 
     def __post_init__(self):
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got "
                              f"{self.lr_schedule!r}")
         self.state_targets = tuple(check_state_targets("state_targets", self.state_targets))
-        if not (isinstance(self.state_weight, (int, float)) and not isinstance(
-                self.state_weight, bool) and 0 < self.state_weight < 1e6):
-            raise ValueError(f"state_weight must be a number in (0, 1e6), got "
-                             f"{self.state_weight!r}")
+        check_bounds(self)
 
 
 def check_state_targets(where: str, targets) -> list:
