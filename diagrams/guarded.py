@@ -7,8 +7,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem, Outpu
 from pydrake.systems.primitives import Multiplexer, ZeroOrderHold
 
 from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, FlagFilter,
-                                HistoryMonitor, HistoryRiskEnsemble, MeanRisk,
-                                ProportionalController, TrueStateEstimator,
+                                HistoryMonitor, ProportionalController, TrueStateEstimator,
                                 fallback_name)
 
 from .checkpoints import checkpoint_kind, load_detector, load_history_monitor
@@ -25,7 +24,8 @@ MONITOR_SIGNALS = "monitor_signals"
 class Monitor(NamedTuple):
     """The systems `add_monitor` added, and the port of the flags the switch acts on
     (the detector's own, or the `FlagFilter`'s when a k-of-n rule confirms them).
-    ``detector``: an `AnomalyDetector`, a `HistoryMonitor` or an ensemble's `MeanRisk`."""
+    ``detector``: an `AnomalyDetector` or a `HistoryMonitor` (of one model or an
+    ensemble)."""
     detector: LeafSystem
     switch: FallbackSwitch
     anomaly: OutputPort
@@ -47,10 +47,8 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
                  estimate_port=None):
     """Adds the monitor of ``monitor`` (a `MonitorConfig`: its checkpoint and threshold),
     named ``anomaly_detector``, on ``image_port``; returns it. The checkpoint is an
-    image `AnomalyDetector`'s or a `HistoryMonitor`'s, which ticks every ``period`` s
-    (an ensemble's: a `HistoryMonitor` per member, ``anomaly_detector_member_<i>``,
-    and their `MeanRisk` named ``anomaly_detector``)
-    and, when trained with signals, reads the controller's ``estimate_port`` and
+    image `AnomalyDetector`'s or a `HistoryMonitor`'s (of one model or an ensemble's
+    members), which ticks every ``period`` s and, when trained with signals, reads the controller's ``estimate_port`` and
     ``steering_port`` through `add_monitor_signals`. Alone (no switch) it watches a
     loop without acting on it. A null threshold is the checkpoint's own
     (`MonitorConfig.with_checkpoint_defaults`)."""
@@ -59,21 +57,9 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
         model, config, metadata = load_history_monitor(monitor.detector)
         if period is None:
             raise ValueError("monitor.detector: a history monitor needs the control period")
-        calibration = metadata.get("calibration", (1.0, 0.0))
-        members = list(model.members) if isinstance(model, HistoryRiskEnsemble) else []
-        if members:     # each member's raw risk into their calibrated mean
-            system = builder.AddNamedSystem(DETECTOR, MeanRisk(
-                members=len(members), threshold=monitor.threshold, calibration=calibration))
-            monitors = [builder.AddNamedSystem(f"{DETECTOR}_member_{i}", HistoryMonitor(
-                model=member, threshold=monitor.threshold, period=period, calibration=None))
-                for i, member in enumerate(members)]
-            for i, member in enumerate(monitors):
-                builder.Connect(member.get_score_output_port(), system.get_member_input_port(i))
-        else:
-            system = builder.AddNamedSystem(DETECTOR, HistoryMonitor(
-                model=model, threshold=monitor.threshold, period=period,
-                calibration=calibration))
-            monitors = [system]
+        system = builder.AddNamedSystem(DETECTOR, HistoryMonitor(
+            model=model, threshold=monitor.threshold, period=period,
+            calibration=metadata.get("calibration", (1.0, 0.0))))
         if config.signals:
             signals_port = (None if steering_port is None else add_monitor_signals(
                 builder, steering_port=steering_port, estimate_port=estimate_port))
@@ -81,10 +67,8 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
                 got = "none" if signals_port is None else f"{signals_port.size()}"
                 raise ValueError(f"monitor.detector: the history monitor reads {config.signals} "
                                  f"online signals, this loop offers {got}")
-            for member in monitors:
-                builder.Connect(signals_port, member.get_signals_input_port())
-        for member in monitors:
-            builder.Connect(image_port, member.get_color_image_input_port())
+            builder.Connect(signals_port, system.get_signals_input_port())
+        builder.Connect(image_port, system.get_color_image_input_port())
         return system
     model, config, metadata = load_detector(monitor.detector)
     detector = builder.AddNamedSystem(DETECTOR, AnomalyDetector(

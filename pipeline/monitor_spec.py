@@ -10,7 +10,7 @@ from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW
 from reachwatch.diagrams.schemas import (ApplicationEnvironment, ApplicationRandomEnvironments,
                                          slot_field)
 from reachwatch.systems import MAX_MEMBERS, TEMPORAL_MODELS, HistoryMonitorConfig
-from reachwatch.systems.history_monitor import check_input_norm, check_pool
+from reachwatch.systems.history_model import check_input_norm, check_pool
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
 from reachwatch.systems.checks import check_label, short
 from reachwatch.systems.flag_filter import check_k_of_n

@@ -28,9 +28,10 @@ from .runway import RUNWAYS, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, 
 from .random_environments import RandomEnvironments, RandomRunwayRanges, random_runway
 from .scene import add_runway_scene
 from .dead_reckoning import DeadReckoning, propagate_estimate
-from .history_monitor import (INPUT_NORMS, TEMPORAL_MODELS, HistoryMonitor,
-                              HistoryMonitorConfig, HistoryRiskModel, platt)
-from .risk_ensemble import MAX_MEMBERS, HistoryRiskEnsemble, MeanRisk, check_members
+from .history_model import (INPUT_NORMS, TEMPORAL_MODELS, HistoryMonitorConfig,
+                            HistoryRiskModel, platt)
+from .risk_ensemble import MAX_MEMBERS, GroupedEncoder, HistoryRiskEnsemble, check_members
+from .history_monitor import HistoryMonitor
 from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
 from .ports import weak_callback
 from .switch import (DEFAULT_FALLBACKS, STEERING, STEERING_ALIASES, STRATEGIES,
@@ -41,7 +42,7 @@ from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, Tax
 
 __all__ = [
     "INPUT_NORMS", "TEMPORAL_MODELS", "HistoryMonitor", "HistoryMonitorConfig", "HistoryRiskModel", "platt",
-    "MAX_MEMBERS", "HistoryRiskEnsemble", "MeanRisk", "check_members",
+    "MAX_MEMBERS", "GroupedEncoder", "HistoryRiskEnsemble", "check_members",
     "FlagFilter", "check_k_of_n", "confirmed_flags", "weak_callback",
     "RandomEnvironments", "RandomRunwayRanges", "random_runway",
     "AircraftGeometry", "CameraConfig", "make_wing_camera", "SKIES", "Environment",

@@ -2,16 +2,18 @@
 initial weights, batch order and colour jitter) whose raw risks are averaged at every
 tick before one Platt calibration and one threshold. One training's ranking of an
 environment it has never seen depends on its seed; the mean of several depends on it
-less. `HistoryRiskEnsemble` holds the networks (one checkpoint); `MeanRisk` is the
-LeafSystem that averages the members' `HistoryMonitor` scores online."""
+less. `HistoryRiskEnsemble` holds the networks (one checkpoint); `GroupedEncoder` runs
+their per-frame encoders as one network, which is how a `HistoryMonitor` of an
+ensemble encodes each frame online."""
 
 from typing import Sequence
 
 import numpy as np
-from pydrake.systems.framework import LeafSystem
+import torch
 from torch import nn
 
-from .history_monitor import HistoryMonitorConfig, HistoryRiskModel, platt
+from .detector import detector_input
+from .history_model import HistoryMonitorConfig, HistoryRiskModel, normalised, pooled
 
 #: The most members an ensemble may have (each encodes every frame online).
 MAX_MEMBERS = 32
@@ -52,57 +54,61 @@ class HistoryRiskEnsemble(nn.Module):
                       calibration=None) -> np.ndarray:
         """The risk at every tick of one recorded run: the mean of the members'
         `HistoryRiskModel.risk_sequence` (raw), then ``calibration``. What a
-        `MeanRisk` over the members' monitors outputs at each tick of the same run."""
+        `HistoryMonitor` of this ensemble outputs at each tick of the same run."""
         raw = np.mean([m.risk_sequence(frames, signals) for m in self.members], axis=0)
         return calibration(raw) if calibration is not None else raw
 
 
-class MeanRisk(LeafSystem):
-    """The mean of ``members`` raw risks, Platt-calibrated, and its flag.
+class GroupedEncoder(nn.Module):
+    """The per-frame encoders of ``models`` (trainings of one config, with every
+    ``BatchNorm2d`` folded into its convolution: `inference_model`'s) as one network:
+    their first convolutions side by side on the one frame, each later one grouped (a
+    group per member), the pooling over all channels at once and the members'
+    projections as one batched product. `encode` is each member's `encode`, up to float
+    rounding. On one torch thread a small encoder's time goes to calling its layers
+    more than to their arithmetic, so several members cost little more than one."""
 
-    .. pydrake_system::
-
-        name: MeanRisk
-        input_ports:
-        - member_0
-        - ...
-        - member_{members-1}
-        output_ports:
-        - score
-        - anomaly
-
-    ``score`` is ``platt(mean of the inputs, *calibration)``; ``anomaly`` is 1.0 when
-    ``score >= threshold``. Each input is one member's raw risk (a `HistoryMonitor`
-    built with ``calibration=None``). Stateless: the members keep the history. Its
-    outputs are named as `HistoryMonitor`'s, so either monitors a guarded loop."""
-
-    def __init__(self, *, members: int, threshold: float, calibration=(1.0, 0.0)):
+    def __init__(self, models: Sequence[HistoryRiskModel]):
         super().__init__()
-        if not 0.0 <= threshold <= 1.0:
-            raise ValueError(f"MeanRisk: threshold must be in [0, 1], got {threshold}")
-        self._threshold = float(threshold)
-        self._platt = tuple(float(v) for v in calibration)
-        self._inputs = [self.DeclareVectorInputPort(f"member_{i}", 1)
-                        for i in range(check_members(members))]
-        self._score_port = self.DeclareVectorOutputPort("score", 1, self._calc_score)
-        self._anomaly_port = self.DeclareVectorOutputPort("anomaly", 1, self._calc_anomaly)
+        models = list(models)
+        self.config = models[0].config
+        self.members = len(models)
+        layers = []
+        for depth, column in enumerate(zip(*(model.encoder for model in models))):
+            layer = column[0]
+            if isinstance(layer, nn.Conv2d):
+                layers.append(self._grouped(column, shared_input=not any(
+                    isinstance(l, nn.Conv2d) for l in layers)))
+            elif isinstance(layer, (nn.ReLU, nn.MaxPool2d, nn.Identity)):
+                layers.append(layer)        # channel by channel: the same for every group
+            else:
+                raise TypeError(f"GroupedEncoder: cannot group a {type(layer).__name__} "
+                                f"(fold BatchNorm into its convolution first: "
+                                f"inference_model)")
+        self.encoder = nn.Sequential(*layers).to(memory_format=torch.channels_last)
+        linears = [model.project[0] for model in models]
+        self.register_buffer("weight", torch.stack([l.weight.detach() for l in linears]))
+        self.register_buffer("bias", torch.stack([l.bias.detach() for l in linears])[:, None])
 
-    @property
-    def threshold(self) -> float:
-        return self._threshold
+    def _grouped(self, column, shared_input: bool) -> nn.Conv2d:
+        """One convolution for the members' ``column``: on the shared frame, their
+        output channels side by side; later, a group per member."""
+        first, count = column[0], len(column)
+        conv = nn.Conv2d(first.in_channels * (1 if shared_input else count),
+                         first.out_channels * count, first.kernel_size, first.stride,
+                         first.padding, first.dilation, groups=1 if shared_input else count,
+                         bias=True)
+        with torch.no_grad():
+            conv.weight.copy_(torch.cat([c.weight for c in column]))
+            conv.bias.copy_(torch.cat([c.bias if c.bias is not None else
+                                       torch.zeros(c.out_channels) for c in column]))
+        return conv
 
-    def get_member_input_port(self, i: int):
-        return self._inputs[i]
-
-    def get_anomaly_output_port(self):
-        return self._anomaly_port
-
-    def get_score_output_port(self):
-        return self._score_port
-
-    def _calc_score(self, context, output):
-        mean = float(np.mean([port.Eval(context)[0] for port in self._inputs]))
-        output.SetAtIndex(0, float(platt(mean, *self._platt)))
-
-    def _calc_anomaly(self, context, output):
-        output.SetAtIndex(0, 1.0 if self._score_port.Eval(context)[0] >= self._threshold else 0.0)
+    def encode(self, images: torch.Tensor) -> torch.Tensor:
+        """uint8 RGB ``(N, H, W, 3)`` at the configured size -> every member's features
+        ``(N, members, features)``."""
+        x = normalised(detector_input(images, self.config.image_config), self.config.input_norm)
+        maps = pooled(self.encoder(x), self.config.pool)
+        per_member = maps.reshape(len(maps), self.members, -1).transpose(0, 1)
+        return torch.relu(torch.bmm(per_member, self.weight.transpose(1, 2))
+                          + self.bias).transpose(0, 1)

@@ -232,7 +232,7 @@ def test_each_tick_encodes_its_frame_once_and_steps_the_gru_once():
     torch.manual_seed(0)
     monitor = HistoryMonitor(model=HistoryRiskModel(config).eval(), threshold=0.5,
                              period=0.05)
-    model = monitor._model
+    model = monitor._members[0]
     calls = {"encode": [], "gru": []}
     model.encoder.register_forward_pre_hook(
         lambda m, args: calls["encode"].append(torch.get_num_threads()))

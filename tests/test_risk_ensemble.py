@@ -1,7 +1,7 @@
-"""An ensemble of history monitors: online (a `HistoryMonitor` per member and their
-`MeanRisk`, in a real rendered loop) it outputs at each tick the offline mean of its
-members' raw risks, calibrated; its checkpoint holds every member and refuses a bad
-member count by name."""
+"""An ensemble of history monitors: online (one `HistoryMonitor` of the ensemble, in a
+real rendered loop) it outputs at each tick the offline mean of its members' raw risks,
+calibrated; its members' encoders run as one `GroupedEncoder` with each member's
+features; its checkpoint holds every member and refuses a bad member count by name."""
 
 import numpy as np
 import pytest
@@ -9,8 +9,9 @@ import torch
 
 from reachwatch.diagrams import DETECTOR, load_scenario, save_checkpoint, simulate
 from reachwatch.diagrams.checkpoints import CheckpointError, load_history_monitor
-from reachwatch.systems import (HistoryMonitor, HistoryMonitorConfig, HistoryRiskEnsemble,
-                                HistoryRiskModel, MeanRisk, check_members, platt)
+from reachwatch.systems import (GroupedEncoder, HistoryMonitor, HistoryMonitorConfig,
+                                HistoryRiskEnsemble, HistoryRiskModel, check_members, platt)
+from reachwatch.systems.detector import inference_model
 from reachwatch.taxi.fidelity import make_watched_loop
 from reachwatch.taxi.history import record_runs
 
@@ -51,7 +52,7 @@ def test_online_the_ensemble_outputs_the_calibrated_mean_of_its_members(tmp_path
     ticks = int(recorded["ticks"][0])
     diagram = make_watched_loop(scenario)
     names = {s.get_name() for s in diagram.GetSystems()}
-    assert {DETECTOR, f"{DETECTOR}_member_0", f"{DETECTOR}_member_2"} <= names
+    assert DETECTOR in names and not any("member" in name for name in names)
     run = simulate(diagram, initial_state=start[0], duration=0.6, period=0.05,
                    half_width=scenario.environment.half_width)
     frames, signals = recorded["frames"][0, :ticks], recorded["signals"][0, :ticks]
@@ -63,26 +64,61 @@ def test_online_the_ensemble_outputs_the_calibrated_mean_of_its_members(tmp_path
     assert min(np.abs(np.mean(each, axis=0) - e).max() for e in each) > 1e-3
 
 
-def test_mean_risk_calibrates_the_mean_and_flags_at_its_threshold():
-    system = MeanRisk(members=2, threshold=0.4, calibration=(2.0, -0.5))
-    context = system.CreateDefaultContext()
-    for a, b in ((0.1, 0.3), (0.6, 0.9), (0.5, 0.5)):
-        system.get_member_input_port(0).FixValue(context, [a])
-        system.get_member_input_port(1).FixValue(context, [b])
-        score = system.get_score_output_port().Eval(context)[0]
-        assert score == pytest.approx(platt((a + b) / 2, 2.0, -0.5))
-        assert system.get_anomaly_output_port().Eval(context)[0] == float(score >= 0.4)
-    # a member monitor without calibration outputs its raw risk
-    config = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4)
-    member = HistoryMonitor(model=_members(config, 1)[0], threshold=0.5, period=0.05,
-                            calibration=None)
+def _spread_batch_norms(model, seed):
+    """Running statistics other than a fresh layer's, so folding them matters."""
+    generator = torch.Generator().manual_seed(seed)
+    for module in model.modules():
+        if isinstance(module, torch.nn.BatchNorm2d):
+            module.running_mean.uniform_(-0.5, 0.5, generator=generator)
+            module.running_var.uniform_(0.5, 2.0, generator=generator)
+    return model
+
+
+@pytest.mark.parametrize("pool, input_norm", [([1, 1], "per_frame"), ([2, 3], "fixed")])
+def test_the_grouped_encoder_gives_each_members_features(pool, input_norm):
+    config = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4, 6], features=5,
+                                  pool=pool, input_norm=input_norm)
+    members = [_spread_batch_norms(m, i) for i, m in enumerate(_members(config, 3))]
+    images = torch.from_numpy(np.random.default_rng(1).integers(0, 256, (4, 16, 24, 3),
+                                                                  dtype=np.uint8))
+    with torch.no_grad():
+        grouped = GroupedEncoder([inference_model(m) for m in members]).encode(images)
+        each = torch.stack([m.encode(images) for m in members], dim=1)
+    assert grouped.shape == (4, 3, 5)
+    torch.testing.assert_close(grouped, each, rtol=1e-4, atol=1e-5)
+    assert (each[:, 0] - each[:, 1]).abs().max() > 1e-2        # the members differ
+    with pytest.raises(TypeError, match="cannot group a BatchNorm2d .*inference_model"):
+        GroupedEncoder(members)
+
+
+@pytest.mark.parametrize("temporal", ["stack", "gru"])
+def test_a_monitor_of_an_ensemble_outputs_the_calibrated_mean_and_its_flag(temporal):
+    """Tick by tick, without a loop: the frames of a run fed to one `HistoryMonitor`
+    of the ensemble give the offline calibrated mean of the members' raw risks; one
+    member alone (calibration None) gives its raw risk."""
     from pydrake.systems.sensors import ImageRgba8U
-    image = ImageRgba8U(30, 20)
-    image.mutable_data[:] = np.random.default_rng(0).integers(0, 256, (20, 30, 4))
-    context = member.CreateDefaultContext()
-    member.get_color_image_input_port().FixValue(context, image)
-    raw = _members(config, 1)[0].risk_sequence(image.data[None])[0]
-    assert member.get_score_output_port().Eval(context)[0] == pytest.approx(raw, rel=1e-5)
+    config = HistoryMonitorConfig(frames=3, stride=2, height=16, width=24, channels=[4],
+                                  features=4, temporal=temporal, hidden=6)
+    members = _members(config, 2)
+    ensemble = HistoryRiskEnsemble.of(members)
+    frames = np.random.default_rng(0).integers(0, 256, (7, 20, 30, 4), dtype=np.uint8)
+    offline = ensemble.risk_sequence(frames, calibration=lambda q: platt(q, 2.0, -0.5))
+    for model, calibration, expected in (
+            (ensemble, (2.0, -0.5), offline), (members[0], None, members[0].risk_sequence(frames))):
+        system = HistoryMonitor(model=model, threshold=0.4, period=0.05, calibration=calibration)
+        context = system.CreateDefaultContext()
+        image = ImageRgba8U(30, 20)
+        for tick, frame in enumerate(frames):
+            context.SetTime(0.05 * tick)
+            image.mutable_data[:] = frame
+            system.get_color_image_input_port().FixValue(context, image)
+            score = system.get_score_output_port().Eval(context)[0]
+            assert score == pytest.approx(expected[tick], rel=1e-4, abs=1e-6)
+            assert system.get_anomaly_output_port().Eval(context)[0] == float(score >= 0.4)
+            context.SetDiscreteState(system.EvalUniquePeriodicDiscreteUpdate(context))
+    assert np.abs(offline - platt(members[0].risk_sequence(frames), 2.0, -0.5)).max() > 1e-3
+    with pytest.raises(TypeError, match="a HistoryRiskModel or a HistoryRiskEnsemble, got str"):
+        HistoryMonitor(model="weights.pt", threshold=0.4, period=0.05)
 
 
 @pytest.mark.parametrize("members, message", [
@@ -114,8 +150,8 @@ def test_a_checkpoint_whose_weights_hold_other_members_than_it_says_is_refused(t
 
 def test_the_guarded_loop_confirms_the_ensembles_flags_and_brakes(tmp_path):
     """An ensemble checkpoint in ``monitor.detector`` with a k-of-n rule: the members,
-    their `MeanRisk`, the `FlagFilter` and the switch; flagged at every tick (threshold
-    0), the loop brakes to a stop."""
+    one `HistoryMonitor`, the `FlagFilter` and the switch; flagged at every tick
+    (threshold 0), the loop brakes to a stop."""
     from reachwatch.diagrams import make_guarded_diagram
     config = HistoryMonitorConfig(frames=2, height=16, width=24, channels=[4], features=4)
     path = _save(tmp_path / "e.pt", HistoryRiskEnsemble.of(_members(config, 2)))
@@ -124,8 +160,7 @@ def test_the_guarded_loop_confirms_the_ensembles_flags_and_brakes(tmp_path):
                                   f"flag_window: 3}}\n")
     diagram = make_guarded_diagram(scenario)
     names = {s.get_name() for s in diagram.GetSystems()}
-    assert {DETECTOR, f"{DETECTOR}_member_0", f"{DETECTOR}_member_1", "flag_filter",
-            "fallback_switch"} <= names
+    assert {DETECTOR, "flag_filter", "fallback_switch"} <= names
     run = simulate(diagram, initial_state=np.array([0.0, 120.0, 0.0]), duration=2.5,
                    period=0.05, half_width=scenario.environment.half_width)
     assert run.anomaly[0] == 0 and run.anomaly[1] == 1 and run.anomaly[-1] == 1

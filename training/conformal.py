@@ -32,7 +32,7 @@ from typing import Sequence
 import numpy as np
 from scipy.optimize import minimize
 
-from reachwatch.systems.history_monitor import platt
+from reachwatch.systems.history_model import platt
 
 
 def warning_scores(risks, times, failure_times, *, lead: float,
