@@ -30,7 +30,8 @@ from .scene import add_runway_scene
 from .dead_reckoning import DeadReckoning, propagate_estimate
 from .history_model import (INPUT_NORMS, TEMPORAL_MODELS, HistoryMonitorConfig,
                             HistoryRiskModel, platt)
-from .risk_ensemble import MAX_MEMBERS, GroupedEncoder, HistoryRiskEnsemble, check_members
+from .risk_ensemble import (MAX_MEMBERS, GroupedEncoder, HistoryRiskEnsemble, check_members,
+                            grouped_gru)
 from .history_monitor import HistoryMonitor
 from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
 from .ports import weak_callback
@@ -42,7 +43,7 @@ from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, Tax
 
 __all__ = [
     "INPUT_NORMS", "TEMPORAL_MODELS", "HistoryMonitor", "HistoryMonitorConfig", "HistoryRiskModel", "platt",
-    "MAX_MEMBERS", "GroupedEncoder", "HistoryRiskEnsemble", "check_members",
+    "MAX_MEMBERS", "GroupedEncoder", "HistoryRiskEnsemble", "check_members", "grouped_gru",
     "FlagFilter", "check_k_of_n", "confirmed_flags", "weak_callback",
     "RandomEnvironments", "RandomRunwayRanges", "random_runway",
     "AircraftGeometry", "CameraConfig", "make_wing_camera", "SKIES", "Environment",

@@ -17,7 +17,7 @@ from pydrake.systems.sensors import ImageRgba8U
 
 from .detector import inference_model, resize_for_detector
 from .history_model import HistoryRiskModel, platt
-from .risk_ensemble import GroupedEncoder, HistoryRiskEnsemble
+from .risk_ensemble import GroupedEncoder, HistoryRiskEnsemble, grouped_gru
 @contextlib.contextmanager
 def one_torch_thread():
     """Runs the block in torch's inference mode on one intra-op thread, then gives the
@@ -82,6 +82,8 @@ class HistoryMonitor(LeafSystem):
         # Conv-BN folded, channels-last; an ensemble's encoders as one network
         self._members = [inference_model(member) for member in members]
         self._grouped = GroupedEncoder(self._members) if len(members) > 1 else None
+        self._gru_units = (None if model.config.temporal != "gru" else self._members[0].gru
+                           if len(members) == 1 else grouped_gru(m.gru for m in self._members))
         self._config = model.config
         self._threshold = float(threshold)
         self._platt = None if calibration is None else tuple(float(v) for v in calibration)
@@ -171,25 +173,23 @@ class HistoryMonitor(LeafSystem):
         c = self._config
         row = torch.from_numpy(self._row_port.Eval(context).astype(np.float32))
         state = context.get_discrete_state(self._history).get_value()
-        kept = state[1:].astype(np.float32).reshape(self._slots, len(self._members), c.hidden)
-        out = np.empty((self._slots + 1, len(self._members), c.hidden), np.float32)
+        units = len(self._members) * c.hidden          # the members' side by side
         with one_torch_thread():
-            for m, member in enumerate(self._members):
-                x = self._member_input(m, row)
-                if state[0] == 0:
-                    # the window of tick d has read the first frame frames - ceil(d /
-                    # stride) times; steps[i] is the state after i + 1 of them
-                    steps = member.gru(x.expand(1, c.frames, -1))[0][0]
-                    repeats = c.frames - -(-np.arange(self._slots + 1) // c.stride)
-                    windows = steps[torch.from_numpy(repeats - 1)]
-                else:
-                    windows = torch.cat([torch.from_numpy(np.ascontiguousarray(kept[:, m])),
-                                         torch.zeros(1, c.hidden)])  # the newest begins at zero
-                    due = windows[::c.stride]
-                    windows[::c.stride] = member.gru(
-                        x.expand(len(due), 1, -1), due[None].contiguous())[1][0]
-                out[:, m] = windows.numpy()
-        value.set_value(out)
+            x = torch.cat([self._member_input(m, row) for m in range(len(self._members))])
+            if state[0] == 0:
+                # the window of tick d has read the first frame frames - ceil(d / stride)
+                # times; steps[i] is the state after i + 1 of them
+                steps = self._gru_units(x.expand(1, c.frames, -1))[0][0]
+                repeats = c.frames - -(-np.arange(self._slots + 1) // c.stride)
+                windows = steps[torch.from_numpy(repeats - 1)]
+            else:
+                windows = torch.cat([torch.from_numpy(
+                    state[1:].astype(np.float32).reshape(self._slots, units)),
+                    torch.zeros(1, units)])                     # the newest begins at zero
+                due = windows[::c.stride]
+                windows[::c.stride] = self._gru_units(
+                    x.expand(len(due), 1, -1), due[None].contiguous())[1][0]
+        value.set_value(windows.numpy().reshape(self._slots + 1, len(self._members), c.hidden))
 
     def _update(self, context, discrete_state):
         state = context.get_discrete_state(self._history).get_value()

@@ -112,3 +112,35 @@ class GroupedEncoder(nn.Module):
         per_member = maps.reshape(len(maps), self.members, -1).transpose(0, 1)
         return torch.relu(torch.bmm(per_member, self.weight.transpose(1, 2))
                           + self.bias).transpose(0, 1)
+
+
+def grouped_gru(grus: Sequence[nn.GRU]) -> nn.GRU:
+    """One single-layer GRU that runs the members' ``grus`` side by side: input and
+    hidden state are the members' concatenated (member ``m``'s units at ``m * hidden``),
+    every weight block-diagonal per gate, so each member's units read only its own
+    input and state. Its outputs are the members' side by side, up to float rounding."""
+    grus = list(grus)
+    first, count = grus[0], len(grus)
+    if any(g.num_layers != 1 or g.bidirectional or not g.bias or not g.batch_first
+           or (g.input_size, g.hidden_size) != (first.input_size, first.hidden_size)
+           for g in grus):
+        raise ValueError("grouped_gru: the members' GRUs must be alike: one layer, one "
+                         "direction, with biases, batch_first")
+    size, hidden = first.input_size, first.hidden_size
+    fused = nn.GRU(size * count, hidden * count, batch_first=True)
+    with torch.no_grad():
+        for name in ("weight_ih_l0", "weight_hh_l0", "bias_ih_l0", "bias_hh_l0"):
+            target = getattr(fused, name)
+            target.zero_()
+            width = size if name == "weight_ih_l0" else hidden
+            for m, gru in enumerate(grus):
+                source = getattr(gru, name)
+                for gate in range(3):           # PyTorch stacks the gates r, z, n
+                    rows = slice(gate * hidden * count + m * hidden,
+                                 gate * hidden * count + (m + 1) * hidden)
+                    block = source[gate * hidden:(gate + 1) * hidden]
+                    if name.startswith("bias"):
+                        target[rows] = block
+                    else:
+                        target[rows, m * width:(m + 1) * width] = block
+    return fused.eval()

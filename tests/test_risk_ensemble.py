@@ -10,7 +10,8 @@ import torch
 from reachwatch.diagrams import DETECTOR, load_scenario, save_checkpoint, simulate
 from reachwatch.diagrams.checkpoints import CheckpointError, load_history_monitor
 from reachwatch.systems import (GroupedEncoder, HistoryMonitor, HistoryMonitorConfig,
-                                HistoryRiskEnsemble, HistoryRiskModel, check_members, platt)
+                                HistoryRiskEnsemble, HistoryRiskModel, check_members,
+                                grouped_gru, platt)
 from reachwatch.systems.detector import inference_model
 from reachwatch.taxi.fidelity import make_watched_loop
 from reachwatch.taxi.history import record_runs
@@ -89,6 +90,23 @@ def test_the_grouped_encoder_gives_each_members_features(pool, input_norm):
     assert (each[:, 0] - each[:, 1]).abs().max() > 1e-2        # the members differ
     with pytest.raises(TypeError, match="cannot group a BatchNorm2d .*inference_model"):
         GroupedEncoder(members)
+
+
+def test_the_grouped_gru_runs_each_members_gru_side_by_side():
+    torch.manual_seed(0)
+    grus = [torch.nn.GRU(7, 5, batch_first=True) for _ in range(3)]
+    inputs = [torch.randn(4, 6, 7) for _ in grus]
+    states = [torch.randn(1, 4, 5) for _ in grus]
+    with torch.no_grad():
+        out, last = grouped_gru(grus)(torch.cat(inputs, -1), torch.cat(states, -1))
+        for m, gru in enumerate(grus):
+            each_out, each_last = gru(inputs[m], states[m])
+            torch.testing.assert_close(out[..., 5 * m:5 * (m + 1)], each_out, rtol=1e-6,
+                                       atol=1e-7)
+            torch.testing.assert_close(last[..., 5 * m:5 * (m + 1)], each_last, rtol=1e-6,
+                                       atol=1e-7)
+    with pytest.raises(ValueError, match="must be alike"):
+        grouped_gru([grus[0], torch.nn.GRU(7, 6, batch_first=True)])
 
 
 @pytest.mark.parametrize("temporal", ["stack", "gru"])
