@@ -74,7 +74,7 @@ class GroupedEncoder(nn.Module):
         self.config = models[0].config
         self.members = len(models)
         layers = []
-        for depth, column in enumerate(zip(*(model.encoder for model in models))):
+        for column in zip(*(model.encoder for model in models)):
             layer = column[0]
             if isinstance(layer, nn.Conv2d):
                 layers.append(self._grouped(column, shared_input=not any(
@@ -86,7 +86,7 @@ class GroupedEncoder(nn.Module):
                                 f"(fold BatchNorm into its convolution first: "
                                 f"inference_model)")
         self.encoder = nn.Sequential(*layers).to(memory_format=torch.channels_last)
-        linears = [model.project[0] for model in models]
+        linears = [model.project[0] for model in models]   # then a ReLU: `encode`'s
         self.register_buffer("weight", torch.stack([l.weight.detach() for l in linears]))
         self.register_buffer("bias", torch.stack([l.bias.detach() for l in linears])[:, None])
 
