@@ -31,7 +31,6 @@ import argparse
 import collections
 import os
 import tempfile
-import threading
 import time
 
 import numpy as np
@@ -45,9 +44,6 @@ from reachwatch.systems import TaxiNet, TaxiPlant
 from closed_loop import checkpoint_for   # the shipped or a seeded random TaxiNet
 
 FIELDS = ("time", "state", "estimate", "failed", "failure_time")
-#: The breakdown's name for TaxiNet's estimates computed in a helper thread: their wall
-#: time there, which overlaps the renders (not CPU time, and not part of a tick's sum).
-BESIDE = "TaxiNet beside the render"
 
 
 def same_runs(a, b) -> bool:
@@ -62,9 +58,7 @@ class Parts:
         self.spent = collections.Counter()
         self._saved = []
 
-    def _wrap(self, owner, name, part, helper_part=None):
-        """Times ``owner.name`` as ``part`` (as ``helper_part`` when called from a
-        thread other than the main one, when given)."""
+    def _wrap(self, owner, name, part):
         original = getattr(owner, name)
         spent = self.spent
 
@@ -73,15 +67,13 @@ class Parts:
             try:
                 return original(*args, **kwargs)
             finally:
-                spent[part if helper_part is None or threading.current_thread()
-                      is threading.main_thread() else helper_part] += \
-                    time.perf_counter() - started
+                spent[part] += time.perf_counter() - started
         self._saved.append((owner, name, original))
         setattr(owner, name, timed)
 
     def __enter__(self):
         self._wrap(TaxiNet, "_frame", "render")            # the first Eval of a tick renders
-        self._wrap(TaxiNet, "estimate", "taxinet", helper_part=BESIDE)
+        self._wrap(TaxiNet, "estimate", "taxinet")
         self._wrap(TaxiNet, "prepare_batch", "taxinet batch")
         self._wrap(TaxiPlant, "DoCalcTimeDerivatives", "plant derivatives")
         self._wrap(closed_loop, "start_simulator", "run starts")
@@ -92,10 +84,7 @@ class Parts:
             setattr(owner, name, original)
 
     def per_tick(self, wall, ticks) -> dict:
-        """ms per tick of each part; TaxiNet's batches without their renders (what the
-        main thread spends in them besides rendering: copies, and waiting for the last
-        estimate); TaxiNet's estimates in the batch's helper thread, beside the renders,
-        apart (not part of the sum)."""
+        """ms per tick of each part; TaxiNet's batches without their renders."""
         s = dict(self.spent)
         taxinet = s.get("taxinet", 0.0) + s.get("taxinet batch", 0.0)
         if "taxinet batch" in s:
@@ -104,7 +93,6 @@ class Parts:
                  "plant derivatives": s.get("plant derivatives", 0.0),
                  "run starts": s.get("run starts", 0.0)}
         parts["rest"] = wall - sum(parts.values())
-        parts[BESIDE] = s.get(BESIDE, 0.0)
         return {k: 1e3 * v / ticks for k, v in parts.items()}
 
 
@@ -210,10 +198,8 @@ def main():
                     modes[name]()
                     wall = time.perf_counter() - started
                 split = parts.per_tick(wall, ticks)
-                beside = split.pop(BESIDE)
                 print(f"  {name:<22} {1e3 * wall / ticks:6.2f} = " + ", ".join(
-                    f"{part} {ms:.2f}" for part, ms in split.items())
-                    + (f"; {BESIDE} {beside:.2f}" if beside else ""))
+                    f"{part} {ms:.2f}" for part, ms in split.items()))
 
 
 if __name__ == "__main__":

@@ -5,8 +5,7 @@ loop (a diagram and its Context). At every tick it steps each run's Simulator to
 tick (`LoopRun.advance`), lets every system that has a batch entry point compute its
 outputs for all the runs at once, then reads each run's ports (`LoopRun.sample`); a
 finished run's copy takes the next start. The cameras render the runs' frames one
-after another and the controller sees them as a batch (TaxiNet computes each frame's
-estimate in a helper thread while the next frame renders).
+after another and the controller sees them as a batch.
 
 Each run needs a diagram of its own, not only a Context: Drake's VTK render engine
 keeps one clone per Context, and clones of one engine disturb each other's textured

@@ -1,16 +1,13 @@
 """The vision-based controller under test: `TaxiNet` (image -> estimate) followed by
 the `ProportionalController` (estimate -> steering angle)."""
 
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 import torch
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageRgba8U
 
-from .models import PreprocessConfig, preprocess_batched
+from .models import PreprocessConfig, preprocess, preprocess_batched
 
 #: The authors' P-controller gains: phi_deg = -0.74 * px_hat - 0.44 * theta_hat_deg.
 PX_GAIN_DEG_PER_M = -0.74
@@ -40,7 +37,6 @@ class TaxiNet(LeafSystem):
         self._preprocess = preprocess_config.validate()
         self._image_size = tuple(image_size) if image_size is not None else None
         self._prepared = {}         # frame pointer -> (pixels, estimate): `prepare_batch`
-        self._estimator = None      # (process id, its helper thread)
         self._image_port = self.DeclareAbstractInputPort(
             "color_image", AbstractValue.Make(ImageRgba8U()))
         self._estimate_port = self.DeclareVectorOutputPort("estimate", 2,
@@ -67,36 +63,29 @@ class TaxiNet(LeafSystem):
                 f"{self._image_size[1]} (height x width); set the camera size to match")
         return rgba
 
+    @torch.no_grad()
     def prepare_batch(self, pairs):
         """The batch entry point of `reachwatch.diagrams.lockstep`. ``pairs``: ``(TaxiNet,
         its Context)`` in several loops at the same tick (a Context None: nothing). The
-        frames are rendered one after another in the calling thread (the one whose
-        render context they need), and each is handed to a helper thread that computes
-        its estimate (`estimate` on that frame alone, as one run at a time does) while
-        the next frame renders: Drake renders without holding Python's lock, so the
-        controller's work on one run's frame runs beside the render of the next. Until
-        its next call, each system's ``estimate`` output returns its result for a frame
-        of exactly these pixels."""
+        frames are preprocessed as one batch (the same numbers per frame as one at a
+        time); each frame then goes through its own system's network alone, since a
+        batched matrix product may differ from a single one in the last bits. Until its
+        next call, each system's ``estimate`` output returns its result for a frame of
+        exactly these pixels."""
         for system, _ in pairs:
             system._prepared = {}
-        pending = []
-        for system, context in pairs:
-            if context is None:
-                continue
-            view = system._frame(context)                       # renders
-            frame = view.copy()                                  # to check against
-            pending.append((system, view.ctypes.data, frame,
-                            self._helper().submit(system.estimate, frame[None])))
-        for system, pointer, frame, estimate in pending:
-            system._prepared[pointer] = (frame, estimate.result()[0])
-
-    def _helper(self) -> ThreadPoolExecutor:
-        """This system's one helper thread for `prepare_batch`, started on first use in
-        each process (a forked child does not inherit the parent's thread)."""
-        if self._estimator is None or self._estimator[0] != os.getpid():
-            self._estimator = (os.getpid(),
-                               ThreadPoolExecutor(1, thread_name_prefix="taxinet-estimate"))
-        return self._estimator[1]
+        pairs = [(system, system._frame(context)) for system, context in pairs
+                 if context is not None]
+        groups = {}                                  # one batch per preprocessing
+        for system, view in pairs:
+            groups.setdefault((repr(system._preprocess), view.shape), []).append((system, view))
+        for group in groups.values():
+            frames = np.stack([view for _, view in group])      # copies, to check against
+            x = preprocess(torch.from_numpy(frames), group[0][0]._preprocess)
+            for i, ((system, view), frame) in enumerate(zip(group, frames)):
+                alone = torch.cat([x[i:i + 1]])     # as `estimate` has it: same strides,
+                system._prepared[view.ctypes.data] = (  # and so the same conv kernel
+                    frame, system._model(alone).double().numpy()[0])
 
     def _calc_estimate(self, context, output):
         rgba = self._frame(context)
