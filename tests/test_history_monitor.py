@@ -222,21 +222,24 @@ def test_the_system_steps_to_the_offline_risk_at_every_tick(temporal, frames, st
     assert np.ptp(offline) > 1e-3
 
 
-def test_each_tick_encodes_its_frame_once_and_steps_the_gru_once():
+@pytest.mark.parametrize("members", [1, 3])
+def test_each_tick_encodes_its_frame_once_and_steps_the_gru_once(members):
     """Once a tick: the encoder on the current frame, and (past the first tick) one GRU
     step of the open windows together, not a re-run of the window; in one torch thread,
-    the caller's thread count given back."""
-    from reachwatch.systems import HistoryMonitor
+    the caller's thread count given back. An ensemble's members too: one grouped
+    encoder and one GRU of all their units, once a tick."""
+    from reachwatch.systems import HistoryMonitor, HistoryRiskEnsemble
     config = HistoryMonitorConfig(frames=6, stride=2, height=16, width=24, channels=[4],
                                   features=4, temporal="gru", hidden=5)
     torch.manual_seed(0)
-    monitor = HistoryMonitor(model=HistoryRiskModel(config).eval(), threshold=0.5,
-                             period=0.05)
-    model = monitor._members[0]
+    models = [HistoryRiskModel(config).eval() for _ in range(members)]
+    monitor = HistoryMonitor(model=models[0] if members == 1 else
+                             HistoryRiskEnsemble.of(models), threshold=0.5, period=0.05)
+    encoder = (monitor._members[0] if members == 1 else monitor._grouped).encoder
     calls = {"encode": [], "gru": []}
-    model.encoder.register_forward_pre_hook(
+    encoder.register_forward_pre_hook(
         lambda m, args: calls["encode"].append(torch.get_num_threads()))
-    model.gru.register_forward_pre_hook(
+    monitor._gru_units.register_forward_pre_hook(
         lambda m, args: calls["gru"].append((tuple(args[0].shape), torch.get_num_threads())))
     per_tick = []
     threads = torch.get_num_threads()
@@ -252,4 +255,4 @@ def test_each_tick_encodes_its_frame_once_and_steps_the_gru_once():
     assert calls["encode"] == [1] * 8
     # tick 0: the first frame through every window at once; then one step of the 6 windows
     # that hold the tick (batch 6, sequence 1)
-    assert calls["gru"] == [((1, 6, 4), 1)] + [((6, 1, 4), 1)] * 7
+    assert calls["gru"] == [((1, 6, 4 * members), 1)] + [((6, 1, 4 * members), 1)] * 7
