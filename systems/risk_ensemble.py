@@ -66,7 +66,7 @@ class GroupedEncoder(nn.Module):
     group per member), the pooling over all channels at once and the members'
     projections as one batched product. `encode` is each member's `encode`, up to float
     rounding. On one torch thread a small encoder's time goes to calling its layers
-    more than to their arithmetic, so several members cost little more than one."""
+    more than to their arithmetic: five members cost about twice one, not five times."""
 
     def __init__(self, models: Sequence[HistoryRiskModel]):
         super().__init__()
