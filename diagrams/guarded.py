@@ -48,8 +48,8 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
     """Adds the monitor of ``monitor`` (a `MonitorConfig`: its checkpoint and threshold),
     named ``anomaly_detector``, on ``image_port``; returns it. The checkpoint is an
     image `AnomalyDetector`'s or a `HistoryMonitor`'s (of one model or an ensemble's
-    members), which ticks every ``period`` s and, when trained with signals, reads the controller's ``estimate_port`` and
-    ``steering_port`` through `add_monitor_signals`. Alone (no switch) it watches a
+    members), which ticks every ``period`` s and, when trained with signals, reads the
+    controller's ``estimate_port`` and ``steering_port`` through `add_monitor_signals`. Alone (no switch) it watches a
     loop without acting on it. A null threshold is the checkpoint's own
     (`MonitorConfig.with_checkpoint_defaults`)."""
     monitor = monitor.with_checkpoint_defaults()

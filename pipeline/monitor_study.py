@@ -300,8 +300,8 @@ STUDY_FORMAT = 4
 #: and guarded missions have keys of their own): part of the monitor stage's key. A
 #: test (tests/test_import_graph.py) finds the training and monitor modules they
 #: import, and the reach/ modules those import, and fails while one is missing here.
-STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_monitor",
-              "reachwatch.systems.risk_ensemble",
+STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_model",
+              "reachwatch.systems.history_monitor", "reachwatch.systems.risk_ensemble",
               "reachwatch.training.detector_train", "reachwatch.training.history_train",
               "reachwatch.training.monitor_eval", "reachwatch.training.conformal",
               "reachwatch.training.baselines", "reachwatch.training.metrics",

@@ -82,8 +82,6 @@ class HistoryMonitor(LeafSystem):
         # Conv-BN folded, channels-last; an ensemble's encoders as one network
         self._members = [inference_model(member) for member in members]
         self._grouped = GroupedEncoder(self._members) if len(members) > 1 else None
-        self._gru_units = (None if model.config.temporal != "gru" else self._members[0].gru
-                           if len(members) == 1 else grouped_gru(m.gru for m in self._members))
         self._config = model.config
         self._threshold = float(threshold)
         self._platt = None if calibration is None else tuple(float(v) for v in calibration)
@@ -91,6 +89,9 @@ class HistoryMonitor(LeafSystem):
         self._encoded = len(members) * c.features       # the members' features, per row
         self._width = self._encoded + c.signals
         self._gru = c.temporal == "gru"
+        # the members' GRUs as one (one member: its own)
+        self._gru_units = (None if not self._gru else self._members[0].gru
+                           if len(members) == 1 else grouped_gru(m.gru for m in self._members))
         self._slots = (c.frames - 1) * c.stride          # past ticks kept / open windows
         self._kept = len(members) * c.hidden if self._gru else self._width
         self._image_port = self.DeclareAbstractInputPort(

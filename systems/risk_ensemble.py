@@ -72,13 +72,13 @@ class GroupedEncoder(nn.Module):
         super().__init__()
         models = list(models)
         self.config = models[0].config
-        self.members = len(models)
-        layers = []
+        self.member_count = len(models)
+        layers, shared_input = [], True         # the first convolution reads the frame
         for column in zip(*(model.encoder for model in models)):
             layer = column[0]
             if isinstance(layer, nn.Conv2d):
-                layers.append(self._grouped(column, shared_input=not any(
-                    isinstance(l, nn.Conv2d) for l in layers)))
+                layers.append(self._grouped(column, shared_input))
+                shared_input = False
             elif isinstance(layer, (nn.ReLU, nn.MaxPool2d, nn.Identity)):
                 layers.append(layer)        # channel by channel: the same for every group
             else:
@@ -109,7 +109,7 @@ class GroupedEncoder(nn.Module):
         ``(N, members, features)``."""
         x = normalised(detector_input(images, self.config.image_config), self.config.input_norm)
         maps = pooled(self.encoder(x), self.config.pool)
-        per_member = maps.reshape(len(maps), self.members, -1).transpose(0, 1)
+        per_member = maps.reshape(len(maps), self.member_count, -1).transpose(0, 1)
         return torch.relu(torch.bmm(per_member, self.weight.transpose(1, 2))
                           + self.bias).transpose(0, 1)
 
