@@ -91,3 +91,22 @@ def test_cli_simulate_writes_trajectory_and_plot(tmp_path):
     assert (tmp_path / "KMWH_9h_clear_trajectory.png").stat().st_size > 1000
     data = np.load(tmp_path / "KMWH_9h_clear_trajectory.npz")
     assert data["state"].shape == (21, 3)
+
+
+def test_runs_of_one_diagram_without_a_context_share_its_own(nominal_loop, monkeypatch):
+    """`simulate` without a Context runs in the diagram's own (`loop_context`), made
+    once: a new Context per run would clone the render engine again, and clones of one
+    engine spoil each other's frames. A run given a Context runs there."""
+    from reachwatch.diagrams import closed_loop
+    scenario, diagram = nominal_loop
+    used, start = [], closed_loop.Simulator
+    monkeypatch.setattr(closed_loop, "Simulator", lambda d, c: (used.append(c), start(d, c))[1])
+    settings = dict(duration=0.3, period=0.05, half_width=10.0)
+    runs = [simulate(diagram, initial_state=x, **settings)
+            for x in ([2.0, 110.0, 0.0], [-3.0, 140.0, 0.1], [2.0, 110.0, 0.0])]
+    assert used[0] is used[1] is used[2] is closed_loop.loop_context(diagram)
+    assert np.array_equal(runs[0].estimate, runs[2].estimate)
+    assert np.array_equal(runs[0].state, runs[2].state)
+    own = diagram.CreateDefaultContext()
+    simulate(diagram, initial_state=[2.0, 110.0, 0.0], context=own, **settings)
+    assert used[3] is own
