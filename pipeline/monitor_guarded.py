@@ -1,6 +1,14 @@
 """The monitor study's guarded real loop (`reachwatch.pipeline.monitor_study`): each
 saved monitor, braking, against the loop alone from the first recorded starts of each
-environment, and the oracle monitor's row beside them, pooled and per environment."""
+environment, and the oracle monitor's row beside them, pooled and per environment.
+
+**What a stop is judged against.** A guarded run lasts the study's ``duration``; a
+failure it prevented is one the loop alone has within it. Whether a stop was *needless*
+is judged on a longer watch of the loop alone, ``duration + within``: the monitor's
+risk is of failing within ``within`` s, so a stop near the window's end claims a
+failure up to ``within`` s past it, and a run the loop alone survives for the window
+but leaves the safe set soon after is censored, not safe (its stop is counted apart,
+``stopped_failing_after``, neither prevented nor needless)."""
 
 import dataclasses as dc
 
@@ -17,18 +25,23 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
     """The guarded real loop (braking) with each saved monitor against the loop alone,
     from the first ``guarded_runs`` recorded starts of each environment of ``held_out``
     (the held-out family's, or those outside it; the application's `missions`); and the
-    oracle monitor's row (`_oracle_guarded`)."""
+    oracle monitor's row (`_oracle_guarded`). Stops are judged on the loop alone watched
+    ``within`` s past the window (see the module; `judged_runs`)."""
     # the loop alone once per environment: every monitor is judged against the same runs
     alone_runs = [application.missions(dc.replace(scenario, environment=g["environment"]),
                                        g["starts"][:spec.guarded_runs], duration=spec.duration,
                                        cache_dir=cache_dir, executor=executor,
                                        progress=progress)
                   for g in held_out]
+    # the runs that survive the window, watched ``within`` s longer: which fail soon after
+    after = [_fails_after(spec, application, scenario, g, alone, cache_dir=cache_dir,
+                          executor=executor, progress=progress)
+             for g, alone in zip(held_out, alone_runs)]
     rows = {}
     for name, path in checkpoints.items():
         threshold, (flags_needed, flag_window) = models[name][2:]
         envs, distances = [], []
-        for g, alone in zip(held_out, alone_runs):
+        for g, alone, late in zip(held_out, alone_runs, after):
             sc = dc.replace(scenario, environment=g["environment"], monitor=MonitorConfig(
                 detector=path, threshold=threshold, strategy="brake",
                 flags_needed=flags_needed, flag_window=flag_window,
@@ -37,21 +50,18 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
             guarded = application.missions(sc, starts, fallback="brake",
                                            duration=spec.duration, cache_dir=cache_dir,
                                            executor=executor, progress=progress)
-            env = {"environment": g["name"], "runs": len(starts),
-                   "failed_alone": int(alone.failed.sum()),
-                   "failed_guarded": int(guarded.failed.sum()),
-                   "prevented": int(np.sum(alone.failed & ~guarded.failed)),
-                   "safe_alone": int(np.sum(~alone.failed)),
-                   "needless_stops": int(np.sum(~alone.failed & guarded.ever_stopped))}
-            envs.append(env)
+            envs.append(judged_runs(g["name"], alone.failed, late, guarded.failed,
+                                    guarded.ever_stopped))
             distances.append((float(alone.distance.sum()), float(guarded.distance.sum())))
         rows[name] = counts = _pooled(envs, distances)
         log(f"monitor: guarded real loop, {name}: failures {counts['failed_alone']} alone -> "
             f"{counts['failed_guarded']} guarded of {counts['runs']} runs; prevented "
-            f"{rate_text(counts['prevented_rate'])}; needless stops {rate_text(counts['needless_rate'])}")
+            f"{rate_text(counts['prevented_rate'])}; needless stops "
+            f"{rate_text(counts['needless_rate'])}; stopped {counts['stopped_failing_after']} of "
+            f"the {counts['failing_after']} runs failing within {spec.within:g} s after the window")
     if checkpoints:
         rows[ORACLE] = _oracle_guarded(spec, application, scenario, held_out, alone_runs,
-                                       next(iter(checkpoints.values())), lead=lead,
+                                       after, next(iter(checkpoints.values())), lead=lead,
                                        cache_dir=cache_dir, executor=executor,
                                        progress=progress)
         counts = rows[ORACLE]
@@ -65,6 +75,45 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
 ORACLE = "oracle (privileged)"
 
 
+def _fails_after(spec, application, scenario, g, alone, *, cache_dir, executor,
+                 progress) -> np.ndarray:
+    """Per start of ``alone`` (the loop alone's runs of ``spec.duration`` s from
+    ``g``'s first starts): whether the loop alone, surviving that window, leaves the
+    safe set within ``spec.within`` s after it (its runs from those starts, watched for
+    ``duration + within`` s)."""
+    late = np.zeros(len(alone.failed), bool)
+    survived = np.flatnonzero(~np.asarray(alone.failed, bool))
+    if len(survived) and spec.within > 0:
+        here = dc.replace(scenario, environment=g["environment"])
+        longer = application.missions(here, g["starts"][:len(late)][survived],
+                                      duration=spec.duration + spec.within,
+                                      cache_dir=cache_dir, executor=executor,
+                                      progress=progress)
+        late[survived] = longer.failed
+    return late
+
+
+def judged_runs(name: str, failed_alone, failed_after, failed_guarded, stopped) -> dict:
+    """One environment's guarded-loop counts from per-run bools: the loop alone failed
+    within the window (``failed_alone``) or survived it and failed within ``within`` s
+    after it (``failed_after``); the guarded loop failed (``failed_guarded``) or came to
+    a standstill at some tick (``stopped``). *Safe* runs are those the loop alone
+    survives for the window and the ``within`` s after it; a needless stop is a stop of
+    a safe run. A stop of a run failing after the window (``stopped_failing_after``)
+    is neither needless nor a prevented failure."""
+    failed_alone, failed_after, failed_guarded, stopped = (
+        np.asarray(a, bool) for a in (failed_alone, failed_after, failed_guarded, stopped))
+    if np.any(failed_alone & failed_after):
+        raise ValueError(f"{name}: a run cannot fail both within the window and after it")
+    safe = ~failed_alone & ~failed_after
+    return {"environment": name, "runs": len(failed_alone),
+            "failed_alone": int(failed_alone.sum()), "failed_guarded": int(failed_guarded.sum()),
+            "prevented": int(np.sum(failed_alone & ~failed_guarded)),
+            "failing_after": int(failed_after.sum()),
+            "stopped_failing_after": int(np.sum(failed_after & stopped)),
+            "safe_alone": int(safe.sum()), "needless_stops": int(np.sum(safe & stopped))}
+
+
 def oracle_flag_ticks(ticks, failure_times, *, period: float, lead: float) -> np.ndarray:
     """The control tick at which the oracle monitor (`oracle_risks`) first flags each
     recorded run: -1 for a run that does not fail."""
@@ -72,8 +121,8 @@ def oracle_flag_ticks(ticks, failure_times, *, period: float, lead: float) -> np
     return np.array([int(np.argmax(r >= 0.5)) if np.any(r >= 0.5) else -1 for r in risks])
 
 
-def _oracle_guarded(spec, application, scenario, held_out, alone_runs, detector, *, lead,
-                    cache_dir, executor, progress) -> dict:
+def _oracle_guarded(spec, application, scenario, held_out, alone_runs, after, detector, *,
+                    lead, cache_dir, executor, progress) -> dict:
     """The oracle monitor in the guarded real loop: it flags a run from the tick its true
     time to failure leaves the fallback just its need (`oracle_flag_ticks`) and never a
     run that does not fail. Until that tick the guarded loop is the loop alone, so each
@@ -81,11 +130,12 @@ def _oracle_guarded(spec, application, scenario, held_out, alone_runs, detector,
     at every tick (a monitor with threshold 0, braking), for what is left of the run;
     it fails if it leaves the safe set before the run's end. This takes the loop's state
     to be the state a recording holds (true of a loop whose controller keeps no state of
-    its own across ticks; `tests/test_monitor_study.py` checks the taxi's). A safe run is
-    the loop alone's (no stop, its distance)."""
+    its own across ticks; `tests/test_monitor_study.py` checks the taxi's). A run that
+    does not fail within the window is the loop alone's (no stop, its distance);
+    ``after``: per environment, which of those fail soon after it (`judged_runs`)."""
     period = scenario.controller.period
     envs, distances = [], []
-    for g, alone in zip(held_out, alone_runs):
+    for g, alone, late in zip(held_out, alone_runs, after):
         n = len(alone.failed)
         ticks, failure = g["ticks"][:n], g["failure_time"][:n]
         flag = oracle_flag_ticks(ticks, failure, period=period, lead=lead)
@@ -114,8 +164,8 @@ def _oracle_guarded(spec, application, scenario, held_out, alone_runs, detector,
                                           progress=progress)
             left = spec.duration - flag[failing] * period
             # from the flag's state the loop alone must fail when the recording did
-            after = (rest.ticks - 1) * period
-            if not (rest.failed.all() and np.allclose(after, failure[failing] - flag[failing]
+            failing_in = (rest.ticks - 1) * period
+            if not (rest.failed.all() and np.allclose(failing_in, failure[failing] - flag[failing]
                                                       * period, atol=period / 2)):
                 raise RuntimeError(f"the oracle in the guarded loop: in {g['name']}, the loop "
                                    f"alone from a recorded state does not fail as recorded: its "
@@ -126,12 +176,8 @@ def _oracle_guarded(spec, application, scenario, held_out, alone_runs, detector,
             # before the flag it covered what the loop alone covers less what the loop
             # alone covers from the flag's state on
             distance[failing] = alone.distance[failing] - rest.distance + braked.distance
-        env = {"environment": g["name"], "runs": n, "failed_alone": int(alone.failed.sum()),
-               "failed_guarded": int(fails.sum()),
-               "prevented": int(np.sum(alone.failed & ~fails)),
-               # the oracle flags no run that does not fail (checked above)
-               "safe_alone": int(np.sum(~alone.failed)), "needless_stops": 0}
-        envs.append(env)
+        # the oracle flags no run that does not fail within the window (checked above)
+        envs.append(judged_runs(g["name"], alone.failed, late, fails, np.zeros(n, bool)))
         distances.append((float(alone.distance.sum()), float(distance.sum())))
     return _pooled(envs, distances)
 
@@ -141,8 +187,8 @@ def _pooled(envs: list, distances: list) -> dict:
     (m) the loop alone and guarded covered in each (``[(alone, guarded)]``), and the
     prevented and needless-stop rates with their Wilson intervals."""
     counts = {key: sum(env[key] for env in envs) for key in
-              ("runs", "failed_alone", "failed_guarded", "prevented", "safe_alone",
-               "needless_stops")}
+              ("runs", "failed_alone", "failed_guarded", "prevented", "failing_after",
+               "stopped_failing_after", "safe_alone", "needless_stops")}
     counts["distance_alone_m"] = sum((a for a, _ in distances), 0.0)
     counts["distance_guarded_m"] = sum((g for _, g in distances), 0.0)
     counts["environments"] = envs

@@ -116,8 +116,10 @@ def study_blocks(result: dict) -> list:
     per variant (with the oracle and the prediction-error baseline), the guarantee, the
     guarded real loop, and the kept variant per environment."""
     blocks = []
+    within = result["within_s"]
     guarded_header = ["monitor", "runs", "failures alone", "failures guarded",
                       "prevented % [95 % CI]", "needless stops % [95 % CI]",
+                      f"failing <= {within:g} s after the window: stopped",
                       "distance guarded / alone"]
     for key, where in (("guarded", "the held-out environments of the family"),
                        ("guarded_also_held_out", "the named environments outside the family")):
@@ -126,8 +128,16 @@ def study_blocks(result: dict) -> list:
                        ("table", guarded_header, [
                            [name, c["runs"], c["failed_alone"], c["failed_guarded"],
                             rate_text(c["prevented_rate"]), rate_text(c["needless_rate"]),
+                            (f"{c['stopped_failing_after']} of {c['failing_after']}"
+                             if "failing_after" in c else "- (an older result)"),
                             f"{c['distance_guarded_m'] / max(1e-9, c['distance_alone_m']):.3f}"]
-                           for name, c in result[key].items()])]
+                           for name, c in result[key].items()]),
+                       ("text", f"A failure prevented is one the loop alone has within the "
+                                f"run; a stop is needless when the loop alone survives the "
+                                f"run and the {within:g} s after it (the risk's horizon: a "
+                                f"stop near the run's end claims a failure up to {within:g} s "
+                                f"past it). Runs the loop alone survives but leaves the safe "
+                                f"set within {within:g} s after are counted apart.")]
     kept = result["variants"][result["kept"]]
     warnable = result["oracle"]["held_out"]["pooled"]["warnable"]
     if warnable["of"]:

@@ -292,9 +292,10 @@ def _save_risks(path, data, all_risks, judged):
 
 #: Bumped when the study's results change for the same inputs (2: the oracle's and the
 #: nights' guarded rows; 3: the encoder trains on colour-jittered frames; 4: the starts
-#: have a random stream of their own, `STARTS_STREAM`), so that a run's monitor stage is
-#: run again.
-STUDY_FORMAT = 4
+#: have a random stream of their own, `STARTS_STREAM`; 5: a guarded stop is judged on
+#: the loop alone watched ``within`` s past the window, `monitor_guarded.judged_runs`),
+#: so that a run's monitor stage is run again.
+STUDY_FORMAT = 5
 
 #: The modules whose code trains and judges the study's monitors (the recorded runs
 #: and guarded missions have keys of their own): part of the monitor stage's key. A

@@ -72,7 +72,8 @@ def summary_rows(run) -> list:
                      _verdict(None if rate is None or not ceiling else rate >= 0.85 * ceiling)])
         text, rate, hi = _interval(guarded["needless_stops"], guarded["safe_alone"])
         target, upper = MONITOR_TARGETS["needless"]
-        rows.append(["needless stops, guarded real loop (of the runs the loop alone survives)",
+        rows.append([f"needless stops, guarded real loop (of the runs the loop alone "
+                     f"survives, and the {result['within_s']:g} s after them)",
                      text, f"<= {100 * target:g} % (upper bound <= {100 * upper:g} %)",
                      _verdict(None if rate is None else rate <= target and hi <= upper)])
     else:

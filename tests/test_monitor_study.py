@@ -389,11 +389,70 @@ def test_the_oracle_goes_on_from_a_recorded_state_as_the_loop_alone_does(tmp_pat
     from_start = application.missions(scenario, starts, duration=3.0, cache_dir=tmp_path / "m",
                                       progress=False)
     row = _oracle_guarded(SimpleNamespace(duration=3.0, brake_deceleration=3.0), application,
-                          scenario, [group], [from_start], str(detector), lead=5.0 / 3.0,
+                          scenario, [group], [from_start], [np.zeros(2, bool)], str(detector),
+                          lead=5.0 / 3.0,
                           cache_dir=tmp_path / "m", executor=None, progress=False)
     assert row["failed_alone"] == 2
     assert row["prevented"] + row["failed_guarded"] == 2 and row["prevented"] >= 1
     assert 0 < row["distance_guarded_m"] < row["distance_alone_m"]
+
+
+def test_a_stop_is_needless_only_of_a_run_that_survives_the_risks_horizon_past_the_window():
+    """Four runs: one the loop alone fails within the window (the guarded loop saves it:
+    prevented), one it fails within ``within`` s after the window (stopped: neither
+    needless nor prevented), one it survives both (stopped: needless) and one it
+    survives unstopped."""
+    from reachwatch.pipeline.monitor_guarded import judged_runs
+    row = judged_runs("E", failed_alone=[True, False, False, False],
+                      failed_after=[False, True, False, False],
+                      failed_guarded=[False, False, False, False],
+                      stopped=[True, True, True, False])
+    assert row == {"environment": "E", "runs": 4, "failed_alone": 1, "failed_guarded": 0,
+                   "prevented": 1, "failing_after": 1, "stopped_failing_after": 1,
+                   "safe_alone": 2, "needless_stops": 1}
+    with pytest.raises(ValueError, match="both within the window and after it"):
+        judged_runs("E", [True], [True], [False], [False])
+
+
+def test_the_guarded_rows_watch_the_surviving_runs_past_the_window(tmp_path):
+    """`guarded_rows` runs the loop alone again, for ``duration + within`` s, from the
+    starts it survives within the window, and counts a stop of one of them that fails
+    in that time apart from the needless ones (a stand-in application, no render)."""
+    from types import SimpleNamespace
+    from reachwatch.pipeline.monitor_guarded import ORACLE, guarded_rows
+    from reachwatch.reach.liveness import MissionOutcomes
+    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    starts = np.arange(12.0).reshape(4, 3)
+    calls = []
+
+    def missions(sc, from_starts, *, duration, fallback=None, **_):
+        calls.append((fallback, duration, from_starts[:, 0].tolist()))
+        n = len(from_starts)
+        if fallback:          # the monitor stops runs 1 and 2, and fails none
+            stopped = np.isin(from_starts[:, 0], [3.0, 6.0])
+            return MissionOutcomes(failed=np.zeros(n, bool), stopped=stopped,
+                                   ever_stopped=stopped, distance=np.full(n, 5.0),
+                                   flagged_ticks=np.zeros(n), ticks=np.full(n, 10))
+        # alone: run 0 never fails, run 1 fails only past 8 s, runs 2 and 3 never
+        failed = (from_starts[:, 0] == 3.0) & (duration > 8.0)
+        return MissionOutcomes(failed=failed, stopped=np.zeros(n, bool),
+                               ever_stopped=np.zeros(n, bool), distance=np.full(n, 40.0),
+                               flagged_ticks=np.zeros(n), ticks=np.full(n, 10))
+
+    group = {"environment": scenario.environment, "name": "E", "starts": starts,
+             "ticks": np.full(4, 160), "failure_time": np.full(4, np.nan),
+             "state": np.zeros((4, 160, 3))}
+    spec = SimpleNamespace(duration=8.0, within=4.0, guarded_runs=4, brake_deceleration=3.0)
+    rows = guarded_rows(spec, SimpleNamespace(missions=missions), scenario, [group],
+                        {"m": ("model", "platt", 0.5, [1, 1])}, {"m": "m.pt"},
+                        cache_dir=tmp_path, executor=None, progress=False, log=lambda _: None,
+                        lead=5.0 / 3.0)
+    assert (None, 12.0, [0.0, 3.0, 6.0, 9.0]) in calls           # the survivors, 4 s longer
+    row = rows["m"]
+    assert (row["failing_after"], row["stopped_failing_after"]) == (1, 1)
+    assert (row["safe_alone"], row["needless_stops"]) == (3, 1)
+    assert rows[ORACLE]["safe_alone"] == 3 and rows[ORACLE]["needless_stops"] == 0
+    assert rows["m"]["needless_rate"]["of"] == 3
 
 
 def _save_tiny_history_monitor(path):
@@ -421,7 +480,7 @@ def test_the_oracle_refuses_recordings_the_loop_alone_does_not_repeat(tmp_path):
     safe = SimpleNamespace(failed=np.array([False]), distance=np.array([10.0]))
     with pytest.raises(RuntimeError, match="disagree on failing") as error:
         _oracle_guarded(SimpleNamespace(duration=3.0, brake_deceleration=3.0), application,
-                        scenario, [group], [safe], "unused.pt", lead=1.0,
+                        scenario, [group], [safe], [np.zeros(1, bool)], "unused.pt", lead=1.0,
                         cache_dir=tmp_path, executor=None, progress=False)
     assert "\n" not in str(error.value)
 
