@@ -35,33 +35,39 @@ from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, run_t
 
 
 def _split(saved, variant, split):
-    """Per environment: ``(risks per run, ticks, failure_times)`` of ``split``."""
+    """Per environment: ``(risks per run, ticks, failure_times, fails_after)`` of
+    ``split``; ``fails_after``: survived the recording, failed within the study's longer
+    watch (all False for a study saved before it watched longer)."""
     ticks = saved[f"{split}/ticks"]
     failure = saved[f"{split}/failure_time"]
+    watched = (saved[f"{split}/watched_failure_time"]
+               if f"{split}/watched_failure_time" in saved.files else failure)
+    after = np.isfinite(watched) & ~np.isfinite(failure)
     env = saved[f"{split}/environment"]
     flat = saved[f"{variant}/{split}/risk"].astype(float)
     runs = np.split(flat, np.cumsum(ticks)[:-1]) if len(ticks) else []
-    return [([runs[i] for i in np.flatnonzero(env == e)], ticks[env == e], failure[env == e])
-            for e in range(len(saved[f"{split}/names"]))]
+    return [([runs[i] for i in np.flatnonzero(env == e)], ticks[env == e], failure[env == e],
+             after[env == e]) for e in range(len(saved[f"{split}/names"]))]
 
 
 def _ranked(group):
     """``group`` with each run's risks replaced by their ranks among the ticks of the
     environment's other runs (leave-one-run-out; no label read)."""
-    risks, ticks, failure = group
+    risks, ticks, failure, after = group
     every = np.sort(np.concatenate(risks)) if risks else np.zeros(0)
     ranks = []
     for risk in risks:      # ticks at or below, in every run less in this one
         below = (np.searchsorted(every, risk, side="right")
                  - np.searchsorted(np.sort(risk), risk, side="right"))
         ranks.append(below / max(len(every) - len(risk), 1))
-    return ranks, ticks, failure
+    return ranks, ticks, failure, after
 
 
 def _figures(groups, threshold, *, period, lead):
-    pooled = {"failed": [], "warnable": [], "warned": [], "flagged": []}
-    for risks, ticks, failure in groups:
-        out = flag_outcomes(risks, ticks, failure, period=period, threshold=threshold, lead=lead)
+    pooled = {"failed": [], "warnable": [], "warned": [], "flagged": [], "failing_after": []}
+    for risks, ticks, failure, after in groups:
+        out = flag_outcomes(risks, ticks, failure, period=period, threshold=threshold, lead=lead,
+                            fails_after=after)
         for k in pooled:
             pooled[k].append(out[k])
     return system_figures({k: np.concatenate(v) if v else np.zeros(0, bool)
@@ -99,10 +105,10 @@ def main():
                 data = {s: [_ranked(g) for g in groups] for s, groups in data.items()}
             for rule in args.rules:
                 k, n = (int(v) for v in rule.split("/"))
-                held = {s: [(k_of_n_risks(r, k, n), t, f) for r, t, f in g]
+                held = {s: [(k_of_n_risks(r, k, n), t, f, a) for r, t, f, a in g]
                         for s, g in data.items()}
                 scores = [warning_scores(r, run_times(t, args.period), f, lead=lead)
-                          for r, t, f in held["calibrate"]]
+                          for r, t, f, _ in held["calibrate"]]
                 for alpha in args.alphas:
                     try:
                         tau = conformal_threshold(scores, alpha).threshold

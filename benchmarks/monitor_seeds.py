@@ -32,6 +32,7 @@ import types
 import numpy as np
 
 from reachwatch.pipeline.monitor_sections import read_study_result, run_ranking
+from reachwatch.pipeline.monitor_judge import fails_after
 from reachwatch.pipeline.monitor_study import choose_flag_rule, judge_environments
 from reachwatch.training.monitor_eval import decisive_scores, rate, tick_auroc
 
@@ -39,31 +40,38 @@ SPLITS = ("calibrate", "held_out", "also_held_out")
 
 
 def _groups(saved, flat: dict):
-    """Per split: the environments (``ticks``, ``failure_time``, ``name``) and each one's
-    risks per run, from ``flat`` (the split's risks of every tick, concatenated)."""
+    """Per split: the environments (``ticks``, ``failure_time``, ``watched_failure_time``,
+    ``name``) and each one's risks per run, from ``flat`` (the split's risks of every
+    tick, concatenated). A study saved before the longer watch has no watched times:
+    its failure times stand in (and `main` judges it on its recordings' duration)."""
     groups, risks = {}, {}
     for split in SPLITS:
         ticks, failure = saved[f"{split}/ticks"], saved[f"{split}/failure_time"]
+        watched = (saved[f"{split}/watched_failure_time"]
+                   if f"{split}/watched_failure_time" in saved else failure)
         env, names = saved[f"{split}/environment"], saved[f"{split}/names"]
         runs = np.split(flat[split], np.cumsum(ticks)[:-1]) if len(ticks) else []
         groups[split] = [{"ticks": ticks[env == e], "failure_time": failure[env == e],
-                          "name": str(names[e])} for e in range(len(names))]
+                          "watched_failure_time": watched[env == e], "name": str(names[e])}
+                         for e in range(len(names))]
         risks[split] = [[runs[i] for i in np.flatnonzero(env == e)] for e in range(len(names))]
     return groups, risks
 
 
-def _ranking(groups, risks, *, period, duration, within, lead):
-    """Tick AUROC (pooled, worst and median environment), run AUROC and the fewest
-    needless flags at a 10 % miss (`run_ranking`, flag rule 1/1) over ``groups``."""
-    shape = dict(period=period, duration=duration, within=within)
+def _ranking(groups, risks, *, period, watch, within, lead):
+    """Tick AUROC (pooled, worst and median environment; labelled over the ``watch`` s)
+    run AUROC and the fewest needless flags at a 10 % miss (`run_ranking`, flag rule
+    1/1) over ``groups``."""
+    shape = dict(period=period, duration=watch, within=within)
     pooled = tick_auroc([r for runs in risks for r in runs],
                         np.concatenate([g["ticks"] for g in groups]),
-                        np.concatenate([g["failure_time"] for g in groups]), **shape)
-    per_env = [a for a in (tick_auroc(runs, g["ticks"], g["failure_time"], **shape)
+                        np.concatenate([g["watched_failure_time"] for g in groups]), **shape)
+    per_env = [a for a in (tick_auroc(runs, g["ticks"], g["watched_failure_time"], **shape)
                            for g, runs in zip(groups, risks)) if np.isfinite(a)]
     worst, median = (min(per_env), float(np.median(per_env))) if per_env else (np.nan, np.nan)
     ranked = run_ranking({"scores": {"runs": [
-        decisive_scores(runs, g["ticks"], g["failure_time"], period=period, lead=lead)
+        decisive_scores(runs, g["ticks"], g["failure_time"], period=period, lead=lead,
+                        fails_after=fails_after(g))
         for g, runs in zip(groups, risks)]}}, "runs")
     return pooled, worst, median, ranked["auroc"], ranked["needless"] or rate(0, 0)
 
@@ -105,10 +113,14 @@ def main():
                 if not np.array_equal(s[f"{split}/{key}"], saved[0][f"{split}/{key}"],
                                       equal_nan=key == "failure_time"):
                     p.error(f"the studies did not record the same runs ({split}/{key} differ)")
+    # a study saved before the longer watch is judged on its recordings alone
+    watched = f"{SPLITS[0]}/watched_failure_time" in saved[0]
     spec = types.SimpleNamespace(alpha=first["alpha"], duration=args.duration,
+                                 within=within if watched else 0.0,
                                  flag_rules=[list(map(int, r.split("/")))
                                              for r in args.flag_rules])
-    shape = dict(period=args.period, duration=args.duration, within=within, lead=lead)
+    watch = args.duration + spec.within
+    shape = dict(period=args.period, watch=watch, within=within, lead=lead)
     for variant in args.variants or list(first["variants"]):
         print(f"\n{variant}: fails within {within:g} s; lead {lead:.2f} s; alpha {spec.alpha:g}")
         print(f"{'training':28s} {'split':14s} tick AUROC pooled/worst/median  run AUROC  "
@@ -133,7 +145,7 @@ def main():
                                                                   **shape)
                 _, pooled = judge_environments(
                     groups[split], risks[split], threshold=chosen.threshold,
-                    period=args.period, lead=lead, duration=args.duration, flags=flags[split])
+                    period=args.period, lead=lead, watch=watch, flags=flags[split])
                 print(f"{name:28s} {split:14s} {tick:.3f} / {worst:.3f} / {median:.3f}"
                       f"        {run_auc:.3f}      {_pct(needless)}  | {rule[0]}/{rule[1]}, "
                       f"{chosen.threshold:.3f}: {_pct(pooled['miss'])}, "

@@ -4,11 +4,12 @@ environment, and the oracle monitor's row beside them, pooled and per environmen
 
 **What a stop is judged against.** A guarded run lasts the study's ``duration``; a
 failure it prevented is one the loop alone has within it. Whether a stop was *needless*
-is judged on a longer watch of the loop alone, ``duration + within``: the monitor's
-risk is of failing within ``within`` s, so a stop near the window's end claims a
-failure up to ``within`` s past it, and a run the loop alone survives for the window
-but leaves the safe set soon after is censored, not safe (its stop is counted apart,
-``stopped_failing_after``, neither prevented nor needless)."""
+is judged on the study's longer watch of the loop alone, ``duration + within``
+(`monitor_study.watched_failure_times`): the monitor's risk is of failing within
+``within`` s, so a stop near the window's end claims a failure up to ``within`` s past
+it, and a run the loop alone survives for the window but leaves the safe set soon
+after is censored, not safe (its stop is counted apart, ``stopped_failing_after``,
+neither prevented nor needless)."""
 
 import dataclasses as dc
 
@@ -17,6 +18,7 @@ import numpy as np
 from reachwatch.diagrams import MonitorConfig
 from reachwatch.training.monitor_eval import oracle_risks, rate
 
+from .monitor_judge import fails_after
 from .monitor_sections import rate_text
 
 
@@ -33,10 +35,8 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
                                        cache_dir=cache_dir, executor=executor,
                                        progress=progress)
                   for g in held_out]
-    # the runs that survive the window, watched ``within`` s longer: which fail soon after
-    after = [_fails_after(spec, application, scenario, g, alone, cache_dir=cache_dir,
-                          executor=executor, progress=progress)
-             for g, alone in zip(held_out, alone_runs)]
+    # the runs that survive the window but fail within the study's longer watch
+    after = [fails_after(g)[:len(alone.failed)] for g, alone in zip(held_out, alone_runs)]
     rows = {}
     for name, path in checkpoints.items():
         threshold, (flags_needed, flag_window) = models[name][2:]
@@ -73,24 +73,6 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
 
 #: The guarded-loop row of the oracle monitor.
 ORACLE = "oracle (privileged)"
-
-
-def _fails_after(spec, application, scenario, g, alone, *, cache_dir, executor,
-                 progress) -> np.ndarray:
-    """Per start of ``alone`` (the loop alone's runs of ``spec.duration`` s from
-    ``g``'s first starts): whether the loop alone, surviving that window, leaves the
-    safe set within ``spec.within`` s after it (its runs from those starts, watched for
-    ``duration + within`` s)."""
-    late = np.zeros(len(alone.failed), bool)
-    survived = np.flatnonzero(~np.asarray(alone.failed, bool))
-    if len(survived) and spec.within > 0:
-        here = dc.replace(scenario, environment=g["environment"])
-        longer = application.missions(here, g["starts"][:len(late)][survived],
-                                      duration=spec.duration + spec.within,
-                                      cache_dir=cache_dir, executor=executor,
-                                      progress=progress)
-        late[survived] = longer.failed
-    return late
 
 
 def judged_runs(name: str, failed_alone, failed_after, failed_guarded, stopped) -> dict:

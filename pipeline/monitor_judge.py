@@ -13,26 +13,45 @@ from reachwatch.training.monitor_eval import (decisive_scores, flag_outcomes, k_
                                               tick_auroc)
 
 
-def _labelled(groups, risks, *, period, duration, within):
-    """`labelled_ticks` of every group's runs, concatenated."""
-    pairs = [labelled_ticks(r, g["ticks"], g["failure_time"], period=period, duration=duration,
-                            within=within) for g, r in zip(groups, risks)]
+def watch_s(spec) -> float:
+    """How long the study watches the loop alone to judge and label a run: its
+    recordings' ``duration`` and the risk's horizon ``within`` after them
+    (`monitor_study.watched_failure_times`)."""
+    return float(spec.duration) + float(spec.within)
+
+
+def _labelled(groups, risks, *, period, watch, within):
+    """`labelled_ticks` of every group's runs, concatenated, labelled from their failure
+    times over the study's longer watch of the loop alone (``watch`` s,
+    `monitor_study.watched_failure_times`)."""
+    pairs = [labelled_ticks(r, g["ticks"], g["watched_failure_time"], period=period,
+                            duration=watch, within=within) for g, r in zip(groups, risks)]
     return (np.concatenate([p[0] for p in pairs] + [np.zeros(0, np.int8)]),
             np.concatenate([p[1] for p in pairs] + [np.zeros(0)]))
 
 
-def judge_environments(groups, risks, *, threshold, period, lead, duration, flags=None):
+def fails_after(group) -> np.ndarray:
+    """Per run of ``group``: survived its recording, and failed within the study's
+    longer watch of the loop alone (censored, not safe: `flag_outcomes`)."""
+    return (np.isfinite(np.asarray(group["watched_failure_time"], float))
+            & ~np.isfinite(np.asarray(group["failure_time"], float)))
+
+
+def judge_environments(groups, risks, *, threshold, period, lead, watch, flags=None):
     """Per environment and pooled system figures at ``threshold`` (flags read from
-    ``flags``, the risks a k-of-n flag rule acts on, when given; AUROC from ``risks``)."""
-    per_env, pooled = [], {"failed": [], "warnable": [], "warned": [], "flagged": []}
+    ``flags``, the risks a k-of-n flag rule acts on, when given; AUROC from ``risks``,
+    labelled over the ``watch`` s of `_labelled`)."""
+    per_env = []
+    pooled = {"failed": [], "warnable": [], "warned": [], "flagged": [], "failing_after": []}
     for i, (r, g) in enumerate(zip(risks, groups)):
         out = flag_outcomes(r if flags is None else flags[i], g["ticks"], g["failure_time"],
-                            period=period, threshold=threshold, lead=lead)
+                            period=period, threshold=threshold, lead=lead,
+                            fails_after=fails_after(g))
         for key in pooled:
             pooled[key].append(out[key])
         per_env.append({"environment": g["name"], **system_figures(out),
-                        "auroc_4s": tick_auroc(r, g["ticks"], g["failure_time"], period=period,
-                                               duration=duration, within=4.0)})
+                        "auroc_4s": tick_auroc(r, g["ticks"], g["watched_failure_time"],
+                                               period=period, duration=watch, within=4.0)})
     return per_env, system_figures({k: np.concatenate(v) if v else np.zeros(0, bool)
                                     for k, v in pooled.items()})
 
@@ -54,7 +73,7 @@ def choose_flag_rule(spec, calibrate, risks, *, period, lead):
             continue
         calibration, pooled = judge_environments(
             calibrate, risks["calibrate"], threshold=chosen.threshold, period=period,
-            lead=lead, duration=spec.duration, flags=flags["calibrate"])
+            lead=lead, watch=watch_s(spec), flags=flags["calibrate"])
         needless = pooled["needless"]["count"] / max(1, pooled["needless"]["of"])
         if best is None or needless < best[4]:
             best = ([int(k), int(n)], flags, chosen, calibration, needless)
@@ -73,8 +92,9 @@ def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
     where its slope is positive); calibration error and Brier score are the calibrated
     risk's either way. Returns ``(row, platt, chosen, rule, risks)``, ``risks`` those the
     threshold reads."""
-    y, q = _labelled(data["calibrate"], raw["calibrate"], period=period,
-                     duration=spec.duration, within=spec.within)
+    watch = watch_s(spec)
+    y, q = _labelled(data["calibrate"], raw["calibrate"], period=period, watch=watch,
+                     within=spec.within)
     try:
         platt = PlattCalibration.fit(q, y == 1)
     except ValueError:                      # one class among the calibration ticks
@@ -94,8 +114,8 @@ def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
     for k in ("held_out", "also_held_out"):
         per_env, pooled = judge_environments(
             data[k], risks[k], threshold=chosen.threshold, period=period, lead=lead,
-            duration=spec.duration, flags=flags[k])
-        y, p = _labelled(data[k], probabilities[k], period=period, duration=spec.duration,
+            watch=watch, flags=flags[k])
+        y, p = _labelled(data[k], probabilities[k], period=period, watch=watch,
                          within=spec.within)
         row[k] = {"environments": per_env, "pooled": pooled,
                   "ece": expected_calibration_error(p, y == 1) if len(y) else float("nan"),
@@ -106,6 +126,7 @@ def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
     # runs' warning scores and its other runs' largest flag risk (a run is flagged
     # iff it is >= tau)
     row["scores"] = {k: [decisive_scores(r, g["ticks"], g["failure_time"], period=period,
-                                    lead=lead) for r, g in zip(flags[k], data[k])]
+                                         lead=lead, fails_after=fails_after(g))
+                         for r, g in zip(flags[k], data[k])]
                      for k in ("calibrate", "held_out", "also_held_out")}
     return row, platt, chosen, rule, risks

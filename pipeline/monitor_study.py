@@ -36,7 +36,8 @@ from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, 
 from reachwatch.training.monitor_eval import oracle_risks, tick_auroc
 
 from .monitor_guarded import guarded_rows
-from .monitor_judge import _judge_monitor, choose_flag_rule, judge_environments  # noqa: F401
+from .monitor_judge import (_judge_monitor, choose_flag_rule, judge_environments,  # noqa: F401
+                            watch_s)
 from .monitor_sections import rate_text
 from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noqa: F401
                            MonitorVariant, default_variants)
@@ -74,9 +75,40 @@ def _record(spec, application, scenario, environments, first, *, runs, cache_dir
                                               height=spec.height, width=spec.width,
                                               cache_dir=cache_dir, executor=executor,
                                               progress=progress)
-        out.append({**recorded, "starts": starts, "name": environment.name,
-                    "environment": environment})
+        watched = watched_failure_times(spec, application, here, starts,
+                                        recorded["failure_time"], cache_dir=cache_dir,
+                                        executor=executor, progress=progress)
+        out.append({**recorded, "watched_failure_time": watched, "starts": starts,
+                    "name": environment.name, "environment": environment})
     return out
+
+
+def watched_failure_times(spec, application, scenario, starts, failure_time, *, cache_dir,
+                          executor, progress) -> np.ndarray:
+    """Each run's failure time over a longer watch of the loop alone, `watch_s` (the
+    recording's ``duration`` and the risk's horizon ``within`` after it): its recorded
+    ``failure_time`` where it failed within the recording; for a run that survived
+    it, the failure time of the loop alone from the same start within the watch (the
+    application's `missions`, run again from those starts only), NaN if none. Every
+    tick of a recording then has a known label ("fails within ``within`` s"), and a
+    run that leaves the safe set just after the recording is not taken for safe."""
+    failure = np.asarray(failure_time, float).copy()
+    survived = np.flatnonzero(~np.isfinite(failure))
+    if not len(survived) or spec.within <= 0:
+        return failure
+    period, watch = scenario.controller.period, watch_s(spec)
+    # one tick longer: a failure at the watch's last tick is still an acting tick
+    longer = application.missions(scenario, np.asarray(starts)[survived], duration=watch + period,
+                                  cache_dir=cache_dir, executor=executor, progress=progress)
+    at = (np.asarray(longer.ticks) - 1) * period
+    later = np.where(np.asarray(longer.failed, bool) & (at <= watch + 1e-9), at, np.nan)
+    if np.any(later <= spec.duration + 1e-9):
+        raise RuntimeError(f"the loop alone in {scenario.environment.name} fails within "
+                           f"{spec.duration:g} s from a start whose recorded run did not: "
+                           f"the loop is not deterministic, and its labels would be wrong")
+    failure[survived] = later
+    return failure
+
 
 
 def checkpoint_file(variant: str, taken=()) -> str:
@@ -91,7 +123,7 @@ def checkpoint_file(variant: str, taken=()) -> str:
 
 
 def _merged(groups):
-    keys = ("frames", "signals", "ticks", "failure_time", "state")
+    keys = ("frames", "signals", "ticks", "failure_time", "watched_failure_time", "state")
     return {k: np.concatenate([g[k] for g in groups]) for k in keys}
 
 
@@ -170,7 +202,9 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         executor=executor, progress=progress))
 
     train = _merged(data["train"])
-    labels = tick_labels(train, period=period, duration=spec.duration, within=spec.within)
+    # labels from the longer watch: every recorded tick's is known
+    labels = tick_labels({**train, "failure_time": train["watched_failure_time"]},
+                         period=period, duration=watch_s(spec), within=spec.within)
     base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within,
                                 input_norm=spec.input_norm, pool=list(spec.pool))
     # each member of the ensemble: its own encoder (`member_settings`) and features
@@ -218,12 +252,12 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         risks = [oracle_risks(g["ticks"], g["failure_time"], period=period, lead=lead)
                  for g in groups]
         per_env, pooled = judge_environments(groups, risks, threshold=0.5, period=period,
-                                             lead=lead, duration=spec.duration)
+                                             lead=lead, watch=watch_s(spec))
         oracle[k] = {"environments": per_env, "pooled": pooled}
         baseline[k] = [tick_auroc([prediction_error(g["state"][i, :n], g["signals"][i, :n, :2])
                                    for i, n in enumerate(g["ticks"])], g["ticks"],
-                                  g["failure_time"], period=period, duration=spec.duration,
-                                  within=4.0)
+                                  g["watched_failure_time"], period=period,
+                                  duration=watch_s(spec), within=4.0)
                        if g["signals"].shape[-1] >= 3 else float("nan") for g in groups]
 
     kept = min((n for n in results if n != DETECTOR_ROW),
@@ -270,14 +304,15 @@ def _save_risks(path, data, all_risks, judged):
     threshold reads) at every tick of the judged environments' runs,
     with the runs' ticks, failure times and environments, so that another flag rule can
     be read off the study without rendering again: ``{split}/ticks``,
-    ``{split}/failure_time``, ``{split}/environment`` (index into ``{split}/names``) per
-    run and ``{variant}/{split}/risk`` (the runs' ticks, concatenated)."""
+    ``{split}/failure_time``, ``{split}/watched_failure_time`` (`watched_failure_times`),
+    ``{split}/environment`` (index into ``{split}/names``) per run and
+    ``{variant}/{split}/risk`` (the runs' ticks, concatenated)."""
     arrays = {}
     for k in judged:
         groups = data[k]
         arrays[f"{k}/ticks"] = np.concatenate([g["ticks"] for g in groups] + [np.zeros(0, int)])
-        arrays[f"{k}/failure_time"] = np.concatenate([g["failure_time"] for g in groups]
-                                                     + [np.zeros(0)])
+        for key in ("failure_time", "watched_failure_time"):
+            arrays[f"{k}/{key}"] = np.concatenate([g[key] for g in groups] + [np.zeros(0)])
         arrays[f"{k}/environment"] = np.concatenate(
             [np.full(len(g["ticks"]), i) for i, g in enumerate(groups)] + [np.zeros(0, int)])
         arrays[f"{k}/names"] = np.array([g["name"] for g in groups], dtype=str)
@@ -292,8 +327,8 @@ def _save_risks(path, data, all_risks, judged):
 
 #: Bumped when the study's results change for the same inputs (2: the oracle's and the
 #: nights' guarded rows; 3: the encoder trains on colour-jittered frames; 4: the starts
-#: have a random stream of their own, `STARTS_STREAM`; 5: a guarded stop is judged on
-#: the loop alone watched ``within`` s past the window, `monitor_guarded.judged_runs`),
+#: have a random stream of their own, `STARTS_STREAM`; 5: runs are judged, and labelled,
+#: on the loop alone watched ``within`` s past the recordings, `watched_failure_times`),
 #: so that a run's monitor stage is run again.
 STUDY_FORMAT = 5
 

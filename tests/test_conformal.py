@@ -120,6 +120,31 @@ def test_flag_outcomes_count_misses_among_warnable_runs_only():
     assert system_figures(oracle)["miss"]["count"] == 0 and not oracle["flagged"][2:].any()
 
 
+def test_a_run_failing_after_its_recording_is_neither_safe_nor_needless():
+    """The run flagged near its recording's end fails just after it (a longer watch of
+    the loop): its flag is not needless, and it leaves the safe runs, in the figures and
+    in the scores any threshold is read from; a run that failed within the recording
+    is not moved by it."""
+    from reachwatch.training.monitor_eval import decisive_scores, flag_outcomes, system_figures
+    ticks, failures = [10, 10, 10], [float("nan"), float("nan"), 0.45]
+    risks = [np.r_[np.zeros(9), 1.0], np.r_[np.zeros(9), 0.8], np.r_[np.ones(3), np.zeros(7)]]
+    before = system_figures(flag_outcomes(risks, ticks, failures, period=0.05, threshold=0.5,
+                                          lead=0.2))
+    assert (before["needless"]["count"], before["needless"]["of"]) == (2, 2)
+    out = flag_outcomes(risks, ticks, failures, period=0.05, threshold=0.5, lead=0.2,
+                        fails_after=[True, False, True])
+    assert out["failing_after"].tolist() == [True, False, False]
+    figures = system_figures(out)
+    assert (figures["needless"]["count"], figures["needless"]["of"]) == (1, 1)
+    assert figures["miss"] == before["miss"]
+    scores = decisive_scores(risks, ticks, failures, period=0.05, lead=0.2,
+                             fails_after=[True, False, True])
+    assert scores["safe_max"] == [0.8]
+    with pytest.raises(ValueError, match="one entry per run"):
+        flag_outcomes(risks, ticks, failures, period=0.05, threshold=0.5, lead=0.2,
+                      fails_after=[True])
+
+
 def test_k_of_n_risks_flag_what_the_flag_filter_confirms():
     """A threshold on `k_of_n_risks` flags exactly the ticks the FlagFilter's array rule
     (`confirmed_flags`) confirms from the raw flags, at every tick, for any threshold

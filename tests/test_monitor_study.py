@@ -111,6 +111,15 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     assert set(result["variants"]) == {"one frame", "GRU 3 + signals", DETECTOR_ROW}
     assert result["kept"] != DETECTOR_ROW and result["variants"][DETECTOR_ROW]["kind"] == "detector"
     assert result["lead_s"] == pytest.approx(5.0 / 3.0)
+    # the recordings' failure times over the longer watch (duration + within): the
+    # recorded one where a run failed within it, else one within the 4 s after, or none
+    with np.load(tmp_path / "out" / "risks.npz") as saved:
+        failure, watched = saved["held_out/failure_time"], saved["held_out/watched_failure_time"]
+    ended = np.isfinite(failure)
+    np.testing.assert_array_equal(watched[ended], failure[ended])
+    later = watched[~ended & np.isfinite(watched)]
+    assert np.all((later > spec.duration) & (later <= spec.duration + spec.within + 1e-9))
+    after = len(later)
     from reachwatch.pipeline.monitor_sections import threshold_tradeoff
     for name, row in result["variants"].items():
         assert 0 <= row["threshold"] <= 1
@@ -120,8 +129,8 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
         assert tau == row["threshold"] and (missed, warnable) == (
             pooled["miss"]["count"], pooled["miss"]["of"])
         assert (needless, safe) == (pooled["needless"]["count"], pooled["needless"]["of"])
-        assert row["held_out"]["pooled"]["needless"]["of"] + row["held_out"]["pooled"]["miss"][
-            "of"] == 6
+        # every held-out run is safe, warnable and failing, or failing just after
+        assert pooled["needless"]["of"] + pooled["miss"]["of"] + after == 6
     # the kept monitor (and the single-frame one) are checkpoints with their calibration,
     # each file named after its variant
     for name, file in result["checkpoints"].items():
@@ -142,7 +151,6 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     for counts in result["guarded"].values():
         assert counts["runs"] == 2 and counts["failed_guarded"] <= counts["runs"]
     # every variant's risk at every tick is kept, run by run, for other flag rules
-    import numpy as np
     with np.load(tmp_path / "out" / "risks.npz") as saved:
         ticks = saved["held_out/ticks"]
         assert len(ticks) == 6 and len(saved["held_out/failure_time"]) == 6
@@ -414,40 +422,34 @@ def test_a_stop_is_needless_only_of_a_run_that_survives_the_risks_horizon_past_t
         judged_runs("E", [True], [True], [False], [False])
 
 
-def test_the_guarded_rows_watch_the_surviving_runs_past_the_window(tmp_path):
-    """`guarded_rows` runs the loop alone again, for ``duration + within`` s, from the
-    starts it survives within the window, and counts a stop of one of them that fails
-    in that time apart from the needless ones (a stand-in application, no render)."""
+def test_the_guarded_rows_judge_stops_on_the_studys_longer_watch(tmp_path):
+    """`guarded_rows` reads which runs fail soon after the window from the recordings'
+    watched failure times, and counts a stop of one of them apart from the needless
+    ones (a stand-in application, no render)."""
     from types import SimpleNamespace
     from reachwatch.pipeline.monitor_guarded import ORACLE, guarded_rows
     from reachwatch.reach.liveness import MissionOutcomes
     scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
     starts = np.arange(12.0).reshape(4, 3)
-    calls = []
 
     def missions(sc, from_starts, *, duration, fallback=None, **_):
-        calls.append((fallback, duration, from_starts[:, 0].tolist()))
         n = len(from_starts)
-        if fallback:          # the monitor stops runs 1 and 2, and fails none
-            stopped = np.isin(from_starts[:, 0], [3.0, 6.0])
-            return MissionOutcomes(failed=np.zeros(n, bool), stopped=stopped,
-                                   ever_stopped=stopped, distance=np.full(n, 5.0),
-                                   flagged_ticks=np.zeros(n), ticks=np.full(n, 10))
-        # alone: run 0 never fails, run 1 fails only past 8 s, runs 2 and 3 never
-        failed = (from_starts[:, 0] == 3.0) & (duration > 8.0)
-        return MissionOutcomes(failed=failed, stopped=np.zeros(n, bool),
-                               ever_stopped=np.zeros(n, bool), distance=np.full(n, 40.0),
+        assert duration == 8.0
+        stopped = np.isin(from_starts[:, 0], [3.0, 6.0]) if fallback else np.zeros(n, bool)
+        return MissionOutcomes(failed=np.zeros(n, bool), stopped=stopped,
+                               ever_stopped=stopped, distance=np.full(n, 5.0 if fallback else 40.0),
                                flagged_ticks=np.zeros(n), ticks=np.full(n, 10))
 
+    # no run fails within the 8 s; run 1 (stopped) fails at 9.5 s; run 2 (stopped) never
     group = {"environment": scenario.environment, "name": "E", "starts": starts,
              "ticks": np.full(4, 160), "failure_time": np.full(4, np.nan),
+             "watched_failure_time": np.array([np.nan, 9.5, np.nan, np.nan]),
              "state": np.zeros((4, 160, 3))}
     spec = SimpleNamespace(duration=8.0, within=4.0, guarded_runs=4, brake_deceleration=3.0)
     rows = guarded_rows(spec, SimpleNamespace(missions=missions), scenario, [group],
                         {"m": ("model", "platt", 0.5, [1, 1])}, {"m": "m.pt"},
                         cache_dir=tmp_path, executor=None, progress=False, log=lambda _: None,
                         lead=5.0 / 3.0)
-    assert (None, 12.0, [0.0, 3.0, 6.0, 9.0]) in calls           # the survivors, 4 s longer
     row = rows["m"]
     assert (row["failing_after"], row["stopped_failing_after"]) == (1, 1)
     assert (row["safe_alone"], row["needless_stops"]) == (3, 1)

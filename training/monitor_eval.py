@@ -39,15 +39,31 @@ def labelled_ticks(risks, ticks, failure_times, *, period: float, duration: floa
     return np.concatenate(labels), np.concatenate(scores)
 
 
-def decisive_scores(risks, ticks, failure_times, *, period: float, lead: float) -> dict:
+def decisive_scores(risks, ticks, failure_times, *, period: float, lead: float,
+                    fails_after=None) -> dict:
     """What any threshold does with one environment's runs: ``warning``, each warnable
     failing run's largest risk at least ``lead`` s before it fails (`warning_scores`),
-    and ``safe_max``, each run that did not fail's largest risk (a run is flagged iff
-    its score is >= the threshold)."""
+    and ``safe_max``, each safe run's largest risk (a run is flagged iff its score is
+    >= the threshold). A safe run did not fail, and (``fails_after``, per run, when
+    given) does not fail soon after its recording ends either (`flag_outcomes`)."""
+    failed = np.isfinite(np.asarray(failure_times, float))
+    safe = ~failed & ~_failing_after(fails_after, failed)
     return {"warning": warning_scores(risks, run_times(ticks, period), failure_times,
                                       lead=lead).tolist(),
             "safe_max": [float(np.max(x)) if len(x) else 0.0
-                         for x, f in zip(risks, failure_times) if not np.isfinite(f)]}
+                         for x, keep in zip(risks, safe) if keep]}
+
+
+def _failing_after(fails_after, failed) -> np.ndarray:
+    """``fails_after`` as bools, False where the run failed within its recording (None:
+    no run known to fail after it)."""
+    if fails_after is None:
+        return np.zeros(len(failed), bool)
+    fails_after = np.asarray(fails_after, bool).reshape(-1)
+    if len(fails_after) != len(failed):
+        raise ValueError(f"fails_after needs one entry per run, got {len(fails_after)} for "
+                         f"{len(failed)} runs")
+    return fails_after & ~failed
 
 
 def run_times(ticks, period: float) -> list:
@@ -56,11 +72,13 @@ def run_times(ticks, period: float) -> list:
 
 
 def flag_outcomes(risks, ticks, failure_times, *, period: float, threshold: float,
-                  lead: float) -> dict:
+                  lead: float, fails_after=None) -> dict:
     """Per run (bool arrays): ``failed``; ``warnable`` (failed, with a tick at least
     ``lead`` s before the failure: a monitor could have warned it in time); ``warned``
     (warnable, with a flag at least ``lead`` s before the failure); ``flagged`` (any
-    tick with risk >= ``threshold``)."""
+    tick with risk >= ``threshold``); ``failing_after``: survived its recording but
+    fails soon after it (``fails_after``, per run, from a longer watch of the loop;
+    None: none known), so it is censored, not safe, and a flag of it is not needless."""
     failure_times = np.asarray(failure_times, float)
     failed = np.isfinite(failure_times)
     times = run_times(ticks, period)
@@ -72,7 +90,8 @@ def flag_outcomes(risks, ticks, failure_times, *, period: float, threshold: floa
                         for t, f in zip(times, failure_times) if np.isfinite(f)]
     warned[failed] = scores >= threshold
     flagged = np.array([bool(len(r)) and bool(np.max(r) >= threshold) for r in risks])
-    return {"failed": failed, "warnable": warnable, "warned": warned, "flagged": flagged}
+    return {"failed": failed, "warnable": warnable, "warned": warned, "flagged": flagged,
+            "failing_after": _failing_after(fails_after, failed)}
 
 
 def k_of_n_risks(risks, flags_needed: int, window: int) -> list:
@@ -118,14 +137,15 @@ def rate(count: int, trials: int) -> dict:
 
 
 def system_figures(outcomes: dict) -> dict:
-    """Miss rate (warnable failing runs not warned in time), needless-flag rate (runs
-    that did not fail but were flagged), and the share of failing runs that were
-    warnable at all (the ceiling of any monitor with this fallback), with Wilson
-    intervals, from `flag_outcomes`."""
+    """Miss rate (warnable failing runs not warned in time), needless-flag rate (safe
+    runs, neither failing nor ``failing_after``, that were flagged), and the share of
+    failing runs that were warnable at all (the ceiling of any monitor with this
+    fallback), with Wilson intervals, from `flag_outcomes`."""
     failed, warned, flagged = outcomes["failed"], outcomes["warned"], outcomes["flagged"]
     warnable = outcomes["warnable"]
+    safe = ~failed & ~outcomes.get("failing_after", np.zeros(len(failed), bool))
     return {"miss": rate(int(np.sum(warnable & ~warned)), int(warnable.sum())),
-            "needless": rate(int(np.sum(~failed & flagged)), int(np.sum(~failed))),
+            "needless": rate(int(np.sum(safe & flagged)), int(np.sum(safe))),
             "warnable": rate(int(warnable.sum()), int(failed.sum()))}
 
 
