@@ -62,7 +62,10 @@ class MonitorStudySpec:
     without training on more (the taxi's starts are drawn in order: its first ``runs``
     are the same starts); the conformal bound speaks of environments with ``runs``
     runs, the pooled held-out miss rate is per failing run. Each environment's starts
-    have a random stream of their own, not the one the family draws it from. The risk
+    have a random stream of their own, not the one the family draws it from. A run
+    that survives its ``duration`` s is watched ``within`` s longer (the loop alone
+    again from its start, without recording) so that its labels are known and a flag
+    of a run failing just after is not counted needless. The risk
     is that of failing within ``within`` s; the fallback brakes at
     ``brake_deceleration`` m/s^2, so a warning counts when it comes at least speed /
     deceleration s before the failure; the threshold bounds the expected miss rate at
