@@ -86,7 +86,8 @@ def judged_runs(name: str, failed_alone, failed_after, failed_guarded, stopped) 
     failed_alone, failed_after, failed_guarded, stopped = (
         np.asarray(a, bool) for a in (failed_alone, failed_after, failed_guarded, stopped))
     if np.any(failed_alone & failed_after):
-        raise ValueError(f"{name}: a run cannot fail both within the window and after it")
+        raise ValueError(f"{name}: a run fails within the window alone but survived it in "
+                         f"its recording: the loop alone does not repeat its recordings")
     safe = ~failed_alone & ~failed_after
     return {"environment": name, "runs": len(failed_alone),
             "failed_alone": int(failed_alone.sum()), "failed_guarded": int(failed_guarded.sum()),

@@ -418,7 +418,7 @@ def test_a_stop_is_needless_only_of_a_run_that_survives_the_risks_horizon_past_t
     assert row == {"environment": "E", "runs": 4, "failed_alone": 1, "failed_guarded": 0,
                    "prevented": 1, "failing_after": 1, "stopped_failing_after": 1,
                    "safe_alone": 2, "needless_stops": 1}
-    with pytest.raises(ValueError, match="both within the window and after it"):
+    with pytest.raises(ValueError, match="does not repeat its recordings"):
         judged_runs("E", [True], [True], [False], [False])
 
 
