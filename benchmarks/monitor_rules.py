@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reachwatch.pipeline.monitor_judge import fails_after
 from reachwatch.pipeline.monitor_sections import read_study_result
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
 from reachwatch.training.conformal import conformal_threshold, warning_scores
@@ -42,7 +43,7 @@ def _split(saved, variant, split):
     failure = saved[f"{split}/failure_time"]
     watched = (saved[f"{split}/watched_failure_time"]
                if f"{split}/watched_failure_time" in saved.files else failure)
-    after = np.isfinite(watched) & ~np.isfinite(failure)
+    after = fails_after({"watched_failure_time": watched, "failure_time": failure})
     env = saved[f"{split}/environment"]
     flat = saved[f"{variant}/{split}/risk"].astype(float)
     runs = np.split(flat, np.cumsum(ticks)[:-1]) if len(ticks) else []

@@ -5,7 +5,7 @@ environment, and the oracle monitor's row beside them, pooled and per environmen
 **What a stop is judged against.** A guarded run lasts the study's ``duration``; a
 failure it prevented is one the loop alone has within it. Whether a stop was *needless*
 is judged on the study's longer watch of the loop alone, ``duration + within``
-(`monitor_study.watched_failure_times`): the monitor's risk is of failing within
+(`monitor_runs.watched_failure_times`): the monitor's risk is of failing within
 ``within`` s, so a stop near the window's end claims a failure up to ``within`` s past
 it, and a run the loop alone survives for the window but leaves the safe set soon
 after is censored, not safe (its stop is counted apart, ``stopped_failing_after``,

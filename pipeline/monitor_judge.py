@@ -16,14 +16,14 @@ from reachwatch.training.monitor_eval import (decisive_scores, flag_outcomes, k_
 def watch_s(spec) -> float:
     """How long the study watches the loop alone to judge and label a run: its
     recordings' ``duration`` and the risk's horizon ``within`` after them
-    (`monitor_study.watched_failure_times`)."""
+    (`monitor_runs.watched_failure_times`)."""
     return float(spec.duration) + float(spec.within)
 
 
 def _labelled(groups, risks, *, period, watch, within):
     """`labelled_ticks` of every group's runs, concatenated, labelled from their failure
     times over the study's longer watch of the loop alone (``watch`` s,
-    `monitor_study.watched_failure_times`)."""
+    `monitor_runs.watched_failure_times`)."""
     pairs = [labelled_ticks(r, g["ticks"], g["watched_failure_time"], period=period,
                             duration=watch, within=within) for g, r in zip(groups, risks)]
     return (np.concatenate([p[0] for p in pairs] + [np.zeros(0, np.int8)]),
