@@ -49,6 +49,38 @@ def test_the_expected_miss_rate_on_new_environments_is_bounded():
     assert np.mean(misses) >= alpha - 0.06       # and not a trivially low threshold
 
 
+def _sparse_family(rng, environments, runs=12):
+    """Environments of which about half have no failing run (as many do in the study)."""
+    out = []
+    for _ in range(environments):
+        shift = rng.normal(0, 0.15)
+        n = rng.integers(1, 5) if rng.random() < 0.5 else 0
+        out.append(np.clip(rng.beta(4, 2, size=n) + shift, 0, 1))
+    return out
+
+
+def test_given_failures_bounds_the_miss_rate_where_runs_fail():
+    rng = np.random.default_rng(2)
+    alpha, every, given = 0.2, [], []
+    for _ in range(1500):
+        calibration, new = _sparse_family(rng, 24), _sparse_family(rng, 1)[0]
+        if not len(new):
+            continue
+        every.append(miss_rate(new, conformal_threshold(calibration, alpha).threshold))
+        given.append(miss_rate(new, conformal_threshold(calibration, alpha,
+                                                        given_failures=True).threshold))
+    # counting failure-free environments as 0 dilutes the bound where runs fail ...
+    assert np.mean(every) > alpha + 0.03
+    # ... fixing the threshold on environments with failures alone keeps it there
+    assert alpha - 0.08 <= np.mean(given) <= alpha + 0.01
+    chosen = conformal_threshold(_sparse_family(rng, 24), alpha)
+    assert 0 < chosen.failing_environments < chosen.environments
+    assert "counting an environment where no run fails as missing none" in chosen.statement(1.7)
+    with pytest.raises(ValueError, match="with a warnable failing run cannot bound"):
+        conformal_threshold([np.array([0.5])] * 3 + [np.array([])] * 20, 0.2,
+                            given_failures=True)
+
+
 def test_the_largest_threshold_is_kept_and_impossible_targets_refused():
     scores = [np.array([0.2, 0.6, 0.8]), np.array([0.7, 0.9]), np.array([]),
               np.array([0.5, 0.95])] * 3

@@ -23,7 +23,17 @@ miss rate on an unseen environment is at most ``alpha``. The expectation is over
 draw of the calibration environments and the new one, not a promise for each
 environment; `per_environment_bound` adds the distribution-free quantile statement
 for one new environment. Nothing is assumed about the monitor: a poor one only buys
-its bound with a low threshold (many needless flags)."""
+its bound with a low threshold (many needless flags).
+
+**Environments where nothing fails.** Their loss is 0 at any threshold, so they count
+in the expectation: when a share ``p`` of the family's environments has no failing run,
+the expected miss rate *of an environment where some run fails* is bounded only by
+``alpha / (1 - p)``. With ``given_failures`` the threshold is fixed on the calibration
+environments with a warnable failing run alone; they are exchangeable with a new
+environment that has one (selecting each environment on its own runs keeps
+independent draws independent), so the bound ``alpha`` then holds for the miss rate a
+user sees where failures happen, at the price of needing ``1 / alpha - 1`` such
+environments and a lower threshold."""
 
 import dataclasses as dc
 import math
@@ -74,23 +84,41 @@ def miss_rate(scores, threshold: float) -> float:
 class ConformalThreshold:
     """A threshold chosen by `conformal_threshold`: ``threshold``, the target expected
     miss rate ``alpha`` it guarantees on a new environment of the family, the number of
-    calibration environments (``environments``) and of their failing runs
-    (``failing_runs``), and the calibration environments' mean miss rate at it."""
+    calibration environments it was fixed on (``environments``), how many of them had
+    a warnable failing run (``failing_environments``) and how many such runs
+    (``failing_runs``), the calibration environments' mean miss rate at it, and whether
+    it was fixed on the environments with failures alone (``given_failures``)."""
     threshold: float
     alpha: float
     environments: int
     failing_runs: int
     calibration_miss_rate: float
+    failing_environments: int = -1
+    given_failures: bool = False
 
     def statement(self, lead: float) -> str:
-        """The guarantee in one sentence, with its assumption."""
-        return (f"Threshold {self.threshold:.4g}, fixed on {self.environments} calibration "
-                f"environments ({self.failing_runs} failing runs): on a new environment "
-                f"drawn from the same family, independently of them, the expected share of "
-                f"its warnable failing runs (those lasting at least {lead:.2f} s) flagged "
-                f"less than {lead:.2f} s before they fail is at most {100 * self.alpha:.1f} % "
-                f"(conformal risk control; environments exchangeable, each with as many "
-                f"runs drawn as in calibration).")
+        """The guarantee in one sentence, with its assumption and what it says about an
+        environment where some run fails."""
+        share = (f"{self.failing_environments} of them with a warnable failing run"
+                 if self.failing_environments >= 0 else "")
+        head = (f"Threshold {self.threshold:.4g}, fixed on {self.environments} calibration "
+                f"environments{' (' + share + ')' if share else ''}, "
+                f"{self.failing_runs} warnable failing runs: on a new environment drawn from "
+                f"the same family, independently of them")
+        what = (f"the expected share of its warnable failing runs (those lasting at least "
+                f"{lead:.2f} s) flagged less than {lead:.2f} s before they fail is at most "
+                f"{100 * self.alpha:.1f} %")
+        how = ("(conformal risk control; environments exchangeable, each with as many runs "
+               "drawn as in calibration)")
+        if self.given_failures:
+            return f"{head} and with a warnable failing run, {what} {how}."
+        if self.failing_environments > 0 and self.failing_environments < self.environments:
+            implied = self.alpha * self.environments / self.failing_environments
+            return (f"{head}, {what}, counting an environment where no run fails as missing "
+                    f"none {how}. On an environment where some run fails that is about "
+                    f"{100 * min(1.0, implied):.1f} % (alpha over the calibration share of "
+                    f"environments with failures).")
+        return f"{head}, {what} {how}."
 
 
 def _losses(env_scores, threshold):
@@ -102,25 +130,32 @@ class NoConformalThreshold(ValueError):
     runs that fail before any warning can help."""
 
 
-def conformal_threshold(env_scores: Sequence, alpha: float) -> ConformalThreshold:
+def conformal_threshold(env_scores: Sequence, alpha: float, *,
+                        given_failures: bool = False) -> ConformalThreshold:
     """The largest threshold whose conformal-risk-control bound on the expected miss
     rate of a new environment is at most ``alpha`` (see the module's docstring).
     ``env_scores``: per calibration environment, the `warning_scores` of its failing
-    runs (an environment without failures still counts, with loss 0). Raises
+    runs (an environment without failures still counts, with loss 0; with
+    ``given_failures`` it is left out, and the bound is for a new environment where
+    some run fails). Raises
     ValueError when no threshold reaches ``alpha`` with so few environments, or (with
     unwarnable runs scored ``-inf``) so many runs that fail before any warning can help
     (both `NoConformalThreshold`), and for an ``alpha`` outside (0, 1)."""
     if not (0 < alpha < 1):
         raise ValueError(f"alpha must be in (0, 1), got {alpha}")
     env_scores = [np.asarray(s, float) for s in env_scores]
+    failing_environments = sum(len(s) > 0 for s in env_scores)
+    if given_failures:
+        env_scores = [s for s in env_scores if len(s)]
     n = len(env_scores)
-    if n == 0:
+    if n == 0 and not given_failures:
         raise ValueError("conformal_threshold needs at least one calibration environment")
     if 1.0 / (n + 1) > alpha:
+        which = "calibration environments with a warnable failing run" if given_failures \
+            else "calibration environments"
         raise NoConformalThreshold(
-            f"{n} calibration environments cannot bound the miss rate at {alpha:g}: the "
-            f"bound is at least 1/(n+1) = {1 / (n + 1):.3f}; use at least "
-            f"{math.ceil(1 / alpha - 1)}")
+            f"{n} {which} cannot bound the miss rate at {alpha:g}: the bound is at least "
+            f"1/(n+1) = {1 / (n + 1):.3f}; use at least {math.ceil(1 / alpha - 1)}")
     # 0 flags every tick, 1 none (risks are probabilities below 1)
     candidates = np.unique(np.concatenate([s[np.isfinite(s)] for s in env_scores] + [[0.0, 1.0]]))
     best = None
@@ -138,7 +173,8 @@ def conformal_threshold(env_scores: Sequence, alpha: float) -> ConformalThreshol
     return ConformalThreshold(
         threshold=float(best), alpha=float(alpha), environments=n,
         failing_runs=int(sum(len(s) for s in env_scores)),
-        calibration_miss_rate=float(np.mean(_losses(env_scores, best))))
+        calibration_miss_rate=float(np.mean(_losses(env_scores, best))),
+        failing_environments=int(failing_environments), given_failures=bool(given_failures))
 
 
 def per_environment_bound(env_miss_rates, delta: float) -> float:
