@@ -1,0 +1,43 @@
+"""The arithmetic of benchmarks/monitor_bound.py: redrawn splits of a study's family
+judge each new environment at the threshold its calibration draw fixes."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "monitor_bound.py"
+_SPEC = importlib.util.spec_from_file_location("monitor_bound", _PATH)
+bound = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(bound)
+
+
+def test_a_monitor_that_separates_runs_misses_nothing_and_flags_no_safe_run():
+    # warnable failing runs score 0.9, safe runs at most 0.1: any draw's threshold lies
+    # between (the largest that bounds alpha is 0.9 itself)
+    envs = [(np.full(1 + i % 3, 0.9), np.full(4, 0.1)) for i in range(12)]
+    for mode, f in bound.draw_figures(envs, 9, 0.1, draws=50).items():
+        assert f["E[miss]"] == f["E[miss | fails]"] == f["pooled"] == 0.0, mode
+        assert f["needless"] == 0.0 and f["refused"] == 0.0, mode
+
+
+def test_failure_free_environments_dilute_the_default_bound_only():
+    """Half the environments never fail. The miss rates where runs fail are the same in
+    both modes' draws, but the default's E[miss] counts the others as 0."""
+    rng = np.random.default_rng(0)
+    envs = [(rng.uniform(0, 1, 3) if i % 2 else np.zeros(0), rng.uniform(0, 0.5, 3))
+            for i in range(40)]
+    f = bound.draw_figures(envs, 20, 0.2, draws=200)["every"]
+    assert f["E[miss]"] == pytest.approx(f["E[miss | fails]"] / 2, rel=0.15)
+    given = bound.draw_figures(envs, 20, 0.2, draws=200)["given failures"]
+    assert given["E[miss | fails]"] < f["E[miss | fails]"]     # a lower threshold
+    assert given["needless"] > f["needless"]                    # bought with flags
+
+
+def test_too_few_calibration_environments_are_refused_and_counted():
+    envs = [(np.array([0.5]), np.array([0.1]))] * 6
+    f = bound.draw_figures(envs, 4, 0.1, draws=5)
+    assert f["every"]["refused"] == 1.0 and np.isnan(f["every"]["pooled"])
+    with pytest.raises(ValueError, match="more environments than"):
+        bound.draw_figures(envs, 6, 0.1, draws=1)
