@@ -69,7 +69,9 @@ class MonitorStudySpec:
     is that of failing within ``within`` s; the fallback brakes at
     ``brake_deceleration`` m/s^2, so a warning counts when it comes at least speed /
     deceleration s before the failure; the threshold bounds the expected miss rate at
-    ``alpha``. The default ``within`` (4 s, for braking's 1.67 s
+    ``alpha``, an environment where no run fails counting as missing none (so where
+    runs fail, alpha over the share of environments with failures; the report gives
+    it). The default ``within`` (4 s, for braking's 1.67 s
     from 5 m/s at 3 m/s^2) is the one of 2, 3, 4 and 5 s whose kept variant flagged the
     fewest safe runs of the calibration environments in a study of the random family
     (seed 11); set it for your fallback.
