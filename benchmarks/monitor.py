@@ -46,6 +46,9 @@ def main():
         p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(defaults, name))
     for name in ("duration", "within", "alpha"):
         p.add_argument(f"--{name}", type=float, default=getattr(defaults, name))
+    p.add_argument("--given-failures", action="store_true",
+                   help="fix the threshold on the calibration environments with a warnable "
+                        "failing run alone (monitor.given_failures)")
     p.add_argument("--brake", type=float, default=defaults.brake_deceleration,
                    help="braking m/s^2: the fallback")
     p.add_argument("--size", type=int, nargs=2, default=[defaults.height, defaults.width],
@@ -88,7 +91,8 @@ def main():
         defaults, kind="history", family=RandomEnvironments(seed=args.seed), train=args.train,
         calibrate=args.calibrate, held_out=args.held_out, runs=args.runs,
         held_out_runs=args.held_out_runs, duration=args.duration, within=args.within,
-        alpha=args.alpha, brake_deceleration=args.brake, height=args.size[0], width=args.size[1],
+        alpha=args.alpha, given_failures=args.given_failures, brake_deceleration=args.brake,
+        height=args.size[0], width=args.size[1],
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
         input_norm=args.input_norm, seed=args.train_seed, lr_schedule=args.lr_schedule,

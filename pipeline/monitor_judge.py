@@ -67,7 +67,8 @@ def choose_flag_rule(spec, calibrate, risks, *, period, lead):
         env_scores = [warning_scores(r, run_times(g["ticks"], period), g["failure_time"],
                                      lead=lead) for r, g in zip(flags["calibrate"], calibrate)]
         try:
-            chosen = conformal_threshold(env_scores, spec.alpha)
+            chosen = conformal_threshold(env_scores, spec.alpha,
+                                         given_failures=spec.given_failures)
         except ValueError as e:
             refused = refused or e
             continue

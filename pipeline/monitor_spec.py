@@ -71,7 +71,11 @@ class MonitorStudySpec:
     deceleration s before the failure; the threshold bounds the expected miss rate at
     ``alpha``, an environment where no run fails counting as missing none (so where
     runs fail, alpha over the share of environments with failures; the report gives
-    it). The default ``within`` (4 s, for braking's 1.67 s
+    it). ``given_failures``: fix the threshold on the calibration environments with a
+    warnable failing run alone, so that alpha bounds the expected miss rate of a new
+    environment where some run fails (`reachwatch.training.conformal`); it needs at
+    least 1 / alpha - 1 such environments, else the study stops with an error naming how
+    many it had. The default ``within`` (4 s, for braking's 1.67 s
     from 5 m/s at 3 m/s^2) is the one of 2, 3, 4 and 5 s whose kept variant flagged the
     fewest safe runs of the calibration environments in a study of the random family
     (seed 11); set it for your fallback.
@@ -147,6 +151,7 @@ class MonitorStudySpec:
     brake_deceleration: float = bounded_as(3.0, MonitorConfig, "brake_deceleration")
     alpha: float = bounded(0.1, 0.0, 1.0, low_open=True, high_open=True,
                            note=">= 1 / (calibrate + 1)")
+    given_failures: bool = False
     height: int = bounded_as(48, HistoryMonitorConfig, "height")
     width: int = bounded_as(80, HistoryMonitorConfig, "width")
     pool: List[int] = bounded_as(None, HistoryMonitorConfig, "pool",
