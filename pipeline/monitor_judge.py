@@ -106,6 +106,7 @@ def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
         spec, data["calibrate"], risks, period=period, lead=lead)
     needless = [c["needless"] for c in calibration]
     row = {"threshold": chosen.threshold, "statement": chosen.statement(lead),
+           "given_failures": chosen.given_failures,
            "calibration_miss_rate": chosen.calibration_miss_rate,
            "per_environment_bound_90": per_environment_bound(
                [c["miss"]["rate"] if c["miss"]["of"] else 0.0 for c in calibration], 0.1),

@@ -24,6 +24,34 @@ def read_study_result(path) -> dict:
     return nan_for_null(json.loads(Path(path).read_text()), lists={"warning": -np.inf})
 
 
+def bounded_miss_rates(environments):
+    """What the conformal bound speaks of, observed on judged environments (their rows
+    of a study's result): ``(mean miss rate with an environment where no run fails
+    counting 0, mean over those with a warnable failing run, how many those are, how
+    many environments)``; None without environments."""
+    if not environments:
+        return None
+    shares = [e["miss"]["rate"] for e in environments if e["miss"]["of"]]
+    return (sum(shares) / len(environments), float(np.mean(shares)) if shares else float("nan"),
+            len(shares), len(environments))
+
+
+def observed_bound_text(observed, kept, alpha) -> str:
+    """One sentence: `bounded_miss_rates` of the held-out environments beside alpha, the
+    bounded one first (over every environment, or over those where runs fail when the
+    threshold was fixed ``given_failures``)."""
+    every, failing, with_failures, count = observed
+    every_text = (f"{100 * every:.1f} % over all {count}, an environment where no run fails "
+                  f"counting 0")
+    failing_text = (f"{100 * failing:.1f} % over the {with_failures} where some run fails"
+                    if with_failures else "no run failed in them")
+    first, second = ((failing_text, every_text) if kept.get("given_failures")
+                     else (every_text, failing_text))
+    return (f"Observed on the held-out environments of the family, the mean miss rate is "
+            f"{first} (the quantity bounded at {100 * alpha:.1f} %), and {second}. One draw "
+            f"of calibration environments: the bound is an average over such draws.")
+
+
 def rate_text(r):
     """A `rate` as ``"12.5 % [4.1, 29.9] (3/24)"`` (Wilson 95 %), ``"-"`` without trials."""
     if not r["of"]:
@@ -153,6 +181,9 @@ def study_blocks(result: dict) -> list:
                         f"most {100 * kept['per_environment_bound_90']:.1f} % (a quantile of the "
                         f"calibration environments' miss rates; exchangeable environments; "
                         f"optimistic, as the threshold was fitted on the same ones).")]
+    observed = bounded_miss_rates(kept["held_out"]["environments"])
+    if observed is not None:
+        blocks.append(("text", observed_bound_text(observed, kept, result["alpha"])))
     for group, title in (("held_out", "held-out environments of the family"),
                          ("also_held_out", "named environments outside the family (no "
                                            "guarantee: not drawn from it)")):

@@ -194,6 +194,7 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     assert "Guarded real loop" in text and "oracle (privileged)" in text
     assert "pooled over the named environments outside the family" in text
     assert "at most 50.0 %" in text and "How each variant ranks whole runs" in text
+    assert "Observed on the held-out environments of the family, the mean miss rate" in text
     assert "against the single-image detector at the same needless flags" in text
 
     html, md = _monitor_report(tmp_path)
@@ -214,6 +215,19 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
 def test_the_threshold_is_the_conformal_one_of_the_calibration_scores():
     scores = [np.array([0.3, 0.7]), np.array([0.9])]
     assert conformal_threshold(scores, 0.5).threshold == pytest.approx(0.7)
+
+
+def test_the_report_shows_the_bounded_miss_rate_observed():
+    from reachwatch.pipeline.monitor_sections import bounded_miss_rates, observed_bound_text
+    envs = [{"miss": {"rate": r, "of": n}} for r, n in ((0.5, 2), (0.0, 3), (None, 0),
+                                                          (None, 0))]
+    observed = bounded_miss_rates(envs)
+    assert observed == pytest.approx((0.125, 0.25, 2, 4))
+    assert "12.5 % over all 4, an environment where no run fails counting 0 (the quantity " \
+           "bounded at 10.0 %), and 25.0 % over the 2" in observed_bound_text(observed, {}, 0.1)
+    assert "is 25.0 % over the 2 where some run fails (the quantity bounded" in \
+        observed_bound_text(observed, {"given_failures": True}, 0.1)
+    assert bounded_miss_rates([]) is None
 
 
 def test_given_failures_fixes_the_threshold_where_runs_fail():
