@@ -22,7 +22,8 @@ Per variant and per way of fixing the threshold (every calibration environment, 
   user sees where it matters; ``given failures`` promises alpha for it);
 - ``p90 | fails``: the 90th percentile of one such environment's miss rate;
 - ``pooled``: missed over warnable failing runs of the new environments together;
-- ``needless``: safe runs flagged, over safe runs;
+- ``needless``: safe runs flagged, over safe runs, and its 10th and 90th percentiles
+  over draws (how much the calibration draw moves it);
 - ``refused``: the share of draws where no threshold reaches alpha; the other figures
   are over the draws where one does (with ``given failures``, those are the draws that
   put more environments with failures into calibration, fewer into the new ones).
@@ -32,6 +33,7 @@ the expectation over splits of this one family sample, not over new families.
 
     python benchmarks/monitor.py ... --out OUT            # the study first
     python benchmarks/monitor_bound.py OUT [OUT2 ...] --draws 1000
+    python benchmarks/monitor_bound.py OUT --calibrate 32     # more per draw, fewer judged
 """
 
 import argparse
@@ -80,10 +82,13 @@ def draw_figures(environments, calibrate: int, alpha: float, *, draws: int,
             if safe:
                 f["needless"].append(sum(int(np.sum(s >= tau)) for _, s in new) / safe)
     mean = lambda v: float(np.mean(v)) if v else float("nan")
+    quantile = lambda v, q: float(np.quantile(v, q)) if v else float("nan")
     return {m: {"E[miss]": mean(f["every"]), "E[miss | fails]": mean(f["fails"]),
                 "p90 | fails": (float(np.quantile(f["shares"], 0.9)) if f["shares"]
                                 else float("nan")),
                 "pooled": mean(f["pooled"]), "needless": mean(f["needless"]),
+                "needless p10": quantile(f["needless"], 0.1),
+                "needless p90": quantile(f["needless"], 0.9),
                 "refused": f["refused"] / draws} for m, f in out.items()}
 
 
@@ -101,13 +106,16 @@ def main():
     p.add_argument("--draws", type=int, default=1000, help="random splits per study")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variants", nargs="*", help="only these variants (default: all)")
+    p.add_argument("--calibrate", type=int, default=None,
+                   help="environments calibrated on per draw (default: as many as the study)")
     args = p.parse_args()
     print("| study | variant | threshold fixed on | E[miss] | E[miss given fails] | "
-          "p90 given fails | pooled miss | needless | refused |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "p90 given fails | pooled miss | needless | needless p10-p90 | refused |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for folder in args.studies:
         result = read_study_result(Path(folder) / "monitor.json")
-        calibrate = len(next(iter(result["variants"].values()))["scores"]["calibrate"])
+        calibrate = args.calibrate or len(
+            next(iter(result["variants"].values()))["scores"]["calibrate"])
         for variant in result["variants"]:
             if args.variants and variant not in args.variants:
                 continue
@@ -118,10 +126,13 @@ def main():
                 name = variant + (" (kept)" if variant == result["kept"] else "")
                 print(f"| {Path(folder).name} | {name} | {mode} | "
                       + " | ".join(f"{100 * f[k]:.1f}" for k in (
-                          "E[miss]", "E[miss | fails]", "p90 | fails", "pooled", "needless",
-                          "refused")) + " |")
+                          "E[miss]", "E[miss | fails]", "p90 | fails", "pooled", "needless"))
+                      + f" | {100 * f['needless p10']:.1f}-{100 * f['needless p90']:.1f} | "
+                      f"{100 * f['refused']:.1f} |")
     print(f"alpha as each study's; {args.draws} draws of the family's calibration and "
-          f"held-out environments, as many calibrated on as in the study (percent)")
+          f"held-out environments, " + (f"{args.calibrate} calibrated on" if args.calibrate
+                                        else "as many calibrated on as in the study")
+          + " (percent)")
 
 
 if __name__ == "__main__":
