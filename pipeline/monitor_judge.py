@@ -109,7 +109,8 @@ def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
            "given_failures": chosen.given_failures,
            "calibration_miss_rate": chosen.calibration_miss_rate,
            "per_environment_bound_90": per_environment_bound(
-               [c["miss"]["rate"] if c["miss"]["of"] else 0.0 for c in calibration], 0.1),
+               [c["miss"]["rate"] if c["miss"]["of"] else 0.0 for c in calibration
+                if c["miss"]["of"] or not chosen.given_failures], 0.1),
            "calibration_needless": sum(n["count"] for n in needless) / max(
                1, sum(n["of"] for n in needless)),
            "platt": [platt.a, platt.b], "flag_rule": rule}

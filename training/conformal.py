@@ -101,10 +101,13 @@ class ConformalThreshold:
         environment where some run fails."""
         share = (f"{self.failing_environments} of them with a warnable failing run"
                  if self.failing_environments >= 0 else "")
-        head = (f"Threshold {self.threshold:.4g}, fixed on {self.environments} calibration "
-                f"environments{' (' + share + ')' if share else ''}, "
-                f"{self.failing_runs} warnable failing runs: on a new environment drawn from "
-                f"the same family, independently of them")
+        which = (f"the {self.environments} calibration environments with a warnable failing "
+                 f"run" if self.given_failures else
+                 f"{self.environments} calibration environments"
+                 f"{' (' + share + ')' if share else ''}")
+        head = (f"Threshold {self.threshold:.4g}, fixed on {which}, {self.failing_runs} "
+                f"warnable failing runs: on a new environment drawn from the same family, "
+                f"independently of them")
         what = (f"the expected share of its warnable failing runs (those lasting at least "
                 f"{lead:.2f} s) flagged less than {lead:.2f} s before they fail is at most "
                 f"{100 * self.alpha:.1f} %")
