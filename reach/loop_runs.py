@@ -10,29 +10,29 @@ holds."""
 
 import copy
 import dataclasses as dc
-import threading
 
 import numpy as np
 
 from .application import build_loop
 from .fingerprint import fingerprint
 from .outcomes import check_memoryless, path_labels, path_points
+from .thread_kept import KEPT_DIAGRAMS, ThreadKept
 
-_LOOPS = threading.local()      # per worker thread: (spec, scenario) -> (app, diagram, context)
+#: Per worker thread: (spec, scenario) -> (application, diagram, context), the
+#: `KEPT_DIAGRAMS` most recently used (a Context, and a render context, never crosses
+#: threads).
+_LOOPS = ThreadKept(KEPT_DIAGRAMS)
 
 
 def _thread_loop(ref, scenario, guarded: bool = False):
     """``(application, diagram, context)`` of ``ref``'s loop of ``scenario``, built once
-    per worker thread (a Context, and a render context, never crosses threads)."""
-    loops = getattr(_LOOPS, "loops", None)
-    if loops is None:
-        loops = _LOOPS.loops = {}
+    per worker thread and kept while it is among the thread's most recently used."""
     key = fingerprint(ref, scenario) if not guarded else fingerprint(ref, scenario, "guarded")
-    if key not in loops:
-        application = ref.load()
+
+    def build():
         diagram = build_loop(ref, scenario, guarded)
-        loops[key] = application, diagram, diagram.CreateDefaultContext()
-    return loops[key]
+        return ref.load(), diagram, diagram.CreateDefaultContext()
+    return _LOOPS.get(key, build)
 
 
 def failure_rule(application, scenario):

@@ -6,7 +6,6 @@ and the ports to read (``"system.port"``). Chunked; each finished chunk is writt
 atomically under ``cache_dir/key/``, so a killed sweep resumes and a repeated one
 costs nothing. Chunks run on any `concurrent.futures.Executor` (`reach.chunks`)."""
 
-import collections
 import concurrent.futures as cf
 import dataclasses as dc
 import functools
@@ -32,6 +31,7 @@ from .chunks import (CHECKSUM, FolderStore, InlineExecutor, checksum_ok,  # noqa
                      row_done, run_chunks, set_row_hook, split, stop_executor, store_chunk_file)
 from .fingerprint import Unfingerprintable, fingerprint
 from .grid import Grid
+from .thread_kept import KEPT_DIAGRAMS, ThreadKept
 
 
 @dc.dataclass(frozen=True)
@@ -195,16 +195,12 @@ class _DiagramProbe:
             return out
 
 
-#: Per worker *thread*: ``probes`` (key -> _DiagramProbe), built once by the thread that
-#: uses it. A Drake Context is not thread-safe, and a VTK/EGL render context works only
-#: on the thread that created it (on any other, eglMakeCurrent fails and the camera
-#: returns a stale or blank image: wrong steering, no error), so a worker that runs
-#: several threads (``dask worker`` runs one per core) gives each its own diagram.
-_THREAD = threading.local()
-
-
-#: Diagrams a worker thread keeps (the most recently used): each holds a renderer.
-KEPT_DIAGRAMS = 4
+#: Per worker *thread*: probe key -> `_DiagramProbe`, built by the thread that uses it.
+#: A Drake Context is not thread-safe, and a VTK/EGL render context works only on the
+#: thread that created it (on any other, eglMakeCurrent fails and the camera returns a
+#: stale or blank image: wrong steering, no error), so a worker that runs several
+#: threads (``dask worker`` runs one per core) gives each its own diagram.
+_PROBES = ThreadKept(KEPT_DIAGRAMS)
 
 
 def probe_key(factory, probe: Probe, fallback: str = None) -> str:
@@ -223,16 +219,8 @@ def probe_key(factory, probe: Probe, fallback: str = None) -> str:
 def _thread_probe(factory, probe: Probe, key: str, state_dim: int) -> "_DiagramProbe":
     """This thread's `_DiagramProbe` for ``key``, built on first use; the thread keeps
     the `KEPT_DIAGRAMS` most recently used."""
-    probes = getattr(_THREAD, "probes", None)
-    if probes is None:
-        probes = _THREAD.probes = collections.OrderedDict()
-    key = (key, int(state_dim))           # the diagram checks the grid's dimension once
-    if key not in probes:
-        probes[key] = _DiagramProbe(factory, probe, state_dim)
-        while len(probes) > KEPT_DIAGRAMS:
-            probes.popitem(last=False)
-    probes.move_to_end(key)
-    return probes[key]
+    # the diagram checks the grid's dimension once
+    return _PROBES.get((key, int(state_dim)), lambda: _DiagramProbe(factory, probe, state_dim))
 
 
 def run_chunk(factory, probe: Probe, key: str, grid: Grid, start: int, stop: int) -> dict:

@@ -6,7 +6,6 @@ detector's score along real runs (what the guard's tables miss between nodes).""
 import copy
 import dataclasses as dc
 import functools
-import threading
 
 import numpy as np
 import torch
@@ -22,6 +21,7 @@ from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, Mis
 from reachwatch.reach.outcomes import (Outcomes, check_memoryless, map_states, path_labels,
                                        path_points, run_outcomes)
 from reachwatch.reach.score_noise import fit_score_noise_on_runs
+from reachwatch.reach.thread_kept import KEPT_DIAGRAMS, ThreadKept
 from reachwatch.systems import fallback_parts
 
 from .sweeps import resolved
@@ -30,11 +30,12 @@ from .sweeps import resolved
 #: the run has failed, and it stops there.
 OPEN_AXES = (1, 2)
 
-#: Per worker *thread*: ``loops`` ((make, scenario fingerprint) -> copies of the loop,
-#: each ``(diagram, context)``), built once by the thread that runs them. Two threads
-#: never share a Context (a Simulator on it would see the other's time) nor a VTK/EGL
-#: render context (it renders only on the thread that created it).
-_LOOPS = threading.local()
+#: Per worker *thread*: (make, scenario fingerprint) -> copies of the loop, each
+#: ``(diagram, context)``, for the `KEPT_DIAGRAMS` most recently used loops, built by the
+#: thread that runs them. Two threads never share a Context (a Simulator on it would see
+#: the other's time) nor a VTK/EGL render context (it renders only on the thread that
+#: created it).
+_LOOPS = ThreadKept(KEPT_DIAGRAMS)
 
 #: Real-loop runs a worker thread advances together, tick by tick
 #: (`reachwatch.diagrams.lockstep`): their frames render one after another and the
@@ -64,16 +65,14 @@ def on_runway_starts(box, count: int, seed, *, half_width: float) -> np.ndarray:
 
 def _loops(scenario, make, count: int = 1) -> list:
     """``count`` copies ``(diagram, context)`` of the loop ``make(scenario)``, built once
-    per thread (a Dask worker runs tasks on several threads of one process). A thread
-    keeps the extra copies of one loop only: asking for several of one drops those of
-    the others (their first copies stay, as before lockstep)."""
-    loops = getattr(_LOOPS, "loops", None)
-    if loops is None:
-        loops = _LOOPS.loops = {}
+    per thread (a Dask worker runs tasks on several threads of one process) and kept
+    while among its most recently used loops. A thread keeps the extra copies of one
+    loop only: asking for several of one drops those of the others (their first copies
+    stay, as before lockstep)."""
     key = (make.__name__, fingerprint(scenario))
-    copies = loops.setdefault(key, [])
+    copies = _LOOPS.get(key, list)
     if count > 1:
-        for other, kept in loops.items():
+        for other, kept in _LOOPS.kept().items():
             if other != key:
                 del kept[1:]
     if len(copies) < count:

@@ -4,16 +4,15 @@ controller's estimator and the ensemble's on the full frames, resizes them as th
 detector does, and returns the arrays; the driver writes them (`dataset_files.ImageStore`).
 A worker thread builds its renderer and networks once and keeps them for later chunks."""
 
-import collections
 import dataclasses as dc
 import inspect
-import threading
 
 import numpy as np
 
 from reachwatch.diagrams import ControllerProbe, make_controller, user_code
 from reachwatch.diagrams.controller import has_estimate
 from reachwatch.reach.application import ApplicationRef
+from reachwatch.reach.thread_kept import ThreadKept
 from reachwatch.systems import resize_for_detector
 
 
@@ -72,23 +71,15 @@ class ImageSource:
         self.__dict__.update(state)
 
 
-#: Per worker *thread* (a render context works only on the thread that made it):
-#: ``tools`` (key -> ImageTools), the `KEPT_TOOLS` most recently used.
-_THREAD = threading.local()
+#: Per worker *thread* (a render context works only on the thread that made it): source
+#: key -> ImageTools, the `KEPT_TOOLS` most recently used.
 KEPT_TOOLS = 2
+_TOOLS = ThreadKept(KEPT_TOOLS)
 
 
 def _thread_tools(source: ImageSource) -> ImageTools:
-    kept = getattr(_THREAD, "tools", None)
-    if kept is None:
-        kept = _THREAD.tools = collections.OrderedDict()
-    if source.key not in kept:
-        kept[source.key] = ImageTools.build(source.application.load(), source.scenario,
-                                            source.ensemble)
-        while len(kept) > KEPT_TOOLS:
-            kept.popitem(last=False)
-    kept.move_to_end(source.key)
-    return kept[source.key]
+    return _TOOLS.get(source.key, lambda: ImageTools.build(
+        source.application.load(), source.scenario, source.ensemble))
 
 
 def render_chunk(source: ImageSource, states) -> dict:

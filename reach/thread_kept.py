@@ -1,0 +1,40 @@
+"""What a worker thread keeps between tasks: built loops, probes and renderers, the
+few most recently used. A Drake Context is not thread-safe and a VTK/EGL render context
+works only on the thread that created it, so each thread builds its own; each holds a
+renderer (tens of MB at 200x360), so a thread that runs chunks of many environments or
+monitors in turn must not keep them all (a local worker that kept every loop of a
+guarded study's 32 environments grew to 11 GB)."""
+
+import collections
+import threading
+
+#: Loops or probes a worker thread keeps (the most recently used): each holds a renderer.
+KEPT_DIAGRAMS = 4
+
+
+class ThreadKept:
+    """Per thread, the values ``build()`` made for the ``limit`` most recently used
+    keys; the least recently used is dropped before a new one is built."""
+
+    def __init__(self, limit: int):
+        if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+            raise ValueError(f"ThreadKept needs a whole number limit >= 1, got {limit!r}")
+        self.limit = limit
+        self._local = threading.local()
+
+    def kept(self) -> collections.OrderedDict:
+        """This thread's values, least recently used first."""
+        kept = getattr(self._local, "kept", None)
+        if kept is None:
+            kept = self._local.kept = collections.OrderedDict()
+        return kept
+
+    def get(self, key, build):
+        """This thread's value for ``key``, built by ``build()`` on first use."""
+        kept = self.kept()
+        if key not in kept:
+            while len(kept) >= self.limit:
+                kept.popitem(last=False)
+            kept[key] = build()
+        kept.move_to_end(key)
+        return kept[key]

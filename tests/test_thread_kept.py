@@ -1,0 +1,37 @@
+"""What a worker thread keeps between tasks: the few most recently used loops, each
+thread its own."""
+
+import threading
+
+import pytest
+
+from reachwatch.reach.thread_kept import KEPT_DIAGRAMS, ThreadKept
+
+
+def test_the_least_recently_used_is_dropped_before_a_new_one_is_built():
+    built, kept = [], ThreadKept(2)
+
+    def build(key):
+        assert len(kept.kept()) < 2         # never more than the limit, even while building
+        built.append(key)
+        return key.upper()
+    assert kept.get("a", lambda: build("a")) == "A"
+    assert kept.get("b", lambda: build("b")) == "B"
+    assert kept.get("a", lambda: build("a")) == "A"     # kept: not built again
+    assert kept.get("c", lambda: build("c")) == "C"     # drops b, the least recently used
+    assert list(kept.kept()) == ["a", "c"] and built == ["a", "b", "c"]
+    assert kept.get("b", lambda: build("b")) == "B" and built[-1] == "b"
+
+
+def test_each_thread_builds_its_own():
+    kept, seen = ThreadKept(KEPT_DIAGRAMS), []
+    here = kept.get("loop", object)
+    worker = threading.Thread(target=lambda: seen.append(kept.get("loop", object)))
+    worker.start()
+    worker.join()
+    assert seen[0] is not here and kept.get("loop", object) is here
+
+
+def test_a_limit_below_one_is_refused():
+    with pytest.raises(ValueError, match="limit >= 1, got 0"):
+        ThreadKept(0)
