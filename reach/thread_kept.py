@@ -6,6 +6,7 @@ monitors in turn must not keep them all (a local worker that kept every loop of 
 guarded study's 32 environments grew to 11 GB)."""
 
 import collections
+import gc
 import threading
 
 #: Loops or probes a worker thread keeps (the most recently used): each holds a renderer.
@@ -14,7 +15,8 @@ KEPT_DIAGRAMS = 4
 
 class ThreadKept:
     """Per thread, the values ``build()`` made for the ``limit`` most recently used
-    keys; the least recently used is dropped before a new one is built."""
+    keys; the least recently used is dropped (and collected) before a new one is
+    built."""
 
     def __init__(self, limit: int):
         if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
@@ -33,8 +35,12 @@ class ThreadKept:
         """This thread's value for ``key``, built by ``build()`` on first use."""
         kept = self.kept()
         if key not in kept:
-            while len(kept) >= self.limit:
-                kept.popitem(last=False)
+            if len(kept) >= self.limit:
+                while len(kept) >= self.limit:
+                    kept.popitem(last=False)
+                # a diagram's systems hold reference cycles: free the dropped one now,
+                # before the new one is built, not at some later collection
+                gc.collect()
             kept[key] = build()
         kept.move_to_end(key)
         return kept[key]

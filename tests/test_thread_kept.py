@@ -35,3 +35,15 @@ def test_each_thread_builds_its_own():
 def test_a_limit_below_one_is_refused():
     with pytest.raises(ValueError, match="limit >= 1, got 0"):
         ThreadKept(0)
+
+
+def test_a_dropped_value_in_a_reference_cycle_is_freed_before_the_next_is_built():
+    import weakref
+
+    class Loop:                     # a diagram's systems refer to each other
+        def __init__(self):
+            self.me = self
+    kept, freed = ThreadKept(1), []
+    first = weakref.ref(kept.get("a", Loop))
+    kept.get("b", lambda: freed.append(first() is None) or Loop())
+    assert freed == [True]
