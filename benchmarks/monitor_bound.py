@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from reachwatch.pipeline.monitor_sections import read_study_result
-from reachwatch.training.conformal import NoConformalThreshold, conformal_threshold
+from reachwatch.training.conformal import NoConformalThreshold, conformal_threshold, miss_rate
 
 MODES = {"every": False, "given failures": True}
 
@@ -70,7 +70,7 @@ def draw_figures(environments, calibrate: int, alpha: float, *, draws: int,
             except NoConformalThreshold:
                 f["refused"] += 1
                 continue
-            shares = [float(np.mean(w < tau)) for w, _ in new if len(w)]
+            shares = [miss_rate(w, tau) for w, _ in new if len(w)]
             f["every"].append(sum(shares) / len(new))
             if shares:
                 f["fails"].append(float(np.mean(shares)))
@@ -84,8 +84,7 @@ def draw_figures(environments, calibrate: int, alpha: float, *, draws: int,
     mean = lambda v: float(np.mean(v)) if v else float("nan")
     quantile = lambda v, q: float(np.quantile(v, q)) if v else float("nan")
     return {m: {"E[miss]": mean(f["every"]), "E[miss | fails]": mean(f["fails"]),
-                "p90 | fails": (float(np.quantile(f["shares"], 0.9)) if f["shares"]
-                                else float("nan")),
+                "p90 | fails": quantile(f["shares"], 0.9),
                 "pooled": mean(f["pooled"]), "needless": mean(f["needless"]),
                 "needless p10": quantile(f["needless"], 0.1),
                 "needless p90": quantile(f["needless"], 0.9),

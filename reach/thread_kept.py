@@ -35,9 +35,8 @@ class ThreadKept:
         """This thread's value for ``key``, built by ``build()`` on first use."""
         kept = self.kept()
         if key not in kept:
-            if len(kept) >= self.limit:
-                while len(kept) >= self.limit:
-                    kept.popitem(last=False)
+            if len(kept) == self.limit:             # never more: one is added at a time
+                kept.popitem(last=False)
                 # a diagram's systems hold reference cycles: free the dropped one now,
                 # before the new one is built, not at some later collection
                 gc.collect()
