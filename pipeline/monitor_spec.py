@@ -48,94 +48,124 @@ def default_variants() -> List[MonitorVariant]:
 
 @dc.dataclass
 class MonitorStudySpec:
-    """Which monitor guards the loop and how it is judged. ``kind``: ``detector`` (the
-    single-image detector of ``detector:`` and ``guard:``; this study is off) or
-    ``history`` (this study). The family (``family``: the application's random
-    family, the taxi's a ``seed``, hours, skies and runways; its ``count`` is ``train +
-    calibrate + held_out``) gives ``train``,
-    ``calibrate`` and ``held_out`` environments in that order; ``also_held_out`` are
-    named environments outside the family (e.g. the paper's nights), judged with the
-    same threshold but outside its guarantee. Each environment records ``runs`` real
-    runs of ``duration`` s from the application's seeded starts in its grid's box (the
-    taxi's: the paper's box); each judged one (held out, of the family or outside it)
-    ``held_out_runs`` (0: ``runs``), so that misses are counted over more failing runs
-    without training on more (the taxi's starts are drawn in order: its first ``runs``
-    are the same starts); the conformal bound speaks of environments with ``runs``
-    runs, the pooled held-out miss rate is per failing run. Each environment's starts
-    have a random stream of their own, not the one the family draws it from. A run
-    that survives its ``duration`` s is watched ``within`` s longer (the loop alone
-    again from its start, without recording) so that its labels are known and a flag
-    of a run failing just after is not counted needless. The risk
-    is that of failing within ``within`` s; the fallback brakes at
-    ``brake_deceleration`` m/s^2, so a warning counts when it comes at least speed /
-    deceleration s before the failure; the threshold bounds the expected miss rate at
-    ``alpha``, an environment where no run fails counting as missing none (so where
-    runs fail, alpha over the share of environments with failures; the report gives
-    it). ``given_failures``: fix the threshold on the calibration environments with a
+    """Which monitor guards the loop, and the study that trains and judges monitors over
+    the image history. With ``kind: history`` the study draws ``train``, ``calibrate``
+    and ``held_out`` environments, in that order, from the application's random
+    ``family``; records real runs in each; trains every variant on the first; fixes
+    each variant's threshold and flag rule on the second by conformal risk control
+    (`reachwatch.training.conformal`); keeps the variant with the fewest needless flags
+    there; and judges it on the third and on ``also_held_out``, offline and, with
+    ``guarded_runs``, in the guarded real loop beside the single-frame variant and the
+    oracle monitor. What the defaults were chosen on, and the measurements: [why the
+    study's defaults](../results/monitor.md#why-the-studys-defaults) in the docs.
+
+    Keys:
+
+    ``kind``: ``detector`` (the single-image detector of ``detector:`` and ``guard:``
+    guards the loop; this study is off) or ``history`` (this study).
+
+    ``family``: the application's random family the environments are drawn from (the
+    taxi's: a ``seed``, hours, skies and runways); its ``count`` is ``train +
+    calibrate + held_out``: leave it out.
+
+    ``train``: environments the monitors train on.
+
+    ``calibrate``: environments the thresholds are fixed on; at least 1 / alpha - 1.
+
+    ``held_out``: environments of the family the kept monitor is judged on, within the
+    threshold's guarantee.
+
+    ``also_held_out``: named environments outside the family (e.g. the paper's nights),
+    judged with the same threshold but outside its guarantee.
+
+    ``runs``: real runs recorded per environment, from the application's seeded starts
+    in its grid's box (the taxi's: the paper's box; each environment's starts have a
+    random stream of their own). The conformal bound speaks of environments with this
+    many runs.
+
+    ``held_out_runs``: runs recorded per judged environment (held out, of the family
+    or outside it); 0: ``runs``. More failing runs to count misses over, without
+    training on more (the taxi's starts are drawn in order: its first ``runs`` are
+    the same starts).
+
+    ``duration``: seconds per recorded run. A run that survives it is watched
+    ``within`` s longer (the loop alone again from its start, not recorded), so its
+    labels are known and a flag of a run that fails just after is not counted needless.
+
+    ``within``: the risk is that of failing within this many seconds. Set it for your
+    fallback: the default suits braking's 1.67 s from 5 m/s at 3 m/s^2.
+
+    ``brake_deceleration``: the fallback's braking, m/s^2; a warning counts when it
+    comes at least speed / deceleration s before the failure.
+
+    ``alpha``: the threshold bounds the expected miss rate of a new environment of the
+    family at alpha, an environment where no run fails counting as missing none (so
+    where runs fail the bound is alpha over the share of environments with failures;
+    the report gives it).
+
+    ``given_failures``: fix the threshold on the calibration environments with a
     warnable failing run alone, so that alpha bounds the expected miss rate of a new
-    environment where some run fails (`reachwatch.training.conformal`); it needs at
-    least 1 / alpha - 1 such environments, else the study stops with an error naming how
-    many it had. The default ``within`` (4 s, for braking's 1.67 s
-    from 5 m/s at 3 m/s^2) is the one of 2, 3, 4 and 5 s whose kept variant flagged the
-    fewest safe runs of the calibration environments in a study of the random family
-    (seed 11); set it for your fallback.
-    ``guarded_runs`` (0: none) starts per held-out environment (of the family, and
-    outside it) also run in the guarded real loop with the kept variant, the
-    single-frame one and the oracle. ``compare_detector``: the run's single-image
-    detector (``detector:``, trained on its own labels) is judged beside the variants
-    on the same runs (its score at every tick, from runs of the loop alone from the
-    same starts: one more render of every judged run), its threshold and flag rule
-    fixed on the calibration environments the same way, and guards the loop beside
-    them. ``flag_rules`` lists the
-    k-of-n rules tried, ``[flags_needed, flag_window]`` each (the guard's `FlagFilter`:
-    flag when at least k of the last n ticks reached the threshold); each variant keeps
-    the rule with the fewest needless flags on the calibration environments, its
-    threshold fixed there too, and its guarded runs use it. The kept variant is the one
-    with the fewest needless flags on the calibration environments. ``augment``: the
-    per-frame encoder trains on colour-jittered frames (channel gains, brightness and
-    contrast drawn per frame), which in a study of the random family (seed 11; train
-    16, calibrate 30, held out 8, 30 runs of 8 s, within 4 s) raised the single-frame
-    variant's worst held-out AUROC from 0.70 to 0.89. ``input_norm``: how the encoder
-    normalises a frame (`reachwatch.systems.INPUT_NORMS`): ``per_frame`` (the default)
-    standardises each frame on its own, so its brightness, contrast and colour cast do
-    not reach the encoder; over three training seeds of a study of the random family
-    (seed 11; train 16, calibrate 16, held out 8, 20 runs of 8 s) it raised the single
-    frame's worst AUROC on the paper's 4 nights from 0.49 to 0.64 on average and lowered
-    every variant's Brier score there, with the family's held-out figures about as they
-    were (``fixed``: the detector's constant shift and scale only). ``seed``: the monitors' training
-    seed (initial weights, batch order, jitter); train with a few to see how far one
-    training's figures are from the next's. ``ensemble``: each variant is that many
-    trainings (seeds ``K * seed`` to ``K * seed + K - 1``: studies with other seeds share
-    no member), their raw risks averaged at every tick
-    before one calibration and threshold (online: one `HistoryMonitor` that runs the
-    members' encoders as one grouped network). Five members (random family, seed 11,
-    train 16, calibrate 16, whole-map pooling) ranked the single frame's worst held-out
-    environment at 0.89-0.93 where one training ranged 0.61-0.91, and cut the guarded
-    loop's needless stops there from 10.9 % to 7.3 %; with the pooling grid and state
-    targets, three members ranked the held-out family better but stopped about as
-    often for nothing in the guarded loop as one training (two studies, 12 runs per
-    environment), so the default stays 1. Online, five members cost 1-2.4 ms a tick
-    more than one (the guarded loop at 0.80-0.83 of the loop alone's rate, one member
-    0.84-0.93).
-    ``lr_schedule``: ``constant`` or ``cosine`` (each training stage's learning rate
-    decays to zero over its steps). ``epochs``:
-    the per-frame encoder's; 12 rather than 6 ranked the calibration environments'
-    ticks and whole runs better in every variant, on average over three trainings
-    against five (random family, seed 11, train 16, calibrate 16); the needless flags
-    at the conformal threshold moved both ways. The cosine schedule ranked worse.
-    ``state_targets``: components of the recorded state that the per-frame encoder also
+    environment where some run fails; it needs at least 1 / alpha - 1 such
+    environments, else the study stops with an error naming how many it had.
+
+    ``height``: the monitors' frame height, px (the camera's frame is resized to it).
+
+    ``width``: the monitors' frame width, px.
+
+    ``pool``: the grid of cells [rows, columns] the encoder's last feature map is
+    averaged over (`reachwatch.systems.HistoryMonitorConfig`); [1, 1] averages it
+    whole, losing where in the frame a pattern lies.
+
+    ``epochs``: the per-frame encoder's training epochs.
+
+    ``head_epochs``: the temporal head's training epochs, on the encoder's features.
+
+    ``augment``: the per-frame encoder trains on colour-jittered frames (channel gains,
+    brightness and contrast drawn per frame).
+
+    ``input_norm``: how the encoder normalises a frame (`reachwatch.systems.INPUT_NORMS`):
+    ``per_frame`` standardises each frame on its own, so its brightness, contrast and
+    colour cast do not reach the encoder; ``fixed``: the detector's constant shift and
+    scale only.
+
+    ``seed``: the monitors' training seed (initial weights, batch order, jitter); train
+    with a few to see how far one training's figures are from the next's.
+
+    ``ensemble``: each variant is that many trainings (seeds ``K * seed`` to ``K * seed
+    + K - 1``: studies with other seeds share no member), their raw risks averaged at
+    every tick before one calibration and threshold; online one `HistoryMonitor` runs
+    the members' encoders as one grouped network, at about K times one member's cost.
+
+    ``lr_schedule``: ``constant``, or ``cosine`` (each training stage's learning rate
+    decays to zero over its steps).
+
+    ``state_targets``: components of the recorded state the per-frame encoder also
     learns to estimate from the frame, a squared error weighted ``state_weight`` beside
-    the failure loss (`reachwatch.training.history_train.HistoryTrainConfig`); left out
-    (null), the application's `estimated_state` (the taxi's ``[0, 2]``, the cross-track
-    error and heading TaxiNet estimates); ``[]``: none. Privileged, like the labels:
-    read in training only. ``pool``: the grid of cells [rows, columns] the encoder's
-    last feature map is averaged over (`reachwatch.systems.HistoryMonitorConfig`); [1,
-    1] averages it whole, losing where in the frame a pattern lies. Over two training
-    seeds of a study of the random family (seed 11; train 16, calibrate 16, held out 8,
-    12 runs of 8 s), ``pool: [3, 5]`` with the taxi's state targets lowered every
-    variant's Brier score on the held-out family and on the paper's 4 nights, and the
-    calibration environments' needless flags at the conformal threshold, against
-    ``[1, 1]`` without targets; either alone did less."""
+    the failure loss (`reachwatch.training.history_train.HistoryTrainConfig`); null:
+    the application's ``estimated_state`` (the taxi's ``[0, 2]``, the cross-track error
+    and heading TaxiNet estimates); ``[]``: none. Privileged, like the labels: read in
+    training only.
+
+    ``state_weight``: the weight of the ``state_targets`` error in the encoder's loss.
+
+    ``guarded_runs``: starts per judged environment (of the family, and outside it)
+    also run in the guarded real loop with the kept variant, the single-frame one and
+    the oracle; 0: none.
+
+    ``compare_detector``: judge the run's single-image detector (``detector:``, trained
+    on its own labels) beside the variants on the same runs (its score at every tick,
+    from runs of the loop alone from the same starts: one more render of every judged
+    run), its threshold and flag rule fixed on the calibration environments the same
+    way, and guard the loop with it beside them.
+
+    ``variants``: the monitors to train (`MonitorVariant`); the kept one is the one
+    with the fewest needless flags on the calibration environments.
+
+    ``flag_rules``: the k-of-n rules tried, ``[flags_needed, flag_window]`` each (the
+    guard's `FlagFilter`: flag when at least k of the last n ticks reached the
+    threshold); each variant keeps the rule with the fewest needless flags on the
+    calibration environments, its threshold fixed there too, and its guarded runs use
+    it."""
     kind: str = "detector"
     family: ApplicationRandomEnvironments = slot_field(
         "monitor", application_default(ApplicationRandomEnvironments, "monitor"))

@@ -2,7 +2,10 @@
 (`RunSpec`) and of a scenario file (`Scenario`, the run file's ``scenario``), with its
 type, its default, its bounds and the docstring of the dataclass that defines it.
 The bounds are the fields' `reachwatch.systems.bounds.Bound` declarations, the same
-ones the schema's ``validate`` enforces.
+ones the schema's ``validate`` enforces. A class docstring may end in a ``Keys:``
+section, an entry a key (a paragraph that begins with the key in double backquotes
+and a colon), which becomes the table's "meaning" column; a class with one describes
+each of its keys there once.
 
     python -m reachwatch.pipeline.reference docs/reference/run-file.md
 
@@ -35,8 +38,9 @@ is done. Units: metres, seconds, and degrees wherever a key's name ends in `_deg
 (inside the code, angles are radians).
 
 Each section below is one dataclass; "where" gives the keys at which it appears
-(`[]`: each item of a list). Its docstring describes the keys; the table gives their
-types, defaults and bounds. A bound is the range a value must lie in (`[a, b]`: both
+(`[]`: each item of a list). Its docstring describes the keys, or the table's
+"meaning" column does, one line a key; the table gives their types, defaults and
+bounds. A bound is the range a value must lie in (`[a, b]`: both
 ends allowed, `(a, b]`: `a` itself refused), then its unit; for a list, how many items
 it holds and the range of each; after a semicolon, a condition on other keys. A value
 outside its bound is refused when the file is loaded, with a one-line error naming the
@@ -50,14 +54,46 @@ default application's, the taxi's: `Environment` and `RandomEnvironments`.
 """
 
 
-def _doc(cls) -> str:
-    """The class docstring as Markdown: dedented, ``rst literals`` as `code`."""
+KEYS_HEADING = "Keys:"
+_KEY_ENTRY = re.compile(r"^``(\w+)``:\s*", re.M)
+
+
+def _markdown(text: str) -> str:
+    return re.sub(r"``(.+?)``", r"`\1`", text, flags=re.S)
+
+
+def class_doc(cls):
+    """``(prose, {key: meaning})`` of a class docstring, dedented: the prose before a
+    line ``Keys:``, and that section's entries (each a paragraph that begins
+    with the key in double backquotes and a colon; its text joined into one line); ``("", {})`` for a dataclass
+    without a docstring of its own. Raises ValueError for an entry that names no key
+    of the class, a key described twice, or a key left out when some are described."""
     doc = cls.__doc__ or ""
     if doc.startswith(f"{cls.__name__}("):          # dataclass's generated signature
-        return ""
+        return "", {}
     first, _, rest = doc.partition("\n")
     text = (first.strip() + "\n" + textwrap.dedent(rest)).strip()
-    return re.sub(r"``(.+?)``", r"`\1`", text, flags=re.S)
+    prose, heading, section = text.partition(f"\n{KEYS_HEADING}\n")
+    section = section.strip()
+    if not heading:
+        return prose, {}
+    names = [m.group(1) for m in _KEY_ENTRY.finditer(section)]
+    bodies = _KEY_ENTRY.split(section)[2::2]
+    fields = [f.name for f in dc.fields(cls)]
+    unknown = [n for n in names if n not in fields]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    missing = [n for n in fields if n not in names]
+    if unknown or twice or missing or section[:2] != "``":
+        raise ValueError(
+            f"{cls.__name__}'s {KEYS_HEADING} section must describe each of its keys once, "
+            f"each entry a paragraph that begins ``key``: (not keys: {unknown}, twice: "
+            f"{twice}, left out: {missing})")
+    return prose.strip(), {n: " ".join(b.split()) for n, b in zip(names, bodies)}
+
+
+def _doc(cls) -> str:
+    """The class docstring's prose as Markdown: ``rst literals`` as `code`."""
+    return _markdown(class_doc(cls)[0])
 
 
 def _dataclasses_in(annotation):
@@ -143,12 +179,15 @@ def reference_markdown() -> str:
         if doc:
             lines.append(doc + "\n")
         hints = typing.get_type_hints(cls)
-        lines.append("| key | type | default | bounds |")
-        lines.append("|---|---|---|---|")
+        meanings = class_doc(cls)[1]
+        lines.append("| key | type | default | bounds |" + (" meaning |" if meanings else ""))
+        lines.append("|---|---|---|---|" + ("---|" if meanings else ""))
         for field in dc.fields(cls):
             bound = bound_of(field)
+            meaning = (f" {_cell(_markdown(meanings[field.name]))} |" if meanings else "")
             lines.append(f"| `{field.name}` | {_cell(_type_name(hints[field.name]))} | "
-                         f"{_cell(_default(field))} | {_cell(bound.text() if bound else '')} |")
+                         f"{_cell(_default(field))} | {_cell(bound.text() if bound else '')} |"
+                         + meaning)
         lines.append("")
     return "\n".join(lines).rstrip() + "\n"
 
