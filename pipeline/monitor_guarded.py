@@ -9,26 +9,37 @@ is judged on the study's longer watch of the loop alone, ``duration + within``
 ``within`` s, so a stop near the window's end claims a failure up to ``within`` s past
 it, and a run the loop alone survives for the window but leaves the safe set soon
 after is censored, not safe (its stop is counted apart, ``stopped_failing_after``,
-neither prevented nor needless)."""
+neither prevented nor needless).
+
+**What is rendered.** Until a monitor first flags, the guarded loop is the loop alone:
+the same frames, controller and plant, tick for tick. So a run whose monitor's risk
+along its recording (the study's, at every tick) stays below the threshold never
+flags, and its guarded run is the loop alone's; only the others are rendered
+(`guarded_missions`). The first such run of each environment is rendered too, and must
+come out as the loop alone's."""
 
 import dataclasses as dc
 
 import numpy as np
 
 from reachwatch.diagrams import MonitorConfig
+from reachwatch.reach.liveness import MissionOutcomes
 from reachwatch.training.monitor_eval import oracle_risks, rate
 
 from .monitor_judge import fails_after
 from .monitor_sections import rate_text
 
 
-def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, cache_dir,
-                 executor, progress, log, lead):
+def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, risks,
+                 cache_dir, executor, progress, log, lead):
     """The guarded real loop (braking) with each saved monitor against the loop alone,
     from the first ``guarded_runs`` recorded starts of each environment of ``held_out``
     (the held-out family's, or those outside it; the application's `missions`); and the
     oracle monitor's row (`_oracle_guarded`). Stops are judged on the loop alone watched
-    ``within`` s past the window (see the module; `judged_runs`)."""
+    ``within`` s past the window (see the module; `judged_runs`). ``risks[name]``: each
+    monitor's risk (on its threshold's scale) at every tick of each environment's
+    recorded runs, ``[env][run]``: what `guarded_missions` reads to render only the runs
+    it may flag."""
     # the loop alone once per environment: every monitor is judged against the same runs
     alone_runs = [application.missions(dc.replace(scenario, environment=g["environment"]),
                                        g["starts"][:spec.guarded_runs], duration=spec.duration,
@@ -40,16 +51,19 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
     rows = {}
     for name, path in checkpoints.items():
         threshold, (flags_needed, flag_window) = models[name][2:]
-        envs, distances = [], []
-        for g, alone, late in zip(held_out, alone_runs, after):
+        envs, distances, rendered = [], [], 0
+        for g, alone, late, recorded in zip(held_out, alone_runs, after, risks[name]):
             sc = dc.replace(scenario, environment=g["environment"], monitor=MonitorConfig(
                 detector=path, threshold=threshold, strategy="brake",
                 flags_needed=flags_needed, flag_window=flag_window,
                 brake_deceleration=spec.brake_deceleration))
             starts = g["starts"][:spec.guarded_runs]
-            guarded = application.missions(sc, starts, fallback="brake",
-                                           duration=spec.duration, cache_dir=cache_dir,
-                                           executor=executor, progress=progress)
+            peaks = np.array([np.max(r) if len(r) else -np.inf for r in recorded[:len(starts)]])
+            guarded, count = guarded_missions(
+                application, sc, starts, alone, peaks, threshold, duration=spec.duration,
+                cache_dir=cache_dir, executor=executor, progress=progress,
+                what=f"{name} in {g['name']}")
+            rendered += count
             envs.append(judged_runs(g["name"], alone.failed, late, guarded.failed,
                                     guarded.ever_stopped))
             distances.append((float(alone.distance.sum()), float(guarded.distance.sum())))
@@ -58,7 +72,9 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
             f"{counts['failed_guarded']} guarded of {counts['runs']} runs; prevented "
             f"{rate_text(counts['prevented_rate'])}; needless stops "
             f"{rate_text(counts['needless_rate'])}; stopped {counts['stopped_failing_after']} of "
-            f"the {counts['failing_after']} runs failing within {spec.within:g} s after the window")
+            f"the {counts['failing_after']} runs failing within {spec.within:g} s after the "
+            f"window; {rendered} runs rendered, the others never reaching the threshold along "
+            f"their recording")
     if checkpoints:
         rows[ORACLE] = _oracle_guarded(spec, application, scenario, held_out, alone_runs,
                                        after, next(iter(checkpoints.values())), lead=lead,
@@ -73,6 +89,53 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
 
 #: The guarded-loop row of the oracle monitor.
 ORACLE = "oracle (privileged)"
+
+#: How far below the threshold (relative to it, at least this much absolute) a run's
+#: largest recorded risk must stay for `guarded_missions` to take its guarded run from
+#: the loop alone: a history monitor's online risk is its offline one up to float
+#: rounding.
+QUIET_MARGIN = 1e-3
+
+
+def guarded_missions(application, scenario, starts, alone, peaks, threshold, *, duration,
+                     cache_dir, executor, progress, what: str):
+    """``(MissionOutcomes, rendered)``: the guarded loop of ``scenario`` (its monitor,
+    braking) from ``starts``, as `missions` gives it, rendering only what may differ
+    from the loop alone's runs ``alone`` from the same starts. A run whose monitor's
+    largest risk along its recording (``peaks``) stays below ``threshold`` by
+    `QUIET_MARGIN` never flags, under any k-of-n rule, so its guarded run is the loop
+    alone's. The others are rendered, and so is the first quiet one, which must come
+    out exactly as the loop alone's: else a RuntimeError naming ``what`` (the loop
+    alone does not repeat itself, or the online monitor is not the one recorded)."""
+    peaks = np.asarray(peaks, float)
+    if len(peaks) != len(starts) or len(alone) != len(starts):
+        raise ValueError(f"guarded runs of {what}: {len(starts)} starts, {len(alone)} runs "
+                         f"alone and {len(peaks)} recorded risks")
+    quiet = peaks < threshold - QUIET_MARGIN * max(1.0, abs(threshold))
+    check = np.flatnonzero(quiet)[:1]
+    render = ~quiet
+    render[check] = True
+    fields = {name: np.array(value) for name, value in alone.as_fields().items()}
+    which = np.flatnonzero(render)
+    if len(which):
+        ran = application.missions(scenario, np.asarray(starts)[which], fallback="brake",
+                                   duration=duration, cache_dir=cache_dir,
+                                   executor=executor, progress=progress)
+        for name, value in ran.as_fields().items():
+            if name not in fields:
+                raise ValueError(f"guarded runs of {what}: the guarded loop gives {name}, "
+                                 f"the loop alone does not")
+            fields[name][which] = value
+        for i in check:
+            differ = [name for name, value in alone.as_fields().items()
+                      if not np.array_equal(value[i], fields[name][i])]
+            if differ:
+                raise RuntimeError(
+                    f"guarded runs of {what}: run {i} never reaches the threshold along its "
+                    f"recording, yet guarded it differs from the loop alone in {differ}: "
+                    f"the loop alone does not repeat itself, or the online monitor is not "
+                    f"the one recorded")
+    return MissionOutcomes.from_fields(fields), len(which)
 
 
 def judged_runs(name: str, failed_alone, failed_after, failed_guarded, stopped) -> dict:

@@ -208,6 +208,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         checkpoints[name] = str(path)
     guarding = {**checkpoints, **({DETECTOR_ROW: str(detector)} if detector is not None else {})}
     guarded = {k: guarded_rows(spec, application, scenario, data[k], models, guarding,
+                               risks={name: all_risks[name][k] for name in guarding},
                                cache_dir=cache_dir / "missions", executor=executor,
                                progress=progress, log=log, lead=lead)
                if spec.guarded_runs and data[k] else {} for k in ("held_out", "also_held_out")}

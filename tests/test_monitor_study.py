@@ -449,6 +449,7 @@ def test_the_guarded_rows_judge_stops_on_the_studys_longer_watch(tmp_path):
     spec = SimpleNamespace(duration=8.0, within=4.0, guarded_runs=4, brake_deceleration=3.0)
     rows = guarded_rows(spec, SimpleNamespace(missions=missions), scenario, [group],
                         {"m": ("model", "platt", 0.5, [1, 1])}, {"m": "m.pt"},
+                        risks={"m": [[np.full(160, 0.9)] * 4]},   # each may flag: rendered
                         cache_dir=tmp_path, executor=None, progress=False, log=lambda _: None,
                         lead=5.0 / 3.0)
     row = rows["m"]
@@ -456,6 +457,49 @@ def test_the_guarded_rows_judge_stops_on_the_studys_longer_watch(tmp_path):
     assert (row["safe_alone"], row["needless_stops"]) == (3, 1)
     assert rows[ORACLE]["safe_alone"] == 3 and rows[ORACLE]["needless_stops"] == 0
     assert rows["m"]["needless_rate"]["of"] == 3
+
+
+def test_guarded_runs_that_cannot_flag_are_the_loop_alones(tmp_path):
+    """`guarded_missions` renders the runs whose recorded risk reaches the threshold
+    (or comes within the margin of it) and the first that does not; the others are
+    the loop alone's. A quiet run that comes out otherwise stops it with one line."""
+    from types import SimpleNamespace
+    from reachwatch.pipeline.monitor_guarded import QUIET_MARGIN, guarded_missions
+    from reachwatch.reach.liveness import MissionOutcomes
+
+    def outcomes(first, n, braked):
+        stopped = braked & (first % 2 == 1)             # odd starts brake to a stop
+        return MissionOutcomes(failed=~stopped & (first >= 4), stopped=stopped,
+                               ever_stopped=stopped, distance=np.where(stopped, 3.0, first),
+                               flagged_ticks=np.where(stopped, 5, 0), ticks=np.full(n, 20))
+
+    asked = []
+
+    def missions(sc, from_starts, *, fallback=None, **_):
+        asked.append(from_starts[:, 0].tolist())
+        return outcomes(from_starts[:, 0], len(from_starts), fallback == "brake")
+
+    starts = np.column_stack([np.arange(6.0), np.zeros(6), np.zeros(6)])
+    alone = outcomes(starts[:, 0], 6, False)
+    # runs 1 and 3 reach the threshold 0.5, run 5 comes within the margin; 0, 2, 4 do not
+    peaks = [0.1, 0.7, 0.2, 0.5, 0.3, 0.5 - QUIET_MARGIN / 2]
+    guarded, rendered = guarded_missions(
+        SimpleNamespace(missions=missions), None, starts, alone, peaks, 0.5, duration=8.0,
+        cache_dir=tmp_path, executor=None, progress=False, what="m in E")
+    assert asked == [[0.0, 1.0, 3.0, 5.0]] and rendered == 4      # run 0: the check
+    everything = outcomes(starts[:, 0], 6, True)
+    for name, value in everything.as_fields().items():
+        np.testing.assert_array_equal(getattr(guarded, name), value, err_msg=name)
+    # a quiet run that the guarded loop changes: not the loop alone, or not its monitor
+    with pytest.raises(RuntimeError, match=r"m in E: run 1 never reaches the threshold.*"
+                                           r"differs from the loop alone in \['stopped'"):
+        guarded_missions(SimpleNamespace(missions=missions), None, starts, alone,
+                         [0.6, 0.1, 0.6, 0.1, 0.6, 0.6], 0.5, duration=8.0,
+                         cache_dir=tmp_path, executor=None, progress=False, what="m in E")
+    with pytest.raises(ValueError, match="6 starts, 6 runs alone and 2 recorded risks"):
+        guarded_missions(SimpleNamespace(missions=missions), None, starts, alone, [0.1, 0.2],
+                         0.5, duration=8.0, cache_dir=tmp_path, executor=None,
+                         progress=False, what="m in E")
 
 
 def _save_tiny_history_monitor(path):
