@@ -38,33 +38,80 @@ def record_runs(spec, application, scenario, environments, first, *, runs, cache
                                               height=spec.height, width=spec.width,
                                               cache_dir=cache_dir, executor=executor,
                                               progress=progress)
+        if i == 0:
+            continues = continues_from_recordings(application, here)
         watched = watched_failure_times(spec, application, here, starts,
                                         recorded["failure_time"], cache_dir=cache_dir,
-                                        executor=executor, progress=progress)
+                                        executor=executor, progress=progress,
+                                        recorded=recorded if continues else None)
         out.append({**recorded, "watched_failure_time": watched, "starts": starts,
                     "name": environment.name, "environment": environment})
     return out
 
 
+def continues_from_recordings(application, scenario) -> bool:
+    """Whether a run of the loop alone from a recorded state is the rest of the recorded
+    run: its controller (the system of `Application.probe`'s control port) keeps no
+    state of its own (`reachwatch.reach.outcomes.check_memoryless`, which trajectory
+    labels need too). Builds the loop once."""
+    from reachwatch.reach.outcomes import check_memoryless
+    scenario = application.without_monitor(scenario)
+    diagram = application.loop_diagram(scenario)
+    system = str(application.probe(scenario).control_port).partition(".")[0]
+    if not diagram.HasSubsystemNamed(system):
+        return False
+    try:
+        check_memoryless(diagram.GetSubsystemByName(system))
+    except ValueError:
+        return False
+    return True
+
+
 def watched_failure_times(spec, application, scenario, starts, failure_time, *, cache_dir,
-                          executor, progress) -> np.ndarray:
+                          executor, progress, recorded=None) -> np.ndarray:
     """Each run's failure time over a longer watch of the loop alone, `watch_s` (the
     recording's ``duration`` and the risk's horizon ``within`` after it): its recorded
     ``failure_time`` where it failed within the recording; for a run that survived
-    it, the failure time of the loop alone from the same start within the watch (the
-    application's `missions`, run again from those starts only), NaN if none. Every
-    tick of a recording then has a known label ("fails within ``within`` s"), and a
-    run that leaves the safe set just after the recording is not taken for safe."""
+    it, the failure time of the loop alone within the watch (the application's
+    `missions`), NaN if none. Every tick of a recording then has a known label ("fails
+    within ``within`` s"), and a run that leaves the safe set just after the recording
+    is not taken for safe.
+
+    The loop alone runs again from the starts of the runs that survived, for the whole
+    watch; or, with ``recorded`` (the runs' `recorded_runs` fields, for a loop that
+    `continues_from_recordings`), from each one's last recorded state for the rest of
+    the watch, a third of the renders for the default 8 s and 4 s. Then the first such
+    run is also watched from its start, and the two must agree on its failure, else a
+    RuntimeError."""
     failure = np.asarray(failure_time, float).copy()
     survived = np.flatnonzero(~np.isfinite(failure))
     if not len(survived) or spec.within <= 0:
         return failure
     period, watch = scenario.controller.period, watch_s(spec)
-    # one tick longer: a failure at the watch's last tick is still an acting tick
-    longer = application.missions(scenario, np.asarray(starts)[survived], duration=watch + period,
-                                  cache_dir=cache_dir, executor=executor, progress=progress)
-    at = (np.asarray(longer.ticks) - 1) * period
-    later = np.where(np.asarray(longer.failed, bool) & (at <= watch + 1e-9), at, np.nan)
+    starts = np.asarray(starts)
+
+    def failing_at(from_states, begin):
+        # one tick longer: a failure at the watch's last tick is still an acting tick
+        longer = application.missions(scenario, from_states, duration=watch - begin + period,
+                                      cache_dir=cache_dir, executor=executor,
+                                      progress=progress)
+        at = begin + (np.asarray(longer.ticks) - 1) * period
+        return np.where(np.asarray(longer.failed, bool) & (at <= watch + 1e-9), at, np.nan)
+
+    if recorded is None:
+        later = failing_at(starts[survived], 0.0)
+    else:
+        last = np.asarray(recorded["ticks"])[survived] - 1
+        if np.any(last < 0) or len(np.unique(last)) != 1:
+            raise ValueError(f"recorded runs in {scenario.environment.name}: the runs that "
+                             f"survived have {sorted(set(last + 1))} ticks, not one count")
+        later = failing_at(np.asarray(recorded["state"])[survived, last], last[0] * period)
+        whole = failing_at(starts[survived[:1]], 0.0)
+        if not np.allclose(whole, later[:1], atol=period / 2, equal_nan=True):
+            raise RuntimeError(
+                f"the loop alone in {scenario.environment.name}: from its last recorded "
+                f"state, run {survived[0]} fails at {later[0]:g} s, from its start at "
+                f"{whole[0]:g} s: its recorded state is not all the loop carries")
     if np.any(later <= spec.duration + 1e-9):
         raise RuntimeError(f"the loop alone in {scenario.environment.name} fails within "
                            f"{spec.duration:g} s from a start whose recorded run did not: "

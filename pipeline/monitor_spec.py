@@ -89,8 +89,10 @@ class MonitorStudySpec:
     the same starts).
 
     ``duration``: seconds per recorded run. A run that survives it is watched
-    ``within`` s longer (the loop alone again from its start, not recorded), so its
-    labels are known and a flag of a run that fails just after is not counted needless.
+    ``within`` s longer (the loop alone, not recorded: on from the recording's last
+    state when the controller keeps no state of its own, else again from the start),
+    so its labels are known and a flag of a run that fails just after is not counted
+    needless.
 
     ``within``: the risk is that of failing within this many seconds. Set it for your
     fallback: the default suits braking's 1.67 s from 5 m/s at 3 m/s^2.

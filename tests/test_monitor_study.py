@@ -502,6 +502,55 @@ def test_guarded_runs_that_cannot_flag_are_the_loop_alones(tmp_path):
                          progress=False, what="m in E")
 
 
+def test_the_watch_goes_on_from_the_last_recorded_state(tmp_path):
+    """A run that survives its recording is watched on from its last recorded state
+    (the taxi's controller keeps no state of its own), and fails when the loop alone
+    from its start does; a loop whose recorded state is not all it carries is refused
+    with one line."""
+    from types import SimpleNamespace
+    from reachwatch.pipeline.monitor_runs import (continues_from_recordings,
+                                                  watched_failure_times)
+    from reachwatch.reach.application import load_application
+    application = load_application()
+    scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
+    B = scenario.environment.half_width
+    starts = np.array([[B - 3.0, 100.0, 0.6], [-(B - 5.0), 100.0, -0.8], [0.0, 100.0, 0.0]])
+    assert continues_from_recordings(application, scenario)
+    spec = SimpleNamespace(duration=0.5, within=2.5)
+    recorded = application.recorded_runs(scenario, starts, duration=spec.duration, height=16,
+                                         width=24, cache_dir=tmp_path / "runs", progress=False)
+    assert not np.isfinite(recorded["failure_time"]).any()        # each survives 0.5 s
+    common = dict(cache_dir=tmp_path / "m", executor=None, progress=False)
+    whole = watched_failure_times(spec, application, scenario, starts,
+                                  recorded["failure_time"], **common)
+    on = watched_failure_times(spec, application, scenario, starts, recorded["failure_time"],
+                               recorded=recorded, **common)
+    assert np.isfinite(whole[:2]).all() and np.all(whole[:2] > 0.5) and np.isnan(whole[2])
+    np.testing.assert_allclose(on, whole, atol=1e-6)
+    # a recording whose last state is not the loop's: its first run disagrees
+    moved = {**recorded, "state": recorded["state"].copy()}
+    moved["state"][:, -1, 0] = 0.0                   # back on the centre line
+    with pytest.raises(RuntimeError, match="from its last recorded state, run 0 fails at "
+                                           "nan s, from its start at") as error:
+        watched_failure_times(spec, application, scenario, starts, recorded["failure_time"],
+                              recorded=moved, **common)
+    assert "\n" not in str(error.value)
+    # a controller that keeps state of its own: watched from the starts
+    from pydrake.systems.framework import DiagramBuilder, LeafSystem
+
+    class Counter(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self.DeclareDiscreteState(1)
+
+    builder = DiagramBuilder()
+    builder.AddNamedSystem("controller", Counter())
+    stateful = builder.Build()
+    stand_in = SimpleNamespace(without_monitor=lambda sc: sc, loop_diagram=lambda sc: stateful,
+                               probe=lambda sc: SimpleNamespace(control_port="controller.u"))
+    assert not continues_from_recordings(stand_in, scenario)
+
+
 def _save_tiny_history_monitor(path):
     from reachwatch.diagrams import save_checkpoint
     from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel
