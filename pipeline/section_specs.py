@@ -52,28 +52,51 @@ class IncrementalConfig:
 
 @dc.dataclass
 class GuardSpec:
-    """The guarded loop on held-out environments (default: the first test one). For
-    each fallback in ``strategies`` (a speed strategy, optionally ``+`` a steering
-    while flagged, e.g. ``slow_down+dead_reckoning``): failure sets and liveness from
-    the swept tables over the grid, a trade-off curve over ``tradeoff_points``
-    detector thresholds, and the same figures from ``check_starts`` seeded random
-    on-runway starts in the real Drake loops (each start costs one real run alone and
-    one per fallback; 0 = no real-loop check). ``candidates``: table-chosen starts
-    tried in the real loops for the showcase run (``meshcat_html``: with a Meshcat
-    replay beside its figure, where the application writes one: the taxi does, the
-    generic `Application.simulate_guarded` does not); ``online_seconds``: simulated
-    seconds per round of the online rate. ``mission_limit``: the failure sets are also
-    judged by distance (failures before covering the distance the controller alone
-    covers within the horizon, the runs going on for up to ``mission_limit`` horizons;
-    a slower aircraft otherwise fails later, past the horizon, on the same path).
-    ``noise_starts``: real runs of the controller alone (seeded ``noise_seed``) on
-    which the detector's variation between grid nodes is fitted, so that the real-loop
-    check also shows the tables with it (`reach.score_noise`; 0 = not fitted).
-    ``flag_budget`` (None: the detector's threshold from training): instead, set the
-    threshold per guard environment, without labels, to the one at which the first of
-    ``strategies`` flags that share of its control ticks in the tables (with the score
-    noise when ``noise_starts`` fits it), rolled out from ``flag_budget_starts`` of the
-    application's starts seeded ``flag_budget_seed`` (`Application.flag_budget_threshold`)."""
+    """The guarded loop on held-out environments: for each fallback, failure sets and
+    liveness from the swept tables over the grid, a trade-off curve over detector
+    thresholds, and the same figures from seeded random starts in the real Drake loops.
+
+    Keys:
+
+    ``environments``: the environments guarded; empty: the first test one.
+
+    ``strategies``: the fallbacks, each a speed strategy, optionally ``+`` a steering
+    while flagged (e.g. ``slow_down+dead_reckoning``).
+
+    ``candidates``: table-chosen starts tried in the real loops for the showcase run.
+
+    ``online_seconds``: simulated seconds per round of the online rate.
+
+    ``meshcat_html``: the showcase run with a Meshcat replay beside its figure, where
+    the application writes one (the taxi does, the generic
+    `Application.simulate_guarded` does not).
+
+    ``check_starts``: seeded random on-runway starts run in the real loops, each one
+    real run alone and one per fallback; 0: no real-loop check.
+
+    ``check_seed``: the seed of those starts.
+
+    ``tradeoff_points``: detector thresholds on the trade-off curve.
+
+    ``mission_limit``: the failure sets are also judged by distance: failures before
+    covering the distance the controller alone covers within the horizon, the runs
+    going on for up to this many horizons (a slower aircraft otherwise fails later,
+    past the horizon, on the same path).
+
+    ``noise_starts``: real runs of the controller alone on which the detector's
+    variation between grid nodes is fitted, so that the real-loop check also shows the
+    tables with it (`reach.score_noise`); 0: not fitted.
+
+    ``noise_seed``: the seed of those runs.
+
+    ``flag_budget``: null: the detector's threshold from training. Else the threshold
+    per guard environment, set without labels to the one at which the first of
+    ``strategies`` flags this share of its control ticks in the tables (with the score
+    noise when ``noise_starts`` fits it; `Application.flag_budget_threshold`).
+
+    ``flag_budget_starts``: the application's starts those tables are rolled out from.
+
+    ``flag_budget_seed``: the seed of those starts."""
     environments: List[ApplicationEnvironment] = slot_field("", list)
     strategies: List[str] = dc.field(default_factory=lambda: list(DEFAULT_FALLBACKS))
     candidates: int = bounded(5, 0, MAX_STARTS, whole=True)
