@@ -30,30 +30,79 @@ from .slot_defaults import SlotDefaults, application_default
 
 @dc.dataclass
 class RunSpec:
-    """A whole study. ``scenario`` holds camera, controller and fallback settings
-    (its environment and start are ignored); grids are one size per axis of the
-    application's box (the taxi's: ``[n_px, n_py, n_theta]`` over the paper's box);
-    ``horizon`` s; ``periods_per_step``: control periods per
-    step of the ``semi_lagrangian`` solver (each step interpolates V once: on the
-    demo's 21x9x21 night grids, 4 per step called 14-17 % of the checked starts safe
-    that failed in the real loop, 40 per step 6-9 %). ``solved_theta_deg`` widens the
-    box the tables are swept and the BRT solved over to |theta| <= it (the loop turns
-    far past the paper's 28 deg at night) and ``solved_py_max`` to py <= it (a loop
-    started near py = 250 m goes on past it within the horizon); labelled states and
-    check starts stay in the paper's box. ``train``, ``test``: environments of the
-    application's own type (`Application.environment_type`; the taxi's `Environment`:
-    a runway, hour and sky). ``train_random`` / ``test_random``: families of random
-    environments (the application's; the taxi's `RandomEnvironments`) added to the
-    listed ``train`` / ``test`` ones; the held-out
-    family needs its own seed. ``held_out_labels``: where the held-out environments'
-    labels come from (null: ``dataset.labels``, as the training environments'). The
-    detector trains on ``dataset.labels`` either way; a true-label source here (e.g.
-    ``hybrid``) scores a detector trained on cheap BRT labels against the real loop,
-    and Table 2 then also scores it against the BRT's verdicts on the same states.
+    """A whole study: the environments, the swept and solved grids, the labels and the
+    detector, and each stage's section.
+
+    Keys:
+
+    ``name``: the run's name (reports and logs).
+
     ``application``: the closed loop studied (`reachwatch.reach.application`), named
-    like a controller factory (``package.module:name`` or ``path/to/file.py:name``:
-    an ``Application`` subclass or a function of no arguments returning one); empty =
-    the taxi (`reachwatch.taxi.application.TaxiApplication`)."""
+    like a controller factory (``package.module:name`` or ``path/to/file.py:name``: an
+    ``Application`` subclass or a function of no arguments returning one); empty: the
+    taxi (`reachwatch.taxi.application.TaxiApplication`).
+
+    ``scenario``: camera, controller and fallback settings (its environment and start
+    are ignored).
+
+    ``train``: the training environments, of the application's own type
+    (`Application.environment_type`; the taxi's `Environment`: a runway, hour and sky).
+
+    ``test``: the held-out environments, of the same type.
+
+    ``train_random``: a family of random environments (the application's; the taxi's
+    `RandomEnvironments`) added to ``train``.
+
+    ``test_random``: a family added to ``test``; it needs a seed of its own.
+
+    ``grid``: the swept and solved grid, one size per axis of the application's box
+    (the taxi's: ``[n_px, n_py, n_theta]`` over the paper's box).
+
+    ``horizon``: the BRT's horizon, s.
+
+    ``accuracy``: the BRT solver (`reach.ACCURACIES`): ``semi_lagrangian``, or a
+    level-set scheme ``low``, ``high``, ``very_high``.
+
+    ``periods_per_step``: control periods per step of the ``semi_lagrangian`` solver;
+    each step interpolates V once, so fewer, longer steps blur it less (the default
+    against 4: [ground truth](../results/ground-truth.md)).
+
+    ``solved_theta_deg``: widens the box the tables are swept and the BRT solved over
+    to abs(theta) <= this (the loop turns far past the paper's 28 deg at night);
+    labelled states and check starts stay in the paper's box.
+
+    ``solved_py_max``: widens that box to py <= this, m (a loop started near py = 250 m
+    goes on past it within the horizon).
+
+    ``slice_py``: the along-runway position, m, of the figures' slices through the grid.
+
+    ``dataset``: the detector's data set per environment (`DatasetSpec`).
+
+    ``held_out_labels``: where the held-out environments' labels come from; null:
+    ``dataset.labels``, as the training environments'. The detector trains on
+    ``dataset.labels`` either way; a true-label source here (e.g. ``hybrid``) scores a
+    detector trained on cheap BRT labels against the real loop, and Table 2 then also
+    scores it against the BRT's verdicts on the same states.
+
+    ``detector``: the single-image detector's training (`DetectorTrainConfig`).
+
+    ``ensemble``: the ensemble-variance baseline (`EnsembleSpec`).
+
+    ``guard``: the guarded loop on held-out environments (`GuardSpec`).
+
+    ``fidelity``: the check of every environment against the real loop (`FidelitySpec`).
+
+    ``refine``: adaptive refinement of the swept tables (`RefineSpec`).
+
+    ``robust``: the robust BRT (`RobustSpec`).
+
+    ``map_selection``: each environment's BRT map chosen by real-loop runs
+    (`MapSelectionSpec`).
+
+    ``incremental``: the incremental stage (`IncrementalConfig`).
+
+    ``monitor``: which monitor guards the loop, and the monitor study
+    (`MonitorStudySpec`)."""
     name: str = "run"
     application: str = ""
     scenario: Scenario = dc.field(default_factory=Scenario)
