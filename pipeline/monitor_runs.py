@@ -95,8 +95,18 @@ def watched_failure_times(spec, application, scenario, starts, failure_time, *, 
         longer = application.missions(scenario, from_states, duration=watch - begin + period,
                                       cache_dir=cache_dir, executor=executor,
                                       progress=progress)
+        failed = np.asarray(longer.failed, bool)
+        # the run's last logged tick: the failing one, or the one before a failure
+        # between ticks (a loop that stops at the crossing); before the recording's
+        # end, the recording would have failed too
         at = begin + (np.asarray(longer.ticks) - 1) * period
-        return np.where(np.asarray(longer.failed, bool) & (at <= watch + 1e-9), at, np.nan)
+        if np.any(failed & (at < spec.duration - 1e-9)):
+            raise RuntimeError(f"the loop alone in {scenario.environment.name} fails within "
+                               f"{spec.duration:g} s from a start whose recorded run did not: "
+                               f"the loop is not deterministic, and its labels would be wrong")
+        # the recording's last state is not failed, so the first failed tick is a later one
+        at = np.maximum(at, spec.duration + period)
+        return np.where(failed & (at <= watch + 1e-9), at, np.nan)
 
     if recorded is None:
         later = failing_at(starts[survived], 0.0)
@@ -107,15 +117,12 @@ def watched_failure_times(spec, application, scenario, starts, failure_time, *, 
                              f"survived have {sorted(set(last + 1))} ticks, not one count")
         later = failing_at(np.asarray(recorded["state"])[survived, last], last[0] * period)
         whole = failing_at(starts[survived[:1]], 0.0)
-        if not np.allclose(whole, later[:1], atol=period / 2, equal_nan=True):
+        # a failure between ticks may be logged at either tick beside it
+        if not np.allclose(whole, later[:1], atol=period * 1.001, equal_nan=True):
             raise RuntimeError(
                 f"the loop alone in {scenario.environment.name}: from its last recorded "
                 f"state, run {survived[0]} fails at {later[0]:g} s, from its start at "
                 f"{whole[0]:g} s: its recorded state is not all the loop carries")
-    if np.any(later <= spec.duration + 1e-9):
-        raise RuntimeError(f"the loop alone in {scenario.environment.name} fails within "
-                           f"{spec.duration:g} s from a start whose recorded run did not: "
-                           f"the loop is not deterministic, and its labels would be wrong")
     failure[survived] = later
     return failure
 

@@ -551,6 +551,35 @@ def test_the_watch_goes_on_from_the_last_recorded_state(tmp_path):
     assert not continues_from_recordings(stand_in, scenario)
 
 
+def test_a_failure_just_after_the_recording_is_at_the_next_tick(tmp_path):
+    """A loop that stops at the crossing logs the tick before it: a run that survived
+    its recording and leaves the safe set before the next tick fails at that next
+    tick, not at the recording's last; one that fails before the recording's end is
+    refused in one line (a stand-in application, no render)."""
+    from types import SimpleNamespace
+    from reachwatch.pipeline.monitor_runs import watched_failure_times
+    from reachwatch.reach.liveness import MissionOutcomes
+    scenario = load_scenario(data="")
+    spec = SimpleNamespace(duration=8.0, within=4.0)
+
+    def stand_in(ticks):
+        def missions(sc, starts, *, duration, **_):
+            n = len(starts)
+            return MissionOutcomes(failed=np.ones(n, bool), stopped=np.zeros(n, bool),
+                                   ever_stopped=np.zeros(n, bool), distance=np.ones(n),
+                                   flagged_ticks=np.zeros(n), ticks=np.full(n, ticks))
+        return SimpleNamespace(missions=missions)
+
+    common = dict(cache_dir=tmp_path, executor=None, progress=False)
+    starts, survived = np.zeros((1, 3)), np.array([np.nan])
+    for ticks, at in [(161, 8.05), (162, 8.05), (200, 9.95), (242, np.nan)]:
+        got = watched_failure_times(spec, stand_in(ticks), scenario, starts, survived, **common)
+        np.testing.assert_allclose(got, [at], err_msg=str(ticks))
+    with pytest.raises(RuntimeError, match="fails within 8 s from a start whose recorded run "
+                                           "did not"):
+        watched_failure_times(spec, stand_in(160), scenario, starts, survived, **common)
+
+
 def _save_tiny_history_monitor(path):
     from reachwatch.diagrams import save_checkpoint
     from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel
