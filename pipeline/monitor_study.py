@@ -275,7 +275,8 @@ STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_model",
               "reachwatch.training.monitor_eval", "reachwatch.training.conformal",
               "reachwatch.training.baselines", "reachwatch.training.metrics",
               "reachwatch.training.figures", "reachwatch.reach.outcomes",
-              "reachwatch.reach.fidelity", "reachwatch.pipeline.monitor_study",
+              "reachwatch.reach.fidelity", "reachwatch.reach.liveness",
+              "reachwatch.pipeline.monitor_study",
               "reachwatch.pipeline.monitor_guarded", "reachwatch.pipeline.monitor_judge",
               "reachwatch.pipeline.monitor_runs")
 
