@@ -23,6 +23,7 @@ import dataclasses as dc
 import numpy as np
 
 from reachwatch.diagrams import MonitorConfig
+from reachwatch.reach.chunks import run_together
 from reachwatch.reach.liveness import MissionOutcomes
 from reachwatch.training.monitor_eval import oracle_risks, rate
 
@@ -41,28 +42,36 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
     recorded runs, ``[env][run]``: what `guarded_missions` reads to render only the runs
     it may flag."""
     # the loop alone once per environment: every monitor is judged against the same runs
-    alone_runs = [application.missions(dc.replace(scenario, environment=g["environment"]),
-                                       g["starts"][:spec.guarded_runs], duration=spec.duration,
-                                       cache_dir=cache_dir, executor=executor,
-                                       progress=progress)
-                  for g in held_out]
+    def each(fn, what):              # every environment's runs together on a pool
+        return run_together([(g["name"], lambda i=i, g=g: fn(i, g))
+                             for i, g in enumerate(held_out)], executor, what=what)
+
+    alone_runs = each(lambda i, g: application.missions(
+        dc.replace(scenario, environment=g["environment"]), g["starts"][:spec.guarded_runs],
+        duration=spec.duration, cache_dir=cache_dir, executor=executor, progress=progress),
+        "the loop alone in")
     # the runs that survive the window but fail within the study's longer watch
     after = [fails_after(g)[:len(alone.failed)] for g, alone in zip(held_out, alone_runs)]
     rows = {}
     for name, path in checkpoints.items():
         threshold, (flags_needed, flag_window) = models[name][2:]
-        envs, distances, rendered = [], [], 0
-        for g, alone, late, recorded in zip(held_out, alone_runs, after, risks[name]):
+
+        def guarded_in(i, g, name=name, path=path, threshold=threshold,
+                       rule=(flags_needed, flag_window)):
             sc = dc.replace(scenario, environment=g["environment"], monitor=MonitorConfig(
-                detector=path, threshold=threshold, strategy="brake",
-                flags_needed=flags_needed, flag_window=flag_window,
-                brake_deceleration=spec.brake_deceleration))
+                detector=path, threshold=threshold, strategy="brake", flags_needed=rule[0],
+                flag_window=rule[1], brake_deceleration=spec.brake_deceleration))
             starts = g["starts"][:spec.guarded_runs]
-            peaks = np.array([np.max(r) if len(r) else -np.inf for r in recorded[:len(starts)]])
-            guarded, count = guarded_missions(
-                application, sc, starts, alone, peaks, threshold, duration=spec.duration,
-                cache_dir=cache_dir, executor=executor, progress=progress,
-                what=f"{name} in {g['name']}")
+            peaks = np.array([np.max(r) if len(r) else -np.inf
+                              for r in risks[name][i][:len(starts)]])
+            return guarded_missions(application, sc, starts, alone_runs[i], peaks, threshold,
+                                    duration=spec.duration, cache_dir=cache_dir,
+                                    executor=executor, progress=progress,
+                                    what=f"{name} in {g['name']}")
+
+        envs, distances, rendered = [], [], 0
+        for g, alone, late, (guarded, count) in zip(held_out, alone_runs, after,
+                                                    each(guarded_in, f"{name} guarding")):
             rendered += count
             envs.append(judged_runs(g["name"], alone.failed, late, guarded.failed,
                                     guarded.ever_stopped))

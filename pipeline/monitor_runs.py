@@ -7,6 +7,8 @@ import dataclasses as dc
 
 import numpy as np
 
+from reachwatch.reach.chunks import run_together
+
 from .monitor_judge import watch_s
 
 
@@ -27,9 +29,17 @@ def record_runs(spec, application, scenario, environments, first, *, runs, cache
                 executor, progress):
     """``runs`` recorded runs of each environment: the application's `starts` in its
     `grid`'s box, those of the ``i``-th environment (counted from ``first``: its place in
-    the family, or after it) seeded by `starts_seed`."""
-    out = []
-    for i, environment in enumerate(environments):
+    the family, or after it) seeded by `starts_seed`, and their watched failure times.
+    On a pool every environment's chunks are in flight together
+    (`reachwatch.reach.chunks.run_together`); the groups come in the environments'
+    order either way."""
+    environments = list(environments)
+    if not environments:
+        return []
+    continues = continues_from_recordings(
+        application, dc.replace(scenario, environment=environments[0]))
+
+    def one(i, environment):
         here = dc.replace(scenario, environment=environment)
         box = application.grid(here, (3,) * len(application.axes))
         seed = starts_seed(spec, first + i)
@@ -38,15 +48,15 @@ def record_runs(spec, application, scenario, environments, first, *, runs, cache
                                               height=spec.height, width=spec.width,
                                               cache_dir=cache_dir, executor=executor,
                                               progress=progress)
-        if i == 0:
-            continues = continues_from_recordings(application, here)
         watched = watched_failure_times(spec, application, here, starts,
                                         recorded["failure_time"], cache_dir=cache_dir,
                                         executor=executor, progress=progress,
                                         recorded=recorded if continues else None)
-        out.append({**recorded, "watched_failure_time": watched, "starts": starts,
-                    "name": environment.name, "environment": environment})
-    return out
+        return {**recorded, "watched_failure_time": watched, "starts": starts,
+                "name": environment.name, "environment": environment}
+
+    return run_together([(e.name, lambda i=i, e=e: one(i, e)) for i, e in enumerate(environments)],
+                        executor, what="recorded runs")
 
 
 def continues_from_recordings(application, scenario) -> bool:

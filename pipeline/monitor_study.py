@@ -28,6 +28,7 @@ import numpy as np
 
 from reachwatch.diagrams import save_checkpoint
 from reachwatch.reach.application import application_key, load_application
+from reachwatch.reach.chunks import run_together
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskEnsemble
 from reachwatch.systems.files import atomic_write_bytes, file_hash, strict_json
 from reachwatch.training.baselines import prediction_error
@@ -72,26 +73,32 @@ def _detector_scores(spec, application, scenario, data, detector, splits, *, cac
     which must pass through the recorded states (the loop alone is deterministic), else
     a RuntimeError. ``{split: [env][run]}``, one array per run."""
     from reachwatch.diagrams import MonitorConfig
-    out = {}
-    for k in splits:
-        out[k] = []
-        for g in data[k]:
-            here = dc.replace(scenario, environment=g["environment"],
-                              monitor=MonitorConfig(detector=str(detector)))
-            scored = application.score_runs(here, g["starts"], duration=spec.duration,
-                                            cache_dir=cache_dir, executor=executor,
-                                            progress=progress)
-            runs = []
-            for i, n in enumerate(g["ticks"]):
-                n = int(n)
-                same = (int(scored["ticks"][i]) >= n and not scored["engaged"][i]
-                        and np.allclose(scored["state"][i, :n], g["state"][i, :n]))
-                if not same:
-                    raise RuntimeError(f"the detector's runs in {g['name']}: run {i} does not "
-                                       f"pass through the recorded states, so its scores "
-                                       f"are not those of the recorded run")
-                runs.append(np.asarray(scored["score"][i, :n], float))
-            out[k].append(runs)
+
+    def scores(g):
+        here = dc.replace(scenario, environment=g["environment"],
+                          monitor=MonitorConfig(detector=str(detector)))
+        scored = application.score_runs(here, g["starts"], duration=spec.duration,
+                                        cache_dir=cache_dir, executor=executor,
+                                        progress=progress)
+        runs = []
+        for i, n in enumerate(g["ticks"]):
+            n = int(n)
+            same = (int(scored["ticks"][i]) >= n and not scored["engaged"][i]
+                    and np.allclose(scored["state"][i, :n], g["state"][i, :n]))
+            if not same:
+                raise RuntimeError(f"the detector's runs in {g['name']}: run {i} does not "
+                                   f"pass through the recorded states, so its scores "
+                                   f"are not those of the recorded run")
+            runs.append(np.asarray(scored["score"][i, :n], float))
+        return runs
+
+    # every environment's runs together on a pool (`run_together`), in their order
+    groups = [(k, g) for k in splits for g in data[k]]
+    scored = run_together([(g["name"], lambda g=g: scores(g)) for _, g in groups], executor,
+                          what="the detector's runs")
+    out = {k: [] for k in splits}
+    for (k, _), runs in zip(groups, scored):
+        out[k].append(runs)
     return out
 
 
@@ -275,7 +282,7 @@ STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_model",
               "reachwatch.training.monitor_eval", "reachwatch.training.conformal",
               "reachwatch.training.baselines", "reachwatch.training.metrics",
               "reachwatch.training.figures", "reachwatch.reach.outcomes",
-              "reachwatch.reach.fidelity", "reachwatch.reach.liveness",
+              "reachwatch.reach.fidelity", "reachwatch.reach.liveness", "reachwatch.reach.chunks",
               "reachwatch.pipeline.monitor_study",
               "reachwatch.pipeline.monitor_guarded", "reachwatch.pipeline.monitor_judge",
               "reachwatch.pipeline.monitor_runs")

@@ -580,6 +580,50 @@ def test_a_failure_just_after_the_recording_is_at_the_next_tick(tmp_path):
         watched_failure_times(spec, stand_in(160), scenario, starts, survived, **common)
 
 
+def test_recorded_runs_of_every_environment_are_in_flight_together(tmp_path):
+    """On a pool, the study's recordings (and their watch) of all environments share one
+    window of chunks; the groups are those recorded one environment after another."""
+    import concurrent.futures as cf
+    import threading
+    from types import SimpleNamespace
+    from reachwatch.pipeline.monitor_runs import record_runs
+    from reachwatch.reach.application import load_application
+    from reachwatch.reach.chunks import InlineExecutor
+
+    class Pool(cf.ThreadPoolExecutor):
+        """Notes which environments' chunks it holds at once (by the submitting thread)."""
+
+        def __init__(self):
+            super().__init__(2)
+            self.lock, self.held, self.both = threading.Lock(), {}, False
+
+        def submit(self, fn, /, *args, **kwargs):
+            future = super().submit(fn, *args, **kwargs)
+            with self.lock:
+                self.held[future] = threading.current_thread().name
+                self.both |= len(set(self.held.values())) > 1
+            future.add_done_callback(lambda f: self.held.pop(f, None))
+            return future
+
+    application, scenario = load_application(), load_scenario(data="")
+    spec = SimpleNamespace(duration=0.5, within=0.5, height=16, width=24,
+                           family=SimpleNamespace(seed=3))
+    envs = [load_scenario(data=f"environment: {{runway: {r}, hour: 9.0, sky: clear}}\n"
+                          ).environment for r in ("KMWH", "KSFO")]
+    common = dict(runs=3, progress=False)
+    alone = record_runs(spec, application, scenario, envs, 0, cache_dir=tmp_path / "a",
+                        executor=InlineExecutor(), **common)
+    with Pool() as pool:
+        together = record_runs(spec, application, scenario, envs, 0, cache_dir=tmp_path / "b",
+                               executor=pool, **common)
+    assert pool.both
+    assert [g["name"] for g in together] == [e.name for e in envs]
+    for a, b in zip(alone, together):
+        for key in ("frames", "state", "ticks", "failure_time", "watched_failure_time",
+                    "starts"):
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
 def _save_tiny_history_monitor(path):
     from reachwatch.diagrams import save_checkpoint
     from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel
