@@ -189,8 +189,8 @@ def _oracle_guarded(spec, application, scenario, held_out, alone_runs, after, de
     does not fail within the window is the loop alone's (no stop, its distance);
     ``after``: per environment, which of those fail soon after it (`judged_runs`)."""
     period = scenario.controller.period
-    envs, distances = [], []
-    for g, alone, late in zip(held_out, alone_runs, after):
+    def one(i, g):
+        alone, late = alone_runs[i], after[i]
         n = len(alone.failed)
         ticks, failure = g["ticks"][:n], g["failure_time"][:n]
         flag = oracle_flag_ticks(ticks, failure, period=period, lead=lead)
@@ -218,10 +218,11 @@ def _oracle_guarded(spec, application, scenario, held_out, alone_runs, after, de
                                           cache_dir=cache_dir, executor=executor,
                                           progress=progress)
             left = spec.duration - flag[failing] * period
-            # from the flag's state the loop alone must fail when the recording did
+            # from the flag's state the loop alone must fail when the recording did (a
+            # loop that stops at the crossing logs the tick before it: one tick apart)
             failing_in = (rest.ticks - 1) * period
             if not (rest.failed.all() and np.allclose(failing_in, failure[failing] - flag[failing]
-                                                      * period, atol=period / 2)):
+                                                      * period, atol=period * 1.001)):
                 raise RuntimeError(f"the oracle in the guarded loop: in {g['name']}, the loop "
                                    f"alone from a recorded state does not fail as recorded: its "
                                    f"state is more than the recorded one")
@@ -232,9 +233,13 @@ def _oracle_guarded(spec, application, scenario, held_out, alone_runs, after, de
             # alone covers from the flag's state on
             distance[failing] = alone.distance[failing] - rest.distance + braked.distance
         # the oracle flags no run that does not fail within the window (checked above)
-        envs.append(judged_runs(g["name"], alone.failed, late, fails, np.zeros(n, bool)))
-        distances.append((float(alone.distance.sum()), float(distance.sum())))
-    return _pooled(envs, distances)
+        return (judged_runs(g["name"], alone.failed, late, fails, np.zeros(n, bool)),
+                (float(alone.distance.sum()), float(distance.sum())))
+
+    # every environment's runs together on a pool, in their order
+    rows = run_together([(g["name"], lambda i=i, g=g: one(i, g))
+                         for i, g in enumerate(held_out)], executor, what="the oracle in")
+    return _pooled([env for env, _ in rows], [d for _, d in rows])
 
 
 def _pooled(envs: list, distances: list) -> dict:
