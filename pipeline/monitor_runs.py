@@ -91,8 +91,13 @@ def watched_failure_times(spec, application, scenario, starts, failure_time, *, 
     watch; or, with ``recorded`` (the runs' `recorded_runs` fields, for a loop that
     `continues_from_recordings`), from each one's last recorded state for the rest of
     the watch, a third of the renders for the default 8 s and 4 s. Then the first such
-    run is also watched from its start, and the two must agree on its failure, else a
-    RuntimeError."""
+    run is also watched from its start, and the two must agree on its failure (to the
+    tick), else a RuntimeError.
+
+    A failure time is that of the first tick whose state has failed, as a recording's
+    is: a loop that stops at the crossing logs the tick before it, which is taken for
+    the failure's unless that tick's state is one the recording found safe (its
+    last); so a run fails at the recording's end + one tick at the earliest."""
     failure = np.asarray(failure_time, float).copy()
     survived = np.flatnonzero(~np.isfinite(failure))
     if not len(survived) or spec.within <= 0:
