@@ -28,9 +28,21 @@ DETECTOR_ROW = "single-image detector"
 
 @dc.dataclass
 class MonitorVariant:
-    """One monitor to train: ``frames`` frames ``stride`` ticks apart, combined by
-    ``temporal`` (`reachwatch.systems.TEMPORAL_MODELS`), with or without the online
-    ``signals`` (the controller's estimate and steering)."""
+    """One monitor to train over the image history.
+
+    Keys:
+
+    ``name``: its name in the report (and its checkpoint's file name).
+
+    ``frames``: how many frames it reads at each tick, the current one included.
+
+    ``stride``: control ticks between the frames it reads.
+
+    ``temporal``: how it combines them (`reachwatch.systems.TEMPORAL_MODELS`): ``stack``
+    (the frames' features side by side) or ``gru`` (a recurrent network over them).
+
+    ``signals``: it also reads the loop's online signals (the controller's estimate
+    and steering)."""
     name: str = "single frame"
     frames: int = bounded_as(1, HistoryMonitorConfig, "frames")
     stride: int = bounded_as(1, HistoryMonitorConfig, "stride")
