@@ -77,6 +77,7 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
                                     guarded.ever_stopped))
             distances.append((float(alone.distance.sum()), float(guarded.distance.sum())))
         rows[name] = counts = _pooled(envs, distances)
+        counts["rendered"] = rendered
         log(f"monitor: guarded real loop, {name}: failures {counts['failed_alone']} alone -> "
             f"{counts['failed_guarded']} guarded of {counts['runs']} runs; prevented "
             f"{rate_text(counts['prevented_rate'])}; needless stops "

@@ -138,6 +138,19 @@ def same_needless(result: dict, group: str = "held_out") -> list:
     return out
 
 
+def rendered_text(rows: dict) -> str:
+    """How many of each monitor's guarded runs were rendered (`monitor_guarded.
+    guarded_missions`), as a sentence; empty for a result that does not say."""
+    counts = [f"{name} {c['rendered']} of {c['runs']}" for name, c in rows.items()
+              if "rendered" in c]
+    if not counts:
+        return ""
+    return (" Until its first flag a guarded loop is the loop alone, so a run whose risk "
+            "along its recording never reached the threshold is the loop alone's; rendered: "
+            + ", ".join(counts) + " (the rest never reached it; the first such run of each "
+            "environment was rendered and came out as the loop alone's).")
+
+
 def study_blocks(result: dict) -> list:
     """The study's findings as blocks a page renders: ``("heading", text)``,
     ``("text", text)`` and ``("table", header, rows)``: held-out environments pooled
@@ -165,7 +178,8 @@ def study_blocks(result: dict) -> list:
                                 f"run and the {within:g} s after it (the risk's horizon: a "
                                 f"stop near the run's end claims a failure up to {within:g} s "
                                 f"past it). Runs the loop alone survives but leaves the safe "
-                                f"set within {within:g} s after are counted apart.")]
+                                f"set within {within:g} s after are counted apart."
+                                + rendered_text(result[key]))]
     kept = result["variants"][result["kept"]]
     warnable = result["oracle"]["held_out"]["pooled"]["warnable"]
     if warnable["of"]:

@@ -150,6 +150,15 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     assert [e["environment"] for e in night[ORACLE]["environments"]] == ["KSFO_21h_overcast"]
     for counts in result["guarded"].values():
         assert counts["runs"] == 2 and counts["failed_guarded"] <= counts["runs"]
+    # each monitor's row says how many of its runs were rendered: those it may flag and
+    # the first it cannot, in each environment (here one)
+    from reachwatch.pipeline.monitor_sections import rendered_text
+    for name, counts in result["guarded"].items():
+        assert (name == ORACLE) == ("rendered" not in counts)
+        assert 1 <= counts.get("rendered", 1) <= counts["runs"]
+    assert f"{result['kept']} {result['guarded'][result['kept']]['rendered']} of 2" in (
+        rendered_text(result["guarded"]))
+    assert rendered_text({ORACLE: oracle}) == ""
     # every variant's risk at every tick is kept, run by run, for other flag rules
     with np.load(tmp_path / "out" / "risks.npz") as saved:
         ticks = saved["held_out/ticks"]
