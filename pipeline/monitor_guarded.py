@@ -23,11 +23,11 @@ import dataclasses as dc
 import numpy as np
 
 from reachwatch.diagrams import MonitorConfig
-from reachwatch.reach.chunks import run_together
 from reachwatch.reach.liveness import MissionOutcomes
 from reachwatch.training.monitor_eval import oracle_risks, rate
 
 from .monitor_judge import fails_after
+from .monitor_runs import each_environment
 from .monitor_sections import rate_text
 
 
@@ -41,11 +41,11 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
     monitor's risk (on its threshold's scale) at every tick of each environment's
     recorded runs, ``[env][run]``: what `guarded_missions` reads to render only the runs
     it may flag."""
-    # the loop alone once per environment: every monitor is judged against the same runs
     def each(fn, what):              # every environment's runs together on a pool
-        return run_together([(g["name"], lambda i=i, g=g: fn(i, g))
-                             for i, g in enumerate(held_out)], executor, what=what)
+        return each_environment([(g["name"], g) for g in held_out], fn, executor=executor,
+                                what=what)
 
+    # the loop alone once per environment: every monitor is judged against the same runs
     alone_runs = each(lambda i, g: application.missions(
         dc.replace(scenario, environment=g["environment"]), g["starts"][:spec.guarded_runs],
         duration=spec.duration, cache_dir=cache_dir, executor=executor, progress=progress),
@@ -238,8 +238,8 @@ def _oracle_guarded(spec, application, scenario, held_out, alone_runs, after, de
                 (float(alone.distance.sum()), float(distance.sum())))
 
     # every environment's runs together on a pool, in their order
-    rows = run_together([(g["name"], lambda i=i, g=g: one(i, g))
-                         for i, g in enumerate(held_out)], executor, what="the oracle in")
+    rows = each_environment([(g["name"], g) for g in held_out], one, executor=executor,
+                            what="the oracle in")
     return _pooled([env for env, _ in rows], [d for _, d in rows])
 
 

@@ -55,8 +55,17 @@ def record_runs(spec, application, scenario, environments, first, *, runs, cache
         return {**recorded, "watched_failure_time": watched, "starts": starts,
                 "name": environment.name, "environment": environment}
 
-    return run_together([(e.name, lambda i=i, e=e: one(i, e)) for i, e in enumerate(environments)],
-                        executor, what="recorded runs")
+    return each_environment([(e.name, e) for e in environments], one, executor=executor,
+                            what="recorded runs")
+
+
+def each_environment(named, fn, *, executor, what: str) -> list:
+    """``[fn(i, item)]`` for ``named``, ``[(environment name, item)]``: on a pool every
+    environment's chunks in flight together (`reachwatch.reach.chunks.run_together`,
+    an error raised with ``"{what} {name}: "`` before it), inline one after another;
+    results in ``named``'s order either way."""
+    return run_together([(name, lambda i=i, item=item: fn(i, item))
+                         for i, (name, item) in enumerate(named)], executor, what=what)
 
 
 def continues_from_recordings(application, scenario) -> bool:

@@ -28,7 +28,6 @@ import numpy as np
 
 from reachwatch.diagrams import save_checkpoint
 from reachwatch.reach.application import application_key, load_application
-from reachwatch.reach.chunks import run_together
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskEnsemble
 from reachwatch.systems.files import atomic_write_bytes, file_hash, strict_json
 from reachwatch.training.baselines import prediction_error
@@ -39,7 +38,8 @@ from reachwatch.training.monitor_eval import oracle_risks, tick_auroc
 from .monitor_guarded import guarded_rows
 from .monitor_judge import (_judge_monitor, choose_flag_rule, judge_environments,  # noqa: F401
                             watch_s)
-from .monitor_runs import STARTS_STREAM, merged_runs, record_runs, starts_seed  # noqa: F401
+from .monitor_runs import (STARTS_STREAM, each_environment, merged_runs,  # noqa: F401
+                           record_runs, starts_seed)
 from .monitor_sections import rate_text
 from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noqa: F401
                            MonitorVariant, default_variants)
@@ -92,10 +92,9 @@ def _detector_scores(spec, application, scenario, data, detector, splits, *, cac
             runs.append(np.asarray(scored["score"][i, :n], float))
         return runs
 
-    # every environment's runs together on a pool (`run_together`), in their order
     groups = [(k, g) for k in splits for g in data[k]]
-    scored = run_together([(g["name"], lambda g=g: scores(g)) for _, g in groups], executor,
-                          what="the detector's runs")
+    scored = each_environment([(g["name"], g) for _, g in groups], lambda i, g: scores(g),
+                              executor=executor, what="the detector's runs")
     out = {k: [] for k in splits}
     for (k, _), runs in zip(groups, scored):
         out[k].append(runs)
