@@ -114,33 +114,38 @@ def watched_failure_times(spec, application, scenario, starts, failure_time, *, 
     period, watch = scenario.controller.period, watch_s(spec)
     starts = np.asarray(starts)
 
-    def failing_at(from_states, begin):
+    # the recordings' last tick (a run that survived has them all); times are tick
+    # indices x period, as the recordings' and `missions`' own are
+    end = int(np.floor(spec.duration / period + 1e-9))
+
+    def failing_at(from_states, first):
         # one tick longer: a failure at the watch's last tick is still an acting tick
-        longer = application.missions(scenario, from_states, duration=watch - begin + period,
+        longer = application.missions(scenario, from_states,
+                                      duration=watch - first * period + period,
                                       cache_dir=cache_dir, executor=executor,
                                       progress=progress)
         failed = np.asarray(longer.failed, bool)
         # the run's last logged tick: the failing one, or the one before a failure
         # between ticks (a loop that stops at the crossing); before the recording's
         # end, the recording would have failed too
-        at = begin + (np.asarray(longer.ticks) - 1) * period
-        if np.any(failed & (at < spec.duration - 1e-9)):
+        tick = first + np.asarray(longer.ticks) - 1
+        if np.any(failed & (tick < end)):
             raise RuntimeError(f"the loop alone in {scenario.environment.name} fails within "
                                f"{spec.duration:g} s from a start whose recorded run did not: "
                                f"the loop is not deterministic, and its labels would be wrong")
         # the recording's last state is not failed, so the first failed tick is a later one
-        at = np.maximum(at, spec.duration + period)
+        at = np.maximum(tick, end + 1) * period
         return np.where(failed & (at <= watch + 1e-9), at, np.nan)
 
     if recorded is None:
-        later = failing_at(starts[survived], 0.0)
+        later = failing_at(starts[survived], 0)
     else:
         last = np.asarray(recorded["ticks"])[survived] - 1
-        if np.any(last < 0) or len(np.unique(last)) != 1:
+        if np.any(last != end):
             raise ValueError(f"recorded runs in {scenario.environment.name}: the runs that "
-                             f"survived have {sorted(set(last + 1))} ticks, not one count")
-        later = failing_at(np.asarray(recorded["state"])[survived, last], last[0] * period)
-        whole = failing_at(starts[survived[:1]], 0.0)
+                             f"survived have {sorted(set(last + 1))} ticks, not {end + 1}")
+        later = failing_at(np.asarray(recorded["state"])[survived, last], end)
+        whole = failing_at(starts[survived[:1]], 0)
         # a failure between ticks may be logged at either tick beside it
         if not np.allclose(whole, later[:1], atol=period * 1.001, equal_nan=True):
             raise RuntimeError(
