@@ -16,7 +16,9 @@ the same frames, controller and plant, tick for tick. So a run whose monitor's r
 along its recording (the study's, at every tick) stays below the threshold never
 flags, and its guarded run is the loop alone's; only the others are rendered
 (`guarded_missions`). The first such run of each environment is rendered too, and must
-come out as the loop alone's."""
+come out as the loop alone's. The loop alone's runs themselves are the recorded ones
+(`monitor_runs.alone_from_recordings`, checked on two runs of each environment) where
+the loop alone's speed is the controller's constant one."""
 
 import dataclasses as dc
 
@@ -27,12 +29,12 @@ from reachwatch.reach.liveness import MissionOutcomes
 from reachwatch.training.monitor_eval import oracle_risks, rate
 
 from .monitor_judge import fails_after
-from .monitor_runs import each_environment
+from .monitor_runs import alone_from_recordings, each_environment
 from .monitor_sections import rate_text
 
 
 def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, risks,
-                 cache_dir, executor, progress, log, lead):
+                 cache_dir, executor, progress, log, lead, read_alone: bool = False):
     """The guarded real loop (braking) with each saved monitor against the loop alone,
     from the first ``guarded_runs`` recorded starts of each environment of ``held_out``
     (the held-out family's, or those outside it; the application's `missions`); and the
@@ -40,14 +42,20 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
     ``within`` s past the window (see the module; `judged_runs`). ``risks[name]``: each
     monitor's risk (on its threshold's scale) at every tick of each environment's
     recorded runs, ``[env][run]``: what `guarded_missions` reads to render only the runs
-    it may flag."""
+    it may flag. ``read_alone`` (for a loop that
+    `monitor_runs.alone_reads_recordings`): the loop alone's runs are read off the
+    recordings (`monitor_runs.alone_from_recordings`), not rendered again."""
     def each(fn, what):              # every environment's runs together on a pool
         return each_environment([(g["name"], g) for g in held_out], fn, executor=executor,
                                 what=what)
 
-    # the loop alone once per environment: every monitor is judged against the same runs
-    alone_runs = each(lambda i, g: application.missions(
-        dc.replace(scenario, environment=g["environment"]), g["starts"][:spec.guarded_runs],
+    # the loop alone once per environment: every monitor is judged against the same runs,
+    # read off the recordings where they are the same runs
+    alone = alone_from_recordings if read_alone else (
+        lambda application, scenario, g, runs, **kw: application.missions(
+            scenario, g["starts"][:runs], **kw))
+    alone_runs = each(lambda i, g: alone(
+        application, dc.replace(scenario, environment=g["environment"]), g, spec.guarded_runs,
         duration=spec.duration, cache_dir=cache_dir, executor=executor, progress=progress),
         "the loop alone in")
     # the runs that survive the window but fail within the study's longer watch

@@ -86,6 +86,49 @@ def continues_from_recordings(application, scenario) -> bool:
     return True
 
 
+def alone_reads_recordings(application, scenario) -> bool:
+    """Whether the loop alone's `missions` outcomes can be read off its recordings
+    (`alone_from_recordings`): its loop alone exports no ``speed``, so that
+    `reach.loop_runs.loop_missions` takes the controller's constant speed and nothing
+    but a run's ticks and failure decides its outcome. Builds the loop once."""
+    diagram = application.loop_diagram(application.without_monitor(scenario))
+    return not diagram.HasOutputPort("speed")
+
+
+def alone_from_recordings(application, scenario, group, runs: int, *, duration: float,
+                          cache_dir, executor, progress):
+    """`reach.liveness.MissionOutcomes` of the loop alone from the first ``runs`` recorded
+    starts of ``group`` (`record_runs`'s) for ``duration`` s (the recordings'), read off
+    the recordings for a loop that `alone_reads_recordings`: the same runs, so the same
+    ticks and failures, at the controller's constant speed. Its first surviving and
+    first failing runs are also run (`missions`: an application's own runners too) and
+    must come out the same in every field, else a RuntimeError."""
+    from reachwatch.reach.liveness import MissionOutcomes, travelled
+    period, speed = scenario.controller.period, scenario.controller.speed
+    ticks, failed = np.asarray(group["ticks"])[:runs], np.asarray(group["failed"])[:runs]
+    rows = []
+    for n, fails in zip(ticks, failed):
+        if n == 0:                                      # a start already off the safe set
+            rows.append((True, False, False, 0.0, 0, 0))
+            continue
+        time = np.arange(int(n)) * period               # the ticks the run logged
+        within = time <= duration + 1e-9
+        rows.append((bool(fails), False, False,
+                     travelled(time[within], np.full(int(within.sum()), speed)), 0,
+                     int(np.sum(time[within] < duration - 1e-9))))
+    read = MissionOutcomes(*(np.array(column) for column in zip(*rows)))
+    check = np.concatenate([np.flatnonzero(~failed)[:1], np.flatnonzero(failed & (ticks > 0))[:1]])
+    ran = application.missions(scenario, np.asarray(group["starts"])[check], duration=duration,
+                               cache_dir=cache_dir, executor=executor, progress=progress)
+    differ = [name for name, value in ran.as_fields().items()
+              if not np.array_equal(value, read.as_fields()[name][check])]
+    if differ:
+        raise RuntimeError(f"the loop alone in {scenario.environment.name}: its runs from "
+                           f"recorded starts {check.tolist()} differ from their recordings in "
+                           f"{differ}: the loop alone does not repeat its recordings")
+    return read
+
+
 def watched_failure_times(spec, application, scenario, starts, failure_time, *, cache_dir,
                           executor, progress, recorded=None) -> np.ndarray:
     """Each run's failure time over a longer watch of the loop alone, `watch_s` (the

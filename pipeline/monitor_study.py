@@ -38,8 +38,8 @@ from reachwatch.training.monitor_eval import oracle_risks, tick_auroc
 from .monitor_guarded import guarded_rows
 from .monitor_judge import (_judge_monitor, choose_flag_rule, judge_environments,  # noqa: F401
                             watch_s)
-from .monitor_runs import (STARTS_STREAM, each_environment, merged_runs,  # noqa: F401
-                           record_runs, starts_seed)
+from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_environment,  # noqa: F401
+                           merged_runs, record_runs, starts_seed)
 from .monitor_sections import rate_text
 from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noqa: F401
                            MonitorVariant, default_variants)
@@ -212,11 +212,13 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                                   "within_s": spec.within, "lead_s": lead, "variant": name,
                                   **({"flag_rule": rule} if rule != [1, 1] else {})})
         checkpoints[name] = str(path)
+    read_alone = spec.guarded_runs > 0 and alone_reads_recordings(
+        application, dc.replace(scenario, environment=split["train"][0]))
     guarding = {**checkpoints, **({DETECTOR_ROW: str(detector)} if detector is not None else {})}
     guarded = {k: guarded_rows(spec, application, scenario, data[k], models, guarding,
                                risks={name: all_risks[name][k] for name in guarding},
                                cache_dir=cache_dir / "missions", executor=executor,
-                               progress=progress, log=log, lead=lead)
+                               progress=progress, log=log, lead=lead, read_alone=read_alone)
                if spec.guarded_runs and data[k] else {} for k in ("held_out", "also_held_out")}
     result = {"lead_s": lead, "within_s": spec.within, "alpha": spec.alpha, "kept": kept,
               "ensemble": spec.ensemble,

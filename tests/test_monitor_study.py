@@ -318,6 +318,20 @@ def test_the_cart_runs_the_study_through_the_generic_application(tmp_path, monke
     assert np.isnan(runs["state"][1, n:]).all() and not runs["frames"][1, n:].any()
     assert runs["frames"][0, 0].std() > 0                   # a rendered view, not a blank
     assert runs["signals"][1, 0, 0] < 0                      # steers away from the left rail
+    # the loop alone's outcomes read off the recordings are those it runs to; recordings
+    # that are not its runs are refused
+    from reachwatch.pipeline.monitor_runs import alone_from_recordings, alone_reads_recordings
+    assert alone_reads_recordings(cart, here)
+    read = alone_from_recordings(cart, here, {**runs, "starts": starts}, 2, duration=1.0,
+                                 cache_dir=tmp_path / "rec", executor=None, progress=False)
+    ran = cart.missions(here, starts, duration=1.0, cache_dir=tmp_path / "rec", progress=False)
+    for name, value in ran.as_fields().items():
+        np.testing.assert_array_equal(getattr(read, name), value, err_msg=name)
+    with pytest.raises(RuntimeError, match=r"starts \[0, 1\] differ from their recordings in "
+                                           r"\['distance'\]"):
+        alone_from_recordings(cart, here, {**runs, "starts": starts, "ticks": runs["ticks"] - [1, 0]},
+                              2, duration=1.0, cache_dir=tmp_path / "rec", executor=None,
+                              progress=False)
 
     result = run_monitor_study(spec.monitor, scenario, tmp_path / "out",
                                cache_dir=tmp_path / "cache", progress=False, log=lambda m: None,
