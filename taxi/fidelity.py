@@ -21,7 +21,7 @@ from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, Mis
 from reachwatch.reach.outcomes import (Outcomes, check_memoryless, map_states, path_labels,
                                        path_points, run_outcomes)
 from reachwatch.reach.score_noise import fit_score_noise_on_runs
-from reachwatch.reach.thread_kept import KEPT_DIAGRAMS, ThreadKept
+from reachwatch.reach.thread_kept import BUILD_LOCK, KEPT_DIAGRAMS, ThreadKept
 from reachwatch.systems import fallback_parts
 
 from .sweeps import resolved
@@ -71,12 +71,13 @@ def _loops(scenario, make, count: int = 1) -> list:
     stay, as before lockstep)."""
     key = (make.__name__, fingerprint(scenario))
     copies = _LOOPS.get(key, list)
-    if count > 1:
-        for other, kept in _LOOPS.kept().items():
-            if other != key:
-                del kept[1:]
-    if len(copies) < count:
-        copies.extend(loop_copies(lambda: make(scenario), count - len(copies)))
+    with BUILD_LOCK:                        # one build at a time per process, as get's
+        if count > 1:
+            for other, kept in _LOOPS.kept().items():
+                if other != key:
+                    del kept[1:]
+        if len(copies) < count:
+            copies.extend(loop_copies(lambda: make(scenario), count - len(copies)))
     return copies[:max(1, count)]
 
 

@@ -47,3 +47,26 @@ def test_a_dropped_value_in_a_reference_cycle_is_freed_before_the_next_is_built(
     first = weakref.ref(kept.get("a", Loop))
     kept.get("b", lambda: freed.append(first() is None) or Loop())
     assert freed == [True]
+
+
+def test_no_two_threads_of_a_process_build_at_once():
+    """Two renderers built at once in one process do not always draw the same pixels
+    afterwards: the builds of all threads (each its own `ThreadKept` or not) take turns,
+    while what is kept is used freely."""
+    import time
+    kept, other, building, overlap = ThreadKept(1), ThreadKept(1), [], []
+
+    def build():
+        building.append(1)
+        overlap.append(len(building))
+        time.sleep(0.05)
+        building.pop()
+        return object()
+
+    threads = [threading.Thread(target=lambda k=k: [k.get(key, build) for key in "abc"])
+               for k in (kept, other, kept)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(overlap) == 9 and max(overlap) == 1
