@@ -146,23 +146,28 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within,
                                 input_norm=spec.input_norm, pool=list(spec.pool))
     # each member of the ensemble: its own encoder (`member_settings`) and features
-    members = []
+    members, trainings = [], _Trainings(cache_dir / "trainings", train, labels, log)
     for m, settings in enumerate(member_settings(spec, application)):
         where = f"member {m + 1}/{spec.ensemble}: " if spec.ensemble > 1 else ""
-        encoder = train_encoder(train, labels, base, settings, progress=(
-            lambda text, where=where: log(f"monitor: {where}{text}")) if progress else None)
+        encoder, trained_as = trainings.kept(
+            f"{where}encoder", (base, settings), lambda where=where, settings=settings:
+            train_encoder(train, labels, base, settings, progress=(
+                lambda text: log(f"monitor: {where}{text}")) if progress else None))
         features = {k: [encode_runs(encoder, g) for g in groups] for k, groups in data.items()}
-        members.append((encoder, settings, features, np.concatenate(features["train"])))
+        members.append((encoder, settings, features, np.concatenate(features["train"]),
+                        trained_as))
 
     results, models, all_risks = {}, {}, {}
     for variant in spec.variants:
         config = dc.replace(base, frames=variant.frames, stride=variant.stride,
                             temporal=variant.temporal,
                             signals=train["signals"].shape[-1] if variant.signals else 0)
-        heads = [train_head(encoder, train_features, train, labels, config, settings)
-                 for encoder, settings, _, train_features in members]
+        heads = [trainings.kept(f"{variant.name} head", (config, settings, encoder_key),
+                                lambda encoder=encoder, settings=settings, f=train_features:
+                                train_head(encoder, f, train, labels, config, settings))[0]
+                 for encoder, settings, _, train_features, encoder_key in members]
         per_member = [{k: [run_risks(head, f, g) for f, g in zip(features[k], data[k])]
-                       for k in judged} for head, (_, _, features, _) in zip(heads, members)]
+                       for k in judged} for head, (_, _, features, _, _) in zip(heads, members)]
         raw = {k: _member_mean([p[k] for p in per_member]) for k in judged}
         model = heads[0] if len(heads) == 1 else HistoryRiskEnsemble.of(heads)
         row, platt, chosen, rule, risks = _judge_monitor(spec, data, raw, period=period,
@@ -240,6 +245,44 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     return result
 
 
+class _Trainings:
+    """The study's trained encoders and heads, each saved under ``folder`` once trained
+    and read back by a study that trains the same again (a resumed protocol, another
+    flag rule): keyed by the digest of the training runs and labels, the settings, the
+    encoder a head reads (its own key) and the source of the training code
+    (`TRAINING_CODE`). What is read back is the model saved, weights bit for bit."""
+
+    def __init__(self, folder, runs, labels, log):
+        import hashlib
+        from reachwatch.reach.fingerprint import modules_source_digest
+        data = hashlib.sha256()
+        for key in ("frames", "signals", "ticks", "state"):
+            value = np.ascontiguousarray(runs[key])
+            data.update(f"{key}{value.dtype}{value.shape}".encode())
+            data.update(memoryview(value).cast("B"))
+        data.update(np.ascontiguousarray(labels).tobytes())
+        self.folder, self.log = Path(folder), log
+        self.base = [data.hexdigest(), modules_source_digest(*TRAINING_CODE)]
+
+    def kept(self, what: str, parts, train):
+        """``(model, key)``: the model ``train()`` gives for ``parts`` (configs and
+        settings, and the keys of models this one was trained from), trained or read
+        back, and its key."""
+        from reachwatch.diagrams.checkpoints import load_history_monitor
+        from .spec import digest
+        key = digest(*self.base, *[p if isinstance(p, str) else dc.asdict(p) for p in parts])
+        path = self.folder / f"{key}.pt"
+        if path.is_file():
+            model, _, _ = load_history_monitor(path)
+            self.log(f"monitor: {what}: the trained model read back ({path.name})")
+        else:
+            model = train()
+            save_checkpoint(path, kind="history_monitor", model=model,
+                            model_config=model.config, preprocess_config=None,
+                            metadata={"trained": what})
+        return model, key
+
+
 def _save_risks(path, data, all_risks, judged):
     """Every variant's calibrated risk (the detector's row: its raw score, which its
     threshold reads) at every tick of the judged environments' runs,
@@ -287,6 +330,12 @@ STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_model",
               "reachwatch.pipeline.monitor_study",
               "reachwatch.pipeline.monitor_guarded", "reachwatch.pipeline.monitor_judge",
               "reachwatch.pipeline.monitor_runs")
+
+
+#: The modules whose code trains a monitor's encoder and heads: part of the key of a
+#: study's saved trainings (`_Trainings`).
+TRAINING_CODE = tuple(name for name in STUDY_CODE
+                      if name.startswith(("reachwatch.systems.", "reachwatch.training.")))
 
 
 def train_settings(spec: MonitorStudySpec, application=None) -> HistoryTrainConfig:

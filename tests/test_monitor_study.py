@@ -180,9 +180,13 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
         online = score_paths(here, spec.duration, first)
         np.testing.assert_allclose(saved[f"{DETECTOR_ROW}/held_out/risk"][:ticks[0]],
                                    online["score"][0, :ticks[0]], rtol=1e-6)
-    # a rerun renders nothing new and gives the same figures (cached by content, seeded)
+    # a rerun renders nothing new, trains nothing new (its encoder and every head read
+    # back) and gives the same figures (cached by content, seeded)
+    logged = []
     again = run_monitor_study(spec, scenario, tmp_path / "again", cache_dir=tmp_path / "cache",
-                              progress=False, log=lambda m: None, detector=detector_path)
+                              progress=False, log=logged.append, detector=detector_path)
+    read_back = [m for m in logged if "the trained model read back" in m]
+    assert len(read_back) == 1 + len(spec.variants), read_back
     for part in ("variants", "guarded", "oracle"):           # NaN where a group is empty
         assert json.dumps(again[part], sort_keys=True) == json.dumps(result[part], sort_keys=True)
     # k-of-n flag rules: each variant keeps the rule with the fewest needless flags on the
