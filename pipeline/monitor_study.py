@@ -249,12 +249,14 @@ class _Trainings:
     """The study's trained encoders and heads, each saved under ``folder`` once trained
     and read back by a study that trains the same again (a resumed protocol, another
     flag rule): keyed by the digest of the training runs and labels, the settings, the
-    encoder a head reads (its own key) and the source of the training code
-    (`TRAINING_CODE`). What is read back is the model saved, weights bit for bit."""
+    encoder a head reads (its own key), the source of the training code
+    (`TRAINING_CODE`) and the versions of torch, numpy and reachwatch
+    (`reach.fingerprint.STACK`). What is read back is the model saved, weights bit for
+    bit."""
 
     def __init__(self, folder, runs, labels, log):
         import hashlib
-        from reachwatch.reach.fingerprint import modules_source_digest
+        from reachwatch.reach.fingerprint import STACK, modules_source_digest
         data = hashlib.sha256()
         for key in ("frames", "signals", "ticks", "state"):
             value = np.ascontiguousarray(runs[key])
@@ -262,7 +264,7 @@ class _Trainings:
             data.update(memoryview(value).cast("B"))
         data.update(np.ascontiguousarray(labels).tobytes())
         self.folder, self.log = Path(folder), log
-        self.base = [data.hexdigest(), modules_source_digest(*TRAINING_CODE)]
+        self.base = [data.hexdigest(), modules_source_digest(*TRAINING_CODE), STACK]
 
     def kept(self, what: str, parts, train):
         """``(model, key)``: the model ``train()`` gives for ``parts`` (configs and
