@@ -7,6 +7,7 @@ import dataclasses as dc
 
 import numpy as np
 
+from reachwatch.diagrams import MonitorConfig
 from reachwatch.reach.chunks import run_together
 
 from .monitor_judge import watch_s
@@ -26,11 +27,13 @@ def starts_seed(spec, index: int) -> list:
 
 
 def record_runs(spec, application, scenario, environments, first, *, runs, cache_dir,
-                executor, progress):
+                executor, progress, detector=None):
     """``runs`` recorded runs of each environment: the application's `starts` in its
     `grid`'s box, those of the ``i``-th environment (counted from ``first``: its place in
     the family, or after it) seeded by `starts_seed`, and their watched failure times.
-    On a pool every environment's chunks are in flight together
+    ``detector`` (a checkpoint): the runs are recorded with its ``score`` at every tick
+    too (`recorded_runs`' ``scored``: the same runs; one that engaged a fallback is a
+    RuntimeError). On a pool every environment's chunks are in flight together
     (`reachwatch.reach.chunks.run_together`); the groups come in the environments'
     order either way."""
     environments = list(environments)
@@ -44,10 +47,17 @@ def record_runs(spec, application, scenario, environments, first, *, runs, cache
         box = application.grid(here, (3,) * len(application.axes))
         seed = starts_seed(spec, first + i)
         starts = application.starts(here, (box.lo, box.hi), runs, seed)
-        recorded = application.recorded_runs(here, starts, duration=spec.duration,
+        scored = dc.replace(here, monitor=MonitorConfig(detector=str(detector))) if detector \
+            else here
+        recorded = application.recorded_runs(scored, starts, duration=spec.duration,
                                               height=spec.height, width=spec.width,
                                               cache_dir=cache_dir, executor=executor,
-                                              progress=progress)
+                                              progress=progress, scored=detector is not None)
+        if detector is not None and np.any(recorded["engaged"]):
+            raise RuntimeError(f"recorded runs {environment.name}: the detector, watching "
+                               f"only, engaged the fallback in runs "
+                               f"{np.flatnonzero(recorded['engaged']).tolist()}: they are "
+                               f"not the loop alone's")
         watched = watched_failure_times(spec, application, here, starts,
                                         recorded["failure_time"], cache_dir=cache_dir,
                                         executor=executor, progress=progress,

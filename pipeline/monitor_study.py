@@ -66,41 +66,6 @@ def _member_mean(per_member):
     return [[np.mean(runs, axis=0) for runs in zip(*groups)] for groups in zip(*per_member)]
 
 
-def _detector_scores(spec, application, scenario, data, detector, splits, *, cache_dir,
-                     executor, progress):
-    """The image detector's score (the checkpoint ``detector``) at every tick of the
-    recorded runs of ``splits``: the application's `score_runs` from the same starts,
-    which must pass through the recorded states (the loop alone is deterministic), else
-    a RuntimeError. ``{split: [env][run]}``, one array per run."""
-    from reachwatch.diagrams import MonitorConfig
-
-    def scores(g):
-        here = dc.replace(scenario, environment=g["environment"],
-                          monitor=MonitorConfig(detector=str(detector)))
-        scored = application.score_runs(here, g["starts"], duration=spec.duration,
-                                        cache_dir=cache_dir, executor=executor,
-                                        progress=progress)
-        runs = []
-        for i, n in enumerate(g["ticks"]):
-            n = int(n)
-            same = (int(scored["ticks"][i]) >= n and not scored["engaged"][i]
-                    and np.allclose(scored["state"][i, :n], g["state"][i, :n]))
-            if not same:
-                raise RuntimeError(f"the detector's runs in {g['name']}: run {i} does not "
-                                   f"pass through the recorded states, so its scores "
-                                   f"are not those of the recorded run")
-            runs.append(np.asarray(scored["score"][i, :n], float))
-        return runs
-
-    groups = [(k, g) for k in splits for g in data[k]]
-    scored = each_environment([(g["name"], g) for _, g in groups], lambda i, g: scores(g),
-                              executor=executor, what="the detector's runs")
-    out = {k: [] for k in splits}
-    for (k, _), runs in zip(groups, scored):
-        out[k].append(runs)
-    return out
-
-
 def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, executor=None,
                       progress=True, log=print, application=None, detector=None) -> dict:
     """The whole study (see the module) of ``application``'s loop (an `Application`;
@@ -124,8 +89,11 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
              "also_held_out": spec.train + spec.calibrate + spec.held_out}
     runs = {"train": spec.runs, "calibrate": spec.runs, "held_out": spec.judged_runs,
             "also_held_out": spec.judged_runs}
+    judged = ("calibrate", "held_out", "also_held_out")
+    # the judged runs carry the detector's score along them: one run, both recorded
     data = {k: record_runs(spec, application, scenario, envs, first[k], runs=runs[k],
-                       cache_dir=cache_dir / "runs", executor=executor, progress=progress)
+                           cache_dir=cache_dir / "runs", executor=executor, progress=progress,
+                           detector=detector if k in judged else None)
             for k, envs in split.items()}
     log(f"monitor: recorded {sum(len(g['ticks']) for v in data.values() for g in v)} runs, "
         f"{sum(int(g['ticks'].sum()) for v in data.values() for g in v)} ticks; lead "
@@ -133,11 +101,10 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     failing = {k: {g["name"]: [int(np.isfinite(g["failure_time"]).sum()), len(g["ticks"])]
                    for g in groups} for k, groups in data.items()}
 
-    judged = ("calibrate", "held_out", "also_held_out")
-    # before any training: runs that do not repeat the recordings fail here, not after it
-    detector_raw = (None if detector is None else _detector_scores(
-        spec, application, scenario, data, detector, judged, cache_dir=cache_dir / "scores",
-        executor=executor, progress=progress))
+    detector_raw = (None if detector is None else
+                    {k: [[np.asarray(g["score"][i, :int(n)], float)
+                           for i, n in enumerate(g["ticks"])] for g in data[k]]
+                     for k in judged})
 
     train = merged_runs(data["train"])
     # labels from the longer watch: every recorded tick's is known

@@ -252,7 +252,8 @@ class Application(abc.ABC):
                             progress=progress, label=scenario.environment.name)
 
     def recorded_runs(self, scenario, starts, *, duration: float, height: int, width: int,
-                      cache_dir, executor=None, progress: bool = True) -> dict:
+                      cache_dir, executor=None, progress: bool = True,
+                      scored: bool = False) -> dict:
         """The controller alone's real loop from each start for ``duration`` s (stopping
         at failure), every control tick recorded: what a monitor over the image history
         trains on. Per start: ``frames`` uint8 ``(T, height, width, 3)`` (the camera's
@@ -262,15 +263,21 @@ class Application(abc.ABC):
         n)``, ``ticks``, ``failed`` and ``failure_time`` (s, NaN for none); ``T`` is the
         horizon's tick count, rows past a run's end zeros / NaN. Cached by content under
         ``cache_dir`` (the scenario without its monitor, the horizon, the frame size and
-        the starts). Default: `loop_recordings`, which reads `camera_port` and `probe`'s
-        control port inside `loop_diagram` and judges `failed` at the control ticks."""
+        the starts). ``scored``: also ``score`` ``(T,)`` (NaN past a run's end), the
+        detector of ``scenario.monitor`` along the same runs, as `score_runs` reads it,
+        and ``engaged`` (as there), keyed by the detector but not its threshold or
+        fallback: one run gives a monitor's frames and the detector's scores. Default:
+        `loop_recordings`, which reads `camera_port` and `probe`'s control port (and
+        `score_port`) inside `loop_diagram` and judges `failed` at the control ticks."""
         from .loop_runs import loop_recordings
         from .outcomes import map_states
-        scenario = self.without_monitor(scenario)
+        scenario = self._watching(scenario) if scored else self.without_monitor(scenario)
         rollout = functools.partial(loop_recordings, ApplicationRef(self._loaded_as()),
-                                    scenario, float(duration), int(height), int(width))
+                                    scenario, float(duration), int(height), int(width),
+                                    scored=scored)
         fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
-                                  progress=progress, unit="run", required=("failed", "frames"),
+                                  progress=progress, unit="run",
+                                  required=("failed", "frames") + (("score",) if scored else ()),
                                   label=f"recorded runs {scenario.environment.name}")
         return fields
 
@@ -512,9 +519,7 @@ class Application(abc.ABC):
         engages)."""
         from .loop_runs import loop_scores
         from .outcomes import map_states
-        # a copy: `resolved` may return the caller's scenario, whose monitor it goes on with
-        scenario = dc.replace(self.resolved(scenario),
-                              monitor=type(scenario.monitor).watching(scenario.monitor.detector))
+        scenario = self._watching(scenario)
         rollout = functools.partial(loop_scores, ApplicationRef(self._loaded_as()), scenario,
                                     float(duration))
         fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
@@ -523,6 +528,13 @@ class Application(abc.ABC):
                                   label=f"detector score along real runs "
                                         f"{scenario.environment.name}")
         return fields
+
+    def _watching(self, scenario):
+        """`resolved` ``scenario`` with a monitor of its detector alone
+        (`MonitorConfig.watching`): what runs that read the detector's score along the
+        loop alone are keyed by. A copy: `resolved` may return the caller's scenario."""
+        return dc.replace(self.resolved(scenario),
+                          monitor=type(scenario.monitor).watching(scenario.monitor.detector))
 
     def real_score_noise(self, scenario, grid, score_table, starts, *, duration: float,
                          cache_dir, executor=None, progress: bool = True):

@@ -80,23 +80,46 @@ def _subsystem_port(application, diagram, name: str, what: str):
     return system, system.GetOutputPort(port)
 
 
+def _watching(scenario):
+    """A copy of ``scenario`` whose monitor never engages its fallback (threshold 1, the
+    longest k-of-n window): its guarded loop is the controller alone's, with the
+    detector's score read along it."""
+    from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW
+    scenario = copy.deepcopy(scenario)
+    scenario.monitor = dc.replace(scenario.monitor, threshold=1.0,
+                                  flags_needed=MAX_FLAG_WINDOW, flag_window=MAX_FLAG_WINDOW)
+    return scenario
+
+
+def _engaged(trajectory, nominal) -> bool:
+    """Whether a run's logged speed left the controller's ``nominal`` one."""
+    return (trajectory.speed is not None
+            and bool(np.any(np.asarray(trajectory.speed, float) != nominal)))
+
+
 def loop_recordings(ref, scenario, duration: float, height: int, width: int,
-                    states) -> dict:
+                    states, *, scored: bool = False) -> dict:
     """The fields of `Application.recorded_runs`: the controller alone's loop of
     ``ref``'s application from each start, the camera's image (`Application.camera_port`)
     resized to ``height`` x ``width`` and the online signals (the controller's
     ``estimate`` when it has one, then its steering: `Application.probe`'s control port)
     read inside the loop at every control tick, stopping at the first tick where
-    `Application.failed` holds."""
+    `Application.failed` holds. ``scored``: the guarded loop whose monitor never
+    engages (as `loop_scores`), the detector's ``score`` (`Application.score_port`)
+    read at every tick too, with ``engaged`` per run."""
     from reachwatch.diagrams.controller import ESTIMATE_OUTPUT
     from reachwatch.systems import DetectorConfig, resize_for_detector
-    application, diagram, context = _thread_loop(ref, scenario)
+    if scored:
+        scenario = _watching(scenario)
+    application, diagram, context = _thread_loop(ref, scenario, scored)
     camera = _subsystem_port(application, diagram, application.camera_port, "camera_port")
     controller, steering = _subsystem_port(application, diagram,
                                            application.probe(scenario).control_port,
                                            "probe's control_port")
     signals = ([(controller, controller.GetOutputPort(ESTIMATE_OUTPUT))]
                if controller.HasOutputPort(ESTIMATE_OUTPUT) else []) + [(controller, steering)]
+    score = (_subsystem_port(application, diagram, application.score_port, "score_port")
+             if scored else None)
     size = DetectorConfig(height=height, width=width)
     period = scenario.controller.period
     length = int(np.floor(duration / period + 1e-9)) + 1
@@ -106,7 +129,9 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
            "signals": np.full((len(states), length, m), np.nan),
            "state": np.full((len(states), length, states.shape[1]), np.nan),
            "ticks": np.zeros(len(states), int), "failed": np.zeros(len(states), bool),
-           "failure_time": np.full(len(states), np.nan)}
+           "failure_time": np.full(len(states), np.nan),
+           **({"score": np.full((len(states), length), np.nan),
+               "engaged": np.zeros(len(states), bool)} if scored else {})}
     failed = failure_rule(application, scenario)
     read = lambda system, port, root: port.Eval(system.GetMyContextFromRoot(root))  # noqa: E731
     for i, x in enumerate(states):
@@ -117,10 +142,14 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
             diagram, scenario, failed, x, duration, context=context, read=lambda root: (
                 resize_for_detector(read(*camera, root).data[None], size)[0],
                 np.concatenate([np.asarray(read(s, p, root), float).ravel()
-                                for s, p in signals])))
+                                for s, p in signals]),
+                float(np.ravel(read(*score, root))[0]) if scored else None))
         n = min(len(trajectory.time), length)
-        out["frames"][i, :n] = np.stack([frame for frame, _ in rows])[:n, ..., :3]
-        out["signals"][i, :n] = np.stack([online for _, online in rows])[:n]
+        out["frames"][i, :n] = np.stack([row[0] for row in rows])[:n, ..., :3]
+        out["signals"][i, :n] = np.stack([row[1] for row in rows])[:n]
+        if scored:
+            out["score"][i, :n] = [row[2] for row in rows[:n]]
+            out["engaged"][i] = _engaged(trajectory, scenario.controller.speed)
         out["state"][i, :n] = trajectory.state[:n]
         out["ticks"][i] = n
         out["failed"][i] = end = failed(trajectory.state[n - 1])
@@ -195,10 +224,7 @@ def loop_scores(ref, scenario, duration: float, states) -> dict:
     (`Application.score_port`). Per start: ``state`` ``(T, d)`` and ``score`` ``(T,)``
     (NaN after the run ends), ``ticks``, and ``engaged``: whether the speed still left
     the nominal one at some tick (such a run is not the controller alone's)."""
-    from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW
-    scenario = copy.deepcopy(scenario)
-    scenario.monitor = dc.replace(scenario.monitor, threshold=1.0,
-                                  flags_needed=MAX_FLAG_WINDOW, flag_window=MAX_FLAG_WINDOW)
+    scenario = _watching(scenario)
     application, diagram, context = _thread_loop(ref, scenario, True)
     detector, score = _subsystem_port(application, diagram, application.score_port,
                                       "score_port")
@@ -219,8 +245,7 @@ def loop_scores(ref, scenario, duration: float, states) -> dict:
         out["state"][i, :n] = trajectory.state[:n]
         out["score"][i, :n] = scores[:n]
         out["ticks"][i] = n
-        out["engaged"][i] = (trajectory.speed is not None and
-                             bool(np.any(np.asarray(trajectory.speed, float) != nominal)))
+        out["engaged"][i] = _engaged(trajectory, nominal)
     return out
 
 

@@ -136,14 +136,14 @@ class TaxiApplication(RunwayEnvironments, Application):
                                    progress=progress)
 
     def recorded_runs(self, scenario, starts, *, duration, height, width, cache_dir,
-                      executor=None, progress=True):
+                      executor=None, progress=True, scored=False):
         if not self.own_loop:
             return super().recorded_runs(scenario, starts, duration=duration, height=height,
                                          width=width, cache_dir=cache_dir, executor=executor,
-                                         progress=progress)
+                                         progress=progress, scored=scored)
         return history.recorded_runs(scenario, starts, duration=duration, height=height,
                                      width=width, cache_dir=cache_dir, executor=executor,
-                                     progress=progress)
+                                     progress=progress, scored=scored)
 
     def missions(self, scenario, starts, *, fallback=None, duration, cache_dir, executor=None,
                  progress=True, mission_limit=None):

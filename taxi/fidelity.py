@@ -300,16 +300,23 @@ def make_watched_loop(scenario):
     """The controller alone's closed loop with the detector of ``scenario.monitor``
     watching its camera and acting on nothing: exports ``score`` beside ``state``, from
     the same rendered image the controller sees at each tick."""
-    def watch(builder, world):
-        controller = builder.GetSubsystemByName(CONTROLLER)
-        detector = add_detector(
-            builder, image_port=world.camera.color_image_output_port(),
-            monitor=scenario.monitor, period=scenario.controller.period,
-            steering_port=controller.GetOutputPort(CONTROL_OUTPUT),
-            estimate_port=(controller.GetOutputPort(ESTIMATE_OUTPUT)
-                           if has_estimate(controller) else None))
-        builder.ExportOutput(detector.get_score_output_port(), "score")
-    return make_closed_loop_diagram(scenario, prebuild_callback=watch)
+    return make_closed_loop_diagram(
+        scenario, prebuild_callback=lambda builder, world: export_watching_detector(
+            builder, world, scenario))
+
+
+def export_watching_detector(builder, world, scenario):
+    """A ``prebuild_callback`` step: the detector of ``scenario.monitor`` reading the
+    camera of ``world`` and the controller's outputs, its ``score`` exported, wired to
+    nothing that acts."""
+    controller = builder.GetSubsystemByName(CONTROLLER)
+    detector = add_detector(
+        builder, image_port=world.camera.color_image_output_port(),
+        monitor=scenario.monitor, period=scenario.controller.period,
+        steering_port=controller.GetOutputPort(CONTROL_OUTPUT),
+        estimate_port=(controller.GetOutputPort(ESTIMATE_OUTPUT)
+                       if has_estimate(controller) else None))
+    builder.ExportOutput(detector.get_score_output_port(), "score")
 
 
 def score_paths(scenario, duration: float, states, *, lockstep=None) -> dict:

@@ -354,8 +354,20 @@ def test_the_cart_runs_the_study_through_the_generic_application(tmp_path, monke
     for counts in result["guarded"].values():
         assert counts["runs"] == 2 and counts["failed_guarded"] <= counts["runs"]
         assert counts["distance_guarded_m"] <= counts["distance_alone_m"] + 1e-9
-    # the generic missions: a monitor that flags every tick brakes the cart from the start
+    # the generic recordings with a detector's score along them (here a history
+    # monitor's): the same runs, and the score `score_runs` reads along the loop alone
     from reachwatch.diagrams import MonitorConfig
+    watched = dc_replace(here, monitor=MonitorConfig(
+        detector=str(tmp_path / "out" / result["checkpoints"]["one frame"])))
+    scored = cart.recorded_runs(watched, starts, duration=1.0, height=16, width=24,
+                                cache_dir=tmp_path / "rec", progress=False, scored=True)
+    for key in ("frames", "signals", "state", "ticks", "failed"):
+        np.testing.assert_array_equal(scored[key], runs[key], err_msg=key)
+    along = cart.score_runs(watched, starts, duration=1.0, cache_dir=tmp_path / "rec",
+                            progress=False)
+    np.testing.assert_array_equal(scored["score"], along["score"])
+    assert np.isfinite(scored["score"][0]).all() and not scored["engaged"].any()
+    # the generic missions: a monitor that flags every tick brakes the cart from the start
     held = dc_replace(scenario, environment=spec.monitor.environments()["held_out"][0])
     alone = cart.missions(held, starts, duration=1.5, cache_dir=tmp_path / "m", progress=False)
     always = MonitorConfig(detector=str(tmp_path / "out" / result["checkpoints"]["one frame"]),
