@@ -110,21 +110,24 @@ def alone_from_recordings(application, scenario, group, runs: int, *, duration: 
     """`reach.liveness.MissionOutcomes` of the loop alone from the first ``runs`` recorded
     starts of ``group`` (`record_runs`'s) for ``duration`` s (the recordings'), read off
     the recordings for a loop that `alone_reads_recordings`: the same runs, so the same
-    ticks and failures, at the controller's constant speed. Its first surviving and
+    ticks and failures, at the controller's constant speed up to the failure time. Its first surviving and
     first failing runs are also run (`missions`: an application's own runners too) and
     must come out the same in every field, else a RuntimeError."""
     from reachwatch.reach.liveness import MissionOutcomes, travelled
     period, speed = scenario.controller.period, scenario.controller.speed
     ticks, failed = np.asarray(group["ticks"])[:runs], np.asarray(group["failed"])[:runs]
     rows = []
-    for n, fails in zip(ticks, failed):
+    for n, fails, at in zip(ticks, failed, np.asarray(group["failure_time"])[:runs]):
         if n == 0:                                      # a start already off the safe set
             rows.append((True, False, False, 0.0, 0, 0))
             continue
         time = np.arange(int(n)) * period               # the ticks the run logged
         within = time <= duration + 1e-9
+        # a loop that stops at the crossing itself (the taxi's) fails after its last
+        # logged tick, and covers the stretch to it too
         rows.append((bool(fails), False, False,
-                     travelled(time[within], np.full(int(within.sum()), speed)), 0,
+                     travelled(time[within], np.full(int(within.sum()), speed),
+                               float(at) if fails else None), 0,
                      int(np.sum(time[within] < duration - 1e-9))))
     read = MissionOutcomes(*(np.array(column) for column in zip(*rows)))
     check = np.concatenate([np.flatnonzero(~failed)[:1], np.flatnonzero(failed & (ticks > 0))[:1]])

@@ -237,14 +237,18 @@ class _Trainings:
         """``(model, key)``: the model ``train()`` gives for ``parts`` (configs and
         settings, and the keys of models this one was trained from), trained or read
         back, and its key."""
-        from reachwatch.diagrams.checkpoints import load_history_monitor
+        from reachwatch.diagrams.checkpoints import CheckpointError, load_history_monitor
         from .spec import digest
         key = digest(*self.base, *[p if isinstance(p, str) else dc.asdict(p) for p in parts])
         path = self.folder / f"{key}.pt"
+        model = None
         if path.is_file():
-            model, _, _ = load_history_monitor(path)
-            self.log(f"monitor: {what}: the trained model read back ({path.name})")
-        else:
+            try:
+                model, _, _ = load_history_monitor(path)
+                self.log(f"monitor: {what}: the trained model read back ({path.name})")
+            except CheckpointError as e:    # unreadable (or NaN weights): trained again
+                self.log(f"monitor: {what}: training again: {e}")
+        if model is None:
             model = train()
             save_checkpoint(path, kind="history_monitor", model=model,
                             model_config=model.config, preprocess_config=None,
@@ -303,8 +307,8 @@ STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_model",
 
 #: The modules whose code trains a monitor's encoder and heads: part of the key of a
 #: study's saved trainings (`_Trainings`).
-TRAINING_CODE = tuple(name for name in STUDY_CODE
-                      if name.startswith(("reachwatch.systems.", "reachwatch.training.")))
+TRAINING_CODE = tuple(name for name in STUDY_CODE if name.startswith(
+    ("reachwatch.systems.", "reachwatch.training."))) + ("reachwatch.diagrams.checkpoints",)
 
 
 def train_settings(spec: MonitorStudySpec, application=None) -> HistoryTrainConfig:

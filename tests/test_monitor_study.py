@@ -724,3 +724,29 @@ def test_a_studys_checkpoint_files_are_named_after_their_variants():
     assert checkpoint_file("☀") == "monitor_variant.pt"
     taken = {"monitor_a-b.pt", "monitor_a-b-2.pt"}
     assert checkpoint_file("a b", taken) == "monitor_a-b-3.pt"
+
+
+def test_the_loop_alone_read_off_recordings_that_stop_at_the_crossing(tmp_path):
+    """A loop that stops at the crossing itself (the taxi's) fails after its last
+    logged tick: the loop alone's outcome read off its recording covers the stretch to
+    the failure, as its run does (`alone_from_recordings`, a stand-in application)."""
+    from types import SimpleNamespace
+    from reachwatch.pipeline.monitor_runs import alone_from_recordings
+    from reachwatch.reach.liveness import MissionOutcomes, travelled
+    scenario = load_scenario(data="")
+    period, speed = scenario.controller.period, scenario.controller.speed
+    # run 0 survives 1 s (21 ticks); run 1 logs 5 ticks and crosses 0.6 period later
+    group = {"ticks": np.array([21, 5]), "failed": np.array([False, True]),
+             "failure_time": np.array([np.nan, 4.6 * period]), "starts": np.zeros((2, 3))}
+    ticks = np.arange(21) * period                  # as the loop's runs travel them
+    ran = MissionOutcomes(failed=[False, True], stopped=[False, False],
+                          ever_stopped=[False, False],
+                          distance=[travelled(ticks, np.full(21, speed)),
+                                    travelled(ticks[:5], np.full(5, speed), 4.6 * period)],
+                          flagged_ticks=[0, 0], ticks=[20, 5])
+    assert ran.distance[1] == pytest.approx(speed * 4.6 * period)
+    application = SimpleNamespace(missions=lambda sc, starts, **_: ran)
+    read = alone_from_recordings(application, scenario, group, 2, duration=1.0,
+                                 cache_dir=tmp_path, executor=None, progress=False)
+    for name, value in ran.as_fields().items():
+        np.testing.assert_allclose(getattr(read, name), value, err_msg=name)
