@@ -94,7 +94,12 @@ def _loaded_libraries() -> dict:
     return found
 
 
-_LOCK = threading.Lock()
+#: Held while a thread of this process builds a renderer (a diagram with a camera and
+#: its Context, or the probe scene): two renderers built at once in one process (VTK
+#: over EGL, llvmpipe) do not always draw the same pixels afterwards. Rendering itself
+#: needs no lock. Reentrant: a build may build within it.
+BUILD_LOCK = threading.RLock()
+
 _STACK = []
 
 
@@ -103,7 +108,9 @@ def render_stack() -> dict:
     "libraries": the drivers that drew them (`_loaded_libraries`)}``, once per process.
     A probe that cannot render raises a one-line RuntimeError: reachwatch renders every
     label it makes."""
-    with _LOCK:
+    if _STACK:
+        return dict(_STACK[0])
+    with BUILD_LOCK:
         if not _STACK:
             try:
                 pixels = _probe_image() + _probe_image(shadows=True)

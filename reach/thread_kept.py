@@ -5,8 +5,9 @@ renderer (tens of MB at 200x360), so a thread that runs chunks of many environme
 monitors in turn must not keep them all (a local worker that kept every loop of a
 guarded study's 32 environments grew to 11 GB).
 
-Building is serialized across a process's threads (`BUILD_LOCK`): two renderers built
-at once in one process (VTK over EGL, llvmpipe) do not always draw the same pixels
+Building is serialized across a process's threads
+(`reachwatch.diagrams.render_stack.BUILD_LOCK`, which the render-stack probe holds
+too): two renderers built at once in one process (VTK over EGL, llvmpipe) do not always draw the same pixels
 afterwards. Measured on the taxi's camera (600 states, 2 threads each building a
 renderer then rendering them all): 2-10 frames of 600 per thread off, by up to 136
 grey levels, against one thread; with only the building under a lock, none in four
@@ -16,8 +17,8 @@ import collections
 import gc
 import threading
 
-#: Held while a thread builds (and drops) what it keeps: one build at a time per process.
-BUILD_LOCK = threading.RLock()
+from reachwatch.diagrams.render_stack import BUILD_LOCK
+
 
 #: Loops or probes a worker thread keeps (the most recently used): each holds a renderer.
 KEPT_DIAGRAMS = 4

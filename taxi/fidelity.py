@@ -14,6 +14,7 @@ from reachwatch.diagrams import (CONTROLLER, MonitorConfig, add_detector, make_c
                                  make_guarded_diagram)
 from reachwatch.diagrams.controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
 from reachwatch.diagrams.lockstep import loop_copies, simulate_lockstep
+from reachwatch.diagrams.render_stack import BUILD_LOCK
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes,
@@ -21,7 +22,7 @@ from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, Mis
 from reachwatch.reach.outcomes import (Outcomes, check_memoryless, map_states, path_labels,
                                        path_points, run_outcomes)
 from reachwatch.reach.score_noise import fit_score_noise_on_runs
-from reachwatch.reach.thread_kept import BUILD_LOCK, KEPT_DIAGRAMS, ThreadKept
+from reachwatch.reach.thread_kept import KEPT_DIAGRAMS, ThreadKept
 from reachwatch.systems import fallback_parts
 
 from .sweeps import resolved
