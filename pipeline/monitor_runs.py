@@ -33,20 +33,31 @@ def record_runs(spec, application, scenario, environments, first, *, runs, cache
     the family, or after it) seeded by `starts_seed`, and their watched failure times.
     ``detector`` (a checkpoint): the runs are recorded with its ``score`` at every tick
     too (`recorded_runs`' ``scored``: the same runs; one that engaged a fallback is a
-    RuntimeError). On a pool every environment's chunks are in flight together
-    (`reachwatch.reach.chunks.run_together`); the groups come in the environments'
-    order either way."""
-    environments = list(environments)
-    if not environments:
-        return []
-    continues = continues_from_recordings(
-        application, dc.replace(scenario, environment=environments[0]))
+    RuntimeError). `record_splits` of one split."""
+    return record_splits(spec, application, scenario,
+                         {"": (environments, first, runs, detector)}, cache_dir=cache_dir,
+                         executor=executor, progress=progress)[""]
 
-    def one(i, environment):
+
+def record_splits(spec, application, scenario, splits: dict, *, cache_dir, executor,
+                  progress) -> dict:
+    """`record_runs` of each split, ``{name: (environments, first, runs, detector)}`` ->
+    ``{name: [group per environment]}``. On a pool every split's environments' chunks
+    are in flight together (`reachwatch.reach.chunks.run_together`); the groups come in
+    the environments' order either way."""
+    named = [(environment.name, (environment, first + i, runs, detector))
+             for environments, first, runs, detector in splits.values()
+             for i, environment in enumerate(environments)]
+    if not named:
+        return {k: [] for k in splits}
+    continues = continues_from_recordings(
+        application, dc.replace(scenario, environment=named[0][1][0]))
+
+    def one(_, item):
+        environment, index, runs, detector = item
         here = dc.replace(scenario, environment=environment)
         box = application.grid(here, (3,) * len(application.axes))
-        seed = starts_seed(spec, first + i)
-        starts = application.starts(here, (box.lo, box.hi), runs, seed)
+        starts = application.starts(here, (box.lo, box.hi), runs, starts_seed(spec, index))
         scored = dc.replace(here, monitor=MonitorConfig(detector=str(detector))) if detector \
             else here
         recorded = application.recorded_runs(scored, starts, duration=spec.duration,
@@ -65,8 +76,8 @@ def record_runs(spec, application, scenario, environments, first, *, runs, cache
         return {**recorded, "watched_failure_time": watched, "starts": starts,
                 "name": environment.name, "environment": environment}
 
-    return each_environment([(e.name, e) for e in environments], one, executor=executor,
-                            what="recorded runs")
+    groups = iter(each_environment(named, one, executor=executor, what="recorded runs"))
+    return {k: [next(groups) for _ in environments] for k, (environments, *_) in splits.items()}
 
 
 def each_environment(named, fn, *, executor, what: str) -> list:

@@ -39,7 +39,7 @@ from .monitor_guarded import guarded_rows
 from .monitor_judge import (_judge_monitor, choose_flag_rule, judge_environments,  # noqa: F401
                             watch_s)
 from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_environment,  # noqa: F401
-                           merged_runs, record_runs, starts_seed)
+                           merged_runs, record_runs, record_splits, starts_seed)
 from .monitor_sections import rate_text
 from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noqa: F401
                            MonitorVariant, default_variants)
@@ -90,11 +90,12 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     runs = {"train": spec.runs, "calibrate": spec.runs, "held_out": spec.judged_runs,
             "also_held_out": spec.judged_runs}
     judged = ("calibrate", "held_out", "also_held_out")
-    # the judged runs carry the detector's score along them: one run, both recorded
-    data = {k: record_runs(spec, application, scenario, envs, first[k], runs=runs[k],
-                           cache_dir=cache_dir / "runs", executor=executor, progress=progress,
-                           detector=detector if k in judged else None)
-            for k, envs in split.items()}
+    # every split's environments together; the judged runs carry the detector's score
+    # along them: one run, both recorded
+    data = record_splits(spec, application, scenario,
+                         {k: (list(envs), first[k], runs[k], detector if k in judged else None)
+                          for k, envs in split.items()},
+                         cache_dir=cache_dir / "runs", executor=executor, progress=progress)
     log(f"monitor: recorded {sum(len(g['ticks']) for v in data.values() for g in v)} runs, "
         f"{sum(int(g['ticks'].sum()) for v in data.values() for g in v)} ticks; lead "
         f"{lead:.2f} s, risk of failing within {spec.within:g} s")
