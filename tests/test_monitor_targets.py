@@ -1,0 +1,63 @@
+"""benchmarks/monitor_targets.py: a finished study's figures against the monitor's
+targets, each verdict read the way the target states it."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+from reachwatch.pipeline.monitor_guarded import ORACLE
+from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
+from reachwatch.training.monitor_eval import rate
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "monitor_targets.py"
+_SPEC = importlib.util.spec_from_file_location("monitor_targets", _PATH)
+targets = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(targets)
+
+
+def _variant(auroc, ece, misses, threshold, warning, safe):
+    environments = [{"miss": rate(m, 10), "auroc_4s": a} for m, a in zip(misses, auroc)]
+    group = {"environments": environments, "ece": ece,
+             "pooled": {"miss": rate(sum(misses), 10 * len(misses))}}
+    scores = [{"warning": np.asarray(warning, float), "safe_max": np.asarray(safe, float)}]
+    return {"threshold": threshold, "held_out": group,
+            "also_held_out": {"environments": [], "ece": float("nan"),
+                              "pooled": {"miss": rate(0, 0)}},
+            "scores": {"held_out": scores}}
+
+
+def _guarded(prevented, failed, needless, safe):
+    return {"prevented": prevented, "prevented_rate": rate(prevented, failed),
+            "needless_rate": rate(needless, safe)}
+
+
+def test_the_targets_read_as_stated():
+    result = {
+        "kept": "GRU", "within_s": 4.0, "lead_s": 1.67, "alpha": 0.1,
+        "variants": {
+            # misses 1 of 20 (5 %); warns 3 of 4 failing runs at 1 needless flag of 4
+            "GRU": _variant([0.95, 0.90], 0.03, [1, 0], 0.5, [0.9, 0.8, 0.7, 0.1],
+                            [0.6, 0.2, 0.1, 0.1]),
+            # the detector warns 2 of 4 at that needless count (its threshold just over 0.2)
+            DETECTOR_ROW: _variant([0.80, 0.88], 0.2, [2, 2], 0.5, [0.9, 0.3, 0.2, 0.1],
+                                   [0.95, 0.2, 0.1, 0.1])},
+        "prediction_error_auroc_4s": {"held_out": [0.9, 0.95], "also_held_out": []},
+        "guarded": {"GRU": _guarded(9, 10, 5, 100), ORACLE: _guarded(10, 10, 0, 100),
+                    DETECTOR_ROW: _guarded(6, 10, 20, 100)},
+    }
+    rows = {r[0]: r for r in targets.target_rows(result)}
+    prevented = rows["prevented >= 0.85 of the oracle's"]
+    assert "9 of the oracle's 10 (0.90)" in prevented[2] and prevented[3] == "met"
+    assert rows["needless stops <= 10 % (upper bound <= 13 %)"][3] == "met"     # 5/100
+    offline = rows["+10 points over the detector at the same needless flags (offline)"]
+    assert "(+25.0 points)" in offline[2] and offline[3] == "met"
+    miss = rows["miss rate <= 10 % (upper bound <= 13 %)"]
+    assert miss[2].startswith("5.0 %") and miss[3] == "not met"       # its bound is 23.6 %
+    assert rows["ECE <= 0.05"][3] == "met"
+    worst = rows["worst AUROC (fails within 4 s) >= detector's + 5 points, above the "
+                 "prediction error everywhere"]
+    # 0.90 against the detector's 0.80 (+10 points), but below the prediction error in
+    # the second environment (0.90 against 0.95)
+    assert "above the prediction error in 1 of 2" in worst[2] and worst[3] == "not met"
+    assert all(r[1] == "family" for r in rows.values())      # no night was judged
