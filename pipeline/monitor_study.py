@@ -143,9 +143,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         all_risks[variant.name] = risks
         results[variant.name] = row
         models[variant.name] = (model, platt, chosen.threshold, rule)
-        log(f"monitor: {variant.name}: threshold {chosen.threshold:.3f}, held-out miss "
-            f"{rate_text(row['held_out']['pooled']['miss'])}, needless "
-            f"{rate_text(row['held_out']['pooled']['needless'])}")
+        log(f"monitor: {variant.name}: threshold {chosen.threshold:.3f}; {judged_text(row)}")
     if detector is not None:        # the run's single-image detector, judged the same way
         row, platt, chosen, rule, risks = _judge_monitor(spec, data, detector_raw, period=period,
                                                          lead=lead, calibrated=False)
@@ -153,9 +151,8 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         all_risks[DETECTOR_ROW] = risks
         results[DETECTOR_ROW] = row
         models[DETECTOR_ROW] = (None, platt, chosen.threshold, rule)
-        log(f"monitor: {DETECTOR_ROW}: threshold {chosen.threshold:.3f} (its own score), "
-            f"held-out miss {rate_text(row['held_out']['pooled']['miss'])}, needless "
-            f"{rate_text(row['held_out']['pooled']['needless'])}")
+        log(f"monitor: {DETECTOR_ROW}: threshold {chosen.threshold:.3f} (its own score); "
+            f"{judged_text(row)}")
 
     oracle, baseline = {}, {}
     for k in ("held_out", "also_held_out"):
@@ -211,6 +208,22 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     atomic_write_bytes(out_dir / "monitor.json",
                        strict_json(result, indent=1, default=float).encode())
     return result
+
+
+def judged_text(row: dict) -> str:
+    """A variant's row (`_judge_monitor`) in one line: per judged group of environments,
+    pooled misses and needless flags, ECE and the worst environment's AUROC of failing
+    within the risk's horizon."""
+    parts = []
+    for group, name in (("held_out", "held out"), ("also_held_out", "outside the family")):
+        r = row.get(group)
+        if not r or not r["environments"]:
+            continue
+        aurocs = [e["auroc_4s"] for e in r["environments"] if np.isfinite(e["auroc_4s"])]
+        parts.append(f"{name}: miss {rate_text(r['pooled']['miss'])}, needless "
+                     f"{rate_text(r['pooled']['needless'])}, ECE {r['ece']:.3f}, worst AUROC "
+                     f"{min(aurocs) if aurocs else float('nan'):.3f}")
+    return "; ".join(parts)
 
 
 class _Trainings:
