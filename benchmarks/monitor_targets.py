@@ -60,8 +60,8 @@ def target_rows(result: dict) -> list:
             needless = mine["needless_rate"]
             rows.append(["needless stops <= 10 % (upper bound <= 13 %)", name,
                          rate_text(needless),
-                         _verdict(needless["of"] > 0 and needless["rate"] <= RATE
-                                  and needless["hi"] <= UPPER)])
+                         _verdict(needless["rate"] <= RATE and needless["hi"] <= UPPER
+                                  if needless["of"] else None)])
         theirs = guarded.get(DETECTOR_ROW)
         if mine and theirs:
             points = 100 * (mine["prevented_rate"]["rate"] - theirs["prevented_rate"]["rate"])
@@ -80,26 +80,34 @@ def target_rows(result: dict) -> list:
                              _verdict(math.isfinite(points) and points >= DETECTOR_POINTS)])
         miss = row[group]["pooled"]["miss"]
         rows.append(["miss rate <= 10 % (upper bound <= 13 %)", name, rate_text(miss),
-                     _verdict(miss["of"] > 0 and miss["rate"] <= RATE and miss["hi"] <= UPPER)])
+                     _verdict(miss["rate"] <= RATE and miss["hi"] <= UPPER
+                              if miss["of"] else None)])
         if group == "held_out":
             observed = bounded_miss_rates(row[group]["environments"])
             if observed:
                 every, failing, with_failures, count = observed
+                # what the threshold bounds: the mean with an environment where no run
+                # fails counting 0, or (fixed `given_failures`) over those where runs fail
+                bounded = failing if row.get("given_failures") else every
                 rows.append(["the conformal bound (alpha) on the mean miss rate", name,
                              f"{100 * every:.1f} % over {count} environments (0 where none "
                              f"fails), {100 * failing:.1f} % over the {with_failures} with "
-                             f"failures; alpha {100 * result['alpha']:.0f} %",
-                             _verdict(every <= result["alpha"])])
+                             f"failures ({'the latter' if row.get('given_failures') else 'the former'}"
+                             f" bounded); alpha {100 * result['alpha']:.0f} %",
+                             _verdict(bounded <= result["alpha"] if math.isfinite(bounded)
+                                      else None)])
         ece = row[group]["ece"]
-        rows.append(["ECE <= 0.05", name, f"{ece:.3f}", _verdict(ece <= ECE)])
+        rows.append(["ECE <= 0.05", name, f"{ece:.3f}",
+                     _verdict(ece <= ECE if math.isfinite(ece) else None)])
         worst = _worst_auroc(row, group)
         baseline = [b for b in result["prediction_error_auroc_4s"][group] if np.isfinite(b)]
         text = f"{worst:.3f}"
         ok = None
-        if detector is not None:
+        if detector is not None and math.isfinite(worst):
             theirs_worst = _worst_auroc(detector, group)
             text += f", the detector's {theirs_worst:.3f}"
-            ok = 100 * (worst - theirs_worst) >= AUROC_POINTS
+            ok = (100 * (worst - theirs_worst) >= AUROC_POINTS
+                  if math.isfinite(theirs_worst) else None)
         aurocs = [e["auroc_4s"] for e in row[group]["environments"]]
         above = [a > b for a, b in zip(aurocs, result["prediction_error_auroc_4s"][group])
                  if np.isfinite(a) and np.isfinite(b)]

@@ -45,6 +45,7 @@ def record_splits(spec, application, scenario, splits: dict, *, cache_dir, execu
     ``{name: [group per environment]}``. On a pool every split's environments' chunks
     are in flight together (`reachwatch.reach.chunks.run_together`); the groups come in
     the environments' order either way."""
+    splits = {k: (list(environments), *rest) for k, (environments, *rest) in splits.items()}
     named = [(environment.name, (environment, first + i, runs, detector))
              for environments, first, runs, detector in splits.values()
              for i, environment in enumerate(environments)]

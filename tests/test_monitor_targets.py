@@ -61,3 +61,22 @@ def test_the_targets_read_as_stated():
     # the second environment (0.90 against 0.95)
     assert "above the prediction error in 1 of 2" in worst[2] and worst[3] == "not met"
     assert all(r[1] == "family" for r in rows.values())      # no night was judged
+
+
+def test_the_bound_is_read_as_the_threshold_was_fixed_and_nothing_judged_is_no_verdict():
+    """Fixed ``given_failures``, alpha bounds the mean over the environments where runs
+    fail, not the mean with the others counting 0; a group without safe runs or warnable
+    failures gets no verdict."""
+    # two environments: one misses 3 of 10 warnable runs, one has none (counted 0)
+    row = _variant([0.9, 0.9], 0.03, [3, 0], 0.5, [0.9], [0.1])
+    row["held_out"]["environments"][1]["miss"] = rate(0, 0)
+    result = {"kept": "GRU", "within_s": 4.0, "lead_s": 1.67, "alpha": 0.2,
+              "variants": {"GRU": row},
+              "prediction_error_auroc_4s": {"held_out": [0.5, 0.5], "also_held_out": []},
+              "guarded": {"GRU": _guarded(0, 0, 0, 0), ORACLE: _guarded(0, 0, 0, 0)}}
+    bound = "the conformal bound (alpha) on the mean miss rate"
+    assert {r[0]: r for r in targets.target_rows(result)}[bound][3] == "met"   # 15 % <= 20 %
+    row["given_failures"] = True
+    rows = {r[0]: r for r in targets.target_rows(result)}
+    assert rows[bound][3] == "not met"                                          # 30 % > 20 %
+    assert rows["needless stops <= 10 % (upper bound <= 13 %)"][3] == "-"       # no safe run
