@@ -202,6 +202,14 @@ def without_monitor(scenario):
     return dc.replace(resolved(scenario), monitor=MonitorConfig())
 
 
+def watching(scenario):
+    """``scenario`` with a monitor of its detector alone (`MonitorConfig.watching`): runs
+    that read the detector's score along the controller alone are keyed by it, not by
+    the threshold or fallback. A copy: `resolved` may return the caller's scenario."""
+    return dc.replace(resolved(scenario),
+                      monitor=MonitorConfig.watching(scenario.monitor.detector))
+
+
 def real_outcomes(scenario, starts, *, grid, duration: float, cache_dir, executor=None,
                   progress=True) -> Outcomes:
     """`taxi_rollouts` from every start, cached under ``cache_dir`` by content (the
@@ -353,8 +361,7 @@ def score_runs(scenario, starts, *, duration: float, cache_dir, executor=None,
     `real_outcomes`, keyed by the detector but not by the monitor's threshold and
     fallback settings: the controller alone and the detector's score do not depend on
     them. Every run is the controller alone's (``engaged`` all False)."""
-    scenario = resolved(scenario)
-    scenario.monitor = MonitorConfig.watching(scenario.monitor.detector)
+    scenario = watching(scenario)
     rollout = functools.partial(score_paths, scenario, float(duration))
     fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
                               progress=progress, unit="run", required=("score", "state"),

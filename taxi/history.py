@@ -4,19 +4,17 @@ monitor may read (`reachwatch.diagrams.guarded.add_monitor_signals`: the control
 estimate and steering) and the state, with the run's failure time. Time-to-failure
 labels come from these by `reachwatch.reach.outcomes.time_to_failure`."""
 
-import dataclasses as dc
 import functools
 
 import numpy as np
 
-from reachwatch.diagrams import CONTROLLER, MonitorConfig, make_closed_loop_diagram, simulate
+from reachwatch.diagrams import CONTROLLER, make_closed_loop_diagram, simulate
 from reachwatch.diagrams.controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
 from reachwatch.diagrams.guarded import add_monitor_signals
 from reachwatch.reach.outcomes import map_states
 from reachwatch.systems import DetectorConfig, resize_for_detector
 
-from .fidelity import _loop, export_watching_detector, without_monitor
-from .sweeps import resolved
+from .fidelity import _loop, export_watching_detector, watching, without_monitor
 
 #: The exported ports of `make_recording_loop` beside ``state`` and ``estimate``.
 FRAME_PORT, SIGNALS_PORT = "color_image", "monitor_signals"
@@ -98,9 +96,7 @@ def recorded_runs(scenario, starts, *, duration: float, height: int, width: int,
     horizon, the frame size and the starts) like every real-loop batch: a killed batch
     resumes, a repeated one costs nothing. The runs are the controller alone's
     (``engaged`` all False: the detector acts on nothing)."""
-    scenario = (dc.replace(resolved(scenario),
-                           monitor=MonitorConfig.watching(scenario.monitor.detector))
-                if scored else without_monitor(scenario))
+    scenario = watching(scenario) if scored else without_monitor(scenario)
     rollout = functools.partial(record_runs, scenario, float(duration), int(height), int(width),
                                 scored=scored)
     fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
