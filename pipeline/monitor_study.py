@@ -124,6 +124,12 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         features = {k: [encode_runs(encoder, g) for g in groups] for k, groups in data.items()}
         members.append((encoder, settings, features, np.concatenate(features["train"]),
                         trained_as))
+    # every member has encoded the frames: what follows reads features, states and
+    # outcomes, so the frames (most of the study's memory: a protocol's judged runs
+    # hold gigabytes of them) are let go for the hours of guarded runs
+    for groups in (*data.values(), [train]):
+        for group in groups:
+            group.pop("frames")
 
     results, models, all_risks = {}, {}, {}
     for variant in spec.variants:
