@@ -11,10 +11,11 @@ from .grid import Grid
 from .robust import local_range
 from .rollouts import min_target_along_rollouts, sign_agreement
 from .solver import ACCURACIES, solve_brt
-from .sweep import (InlineExecutor, Probe, SweepTable, default_executor, stop_executor, sweep,
-                    sweep_key)
+from .sweep import (RESPAWNS, InlineExecutor, Probe, RespawningPool, SweepTable,
+                    default_executor, stop_executor, sweep, sweep_key)
 from .value_function import ValueFunction
 
 __all__ = ["Dynamics", "Fidelity", "compare_verdicts", "left_box", "select_map", "wilson_interval", "Unfingerprintable", "fingerprint", "Grid", "local_range", "min_target_along_rollouts",
-           "sign_agreement", "ACCURACIES", "solve_brt", "InlineExecutor", "Probe", "SweepTable",
+           "sign_agreement", "ACCURACIES", "solve_brt", "InlineExecutor", "Probe", "RESPAWNS",
+           "RespawningPool", "SweepTable",
            "default_executor", "stop_executor", "sweep", "sweep_key", "ValueFunction"]

@@ -20,6 +20,7 @@ import dataclasses as dc
 import functools
 import hashlib
 import io
+import logging
 import threading
 from pathlib import Path
 from typing import Callable
@@ -27,6 +28,8 @@ from typing import Callable
 import numpy as np
 
 from reachwatch.systems.files import cache_join, cache_location, read_location, write_location
+
+_log = logging.getLogger(__name__)
 
 
 class InlineExecutor(cf.Executor):
@@ -41,12 +44,65 @@ class InlineExecutor(cf.Executor):
         return future
 
 
+#: How many times a `RespawningPool` replaces itself after a worker died, over its life.
+RESPAWNS = 3
+
+
+class RespawningPool(cf.Executor):
+    """A process pool (``make()``, a `concurrent.futures.ProcessPoolExecutor`) that
+    replaces itself when one of its workers dies: a dead worker breaks a process pool
+    for good, and every chunk in flight with it. `run_chunks` then calls `respawn` and
+    runs the lost chunks again on the fresh pool (chunks are pure functions of their
+    inputs, so the results are the same), at most ``respawns`` times over the pool's
+    life; after that a death is `run_chunks`' one-line error. ``progress_counter``,
+    when given, is the counter every pool's workers count into."""
+
+    def __init__(self, make: Callable, *, respawns: int = RESPAWNS, progress_counter=None):
+        self._make = make
+        self._lock = threading.Lock()
+        self.pool = make()
+        self.generation = 0             # how many times the pool was replaced
+        self.respawns_left = int(respawns)
+        self.progress_counter = progress_counter
+
+    @property
+    def _max_workers(self) -> int:      # what `executor_threads` reads of a pool
+        return self.pool._max_workers
+
+    @property
+    def _processes(self):               # the workers of the pool now (pid -> process)
+        return self.pool._processes
+
+    def submit(self, fn, /, *args, **kwargs):
+        return self.pool.submit(fn, *args, **kwargs)
+
+    def respawn(self, generation: int) -> bool:
+        """Replace the pool that broke at ``generation`` (the `generation` its chunks
+        were submitted at) with a fresh one, once however many callers saw it break;
+        False, and nothing replaced, when no respawn is left."""
+        with self._lock:
+            if generation != self.generation:
+                return True                 # another caller replaced it already
+            if self.respawns_left <= 0:
+                return False
+            self.respawns_left -= 1
+            broken, self.pool = self.pool, self._make()
+            self.generation += 1
+        stop_executor(broken, abort=True)
+        return True
+
+    def shutdown(self, wait=True, *, cancel_futures=False):
+        self.pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+
 def stop_executor(executor, *, abort: bool = False):
     """Shut ``executor`` down; with ``abort``, cancel queued work and kill a process
     pool's workers now instead of waiting for their current chunk (finished chunks are
     on disk already)."""
     if executor is None or not hasattr(executor, "shutdown"):
         return
+    if isinstance(executor, RespawningPool):
+        executor = executor.pool
     if abort and isinstance(executor, cf.ProcessPoolExecutor):
         processes = list((getattr(executor, "_processes", None) or {}).values())
         for process in processes:
@@ -433,8 +489,10 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
     ``least``). ``bar``: a tqdm-like factory called with ``initial=`` (the rows stored
     already); it moves per chunk, or with ``per_row`` per row (the task calls
     `row_done`): here through the hook, on a pool with a ``progress_counter`` (see
-    `reach.sweep.default_executor`) by its counter. A pool whose worker died is a
-    one-line RuntimeError naming ``caller``; finished chunks are kept.
+    `reach.sweep.default_executor`) by its counter. When a worker dies, a
+    `RespawningPool` is replaced and the chunks lost with it run again (a warning says
+    so); on any other pool, or with no respawn left, it is a one-line RuntimeError
+    naming ``caller``; finished chunks are kept.
 
     In a job of `run_together` on ``executor``, the chunks in flight also count against
     the window all its jobs share, the bar is drawn at the job's line and moves per
@@ -507,14 +565,28 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
             future.add_done_callback(shared.give)
         pending[future] = chunk
 
+    respawn = getattr(executor, "respawn", None)
     try:   # a bounded window of chunks in flight: progress shows, an abort stops soon
-        for chunk in todo:
-            submit(chunk)
-            finish([f for f in pending if f.done()])
-            while len(pending) >= max_in_flight:
-                wait()
-        while pending:
-            wait()
+        left = todo
+        while True:
+            generation = getattr(executor, "generation", 0)
+            try:
+                for chunk in left:
+                    submit(chunk)
+                    finish([f for f in pending if f.done()])
+                    while len(pending) >= max_in_flight:
+                        wait()
+                while pending:
+                    wait()
+                break
+            except cf.process.BrokenProcessPool:
+                keep_finished()
+                if respawn is None or not respawn(generation):
+                    raise
+                left = [c for c in todo if not store.valid(c)]
+                _log.warning("%s: a worker process died (killed, out of memory, or a crash "
+                             "in native code); the pool was started again, and the %d "
+                             "chunk(s) lost with it run again", caller, len(left))
     except cf.process.BrokenProcessPool as e:
         keep_finished()
         if owned:

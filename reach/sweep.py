@@ -26,9 +26,10 @@ from tqdm import tqdm
 from reachwatch.systems.files import cache_join, cache_location, make_folder, read_location, write_location
 
 # (also re-exported: where they lived before `reach.chunks` ran every chunked job)
-from .chunks import (CHECKSUM, FolderStore, InlineExecutor, checksum_ok,  # noqa: F401
-                     chunk_checksum, chunk_path, executor_threads, in_flight, read_chunk_file,
-                     row_done, run_chunks, set_row_hook, split, stop_executor, store_chunk_file)
+from .chunks import (CHECKSUM, RESPAWNS, FolderStore, InlineExecutor,  # noqa: F401
+                     RespawningPool, checksum_ok, chunk_checksum, chunk_path, executor_threads,
+                     in_flight, read_chunk_file, row_done, run_chunks, set_row_hook, split,
+                     stop_executor, store_chunk_file)
 from .fingerprint import Unfingerprintable, fingerprint
 from .grid import Grid
 from .thread_kept import KEPT_DIAGRAMS, ThreadKept
@@ -134,7 +135,9 @@ def default_executor(max_workers: int = None) -> cf.Executor:
     --workers``); results do not depend on the count. Each worker builds its diagram
     once, reports every evaluated state to ``executor.progress_counter``, runs its
     share of the cores' OpenMP / torch threads, ignores SIGINT and, from its first moment,
-    checks every 0.1 s that this process is alive and exits when it is not."""
+    checks every 0.1 s that this process is alive and exits when it is not. A
+    `RespawningPool`: when a worker dies, the chunks lost with it run again on a fresh
+    pool (`RESPAWNS` times at most)."""
     if max_workers is None:
         max_workers = default_worker_count()
     if isinstance(max_workers, bool) or not isinstance(max_workers, (int, np.integer)) \
@@ -143,14 +146,12 @@ def default_executor(max_workers: int = None) -> cf.Executor:
     context = multiprocessing.get_context("spawn")
     counter = context.Value("q", 0)
     threads = max(1, usable_cores() // int(max_workers))
-    executor = cf.ProcessPoolExecutor(max_workers=int(max_workers), mp_context=context,
-                                      initializer=exec,
-                                      initargs=(_WORKER_START,
-                                                {"counter": counter, "threads": threads,
-                                                 "parent_pid": os.getpid(),
-                                                 "interval": 0.1}))
-    executor.progress_counter = counter
-    return executor
+    return RespawningPool(functools.partial(
+        cf.ProcessPoolExecutor, max_workers=int(max_workers), mp_context=context,
+        initializer=exec, initargs=(_WORKER_START, {"counter": counter, "threads": threads,
+                                                    "parent_pid": os.getpid(),
+                                                    "interval": 0.1})),
+        progress_counter=counter)
 
 
 def _subsystem(diagram, name):

@@ -1,15 +1,25 @@
 """The one chunked runner (`reach.chunks.run_chunks`) behind sweeps, rollout batches and
 dataset images: finished chunks are kept when a later one fails and a re-run runs only
-the rest; a chunk file whose numbers changed is run again; a dead worker pool is one
-line naming the caller, and an executor the runner made is stopped at once."""
+the rest; a chunk file whose numbers changed is run again; a pool whose worker died is
+started again and the chunks lost with it run again, a fixed number of times, then a
+dead pool is one line naming the caller, and an executor the runner made is stopped at
+once."""
 
 import concurrent.futures as cf
+import functools
+import logging
+import multiprocessing
+import os
+import signal
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from reachwatch.reach.chunks import (FolderStore, InlineExecutor, chunk_path, row_done,
-                                     run_chunks, split, store_chunk_file)
+from reachwatch.reach.chunks import (RESPAWNS, FolderStore, InlineExecutor, RespawningPool,
+                                     chunk_path, read_chunk_file, row_done, run_chunks, split,
+                                     store_chunk_file)
+from reachwatch.reach.sweep import default_executor
 
 
 def _squares(start, stop, fail_at=None):
@@ -148,3 +158,57 @@ def test_after_a_failed_chunk_the_finished_ones_are_stored_and_the_rest_cancelle
                    args=lambda c: (c.start, c.stop, 1, ran))
     stored = {int(p.stem.split("_")[1]) for p in tmp_path.iterdir()}
     assert 0 in stored and stored <= set(ran) - {1} and len(ran) < 20   # about 5
+
+
+def _dies(folder, start, stop, always=False):
+    """`_squares`; the chunk at 3 kills its worker (once, or ``always``)."""
+    marker = Path(folder) / "died"
+    if start == 3 and (always or not marker.exists()):
+        marker.touch()
+        os.kill(os.getpid(), signal.SIGKILL)
+    return _squares(start, stop)
+
+
+def test_a_worker_that_died_is_replaced_and_the_chunks_lost_with_it_run_again(tmp_path, caplog):
+    """Before: a worker's death broke the pool, and the whole run stopped on it."""
+    pool = default_executor(2)
+    try:
+        with caplog.at_level(logging.WARNING, logger="reachwatch.reach.chunks"):
+            run_chunks(functools.partial(_dies, str(tmp_path)), split(10, 3),
+                       FolderStore(tmp_path / "out"), args=lambda c: (c.start, c.stop),
+                       executor=pool, caller="my_job")
+        assert (pool.generation, pool.respawns_left) == (1, RESPAWNS - 1)
+        assert (tmp_path / "died").exists()                       # it did die, once
+        for chunk in split(10, 3):
+            got = read_chunk_file(chunk_path(tmp_path / "out", chunk.index))
+            np.testing.assert_array_equal(got["y"], np.arange(chunk.start, chunk.stop) ** 2)
+        assert "my_job: a worker process died" in caplog.text and "run again" in caplog.text
+        assert pool.submit(abs, -2).result() == 2                 # the pool works on
+    finally:
+        pool.shutdown()
+
+
+def test_a_worker_that_dies_every_time_ends_in_the_one_line_error(tmp_path):
+    spawn = multiprocessing.get_context("spawn")
+    pool = RespawningPool(functools.partial(cf.ProcessPoolExecutor, 1, mp_context=spawn),
+                          respawns=1)
+    try:
+        with pytest.raises(RuntimeError, match=r"^a my_job worker process died \(killed"):
+            run_chunks(functools.partial(_dies, str(tmp_path), always=True), split(10, 3),
+                       FolderStore(tmp_path / "out"), args=lambda c: (c.start, c.stop),
+                       executor=pool, caller="my_job")
+        assert (pool.generation, pool.respawns_left) == (1, 0)
+    finally:
+        pool.shutdown()
+
+
+def test_callers_that_saw_one_pool_break_replace_it_once():
+    made = []
+
+    def make():
+        made.append(_DeadPool())
+        return made[-1]
+    pool = RespawningPool(make, respawns=2)
+    assert pool.respawn(0) and pool.respawn(0) and len(made) == 2   # the second: no-op
+    assert made[0].stopped == [True] and pool.generation == 1
+    assert pool.respawn(1) and not pool.respawn(2) and len(made) == 3   # none left
