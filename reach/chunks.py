@@ -63,6 +63,7 @@ class RespawningPool(cf.Executor):
         self.pool = make()
         self.generation = 0             # how many times the pool was replaced
         self.respawns_left = int(respawns)
+        self.closed = False             # shut down: never replaced again
         self.progress_counter = progress_counter
 
     @property
@@ -81,6 +82,8 @@ class RespawningPool(cf.Executor):
         were submitted at) with a fresh one, once however many callers saw it break;
         False, and nothing replaced, when no respawn is left."""
         with self._lock:
+            if self.closed:                 # stopped (Ctrl-C, an error): not a death
+                return False
             if generation != self.generation:
                 return True                 # another caller replaced it already
             if self.respawns_left <= 0:
@@ -91,8 +94,14 @@ class RespawningPool(cf.Executor):
         stop_executor(broken, abort=True)
         return True
 
+    def close(self):
+        """The pool now, marked so that it is never replaced again."""
+        with self._lock:
+            self.closed = True
+            return self.pool
+
     def shutdown(self, wait=True, *, cancel_futures=False):
-        self.pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+        self.close().shutdown(wait=wait, cancel_futures=cancel_futures)
 
 
 def stop_executor(executor, *, abort: bool = False):
@@ -102,7 +111,7 @@ def stop_executor(executor, *, abort: bool = False):
     if executor is None or not hasattr(executor, "shutdown"):
         return
     if isinstance(executor, RespawningPool):
-        executor = executor.pool
+        executor = executor.close()
     if abort and isinstance(executor, cf.ProcessPoolExecutor):
         processes = list((getattr(executor, "_processes", None) or {}).values())
         for process in processes:
@@ -581,12 +590,16 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
                 break
             except cf.process.BrokenProcessPool:
                 keep_finished()
+                if shared is not None:
+                    shared.check()          # the jobs were stopped: not a death to mend
                 if respawn is None or not respawn(generation):
                     raise
                 left = [c for c in todo if not store.valid(c)]
+                if counter is not None:     # the lost chunks' rows count again
+                    counted = counter.value - (computed - sum(c.rows for c in left))
                 _log.warning("%s: a worker process died (killed, out of memory, or a crash "
                              "in native code); the pool was started again, and the %d "
-                             "chunk(s) lost with it run again", caller, len(left))
+                             "chunk(s) not stored yet run on it", caller, len(left))
     except cf.process.BrokenProcessPool as e:
         keep_finished()
         if owned:

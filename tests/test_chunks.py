@@ -18,7 +18,7 @@ import pytest
 
 from reachwatch.reach.chunks import (RESPAWNS, FolderStore, InlineExecutor, RespawningPool,
                                      chunk_path, read_chunk_file, row_done, run_chunks, split,
-                                     store_chunk_file)
+                                     stop_executor, store_chunk_file)
 from reachwatch.reach.sweep import default_executor
 
 
@@ -182,7 +182,7 @@ def test_a_worker_that_died_is_replaced_and_the_chunks_lost_with_it_run_again(tm
         for chunk in split(10, 3):
             got = read_chunk_file(chunk_path(tmp_path / "out", chunk.index))
             np.testing.assert_array_equal(got["y"], np.arange(chunk.start, chunk.stop) ** 2)
-        assert "my_job: a worker process died" in caplog.text and "run again" in caplog.text
+        assert "my_job: a worker process died" in caplog.text and "not stored yet run on it" in caplog.text
         assert pool.submit(abs, -2).result() == 2                 # the pool works on
     finally:
         pool.shutdown()
@@ -212,3 +212,6 @@ def test_callers_that_saw_one_pool_break_replace_it_once():
     assert pool.respawn(0) and pool.respawn(0) and len(made) == 2   # the second: no-op
     assert made[0].stopped == [True] and pool.generation == 1
     assert pool.respawn(1) and not pool.respawn(2) and len(made) == 3   # none left
+    stopped = RespawningPool(make, respawns=2)
+    stop_executor(stopped, abort=True)              # Ctrl-C: its workers' deaths are not
+    assert not stopped.respawn(0) and len(made) == 4 and made[-1].stopped == [True]
