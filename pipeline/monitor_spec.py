@@ -90,15 +90,22 @@ class MonitorStudySpec:
     ``also_held_out``: named environments outside the family (e.g. the paper's nights),
     judged with the same threshold but outside its guarantee.
 
-    ``runs``: real runs recorded per environment, from the application's seeded starts
+    ``runs``: real runs recorded per training environment (and per calibration and
+    judged one, unless set apart below), from the application's seeded starts
     in its grid's box (the taxi's: the paper's box; each environment's starts have a
-    random stream of their own). The conformal bound speaks of environments with this
-    many runs.
+    random stream of their own).
 
     ``held_out_runs``: runs recorded per judged environment (held out, of the family
     or outside it); 0: ``runs``. More failing runs to count misses over, without
     training on more (the taxi's starts are drawn in order: its first ``runs`` are
     the same starts).
+
+    ``calibration_runs``: runs recorded per calibration environment; 0: as many as a
+    judged one (``held_out_runs``, or ``runs``). The conformal bound speaks of
+    environments measured so: an environment's loss is the share of its failing runs
+    missed, 0 when none fails, and with fewer runs fewer environments have a failing
+    one, so calibration environments with fewer runs than the judged ones bound a
+    smaller quantity than the one judged (measured: docs/results/monitor-protocol.md).
 
     ``duration``: seconds per recorded run. A run that survives it is watched
     ``within`` s longer (the loop alone, not recorded: on from the recording's last
@@ -189,6 +196,7 @@ class MonitorStudySpec:
     also_held_out: List[ApplicationEnvironment] = slot_field("", list)
     runs: int = bounded(30, 1, 100_000, whole=True)
     held_out_runs: int = bounded(0, 0, 100_000, whole=True, note="0: runs")
+    calibration_runs: int = bounded(0, 0, 100_000, whole=True, note="0: as judged")
     duration: float = bounded(8.0, 0.0, 600.0, low_open=True, unit="s")
     within: float = bounded(4.0, 0.0, 600.0, low_open=True, high_open=True, unit="s",
                             note="< duration")
@@ -223,6 +231,12 @@ class MonitorStudySpec:
         """Runs recorded per judged (held-out) environment: ``held_out_runs``, or
         ``runs`` when that is 0."""
         return self.held_out_runs or self.runs
+
+    @property
+    def calibration_environment_runs(self) -> int:
+        """Runs recorded per calibration environment: ``calibration_runs``, or
+        `judged_runs` when that is 0."""
+        return self.calibration_runs or self.judged_runs
 
     def validate(self, where="monitor"):
         if self.kind not in MONITOR_KINDS:

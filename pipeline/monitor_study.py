@@ -87,7 +87,8 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     split = spec.environments()
     first = {"train": 0, "calibrate": spec.train, "held_out": spec.train + spec.calibrate,
              "also_held_out": spec.train + spec.calibrate + spec.held_out}
-    runs = {"train": spec.runs, "calibrate": spec.runs, "held_out": spec.judged_runs,
+    runs = {"train": spec.runs, "calibrate": spec.calibration_environment_runs,
+            "held_out": spec.judged_runs,
             "also_held_out": spec.judged_runs}
     judged = ("calibrate", "held_out", "also_held_out")
     # every split's environments together; the judged runs carry the detector's score

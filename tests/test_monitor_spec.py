@@ -21,6 +21,10 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
     more = load_run_spec(data=TINY + MONITOR_STUDY.replace("guarded_runs: 2", "guarded_runs: 7\n"
                                                    "  held_out_runs: 8")).monitor
     assert (more.runs, more.judged_runs, more.guarded_runs) == (6, 8, 7)
+    assert (spec.monitor.calibration_environment_runs, more.calibration_environment_runs) == (6, 8)
+    fewer = load_run_spec(data=TINY + MONITOR_STUDY.replace(
+        "guarded_runs: 2", "guarded_runs: 2\n  held_out_runs: 8\n  calibration_runs: 5")).monitor
+    assert (fewer.calibration_environment_runs, fewer.judged_runs) == (5, 8)
     assert not load_run_spec(data=TINY).monitor.enabled            # off by default
     import dataclasses as dc
     assert dc.asdict(spec.monitor)["flag_rules"] == [[1, 1]]

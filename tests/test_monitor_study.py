@@ -247,9 +247,11 @@ def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
     model, _, meta = load_history_monitor(tmp_path / "out" / result["checkpoints"]["one frame"])
     assert isinstance(model, HistoryRiskEnsemble) and meta["members"] == 2
     assert result["ensemble"] == 2
-    # held-out environments record held_out_runs, the others runs
+    # judged and calibration environments record held_out_runs (calibration_runs 0:
+    # measured as the judged ones, which the bound speaks of), the training ones runs
     assert {n for _, n in result["failing_runs"]["held_out"].values()} == {spec.runs + 1}
-    assert {n for _, n in result["failing_runs"]["calibrate"].values()} == {spec.runs}
+    assert {n for _, n in result["failing_runs"]["calibrate"].values()} == {spec.runs + 1}
+    assert {n for _, n in result["failing_runs"]["train"].values()} == {spec.runs}
     held_out = record_runs(spec, load_application(), scenario, spec.environments()["held_out"],
                        spec.train + spec.calibrate, runs=spec.judged_runs,
                        cache_dir=tmp_path / "cache" / "runs", executor=None, progress=False)[0]
