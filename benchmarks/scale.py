@@ -70,7 +70,8 @@ from reachwatch.diagrams.render_stack import render_stack
 from reachwatch.pipeline.executors import (SATURATION, SATURATION_VARIABLE, make_executor,
                                            scheduler_saturation)
 from reachwatch.reach import InlineExecutor
-from reachwatch.reach.chunks import executor_threads, run_together
+from reachwatch.reach.chunks import run_together
+from reachwatch.reach.executors import executor_threads
 from reachwatch.reach.outcomes import default_chunk_size, map_states
 from reachwatch.taxi import on_runway_starts, paper_grid, sweep_closed_loop
 from reachwatch.taxi.fidelity import real_outcomes

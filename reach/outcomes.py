@@ -22,7 +22,8 @@ import numpy as np
 from tqdm import tqdm
 
 from reachwatch.systems.files import cache_join, make_folder
-from .chunks import FolderStore, InlineExecutor, run_chunks, split
+from .chunks import FolderStore, run_chunks, split
+from .executors import InlineExecutor
 from .fingerprint import fingerprint
 
 

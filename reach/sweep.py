@@ -26,10 +26,11 @@ from tqdm import tqdm
 from reachwatch.systems.files import cache_join, cache_location, make_folder, read_location, write_location
 
 # (also re-exported: where they lived before `reach.chunks` ran every chunked job)
-from .chunks import (CHECKSUM, RESPAWNS, FolderStore, InlineExecutor,  # noqa: F401
-                     RespawningPool, checksum_ok, chunk_checksum, chunk_path, executor_threads,
-                     in_flight, read_chunk_file, row_done, run_chunks, set_row_hook, split,
-                     stop_executor, store_chunk_file)
+from .chunks import (CHECKSUM, FolderStore, checksum_ok, chunk_checksum,  # noqa: F401
+                     chunk_path, read_chunk_file, row_done, run_chunks, set_row_hook, split,
+                     store_chunk_file)
+from .executors import (RESPAWNS, InlineExecutor, RespawningPool,  # noqa: F401
+                        executor_threads, in_flight, stop_executor)
 from .fingerprint import Unfingerprintable, fingerprint
 from .grid import Grid
 from .thread_kept import KEPT_DIAGRAMS, ThreadKept

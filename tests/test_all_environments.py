@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reachwatch.reach.chunks import (FolderStore, InlineExecutor, in_flight, ordered_log,
-                                     read_chunk_file, run_chunks, run_together, split)
+from reachwatch.reach.chunks import (FolderStore, ordered_log, read_chunk_file, run_chunks,
+                                     run_together, split)
+from reachwatch.reach.executors import InlineExecutor, in_flight
 
 
 def _rows(start, stop, delay=0.0, fail=False, gate=None):

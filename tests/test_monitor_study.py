@@ -629,7 +629,7 @@ def test_recorded_runs_of_every_environment_are_in_flight_together(tmp_path):
     from types import SimpleNamespace
     from reachwatch.pipeline.monitor_runs import record_runs
     from reachwatch.reach.application import load_application
-    from reachwatch.reach.chunks import InlineExecutor
+    from reachwatch.reach.executors import InlineExecutor
 
     class Pool(cf.ThreadPoolExecutor):
         """Notes which environments' chunks it holds at once (by the submitting thread)."""

@@ -34,7 +34,8 @@ from tqdm import tqdm
 
 from reachwatch.diagrams import file_hash, make_controller
 from reachwatch.reach.application import ApplicationRef, load_application
-from reachwatch.reach.chunks import InlineExecutor, run_chunks, split
+from reachwatch.reach.chunks import run_chunks, split
+from reachwatch.reach.executors import InlineExecutor
 from reachwatch.reach.fingerprint import fingerprint, modules_source_digest
 from reachwatch.systems import DetectorConfig
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field

@@ -1,0 +1,123 @@
+"""The executors chunked work runs on (`reach.chunks.run_chunks`): `InlineExecutor` in
+this process, `RespawningPool` (the local pool, which replaces itself when a worker
+dies), any other `concurrent.futures.Executor` (a Dask client's); how many chunks each
+runs at once, and how it is stopped."""
+
+import concurrent.futures as cf
+import concurrent.futures.process  # noqa: F401  (ProcessPoolExecutor)
+import threading
+from typing import Callable
+
+
+class InlineExecutor(cf.Executor):
+    """Runs each task at submit time in this process (small sweeps, tests)."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        future = cf.Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as e:  # delivered through the future, like a pool would
+            future.set_exception(e)
+        return future
+
+
+#: How many times a `RespawningPool` replaces itself after a worker died, over its life.
+RESPAWNS = 3
+
+
+class RespawningPool(cf.Executor):
+    """A process pool (``make()``, a `concurrent.futures.ProcessPoolExecutor`) that
+    replaces itself when one of its workers dies: a dead worker breaks a process pool
+    for good, and every chunk in flight with it. `run_chunks` then calls `respawn` and
+    runs the lost chunks again on the fresh pool (chunks are pure functions of their
+    inputs, so the results are the same), at most ``respawns`` times over the pool's
+    life; after that a death is `run_chunks`' one-line error. ``progress_counter``,
+    when given, is the counter every pool's workers count into."""
+
+    def __init__(self, make: Callable, *, respawns: int = RESPAWNS, progress_counter=None):
+        self._make = make
+        self._lock = threading.Lock()
+        self.pool = make()
+        self.generation = 0             # how many times the pool was replaced
+        self.respawns_left = int(respawns)
+        self.closed = False             # shut down: never replaced again
+        self.progress_counter = progress_counter
+
+    @property
+    def _max_workers(self) -> int:      # what `executor_threads` reads of a pool
+        return self.pool._max_workers
+
+    @property
+    def _processes(self):               # the workers of the pool now (pid -> process)
+        return self.pool._processes
+
+    def submit(self, fn, /, *args, **kwargs):
+        return self.pool.submit(fn, *args, **kwargs)
+
+    def respawn(self, generation: int) -> bool:
+        """Replace the pool that broke at ``generation`` (the `generation` its chunks
+        were submitted at) with a fresh one, once however many callers saw it break;
+        False, and nothing replaced, when no respawn is left."""
+        with self._lock:
+            if self.closed:                 # stopped (Ctrl-C, an error): not a death
+                return False
+            if generation != self.generation:
+                return True                 # another caller replaced it already
+            if self.respawns_left <= 0:
+                return False
+            self.respawns_left -= 1
+            broken, self.pool = self.pool, self._make()
+            self.generation += 1
+        stop_executor(broken, abort=True)
+        return True
+
+    def close(self):
+        """The pool now, marked so that it is never replaced again."""
+        with self._lock:
+            self.closed = True
+            return self.pool
+
+    def shutdown(self, wait=True, *, cancel_futures=False):
+        self.close().shutdown(wait=wait, cancel_futures=cancel_futures)
+
+
+def stop_executor(executor, *, abort: bool = False):
+    """Shut ``executor`` down; with ``abort``, cancel queued work and kill a process
+    pool's workers now instead of waiting for their current chunk (finished chunks are
+    on disk already)."""
+    if executor is None or not hasattr(executor, "shutdown"):
+        return
+    if isinstance(executor, RespawningPool):
+        executor = executor.close()
+    if abort and isinstance(executor, cf.ProcessPoolExecutor):
+        processes = list((getattr(executor, "_processes", None) or {}).values())
+        for process in processes:
+            process.terminate()
+        executor.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.join(5)
+    else:
+        executor.shutdown(wait=True, cancel_futures=abort)
+
+
+def executor_threads(executor) -> int:
+    """How many chunks ``executor`` runs at once: 1 inline, a pool's workers, a Dask
+    cluster's threads (as connected now); 1 when it cannot tell."""
+    if isinstance(executor, InlineExecutor) or executor is None:
+        return 1
+    workers = getattr(executor, "_max_workers", None)
+    if workers:
+        return int(workers)
+    client = getattr(executor, "_client", None)
+    if client is not None:
+        try:
+            return max(1, int(sum(client.nthreads().values())))
+        except Exception:            # a client that cannot say: one at a time is safe
+            return 1
+    return 1
+
+
+def in_flight(executor, least: int = 4) -> int:
+    """Chunks to keep in flight on ``executor``: twice its threads (so none idles while
+    a finished chunk comes back), at least ``least``."""
+    return max(least, 2 * executor_threads(executor))
