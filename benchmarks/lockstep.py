@@ -18,13 +18,20 @@ failure: equal, NaN equal to NaN).
 loop hold) rendering the same frames in turn: what rendering alone costs the way N runs
 in lockstep render, without the loop.
 
+``--controller-bound`` adds the camera rendering the same frames with TaxiNet's estimate
+after each (on the first ``--torch-threads`` count): what any loop that runs its
+controller after the render, in one process, costs at the least. Its ratio to the render
+rate is the ceiling of the loops' ratios in the same run; a loop's ratio to that mode's
+rate ("/bound") is the share of the ceiling it reaches, the rest being the Simulator,
+ports and the plant.
+
 ``--breakdown`` then times the parts of one more pass of each mode: the renders, TaxiNet
 (preprocessing and network), the plant's derivatives (Python), the runs' starts, and
 the rest (Drake's Simulator, port evaluation, the other Python systems, logging).
 
     python benchmarks/lockstep.py [--starts 8] [--duration 2] [--sizes 2 4 8]
                                   [--rounds 5] [--camera 200x360] [--torch-threads 0]
-                                  [--breakdown] [--engines-in-turn]
+                                  [--breakdown] [--engines-in-turn] [--controller-bound]
 """
 
 import argparse
@@ -38,7 +45,7 @@ import torch
 
 from reachwatch.diagrams import StateRenderer, load_scenario, make_closed_loop_diagram
 from reachwatch.diagrams import closed_loop
-from reachwatch.diagrams.lockstep import loop_copies, simulate_lockstep
+from reachwatch.diagrams.lockstep import batch_systems, loop_copies, simulate_lockstep
 from reachwatch.systems import TaxiNet, TaxiPlant
 
 from closed_loop import checkpoint_for   # the shipped or a seeded random TaxiNet
@@ -112,6 +119,9 @@ def main():
     parser.add_argument("--engines-in-turn", action="store_true",
                         help="also time N cameras (render engines) rendering the same frames "
                              "in turn, frame i on camera i mod N, as N runs in lockstep do")
+    parser.add_argument("--controller-bound", action="store_true",
+                        help="also time the camera rendering the same frames with TaxiNet's "
+                             "estimate after each: the ceiling of a loop's ratio")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     default_threads = torch.get_num_threads()
@@ -155,6 +165,15 @@ def main():
 
             modes.update({f"render, {n} in turn": (lambda n=n: render_in_turn(n))
                           for n in args.sizes})
+        if args.controller_bound:
+            taxinet = next(s for s in batch_systems(loops[0][0]) if isinstance(s, TaxiNet))
+
+            def render_then_controller():
+                torch.set_num_threads(threads[0])
+                for x in visited:
+                    taxinet.estimate(renderer.render(x)[None])
+
+            modes["render, then TaxiNet"] = render_then_controller
         for t in threads:
             tag = "" if threads == [default_threads] else f", {t} thr"
             modes[f"one at a time{tag}"] = lambda t=t: runs(1, t)
@@ -179,16 +198,19 @@ def main():
                 if k >= 0:
                     rates[name].append(rate)
         render = np.array(rates["render alone"])
+        bound = np.array(rates.get("render, then TaxiNet", [np.nan]))
         print(f"{'mode':<22} {'ticks/s':>8} {'range':>13} {'/render':>8} {'range':>11} "
-              f"{'x one':>6}  identical")
+              f"{'x one':>6} " + (f"{'/bound':>6} " if args.controller_bound else "") +
+              " identical")
         one = np.array(rates[next(n for n in names if n.startswith("one at a time"))])
         for name in names:
             r = np.array(rates[name])
             ratio, speedup = r / render, r / one
             print(f"{name:<22} {np.median(r):8.1f} {r.min():6.1f}-{r.max():<6.1f} "
                   f"{np.median(ratio):8.2f} {ratio.min():5.2f}-{ratio.max():<5.2f} "
-                  f"{np.median(speedup):6.2f}  "
-                  f"{'' if name.startswith('render') else identical[name]}")
+                  f"{np.median(speedup):6.2f} " +
+                  (f"{np.median(r / bound):6.2f} " if args.controller_bound else "") +
+                  f" {'' if name.startswith('render') else identical[name]}")
         print(f"load average {os.getloadavg()[0]:.1f}")
         if args.breakdown:
             print("breakdown, ms per tick (one more pass of each mode):")
