@@ -19,8 +19,9 @@ loop hold) rendering the same frames in turn: what rendering alone costs the way
 in lockstep render, without the loop.
 
 ``--controller-bound`` adds the camera rendering the same frames with TaxiNet's estimate
-after each (on the first ``--torch-threads`` count): what any loop that runs its
-controller after the render, in one process, costs at the least. Its ratio to the render
+after each (on the first ``--torch-threads`` count), TaxiNet reading the camera's frame
+as the loop does: what any loop that runs its controller after the render, in one
+process, costs at the least. Its ratio to the render
 rate is the ceiling of the loops' ratios in the same run; a loop's ratio to that mode's
 rate ("/bound") is the share of the ceiling it reaches, the rest being the Simulator,
 ports and the plant.
@@ -167,11 +168,19 @@ def main():
                           for n in args.sizes})
         if args.controller_bound:
             taxinet = next(s for s in batch_systems(loops[0][0]) if isinstance(s, TaxiNet))
+            context = renderer.diagram.CreateDefaultContext()
+            plant = renderer.world.plant.GetMyMutableContextFromRoot(context)
+            camera = renderer.world.camera
+            camera_context = camera.GetMyContextFromRoot(context)
 
             def render_then_controller():
+                # as the loop feeds TaxiNet: the camera's RGBA frame itself, not
+                # `render`'s RGB copy, which the reference pays and the loop does not
                 torch.set_num_threads(threads[0])
                 for x in visited:
-                    taxinet.estimate(renderer.render(x)[None])
+                    plant.SetContinuousState(x)
+                    frame = camera.color_image_output_port().Eval(camera_context).data
+                    taxinet.estimate(frame[None])
 
             modes["render, then TaxiNet"] = render_then_controller
         for t in threads:
