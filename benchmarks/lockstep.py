@@ -18,13 +18,13 @@ failure: equal, NaN equal to NaN).
 loop hold) rendering the same frames in turn: what rendering alone costs the way N runs
 in lockstep render, without the loop.
 
-``--controller-bound`` adds the camera rendering the same frames with TaxiNet's estimate
-after each (on the first ``--torch-threads`` count), TaxiNet reading the camera's frame
-as the loop does: what any loop that runs its controller after the render, in one
-process, costs at the least. Its ratio to the render
-rate is the ceiling of the loops' ratios in the same run; a loop's ratio to that mode's
-rate ("/bound") is the share of the ceiling it reaches, the rest being the Simulator,
-ports and the plant.
+``--controller-bound`` adds, for 1 and each N, N cameras rendering the same frames in
+turn with TaxiNet's estimate after every N (on the first ``--torch-threads`` count),
+TaxiNet reading the frames as the loops do (one: the camera's frame itself; N: the N
+frames stacked into one batch): a loop's renders and its controller without the
+Simulator, the ports and the plant. A loop's rate over its bound's ("/bound") is the
+share of that ceiling it reaches; the bound's ratio to the render rate is the most a
+loop that runs its controller after its renders, in one process, can reach.
 
 ``--breakdown`` then times the parts of one more pass of each mode: the renders, TaxiNet
 (preprocessing and network), the plant's derivatives (Python), the runs' starts, and
@@ -166,23 +166,36 @@ def main():
 
             modes.update({f"render, {n} in turn": (lambda n=n: render_in_turn(n))
                           for n in args.sizes})
+        bounds = {}                   # a loop's mode -> the mode of its controller bound
         if args.controller_bound:
             taxinet = next(s for s in batch_systems(loops[0][0]) if isinstance(s, TaxiNet))
-            context = renderer.diagram.CreateDefaultContext()
-            plant = renderer.world.plant.GetMyMutableContextFromRoot(context)
-            camera = renderer.world.camera
-            camera_context = camera.GetMyContextFromRoot(context)
+            frames = []                  # per camera: its plant's Context and its colour port
+            for r in [renderer] + [StateRenderer(environment=scenario.environment,
+                                                 camera=scenario.camera)
+                                   for _ in range(max(args.sizes) - 1)]:
+                context = r.diagram.CreateDefaultContext()
+                frames.append((r.world.plant.GetMyMutableContextFromRoot(context),
+                               r.world.camera.color_image_output_port(),
+                               r.world.camera.GetMyContextFromRoot(context)))
 
-            def render_then_controller():
-                # as the loop feeds TaxiNet: the camera's RGBA frame itself, not
-                # `render`'s RGB copy, which the reference pays and the loop does not
+            def render_then_controller(n):
+                # as the loops feed TaxiNet: one at a time the camera's RGBA frame itself
+                # (not `render`'s RGB copy, which the reference pays and a loop does not);
+                # N at a time N cameras' frames, stacked into one batch (`prepare_batch`)
                 torch.set_num_threads(threads[0])
-                for x in visited:
-                    plant.SetContinuousState(x)
-                    frame = camera.color_image_output_port().Eval(camera_context).data
-                    taxinet.estimate(frame[None])
+                for i in range(0, ticks, n):
+                    views = []
+                    for (plant, port, context), x in zip(frames, visited[i:i + n]):
+                        plant.SetContinuousState(x)
+                        views.append(port.Eval(context).data)
+                    taxinet.estimate(views[0][None] if n == 1 else np.stack(views))
 
-            modes["render, then TaxiNet"] = render_then_controller
+            for n in [1] + args.sizes:
+                modes[f"render {n}, then TaxiNet"] = lambda n=n: render_then_controller(n)
+            tag = "" if threads == [default_threads] else f", {threads[0]} thr"
+            bounds[f"one at a time{tag}"] = "render 1, then TaxiNet"
+            bounds.update({f"lockstep {n}{tag}": f"render {n}, then TaxiNet"
+                           for n in args.sizes})
         for t in threads:
             tag = "" if threads == [default_threads] else f", {t} thr"
             modes[f"one at a time{tag}"] = lambda t=t: runs(1, t)
@@ -207,7 +220,6 @@ def main():
                 if k >= 0:
                     rates[name].append(rate)
         render = np.array(rates["render alone"])
-        bound = np.array(rates.get("render, then TaxiNet", [np.nan]))
         print(f"{'mode':<22} {'ticks/s':>8} {'range':>13} {'/render':>8} {'range':>11} "
               f"{'x one':>6} " + (f"{'/bound':>6} " if args.controller_bound else "") +
               " identical")
@@ -218,7 +230,8 @@ def main():
             print(f"{name:<22} {np.median(r):8.1f} {r.min():6.1f}-{r.max():<6.1f} "
                   f"{np.median(ratio):8.2f} {ratio.min():5.2f}-{ratio.max():<5.2f} "
                   f"{np.median(speedup):6.2f} " +
-                  (f"{np.median(r / bound):6.2f} " if args.controller_bound else "") +
+                  (f"{np.median(r / np.array(rates[bounds[name]])):6.2f} " if name in bounds
+                   else f"{'':6} " if args.controller_bound else "") +
                   f" {'' if name.startswith('render') else identical[name]}")
         print(f"load average {os.getloadavg()[0]:.1f}")
         if args.breakdown:
