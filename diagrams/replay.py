@@ -17,7 +17,7 @@ from .world import add_world
 def _record(environment, camera, shadows, times, states) -> str:
     from pydrake.geometry import (Meshcat, MeshcatParams, MeshcatVisualizer,
                                   MeshcatVisualizerParams, Role)
-    meshcat = Meshcat(MeshcatParams(host="localhost"))
+    meshcat = Meshcat(MeshcatParams(host="127.0.0.1"))
     builder = DiagramBuilder()
     world = add_world(builder, environment=environment, camera=camera, shadows=shadows,
                       initial_state=states[0])

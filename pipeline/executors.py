@@ -1,7 +1,7 @@
 """``--executor`` values: ``local`` (a spawned process pool, one worker per usable
 core), ``local:N`` (N workers), ``inline`` (this process), ``dask://HOST:PORT`` (an
 existing Dask scheduler; needs the ``distributed`` extra; its workers must have this
-process's `PINNED` versions and render stack, and may run any number of threads; each
+process's versions of `reach.fingerprint.DISTRIBUTIONS`, source and render stack, and may run any number of threads; each
 task brings the files its arguments name, `ShippingExecutor`)."""
 
 import contextlib
@@ -11,17 +11,13 @@ import logging
 import math
 
 from reachwatch.reach import InlineExecutor, default_executor
+from reachwatch.reach.fingerprint import DISTRIBUTIONS, distribution_versions, library_code_digest
 from reachwatch.reach.sweep import stop_executor
 from reachwatch.systems.checks import clip, short
 
 from .executor_option import check_executor, dask_address, local_workers
 
 _log = logging.getLogger("reachwatch")
-
-#: Distributions a Dask worker must have at the driver's versions: a chunk is cached by
-#: the content it was asked for, not by the code that computed it.
-PINNED = ("reachwatch", "drake", "torch")
-
 
 def _version(name: str):
     try:
@@ -31,40 +27,39 @@ def _version(name: str):
 
 
 def process_identity() -> dict:
-    """This process's `PINNED` versions, render stack and the source of the code loops
-    are built from (`reach.fingerprint.loop_code_digest`, part of every cache key): what
-    a worker must share with the driver (`check_worker_versions`, and every task on a
-    Dask worker). Read once per process (installed code does not change under a running
-    process)."""
+    """This process's versions of `DISTRIBUTIONS` (in every cache key), render stack and
+    reachwatch source (`reach.fingerprint.library_code_digest`; cache keys carry parts
+    of it): what a worker must share with the driver (`check_worker_versions`, and every
+    task on a Dask worker). Read once per process (installed code does not change under
+    a running process)."""
     from reachwatch.diagrams.render_stack import render_stack
-    from reachwatch.reach.fingerprint import loop_code_digest
-    return {"versions": dict(_pinned_versions()), "render": render_stack(),
-            "code": loop_code_digest()}
+    return {"versions": dict(_distribution_versions()), "render": render_stack(),
+            "code": library_code_digest()}
 
 
 @functools.lru_cache(maxsize=1)
-def _pinned_versions() -> tuple:
-    return tuple((name, _version(name)) for name in PINNED)
+def _distribution_versions() -> tuple:
+    return tuple(distribution_versions().items())
 
 
 def describe_identity(identity: dict) -> str:
     """`process_identity` in words, on one line."""
-    return (f"{_describe(identity['versions'])}, loop code {identity['code'][:12]}, renders "
+    return (f"{_describe(identity['versions'])}, reachwatch source {identity['code'][:12]}, renders "
             f"with {_stack_text(identity['render'])}")
 
 
 def _describe(versions) -> str:
-    return ", ".join(f"{name} {versions[name] or 'missing'}" for name in PINNED)
+    return ", ".join(f"{name} {versions.get(name) or 'missing'}" for name in DISTRIBUTIONS)
 
 
 def check_worker_versions(client, spec: str = "dask"):
     """Raise a one-line ValueError when a worker now connected to ``client`` has another
-    version of a `PINNED` distribution than this process (or lacks it). Asked of each
+    version of one of `DISTRIBUTIONS` than this process (or lacks it). Asked of each
     worker with `importlib.metadata.version` itself, so a worker without reachwatch is
     reported, not an unpickling error."""
-    mine = {name: _version(name) for name in PINNED}
+    mine = {name: _version(name) for name in DISTRIBUTIONS}
     theirs = {}
-    for name in PINNED:
+    for name in DISTRIBUTIONS:
         answers = client.run(importlib.metadata.version, name, on_error="return")
         for worker, answer in answers.items():
             theirs.setdefault(worker, {})[name] = answer if isinstance(answer, str) else None

@@ -29,13 +29,19 @@ from reachwatch.systems.files import file_hash, local_copy
 FORMAT = 1
 
 
-def _versions() -> dict:
-    """The versions of what renders and computes a result beside reachwatch's own code:
-    drake (its renderer, VTK, comes with it), torch and numpy, and reachwatch. Part of
-    every fingerprint, so a cache filled under one stack is not reused under another."""
+#: The distributions whose versions change what a process computes or renders:
+#: reachwatch, drake (its renderer, VTK, comes with it), torch, numpy, scipy and OpenCV
+#: (the images datasets store and monitors read are resized with it). Their versions
+#: are in every fingerprint, and a Dask worker must have the driver's
+#: (`reachwatch.pipeline.executors.check_worker_versions`).
+DISTRIBUTIONS = ("reachwatch", "drake", "torch", "numpy", "scipy", "opencv-python-headless")
+
+
+def distribution_versions() -> dict:
+    """``{name: version or None}`` of `DISTRIBUTIONS` in this process."""
     from importlib.metadata import PackageNotFoundError, version
     out = {}
-    for name in ("reachwatch", "drake", "torch", "numpy"):
+    for name in DISTRIBUTIONS:
         try:
             out[name] = version(name)
         except PackageNotFoundError:
@@ -43,9 +49,9 @@ def _versions() -> dict:
     return out
 
 
-#: What every fingerprint carries besides `FORMAT` (see `_versions`) and the render
-#: stack (`reachwatch.diagrams.render_stack`).
-STACK = _versions()
+#: What every fingerprint carries besides `FORMAT` (`distribution_versions`) and the
+#: render stack (`reachwatch.diagrams.render_stack`).
+STACK = distribution_versions()
 
 
 def _stack() -> dict:
@@ -71,6 +77,14 @@ LOOP_CODE = LIBRARY[:4]
 def loop_code_digest() -> str:
     """`modules_source_digest` of `LOOP_CODE`, read once per process."""
     return modules_source_digest(*LOOP_CODE)
+
+
+@functools.cache
+def library_code_digest() -> str:
+    """`modules_source_digest` of all of `LIBRARY`, read once per process: the source a
+    worker must share with the driver, whose keys carry parts of it (`LOOP_CODE` in
+    every fingerprint, a dataset's own modules in its folder's key)."""
+    return modules_source_digest(*LIBRARY)
 
 
 def modules_source_digest(*names) -> str:

@@ -143,7 +143,7 @@ def test_never_flagging_pipeline_equals_taxinet_alone(detector_path):
 def test_cli_simulate_guarded_writes_plot_and_replay(detector_path, tmp_path):
     import socket
     from pydrake.geometry import Meshcat, MeshcatParams
-    port = Meshcat(MeshcatParams(host="localhost")).port()    # the port a new server takes
+    port = Meshcat(MeshcatParams(host="127.0.0.1")).port()    # the port a new server takes
     path = tmp_path / "s.yaml"
     path.write_text(f"monitor: {{detector: {detector_path}, threshold: 0.0, strategy: brake}}\n"
                     "duration: 1.0\n")

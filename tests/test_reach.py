@@ -389,6 +389,25 @@ def test_an_edit_to_the_loops_code_is_another_key(monkeypatch):
     assert all(a != b for a, b in zip(before, after))
 
 
+def test_a_worker_must_share_all_of_reachwatchs_source_and_the_keys_distributions():
+    """What a worker is compared on (`process_identity`) covers every source part of a
+    key: the loop's packages and the training modules a dataset's key carries, which a
+    worker runs to render a dataset's chunks; and the versions of every distribution
+    the keys carry."""
+    import sys
+
+    from reachwatch.pipeline.executors import process_identity
+    from reachwatch.reach.fingerprint import modules_source_digest
+    from reachwatch.training.dataset import DATASET_CODE
+    fp = sys.modules["reachwatch.reach.fingerprint"]
+    identity = process_identity()
+    assert identity["code"] == modules_source_digest(*fp.LIBRARY)
+    assert set(fp.LOOP_CODE) <= set(fp.LIBRARY)
+    assert {m.rpartition(".")[0] for m in DATASET_CODE} <= set(fp.LIBRARY)
+    assert identity["versions"] == fp.STACK == fp.distribution_versions()
+    assert {"numpy", "opencv-python-headless"} <= set(fp.DISTRIBUTIONS)
+
+
 def test_editing_a_helper_beside_a_factory_changes_its_key(tmp_path, monkeypatch):
     """A factory's key covers the module that defines it: a helper it calls from the
     same module (not the factory's own lines) changes the key when edited."""

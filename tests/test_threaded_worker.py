@@ -84,8 +84,13 @@ def test_a_two_thread_worker_sweeps_and_runs_the_real_loop_as_this_process_does(
                          cache_dir=driver / "inline_runs", progress=False)
     executor, close = make_executor("dask://" + address.split("://", 1)[1])
     try:     # 9 chunks of 3 nodes, 4 of 2 runs: both threads take some
-        dask = sweep_closed_loop(scenario, grid, cache_dir="dask_sweeps", executor=executor,
-                                 chunk_size=3, progress=False)
+        with distributed.Client(address) as watcher, \
+                distributed.get_task_stream(watcher) as stream:
+            dask = sweep_closed_loop(scenario, grid, cache_dir="dask_sweeps",
+                                     executor=executor, chunk_size=3, progress=False)
+        threads = {task["thread"] for task in stream.data
+                   if str(task["key"]).startswith("run_on_worker")}
+        assert len(threads) == 2, f"the sweep's chunks ran on {len(threads)} thread(s)"
         assert dask.computed == inline.computed == grid.size
         assert set(dask.tables) == set(inline.tables)
         for port, table in inline.tables.items():
@@ -160,15 +165,20 @@ def test_a_worker_elsewhere_runs_the_relative_files_it_was_sent(tmp_path, monkey
         assert np.array_equal(dask_runs[name], values, equal_nan=True), name
 
 
-def test_a_worker_with_other_versions_is_refused_in_one_line(monkeypatch, two_thread_worker):
+@pytest.mark.parametrize("name", ["drake", "numpy", "opencv-python-headless"])
+def test_a_worker_with_other_versions_is_refused_in_one_line(monkeypatch, two_thread_worker,
+                                                             name):
+    """Every distribution whose version is in the cache keys is checked on the workers
+    (numpy and OpenCV too: a worker's images and arrays are stored under the driver's key)."""
     address, _ = two_thread_worker
     real = executors._version
+    mine = real(name)
     monkeypatch.setattr(executors, "_version",
-                        lambda name: "0.0.0" if name == "drake" else real(name))
+                        lambda n: "0.0.0" if n == name else real(n))
     with pytest.raises(ValueError) as error:
         make_executor("dask://" + address.split("://", 1)[1])
     message = str(error.value)
-    assert "\n" not in message and "drake 1" in message and "drake 0.0.0" in message
+    assert "\n" not in message and f"{name} {mine}" in message and f"{name} 0.0.0" in message
     assert "install the same versions on every worker" in message
 
 
@@ -214,7 +224,7 @@ def test_a_task_on_a_worker_unlike_the_driver_is_refused_in_one_line(two_thread_
             executor.submit(is_file, "no such file").result()
     finally:
         close()
-    assert "loop code ffffffffffff" in str(error.value)
+    assert "reachwatch source ffffffffffff" in str(error.value)
 
 
 def test_a_scheduler_that_queues_chunks_on_busy_threads_is_named_in_one_warning(
