@@ -327,7 +327,10 @@ def test_map_selection_keeps_the_level_and_variant_its_own_runs_find_best(tmp_pa
         load_run_spec(data=text.replace("seed: 7", "seed: 1000"))
 
 
-def test_killed_run_resumes_at_the_failed_stage(tmp_path, monkeypatch, seed_caches):
+def test_killed_run_resumes_at_the_failed_stage(tmp_path, monkeypatch, seed_caches, tiny_run):
+    """Killed in training and resumed (over a torn stage record), the run computes the
+    stages from the failed one on, and its outputs are byte for byte those of the
+    session's tiny run, which was never interrupted."""
     seed_caches(tmp_path)
     from reachwatch.pipeline import stages
     calls = []
@@ -344,6 +347,31 @@ def test_killed_run_resumes_at_the_failed_stage(tmp_path, monkeypatch, seed_cach
     _, log = _run(tmp_path, until="evaluate")
     assert _ran(log) == {"dataset", "train", "evaluate"}
     assert any("corrupt" in m for m in log)
+    compared, differ = [], []
+    for path in sorted(p for p in tmp_path.rglob("*") if p.is_file()):
+        name = path.relative_to(tmp_path)
+        if not (tiny_run[0] / name).is_file():
+            continue
+        compared.append(name)
+        if name.parts[0] == "stages":           # records: the same, but for their work
+            same = _results(path) == _results(tiny_run[0] / name)
+        else:
+            same = path.read_bytes() == (tiny_run[0] / name).read_bytes()
+        if not same:
+            differ.append(str(name))
+    assert not differ, differ
+    assert {"stages", "datasets", "detectors", "figures"} <= {n.parts[0] for n in compared}
+
+
+def _results(path):
+    """A stage record without what says when it ran, how long it took and how much it
+    rendered itself (a resumed run reads what an earlier one rendered)."""
+    record = json.loads(path.read_text())
+    for field in ("seconds", "finished", "check"):
+        record.pop(field)
+    record["outputs"] = {k: v for k, v in record["outputs"].items()
+                         if not k.endswith("seconds") and k != "rendered"}
+    return record
 
 
 def test_until_stops_and_dask_executor_runs_the_heavy_stages(tmp_path):
