@@ -349,13 +349,14 @@ def test_solver_parameters_are_checked(kwargs, match):
 
 def test_a_cache_filled_under_another_software_stack_is_not_reused(monkeypatch):
     """Fingerprints (and so sweep and real-loop cache keys) carry the versions of
-    reachwatch, drake (its renderer), torch and numpy."""
+    reachwatch, drake (its renderer), torch, numpy, scipy and OpenCV."""
     import sys
 
     from reachwatch.reach.outcomes import outcomes_key
     fp = sys.modules["reachwatch.reach.fingerprint"]      # the module (the package exports
     # a function of the same name)
-    assert set(fp.STACK) == {"reachwatch", "drake", "torch", "numpy"} and fp.STACK["drake"]
+    assert set(fp.STACK) == {"reachwatch", "drake", "torch", "numpy", "scipy",
+                             "opencv-python-headless"} and fp.STACK["drake"]
     grid = Grid(lo=[0.0, 0.0], hi=[1.0, 1.0], shape=[3, 3])
     probe = Probe(plant="plant", control_port="controller.u")
     factory = functools.partial(dict, a=1)
