@@ -29,7 +29,7 @@ import numpy as np
 
 from reachwatch.systems.files import cache_join, cache_location, read_location, write_location
 
-from .executors import InlineExecutor, in_flight, stop_executor
+from .executors import InlineExecutor, Window, stop_executor
 
 _log = logging.getLogger(__name__)
 
@@ -188,13 +188,13 @@ _JOB = contextvars.ContextVar("reachwatch_together_job", default=None)
 
 class _Together:
     """What the jobs of one `run_together` share: one window of chunks in flight on the
-    executor (`in_flight` of it, for all their `run_chunks` calls on it at once), the
+    executor (a `Window` of it, for all their `run_chunks` calls on it at once), the
     first failure (which stops the others) and their log lines, passed on in the jobs'
     order (a job's lines wait until every job before it has finished)."""
 
     def __init__(self, executor, names):
         self.executor, self.names = executor, list(names)
-        self.slots, self.taken = in_flight(executor, least=8), 0
+        self.slots, self.taken = Window(executor, least=8), 0
         self.failed = None                  # (index, why) of the first job that failed
         self.done = [False] * len(self.names)
         self.head = 0                       # the first job not finished: its lines go out
@@ -205,7 +205,7 @@ class _Together:
         """A slot of the window for one chunk; without one, False (after up to 0.25 s
         waiting for one with ``block``)."""
         with self.cond:
-            if self.taken < self.slots:
+            if self.taken < self.slots.size():
                 self.taken += 1
                 return True
             if block:
@@ -290,7 +290,7 @@ def _named(error: BaseException, prefix: str) -> BaseException:
 def run_together(jobs, executor, *, what: str = "job", bar: Callable = None) -> list:
     """``[fn() for name, fn in jobs]``, the jobs run at once, each in a thread of this
     process, when ``executor`` is a pool (`together`): every `run_chunks` call of a job
-    on ``executor`` shares one window of chunks in flight with the others' (`in_flight`
+    on ``executor`` shares one window of chunks in flight with the others' (a `Window`
     of the executor, so a large cluster gets all jobs' chunks at once), draws its bar at
     the job's line (tqdm's ``position``, moving per chunk) and stops at its next chunk
     once another job failed: its queued chunks are cancelled, its finished ones stored.
@@ -383,13 +383,13 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
     function; a `functools.partial` of one). ``executor`` None: ``default()``, made
     only when there is work and shut down at the end (stopped at once on an error).
     At most ``max_in_flight`` chunks are in flight (default: `in_flight`, at least
-    ``least``). ``bar``: a tqdm-like factory called with ``initial=`` (the rows stored
-    already); it moves per chunk, or with ``per_row`` per row (the task calls
-    `row_done`): here through the hook, on a pool with a ``progress_counter`` (see
-    `reach.sweep.default_executor`) by its counter. When a worker dies, a
-    `RespawningPool` is replaced and the chunks lost with it run again (a warning says
-    so); on any other pool, or with no respawn left, it is a one-line RuntimeError
-    naming ``caller``; finished chunks are kept.
+    ``least``, read again as it runs: a `Window`). ``bar``: a tqdm-like factory called
+    with ``initial=`` (the rows stored already); it moves per chunk, or with ``per_row``
+    per row (the task calls `row_done`): here through the hook, on a pool with a
+    ``progress_counter`` (see `reach.sweep.default_executor`) by its counter. When a
+    worker dies, a `RespawningPool` is replaced and the chunks lost with it run again
+    (a warning says so); on any other pool, or with no respawn left, it is a one-line
+    RuntimeError naming ``caller``; finished chunks are kept.
 
     In a job of `run_together` on ``executor``, the chunks in flight also count against
     the window all its jobs share, the bar is drawn at the job's line and moves per
@@ -405,7 +405,7 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
     owned = executor is None and bool(todo)
     executor = executor or (default() if todo else None)
     shared = job[0] if job is not None and executor is job[0].executor else None
-    max_in_flight = max_in_flight or in_flight(executor, least=least)
+    window = Window(executor, least=least, fixed=max_in_flight)
     counter = getattr(executor, "progress_counter", None) if per_row and shared is None else None
     counted = counter.value if counter is not None else 0
     hooked = per_row and isinstance(executor, InlineExecutor) and job is None
@@ -471,7 +471,7 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
                 for chunk in left:
                     submit(chunk)
                     finish([f for f in pending if f.done()])
-                    while len(pending) >= max_in_flight:
+                    while len(pending) >= window.size():
                         wait()
                 while pending:
                     wait()

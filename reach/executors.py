@@ -6,6 +6,7 @@ runs at once, and how it is stopped."""
 import concurrent.futures as cf
 import concurrent.futures.process  # noqa: F401  (ProcessPoolExecutor)
 import threading
+import time
 from typing import Callable
 
 
@@ -121,3 +122,27 @@ def in_flight(executor, least: int = 4) -> int:
     """Chunks to keep in flight on ``executor``: twice its threads (so none idles while
     a finished chunk comes back), at least ``least``."""
     return max(least, 2 * executor_threads(executor))
+
+
+#: Seconds between two readings of an executor's threads by a `Window`.
+WINDOW_REFRESH = 2.0
+
+
+class Window:
+    """How many chunks to keep in flight on ``executor``: ``fixed`` when given, else
+    `in_flight` of it (at least ``least``), read again at most every `WINDOW_REFRESH`
+    s, so that chunks spread over a cluster that grows while they run (Dask's adaptive
+    scaling, workers started after the driver) and not only over the threads there
+    were at the start. Reading a Dask cluster's threads asks its scheduler."""
+
+    def __init__(self, executor, *, least: int, fixed: int = None):
+        self.executor, self.least, self.fixed = executor, least, fixed
+        self._size, self._read = None, -float("inf")
+
+    def size(self) -> int:
+        if self.fixed:
+            return self.fixed
+        now = time.monotonic()
+        if self._size is None or now - self._read >= WINDOW_REFRESH:
+            self._size, self._read = in_flight(self.executor, least=self.least), now
+        return self._size

@@ -215,3 +215,53 @@ def test_callers_that_saw_one_pool_break_replace_it_once():
     stopped = RespawningPool(make, respawns=2)
     stop_executor(stopped, abort=True)              # Ctrl-C: its workers' deaths are not
     assert not stopped.respawn(0) and len(made) == 4 and made[-1].stopped == [True]
+
+
+class _GrowingCluster(cf.Executor):
+    """Runs up to 32 tasks at once, but says it has ``threads`` (as a Dask cluster
+    says how many threads its workers have now); counts the most tasks running at once
+    before and after it grew."""
+
+    def __init__(self):
+        import threading
+        self._pool, self._lock = cf.ThreadPoolExecutor(32), threading.Lock()
+        self._max_workers, self.running, self.most = 1, 0, {False: 0, True: 0}
+
+    def submit(self, fn, /, *args, **kwargs):
+        def counted():
+            with self._lock:
+                self.running += 1
+                grown = self._max_workers > 1
+                self.most[grown] = max(self.most[grown], self.running)
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                with self._lock:
+                    self.running -= 1
+        return self._pool.submit(counted)
+
+    def shutdown(self, wait=True, **kwargs):
+        self._pool.shutdown(wait=wait)
+
+
+def _sleepy(start, stop, cluster=None, grow_at=None):
+    import time
+    if start == grow_at:
+        cluster._max_workers = 8                   # workers joined: 8 threads now
+    time.sleep(0.05)
+    return {"x": np.arange(start, stop)}
+
+
+def test_the_window_widens_as_the_cluster_grows(tmp_path, monkeypatch):
+    """Chunks in flight follow the executor's threads as they are now, not as they were
+    when the call began: a cluster that grows mid-run gets more at once."""
+    from reachwatch.reach import executors
+    monkeypatch.setattr(executors, "WINDOW_REFRESH", 0.0)
+    cluster = _GrowingCluster()
+    try:
+        run_chunks(_sleepy, split(80, 1), FolderStore(tmp_path), executor=cluster,
+                   args=lambda c: (c.start, c.stop, cluster, 12))
+    finally:
+        cluster.shutdown()
+    assert cluster.most[False] <= 4              # 1 thread: the least window, 4
+    assert cluster.most[True] > 8, cluster.most   # 8 threads: twice as many in flight
