@@ -21,10 +21,12 @@ in lockstep render, without the loop.
 ``--controller-bound`` adds, for 1 and each N, N cameras rendering the same frames in
 turn with TaxiNet's estimate after every N (on the first ``--torch-threads`` count),
 TaxiNet reading the frames as the loops do (one: the camera's frame itself; N: the N
-frames stacked into one batch): a loop's renders and its controller without the
-Simulator, the ports and the plant. A loop's rate over its bound's ("/bound") is the
-share of that ceiling it reaches; the bound's ratio to the render rate is the most a
-loop that runs its controller after its renders, in one process, can reach.
+frames stacked into one batch, the network run on the batch as well): a loop's renders
+and its controller without the Simulator, the ports and the plant. "/bound" is a
+loop's rate over its bound's in the same round: near 1, the loop costs what its renders
+and its controller cost; the bound's ratio to the render rate is then what the
+controller leaves of the render rate. Not a strict ceiling: the modes run at different
+moments of a drifting machine.
 
 ``--breakdown`` then times the parts of one more pass of each mode: the renders, TaxiNet
 (preprocessing and network), the plant's derivatives (Python), the runs' starts, and
@@ -181,7 +183,9 @@ def main():
             def render_then_controller(n):
                 # as the loops feed TaxiNet: one at a time the camera's RGBA frame itself
                 # (not `render`'s RGB copy, which the reference pays and a loop does not);
-                # N at a time N cameras' frames, stacked into one batch (`prepare_batch`)
+                # N at a time N cameras' frames, stacked into one batch (the loops'
+                # `prepare_batch` batches the preprocessing alone and runs the network
+                # frame by frame: here the network runs on the batch too)
                 torch.set_num_threads(threads[0])
                 for i in range(0, ticks, n):
                     views = []

@@ -1,8 +1,9 @@
 """``--executor`` values: ``local`` (a spawned process pool, one worker per usable
 core), ``local:N`` (N workers), ``inline`` (this process), ``dask://HOST:PORT`` (an
 existing Dask scheduler; needs the ``distributed`` extra; its workers must have this
-process's versions of `reach.fingerprint.DISTRIBUTIONS`, source and render stack, and may run any number of threads; each
-task brings the files its arguments name, `ShippingExecutor`)."""
+process's versions (`reach.fingerprint.distribution_versions`), reachwatch source and
+render stack, and may run any number of threads; each task brings the files its
+arguments name, `ShippingExecutor`)."""
 
 import contextlib
 import functools
@@ -11,13 +12,15 @@ import logging
 import math
 
 from reachwatch.reach import InlineExecutor, default_executor
-from reachwatch.reach.fingerprint import DISTRIBUTIONS, distribution_versions, library_code_digest
+from reachwatch.reach.fingerprint import (DISTRIBUTIONS, distribution_versions, library_code_digest,
+                                          module_versions)
 from reachwatch.reach.sweep import stop_executor
 from reachwatch.systems.checks import clip, short
 
 from .executor_option import check_executor, dask_address, local_workers
 
 _log = logging.getLogger("reachwatch")
+
 
 def _version(name: str):
     try:
@@ -44,25 +47,37 @@ def _distribution_versions() -> tuple:
 
 def describe_identity(identity: dict) -> str:
     """`process_identity` in words, on one line."""
-    return (f"{_describe(identity['versions'])}, reachwatch source {identity['code'][:12]}, renders "
-            f"with {_stack_text(identity['render'])}")
+    return (f"{_describe(identity['versions'])}, reachwatch source {identity['code'][:12]}, "
+            f"renders with {_stack_text(identity['render'])}")
 
 
 def _describe(versions) -> str:
-    return ", ".join(f"{name} {versions.get(name) or 'missing'}" for name in DISTRIBUTIONS)
+    return ", ".join(f"{name} {versions.get(name) or 'missing'}" for name in versions)
+
+
+def _module_versions_here() -> dict:
+    return module_versions()
 
 
 def check_worker_versions(client, spec: str = "dask"):
     """Raise a one-line ValueError when a worker now connected to ``client`` has another
-    version of one of `DISTRIBUTIONS` than this process (or lacks it). Asked of each
-    worker with `importlib.metadata.version` itself, so a worker without reachwatch is
-    reported, not an unpickling error."""
-    mine = {name: _version(name) for name in DISTRIBUTIONS}
+    version of one of `DISTRIBUTIONS`, or of a module `module_versions` reads, than this
+    process (or lacks it). The distributions are asked of each worker with
+    `importlib.metadata.version` itself, so a worker without reachwatch is reported, not
+    an unpickling error; the modules then, of the workers that have reachwatch."""
+    mine = {**{name: _version(name) for name in DISTRIBUTIONS}, **_module_versions_here()}
     theirs = {}
     for name in DISTRIBUTIONS:
         answers = client.run(importlib.metadata.version, name, on_error="return")
         for worker, answer in answers.items():
             theirs.setdefault(worker, {})[name] = answer if isinstance(answer, str) else None
+    with_reachwatch = [w for w, versions in theirs.items() if versions["reachwatch"]]
+    answers = client.run(module_versions, workers=with_reachwatch, on_error="return") \
+        if with_reachwatch else {}
+    for worker in theirs:
+        answer = answers.get(worker)
+        theirs[worker].update(answer if isinstance(answer, dict) else
+                              {name: None for name in mine if name not in DISTRIBUTIONS})
     for worker, versions in sorted(theirs.items()):
         if versions != mine:
             raise ValueError(f"--executor {spec}: the worker at {worker} has "

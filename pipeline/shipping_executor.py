@@ -13,8 +13,8 @@ KEPT = 8
 
 
 def run_on_worker(expected: dict, shipment, fn, /, *args, **kwargs):
-    """A task on a worker: refused, in one line, when the worker's versions, loop code
-    or render stack (`process_identity`) differ from the driver's ``expected`` (a
+    """A task on a worker: refused, in one line, when the worker's versions, reachwatch
+    source or render stack (`process_identity`) differ from the driver's ``expected`` (a
     worker that joined after the driver checked those connected); else ``fn(*args, **kwargs)``,
     with ``shipment``'s files (`run_shipped`) when it brings some."""
     mine = process_identity()

@@ -203,9 +203,12 @@ class _Together:
 
     def take(self, block: bool) -> bool:
         """A slot of the window for one chunk; without one, False (after up to 0.25 s
-        waiting for one with ``block``)."""
+        waiting for one with ``block``). The window's size is read before the lock is
+        taken: reading it may wait for the Dask client's event loop, which completes
+        futures and so calls `give`, which takes the lock."""
+        slots = self.slots.size()
         with self.cond:
-            if self.taken < self.slots.size():
+            if self.taken < slots:
                 self.taken += 1
                 return True
             if block:

@@ -101,9 +101,13 @@ def stop_executor(executor, *, abort: bool = False):
         executor.shutdown(wait=True, cancel_futures=abort)
 
 
-def executor_threads(executor) -> int:
-    """How many chunks ``executor`` runs at once: 1 inline, a pool's workers, a Dask
-    cluster's threads (as connected now); 1 when it cannot tell."""
+#: Seconds a Dask client may take to say how many threads its cluster has.
+ASK_TIMEOUT = 5.0
+
+
+def _threads_now(executor):
+    """How many chunks ``executor`` runs at once, or None when it cannot tell (a Dask
+    scheduler that did not answer within `ASK_TIMEOUT`)."""
     if isinstance(executor, InlineExecutor) or executor is None:
         return 1
     workers = getattr(executor, "_max_workers", None)
@@ -112,10 +116,16 @@ def executor_threads(executor) -> int:
     client = getattr(executor, "_client", None)
     if client is not None:
         try:
-            return max(1, int(sum(client.nthreads().values())))
-        except Exception:            # a client that cannot say: one at a time is safe
-            return 1
+            return max(1, int(sum(client.nthreads(callback_timeout=ASK_TIMEOUT).values())))
+        except Exception:            # a client that cannot say now
+            return None
     return 1
+
+
+def executor_threads(executor) -> int:
+    """How many chunks ``executor`` runs at once: 1 inline, a pool's workers, a Dask
+    cluster's threads (as connected now); 1 when it cannot tell."""
+    return _threads_now(executor) or 1
 
 
 def in_flight(executor, least: int = 4) -> int:
@@ -131,18 +141,34 @@ WINDOW_REFRESH = 2.0
 class Window:
     """How many chunks to keep in flight on ``executor``: ``fixed`` when given, else
     `in_flight` of it (at least ``least``), read again at most every `WINDOW_REFRESH`
-    s, so that chunks spread over a cluster that grows while they run (Dask's adaptive
-    scaling, workers started after the driver) and not only over the threads there
-    were at the start. Reading a Dask cluster's threads asks its scheduler."""
+    s, so that chunks spread over a cluster that grows while they run (workers started
+    after the driver; an adaptive cluster grows by steps, since the driver never queues
+    more than this window) and not only over the threads there were at the start.
+
+    Reading a Dask cluster's threads asks its scheduler and waits for the client's
+    event loop, the thread that also completes the chunks' futures: never call `size`
+    while holding a lock that a future's done-callback takes. One thread reads at a
+    time (the others go on with the size read last), and a reading that fails keeps
+    that size."""
 
     def __init__(self, executor, *, least: int, fixed: int = None):
         self.executor, self.least, self.fixed = executor, least, fixed
         self._size, self._read = None, -float("inf")
+        self._reading = threading.Lock()
 
     def size(self) -> int:
         if self.fixed:
             return self.fixed
-        now = time.monotonic()
-        if self._size is None or now - self._read >= WINDOW_REFRESH:
-            self._size, self._read = in_flight(self.executor, least=self.least), now
-        return self._size
+        if self._size is not None and time.monotonic() - self._read < WINDOW_REFRESH:
+            return self._size
+        if not self._reading.acquire(blocking=self._size is None):
+            return self._size                       # another thread reads it now
+        try:
+            if self._size is None or time.monotonic() - self._read >= WINDOW_REFRESH:
+                threads = _threads_now(self.executor)
+                if threads is not None or self._size is None:
+                    self._size = max(self.least, 2 * (threads or 1))
+                self._read = time.monotonic()
+            return self._size
+        finally:
+            self._reading.release()

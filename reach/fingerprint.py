@@ -30,15 +30,27 @@ FORMAT = 1
 
 
 #: The distributions whose versions change what a process computes or renders:
-#: reachwatch, drake (its renderer, VTK, comes with it), torch, numpy, scipy and OpenCV
-#: (the images datasets store and monitors read are resized with it). Their versions
-#: are in every fingerprint, and a Dask worker must have the driver's
-#: (`reachwatch.pipeline.executors.check_worker_versions`).
-DISTRIBUTIONS = ("reachwatch", "drake", "torch", "numpy", "scipy", "opencv-python-headless")
+#: reachwatch, drake (its renderer, VTK, comes with it), torch and torchvision (the
+#: paper's detector is torchvision's EfficientNet), numpy and scipy. Their versions are
+#: in every fingerprint, with `module_versions`', and a Dask worker must have the
+#: driver's (`reachwatch.pipeline.executors.check_worker_versions`).
+DISTRIBUTIONS = ("reachwatch", "drake", "torch", "torchvision", "numpy", "scipy")
+
+
+def module_versions() -> dict:
+    """Versions read off imported modules, where more than one distribution provides
+    the module: ``opencv``, the ``cv2`` that resizes the images datasets store and
+    monitors read (opencv-python-headless, opencv-python, a conda build...)."""
+    try:
+        import cv2
+        return {"opencv": str(cv2.__version__)}
+    except ImportError:
+        return {"opencv": None}
 
 
 def distribution_versions() -> dict:
-    """``{name: version or None}`` of `DISTRIBUTIONS` in this process."""
+    """``{name: version or None}`` of `DISTRIBUTIONS` in this process, and
+    `module_versions`."""
     from importlib.metadata import PackageNotFoundError, version
     out = {}
     for name in DISTRIBUTIONS:
@@ -46,7 +58,7 @@ def distribution_versions() -> dict:
             out[name] = version(name)
         except PackageNotFoundError:
             out[name] = None
-    return out
+    return {**out, **module_versions()}
 
 
 #: What every fingerprint carries besides `FORMAT` (`distribution_versions`) and the

@@ -328,10 +328,12 @@ def test_map_selection_keeps_the_level_and_variant_its_own_runs_find_best(tmp_pa
 
 
 def test_killed_run_resumes_at_the_failed_stage(tmp_path, monkeypatch, seed_caches, tiny_run):
-    """Killed in training and resumed (over a torn stage record), the run computes the
-    stages from the failed one on, and its outputs are byte for byte those of the
-    session's tiny run, which was never interrupted."""
+    """Interrupted as training starts and resumed (over a torn stage record), the run
+    computes the stages from the failed one on, and its outputs (its datasets, rendered
+    by these runs, included) are byte for byte those of the session's tiny run, which
+    was never interrupted."""
     seed_caches(tmp_path)
+    shutil.rmtree(tmp_path / "datasets")          # rendered here, not copied
     from reachwatch.pipeline import stages
     calls = []
 

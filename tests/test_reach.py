@@ -349,14 +349,14 @@ def test_solver_parameters_are_checked(kwargs, match):
 
 def test_a_cache_filled_under_another_software_stack_is_not_reused(monkeypatch):
     """Fingerprints (and so sweep and real-loop cache keys) carry the versions of
-    reachwatch, drake (its renderer), torch, numpy, scipy and OpenCV."""
+    reachwatch, drake (its renderer), torch, torchvision, numpy, scipy and OpenCV."""
     import sys
 
     from reachwatch.reach.outcomes import outcomes_key
     fp = sys.modules["reachwatch.reach.fingerprint"]      # the module (the package exports
     # a function of the same name)
-    assert set(fp.STACK) == {"reachwatch", "drake", "torch", "numpy", "scipy",
-                             "opencv-python-headless"} and fp.STACK["drake"]
+    assert set(fp.STACK) == {"reachwatch", "drake", "torch", "torchvision", "numpy", "scipy",
+                             "opencv"} and fp.STACK["drake"] and fp.STACK["opencv"]
     grid = Grid(lo=[0.0, 0.0], hi=[1.0, 1.0], shape=[3, 3])
     probe = Probe(plant="plant", control_port="controller.u")
     factory = functools.partial(dict, a=1)
@@ -390,23 +390,29 @@ def test_an_edit_to_the_loops_code_is_another_key(monkeypatch):
     assert all(a != b for a, b in zip(before, after))
 
 
-def test_a_worker_must_share_all_of_reachwatchs_source_and_the_keys_distributions():
-    """What a worker is compared on (`process_identity`) covers every source part of a
-    key: the loop's packages and the training modules a dataset's key carries, which a
-    worker runs to render a dataset's chunks; and the versions of every distribution
+def test_a_worker_must_share_all_of_reachwatchs_source_and_the_keys_versions(monkeypatch):
+    """What a worker is compared on (`process_identity`) changes with an edit anywhere
+    in reachwatch (the training modules a dataset's key carries, which a worker runs to
+    render a dataset's chunks, as well as the loop's packages), and carries the versions
     the keys carry."""
     import sys
 
-    from reachwatch.pipeline.executors import process_identity
+    from reachwatch.pipeline import executors
     from reachwatch.reach.fingerprint import modules_source_digest
-    from reachwatch.training.dataset import DATASET_CODE
     fp = sys.modules["reachwatch.reach.fingerprint"]
-    identity = process_identity()
-    assert identity["code"] == modules_source_digest(*fp.LIBRARY)
-    assert set(fp.LOOP_CODE) <= set(fp.LIBRARY)
-    assert {m.rpartition(".")[0] for m in DATASET_CODE} <= set(fp.LIBRARY)
-    assert identity["versions"] == fp.STACK == fp.distribution_versions()
-    assert {"numpy", "opencv-python-headless"} <= set(fp.DISTRIBUTIONS)
+    before = executors.process_identity()
+    assert before["versions"] == fp.STACK
+    for edited in ("reachwatch.training.dataset_images", "reachwatch.systems.taxinet"):
+        monkeypatch.setattr(fp, "modules_source_digest", lambda *names, edited=edited: (
+            modules_source_digest(*names) + ("+" if edited.rpartition(".")[0] in names
+                                             else "")))
+        fp.library_code_digest.cache_clear()
+        try:
+            assert executors.process_identity()["code"] != before["code"], edited
+        finally:
+            monkeypatch.undo()
+            fp.library_code_digest.cache_clear()
+    assert executors.process_identity() == before
 
 
 def test_editing_a_helper_beside_a_factory_changes_its_key(tmp_path, monkeypatch):

@@ -165,16 +165,22 @@ def test_a_worker_elsewhere_runs_the_relative_files_it_was_sent(tmp_path, monkey
         assert np.array_equal(dask_runs[name], values, equal_nan=True), name
 
 
-@pytest.mark.parametrize("name", ["drake", "numpy", "opencv-python-headless"])
+@pytest.mark.parametrize("name", ["drake", "numpy", "opencv"])
 def test_a_worker_with_other_versions_is_refused_in_one_line(monkeypatch, two_thread_worker,
                                                              name):
-    """Every distribution whose version is in the cache keys is checked on the workers
-    (numpy and OpenCV too: a worker's images and arrays are stored under the driver's key)."""
+    """Every version the cache keys carry is checked on the workers: numpy's and
+    OpenCV's too (a worker's images and arrays are stored under the driver's key);
+    OpenCV's as the ``cv2`` module says, whichever distribution installed it."""
     address, _ = two_thread_worker
-    real = executors._version
-    mine = real(name)
-    monkeypatch.setattr(executors, "_version",
-                        lambda n: "0.0.0" if n == name else real(n))
+    real, modules = executors._version, executors._module_versions_here()
+    if name in modules:
+        mine = modules[name]
+        monkeypatch.setattr(executors, "_module_versions_here",
+                            lambda: {**modules, name: "0.0.0"})
+    else:
+        mine = real(name)
+        monkeypatch.setattr(executors, "_version",
+                            lambda n: "0.0.0" if n == name else real(n))
     with pytest.raises(ValueError) as error:
         make_executor("dask://" + address.split("://", 1)[1])
     message = str(error.value)

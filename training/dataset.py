@@ -303,7 +303,10 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
                     "camera_size": [scenario.camera.height, scenario.camera.width],
                     "spec": dc.asdict(spec), "controller": dc.asdict(scenario.controller),
                     "estimate_size": k,
-                    "ensemble": [str(p) for p in ensemble], "chunks_done": [],
+                    # by name and content, as the folder's key has them: not by the
+                    # path, which is the run directory's (a moved run is the same run)
+                    "ensemble": [{"file": Path(p).name, "hash": file_hash(p)}
+                                 for p in ensemble], "chunks_done": [],
                     "hashes": array_hashes(folder, LABELLED)}
         write_manifest(folder, manifest)
     states = np.load(folder / "states.npy")
