@@ -346,6 +346,7 @@ def test_jobs_together_on_a_dask_client_finish_while_the_window_is_read_again(
                                   dashboard_address=None) as cluster, \
             distributed.Client(cluster) as client:
         executor = client.get_executor()
+        assert executors._threads_now(executor) == 2       # the scheduler answers
         jobs = [(f"j{i}", lambda i=i: run_chunks(
                     _rows, split(300, 1), FolderStore(tmp_path / f"j{i}"), executor=executor,
                     args=lambda c: (c.start, c.stop)))
