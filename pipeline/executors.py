@@ -6,13 +6,12 @@ render stack, and may run any number of threads; each task brings the files its
 arguments name, `ShippingExecutor`)."""
 
 import contextlib
-import functools
 import importlib.metadata
 import logging
 import math
 
 from reachwatch.reach import InlineExecutor, default_executor
-from reachwatch.reach.fingerprint import (DISTRIBUTIONS, distribution_versions, library_code_digest,
+from reachwatch.reach.fingerprint import (DISTRIBUTIONS, STACK, library_code_digest,
                                           module_versions)
 from reachwatch.reach.sweep import stop_executor
 from reachwatch.systems.checks import clip, short
@@ -36,13 +35,7 @@ def process_identity() -> dict:
     task on a Dask worker). Read once per process (installed code does not change under
     a running process)."""
     from reachwatch.diagrams.render_stack import render_stack
-    return {"versions": dict(_distribution_versions()), "render": render_stack(),
-            "code": library_code_digest()}
-
-
-@functools.lru_cache(maxsize=1)
-def _distribution_versions() -> tuple:
-    return tuple(distribution_versions().items())
+    return {"versions": dict(STACK), "render": render_stack(), "code": library_code_digest()}
 
 
 def describe_identity(identity: dict) -> str:

@@ -131,7 +131,11 @@ def executor_threads(executor) -> int:
 def in_flight(executor, least: int = 4) -> int:
     """Chunks to keep in flight on ``executor``: twice its threads (so none idles while
     a finished chunk comes back), at least ``least``."""
-    return max(least, 2 * executor_threads(executor))
+    return _window_for(executor_threads(executor), least)
+
+
+def _window_for(threads: int, least: int) -> int:
+    return max(least, 2 * threads)
 
 
 #: Seconds between two readings of an executor's threads by a `Window`.
@@ -167,7 +171,7 @@ class Window:
             if self._size is None or time.monotonic() - self._read >= WINDOW_REFRESH:
                 threads = _threads_now(self.executor)
                 if threads is not None or self._size is None:
-                    self._size = max(self.least, 2 * (threads or 1))
+                    self._size = _window_for(threads or 1, self.least)
                 self._read = time.monotonic()
             return self._size
         finally:
