@@ -13,21 +13,112 @@ first row times TaxiNet alone against a second copy of itself: the method's nois
 (its ratio should read 1.00; on this VM it reads 0.97-1.05).
 
     python benchmarks/online.py [--detector PATH] [--monitors all|detector|history]
-                                [--duration 4] [--rounds 15] [--ensemble 5]
+                                [--duration 4] [--rounds 15] [--ensemble 5] [--breakdown]
+
+``--breakdown`` (with a history monitor's ``--detector``) splits the guarded loop's extra
+cost: a row with the monitor's frame work (its resize and encoder) skipped, which leaves
+the loop's machinery (the monitor's head, the switch, a k-of-n filter); then the frame
+work's and TaxiNet's own milliseconds a tick inside the guarded loop beside the same
+calls on the same frame outside it.
 """
 
 import argparse
+import contextlib
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from pydrake.systems.framework import Diagram
 
 from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram, make_guarded_diagram,
-                                 paired_rates, save_checkpoint)
-from reachwatch.systems import (MAX_MEMBERS, DetectorConfig, HistoryMonitorConfig,
-                                HistoryRiskEnsemble, HistoryRiskModel, build_detector)
+                                 paired_rates, save_checkpoint, start_simulator)
+from reachwatch.diagrams.checkpoints import checkpoint_kind
+from reachwatch.systems import (MAX_MEMBERS, DetectorConfig, HistoryMonitor,
+                                HistoryMonitorConfig, HistoryRiskEnsemble, HistoryRiskModel,
+                                TaxiNet, build_detector)
 from reachwatch.taxi.application import NEAR_CENTRELINE
+
+
+@contextlib.contextmanager
+def patched(cls, name, make):
+    """``cls.name`` replaced by ``make(original)`` while diagrams are built in the block
+    (a LeafSystem binds its calc methods when it declares its ports, so the systems
+    built inside keep the replacement)."""
+    original = getattr(cls, name)
+    setattr(cls, name, make(original))
+    try:
+        yield
+    finally:
+        setattr(cls, name, original)
+
+
+def skip_frame_work(original):
+    """`HistoryMonitor`'s row calc writing zeros: no resize, no encoder."""
+    return lambda self, context, row: row.SetFromVector(np.zeros(row.size()))
+
+
+def timed_after_image(spent, key):
+    """A calc method that evaluates its system's image input first, untimed (the render,
+    when this system asks first), then times the original calc into ``spent[key]``."""
+    def make(original):
+        def calc(self, context, output):
+            self.get_color_image_input_port().Eval(context)
+            started = time.perf_counter()
+            original(self, context, output)
+            spent[key].append(time.perf_counter() - started)
+        return calc
+    return make
+
+
+def leaf_systems(diagram):
+    """Every leaf system of ``diagram``, its sub-diagrams' included."""
+    for system in diagram.GetSystems():
+        yield from (leaf_systems(system) if isinstance(system, Diagram) else [system])
+
+
+def breakdown(nominal, scenario, args):
+    """The `--breakdown` rows: the machinery row, then the frame work's and TaxiNet's
+    milliseconds a tick inside the guarded loop against the same calls outside it."""
+    with patched(HistoryMonitor, "_calc_row", skip_frame_work):
+        machinery = make_guarded_diagram(scenario)
+    alone, guard = paired_rates(nominal, machinery, rounds=args.rounds, duration=args.duration,
+                                period=0.05, starts=NEAR_CENTRELINE)
+    ratio = guard / alone
+    print(f"{'given, its frame work skipped':<38} {np.median(alone):10.1f} "
+          f"{np.median(guard):12.1f} {np.median(1e3 / guard - 1e3 / alone):9.2f} "
+          f"{np.median(ratio):6.2f} {ratio.min():5.2f}-{ratio.max():.2f}")
+    spent = {"frame work": [], "TaxiNet": []}
+    with patched(HistoryMonitor, "_calc_row", timed_after_image(spent, "frame work")), \
+            patched(TaxiNet, "_calc_estimate", timed_after_image(spent, "TaxiNet")):
+        timed = make_guarded_diagram(scenario)
+    context = timed.CreateDefaultContext()
+    paired_rates(nominal, timed, rounds=args.rounds, duration=args.duration, period=0.05,
+                 starts=NEAR_CENTRELINE)
+    inside = {key: 1e3 * np.median(values) for key, values in spent.items()}
+    # outside the loop: each system alone, on a frame the camera rendered, 200 times
+    simulator, _ = start_simulator(timed, initial_state=NEAR_CENTRELINE[0], context=context)
+    simulator.AdvanceTo(1.0)
+    outside = {}
+    for system, key, port in [(s, k, p) for s in leaf_systems(timed)
+                              for cls, k, p in ((HistoryMonitor, "frame work", "frame_features"),
+                                                (TaxiNet, "TaxiNet", "estimate"))
+                              if isinstance(s, cls)]:
+        frame = system.get_color_image_input_port().Eval(system.GetMyContextFromRoot(context))
+        own = system.CreateDefaultContext()
+        fixed = system.get_color_image_input_port().FixValue(own, frame)
+        signals = getattr(system, "get_signals_input_port", lambda: None)()
+        if signals is not None:
+            signals.FixValue(own, np.zeros(signals.size()))
+        spent[key].clear()
+        for _ in range(200):
+            fixed.GetMutableData()                      # invalidates what reads the image
+            system.GetOutputPort(port).Eval(own)
+        outside[key] = 1e3 * np.median(spent[key])
+    for key in inside:
+        print(f"  {key} a tick: {inside[key]:.2f} ms in the guarded loop, "
+              f"{outside[key]:.2f} ms outside it (the same frame, 200 times)")
 
 
 def main():
@@ -42,7 +133,14 @@ def main():
     parser.add_argument("--torch-threads", type=int, default=0,
                         help="torch.set_num_threads for the run (0: torch's default); a "
                              "history monitor runs its network on one thread whatever this says")
+    parser.add_argument("--breakdown", action="store_true",
+                        help="with a history monitor's --detector: its frame work skipped, "
+                             "and its and TaxiNet's cost inside and outside the loop")
     args = parser.parse_args()
+    if args.breakdown and (not args.detector or
+                           checkpoint_kind(args.detector) != "history_monitor"):
+        parser.error("--breakdown times a given history monitor: pass --detector with "
+                     "a history monitor's checkpoint")
     if not 2 <= args.ensemble <= MAX_MEMBERS:
         parser.error(f"--ensemble takes 2 to {MAX_MEMBERS} members, got {args.ensemble}")
     if args.torch_threads:
@@ -97,6 +195,9 @@ def main():
             extra_ms = float(np.median(1e3 / guard - 1e3 / alone))
             print(f"{name:<38} {np.median(alone):10.1f} {np.median(guard):12.1f} "
                   f"{extra_ms:9.2f} {np.median(ratio):6.2f} {ratio.min():5.2f}-{ratio.max():.2f}")
+        if args.breakdown:
+            breakdown(nominal, load_scenario(
+                data=f"monitor: {{detector: {args.detector}, threshold: 1.0}}\n"), args)
 
 
 if __name__ == "__main__":
