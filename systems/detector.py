@@ -119,12 +119,33 @@ def build_detector(config: DetectorConfig, pretrained_path: str = "") -> nn.Modu
     return model
 
 
+class OneDnnConv2d(nn.Conv2d):
+    """A ``Conv2d`` whose float CPU forward always runs oneDNN's kernel
+    (``torch.mkldnn_convolution``), the one PyTorch picks for a batch. For one small
+    frame PyTorch's heuristic picks its reference kernel instead (``_slow_conv2d_forward``:
+    a 3x3 convolution whose input has at most 20,480 numbers, as every layer of a
+    48x80 monitor's encoder has), which is slower and rounds differently from the batch
+    that computed the same frame offline. Elsewhere (another device or type, no oneDNN,
+    string padding, a padding mode other than zeros) it is the ``Conv2d`` it was."""
+
+    def _conv_forward(self, input, weight, bias):
+        if (input.device.type == "cpu" and input.dtype == torch.float32
+                and self.padding_mode == "zeros" and not isinstance(self.padding, str)
+                and torch.backends.mkldnn.is_available()):
+            return torch.mkldnn_convolution(input, weight, bias, self.padding, self.stride,
+                                            self.dilation, self.groups)
+        return super()._conv_forward(input, weight, bias)
+
+
 def inference_model(model: nn.Module) -> nn.Module:
     """A copy of ``model`` for per-frame CPU inference: eval mode; every ``Conv2d``
     directly followed by a ``BatchNorm2d`` inside an ``nn.Sequential`` folded into one
     convolution (the same function up to float rounding); weights in channels-last
-    layout, which is how a camera frame permuted to NCHW already lies in memory.
-    Measured on the default detector: 0.73 -> 0.59 ms a frame (benchmarks/detector.py)."""
+    layout, which is how a camera frame permuted to NCHW already lies in memory; every
+    ``Conv2d`` an `OneDnnConv2d`, so one frame takes the kernel a batch takes.
+    Measured on the default detector: 0.73 -> 0.59 ms a frame from the first two
+    (benchmarks/detector.py); on the 48x80 single-frame monitor's encoder, 0.50-0.52 ->
+    0.36-0.41 ms from the third."""
     model = copy.deepcopy(model).eval()
     for module in list(model.modules()):
         if not isinstance(module, nn.Sequential):
@@ -136,6 +157,9 @@ def inference_model(model: nn.Module) -> nn.Module:
                     and bn.track_running_stats and bn.running_mean is not None):
                 module._modules[a] = fuse_conv_bn_eval(conv, bn)
                 module._modules[b] = nn.Identity()
+    for module in model.modules():
+        if type(module) is nn.Conv2d:
+            module.__class__ = OneDnnConv2d            # the same parameters and state dict
     return model.to(memory_format=torch.channels_last)
 
 

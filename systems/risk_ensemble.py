@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .detector import detector_input
+from .detector import OneDnnConv2d, detector_input
 from .history_model import HistoryMonitorConfig, HistoryRiskModel, normalised, pooled
 
 #: The most members an ensemble may have (each encodes every frame online).
@@ -92,9 +92,10 @@ class GroupedEncoder(nn.Module):
 
     def _grouped(self, column, shared_input: bool) -> nn.Conv2d:
         """One convolution for the members' ``column``: on the shared frame, their
-        output channels side by side; later, a group per member."""
+        output channels side by side; later, a group per member (an `OneDnnConv2d`, as
+        `inference_model` makes each member's)."""
         first, count = column[0], len(column)
-        conv = nn.Conv2d(first.in_channels * (1 if shared_input else count),
+        conv = OneDnnConv2d(first.in_channels * (1 if shared_input else count),
                          first.out_channels * count, first.kernel_size, first.stride,
                          first.padding, first.dilation, groups=1 if shared_input else count,
                          bias=True)

@@ -167,6 +167,28 @@ def test_inference_model_computes_the_same_scores_and_leaves_the_model_alone(ste
         DetectorConfig(stem_stride=3).validate()
 
 
+@pytest.mark.skipif(not torch.backends.mkldnn.is_available(), reason="no oneDNN in this torch")
+def test_inference_model_computes_one_frame_as_a_batch_does():
+    """One frame through `inference_model`'s convolutions gives exactly the numbers the
+    same frame gives inside a batch (the offline path): they run oneDNN's kernel
+    at batch 1 too, where PyTorch would pick its reference kernel for a small input and
+    round differently. Its convolutions stay `Conv2d`s."""
+    from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel
+    from reachwatch.systems.detector import OneDnnConv2d, detector_input, inference_model
+    from reachwatch.systems.history_model import normalised
+    torch.manual_seed(0)
+    model = HistoryRiskModel(HistoryMonitorConfig(frames=1)).eval()
+    fast = inference_model(model)
+    convs = [m for m in fast.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert convs and all(type(m) is OneDnnConv2d for m in convs)
+    frames = torch.randint(0, 256, (4, 48, 80, 3), dtype=torch.uint8)
+    x = normalised(detector_input(frames, model.config.image_config), model.config.input_norm)
+    with torch.inference_mode():              # the convolutions (the projection after
+        batch = fast.encoder(x)               # them is a matrix product, whose rounding
+        alone = torch.cat([fast.encoder(x[i:i + 1]) for i in range(4)])   # may differ)
+    np.testing.assert_array_equal(alone.numpy(), batch.numpy())
+
+
 def _six_samples(errors):
     """6 samples labelled 0 0 1 1 1 1 whose TaxiNet px estimates are off by ``errors`` m
     (what the prediction-error baseline scores); the last two states have already
