@@ -41,8 +41,8 @@ def main():
                    "one: the reference TaxiNet, 200x360 camera)")
     p.add_argument("--seed", type=int, default=defaults.family.seed,
                    help="the random environment family")
-    for name in ("train", "calibrate", "held_out", "runs", "held_out_runs", "epochs",
-                 "head_epochs", "guarded_runs", "ensemble"):
+    for name in ("train", "calibrate", "held_out", "runs", "held_out_runs", "calibration_runs",
+                 "epochs", "head_epochs", "guarded_runs", "ensemble"):
         p.add_argument(f"--{name.replace('_', '-')}", type=int, default=getattr(defaults, name))
     for name in ("duration", "within", "alpha"):
         p.add_argument(f"--{name}", type=float, default=getattr(defaults, name))
@@ -90,7 +90,8 @@ def main():
     spec = dc.replace(
         defaults, kind="history", family=RandomEnvironments(seed=args.seed), train=args.train,
         calibrate=args.calibrate, held_out=args.held_out, runs=args.runs,
-        held_out_runs=args.held_out_runs, duration=args.duration, within=args.within,
+        held_out_runs=args.held_out_runs, calibration_runs=args.calibration_runs,
+        duration=args.duration, within=args.within,
         alpha=args.alpha, given_failures=args.given_failures, brake_deceleration=args.brake,
         height=args.size[0], width=args.size[1],
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
