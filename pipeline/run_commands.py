@@ -11,6 +11,10 @@ STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard",
           "incremental", "report")
 SLICE_UNTIL = "fidelity"
 
+#: ``--push-every``'s default, seconds: a machine lost mid-stage loses at most this
+#: much of its chunks.
+PUSH_EVERY = 300.0
+
 
 def add_parsers(sub):
     p = sub.add_parser("run", help="the whole study from a run file: sweeps, BRTs, labelled "
@@ -24,6 +28,11 @@ def add_parsers(sub):
                    "every stage")
     p.add_argument("--work-dir", help="with --out URL: the local working copy (default "
                    "$REACHWATCH_CACHE/runs/<digest of the URL>)")
+    p.add_argument("--push-every", type=float, default=PUSH_EVERY, metavar="SECONDS",
+                   help="with --out URL: also put the chunks a stage has finished every "
+                   "SECONDS while it runs, so that a stage cut off half-way resumes on "
+                   f"another machine from them (default {PUSH_EVERY:g}; 0: only after "
+                   "each stage)")
     add_executor_argument(p)
     p.add_argument("--until", choices=STAGES, help=f"last stage to run (default: report, "
                    f"or {SLICE_UNTIL} with --only)")
@@ -39,6 +48,7 @@ def add_parsers(sub):
 def run_command(args):
     """``reachwatch run``: the run file (with its overlays) to the stages up to
     ``--until``, in ``--out`` (a folder, or an fsspec URL through a `RunMirror`)."""
+    import contextlib
     import time
 
     from reachwatch.systems.files import is_url
@@ -49,6 +59,8 @@ def run_command(args):
     from .run import run_pipeline
     from .run_mirror import RunMirror
     from .spec import RunSpec
+    if not args.push_every >= 0:
+        raise ValueError(f"--push-every must be 0 or more seconds, got {args.push_every:g}")
     spec = scenario_from_args(args, schema=RunSpec, root="run", controller=True)
     until = args.until or (SLICE_UNTIL if args.only else "report")
     started = time.time()
@@ -67,7 +79,9 @@ def run_command(args):
             stamp(f"[{stage}] {mirror.push()} files put to {mirror.url}")
 
     try:
-        with open_executor(args.executor) as executor:
+        pushing = (mirror.pushing_every(args.push_every, stamp) if mirror is not None
+                   else contextlib.nullcontext())
+        with open_executor(args.executor) as executor, pushing:
             run = run_pipeline(spec, out, executor=executor, until=until,
                                sweep_cache=args.sweep_cache, only=args.only,
                                progress=progress_enabled(), log=stamp, after_stage=push)

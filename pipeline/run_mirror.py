@@ -4,14 +4,23 @@ directory: `RunMirror.pull` fetches what the URL holds before the first stage (s
 run resumes on any machine), and `RunMirror.push` puts every file added or changed
 since the last push after each stage, the stage records (``stages/*.json``) and
 ``run.yaml`` last, so a record at the URL never names a file that is not there yet.
-A stage killed half-way keeps its finished chunks in the working directory (a re-run
-on the same machine resumes them); elsewhere it starts that stage again."""
+While a stage runs, `RunMirror.pushing_every` puts the chunks it has finished so far
+at a fixed interval: a stage killed half-way (its machine lost, say) resumes on
+another machine from the chunks put by then, as it does on the same machine from
+those in the working directory. Chunk files alone, because each is written whole (a
+hidden temporary file renamed; hidden files are never put) and checked by its
+checksum when read back; other files of a stage may describe each other (a dataset's
+manifest and its arrays, filled in place) and are put together when it ends."""
 
+import contextlib
 import hashlib
 import json
 import os
+import threading
 from pathlib import Path
+from typing import Callable
 
+from reachwatch.reach.chunks import is_chunk_file
 from reachwatch.systems.files import (atomic_write_bytes, cache_join, cache_root, get_location,
                                       is_url, list_location, put_location)
 
@@ -49,6 +58,7 @@ class RunMirror:
         except OSError as e:
             raise ValueError(f"cannot create the working directory {self.local} of "
                              f"{self.url}: {e.strerror}") from None
+        self._pushing = threading.Lock()       # the interval's push and the stage's, one at a time
 
     def _pushed(self) -> dict:
         """What this working directory last put to (or fetched from) this URL; nothing
@@ -89,28 +99,74 @@ class RunMirror:
         self._save(pushed)
         return fetched
 
-    def push(self) -> int:
+    def push(self, only: Callable[[str], bool] = None) -> int:
         """Put every file of the working directory added or changed since it was last
-        pushed (or pulled), the records last; returns how many were put."""
-        pushed = self._pushed()
-        changed = []
-        for path in sorted(self.local.rglob("*")):
-            relative = path.relative_to(self.local).as_posix()
-            if (not path.is_file() or relative == PUSHED or path.name.startswith(".")
-                    or pushed.get(relative) == self._signature(relative)):
-                continue
-            changed.append(relative)
-        changed.sort(key=_is_record)            # records after what they name
+        pushed (or pulled), the records last, or those alone whose name ``only(name)``
+        accepts; returns how many were put. One push at a time; a file removed between
+        the listing and its put is left to the next push."""
+        with self._pushing:
+            pushed = self._pushed()
+            changed = []
+            for path in sorted(self.local.rglob("*")):
+                relative = path.relative_to(self.local).as_posix()
+                if (relative == PUSHED or path.name.startswith(".")
+                        or (only is not None and not only(path.name))):
+                    continue
+                try:
+                    if not path.is_file() or pushed.get(relative) == self._signature(relative):
+                        continue
+                except FileNotFoundError:             # removed since the listing
+                    continue
+                changed.append(relative)
+            changed.sort(key=_is_record)            # records after what they name
+            put = 0
+            try:
+                for relative in changed:
+                    try:
+                        signature = self._signature(relative)
+                        put_location(self.local / relative, cache_join(self.url, relative))
+                    except FileNotFoundError:
+                        if (self.local / relative).exists():
+                            raise                     # the URL's side: not ours to skip
+                        continue                      # removed since the listing
+                    pushed[relative] = signature
+                    put += 1
+                    if put % SAVE_EVERY == 0:         # a kill re-puts at most these
+                        self._save(pushed)
+            finally:
+                self._save(pushed)
+            return put
+
+    @contextlib.contextmanager
+    def pushing_every(self, seconds: float, log=None):
+        """While the block runs, `push` the chunk files (`is_chunk_file`) every
+        ``seconds`` (0: never) from a daemon thread, so that the chunks a long stage has
+        finished reach the URL before the stage ends. A push that fails is logged
+        (``log``) and tried again ``seconds`` later; the block waits for a push under
+        way when it ends."""
+        if not seconds:
+            yield
+            return
+        stop = threading.Event()
+
+        def keep_pushing():
+            while not stop.wait(seconds):
+                try:
+                    count = self.push(only=is_chunk_file)
+                    if count and log is not None:
+                        log(f"{count} chunk files put to {self.url} (every {seconds:g} s)")
+                except Exception as e:   # the stage goes on; its own push reports again
+                    if log is not None:
+                        log(f"could not put the working directory to {self.url} "
+                            f"({type(e).__name__}: {e}); trying again in {seconds:g} s")
+
+        thread = threading.Thread(target=keep_pushing, name="run-mirror-push", daemon=True)
+        thread.start()
         try:
-            for i, relative in enumerate(changed):
-                signature = self._signature(relative)
-                put_location(self.local / relative, cache_join(self.url, relative))
-                pushed[relative] = signature
-                if i % SAVE_EVERY == SAVE_EVERY - 1:    # a kill re-puts at most these
-                    self._save(pushed)
+            yield
         finally:
-            self._save(pushed)
-        return len(changed)
+            stop.set()
+            thread.join()
 
     def _save(self, pushed: dict):
         atomic_write_bytes(self.local / PUSHED, json.dumps(

@@ -21,6 +21,7 @@ import functools
 import hashlib
 import io
 import logging
+import re
 import threading
 from pathlib import Path
 from typing import Callable
@@ -120,6 +121,12 @@ def chunk_path(folder, index: int):
     """The file of chunk ``index`` in a `FolderStore`'s ``folder`` (a `Path`, or a URL
     string for a folder given as one)."""
     return cache_join(folder, f"chunk_{index:06d}.npz")
+
+
+def is_chunk_file(name: str) -> bool:
+    """Whether the file ``name`` (a path's last part) is one `chunk_path` names: written
+    whole, and checked by its checksum when read."""
+    return re.fullmatch(r"chunk_\d{6,}\.npz", name) is not None
 
 
 #: The entry of a chunk file that holds the rows ``[start, stop)`` it covers (written by a

@@ -1,15 +1,20 @@
 """A run directory at an fsspec URL: the run works in a local copy, puts what each
 stage wrote to the URL (records last), and a run in an empty working directory
-elsewhere fetches it and resumes: no stage runs again."""
+elsewhere fetches it and resumes: no stage runs again. While a stage runs, its
+finished chunks are put at an interval, so that a stage cut off half-way resumes
+elsewhere from them."""
 
+import time
 import uuid
 
 import fsspec
+import numpy as np
 import pytest
 
 from reachwatch.pipeline import run_mirror
 from reachwatch.pipeline.cli import main
 from reachwatch.pipeline.run_mirror import PUSHED, RunMirror
+from reachwatch.reach.chunks import FolderStore, is_chunk_file, run_chunks, split
 from reachwatch.systems.files import list_location, read_location
 from tiny_run import TINY
 
@@ -82,3 +87,92 @@ def test_a_run_at_a_url_resumes_in_another_working_directory(tmp_path, url, seed
     assert {name: read_location(f"{url}/{name}") for name in records} == records  # none ran
     for name, data in records.items():
         assert (second / name).read_bytes() == data
+
+
+def _rows(chunk, ran, fail_at=None):
+    """A chunk's task: its rows' indices squared; ``ran`` lists the chunks it ran."""
+    if chunk.index == fail_at:
+        raise RuntimeError("the machine is lost")
+    ran.append(chunk.index)
+    return {"squares": np.arange(chunk.start, chunk.stop) ** 2}
+
+
+def _wait_for(condition, seconds=20.0):
+    deadline = time.monotonic() + seconds
+    while not condition():
+        assert time.monotonic() < deadline, "not within the wait"
+        time.sleep(0.01)
+
+
+def test_a_stage_cut_off_half_way_resumes_elsewhere_from_the_chunks_put_while_it_ran(
+        tmp_path, url):
+    work, chunks = tmp_path / "work", split(8, 2)
+    mirror, ran = RunMirror(url, work), []
+    store = FolderStore(work / "monitor_cache" / "runs" / "key")
+    with mirror.pushing_every(0.01):
+        manifest = work / "datasets" / "d" / "manifest.json"      # describes other files
+        manifest.parent.mkdir(parents=True)
+        manifest.write_text("{}")
+        with pytest.raises(RuntimeError, match="the machine is lost"):
+            run_chunks(lambda chunk: _rows(chunk, ran, fail_at=2), chunks, store,
+                       args=lambda chunk: (chunk,))
+        _wait_for(lambda: len(list_location(url)) == 2)
+    assert ran == [0, 1]
+    assert sorted(list_location(url)) == ["monitor_cache/runs/key/chunk_000000.npz",
+                                          "monitor_cache/runs/key/chunk_000001.npz"]
+
+    elsewhere = RunMirror(url, tmp_path / "elsewhere")      # the first machine is gone
+    assert elsewhere.pull() == 2
+    ran.clear()
+    store = FolderStore(tmp_path / "elsewhere" / "monitor_cache" / "runs" / "key", keep=True)
+    run_chunks(lambda chunk: _rows(chunk, ran), chunks, store, args=lambda chunk: (chunk,))
+    assert ran == [2, 3]
+    assert np.array_equal(np.concatenate([store.read(c)["squares"] for c in chunks]),
+                          np.arange(8) ** 2)
+
+
+def test_no_push_every_interval_puts_nothing_before_the_stage_ends(tmp_path, url):
+    work = tmp_path / "work"
+    with RunMirror(url, work).pushing_every(0):
+        FolderStore(work / "k").store(split(2, 2)[0], {"a": np.zeros(2)})
+        time.sleep(0.05)
+    assert list_location(url) == {}
+
+
+def test_chunk_files_are_the_ones_chunk_path_names():
+    assert is_chunk_file("chunk_000000.npz") and is_chunk_file("chunk_1234567.npz")
+    assert not any(is_chunk_file(name) for name in (
+        "manifest.json", "images.npy", ".chunk_000000.npz.x1.tmp", "chunk_000000.npz.tmp",
+        "chunk_0.npz"))
+
+
+def test_a_file_removed_before_its_put_is_left_to_the_next_push(tmp_path, url, monkeypatch):
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "a.npz").write_bytes(b"a")
+    (work / "b.npz").write_bytes(b"b")
+    mirror, put = RunMirror(url, work), run_mirror.put_location
+
+    def removed_first(path, location):
+        if path.name == "a.npz":
+            path.unlink()                        # the stage removed it after the listing
+        return put(path, location)
+    monkeypatch.setattr(run_mirror, "put_location", removed_first)
+    assert mirror.push() == 1 and set(list_location(url)) == {"b.npz"}
+
+    def refused(path, location):                 # the URL's side, with the file here
+        raise FileNotFoundError(f"no bucket for {location}")
+    monkeypatch.setattr(run_mirror, "put_location", refused)
+    (work / "c.npz").write_bytes(b"c")
+    with pytest.raises(FileNotFoundError, match="no bucket"):
+        mirror.push()
+
+
+def test_a_push_every_interval_below_zero_is_one_line(tmp_path, capsys):
+    scenario = tmp_path / "tiny.yaml"
+    scenario.write_text(TINY)
+    assert main(["run", "--scenario", str(scenario), "--out", str(tmp_path / "out"),
+                 "--push-every", "-1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "reachwatch run: error: --push-every must be 0 or more seconds, got -1"
+    assert not (tmp_path / "out").exists()
