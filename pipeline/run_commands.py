@@ -15,6 +15,9 @@ SLICE_UNTIL = "fidelity"
 #: much of its chunks.
 PUSH_EVERY = 300.0
 
+#: ``--push-every``'s largest value, seconds (a day): longer is never, which is 0.
+MAX_PUSH_EVERY = 86400.0
+
 
 def add_parsers(sub):
     p = sub.add_parser("run", help="the whole study from a run file: sweeps, BRTs, labelled "
@@ -31,8 +34,8 @@ def add_parsers(sub):
     p.add_argument("--push-every", type=float, default=PUSH_EVERY, metavar="SECONDS",
                    help="with --out URL: also put the chunks a stage has finished every "
                    "SECONDS while it runs, so that a stage cut off half-way resumes on "
-                   f"another machine from them (default {PUSH_EVERY:g}; 0: only after "
-                   "each stage)")
+                   f"another machine from them (1 to {MAX_PUSH_EVERY:g}; default "
+                   f"{PUSH_EVERY:g}; 0: only after each stage)")
     add_executor_argument(p)
     p.add_argument("--until", choices=STAGES, help=f"last stage to run (default: report, "
                    f"or {SLICE_UNTIL} with --only)")
@@ -59,8 +62,9 @@ def run_command(args):
     from .run import run_pipeline
     from .run_mirror import RunMirror
     from .spec import RunSpec
-    if not args.push_every >= 0:
-        raise ValueError(f"--push-every must be 0 or more seconds, got {args.push_every:g}")
+    if not (args.push_every == 0 or 1 <= args.push_every <= MAX_PUSH_EVERY):
+        raise ValueError(f"--push-every must be 0 or 1 to {MAX_PUSH_EVERY:g} seconds, got "
+                         f"{args.push_every:g}")
     spec = scenario_from_args(args, schema=RunSpec, root="run", controller=True)
     until = args.until or (SLICE_UNTIL if args.only else "report")
     started = time.time()
@@ -79,8 +83,8 @@ def run_command(args):
             stamp(f"[{stage}] {mirror.push()} files put to {mirror.url}")
 
     try:
-        pushing = (mirror.pushing_every(args.push_every, stamp) if mirror is not None
-                   else contextlib.nullcontext())
+        pushing = (mirror.pushing_every(args.push_every, stamp, log.warning)
+                   if mirror is not None else contextlib.nullcontext())
         with open_executor(args.executor) as executor, pushing:
             run = run_pipeline(spec, out, executor=executor, until=until,
                                sweep_cache=args.sweep_cache, only=args.only,

@@ -99,11 +99,12 @@ class RunMirror:
         self._save(pushed)
         return fetched
 
-    def push(self, only: Callable[[str], bool] = None) -> int:
+    def push(self, only: Callable[[str], bool] = None, stop: threading.Event = None) -> int:
         """Put every file of the working directory added or changed since it was last
         pushed (or pulled), the records last, or those alone whose name ``only(name)``
         accepts; returns how many were put. One push at a time; a file removed between
-        the listing and its put is left to the next push."""
+        the listing and its put is left to the next push, as is every file left when
+        ``stop`` is set."""
         with self._pushing:
             pushed = self._pushed()
             changed = []
@@ -122,6 +123,8 @@ class RunMirror:
             put = 0
             try:
                 for relative in changed:
+                    if stop is not None and stop.is_set():
+                        break
                     try:
                         signature = self._signature(relative)
                         put_location(self.local / relative, cache_join(self.url, relative))
@@ -134,31 +137,40 @@ class RunMirror:
                     if put % SAVE_EVERY == 0:         # a kill re-puts at most these
                         self._save(pushed)
             finally:
-                self._save(pushed)
+                if put:
+                    self._save(pushed)
             return put
 
     @contextlib.contextmanager
-    def pushing_every(self, seconds: float, log=None):
+    def pushing_every(self, seconds: float, log=None, warn=None):
         """While the block runs, `push` the chunk files (`is_chunk_file`) every
         ``seconds`` (0: never) from a daemon thread, so that the chunks a long stage has
-        finished reach the URL before the stage ends. A push that fails is logged
-        (``log``) and tried again ``seconds`` later; the block waits for a push under
-        way when it ends."""
+        finished reach the URL before the stage ends; ``log(message)`` says how many. A
+        push that fails is ``warn``-ed (once until the error changes) and tried again
+        ``seconds`` later. When the block ends, a push under way stops after the file it
+        is putting (the stage's own push puts the rest)."""
+        if not 0 <= seconds <= threading.TIMEOUT_MAX:
+            raise ValueError(f"a push interval must be 0 to {threading.TIMEOUT_MAX:g} "
+                             f"seconds, got {seconds:g}")
         if not seconds:
             yield
             return
         stop = threading.Event()
 
         def keep_pushing():
+            said = None
             while not stop.wait(seconds):
                 try:
-                    count = self.push(only=is_chunk_file)
+                    count = self.push(only=is_chunk_file, stop=stop)
+                    said = None
                     if count and log is not None:
                         log(f"{count} chunk files put to {self.url} (every {seconds:g} s)")
                 except Exception as e:   # the stage goes on; its own push reports again
-                    if log is not None:
-                        log(f"could not put the working directory to {self.url} "
-                            f"({type(e).__name__}: {e}); trying again in {seconds:g} s")
+                    error = f"{type(e).__name__}: {e}"
+                    if warn is not None and error != said:
+                        warn(f"could not put the finished chunks to {self.url} ({error}); "
+                             f"trying again every {seconds:g} s")
+                    said = error
 
         thread = threading.Thread(target=keep_pushing, name="run-mirror-push", daemon=True)
         thread.start()

@@ -4,6 +4,7 @@ elsewhere fetches it and resumes: no stage runs again. While a stage runs, its
 finished chunks are put at an interval, so that a stage cut off half-way resumes
 elsewhere from them."""
 
+import threading
 import time
 import uuid
 
@@ -168,11 +169,48 @@ def test_a_file_removed_before_its_put_is_left_to_the_next_push(tmp_path, url, m
         mirror.push()
 
 
-def test_a_push_every_interval_below_zero_is_one_line(tmp_path, capsys):
+@pytest.mark.parametrize("seconds", ["-1", "0.5", "inf", "nan"])
+def test_a_push_every_interval_out_of_bounds_is_one_line(tmp_path, capsys, seconds):
     scenario = tmp_path / "tiny.yaml"
     scenario.write_text(TINY)
     assert main(["run", "--scenario", str(scenario), "--out", str(tmp_path / "out"),
-                 "--push-every", "-1"]) == 2
+                 "--push-every", seconds]) == 2
     err = capsys.readouterr().err.strip()
-    assert err == "reachwatch run: error: --push-every must be 0 or more seconds, got -1"
+    assert err == (f"reachwatch run: error: --push-every must be 0 or 1 to 86400 seconds, "
+                   f"got {float(seconds):g}")
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("seconds", [-1.0, float("inf")])
+def test_a_push_interval_it_cannot_wait_is_refused(tmp_path, url, seconds):
+    with pytest.raises(ValueError, match="a push interval must be 0 to"):
+        with RunMirror(url, tmp_path / "work").pushing_every(seconds):
+            pass
+
+
+def test_a_push_that_fails_is_warned_once_and_tried_again(tmp_path, url, monkeypatch):
+    work = tmp_path / "work"
+    FolderStore(work / "k").store(split(2, 2)[0], {"a": np.zeros(2)})
+    tries, warned, put = [], [], run_mirror.put_location
+
+    def refused_three_times(path, location):
+        tries.append(location)
+        if len(tries) <= 3:
+            raise PermissionError("no credentials")
+        return put(path, location)
+    monkeypatch.setattr(run_mirror, "put_location", refused_three_times)
+    with RunMirror(url, work).pushing_every(0.01, warn=warned.append):
+        _wait_for(lambda: len(list_location(url)) == 1)
+    assert len(tries) == 4
+    assert warned == [f"could not put the finished chunks to {url} (PermissionError: no "
+                      f"credentials); trying again every 0.01 s"]
+
+
+def test_a_push_told_to_stop_leaves_the_rest_to_the_next(tmp_path, url):
+    work = tmp_path / "work"
+    for chunk in split(4, 1):
+        FolderStore(work / "k").store(chunk, {"a": np.zeros(1)})
+    stop, mirror = threading.Event(), RunMirror(url, work)
+    stop.set()
+    assert mirror.push(stop=stop) == 0 and list_location(url) == {}
+    assert mirror.push() == 4
