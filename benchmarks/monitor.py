@@ -54,9 +54,13 @@ def main():
     p.add_argument("--size", type=int, nargs=2, default=[defaults.height, defaults.width],
                    metavar=("HEIGHT", "WIDTH"), help="frame size the monitor reads")
     p.add_argument("--flag-rules", nargs="+", default=["1/1"], metavar="K/N",
-                   help="k-of-n flag rules tried (flag when K of the last N ticks reach the "
-                        "threshold); each variant keeps the one with the fewest needless "
-                        "flags on the calibration environments")
+                   help="k-of-n flag rules (flag when K of the last N ticks reach the "
+                        "threshold); one, unless --keep choose: then each variant keeps the "
+                        "one with the fewest needless flags on the calibration environments")
+    p.add_argument("--keep", default=None, metavar="VARIANT",
+                   help="the kept monitor: a variant's name (default: the first, the single "
+                        "frame), fixed before calibration; 'choose': the variant and rule "
+                        "with the fewest needless flags on the calibration environments")
     p.add_argument("--train-seed", type=int, default=defaults.seed,
                    help="the monitors' training seed (weights, batch order, jitter)")
     p.add_argument("--lr-schedule", choices=LR_SCHEDULES, default=defaults.lr_schedule,
@@ -97,7 +101,7 @@ def main():
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
         input_norm=args.input_norm, seed=args.train_seed, lr_schedule=args.lr_schedule,
-        ensemble=args.ensemble, pool=list(args.pool), state_weight=args.state_weight,
+        ensemble=args.ensemble, keep=args.keep, pool=list(args.pool), state_weight=args.state_weight,
         state_targets=None if args.state_targets is None else list(args.state_targets),
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])

@@ -42,7 +42,10 @@ from pathlib import Path
 import numpy as np
 
 from reachwatch.pipeline.monitor_sections import read_study_result
+from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
+from reachwatch.pipeline.monitor_study import saved_risks
 from reachwatch.training.conformal import NoConformalThreshold, conformal_threshold, miss_rate
+from reachwatch.training.monitor_eval import decisive_scores, k_of_n_risks
 
 MODES = {"every": False, "given failures": True}
 
@@ -56,39 +59,97 @@ def draw_figures(environments, calibrate: int, alpha: float, *, draws: int,
         raise ValueError(f"need more environments than the {calibrate} calibrated on, "
                          f"got {len(environments)}")
     rng = np.random.default_rng(seed)
-    out = {m: {"every": [], "fails": [], "pooled": [], "needless": [], "refused": 0,
-               "shares": []} for m in MODES}
+    out = {m: _tally() for m in MODES}
     for _ in range(draws):
         order = rng.permutation(len(environments))
         cal = [environments[i] for i in order[:calibrate]]
         new = [environments[i] for i in order[calibrate:]]
         for mode, given in MODES.items():
-            f = out[mode]
             try:
                 tau = conformal_threshold([w for w, _ in cal], alpha,
                                           given_failures=given).threshold
             except NoConformalThreshold:
-                f["refused"] += 1
+                out[mode]["refused"] += 1
                 continue
-            shares = [miss_rate(w, tau) for w, _ in new if len(w)]
-            f["every"].append(sum(shares) / len(new))
-            if shares:
-                f["fails"].append(float(np.mean(shares)))
-                f["shares"] += shares
-            warnable = sum(len(w) for w, _ in new)
-            if warnable:
-                f["pooled"].append(sum(int(np.sum(w < tau)) for w, _ in new) / warnable)
-            safe = sum(len(s) for _, s in new)
-            if safe:
-                f["needless"].append(sum(int(np.sum(s >= tau)) for _, s in new) / safe)
+            _judge_new(out[mode], new, tau)
+    return {m: _summary(f, draws) for m, f in out.items()}
+
+
+def _tally() -> dict:
+    return {"every": [], "fails": [], "pooled": [], "needless": [], "refused": 0,
+            "shares": []}
+
+
+def _judge_new(f: dict, new, tau: float):
+    """Adds one draw's figures on its ``new`` environments at ``tau`` to the tally ``f``."""
+    shares = [miss_rate(w, tau) for w, _ in new if len(w)]
+    f["every"].append(sum(shares) / len(new))
+    if shares:
+        f["fails"].append(float(np.mean(shares)))
+        f["shares"] += shares
+    warnable = sum(len(w) for w, _ in new)
+    if warnable:
+        f["pooled"].append(sum(int(np.sum(w < tau)) for w, _ in new) / warnable)
+    safe = sum(len(s) for _, s in new)
+    if safe:
+        f["needless"].append(sum(int(np.sum(s >= tau)) for _, s in new) / safe)
+
+
+def _summary(f: dict, draws: int) -> dict:
     mean = lambda v: float(np.mean(v)) if v else float("nan")
     quantile = lambda v, q: float(np.quantile(v, q)) if v else float("nan")
-    return {m: {"E[miss]": mean(f["every"]), "E[miss | fails]": mean(f["fails"]),
-                "p90 | fails": quantile(f["shares"], 0.9),
-                "pooled": mean(f["pooled"]), "needless": mean(f["needless"]),
-                "needless p10": quantile(f["needless"], 0.1),
-                "needless p90": quantile(f["needless"], 0.9),
-                "refused": f["refused"] / draws} for m, f in out.items()}
+    return {"E[miss]": mean(f["every"]), "E[miss | fails]": mean(f["fails"]),
+            "p90 | fails": quantile(f["shares"], 0.9),
+            "pooled": mean(f["pooled"]), "needless": mean(f["needless"]),
+            "needless p10": quantile(f["needless"], 0.1),
+            "needless p90": quantile(f["needless"], 0.9),
+            "refused": f["refused"] / draws}
+
+
+def choice_figures(candidates: dict, calibrate: int, alpha: float, *, draws: int,
+                   seed: int = 0) -> dict:
+    """The study's choice of its kept monitor, repeated in every draw: of
+    ``candidates`` (``{name: environments}``, each as `draw_figures` takes them, in the
+    same order), the one with the fewest needless flags on the draw's calibration
+    environments at its own conformal threshold (fixed there; a candidate without one
+    is skipped), judged on the draw's new environments. Returns ``{"chosen": figures,
+    "fixed": figures of the first candidate in every draw, "times chosen": {name:
+    draws}}`` (figures as `draw_figures`' ``every`` mode; the same draws as it for the
+    same ``seed``)."""
+    names = list(candidates)
+    count = len(candidates[names[0]])
+    if any(len(envs) != count for envs in candidates.values()):
+        raise ValueError("every candidate needs the same environments")
+    if not 0 < calibrate < count:
+        raise ValueError(f"need more environments than the {calibrate} calibrated on, "
+                         f"got {count}")
+    rng = np.random.default_rng(seed)
+    chosen, fixed, times = _tally(), _tally(), dict.fromkeys(names, 0)
+    for _ in range(draws):
+        order = rng.permutation(count)
+        best = None
+        for name in names:
+            cal = [candidates[name][i] for i in order[:calibrate]]
+            try:
+                tau = conformal_threshold([w for w, _ in cal], alpha).threshold
+            except NoConformalThreshold:
+                if name == names[0]:
+                    fixed["refused"] += 1
+                continue
+            new = [candidates[name][i] for i in order[calibrate:]]
+            if name == names[0]:
+                _judge_new(fixed, new, tau)
+            safe = sum(len(s) for _, s in cal)
+            needless = sum(int(np.sum(s >= tau)) for _, s in cal) / max(1, safe)
+            if best is None or needless < best[0]:
+                best = (needless, name, new, tau)
+        if best is None:
+            chosen["refused"] += 1
+            continue
+        times[best[1]] += 1
+        _judge_new(chosen, best[2], best[3])
+    return {"chosen": _summary(chosen, draws), "fixed": _summary(fixed, draws),
+            "times chosen": times}
 
 
 def family_environments(result: dict, variant: str) -> list:
@@ -99,6 +160,38 @@ def family_environments(result: dict, variant: str) -> list:
             for split in ("calibrate", "held_out") for e in scores[split]]
 
 
+def rule_candidates(folder, rules, *, period: float) -> dict:
+    """``{"variant, k/n": environments}`` of a finished study (its ``risks.npz``): every
+    variant (the detector's row left out: never kept) under every k-of-n rule of
+    ``rules``, its calibration and held-out environments as `family_environments`
+    gives them, in that order (the first variant's first rule first)."""
+    result = read_study_result(Path(folder) / "monitor.json")
+    out = {}
+    with np.load(Path(folder) / "risks.npz") as saved:
+        for variant in result["variants"]:
+            if variant == DETECTOR_ROW:
+                continue
+            data = [g for split in ("calibrate", "held_out")
+                    for g in saved_risks(saved, variant, split)]
+            for rule in rules:
+                k, n = (int(v) for v in rule.split("/"))
+                out[f"{variant}, {rule}"] = [
+                    (np.asarray(d["warning"], float), np.asarray(d["safe_max"], float))
+                    for d in (decisive_scores(k_of_n_risks(r, k, n), t, f, period=period,
+                                              lead=result["lead_s"], fails_after=a)
+                              for r, t, f, a in data)]
+    return out
+
+
+FIGURES = ("E[miss]", "E[miss | fails]", "p90 | fails", "pooled", "needless")
+
+
+def _cells(f: dict) -> str:
+    return (" | ".join(f"{100 * f[k]:.1f}" for k in FIGURES)
+            + f" | {100 * f['needless p10']:.1f}-{100 * f['needless p90']:.1f} | "
+            f"{100 * f['refused']:.1f} |")
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("studies", nargs="+", help="finished studies' output folders (monitor.json)")
@@ -107,7 +200,20 @@ def main():
     p.add_argument("--variants", nargs="*", help="only these variants (default: all)")
     p.add_argument("--calibrate", type=int, default=None,
                    help="environments calibrated on per draw (default: as many as the study)")
+    p.add_argument("--choose-among", nargs="+", metavar="K/N",
+                   help="instead: repeat the study's choice of its kept monitor in every "
+                        "draw, among every variant under each of these k-of-n rules (read "
+                        "from risks.npz), beside the first variant under the first rule "
+                        "fixed in advance")
+    p.add_argument("--period", type=float, default=0.05,
+                   help="the control period (s), for --choose-among")
     args = p.parse_args()
+    if args.choose_among:
+        for rule in args.choose_among:
+            k, _, n = rule.partition("/")
+            if not (k.isdigit() and n.isdigit()):
+                p.error(f"--choose-among takes K/N rules such as 2/3, got {rule!r}")
+        return _choice_table(args)
     print("| study | variant | threshold fixed on | E[miss] | E[miss given fails] | "
           "p90 given fails | pooled miss | needless | needless p10-p90 | refused |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -123,15 +229,32 @@ def main():
                                    seed=args.seed)
             for mode, f in figures.items():
                 name = variant + (" (kept)" if variant == result["kept"] else "")
-                print(f"| {Path(folder).name} | {name} | {mode} | "
-                      + " | ".join(f"{100 * f[k]:.1f}" for k in (
-                          "E[miss]", "E[miss | fails]", "p90 | fails", "pooled", "needless"))
-                      + f" | {100 * f['needless p10']:.1f}-{100 * f['needless p90']:.1f} | "
-                      f"{100 * f['refused']:.1f} |")
+                print(f"| {Path(folder).name} | {name} | {mode} | " + _cells(f))
     print(f"alpha as each study's; {args.draws} draws of the family's calibration and "
           f"held-out environments, " + (f"{args.calibrate} calibrated on" if args.calibrate
                                         else "as many calibrated on as in the study")
           + " (percent)")
+
+
+def _choice_table(args):
+    print("| study | kept monitor | E[miss] | E[miss given fails] | p90 given fails | "
+          "pooled miss | needless | needless p10-p90 | refused |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    chosen_counts = []
+    for folder in args.studies:
+        result = read_study_result(Path(folder) / "monitor.json")
+        candidates = rule_candidates(folder, args.choose_among, period=args.period)
+        calibrate = args.calibrate or len(
+            next(iter(result["variants"].values()))["scores"]["calibrate"])
+        f = choice_figures(candidates, calibrate, result["alpha"], draws=args.draws,
+                           seed=args.seed)
+        name = Path(folder).name
+        print(f"| {name} | chosen in each draw among {len(candidates)} | " + _cells(f["chosen"]))
+        print(f"| {name} | fixed: {next(iter(candidates))} | " + _cells(f["fixed"]))
+        chosen_counts.append(f"{name}: " + ", ".join(
+            f"{k} {v}" for k, v in f["times chosen"].items() if v))
+    print(f"alpha as each study's; {args.draws} draws (percent). Times each was chosen: "
+          + "; ".join(chosen_counts))
 
 
 if __name__ == "__main__":

@@ -27,28 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from reachwatch.pipeline.monitor_judge import fails_after
 from reachwatch.pipeline.monitor_sections import read_study_result
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
+from reachwatch.pipeline.monitor_study import saved_risks
 from reachwatch.training.conformal import conformal_threshold, warning_scores
 from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, run_times,
                                               system_figures)
-
-
-def _split(saved, variant, split):
-    """Per environment: ``(risks per run, ticks, failure_times, fails_after)`` of
-    ``split``; ``fails_after``: survived the recording, failed within the study's longer
-    watch (all False for a study saved before it watched longer)."""
-    ticks = saved[f"{split}/ticks"]
-    failure = saved[f"{split}/failure_time"]
-    watched = (saved[f"{split}/watched_failure_time"]
-               if f"{split}/watched_failure_time" in saved.files else failure)
-    after = fails_after({"watched_failure_time": watched, "failure_time": failure})
-    env = saved[f"{split}/environment"]
-    flat = saved[f"{variant}/{split}/risk"].astype(float)
-    runs = np.split(flat, np.cumsum(ticks)[:-1]) if len(ticks) else []
-    return [([runs[i] for i in np.flatnonzero(env == e)], ticks[env == e], failure[env == e],
-             after[env == e]) for e in range(len(saved[f"{split}/names"]))]
 
 
 def _ranked(group):
@@ -101,7 +85,7 @@ def main():
         splits = [s for s in ("calibrate", "held_out", "also_held_out")
                   if f"{s}/ticks" in saved.files]
         for variant in result["variants"]:
-            data = {s: _split(saved, variant, s) for s in splits}
+            data = {s: saved_risks(saved, variant, s) for s in splits}
             if args.rank_within_environment:
                 data = {s: [_ranked(g) for g in groups] for s, groups in data.items()}
             for rule in args.rules:

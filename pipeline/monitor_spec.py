@@ -25,6 +25,10 @@ MONITOR_KINDS = ("detector", "history")
 #: (``compare_detector``); no variant may take the name.
 DETECTOR_ROW = "single-image detector"
 
+#: ``monitor.keep``'s value that chooses the kept monitor on the calibration
+#: environments; no variant may take the name.
+CHOOSE = "choose"
+
 
 @dc.dataclass
 class MonitorVariant:
@@ -65,8 +69,9 @@ class MonitorStudySpec:
     and ``held_out`` environments, in that order, from the application's random
     ``family``; records real runs in each; trains every variant on the first; fixes
     each variant's threshold and flag rule on the second by conformal risk control
-    (`reachwatch.training.conformal`); keeps the variant with the fewest needless flags
-    there; and judges it on the third and on ``also_held_out``, offline and, with
+    (`reachwatch.training.conformal`); keeps the variant named by ``keep``, fixed
+    before any of them is seen (or, with ``keep: choose``, the one with the fewest
+    needless flags there); and judges it on the third and on ``also_held_out``, offline and, with
     ``guarded_runs``, in the guarded real loop beside the single-frame variant and the
     oracle monitor. What the defaults were chosen on, and the measurements: [why the
     study's defaults](../results/monitor.md#why-the-studys-defaults) in the docs.
@@ -179,14 +184,22 @@ class MonitorStudySpec:
     run), its threshold and flag rule fixed on the calibration environments the same
     way, and guard the loop with it beside them.
 
-    ``variants``: the monitors to train (`MonitorVariant`); the kept one is the one
-    with the fewest needless flags on the calibration environments.
+    ``variants``: the monitors to train (`MonitorVariant`), each judged in the report.
 
-    ``flag_rules``: the k-of-n rules tried, ``[flags_needed, flag_window]`` each (the
-    guard's `FlagFilter`: flag when at least k of the last n ticks reached the
-    threshold); each variant keeps the rule with the fewest needless flags on the
+    ``keep``: the monitor kept (its checkpoint guards the loop; the bound is stated for
+    it): null, the first of ``variants``; a variant's name, that one; ``choose``, the
+    variant and flag rule with the fewest needless flags on the calibration
+    environments at their own thresholds. The conformal bound speaks of a monitor fixed
+    before the calibration environments are seen, not of one chosen among several on
+    them: the choice favours whichever those environments happened to flatter, and its
+    miss rate on new environments is higher (measured: [the kept monitor fixed in
+    advance](../results/monitor.md#the-kept-monitor-fixed-in-advance-2026-12-06)).
+
+    ``flag_rules``: the k-of-n rules, ``[flags_needed, flag_window]`` each (the guard's
+    `FlagFilter`: flag when at least k of the last n ticks reached the threshold). With
+    ``keep: choose`` each variant keeps the rule with the fewest needless flags on the
     calibration environments, its threshold fixed there too, and its guarded runs use
-    it."""
+    it; otherwise list one rule, which every variant uses."""
     kind: str = "detector"
     family: ApplicationRandomEnvironments = slot_field(
         "monitor", application_default(ApplicationRandomEnvironments, "monitor"))
@@ -220,6 +233,7 @@ class MonitorStudySpec:
     guarded_runs: int = bounded(0, 0, 100_000, whole=True)
     compare_detector: bool = True
     variants: List[MonitorVariant] = dc.field(default_factory=default_variants)
+    keep: Optional[str] = None
     flag_rules: List[List[int]] = dc.field(default_factory=lambda: [[1, 1]])
 
     @property
@@ -295,9 +309,19 @@ class MonitorStudySpec:
         if not self.variants or len(set(names)) != len(names):
             raise ValueError(f"{where}.variants must list at least one variant, each name "
                              f"once, got {names[:8]}")
-        if DETECTOR_ROW in names:
-            raise ValueError(f"{where}.variants: {DETECTOR_ROW!r} is the name of the "
-                             f"detector's row; call the variant otherwise")
+        for reserved, what in ((DETECTOR_ROW, "the name of the detector's row"),
+                               (CHOOSE, f"{where}.keep's word for choosing")):
+            if reserved in names:
+                raise ValueError(f"{where}.variants: {reserved!r} is {what}; call the "
+                                 f"variant otherwise")
+        if self.keep is not None and self.keep not in (CHOOSE, *names):
+            raise ValueError(f"{where}.keep must be null (the first variant), {CHOOSE!r} or "
+                             f"a variant's name, got {short(self.keep)}")
+        if self.keep != CHOOSE and len(self.flag_rules) > 1:
+            raise ValueError(f"{where}.flag_rules lists {len(self.flag_rules)} rules, and the "
+                             f"kept monitor is fixed in advance ({where}.keep): list one rule, "
+                             f"or set {where}.keep: {CHOOSE} to choose the variant and rule on "
+                             f"the calibration environments")
         for i, v in enumerate(self.variants):
             check_bounds(v, f"{where}.variants[{i}].")
             if not isinstance(v.signals, bool):
@@ -308,6 +332,12 @@ class MonitorStudySpec:
                                  f"{TEMPORAL_MODELS}, got {v.temporal!r}")
             HistoryMonitorConfig(frames=v.frames, stride=v.stride, temporal=v.temporal).validate()
         return self
+
+    @property
+    def kept_in_advance(self) -> Optional[str]:
+        """The kept variant's name when it is fixed before calibration (``keep`` null or
+        a name); None with ``keep: choose``."""
+        return None if self.keep == CHOOSE else self.keep or self.variants[0].name
 
     def environments(self):
         """``{"train", "calibrate", "held_out", "also_held_out"}``: lists of environments."""

@@ -36,8 +36,8 @@ from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, 
 from reachwatch.training.monitor_eval import oracle_risks, tick_auroc
 
 from .monitor_guarded import guarded_rows
-from .monitor_judge import (_judge_monitor, choose_flag_rule, judge_environments,  # noqa: F401
-                            watch_s)
+from .monitor_judge import (_judge_monitor, choose_flag_rule, fails_after,  # noqa: F401
+                            judge_environments, watch_s)
 from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_environment,  # noqa: F401
                            merged_runs, record_runs, record_splits, starts_seed)
 from .monitor_sections import rate_text
@@ -175,8 +175,10 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                                   duration=watch_s(spec), within=4.0)
                        if g["signals"].shape[-1] >= 3 else float("nan") for g in groups]
 
-    kept = min((n for n in results if n != DETECTOR_ROW),
-               key=lambda n: results[n]["calibration_needless"])
+    # fixed in advance (the bound is exact for it), or chosen on the calibration
+    # environments (`MonitorStudySpec.keep`)
+    kept = spec.kept_in_advance or min((n for n in results if n != DETECTOR_ROW),
+                                       key=lambda n: results[n]["calibration_needless"])
     out_dir.mkdir(parents=True, exist_ok=True)
     _save_risks(out_dir / "risks.npz", data, all_risks, judged)
     checkpoints = {}
@@ -198,6 +200,8 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                                progress=progress, log=log, lead=lead, read_alone=read_alone)
                if spec.guarded_runs and data[k] else {} for k in ("held_out", "also_held_out")}
     result = {"lead_s": lead, "within_s": spec.within, "alpha": spec.alpha, "kept": kept,
+              "kept_chosen_among": 0 if spec.kept_in_advance else
+              len(spec.variants) * len(spec.flag_rules),
               "ensemble": spec.ensemble,
               "failing_runs": failing, "variants": results, "oracle": oracle,
               "prediction_error_auroc_4s": baseline, "guarded": guarded["held_out"],
@@ -302,6 +306,23 @@ def _save_risks(path, data, all_risks, judged):
     np.savez_compressed(buffer, **arrays)
     atomic_write_bytes(path, buffer.getvalue())
 
+
+
+def saved_risks(saved, variant: str, split: str) -> list:
+    """What `_save_risks` wrote of ``variant`` in ``split``, read back from the open
+    ``risks.npz`` ``saved``, per environment: ``(risks per run, ticks, failure times,
+    fails_after)``; ``fails_after``: survived the recording, failed within the study's
+    longer watch (all False for a study saved before it watched longer)."""
+    ticks = saved[f"{split}/ticks"]
+    failure = saved[f"{split}/failure_time"]
+    watched = (saved[f"{split}/watched_failure_time"]
+               if f"{split}/watched_failure_time" in saved.files else failure)
+    after = fails_after({"watched_failure_time": watched, "failure_time": failure})
+    env = saved[f"{split}/environment"]
+    flat = saved[f"{variant}/{split}/risk"].astype(float)
+    runs = np.split(flat, np.cumsum(ticks)[:-1]) if len(ticks) else []
+    return [([runs[i] for i in np.flatnonzero(env == e)], ticks[env == e], failure[env == e],
+             after[env == e]) for e in range(len(saved[f"{split}/names"]))]
 
 #: Bumped when the study's results change for the same inputs (2: the oracle's and the
 #: nights' guarded rows; 3: the encoder trains on colour-jittered frames; 4: the starts

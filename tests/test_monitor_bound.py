@@ -41,3 +41,24 @@ def test_too_few_calibration_environments_are_refused_and_counted():
     assert f["every"]["refused"] == 1.0 and np.isnan(f["every"]["pooled"])
     with pytest.raises(ValueError, match="more environments than"):
         bound.draw_figures(envs, 6, 0.1, draws=1)
+
+
+def test_choosing_among_candidates_on_the_calibration_draw_misses_more_than_one_fixed():
+    """Ten candidates alike in distribution, each environment's scores drawn for each
+    apart: the one the calibration draw flattered (its failing runs scored high there,
+    so its threshold is high and it flags fewest safe runs) is chosen, and on new
+    environments it is no better than the others, so it misses more than a candidate
+    fixed in advance; the fixed one keeps the bound."""
+    rng = np.random.default_rng(1)
+    candidates = {f"c{c}": [(rng.uniform(0.2, 1.0, 3), rng.uniform(0.0, 0.8, 6))
+                            for _ in range(40)] for c in range(10)}
+    f = bound.choice_figures(candidates, 20, 0.2, draws=300)
+    assert sum(f["times chosen"].values()) == 300 and f["fixed"]["refused"] == 0.0
+    assert f["fixed"]["E[miss]"] <= 0.2
+    assert f["chosen"]["E[miss]"] > 1.2 * f["fixed"]["E[miss]"]
+    assert f["chosen"]["needless"] < f["fixed"]["needless"]      # what it was chosen for
+    # one candidate: the choice is the fixed one, draw by draw
+    one = bound.choice_figures({"c0": candidates["c0"]}, 20, 0.2, draws=50)
+    assert one["chosen"] == one["fixed"]
+    assert one["fixed"]["E[miss]"] == bound.draw_figures(
+        candidates["c0"], 20, 0.2, draws=50)["every"]["E[miss]"]

@@ -28,6 +28,12 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
     assert not load_run_spec(data=TINY).monitor.enabled            # off by default
     import dataclasses as dc
     assert dc.asdict(spec.monitor)["flag_rules"] == [[1, 1]]
+    # the kept monitor: fixed in advance (the first variant, or the one named), or chosen
+    assert spec.monitor.keep is None and spec.monitor.kept_in_advance == "one frame"
+    named = dc.replace(spec.monitor, keep="GRU 3 + signals").validate()
+    assert named.kept_in_advance == "GRU 3 + signals"
+    chosen = dc.replace(spec.monitor, keep="choose", flag_rules=[[1, 1], [2, 3]]).validate()
+    assert chosen.kept_in_advance is None
     for field, value in (("augment", "no"), ("variants", [MonitorVariant("x", signals=1)])):
         with pytest.raises(ValueError, match=rf"monitor\.{field}(\[0\]\.signals)? must be "
                                              rf"true or false, got"):
@@ -59,6 +65,14 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
                            "monitor.flag_rules: a list of"),
                           (("runs: 6", "runs: 6\n  flag_rules: [[3, 2]]"),
                            "monitor.flag_rules: the k-of-n flag rule needs"),
+                          (("runs: 6", "runs: 6\n  flag_rules: [[1, 1], [2, 3]]"),
+                           "monitor.flag_rules lists 2 rules, and the kept monitor is fixed in "
+                           "advance (monitor.keep): list one rule, or set monitor.keep: choose"),
+                          (("runs: 6", "runs: 6\n  keep: GRU 3"),
+                           "monitor.keep must be null (the first variant), 'choose' or a "
+                           "variant's name, got 'GRU 3'"),
+                          (("{name: one frame}", "{name: choose}"),
+                           "monitor.variants: 'choose' is monitor.keep's word for choosing"),
                           (("runs: 6", "runs: 6\n  ensemble: 0"),
                            "monitor.ensemble must be a whole number in .1, 32., got 0"),
                           (("runs: 6", "runs: 6\n  held_out_runs: -1"),

@@ -109,7 +109,10 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     assert json.dumps(back, sort_keys=True) == json.dumps(
         json.loads(json.dumps(result, default=float)), sort_keys=True)
     assert set(result["variants"]) == {"one frame", "GRU 3 + signals", DETECTOR_ROW}
-    assert result["kept"] != DETECTOR_ROW and result["variants"][DETECTOR_ROW]["kind"] == "detector"
+    assert result["variants"][DETECTOR_ROW]["kind"] == "detector"
+    # kept: the first variant, fixed before calibration (not the one the calibration
+    # environments flattered)
+    assert (result["kept"], result["kept_chosen_among"]) == ("one frame", 0)
     assert result["lead_s"] == pytest.approx(5.0 / 3.0)
     # the recordings' failure times over the longer watch (duration + within): the
     # recorded one where a run failed within it, else one within the 4 s after, or none
@@ -189,9 +192,11 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     assert len(read_back) == 1 + len(spec.variants), read_back
     for part in ("variants", "guarded", "oracle"):           # NaN where a group is empty
         assert json.dumps(again[part], sort_keys=True) == json.dumps(result[part], sort_keys=True)
-    # k-of-n flag rules: each variant keeps the rule with the fewest needless flags on the
-    # calibration environments (never more than 1-of-1's), and its guarded runs use it
-    ruled = run_monitor_study(dc.replace(spec, flag_rules=[[1, 1], [3, 3]]), scenario,
+    # keep: choose, with k-of-n flag rules: each variant keeps the rule with the fewest
+    # needless flags on the calibration environments (never more than 1-of-1's), its
+    # guarded runs use it, and the kept variant is the one with the fewest of all
+    ruled = run_monitor_study(dc.replace(spec, keep="choose", flag_rules=[[1, 1], [3, 3]]),
+                              scenario,
                               tmp_path / "rules", cache_dir=tmp_path / "cache", progress=False,
                               log=lambda m: None, detector=detector_path)
     for name, row in ruled["variants"].items():
@@ -200,6 +205,10 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
         assert row["calibration_needless"] <= result["variants"][name]["calibration_needless"]
         if row["flag_rule"] == [1, 1]:
             assert row["threshold"] == result["variants"][name]["threshold"]
+    candidates = {n: r["calibration_needless"] for n, r in ruled["variants"].items()
+                  if n != DETECTOR_ROW}
+    assert ruled["kept"] == min(candidates, key=candidates.get)
+    assert ruled["kept_chosen_among"] == 2 * len(spec.variants)
     for name, file in ruled["checkpoints"].items():
         _, _, meta = load_history_monitor(tmp_path / "rules" / file)
         assert meta.get("flag_rule", [1, 1]) == ruled["variants"][name]["flag_rule"]
