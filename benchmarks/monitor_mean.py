@@ -1,0 +1,149 @@
+"""The mean of several finished monitors' risks, judged without rendering or training
+again: is an ensemble worth building before it is built?
+
+Each monitor is a variant of a finished study (``STUDY:VARIANT``, or ``STUDY`` for
+every variant of it); the studies must have recorded the same runs (the same family,
+splits, run counts and cache: only their training differs). The mean is taken over
+the monitors' calibrated risks in logit space at every tick, then judged as one
+monitor under the 1-of-1 rule: its calibration and held-out environments' scores
+redrawn ``--draws`` times into calibration and new environments as
+``benchmarks/monitor_bound.py`` does (E[miss], pooled miss, needless flags at the
+conformal threshold), and the worst held-out environment's AUROC of "fails within
+``within`` s" on the study's own split. Each monitor alone gets the same rows.
+
+    python benchmarks/monitor_mean.py R40 R40_s1                 # every variant of both
+    python benchmarks/monitor_mean.py "R40:single frame" "R40_s1:single frame"
+"""
+
+import argparse
+import types
+from pathlib import Path
+
+import numpy as np
+
+from monitor_bound import draw_figures
+from reachwatch.pipeline.monitor_judge import watch_s
+from reachwatch.pipeline.monitor_sections import read_study_result
+from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
+from reachwatch.pipeline.monitor_study import saved_risks
+from reachwatch.training.monitor_eval import decisive_scores, tick_auroc
+
+SPLITS = ("calibrate", "held_out")
+RUN_KEYS = ("ticks", "failure_time", "environment")
+
+
+def _logit(p):
+    p = np.clip(np.asarray(p, float), 1e-6, 1 - 1e-6)
+    return np.log(p / (1 - p))
+
+
+def monitors(names) -> list:
+    """``[(label, folder, variant)]`` for ``STUDY:VARIANT`` or ``STUDY`` (every variant
+    but the detector's row)."""
+    out = []
+    for name in names:
+        folder, _, variant = name.partition(":")
+        result = read_study_result(Path(folder) / "monitor.json")
+        variants = [variant] if variant else [v for v in result["variants"]
+                                               if v != DETECTOR_ROW]
+        for v in variants:
+            if v not in result["variants"]:
+                raise SystemExit(f"{folder} has no variant {v!r}: {list(result['variants'])}")
+            out.append((f"{Path(folder).name}: {v}", Path(folder), v))
+    return out
+
+
+def check_same_runs(saved: dict):
+    """Raises ValueError unless the open ``risks.npz`` files ``saved`` (by folder) hold
+    the same runs: ticks, failure times and environments in every split."""
+    folders = list(saved)
+    for f in folders[1:]:
+        for s in SPLITS:
+            for key in RUN_KEYS:
+                if not np.array_equal(saved[f][f"{s}/{key}"], saved[folders[0]][f"{s}/{key}"],
+                                      equal_nan=key == "failure_time"):
+                    raise ValueError(f"{f} and {folders[0]} did not record the same runs "
+                                     f"({s}/{key} differ)")
+
+
+def mean_groups(chosen, saved: dict) -> dict:
+    """``{split: [(risks per run, ticks, failure, fails_after) per environment]}`` of the
+    mean of ``chosen`` monitors' risks (logit space), from the open ``risks.npz`` files
+    ``saved`` (by folder)."""
+    per = [{s: saved_risks(saved[folder], variant, s) for s in SPLITS}
+           for _, folder, variant in chosen]
+    out = {}
+    for s in SPLITS:
+        groups = []
+        for e, (_, ticks, failure, after) in enumerate(per[0][s]):
+            runs = [1 / (1 + np.exp(-np.mean([_logit(m[s][e][0][i]) for m in per], axis=0)))
+                    for i in range(len(ticks))]
+            groups.append((runs, ticks, failure, after))
+        out[s] = groups
+    return out
+
+
+def judged(groups: dict, saved_file, *, alpha, lead, period, watch, within, draws, seed):
+    """The figures of one monitor's ``groups`` (`mean_groups`)."""
+    envs = []
+    for s in SPLITS:
+        for risks, ticks, failure, after in groups[s]:
+            d = decisive_scores(risks, ticks, failure, period=period, lead=lead,
+                                fails_after=after)
+            envs.append((np.asarray(d["warning"], float), np.asarray(d["safe_max"], float)))
+    calibrate = len(groups["calibrate"])
+    f = draw_figures(envs, calibrate, alpha, draws=draws, seed=seed)["every"]
+    watched = saved_file["held_out/watched_failure_time"]
+    env = saved_file["held_out/environment"]
+    aurocs = [tick_auroc(risks, ticks, watched[env == e], period=period, duration=watch,
+                         within=within)
+              for e, (risks, ticks, _, _) in enumerate(groups["held_out"])]
+    aurocs = [a for a in aurocs if np.isfinite(a)]
+    return f, (min(aurocs) if aurocs else float("nan"))
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("monitors", nargs="+", metavar="STUDY[:VARIANT]")
+    p.add_argument("--draws", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--period", type=float, default=0.05, help="the control period (s)")
+    p.add_argument("--duration", type=float, default=8.0, help="the studies' run length (s)")
+    p.add_argument("--alone", action="store_true", help="also judge each monitor alone")
+    args = p.parse_args()
+    chosen = monitors(args.monitors)
+    folders = list(dict.fromkeys(folder for _, folder, _ in chosen))
+    results = {f: read_study_result(f / "monitor.json") for f in folders}
+    first = results[folders[0]]
+    for f in folders[1:]:
+        for key in ("alpha", "lead_s", "within_s"):
+            if results[f][key] != first[key]:
+                p.error(f"{f}: {key} {results[f][key]}, {folders[0]}: {first[key]}")
+    saved = {f: np.load(f / "risks.npz") for f in folders}
+    try:
+        check_same_runs(saved)
+    except ValueError as e:
+        p.error(str(e))
+    within = first["within_s"]
+    spec = types.SimpleNamespace(duration=args.duration, within=within)
+    shape = dict(alpha=first["alpha"], lead=first["lead_s"], period=args.period,
+                 watch=watch_s(spec), within=within, draws=args.draws, seed=args.seed)
+    rows = [(f"mean of {len(chosen)}", chosen)] if len(chosen) > 1 else []
+    if args.alone or len(chosen) == 1:
+        rows += [(label, [m]) for m in chosen for label in [m[0]]]
+    print(f"{args.draws} draws; alpha {first['alpha']:g}, lead {first['lead_s']:.2f} s, "
+          f"1-of-1 rule; percent")
+    print(f"| monitor | E[miss] | pooled miss | needless flags | needless p10-p90 | "
+          f"worst held-out AUROC, fails within {within:g} s |")
+    print("|---|---|---|---|---|---|")
+    for label, members in rows:
+        f, worst = judged(mean_groups(members, saved), saved[folders[0]], **shape)
+        print(f"| {label} | {100 * f['E[miss]']:.1f} | {100 * f['pooled']:.1f} | "
+              f"{100 * f['needless']:.1f} | {100 * f['needless p10']:.1f}-"
+              f"{100 * f['needless p90']:.1f} | {worst:.3f} |", flush=True)
+    if len(chosen) > 1:
+        print("mean of: " + "; ".join(label for label, _, _ in chosen))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,72 @@
+"""benchmarks/monitor_mean.py: the mean of finished studies' risks, judged as one
+monitor. Two fake studies of the same runs: a monitor averaged with itself is itself,
+two that disagree average in logit space, and studies of other runs are refused."""
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+_BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(_BENCHMARKS))         # monitor_mean imports monitor_bound
+_SPEC = importlib.util.spec_from_file_location("monitor_mean", _BENCHMARKS / "monitor_mean.py")
+mean = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(mean)
+sys.path.remove(str(_BENCHMARKS))
+
+
+def _study(folder: Path, risk_of, *, ticks=(5, 3, 5, 5)):
+    """A finished study with one variant ``v``: two environments per split, two runs each
+    (the second of each environment fails at its third tick), ``risk_of(split, run)`` its
+    risks."""
+    folder.mkdir()
+    (folder / "monitor.json").write_text(json.dumps(
+        {"alpha": 0.5, "lead_s": 0.1, "within_s": 0.1, "variants": {"v": {}}}))
+    arrays = {}
+    for split in mean.SPLITS:
+        arrays[f"{split}/ticks"] = np.array(ticks)
+        failure = np.array([np.nan, 0.1, np.nan, np.nan])
+        arrays[f"{split}/failure_time"] = failure
+        arrays[f"{split}/watched_failure_time"] = failure
+        arrays[f"{split}/environment"] = np.array([0, 0, 1, 1])
+        arrays[f"{split}/names"] = np.array(["a", "b"])
+        arrays[f"v/{split}/risk"] = np.concatenate(
+            [risk_of(split, i) * np.ones(n) for i, n in enumerate(ticks)]).astype(np.float32)
+    np.savez(folder / "risks.npz", **arrays)
+    return folder
+
+
+def test_the_mean_of_a_monitor_and_itself_is_that_monitor_and_two_average_in_logits(tmp_path):
+    one = _study(tmp_path / "one", lambda split, i: 0.2 + 0.1 * i)
+    same = _study(tmp_path / "same", lambda split, i: 0.2 + 0.1 * i)
+    other = _study(tmp_path / "other", lambda split, i: 0.8)
+    saved = {f: np.load(f / "risks.npz") for f in (one, same, other)}
+    chosen = mean.monitors([f"{one}:v", str(same)])
+    assert [label for label, _, _ in chosen] == ["one: v", "same: v"]
+    alone = mean.mean_groups(chosen[:1], saved)
+    both = mean.mean_groups(chosen, saved)
+    for split in mean.SPLITS:
+        for a, b in zip(alone[split], both[split]):
+            for ra, rb in zip(a[0], b[0]):
+                np.testing.assert_allclose(ra, rb, rtol=1e-6)
+    # 0.2 and 0.8 are -x and x in logits: their mean is 0.5
+    mixed = mean.mean_groups([chosen[0], (None, other, "v")], saved)
+    np.testing.assert_allclose(mixed["held_out"][0][0][0], 0.5, atol=1e-6)
+
+
+def test_a_variant_the_study_lacks_is_named(tmp_path):
+    one = _study(tmp_path / "one", lambda split, i: 0.5)
+    with pytest.raises(SystemExit, match="has no variant 'w'"):
+        mean.monitors([f"{one}:w"])
+
+
+def test_studies_of_other_runs_are_refused(tmp_path):
+    one = _study(tmp_path / "one", lambda split, i: 0.5)
+    same = _study(tmp_path / "same", lambda split, i: 0.7)
+    longer = _study(tmp_path / "longer", lambda split, i: 0.5, ticks=(5, 3, 5, 6))
+    mean.check_same_runs({f: np.load(f / "risks.npz") for f in (one, same)})
+    with pytest.raises(ValueError, match="did not record the same runs .calibrate/ticks differ"):
+        mean.check_same_runs({f: np.load(f / "risks.npz") for f in (one, longer)})
