@@ -19,7 +19,7 @@ def test_a_monitor_that_separates_runs_misses_nothing_and_flags_no_safe_run():
     envs = [(np.full(1 + i % 3, 0.9), np.full(4, 0.1)) for i in range(12)]
     for mode, f in bound.draw_figures(envs, 9, 0.1, draws=50).items():
         assert f["E[miss]"] == f["E[miss | fails]"] == f["pooled"] == 0.0, mode
-        assert f["needless"] == 0.0 and f["refused"] == 0.0, mode
+        assert f["needless"] == 0.0 and f["refused"] == 0.0 and f["over alpha"] == 0.0, mode
 
 
 def test_failure_free_environments_dilute_the_default_bound_only():
@@ -57,6 +57,8 @@ def test_choosing_among_candidates_on_the_calibration_draw_misses_more_than_one_
     assert f["fixed"]["E[miss]"] <= 0.2
     assert f["chosen"]["E[miss]"] > 1.2 * f["fixed"]["E[miss]"]
     assert f["chosen"]["needless"] < f["fixed"]["needless"]      # what it was chosen for
+    # one group of new environments reads above alpha more often for the chosen one
+    assert f["chosen"]["over alpha"] > f["fixed"]["over alpha"]
     # one candidate: the choice is the fixed one, draw by draw
     one = bound.choice_figures({"c0": candidates["c0"]}, 20, 0.2, draws=50)
     assert one["chosen"] == one["fixed"]
