@@ -2,6 +2,7 @@
 targets, each verdict read the way the target states it."""
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,10 +11,13 @@ from reachwatch.pipeline.monitor_guarded import ORACLE
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
 from reachwatch.training.monitor_eval import rate
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "monitor_targets.py"
-_SPEC = importlib.util.spec_from_file_location("monitor_targets", _PATH)
+_BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(_BENCHMARKS))        # monitor_targets imports monitor_bound
+_SPEC = importlib.util.spec_from_file_location("monitor_targets",
+                                               _BENCHMARKS / "monitor_targets.py")
 targets = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(targets)
+sys.path.remove(str(_BENCHMARKS))
 
 
 def _variant(auroc, ece, misses, threshold, warning, safe):
@@ -80,3 +84,28 @@ def test_the_bound_is_read_as_the_threshold_was_fixed_and_nothing_judged_is_no_v
     rows = {r[0]: r for r in targets.target_rows(result)}
     assert rows[bound][3] == "not met"                                          # 30 % > 20 %
     assert rows["needless stops <= 10 % (upper bound <= 13 %)"][3] == "-"       # no safe run
+
+
+def test_the_bound_over_redrawn_splits_reads_the_saved_calibration_and_held_out_scores():
+    """Twelve environments, each with one warnable failing run: a monitor that warns
+    every one of them at 0.9 misses none in any draw; one that scores half of them
+    below every safe run needs a threshold under its safe runs, and some groups of
+    new environments then miss more than alpha, the mean over draws staying within it.
+    The row gives context, not a verdict."""
+    def result(warnings):
+        envs = [{"warning": np.array([w]), "safe_max": np.array([0.5])} for w in warnings]
+        row = _variant([0.9], 0.03, [0], 0.5, [0.9], [0.1])
+        row["scores"] = {"calibrate": envs[:9], "held_out": envs[9:]}
+        return {"kept": "GRU", "alpha": 0.2, "kept_chosen_among": 0, "variants": {"GRU": row}}
+    good = targets.redrawn_bound_row(result([0.9] * 12), "family")
+    assert good[2].startswith("0.0 % over 1000 splits of the 12 environments (9 to "
+                              "calibrate, 3 new; 0 % of the groups") and good[3] == "-"
+    assert "fixed before calibration" in good[2]
+    rng = np.random.default_rng(0)
+    poor = targets.redrawn_bound_row(result(rng.uniform(0, 1, 12)), "family")
+    mean, _, share = poor[2].partition(" % over 1000 splits")
+    above = int(share.split("3 new; ")[1].split(" %")[0])
+    assert 0 < float(mean) <= 20.0 + 3.0 and above > 0      # alpha, and the draws' noise
+    # a study that saved no calibration scores has no such row
+    assert targets.redrawn_bound_row({"kept": "GRU", "variants": {"GRU": _variant(
+        [0.9], 0.03, [0], 0.5, [0.9], [0.1])}}, "family") is None
