@@ -80,6 +80,9 @@ def main():
                         "cross-track error and heading; given with none: off)")
     p.add_argument("--state-weight", type=float, default=defaults.state_weight,
                    help="the weight of that estimate's squared error beside the failure loss")
+    p.add_argument("--weight-average", type=float, default=defaults.weight_average,
+                   help="the share of each training stage's last epochs whose weights are "
+                        "averaged (stochastic weight averaging; 0: off)")
     p.add_argument("--nights", action="store_true",
                    help="also judge on the paper's held-out 21 h environments (KSFO, KEWR)")
     p.add_argument("--detector", default=None, metavar="CHECKPOINT",
@@ -101,7 +104,7 @@ def main():
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
         input_norm=args.input_norm, seed=args.train_seed, lr_schedule=args.lr_schedule,
-        ensemble=args.ensemble, keep=args.keep, pool=list(args.pool), state_weight=args.state_weight,
+        ensemble=args.ensemble, keep=args.keep, weight_average=args.weight_average, pool=list(args.pool), state_weight=args.state_weight,
         state_targets=None if args.state_targets is None else list(args.state_targets),
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])

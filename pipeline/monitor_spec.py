@@ -174,6 +174,11 @@ class MonitorStudySpec:
 
     ``state_weight``: the weight of the ``state_targets`` error in the encoder's loss.
 
+    ``weight_average``: the share of each training stage's last epochs whose weights are
+    averaged into the trained monitor (stochastic weight averaging,
+    `reachwatch.training.history_train.HistoryTrainConfig`); 0: off. One network
+    online, whatever the share.
+
     ``guarded_runs``: starts per judged environment (of the family, and outside it)
     also run in the guarded real loop with the kept variant, the single-frame one and
     the oracle; 0: none.
@@ -230,6 +235,7 @@ class MonitorStudySpec:
     lr_schedule: str = "constant"
     state_targets: Optional[List[int]] = None
     state_weight: float = bounded_as(1.0, HistoryTrainConfig, "state_weight")
+    weight_average: float = bounded_as(0.0, HistoryTrainConfig, "weight_average")
     guarded_runs: int = bounded(0, 0, 100_000, whole=True)
     compare_detector: bool = True
     variants: List[MonitorVariant] = dc.field(default_factory=default_variants)

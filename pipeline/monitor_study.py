@@ -357,14 +357,16 @@ def train_settings(spec: MonitorStudySpec, application=None) -> HistoryTrainConf
     """The optimisation settings the study trains its monitors with: the run file's
     ``epochs``, ``head_epochs``, ``augment``, ``seed``, ``lr_schedule``,
     ``state_targets`` (left out: ``application``'s `estimated_state`; None: the default
-    application's) and ``state_weight``, the rest `HistoryTrainConfig`'s."""
+    application's), ``state_weight`` and ``weight_average``, the rest
+    `HistoryTrainConfig`'s."""
     targets = spec.state_targets
     if targets is None:
         targets = (load_application() if application is None else application).estimated_state
     return HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs,
                               augment=spec.augment, seed=spec.seed,
                               lr_schedule=spec.lr_schedule, state_targets=tuple(targets),
-                              state_weight=spec.state_weight)
+                              state_weight=spec.state_weight,
+                              weight_average=spec.weight_average)
 
 
 def member_settings(spec: MonitorStudySpec, application=None) -> list:

@@ -241,3 +241,56 @@ def test_state_targets_teach_the_encoder_what_the_frame_shows_of_the_state():
         with pytest.raises(ValueError, match=r"^state_targets must list distinct state "
                                              r"components \(whole numbers >= 0\), got "):
             HistoryTrainConfig(state_targets=bad)
+
+
+def test_weight_averaging_returns_the_mean_of_the_last_epochs_weights(monkeypatch):
+    """``weight_average``: the model a stage returns holds the mean of the weights at the
+    ends of its last epochs (their share), and the encoder's BatchNorm statistics are
+    those of the training ticks under those weights; 0 is a training without it, bit
+    for bit."""
+    runs = _runs(0, 8)
+    labels = tick_labels(runs, period=PERIOD, duration=DURATION, within=0.5)
+    config = HistoryMonitorConfig(frames=2, height=16, width=16, channels=[4], features=4,
+                                  hidden=4, within=0.5)
+    plain = HistoryTrainConfig(epochs=4, head_epochs=4, batch_size=16, tick_stride=1)
+    # the weights at each epoch's end, recorded where the mean takes them
+    ends = []
+    update = torch.optim.swa_utils.AveragedModel.update_parameters
+
+    def recording(self, model):
+        ends.append([p.detach().clone() for p in model.parameters()])
+        return update(self, model)
+
+    monkeypatch.setattr(torch.optim.swa_utils.AveragedModel, "update_parameters", recording)
+    averaged = dc.replace(plain, weight_average=0.5)
+    encoder = train_encoder(runs, labels, config, averaged)
+    assert len(ends) == 2                                   # the last 2 of 4 epochs
+    for got, *seen in zip(encoder.parameters(), *ends):
+        torch.testing.assert_close(got, torch.stack(seen).mean(dim=0))
+    # BatchNorm: each batch of the training ticks (the stage's batch size, in order)
+    # weighs the same in its mean, under the averaged weights
+    norm = encoder.encoder[1]
+    rows, cols = np.nonzero(labels >= 0)
+    from reachwatch.systems import detector_input
+    from reachwatch.systems.history_model import normalised
+    x = normalised(detector_input(torch.from_numpy(runs["frames"][rows, cols]),
+                                  config.image_config), config.input_norm)
+    with torch.no_grad():
+        conv = encoder.encoder[0](x)
+    batches = torch.stack([conv[i:i + 16].mean(dim=(0, 2, 3)) for i in range(0, len(conv), 16)])
+    torch.testing.assert_close(norm.running_mean, batches.mean(dim=0), rtol=1e-4, atol=1e-6)
+    ends.clear()
+    features = encode_runs(encoder, runs)
+    head = train_head(encoder, features, runs, labels, config, averaged)
+    assert len(ends) == 2
+    for got, *seen in zip(head.parameters(), *ends):
+        torch.testing.assert_close(got, torch.stack(seen).mean(dim=0))
+    # off: the plain training's weights, bit for bit, with no mean taken
+    ends.clear()
+    again = train_encoder(runs, labels, config, dc.replace(plain, weight_average=0.0))
+    first = train_encoder(runs, labels, config, plain)
+    assert not ends
+    for a, b in zip(again.state_dict().values(), first.state_dict().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match=r"weight_average must be a finite number in \[0, 1\)"):
+        HistoryTrainConfig(weight_average=1.0)

@@ -41,7 +41,13 @@ class HistoryTrainConfig:
     linear read-out dropped after training), so that its features carry what the state
     is, not only what the training environments' failures looked like; ``[]``: none
     (the encoder's weights are then those of a training without the option). The state
-    is privileged: it is read in training only, never online."""
+    is privileged: it is read in training only, never online.
+    ``weight_average``: the share of each stage's last epochs whose end-of-epoch weights
+    are averaged into the model it returns (stochastic weight averaging, Izmailov et
+    al. 2018: the mean of points along one training's path, which lands nearer the
+    middle of a flat region than its last point); the encoder's BatchNorm statistics
+    are then measured again on the training ticks as inference sees them (no jitter).
+    0: off, the last epoch's weights, bit for bit those of a training without it."""
     epochs: int = 12
     head_epochs: int = 40
     head_learning_rate: float = 3e-3
@@ -54,6 +60,7 @@ class HistoryTrainConfig:
     lr_schedule: str = "constant"
     state_targets: tuple = ()
     state_weight: float = bounded(1.0, 0.0, 1e6, low_open=True, high_open=True)
+    weight_average: float = bounded(0.0, 0.0, 1.0, high_open=True)
 
     def __post_init__(self):
         if self.lr_schedule not in LR_SCHEDULES:
@@ -101,6 +108,57 @@ def _schedule(optimiser, train: HistoryTrainConfig, steps: int):
     return None
 
 
+def averaged_epochs(train: HistoryTrainConfig, epochs: int) -> int:
+    """How many of a stage's ``epochs`` last epochs ``train.weight_average`` averages (0:
+    none; at least one when on)."""
+    if train.weight_average <= 0:
+        return 0
+    return max(1, round(train.weight_average * epochs))
+
+
+class _WeightMean:
+    """The running mean of a model's parameters at the ends of its last epochs
+    (`torch.optim.swa_utils.AveragedModel`), copied into it at the end."""
+
+    def __init__(self, model, train: HistoryTrainConfig, epochs: int):
+        self.first = epochs - averaged_epochs(train, epochs)
+        self.mean = None if self.first >= epochs else \
+            torch.optim.swa_utils.AveragedModel(model, use_buffers=False)
+        self.model = model
+
+    def epoch_done(self, epoch: int):
+        if self.mean is not None and epoch >= self.first:
+            self.mean.update_parameters(self.model)
+
+    def into_model(self) -> bool:
+        """Copies the mean into the model; False when nothing was averaged."""
+        if self.mean is None:
+            return False
+        with torch.no_grad():
+            for mine, mean in zip(self.model.parameters(), self.mean.module.parameters()):
+                mine.copy_(mean)
+        return True
+
+
+@torch.no_grad()
+def _measure_batch_norm(model: HistoryRiskModel, frames, rows, cols, batch_size: int):
+    """Each BatchNorm's running statistics measured again, as the plain mean over the
+    ticks ``rows, cols`` (`torch.optim.swa_utils.update_bn`'s way), after the weights
+    were averaged."""
+    norms = [m for m in model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+    momenta = [m.momentum for m in norms]
+    for m in norms:
+        m.reset_running_stats()
+        m.momentum = None                       # cumulative: every batch weighs the same
+    model.train()
+    for i in range(0, len(rows), batch_size):
+        x = detector_input(torch.from_numpy(frames[rows[i:i + batch_size], cols[i:i + batch_size]]),
+                           model.config.image_config)
+        model.encode_input(x)
+    for m, momentum in zip(norms, momenta):
+        m.momentum = momentum
+
+
 def tick_labels(runs: dict, *, period: float, duration: float, within: float) -> np.ndarray:
     """``(R, T)`` int8: 1 where the run fails within ``within`` s of the tick, 0 where
     it does not, -1 where censoring leaves it unknown or the run had ended."""
@@ -144,6 +202,7 @@ def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
     frames = runs["frames"]
     jitter = torch.Generator().manual_seed(train.seed) if train.augment else None
     schedule = _schedule(optimiser, train, train.epochs * -(-len(rows) // train.batch_size))
+    averaged = _WeightMean(model, train, train.epochs)
     for epoch in range(train.epochs):
         model.train()
         order = rng.permutation(len(rows))
@@ -164,9 +223,12 @@ def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
             if schedule is not None:
                 schedule.step()
             total += loss.item() * len(b)
+        averaged.epoch_done(epoch)
         if progress:        # the epoch's mean: one batch's loss is as noisy as its draw
             progress(f"encoder epoch {epoch + 1}/{train.epochs}: mean loss "
                      f"{total / len(order):.3f}")
+    if averaged.into_model():
+        _measure_batch_norm(model, frames, rows, cols, train.batch_size)
     return model.eval()
 
 
@@ -226,7 +288,8 @@ def train_head(encoder: HistoryRiskModel, features: np.ndarray, runs: dict,
     weight = _pos_weight(labels[rows, cols])
     schedule = _schedule(optimiser, train,
                          train.head_epochs * -(-len(rows) // (4 * train.batch_size)))
-    for _ in range(train.head_epochs):
+    averaged = _WeightMean(model, train, train.head_epochs)
+    for epoch in range(train.head_epochs):
         model.train()
         order = torch.from_numpy(rng.permutation(len(rows)))
         for i in range(0, len(order), 4 * train.batch_size):
@@ -238,6 +301,8 @@ def train_head(encoder: HistoryRiskModel, features: np.ndarray, runs: dict,
             optimiser.step()
             if schedule is not None:
                 schedule.step()
+        averaged.epoch_done(epoch)
+    averaged.into_model()           # the frozen encoder's parameters: their own mean
     return model.eval()
 
 
