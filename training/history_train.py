@@ -46,7 +46,8 @@ class HistoryTrainConfig:
     are averaged into the model it returns (stochastic weight averaging, Izmailov et
     al. 2018: the mean of points along one training's path, which lands nearer the
     middle of a flat region than its last point); the encoder's BatchNorm statistics
-    are then measured again on the training ticks as inference sees them (no jitter).
+    are then measured again on the training ticks as inference sees them (no jitter,
+    batches in a seeded random order).
     0: off, the last epoch's weights, bit for bit those of a training without it."""
     epochs: int = 12
     head_epochs: int = 40
@@ -141,22 +142,29 @@ class _WeightMean:
 
 
 @torch.no_grad()
-def _measure_batch_norm(model: HistoryRiskModel, frames, rows, cols, batch_size: int):
-    """Each BatchNorm's running statistics measured again, as the plain mean over the
-    ticks ``rows, cols`` (`torch.optim.swa_utils.update_bn`'s way), after the weights
-    were averaged."""
+def _measure_batch_norm(model: HistoryRiskModel, frames, rows, cols, train: HistoryTrainConfig):
+    """Each BatchNorm's running statistics measured again after the weights were
+    averaged (`torch.optim.swa_utils.update_bn`'s way: the mean of the batches'
+    statistics, each batch weighing the same), over the ticks ``rows, cols`` in batches
+    of ``train.batch_size`` drawn in a seeded random order, as training drew them: in
+    the ticks' own order a batch holds one or two runs of one environment, and the
+    spread between runs and environments would be left out of the variances."""
     norms = [m for m in model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
     momenta = [m.momentum for m in norms]
-    for m in norms:
-        m.reset_running_stats()
-        m.momentum = None                       # cumulative: every batch weighs the same
-    model.train()
-    for i in range(0, len(rows), batch_size):
-        x = detector_input(torch.from_numpy(frames[rows[i:i + batch_size], cols[i:i + batch_size]]),
-                           model.config.image_config)
-        model.encode_input(x)
-    for m, momentum in zip(norms, momenta):
-        m.momentum = momentum
+    order = np.random.default_rng([train.seed, 1]).permutation(len(rows))
+    try:
+        for m in norms:
+            m.reset_running_stats()
+            m.momentum = None                   # cumulative: every batch weighs the same
+        model.train()
+        for i in range(0, len(order), train.batch_size):
+            b = order[i:i + train.batch_size]
+            model.encode_input(detector_input(torch.from_numpy(frames[rows[b], cols[b]]),
+                                              model.config.image_config))
+    finally:
+        for m, momentum in zip(norms, momenta):
+            m.momentum = momentum
+        model.eval()
 
 
 def tick_labels(runs: dict, *, period: float, duration: float, within: float) -> np.ndarray:
@@ -228,7 +236,7 @@ def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
             progress(f"encoder epoch {epoch + 1}/{train.epochs}: mean loss "
                      f"{total / len(order):.3f}")
     if averaged.into_model():
-        _measure_batch_norm(model, frames, rows, cols, train.batch_size)
+        _measure_batch_norm(model, frames, rows, cols, train)
     return model.eval()
 
 
