@@ -104,10 +104,15 @@ def main():
         epochs=args.epochs, head_epochs=args.head_epochs, guarded_runs=args.guarded_runs,
         flag_rules=[_rule(p, r) for r in args.flag_rules], augment=not args.no_augment,
         input_norm=args.input_norm, seed=args.train_seed, lr_schedule=args.lr_schedule,
-        ensemble=args.ensemble, keep=args.keep, weight_average=args.weight_average, pool=list(args.pool), state_weight=args.state_weight,
+        ensemble=args.ensemble, keep=args.keep,
+        weight_average=args.weight_average, pool=list(args.pool), state_weight=args.state_weight,
         state_targets=None if args.state_targets is None else list(args.state_targets),
         also_held_out=[Environment(r, 21.0, s) for r in ("KSFO", "KEWR")
                        for s in ("clear", "overcast")] if args.nights else [])
+    if len(args.flag_rules) > 1 and args.keep != "choose":
+        p.error(f"--flag-rules lists {len(args.flag_rules)} rules, and the kept monitor is "
+                f"fixed in advance: give one rule, or add --keep choose to choose the variant "
+                f"and rule on the calibration environments")
     try:
         spec.validate()
     except ValueError as e:

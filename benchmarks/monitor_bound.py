@@ -75,7 +75,7 @@ def draw_figures(environments, calibrate: int, alpha: float, *, draws: int,
                 out[mode]["refused"] += 1
                 continue
             _judge_new(out[mode], new, tau)
-    return {m: _summary(f, draws, alpha) for m, f in out.items()}
+    return {m: _summary(f, draws, alpha, given_failures=MODES[m]) for m, f in out.items()}
 
 
 def _tally() -> dict:
@@ -98,10 +98,13 @@ def _judge_new(f: dict, new, tau: float):
         f["needless"].append(sum(int(np.sum(s >= tau)) for _, s in new) / safe)
 
 
-def _summary(f: dict, draws: int, alpha: float) -> dict:
+def _summary(f: dict, draws: int, alpha: float, *, given_failures: bool = False) -> dict:
+    """The means over draws of a tally; ``over alpha`` of the quantity the threshold
+    bounds (with ``given_failures``, the mean over new environments where runs fail)."""
     mean = lambda v: float(np.mean(v)) if v else float("nan")
     quantile = lambda v, q: float(np.quantile(v, q)) if v else float("nan")
-    return {"E[miss]": mean(f["every"]), "over alpha": mean([m > alpha for m in f["every"]]),
+    bounded = f["fails"] if given_failures else f["every"]
+    return {"E[miss]": mean(f["every"]), "over alpha": mean([m > alpha for m in bounded]),
             "E[miss | fails]": mean(f["fails"]),
             "p90 | fails": quantile(f["shares"], 0.9),
             "pooled": mean(f["pooled"]), "needless": mean(f["needless"]),
@@ -111,15 +114,16 @@ def _summary(f: dict, draws: int, alpha: float) -> dict:
 
 
 def choice_figures(candidates: dict, calibrate: int, alpha: float, *, draws: int,
-                   seed: int = 0) -> dict:
+                   seed: int = 0, given_failures: bool = False) -> dict:
     """The study's choice of its kept monitor, repeated in every draw: of
     ``candidates`` (``{name: environments}``, each as `draw_figures` takes them, in the
     same order), the one with the fewest needless flags on the draw's calibration
-    environments at its own conformal threshold (fixed there; a candidate without one
-    is skipped), judged on the draw's new environments. Returns ``{"chosen": figures,
-    "fixed": figures of the first candidate in every draw, "times chosen": {name:
-    draws}}`` (figures as `draw_figures`' ``every`` mode; the same draws as it for the
-    same ``seed``)."""
+    environments at its own conformal threshold (fixed there, on those with a warnable
+    failing run alone with ``given_failures``; a candidate without one is skipped),
+    judged on the draw's new environments. Returns ``{"chosen": figures, "fixed":
+    figures of the first candidate in every draw, "times chosen": {name: draws}}``
+    (figures as `draw_figures`' mode of the same ``given_failures``; the same draws as
+    it for the same ``seed``)."""
     names = list(candidates)
     count = len(candidates[names[0]])
     if any(len(envs) != count for envs in candidates.values()):
@@ -135,7 +139,8 @@ def choice_figures(candidates: dict, calibrate: int, alpha: float, *, draws: int
         for name in names:
             cal = [candidates[name][i] for i in order[:calibrate]]
             try:
-                tau = conformal_threshold([w for w, _ in cal], alpha).threshold
+                tau = conformal_threshold([w for w, _ in cal], alpha,
+                                          given_failures=given_failures).threshold
             except NoConformalThreshold:
                 if name == names[0]:
                     fixed["refused"] += 1
@@ -152,7 +157,8 @@ def choice_figures(candidates: dict, calibrate: int, alpha: float, *, draws: int
             continue
         times[best[1]] += 1
         _judge_new(chosen, best[2], best[3])
-    return {"chosen": _summary(chosen, draws, alpha), "fixed": _summary(fixed, draws, alpha),
+    summary = dict(draws=draws, alpha=alpha, given_failures=given_failures)
+    return {"chosen": _summary(chosen, **summary), "fixed": _summary(fixed, **summary),
             "times chosen": times}
 
 
@@ -177,13 +183,23 @@ def rule_candidates(folder, rules, *, period: float) -> dict:
                 continue
             data = [g for split in ("calibrate", "held_out")
                     for g in saved_risks(saved, variant, split)]
-            for rule in rules:
+            kept = "{}/{}".format(*result["variants"][variant].get("flag_rule", [1, 1]))
+            by_rule = {}
+            for rule in dict.fromkeys([kept, *rules]):
                 k, n = (int(v) for v in rule.split("/"))
-                out[f"{variant}, {rule}"] = [
-                    (np.asarray(d["warning"], float), np.asarray(d["safe_max"], float))
-                    for d in (decisive_scores(k_of_n_risks(r, k, n), t, f, period=period,
-                                              lead=result["lead_s"], fails_after=a)
-                              for r, t, f, a in data)]
+                envs = [(np.asarray(d["warning"], float), np.asarray(d["safe_max"], float))
+                        for d in (decisive_scores(k_of_n_risks(r, k, n), t, f, period=period,
+                                                  lead=result["lead_s"], fails_after=a)
+                                  for r, t, f, a in data)]
+                # the variant's own rule must give the scores its study saved: else the
+                # period given is not the study's, and every warning is read wrong
+                if rule == kept and any(len(w) != len(s) or not np.allclose(w, s) for (w, _), (
+                        s, _) in zip(envs, family_environments(result, variant))):
+                    raise ValueError(f"{folder}: {variant!r} under its rule {kept} does not "
+                                     f"give the warning scores its study saved: give the "
+                                     f"study's --period (now {period:g} s)")
+                by_rule[rule] = envs
+            out.update({f"{variant}, {rule}": by_rule[rule] for rule in rules})
     return out
 
 
@@ -213,12 +229,15 @@ def main():
                    help="the control period (s), for --choose-among")
     args = p.parse_args()
     if args.choose_among:
+        if args.variants:
+            p.error("--choose-among chooses among every variant: leave out --variants")
         for rule in args.choose_among:
             k, _, n = rule.partition("/")
             if not (k.isdigit() and n.isdigit()):
                 p.error(f"--choose-among takes K/N rules such as 2/3, got {rule!r}")
         return _choice_table(args)
-    print("| study | variant | threshold fixed on | E[miss] | draws over alpha | E[miss given fails] | "
+    print("| study | variant | threshold fixed on | E[miss] | draws over alpha | "
+          "E[miss given fails] | "
           "p90 given fails | pooled miss | needless | needless p10-p90 | refused |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for folder in args.studies:
@@ -247,11 +266,16 @@ def _choice_table(args):
     chosen_counts = []
     for folder in args.studies:
         result = read_study_result(Path(folder) / "monitor.json")
-        candidates = rule_candidates(folder, args.choose_among, period=args.period)
+        try:
+            candidates = rule_candidates(folder, args.choose_among, period=args.period)
+        except ValueError as e:
+            raise SystemExit(f"monitor_bound.py: {e}") from None
         calibrate = args.calibrate or len(
             next(iter(result["variants"].values()))["scores"]["calibrate"])
+        given = bool(next(v for n, v in result["variants"].items()
+                          if n != DETECTOR_ROW).get("given_failures"))
         f = choice_figures(candidates, calibrate, result["alpha"], draws=args.draws,
-                           seed=args.seed)
+                           seed=args.seed, given_failures=given)
         name = Path(folder).name
         print(f"| {name} | chosen in each draw among {len(candidates)} | " + _cells(f["chosen"]))
         print(f"| {name} | fixed: {next(iter(candidates))} | " + _cells(f["fixed"]))

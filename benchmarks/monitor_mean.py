@@ -3,13 +3,18 @@ again: is an ensemble worth building before it is built?
 
 Each monitor is a variant of a finished study (``STUDY:VARIANT``, or ``STUDY`` for
 every variant of it); the studies must have recorded the same runs (the same family,
-splits, run counts and cache: only their training differs). The mean is taken over
-the monitors' calibrated risks in logit space at every tick, then judged as one
-monitor under the 1-of-1 rule: its calibration and held-out environments' scores
-redrawn ``--draws`` times into calibration and new environments as
-``benchmarks/monitor_bound.py`` does (E[miss], pooled miss, needless flags at the
+splits, run counts and cache: only their training differs; checked, and the run
+length against ``--period`` and ``--duration``). The mean is taken over the monitors'
+calibrated risks at every tick (as ``benchmarks/monitor_seeds.py`` takes it; the
+library's ``monitor.ensemble`` averages raw risks and calibrates the mean), then
+judged as one monitor under the 1-of-1 rule: its calibration and held-out
+environments' scores redrawn ``--draws`` times into calibration and new environments
+as ``benchmarks/monitor_bound.py`` does (E[miss], pooled miss, needless flags at the
 conformal threshold), and the worst held-out environment's AUROC of "fails within
-``within`` s" on the study's own split. Each monitor alone gets the same rows.
+``within`` s" on the study's own split. Each monitor alone gets the same rows. Each
+study's Platt scaling was fitted on its own calibration environments, some of which a
+draw judges as new: the weights the members get in the mean saw them (slightly
+optimistic; the ranking of one monitor alone does not depend on it).
 
     python benchmarks/monitor_mean.py R40 R40_s1                 # every variant of both
     python benchmarks/monitor_mean.py "R40:single frame" "R40_s1:single frame"
@@ -25,16 +30,10 @@ from monitor_bound import draw_figures
 from reachwatch.pipeline.monitor_judge import watch_s
 from reachwatch.pipeline.monitor_sections import read_study_result
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
-from reachwatch.pipeline.monitor_study import saved_risks
+from reachwatch.pipeline.monitor_study import check_run_length, check_same_runs, saved_risks
 from reachwatch.training.monitor_eval import decisive_scores, tick_auroc
 
 SPLITS = ("calibrate", "held_out")
-RUN_KEYS = ("ticks", "failure_time", "environment")
-
-
-def _logit(p):
-    p = np.clip(np.asarray(p, float), 1e-6, 1 - 1e-6)
-    return np.log(p / (1 - p))
 
 
 def monitors(names) -> list:
@@ -53,22 +52,9 @@ def monitors(names) -> list:
     return out
 
 
-def check_same_runs(saved: dict):
-    """Raises ValueError unless the open ``risks.npz`` files ``saved`` (by folder) hold
-    the same runs: ticks, failure times and environments in every split."""
-    folders = list(saved)
-    for f in folders[1:]:
-        for s in SPLITS:
-            for key in RUN_KEYS:
-                if not np.array_equal(saved[f][f"{s}/{key}"], saved[folders[0]][f"{s}/{key}"],
-                                      equal_nan=key == "failure_time"):
-                    raise ValueError(f"{f} and {folders[0]} did not record the same runs "
-                                     f"({s}/{key} differ)")
-
-
 def mean_groups(chosen, saved: dict) -> dict:
     """``{split: [(risks per run, ticks, failure, fails_after) per environment]}`` of the
-    mean of ``chosen`` monitors' risks (logit space), from the open ``risks.npz`` files
+    mean of ``chosen`` monitors' calibrated risks, from the open ``risks.npz`` files
     ``saved`` (by folder)."""
     per = [{s: saved_risks(saved[folder], variant, s) for s in SPLITS}
            for _, folder, variant in chosen]
@@ -76,8 +62,7 @@ def mean_groups(chosen, saved: dict) -> dict:
     for s in SPLITS:
         groups = []
         for e, (_, ticks, failure, after) in enumerate(per[0][s]):
-            runs = [1 / (1 + np.exp(-np.mean([_logit(m[s][e][0][i]) for m in per], axis=0)))
-                    for i in range(len(ticks))]
+            runs = [np.mean([m[s][e][0][i] for m in per], axis=0) for i in range(len(ticks))]
             groups.append((runs, ticks, failure, after))
         out[s] = groups
     return out
@@ -93,7 +78,8 @@ def judged(groups: dict, saved_file, *, alpha, lead, period, watch, within, draw
             envs.append((np.asarray(d["warning"], float), np.asarray(d["safe_max"], float)))
     calibrate = len(groups["calibrate"])
     f = draw_figures(envs, calibrate, alpha, draws=draws, seed=seed)["every"]
-    watched = saved_file["held_out/watched_failure_time"]
+    watched = saved_file["held_out/watched_failure_time" if "held_out/watched_failure_time"
+                         in saved_file.files else "held_out/failure_time"]
     env = saved_file["held_out/environment"]
     aurocs = [tick_auroc(risks, ticks, watched[env == e], period=period, duration=watch,
                          within=within)
@@ -121,7 +107,9 @@ def main():
                 p.error(f"{f}: {key} {results[f][key]}, {folders[0]}: {first[key]}")
     saved = {f: np.load(f / "risks.npz") for f in folders}
     try:
-        check_same_runs(saved)
+        check_same_runs(saved, SPLITS)
+        for f in folders:
+            check_run_length(saved[f], period=args.period, duration=args.duration)
     except ValueError as e:
         p.error(str(e))
     within = first["within_s"]

@@ -33,7 +33,8 @@ import numpy as np
 
 from reachwatch.pipeline.monitor_sections import read_study_result, run_ranking
 from reachwatch.pipeline.monitor_judge import fails_after
-from reachwatch.pipeline.monitor_study import choose_flag_rule, judge_environments
+from reachwatch.pipeline.monitor_study import (check_run_length, check_same_runs,
+                                               choose_flag_rule, judge_environments)
 from reachwatch.training.monitor_eval import decisive_scores, rate, tick_auroc
 
 SPLITS = ("calibrate", "held_out", "also_held_out")
@@ -102,17 +103,11 @@ def main():
                         f"the studies must differ only in how they trained")
         if list(study["variants"]) != list(first["variants"]):
             p.error(f"{out} trained other variants than {args.outs[0]}")
-    lengths = {int(n) for split in SPLITS for n in saved[0][f"{split}/ticks"][
-        ~np.isfinite(saved[0][f"{split}/failure_time"])]}
-    if lengths and lengths != {round(args.duration / args.period) + 1}:
-        p.error(f"runs that did not fail have {sorted(lengths)} ticks: give the study's "
-                f"--period and --duration (now {args.period:g} s, {args.duration:g} s)")
-    for s in saved[1:]:
-        for split in SPLITS:
-            for key in ("ticks", "failure_time", "environment"):
-                if not np.array_equal(s[f"{split}/{key}"], saved[0][f"{split}/{key}"],
-                                      equal_nan=key == "failure_time"):
-                    p.error(f"the studies did not record the same runs ({split}/{key} differ)")
+    try:
+        check_run_length(saved[0], period=args.period, duration=args.duration)
+        check_same_runs(dict(zip(args.outs, saved)), SPLITS)
+    except ValueError as e:
+        p.error(str(e))
     # a study saved before the longer watch is judged on its recordings alone
     watched = f"{SPLITS[0]}/watched_failure_time" in saved[0]
     spec = types.SimpleNamespace(alpha=first["alpha"], duration=args.duration,

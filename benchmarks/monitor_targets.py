@@ -151,9 +151,11 @@ def redrawn_bound_row(result: dict, name: str):
     how = ("the kept monitor fixed before calibration" if among == 0 else
            "the kept monitor's choice on the calibration environments not repeated in the "
            "draws (it raises the miss rate)")
+    bounded, over = (("E[miss | fails]", "where runs fail") if mode == "given failures"
+                     else ("E[miss]", "an environment without failures counting 0"))
     return ["the conformal bound (alpha) on the mean miss rate, over redrawn splits "
             "(context for the row above: no verdict)", name,
-            f"{100 * f['E[miss]']:.1f} % over {REDRAWS} splits of the {calibrate + judged} "
+            f"{100 * f[bounded]:.1f} % ({over}) over {REDRAWS} splits of the {calibrate + judged} "
             f"environments ({calibrate} to calibrate, {judged} new; "
             f"{100 * f['over alpha']:.0f} % of the groups of {judged} read above alpha, "
             f"{100 * f['refused']:.0f} % of draws refused); {how}. For a monitor fixed in "

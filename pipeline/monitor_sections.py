@@ -157,8 +157,9 @@ def kept_text(result: dict) -> str:
     if among == 0:
         return (" The kept monitor and its flag rule were fixed before the calibration "
                 "environments were seen: the bound is exact for it.")
-    return (f" The kept monitor was chosen{f' among {among} (variants and flag rules)' if among else ''} "
-            f"on the same calibration environments, which the bound does not account for: "
+    among = f" among {among} (variants and flag rules)" if among else ""
+    return (f" The kept monitor was chosen{among} on the same calibration environments, "
+            f"which the bound does not account for: "
             f"it is exact for a monitor fixed before them, and the chosen one's miss rate on "
             f"new environments is higher (monitor.keep).")
 

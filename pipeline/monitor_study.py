@@ -200,8 +200,9 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                                progress=progress, log=log, lead=lead, read_alone=read_alone)
                if spec.guarded_runs and data[k] else {} for k in ("held_out", "also_held_out")}
     result = {"lead_s": lead, "within_s": spec.within, "alpha": spec.alpha, "kept": kept,
-              "kept_chosen_among": 0 if spec.kept_in_advance else
-              len(spec.variants) * len(spec.flag_rules),
+              # 0: fixed in advance, or the one candidate there was
+              "kept_chosen_among": 0 if spec.kept_in_advance or len(spec.variants) * len(
+                  spec.flag_rules) == 1 else len(spec.variants) * len(spec.flag_rules),
               "ensemble": spec.ensemble,
               "failing_runs": failing, "variants": results, "oracle": oracle,
               "prediction_error_auroc_4s": baseline, "guarded": guarded["held_out"],
@@ -307,7 +308,6 @@ def _save_risks(path, data, all_risks, judged):
     atomic_write_bytes(path, buffer.getvalue())
 
 
-
 def saved_risks(saved, variant: str, split: str) -> list:
     """What `_save_risks` wrote of ``variant`` in ``split``, read back from the open
     ``risks.npz`` ``saved``, per environment: ``(risks per run, ticks, failure times,
@@ -323,6 +323,33 @@ def saved_risks(saved, variant: str, split: str) -> list:
     runs = np.split(flat, np.cumsum(ticks)[:-1]) if len(ticks) else []
     return [([runs[i] for i in np.flatnonzero(env == e)], ticks[env == e], failure[env == e],
              after[env == e]) for e in range(len(saved[f"{split}/names"]))]
+
+
+def check_same_runs(saved: dict, splits=("calibrate", "held_out", "also_held_out")):
+    """Raises ValueError unless the open ``risks.npz`` files ``saved`` (by name) hold the
+    same runs: ticks, failure times and environments in every one of ``splits``."""
+    names = list(saved)
+    for name in names[1:]:
+        for split in splits:
+            for key in ("ticks", "failure_time", "environment"):
+                if not np.array_equal(saved[name][f"{split}/{key}"],
+                                      saved[names[0]][f"{split}/{key}"],
+                                      equal_nan=key == "failure_time"):
+                    raise ValueError(f"{name} and {names[0]} did not record the same runs "
+                                     f"({split}/{key} differ)")
+
+
+def check_run_length(saved, *, period: float, duration: float):
+    """Raises ValueError unless the runs of the open ``risks.npz`` ``saved`` that did not
+    fail last ``duration`` s at ``period`` s a tick: a benchmark given another period
+    or duration than its study's would read every warning and label wrong."""
+    lengths = {int(n) for split in ("calibrate", "held_out", "also_held_out")
+               if f"{split}/ticks" in saved.files
+               for n in saved[f"{split}/ticks"][~np.isfinite(saved[f"{split}/failure_time"])]}
+    if lengths and lengths != {round(duration / period) + 1}:
+        raise ValueError(f"runs that did not fail have {sorted(lengths)} ticks, not "
+                         f"{round(duration / period) + 1}: give the study's period and "
+                         f"duration (now {period:g} s and {duration:g} s)")
 
 #: Bumped when the study's results change for the same inputs (2: the oracle's and the
 #: nights' guarded rows; 3: the encoder trains on colour-jittered frames; 4: the starts

@@ -1,6 +1,6 @@
 """benchmarks/monitor_mean.py: the mean of finished studies' risks, judged as one
 monitor. Two fake studies of the same runs: a monitor averaged with itself is itself,
-two that disagree average in logit space, and studies of other runs are refused."""
+two that disagree average, and studies of other runs are refused."""
 
 import importlib.util
 import json
@@ -52,9 +52,8 @@ def test_the_mean_of_a_monitor_and_itself_is_that_monitor_and_two_average_in_log
         for a, b in zip(alone[split], both[split]):
             for ra, rb in zip(a[0], b[0]):
                 np.testing.assert_allclose(ra, rb, rtol=1e-6)
-    # 0.2 and 0.8 are -x and x in logits: their mean is 0.5
     mixed = mean.mean_groups([chosen[0], (None, other, "v")], saved)
-    np.testing.assert_allclose(mixed["held_out"][0][0][0], 0.5, atol=1e-6)
+    np.testing.assert_allclose(mixed["held_out"][0][0][0], 0.5, atol=1e-6)     # 0.2, 0.8
 
 
 def test_a_variant_the_study_lacks_is_named(tmp_path):
@@ -67,6 +66,11 @@ def test_studies_of_other_runs_are_refused(tmp_path):
     one = _study(tmp_path / "one", lambda split, i: 0.5)
     same = _study(tmp_path / "same", lambda split, i: 0.7)
     longer = _study(tmp_path / "longer", lambda split, i: 0.5, ticks=(5, 3, 5, 6))
-    mean.check_same_runs({f: np.load(f / "risks.npz") for f in (one, same)})
+    mean.check_same_runs({f: np.load(f / "risks.npz") for f in (one, same)}, mean.SPLITS)
     with pytest.raises(ValueError, match="did not record the same runs .calibrate/ticks differ"):
-        mean.check_same_runs({f: np.load(f / "risks.npz") for f in (one, longer)})
+        mean.check_same_runs({f: np.load(f / "risks.npz") for f in (one, longer)}, mean.SPLITS)
+    # runs that did not fail last the study's duration: 5 ticks of 0.1 s is 0.4 s
+    mean.check_run_length(np.load(one / "risks.npz"), period=0.1, duration=0.4)
+    with pytest.raises(ValueError, match=r"runs that did not fail have \[5\] ticks, not 9: "
+                                         r"give the study's period and duration"):
+        mean.check_run_length(np.load(one / "risks.npz"), period=0.05, duration=0.4)

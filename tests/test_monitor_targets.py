@@ -98,14 +98,20 @@ def test_the_bound_over_redrawn_splits_reads_the_saved_calibration_and_held_out_
         row["scores"] = {"calibrate": envs[:9], "held_out": envs[9:]}
         return {"kept": "GRU", "alpha": 0.2, "kept_chosen_among": 0, "variants": {"GRU": row}}
     good = targets.redrawn_bound_row(result([0.9] * 12), "family")
-    assert good[2].startswith("0.0 % over 1000 splits of the 12 environments (9 to "
-                              "calibrate, 3 new; 0 % of the groups") and good[3] == "-"
+    assert good[2].startswith("0.0 % (an environment without failures counting 0) over "
+                              "1000 splits of the 12 environments (9 to calibrate, 3 new; "
+                              "0 % of the groups") and good[3] == "-"
     assert "fixed before calibration" in good[2]
     rng = np.random.default_rng(0)
     poor = targets.redrawn_bound_row(result(rng.uniform(0, 1, 12)), "family")
-    mean, _, share = poor[2].partition(" % over 1000 splits")
+    mean, _, share = poor[2].partition(" % (an environment without failures counting 0) "
+                                       "over 1000 splits")
     above = int(share.split("3 new; ")[1].split(" %")[0])
     assert 0 < float(mean) <= 20.0 + 3.0 and above > 0      # alpha, and the draws' noise
+    # thresholds fixed given failures: the bounded mean is over environments with one
+    given = result([0.9] * 12)
+    given["variants"]["GRU"]["given_failures"] = True
+    assert targets.redrawn_bound_row(given, "family")[2].startswith("0.0 % (where runs fail)")
     # a study that saved no calibration scores has no such row
     assert targets.redrawn_bound_row({"kept": "GRU", "variants": {"GRU": _variant(
         [0.9], 0.03, [0], 0.5, [0.9], [0.1])}}, "family") is None
