@@ -32,6 +32,7 @@ import types
 import numpy as np
 
 from reachwatch.pipeline.monitor_sections import read_study_result, run_ranking
+from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
 from reachwatch.pipeline.monitor_judge import fails_after
 from reachwatch.pipeline.monitor_study import (check_run_length, check_same_runs,
                                                choose_flag_rule, judge_environments)
@@ -110,10 +111,16 @@ def main():
         p.error(str(e))
     # a study saved before the longer watch is judged on its recordings alone
     watched = f"{SPLITS[0]}/watched_failure_time" in saved[0]
+    # the study's threshold settings, as `choose_flag_rule` reads them from its spec
+    given = {bool(row.get("given_failures")) for study in studies
+             for name, row in study["variants"].items() if name != DETECTOR_ROW}
+    if len(given) > 1:
+        p.error("the studies fixed their thresholds differently (given_failures)")
     spec = types.SimpleNamespace(alpha=first["alpha"], duration=args.duration,
                                  within=within if watched else 0.0,
                                  flag_rules=[list(map(int, r.split("/")))
-                                             for r in args.flag_rules])
+                                             for r in args.flag_rules],
+                                 given_failures=given.pop() if given else False)
     watch = args.duration + spec.within
     shape = dict(period=args.period, watch=watch, within=within, lead=lead)
     for variant in args.variants or list(first["variants"]):
