@@ -4,10 +4,11 @@ the threshold, the guard's `FlagFilter`; offline
 `reachwatch.training.monitor_eval.k_of_n_risks`), the conformal
 threshold fixed on the study's calibration environments at each ``alpha``, and what it
 gives on the held-out environments (pooled miss rate and needless-flag rate, Wilson 95 %
-intervals) and on the named environments outside the family. The rule to keep is
+intervals) and on the named environments outside the family. The rule marked kept is
 chosen on the calibration environments alone (fewest needless flags among the rules
-whose threshold exists), as the study chooses its variant; the held-out figures are
-printed beside it, never used to choose.
+whose threshold exists), as the study with ``keep: choose`` chooses (its default keeps
+a monitor fixed in advance); the held-out figures are printed beside it, never used to
+choose.
 
 With ``--rank-within-environment`` each risk is first replaced by its rank among the
 risks of the same environment's other runs (the share of their ticks below it; no
