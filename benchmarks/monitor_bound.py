@@ -46,7 +46,7 @@ import numpy as np
 
 from reachwatch.pipeline.monitor_sections import read_study_result
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
-from reachwatch.pipeline.monitor_study import saved_risks
+from reachwatch.pipeline.monitor_saved import saved_risks
 from reachwatch.training.conformal import NoConformalThreshold, conformal_threshold, miss_rate
 from reachwatch.training.monitor_eval import decisive_scores, k_of_n_risks
 
@@ -170,6 +170,17 @@ def family_environments(result: dict, variant: str) -> list:
             for split in ("calibrate", "held_out") for e in scores[split]]
 
 
+def environment_scores(groups, *, period: float, lead: float) -> list:
+    """``(warning scores, safe runs' largest risks)`` per environment, as `draw_figures`
+    takes them, of ``groups`` as `saved_risks` gives them (``(risks per run, ticks,
+    failure times, fails_after)``; `decisive_scores`)."""
+    out = []
+    for risks, ticks, failure, after in groups:
+        d = decisive_scores(risks, ticks, failure, period=period, lead=lead, fails_after=after)
+        out.append((np.asarray(d["warning"], float), np.asarray(d["safe_max"], float)))
+    return out
+
+
 def rule_candidates(folder, rules, *, period: float) -> dict:
     """``{"variant, k/n": environments}`` of a finished study (its ``risks.npz``): every
     variant (the detector's row left out: never kept) under every k-of-n rule of
@@ -187,10 +198,9 @@ def rule_candidates(folder, rules, *, period: float) -> dict:
             by_rule = {}
             for rule in dict.fromkeys([kept, *rules]):
                 k, n = (int(v) for v in rule.split("/"))
-                envs = [(np.asarray(d["warning"], float), np.asarray(d["safe_max"], float))
-                        for d in (decisive_scores(k_of_n_risks(r, k, n), t, f, period=period,
-                                                  lead=result["lead_s"], fails_after=a)
-                                  for r, t, f, a in data)]
+                envs = environment_scores([(k_of_n_risks(r, k, n), t, f, a)
+                                           for r, t, f, a in data],
+                                          period=period, lead=result["lead_s"])
                 # the variant's own rule must give the scores its study saved: else the
                 # period given is not the study's, and every warning is read wrong
                 if rule == kept and any(len(w) != len(s) or not np.allclose(w, s) for (w, _), (

@@ -26,12 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
-from monitor_bound import draw_figures
+from monitor_bound import draw_figures, environment_scores
 from reachwatch.pipeline.monitor_judge import watch_s
 from reachwatch.pipeline.monitor_sections import read_study_result
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
-from reachwatch.pipeline.monitor_study import check_run_length, check_same_runs, saved_risks
-from reachwatch.training.monitor_eval import decisive_scores, tick_auroc
+from reachwatch.pipeline.monitor_saved import check_run_length, check_same_runs, saved_risks
+from reachwatch.training.monitor_eval import tick_auroc
 
 SPLITS = ("calibrate", "held_out")
 
@@ -70,12 +70,7 @@ def mean_groups(chosen, saved: dict) -> dict:
 
 def judged(groups: dict, saved_file, *, alpha, lead, period, watch, within, draws, seed):
     """The figures of one monitor's ``groups`` (`mean_groups`)."""
-    envs = []
-    for s in SPLITS:
-        for risks, ticks, failure, after in groups[s]:
-            d = decisive_scores(risks, ticks, failure, period=period, lead=lead,
-                                fails_after=after)
-            envs.append((np.asarray(d["warning"], float), np.asarray(d["safe_max"], float)))
+    envs = environment_scores([g for s in SPLITS for g in groups[s]], period=period, lead=lead)
     calibrate = len(groups["calibrate"])
     f = draw_figures(envs, calibrate, alpha, draws=draws, seed=seed)["every"]
     watched = saved_file["held_out/watched_failure_time" if "held_out/watched_failure_time"

@@ -30,7 +30,7 @@ import numpy as np
 
 from reachwatch.pipeline.monitor_sections import read_study_result
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
-from reachwatch.pipeline.monitor_study import saved_risks
+from reachwatch.pipeline.monitor_saved import saved_risks
 from reachwatch.training.conformal import conformal_threshold, warning_scores
 from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, run_times,
                                               system_figures)

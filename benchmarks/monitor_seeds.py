@@ -34,8 +34,8 @@ import numpy as np
 from reachwatch.pipeline.monitor_sections import read_study_result, run_ranking
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
 from reachwatch.pipeline.monitor_judge import fails_after
-from reachwatch.pipeline.monitor_study import (check_run_length, check_same_runs,
-                                               choose_flag_rule, judge_environments)
+from reachwatch.pipeline.monitor_saved import check_run_length, check_same_runs
+from reachwatch.pipeline.monitor_study import choose_flag_rule, judge_environments
 from reachwatch.training.monitor_eval import decisive_scores, rate, tick_auroc
 
 SPLITS = ("calibrate", "held_out", "also_held_out")

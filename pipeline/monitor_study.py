@@ -19,7 +19,6 @@ The loop is the application's (`reachwatch.reach.application.Application`): its
 the run file's (`reachwatch.pipeline.spec`)."""
 
 import dataclasses as dc
-import io
 import re
 import time
 from pathlib import Path
@@ -36,10 +35,11 @@ from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, 
 from reachwatch.training.monitor_eval import oracle_risks, tick_auroc
 
 from .monitor_guarded import guarded_rows
-from .monitor_judge import (_judge_monitor, choose_flag_rule, fails_after,  # noqa: F401
-                            judge_environments, watch_s)
+from .monitor_judge import (_judge_monitor, choose_flag_rule, judge_environments,  # noqa: F401
+                            watch_s)
 from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_environment,  # noqa: F401
                            merged_runs, record_runs, record_splits, starts_seed)
+from .monitor_saved import save_risks
 from .monitor_sections import rate_text
 from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noqa: F401
                            MonitorVariant, default_variants)
@@ -180,7 +180,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     kept = spec.kept_in_advance or min((n for n in results if n != DETECTOR_ROW),
                                        key=lambda n: results[n]["calibration_needless"])
     out_dir.mkdir(parents=True, exist_ok=True)
-    _save_risks(out_dir / "risks.npz", data, all_risks, judged)
+    save_risks(out_dir / "risks.npz", data, all_risks, judged)
     checkpoints = {}
     for name in dict.fromkeys([kept, spec.variants[0].name]):
         model, platt, threshold, rule = models[name]
@@ -199,10 +199,10 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                                cache_dir=cache_dir / "missions", executor=executor,
                                progress=progress, log=log, lead=lead, read_alone=read_alone)
                if spec.guarded_runs and data[k] else {} for k in ("held_out", "also_held_out")}
+    candidates = len(spec.variants) * len(spec.flag_rules)
     result = {"lead_s": lead, "within_s": spec.within, "alpha": spec.alpha, "kept": kept,
               # 0: fixed in advance, or the one candidate there was
-              "kept_chosen_among": 0 if spec.kept_in_advance or len(spec.variants) * len(
-                  spec.flag_rules) == 1 else len(spec.variants) * len(spec.flag_rules),
+              "kept_chosen_among": 0 if spec.kept_in_advance or candidates == 1 else candidates,
               "ensemble": spec.ensemble,
               "failing_runs": failing, "variants": results, "oracle": oracle,
               "prediction_error_auroc_4s": baseline, "guarded": guarded["held_out"],
@@ -282,75 +282,6 @@ class _Trainings:
         return model, key
 
 
-def _save_risks(path, data, all_risks, judged):
-    """Every variant's calibrated risk (the detector's row: its raw score, which its
-    threshold reads) at every tick of the judged environments' runs,
-    with the runs' ticks, failure times and environments, so that another flag rule can
-    be read off the study without rendering again: ``{split}/ticks``,
-    ``{split}/failure_time``, ``{split}/watched_failure_time`` (`watched_failure_times`),
-    ``{split}/environment`` (index into ``{split}/names``) per run and
-    ``{variant}/{split}/risk`` (the runs' ticks, concatenated)."""
-    arrays = {}
-    for k in judged:
-        groups = data[k]
-        arrays[f"{k}/ticks"] = np.concatenate([g["ticks"] for g in groups] + [np.zeros(0, int)])
-        for key in ("failure_time", "watched_failure_time"):
-            arrays[f"{k}/{key}"] = np.concatenate([g[key] for g in groups] + [np.zeros(0)])
-        arrays[f"{k}/environment"] = np.concatenate(
-            [np.full(len(g["ticks"]), i) for i, g in enumerate(groups)] + [np.zeros(0, int)])
-        arrays[f"{k}/names"] = np.array([g["name"] for g in groups], dtype=str)
-        for name, risks in all_risks.items():
-            arrays[f"{name}/{k}/risk"] = np.concatenate(
-                [np.asarray(r, np.float32) for group in risks[k] for r in group]
-                + [np.zeros(0, np.float32)])
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)
-    atomic_write_bytes(path, buffer.getvalue())
-
-
-def saved_risks(saved, variant: str, split: str) -> list:
-    """What `_save_risks` wrote of ``variant`` in ``split``, read back from the open
-    ``risks.npz`` ``saved``, per environment: ``(risks per run, ticks, failure times,
-    fails_after)``; ``fails_after``: survived the recording, failed within the study's
-    longer watch (all False for a study saved before it watched longer)."""
-    ticks = saved[f"{split}/ticks"]
-    failure = saved[f"{split}/failure_time"]
-    watched = (saved[f"{split}/watched_failure_time"]
-               if f"{split}/watched_failure_time" in saved.files else failure)
-    after = fails_after({"watched_failure_time": watched, "failure_time": failure})
-    env = saved[f"{split}/environment"]
-    flat = saved[f"{variant}/{split}/risk"].astype(float)
-    runs = np.split(flat, np.cumsum(ticks)[:-1]) if len(ticks) else []
-    return [([runs[i] for i in np.flatnonzero(env == e)], ticks[env == e], failure[env == e],
-             after[env == e]) for e in range(len(saved[f"{split}/names"]))]
-
-
-def check_same_runs(saved: dict, splits=("calibrate", "held_out", "also_held_out")):
-    """Raises ValueError unless the open ``risks.npz`` files ``saved`` (by name) hold the
-    same runs: ticks, failure times and environments in every one of ``splits``."""
-    names = list(saved)
-    for name in names[1:]:
-        for split in splits:
-            for key in ("ticks", "failure_time", "environment"):
-                if not np.array_equal(saved[name][f"{split}/{key}"],
-                                      saved[names[0]][f"{split}/{key}"],
-                                      equal_nan=key == "failure_time"):
-                    raise ValueError(f"{name} and {names[0]} did not record the same runs "
-                                     f"({split}/{key} differ)")
-
-
-def check_run_length(saved, *, period: float, duration: float):
-    """Raises ValueError unless the runs of the open ``risks.npz`` ``saved`` that did not
-    fail last ``duration`` s at ``period`` s a tick: a benchmark given another period
-    or duration than its study's would read every warning and label wrong."""
-    lengths = {int(n) for split in ("calibrate", "held_out", "also_held_out")
-               if f"{split}/ticks" in saved.files
-               for n in saved[f"{split}/ticks"][~np.isfinite(saved[f"{split}/failure_time"])]}
-    if lengths and lengths != {round(duration / period) + 1}:
-        raise ValueError(f"runs that did not fail have {sorted(lengths)} ticks, not "
-                         f"{round(duration / period) + 1}: give the study's period and "
-                         f"duration (now {period:g} s and {duration:g} s)")
-
 #: Bumped when the study's results change for the same inputs (2: the oracle's and the
 #: nights' guarded rows; 3: the encoder trains on colour-jittered frames; 4: the starts
 #: have a random stream of their own, `STARTS_STREAM`; 5: runs are judged, and labelled,
@@ -369,7 +300,7 @@ STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_model",
               "reachwatch.training.baselines", "reachwatch.training.metrics",
               "reachwatch.training.figures", "reachwatch.reach.outcomes",
               "reachwatch.reach.fidelity", "reachwatch.reach.liveness", "reachwatch.reach.chunks",
-              "reachwatch.pipeline.monitor_study",
+              "reachwatch.pipeline.monitor_study", "reachwatch.pipeline.monitor_saved",
               "reachwatch.pipeline.monitor_guarded", "reachwatch.pipeline.monitor_judge",
               "reachwatch.pipeline.monitor_runs")
 

@@ -1,0 +1,82 @@
+"""A finished monitor study's per-tick risks on disk (``risks.npz``): written by the
+study (`save_risks`), read back by the benchmarks that judge other flag rules, splits
+and means without rendering or training again (`saved_risks`), with the checks that
+what they are given matches the study (`check_same_runs`, `check_run_length`)."""
+
+import io
+
+import numpy as np
+
+from reachwatch.systems.files import atomic_write_bytes
+
+from .monitor_judge import fails_after
+
+
+def save_risks(path, data, all_risks, judged):
+    """Every variant's calibrated risk (the detector's row: its raw score, which its
+    threshold reads) at every tick of the judged environments' runs,
+    with the runs' ticks, failure times and environments, so that another flag rule can
+    be read off the study without rendering again: ``{split}/ticks``,
+    ``{split}/failure_time``, ``{split}/watched_failure_time`` (`watched_failure_times`),
+    ``{split}/environment`` (index into ``{split}/names``) per run and
+    ``{variant}/{split}/risk`` (the runs' ticks, concatenated)."""
+    arrays = {}
+    for k in judged:
+        groups = data[k]
+        arrays[f"{k}/ticks"] = np.concatenate([g["ticks"] for g in groups] + [np.zeros(0, int)])
+        for key in ("failure_time", "watched_failure_time"):
+            arrays[f"{k}/{key}"] = np.concatenate([g[key] for g in groups] + [np.zeros(0)])
+        arrays[f"{k}/environment"] = np.concatenate(
+            [np.full(len(g["ticks"]), i) for i, g in enumerate(groups)] + [np.zeros(0, int)])
+        arrays[f"{k}/names"] = np.array([g["name"] for g in groups], dtype=str)
+        for name, risks in all_risks.items():
+            arrays[f"{name}/{k}/risk"] = np.concatenate(
+                [np.asarray(r, np.float32) for group in risks[k] for r in group]
+                + [np.zeros(0, np.float32)])
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def saved_risks(saved, variant: str, split: str) -> list:
+    """What `save_risks` wrote of ``variant`` in ``split``, read back from the open
+    ``risks.npz`` ``saved``, per environment: ``(risks per run, ticks, failure times,
+    fails_after)``; ``fails_after``: survived the recording, failed within the study's
+    longer watch (all False for a study saved before it watched longer)."""
+    ticks = saved[f"{split}/ticks"]
+    failure = saved[f"{split}/failure_time"]
+    watched = (saved[f"{split}/watched_failure_time"]
+               if f"{split}/watched_failure_time" in saved.files else failure)
+    after = fails_after({"watched_failure_time": watched, "failure_time": failure})
+    env = saved[f"{split}/environment"]
+    flat = saved[f"{variant}/{split}/risk"].astype(float)
+    runs = np.split(flat, np.cumsum(ticks)[:-1]) if len(ticks) else []
+    return [([runs[i] for i in np.flatnonzero(env == e)], ticks[env == e], failure[env == e],
+             after[env == e]) for e in range(len(saved[f"{split}/names"]))]
+
+
+def check_same_runs(saved: dict, splits=("calibrate", "held_out", "also_held_out")):
+    """Raises ValueError unless the open ``risks.npz`` files ``saved`` (by name) hold the
+    same runs: ticks, failure times and environments in every one of ``splits``."""
+    names = list(saved)
+    for name in names[1:]:
+        for split in splits:
+            for key in ("ticks", "failure_time", "environment"):
+                if not np.array_equal(saved[name][f"{split}/{key}"],
+                                      saved[names[0]][f"{split}/{key}"],
+                                      equal_nan=key == "failure_time"):
+                    raise ValueError(f"{name} and {names[0]} did not record the same runs "
+                                     f"({split}/{key} differ)")
+
+
+def check_run_length(saved, *, period: float, duration: float):
+    """Raises ValueError unless the runs of the open ``risks.npz`` ``saved`` that did not
+    fail last ``duration`` s at ``period`` s a tick: a benchmark given another period
+    or duration than its study's would read every warning and label wrong."""
+    lengths = {int(n) for split in ("calibrate", "held_out", "also_held_out")
+               if f"{split}/ticks" in saved.files
+               for n in saved[f"{split}/ticks"][~np.isfinite(saved[f"{split}/failure_time"])]}
+    if lengths and lengths != {round(duration / period) + 1}:
+        raise ValueError(f"runs that did not fail have {sorted(lengths)} ticks, not "
+                         f"{round(duration / period) + 1}: give the study's period and "
+                         f"duration (now {period:g} s and {duration:g} s)")
