@@ -198,7 +198,7 @@ class MonitorStudySpec:
     before the calibration environments are seen, not of one chosen among several on
     them: the choice favours whichever those environments happened to flatter, and its
     miss rate on new environments is higher (measured: [the kept monitor fixed in
-    advance](../results/monitor.md#the-kept-monitor-fixed-in-advance-2026-12-06)).
+    advance](../results/monitor/2026-12-06.md#the-kept-monitor-fixed-in-advance-2026-12-06)).
 
     ``flag_rules``: the k-of-n rules, ``[flags_needed, flag_window]`` each (the guard's
     `FlagFilter`: flag when at least k of the last n ticks reached the threshold). With
