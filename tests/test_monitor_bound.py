@@ -64,3 +64,41 @@ def test_choosing_among_candidates_on_the_calibration_draw_misses_more_than_one_
     assert one["chosen"] == one["fixed"]
     assert one["fixed"]["E[miss]"] == bound.draw_figures(
         candidates["c0"], 20, 0.2, draws=50)["every"]["E[miss]"]
+
+
+def test_a_smaller_alpha_misses_less_and_flags_more_on_the_same_draws():
+    """``--alpha``: the same draws at a smaller alpha fix a lower threshold in each, so
+    no figure of misses rises and needless flags do not fall; ``pooled p90`` is the 90th
+    percentile over draws of the pooled miss rate, at least its mean here."""
+    rng = np.random.default_rng(2)
+    envs = [(rng.uniform(0.2, 1.0, 4), rng.uniform(0.0, 0.8, 8)) for _ in range(40)]
+    loose = bound.draw_figures(envs, 20, 0.2, draws=200, seed=3)["every"]
+    tight = bound.draw_figures(envs, 20, 0.05, draws=200, seed=3)["every"]
+    for figure in ("E[miss]", "pooled", "pooled p90", "p90 | fails"):
+        assert tight[figure] <= loose[figure], figure
+    assert tight["E[miss]"] < loose["E[miss]"] and tight["needless"] > loose["needless"]
+    assert loose["pooled"] < loose["pooled p90"] <= 1
+
+
+def test_the_alpha_option_reaches_every_draw(tmp_path, monkeypatch, capsys):
+    """The command line's ``--alpha`` replaces the study's own in the table (and says so)."""
+    folder = tmp_path / "study"
+    folder.mkdir()
+    rng = np.random.default_rng(4)
+    scores = {split: [{"warning": rng.uniform(0.2, 1.0, 3).tolist(),
+                       "safe_max": rng.uniform(0.0, 0.8, 6).tolist()} for i in range(n)]
+              for split, n in (("calibrate", 10), ("held_out", 10))}
+    monkeypatch.setattr(bound, "read_study_result", lambda path: {
+        "alpha": 0.2, "kept": "v", "variants": {"v": {"scores": scores}}})
+    rows = {}
+    for alpha in (None, "0.2", "0.05"):
+        monkeypatch.setattr("sys.argv", ["monitor_bound.py", str(folder), "--draws", "50"]
+                            + (["--alpha", alpha] if alpha else []))
+        bound.main()
+        out = capsys.readouterr().out
+        rows[alpha] = [line for line in out.splitlines() if line.startswith("| study | v")]
+        assert ("alpha as each study's" in out) == (alpha is None), out
+    assert rows[None] == rows["0.2"] != rows["0.05"]
+    monkeypatch.setattr("sys.argv", ["monitor_bound.py", str(folder), "--alpha", "1.5"])
+    with pytest.raises(SystemExit):
+        bound.main()

@@ -74,3 +74,19 @@ def test_studies_of_other_runs_are_refused(tmp_path):
     with pytest.raises(ValueError, match=r"runs that did not fail have \[5\] ticks, not 9: "
                                          r"give the study's period and duration"):
         mean.check_run_length(np.load(one / "risks.npz"), period=0.05, duration=0.4)
+
+
+def test_the_alpha_option_replaces_the_studies_own(tmp_path, monkeypatch, capsys):
+    one = _study(tmp_path / "one", lambda split, i: 0.2 + 0.1 * i)
+    heads = {}
+    for alpha in (None, "0.25"):
+        monkeypatch.setattr("sys.argv", ["monitor_mean.py", f"{one}:v", "--draws", "20",
+                                         "--period", "0.1", "--duration", "0.4"]
+                            + (["--alpha", alpha] if alpha else []))
+        mean.main()
+        heads[alpha] = capsys.readouterr().out.splitlines()[0]
+    assert heads[None].startswith("20 draws; alpha 0.5,")
+    assert heads["0.25"].startswith("20 draws; alpha 0.25,")
+    monkeypatch.setattr("sys.argv", ["monitor_mean.py", f"{one}:v", "--alpha", "0"])
+    with pytest.raises(SystemExit):
+        mean.main()
