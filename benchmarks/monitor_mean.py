@@ -10,8 +10,11 @@ library's ``monitor.ensemble`` averages raw risks and calibrates the mean), then
 judged as one monitor under the 1-of-1 rule: its calibration and held-out
 environments' scores redrawn ``--draws`` times into calibration and new environments
 as ``benchmarks/monitor_bound.py`` does (E[miss], pooled miss, needless flags at the
-conformal threshold), and the worst held-out environment's AUROC of "fails within
-``within`` s" on the study's own split. Each monitor alone gets the same rows. Each
+conformal threshold), and the worst and median held-out environment's AUROC of
+"fails within ``within`` s" on the study's own split, over the environments where at
+least ``--min-failing`` runs fail (one by default: with a run or two failing, an
+environment's AUROC rests on their last ticks alone). Each monitor alone gets the same
+rows. Each
 study's Platt scaling was fitted on its own calibration environments, some of which a
 draw judges as new: the weights the members get in the mean saw them (slightly
 optimistic; the ranking of one monitor alone does not depend on it).
@@ -68,8 +71,11 @@ def mean_groups(chosen, saved: dict) -> dict:
     return out
 
 
-def judged(groups: dict, saved_file, *, alpha, lead, period, watch, within, draws, seed):
-    """The figures of one monitor's ``groups`` (`mean_groups`)."""
+def judged(groups: dict, saved_file, *, alpha, lead, period, watch, within, draws, seed,
+           min_failing: int = 1):
+    """The figures of one monitor's ``groups`` (`mean_groups`): the redrawn splits'
+    (`draw_figures`), and the worst and median held-out AUROC over the environments
+    with at least ``min_failing`` runs failing within the watch."""
     envs = environment_scores([g for s in SPLITS for g in groups[s]], period=period, lead=lead)
     calibrate = len(groups["calibrate"])
     f = draw_figures(envs, calibrate, alpha, draws=draws, seed=seed)["every"]
@@ -78,9 +84,10 @@ def judged(groups: dict, saved_file, *, alpha, lead, period, watch, within, draw
     env = saved_file["held_out/environment"]
     aurocs = [tick_auroc(risks, ticks, watched[env == e], period=period, duration=watch,
                          within=within)
-              for e, (risks, ticks, _, _) in enumerate(groups["held_out"])]
+              for e, (risks, ticks, _, _) in enumerate(groups["held_out"])
+              if np.sum(np.isfinite(watched[env == e])) >= min_failing]
     aurocs = [a for a in aurocs if np.isfinite(a)]
-    return f, (min(aurocs) if aurocs else float("nan"))
+    return f, *((min(aurocs), float(np.median(aurocs))) if aurocs else (np.nan, np.nan))
 
 
 def main():
@@ -91,6 +98,9 @@ def main():
     p.add_argument("--period", type=float, default=0.05, help="the control period (s)")
     p.add_argument("--duration", type=float, default=8.0, help="the studies' run length (s)")
     p.add_argument("--alone", action="store_true", help="also judge each monitor alone")
+    p.add_argument("--min-failing", type=int, default=1,
+                   help="the AUROC columns over held-out environments where at least this "
+                        "many runs fail")
     p.add_argument("--alpha", type=float, default=None,
                    help="fix each draw's threshold at this alpha (default: the studies')")
     args = p.parse_args()
@@ -115,21 +125,25 @@ def main():
     spec = types.SimpleNamespace(duration=args.duration, within=within)
     alpha = first["alpha"] if args.alpha is None else args.alpha
     shape = dict(alpha=alpha, lead=first["lead_s"], period=args.period,
-                 watch=watch_s(spec), within=within, draws=args.draws, seed=args.seed)
+                 watch=watch_s(spec), within=within, draws=args.draws, seed=args.seed,
+                 min_failing=args.min_failing)
     rows = [(f"mean of {len(chosen)}", chosen)] if len(chosen) > 1 else []
     if args.alone or len(chosen) == 1:
         rows += [(label, [m]) for m in chosen for label in [m[0]]]
     print(f"{args.draws} draws; alpha {alpha:g}, lead {first['lead_s']:.2f} s, "
           f"1-of-1 rule; percent")
+    where = ("" if args.min_failing <= 1 else
+             f", environments with {args.min_failing}+ failing runs")
     print(f"| monitor | E[miss] | pooled miss | pooled miss p90 | needless flags | "
-          f"needless p10-p90 | worst held-out AUROC, fails within {within:g} s |")
+          f"needless p10-p90 | held-out AUROC, fails within {within:g} s: worst, "
+          f"median{where} |")
     print("|---|---|---|---|---|---|---|")
     for label, members in rows:
-        f, worst = judged(mean_groups(members, saved), saved[folders[0]], **shape)
+        f, worst, median = judged(mean_groups(members, saved), saved[folders[0]], **shape)
         print(f"| {label} | {100 * f['E[miss]']:.1f} | {100 * f['pooled']:.1f} | "
               f"{100 * f['pooled p90']:.1f} | "
               f"{100 * f['needless']:.1f} | {100 * f['needless p10']:.1f}-"
-              f"{100 * f['needless p90']:.1f} | {worst:.3f} |", flush=True)
+              f"{100 * f['needless p90']:.1f} | {worst:.3f}, {median:.3f} |", flush=True)
     if len(chosen) > 1:
         print("mean of: " + "; ".join(label for label, _, _ in chosen))
 

@@ -90,3 +90,22 @@ def test_the_alpha_option_replaces_the_studies_own(tmp_path, monkeypatch, capsys
     monkeypatch.setattr("sys.argv", ["monitor_mean.py", f"{one}:v", "--alpha", "0"])
     with pytest.raises(SystemExit):
         mean.main()
+
+
+def test_the_auroc_columns_skip_environments_with_fewer_failing_runs(tmp_path, monkeypatch,
+                                                                     capsys):
+    """One held-out environment has one failing run, the other none: the worst and median
+    AUROC are that environment's, and with ``--min-failing 2`` there is none to read."""
+    one = _study(tmp_path / "one", lambda split, i: 0.2 + 0.1 * i)
+    rows = {}
+    for least in ("1", "2"):
+        monkeypatch.setattr("sys.argv", ["monitor_mean.py", f"{one}:v", "--draws", "20",
+                                         "--period", "0.1", "--duration", "0.4",
+                                         "--min-failing", least])
+        mean.main()
+        out = capsys.readouterr().out
+        rows[least] = [line for line in out.splitlines() if line.startswith("| one: v")][0]
+        assert ("2+ failing runs" in out) == (least == "2")
+    worst, median = rows["1"].rstrip(" |").rsplit("|", 1)[1].strip().split(", ")
+    assert worst == median and float(worst) > 0.5
+    assert rows["2"].endswith("| nan, nan |")
