@@ -56,6 +56,15 @@ from reachwatch.training.monitor_eval import decisive_scores, k_of_n_risks
 MODES = {"every": False, "given failures": True}
 
 
+def alpha_value(text: str) -> float:
+    """The argparse type of ``--alpha`` (here and in ``monitor_mean.py``): a miss rate
+    strictly between 0 and 1."""
+    value = float(text)
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(f"a miss rate between 0 and 1, got {text}")
+    return value
+
+
 def draw_figures(environments, calibrate: int, alpha: float, *, draws: int,
                  seed: int = 0) -> dict:
     """``{mode: {figure: mean over draws}}`` for ``environments``, a list of
@@ -242,12 +251,10 @@ def main():
                         "fixed in advance")
     p.add_argument("--period", type=float, default=0.05,
                    help="the control period (s), for --choose-among")
-    p.add_argument("--alpha", type=float, default=None,
+    p.add_argument("--alpha", type=alpha_value, default=None,
                    help="fix each draw's threshold at this alpha (default: each study's): "
                         "what another guarantee would cost, from the same saved scores")
     args = p.parse_args()
-    if args.alpha is not None and not 0 < args.alpha < 1:
-        p.error(f"--alpha is a miss rate between 0 and 1, got {args.alpha:g}")
     if args.choose_among:
         if args.variants:
             p.error("--choose-among chooses among every variant: leave out --variants")

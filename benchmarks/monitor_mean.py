@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monitor_bound import draw_figures, environment_scores
+from monitor_bound import alpha_value, draw_figures, environment_scores
 from reachwatch.pipeline.monitor_judge import watch_s
 from reachwatch.pipeline.monitor_sections import read_study_result
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
@@ -101,11 +101,9 @@ def main():
     p.add_argument("--min-failing", type=int, default=1,
                    help="the AUROC columns over held-out environments where at least this "
                         "many runs fail")
-    p.add_argument("--alpha", type=float, default=None,
+    p.add_argument("--alpha", type=alpha_value, default=None,
                    help="fix each draw's threshold at this alpha (default: the studies')")
     args = p.parse_args()
-    if args.alpha is not None and not 0 < args.alpha < 1:
-        p.error(f"--alpha is a miss rate between 0 and 1, got {args.alpha:g}")
     chosen = monitors(args.monitors)
     folders = list(dict.fromkeys(folder for _, folder, _ in chosen))
     results = {f: read_study_result(f / "monitor.json") for f in folders}
