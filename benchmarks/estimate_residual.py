@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reachwatch.reach.chunks import is_chunk_file, read_chunk_file
 from reachwatch.systems.dead_reckoning import propagate_estimate
 from reachwatch.training.monitor_eval import tick_auroc
 
@@ -50,15 +51,15 @@ def environment_aurocs(folder: Path, *, speed: float, period: float, duration: f
                        within: float) -> dict:
     """Each score's tick AUROC over the runs recorded in ``folder`` (NaN with one class)."""
     per_score, ticks, failure = {}, [], []
-    for chunk in sorted(folder.glob("chunk_*.npz")):
-        with np.load(chunk) as z:
-            for signals, n, t in zip(z["signals"], z["ticks"], z["failure_time"]):
-                if n < 2:
-                    continue
-                for name, values in scores(signals[:n], speed=speed, period=period).items():
-                    per_score.setdefault(name, []).append(values)
-                ticks.append(int(n))
-                failure.append(float(t))
+    for chunk in sorted(p for p in folder.iterdir() if is_chunk_file(p.name)):
+        z = read_chunk_file(chunk, ("signals", "ticks", "failure_time"))
+        for signals, n, t in zip(z["signals"], z["ticks"], z["failure_time"]):
+            if n < 2:
+                continue
+            for name, values in scores(signals[:n], speed=speed, period=period).items():
+                per_score.setdefault(name, []).append(values)
+            ticks.append(int(n))
+            failure.append(float(t))
     return {name: tick_auroc(values, np.array(ticks), np.array(failure), period=period,
                              duration=duration, within=within)
             for name, values in per_score.items()}
