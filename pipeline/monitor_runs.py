@@ -4,6 +4,7 @@ and their failure times over a longer watch of the loop alone, which the study's
 labels and its needless flags and stops are read from."""
 
 import dataclasses as dc
+import functools
 
 import numpy as np
 
@@ -40,14 +41,23 @@ def record_runs(spec, application, scenario, environments, first, *, runs, cache
 
 
 def record_splits(spec, application, scenario, splits: dict, *, cache_dir, executor,
-                  progress) -> dict:
+                  progress, frames_read_back=()) -> dict:
     """`record_runs` of each split, ``{name: (environments, first, runs, detector)}`` ->
     ``{name: [group per environment]}``. On a pool every split's environments' chunks
     are in flight together (`reachwatch.reach.chunks.run_together`); the groups come in
-    the environments' order either way."""
+    the environments' order either way.
+
+    The groups of the splits named in ``frames_read_back`` hold no ``frames``: each
+    environment's are let go as its runs come in, and `recorded_frames` reads them back
+    from the cached recordings when they are needed, so that a study's judged runs
+    (gigabytes of frames at its protocol's size) are never all in memory at once."""
     splits = {k: (list(environments), *rest) for k, (environments, *rest) in splits.items()}
-    named = [(environment.name, (environment, first + i, runs, detector))
-             for environments, first, runs, detector in splits.values()
+    unknown = sorted(set(frames_read_back) - set(splits))
+    if unknown:
+        raise ValueError(f"frames_read_back names splits {unknown} that are not recorded; "
+                         f"the splits are {sorted(splits)}")
+    named = [(environment.name, (environment, first + i, runs, detector, k in frames_read_back))
+             for k, (environments, first, runs, detector) in splits.items()
              for i, environment in enumerate(environments)]
     if not named:
         return {k: [] for k in splits}
@@ -55,7 +65,7 @@ def record_splits(spec, application, scenario, splits: dict, *, cache_dir, execu
         application, dc.replace(scenario, environment=named[0][1][0]))
 
     def one(_, item):
-        environment, index, runs, detector = item
+        environment, index, runs, detector, read_back = item
         here = dc.replace(scenario, environment=environment)
         box = application.grid(here, (3,) * len(application.axes))
         starts = application.starts(here, (box.lo, box.hi), runs, starts_seed(spec, index))
@@ -74,11 +84,33 @@ def record_splits(spec, application, scenario, splits: dict, *, cache_dir, execu
                                         recorded["failure_time"], cache_dir=cache_dir,
                                         executor=executor, progress=progress,
                                         recorded=recorded if continues else None)
+        if read_back:
+            recorded.pop("frames")
+            recorded["read_frames"] = functools.partial(
+                _read_frames, application, scored, starts, duration=spec.duration,
+                height=spec.height, width=spec.width, cache_dir=cache_dir,
+                scored=detector is not None)
         return {**recorded, "watched_failure_time": watched, "starts": starts,
                 "name": environment.name, "environment": environment}
 
     groups = iter(each_environment(named, one, executor=executor, what="recorded runs"))
     return {k: [next(groups) for _ in environments] for k, (environments, *_) in splits.items()}
+
+
+def _read_frames(application, scenario, starts, *, duration, height, width, cache_dir,
+                 scored) -> np.ndarray:
+    # the recordings of `record_splits`' ``one``, read back from their cache (the same
+    # key: the same call); inline, as the cache holds every chunk
+    return application.recorded_runs(scenario, starts, duration=duration, height=height,
+                                     width=width, cache_dir=cache_dir, executor=None,
+                                     progress=False, scored=scored)["frames"]
+
+
+def recorded_frames(group) -> np.ndarray:
+    """The recorded frames of ``group`` (one environment's, from `record_splits`): those it
+    holds, or those read back from the cached recordings for a split it recorded with
+    ``frames_read_back``."""
+    return group["frames"] if "frames" in group else group["read_frames"]()
 
 
 def each_environment(named, fn, *, executor, what: str) -> list:

@@ -38,7 +38,8 @@ from .monitor_guarded import guarded_rows
 from .monitor_judge import (_judge_monitor, choose_flag_rule, judge_environments,  # noqa: F401
                             watch_s)
 from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_environment,  # noqa: F401
-                           merged_runs, record_runs, record_splits, starts_seed)
+                           merged_runs, record_runs, record_splits, recorded_frames,
+                           starts_seed)
 from .monitor_saved import save_risks
 from .monitor_sections import rate_text
 from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noqa: F401
@@ -93,10 +94,12 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     judged = ("calibrate", "held_out", "also_held_out")
     # every split's environments together; the judged runs carry the detector's score
     # along them: one run, both recorded
+    # the judged runs' frames are read back an environment at a time when encoded
     data = record_splits(spec, application, scenario,
                          {k: (list(envs), first[k], runs[k], detector if k in judged else None)
                           for k, envs in split.items()},
-                         cache_dir=cache_dir / "runs", executor=executor, progress=progress)
+                         cache_dir=cache_dir / "runs", executor=executor, progress=progress,
+                         frames_read_back=judged)
     log(f"monitor: recorded {sum(len(g['ticks']) for v in data.values() for g in v)} runs, "
         f"{sum(int(g['ticks'].sum()) for v in data.values() for g in v)} ticks; lead "
         f"{lead:.2f} s, risk of failing within {spec.within:g} s")
@@ -115,22 +118,25 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     base = HistoryMonitorConfig(height=spec.height, width=spec.width, within=spec.within,
                                 input_norm=spec.input_norm, pool=list(spec.pool))
     # each member of the ensemble: its own encoder (`member_settings`) and features
-    members, trainings = [], _Trainings(cache_dir / "trainings", train, labels, log)
+    encoders, trainings = [], _Trainings(cache_dir / "trainings", train, labels, log)
     for m, settings in enumerate(member_settings(spec, application)):
         where = f"member {m + 1}/{spec.ensemble}: " if spec.ensemble > 1 else ""
-        encoder, trained_as = trainings.kept(
+        encoders.append((*trainings.kept(
             f"{where}encoder", (base, settings), lambda where=where, settings=settings:
             train_encoder(train, labels, base, settings, progress=(
-                lambda text: log(f"monitor: {where}{text}")) if progress else None))
-        features = {k: [encode_runs(encoder, g) for g in groups] for k, groups in data.items()}
-        members.append((encoder, settings, features, np.concatenate(features["train"]),
-                        trained_as))
-    # every member has encoded the frames: what follows reads features, states and
-    # outcomes, so the frames (most of the study's memory: a protocol's judged runs
-    # hold gigabytes of them) are let go for the hours of guarded runs
-    for groups in (*data.values(), [train]):
+                lambda text: log(f"monitor: {where}{text}")) if progress else None)), settings))
+    # every environment's frames encoded by every member, then let go: what follows
+    # reads features, states and outcomes, for the hours of guarded runs
+    features = [{k: [] for k in data} for _ in encoders]
+    for k, groups in data.items():
         for group in groups:
-            group.pop("frames")
+            frames = {"frames": recorded_frames(group), "ticks": group["ticks"]}
+            for member, (encoder, _, _) in zip(features, encoders):
+                member[k].append(encode_runs(encoder, frames))
+            group.pop("frames", None)
+    train.pop("frames")
+    members = [(encoder, settings, f, np.concatenate(f["train"]), trained_as)
+               for (encoder, trained_as, settings), f in zip(encoders, features)]
 
     results, models, all_risks = {}, {}, {}
     for variant in spec.variants:

@@ -277,6 +277,33 @@ def test_recorded_runs_of_every_environment_are_in_flight_together(tmp_path):
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
 
 
+
+def test_frames_read_back_are_the_recorded_ones_and_not_held(tmp_path):
+    """A split recorded with ``frames_read_back`` holds no frames (a protocol's judged
+    runs are gigabytes of them); `recorded_frames` reads back the very frames the same
+    runs record; a split name that is not recorded is refused."""
+    from types import SimpleNamespace
+    from reachwatch.pipeline.monitor_runs import record_splits, recorded_frames
+    from reachwatch.reach.application import load_application
+    application, scenario = load_application(), load_scenario(data="")
+    spec = SimpleNamespace(duration=0.5, within=0.5, height=16, width=24,
+                           family=SimpleNamespace(seed=3))
+    envs = [load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n"
+                          ).environment]
+    common = dict(cache_dir=tmp_path, executor=None, progress=False)
+    splits = {"train": (envs, 0, 2, None), "judged": (envs, 1, 2, None)}
+    held = record_splits(spec, application, scenario, splits, **common)
+    read_back = record_splits(spec, application, scenario, splits, frames_read_back=["judged"],
+                              **common)
+    assert "frames" in read_back["train"][0] and "frames" not in read_back["judged"][0]
+    for k in splits:
+        frames = recorded_frames(read_back[k][0])
+        assert frames.shape[:2] == (2, 11) and frames.any()
+        np.testing.assert_array_equal(frames, held[k][0]["frames"], err_msg=k)
+    with pytest.raises(ValueError, match=r"frames_read_back names splits \['held_out'\]"):
+        record_splits(spec, application, scenario, splits, frames_read_back=["held_out"],
+                      **common)
+
 def _save_tiny_history_monitor(path):
     from reachwatch.diagrams import save_checkpoint
     from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel
