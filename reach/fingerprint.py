@@ -18,6 +18,8 @@ import inspect
 import json
 import math
 import os
+import sys
+import time
 
 from pathlib import Path
 
@@ -85,17 +87,30 @@ LIBRARY = tuple(f"reachwatch.{name}" for name in
 LOOP_CODE = LIBRARY[:4]
 
 
-@functools.cache
 def loop_code_digest() -> str:
-    """`modules_source_digest` of `LOOP_CODE`, read once per process."""
+    """`modules_source_digest` of `LOOP_CODE`, read once per process; every call checks
+    again that none of its imported files changed since the process started
+    (`check_source_unchanged`)."""
+    check_source_unchanged(*LOOP_CODE)
+    return _loop_code_digest()
+
+
+@functools.cache
+def _loop_code_digest() -> str:
     return modules_source_digest(*LOOP_CODE)
 
 
-@functools.cache
 def library_code_digest() -> str:
-    """`modules_source_digest` of all of `LIBRARY`, read once per process: the source a
-    worker must share with the driver, whose keys carry parts of it (`LOOP_CODE` in
-    every fingerprint, a dataset's own modules in its folder's key)."""
+    """`modules_source_digest` of all of `LIBRARY`, read once per process (every call
+    checks again, `check_source_unchanged`): the source a worker must share with the
+    driver, whose keys carry parts of it (`LOOP_CODE` in every fingerprint, a dataset's
+    own modules in its folder's key)."""
+    check_source_unchanged(*LIBRARY)
+    return _library_code_digest()
+
+
+@functools.cache
+def _library_code_digest() -> str:
     return modules_source_digest(*LIBRARY)
 
 
@@ -104,6 +119,7 @@ def modules_source_digest(*names) -> str:
     for every ``.py`` file under its folder, `diagrams.user_code.source_digest`): a key
     that carries it changes whenever that code does (`LIBRARY`: all of reachwatch)."""
     from reachwatch.diagrams.user_code import files_digest, source_digest
+    check_source_unchanged(*names)
     parts = []
     for name in names:
         module = importlib.import_module(name)
@@ -113,6 +129,53 @@ def modules_source_digest(*names) -> str:
         else:
             parts.append((name, Path(module.__file__).read_bytes()))
     return files_digest(parts)
+
+
+class SourceChanged(ValueError):
+    """A module this process imported whose file changed on disk since the process
+    started: a key made from the file would not describe the code that runs."""
+
+
+def _process_start_ns() -> int:
+    """When this process started, in `time.time_ns` terms: its start after boot, read off
+    ``/proc`` in the kernel's clock ticks (10 ms), against the time since boot now; the
+    end of that tick, so that a file written just before the process started is not
+    taken for one written after (the interpreter imports nothing of reachwatch in its
+    first tick). Where there is no ``/proc``, when this module was imported."""
+    try:
+        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        since_boot = (int(fields[19]) + 1) * 10**9 // os.sysconf("SC_CLK_TCK")
+        return time.time_ns() - (time.clock_gettime_ns(time.CLOCK_BOOTTIME) - since_boot)
+    except (OSError, ValueError, IndexError, AttributeError):
+        return time.time_ns()
+
+
+#: `_process_start_ns`, once.
+PROCESS_START_NS = _process_start_ns()
+
+
+def check_source_unchanged(*names):
+    """Raise `SourceChanged`, in one line, when a module of ``names`` (dotted names; a
+    package stands for its submodules) that this process has imported has a file
+    modified after the process started: the process runs the code it imported, and a
+    digest of the file as it is now (`modules_source_digest`) would key its results with
+    other code. A module not imported yet is not checked: it will run what is on disk."""
+    prefixes = tuple(f"{name}." for name in names)
+    for module_name, module in list(sys.modules.items()):
+        if module_name not in names and not module_name.startswith(prefixes):
+            continue
+        path = getattr(module, "__file__", None)
+        if not path:
+            continue
+        try:
+            modified = os.stat(path).st_mtime_ns
+        except OSError:
+            continue
+        if modified > PROCESS_START_NS:
+            raise SourceChanged(
+                f"{module_name} ({path}) changed on disk after this process started: its "
+                f"results would be keyed with code it does not run; start it again (a "
+                f"killed run resumes from its caches)")
 
 
 class Unfingerprintable(ValueError):

@@ -390,6 +390,44 @@ def test_an_edit_to_the_loops_code_is_another_key(monkeypatch):
     assert all(a != b for a, b in zip(before, after))
 
 
+def test_a_source_file_edited_under_a_running_process_is_refused_not_keyed(tmp_path,
+                                                                           monkeypatch):
+    """Keys carry a digest of the source on disk: a module this process imported whose
+    file changed after the process started would key its results with code it does not
+    run, so the digest is refused in one line, the cached loop digest too; a module not
+    imported yet runs what is on disk and is digested as it is."""
+    import importlib
+    import os
+    import sys
+    import time
+
+    fp = sys.modules["reachwatch.reach.fingerprint"]
+    package = tmp_path / "edited_pkg"
+    package.mkdir()
+    for name, text in (("__init__.py", ""), ("imported.py", "X = 1\n"), ("later.py", "Y = 1\n")):
+        (package / name).write_text(text)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(fp, "PROCESS_START_NS", time.time_ns() + 10**9)  # after the writes
+    monkeypatch.setattr(fp, "LOOP_CODE", ("edited_pkg",))
+    fp._loop_code_digest.cache_clear()
+    later = time.time_ns() + 5 * 10**9
+    try:
+        importlib.import_module("edited_pkg.imported")
+        os.utime(package / "later.py", ns=(later, later))    # not imported: no refusal
+        digest = fp.modules_source_digest("edited_pkg")
+        assert fp.loop_code_digest() == digest
+        os.utime(package / "imported.py", ns=(later, later))
+        for make in (lambda: fp.modules_source_digest("edited_pkg"), fp.loop_code_digest):
+            with pytest.raises(fp.SourceChanged, match=r"^edited_pkg\.imported \(.*imported\.py\) "
+                               r"changed on disk after this process started.*start it again"):
+                make()
+        fp.check_source_unchanged("reachwatch.reach")      # other names: not checked here
+    finally:
+        fp._loop_code_digest.cache_clear()
+        for name in ("edited_pkg.imported", "edited_pkg"):
+            sys.modules.pop(name, None)
+
+
 def test_a_worker_must_share_all_of_reachwatchs_source_and_the_keys_versions(monkeypatch):
     """What a worker is compared on (`process_identity`) changes with an edit anywhere
     in reachwatch (the training modules a dataset's key carries, which a worker runs to
@@ -406,12 +444,12 @@ def test_a_worker_must_share_all_of_reachwatchs_source_and_the_keys_versions(mon
         monkeypatch.setattr(fp, "modules_source_digest", lambda *names, edited=edited: (
             modules_source_digest(*names) + ("+" if edited.rpartition(".")[0] in names
                                              else "")))
-        fp.library_code_digest.cache_clear()
+        fp._library_code_digest.cache_clear()
         try:
             assert executors.process_identity()["code"] != before["code"], edited
         finally:
             monkeypatch.undo()
-            fp.library_code_digest.cache_clear()
+            fp._library_code_digest.cache_clear()
     assert executors.process_identity() == before
 
 
@@ -439,6 +477,7 @@ def test_a_module_source_digest_follows_every_file_of_a_package(tmp_path, monkey
     """`modules_source_digest`: a package stands for every file under its folder."""
     import importlib
     import sys
+    import time
     from reachwatch.reach.fingerprint import modules_source_digest
     package = tmp_path / "digest_probe_package"
     (package / "inner").mkdir(parents=True)
@@ -446,6 +485,9 @@ def test_a_module_source_digest_follows_every_file_of_a_package(tmp_path, monkey
     (package / "inner" / "helper.py").write_text("X = 1\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     importlib.invalidate_caches()
+    # the package's files were written in this process: as if it started after them
+    monkeypatch.setattr(sys.modules["reachwatch.reach.fingerprint"], "PROCESS_START_NS",
+                        time.time_ns() + 10**9)
     first = modules_source_digest("digest_probe_package")
     assert first == modules_source_digest("digest_probe_package")
     (package / "inner" / "helper.py").write_text("X = 2\n")
