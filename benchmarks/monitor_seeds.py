@@ -34,7 +34,7 @@ import numpy as np
 from reachwatch.pipeline.monitor_sections import read_study_result, run_ranking
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
 from reachwatch.pipeline.monitor_judge import fails_after
-from reachwatch.pipeline.monitor_saved import check_run_length, check_same_runs
+from reachwatch.pipeline.monitor_saved import check_run_length, check_same_runs, saved_groups
 from reachwatch.pipeline.monitor_study import choose_flag_rule, judge_environments
 from reachwatch.training.monitor_eval import decisive_scores, rate, tick_auroc
 
@@ -42,21 +42,13 @@ SPLITS = ("calibrate", "held_out", "also_held_out")
 
 
 def _groups(saved, flat: dict):
-    """Per split: the environments (``ticks``, ``failure_time``, ``watched_failure_time``,
-    ``name``) and each one's risks per run, from ``flat`` (the split's risks of every
-    tick, concatenated). A study saved before the longer watch has no watched times:
-    its failure times stand in (and `main` judges it on its recordings' duration)."""
+    """Per split: the environments and each one's risks per run (`saved_groups`), from
+    ``flat`` (the split's risks of every tick, concatenated). A study saved before the
+    longer watch has no watched times: its failure times stand in (and `main` judges it
+    on its recordings' duration)."""
     groups, risks = {}, {}
     for split in SPLITS:
-        ticks, failure = saved[f"{split}/ticks"], saved[f"{split}/failure_time"]
-        watched = (saved[f"{split}/watched_failure_time"]
-                   if f"{split}/watched_failure_time" in saved else failure)
-        env, names = saved[f"{split}/environment"], saved[f"{split}/names"]
-        runs = np.split(flat[split], np.cumsum(ticks)[:-1]) if len(ticks) else []
-        groups[split] = [{"ticks": ticks[env == e], "failure_time": failure[env == e],
-                          "watched_failure_time": watched[env == e], "name": str(names[e])}
-                         for e in range(len(names))]
-        risks[split] = [[runs[i] for i in np.flatnonzero(env == e)] for e in range(len(names))]
+        groups[split], risks[split] = saved_groups(saved, split, flat[split])
     return groups, risks
 
 

@@ -38,21 +38,31 @@ def save_risks(path, data, all_risks, judged):
     atomic_write_bytes(path, buffer.getvalue())
 
 
+def saved_groups(saved, split: str, flat) -> tuple:
+    """Per environment of ``split`` in the open ``risks.npz`` ``saved`` (`save_risks`'s):
+    ``(groups, risks)``, its group (``ticks``, ``failure_time``, ``watched_failure_time``,
+    ``name``) and its risks per run, cut from ``flat`` (the split's risk at every tick,
+    concatenated, as `save_risks` writes a variant's; or a mean of such). A study saved
+    before the longer watch has no watched times: its failure times stand in."""
+    ticks, failure = saved[f"{split}/ticks"], saved[f"{split}/failure_time"]
+    watched = (saved[f"{split}/watched_failure_time"]
+               if f"{split}/watched_failure_time" in saved.files else failure)
+    env, names = saved[f"{split}/environment"], saved[f"{split}/names"]
+    runs = np.split(np.asarray(flat, float), np.cumsum(ticks)[:-1]) if len(ticks) else []
+    groups = [{"ticks": ticks[env == e], "failure_time": failure[env == e],
+               "watched_failure_time": watched[env == e], "name": str(names[e])}
+              for e in range(len(names))]
+    return groups, [[runs[i] for i in np.flatnonzero(env == e)] for e in range(len(names))]
+
+
 def saved_risks(saved, variant: str, split: str) -> list:
     """What `save_risks` wrote of ``variant`` in ``split``, read back from the open
     ``risks.npz`` ``saved``, per environment: ``(risks per run, ticks, failure times,
     fails_after)``; ``fails_after``: survived the recording, failed within the study's
     longer watch (all False for a study saved before it watched longer)."""
-    ticks = saved[f"{split}/ticks"]
-    failure = saved[f"{split}/failure_time"]
-    watched = (saved[f"{split}/watched_failure_time"]
-               if f"{split}/watched_failure_time" in saved.files else failure)
-    after = fails_after({"watched_failure_time": watched, "failure_time": failure})
-    env = saved[f"{split}/environment"]
-    flat = saved[f"{variant}/{split}/risk"].astype(float)
-    runs = np.split(flat, np.cumsum(ticks)[:-1]) if len(ticks) else []
-    return [([runs[i] for i in np.flatnonzero(env == e)], ticks[env == e], failure[env == e],
-             after[env == e]) for e in range(len(saved[f"{split}/names"]))]
+    groups, risks = saved_groups(saved, split, saved[f"{variant}/{split}/risk"])
+    return [(runs, g["ticks"], g["failure_time"], fails_after(g))
+            for g, runs in zip(groups, risks)]
 
 
 def check_same_runs(saved: dict, splits=("calibrate", "held_out", "also_held_out")):
