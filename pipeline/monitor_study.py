@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from reachwatch.diagrams import save_checkpoint
 from reachwatch.reach.application import application_key, load_application
@@ -128,12 +129,15 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     # every environment's frames encoded by every member, then let go: what follows
     # reads features, states and outcomes, for the hours of guarded runs
     features = [{k: [] for k in data} for _ in encoders]
-    for k, groups in data.items():
-        for group in groups:
-            frames = {"frames": recorded_frames(group), "ticks": group["ticks"]}
-            for member, (encoder, _, _) in zip(features, encoders):
-                member[k].append(encode_runs(encoder, frames))
-            group.pop("frames", None)
+    with tqdm(total=sum(len(g["ticks"]) for groups in data.values() for g in groups),
+              unit="run", desc="monitor: frames encoded", disable=not progress) as bar:
+        for k, groups in data.items():
+            for group in groups:
+                frames = {"frames": recorded_frames(group), "ticks": group["ticks"]}
+                for member, (encoder, _, _) in zip(features, encoders):
+                    member[k].append(encode_runs(encoder, frames))
+                group.pop("frames", None)
+                bar.update(len(group["ticks"]))
     train.pop("frames")
     members = [(encoder, settings, f, np.concatenate(f["train"]), trained_as)
                for (encoder, trained_as, settings), f in zip(encoders, features)]
