@@ -277,7 +277,6 @@ def test_recorded_runs_of_every_environment_are_in_flight_together(tmp_path):
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
 
 
-
 def test_frames_read_back_are_the_recorded_ones_and_not_held(tmp_path):
     """A split recorded with ``frames_read_back`` holds no frames (a protocol's judged
     runs are gigabytes of them); `recorded_frames` reads back the very frames the same
@@ -303,6 +302,7 @@ def test_frames_read_back_are_the_recorded_ones_and_not_held(tmp_path):
     with pytest.raises(ValueError, match=r"frames_read_back names splits \['held_out'\]"):
         record_splits(spec, application, scenario, splits, frames_read_back=["held_out"],
                       **common)
+
 
 def _save_tiny_history_monitor(path):
     from reachwatch.diagrams import save_checkpoint
