@@ -31,6 +31,7 @@ from reachwatch.training.monitor_eval import oracle_risks, rate
 from .monitor_judge import fails_after
 from .monitor_runs import alone_from_recordings, each_environment
 from .monitor_sections import rate_text
+from .monitor_spec import ORACLE
 
 
 def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, risks,
@@ -104,9 +105,6 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
             f"{rate_text(counts['prevented_rate'])}")
     return rows
 
-
-#: The guarded-loop row of the oracle monitor.
-ORACLE = "oracle (privileged)"
 
 #: How far below the threshold (relative to it, at least this much absolute) a run's
 #: largest recorded risk must stay for `guarded_missions` to take its guarded run from

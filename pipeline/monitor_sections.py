@@ -12,7 +12,7 @@ from reachwatch.training.conformal import NoConformalThreshold, conformal_thresh
 from reachwatch.training.metrics import auroc
 from reachwatch.training.monitor_eval import rate
 
-from .monitor_spec import DETECTOR_ROW
+from .monitor_spec import DETECTOR_ROW, ORACLE
 
 
 def read_study_result(path) -> dict:
@@ -230,7 +230,7 @@ def study_blocks(result: dict) -> list:
                          f"{r['brier']:.3f}"])
         o = result["oracle"][group]["pooled"]
         base = [b for b in result["prediction_error_auroc_4s"][group] if np.isfinite(b)]
-        rows += [["oracle (privileged)", "-", rate_text(o["miss"]), rate_text(o["needless"]), "-", "-", "-"],
+        rows += [[ORACLE, "-", rate_text(o["miss"]), rate_text(o["needless"]), "-", "-", "-"],
                  ["prediction error (privileged)", "-", "-", "-",
                   f"{min(base):.3f}" if base else "-", "-", "-"]]
         blocks += [("heading", f"Offline on recorded runs, pooled over the {title}; a miss is "

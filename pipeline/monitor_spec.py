@@ -29,6 +29,10 @@ DETECTOR_ROW = "single-image detector"
 #: environments; no variant may take the name.
 CHOOSE = "choose"
 
+#: The study's row of the oracle monitor in the guarded real loop; no variant may take
+#: the name.
+ORACLE = "oracle (privileged)"
+
 
 @dc.dataclass
 class MonitorVariant:
@@ -316,6 +320,7 @@ class MonitorStudySpec:
             raise ValueError(f"{where}.variants must list at least one variant, each name "
                              f"once, got {names[:8]}")
         for reserved, what in ((DETECTOR_ROW, "the name of the detector's row"),
+                               (ORACLE, "the name of the oracle monitor's row"),
                                (CHOOSE, f"{where}.keep's word for choosing")):
             if reserved in names:
                 raise ValueError(f"{where}.variants: {reserved!r} is {what}; call the "

@@ -19,6 +19,7 @@ The loop is the application's (`reachwatch.reach.application.Application`): its
 the run file's (`reachwatch.pipeline.spec`)."""
 
 import dataclasses as dc
+import json
 import re
 import time
 from pathlib import Path
@@ -29,8 +30,9 @@ from tqdm import tqdm
 from reachwatch.diagrams import save_checkpoint
 from reachwatch.reach.application import application_key, load_application
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskEnsemble
-from reachwatch.systems.files import atomic_write_bytes, file_hash, strict_json
+from reachwatch.systems.files import atomic_write_bytes, cache_location, file_hash, strict_json
 from reachwatch.training.baselines import prediction_error
+from reachwatch.training.conformal import NoConformalThreshold
 from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
                                                tick_labels, train_encoder, train_head)
 from reachwatch.training.monitor_eval import oracle_risks, tick_auroc
@@ -68,6 +70,15 @@ def _member_mean(per_member):
     return [[np.mean(runs, axis=0) for runs in zip(*groups)] for groups in zip(*per_member)]
 
 
+def _judged(name, spec, data, raw, **kwargs):
+    """`_judge_monitor` of the row ``name``; where no threshold reaches alpha, the error
+    says whose."""
+    try:
+        return _judge_monitor(spec, data, raw, **kwargs)
+    except NoConformalThreshold as e:
+        raise NoConformalThreshold(f"monitor: {name}: {e}") from None
+
+
 def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, executor=None,
                       progress=True, log=print, application=None, detector=None) -> dict:
     """The whole study (see the module) of ``application``'s loop (an `Application`;
@@ -81,9 +92,13 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     flag rule fixed on the calibration environments the same way, and it guards the
     loop beside them; it is never the kept variant."""
     spec.validate()
+    out_dir, cache_dir = cache_location(out_dir), cache_location(cache_dir)
+    for what, where in (("out_dir", out_dir), ("cache_dir", cache_dir)):
+        if not isinstance(where, Path):
+            raise ValueError(f"the monitor study's {what} must be a local folder (it reads its "
+                             f"trainings and checkpoints back as files), got {where}")
     application = load_application() if application is None else application
     started = time.time()
-    out_dir, cache_dir = Path(out_dir), Path(cache_dir)
     period, speed = scenario.controller.period, scenario.controller.speed
     lead = speed / spec.brake_deceleration
     split = spec.environments()
@@ -155,15 +170,15 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                        for k in judged} for head, (_, _, features, _, _) in zip(heads, members)]
         raw = {k: _member_mean([p[k] for p in per_member]) for k in judged}
         model = heads[0] if len(heads) == 1 else HistoryRiskEnsemble.of(heads)
-        row, platt, chosen, rule, risks = _judge_monitor(spec, data, raw, period=period,
-                                                         lead=lead)
+        row, platt, chosen, rule, risks = _judged(variant.name, spec, data, raw,
+                                                  period=period, lead=lead)
         all_risks[variant.name] = risks
         results[variant.name] = row
         models[variant.name] = (model, platt, chosen.threshold, rule)
         log(f"monitor: {variant.name}: threshold {chosen.threshold:.3f}; {judged_text(row)}")
     if detector is not None:        # the run's single-image detector, judged the same way
-        row, platt, chosen, rule, risks = _judge_monitor(spec, data, detector_raw, period=period,
-                                                         lead=lead, calibrated=False)
+        row, platt, chosen, rule, risks = _judged(DETECTOR_ROW, spec, data, detector_raw,
+                                                  period=period, lead=lead, calibrated=False)
         row["kind"] = "detector"
         all_risks[DETECTOR_ROW] = risks
         results[DETECTOR_ROW] = row
@@ -190,6 +205,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     kept = spec.kept_in_advance or min((n for n in results if n != DETECTOR_ROW),
                                        key=lambda n: results[n]["calibration_needless"])
     out_dir.mkdir(parents=True, exist_ok=True)
+    clear_previous_result(out_dir)
     save_risks(out_dir / "risks.npz", data, all_risks, judged)
     checkpoints = {}
     for name in dict.fromkeys([kept, spec.variants[0].name]):
@@ -230,6 +246,33 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     atomic_write_bytes(out_dir / "monitor.json",
                        strict_json(result, indent=1, default=float).encode())
     return result
+
+
+def clear_previous_result(out_dir: Path) -> None:
+    """Removes a previous study's ``monitor.json`` from ``out_dir``, and the checkpoints
+    and figure it names, before a study writes its own there: a study killed while it
+    writes (its guarded runs take hours) then leaves no result beside files of other
+    settings, and no checkpoint of a variant the new study does not keep stays behind to
+    be deployed. ``monitor.json`` is written last, so its absence marks a study that
+    did not finish."""
+    previous = Path(out_dir) / "monitor.json"
+    try:
+        old = json.loads(previous.read_text())
+    except (OSError, ValueError):
+        old = {}
+    previous.unlink(missing_ok=True)
+    named = [*dict(old.get("checkpoints") or {}).values(), old.get("reliability_figure")]
+    for name in named:
+        if isinstance(name, str) and name and Path(name).name == name:
+            (Path(out_dir) / name).unlink(missing_ok=True)
+
+
+def study_outputs(result: dict, folder: str = "monitor") -> dict:
+    """The monitor stage's outputs: the study's ``monitor.json`` (``result``) and every
+    other file it wrote (``files``), so that the stage's record checks them all and a
+    folder whose checkpoints or saved risks another study rewrote is not up to date."""
+    files = ["risks.npz", *result["checkpoints"].values(), result["reliability_figure"]]
+    return {"result": f"{folder}/monitor.json", "files": [f"{folder}/{f}" for f in files]}
 
 
 def judged_text(row: dict) -> str:
@@ -371,9 +414,8 @@ def stage_monitor(run) -> dict:
     key = study_key(spec, application, run.spec.scenario, detector)
 
     def study():
-        run_monitor_study(spec, run.spec.scenario, run.path("monitor"),
-                          cache_dir=run.path("monitor_cache"), executor=run.executor,
-                          progress=run.progress, log=run.log, application=application,
-                          detector=detector)
-        return {"result": "monitor/monitor.json"}
+        return study_outputs(run_monitor_study(
+            spec, run.spec.scenario, run.path("monitor"), cache_dir=run.path("monitor_cache"),
+            executor=run.executor, progress=run.progress, log=run.log,
+            application=application, detector=detector))
     return run.stage("monitor", key, study)

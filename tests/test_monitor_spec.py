@@ -73,6 +73,9 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
                            "variant's name, got 'GRU 3'"),
                           (("{name: one frame}", "{name: choose}"),
                            "monitor.variants: 'choose' is monitor.keep's word for choosing"),
+                          (("{name: one frame}", "{name: oracle (privileged)}"),
+                           "monitor.variants: 'oracle (privileged)' is the name of the oracle "
+                           "monitor's row"),
                           (("runs: 6", "runs: 6\n  ensemble: 0"),
                            "monitor.ensemble must be a whole number in .1, 32., got 0"),
                           (("runs: 6", "runs: 6\n  held_out_runs: -1"),

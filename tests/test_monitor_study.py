@@ -13,8 +13,9 @@ from reachwatch.diagrams import load_scenario
 from reachwatch.diagrams.checkpoints import load_history_monitor
 from reachwatch.pipeline.monitor_sections import markdown_tables
 from reachwatch.pipeline.monitor_guarded import ORACLE
-from reachwatch.pipeline.monitor_study import (DETECTOR_ROW, checkpoint_file, run_monitor_study,
-                                               starts_seed)
+from reachwatch.pipeline.monitor_study import (DETECTOR_ROW, checkpoint_file,
+                                               clear_previous_result, run_monitor_study,
+                                               starts_seed, study_outputs)
 from reachwatch.pipeline.spec import MonitorVariant, load_run_spec
 from reachwatch.training.conformal import conformal_threshold
 from tiny_run import MONITOR_STUDY, TINY
@@ -104,6 +105,10 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     text = (tmp_path / "out" / "monitor.json").read_text()
     strict = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in monitor.json"))
     assert strict["kept"] == result["kept"]
+    # the stage's record names every file the study wrote (and checks them all)
+    outputs = study_outputs(result, folder="out")
+    assert sorted([outputs["result"], *outputs["files"]]) == sorted(
+        f"out/{p.name}" for p in (tmp_path / "out").iterdir())
     from reachwatch.pipeline.monitor_sections import read_study_result
     back = read_study_result(tmp_path / "out" / "monitor.json")
     assert json.dumps(back, sort_keys=True) == json.dumps(
@@ -439,3 +444,31 @@ def test_a_studys_checkpoint_files_are_named_after_their_variants():
     assert checkpoint_file("☀") == "monitor_variant.pt"
     taken = {"monitor_a-b.pt", "monitor_a-b-2.pt"}
     assert checkpoint_file("a b", taken) == "monitor_a-b-3.pt"
+
+
+def test_a_study_clears_the_previous_result_before_it_writes_its_own(tmp_path):
+    """A study killed while it writes leaves no ``monitor.json`` beside files of other
+    settings, and the previous study's checkpoints and figure go with its result; other
+    files stay."""
+    (tmp_path / "monitor.json").write_text(json.dumps(
+        {"checkpoints": {"a": "monitor_a.pt", "b": "monitor_b.pt"},
+         "reliability_figure": "reliability.png"}))
+    for name in ("monitor_a.pt", "monitor_b.pt", "reliability.png", "risks.npz", "notes.txt"):
+        (tmp_path / name).write_bytes(b"x")
+    clear_previous_result(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "risks.npz"]
+    (tmp_path / "monitor.json").write_text("{not json")        # a torn file: removed
+    clear_previous_result(tmp_path)
+    clear_previous_result(tmp_path / "missing")                   # nothing there: nothing to do
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "risks.npz"]
+
+
+def test_the_study_refuses_a_cache_url_before_it_records_anything(tmp_path):
+    spec = load_run_spec(data=TINY + MONITOR_STUDY).monitor
+    for cache, out in (("memory://monitor-cache", tmp_path / "out"),
+                       (tmp_path / "cache", "s3://bucket/out")):
+        with pytest.raises(ValueError, match=r"must be a local folder .* got "
+                                             r"(memory://monitor-cache|s3://bucket/out)$"):
+            run_monitor_study(spec, load_scenario(data=""), out, cache_dir=cache,
+                              progress=False, log=lambda m: None)
+    assert not any(tmp_path.iterdir())
