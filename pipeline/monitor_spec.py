@@ -97,7 +97,10 @@ class MonitorStudySpec:
     threshold's guarantee.
 
     ``also_held_out``: named environments outside the family (e.g. the paper's nights),
-    judged with the same threshold but outside its guarantee.
+    judged with the same threshold but outside its guarantee. Their starts are seeded by
+    their place after the family's ``train + calibrate + held_out`` environments
+    (`monitor_runs.starts_seed`): two studies judge them on the same starts only where
+    those three counts add up to the same.
 
     ``runs``: real runs recorded per training environment (and per calibration and
     judged one, unless set apart below), from the application's seeded starts
