@@ -137,12 +137,22 @@ def redrawn_bound_row(result: dict, name: str):
     expectation over such draws, which one held-out group only samples, and how often
     one group reads above alpha. No verdict: for a monitor fixed in advance the mean
     over random splits of one sample is at most alpha whatever the monitor. None when
-    the study saved no calibration scores."""
+    the study saved no calibration scores. Not drawn (a row that says why) where the
+    calibration environments were recorded with other run counts than the held-out
+    ones: they are not exchangeable then."""
     kept = result["kept"]
     row = result["variants"][kept]
     scores = row.get("scores", {})
     if not (scores.get("calibrate") and scores.get("held_out")):
         return None
+    counts = {k: sorted({int(n) for _, n in (result.get("failing_runs", {}).get(k) or {}).values()})
+              for k in ("calibrate", "held_out")}
+    if counts["calibrate"] and counts["held_out"] and counts["calibrate"] != counts["held_out"]:
+        return ["the conformal bound (alpha) on the mean miss rate, over redrawn splits", name,
+                f"not drawn: the calibration environments were recorded with "
+                f"{'/'.join(map(str, counts['calibrate']))} runs each and the held-out ones "
+                f"with {'/'.join(map(str, counts['held_out']))}, so a split could not swap "
+                f"them", "-"]
     calibrate, judged = len(scores["calibrate"]), len(scores["held_out"])
     mode = "given failures" if row.get("given_failures") else "every"
     f = draw_figures(family_environments(result, kept), calibrate, result["alpha"],

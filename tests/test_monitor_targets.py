@@ -112,6 +112,15 @@ def test_the_bound_over_redrawn_splits_reads_the_saved_calibration_and_held_out_
     given = result([0.9] * 12)
     given["variants"]["GRU"]["given_failures"] = True
     assert targets.redrawn_bound_row(given, "family")[2].startswith("0.0 % (where runs fail)")
+    # environments recorded with other run counts are not swapped between the groups
+    unlike = result([0.9] * 12)
+    unlike["failing_runs"] = {"calibrate": {f"c{i}": [1, 20] for i in range(9)},
+                              "held_out": {f"h{i}": [1, 200] for i in range(3)}}
+    assert targets.redrawn_bound_row(unlike, "family")[2] == (
+        "not drawn: the calibration environments were recorded with 20 runs each and the "
+        "held-out ones with 200, so a split could not swap them")
+    unlike["failing_runs"]["calibrate"] = {f"c{i}": [0, 200] for i in range(9)}
+    assert targets.redrawn_bound_row(unlike, "family")[2].startswith("0.0 % ")
     # a study that saved no calibration scores has no such row
     assert targets.redrawn_bound_row({"kept": "GRU", "variants": {"GRU": _variant(
         [0.9], 0.03, [0], 0.5, [0.9], [0.1])}}, "family") is None
