@@ -130,9 +130,27 @@ def map_states(fn, states, *, cache_dir, chunk_size: int = None, executor=None,
             raise RuntimeError(f"chunk {chunk.index} of {key} did not finish")
         if fields is None:
             fields = {k: np.empty((len(states),) + a.shape[1:], a.dtype) for k, a in arrays.items()}
+        _check_chunk_fields(fields, arrays, chunk, key)
         for k, a in arrays.items():
+            if not np.can_cast(a.dtype, fields[k].dtype, "safe"):     # e.g. ints, then floats
+                fields[k] = fields[k].astype(np.result_type(fields[k].dtype, a.dtype))
             fields[k][chunk.start:chunk.stop] = a
     return fields, key, computed
+
+
+def _check_chunk_fields(fields, arrays, chunk, key):
+    """Every chunk of one `map_states` holds the same arrays, of the same shape per
+    state, as the first: the call's function returned otherwise (one line that says
+    how) rather than a field left unfilled or cut to another's shape."""
+    if set(arrays) != set(fields):
+        raise ValueError(f"chunk {chunk.index} of {key} holds the arrays {sorted(arrays)}, the "
+                         f"first chunk {sorted(fields)}: the function must return the same "
+                         f"names from every chunk")
+    for k, a in arrays.items():
+        if a.shape[1:] != fields[k].shape[1:]:
+            raise ValueError(f"chunk {chunk.index} of {key}: {k!r} has shape {a.shape[1:]} a "
+                             f"state, the first chunk's {fields[k].shape[1:]}: the function "
+                             f"must return the same shape from every chunk")
 
 
 def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = None, executor=None,

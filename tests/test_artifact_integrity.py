@@ -217,6 +217,36 @@ def test_an_outcome_chunk_whose_numbers_were_edited_is_run_again(tmp_path):
     assert set(again) == {"y"}
 
 
+def _quarters(states):
+    """Whole quarters come back as ints (as a rollout's ``-1``, never failed, might)."""
+    q = states[:, 0] / 4
+    return {"q": q if np.any(q % 1) else q.astype(int)}
+
+
+def _names_by_chunk(states):
+    return {"a" if states[0, 0] == 0 else "b": states[:, 0]}
+
+
+def _widths_by_chunk(states):
+    return {"y": np.zeros((len(states), 1 if states[0, 0] == 0 else 2))}
+
+
+def test_map_states_keeps_every_chunks_numbers_and_refuses_unlike_chunks(tmp_path):
+    """A later chunk's floats are not cut to the first chunk's ints; chunks that return
+    other names or shapes are one error, not a field left unfilled."""
+    states = np.array([[0.0, 0], [4, 0], [1, 0], [3, 0]])
+    fields, _, _ = map_states(_quarters, states, cache_dir=tmp_path, chunk_size=2,
+                              progress=False)
+    np.testing.assert_array_equal(fields["q"], [0, 1, 0.25, 0.75])
+    assert fields["q"].dtype == np.float64
+    with pytest.raises(ValueError, match=r"^chunk 1 of .* holds the arrays \['b'\], the first "
+                                         r"chunk \['a'\]: the function must return the same"):
+        map_states(_names_by_chunk, states, cache_dir=tmp_path, chunk_size=2, progress=False)
+    with pytest.raises(ValueError, match=r"^chunk 1 of .*: 'y' has shape \(2,\) a state, the "
+                                         r"first chunk's \(1,\)"):
+        map_states(_widths_by_chunk, states, cache_dir=tmp_path, chunk_size=2, progress=False)
+
+
 def _rewrite_chunk(path, change):
     """Rewrite a chunk file with ``change(arrays)`` and a checksum that matches (a table
     made elsewhere, or edited by a tool that knows the format)."""
