@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -178,3 +180,14 @@ def test_weak_callback_computes_and_lets_its_system_go():
     del builder, system, diagram, context
     gc.collect()
     assert alive() is None
+
+
+def test_a_generated_texture_is_named_after_the_code_that_made_it(monkeypatch):
+    """A texture file made by other generator code (or another numpy) is another file,
+    not one read back as this code's."""
+    from reachwatch.systems import textures
+    first = textures.texture_png("grass", (0.2, 0.5, 0.2), 0.5, seed=3, size=8)
+    assert textures.texture_png("grass", (0.2, 0.5, 0.2), 0.5, seed=3, size=8) == first
+    monkeypatch.setattr(textures, "GENERATOR", ("edited", textures.GENERATOR[1]))
+    again = textures.texture_png("grass", (0.2, 0.5, 0.2), 0.5, seed=3, size=8)
+    assert again != first and Path(again).is_file()
