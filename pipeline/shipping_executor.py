@@ -2,6 +2,8 @@
 files their arguments name. Its own module because it imports ``distributed`` (an
 extra), only when a cluster is asked for."""
 
+import threading
+
 from distributed.cfexecutor import ClientExecutor
 
 from reachwatch.diagrams.shipping import Packer, run_shipped
@@ -38,18 +40,20 @@ class ShippingExecutor(ClientExecutor):
     def __init__(self, client, **kwargs):
         super().__init__(client, **kwargs)
         self._packer, self._sent = Packer(), {}
+        self._sending = threading.Lock()         # `run_together`'s jobs submit from threads
         self._expected = process_identity()
 
     def _scattered(self, shipment):
         """The cluster's future of ``shipment``: scattered once, again when the worker
         holding it was lost; the `KEPT` most recently used are held."""
-        sent = self._sent.pop(shipment.digest, None)
-        if sent is None or sent.status != "finished":
-            sent = self._client.scatter(shipment, hash=False)
-        self._sent[shipment.digest] = sent
-        while len(self._sent) > KEPT:            # the oldest first (dicts keep order)
-            self._sent.pop(next(iter(self._sent)))
-        return sent
+        with self._sending:
+            sent = self._sent.pop(shipment.digest, None)
+            if sent is None or sent.status != "finished":
+                sent = self._client.scatter(shipment, hash=False)
+            self._sent[shipment.digest] = sent
+            while len(self._sent) > KEPT:            # the oldest first (dicts keep order)
+                self._sent.pop(next(iter(self._sent)))
+            return sent
 
     def submit(self, fn, /, *args, **kwargs):
         shipment = self._packer.pack(fn, args, kwargs)
