@@ -405,6 +405,10 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
     the window all its jobs share, the bar is drawn at the job's line and moves per
     chunk (a pool's counter counts every job's rows), and once another job failed the
     call stops at its next chunk (`Stopped`)."""
+    if max_in_flight is not None and (isinstance(max_in_flight, bool) or not isinstance(
+            max_in_flight, (int, np.integer)) or max_in_flight < 1):
+        raise ValueError(f"{caller}: max_in_flight must be a whole number >= 1 (or None: "
+                         f"twice the executor's threads), got {max_in_flight!r}")
     chunks = list(chunks)
     todo = [c for c in chunks if not store.valid(c)]
     rows = sum(c.rows for c in chunks)

@@ -33,10 +33,15 @@ class RespawningPool(cf.Executor):
     runs the lost chunks again on the fresh pool (chunks are pure functions of their
     inputs, so the results are the same), at most ``respawns`` times over the pool's
     life; after that a death is `run_chunks`' one-line error. ``progress_counter``,
-    when given, is the counter every pool's workers count into."""
+    when given, is the counter every pool's workers count into. ``code``, when given
+    (the driver's `reach.fingerprint.loop_code_digest`, which every key it computes
+    carries), is checked by each task against its worker's own (`same_loop_code`): a
+    worker started after the source was edited (a replacement, a later spawn) does not
+    store results under keys of other code."""
 
-    def __init__(self, make: Callable, *, respawns: int = RESPAWNS, progress_counter=None):
-        self._make = make
+    def __init__(self, make: Callable, *, respawns: int = RESPAWNS, progress_counter=None,
+                 code: str = None):
+        self._make, self._code = make, code
         self._lock = threading.Lock()
         self.pool = make()
         self.generation = 0             # how many times the pool was replaced
@@ -53,6 +58,8 @@ class RespawningPool(cf.Executor):
         return self.pool._processes
 
     def submit(self, fn, /, *args, **kwargs):
+        if self._code is not None:
+            return self.pool.submit(same_loop_code, self._code, fn, *args, **kwargs)
         return self.pool.submit(fn, *args, **kwargs)
 
     def respawn(self, generation: int) -> bool:
@@ -80,6 +87,18 @@ class RespawningPool(cf.Executor):
 
     def shutdown(self, wait=True, *, cancel_futures=False):
         self.close().shutdown(wait=wait, cancel_futures=cancel_futures)
+
+
+def same_loop_code(expected: str, fn, /, *args, **kwargs):
+    """``fn(*args, **kwargs)`` in a pool worker whose loop code (`loop_code_digest`) is
+    ``expected``, the driver's; else one line, before any result."""
+    from .fingerprint import loop_code_digest
+    mine = loop_code_digest()
+    if mine != expected:
+        raise RuntimeError(f"this worker's reachwatch source (loop code {mine[:12]}) is not the "
+                           f"driver's ({expected[:12]}): it was edited after the driver "
+                           f"started; start the run again (it resumes from its caches)")
+    return fn(*args, **kwargs)
 
 
 def stop_executor(executor, *, abort: bool = False):

@@ -16,6 +16,7 @@ import os
 import signal
 import sys
 import threading
+import uuid
 import warnings
 from pathlib import Path
 from typing import Callable, Tuple
@@ -31,7 +32,7 @@ from .chunks import (CHECKSUM, FolderStore, checksum_ok, chunk_checksum,  # noqa
                      store_chunk_file)
 from .executors import (RESPAWNS, InlineExecutor, RespawningPool,  # noqa: F401
                         executor_threads, in_flight, stop_executor)
-from .fingerprint import Unfingerprintable, fingerprint
+from .fingerprint import Unfingerprintable, fingerprint, loop_code_digest
 from .grid import Grid
 from .thread_kept import KEPT_DIAGRAMS, ThreadKept
 
@@ -152,7 +153,7 @@ def default_executor(max_workers: int = None) -> cf.Executor:
         initializer=exec, initargs=(_WORKER_START, {"counter": counter, "threads": threads,
                                                     "parent_pid": os.getpid(),
                                                     "interval": 0.1})),
-        progress_counter=counter)
+        progress_counter=counter, code=loop_code_digest())
 
 
 def _subsystem(diagram, name):
@@ -208,14 +209,16 @@ _PROBES = ThreadKept(KEPT_DIAGRAMS)
 def probe_key(factory, probe: Probe, fallback: str = None) -> str:
     """What a worker thread keeps one diagram for: the factory and probe's content
     fingerprint, whatever grid they sweep (a sweep, its refinement and other grids of
-    the same loop share it); ``fallback`` (e.g. a sweep's checked key) when they cannot
-    be fingerprinted, else `Unfingerprintable` is raised."""
+    the same loop share it); when they cannot be fingerprinted, ``fallback`` (e.g. a
+    sweep's given key) with a suffix of its own to this call, so that another sweep
+    under the same key, from another closure, never runs this one's diagram; without
+    ``fallback``, `Unfingerprintable` is raised."""
     try:
         return f"states_{fingerprint(factory, probe)[:20]}"
     except Unfingerprintable:
         if fallback is None:
             raise
-        return fallback
+        return f"{fallback}_{uuid.uuid4().hex[:12]}"
 
 
 def _thread_probe(factory, probe: Probe, key: str, state_dim: int) -> "_DiagramProbe":
@@ -315,7 +318,9 @@ def _check_fingerprint(folder, factory, grid, probe, key):
         try:
             theirs = json.loads(recorded).get("fingerprint")
         except (ValueError, AttributeError):
-            theirs = None
+            raise ValueError(f"sweep key '{key}': the cache's fingerprint.json ({path}) is not "
+                             f"readable, so its tables cannot be checked against this sweep; "
+                             f"delete {folder}, or use another key") from None
         if mine is not None and theirs is not None and theirs != mine:
             raise ValueError(f"sweep key '{key}' names a cache ({folder}) filled from another "
                              f"factory, grid or probe (fingerprint {theirs[:12]}, this sweep "
@@ -370,7 +375,7 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
     tables = None
     names = [f"port{k}" for k in range(nports)]
     for chunk in chunks:
-        kept = store.read(chunk) if not local else read_chunk_file(store.path(chunk), names)
+        kept = store.read(chunk)        # checked again: another writer may have replaced it
         if kept is None:
             raise RuntimeError(f"chunk {chunk.index} of {key} did not finish")
         arrays = [kept[name] for name in names]

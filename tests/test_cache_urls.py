@@ -107,6 +107,11 @@ def test_a_url_cache_and_a_local_one_hold_the_same_files(tmp_path, memory_url):
     with pytest.raises(ValueError, match="filled from another"):
         sweep(_factory(), GRID, cache_dir=memory_url, key=key,
               **{**SWEEP, "probe": Probe(plant="taxi_plant", control_port=FEEDBACK.control_port)})
+    # one whose fingerprint cannot be read is refused too: its tables cannot be checked
+    (tmp_path / "local" / key / "fingerprint.json").write_text("{torn")
+    with pytest.raises(ValueError, match=r"^sweep key 'feedback': the cache's fingerprint.json "
+                                         r".* is not readable, so its tables cannot be checked"):
+        sweep(_factory(), GRID, cache_dir=tmp_path / "local", key=key, **SWEEP)
 
 
 def test_map_states_into_a_url_cache_is_reused_and_a_corrupted_chunk_recomputed(memory_url):
@@ -152,3 +157,16 @@ def test_a_url_whose_protocol_is_unknown_or_not_installed_is_one_line():
         with pytest.raises(ValueError, match=r"^s3://bucket/x: .*s3fs.* \(its fsspec "
                                              r"implementation is not installed\)$"):
             make_folder("s3://bucket/x")
+
+
+def test_a_closure_under_a_given_key_never_runs_another_sweeps_diagram():
+    """A factory that cannot be fingerprinted keeps its threads' diagrams under the
+    given key and a suffix of this call's own: a second sweep under the same key, from
+    another closure, builds its own; a fingerprinted factory's diagrams are shared."""
+    from reachwatch.reach.sweep import probe_key
+    scenario = load_scenario(data="")
+    closure = lambda: make_state_feedback_diagram(scenario)         # noqa: E731
+    first, second = probe_key(closure, FEEDBACK, "mine"), probe_key(closure, FEEDBACK, "mine")
+    assert first.startswith("mine_") and second.startswith("mine_") and first != second
+    shared = functools.partial(make_state_feedback_diagram, scenario)
+    assert probe_key(shared, FEEDBACK, "mine") == probe_key(shared, FEEDBACK) != first

@@ -55,6 +55,16 @@ def test_a_failed_chunk_keeps_those_before_it_and_a_rerun_runs_the_rest(tmp_path
     assert _run(tmp_path, calls)[0] == [] and calls == []          # all stored: nothing runs
 
 
+def test_a_window_that_is_not_a_whole_number_of_chunks_is_one_line(tmp_path):
+    """-1 waited for ever and 0 was read as "the default"; neither runs a chunk now."""
+    for bad in (-1, 0, 2.5, True):
+        calls = []
+        with pytest.raises(ValueError, match=r"^run_chunks: max_in_flight must be a whole "
+                                             r"number >= 1 .*, got " + repr(bad).replace(".", r"\.")):
+            _run(tmp_path, calls, max_in_flight=bad)
+        assert calls == [] and not any(tmp_path.iterdir())
+
+
 def test_a_chunk_file_whose_numbers_changed_is_run_again(tmp_path):
     _run(tmp_path, [])
     path = chunk_path(tmp_path, 1)
@@ -265,3 +275,21 @@ def test_the_window_widens_as_the_cluster_grows(tmp_path, monkeypatch):
         cluster.shutdown()
     assert cluster.most[False] <= 4              # 1 thread: the least window, 4
     assert cluster.most[True] > 8, cluster.most   # 8 threads: twice as many in flight
+
+
+def test_a_pool_task_runs_only_on_a_worker_with_the_drivers_loop_code(tmp_path):
+    """Each task of a pool given the driver's loop-code digest checks its worker's
+    first: one whose source was edited after the driver started stores nothing."""
+    from reachwatch.reach.fingerprint import loop_code_digest
+    same = RespawningPool(functools.partial(cf.ThreadPoolExecutor, 1), code=loop_code_digest())
+    other = RespawningPool(functools.partial(cf.ThreadPoolExecutor, 1), code="0" * 64)
+    try:
+        ran, store = _run(tmp_path / "same", [], executor=same)
+        assert len(ran) == 4
+        with pytest.raises(RuntimeError, match=r"^this worker's reachwatch source \(loop code "
+                                               r"\w{12}\) is not the driver's \(000000000000\)"):
+            _run(tmp_path / "other", [], executor=other)
+        assert not list((tmp_path / "other").glob("chunk_*"))
+    finally:
+        stop_executor(same)
+        stop_executor(other)
