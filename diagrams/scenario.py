@@ -312,7 +312,8 @@ def read_yaml(data: str, where: str, *, drake=True):
         raise ScenarioError(clip(f"{where}: a number of thousands of digits; numbers here "
                                  f"are at most {MAX_INT} in size")) from None
     except Exception as e:  # PyYAML's or Drake's parser error
-        raise ScenarioError(clip(f"{where}: not valid YAML: {e}")) from None
+        text = " ".join(str(e).replace('in "<unicode string>", line', "at line").split())
+        raise ScenarioError(clip(f"{where}: not valid YAML: {text}")) from None
     return raw
 
 
@@ -338,9 +339,9 @@ def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario",
     later, converted = [], []
     try:
         schema_of = schema.schema_for if hasattr(schema, "schema_for") else lambda _: schema
-        if edit is not None:
-            where = f"{where} {edit.where}"
+        if edit is not None:                # its own errors name their overlay
             raw = edit.apply(raw, schema_of, root)
+            where = f"{where} {edit.where}"
         typed = schema_of(raw)
         raw = _check(raw, typed, root, later, converted)
         if converted or edit is not None:   # Drake's loader reads the text again: give
@@ -350,7 +351,11 @@ def load_scenario(filename=None, *, data=None, schema=Scenario, root="scenario",
     except (ScenarioError, ValueError) as e:     # ScenarioError is a ValueError
         hint = ("this looks like a run file (it has train: or scenario:), which `reachwatch "
                 "run --scenario` reads; " if root == "scenario" and isinstance(raw, dict)
-                and {"train", "scenario"} & set(raw) else "")
+                and {"train", "scenario"} & set(raw) else
+                "this looks like a scenario file (it has environment:, camera:, "
+                "initial_state: or controller:), which a run file holds under scenario:; "
+                if root == "run" and isinstance(raw, dict) and "scenario" not in raw and
+                {"environment", "camera", "initial_state", "controller"} & set(raw) else "")
         raise ScenarioError(clip(f"{where}: {hint}{e}")) from None
     except (ArithmeticError, TypeError):        # a non-finite number the checks missed
         if not later:

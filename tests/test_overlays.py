@@ -99,6 +99,13 @@ def test_a_bad_overlay_is_one_line_with_rc_2(tmp_path, capsys, argv, message):
     assert not (tmp_path / "o").exists()
 
 
+def test_an_overlays_error_names_it_once(tmp_path, capsys):
+    """The overlay's own label leads its error, after the file's name, not twice."""
+    err = _one_line_error(capsys, ["render", "--out", str(tmp_path / "o"), "--set",
+                                   "controller.sped=3"])
+    assert err.count("--set controller.sped=3") == 1, err
+
+
 def test_a_text_overlays_error_names_the_flag_it_was_given_as(tmp_path, capsys):
     path = tmp_path / "run.yaml"
     path.write_text("train: [{runway: KMWH, hour: 9.0, sky: clear}]\n")

@@ -65,8 +65,14 @@ def test_run_spec_file_errors(tmp_path):
     with pytest.raises(ScenarioError, match="not found"):
         load_run_spec(tmp_path / "missing.yaml")
     (tmp_path / "bad.yaml").write_text("train: [")
-    with pytest.raises(ScenarioError, match="not valid YAML"):
+    with pytest.raises(ScenarioError, match=r"bad.yaml: not valid YAML: .* at line 2, column 1$"):
         load_run_spec(tmp_path / "bad.yaml")
+    # a scenario file given where a run file goes says so
+    (tmp_path / "scenario.yaml").write_text("environment: {runway: KSFO}\n")
+    with pytest.raises(ScenarioError, match=r"scenario.yaml: this looks like a scenario file .* "
+                                            r"which a run file holds under scenario:; "
+                                            r"run.environment: unknown field"):
+        load_run_spec(tmp_path / "scenario.yaml")
     # every error names the file, also those of the schema's field and type checks
     for edit in [("grid: [5, 3, 5]", "grids: [5, 3, 5]"), ("grid: [5, 3, 5]", "grid: [5, 3.5, 5]"),
                  ("horizon: 4.0", "horizon: -4.0")]:
