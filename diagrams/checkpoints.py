@@ -8,6 +8,7 @@ import dataclasses as dc
 import io
 import json
 import math
+import re
 from pathlib import Path
 
 import torch
@@ -57,14 +58,22 @@ def load_checkpoint(path, *, kind) -> dict:
     """The raw checkpoint dict of ``kind`` (a name, or a tuple of accepted names);
     raises `CheckpointError` saying what is wrong."""
     path = Path(local_copy(path))      # a checkpoint that came with the running task
+    if path.is_dir():
+        raise CheckpointError(f"{path} is a folder, not a checkpoint file")
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"{path} is empty, not a checkpoint")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises several types for truncated/foreign files
+        # its first line, less its advice on loading files one trusts
+        first = ("it holds Python objects that a weights-only load refuses"
+                 if "Weights only load failed" in str(e) else
+                 re.sub(r"\x1b\[[0-9;]*m", "", (str(e).strip().splitlines() or [""])[0]))
         raise CheckpointError(f"{path} is not a readable checkpoint (corrupt, truncated or "
                               f"not written by reachwatch): {type(e).__name__}: "
-                              f"{str(e)[:200]}") from None
+                              f"{first[:200]}") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path} is a torch file but not a reachwatch checkpoint")
     if payload.get("version") != VERSION:

@@ -1,3 +1,5 @@
+import pickle
+
 import numpy as np
 import pytest
 import torch
@@ -106,6 +108,16 @@ def test_checkpoint_round_trip(tmp_path):
 def test_bad_checkpoints_fail_clearly(tmp_path):
     with pytest.raises(CheckpointError, match="not found"):
         load_taxinet(tmp_path / "missing.pt")
+    with pytest.raises(CheckpointError, match=r"^\S+ is a folder, not a checkpoint file$"):
+        load_taxinet(tmp_path)
+    (tmp_path / "empty.pt").write_bytes(b"")
+    with pytest.raises(CheckpointError, match=r"empty.pt is empty, not a checkpoint$"):
+        load_taxinet(tmp_path / "empty.pt")
+    (tmp_path / "pickled.pt").write_bytes(pickle.dumps(object(), protocol=2))
+    with pytest.raises(CheckpointError, match=r"pickled.pt is not a readable checkpoint .*: "
+                                              r"UnpicklingError: it holds Python objects that "
+                                              r"a weights-only load refuses$"):
+        load_taxinet(tmp_path / "pickled.pt")
     good = _save(tmp_path / "good.pt", _model()).read_bytes()
     (tmp_path / "truncated.pt").write_bytes(good[: len(good) // 2])
     with pytest.raises(CheckpointError, match="not a readable checkpoint"):
