@@ -17,6 +17,7 @@ from pydrake.systems.sensors import ImageRgba8U
 
 from .detector import inference_model, resize_for_detector
 from .history_model import HistoryRiskModel, platt
+from .ports import weak_callback
 from .risk_ensemble import GroupedEncoder, HistoryRiskEnsemble, grouped_gru
 @contextlib.contextmanager
 def one_torch_thread():
@@ -106,12 +107,15 @@ class HistoryMonitor(LeafSystem):
             "frame_features", self._width, self._calc_row,
             prerequisites_of_calc={self.all_input_ports_ticket()})
         if self._gru:
-            self._windows = self.DeclareCacheEntry(
+            # neither the entry (which holds its system) nor a callback holding this
+            # system strongly is kept on it: either would keep it, and its whole
+            # diagram, alive for good (a cycle through C++, `weak_callback`)
+            shape = (self._slots + 1, len(self._members), c.hidden)
+            self._windows_index = self.DeclareCacheEntry(
                 "the open GRU windows advanced by this tick's frame", ValueProducer(
-                    allocate=lambda: AbstractValue.Make(np.zeros(
-                        (self._slots + 1, len(self._members), c.hidden), np.float32)),
-                    calc=self._calc_windows),
-                {self.all_input_ports_ticket(), self.xd_ticket()})
+                    allocate=lambda: AbstractValue.Make(np.zeros(shape, np.float32)),
+                    calc=weak_callback(self._calc_windows)),
+                {self.all_input_ports_ticket(), self.xd_ticket()}).cache_index()
         if self._slots:
             self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         self._score_port = self.DeclareVectorOutputPort("score", 1, self._calc_score)
@@ -165,6 +169,10 @@ class HistoryMonitor(LeafSystem):
         return self._members[member].head_input(rows[..., member * f:(member + 1) * f],
                                                 rows[..., self._encoded:])
 
+    def _open_windows(self, context) -> np.ndarray:
+        """The cache entry `_calc_windows` fills, for ``context``."""
+        return self.get_cache_entry(self._windows_index).Eval(context)
+
     def _calc_windows(self, context, value):
         """The hidden states ``(slots + 1, members, hidden)`` of the windows of ticks
         ``t .. t + slots`` after this tick ``t``'s frame (``gru``): row ``d`` is the
@@ -195,7 +203,7 @@ class HistoryMonitor(LeafSystem):
     def _update(self, context, discrete_state):
         state = context.get_discrete_state(self._history).get_value()
         if self._gru:
-            kept = self._windows.Eval(context)[1:]          # (slots, members, hidden)
+            kept = self._open_windows(context)[1:]          # (slots, members, hidden)
         else:
             kept = self._rows(context)[1:]
         out = np.concatenate([[min(state[0] + 1, self._slots)], kept.reshape(-1)])
@@ -205,7 +213,7 @@ class HistoryMonitor(LeafSystem):
         c = self._config
         risks = []
         if self._gru:
-            complete = torch.from_numpy(self._windows.Eval(context)[0])   # (members, hidden)
+            complete = torch.from_numpy(self._open_windows(context)[0])   # (members, hidden)
             with one_torch_thread():
                 for m, member in enumerate(self._members):
                     logit = member.head(complete[m:m + 1]).squeeze(-1)

@@ -256,3 +256,26 @@ def test_each_tick_encodes_its_frame_once_and_steps_the_gru_once(members):
     # tick 0: the first frame through every window at once; then one step of the 6 windows
     # that hold the tick (batch 6, sequence 1)
     assert calls["gru"] == [((1, 6, 4 * members), 1)] + [((6, 1, 4 * members), 1)] * 7
+
+
+@pytest.mark.parametrize("temporal", ["gru", "stack"])
+def test_a_monitor_and_its_diagram_are_freed_once_let_go(temporal):
+    """No callback of the monitor holds it strongly (a cycle through C++ that Python's
+    collector cannot see would keep it, and its whole loop, alive for good)."""
+    import gc
+    import weakref
+    from pydrake.systems.framework import DiagramBuilder
+    from reachwatch.systems import HistoryMonitor
+    config = HistoryMonitorConfig(frames=3, stride=1, height=16, width=24, channels=[4],
+                                  features=5, temporal=temporal, hidden=6)
+    builder = DiagramBuilder()
+    monitor = builder.AddSystem(HistoryMonitor(model=HistoryRiskModel(config).eval(),
+                                               threshold=0.5, period=0.05))
+    builder.ExportInput(monitor.get_color_image_input_port(), "image")
+    diagram = builder.Build()
+    scores = _step_monitor(monitor, np.zeros((2, 20, 30, 4), np.uint8), None)
+    assert np.all(np.isfinite(scores))
+    alive = (weakref.ref(monitor), weakref.ref(diagram))
+    del builder, monitor, diagram
+    gc.collect()
+    assert [ref() for ref in alive] == [None, None]
