@@ -11,7 +11,7 @@ from .closed_loop import (CONTROL_PORT, CONTROLLER, ESTIMATE_PORT, PLANT, Trajec
 from .controller import (ControllerProbe, TaxiNetController, check_controller, make_controller,
                          make_taxinet_controller, resolve_factory)
 from .guarded import (DETECTOR, FLAG_FILTER, SWITCH, Monitor, add_dead_reckoning, add_detector,
-                      add_monitor, make_guarded_diagram)
+                      add_monitor, check_per_state_monitor, make_guarded_diagram)
 from .graph import GraphvizMissing, export_graph
 from .render import StateRenderer, check_state, render_at_states, write_png
 from .scenario import ControllerConfig, InitialState, MonitorConfig, Scenario, ScenarioError, dump_scenario, load_scenario
@@ -25,6 +25,6 @@ __all__ = ["REFERENCE_TAXINET", "CheckpointError", "file_hash", "load_checkpoint
            "tick_times",
            "ControllerProbe", "TaxiNetController", "check_controller", "make_controller",
            "make_taxinet_controller", "resolve_factory",
-           "ControllerConfig", "MonitorConfig", "DETECTOR", "FLAG_FILTER", "Monitor", "SWITCH", "add_dead_reckoning", "add_detector", "add_monitor", "make_guarded_diagram", "GraphvizMissing", "export_graph", "StateRenderer", "check_state", "render_at_states", "write_png",
+           "ControllerConfig", "MonitorConfig", "DETECTOR", "FLAG_FILTER", "Monitor", "SWITCH", "add_dead_reckoning", "add_detector", "check_per_state_monitor", "add_monitor", "make_guarded_diagram", "GraphvizMissing", "export_graph", "StateRenderer", "check_state", "render_at_states", "write_png",
            "InitialState", "Scenario", "ScenarioError", "dump_scenario", "load_scenario",
            "paired_rates", "World", "add_world", "initial_state_vector", "make_world_diagram"]

@@ -43,6 +43,22 @@ def add_monitor_signals(builder, *, steering_port, estimate_port=None) -> Output
     return mux.get_output_port(0)
 
 
+def check_per_state_monitor(monitor) -> None:
+    """Raise ValueError, in one line, when ``monitor`` (a `MonitorConfig`) names a
+    history monitor over more than one frame: a table of one score per state (the
+    guard's table rollouts) reads it on a history of that state's frame alone, which is
+    not what it outputs along a run. Judge such a monitor in the guarded real loop (a
+    run file's ``monitor: {kind: history}``)."""
+    if not monitor.detector or checkpoint_kind(monitor.detector) != "history_monitor":
+        return
+    _, config, _ = load_history_monitor(monitor.detector)
+    if config.frames > 1:
+        raise ValueError(f"monitor.detector: {monitor.detector} is a history monitor over "
+                         f"{config.frames} frames; the guard's tables hold one score per "
+                         f"state, from one frame, not what it outputs along a run: judge it "
+                         f"in the guarded real loop (a run file's monitor: {{kind: history}})")
+
+
 def add_detector(builder, *, image_port, monitor, period=None, steering_port=None,
                  estimate_port=None):
     """Adds the monitor of ``monitor`` (a `MonitorConfig`: its checkpoint and threshold),

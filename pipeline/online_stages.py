@@ -11,7 +11,7 @@ import dataclasses as dc
 import numpy as np
 from scipy.ndimage import uniform_filter
 
-from reachwatch.diagrams import paired_rates
+from reachwatch.diagrams import check_per_state_monitor, paired_rates
 from reachwatch.reach.application import application_key, load_application
 from reachwatch.reach.guard import perfect_detector_scores, plot_tradeoff, tradeoff_row
 from reachwatch.reach.liveness import UNGUARDED, liveness_figures
@@ -231,6 +231,7 @@ def guard_figures(application, scenario, grid, spec, *, sweep_cache, outcomes_ca
     (`guard_check`, real runs cached under ``outcomes_cache``; None for 0
     ``guard.check_starts``) and the grid's figures with the score noise it fitted
     (``noisy_liveness``, ``noisy``: `noisy_guard_figures`)."""
+    check_per_state_monitor(scenario.monitor)
     guard, horizon = spec.guard, spec.horizon
     fallbacks = guard.strategies
     tables = application.sweep(scenario, grid, guarded=True, cache_dir=sweep_cache,

@@ -19,6 +19,8 @@ from .detector import inference_model, resize_for_detector
 from .history_model import HistoryRiskModel, platt
 from .ports import weak_callback
 from .risk_ensemble import GroupedEncoder, HistoryRiskEnsemble, grouped_gru
+
+
 @contextlib.contextmanager
 def one_torch_thread():
     """Runs the block in torch's inference mode on one intra-op thread, then gives the

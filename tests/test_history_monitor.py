@@ -279,3 +279,17 @@ def test_a_monitor_and_its_diagram_are_freed_once_let_go(temporal):
     del builder, monitor, diagram
     gc.collect()
     assert [ref() for ref in alive] == [None, None]
+
+
+def test_the_guards_tables_refuse_a_monitor_over_several_frames(tmp_path):
+    """A table of one score per state reads a history monitor on that state's frame
+    alone: one line, before any sweep; a single frame's is a score per state."""
+    from reachwatch.diagrams import MonitorConfig, check_per_state_monitor
+    small = dict(height=16, width=24, channels=[4], features=5, hidden=6)
+    history = _checkpoint(tmp_path / "h.pt", HistoryMonitorConfig(frames=3, **small))
+    with pytest.raises(ValueError, match=r"^monitor.detector: \S+h.pt is a history monitor over "
+                                         r"3 frames; the guard's tables hold one score per state"):
+        check_per_state_monitor(MonitorConfig(detector=str(history)))
+    single = _checkpoint(tmp_path / "s.pt", HistoryMonitorConfig(frames=1, **small))
+    check_per_state_monitor(MonitorConfig(detector=str(single)))
+    check_per_state_monitor(MonitorConfig())
