@@ -19,23 +19,18 @@ from .detector import inference_model, resize_for_detector
 from .history_model import HistoryRiskModel, platt
 from .ports import weak_callback
 from .risk_ensemble import GroupedEncoder, HistoryRiskEnsemble, grouped_gru
+from .torch_threads import torch_threads
 
 
 @contextlib.contextmanager
 def one_torch_thread():
     """Runs the block in torch's inference mode on one intra-op thread, then gives the
-    caller's thread count back. A monitor's per-frame network is a few small layers:
-    a second thread saves little there and costs a wake-up and a wait per layer; on a
-    loaded machine the wait runs to milliseconds when that thread is not scheduled."""
-    threads = torch.get_num_threads()
-    if threads != 1:
-        torch.set_num_threads(1)
-    try:
-        with torch.inference_mode():
-            yield
-    finally:
-        if threads != 1:
-            torch.set_num_threads(threads)
+    caller's thread count back (`torch_threads`). A monitor's per-frame network is a few
+    small layers: a second thread saves little there and costs a wake-up and a wait per
+    layer; on a loaded machine the wait runs to milliseconds when that thread is not
+    scheduled."""
+    with torch_threads(1), torch.inference_mode():
+        yield
 
 
 class HistoryMonitor(LeafSystem):

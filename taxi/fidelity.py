@@ -8,7 +8,6 @@ import dataclasses as dc
 import functools
 
 import numpy as np
-import torch
 
 from reachwatch.diagrams import (CONTROLLER, MonitorConfig, add_detector, make_closed_loop_diagram,
                                  make_guarded_diagram)
@@ -24,6 +23,7 @@ from reachwatch.reach.outcomes import (Outcomes, check_memoryless, map_states, p
 from reachwatch.reach.score_noise import fit_score_noise_on_runs
 from reachwatch.reach.thread_kept import KEPT_DIAGRAMS, ThreadKept
 from reachwatch.systems import fallback_parts
+from reachwatch.systems.torch_threads import torch_threads
 
 from .sweeps import resolved
 
@@ -102,13 +102,8 @@ def _real_runs(scenario, make, states, *, lockstep=None, **settings) -> list:
     if len(states) == 0:
         return []
     copies = _loops(scenario, make, min(_lockstep(lockstep), len(states)))
-    threads = torch.get_num_threads()
-    if LOOP_TORCH_THREADS:
-        torch.set_num_threads(LOOP_TORCH_THREADS)
-    try:
+    with torch_threads(LOOP_TORCH_THREADS):
         return simulate_lockstep(copies, initial_states=states, **settings)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def taxi_rollouts(scenario, duration: float, grid, states, *, lockstep=None) -> dict:
