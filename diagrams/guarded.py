@@ -109,7 +109,7 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller,
                             period=controller.period, steering_port=steering_port,
                             estimate_port=estimate_port)
     switch = builder.AddNamedSystem(SWITCH, FallbackSwitch(
-        monitor.fallback, nominal_speed=controller.speed, period=controller.period))
+        fallback=monitor.fallback, nominal_speed=controller.speed, period=controller.period))
     builder.Connect(steering_port, switch.get_steering_angle_input_port())
     anomaly = detector.get_anomaly_output_port()
     if monitor.flag_window > 1:

@@ -42,8 +42,8 @@ class FlagFilter(LeafSystem):
     ``window - 1`` ticks (discrete state, updated every ``period`` s) count at least
     ``flags_needed``; the ticks before the first count as clear. ``flags_needed =
     window = 1`` passes the input through. The output depends on the input at once (no
-    added delay when ``flags_needed`` = 1). Read at a tick after that tick's update (as
-    a logger does), it is still the flag the tick acted on: the state keeps the time of
+    added delay when ``flags_needed`` = 1). Read at a tick after that tick's update, it
+    is still the flag the tick acted on: the state keeps the time of
     its last update and one more past flag for that."""
 
     def __init__(self, *, flags_needed=1, window=1, period=0.05):

@@ -45,9 +45,9 @@ class HistoryMonitor(LeafSystem):
         - color_image
         - signals (when config.signals > 0)
         output_ports:
-        - anomaly
-        - score
         - frame_features
+        - score
+        - anomaly
 
     Every ``period`` s (the control tick) the current frame is encoded once (every
     member's features, then the signals: ``frame_features``, which Drake caches) and
@@ -55,8 +55,8 @@ class HistoryMonitor(LeafSystem):
     kept state and the current frame (so the fallback switch, updated at the same tick,
     sees this tick's frame; ``calibration`` None: the raw risk, whose ``anomaly`` is then
     no operating flag: the threshold is on the calibrated scale); ``anomaly`` is 1.0
-    when ``score >= threshold``. Ports are named as `AnomalyDetector`'s, so either
-    monitors a guarded loop.
+    when ``score >= threshold``. Ports are named as `AnomalyDetector`'s (connect them by
+    name or getter: their indices differ), so either monitors a guarded loop.
 
     What the state keeps depends on the temporal model (for each member). ``stack``: the
     rows of the last ``(frames - 1) * stride`` ticks. ``gru``: the GRU's hidden state in each window
@@ -133,6 +133,9 @@ class HistoryMonitor(LeafSystem):
 
     def get_score_output_port(self):
         return self._score_port
+
+    def get_frame_features_output_port(self):
+        return self._row_port
 
     def _calc_row(self, context, row):
         rgba = self._image_port.Eval(context).data

@@ -242,7 +242,7 @@ class FallbackSwitch(LeafSystem):
     comparison only).
     """
 
-    def __init__(self, fallback=None, *, nominal_speed, period=0.05, **fields):
+    def __init__(self, *, fallback=None, nominal_speed, period=0.05, **fields):
         super().__init__()
         self._fallback = (Fallback(**fields) if fallback is None
                           else Fallback.parse(fallback, **fields))

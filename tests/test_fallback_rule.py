@@ -80,7 +80,7 @@ def test_the_guard_names_each_fallback_once_whatever_its_steering_is_called():
 def _switch_ticks(fallback, flags, nominal=5.0):
     """The FallbackSwitch alone, its inputs fixed per tick: the steering it applies at
     each tick and the speed it applies over that tick."""
-    switch = FallbackSwitch(fallback, nominal_speed=nominal, period=PERIOD)
+    switch = FallbackSwitch(fallback=fallback, nominal_speed=nominal, period=PERIOD)
     simulator = Simulator(switch)
     context = simulator.get_mutable_context()
     switch.get_steering_angle_input_port().FixValue(context, [OWN])
@@ -137,7 +137,7 @@ def _drake_switch_loop(fallback, grid, dynamics, steer, score, starts, horizon, 
     ending when it leaves the runway. Returns per start: failed, distance, flagged
     ticks, ticks, last speed."""
     n = len(starts)
-    switches = [FallbackSwitch(fallback, nominal_speed=dynamics.speed, period=PERIOD)
+    switches = [FallbackSwitch(fallback=fallback, nominal_speed=dynamics.speed, period=PERIOD)
                 for _ in range(n)]
     simulators = [Simulator(switch) for switch in switches]
     contexts = [simulator.get_mutable_context() for simulator in simulators]

@@ -85,7 +85,7 @@ def test_a_registered_speed_strategy_runs_through_fallback_and_the_switch():
             fallback.next_speed([4.0, 2.0, 4.99], [True, False, False], nominal=5.0,
                                 period=PERIOD), [2.0, 2.1, 5.0])
         # the Drake switch: one flagged tick applies the same rule
-        switch = FallbackSwitch("coast", nominal_speed=4.0, period=PERIOD,
+        switch = FallbackSwitch(fallback="coast", nominal_speed=4.0, period=PERIOD,
                                 resume_acceleration=1.0)
         simulator = Simulator(switch)
         context = simulator.get_mutable_context()
