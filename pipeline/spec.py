@@ -152,13 +152,15 @@ class RunSpec:
                     env.validate()
                 except ValueError as e:
                     raise ValueError(f"{where}[{i}]: {e}") from None
-        if self.train_random.count and self.test_random.count and (
-                self.train_random.seed, self.train_random.prefix) == (
-                self.test_random.seed, self.test_random.prefix):
-            raise ValueError(f"test_random.seed {self.test_random.seed} equals "
-                             f"train_random.seed: the held-out family would be the training "
-                             f"family; give it another seed")
         self._check_same_names(application)
+        trained = self._trained_contents(application)
+        for env in self.held_out_environments():
+            if application.environment_content(env) in trained:
+                raise ValueError(
+                    f"test: {short(env.name)} is also a training environment "
+                    f"({short(trained[application.environment_content(env)])}): a family "
+                    f"drawn from the same seed is the same family whatever its prefix; hold "
+                    f"out another, or give test_random another seed")
         names = [e.name for e in self.training_environments() + self.held_out_environments()]
         if len(set(names)) != len(names):
             twice = sorted({n for n in names if names.count(n) > 1})
@@ -244,14 +246,22 @@ class RunSpec:
                                  f"environment; the fine-tuned controller is judged on a "
                                  f"held-out one: name another")
         if self.monitor.enabled and self.monitor.compare_detector:
-            judged = {e.name for role, envs in self.monitor.environments().items()
-                      if role != "train" for e in envs}
-            seen = sorted(judged & {e.name for e in self.training_environments()})
+            trained = self._trained_contents(application)
+            seen = sorted({e.name for role, envs in self.monitor.environments().items()
+                           if role != "train" for e in envs
+                           if application.environment_content(e) in trained})
             if seen:
                 raise ValueError(f"monitor: the study would judge the detector on "
                                  f"environments it trained on ({short(seen)}); give "
                                  f"monitor.family another seed, or train on others")
         return self
+
+    def _trained_contents(self, application) -> dict:
+        """``{content: name}`` of the training environments
+        (`Application.environment_content`: an environment by what the loop sees, its
+        name aside)."""
+        return {application.environment_content(e): e.name
+                for e in self.training_environments()}
 
     def _check_same_names(self, application):
         """Raise a ValueError naming both places when two environments of the run share

@@ -106,6 +106,12 @@ class Application(abc.ABC):
         would mix their files and stage records); default ``a == b``."""
         return a == b
 
+    def environment_content(self, env) -> str:
+        """``env`` as what the loop sees, its name aside: two environments with the same
+        content are one for training and judging, whatever they are called (a family
+        drawn from the same seed under another prefix, say); default ``repr(env)``."""
+        return repr(env)
+
     def run_file_types(self):
         """``(environment type, random family type)`` a run file is loaded with; a
         one-line ValueError when the application names no environment type, or one

@@ -4,6 +4,8 @@ of ``scenario.environment``, seen by the wing camera; it fails when it leaves th
 runway (``|px| >= half_width``). Every method hands over to the taxi's own modules,
 so sweeps, runs and datasets keep the cache keys they had before applications."""
 
+import dataclasses as dc
+
 import numpy as np
 
 from reachwatch.diagrams import StateRenderer, load_taxinet, make_closed_loop_diagram, make_guarded_diagram
@@ -43,6 +45,13 @@ class RunwayEnvironments:
         # one name, one runway and hour (a runway_spec that spells out a catalog runway
         # is that runway)
         return (a.spec(), a.hour) == (b.spec(), b.hour)
+
+    def environment_content(self, env):
+        # the runway spelled out, its name blanked: names change no pixel (an
+        # environment of another type, as a subclass may have: as it is)
+        if not isinstance(env, Environment):
+            return repr(env)
+        return repr(dc.replace(env, runway="", runway_spec=dc.replace(env.spec(), name="")))
 
 
 class TaxiApplication(RunwayEnvironments, Application):

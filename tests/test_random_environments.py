@@ -76,8 +76,15 @@ def test_a_run_file_asks_for_families():
     assert len(held_out) == 2 and all(e.name.startswith("RND7-") for e in held_out)
     assert all(9.0 <= e.half_width <= 20.0 for e in train[1:])
     assert spec.guard_environments()[0].name == held_out[0].name
-    with pytest.raises(ScenarioError, match="test_random.seed 0 equals train_random.seed"):
-        load_run_spec(data=RUN.replace("seed: 7", "seed: 0"))
+    with pytest.raises(ScenarioError, match=r"test: 'RND0-0_\S+' is also a training "
+                                            r"environment \('RND0-0_\S+'\): a family drawn"):
+        load_run_spec(data=RUN.replace("seed: 7", "seed: 0, runway: {half_width: [9, 20]}"))
+    # another prefix names the same draws otherwise: the same family still
+    with pytest.raises(ScenarioError, match=r"test: 'HELD0-0_\S+' is also a training "
+                                            r"environment \('RND0-0_\S+'\)"):
+        load_run_spec(data=RUN.replace("seed: 7", "seed: 0, prefix: HELD, count: 3, "
+                                                   "runway: {half_width: [9, 20]}")
+                      .replace("count: 2, ", ""))
     with pytest.raises(ScenarioError, match=re.escape("train_random.runway.length[0] must be")):
         load_run_spec(data=RUN.replace("half_width: [9, 20]", "length: [100, 200]"))
     with pytest.raises(ScenarioError, match="test: list at least one held-out"):
