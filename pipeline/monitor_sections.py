@@ -72,13 +72,14 @@ def threshold_tradeoff(row: dict, alphas=(0.1, 0.2, 0.3, 0.5)) -> list:
     scores (`row["scores"]`, as `run_monitor_study` records them) and what it gives on
     the held-out environments, pooled: ``[alpha, threshold, miss count, warnable
     failing runs, needless count, runs that did not fail]`` (threshold None when the
-    calibration environments are too few for that alpha)."""
+    calibration environments are too few for that alpha), bounded as the variant's own
+    threshold was (``given_failures`` or not)."""
     out = []
     calibrate, held_out = row["scores"]["calibrate"], row["scores"]["held_out"]
     for alpha in alphas:
         try:
-            tau = conformal_threshold([np.asarray(e["warning"]) for e in calibrate],
-                                      alpha).threshold
+            tau = conformal_threshold([np.asarray(e["warning"]) for e in calibrate], alpha,
+                                      given_failures=bool(row.get("given_failures"))).threshold
         except NoConformalThreshold:
             out.append([alpha, None, 0, 0, 0, 0])
             continue

@@ -33,6 +33,16 @@ def test_threshold_tradeoff_leaves_a_blank_row_only_where_no_threshold_exists():
     assert kept[1] is not None and kept[3:] == [2, kept[4], 2]
     with pytest.raises(ValueError, match=r"alpha must be in \(0, 1\), got 1.5"):
         threshold_tradeoff(row, (1.5,))
+    # bounded as the variant's threshold was: given failures, the environments without
+    # one are left out of the bound
+    row["scores"]["calibrate"] += [{"warning": [], "safe_max": [0.3]}] * 2
+    scores = [np.asarray(e["warning"]) for e in row["scores"]["calibrate"]]
+    for given in (False, True):
+        row["given_failures"] = given
+        assert threshold_tradeoff(row, (0.45,))[0][1] == conformal_threshold(
+            scores, 0.45, given_failures=given).threshold
+    assert threshold_tradeoff(row, (0.45,))[0][1] != threshold_tradeoff(
+        {**row, "given_failures": False}, (0.45,))[0][1]
 
 def test_run_ranking_pools_environments_and_sets_the_least_needless_threshold():
     from reachwatch.pipeline.monitor_sections import run_ranking
