@@ -43,8 +43,9 @@ def guard_section(page, env, g, spec, application, *, alone_checked=None):
               f"fallback costs: starts ended stopped, needless stops (of the starts the "
               f"controller alone survives, those the fallback ends stopped), harmed (of those, "
               f"the ones it makes fail), saves that keep moving (of the starts the controller "
-              f"alone fails), distance travelled relative to the controller alone, and ticks "
-              f"flagged. 'oracle' steers with the true state: a privileged reference, not a result. "
+              f"alone fails, less those failed before their first tick), distance travelled "
+              f"relative to the controller alone, and ticks flagged. 'oracle' steers with the "
+              f"true state: a privileged reference, not a result. "
               f"Slowing down does not change the path of a plant whose turn rate scales with "
               f"its speed (a car, say), only when it gets somewhere: slowed "
               f"runs can {fail} after the horizon instead of within it. So the last two columns "
@@ -77,7 +78,8 @@ def guard_section(page, env, g, spec, application, *, alone_checked=None):
                 continue
             rows.append([name, _pct(v["failure_set"]["rate"]), _share(v["ended_stopped"]),
                          _share(v["needless_stops"]), _share(v["harmed"]),
-                         _share(v["saved_moving"]), _x(v["distance_ratio"]), _ticks(v),
+                         _share(v.get("saved_moving_inside")),        # "-": an older run
+                         _x(v["distance_ratio"]), _ticks(v),
                          _share(v.get("same_distance_failure_set")),
                          _share(v.get("short_of_distance")), _cut_inside(v)])
     page.table(["closed loop", "failure set %", "ended stopped %", "needless stops %",

@@ -124,7 +124,9 @@ def liveness_figures(alone: MissionOutcomes, guarded: MissionOutcomes) -> dict:
     - ``failed_at_start``: share of starts outside the safe set already (failed before
       their first tick, as grid nodes off the runway do): no fallback can save them, yet
       they count in every failure set, so ``failure_cut_inside`` (and
-      ``same_distance_failure_cut_inside``) give the cut over the other starts."""
+      ``same_distance_failure_cut_inside``) give the cut over the other starts, and
+      ``saved_inside`` / ``saved_moving_inside`` the saves of those the controller alone
+      fails."""
     if len(alone) != len(guarded):
         raise ValueError(f"liveness_figures: {len(alone)} starts alone but {len(guarded)} "
                          f"guarded; both must come from the same starts")
@@ -144,8 +146,11 @@ def liveness_figures(alone: MissionOutcomes, guarded: MissionOutcomes) -> dict:
            "distance_ratio": float(np.mean(guarded.distance)) / alone_mean if alone_mean > 0 else None,
            "flagged_ticks": int(np.sum(guarded.flagged_ticks)) / ticks if ticks else None}
     at_start = alone.failed & guarded.failed & (alone.ticks == 0) & (guarded.ticks == 0)
+    savable = fails & ~at_start
     out.update(failed_at_start=_rate(at_start),
-               failure_cut_inside=_cut(alone.failed[~at_start], guarded.failed[~at_start]))
+               failure_cut_inside=_cut(alone.failed[~at_start], guarded.failed[~at_start]),
+               saved_inside=_rate(~guarded.failed[savable]),
+               saved_moving_inside=_rate((~guarded.failed & ~guarded.stopped)[savable]))
     if alone.has_same_distance and guarded.has_same_distance:
         out.update(same_distance_failure_set=_rate(guarded.failed_same_distance),
                    alone_same_distance_failure_set=_rate(alone.failed_same_distance),

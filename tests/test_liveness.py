@@ -46,6 +46,11 @@ def test_cut_over_starts_inside_the_safe_set():
     assert (f["failed_at_start"]["count"], f["failed_at_start"]["of"]) == (2, 6)
     assert f["failure_cut"] == pytest.approx(0.5)
     assert f["failure_cut_inside"] == pytest.approx(1.0)
+    # saves too: 2 of the 4 alone-failures (the two at the start no fallback can
+    # save), both of the 2 that start inside
+    assert (f["saved"]["count"], f["saved"]["of"]) == (2, 4)
+    assert (f["saved_inside"]["count"], f["saved_inside"]["of"]) == (2, 2)
+    assert (f["saved_moving_inside"]["count"], f["saved_moving_inside"]["of"]) == (2, 2)
     assert f["same_distance_failure_cut"] == pytest.approx(0.25)
     assert f["same_distance_failure_cut_inside"] == pytest.approx(0.5)
 
