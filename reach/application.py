@@ -548,8 +548,8 @@ class Application(abc.ABC):
         `reach.score_noise.ScoreNoise` fitted (`fit_score_noise`) to how the detector's
         score along real runs of the controller alone from ``starts`` (cached under
         ``cache_dir``) departs from ``score_table`` (the sweep's `score_port` on ``grid``)
-        at the same states; ``(noise, {"runs", "ticks"})``. A ValueError when it cannot
-        be fitted. Default: the runs of `reach.loop_runs.loop_scores` (the guarded loop,
+        at the same states; ``(noise, {"runs", "ticks", "cut_at_box"})``. A ValueError
+        when it cannot be fitted. Default: the runs of `reach.loop_runs.loop_scores` (the guarded loop,
         whose fallback never engages), the distance travelled taken as the nominal speed
         times the time, as the table rollouts move the noise; a run whose fallback
         engaged all the same is left out (``{"left_out"}`` counts them)."""

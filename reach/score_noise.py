@@ -116,18 +116,26 @@ def fit_score_noise_on_runs(grid, score_table, states, scores, ticks, travelled,
     """`fit_score_noise` from recorded real runs: per run its states ``(T, d)``, its
     detector scores ``(T,)`` and its logged ``ticks`` (the rest padding); the table's
     score is ``score_table`` (values on ``grid``'s nodes) interpolated at the same
-    states, and ``travelled(states) -> (ticks,)`` the distance up to each tick. Runs of
-    fewer than two ticks, and those ``left_out`` marks, are not used. Returns ``(noise,
-    {"runs", "ticks"})``; a ValueError when no run is left to fit on."""
+    states, and ``travelled(states) -> (ticks,)`` the distance up to each tick. A run
+    counts up to its first tick outside ``grid``'s box (the table has no score there:
+    interpolation would take the edge's, and fit its error as noise); runs of fewer
+    than two such ticks, and those ``left_out`` marks, are not used. Returns ``(noise,
+    {"runs", "ticks", "cut_at_box"})`` (``cut_at_box``: runs cut short so); a
+    ValueError when no run is left to fit on."""
     import torch
     from .interpolate import GridInterpolator
     table = torch.as_tensor(np.asarray(score_table, float).reshape(grid.shape))
     skip = np.zeros(len(ticks), bool) if left_out is None else np.asarray(left_out, bool)
-    real, interpolated, along = [], [], []
+    real, interpolated, along, cut = [], [], [], 0
     for path, score, n, skipped in zip(states, scores, ticks, skip):
         if skipped or n < 2:
             continue
         path = np.asarray(path, float)[:n]
+        outside = np.flatnonzero(~grid.contains(path))
+        if len(outside):
+            n, path, cut = int(outside[0]), path[:outside[0]], cut + 1
+            if n < 2:
+                continue
         real.append(np.asarray(score, float)[:n])
         interpolated.append(GridInterpolator(grid, torch.as_tensor(path))(table).numpy())
         along.append(travelled(path))
@@ -135,4 +143,4 @@ def fit_score_noise_on_runs(grid, score_table, states, scores, ticks, travelled,
         raise ValueError(f"no real run lasted two control ticks to fit the score noise on "
                          f"({len(ticks)} runs, {int(skip.sum())} left out)")
     return (fit_score_noise(real, interpolated, along),
-            {"runs": len(real), "ticks": int(sum(len(r) for r in real))})
+            {"runs": len(real), "ticks": int(sum(len(r) for r in real)), "cut_at_box": cut})

@@ -134,7 +134,8 @@ def test_score_along_real_runs_and_the_fit_from_them(detector_path, tmp_path):
     starts = grid.states([13, 12, 14])
     noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], starts, duration=1.0,
                                   cache_dir=tmp_path / "outcomes", progress=False)
-    assert fit == {"runs": 3, "ticks": 3 * 21} and noise.sigma > 0 and noise.length > 0
+    assert fit == {"runs": 3, "ticks": 3 * 21, "cut_at_box": 0}
+    assert noise.sigma > 0 and noise.length > 0
     # the runs do not depend on what the monitor does with the score: another threshold
     # and fallback read the same cached runs (one cache folder) and fit the same noise
     other = load_scenario(data=f"monitor: {{detector: {detector_path}, threshold: 0.2, "
@@ -166,3 +167,31 @@ def test_guard_check_refuses_no_noise_seeds(tmp_path):
         guard_check(None, None, None, ["brake"], starts=2, seed=0, horizon=1.0, mission_limit=None,
                     cache_dir=tmp_path, noise_starts=2, noise_seeds=0)
     assert not any(tmp_path.iterdir())              # refused before any work
+
+
+def test_the_fit_from_runs_stops_each_run_at_its_first_tick_outside_the_box():
+    """Past the box the table has no score (interpolation takes the edge's): a run counts
+    up to its first tick outside, a run that starts outside not at all, and the counts
+    say how many were cut."""
+    from reachwatch.reach import Grid
+    from reachwatch.reach.score_noise import fit_score_noise_on_runs
+    grid = Grid(lo=[0.0], hi=[60.0], shape=[61])
+    table = np.full(61, 0.5)
+    rng, process = np.random.default_rng(3), ScoreNoise(0.5, 3.0, 0.0)
+    real = []
+    for _ in range(30):                         # the known process about the table's 0.5
+        noise, path = None, []
+        for _ in range(160):
+            noise = process.step(noise, np.array([0.25]), rng)
+            path.append(noise[0])
+        real.append(process.apply(np.full(160, 0.5), np.array(path)))
+    paths = [(0.25 * np.arange(160))[:, None] for _ in real]      # 0 to 39.75: inside
+    paths[0] = paths[0] + 30.0                    # 60 (the edge) at tick 120, past it after
+    paths[1] = paths[1] - 1.0                                     # outside at its first
+    scores = [np.array(r) for r in real]
+    # the score beyond the box is nonsense: were it used, the fit would see it
+    scores[0][121:] = 0.999
+    noise, fit = fit_score_noise_on_runs(grid, table, paths, scores, np.full(30, 160),
+                                         lambda path: 0.25 * np.arange(len(path)))
+    assert fit == {"runs": 29, "ticks": 28 * 160 + 121, "cut_at_box": 2}
+    assert noise.sigma == pytest.approx(0.5, rel=0.15)
