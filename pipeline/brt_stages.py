@@ -87,7 +87,8 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     if chosen:
         vf.metadata.update(map_selection=chosen["kept"])
     path = vf.save(run.path(f"brt/value_{name}.npz"))
-    out = {"value": run.rel(path), "brt_fraction": vf.brt_fraction, "grid": list(grid.shape),
+    out = {"value": run.rel(path), "brt_fraction": vf.brt_fraction,
+           "brt_fraction_box": vf.brt_fraction_of(run.grid_for(env)), "grid": list(grid.shape),
            "nodes_rendered": [lv.rendered for lv in levels]}
     if chosen:
         out["map_selection"] = chosen

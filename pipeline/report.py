@@ -162,11 +162,14 @@ def write_report(run: Run) -> dict:
                   f"range, since interpolating it there says little about the controller "
                   f"between the nodes. This can only grow the BRT, so it trades false-safe "
                   f"verdicts for false-unsafe ones: the fidelity section counts both.")
-    page.table(["environment", "role", "grid solved", "nodes rendered", "BRT %",
-                "BRT = table rollouts (all nodes) %", "sweep s", "states/s", "solve s"],
+    page.table(["environment", "role", "grid solved", "nodes rendered", "BRT % (grid solved)",
+                "BRT % (the box)", "BRT = table rollouts (all nodes) %", "sweep s",
+                "states/s", "solve s"],
                [[n, roles.get(n, "extra"), "x".join(map(str, r.get("grid", spec.grid))),
                  " -> ".join(map(str, r.get("nodes_rendered", [r["states"]]))),
-                 _pct(r["brt_fraction"]), _pct(r["rollout_agreement"]), r["sweep_seconds"],
+                 _pct(r["brt_fraction"]),
+                 _pct(r["brt_fraction_box"]) if "brt_fraction_box" in r else "-",
+                 _pct(r["rollout_agreement"]), r["sweep_seconds"],
                  sweep_rate(r), r["solve_seconds"]]
                 for n, r in o["solve"].items()])
     page.images([r["figure"] for r in o["solve"].values()])

@@ -70,8 +70,16 @@ class ValueFunction:
 
     @property
     def brt_fraction(self) -> float:
-        """Fraction of grid nodes in the BRT (the paper's "volume")."""
+        """Fraction of the nodes of the grid it was solved on in the BRT (the paper's
+        "volume" where that grid is the paper's box; `brt_fraction_of` for another)."""
         return float(np.mean(self.values <= 0.0))
+
+    def brt_fraction_of(self, grid) -> float:
+        """Fraction of ``grid``'s nodes in the BRT (`in_brt`; a node outside the grid
+        solved on counts as in it): the "volume" over a box narrower than the one
+        solved, such as the paper's inside a widened one."""
+        nodes = np.stack([axis.ravel() for axis in grid.mesh()], axis=-1)
+        return float(np.mean(self.in_brt(nodes, outside="unsafe")))
 
     def save(self, path):
         """Write ``.npz`` atomically (values, grid, horizon, accuracy, safe box,

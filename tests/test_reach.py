@@ -118,6 +118,16 @@ def test_value_function_round_trip_and_queries(tmp_path):
 
 # --- sweep -------------------------------------------------------------------------
 
+def test_the_brt_share_of_a_narrower_box_counts_its_own_nodes():
+    """The share solved on a widened grid is not the paper box's: counted over the box's
+    own nodes, read off the solution; a node beyond the grid solved on counts as in it."""
+    grid = Grid(lo=[0.0], hi=[10.0], shape=[11])
+    vf = ValueFunction(grid, grid.axes[0] - 5.0, 1.0, "test")       # in the BRT: x <= 5
+    assert vf.brt_fraction == pytest.approx(6 / 11)
+    assert vf.brt_fraction_of(Grid(lo=[5.0], hi=[10.0], shape=[6])) == pytest.approx(1 / 6)
+    assert vf.brt_fraction_of(Grid(lo=[6.0], hi=[12.0], shape=[4])) == pytest.approx(1 / 4)
+
+
 def test_sweep_of_a_user_diagram_matches_the_controller(tmp_path):
     g = paper_grid(B, (5, 3, 4))
     table = sweep(_feedback_factory(), g, key="feedback", cache_dir=tmp_path, probe=FEEDBACK,
