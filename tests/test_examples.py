@@ -224,7 +224,9 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     fitted, fit = cart.real_score_noise(shown, grid, np.full(grid.shape, 0.5),
                                         cart.starts(shown, grid, 3, 0), duration=1.0,
                                         cache_dir=tmp_path / "noise", progress=False)
-    assert shown.monitor == before and fit["runs"] == 3 and fit["left_out"] == 0
+    # every run fitted on, or cut at the box's edge (past it the table has no score)
+    assert shown.monitor == before and fit["left_out"] == 0
+    assert 1 <= fit["runs"] <= 3 and fit["runs"] + fit["cut_at_box"] >= 3, fit
     assert 10 <= fit["ticks"] <= 33 and np.isfinite(fitted.sigma)
 
 
