@@ -6,6 +6,7 @@ which covers every ``.py`` file of that folder, or of a user's package, so an ed
 anywhere in the controller's code changes the key of its sweeps."""
 
 import contextlib
+import contextvars
 import functools
 import hashlib
 import importlib
@@ -170,6 +171,31 @@ class _UserCode:
 
 _USER_CODE = {}     # module name of a loaded factory file -> its _UserCode
 
+#: The digests of the factory folders a driver's keys carry, as its task brings them to
+#: a worker (`keyed_user_code`); None: no check (here in the driver, or no task's).
+_KEYED = contextvars.ContextVar("reachwatch_keyed_user_code", default=None)
+
+
+def loaded_user_code() -> frozenset:
+    """The digests of the factory folders this process has loaded, so the ones its
+    keys carry (`factory_code_hash` loads what it keys): what a task it sends a worker
+    takes along (`keyed_user_code`)."""
+    with _LOCK:
+        return frozenset(user.digest for user in _USER_CODE.values())
+
+
+@contextlib.contextmanager
+def keyed_user_code(digests):
+    """Runs the block (a task on a worker) refusing, in one line, a factory file whose
+    folder holds other code than any of ``digests`` (the driver's `loaded_user_code`):
+    a file edited after the driver keyed its work, which would otherwise run under the
+    old code's key. Empty: no check."""
+    token = _KEYED.set(frozenset(digests) if digests else None)
+    try:
+        yield
+    finally:
+        _KEYED.reset(token)
+
 
 def importable(module):
     """A context in which the folder of the factory file ``module`` was loaded from is
@@ -209,6 +235,11 @@ def _load_file(spec: str, target: str, where="controller.factory"):
         raise ValueError(f"{where}: file not found: {clip(target, 200)}")
     path = Path(target).resolve()
     digest = source_digest(path.parent, where)
+    keyed = _KEYED.get()
+    if keyed is not None and digest not in keyed:
+        raise ValueError(f"{where} '{clip(spec, 200)}': the code in {clip(path.parent, 200)} "
+                         f"changed after this run keyed its results with it; start the run "
+                         f"again (it resumes from its caches)")
     name = (f"reachwatch_user_{path.stem if path.stem.isidentifier() else 'factory'}_"
             f"{hashlib.sha256(str(path).encode()).hexdigest()[:8]}_{digest[:16]}")
     with _LOCK:

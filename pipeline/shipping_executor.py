@@ -7,6 +7,7 @@ import threading
 from distributed.cfexecutor import ClientExecutor
 
 from reachwatch.diagrams.shipping import Packer, run_shipped
+from reachwatch.diagrams.user_code import keyed_user_code, loaded_user_code
 
 from .executors import describe_identity, process_identity
 
@@ -14,19 +15,22 @@ from .executors import describe_identity, process_identity
 KEPT = 8
 
 
-def run_on_worker(expected: dict, shipment, fn, /, *args, **kwargs):
+def run_on_worker(expected: dict, user_code, shipment, fn, /, *args, **kwargs):
     """A task on a worker: refused, in one line, when the worker's versions, reachwatch
     source or render stack (`process_identity`) differ from the driver's ``expected`` (a
     worker that joined after the driver checked those connected); else ``fn(*args, **kwargs)``,
-    with ``shipment``'s files (`run_shipped`) when it brings some."""
+    with ``shipment``'s files (`run_shipped`) when it brings some, and a user's factory
+    file refused unless it holds code the driver keyed (``user_code``, `keyed_user_code`:
+    a shipment packed after the file was edited)."""
     mine = process_identity()
     if mine != expected:
         raise RuntimeError(f"this worker has {describe_identity(mine)}, the driver "
                            f"{describe_identity(expected)}: it joined with another install; "
                            f"stop it, or install the same reachwatch, versions and GL driver there")
-    if shipment is None:
-        return fn(*args, **kwargs)
-    return run_shipped(shipment, fn, *args, **kwargs)
+    with keyed_user_code(user_code):
+        if shipment is None:
+            return fn(*args, **kwargs)
+        return run_shipped(shipment, fn, *args, **kwargs)
 
 
 class ShippingExecutor(ClientExecutor):
@@ -58,4 +62,5 @@ class ShippingExecutor(ClientExecutor):
     def submit(self, fn, /, *args, **kwargs):
         shipment = self._packer.pack(fn, args, kwargs)
         sent = None if shipment is None else self._scattered(shipment)
-        return super().submit(run_on_worker, self._expected, sent, fn, *args, **kwargs)
+        return super().submit(run_on_worker, self._expected, loaded_user_code(), sent, fn,
+                              *args, **kwargs)

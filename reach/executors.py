@@ -59,7 +59,9 @@ class RespawningPool(cf.Executor):
 
     def submit(self, fn, /, *args, **kwargs):
         if self._code is not None:
-            return self.pool.submit(same_loop_code, self._code, fn, *args, **kwargs)
+            from reachwatch.diagrams.user_code import loaded_user_code
+            return self.pool.submit(same_loop_code, self._code, loaded_user_code(), fn,
+                                    *args, **kwargs)
         return self.pool.submit(fn, *args, **kwargs)
 
     def respawn(self, generation: int) -> bool:
@@ -89,16 +91,20 @@ class RespawningPool(cf.Executor):
         self.close().shutdown(wait=wait, cancel_futures=cancel_futures)
 
 
-def same_loop_code(expected: str, fn, /, *args, **kwargs):
+def same_loop_code(expected: str, user_code, fn, /, *args, **kwargs):
     """``fn(*args, **kwargs)`` in a pool worker whose loop code (`loop_code_digest`) is
-    ``expected``, the driver's; else one line, before any result."""
+    ``expected``, the driver's; else one line, before any result. A user's factory file
+    it loads must hold code the driver keyed (``user_code``,
+    `reachwatch.diagrams.user_code.keyed_user_code`)."""
+    from reachwatch.diagrams.user_code import keyed_user_code
     from .fingerprint import loop_code_digest
     mine = loop_code_digest()
     if mine != expected:
         raise RuntimeError(f"this worker's reachwatch source (loop code {mine[:12]}) is not the "
                            f"driver's ({expected[:12]}): it was edited after the driver "
                            f"started; start the run again (it resumes from its caches)")
-    return fn(*args, **kwargs)
+    with keyed_user_code(user_code):
+        return fn(*args, **kwargs)
 
 
 def stop_executor(executor, *, abort: bool = False):

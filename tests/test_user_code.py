@@ -173,3 +173,26 @@ def test_a_factory_imported_from_a_helper_still_sees_its_folder(tmp_path):
     entry = factory.replace("follower.py", "entry.py")
     assert _steering(make_controller(ControllerConfig(factory=entry))) == 0.75
     assert factory_code_hash(entry) == factory_code_hash(factory)      # the same folder
+
+
+def test_a_worker_refuses_a_controller_edited_after_the_driver_keyed_it(tmp_path):
+    """The driver keys a sweep with the controller's code; a worker that loads the
+    folder after an edit (a replacement worker, a Dask task's shipment) would run other
+    code under that key: one line instead. The code the driver keyed loads."""
+    import concurrent.futures as cf
+    import functools
+    from reachwatch.reach import RespawningPool
+    from reachwatch.reach.fingerprint import loop_code_digest
+    factory = _controller(tmp_path / "keyed", offset="0.25")
+    factory_code_hash(factory)                      # the driver keys it: loaded here
+    pool = RespawningPool(functools.partial(cf.ThreadPoolExecutor, 1), code=loop_code_digest())
+    try:
+        assert pool.submit(_steering_in_worker, factory).result() == pytest.approx(
+            _steering_in_worker(factory))
+        (tmp_path / "keyed" / "mine" / "lane_vision.py").write_text("OFFSET = 0.5\n")
+        with pytest.raises(ValueError, match=r"^controller.factory '\S+follower.py:make': the "
+                                             r"code in \S+mine changed after this run keyed "
+                                             r"its results with it; start the run again"):
+            pool.submit(_steering_in_worker, factory).result()
+    finally:
+        stop_executor(pool)
