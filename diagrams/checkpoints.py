@@ -17,7 +17,8 @@ from reachwatch.systems import (DetectorConfig, HistoryMonitorConfig, HistoryRis
                                 HistoryRiskModel, PreprocessConfig, TaxiNetConfig, build_detector,
                                 build_taxinet, check_members)
 from reachwatch.systems.checks import short
-from reachwatch.systems.files import atomic_write_bytes, file_hash, local_copy  # noqa: F401  (file_hash re-exported)
+from reachwatch.systems.files import (atomic_write_bytes, check_keyed, file_hash,  # noqa: F401
+                                      local_copy)  # (file_hash re-exported)
 
 FORMAT = "reachwatch.checkpoint"
 VERSION = 1
@@ -56,14 +57,19 @@ def _plain(metadata: dict) -> dict:
 
 def load_checkpoint(path, *, kind) -> dict:
     """The raw checkpoint dict of ``kind`` (a name, or a tuple of accepted names);
-    raises `CheckpointError` saying what is wrong."""
-    path = Path(local_copy(path))      # a checkpoint that came with the running task
+    raises `CheckpointError` saying what is wrong (also in a task, when the file is not
+    the one its driver keyed: `check_keyed`)."""
+    named, path = path, Path(local_copy(path))      # the copy that came with the task
     if path.is_dir():
         raise CheckpointError(f"{path} is a folder, not a checkpoint file")
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
     if path.stat().st_size == 0:
         raise CheckpointError(f"{path} is empty, not a checkpoint")
+    try:
+        check_keyed(named, file_hash(path, 64), f"the checkpoint {named}")
+    except ValueError as e:
+        raise CheckpointError(str(e)) from None
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises several types for truncated/foreign files

@@ -6,7 +6,6 @@ which covers every ``.py`` file of that folder, or of a user's package, so an ed
 anywhere in the controller's code changes the key of its sweeps."""
 
 import contextlib
-import contextvars
 import functools
 import hashlib
 import importlib
@@ -24,7 +23,7 @@ import traceback
 from pathlib import Path
 
 from reachwatch.systems.checks import clip, is_file
-from reachwatch.systems.files import local_copy
+from reachwatch.systems.files import check_keyed, local_copy, remember_keyed
 
 
 #: Bounds on the folder of a controller's files, all of whose ``.py`` files are read
@@ -171,32 +170,6 @@ class _UserCode:
 
 _USER_CODE = {}     # module name of a loaded factory file -> its _UserCode
 
-#: The digests of the factory folders a driver's keys carry, as its task brings them to
-#: a worker (`keyed_user_code`); None: no check (here in the driver, or no task's).
-_KEYED = contextvars.ContextVar("reachwatch_keyed_user_code", default=None)
-
-
-def loaded_user_code() -> frozenset:
-    """The digests of the factory folders this process has loaded, so the ones its
-    keys carry (`factory_code_hash` loads what it keys): what a task it sends a worker
-    takes along (`keyed_user_code`)."""
-    with _LOCK:
-        return frozenset(user.digest for user in _USER_CODE.values())
-
-
-@contextlib.contextmanager
-def keyed_user_code(digests):
-    """Runs the block (a task on a worker) refusing, in one line, a factory file whose
-    folder holds other code than any of ``digests`` (the driver's `loaded_user_code`):
-    a file edited after the driver keyed its work, which would otherwise run under the
-    old code's key. Empty: no check."""
-    token = _KEYED.set(frozenset(digests) if digests else None)
-    try:
-        yield
-    finally:
-        _KEYED.reset(token)
-
-
 def importable(module):
     """A context in which the folder of the factory file ``module`` was loaded from is
     importable (a no-op for any other module)."""
@@ -230,16 +203,13 @@ def _failure(spec: str, error: BaseException, folder=None, where="controller.fac
                       f"{type(error).__name__}: {clip(message, 300)}{place}{hint}")
 
 
-def _load_file(spec: str, target: str, where="controller.factory"):
+def _load_file(spec: str, target: str, where="controller.factory", named=None):
     if not is_file(target):
         raise ValueError(f"{where}: file not found: {clip(target, 200)}")
     path = Path(target).resolve()
     digest = source_digest(path.parent, where)
-    keyed = _KEYED.get()
-    if keyed is not None and digest not in keyed:
-        raise ValueError(f"{where} '{clip(spec, 200)}': the code in {clip(path.parent, 200)} "
-                         f"changed after this run keyed its results with it; start the run "
-                         f"again (it resumes from its caches)")
+    check_keyed(f"code:{named or target}", digest,
+                f"{where} '{clip(spec, 200)}': the code in {clip(path.parent, 200)}")
     name = (f"reachwatch_user_{path.stem if path.stem.isidentifier() else 'factory'}_"
             f"{hashlib.sha256(str(path).encode()).hexdigest()[:8]}_{digest[:16]}")
     with _LOCK:
@@ -307,7 +277,7 @@ def _package_digest(spec: str, target: str, where="controller.factory"):
 
 def _module(spec: str, target: str, where="controller.factory"):
     if target.endswith(".py"):        # its folder's copy, when it came with the task
-        return _load_file(spec, local_copy(target), where)
+        return _load_file(spec, local_copy(target), where, named=target)
     try:
         module = importlib.import_module(target)
     except ImportError as e:
@@ -360,8 +330,9 @@ def factory_code_hash(spec: str, where="controller.factory") -> str:
         return ""
     target, _ = _split(spec, where)
     module, function = resolve(spec, where)
-    if target.endswith(".py"):
-        content = {"folder": _USER_CODE[module.__name__].digest}      # the code loaded
+    if target.endswith(".py"):                                     # the code loaded
+        content = {"folder": remember_keyed(f"code:{target}",
+                                            _USER_CODE[module.__name__].digest)}
     else:
         digest = _package_digest(spec, target, where)
         if digest is not None:

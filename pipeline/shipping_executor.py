@@ -7,7 +7,7 @@ import threading
 from distributed.cfexecutor import ClientExecutor
 
 from reachwatch.diagrams.shipping import Packer, run_shipped
-from reachwatch.diagrams.user_code import keyed_user_code, loaded_user_code
+from reachwatch.systems.files import keyed_by_driver, keyed_digests
 
 from .executors import describe_identity, process_identity
 
@@ -15,19 +15,19 @@ from .executors import describe_identity, process_identity
 KEPT = 8
 
 
-def run_on_worker(expected: dict, user_code, shipment, fn, /, *args, **kwargs):
+def run_on_worker(expected: dict, keyed, shipment, fn, /, *args, **kwargs):
     """A task on a worker: refused, in one line, when the worker's versions, reachwatch
     source or render stack (`process_identity`) differ from the driver's ``expected`` (a
     worker that joined after the driver checked those connected); else ``fn(*args, **kwargs)``,
-    with ``shipment``'s files (`run_shipped`) when it brings some, and a user's factory
-    file refused unless it holds code the driver keyed (``user_code``, `keyed_user_code`:
-    a shipment packed after the file was edited)."""
+    with ``shipment``'s files (`run_shipped`) when it brings some; a checkpoint or a
+    user's code it loads must be content the driver keyed (``keyed``, its
+    `keyed_digests`: `keyed_by_driver`), not a file shipped after an edit."""
     mine = process_identity()
     if mine != expected:
         raise RuntimeError(f"this worker has {describe_identity(mine)}, the driver "
                            f"{describe_identity(expected)}: it joined with another install; "
                            f"stop it, or install the same reachwatch, versions and GL driver there")
-    with keyed_user_code(user_code):
+    with keyed_by_driver(keyed):
         if shipment is None:
             return fn(*args, **kwargs)
         return run_shipped(shipment, fn, *args, **kwargs)
@@ -62,5 +62,5 @@ class ShippingExecutor(ClientExecutor):
     def submit(self, fn, /, *args, **kwargs):
         shipment = self._packer.pack(fn, args, kwargs)
         sent = None if shipment is None else self._scattered(shipment)
-        return super().submit(run_on_worker, self._expected, loaded_user_code(), sent, fn,
+        return super().submit(run_on_worker, self._expected, keyed_digests(), sent, fn,
                               *args, **kwargs)

@@ -9,6 +9,8 @@ import threading
 import time
 from typing import Callable
 
+from reachwatch.systems.files import keyed_by_driver, keyed_digests
+
 
 class InlineExecutor(cf.Executor):
     """Runs each task at submit time in this process (small sweeps, tests)."""
@@ -59,8 +61,7 @@ class RespawningPool(cf.Executor):
 
     def submit(self, fn, /, *args, **kwargs):
         if self._code is not None:
-            from reachwatch.diagrams.user_code import loaded_user_code
-            return self.pool.submit(same_loop_code, self._code, loaded_user_code(), fn,
+            return self.pool.submit(same_loop_code, self._code, keyed_digests(), fn,
                                     *args, **kwargs)
         return self.pool.submit(fn, *args, **kwargs)
 
@@ -91,19 +92,18 @@ class RespawningPool(cf.Executor):
         self.close().shutdown(wait=wait, cancel_futures=cancel_futures)
 
 
-def same_loop_code(expected: str, user_code, fn, /, *args, **kwargs):
+def same_loop_code(expected: str, keyed, fn, /, *args, **kwargs):
     """``fn(*args, **kwargs)`` in a pool worker whose loop code (`loop_code_digest`) is
-    ``expected``, the driver's; else one line, before any result. A user's factory file
-    it loads must hold code the driver keyed (``user_code``,
-    `reachwatch.diagrams.user_code.keyed_user_code`)."""
-    from reachwatch.diagrams.user_code import keyed_user_code
+    ``expected``, the driver's; else one line, before any result. A checkpoint or a
+    user's code it loads must be content the driver keyed (``keyed``, its
+    `keyed_digests`: `keyed_by_driver`)."""
     from .fingerprint import loop_code_digest
     mine = loop_code_digest()
     if mine != expected:
         raise RuntimeError(f"this worker's reachwatch source (loop code {mine[:12]}) is not the "
                            f"driver's ({expected[:12]}): it was edited after the driver "
                            f"started; start the run again (it resumes from its caches)")
-    with keyed_user_code(user_code):
+    with keyed_by_driver(keyed):
         return fn(*args, **kwargs)
 
 

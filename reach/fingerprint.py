@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reachwatch.systems.files import file_hash, local_copy
+from reachwatch.systems.files import file_hash, local_copy, remember_keyed
 
 #: Bump when what a sweep computes changes for the same inputs.
 FORMAT = 1
@@ -215,7 +215,7 @@ def canonical(value, where="factory"):
     if isinstance(value, (str, os.PathLike)):
         text = os.fspath(value)
         if text and len(text) < 4096 and "\n" not in text and os.path.isfile(local_copy(text)):
-            return {"file": file_hash(text, 64)}
+            return {"file": remember_keyed(text, file_hash(text, 64))}
         return text
     if isinstance(value, (np.integer, np.floating, np.bool_)):
         return canonical(value.item(), where)

@@ -7,6 +7,7 @@ import hashlib
 import os
 import shutil
 import tempfile
+import threading
 from pathlib import Path
 
 from .checks import clip
@@ -16,6 +17,56 @@ def cache_root() -> Path:
     """Where reachwatch caches generated assets and sweeps: ``$REACHWATCH_CACHE`` or
     ``~/.cache/reachwatch``."""
     return Path(os.environ.get("REACHWATCH_CACHE", Path.home() / ".cache" / "reachwatch"))
+
+
+# --- content a driver keyed its work with -------------------------------------------
+
+#: What this process put in cache keys (`remember_keyed`): ``{name: digests}``, a file
+#: by the path a task names it with (`file_hash`, 64 digits), a user's code by its file.
+_KEYED = {}
+_KEYED_LOCK = threading.Lock()
+#: What a task brought from its driver (`keyed_by_driver`); None: no check.
+_DRIVER_KEYED = contextvars.ContextVar("reachwatch_driver_keyed", default=None)
+
+
+def remember_keyed(name: str, digest: str) -> str:
+    """Notes that this process keyed work with ``name`` (a path as tasks name it) holding
+    content of ``digest``; returns ``digest``."""
+    with _KEYED_LOCK:
+        _KEYED.setdefault(os.fspath(name), set()).add(digest)
+    return digest
+
+
+def keyed_digests() -> dict:
+    """``{name: digests}`` this process keyed work with: what a task it sends takes."""
+    with _KEYED_LOCK:
+        return {name: frozenset(digests) for name, digests in _KEYED.items()}
+
+
+@contextlib.contextmanager
+def keyed_by_driver(keyed):
+    """Runs the block (a task on a worker) with ``keyed`` as its driver's
+    `keyed_digests`: a checkpoint or a user's code it loads under a name the driver
+    keyed must hold content the driver keyed (`check_keyed`), not a file edited since,
+    which would run under the old content's key. Empty or None: no check."""
+    token = _DRIVER_KEYED.set(dict(keyed) if keyed else None)
+    try:
+        yield
+    finally:
+        _DRIVER_KEYED.reset(token)
+
+
+def check_keyed(name, digest: str, what: str) -> None:
+    """Raise ValueError, in one line, when a task's driver keyed ``name`` with other
+    content than ``digest`` (``what``: the file or code, in words; `keyed_by_driver`).
+    A name the driver did not key is not checked."""
+    keyed = _DRIVER_KEYED.get()
+    if keyed is None:
+        return
+    digests = keyed.get(os.fspath(name))
+    if digests is not None and digest not in digests:
+        raise ValueError(f"{what} changed after this run keyed its results with it; start "
+                         f"the run again (it resumes from its caches)")
 
 
 def file_hash(path, length: int = 16) -> str:

@@ -196,3 +196,33 @@ def test_a_worker_refuses_a_controller_edited_after_the_driver_keyed_it(tmp_path
             pool.submit(_steering_in_worker, factory).result()
     finally:
         stop_executor(pool)
+
+
+def test_a_worker_refuses_a_checkpoint_rewritten_after_the_driver_keyed_it(tmp_path):
+    """The same for a checkpoint the driver keyed by its content (a retraining that
+    writes the same path while a sweep runs); a file the driver did not key is not
+    checked."""
+    import concurrent.futures as cf
+    import functools
+    import torch
+    from reachwatch.diagrams import CheckpointError
+    from reachwatch.diagrams.checkpoints import load_checkpoint
+    from reachwatch.reach import RespawningPool
+    from reachwatch.reach.fingerprint import fingerprint, loop_code_digest
+    path = tmp_path / "model.pt"
+    path.write_bytes(b"the weights keyed")
+    fingerprint(ControllerConfig(checkpoint=str(path)))     # the driver keys it
+    pool = RespawningPool(functools.partial(cf.ThreadPoolExecutor, 1), code=loop_code_digest())
+    try:
+        with pytest.raises(CheckpointError, match="not a readable checkpoint"):   # as keyed
+            pool.submit(load_checkpoint, str(path), kind="taxinet").result()
+        path.write_bytes(b"other weights")
+        with pytest.raises(CheckpointError, match=r"^the checkpoint \S+model.pt changed after "
+                                                  r"this run keyed its results with it"):
+            pool.submit(load_checkpoint, str(path), kind="taxinet").result()
+        other = tmp_path / "other.pt"
+        torch.save({"x": 1}, other)
+        with pytest.raises(CheckpointError, match="not a reachwatch checkpoint"):
+            pool.submit(load_checkpoint, str(other), kind="taxinet").result()
+    finally:
+        stop_executor(pool)
