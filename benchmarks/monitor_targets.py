@@ -86,7 +86,8 @@ def target_rows(result: dict) -> list:
                              "(offline)", name,
                              f"warned {rate_text(warned)} against {rate_text(d_warned)} at "
                              f"needless {rate_text(needless)} ({points:+.1f} points)",
-                             _verdict(math.isfinite(points) and points >= DETECTOR_POINTS)])
+                             _verdict(points >= DETECTOR_POINTS if math.isfinite(points)
+                                      else None)])
         miss = row[group]["pooled"]["miss"]
         rows.append(["miss rate <= 10 % (upper bound <= 13 %)", name, rate_text(miss),
                      _verdict(miss["rate"] <= RATE and miss["hi"] <= UPPER

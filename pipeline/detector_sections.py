@@ -116,7 +116,7 @@ def detector_verdicts(rows) -> list:
         flagged = (d["tp"] + d["fp"]) / d["n"] if d["n"] else 0.0
         anomalous = d["positives"] / d["n"] if d["n"] else 0.0
         text = (f"{d['environment']}: the detector flags {percent_text(flagged)}% of the "
-                f"images, of which {percent_text(anomalous)}% are anomalous; it catches "
+                f"images, while {percent_text(anomalous)}% are anomalous; it catches "
                 f"{percent_text(d['recall'])}% of the anomalies at "
                 f"{percent_text(d['accuracy'])}% accuracy, AUROC {percent_text(d['auroc'])}")
         best = max(others, key=lambda r: r["auroc"], default=None)

@@ -15,6 +15,11 @@ from reachwatch.training.monitor_eval import rate
 from .monitor_spec import DETECTOR_ROW, ORACLE
 
 
+def _number(value) -> str:
+    """``value`` to 3 decimals; "-" for a figure of nothing (NaN or None)."""
+    return f"{value:.3f}" if value is not None and np.isfinite(value) else "-"
+
+
 def read_study_result(path) -> dict:
     """A monitor study's ``monitor.json`` as the study returned it: the study writes a
     number that is not finite as null (strict JSON, `systems.files.strict_json`). A null
@@ -227,8 +232,8 @@ def study_blocks(result: dict) -> list:
                              if row.get("flag_rule", [1, 1]) != [1, 1] else ""),
                          rate_text(r["pooled"]["miss"]),
                          rate_text(r["pooled"]["needless"]),
-                         f"{min(aurocs):.3f}" if aurocs else "-", f"{r['ece']:.3f}",
-                         f"{r['brier']:.3f}"])
+                         f"{min(aurocs):.3f}" if aurocs else "-", _number(r["ece"]),
+                         _number(r["brier"])])
         o = result["oracle"][group]["pooled"]
         base = [b for b in result["prediction_error_auroc_4s"][group] if np.isfinite(b)]
         rows += [[ORACLE, "-", rate_text(o["miss"]), rate_text(o["needless"]), "-", "-", "-"],
@@ -288,7 +293,7 @@ def study_blocks(result: dict) -> list:
             fails = result["failing_runs"][group][e["environment"]]
             rows.append([e["environment"], f"{fails[0]}/{fails[1]} ({o['warnable']['count']})",
                          rate_text(e["miss"]),
-                         rate_text(e["needless"]), f"{e['auroc_4s']:.3f}", f"{b:.3f}",
+                         rate_text(e["needless"]), _number(e["auroc_4s"]), _number(b),
                          rate_text(o["miss"])])
     blocks += [("heading", f"{result['kept']} (the kept variant), per environment"),
                ("table", ["environment", "failing runs (warnable)", "miss % [95 % CI]",

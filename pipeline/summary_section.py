@@ -4,11 +4,13 @@ the judge), and, when the run has a monitor study, the monitor's miss rate on
 held-out environments, the failures it prevents and the needless stops it causes in
 the guarded real loop, and its calibration."""
 
+import math
 
 from reachwatch.training.monitor_eval import rate
 
 from .fidelity_sections import LABEL_TARGET, labels_meet_target
 from .monitor_sections import rate_text, read_study_result
+from .monitor_spec import ORACLE
 
 #: The monitor study's targets: a miss rate and a needless-stop rate of at most 10 %
 #: whose 95 % upper bounds stay within 13 %, and a calibration error of at most 0.05.
@@ -63,13 +65,13 @@ def summary_rows(run) -> list:
     guarded = result["guarded"].get(result["kept"])
     if guarded:
         text, rate, _ = _interval(guarded["prevented"], guarded["failed_alone"])
-        warnable = result["oracle"]["held_out"]["pooled"]["warnable"]
-        ceiling = warnable["rate"] if warnable["of"] else None
+        oracle = result["guarded"].get(ORACLE) or {}
+        prevented = oracle.get("prevented") or 0       # from the same starts, braking
         rows.append(["failures prevented, guarded real loop (braking)", text,
                      ">= 85 % of what the oracle monitor prevents" +
-                     (f" (at most the {100 * ceiling:.1f} % of failing runs that last long "
-                      f"enough to be warned)" if ceiling else ""),
-                     _verdict(None if rate is None or not ceiling else rate >= 0.85 * ceiling)])
+                     (f" (the oracle: {prevented} of {oracle['failed_alone']}; this monitor "
+                      f"{guarded['prevented'] / prevented:.2f} of that)" if prevented else ""),
+                     _verdict(guarded["prevented"] >= 0.85 * prevented if prevented else None)])
         text, rate, hi = _interval(guarded["needless_stops"], guarded["safe_alone"])
         target, upper = MONITOR_TARGETS["needless"]
         rows.append([f"needless stops, guarded real loop (of the runs the loop alone "
@@ -79,8 +81,10 @@ def summary_rows(run) -> list:
     else:
         rows.append(["guarded real loop", "not run (monitor.guarded_runs: 0)", "-", "-"])
     ece = kept["held_out"]["ece"]
-    rows.append(["calibration error (ECE) of the risk, held-out environments", f"{ece:.3f}",
-                 f"<= {MONITOR_TARGETS['ece']:g}", _verdict(ece <= MONITOR_TARGETS["ece"])])
+    known = ece is not None and math.isfinite(ece)           # NaN: no held-out tick
+    rows.append(["calibration error (ECE) of the risk, held-out environments",
+                 f"{ece:.3f}" if known else "-", f"<= {MONITOR_TARGETS['ece']:g}",
+                 _verdict(ece <= MONITOR_TARGETS["ece"] if known else None)])
     return rows
 
 

@@ -269,7 +269,7 @@ def test_verdicts_call_out_a_detector_that_flags_everything():
             row("DUSK", "baseline", 10, 10, 10, 70, 0.80),
             row("DARK", "detector", 10, 40, 10, 40, 0.52)]
     night, day, dusk, dark = detector_verdicts(rows)
-    assert night.startswith("NIGHT: the detector flags 96.00% of the images, of which 20.00% "
+    assert night.startswith("NIGHT: the detector flags 96.00% of the images, while 20.00% "
                             "are anomalous; it catches 95.00% of the anomalies at 22.00% accuracy, "
                             "AUROC 55.00 (best other method: baseline, 75.00).")
     assert "here it is an alarm, not a detector" in night

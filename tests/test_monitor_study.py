@@ -482,3 +482,26 @@ def test_the_study_refuses_a_cache_url_before_it_records_anything(tmp_path):
             run_monitor_study(spec, load_scenario(data=""), out, cache_dir=cache,
                               progress=False, log=lambda m: None)
     assert not any(tmp_path.iterdir())
+
+
+def test_the_summary_judges_prevented_failures_against_the_oracles_guarded_row(tmp_path):
+    """The oracle's prevented failures in the guarded loop, from the same starts, are the
+    target's reference (not the offline share of warnable runs); an ECE of no held-out
+    tick is "-", not a miss."""
+    from reachwatch.pipeline.summary_section import summary_rows
+    from reachwatch.systems.files import strict_json
+    miss = {"count": 1, "of": 4, "rate": 0.25}
+    kept = {"held_out": {"pooled": {"miss": miss}, "ece": float("nan")}}
+    guarded = {"prevented": 2, "failed_alone": 3, "needless_stops": 0, "safe_alone": 5}
+    result = {"kept": "one", "lead_s": 1.67, "within_s": 4.0, "alpha": 0.1,
+              "variants": {"one": kept},
+              "guarded": {"one": guarded, ORACLE: {**guarded, "prevented": 2}},
+              "oracle": {"held_out": {"pooled": {"warnable": {"count": 4, "of": 4,
+                                                              "rate": 1.0}}}}}
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "monitor.json").write_text(strict_json(result))
+    rows = {row[0].split(",")[0]: row for row in summary_rows(_Run(tmp_path))}
+    prevented = rows["failures prevented"]
+    assert prevented[1].endswith("(2/3)") and prevented[3] == "meets", prevented
+    assert "the oracle: 2 of 3; this monitor 1.00 of that" in prevented[2]
+    assert rows["calibration error (ECE) of the risk"][1:] == ["-", "<= 0.05", "-"]
