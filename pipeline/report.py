@@ -219,7 +219,7 @@ def write_report(run: Run) -> dict:
         page.text(f"{application.controller_words} fine-tuned{how}; BRT of {inc['environment']} "
                   f"(held out): {_pct(inc['before'])}% before, {_pct(inc['after'])}% after.")
         page.images([inc["figure"], inc.get("star", {}).get("figure")])
-    page.section("Benchmarks measured in this run", "benchmarks")
+    page.section("Benchmarks, as each stage last ran", "benchmarks")
     rows = [[f"sweep {n}", f"{sweep_rate(r)} states/s ({r.get('rendered', r['states'])} "
              f"rendered in {r['sweep_seconds']:.1f} s)"]
             for n, r in o["solve"].items() if r.get("rendered", r["states"])]

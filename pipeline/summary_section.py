@@ -41,7 +41,8 @@ def summary_rows(run) -> list:
         rows.append(["labels agree with the real loop (pooled fresh starts)",
                      _interval(agree, n)[0],
                      f">= {100 * LABEL_TARGET['agree']:g} % in every environment",
-                     f"{_verdict(met == len(checked))} ({met} of {len(checked)} environments)"])
+                     f"{_verdict(met == len(checked))} ({met} of {len(checked)} environments meet "
+                     f"every label target)"])
         rows.append(["labels false-safe (pooled fresh starts)", _interval(false_safe, n)[0],
                      f"<= {100 * LABEL_TARGET['false_safe']:g} % in every environment", "-"])
     else:
