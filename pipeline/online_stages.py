@@ -336,8 +336,8 @@ def guard_environment(run: Run, env) -> dict:
 
 #: In the guard stage's key: 2 since a real run judged by distance that parks within the
 #: horizon goes on to it (`reach.liveness.mission_done`), 3 since the score noise is
-#: fitted on each run up to its first tick outside the box and a real run no longer
-#: counts the tick it is found failed at as acting, so records of before are run again.
+#: fitted on each run up to its first tick outside the box, so records of before are
+#: run again.
 GUARD_FORMAT = 3
 
 

@@ -203,11 +203,7 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
                      else np.asarray(run.speed, float).reshape(-1))
             k = int(np.sum(run.time <= duration + 1e-9))      # the ticks within the horizon
             within = end and run.time[-1] <= duration + 1e-9
-            # a tick acts within the horizon, the one where the run is found failed
-            # aside (its state has failed already), as the table rollouts count them
             acting = run.time[:k] < duration - 1e-9
-            if within:
-                acting[-1] = False
             flags = (np.zeros(k, bool) if run.anomaly is None
                      else np.asarray(run.anomaly, float).reshape(-1)[:k] >= 0.5)
             row = (within, not within and speed[k - 1] <= 0, bool(np.any(speed[1:k] <= 0)),

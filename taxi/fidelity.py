@@ -269,11 +269,7 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
             k = int(np.sum(run.time <= duration + 1e-9))      # the ticks within the horizon
             failed = run.failed and run.failure_time <= duration + 1e-9
             distance = travelled(run.time[:k], speed[:k], run.failure_time if failed else None)
-            # a tick acts within the horizon, the one where the run is found failed
-            # aside (its state has failed already), as the table rollouts count them
             acting = run.time[:k] < duration - 1e-9
-            if failed and run.time[k - 1] >= run.failure_time - 1e-9:
-                acting[k - 1] = False
             flags = (np.zeros(k, bool) if run.anomaly is None
                      else np.asarray(run.anomaly, float).reshape(-1)[:k] >= 0.5)
             whole = travelled(run.time, speed, run.failure_time if run.failed else None)
