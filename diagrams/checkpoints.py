@@ -18,7 +18,7 @@ from reachwatch.systems import (DetectorConfig, HistoryMonitorConfig, HistoryRis
                                 build_taxinet, check_members)
 from reachwatch.systems.checks import short
 from reachwatch.systems.files import (atomic_write_bytes, check_keyed, file_hash,  # noqa: F401
-                                      local_copy)  # (file_hash re-exported)
+                                      keyed_check_active, local_copy)  # (file_hash re-exported)
 
 FORMAT = "reachwatch.checkpoint"
 VERSION = 1
@@ -66,10 +66,11 @@ def load_checkpoint(path, *, kind) -> dict:
         raise CheckpointError(f"checkpoint not found: {path}")
     if path.stat().st_size == 0:
         raise CheckpointError(f"{path} is empty, not a checkpoint")
-    try:
-        check_keyed(named, file_hash(path, 64), f"the checkpoint {named}")
-    except ValueError as e:
-        raise CheckpointError(str(e)) from None
+    if keyed_check_active():            # hashed only in a task that brought its keys
+        try:
+            check_keyed(named, file_hash(path, 64), f"the checkpoint {named}")
+        except ValueError as e:
+            raise CheckpointError(str(e)) from None
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises several types for truncated/foreign files

@@ -153,6 +153,11 @@ class RunSpec:
                 except ValueError as e:
                     raise ValueError(f"{where}[{i}]: {e}") from None
         self._check_same_names(application)
+        names = [e.name for e in self.training_environments() + self.held_out_environments()]
+        if len(set(names)) != len(names):
+            twice = sorted({n for n in names if names.count(n) > 1})
+            raise ValueError(f"train/test: an environment is listed twice: {short(twice)}")
+        # one under another name (a family drawn again under another prefix)
         trained = self._trained_contents(application)
         for env in self.held_out_environments():
             if application.environment_content(env) in trained:
@@ -161,10 +166,6 @@ class RunSpec:
                     f"({short(trained[application.environment_content(env)])}): a family "
                     f"drawn from the same seed is the same family whatever its prefix; hold "
                     f"out another, or give test_random another seed")
-        names = [e.name for e in self.training_environments() + self.held_out_environments()]
-        if len(set(names)) != len(names):
-            twice = sorted({n for n in names if names.count(n) > 1})
-            raise ValueError(f"train/test: an environment is listed twice: {short(twice)}")
         axes = application.axes
         if len(self.grid) != len(axes):             # each size: check_bounds above
             raise ValueError(f"grid must be {len(axes)} sizes [{', '.join('n_' + a for a in axes)}], "

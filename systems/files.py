@@ -29,11 +29,20 @@ _KEYED_LOCK = threading.Lock()
 _DRIVER_KEYED = contextvars.ContextVar("reachwatch_driver_keyed", default=None)
 
 
+def _keyed_name(name) -> str:
+    """``name`` as keyed: a path made absolute (``./m.pt`` and its absolute path are one
+    file), behind its ``code:`` prefix when it has one; a URL as it is."""
+    text = os.fspath(name)
+    prefix = "code:" if text.startswith("code:") else ""
+    path = text[len(prefix):]
+    return prefix + (path if is_url(path) else os.path.abspath(path))
+
+
 def remember_keyed(name: str, digest: str) -> str:
     """Notes that this process keyed work with ``name`` (a path as tasks name it) holding
     content of ``digest``; returns ``digest``."""
     with _KEYED_LOCK:
-        _KEYED.setdefault(os.fspath(name), set()).add(digest)
+        _KEYED.setdefault(_keyed_name(name), set()).add(digest)
     return digest
 
 
@@ -56,6 +65,12 @@ def keyed_by_driver(keyed):
         _DRIVER_KEYED.reset(token)
 
 
+def keyed_check_active() -> bool:
+    """Whether this block runs a task that brought its driver's keys (`check_keyed` has
+    something to check; else a caller need not compute a digest for it)."""
+    return _DRIVER_KEYED.get() is not None
+
+
 def check_keyed(name, digest: str, what: str) -> None:
     """Raise ValueError, in one line, when a task's driver keyed ``name`` with other
     content than ``digest`` (``what``: the file or code, in words; `keyed_by_driver`).
@@ -63,7 +78,7 @@ def check_keyed(name, digest: str, what: str) -> None:
     keyed = _DRIVER_KEYED.get()
     if keyed is None:
         return
-    digests = keyed.get(os.fspath(name))
+    digests = keyed.get(_keyed_name(name))
     if digests is not None and digest not in digests:
         raise ValueError(f"{what} changed after this run keyed its results with it; start "
                          f"the run again (it resumes from its caches)")
