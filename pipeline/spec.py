@@ -247,7 +247,6 @@ class RunSpec:
                                  f"environment; the fine-tuned controller is judged on a "
                                  f"held-out one: name another")
         if self.monitor.enabled and self.monitor.compare_detector:
-            trained = self._trained_contents(application)
             seen = sorted({e.name for role, envs in self.monitor.environments().items()
                            if role != "train" for e in envs
                            if application.environment_content(e) in trained})
