@@ -1,15 +1,58 @@
-"""A finished monitor study's per-tick risks on disk (``risks.npz``): written by the
-study (`save_risks`), read back by the benchmarks that judge other flag rules, splits
-and means without rendering or training again (`saved_risks`), with the checks that
-what they are given matches the study (`check_same_runs`, `check_run_length`)."""
+"""A monitor study's files on disk: the names of its checkpoints (`checkpoint_file`),
+what its stage's record checks (`study_outputs`), a previous result cleared before a
+study writes (`clear_previous_result`), and its per-tick risks (``risks.npz``): written
+by the study (`save_risks`), read back by the benchmarks that judge other flag rules,
+splits and means without rendering or training again (`saved_risks`), with the checks
+that what they are given matches the study (`check_same_runs`, `check_run_length`)."""
 
 import io
+import json
+import re
+from pathlib import Path
 
 import numpy as np
 
 from reachwatch.systems.files import atomic_write_bytes
 
 from .monitor_judge import fails_after
+
+
+def checkpoint_file(variant: str, taken=()) -> str:
+    """The file a study saves ``variant``'s monitor as: named after the variant
+    (``single frame`` -> ``monitor_single-frame.pt``), so that no one takes one
+    variant's file for another's; a name already in ``taken`` gets a number."""
+    slug = re.sub(r"[^a-z0-9]+", "-", variant.lower()).strip("-")[:48].strip("-") or "variant"
+    file, k = f"monitor_{slug}.pt", 2
+    while file in taken:
+        file, k = f"monitor_{slug}-{k}.pt", k + 1
+    return file
+
+
+def clear_previous_result(out_dir: Path) -> None:
+    """Removes a previous study's ``monitor.json`` from ``out_dir``, and the checkpoints
+    and figure it names, before a study writes its own there: a study killed while it
+    writes (its guarded runs take hours) then leaves no result beside files of other
+    settings, and no checkpoint of a variant the new study does not keep stays behind to
+    be deployed. ``monitor.json`` is written last, so its absence marks a study that
+    did not finish."""
+    previous = Path(out_dir) / "monitor.json"
+    try:
+        old = json.loads(previous.read_text())
+    except (OSError, ValueError):
+        old = {}
+    previous.unlink(missing_ok=True)
+    named = [*dict(old.get("checkpoints") or {}).values(), old.get("reliability_figure")]
+    for name in named:
+        if isinstance(name, str) and name and Path(name).name == name:
+            (Path(out_dir) / name).unlink(missing_ok=True)
+
+
+def study_outputs(result: dict, folder: str = "monitor") -> dict:
+    """The monitor stage's outputs: the study's ``monitor.json`` (``result``) and every
+    other file it wrote (``files``), so that the stage's record checks them all and a
+    folder whose checkpoints or saved risks another study rewrote is not up to date."""
+    files = ["risks.npz", *result["checkpoints"].values(), result["reliability_figure"]]
+    return {"result": f"{folder}/monitor.json", "files": [f"{folder}/{f}" for f in files]}
 
 
 def save_risks(path, data, all_risks, judged):

@@ -19,8 +19,6 @@ The loop is the application's (`reachwatch.reach.application.Application`): its
 the run file's (`reachwatch.pipeline.spec`)."""
 
 import dataclasses as dc
-import json
-import re
 import time
 from pathlib import Path
 
@@ -43,7 +41,7 @@ from .monitor_judge import (_judge_monitor, choose_flag_rule, judge_environments
 from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_environment,  # noqa: F401
                            merged_runs, record_runs, record_splits, recorded_frames,
                            starts_seed)
-from .monitor_saved import save_risks
+from .monitor_saved import checkpoint_file, clear_previous_result, save_risks, study_outputs
 from .monitor_sections import rate_text
 from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noqa: F401
                            MonitorVariant, default_variants)
@@ -51,17 +49,6 @@ from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noq
 __all__ = ["DETECTOR_ROW", "MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "checkpoint_file",
            "choose_flag_rule", "default_variants", "judge_environments", "run_monitor_study",
            "stage_monitor"]
-
-
-def checkpoint_file(variant: str, taken=()) -> str:
-    """The file a study saves ``variant``'s monitor as: named after the variant
-    (``single frame`` -> ``monitor_single-frame.pt``), so that no one takes one
-    variant's file for another's; a name already in ``taken`` gets a number."""
-    slug = re.sub(r"[^a-z0-9]+", "-", variant.lower()).strip("-")[:48].strip("-") or "variant"
-    file, k = f"monitor_{slug}.pt", 2
-    while file in taken:
-        file, k = f"monitor_{slug}-{k}.pt", k + 1
-    return file
 
 
 def _member_mean(per_member):
@@ -246,33 +233,6 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     atomic_write_bytes(out_dir / "monitor.json",
                        strict_json(result, indent=1, default=float).encode())
     return result
-
-
-def clear_previous_result(out_dir: Path) -> None:
-    """Removes a previous study's ``monitor.json`` from ``out_dir``, and the checkpoints
-    and figure it names, before a study writes its own there: a study killed while it
-    writes (its guarded runs take hours) then leaves no result beside files of other
-    settings, and no checkpoint of a variant the new study does not keep stays behind to
-    be deployed. ``monitor.json`` is written last, so its absence marks a study that
-    did not finish."""
-    previous = Path(out_dir) / "monitor.json"
-    try:
-        old = json.loads(previous.read_text())
-    except (OSError, ValueError):
-        old = {}
-    previous.unlink(missing_ok=True)
-    named = [*dict(old.get("checkpoints") or {}).values(), old.get("reliability_figure")]
-    for name in named:
-        if isinstance(name, str) and name and Path(name).name == name:
-            (Path(out_dir) / name).unlink(missing_ok=True)
-
-
-def study_outputs(result: dict, folder: str = "monitor") -> dict:
-    """The monitor stage's outputs: the study's ``monitor.json`` (``result``) and every
-    other file it wrote (``files``), so that the stage's record checks them all and a
-    folder whose checkpoints or saved risks another study rewrote is not up to date."""
-    files = ["risks.npz", *result["checkpoints"].values(), result["reliability_figure"]]
-    return {"result": f"{folder}/monitor.json", "files": [f"{folder}/{f}" for f in files]}
 
 
 def judged_text(row: dict) -> str:
