@@ -11,7 +11,6 @@ import time
 
 import numpy as np
 
-from reachwatch.diagrams import CONTROL_PORT
 from reachwatch.reach import (compare_verdicts, min_target_along_rollouts, select_map,
                              sign_agreement, solve_brt)
 from reachwatch.reach.robust import control_bounds
@@ -53,14 +52,15 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     table = run.application.sweep(scenario, grid, cache_dir=run.sweep_cache,
                                   executor=run.executor, progress=False)
     dynamics = run.application.dynamics(scenario)
+    control_port = run.application.probe(scenario).control_port
     solved = [0.0]
 
     def solve(table, spread=spec.robust.min_spread_deg):
         started = time.time()
-        vf = solve_brt(table.grid, dynamics, table[CONTROL_PORT], horizon=spec.horizon,
+        vf = solve_brt(table.grid, dynamics, table[control_port], horizon=spec.horizon,
                        accuracy=spec.accuracy, period=scenario.controller.period,
                        periods_per_step=spec.periods_per_step,
-                       control_bounds=control_bounds(table, CONTROL_PORT, spread,
+                       control_bounds=control_bounds(table, control_port, spread,
                                                      neighbourhood=spec.robust.neighbourhood))
         solved[0] += time.time() - started
         return vf
@@ -77,7 +77,7 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     chosen = None
     if spec.map_selection.starts:
         chosen, vf, table, spread = select_map_by_runs(run, env, scenario, levels, solve)
-    grid, steering = table.grid, table[CONTROL_PORT]
+    grid, steering = table.grid, table[control_port]
     vf.metadata.update(environment=env.name, sweep=key, refine_levels=refine.levels,
                        robust_min_spread_deg=spread)
     name = f"{key}_{spec.horizon:g}s_{spec.accuracy}" + (

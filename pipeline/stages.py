@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reachwatch.diagrams import CONTROL_PORT, file_hash, load_detector
+from reachwatch.diagrams import file_hash, load_detector
 from reachwatch.reach import Grid, InlineExecutor, ValueFunction
 from reachwatch.reach.application import load_application
 from reachwatch.systems.checks import device_kind, short
@@ -300,7 +300,7 @@ class Run:
         scenario, grid = self.scenario_for(env), self.solved_grid_for(env)
         table = self.application.sweep(scenario, grid, cache_dir=self.sweep_cache,
                                        executor=self.executor, progress=False)
-        return grid, table[CONTROL_PORT]
+        return grid, table[self.application.probe(scenario).control_port]
 
     def datasets(self, envs):
         return [load_dataset(self.path(self.outputs["dataset"]["folders"][e.name])) for e in envs]

@@ -92,7 +92,7 @@ class CartApplication(RunwayEnvironments, Application):
         return make_cart_loop(scenario, scenario.monitor if guarded else None)
 
     def probe(self, scenario, *, guarded=False):
-        return Probe(plant="cart", control_port="controller.steering_angle",
+        return Probe(plant="cart", control_port="rail_follower.steering_angle",
                      extra_ports=(f"{DETECTOR}.score",) if guarded else ())
 
     def dynamics(self, scenario):

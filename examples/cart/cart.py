@@ -97,7 +97,7 @@ def make_cart_loop(scenario, monitor: MonitorConfig = None):
     builder = DiagramBuilder()
     cart, camera = add_cart_world(builder, environment=scenario.environment,
                                   camera=scenario.camera)
-    controller = builder.AddNamedSystem("controller", make_controller(scenario.controller))
+    controller = builder.AddNamedSystem("rail_follower", make_controller(scenario.controller))
     builder.Connect(camera.color_image_output_port(), controller.GetInputPort("color_image"))
     hold = builder.AddNamedSystem("steering_hold", ZeroOrderHold(scenario.controller.period, 1))
     builder.Connect(hold.get_output_port(), cart.GetInputPort("steering_angle"))
