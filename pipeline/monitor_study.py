@@ -25,11 +25,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from reachwatch.diagrams import save_checkpoint
+from reachwatch.diagrams import make_controller, save_checkpoint
 from reachwatch.reach.application import application_key, load_application
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskEnsemble
 from reachwatch.systems.files import atomic_write_bytes, cache_location, file_hash, strict_json
-from reachwatch.training.baselines import prediction_error
+from reachwatch.training.baselines import estimate_error_of
+from reachwatch.training.dataset_images import estimator
 from reachwatch.training.conformal import NoConformalThreshold
 from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
                                                tick_labels, train_encoder, train_head)
@@ -174,6 +175,19 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
             f"{judged_text(row)}")
 
     oracle, baseline = {}, {}
+    # the controller's prediction error along the runs: its estimate leads the signals
+    # (`add_monitor_signals`), when the application says what it estimates
+    error = estimate_error_of(application)
+    estimated = (estimator(make_controller(application.resolved(scenario).controller))[1]
+                 if error else 0)
+
+    def prediction_auroc(g):
+        if not estimated or not error.applies(g["state"][0, :1], g["signals"][0, :1, :estimated]):
+            return float("nan")
+        return tick_auroc([error(g["state"][i, :n], g["signals"][i, :n, :estimated])
+                           for i, n in enumerate(g["ticks"])], g["ticks"],
+                          g["watched_failure_time"], period=period, duration=watch_s(spec),
+                          within=4.0)
     for k in ("held_out", "also_held_out"):
         groups = data[k]
         risks = [oracle_risks(g["ticks"], g["failure_time"], period=period, lead=lead)
@@ -181,11 +195,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         per_env, pooled = judge_environments(groups, risks, threshold=0.5, period=period,
                                              lead=lead, watch=watch_s(spec))
         oracle[k] = {"environments": per_env, "pooled": pooled}
-        baseline[k] = [tick_auroc([prediction_error(g["state"][i, :n], g["signals"][i, :n, :2])
-                                   for i, n in enumerate(g["ticks"])], g["ticks"],
-                                  g["watched_failure_time"], period=period,
-                                  duration=watch_s(spec), within=4.0)
-                       if g["signals"].shape[-1] >= 3 else float("nan") for g in groups]
+        baseline[k] = [prediction_auroc(g) for g in groups]
 
     # fixed in advance (the bound is exact for it), or chosen on the calibration
     # environments (`MonitorStudySpec.keep`)

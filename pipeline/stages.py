@@ -21,7 +21,7 @@ from reachwatch.reach import Grid, InlineExecutor, ValueFunction
 from reachwatch.reach.application import load_application
 from reachwatch.systems.checks import device_kind, short
 from reachwatch.systems.files import atomic_write_bytes, cache_location
-from reachwatch.training.baselines import has_pose_estimate, prediction_error, prediction_error_labels
+from reachwatch.training.baselines import estimate_error_of
 from reachwatch.training.dataset import load_dataset
 from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH, label_source, labels_name
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
@@ -313,6 +313,12 @@ def controller_name(scenario) -> str:
     return factory.rpartition(":")[2] if factory else "TaxiNet"
 
 
+def estimate_error(run: Run):
+    """The prediction-error baseline of ``run``'s controller (`baselines.EstimateError`),
+    or None when its application does not say what the controller estimates."""
+    return estimate_error_of(run.application, controller_name(run.spec.scenario))
+
+
 def detector_weights(config) -> dict:
     """What a detector's trained weights depend on, which names its checkpoint file: its
     training settings, not how its threshold is chosen (that changes neither the weights
@@ -359,11 +365,12 @@ def stage_train(run: Run) -> dict:
         out["held_out_checkpoints"] = held_out
     else:
         out["threshold"] = float(operating_threshold(model, data, config))
-    if not all(has_pose_estimate(d) for d in data):     # a controller without a pose estimate
-        return out
-    errors = np.concatenate([prediction_error(d.states, d.estimates) for d in data])
+    error = estimate_error(run)
+    if error is None or not all(error.applies(d.states, d.estimates) for d in data):
+        return out          # a controller whose estimate the application does not know
+    errors = np.concatenate([error(d.states, d.estimates) for d in data])
     error_threshold, _ = best_threshold(np.concatenate([d.labels for d in data]), errors)
-    labels = [prediction_error_labels(d, error_threshold) for d in data]
+    labels = [error.labels(d, error_threshold) for d in data]
     error_path = run.path(f"detectors/detector_prediction_error_{tag}.pt")
     if not error_path.exists():
         train_detector(data, config, error_path, progress=progress, labels=labels)
@@ -402,6 +409,7 @@ def stage_evaluate(run: Run) -> dict:
     held_out = spec.held_out_environments()
     # Each row's accuracy at an oracle threshold for the recall the figures are judged at.
     ceiling_recall = spec.detector.judged_recall
+    error = estimate_error(run)
     for env, d in zip(held_out, run.datasets(held_out)):
         # States that have not failed yet: for the taxi, the aircraft still on the runway.
         inside = ~run.application.failed(run.scenario_for(env), d.states)
@@ -411,14 +419,14 @@ def stage_evaluate(run: Run) -> dict:
             subsets[READ_ALONG] = d.sources == SOURCE_PATH
         env_rows, scores = evaluate_environment(d, detectors, device=spec.detector.device,
                                                 subsets=subsets, target_recall=ceiling_recall,
-                                                controller=controller_name(spec.scenario))
+                                                estimate_error=error)
         rows += env_rows
         if np.any(d.sources != SOURCE_BRT):       # also scored against the BRT's verdicts
             as_brt = dc.replace(d, labels=d.brt_labels,
                                 manifest={**d.manifest, "labels": {"source": "brt"}})
             rows += evaluate_environment(as_brt, detectors, device=spec.detector.device,
                                          subsets=subsets, target_recall=ceiling_recall,
-                                         controller=controller_name(spec.scenario))[0]
+                                         estimate_error=error)[0]
         predictions = {r["method"]: scores[r["method"]] >= r["threshold"]
                        for r in env_rows if r["states"] == "all"}
         margin = plot_error_vs_margin({m: (d.values, d.labels, p) for m, p in predictions.items()},

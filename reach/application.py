@@ -416,9 +416,13 @@ class Application(abc.ABC):
     #: The port of the detector's score among the guarded sweep's tables.
     score_port = "anomaly_detector.score"
     #: ``true_estimate(states) -> (n, k)`` (a staticmethod): what the controller
-    #: estimates, at its true value (the ``oracle`` steering of a fallback); None: that
-    #: steering is refused.
+    #: estimates, at its true value (the ``oracle`` steering of a fallback, and the
+    #: truth of the prediction-error baseline, `training.baselines.EstimateError`);
+    #: None: that steering is refused and there is no such baseline.
     true_estimate = None
+    #: ``(k,)`` the units the controller's estimation errors are measured in (the
+    #: prediction-error and ensemble baselines divide by them); empty: 1 each.
+    estimate_scale = ()
     #: ``carry_estimate(estimate, steering, speed, period) -> estimate`` (a
     #: staticmethod): an estimate carried forward by the plant's kinematics over a period
     #: (the ``dead_reckoning`` steering); None: that steering is refused.

@@ -194,6 +194,7 @@ class TaxiApplication(RunwayEnvironments, Application):
     # --- the guard (the guard stage, ``reachwatch guard``) -----------------------------
     # the generic table rollouts (`Application.fallback_rollouts`) with the taxi's hooks
     true_estimate = staticmethod(guarded.true_estimate)
+    estimate_scale = (10.0, 30.0)          # TaxiNet's output scales (m, deg)
     carry_estimate = staticmethod(guarded.carry_estimate)
 
     def fallback_policy(self, scenario):

@@ -10,12 +10,14 @@ from reachwatch.diagrams import CheckpointError, load_detector, load_scenario, s
 from reachwatch.reach import solve_brt
 from reachwatch.taxi import TaxiDynamics, paper_grid
 from reachwatch.systems import AnomalyDetector, DetectorConfig, build_detector
-from reachwatch.training.baselines import ensemble_variance, prediction_error
+from reachwatch.taxi.application import TaxiApplication
+from reachwatch.training.baselines import EstimateError, ensemble_variance, estimate_error_of
 from reachwatch.training.dataset import DatasetSpec, LabelledData, build_dataset, load_dataset
 from reachwatch.training.evaluation import NOT_FAILED, evaluate_environment
 from reachwatch.training.metrics import auroc, best_threshold, binary_metrics
 
 TINY = DetectorConfig(height=24, width=40, channels=[4, 8])
+TAXINET_ERROR = estimate_error_of(TaxiApplication(), "TaxiNet")
 
 
 # --- metrics -----------------------------------------------------------------------
@@ -41,12 +43,37 @@ def test_auroc_and_best_threshold():
 
 def test_baseline_scores():
     states = np.array([[1.0, 150.0, np.deg2rad(10.0)]])
-    assert prediction_error(states, [[1.0, 10.0]])[0] == pytest.approx(0.0)
-    assert prediction_error(states, [[11.0, 10.0]])[0] == pytest.approx(1.0)
+    assert TAXINET_ERROR(states, [[1.0, 10.0]])[0] == pytest.approx(0.0)
+    assert TAXINET_ERROR(states, [[11.0, 10.0]])[0] == pytest.approx(1.0)      # 10 m
+    assert TAXINET_ERROR(states, [[1.0, 40.0]])[0] == pytest.approx(1.0)       # 30 deg
     same = np.ones((3, 4, 2))
-    np.testing.assert_allclose(ensemble_variance(same), 0.0)
+    np.testing.assert_allclose(ensemble_variance(same, TAXINET_ERROR.scale), 0.0)
+    spread = np.stack([np.zeros((3, 2)), np.full((3, 2), 2.0)], axis=1)       # variance 1
+    np.testing.assert_allclose(ensemble_variance(spread), 2.0)
+    np.testing.assert_allclose(ensemble_variance(spread, (1.0, 2.0)), 1.25)
     with pytest.raises(ValueError, match=">= 2 members"):
         ensemble_variance(np.ones((3, 1, 2)))
+    with pytest.raises(ValueError, match="scale needs 2 finite numbers > 0"):
+        ensemble_variance(spread, (1.0, 0.0))
+
+
+def test_the_prediction_error_baseline_reads_the_applications_truth():
+    """A plant of one's own: its truth, not the taxi's ``[px, theta deg]`` (which read a
+    2-state plant's ``states[:, 2]`` and failed), and no baseline where the application
+    does not say what its controller estimates or the estimate has another size."""
+    own = EstimateError(truth=lambda s: s[:, :2], controller="RailFollower")
+    states = np.array([[0.1, 0.2], [0.0, 0.0]])
+    np.testing.assert_allclose(own(states, [[0.1, 0.2], [3.0, 4.0]]), [0.0, 5.0])
+    assert not own.applies(states, np.zeros((2, 3))) and not own.applies(states, np.zeros((2, 0)))
+    with pytest.raises(ValueError, match="not RailFollower's estimate of states"):
+        own(states, np.zeros((2, 3)))
+    assert estimate_error_of(type("NoEstimate", (), {"true_estimate": None})) is None
+    data, _ = _six_samples([0.0, 10.0, 20.0, 30.0, 20.0, 30.0])
+    methods = lambda error: [r["method"] for r in evaluate_environment(      # noqa: E731
+        data, [], estimate_error=error)[0]]
+    assert methods(TAXINET_ERROR) == ["TaxiNet prediction error (best threshold)"]
+    assert methods(None) == []
+    assert methods(EstimateError(truth=lambda s: s[:, :1])) == []     # the estimate is 2 wide
 
 
 # --- detector system -----------------------------------------------------------------
@@ -206,16 +233,19 @@ def test_table2_rows_over_the_states_that_have_not_failed_yet():
     # the prediction-error baseline scores the 6 samples 0 1 2 3 2 3
     data, states = _six_samples([0.0, 10.0, 20.0, 30.0, 20.0, 30.0])
     inside = np.abs(states[:, 0]) < 10.0
-    rows, scores = evaluate_environment(data, [], subsets={NOT_FAILED: inside})
+    rows, scores = evaluate_environment(data, [], estimate_error=TAXINET_ERROR,
+                                        subsets={NOT_FAILED: inside})
     assert [(r["states"], r["n"], r["positives"]) for r in rows] == [("all", 6, 4),
                                                                      (NOT_FAILED, 4, 2)]
     assert rows[1]["recall"] == rows[1]["accuracy"] == 1.0      # tuned again on the 4 states
     assert [rows[1][k] for k in ("tp", "fp", "fn", "tn")] == [2, 0, 0, 2]
     assert 1.0 < rows[1]["threshold"] <= 2.0 == scores[rows[1]["method"]][2]
     with pytest.raises(ValueError, match="subset 'x' must be a boolean mask of the 6"):
-        evaluate_environment(data, [], subsets={"x": np.ones(5, bool)})
+        evaluate_environment(data, [], estimate_error=TAXINET_ERROR,
+                             subsets={"x": np.ones(5, bool)})
     # an empty subset adds no rows
-    assert len(evaluate_environment(data, [], subsets={"none": np.zeros(6, bool)})[0]) == 1
+    assert len(evaluate_environment(data, [], estimate_error=TAXINET_ERROR,
+                                    subsets={"none": np.zeros(6, bool)})[0]) == 1
 
 
 def test_table2_rows_give_the_accuracy_an_oracle_threshold_reaches_at_the_recall_target():
@@ -223,14 +253,16 @@ def test_table2_rows_give_the_accuracy_an_oracle_threshold_reaches_at_the_recall
     data, _ = _six_samples([30.0, 0.0, 10.0, 20.0, 40.0, 50.0])
     # 95 %: every positive flagged, so the threshold is the lowest positive (10 m), which
     # also flags the negative at 30 m: 5 of 6 right
-    row, = evaluate_environment(data, [])[0]
+    row, = evaluate_environment(data, [], estimate_error=TAXINET_ERROR)[0]
     assert row["accuracy_at_target_recall"] == pytest.approx(5 / 6)
     # 50 %: two of four positives may be missed, the threshold is 40 m: 4 of 6 right
-    row, = evaluate_environment(data, [], target_recall=0.5)[0]
+    row, = evaluate_environment(data, [], estimate_error=TAXINET_ERROR,
+                                target_recall=0.5)[0]
     assert row["accuracy_at_target_recall"] == pytest.approx(4 / 6)
     # no positives: nothing to reach
     safe = dc.replace(data, labels=np.zeros(6, bool))
-    assert np.isnan(evaluate_environment(safe, [])[0][0]["accuracy_at_target_recall"])
+    row, = evaluate_environment(safe, [], estimate_error=TAXINET_ERROR)[0]
+    assert np.isnan(row["accuracy_at_target_recall"])
 
 
 def test_roc_points_and_worst_mistakes_known_answers():

@@ -1,33 +1,72 @@
-"""Component-level baselines, judged against the same BRT labels: TaxiNet prediction
-error, and the disagreement (variance) of an ensemble of TaxiNets."""
+"""Component-level baselines, judged against the same labels as the detectors: the
+controller's prediction error (`EstimateError`), and the disagreement (variance) of an
+ensemble of controllers."""
+
+import dataclasses as dc
+from typing import Callable, Optional, Tuple
 
 import numpy as np
 
-#: TaxiNet's output scales (m, deg): errors and variances are measured in these units.
-SCALE = np.array([10.0, 30.0])
+
+@dc.dataclass(frozen=True)
+class EstimateError:
+    """The controller's prediction error as an anomaly score:
+    ``||(estimate - truth(state)) / scale||`` per sample. ``truth`` maps states ``(n,
+    d)`` to what the controller estimates, at its true value, ``(n, k)``
+    (`Application.true_estimate`); ``scale`` ``(k,)`` the units its errors are measured
+    in (`Application.estimate_scale`; empty: 1 each); ``controller`` names the
+    controller in tables. `estimate_error_of` makes one for an application."""
+    truth: Callable
+    scale: Tuple[float, ...] = ()
+    controller: str = "the controller"
+
+    def applies(self, states, estimates) -> bool:
+        """Whether ``estimates`` ``(n, k)`` are the controller's estimate of ``states``
+        (as many numbers as `truth` gives): a controller with no ``estimate`` output, or
+        one of another size, has no prediction-error baseline."""
+        estimates, states = np.asarray(estimates), np.asarray(states, float)
+        if estimates.ndim != 2 or estimates.shape[1] == 0 or states.ndim != 2 or not len(states):
+            return False
+        return np.asarray(self.truth(states[:1])).shape == (1, estimates.shape[1])
+
+    def __call__(self, states, estimates) -> np.ndarray:
+        estimates = np.asarray(estimates, float)
+        if not self.applies(states, estimates):
+            raise ValueError(f"the controller's estimates {estimates.shape} are not "
+                             f"{self.controller}'s estimate of states "
+                             f"{np.shape(states)}: no prediction-error baseline")
+        truth = np.asarray(self.truth(np.asarray(states, float)), float)
+        return np.linalg.norm((estimates - truth) / scale_of(self.scale, truth.shape[1]), axis=1)
+
+    def labels(self, data, threshold: float) -> np.ndarray:
+        """Training labels of the prediction-error baseline: 1 iff the error of
+        ``data`` (a `LabelledData`) > ``threshold``."""
+        return (self(data.states, data.estimates) > threshold).astype(np.uint8)
 
 
-def has_pose_estimate(data) -> bool:
-    """Whether a dataset's controller estimates the pose as TaxiNet does, ``[px_hat m,
-    theta_hat deg]`` (an ``estimate`` output of size 2): the prediction-error baseline
-    needs that, and is skipped for a controller without it."""
-    return data.estimates.ndim == 2 and data.estimates.shape[1] == 2
+def estimate_error_of(application, controller: str = "the controller") -> Optional[EstimateError]:
+    """``application``'s `EstimateError` (its `true_estimate` and `estimate_scale`),
+    or None when it does not say what its controller estimates."""
+    if application.true_estimate is None:
+        return None
+    return EstimateError(truth=application.true_estimate,
+                         scale=tuple(float(s) for s in (application.estimate_scale or ())),
+                         controller=controller)
 
 
-def prediction_error(states, estimates) -> np.ndarray:
-    """Scaled estimate error ``||([px_hat, theta_hat] - [px, theta_deg]) / (10 m, 30 deg)||``."""
-    truth = np.column_stack([states[:, 0], np.rad2deg(states[:, 2])])
-    return np.linalg.norm((np.asarray(estimates) - truth) / SCALE, axis=1)
+def scale_of(scale, k: int) -> np.ndarray:
+    """``scale`` as ``(k,)`` positive numbers (empty: 1 each); a ValueError otherwise."""
+    out = np.ones(k) if not len(scale) else np.asarray(scale, float)
+    if out.shape != (k,) or not np.all(np.isfinite(out) & (out > 0)):
+        raise ValueError(f"an estimate's scale needs {k} finite numbers > 0 (or none), got "
+                         f"{list(np.atleast_1d(scale))}")
+    return out
 
 
-def ensemble_variance(ensemble) -> np.ndarray:
-    """Sum over outputs of the members' variance, in scaled units; ``(N, K, 2)`` in."""
+def ensemble_variance(ensemble, scale=()) -> np.ndarray:
+    """Sum over outputs of the members' variance, in units of ``scale`` (`scale_of`);
+    ``(N, K, k)`` in, ``K >= 2`` members."""
     ensemble = np.asarray(ensemble)
     if ensemble.ndim != 3 or ensemble.shape[1] < 2:
-        raise ValueError(f"an ensemble needs >= 2 members shaped (N, K, 2), got {ensemble.shape}")
-    return (ensemble / SCALE).var(axis=1).sum(axis=1)
-
-
-def prediction_error_labels(data, threshold: float) -> np.ndarray:
-    """Training labels of the prediction-error baseline: 1 iff the error > threshold."""
-    return (prediction_error(data.states, data.estimates) > threshold).astype(np.uint8)
+        raise ValueError(f"an ensemble needs >= 2 members shaped (N, K, k), got {ensemble.shape}")
+    return (ensemble / scale_of(scale, ensemble.shape[2])).var(axis=1).sum(axis=1)

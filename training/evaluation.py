@@ -11,7 +11,7 @@ import io
 
 import numpy as np
 
-from .baselines import ensemble_variance, has_pose_estimate, prediction_error
+from .baselines import ensemble_variance
 from .detector_train import detector_scores
 from .metrics import accuracy_at_recall, best_threshold, binary_metrics
 from .labels import labels_name
@@ -43,7 +43,7 @@ class Detector:
 
 
 def evaluate_environment(data, detectors, *, device="", subsets=None,
-                         target_recall=0.95, controller="TaxiNet") -> tuple:
+                         target_recall=0.95, estimate_error=None) -> tuple:
     """``(rows, scores)`` for one `LabelledData`: rows (dicts with `COLUMNS`) for each
     detector at its own threshold, then the baselines at the threshold maximising F1 on
     the same states (oracle-tuned, i.e. as generous to them as possible); ``scores``
@@ -55,8 +55,9 @@ def evaluate_environment(data, detectors, *, device="", subsets=None,
     threshold reaching ``target_recall`` on these very samples, chosen with their labels
     (an oracle; NaN without positives). It is what the method's ranking allows at that
     recall, so a detector's accuracy far below it was lost by its threshold, not by
-    its scores. ``controller`` names the controller whose estimate error is a baseline
-    (when the dataset stores its estimates as TaxiNet's)."""
+    its scores. ``estimate_error`` (a `baselines.EstimateError`; None: none) gives the
+    prediction-error baseline, when the dataset's estimates are the ones it reads, and
+    the units of the ensemble's variance."""
     env, labels, rows = data.manifest["environment"], data.labels, []
     label_info = data.manifest.get("labels", {})
     source = labels_name(label_info.get("source", "brt"), label_info.get("paths"))
@@ -72,12 +73,13 @@ def evaluate_environment(data, detectors, *, device="", subsets=None,
               for det in detectors}
     thresholds = {det.name: det.threshold for det in detectors}
     baselines = []
-    if has_pose_estimate(data):
-        baselines.append(f"{controller} prediction error (best threshold)")
-        scores[baselines[-1]] = prediction_error(data.states, data.estimates)
+    if estimate_error is not None and estimate_error.applies(data.states, data.estimates):
+        baselines.append(f"{estimate_error.controller} prediction error (best threshold)")
+        scores[baselines[-1]] = estimate_error(data.states, data.estimates)
     if data.ensemble.shape[1] >= 2:
         baselines.append(f"ensemble of {data.ensemble.shape[1]} variance (best threshold)")
-        scores[baselines[-1]] = ensemble_variance(data.ensemble)
+        scores[baselines[-1]] = ensemble_variance(
+            data.ensemble, estimate_error.scale if estimate_error is not None else ())
     for subset, mask in masks.items():
         if not mask.any():
             continue
