@@ -96,6 +96,22 @@ def test_the_largest_threshold_is_kept_and_impossible_targets_refused():
         conformal_threshold([np.array([-np.inf, 0.5])] * 20, 0.2)
 
 
+def test_a_threshold_whose_bound_is_alpha_exactly_is_kept():
+    # 109 environments, 10 of them with their one failing run missed below 0.5:
+    # (10 + 1) / 110 = 0.1 exactly, which float arithmetic reads 0.10000000000000002
+    scores = [np.array([0.4])] * 10 + [np.array([0.9])] * 99
+    assert conformal_threshold(scores, 0.1).threshold == 0.9
+    assert conformal_threshold(scores[:-1], 0.1).threshold == 0.4     # (10 + 1) / 109 > 0.1
+
+
+def test_a_nan_risk_is_refused_not_read_as_warned():
+    time = np.arange(4) * 0.5
+    with pytest.raises(ValueError, match="risk is NaN at 1 of its ticks before its warning"):
+        warning_scores([np.array([0.1, np.nan, 0.2, 0.9])], [time], [1.6], lead=0.5)
+    # a NaN score (none reaches warning_scores now) is a miss, as flag_outcomes reads it
+    assert miss_rate([np.nan, 0.9], 0.5) == 0.5
+
+
 def test_without_failing_runs_nothing_is_flagged():
     chosen = conformal_threshold([np.array([])] * 9, 0.1)
     assert chosen.threshold == 1.0 and chosen.failing_runs == 0

@@ -66,6 +66,10 @@ def warning_scores(risks, times, failure_times, *, lead: float,
             raise ValueError(f"a run's risks and times must be 1-d arrays of the same length, "
                              f"got {risk.shape} and {time.shape}")
         early = time <= failure - lead + 1e-9
+        if np.isnan(risk[early]).any():
+            raise ValueError(f"a failing run's risk is NaN at {int(np.isnan(risk[early]).sum())} "
+                             f"of its ticks before its warning time: a NaN can neither warn "
+                             f"nor be missed (a diverged training?)")
         if early.any():
             out.append(float(risk[early].max()))
         elif not warnable_only:
@@ -77,7 +81,7 @@ def miss_rate(scores, threshold: float) -> float:
     """The share of failing runs (their `warning_scores`) missed at ``threshold``
     (NaN when there are none)."""
     scores = np.asarray(scores, float)
-    return float(np.mean(scores < threshold)) if len(scores) else float("nan")
+    return float(np.mean(~(scores >= threshold))) if len(scores) else float("nan")
 
 
 @dc.dataclass
@@ -159,12 +163,12 @@ def conformal_threshold(env_scores: Sequence, alpha: float, *,
         raise NoConformalThreshold(
             f"{n} {which} cannot bound the miss rate at {alpha:g}: the bound is at least "
             f"1/(n+1) = {1 / (n + 1):.3f}; use at least {math.ceil(1 / alpha - 1)}")
-    # 0 flags every tick, 1 none (risks are probabilities below 1)
+    # 0 flags every tick; 1 flags only risks of exactly 1 (a float32 sigmoid saturates)
     candidates = np.unique(np.concatenate([s[np.isfinite(s)] for s in env_scores] + [[0.0, 1.0]]))
     best = None
     for tau in candidates:                      # the bound grows with tau: keep the largest
-        bound = n / (n + 1) * float(np.mean(_losses(env_scores, tau))) + 1 / (n + 1)
-        if bound <= alpha:
+        bound = (float(np.sum(_losses(env_scores, tau))) + 1) / (n + 1)
+        if bound <= alpha * (1 + 1e-12):        # at alpha exactly, despite float rounding
             best = tau
         else:
             break

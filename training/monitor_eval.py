@@ -8,6 +8,8 @@ the miss rate read here is the guarded loop's; whether a timely flag prevents th
 failure, and how often a flag stops the plant for nothing, only runs of the guarded
 real loop answer."""
 
+import math
+
 import numpy as np
 
 from reachwatch.reach.fidelity import wilson_interval
@@ -44,13 +46,13 @@ def decisive_scores(risks, ticks, failure_times, *, period: float, lead: float,
     """What any threshold does with one environment's runs: ``warning``, each warnable
     failing run's largest risk at least ``lead`` s before it fails (`warning_scores`),
     and ``safe_max``, each safe run's largest risk (a run is flagged iff its score is
-    >= the threshold). A safe run did not fail, and (``fails_after``, per run, when
+    >= the threshold; a run with no tick: -inf, never flagged). A safe run did not fail, and (``fails_after``, per run, when
     given) does not fail soon after its recording ends either (`flag_outcomes`)."""
     failed = np.isfinite(np.asarray(failure_times, float))
     safe = ~failed & ~_failing_after(fails_after, failed)
     return {"warning": warning_scores(risks, run_times(ticks, period), failure_times,
                                       lead=lead).tolist(),
-            "safe_max": [float(np.max(x)) if len(x) else 0.0
+            "safe_max": [float(np.max(x)) if len(x) else -math.inf
                          for x, keep in zip(risks, safe) if keep]}
 
 
