@@ -224,3 +224,12 @@ def test_k_of_n_risks_flag_what_the_flag_filter_confirms():
     out = flag_outcomes(k_of_n_risks([early], 3, 3), [3], [0.10], period=0.05,
                         threshold=0.0, lead=0.05)
     assert out["warnable"].tolist() == [True] and out["warned"].tolist() == [False]
+
+
+def test_a_safe_run_with_no_tick_is_never_flagged_in_the_decisive_scores():
+    from reachwatch.training.monitor_eval import decisive_scores, flag_outcomes
+    risks, ticks, failures = [np.zeros(0), np.array([0.2])], [0, 1], [np.nan, np.nan]
+    scores = decisive_scores(risks, ticks, failures, period=0.05, lead=0.5)
+    flagged = flag_outcomes(risks, ticks, failures, period=0.05, threshold=0.0,
+                            lead=0.5)["flagged"]
+    assert [s >= 0.0 for s in scores["safe_max"]] == flagged.tolist() == [False, True]
