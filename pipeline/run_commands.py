@@ -54,7 +54,7 @@ def run_command(args):
     import contextlib
     import time
 
-    from reachwatch.systems.files import is_url
+    from reachwatch.systems.files import is_url, make_folder
 
     from .commands import scenario_from_args
     from .console import log, progress_enabled
@@ -67,6 +67,11 @@ def run_command(args):
                          f"{args.push_every:g}")
     spec = scenario_from_args(args, schema=RunSpec, root="run", controller=True)
     until = args.until or (SLICE_UNTIL if args.only else "report")
+    if args.sweep_cache and is_url(args.sweep_cache):     # checked before any work, as --out
+        try:
+            make_folder(args.sweep_cache)
+        except (ValueError, OSError) as e:
+            raise ValueError(f"--sweep-cache {e}") from None
     started = time.time()
 
     def stamp(message):

@@ -102,3 +102,15 @@ def test_evaluates_defaults_leave_the_check_room_downtrack():
     check_downtrack_room(default)
     with pytest.raises(BoxExitError, match="solved_py_max 250 m leaves no room downtrack"):
         check_downtrack_room(spec("--solved-py-max", "250"))
+
+
+def test_a_sweep_cache_url_of_no_known_protocol_is_refused_before_any_work(tmp_path, capsys,
+                                                                           monkeypatch):
+    """Before: the run file was written and three sweeps started before the first sweep
+    said "Protocol not known"."""
+    (tmp_path / "run.yaml").write_text(TINY)
+    monkeypatch.chdir(tmp_path)
+    err = _one_line(capsys, ["run", "--scenario", "run.yaml", "--out", "out",
+                             "--sweep-cache", "bogus://x"])
+    assert "--sweep-cache bogus://x: Protocol not known: bogus" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.yaml"]
