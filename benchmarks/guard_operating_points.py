@@ -41,7 +41,7 @@ from reachwatch.pipeline.executors import open_executor
 from reachwatch.pipeline.online_stages import fit_guard_noise
 from reachwatch.reach.liveness import liveness_figures
 from reachwatch.systems.switch import fallback_parts
-from reachwatch.taxi import (UNGUARDED, TaxiApplication, fallback_rollouts, on_runway_starts,
+from reachwatch.taxi import (UNGUARDED, TaxiApplication, taxi_fallback_rollouts, on_runway_starts,
                              sweep_guarded)
 
 
@@ -137,7 +137,7 @@ def main():
             threshold = min(0.99, scale * scenario.monitor.threshold)
         figures = []
         for seed in range(args.noise_seeds):
-            runs = fallback_rollouts(guarded, grid, tables, horizon, [fallback], starts=starts,
+            runs = taxi_fallback_rollouts(guarded, grid, tables, horizon, [fallback], starts=starts,
                                      threshold=threshold, mission_limit=args.mission_limit,
                                      score_noise=noise, seed=args.calibration_seed + seed,
                                      alone=alone)

@@ -29,7 +29,7 @@ from reachwatch.reach.liveness import MissionOutcomes
 from reachwatch.training.monitor_eval import oracle_risks, rate
 
 from .monitor_judge import fails_after
-from .monitor_runs import alone_from_recordings, each_environment
+from .monitor_runs import alone_from_recordings, each_named
 from .monitor_sections import rate_text
 from .monitor_spec import ORACLE
 
@@ -47,7 +47,7 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
     `monitor_runs.alone_reads_recordings`): the loop alone's runs are read off the
     recordings (`monitor_runs.alone_from_recordings`), not rendered again."""
     def each(fn, what):              # every environment's runs together on a pool
-        return each_environment([(g["name"], g) for g in held_out], fn, executor=executor,
+        return each_named([(g["name"], g) for g in held_out], fn, executor=executor,
                                 what=what)
 
     # the loop alone once per environment: every monitor is judged against the same runs,
@@ -244,7 +244,7 @@ def _oracle_guarded(spec, application, scenario, held_out, alone_runs, after, de
                 (float(alone.distance.sum()), float(distance.sum())))
 
     # every environment's runs together on a pool, in their order
-    rows = each_environment([(g["name"], g) for g in held_out], one, executor=executor,
+    rows = each_named([(g["name"], g) for g in held_out], one, executor=executor,
                             what="the oracle in")
     return _pooled([env for env, _ in rows], [d for _, d in rows])
 

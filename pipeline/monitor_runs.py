@@ -27,7 +27,7 @@ def starts_seed(spec, index: int) -> list:
     return [spec.family.seed, int(index), STARTS_STREAM]
 
 
-def record_runs(spec, application, scenario, environments, first, *, runs, cache_dir,
+def record_split(spec, application, scenario, environments, first, *, runs, cache_dir,
                 executor, progress, detector=None):
     """``runs`` recorded runs of each environment: the application's `starts` in its
     `grid`'s box, those of the ``i``-th environment (counted from ``first``: its place in
@@ -42,7 +42,7 @@ def record_runs(spec, application, scenario, environments, first, *, runs, cache
 
 def record_splits(spec, application, scenario, splits: dict, *, cache_dir, executor,
                   progress, frames_read_back=()) -> dict:
-    """`record_runs` of each split, ``{name: (environments, first, runs, detector)}`` ->
+    """`record_split` of each split, ``{name: (environments, first, runs, detector)}`` ->
     ``{name: [group per environment]}``. On a pool every split's environments' chunks
     are in flight together (`reachwatch.reach.chunks.run_together`); the groups come in
     the environments' order either way.
@@ -93,7 +93,7 @@ def record_splits(spec, application, scenario, splits: dict, *, cache_dir, execu
         return {**recorded, "watched_failure_time": watched, "starts": starts,
                 "name": environment.name, "environment": environment}
 
-    groups = iter(each_environment(named, one, executor=executor, what="recorded runs"))
+    groups = iter(each_named(named, one, executor=executor, what="recorded runs"))
     return {k: [next(groups) for _ in environments] for k, (environments, *_) in splits.items()}
 
 
@@ -113,7 +113,7 @@ def recorded_frames(group) -> np.ndarray:
     return group["frames"] if "frames" in group else group["read_frames"]()
 
 
-def each_environment(named, fn, *, executor, what: str) -> list:
+def each_named(named, fn, *, executor, what: str) -> list:
     """``[fn(i, item)]`` for ``named``, ``[(environment name, item)]``: on a pool every
     environment's chunks in flight together (`reachwatch.reach.chunks.run_together`,
     an error raised with ``"{what} {name}: "`` before it), inline one after another;
@@ -152,7 +152,7 @@ def alone_reads_recordings(application, scenario) -> bool:
 def alone_from_recordings(application, scenario, group, runs: int, *, duration: float,
                           cache_dir, executor, progress):
     """`reach.liveness.MissionOutcomes` of the loop alone from the first ``runs`` recorded
-    starts of ``group`` (`record_runs`'s) for ``duration`` s (the recordings'), read off
+    starts of ``group`` (`record_split`'s) for ``duration`` s (the recordings'), read off
     the recordings for a loop that `alone_reads_recordings`: the same runs, so the same
     ticks and failures, at the controller's constant speed up to the failure time. Its first surviving and
     first failing runs are also run (`missions`: an application's own runners too) and

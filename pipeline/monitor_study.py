@@ -39,8 +39,8 @@ from reachwatch.training.monitor_eval import oracle_risks, tick_auroc
 from .monitor_guarded import guarded_rows
 from .monitor_judge import (_judge_monitor, choose_flag_rule, judge_environments,  # noqa: F401
                             watch_s)
-from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_environment,  # noqa: F401
-                           merged_runs, record_runs, record_splits, recorded_frames,
+from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_named,  # noqa: F401
+                           merged_runs, record_split, record_splits, recorded_frames,
                            starts_seed)
 from .monitor_saved import checkpoint_file, clear_previous_result, save_risks, study_outputs
 from .monitor_sections import rate_text

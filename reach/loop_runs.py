@@ -80,7 +80,7 @@ def _subsystem_port(application, diagram, name: str, what: str):
     return system, system.GetOutputPort(port)
 
 
-def _watching(scenario):
+def _never_engaging(scenario):
     """A copy of ``scenario`` whose monitor never engages its fallback (threshold 1, the
     longest k-of-n window): its guarded loop is the controller alone's, with the
     detector's score read along it."""
@@ -110,7 +110,7 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     from reachwatch.diagrams.controller import ESTIMATE_OUTPUT
     from reachwatch.systems import DetectorConfig, resize_for_detector
     if scored:
-        scenario = _watching(scenario)
+        scenario = _never_engaging(scenario)
     application, diagram, context = _thread_loop(ref, scenario, scored)
     camera = _subsystem_port(application, diagram, application.camera_port, "camera_port")
     controller, steering = _subsystem_port(application, diagram,
@@ -224,7 +224,7 @@ def loop_scores(ref, scenario, duration: float, states) -> dict:
     (`Application.score_port`). Per start: ``state`` ``(T, d)`` and ``score`` ``(T,)``
     (NaN after the run ends), ``ticks``, and ``engaged``: whether the speed still left
     the nominal one at some tick (such a run is not the controller alone's)."""
-    scenario = _watching(scenario)
+    scenario = _never_engaging(scenario)
     application, diagram, context = _thread_loop(ref, scenario, True)
     detector, score = _subsystem_port(application, diagram, application.score_port,
                                       "score_port")

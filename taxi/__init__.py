@@ -5,13 +5,13 @@ the check against the real Drake loop. Built on the generic `reachwatch.reach`."
 from .dynamics import TaxiDynamics, dynamics_for
 from .fidelity import mission_rollouts, on_runway_starts, real_loop_fidelity, real_missions
 from .grid import TaxiGridSpec, paper_grid
-from .guarded import UNGUARDED, fallback_rollouts, guarded_rollouts, p_controller_policy
+from .guarded import UNGUARDED, taxi_fallback_rollouts, taxi_guarded_rollouts, p_controller_policy
 from .guarded_run import simulate_guarded
 from .application import TaxiApplication
 from .sweeps import (refine_closed_loop, resolved, steering_bounds, taxi_probe, sweep_closed_loop,
                      sweep_guarded, taxi_sweep_key)
 
 __all__ = ["TaxiApplication", "TaxiDynamics", "dynamics_for", "on_runway_starts", "real_loop_fidelity", "TaxiGridSpec", "paper_grid",
-           "UNGUARDED", "fallback_rollouts", "guarded_rollouts",
+           "UNGUARDED", "taxi_fallback_rollouts", "taxi_guarded_rollouts",
            "p_controller_policy", "mission_rollouts", "real_missions", "simulate_guarded", "refine_closed_loop", "resolved", "steering_bounds", "taxi_probe", "sweep_closed_loop",
            "sweep_guarded", "taxi_sweep_key"]

@@ -15,8 +15,8 @@ from reachwatch.systems import WHEELBASE_M, ProportionalController, propagate_es
 
 SCORE_PORT = f"{DETECTOR}.score"
 
-__all__ = ["SCORE_PORT", "UNGUARDED", "carry_estimate", "fallback_rollouts",
-           "guarded_rollouts", "p_controller_policy", "true_estimate"]
+__all__ = ["SCORE_PORT", "UNGUARDED", "carry_estimate", "taxi_fallback_rollouts",
+           "taxi_guarded_rollouts", "p_controller_policy", "true_estimate"]
 
 
 def true_estimate(states) -> np.ndarray:
@@ -26,7 +26,7 @@ def true_estimate(states) -> np.ndarray:
     return np.stack([states[:, 0], np.rad2deg(states[:, 2])], axis=-1)
 
 
-def guarded_rollouts(grid, dynamics, steering_table, score_table=None, **settings):
+def taxi_guarded_rollouts(grid, dynamics, steering_table, score_table=None, **settings):
     """`reach.guarded_rollouts.guarded_rollouts` of the taxi: the ``oracle`` steering
     reads `true_estimate`, and ``dead_reckoning`` carries an estimate forward by the
     aircraft's kinematics (`systems.propagate_estimate` at ``dynamics.wheelbase``)."""
@@ -48,7 +48,7 @@ def p_controller_policy(controller):
 carry_estimate = functools.partial(propagate_estimate, wheelbase=float(WHEELBASE_M))
 
 
-def fallback_rollouts(scenario, grid, tables, horizon, fallbacks, **settings) -> dict:
+def taxi_fallback_rollouts(scenario, grid, tables, horizon, fallbacks, **settings) -> dict:
     """`Application.fallback_rollouts` of the taxi (`TaxiApplication`) as a function:
     the generic rollouts of its guarded sweep (`sweep_guarded`) in ``scenario`` with its
     dynamics, ports, the P-controller the fallback steers with (`p_controller_policy`),

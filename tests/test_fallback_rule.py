@@ -1,6 +1,6 @@
 """One fallback, one rule: a `Fallback` is read once from its name (the older steering
 name ``taxinet`` too), and the Drake `FallbackSwitch` and the table rollouts of the
-guarded loop (`taxi.guarded_rollouts`) apply the same speed and steering rules."""
+guarded loop (`taxi.taxi_guarded_rollouts`) apply the same speed and steering rules."""
 
 import itertools
 import re
@@ -17,7 +17,7 @@ from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.interpolate import GridInterpolator
 from reachwatch.pipeline.spec import digest
 from reachwatch.systems import STEERING, STRATEGIES, Fallback, FallbackSwitch, fallback_parts
-from reachwatch.taxi import dynamics_for, guarded_rollouts
+from reachwatch.taxi import dynamics_for, taxi_guarded_rollouts
 
 PERIOD = 0.05
 OWN, TAKEN = 0.1, -0.2              # the controller's steering, the fallback's (rad)
@@ -190,7 +190,7 @@ def test_the_table_rollouts_apply_the_drake_switchs_rule():
     for (strategy, steering), params in itertools.product(
             MODES, (dict(), dict(brake_deceleration=4.0, resume_acceleration=2.0))):
         fallback = Fallback(strategy, steering, **params)
-        rolled = guarded_rollouts(grid, dynamics, steer, score, threshold=0.5, starts=starts,
+        rolled = taxi_guarded_rollouts(grid, dynamics, steer, score, threshold=0.5, starts=starts,
                                   horizon=1.5, period=PERIOD, policy=policy,
                                   estimate_table=estimate, strategy=strategy,
                                   steering=steering, **params)

@@ -16,7 +16,8 @@ from reachwatch.systems import (DeadReckoning, FallbackSwitch, FlagFilter, confi
                                 ProportionalController, TaxiPlant, TrueStateEstimator,
                                 fallback_parts, propagate_estimate,
                                 taxi_dynamics)
-from reachwatch.taxi import (UNGUARDED, dynamics_for, fallback_rollouts, guarded_rollouts,
+from reachwatch.taxi import (UNGUARDED, dynamics_for, taxi_fallback_rollouts,
+                             taxi_guarded_rollouts,
                              mission_rollouts, paper_grid, resolved, sweep_guarded)
 from reachwatch.reach import InlineExecutor
 
@@ -180,9 +181,9 @@ def test_same_distance_figures_known_answer():
     starts = np.array([[10.0 - 36.1 * np.sin(theta), 110.0, theta]])
     steer, always = np.zeros(grid.shape), np.ones(grid.shape)
     kw = dict(horizon=8.0, starts=starts, mission_limit=3.0)
-    alone = guarded_rollouts(grid, dynamics, steer, None, **kw)
-    slowed = guarded_rollouts(grid, dynamics, steer, always, strategy="slow_down", **kw)
-    braked = guarded_rollouts(grid, dynamics, steer, always, strategy="brake", **kw)
+    alone = taxi_guarded_rollouts(grid, dynamics, steer, None, **kw)
+    slowed = taxi_guarded_rollouts(grid, dynamics, steer, always, strategy="slow_down", **kw)
+    braked = taxi_guarded_rollouts(grid, dynamics, steer, always, strategy="brake", **kw)
     assert alone.failed.tolist() == alone.failed_same_distance.tolist() == [True]
     assert alone.distance[0] == pytest.approx(36.25)           # 145 ticks of 0.25 m
     assert slowed.failed.tolist() == [False] and slowed.distance[0] == pytest.approx(33.56)
@@ -197,7 +198,7 @@ def test_same_distance_figures_known_answer():
     assert g["same_distance_failure_cut"] == pytest.approx(1.0)
     assert g["short_of_distance"]["count"] == 1
     # without a mission limit the fields stay absent and the horizon figures are the same
-    plain = guarded_rollouts(grid, dynamics, steer, always, strategy="slow_down", horizon=8.0,
+    plain = taxi_guarded_rollouts(grid, dynamics, steer, always, strategy="slow_down", horizon=8.0,
                              starts=starts)
     assert not plain.has_same_distance and "same_distance_failure_cut" not in liveness_figures(
         alone, plain)
@@ -206,7 +207,7 @@ def test_same_distance_figures_known_answer():
         MissionOutcomes(failed=[1], stopped=[0], ever_stopped=[0], distance=[0],
                         flagged_ticks=[0], ticks=[1], failed_same_distance=[1])
     with pytest.raises(ValueError, match=">= 1"):
-        guarded_rollouts(grid, dynamics, steer, None, horizon=8.0, starts=starts,
+        taxi_guarded_rollouts(grid, dynamics, steer, None, horizon=8.0, starts=starts,
                          mission_limit=0.5)
 
 
@@ -287,7 +288,7 @@ def test_dead_reckoning_in_the_rendered_loop(detector_path, tmp_path):
     grid = paper_grid(10.0, (5, 2, 5))
     tables = sweep_guarded(never, grid, cache_dir=tmp_path, executor=InlineExecutor(),
                            progress=False)
-    runs = fallback_rollouts(never, grid, tables, 3.0, ["slow_down+dead_reckoning"])
+    runs = taxi_fallback_rollouts(never, grid, tables, 3.0, ["slow_down+dead_reckoning"])
     np.testing.assert_array_equal(runs[UNGUARDED].failed, runs["slow_down+dead_reckoning"].failed)
     assert CONTROL_PORT in tables.tables and f"{DETECTOR}.score" in tables.tables
 

@@ -8,7 +8,8 @@ from reachwatch.diagrams import CONTROL_PORT, load_scenario
 from reachwatch.reach import Grid
 from reachwatch.reach.liveness import liveness_figures, threshold_for_flag_budget
 from reachwatch.reach.score_noise import sigmoid
-from reachwatch.taxi import UNGUARDED, TaxiApplication, fallback_rollouts, p_controller_policy
+from reachwatch.taxi import (UNGUARDED, TaxiApplication, p_controller_policy,
+                             taxi_fallback_rollouts)
 from reachwatch.taxi.guarded import SCORE_PORT
 
 flag_budget_threshold = TaxiApplication().flag_budget_threshold
@@ -35,7 +36,7 @@ def test_flag_budget_threshold_known_answer():
 
 
 class _HandMadeTables(dict):
-    """The swept tables `fallback_rollouts` reads, by port name, from hand-made arrays."""
+    """The swept tables `taxi_fallback_rollouts` reads, by port name, from hand-made arrays."""
     @property
     def tables(self):
         return self
@@ -54,7 +55,7 @@ def _braking_on_px(score_of_px):
     starts = np.stack([np.linspace(-6.0, 6.0, 9), np.full(9, 10.0), np.zeros(9)], -1)
 
     def flagged(threshold):
-        runs = fallback_rollouts(scenario, grid, tables, 4.0, ["brake"], threshold=threshold,
+        runs = taxi_fallback_rollouts(scenario, grid, tables, 4.0, ["brake"], threshold=threshold,
                                  starts=starts)
         return liveness_figures(runs[UNGUARDED], runs["brake"])["flagged_ticks"]
     return scenario, grid, tables, starts, flagged

@@ -5,7 +5,7 @@ from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, SWITCH, load_scenario, 
                                  make_guarded_diagram, simulate)
 from reachwatch.pipeline.cli import main
 from reachwatch.reach import InlineExecutor
-from reachwatch.taxi import dynamics_for, guarded_rollouts, paper_grid, sweep_guarded
+from reachwatch.taxi import dynamics_for, taxi_guarded_rollouts, paper_grid, sweep_guarded
 from reachwatch.systems import FallbackSwitch, next_speed
 
 def _switch_ticks(flags, **kwargs):
@@ -105,8 +105,8 @@ def test_guarded_run_survives_where_nominal_fails(detector_path, tmp_path):
                            progress=False)
     dynamics = dynamics_for(scenario)
     steer, score = tables[CONTROL_PORT], tables[f"{DETECTOR}.score"]
-    nominal_fail = guarded_rollouts(grid, dynamics, steer, None).failed
-    guarded = guarded_rollouts(grid, dynamics, steer, score, threshold=0.0, strategy="brake",
+    nominal_fail = taxi_guarded_rollouts(grid, dynamics, steer, None).failed
+    guarded = taxi_guarded_rollouts(grid, dynamics, steer, score, threshold=0.0, strategy="brake",
                                brake_deceleration=4.0)
     saved = np.flatnonzero(nominal_fail & ~guarded.failed)
     assert len(saved) > 0 and guarded.ever_stopped.any()

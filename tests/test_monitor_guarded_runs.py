@@ -239,7 +239,7 @@ def test_recorded_runs_of_every_environment_are_in_flight_together(tmp_path):
     import concurrent.futures as cf
     import threading
     from types import SimpleNamespace
-    from reachwatch.pipeline.monitor_runs import record_runs
+    from reachwatch.pipeline.monitor_runs import record_split
     from reachwatch.reach.application import load_application
     from reachwatch.reach.executors import InlineExecutor
 
@@ -264,10 +264,10 @@ def test_recorded_runs_of_every_environment_are_in_flight_together(tmp_path):
     envs = [load_scenario(data=f"environment: {{runway: {r}, hour: 9.0, sky: clear}}\n"
                           ).environment for r in ("KMWH", "KSFO")]
     common = dict(runs=3, progress=False)
-    alone = record_runs(spec, application, scenario, envs, 0, cache_dir=tmp_path / "a",
+    alone = record_split(spec, application, scenario, envs, 0, cache_dir=tmp_path / "a",
                         executor=InlineExecutor(), **common)
     with Pool() as pool:
-        together = record_runs(spec, application, scenario, envs, 0, cache_dir=tmp_path / "b",
+        together = record_split(spec, application, scenario, envs, 0, cache_dir=tmp_path / "b",
                                executor=pool, **common)
     assert pool.both
     assert [g["name"] for g in together] == [e.name for e in envs]

@@ -259,7 +259,7 @@ def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
     judges at every held-out tick is what its checkpoint (both members) gives offline,
     and neither member's alone."""
     import dataclasses as dc
-    from reachwatch.pipeline.monitor_runs import record_runs
+    from reachwatch.pipeline.monitor_runs import record_split
     from reachwatch.reach.application import load_application
     from reachwatch.systems import HistoryRiskEnsemble, platt
     spec = load_run_spec(data=TINY + MONITOR_STUDY).monitor
@@ -276,7 +276,7 @@ def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
     assert {n for _, n in result["failing_runs"]["held_out"].values()} == {spec.runs + 1}
     assert {n for _, n in result["failing_runs"]["calibrate"].values()} == {spec.runs + 1}
     assert {n for _, n in result["failing_runs"]["train"].values()} == {spec.runs}
-    held_out = record_runs(spec, load_application(), scenario, spec.environments()["held_out"],
+    held_out = record_split(spec, load_application(), scenario, spec.environments()["held_out"],
                        spec.train + spec.calibrate, runs=spec.judged_runs,
                        cache_dir=tmp_path / "cache" / "runs", executor=None, progress=False)[0]
     calibration = lambda q: platt(q, *meta["calibration"])  # noqa: E731

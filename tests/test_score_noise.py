@@ -8,7 +8,7 @@ import pytest
 
 from reachwatch.diagrams import load_scenario
 from reachwatch.reach.score_noise import ScoreNoise, fit_score_noise, logit
-from reachwatch.taxi import dynamics_for, guarded_rollouts, paper_grid
+from reachwatch.taxi import dynamics_for, taxi_guarded_rollouts, paper_grid
 
 
 def _ou_runs(sigma, length, mean=0.0, runs=40, ticks=160, step=0.25, seed=0):
@@ -96,17 +96,17 @@ def test_noise_in_table_rollouts_makes_flags_come_and_go():
     steer, score = np.zeros(grid.shape), np.full(grid.shape, 0.45)
     starts = np.column_stack([np.zeros(200), np.full(200, 100.0), np.zeros(200)])
     kw = dict(threshold=0.5, strategy="brake", horizon=8.0, starts=starts)
-    plain = guarded_rollouts(grid, dynamics, steer, score, **kw)
+    plain = taxi_guarded_rollouts(grid, dynamics, steer, score, **kw)
     assert plain.flagged_ticks.sum() == 0 and not plain.stopped.any()
     noise = ScoreNoise(0.6, 3.0)
-    noisy = guarded_rollouts(grid, dynamics, steer, score, score_noise=noise, seed=5, **kw)
+    noisy = taxi_guarded_rollouts(grid, dynamics, steer, score, score_noise=noise, seed=5, **kw)
     share = noisy.flagged_ticks.sum() / noisy.ticks.sum()
     assert 0.2 < share < 0.6                       # about P(N(0, 0.6) > logit(.5) - logit(.45))
     assert 0 < noisy.stopped.sum() < len(starts)
-    again = guarded_rollouts(grid, dynamics, steer, score, score_noise=noise, seed=5, **kw)
+    again = taxi_guarded_rollouts(grid, dynamics, steer, score, score_noise=noise, seed=5, **kw)
     np.testing.assert_array_equal(again.flagged_ticks, noisy.flagged_ticks)
     np.testing.assert_array_equal(again.stopped, noisy.stopped)
-    other = guarded_rollouts(grid, dynamics, steer, score, score_noise=noise, seed=6, **kw)
+    other = taxi_guarded_rollouts(grid, dynamics, steer, score, score_noise=noise, seed=6, **kw)
     assert not np.array_equal(other.flagged_ticks, noisy.flagged_ticks)
 
 

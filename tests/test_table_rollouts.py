@@ -1,4 +1,4 @@
-"""Table rollouts of the guarded loop (`taxi.guarded_rollouts`) on hand-made tables:
+"""Table rollouts of the guarded loop (`taxi.taxi_guarded_rollouts`) on hand-made tables:
 what each fallback does, and that a batch of starts equals each start alone."""
 
 import numpy as np
@@ -7,7 +7,7 @@ import pytest
 from reachwatch.diagrams import load_scenario
 from reachwatch.reach import Grid
 from reachwatch.reach.liveness import MISSION_FIELDS, SAME_DISTANCE_FIELDS, liveness_figures
-from reachwatch.taxi import dynamics_for, guarded_rollouts
+from reachwatch.taxi import dynamics_for, taxi_guarded_rollouts
 from reachwatch.reach.guard import perfect_detector_scores
 from reachwatch.taxi.guarded import p_controller_policy
 
@@ -49,10 +49,10 @@ def test_table_rollouts_of_a_batch_equal_each_start_alone():
                     estimate_table=estimate, brake_deceleration=1.0),
                dict(strategy="slow_down", steering="oracle", policy=policy)):
         common = dict(threshold=0.5, horizon=4.0, mission_limit=2.0, **kw)
-        batch = guarded_rollouts(grid, dynamics, steer, score, starts=starts, **common)
+        batch = taxi_guarded_rollouts(grid, dynamics, steer, score, starts=starts, **common)
         assert batch.failed.any() and not batch.failed.all()
         for i, start in enumerate(starts):
-            one = guarded_rollouts(grid, dynamics, steer, score, starts=start[None], **common)
+            one = taxi_guarded_rollouts(grid, dynamics, steer, score, starts=start[None], **common)
             for name in MISSION_FIELDS + SAME_DISTANCE_FIELDS:
                 np.testing.assert_allclose(getattr(one, name)[0], getattr(batch, name)[i],
                                            err_msg=f"{kw} start {i} {name}")
@@ -67,32 +67,33 @@ def test_table_rollouts_liveness_and_dead_reckoning():
         lambda x: (x[:, 0] > 0.5).astype(float))
     starts = np.array([[2.0, 10.0, 0.0], [-2.0, 10.0, 0.0]])
     kw = dict(horizon=6.0, starts=starts)
-    alone = guarded_rollouts(grid, dynamics, steer, None, **kw)
+    alone = taxi_guarded_rollouts(grid, dynamics, steer, None, **kw)
     assert alone.failed.tolist() == [True, False] and not alone.ever_stopped.any()
-    never = guarded_rollouts(grid, dynamics, steer, score, threshold=1.5, **kw)
+    never = taxi_guarded_rollouts(grid, dynamics, steer, score, threshold=1.5, **kw)
     f = liveness_figures(alone, never)
     assert (f["failure_set"]["rate"], f["ended_stopped"]["rate"], f["flagged_ticks"]) == (
         0.5, 0.0, 0.0) and f["distance_ratio"] == pytest.approx(1.0)
-    reckoned = guarded_rollouts(grid, dynamics, steer, score, steering="dead_reckoning",
+    reckoned = taxi_guarded_rollouts(grid, dynamics, steer, score, steering="dead_reckoning",
                                 policy=policy, estimate_table=estimate, **kw)
     assert not reckoned.failed.any() and not reckoned.stopped.any()
     assert reckoned.flagged_ticks[0] > 0 and reckoned.flagged_ticks[1] == 0
-    braked = guarded_rollouts(grid, dynamics, steer, score, strategy="brake",
+    braked = taxi_guarded_rollouts(grid, dynamics, steer, score, strategy="brake",
                               brake_deceleration=4.0, **kw)
     assert braked.failed.tolist() == [False, False] and braked.stopped.tolist() == [True, False]
     with pytest.raises(ValueError, match="estimate table"):
-        guarded_rollouts(grid, dynamics, steer, score, steering="dead_reckoning", policy=policy)
+        taxi_guarded_rollouts(grid, dynamics, steer, score, steering="dead_reckoning",
+                              policy=policy)
     # a perfect detector for a BRT that holds px > 0.5 flags what the hand-made one does
     brt = type("HandMadeBRT", (), {"at": staticmethod(lambda x: 0.5 - np.asarray(x)[:, 0])})()
     scores = perfect_detector_scores(brt, grid)
     np.testing.assert_allclose(scores.ravel(), grid.states()[:, 0] - 0.5)
-    perfect = guarded_rollouts(grid, dynamics, steer, scores, threshold=0.0, strategy="brake",
+    perfect = taxi_guarded_rollouts(grid, dynamics, steer, scores, threshold=0.0, strategy="brake",
                                brake_deceleration=4.0, **kw)
     for name in ("failed", "stopped", "flagged_ticks", "distance"):
         np.testing.assert_allclose(getattr(perfect, name), getattr(braked, name))
     # a 3-of-3 rule on a detector that flags every tick from the start: the first two
     # ticks are not yet confirmed, every later one is
     always = np.ones_like(score)
-    confirmed = guarded_rollouts(grid, dynamics, steer, always, flags_needed=3, flag_window=3,
+    confirmed = taxi_guarded_rollouts(grid, dynamics, steer, always, flags_needed=3, flag_window=3,
                                  **kw)
     assert (confirmed.flagged_ticks == confirmed.ticks - 2).all()
