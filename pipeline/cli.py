@@ -109,6 +109,12 @@ def _clip(text: str) -> str:
 PATH_OPTIONS = ("out", "scenario", "cache", "sweep_cache", "work_dir", "checkpoint", "run")
 
 
+def command_name(args) -> str:
+    """The command as typed, its action included (``taxinet evaluate``)."""
+    action = getattr(args, f"{args.command}_command", None)
+    return f"{args.command} {action}" if isinstance(action, str) else args.command
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -125,31 +131,31 @@ def main(argv=None) -> int:
                 signal.signal(s, _stop)
     empty = [name for name in PATH_OPTIONS if getattr(args, name, None) == ""]
     if empty:           # "" would quietly mean the current folder or the built-in defaults
-        print(f"reachwatch {args.command}: error: --{empty[0].replace('_', '-')} is empty: "
+        print(f"reachwatch {command_name(args)}: error: --{empty[0].replace('_', '-')} is empty: "
               f"name a path", file=sys.stderr)
         return 2
     try:
         return args.func(args) or 0
     except (ValueError, FileNotFoundError, NotImplementedError) as e:
         # bad input, or an application without what the run asks of it: say what, exit 2
-        print(_clip(f"reachwatch {args.command}: error: {e}"), file=sys.stderr)
+        print(_clip(f"reachwatch {command_name(args)}: error: {e}"), file=sys.stderr)
         return 2
     except (PermissionError, FileExistsError, NotADirectoryError, IsADirectoryError) as e:
         # e.g. --out naming a file where a folder goes
         blocked = isinstance(e, (FileExistsError, NotADirectoryError))
-        print(_clip(f"reachwatch {args.command}: error: cannot write {e.filename}: {e.strerror}"
+        print(_clip(f"reachwatch {command_name(args)}: error: cannot write {e.filename}: {e.strerror}"
                     + (" (a file stands where a folder is needed)" if blocked else "")),
               file=sys.stderr)
         return 2
     except OSError as e:
         # the system refused (a name too long, a full or read-only disk): say what, exit 1
         where = f"{e.filename}: " if e.filename else ""
-        print(_clip(f"reachwatch {args.command}: error: {where}{e.strerror or e}"),
+        print(_clip(f"reachwatch {command_name(args)}: error: {where}{e.strerror or e}"),
               file=sys.stderr)
         return 1
     except KeyboardInterrupt as e:
         what = "terminated" if isinstance(e, Terminated) else "interrupted"
-        print(f"reachwatch {args.command}: {what}; {KEPT}", file=sys.stderr)
+        print(f"reachwatch {command_name(args)}: {what}; {KEPT}", file=sys.stderr)
         return 143 if isinstance(e, Terminated) else 130
     finally:
         if threading.current_thread() is threading.main_thread():

@@ -37,7 +37,7 @@ def _grid_args(parser):
     parser.add_argument("--cache", default=None, help="sweep cache folder "
                         "(default: $REACHWATCH_CACHE/sweeps or ~/.cache/reachwatch/sweeps)")
     parser.add_argument("--chunk-size", type=positive_int, default=1024,
-                        help="grid states per cached chunk")
+                        help="grid states per cached chunk (default: 1024)")
 
 
 def add_parsers(sub):

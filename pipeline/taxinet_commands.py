@@ -39,9 +39,9 @@ def add_parsers(sub):
     evaluate.add_argument("--scenario", help="scenario YAML for camera/controller settings")
     add_overlay_arguments(evaluate)
     evaluate.add_argument("--samples", type=positive_int, default=200,
-                          help="random states per environment for the estimation error")
+                          help="random states per environment for the estimation error (default: 200)")
     evaluate.add_argument("--starts", type=count, default=100,
-                          help="closed-loop starts per environment (0 skips)")
+                          help="closed-loop starts per environment (0 skips; default: 100)")
     evaluate.add_argument("--runways", nargs="+", default=None,
                           help="catalog runways (default: all of them)")
     evaluate.add_argument("--hours", nargs="+", type=float, default=[9.0, 17.0, 21.0],

@@ -114,3 +114,10 @@ def test_a_sweep_cache_url_of_no_known_protocol_is_refused_before_any_work(tmp_p
                              "--sweep-cache", "bogus://x"])
     assert "--sweep-cache bogus://x: Protocol not known: bogus" in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.yaml"]
+
+
+def test_an_actions_error_names_the_command_and_the_action(capsys):
+    """Before: ``reachwatch taxinet: error:`` for an error of ``taxinet evaluate``."""
+    err = _one_line(capsys, ["taxinet", "evaluate", "--runways", "ZZZZ"])
+    assert err.startswith("reachwatch taxinet evaluate: error: --runways / --hours: "), err
+    assert "unknown runway 'ZZZZ'" in err
