@@ -26,11 +26,11 @@ import numpy as np
 from tqdm import tqdm
 
 from reachwatch.diagrams import make_controller, save_checkpoint
+from reachwatch.diagrams.controller import has_estimate
 from reachwatch.reach.application import application_key, load_application
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskEnsemble
 from reachwatch.systems.files import atomic_write_bytes, cache_location, file_hash, strict_json
 from reachwatch.training.baselines import estimate_error_of
-from reachwatch.training.dataset_images import estimator
 from reachwatch.training.conformal import NoConformalThreshold
 from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
                                                tick_labels, train_encoder, train_head)
@@ -175,19 +175,6 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
             f"{judged_text(row)}")
 
     oracle, baseline = {}, {}
-    # the controller's prediction error along the runs: its estimate leads the signals
-    # (`add_monitor_signals`), when the application says what it estimates
-    error = estimate_error_of(application)
-    estimated = (estimator(make_controller(application.resolved(scenario).controller))[1]
-                 if error else 0)
-
-    def prediction_auroc(g):
-        if not estimated or not error.applies(g["state"][0, :1], g["signals"][0, :1, :estimated]):
-            return float("nan")
-        return tick_auroc([error(g["state"][i, :n], g["signals"][i, :n, :estimated])
-                           for i, n in enumerate(g["ticks"])], g["ticks"],
-                          g["watched_failure_time"], period=period, duration=watch_s(spec),
-                          within=4.0)
     for k in ("held_out", "also_held_out"):
         groups = data[k]
         risks = [oracle_risks(g["ticks"], g["failure_time"], period=period, lead=lead)
@@ -195,7 +182,8 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         per_env, pooled = judge_environments(groups, risks, threshold=0.5, period=period,
                                              lead=lead, watch=watch_s(spec))
         oracle[k] = {"environments": per_env, "pooled": pooled}
-        baseline[k] = [prediction_auroc(g) for g in groups]
+        baseline[k] = prediction_error_aurocs(application, scenario, groups, period=period,
+                                              duration=watch_s(spec))
 
     # fixed in advance (the bound is exact for it), or chosen on the calibration
     # environments (`MonitorStudySpec.keep`)
@@ -243,6 +231,29 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     atomic_write_bytes(out_dir / "monitor.json",
                        strict_json(result, indent=1, default=float).encode())
     return result
+
+
+def prediction_error_aurocs(application, scenario, groups, *, period: float,
+                            duration: float) -> list:
+    """Per environment of ``groups`` (`record_splits`'), the AUROC of "fails within 4
+    s" of the controller's prediction error along its runs (`baselines.EstimateError`:
+    its estimate leads the recorded signals, `add_monitor_signals`), watched for
+    ``duration`` s; NaN where the application does not say what its controller
+    estimates (`Application.true_estimate`) or the controller has no estimate."""
+    error = estimate_error_of(application)
+    controller = make_controller(application.resolved(scenario).controller) if error else None
+    k = (controller.GetOutputPort("estimate").size()
+         if controller is not None and has_estimate(controller) else 0)
+    out = []
+    for g in groups:
+        if not k or not error.applies(g["state"][0, :1], g["signals"][0, :1, :k]):
+            out.append(float("nan"))
+            continue
+        out.append(tick_auroc([error(g["state"][i, :n], g["signals"][i, :n, :k])
+                               for i, n in enumerate(g["ticks"])], g["ticks"],
+                              g["watched_failure_time"], period=period, duration=duration,
+                              within=4.0))
+    return out
 
 
 def judged_text(row: dict) -> str:

@@ -30,7 +30,9 @@ def test_threshold_tradeoff_leaves_a_blank_row_only_where_no_threshold_exists():
                                     {"warning": [0.6, 0.8], "safe_max": [0.2]}]}}
     blank, kept = threshold_tradeoff(row, (0.1, 0.5))
     assert blank == [0.1, None, 0, 0, 0, 0]             # 2 environments bound no more than 1/3
-    assert kept[1] is not None and kept[3:] == [2, kept[4], 2]
+    # alpha 0.5 over 2 environments: a mean miss of 0.25 at most, so 0.7 (0.6 missed,
+    # (0.5 + 1) / 3 = 0.5); held out it misses 0.3 of 2 and flags neither safe run
+    assert kept == [0.5, pytest.approx(0.7), 1, 2, 0, 2]
     with pytest.raises(ValueError, match=r"alpha must be in \(0, 1\), got 1.5"):
         threshold_tradeoff(row, (1.5,))
     # bounded as the variant's threshold was: given failures, the environments without
@@ -124,6 +126,9 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     assert json.dumps(back, sort_keys=True) == json.dumps(
         json.loads(json.dumps(result, default=float)), sort_keys=True)
     assert set(result["variants"]) == {"one frame", "GRU 3 + signals", DETECTOR_ROW}
+    # the controller's prediction error, one AUROC per judged environment
+    assert len(result["prediction_error_auroc_4s"]["held_out"]) == len(
+        result["variants"]["one frame"]["held_out"]["environments"])
     assert result["variants"][DETECTOR_ROW]["kind"] == "detector"
     # kept: the first variant, fixed before calibration (not the one the calibration
     # environments flattered)
@@ -159,7 +164,7 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     # oracle, which stops no safe run and covers a safe run's whole distance
     assert set(result["guarded"]) == set(result["checkpoints"]) | {ORACLE, DETECTOR_ROW}
     oracle = result["guarded"][ORACLE]
-    assert oracle["runs"] == 2
+    assert oracle["runs"] == 2 and oracle["needless_stops"] == 0
     if oracle["failed_alone"] == 0:
         assert oracle["distance_guarded_m"] == oracle["distance_alone_m"]
     # and from the starts of the environment outside the family, the same rows
@@ -244,7 +249,10 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     miss = result["variants"][result["kept"]]["held_out"]["pooled"]["miss"]
     assert rows["monitor miss rate"][1] == "-" if not miss["of"] else \
         rows["monitor miss rate"][1].endswith(f"({miss['count']}/{miss['of']})")
-    assert rows["failures prevented"][3] in ("meets", "misses", "-")
+    guarded, prevented = result["guarded"][result["kept"]], oracle["prevented"]
+    assert rows["failures prevented"][3] == (
+        "-" if not prevented else
+        "meets" if guarded["prevented"] >= 0.85 * prevented else "misses")
     assert rows["calibration error"][3] in ("meets", "misses")
     assert "out/reliability.png" in md
 
@@ -505,3 +513,32 @@ def test_the_summary_judges_prevented_failures_against_the_oracles_guarded_row(t
     assert prevented[1].endswith("(2/3)") and prevented[3] == "meets", prevented
     assert "the oracle: 2 of 3; this monitor 1.00 of that" in prevented[2]
     assert rows["calibration error (ECE) of the risk"][1:] == ["-", "<= 0.05", "-"]
+
+
+def test_the_prediction_error_baseline_reads_the_estimate_off_the_recorded_signals():
+    """TaxiNet's estimate leads the recorded signals (``[px_hat, theta_hat deg,
+    steering]``): a run whose estimate is 1 m off fails within 4 s, a run estimated
+    exactly survives, so the error ranks every tick right; an application that does not
+    say what its controller estimates has no such baseline."""
+    from types import SimpleNamespace
+
+    from reachwatch.diagrams import load_scenario
+    from reachwatch.pipeline.monitor_study import prediction_error_aurocs
+    from reachwatch.taxi.application import TaxiApplication
+    state = np.zeros((2, 9, 3))
+    state[:, :, 0], state[:, :, 2] = 2.0, np.deg2rad(5.0)
+    signals = np.zeros((2, 9, 3))
+    signals[:, :, 0], signals[:, :, 1], signals[:, :, 2] = 2.0, 5.0, 0.1
+    signals[0, :, 0] += 1.0                            # the failing run's estimate: 1 m off
+    group = {"state": state, "signals": signals, "ticks": np.array([7, 9]),
+             "watched_failure_time": np.array([3.0, np.nan])}
+    scenario = load_scenario(data="")
+    taxi = TaxiApplication()
+    assert prediction_error_aurocs(taxi, scenario, [group], period=0.5, duration=8.0) == [1.0]
+    group["signals"] = signals[..., ::-1].copy()       # the 1 m off in the last column,
+    assert prediction_error_aurocs(taxi, scenario, [group], period=0.5,    # not read: a tie
+                                   duration=8.0) == [0.5]
+    no_estimate = SimpleNamespace(true_estimate=None, estimate_scale=(),
+                                  resolved=lambda s: s)
+    assert np.isnan(prediction_error_aurocs(no_estimate, scenario, [group], period=0.5,
+                                            duration=8.0)).all()
