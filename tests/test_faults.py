@@ -334,8 +334,9 @@ def test_version_and_quiet_and_verbose(capsys):
     with pytest.raises(SystemExit) as stop:
         cli.main(["--version"])
     assert stop.value.code == 0 and capsys.readouterr().out.startswith("reachwatch ")
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as stop:
         cli.main(["-q", "-v", "render", "--out", "x"])      # mutually exclusive
+    assert stop.value.code == 2 and "not allowed with" in capsys.readouterr().err
     console.setup(-1)
     assert not console.progress_enabled() and not console.log.isEnabledFor(logging.INFO)
     console.setup(1)

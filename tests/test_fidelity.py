@@ -22,8 +22,9 @@ def test_wilson_interval_known_values():
         assert wilson_interval(0, n)[0] == 0.0 and wilson_interval(n, n)[1] == 1.0
     lo, hi = wilson_interval(15, 150)          # symmetric in successes and failures
     assert wilson_interval(135, 150) == pytest.approx((1 - hi, 1 - lo))
-    for bad in [(3, 2), (-1, 5), (0, 0), (True, 4)]:
-        with pytest.raises(ValueError):
+    for bad, says in [((3, 2), "got 3 of 2"), ((-1, 5), "got -1 of 5"), ((0, 0), "got 0 of 0"),
+                      ((True, 4), "counts, not booleans")]:
+        with pytest.raises(ValueError, match=says):
             wilson_interval(*bad)
 
 
@@ -59,9 +60,11 @@ def test_select_map_weighs_false_safe_verdicts_and_breaks_ties_by_cost():
     assert select_map([coarse, scored(1, 0)]) == 0
     with pytest.raises(ValueError, match="same selection runs"):
         select_map([nominal, compare_verdicts(failed[:10], failed[:10])])
-    for bad in [dict(fidelities=[]), dict(fidelities=[nominal], costs=[1, 2]),
-                dict(fidelities=[nominal], false_safe_weight=0.5), dict(fidelities=[0.9])]:
-        with pytest.raises(ValueError):
+    for bad, says in [(dict(fidelities=[]), "at least one candidate"),
+                      (dict(fidelities=[nominal], costs=[1, 2]), "2 costs for 1 candidates"),
+                      (dict(fidelities=[nominal], false_safe_weight=0.5), "got 0.5"),
+                      (dict(fidelities=[0.9]), "takes Fidelity records")]:
+        with pytest.raises(ValueError, match=says):
             select_map(**bad)
 
 

@@ -56,6 +56,7 @@ def test_lockstep_runs_equal_one_at_a_time_and_the_controller_sees_batches(
     loops = loop_copies(lambda: make_closed_loop_diagram(tiny_scenario), 3)
     together = simulate_lockstep(loops, initial_states=STARTS, **settings)
     assert alone[2].failed and not alone[0].failed
+    assert len(together) == len(alone) == len(STARTS)
     assert all(_same(a, b) for a, b in zip(alone, together))
     assert max(batches) == 3 and not singles          # every estimate came from a batch
     assert sum(batches) == sum(len(run.time) for run in alone)
@@ -102,6 +103,7 @@ def test_a_loop_without_batch_entry_points_runs_one_system_at_a_time(tiny_scenar
     settings = dict(duration=1.0, period=0.05, half_width=B)
     together = simulate_lockstep(loops, initial_states=STARTS, **settings)
     alone = [simulate(loops[0][0], initial_state=x, **settings) for x in STARTS]
+    assert len(together) == len(STARTS)
     assert all(_same(a, b) for a, b in zip(alone, together))
     mixed = [loops[0], loop_copies(lambda: make_closed_loop_diagram(tiny_scenario), 1)[0]]
     with pytest.raises(ValueError, match="differ"):

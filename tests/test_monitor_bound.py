@@ -17,7 +17,9 @@ def test_a_monitor_that_separates_runs_misses_nothing_and_flags_no_safe_run():
     # warnable failing runs score 0.9, safe runs at most 0.1: any draw's threshold lies
     # between (the largest that bounds alpha is 0.9 itself)
     envs = [(np.full(1 + i % 3, 0.9), np.full(4, 0.1)) for i in range(12)]
-    for mode, f in bound.draw_figures(envs, 9, 0.1, draws=50).items():
+    figures = bound.draw_figures(envs, 9, 0.1, draws=50)
+    assert len(figures) == 2, figures                   # every draw, and given failures
+    for mode, f in figures.items():
         assert f["E[miss]"] == f["E[miss | fails]"] == f["pooled"] == 0.0, mode
         assert f["needless"] == 0.0 and f["refused"] == 0.0 and f["over alpha"] == 0.0, mode
 
@@ -100,5 +102,6 @@ def test_the_alpha_option_reaches_every_draw(tmp_path, monkeypatch, capsys):
         assert ("alpha as each study's" in out) == (alpha is None), out
     assert rows[None] == rows["0.2"] != rows["0.05"]
     monkeypatch.setattr("sys.argv", ["monitor_bound.py", str(folder), "--alpha", "1.5"])
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as stop:
         bound.main()
+    assert stop.value.code == 2 and "alpha" in capsys.readouterr().err

@@ -270,8 +270,9 @@ def test_recorded_runs_of_every_environment_are_in_flight_together(tmp_path):
         together = record_split(spec, application, scenario, envs, 0, cache_dir=tmp_path / "b",
                                executor=pool, **common)
     assert pool.both
-    assert [g["name"] for g in together] == [e.name for e in envs]
+    assert [g["name"] for g in together] == [g["name"] for g in alone] == [e.name for e in envs]
     for a, b in zip(alone, together):
+        assert len(a["ticks"]) == len(b["ticks"]) == 3
         for key in ("frames", "state", "ticks", "failure_time", "watched_failure_time",
                     "starts"):
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)

@@ -88,8 +88,9 @@ def test_the_alpha_option_replaces_the_studies_own(tmp_path, monkeypatch, capsys
     assert heads[None].startswith("20 draws; alpha 0.5,")
     assert heads["0.25"].startswith("20 draws; alpha 0.25,")
     monkeypatch.setattr("sys.argv", ["monitor_mean.py", f"{one}:v", "--alpha", "0"])
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as stop:
         mean.main()
+    assert stop.value.code == 2 and "alpha" in capsys.readouterr().err
 
 
 def test_the_auroc_columns_skip_environments_with_fewer_failing_runs(tmp_path, monkeypatch,

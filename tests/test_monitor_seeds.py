@@ -5,6 +5,7 @@ own reading does not give."""
 
 import importlib.util
 import json
+import re
 import sys
 import types
 from pathlib import Path
@@ -84,6 +85,7 @@ def test_two_trainings_and_their_mean_are_read(tmp_path, monkeypatch, capsys):
 def test_a_training_whose_threshold_it_does_not_give_is_refused(tmp_path, monkeypatch,
                                                                  capsys):
     wrong = _study(tmp_path / "wrong", 0.05, 0, threshold=0.999)
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as stop:
         _main(monkeypatch, capsys, wrong)
-    assert "threshold" in capsys.readouterr().err
+    assert stop.value.code == 2
+    assert re.search(r"threshold 0\.\d{4} here, 0\.9990 in its study", capsys.readouterr().err)
