@@ -80,16 +80,16 @@ def record_splits(spec, application, scenario, splits: dict, *, cache_dir, execu
                                f"only, engaged the fallback in runs "
                                f"{np.flatnonzero(recorded['engaged']).tolist()}: they are "
                                f"not the loop alone's")
-        watched = watched_failure_times(spec, application, here, starts,
-                                        recorded["failure_time"], cache_dir=cache_dir,
-                                        executor=executor, progress=progress,
-                                        recorded=recorded if continues else None)
-        if read_back:
-            recorded.pop("frames")
+        if read_back:       # let go before the watch, which renders for minutes while
+            recorded.pop("frames")      # every other environment's runs come in
             recorded["read_frames"] = functools.partial(
                 _read_frames, application, scored, starts, duration=spec.duration,
                 height=spec.height, width=spec.width, cache_dir=cache_dir,
                 scored=detector is not None)
+        watched = watched_failure_times(spec, application, here, starts,
+                                        recorded["failure_time"], cache_dir=cache_dir,
+                                        executor=executor, progress=progress,
+                                        recorded=recorded if continues else None)
         return {**recorded, "watched_failure_time": watched, "starts": starts,
                 "name": environment.name, "environment": environment}
 

@@ -278,12 +278,21 @@ def test_recorded_runs_of_every_environment_are_in_flight_together(tmp_path):
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
 
 
-def test_frames_read_back_are_the_recorded_ones_and_not_held(tmp_path):
+def test_frames_read_back_are_the_recorded_ones_and_not_held(tmp_path, monkeypatch):
     """A split recorded with ``frames_read_back`` holds no frames (a protocol's judged
-    runs are gigabytes of them); `recorded_frames` reads back the very frames the same
-    runs record; a split name that is not recorded is refused."""
+    runs are gigabytes of them), not even while its runs are watched on (which renders
+    for minutes while every other environment's runs come in); `recorded_frames` reads
+    back the very frames the same runs record; a split name that is not recorded is
+    refused."""
     from types import SimpleNamespace
+    from reachwatch.pipeline import monitor_runs
     from reachwatch.pipeline.monitor_runs import record_splits, recorded_frames
+    watch, held_while_watched = monitor_runs.watched_failure_times, []
+
+    def watched(*args, recorded=None, **kwargs):
+        held_while_watched.append(recorded is not None and "frames" in recorded)
+        return watch(*args, recorded=recorded, **kwargs)
+    monkeypatch.setattr(monitor_runs, "watched_failure_times", watched)
     from reachwatch.reach.application import load_application
     application, scenario = load_application(), load_scenario(data="")
     spec = SimpleNamespace(duration=0.5, within=0.5, height=16, width=24,
@@ -296,6 +305,9 @@ def test_frames_read_back_are_the_recorded_ones_and_not_held(tmp_path):
     read_back = record_splits(spec, application, scenario, splits, frames_read_back=["judged"],
                               **common)
     assert "frames" in read_back["train"][0] and "frames" not in read_back["judged"][0]
+    # each recording given to its watch (the loop continues from it): the judged one without
+    # its frames
+    assert held_while_watched == [True, True, True, False]
     for k in splits:
         frames = recorded_frames(read_back[k][0])
         assert frames.shape[:2] == (2, 11) and frames.any()
