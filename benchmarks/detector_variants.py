@@ -37,7 +37,8 @@ import torch
 from reachwatch.diagrams import load_detector
 from reachwatch.pipeline.spec import digest, load_run_spec
 from reachwatch.systems.detector import detector_input
-from reachwatch.taxi import dynamics_for
+from reachwatch.taxi import TaxiApplication, dynamics_for
+from reachwatch.training.baselines import estimate_error_of
 from reachwatch.training.dataset import load_dataset
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
                                                 operating_threshold, train_detector)
@@ -98,6 +99,10 @@ def adapted(model, config, images, batch_size=64):
     return model.eval()
 
 
+#: TaxiNet's prediction error, a baseline of Table 2 (and the ensemble's units)
+TAXINET_ERROR = estimate_error_of(TaxiApplication(), "TaxiNet")
+
+
 def nominal_states(states, half_width):
     """The samples a nominally taxiing aircraft sees: |px| < B/4 and |theta| < 10 deg."""
     return (np.abs(states[:, 0]) < 0.25 * half_width) & (np.abs(np.rad2deg(states[:, 2])) < 10.0)
@@ -109,7 +114,7 @@ def score_environment(env, data, detector, scenario):
     inside = dynamics_for(scenario).target(
         torch.as_tensor(data.states, dtype=torch.float64)).numpy() > 0
     rows, _ = evaluate_environment(data, [detector], subsets={NOT_FAILED: inside},
-                                   target_recall=ORACLE_RECALL)
+                                   target_recall=ORACLE_RECALL, estimate_error=TAXINET_ERROR)
     out = {"environment": env.name}
     for states in ("all", NOT_FAILED):
         mine = [r for r in rows if r["states"] == states and r["method"] == detector.name]

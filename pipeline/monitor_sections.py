@@ -23,10 +23,12 @@ def _number(value) -> str:
 def read_study_result(path) -> dict:
     """A monitor study's ``monitor.json`` as the study returned it: the study writes a
     number that is not finite as null (strict JSON, `systems.files.strict_json`). A null
-    is read back as NaN (a rate of no runs), except in a ``warning`` list of scores,
-    where it is -inf: a warnable run no flag rule can warn in time (missed at every
-    threshold, and ranked below every run)."""
-    return nan_for_null(json.loads(Path(path).read_text()), lists={"warning": -np.inf})
+    is read back as NaN (a rate of no runs), except in a ``warning`` or ``safe_max``
+    list of scores, where it is -inf: a warnable run no flag rule can warn in time
+    (missed at every threshold, and ranked below every run), or a safe run with no tick
+    (never flagged)."""
+    return nan_for_null(json.loads(Path(path).read_text()),
+                        lists={"warning": -np.inf, "safe_max": -np.inf})
 
 
 def bounded_miss_rates(environments):

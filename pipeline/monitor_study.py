@@ -227,7 +227,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
          if row["held_out"]["reliability"]}, out_dir / "reliability.png",
         title=f"held-out environments: risk of failing within {spec.within:g} s")).name
     # strict JSON: a rate of nothing (NaN) or a run no rule can warn in time (-inf) is
-    # null; `read_study_result` reads nulls back as NaN
+    # null; `read_study_result` reads nulls back (as -inf in the lists of scores)
     atomic_write_bytes(out_dir / "monitor.json",
                        strict_json(result, indent=1, default=float).encode())
     return result
@@ -249,8 +249,8 @@ def prediction_error_aurocs(application, scenario, groups, *, period: float,
         if not k or not error.applies(g["state"][0, :1], g["signals"][0, :1, :k]):
             out.append(float("nan"))
             continue
-        out.append(tick_auroc([error(g["state"][i, :n], g["signals"][i, :n, :k])
-                               for i, n in enumerate(g["ticks"])], g["ticks"],
+        out.append(tick_auroc([error(g["state"][i, :n], g["signals"][i, :n, :k]) if n
+                               else np.zeros(0) for i, n in enumerate(g["ticks"])], g["ticks"],
                               g["watched_failure_time"], period=period, duration=duration,
                               within=4.0))
     return out

@@ -535,6 +535,11 @@ def test_the_prediction_error_baseline_reads_the_estimate_off_the_recorded_signa
     scenario = load_scenario(data="")
     taxi = TaxiApplication()
     assert prediction_error_aurocs(taxi, scenario, [group], period=0.5, duration=8.0) == [1.0]
+    # a start that has failed already is recorded with no tick: it adds nothing
+    with_empty = {k: np.concatenate([v, v[:1]]) for k, v in group.items()}
+    with_empty["ticks"][2] = 0
+    assert prediction_error_aurocs(taxi, scenario, [with_empty], period=0.5,
+                                   duration=8.0) == [1.0]
     group["signals"] = signals[..., ::-1].copy()       # the 1 m off in the last column,
     assert prediction_error_aurocs(taxi, scenario, [group], period=0.5,    # not read: a tie
                                    duration=8.0) == [0.5]
@@ -542,3 +547,14 @@ def test_the_prediction_error_baseline_reads_the_estimate_off_the_recorded_signa
                                   resolved=lambda s: s)
     assert np.isnan(prediction_error_aurocs(no_estimate, scenario, [group], period=0.5,
                                             duration=8.0)).all()
+
+
+def test_a_safe_run_with_no_tick_reads_back_as_never_flagged(tmp_path):
+    from reachwatch.pipeline.monitor_sections import read_study_result
+    from reachwatch.systems.files import strict_json
+    path = tmp_path / "monitor.json"
+    path.write_text(strict_json({"scores": {"warning": [-np.inf, 0.5], "safe_max": [-np.inf, 0.2]},
+                                 "rate": np.nan}))
+    back = read_study_result(path)
+    assert back["scores"] == {"warning": [-np.inf, 0.5], "safe_max": [-np.inf, 0.2]}
+    assert np.isnan(back["rate"])

@@ -49,8 +49,9 @@ def estimate_error_of(application, controller: str = "the controller") -> Option
     or None when it does not say what its controller estimates."""
     if application.true_estimate is None:
         return None
+    scale = application.estimate_scale
     return EstimateError(truth=application.true_estimate,
-                         scale=tuple(float(s) for s in (application.estimate_scale or ())),
+                         scale=tuple(float(s) for s in (() if scale is None else scale)),
                          controller=controller)
 
 
