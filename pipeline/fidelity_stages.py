@@ -95,8 +95,9 @@ def fidelity_env(run: Run, env) -> dict:
            "brt": compare_verdicts(predicted, real_failed, outcomes["left_box"]).as_dict(),
            "table_rollouts": compare_verdicts(table_fails, real_failed, table_left).as_dict(),
            "brt_vs_table_rollouts": float(np.mean(predicted == table_fails)),
-           "real_max_abs_theta_deg": np.percentile(np.rad2deg(outcomes["max_abs_theta"]),
-                                                   [50, 90, 100]).round(1).tolist(),
+           # the taxi's heading: a plant's own `real_outcomes` may leave it out (NaN)
+           "real_max_abs_theta_deg": np.percentile(np.rad2deg(outcomes.get(
+               "max_abs_theta", np.full(len(starts), np.nan))), [50, 90, 100]).round(1).tolist(),
            "frames": int(np.sum(outcomes["ticks"])), "seconds": round(seconds, 1)}
     if check.more_starts:
         out["extended"] = extended

@@ -246,8 +246,9 @@ class Application(abc.ABC):
         """`reach.outcomes.Outcomes` of the real loop (`loop_diagram`, rendering at
         every tick) from each start for ``duration`` s: per start ``failed``,
         ``failure_time`` (s, NaN if none), ``left_box`` (along `open_axes` of ``grid``'s
-        box), ``max_abs_theta`` (rad: the taxi's heading; NaN for a plant without one)
-        and ``ticks`` (frames rendered); cached by content under ``cache_dir``. Default:
+        box), ``max_abs_theta`` (rad: the taxi's heading; NaN for a plant without one,
+        which may also leave it out) and ``ticks`` (frames rendered); cached by content
+        under ``cache_dir``. Default:
         `loop_rollouts`, which judges `failed` at the control ticks (the taxi's own
         stops at the crossing itself)."""
         from .loop_runs import loop_rollouts
