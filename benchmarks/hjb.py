@@ -107,6 +107,9 @@ def main():
         print(f"{name:<38} {seconds:8.1f} {100 * np.mean(values <= 0):7.2f} "
               f"{100 * sign_agreement(flat, truth['continuous']):11.2f}% "
               f"{100 * sign_agreement(flat, truth['held 0.05 s']):10.2f}%")
+    # ratios of times measured in this run: very_high against semi_lagrangian always,
+    # and hj_reachability against both where it ran
+    print(f"semi_lagrangian is {rows[1][1] / rows[0][1]:.1f}x as fast as very_high")
     if len(rows) == 3:
         print(f"speed-up vs hj_reachability very_high: semi_lagrangian "
               f"{rows[2][1] / rows[0][1]:.1f}x, very_high {rows[2][1] / rows[1][1]:.1f}x")
