@@ -11,7 +11,11 @@ from pydrake.systems.sensors import ImageRgba8U
 
 
 class GrassFollower(LeafSystem):
-    """color_image (ImageRgba8U) -> steering_angle (rad, positive turns left)."""
+    """color_image (ImageRgba8U) -> steering_angle (rad, positive turns left):
+    ``gain_deg`` degrees of steering per unit of grass balance (`grass_balance`) above
+    ``bias``; a pixel is grass when its green exceeds its red and its blue by more than
+    ``margin`` (of 255); only the image below ``top`` (a share of its height from the
+    top) is read."""
 
     def __init__(self, *, gain_deg=10.0, bias=0.09, margin=8.0, top=0.5):
         super().__init__()
