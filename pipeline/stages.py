@@ -19,6 +19,7 @@ import numpy as np
 from reachwatch.diagrams import file_hash, load_detector
 from reachwatch.reach import Grid, InlineExecutor, ValueFunction
 from reachwatch.reach.application import load_application
+from reachwatch.reach.fingerprint import modules_source_digest
 from reachwatch.systems.checks import device_kind, short
 from reachwatch.systems.files import atomic_write_bytes, cache_location
 from reachwatch.training.baselines import estimate_error_of
@@ -371,17 +372,19 @@ def stage_train(run: Run) -> dict:
     errors = np.concatenate([error(d.states, d.estimates) for d in data])
     error_threshold, _ = best_threshold(np.concatenate([d.labels for d in data]), errors)
     labels = [error.labels(d, error_threshold) for d in data]
-    # named by its labels too: another scale or error threshold labels other states
-    labelling = digest(error.scale, float(error_threshold))[:8]
-    error_path = run.path(f"detectors/detector_prediction_error_{tag}_{labelling}.pt")
+    # named by its labels too: another scale, error threshold or labelling code labels
+    # other states
+    labelling = [list(error.scale), float(error_threshold),
+                 modules_source_digest("reachwatch.training.baselines")]
+    labelling_key = digest(*labelling)[:8]
+    error_path = run.path(f"detectors/detector_prediction_error_{tag}_{labelling_key}.pt")
     if not error_path.exists():
         train_detector(data, config, error_path, progress=progress, labels=labels)
     out.update({"prediction_error_detector": run.rel(error_path),
                 "prediction_error_threshold": float(error_threshold)})
     if config.threshold_folds:          # the baseline's threshold is chosen the same way
         chosen = held_out_operating_threshold(
-            data, config, checkpoint_for_prefix("detector_prediction_error",
-                                                float(error_threshold), list(error.scale)),
+            data, config, checkpoint_for_prefix("detector_prediction_error", *labelling),
             labels=labels, progress=progress)
         out["prediction_error_detector_threshold"] = chosen.threshold
         out["prediction_error_held_out_threshold"] = dc.asdict(chosen)

@@ -1,6 +1,8 @@
 """Example (b): another plant with a camera, through sweep, BRT, labels and detector;
 `make_car_loop` puts the detector and its fallback switch in the loop when
-``CarConfig.monitor`` names one (the script stops at the trained detector). A car whose speed is a fourth state: it follows the commanded speed with a
+``CarConfig.monitor`` names one (the script stops at the trained detector).
+
+A car whose speed is a fourth state: it follows the commanded speed with a
 first-order lag, so the guard's slow-down acts through the dynamics, not at once.
 
 State ``[px m, py m, theta rad, v m/s]``: px' = v sin(theta), py' = v cos(theta),
