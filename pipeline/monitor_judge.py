@@ -1,10 +1,14 @@
 """How the monitor study judges one monitor's risks (`reachwatch.pipeline.monitor_study`):
 system figures per environment and pooled at a threshold (`judge_environments`), the
 k-of-n rule and conformal threshold fixed on the calibration environments
-(`choose_flag_rule`), and a monitor's whole row from its raw risks (`_judge_monitor`)."""
+(`choose_flag_rule`), a monitor's whole row from its raw risks (`_judge_monitor`), and
+the controller's prediction error ranked the same way (`prediction_error_aurocs`)."""
 
 import numpy as np
 
+from reachwatch.diagrams import make_controller
+from reachwatch.diagrams.controller import has_estimate
+from reachwatch.training.baselines import estimate_error_of
 from reachwatch.training.conformal import (PlattCalibration, brier_score, conformal_threshold,
                                            expected_calibration_error, per_environment_bound,
                                            reliability_curve, warning_scores)
@@ -133,3 +137,26 @@ def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
                          for r, g in zip(flags[k], data[k])]
                      for k in ("calibrate", "held_out", "also_held_out")}
     return row, platt, chosen, rule, risks
+
+
+def prediction_error_aurocs(application, scenario, groups, *, period: float,
+                            duration: float) -> list:
+    """Per environment of ``groups`` (`record_splits`'), the AUROC of "fails within 4
+    s" of the controller's prediction error along its runs (`baselines.EstimateError`:
+    its estimate leads the recorded signals, `add_monitor_signals`), watched for
+    ``duration`` s; NaN where the application does not say what its controller
+    estimates (`Application.true_estimate`) or the controller has no estimate."""
+    error = estimate_error_of(application)
+    controller = make_controller(application.resolved(scenario).controller) if error else None
+    k = (controller.GetOutputPort("estimate").size()
+         if controller is not None and has_estimate(controller) else 0)
+    out = []
+    for g in groups:
+        if not k or not error.applies(g["state"][0, :1], g["signals"][0, :1, :k]):
+            out.append(float("nan"))
+            continue
+        out.append(tick_auroc([error(g["state"][i, :n], g["signals"][i, :n, :k]) if n
+                               else np.zeros(0) for i, n in enumerate(g["ticks"])], g["ticks"],
+                              g["watched_failure_time"], period=period, duration=duration,
+                              within=4.0))
+    return out

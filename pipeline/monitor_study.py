@@ -25,20 +25,18 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from reachwatch.diagrams import make_controller, save_checkpoint
-from reachwatch.diagrams.controller import has_estimate
+from reachwatch.diagrams import save_checkpoint
 from reachwatch.reach.application import application_key, load_application
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskEnsemble
 from reachwatch.systems.files import atomic_write_bytes, cache_location, file_hash, strict_json
-from reachwatch.training.baselines import estimate_error_of
 from reachwatch.training.conformal import NoConformalThreshold
 from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
                                                tick_labels, train_encoder, train_head)
-from reachwatch.training.monitor_eval import oracle_risks, tick_auroc
+from reachwatch.training.monitor_eval import oracle_risks
 
 from .monitor_guarded import guarded_rows
 from .monitor_judge import (_judge_monitor, choose_flag_rule, judge_environments,  # noqa: F401
-                            watch_s)
+                            prediction_error_aurocs, watch_s)
 from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_named,  # noqa: F401
                            merged_runs, record_split, record_splits, recorded_frames,
                            starts_seed)
@@ -231,29 +229,6 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     atomic_write_bytes(out_dir / "monitor.json",
                        strict_json(result, indent=1, default=float).encode())
     return result
-
-
-def prediction_error_aurocs(application, scenario, groups, *, period: float,
-                            duration: float) -> list:
-    """Per environment of ``groups`` (`record_splits`'), the AUROC of "fails within 4
-    s" of the controller's prediction error along its runs (`baselines.EstimateError`:
-    its estimate leads the recorded signals, `add_monitor_signals`), watched for
-    ``duration`` s; NaN where the application does not say what its controller
-    estimates (`Application.true_estimate`) or the controller has no estimate."""
-    error = estimate_error_of(application)
-    controller = make_controller(application.resolved(scenario).controller) if error else None
-    k = (controller.GetOutputPort("estimate").size()
-         if controller is not None and has_estimate(controller) else 0)
-    out = []
-    for g in groups:
-        if not k or not error.applies(g["state"][0, :1], g["signals"][0, :1, :k]):
-            out.append(float("nan"))
-            continue
-        out.append(tick_auroc([error(g["state"][i, :n], g["signals"][i, :n, :k]) if n
-                               else np.zeros(0) for i, n in enumerate(g["ticks"])], g["ticks"],
-                              g["watched_failure_time"], period=period, duration=duration,
-                              within=4.0))
-    return out
 
 
 def judged_text(row: dict) -> str:

@@ -523,7 +523,7 @@ def test_the_prediction_error_baseline_reads_the_estimate_off_the_recorded_signa
     from types import SimpleNamespace
 
     from reachwatch.diagrams import load_scenario
-    from reachwatch.pipeline.monitor_study import prediction_error_aurocs
+    from reachwatch.pipeline.monitor_judge import prediction_error_aurocs
     from reachwatch.taxi.application import TaxiApplication
     state = np.zeros((2, 9, 3))
     state[:, :, 0], state[:, :, 2] = 2.0, np.deg2rad(5.0)
