@@ -95,9 +95,7 @@ def fidelity_env(run: Run, env) -> dict:
            "brt": compare_verdicts(predicted, real_failed, outcomes["left_box"]).as_dict(),
            "table_rollouts": compare_verdicts(table_fails, real_failed, table_left).as_dict(),
            "brt_vs_table_rollouts": float(np.mean(predicted == table_fails)),
-           # the taxi's heading: a plant's own `real_outcomes` may leave it out (NaN)
-           "real_max_abs_theta_deg": np.percentile(np.rad2deg(outcomes.get(
-               "max_abs_theta", np.full(len(starts), np.nan))), [50, 90, 100]).round(1).tolist(),
+           "real_max_abs_theta_deg": heading_percentiles(outcomes, len(starts)),
            "frames": int(np.sum(outcomes["ticks"])), "seconds": round(seconds, 1)}
     if check.more_starts:
         out["extended"] = extended
@@ -114,6 +112,14 @@ def fidelity_env(run: Run, env) -> dict:
         if labels.get("counts", {}).get("path"):       # trajectory labels, or paths: N
             out["path_labels"] = check_path_labels(run, env, len(starts))
     return out
+
+
+def heading_percentiles(outcomes: dict, runs: int) -> list:
+    """The 50th, 90th and 100th percentiles (deg, one decimal) of the real runs' largest
+    heading ``max_abs_theta`` (rad, the taxi's); NaN where a plant's own
+    `real_outcomes` leaves it out or has none."""
+    heading = outcomes.get("max_abs_theta", np.full(runs, np.nan))
+    return np.percentile(np.rad2deg(heading), [50, 90, 100]).round(1).tolist()
 
 
 def check_path_labels(run: Run, env, count: int) -> dict:

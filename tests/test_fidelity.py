@@ -357,3 +357,12 @@ def test_the_report_judges_each_environments_labels_against_the_target():
     assert ("In 2 of them (night, rolled) a fresh start is labelled by its own real run "
             "and agrees by construction: there only the re-run read-along states test the "
             "labels (none where a dataset has no such states).") in text
+
+
+def test_the_heading_figures_of_a_plant_without_a_heading_are_nan():
+    """A plant's own `real_outcomes` may leave out the taxi's ``max_abs_theta``: its
+    figures are NaN (the stage raised a KeyError)."""
+    from reachwatch.pipeline.fidelity_stages import heading_percentiles
+    headings = np.deg2rad([0.0, 10.0, 20.0, 30.0, 40.0])
+    assert heading_percentiles({"max_abs_theta": headings}, 5) == [20.0, 36.0, 40.0]
+    assert np.isnan(heading_percentiles({"failed": np.zeros(5, bool)}, 5)).all()
