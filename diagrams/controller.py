@@ -167,6 +167,11 @@ def has_estimate(system) -> bool:
     return system.HasOutputPort(ESTIMATE_OUTPUT)
 
 
+def estimate_size(system) -> int:
+    """How many numbers ``system``'s ``estimate`` output holds (0: it has none)."""
+    return system.GetOutputPort(ESTIMATE_OUTPUT).size() if has_estimate(system) else 0
+
+
 def image_value(rgb) -> AbstractValue:
     """An `ImageRgba8U` value holding ``rgb`` ``(H, W, 3 or 4)`` uint8 (alpha 255)."""
     height, width = rgb.shape[:2]

@@ -129,33 +129,34 @@ def main(argv=None) -> int:
         for s, handler in zip(signals, previous):
             if handler is not signal.SIG_IGN:      # a background job's ignored Ctrl-C stays so
                 signal.signal(s, _stop)
-    empty = [name for name in PATH_OPTIONS if getattr(args, name, None) == ""]
+    name = command_name(args)
+    empty = [option for option in PATH_OPTIONS if getattr(args, option, None) == ""]
     if empty:           # "" would quietly mean the current folder or the built-in defaults
-        print(f"reachwatch {command_name(args)}: error: --{empty[0].replace('_', '-')} is empty: "
+        print(f"reachwatch {name}: error: --{empty[0].replace('_', '-')} is empty: "
               f"name a path", file=sys.stderr)
         return 2
     try:
         return args.func(args) or 0
     except (ValueError, FileNotFoundError, NotImplementedError) as e:
         # bad input, or an application without what the run asks of it: say what, exit 2
-        print(_clip(f"reachwatch {command_name(args)}: error: {e}"), file=sys.stderr)
+        print(_clip(f"reachwatch {name}: error: {e}"), file=sys.stderr)
         return 2
     except (PermissionError, FileExistsError, NotADirectoryError, IsADirectoryError) as e:
         # e.g. --out naming a file where a folder goes
         blocked = isinstance(e, (FileExistsError, NotADirectoryError))
-        print(_clip(f"reachwatch {command_name(args)}: error: cannot write {e.filename}: {e.strerror}"
+        print(_clip(f"reachwatch {name}: error: cannot write {e.filename}: {e.strerror}"
                     + (" (a file stands where a folder is needed)" if blocked else "")),
               file=sys.stderr)
         return 2
     except OSError as e:
         # the system refused (a name too long, a full or read-only disk): say what, exit 1
         where = f"{e.filename}: " if e.filename else ""
-        print(_clip(f"reachwatch {command_name(args)}: error: {where}{e.strerror or e}"),
+        print(_clip(f"reachwatch {name}: error: {where}{e.strerror or e}"),
               file=sys.stderr)
         return 1
     except KeyboardInterrupt as e:
         what = "terminated" if isinstance(e, Terminated) else "interrupted"
-        print(f"reachwatch {command_name(args)}: {what}; {KEPT}", file=sys.stderr)
+        print(f"reachwatch {name}: {what}; {KEPT}", file=sys.stderr)
         return 143 if isinstance(e, Terminated) else 130
     finally:
         if threading.current_thread() is threading.main_thread():

@@ -7,7 +7,7 @@ the controller's prediction error ranked the same way (`prediction_error_aurocs`
 import numpy as np
 
 from reachwatch.diagrams import make_controller
-from reachwatch.diagrams.controller import has_estimate
+from reachwatch.diagrams.controller import estimate_size
 from reachwatch.training.baselines import estimate_error_of
 from reachwatch.training.conformal import (PlattCalibration, brier_score, conformal_threshold,
                                            expected_calibration_error, per_environment_bound,
@@ -139,24 +139,23 @@ def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
     return row, platt, chosen, rule, risks
 
 
-def prediction_error_aurocs(application, scenario, groups, *, period: float,
-                            duration: float) -> list:
-    """Per environment of ``groups`` (`record_splits`'), the AUROC of "fails within 4
-    s" of the controller's prediction error along its runs (`baselines.EstimateError`:
-    its estimate leads the recorded signals, `add_monitor_signals`), watched for
-    ``duration`` s; NaN where the application does not say what its controller
-    estimates (`Application.true_estimate`) or the controller has no estimate."""
+def prediction_error_aurocs(application, scenario, splits: dict, *, period: float,
+                            duration: float) -> dict:
+    """Per split ``{name: groups}`` (`record_splits`'), per environment, the AUROC of
+    "fails within 4 s" of the controller's prediction error along its runs
+    (`baselines.EstimateError`: its estimate leads the recorded signals,
+    `add_monitor_signals`), watched for ``duration`` s; NaN where the application does
+    not say what its controller estimates (`Application.true_estimate`) or the
+    controller has no estimate."""
     error = estimate_error_of(application)
-    controller = make_controller(application.resolved(scenario).controller) if error else None
-    k = (controller.GetOutputPort("estimate").size()
-         if controller is not None and has_estimate(controller) else 0)
-    out = []
-    for g in groups:
+    k = estimate_size(make_controller(application.resolved(scenario).controller)) \
+        if error else 0
+
+    def auroc(g):
         if not k or not error.applies(g["state"][0, :1], g["signals"][0, :1, :k]):
-            out.append(float("nan"))
-            continue
-        out.append(tick_auroc([error(g["state"][i, :n], g["signals"][i, :n, :k]) if n
-                               else np.zeros(0) for i, n in enumerate(g["ticks"])], g["ticks"],
-                              g["watched_failure_time"], period=period, duration=duration,
-                              within=4.0))
-    return out
+            return float("nan")
+        return tick_auroc([error(g["state"][i, :n], g["signals"][i, :n, :k]) if n
+                           else np.zeros(0) for i, n in enumerate(g["ticks"])], g["ticks"],
+                          g["watched_failure_time"], period=period, duration=duration,
+                          within=4.0)
+    return {name: [auroc(g) for g in groups] for name, groups in splits.items()}

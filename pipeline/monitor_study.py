@@ -172,7 +172,10 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         log(f"monitor: {DETECTOR_ROW}: threshold {chosen.threshold:.3f} (its own score); "
             f"{judged_text(row)}")
 
-    oracle, baseline = {}, {}
+    oracle = {}
+    baseline = prediction_error_aurocs(application, scenario,
+                                       {k: data[k] for k in ("held_out", "also_held_out")},
+                                       period=period, duration=watch_s(spec))
     for k in ("held_out", "also_held_out"):
         groups = data[k]
         risks = [oracle_risks(g["ticks"], g["failure_time"], period=period, lead=lead)
@@ -180,8 +183,6 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         per_env, pooled = judge_environments(groups, risks, threshold=0.5, period=period,
                                              lead=lead, watch=watch_s(spec))
         oracle[k] = {"environments": per_env, "pooled": pooled}
-        baseline[k] = prediction_error_aurocs(application, scenario, groups, period=period,
-                                              duration=watch_s(spec))
 
     # fixed in advance (the bound is exact for it), or chosen on the calibration
     # environments (`MonitorStudySpec.keep`)

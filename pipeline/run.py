@@ -22,7 +22,8 @@ from .spec import RunSpec, digest
 from .brt_stages import stage_solve, stage_sweep
 from .dataset_stages import stage_dataset
 from .monitor_study import stage_monitor
-from .stages import Run, stage_evaluate, stage_train
+from .detector_stages import baseline_code, stage_evaluate, stage_train
+from .stages import Run
 
 STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "monitor",
           "incremental", "report")
@@ -75,13 +76,13 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
         # device trains other weights and scores in other last digits
         "train": lambda: run.stage("train", digest(run.content_key("dataset"), spec.detector,
                                                    device_kind(spec.detector.device),
-                                                   *baseline_code_key()),
+                                                   {"baselines": baseline_code()}),
                                    lambda: stage_train(run)),
         "evaluate": lambda: run.stage("evaluate", digest(
             run.content_key("train"), run.content_key("dataset"), spec.slice_py,
             device_kind(spec.detector.device),
             {e.name: run.content_key(f"solve_{e.name}") for e in spec.held_out_environments()},
-            *baseline_code_key()),
+            {"baselines": baseline_code()}),
             lambda: stage_evaluate(run)),
         "guard": lambda: stage_guard(run),
         "monitor": lambda: stage_monitor(run),
@@ -101,13 +102,6 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
                f"{len(page['labelled'])}" if page["labelled"] else "")
             + f"; {run.path(page['html'])} (and {page['md']})")
     return run
-
-
-
-def baseline_code_key() -> list:
-    """The baselines' code (the prediction error, the ensemble's variance), in the keys
-    of the stages that compute them: another definition gives other figures."""
-    return [{"baselines": modules_source_digest("reachwatch.training.baselines")}]
 
 
 def report_key(run) -> str:

@@ -89,7 +89,7 @@ def test_zeroed_detector_weights_are_trained_again_and_what_reads_them_follows(
         base, tmp_path, monkeypatch):
     out = _copy(base, tmp_path)
     # Training again gives other bytes (as on another machine or torch version).
-    from reachwatch.pipeline import stages
+    from reachwatch.pipeline import detector_stages as stages
     train = stages.train_detector
 
     def other_bytes(data, config, path, **kw):

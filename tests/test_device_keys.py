@@ -7,7 +7,8 @@ import torch
 
 from reachwatch.pipeline.brt_stages import solve_stage_key
 from reachwatch.pipeline.spec import load_run_spec
-from reachwatch.pipeline.stages import Run, detector_weights
+from reachwatch.pipeline.detector_stages import detector_weights
+from reachwatch.pipeline.stages import Run
 from reachwatch.systems.checks import device_kind, torch_device
 from reachwatch.training.detector_train import DetectorTrainConfig
 from tiny_run import TINY

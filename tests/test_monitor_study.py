@@ -534,19 +534,20 @@ def test_the_prediction_error_baseline_reads_the_estimate_off_the_recorded_signa
              "watched_failure_time": np.array([3.0, np.nan])}
     scenario = load_scenario(data="")
     taxi = TaxiApplication()
-    assert prediction_error_aurocs(taxi, scenario, [group], period=0.5, duration=8.0) == [1.0]
+    assert prediction_error_aurocs(taxi, scenario, {"s": [group]}, period=0.5,
+                                   duration=8.0)["s"] == [1.0]
     # a start that has failed already is recorded with no tick: it adds nothing
     with_empty = {k: np.concatenate([v, v[:1]]) for k, v in group.items()}
     with_empty["ticks"][2] = 0
-    assert prediction_error_aurocs(taxi, scenario, [with_empty], period=0.5,
-                                   duration=8.0) == [1.0]
+    assert prediction_error_aurocs(taxi, scenario, {"s": [with_empty]}, period=0.5,
+                                   duration=8.0)["s"] == [1.0]
     group["signals"] = signals[..., ::-1].copy()       # the 1 m off in the last column,
-    assert prediction_error_aurocs(taxi, scenario, [group], period=0.5,    # not read: a tie
-                                   duration=8.0) == [0.5]
+    assert prediction_error_aurocs(taxi, scenario, {"s": [group]}, period=0.5,  # not read:
+                                   duration=8.0)["s"] == [0.5]                   # a tie
     no_estimate = SimpleNamespace(true_estimate=None, estimate_scale=(),
                                   resolved=lambda s: s)
-    assert np.isnan(prediction_error_aurocs(no_estimate, scenario, [group], period=0.5,
-                                            duration=8.0)).all()
+    assert np.isnan(prediction_error_aurocs(no_estimate, scenario, {"s": [group]}, period=0.5,
+                                            duration=8.0)["s"]).all()
 
 
 def test_a_safe_run_with_no_tick_reads_back_as_never_flagged(tmp_path):

@@ -334,7 +334,7 @@ def test_killed_run_resumes_at_the_failed_stage(tmp_path, monkeypatch, seed_cach
     was never interrupted."""
     seed_caches(tmp_path)
     shutil.rmtree(tmp_path / "datasets")          # rendered here, not copied
-    from reachwatch.pipeline import stages
+    from reachwatch.pipeline import detector_stages as stages
     calls = []
 
     def broken(*args, **kw):

@@ -10,7 +10,7 @@ import inspect
 import numpy as np
 
 from reachwatch.diagrams import ControllerProbe, make_controller, user_code
-from reachwatch.diagrams.controller import has_estimate
+from reachwatch.diagrams.controller import estimate_size
 from reachwatch.reach.application import ApplicationRef
 from reachwatch.reach.thread_kept import ThreadKept
 from reachwatch.systems import resize_for_detector
@@ -20,9 +20,9 @@ def estimator(controller):
     """A function ``(N, H, W, 3) images -> (N, k)`` estimates of ``controller`` (one batch
     when it offers ``estimate(images)``, as TaxiNet's does; else image by image through
     its ``estimate`` port), and k."""
-    if not has_estimate(controller):
+    size = estimate_size(controller)
+    if not size:
         return (lambda images: np.zeros((len(images), 0))), 0
-    size = controller.GetOutputPort("estimate").size()
     if callable(getattr(controller, "estimate", None)):
         return controller.estimate, size
     probe = ControllerProbe(controller)
