@@ -93,8 +93,13 @@ def stage_train(run: Run) -> dict:
     else:
         out["threshold"] = float(operating_threshold(model, data, config))
     error = estimate_error(run)
-    if error is None or not all(error.applies(d.states, d.estimates) for d in data):
+    if error is None:
         return out          # a controller whose estimate the application does not know
+    for env, d in zip(spec.training_environments(), data):
+        refusal = error.refusal(d.states, d.estimates)
+        if refusal is not None:
+            run.log(f"no prediction-error baseline: {env.name}: {refusal}")
+            return out
     errors = np.concatenate([error(d.states, d.estimates) for d in data])
     error_threshold, _ = best_threshold(np.concatenate([d.labels for d in data]), errors)
     labels = [error.labels(d, error_threshold) for d in data]
@@ -147,6 +152,9 @@ def stage_evaluate(run: Run) -> dict:
         if np.any(d.sources == SOURCE_PATH):      # read-along states: each kind alone too
             subsets[UNIFORM_STARTS] = d.sources != SOURCE_PATH
             subsets[READ_ALONG] = d.sources == SOURCE_PATH
+        refusal = None if error is None else error.refusal(d.states, d.estimates)
+        if refusal is not None:
+            run.log(f"{env.name}: no prediction-error rows in Table 2: {refusal}")
         env_rows, scores = evaluate_environment(d, detectors, device=spec.detector.device,
                                                 subsets=subsets, target_recall=ceiling_recall,
                                                 estimate_error=error)

@@ -145,15 +145,19 @@ def prediction_error_aurocs(application, scenario, splits: dict, *, period: floa
     "fails within 4 s" of the controller's prediction error along its runs
     (`baselines.EstimateError`: its estimate leads the recorded signals,
     `add_monitor_signals`), watched for ``duration`` s; NaN where the application does
-    not say what its controller estimates (`Application.true_estimate`) or the
-    controller has no estimate."""
+    not say what its controller estimates (`Application.true_estimate`), the
+    controller has no estimate, or its estimate is NaN or infinite along a run
+    (`EstimateError.refusal`)."""
     error = estimate_error_of(application)
     k = estimate_size(make_controller(application.resolved(scenario).controller)) \
         if error else 0
 
     def auroc(g):
-        if not k or not error.applies(g["state"][0, :1], g["signals"][0, :1, :k]):
-            return float("nan")
+        ticks = list(enumerate(g["ticks"]))
+        if not k or not ticks or error.refusal(
+                np.concatenate([g["state"][i, :n] for i, n in ticks]),
+                np.concatenate([g["signals"][i, :n, :k] for i, n in ticks])) is not None:
+            return float("nan")             # among them: an estimate NaN along a run
         return tick_auroc([error(g["state"][i, :n], g["signals"][i, :n, :k]) if n
                            else np.zeros(0) for i, n in enumerate(g["ticks"])], g["ticks"],
                           g["watched_failure_time"], period=period, duration=duration,

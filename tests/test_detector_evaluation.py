@@ -65,8 +65,19 @@ def test_the_prediction_error_baseline_reads_the_applications_truth():
     states = np.array([[0.1, 0.2], [0.0, 0.0]])
     np.testing.assert_allclose(own(states, [[0.1, 0.2], [3.0, 4.0]]), [0.0, 5.0])
     assert not own.applies(states, np.zeros((2, 3))) and not own.applies(states, np.zeros((2, 0)))
-    with pytest.raises(ValueError, match="not RailFollower's estimate of states"):
+    assert own.refusal(states, np.zeros((2, 3))) == ("the controller's estimate has 3 "
+                                                     "numbers, the true estimate 2")
+    assert own.refusal(states, np.zeros((2, 0))) == "the controller has no estimate"
+    with pytest.raises(ValueError, match="RailFollower: the controller's estimate has 3"):
         own(states, np.zeros((2, 3)))
+    # an estimate NaN or infinite anywhere is no estimate to measure an error of: an
+    # error of NaN labelled nothing and ranked nothing, yet gave Table 2 rows
+    for bad in (np.nan, np.inf):
+        estimates = np.array([[0.1, 0.2], [bad, 0.0]])
+        assert own.refusal(states, estimates) == ("the controller's estimate is NaN or "
+                                                  "infinite at 1 of 2 states")
+        with pytest.raises(ValueError, match="NaN or infinite at 1 of 2 states"):
+            own(states, estimates)
     assert estimate_error_of(type("NoEstimate", (), {"true_estimate": None})) is None
     data, _ = _six_samples([0.0, 10.0, 20.0, 30.0, 20.0, 30.0])
     methods = lambda error: [r["method"] for r in evaluate_environment(      # noqa: E731
@@ -74,6 +85,8 @@ def test_the_prediction_error_baseline_reads_the_applications_truth():
     assert methods(TAXINET_ERROR) == ["TaxiNet prediction error (best threshold)"]
     assert methods(None) == []
     assert methods(EstimateError(truth=lambda s: s[:, :1])) == []     # the estimate is 2 wide
+    data.estimates[3, 1] = np.nan
+    assert methods(TAXINET_ERROR) == []                 # no row of an error it cannot measure
 
 
 # --- detector system -----------------------------------------------------------------

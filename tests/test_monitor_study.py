@@ -519,7 +519,8 @@ def test_the_prediction_error_baseline_reads_the_estimate_off_the_recorded_signa
     """TaxiNet's estimate leads the recorded signals (``[px_hat, theta_hat deg,
     steering]``): a run whose estimate is 1 m off fails within 4 s, a run estimated
     exactly survives, so the error ranks every tick right; an application that does not
-    say what its controller estimates has no such baseline."""
+    say what its controller estimates has no such baseline, nor has a controller whose
+    estimate is NaN at a tick of a run."""
     from types import SimpleNamespace
 
     from reachwatch.diagrams import load_scenario
@@ -544,6 +545,14 @@ def test_the_prediction_error_baseline_reads_the_estimate_off_the_recorded_signa
     group["signals"] = signals[..., ::-1].copy()       # the 1 m off in the last column,
     assert prediction_error_aurocs(taxi, scenario, {"s": [group]}, period=0.5,  # not read:
                                    duration=8.0)["s"] == [0.5]                   # a tie
+    group["signals"] = signals.copy()
+    group["signals"][1, 8, 1] = np.nan                  # NaN at a tick the run has
+    assert np.isnan(prediction_error_aurocs(taxi, scenario, {"s": [group]}, period=0.5,
+                                            duration=8.0)["s"]).all()
+    group["signals"][1, 8, 1] = 5.0
+    group["signals"][0, 8, 1] = np.nan                  # past the run's 7 ticks: not read
+    assert prediction_error_aurocs(taxi, scenario, {"s": [group]}, period=0.5,
+                                   duration=8.0)["s"] == [1.0]
     no_estimate = SimpleNamespace(true_estimate=None, estimate_scale=(),
                                   resolved=lambda s: s)
     assert np.isnan(prediction_error_aurocs(no_estimate, scenario, {"s": [group]}, period=0.5,

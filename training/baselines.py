@@ -20,21 +20,35 @@ class EstimateError:
     scale: Tuple[float, ...] = ()
     controller: str = "the controller"
 
-    def applies(self, states, estimates) -> bool:
-        """Whether ``estimates`` ``(n, k)`` are the controller's estimate of ``states``
-        (as many numbers as `truth` gives): a controller with no ``estimate`` output, or
-        one of another size, has no prediction-error baseline."""
+    def refusal(self, states, estimates) -> Optional[str]:
+        """Why ``estimates`` ``(n, k)`` give no prediction-error baseline for ``states``,
+        in a phrase; None when they do: they are the controller's estimate of them (as
+        many numbers as `truth` gives), every one finite. A controller with no
+        ``estimate`` output has none (the phrase says so); one of another size, or one
+        whose estimate is NaN or infinite anywhere, has none either: an error measured
+        against such a number would rank, and label, nothing that it means."""
         estimates, states = np.asarray(estimates), np.asarray(states, float)
         if estimates.ndim != 2 or estimates.shape[1] == 0 or states.ndim != 2 or not len(states):
-            return False
-        return np.asarray(self.truth(states[:1])).shape == (1, estimates.shape[1])
+            return "the controller has no estimate"
+        size = np.asarray(self.truth(states[:1])).shape[-1]
+        if estimates.shape[1] != size:
+            return (f"the controller's estimate has {estimates.shape[1]} numbers, the true "
+                    f"estimate {size}")
+        bad = int(np.sum(~np.all(np.isfinite(estimates.astype(float)), axis=1)))
+        if bad:
+            return (f"the controller's estimate is NaN or infinite at {bad} of "
+                    f"{len(estimates)} states")
+        return None
+
+    def applies(self, states, estimates) -> bool:
+        """Whether ``estimates`` give a prediction-error baseline (`refusal` is None)."""
+        return self.refusal(states, estimates) is None
 
     def __call__(self, states, estimates) -> np.ndarray:
         estimates = np.asarray(estimates, float)
-        if not self.applies(states, estimates):
-            raise ValueError(f"the controller's estimates {estimates.shape} are not "
-                             f"{self.controller}'s estimate of states "
-                             f"{np.shape(states)}: no prediction-error baseline")
+        refusal = self.refusal(states, estimates)
+        if refusal is not None:
+            raise ValueError(f"no prediction-error baseline of {self.controller}: {refusal}")
         truth = np.asarray(self.truth(np.asarray(states, float)), float)
         return np.linalg.norm((estimates - truth) / scale_of(self.scale, truth.shape[1]), axis=1)
 
