@@ -13,6 +13,7 @@ import numpy as np
 
 from reachwatch.reach import (compare_verdicts, min_target_along_rollouts, select_map,
                              sign_agreement, solve_brt)
+from reachwatch.reach.solver import check_controls
 from reachwatch.reach.robust import control_bounds
 from reachwatch.reach.sweep import cached_table_digest
 from reachwatch.systems.checks import device_kind
@@ -53,6 +54,10 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
                                   executor=run.executor, progress=False)
     dynamics = run.application.dynamics(scenario)
     control_port = run.application.probe(scenario).control_port
+    try:                                 # named here, not at the first of several solves
+        check_controls(table.grid, dynamics, table[control_port])
+    except ValueError as e:
+        raise ValueError(f"{env.name}: {control_port}: {e}") from None
     solved = [0.0]
 
     def solve(table, spread=spec.robust.min_spread_deg):

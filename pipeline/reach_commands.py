@@ -130,8 +130,13 @@ def brt_command(args):
     from reachwatch.taxi.plots import plot_brt_slices
 
     from .executors import open_executor
+    from reachwatch.reach.solver import check_controls
     scenario, grid, table, _ = _sweep(args)
     dynamics = dynamics_for(scenario)
+    try:
+        check_controls(table.grid, dynamics, table[CONTROL_PORT])
+    except ValueError as e:
+        raise ValueError(f"{scenario.environment.name}: {CONTROL_PORT}: {e}") from None
     started = time.time()
 
     def solve(table):

@@ -47,6 +47,9 @@ class Dynamics(abc.ABC):
     ``(..., state_dim)`` and controls ``(..., control_dim)`` to derivatives) and the
     failure margin ``target(x)`` (``l(x) <= 0`` is failure).
 
+    ``control_limits()`` may say the open range of each control (a steering angle
+    within +-pi/2 rad, say, past which tan turns back).
+
     ``safe_box()`` may say where failure is known without the grid: ``(lo, hi)`` per
     state axis (``-inf``/``inf`` where unbounded) such that a state not strictly inside
     is a failure. BRT queries use it to answer for states outside the solved grid;
@@ -64,4 +67,10 @@ class Dynamics(abc.ABC):
         """The failure margin ``l(x)``; ``l <= 0`` is failure."""
 
     def safe_box(self):
+        return None
+
+    def control_limits(self):
+        """``(lo, hi)`` per control component: the open range a control of this plant
+        lies in (a table outside it is refused before a solve, `solver.check_controls`);
+        None (the default): any finite number."""
         return None

@@ -97,6 +97,29 @@ def _bound_corners(grid, table, control_bounds, accuracy):
             for choice in itertools.product((0, 1), repeat=lo.shape[-1])]
 
 
+def check_controls(grid: Grid, dynamics, table: np.ndarray):
+    """A ValueError, naming how many nodes and the first one, where the swept control
+    ``table`` (``grid.shape`` or ``grid.shape + (m,)``) is NaN or infinite, or lies
+    outside the plant's `Dynamics.control_limits` (a controller's mistake the flow
+    would read as another command, such as degrees for radians)."""
+    u = table.reshape(grid.size, -1)
+    limits = getattr(dynamics, "control_limits", lambda: None)()
+    checks = [(~np.all(np.isfinite(u), axis=1), "NaN or infinite")]
+    if limits is not None:
+        lo, hi = (np.broadcast_to(np.asarray(b, float), u.shape[1:]) for b in limits)
+        with np.errstate(invalid="ignore"):
+            outside = np.any((u <= lo) | (u >= hi), axis=1) & ~checks[0][0]
+        checks.append((outside, "outside the plant's controls (" + ", ".join(
+            f"{a:g} < u{k} < {b:g}" for k, (a, b) in enumerate(zip(lo, hi))) + ")"))
+    for bad, what in checks:
+        if np.any(bad):
+            first = int(np.argmax(bad))
+            state = ", ".join(f"{n}={v:.4g}" for n, v in zip(grid.names, grid.states([first])[0]))
+            raise ValueError(f"the swept control is {what} at {int(bad.sum())} of {grid.size} "
+                             f"grid states, the first [{state}] (control {u[first].tolist()}): "
+                             f"look at the controller's output there")
+
+
 def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
               accuracy: str = "semi_lagrangian", period: float = 0.05,
               periods_per_step: int = 4, cfl: float = 0.75, exit_fails=(),
@@ -144,8 +167,7 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
                          f"0..{grid.ndim - 1} ({', '.join(grid.names)})")
     if exit_fails and accuracy != "semi_lagrangian":
         raise ValueError(f"exit_fails needs accuracy 'semi_lagrangian', got '{accuracy}'")
-    if not np.all(np.isfinite(table)):
-        raise ValueError(f"control table has {np.sum(~np.isfinite(table))} non-finite entries")
+    check_controls(grid, dynamics, table)
     corners = _bound_corners(grid, table, control_bounds, accuracy)
     device = torch_device(device)
     as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)     # noqa: E731

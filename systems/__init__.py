@@ -23,7 +23,7 @@ from .environment import SKIES, Environment, test_environments, training_environ
 from .lighting import Lighting, lighting_for, render_engine_params, sun_elevation_deg
 from .models import (ESTIMATE_UNITS, PreprocessConfig, SmallTaxiCNN, TaxiNetConfig,
                      TinyTaxiNet, build_taxinet, preprocess)
-from .plant import NOMINAL_SPEED_MPS, WHEELBASE_M, TaxiPlant, taxi_dynamics
+from .plant import MAX_STEERING_RAD, NOMINAL_SPEED_MPS, WHEELBASE_M, TaxiPlant, taxi_dynamics
 from .runway import RUNWAYS, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, TaxiwayLine
 from .random_environments import RandomEnvironments, RandomRunwayRanges, random_runway
 from .scene import add_runway_scene
@@ -49,6 +49,7 @@ __all__ = [
     "AircraftGeometry", "CameraConfig", "make_wing_camera", "SKIES", "Environment",
     "test_environments", "training_environments", "Lighting", "lighting_for",
     "render_engine_params", "sun_elevation_deg", "NOMINAL_SPEED_MPS", "WHEELBASE_M",
+    "MAX_STEERING_RAD",
     "TaxiPlant", "taxi_dynamics", "RUNWAYS", "LightsSpec", "MarkingsSpec", "RunwaySpec",
     "SurfaceSpec", "TaxiwayLine", "add_runway_scene", "ESTIMATE_UNITS", "PreprocessConfig",
     "SmallTaxiCNN", "TaxiNetConfig", "TinyTaxiNet", "build_taxinet", "preprocess",

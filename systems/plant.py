@@ -7,6 +7,8 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 WHEELBASE_M = 5.0
 #: Nominal taxi speed (m/s).
 NOMINAL_SPEED_MPS = 5.0
+#: The steering angle's bound (rad, open): ``tan(phi)`` turns the other way past it.
+MAX_STEERING_RAD = np.pi / 2
 
 
 def taxi_dynamics(state, steering_angle, speed, wheelbase=WHEELBASE_M):
@@ -38,7 +40,8 @@ class TaxiPlant(LeafSystem):
 
     State ``[px, py, theta]``: crosstrack error px (m, positive left of the
     centreline), downtrack position py (m), heading error theta (rad, positive
-    turns towards +px). ``steering_angle`` is in rad, ``speed`` in m/s.
+    turns towards +px). ``steering_angle`` is in rad, within +-pi/2
+    (`MAX_STEERING_RAD`; a ValueError past it), ``speed`` in m/s.
     """
 
     def __init__(self, *, wheelbase=WHEELBASE_M, initial_state=(0.0, 0.0, 0.0)):
@@ -76,6 +79,11 @@ class TaxiPlant(LeafSystem):
 
     def DoCalcTimeDerivatives(self, context, derivatives):
         steering = self._read_input(self._steering_port, context)
+        if not abs(steering) < MAX_STEERING_RAD:
+            raise ValueError(
+                f"TaxiPlant: input port 'steering_angle' is {steering:g} rad at "
+                f"t = {context.get_time():.3f} s; a wheel angle lies within +-pi/2 rad "
+                f"(tan turns the aircraft the other way past it): is it in degrees?")
         speed = self._read_input(self._speed_port, context)
         x = context.get_continuous_state_vector().CopyToVector()
         derivatives.get_mutable_vector().SetFromVector(

@@ -4,7 +4,7 @@ failure when it leaves the runway."""
 import torch
 
 from reachwatch.reach import Dynamics
-from reachwatch.systems import NOMINAL_SPEED_MPS, WHEELBASE_M
+from reachwatch.systems import MAX_STEERING_RAD, NOMINAL_SPEED_MPS, WHEELBASE_M
 
 
 class TaxiDynamics(Dynamics):
@@ -33,6 +33,10 @@ class TaxiDynamics(Dynamics):
     def safe_box(self):
         inf = float("inf")
         return [-self.half_width, -inf, -inf], [self.half_width, inf, inf]
+
+    def control_limits(self):
+        """The steering angle within +-pi/2 rad: tan(phi) turns the other way past it."""
+        return [-MAX_STEERING_RAD], [MAX_STEERING_RAD]
 
 
 def dynamics_for(scenario) -> TaxiDynamics:

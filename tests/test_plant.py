@@ -53,6 +53,22 @@ def test_non_finite_input_names_the_port(port):
         plant.EvalTimeDerivatives(context)
 
 
+@pytest.mark.parametrize("steering", [np.pi / 2, -2.0, 10.0, 1e6])
+def test_a_steering_angle_past_a_quarter_turn_is_refused(steering):
+    """tan(phi) past +-pi/2 turns the aircraft the other way (1e6 rad, "left", turned it
+    right): such a command is a controller's mistake (degrees, most often), named, not
+    simulated."""
+    plant = TaxiPlant()
+    context = plant.CreateDefaultContext()
+    plant.get_steering_angle_input_port().FixValue(context, [steering])
+    plant.get_speed_input_port().FixValue(context, [5.0])
+    with pytest.raises(ValueError, match=r"'steering_angle' is .* rad at t = 0.000 s; a "
+                                         r"wheel angle lies within \+-pi/2 rad"):
+        plant.EvalTimeDerivatives(context)
+    plant.get_steering_angle_input_port().FixValue(context, [np.pi / 2 - 1e-3])
+    assert plant.EvalTimeDerivatives(context).CopyToVector()[2] > 0
+
+
 def test_bad_wheelbase_rejected():
     with pytest.raises(ValueError, match="wheelbase"):
         TaxiPlant(wheelbase=0.0)

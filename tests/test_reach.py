@@ -1,5 +1,6 @@
 import concurrent.futures as cf
 import functools
+import re
 
 import numpy as np
 import pytest
@@ -99,8 +100,22 @@ def test_solver_input_errors():
         solve_brt(g, dyn, np.zeros((5, 5, 4)))
     with pytest.raises(ValueError, match="accuracy"):
         solve_brt(g, dyn, np.zeros(g.shape), accuracy="ultra")
-    with pytest.raises(ValueError, match="non-finite"):
-        solve_brt(g, dyn, np.full(g.shape, np.nan))
+    # a NaN or infinite control, and one past the plant's limits (degrees for radians:
+    # tan read 10 rad as another command), name how many states and the first
+    table = np.zeros(g.shape)
+    table[1, 2, 3], table[4, 4, 4] = np.inf, np.nan
+    first = ", ".join(f"{n}={v:.4g}" for n, v in zip(g.names, g.states([1 * 25 + 2 * 5 + 3])[0]))
+    with pytest.raises(ValueError, match=re.escape(
+            f"the swept control is NaN or infinite at 2 of 125 grid states, the first "
+            f"[{first}] (control [inf])")):
+        solve_brt(g, dyn, table)
+    table[1, 2, 3], table[4, 4, 4] = 10.0, -np.pi / 2
+    with pytest.raises(ValueError, match=re.escape(
+            f"outside the plant's controls (-1.5708 < u0 < 1.5708) at 2 of 125 grid states, "
+            f"the first [{first}] (control [10.0])")):
+        solve_brt(g, dyn, table)
+    table[1, 2, 3], table[4, 4, 4] = 1.5, -1.5
+    solve_brt(g, dyn, table, horizon=0.2, device="cpu")     # within: solved
 
 
 def test_value_function_round_trip_and_queries(tmp_path):
