@@ -50,8 +50,13 @@ def _check_same_run(spec_path: Path, name: str):
     import yaml
     try:
         recorded = yaml.safe_load(spec_path.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
-        return                                  # not a run file we can read: rewritten
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
+        # whose run it is cannot be told, and a run writes it whole (atomically): not
+        # rewritten over what may be another run's files
+        reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ValueError(f"{spec_path} cannot be read ({reason}), so whose run "
+                         f"{spec_path.parent} holds is unknown: give another --out, or "
+                         f"delete {spec_path} to reuse the directory") from None
     other = recorded.get("name") if isinstance(recorded, dict) else None
     if isinstance(other, str) and other != name:
         raise ValueError(f"{spec_path.parent} holds the run {short(other)}, not "

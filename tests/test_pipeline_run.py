@@ -467,7 +467,8 @@ def test_the_report_is_written_anew_when_reachwatch_code_changes(tmp_path, monke
 
 def test_a_directory_holding_another_run_is_refused_and_kept(tmp_path):
     """Another run's directory (its recorded run file names another run) is refused in
-    one line, its run file untouched; the same run with an edited file is recorded."""
+    one line, its run file untouched, as is one whose run file cannot be read; the same
+    run with an edited file is recorded."""
     Run(load_run_spec(data=TINY), tmp_path / "run")
     recorded = (tmp_path / "run" / "run.yaml").read_bytes()
     other = load_run_spec(data=TINY.replace("name: tiny", "name: other"))
@@ -475,6 +476,15 @@ def test_a_directory_holding_another_run_is_refused_and_kept(tmp_path):
                                          r"--out, or delete .*run.yaml to reuse"):
         Run(other, tmp_path / "run")
     assert (tmp_path / "run" / "run.yaml").read_bytes() == recorded
+    # a run file that cannot be read says nothing of whose run the directory holds: it
+    # was rewritten, and the directory's files taken over, without a word
+    for broken in (b"name: [", b"\xff\xfe"):
+        (tmp_path / "run" / "run.yaml").write_bytes(broken)
+        with pytest.raises(ValueError, match=r"run.yaml cannot be read \(.*\), so whose run "
+                                             r".* holds is unknown: give another --out"):
+            Run(other, tmp_path / "run")
+        assert (tmp_path / "run" / "run.yaml").read_bytes() == broken
+    (tmp_path / "run" / "run.yaml").write_bytes(recorded)
     lines = []
     Run(load_run_spec(data=TINY.replace("horizon: 4.0", "horizon: 3.0")), tmp_path / "run",
         log=lines.append)
