@@ -105,6 +105,36 @@ def _clip(text: str) -> str:
     return clip(text)
 
 
+def user_frame(error: BaseException):
+    """``(file, line, function)`` of the innermost frame of ``error``'s traceback in
+    code neither reachwatch's nor installed (the standard library, site-packages): a
+    controller, plant or application of the user's; None when there is none."""
+    import re
+    import traceback
+    from pathlib import Path
+    ours = Path(__file__).resolve().parents[1]        # the package's folders' parent
+    installed = {Path(p).resolve() for p in (sys.prefix, sys.base_prefix, sys.exec_prefix)}
+    frames = [(f.filename, f.lineno, f.name) for f in traceback.extract_tb(error.__traceback__)]
+    cause = error.__cause__
+    if cause is not None and type(cause).__name__ == "_RemoteTraceback":
+        # raised in a worker process: its frames come back as the cause's text
+        frames = [(f, int(n), name) for f, n, name in re.findall(
+            r'File "([^"]+)", line (\d+), in (\S+)', str(cause))] + frames
+    for filename, line, function in reversed(frames):
+        path = Path(filename)
+        if not path.is_file():
+            continue                                   # <string>, frozen modules
+        path = path.resolve()
+        if any(folder in path.parents for folder in installed) or (
+                ours in path.parents and path.relative_to(ours).parts[0] in PACKAGE_FOLDERS):
+            continue
+        return str(path), line, function
+    return None
+
+
+#: reachwatch's own folders (the package's subpackages, as the repository lays them out).
+PACKAGE_FOLDERS = ("systems", "diagrams", "reach", "taxi", "training", "pipeline")
+
 #: The options that name a file or folder; an empty one is refused.
 PATH_OPTIONS = ("out", "scenario", "cache", "sweep_cache", "work_dir", "checkpoint", "run")
 
@@ -139,7 +169,10 @@ def main(argv=None) -> int:
         return args.func(args) or 0
     except (ValueError, FileNotFoundError, NotImplementedError) as e:
         # bad input, or an application without what the run asks of it: say what, exit 2
-        print(_clip(f"reachwatch {name}: error: {e}"), file=sys.stderr)
+        # (and where, when the user's own code raised it)
+        where = user_frame(e)
+        at = f" (raised at {where[0]}:{where[1]}, in {where[2]})" if where else ""
+        print(_clip(f"reachwatch {name}: error: {e}{at}"), file=sys.stderr)
         return 2
     except (PermissionError, FileExistsError, NotADirectoryError, IsADirectoryError) as e:
         # e.g. --out naming a file where a folder goes
@@ -152,6 +185,16 @@ def main(argv=None) -> int:
         # the system refused (a name too long, a full or read-only disk): say what, exit 1
         where = f"{e.filename}: " if e.filename else ""
         print(_clip(f"reachwatch {name}: error: {where}{e.strerror or e}"),
+              file=sys.stderr)
+        return 1
+    except Exception as e:
+        # raised inside the user's own code (a controller's calc): where, in one line;
+        # anything else (a bug of reachwatch's) keeps its traceback, as does -v
+        where = None if args.verbose else user_frame(e)
+        if where is None:
+            raise
+        print(_clip(f"reachwatch {name}: error: {type(e).__name__}: {e}, raised at "
+                    f"{where[0]}:{where[1]} (in {where[2]}); -v shows the traceback"),
               file=sys.stderr)
         return 1
     except KeyboardInterrupt as e:

@@ -121,3 +121,67 @@ def test_an_actions_error_names_the_command_and_the_action(capsys):
     err = _one_line(capsys, ["taxinet", "evaluate", "--runways", "ZZZZ"])
     assert err.startswith("reachwatch taxinet evaluate: error: --runways / --hours: "), err
     assert "unknown runway 'ZZZZ'" in err
+
+
+USER_CODE = '''
+def calc(args):
+    {}["darkness"]          # a user's controller failing on a dark frame
+
+
+def refuse(args):
+    raise ValueError("too dark")
+'''
+
+
+def _user_module(tmp_path):
+    import importlib.util
+    path = tmp_path / "my_controller.py"
+    path.write_text(USER_CODE)
+    spec = importlib.util.spec_from_file_location("my_controller", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return path, module
+
+
+def test_an_error_raised_in_the_users_code_names_its_file_and_line(tmp_path, capsys,
+                                                                   monkeypatch):
+    """Before: a KeyError in a controller's calc was a 40-line traceback (exit 1), and a
+    ValueError one line that did not say where. Now one line with the user's file and
+    line; -v keeps the traceback, and reachwatch's own errors keep theirs."""
+    from reachwatch.pipeline import commands
+    path, module = _user_module(tmp_path)
+    monkeypatch.setattr(commands, "render", module.calc)
+    argv = ["render", "--out", str(tmp_path / "out")]
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert (f"reachwatch render: error: KeyError: 'darkness', raised at {path.resolve()}:3 "
+            f"(in calc); -v shows the traceback") in err
+    with pytest.raises(KeyError, match="darkness"):
+        cli.main(["-v", *argv])
+    monkeypatch.setattr(commands, "render", module.refuse)
+    err = _one_line(capsys, argv)
+    assert f"error: too dark (raised at {path.resolve()}:7, in refuse)" in err
+
+    # raised in reachwatch's own code (here: `user_frame` given a Namespace): a bug of
+    # ours, whose traceback stays
+    monkeypatch.setattr(commands, "render", cli.user_frame)
+    with pytest.raises(AttributeError):
+        cli.main(["render", "--out", str(tmp_path / "out")])
+
+
+def test_a_worker_process_error_is_traced_to_the_users_code(tmp_path):
+    """Raised in a worker process, the frames come back as the cause's text
+    (`concurrent.futures.process._RemoteTraceback`); the user's innermost one is found
+    there."""
+    from concurrent.futures.process import _RemoteTraceback
+    path, _ = _user_module(tmp_path)
+    error = KeyError("darkness")
+    error.__cause__ = _RemoteTraceback(
+        f'\n"""\nTraceback (most recent call last):\n'
+        f'  File "{cli.__file__}", line 10, in main\n'
+        f'  File "{path}", line 3, in calc\n'
+        f"KeyError: 'darkness'\n\"\"\"")
+    assert cli.user_frame(error) == (str(path.resolve()), 3, "calc")
+    error.__cause__ = _RemoteTraceback(f'  File "{cli.__file__}", line 10, in main\n')
+    assert cli.user_frame(error) is None
