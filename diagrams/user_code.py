@@ -222,7 +222,7 @@ def _load_file(spec: str, target: str, where="controller.factory", named=None):
             try:
                 with user.importable():
                     module_spec.loader.exec_module(module)
-            except Exception as e:
+            except (Exception, SystemExit) as e:    # sys.exit() at import: exited silently
                 del sys.modules[name]
                 raise _failure(spec, e, path.parent, where) from e
             except BaseException:
@@ -284,7 +284,7 @@ def _module(spec: str, target: str, where="controller.factory"):
         raise ValueError(f"{where}: cannot import '{target}' ({clip(e, 300)}); "
                          f"install the package or name a file as 'path/to/file.py:function'"
                          ) from None
-    except Exception as e:
+    except (Exception, SystemExit) as e:
         raise _failure(spec, e, where=where) from e
     _package_digest(spec, target, where)
     return module

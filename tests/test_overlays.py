@@ -192,6 +192,13 @@ def test_a_bad_factory_name_is_one_line_when_loaded_its_code_when_needed(tmp_pat
     err = _one_line_error(capsys, ["simulate", "--scenario", str(path), "--out",
                                    str(tmp_path / "sim"), "--no-meshcat"])
     assert "importing it failed: RuntimeError: boom" in err
+    # sys.exit() at import: was an exit with that code and not a word
+    (folder / "e.py").write_text("import sys\nsys.exit(3)\n")
+    path.write_text(f"camera: {{width: 64, height: 36}}\ncontroller: {{factory: "
+                    f"'{folder / 'e.py'}:make'}}\n")
+    err = _one_line_error(capsys, ["simulate", "--scenario", str(path), "--out",
+                                   str(tmp_path / "sim"), "--no-meshcat"])
+    assert f"importing it failed: SystemExit: 3 at {folder / 'e.py'}:2" in err
     # code that fails when called: one line naming the factory and the line that raised
     (folder / "g.py").write_text("def make(config):\n    raise RuntimeError('bang')\n")
     path.write_text(f"camera: {{width: 64, height: 36}}\ncontroller: {{factory: "
