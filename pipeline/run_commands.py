@@ -53,6 +53,7 @@ def run_command(args):
     ``--until``, in ``--out`` (a folder, or an fsspec URL through a `RunMirror`)."""
     import contextlib
     import time
+    from pathlib import Path
 
     from reachwatch.systems.files import is_url, make_folder
 
@@ -72,6 +73,9 @@ def run_command(args):
             make_folder(args.sweep_cache)
         except (ValueError, OSError) as e:
             raise ValueError(f"--sweep-cache {e}") from None
+    elif args.sweep_cache and Path(args.sweep_cache).exists() and \
+            not Path(args.sweep_cache).is_dir():
+        raise ValueError(f"--sweep-cache {args.sweep_cache} is a file; name a folder")
     started = time.time()
 
     def stamp(message):

@@ -114,6 +114,11 @@ def test_a_sweep_cache_url_of_no_known_protocol_is_refused_before_any_work(tmp_p
                              "--sweep-cache", "bogus://x"])
     assert "--sweep-cache bogus://x: Protocol not known: bogus" in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.yaml"]
+    # a file where the folder goes: was said at the first sweep, after run.yaml was written
+    err = _one_line(capsys, ["run", "--scenario", "run.yaml", "--out", "out",
+                             "--sweep-cache", "run.yaml"])
+    assert "--sweep-cache run.yaml is a file; name a folder" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.yaml"]
 
 
 def test_an_actions_error_names_the_command_and_the_action(capsys):
