@@ -129,7 +129,7 @@ def make_controller(config) -> System:
             f"{clip(e, 200)}); a factory takes the config and returns a Drake System") from e
     except ValueError:
         raise                                   # the factory's own one-line complaint
-    except Exception as e:
+    except (Exception, SystemExit) as e:      # sys.exit(): was a silent exit
         if not config.factory:
             raise
         raise user_code.call_failure(config.factory, e, module) from e

@@ -54,13 +54,12 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
                                   executor=run.executor, progress=False)
     dynamics = run.application.dynamics(scenario)
     control_port = run.application.probe(scenario).control_port
-    try:                                 # named here, not at the first of several solves
-        check_controls(table.grid, dynamics, table[control_port])
-    except ValueError as e:
-        raise ValueError(f"{env.name}: {control_port}: {e}") from None
     solved = [0.0]
 
     def solve(table, spread=spec.robust.min_spread_deg):
+        # each level's table (refined ones too), named by environment and port
+        check_controls(table.grid, dynamics, table[control_port],
+                       where=f"{env.name}: {control_port}")
         started = time.time()
         vf = solve_brt(table.grid, dynamics, table[control_port], horizon=spec.horizon,
                        accuracy=spec.accuracy, period=scenario.controller.period,

@@ -105,35 +105,17 @@ def _clip(text: str) -> str:
     return clip(text)
 
 
+def _clip_message(error: BaseException) -> str:
+    """``error``'s message, clipped to leave room for where it was raised."""
+    from reachwatch.systems.checks import clip
+    return clip(str(error), 300)
+
+
 def user_frame(error: BaseException):
-    """``(file, line, function)`` of the innermost frame of ``error``'s traceback in
-    code neither reachwatch's nor installed (the standard library, site-packages): a
-    controller, plant or application of the user's; None when there is none."""
-    import re
-    import traceback
-    from pathlib import Path
-    ours = Path(__file__).resolve().parents[1]        # the package's folders' parent
-    installed = {Path(p).resolve() for p in (sys.prefix, sys.base_prefix, sys.exec_prefix)}
-    frames = [(f.filename, f.lineno, f.name) for f in traceback.extract_tb(error.__traceback__)]
-    cause = error.__cause__
-    if cause is not None and type(cause).__name__ == "_RemoteTraceback":
-        # raised in a worker process: its frames come back as the cause's text
-        frames = [(f, int(n), name) for f, n, name in re.findall(
-            r'File "([^"]+)", line (\d+), in (\S+)', str(cause))] + frames
-    for filename, line, function in reversed(frames):
-        path = Path(filename)
-        if not path.is_file():
-            continue                                   # <string>, frozen modules
-        path = path.resolve()
-        if any(folder in path.parents for folder in installed) or (
-                ours in path.parents and path.relative_to(ours).parts[0] in PACKAGE_FOLDERS):
-            continue
-        return str(path), line, function
-    return None
+    """Where the user's own code raised ``error`` (`diagrams.user_code.user_frame`)."""
+    from reachwatch.diagrams.user_code import user_frame as frame
+    return frame(error)
 
-
-#: reachwatch's own folders (the package's subpackages, as the repository lays them out).
-PACKAGE_FOLDERS = ("systems", "diagrams", "reach", "taxi", "training", "pipeline")
 
 #: The options that name a file or folder; an empty one is refused.
 PATH_OPTIONS = ("out", "scenario", "cache", "sweep_cache", "work_dir", "checkpoint", "run")
@@ -172,7 +154,8 @@ def main(argv=None) -> int:
         # (and where, when the user's own code raised it)
         where = user_frame(e)
         at = f" (raised at {where[0]}:{where[1]}, in {where[2]})" if where else ""
-        print(_clip(f"reachwatch {name}: error: {e}{at}"), file=sys.stderr)
+        message = _clip_message(e) if where else e      # room left for where
+        print(_clip(f"reachwatch {name}: error: {message}{at}"), file=sys.stderr)
         return 2
     except (PermissionError, FileExistsError, NotADirectoryError, IsADirectoryError) as e:
         # e.g. --out naming a file where a folder goes
@@ -193,9 +176,9 @@ def main(argv=None) -> int:
         where = None if args.verbose else user_frame(e)
         if where is None:
             raise
-        print(_clip(f"reachwatch {name}: error: {type(e).__name__}: {e}, raised at "
-                    f"{where[0]}:{where[1]} (in {where[2]}); -v shows the traceback"),
-              file=sys.stderr)
+        what = f"{type(e).__name__}: {_clip_message(e)}" if str(e) else type(e).__name__
+        print(f"reachwatch {name}: error: {what}, raised at {where[0]}:{where[1]} (in "
+              f"{where[2]}); -v shows the traceback", file=sys.stderr)
         return 1
     except KeyboardInterrupt as e:
         what = "terminated" if isinstance(e, Terminated) else "interrupted"

@@ -133,13 +133,11 @@ def brt_command(args):
     from reachwatch.reach.solver import check_controls
     scenario, grid, table, _ = _sweep(args)
     dynamics = dynamics_for(scenario)
-    try:
-        check_controls(table.grid, dynamics, table[CONTROL_PORT])
-    except ValueError as e:
-        raise ValueError(f"{scenario.environment.name}: {CONTROL_PORT}: {e}") from None
     started = time.time()
 
     def solve(table):
+        check_controls(table.grid, dynamics, table[CONTROL_PORT],
+                       where=f"{scenario.environment.name}: {CONTROL_PORT}")
         return solve_brt(table.grid, dynamics, table[CONTROL_PORT], horizon=args.horizon,
                          accuracy=args.accuracy, period=scenario.controller.period,
                          periods_per_step=args.periods_per_step,

@@ -747,7 +747,7 @@ def load_application(spec: str = "") -> Application:
                          f"of no arguments that returns one") from e
     except ValueError:
         raise                                   # the application's own one-line complaint
-    except Exception as e:
+    except (Exception, SystemExit) as e:      # sys.exit(): was a silent exit
         if not spec:
             raise
         raise user_code.call_failure(spec, e, module, where="application") from e

@@ -97,16 +97,21 @@ def _bound_corners(grid, table, control_bounds, accuracy):
             for choice in itertools.product((0, 1), repeat=lo.shape[-1])]
 
 
-def check_controls(grid: Grid, dynamics, table: np.ndarray):
-    """A ValueError, naming how many nodes and the first one, where the swept control
-    ``table`` (``grid.shape`` or ``grid.shape + (m,)``) is NaN or infinite, or lies
-    outside the plant's `Dynamics.control_limits` (a controller's mistake the flow
-    would read as another command, such as degrees for radians)."""
-    u = table.reshape(grid.size, -1)
+def check_controls(grid: Grid, dynamics, table: np.ndarray, *, where: str = ""):
+    """A ValueError, naming how many nodes and the first one (and ``where``: the
+    environment and port, say), where the swept control ``table`` (``grid.shape`` or
+    ``grid.shape + (m,)``) is NaN or infinite, or lies outside the plant's
+    `Dynamics.control_limits` (open: a saturated actuator's own limit lies outside;
+    give the bound just past it), a controller's mistake the flow would read as another
+    command, such as degrees for radians."""
+    u = np.asarray(table, float).reshape(grid.size, -1)
     limits = getattr(dynamics, "control_limits", lambda: None)()
     checks = [(~np.all(np.isfinite(u), axis=1), "NaN or infinite")]
     if limits is not None:
-        lo, hi = (np.broadcast_to(np.asarray(b, float), u.shape[1:]) for b in limits)
+        lo, hi = (np.atleast_1d(np.asarray(b, float)) for b in limits)
+        if lo.shape != (u.shape[1],) or hi.shape != (u.shape[1],):
+            raise ValueError(f"{type(dynamics).__name__}.control_limits gives {lo.size} and "
+                             f"{hi.size} bounds for {u.shape[1]} control components")
         with np.errstate(invalid="ignore"):
             outside = np.any((u <= lo) | (u >= hi), axis=1) & ~checks[0][0]
         checks.append((outside, "outside the plant's controls (" + ", ".join(
@@ -115,9 +120,10 @@ def check_controls(grid: Grid, dynamics, table: np.ndarray):
         if np.any(bad):
             first = int(np.argmax(bad))
             state = ", ".join(f"{n}={v:.4g}" for n, v in zip(grid.names, grid.states([first])[0]))
-            raise ValueError(f"the swept control is {what} at {int(bad.sum())} of {grid.size} "
-                             f"grid states, the first [{state}] (control {u[first].tolist()}): "
-                             f"look at the controller's output there")
+            raise ValueError(f"{where + ': ' if where else ''}the swept control is {what} at "
+                             f"{int(bad.sum())} of {grid.size} grid states, the first [{state}] "
+                             f"(control {u[first].tolist()}): look at the controller's output "
+                             f"there")
 
 
 def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,

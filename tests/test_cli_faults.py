@@ -170,23 +170,43 @@ def test_an_error_raised_in_the_users_code_names_its_file_and_line(tmp_path, cap
 
     # raised in reachwatch's own code (here: `user_frame` given a Namespace): a bug of
     # ours, whose traceback stays
-    monkeypatch.setattr(commands, "render", cli.user_frame)
+    monkeypatch.setattr(commands, "render", cli.user_frame)      # given a Namespace
     with pytest.raises(AttributeError):
         cli.main(["render", "--out", str(tmp_path / "out")])
 
 
 def test_a_worker_process_error_is_traced_to_the_users_code(tmp_path):
     """Raised in a worker process, the frames come back as the cause's text
-    (`concurrent.futures.process._RemoteTraceback`); the user's innermost one is found
-    there."""
+    (`concurrent.futures.process._RemoteTraceback`), inside the frames here: the
+    user's innermost one there is found; an error reachwatch raised while handling the
+    user's is reachwatch's (its traceback stays), and so is one raised inside reachwatch
+    when the user's code called it."""
     from concurrent.futures.process import _RemoteTraceback
-    path, _ = _user_module(tmp_path)
-    error = KeyError("darkness")
-    error.__cause__ = _RemoteTraceback(
-        f'\n"""\nTraceback (most recent call last):\n'
-        f'  File "{cli.__file__}", line 10, in main\n'
-        f'  File "{path}", line 3, in calc\n'
-        f"KeyError: 'darkness'\n\"\"\"")
-    assert cli.user_frame(error) == (str(path.resolve()), 3, "calc")
-    error.__cause__ = _RemoteTraceback(f'  File "{cli.__file__}", line 10, in main\n')
-    assert cli.user_frame(error) is None
+
+    from reachwatch.diagrams import user_code
+    path, module = _user_module(tmp_path)
+    ours = user_code.__file__
+
+    def remote(*frames, handled=()):
+        def block(fs):
+            return "Traceback (most recent call last):\n" + "".join(
+                f'  File "{f}", line {n}, in {name}\n    code\n' for f, n, name in fs)
+        text = block(handled) + "KeyError: 'darkness'\n\nDuring handling of the above " \
+            "exception, another exception occurred:\n\n" if handled else ""
+        return _RemoteTraceback(f'\n"""\n{text}{block(frames)}Error\n"""')
+
+    def raised_here_by(remote_cause):
+        try:                     # a local frame of the user's module outside the worker's
+            module.calc(None)
+        except KeyError as e:
+            e.__cause__ = remote_cause
+            return e
+
+    error = raised_here_by(remote((ours, 10, "main"), (str(path), 7, "refuse")))
+    assert user_code.user_frame(error) == (str(path.resolve()), 7, "refuse")
+    error = raised_here_by(remote((ours, 10, "main"), (ours, 20, "check"),
+                                  handled=[(str(path), 3, "calc")]))
+    assert user_code.user_frame(error) is None      # reachwatch's, raised while handling
+    error = raised_here_by(remote((str(path), 7, "refuse"), (ours, 20, "check")))
+    assert user_code.user_frame(error) is None      # raised in reachwatch, called by the user
+    assert user_code.user_frame(raised_here_by(None)) == (str(path.resolve()), 3, "calc")

@@ -68,6 +68,8 @@ def test_the_prediction_error_baseline_reads_the_applications_truth():
     assert own.refusal(states, np.zeros((2, 3))) == ("the controller's estimate has 3 "
                                                      "numbers, the true estimate 2")
     assert own.refusal(states, np.zeros((2, 0))) == "the controller has no estimate"
+    assert own.refusal(states[:0], np.zeros((0, 2))) == ("no states to measure it at (states "
+                                                          "(0, 2), estimates (0, 2))")
     with pytest.raises(ValueError, match="RailFollower: the controller's estimate has 3"):
         own(states, np.zeros((2, 3)))
     # an estimate NaN or infinite anywhere is no estimate to measure an error of: an

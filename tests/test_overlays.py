@@ -198,7 +198,7 @@ def test_a_bad_factory_name_is_one_line_when_loaded_its_code_when_needed(tmp_pat
                     f"'{folder / 'e.py'}:make'}}\n")
     err = _one_line_error(capsys, ["simulate", "--scenario", str(path), "--out",
                                    str(tmp_path / "sim"), "--no-meshcat"])
-    assert f"importing it failed: SystemExit: 3 at {folder / 'e.py'}:2" in err
+    assert f"importing it failed: SystemExit: it called sys.exit(3) at {folder / 'e.py'}:2" in err
     # code that fails when called: one line naming the factory and the line that raised
     (folder / "g.py").write_text("def make(config):\n    raise RuntimeError('bang')\n")
     path.write_text(f"camera: {{width: 64, height: 36}}\ncontroller: {{factory: "

@@ -94,6 +94,7 @@ def test_solver_agrees_with_rollouts_small_grid(accuracy, hold):
 
 
 def test_solver_input_errors():
+    from reachwatch.reach.solver import check_controls
     g = paper_grid(B, (5, 5, 5))
     dyn = TaxiDynamics(half_width=B)
     with pytest.raises(ValueError, match="does not match grid"):
@@ -114,8 +115,18 @@ def test_solver_input_errors():
             f"outside the plant's controls (-1.5708 < u0 < 1.5708) at 2 of 125 grid states, "
             f"the first [{first}] (control [10.0])")):
         solve_brt(g, dyn, table)
+    with pytest.raises(ValueError, match=r"^KSFO_21h_clear: controller.steering_angle: the "
+                                         r"swept control is outside"):
+        check_controls(g, dyn, table, where="KSFO_21h_clear: controller.steering_angle")
     table[1, 2, 3], table[4, 4, 4] = 1.5, -1.5
     solve_brt(g, dyn, table, horizon=0.2, device="cpu")     # within: solved
+
+    class TwoControls(TaxiDynamics):                        # a limit for each component
+        def control_limits(self):
+            return [-1.0], [1.0]
+    with pytest.raises(ValueError, match="TwoControls.control_limits gives 1 and 1 bounds "
+                                         "for 2 control components"):
+        check_controls(g, TwoControls(half_width=B), np.zeros(g.shape + (2,)))
 
 
 def test_value_function_round_trip_and_queries(tmp_path):

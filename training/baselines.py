@@ -8,6 +8,10 @@ from typing import Callable, Optional, Tuple
 import numpy as np
 
 
+#: `EstimateError.refusal` of a controller with no ``estimate`` output (nothing amiss).
+NO_ESTIMATE = "the controller has no estimate"
+
+
 @dc.dataclass(frozen=True)
 class EstimateError:
     """The controller's prediction error as an anomaly score:
@@ -28,8 +32,12 @@ class EstimateError:
         whose estimate is NaN or infinite anywhere, has none either: an error measured
         against such a number would rank, and label, nothing that it means."""
         estimates, states = np.asarray(estimates), np.asarray(states, float)
-        if estimates.ndim != 2 or estimates.shape[1] == 0 or states.ndim != 2 or not len(states):
-            return "the controller has no estimate"
+        if states.ndim != 2 or not len(states) or estimates.ndim != 2 or \
+                len(estimates) != len(states):
+            return (f"no states to measure it at (states {states.shape}, estimates "
+                    f"{estimates.shape})")
+        if estimates.shape[1] == 0:
+            return NO_ESTIMATE
         size = np.asarray(self.truth(states[:1])).shape[-1]
         if estimates.shape[1] != size:
             return (f"the controller's estimate has {estimates.shape[1]} numbers, the true "

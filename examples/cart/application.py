@@ -54,6 +54,10 @@ class CartDynamics(Dynamics):
         return torch.stack([v * torch.sin(x[..., 1]), v / WHEELBASE * torch.tan(u[..., 0])],
                            dim=-1)
 
+    def control_limits(self):
+        """The steering within +-pi/2 rad, where tan turns back."""
+        return [-np.pi / 2], [np.pi / 2]
+
     def target(self, x):
         return HALF_WIDTH - x[..., 0].abs()
 

@@ -52,6 +52,9 @@ class Cart(LeafSystem):
     def DoCalcTimeDerivatives(self, context, derivatives):
         y, theta = self._x(context)
         v, phi = self._speed.Eval(context)[0], self._steering.Eval(context)[0]
+        if not abs(phi) < np.pi / 2:              # tan turns the other way past it
+            raise ValueError(f"Cart: steering_angle {phi:g} rad at t = "
+                             f"{context.get_time():.3f} s is not within +-pi/2 rad")
         derivatives.get_mutable_vector().SetFromVector(
             [v * np.sin(theta), v / WHEELBASE * np.tan(phi)])
 

@@ -50,6 +50,9 @@ class LagCar(LeafSystem):
     def DoCalcTimeDerivatives(self, context, derivatives):
         px, py, theta, v = self._x(context)
         phi, command = self._steering.Eval(context)[0], self._command.Eval(context)[0]
+        if not abs(phi) < np.pi / 2:              # tan turns the other way past it
+            raise ValueError(f"LagCar: steering_angle {phi:g} rad at t = "
+                             f"{context.get_time():.3f} s is not within +-pi/2 rad")
         derivatives.get_mutable_vector().SetFromVector([
             v * np.sin(theta), v * np.cos(theta), v / self._L * np.tan(phi),
             (command - v) / self._tau])
@@ -71,6 +74,10 @@ class LagCarDynamics(Dynamics):
         return torch.stack([v * torch.sin(theta), v * torch.cos(theta),
                             v / self.wheelbase * torch.tan(u[..., 0]),
                             (command - v) / self.time_constant], dim=-1)
+
+    def control_limits(self):
+        """The steering within +-pi/2 rad, where tan turns back."""
+        return [-np.pi / 2], [np.pi / 2]
 
     def target(self, x):
         return self.half_width - x[..., 0].abs()
