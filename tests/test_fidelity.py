@@ -70,12 +70,17 @@ def test_select_map_weighs_false_safe_verdicts_and_breaks_ties_by_cost():
 
 def test_a_loop_turning_beyond_the_box_is_reported():
     """A P-controller with the heading gain's sign flipped turns away: its real run
-    leaves the box's +-28 deg long before the horizon, and left_box says so."""
+    leaves the box's +-28 deg within 1.2 s, and left_box says so; run on, its command
+    passes a quarter turn (2 x 45 deg), which the plant refuses."""
     grid = paper_grid(10.0, (5, 3, 5))
     turning = load_scenario(data="controller: {px_gain: 0.0, theta_gain: 2.0}\n")
     run = simulate(make_state_feedback_diagram(turning), initial_state=[0.0, 120.0, 0.05],
-                   duration=8.0, period=0.05, half_width=1e3, stop_on_failure=False)
+                   duration=1.2, period=0.05, half_width=1e3, stop_on_failure=False)
     assert np.max(np.abs(run.state[:, 2])) > np.deg2rad(28.0)
+    with pytest.raises(ValueError, match="'steering_angle' is .* rad at t = 1.[0-9]* s; a "
+                                         "wheel angle lies within"):
+        simulate(make_state_feedback_diagram(turning), initial_state=[0.0, 120.0, 0.05],
+                 duration=8.0, period=0.05, half_width=1e3, stop_on_failure=False)
     assert left_box(run.state, grid, axes=(1, 2))
     steady = simulate(make_state_feedback_diagram(load_scenario(data="")),
                       initial_state=[0.0, 120.0, 0.05], duration=8.0, period=0.05,
