@@ -13,7 +13,6 @@ import numpy as np
 
 from reachwatch.reach import (compare_verdicts, min_target_along_rollouts, select_map,
                              sign_agreement, solve_brt)
-from reachwatch.reach.solver import check_controls
 from reachwatch.reach.robust import control_bounds
 from reachwatch.reach.sweep import cached_table_digest
 from reachwatch.systems.checks import device_kind
@@ -57,11 +56,10 @@ def solve_env(run: Run, env, *, checkpoint=None, label="") -> dict:
     solved = [0.0]
 
     def solve(table, spread=spec.robust.min_spread_deg):
-        # each level's table (refined ones too), named by environment and port
-        check_controls(table.grid, dynamics, table[control_port],
-                       where=f"{env.name}: {control_port}")
         started = time.time()
+        # each level's table (refined ones too) checked, named by environment and port
         vf = solve_brt(table.grid, dynamics, table[control_port], horizon=spec.horizon,
+                       where=f"{env.name}: {control_port}",
                        accuracy=spec.accuracy, period=scenario.controller.period,
                        periods_per_step=spec.periods_per_step,
                        control_bounds=control_bounds(table, control_port, spread,

@@ -130,15 +130,13 @@ def brt_command(args):
     from reachwatch.taxi.plots import plot_brt_slices
 
     from .executors import open_executor
-    from reachwatch.reach.solver import check_controls
     scenario, grid, table, _ = _sweep(args)
     dynamics = dynamics_for(scenario)
     started = time.time()
 
     def solve(table):
-        check_controls(table.grid, dynamics, table[CONTROL_PORT],
-                       where=f"{scenario.environment.name}: {CONTROL_PORT}")
         return solve_brt(table.grid, dynamics, table[CONTROL_PORT], horizon=args.horizon,
+                         where=f"{scenario.environment.name}: {CONTROL_PORT}",
                          accuracy=args.accuracy, period=scenario.controller.period,
                          periods_per_step=args.periods_per_step,
                          control_bounds=steering_bounds(table, args.robust_spread))

@@ -130,7 +130,7 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
               accuracy: str = "semi_lagrangian", period: float = 0.05,
               periods_per_step: int = 4, cfl: float = 0.75, exit_fails=(),
               control_bounds=None, device=None, dtype=torch.float32,
-              progress=None) -> ValueFunction:
+              progress=None, where: str = "") -> ValueFunction:
     """V(x, 0) of the closed loop ``f(x, control_table(x))`` over exactly ``horizon`` s.
 
     ``control_table``: ``grid.shape`` or ``grid.shape + (m,)``; ``period`` (s) is the
@@ -152,7 +152,10 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
     under ``control_table`` and under each corner of the bounds (every component at its
     ``lo`` or ``hi``), the choice held for the step. It covers outputs the grid cannot
     see between its nodes, and it can only grow the BRT. The metadata records the share
-    of nodes whose bounds are wider than the table (``bounded_nodes``)."""
+    of nodes whose bounds are wider than the table (``bounded_nodes``).
+
+    The table is checked first (`check_controls`; ``where`` names it in the error:
+    the environment and port, say)."""
     if accuracy not in ACCURACIES:
         raise ValueError(f"accuracy must be one of {sorted(ACCURACIES)}, got '{accuracy}'")
     horizon = positive("horizon", horizon)
@@ -173,7 +176,7 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
                          f"0..{grid.ndim - 1} ({', '.join(grid.names)})")
     if exit_fails and accuracy != "semi_lagrangian":
         raise ValueError(f"exit_fails needs accuracy 'semi_lagrangian', got '{accuracy}'")
-    check_controls(grid, dynamics, table)
+    check_controls(grid, dynamics, table, where=where)
     corners = _bound_corners(grid, table, control_bounds, accuracy)
     device = torch_device(device)
     as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)     # noqa: E731

@@ -118,6 +118,8 @@ def test_solver_input_errors():
     with pytest.raises(ValueError, match=r"^KSFO_21h_clear: controller.steering_angle: the "
                                          r"swept control is outside"):
         check_controls(g, dyn, table, where="KSFO_21h_clear: controller.steering_angle")
+    with pytest.raises(ValueError, match=r"^KSFO_21h_clear: controller.steering_angle: the "):
+        solve_brt(g, dyn, table, where="KSFO_21h_clear: controller.steering_angle")
     table[1, 2, 3], table[4, 4, 4] = 1.5, -1.5
     solve_brt(g, dyn, table, horizon=0.2, device="cpu")     # within: solved
 
