@@ -60,7 +60,7 @@ def main():
                 start = time.perf_counter()
                 trajectory = simulate(diagram, initial_state=x0, duration=args.duration,
                                       period=scenario.controller.period,
-                                      half_width=1e9, context=context)
+                                      context=context)
                 best = max(best, (len(trajectory.time) - 1) / (time.perf_counter() - start))
             renderer = StateRenderer(environment=scenario.environment, camera=scenario.camera)
             states = np.column_stack([rng.uniform(-11, 11, 200), rng.uniform(100, 250, 200),

@@ -50,6 +50,7 @@ from reachwatch.diagrams import StateRenderer, load_scenario, make_closed_loop_d
 from reachwatch.diagrams import closed_loop
 from reachwatch.diagrams.lockstep import batch_systems, loop_copies, simulate_lockstep
 from reachwatch.systems import TaxiNet, TaxiPlant
+from reachwatch.taxi import OffRunway
 
 from closed_loop import checkpoint_for   # the shipped or a seeded random TaxiNet
 
@@ -146,7 +147,7 @@ def main():
         def runs(n, t=default_threads):
             torch.set_num_threads(t)
             return simulate_lockstep(loops[:n], initial_states=starts, duration=args.duration,
-                                     period=period, half_width=B)
+                                     period=period, failed=OffRunway(B))
 
         reference = runs(1)
         visited = np.concatenate([run.state for run in reference])

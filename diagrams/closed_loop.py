@@ -32,11 +32,11 @@ LOOP_OUTPUTS = ("state", "estimate", "speed", "anomaly", "score")
 @dc.dataclass
 class Trajectory:
     """A logged run: times (s), plant states and the controller's estimates (``(n, 0)``
-    when it declares none) at every control tick; ``failed`` iff ``|px| >= B``."""
+    when it declares none) at every control tick; ``failed`` iff the run's failure rule
+    (`simulate`'s ``failed``) held at a logged state or ended the run between ticks."""
     time: np.ndarray
     state: np.ndarray
     estimate: np.ndarray
-    half_width: float
     failed: bool
     failure_time: float = float("nan")
     speed: np.ndarray = None          # m/s per tick (loops exporting ``speed``)
@@ -172,11 +172,28 @@ def loop_context(diagram: Diagram):
     return context
 
 
-def start_simulator(diagram: Diagram, *, initial_state, half_width: float = 1e9,
+def _checked_rule(failed):
+    """``failed`` checked: None (a run never fails) or a function of states ``(n, d)``
+    returning ``(n,)`` bools, as `reachwatch.reach.Application.failed` of one scenario
+    (the taxi's: `reachwatch.taxi.off_runway`); a ValueError naming what was given
+    otherwise."""
+    if failed is not None and not callable(failed):
+        raise ValueError(f"failed must be a function of the plant states (n, d) returning n "
+                         f"bools, or None, got {type(failed).__name__}")
+    return failed
+
+
+def _state_failed(failed, x) -> bool:
+    """``failed`` (`_checked_rule`) of one state ``x``."""
+    return failed is not None and bool(np.asarray(failed(np.asarray(x, float)[None]))[0])
+
+
+def start_simulator(diagram: Diagram, *, initial_state, failed=None,
                     stop_on_failure: bool = True, context=None):
     """A `Simulator` of a closed-loop diagram, initialised at time 0 from its default
     context with its continuous state (the plant's) set to ``initial_state`` and a
-    monitor that ends the run at failure (``|state[0]| >= half_width``) if asked.
+    monitor that ends the run at the first step where ``failed`` (`_checked_rule`: a
+    function of plant states; None: never) holds of the state, if asked.
     ``context``: the Context to run in (reset first); None: the diagram's own
     (`loop_context`), so runs of one diagram without one run one after another, not
     interleaved. Returns ``(simulator, failure)``; ``failure`` gets ``"t"`` (s) when
@@ -185,8 +202,7 @@ def start_simulator(diagram: Diagram, *, initial_state, half_width: float = 1e9,
     if x0.ndim != 1 or not np.all(np.isfinite(x0)):
         raise ValueError(f"initial state must be a vector of finite numbers (the taxi's: "
                          f"[px m, py m, theta rad]), got {np.asarray(initial_state).tolist()}")
-    if not (np.isfinite(half_width) and half_width > 0):
-        raise ValueError(f"half_width must be a finite number > 0 m, got {half_width}")
+    failed = _checked_rule(failed)
     state = _output(diagram, "state", required=True)
     simulator = Simulator(diagram, loop_context(diagram) if context is None else context)
     context = simulator.get_mutable_context()
@@ -200,9 +216,9 @@ def start_simulator(diagram: Diagram, *, initial_state, half_width: float = 1e9,
     failure = {}
 
     def monitor(root_context):
-        if stop_on_failure and abs(state.Eval(root_context)[0]) >= half_width:
+        if stop_on_failure and _state_failed(failed, state.Eval(root_context)):
             failure["t"] = root_context.get_time()
-            return EventStatus.ReachedTermination(diagram, "left the runway")
+            return EventStatus.ReachedTermination(diagram, "failed")
         return EventStatus.DidNothing()
 
     simulator.set_monitor(monitor)
@@ -227,12 +243,13 @@ class LoopRun:
     tick between the two calls. Arguments are `simulate`'s."""
 
     def __init__(self, diagram: Diagram, *, initial_state, duration: float, period: float,
-                 half_width: float, stop_on_failure: bool = True, context=None,
+                 failed=None, stop_on_failure: bool = True, context=None,
                  stop_when=None, record=None):
         self.times = tick_times(duration, period)
-        self.duration, self.half_width, self.stop_when = duration, half_width, stop_when
+        self.duration, self.stop_when = duration, stop_when
+        self.failed = _checked_rule(failed)
         self.simulator, self.failure = start_simulator(
-            diagram, initial_state=initial_state, half_width=half_width,
+            diagram, initial_state=initial_state, failed=failed,
             stop_on_failure=stop_on_failure, context=context)
         self.context = self.simulator.get_context()
         self.ports = {name: _output(diagram, name) for name in LOOP_OUTPUTS}
@@ -273,38 +290,41 @@ class LoopRun:
 
     def trajectory(self) -> Trajectory:
         """The run logged so far."""
-        rows, times, half_width = self.rows, self.times, self.half_width
+        rows, times = self.rows, self.times
         n = len(rows["state"])
         x = np.array(rows["state"]).reshape(n, -1)
-        failed = bool(np.any(np.abs(x[:, 0]) >= half_width)) or "t" in self.failure
+        at = (np.zeros(n, bool) if self.failed is None or n == 0
+              else np.asarray(self.failed(x), bool).reshape(n))
+        failed = bool(np.any(at)) or "t" in self.failure
         t_fail = self.failure.get("t", float("nan"))
         if failed and np.isnan(t_fail):
-            t_fail = float(times[np.argmax(np.abs(x[:, 0]) >= half_width)])
+            t_fail = float(times[np.argmax(at)])
         estimate = (np.array(rows["estimate"]).reshape(n, -1) if "estimate" in rows
                     else np.zeros((n, 0)))
         extra = {name: np.array(rows[name]).reshape(n, -1)[:, 0]
                  for name in ("speed", "anomaly", "score") if name in rows}
-        return Trajectory(time=times[:n], state=x, estimate=estimate, half_width=half_width,
-                          failed=failed, failure_time=t_fail,
+        return Trajectory(time=times[:n], state=x, estimate=estimate, failed=failed,
+                          failure_time=t_fail,
                           records=({k: np.stack(v) for k, v in self.recorded.items()}
                                    if self.record else None),
                           **extra)
 
 
 def simulate(diagram: Diagram, *, initial_state, duration: float, period: float,
-             half_width: float, stop_on_failure: bool = True, context=None,
+             failed=None, stop_on_failure: bool = True, context=None,
              stop_when=None, record=None) -> Trajectory:
     """Runs a closed-loop diagram from ``initial_state`` for ``duration`` s and reads its
     exported ports (``state``; ``estimate``, ``speed``, ``anomaly`` when exported) at
-    every control tick (every ``period`` s); stops early at failure (``|px| >=
-    half_width``) if asked, and after the tick where ``stop_when(rows)`` is true, if
-    given (``rows``: {port name: list of the values read so far, one per tick}).
+    every control tick (every ``period`` s); stops early at failure if asked (the first
+    step where ``failed``, a function of plant states ``(n, d)`` -> ``(n,)`` bools,
+    holds; None: the run never fails), and after the tick where ``stop_when(rows)`` is
+    true, if given (``rows``: {port name: list of the values read so far, one per tick}).
 
     ``record`` ({exported output port name: function of its value}) reads more ports at
     every tick, e.g. ``{"color_image": lambda image: image.data.copy()}``; the results
     are stacked in ``Trajectory.records``. `LoopRun` is the same run a tick at a time."""
     run = LoopRun(diagram, initial_state=initial_state, duration=duration, period=period,
-                  half_width=half_width, stop_on_failure=stop_on_failure, context=context,
+                  failed=failed, stop_on_failure=stop_on_failure, context=context,
                   stop_when=stop_when, record=record)
     while run.advance():
         run.sample()

@@ -69,7 +69,7 @@ def _counterparts(loops) -> list:
 
 
 def simulate_lockstep(loops: Sequence, *, initial_states, duration: float, period: float,
-                      half_width: float, stop_on_failure: bool = True,
+                      failed=None, stop_on_failure: bool = True,
                       stop_when: Optional[Callable[[int], Callable]] = None,
                       record=None) -> list:
     """`simulate` from each of ``initial_states``, ``len(loops)`` runs at a time in
@@ -82,7 +82,7 @@ def simulate_lockstep(loops: Sequence, *, initial_states, duration: float, perio
     starts = [np.asarray(x, float) for x in initial_states]
     if len(loops) < 1:
         raise ValueError("simulate_lockstep needs at least one copy of the loop")
-    settings = dict(duration=duration, period=period, half_width=half_width,
+    settings = dict(duration=duration, period=period, failed=failed,
                     stop_on_failure=stop_on_failure, record=record)
     if len(loops) == 1:                         # one at a time: `simulate` itself
         diagram, context = loops[0]

@@ -39,7 +39,7 @@ def simulate_command(args):
     from reachwatch.diagrams import initial_state_vector, make_closed_loop_diagram, simulate
     from reachwatch.diagrams.plots import plot_runway_top_view
     from reachwatch.systems.files import atomic_write_bytes
-    from reachwatch.taxi import simulate_guarded
+    from reachwatch.taxi import OffRunway, simulate_guarded
     scenario = scenario_from_args(args, controller=True)
     if args.loop == "guarded":
         check_detector(scenario, args.scenario)
@@ -55,7 +55,7 @@ def simulate_command(args):
     diagram = make_closed_loop_diagram(scenario)
     trajectory = simulate(diagram, initial_state=initial_state_vector(scenario.initial_state),
                           duration=scenario.duration, period=scenario.controller.period,
-                          half_width=scenario.environment.half_width)
+                          failed=OffRunway(scenario.environment.half_width))
     name = scenario.environment.name
     header, columns = _columns(trajectory)
     text = io.StringIO()
@@ -63,11 +63,12 @@ def simulate_command(args):
     atomic_write_bytes(out / f"{name}_trajectory.csv", text.getvalue().encode())
     buffer = io.BytesIO()
     np.savez(buffer, time=trajectory.time, state=trajectory.state,
-             estimate=trajectory.estimate, half_width=trajectory.half_width,
+             estimate=trajectory.estimate, half_width=scenario.environment.half_width,
              failed=trajectory.failed, failure_time=trajectory.failure_time)
     atomic_write_bytes(out / f"{name}_trajectory.npz", buffer.getvalue())
     verdict = (f"FAILED at {trajectory.failure_time:.2f} s" if trajectory.failed
                else "stayed on the runway")
-    plot = plot_runway_top_view([(trajectory, "closed loop")], half_width=trajectory.half_width,
+    plot = plot_runway_top_view([(trajectory, "closed loop")],
+                                half_width=scenario.environment.half_width,
                                 path=out / f"{name}_trajectory.png", title=f"{name}: {verdict}")
     log.info(f"{verdict}; wrote {out / (name + '_trajectory.csv')}, .npz and {plot}")

@@ -47,8 +47,8 @@ def run_until_failed(diagram, scenario, failed, start, duration: float, *, conte
     (`failure_rule`) holds, or where ``done(rows)`` says so; ``context``: a reused one."""
     from reachwatch.diagrams import simulate
     run = simulate(diagram, initial_state=start, duration=duration,
-                   period=scenario.controller.period, half_width=1e300, stop_on_failure=False,
-                   context=context, stop_when=lambda rows: failed(rows["state"][-1]) or
+                   period=scenario.controller.period, context=context,
+                   stop_when=lambda rows: failed(rows["state"][-1]) or
                    (done is not None and done(rows)))
     return run, failed(run.state[-1])
 
@@ -59,8 +59,8 @@ def run_reading(diagram, scenario, failed, start, duration: float, read, *, cont
     is read), its results listed in order."""
     from reachwatch.diagrams.closed_loop import LoopRun
     run = LoopRun(diagram, initial_state=start, duration=duration,
-                  period=scenario.controller.period, half_width=1e300, stop_on_failure=False,
-                  context=context, stop_when=lambda rows: failed(rows["state"][-1]))
+                  period=scenario.controller.period, context=context,
+                  stop_when=lambda rows: failed(rows["state"][-1]))
     readings = []
     while run.advance():
         readings.append(read(run.context))

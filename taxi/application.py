@@ -13,7 +13,7 @@ from reachwatch.reach.application import Application
 from reachwatch.systems import Environment, RandomEnvironments, TaxiNet
 
 from . import fidelity, guarded, guarded_run, history, plots, sweeps
-from .dynamics import dynamics_for
+from .dynamics import OffRunway, dynamics_for
 from .grid import AXES, paper_grid
 from .taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
 
@@ -94,7 +94,7 @@ class TaxiApplication(RunwayEnvironments, Application):
         return dynamics_for(scenario)
 
     def failed(self, scenario, states):
-        return np.abs(np.asarray(states, float)[:, 0]) >= scenario.environment.half_width
+        return OffRunway(scenario.environment.half_width)(states)
 
     def grid(self, scenario, shape, *, theta_deg=28.0, py_max=250.0):
         return paper_grid(scenario.environment.half_width, tuple(shape), theta_deg=float(theta_deg),
@@ -249,7 +249,7 @@ class TaxiApplication(RunwayEnvironments, Application):
         from reachwatch.diagrams import simulate
         run = simulate(self.loop_diagram(scenario), initial_state=start,
                        period=scenario.controller.period, duration=duration,
-                       half_width=scenario.environment.half_width)
+                       failed=OffRunway(scenario.environment.half_width))
         return run, run.failed
 
     def plot_runs(self, runs, *, scenario, path, title=""):

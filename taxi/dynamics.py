@@ -1,10 +1,29 @@
 """The taxiing aircraft as the solver sees it: kinematic bicycle at a set speed,
 failure when it leaves the runway."""
 
+import numpy as np
 import torch
 
 from reachwatch.reach import Dynamics
 from reachwatch.systems import MAX_STEERING_RAD, NOMINAL_SPEED_MPS, WHEELBASE_M
+
+
+class OffRunway:
+    """The taxi's failure rule, as `reachwatch.diagrams.simulate` takes it: plant states
+    ``(n, 3)`` -> ``(n,)`` bools, ``|px| >= half_width`` (m). A class, not a closure, so
+    that it pickles with the settings it is part of."""
+
+    def __init__(self, half_width: float):
+        half_width = float(half_width)
+        if not (np.isfinite(half_width) and half_width > 0):
+            raise ValueError(f"half_width must be a finite number > 0 m, got {half_width}")
+        self.half_width = half_width
+
+    def __call__(self, states) -> np.ndarray:
+        return np.abs(np.asarray(states, float)[:, 0]) >= self.half_width
+
+    def __repr__(self):
+        return f"OffRunway(half_width={self.half_width:g})"
 
 
 class TaxiDynamics(Dynamics):

@@ -25,6 +25,7 @@ from reachwatch.reach.thread_kept import KEPT_DIAGRAMS, ThreadKept
 from reachwatch.systems import fallback_parts
 from reachwatch.systems.torch_threads import torch_threads
 
+from .dynamics import OffRunway
 from .sweeps import resolved
 
 #: The taxi grid axes where leaving the box is not a failure (py, theta): past |px| = B
@@ -118,7 +119,8 @@ def taxi_rollouts(scenario, duration: float, grid, states, *, lockstep=None) -> 
     states = np.asarray(states, float)
     on = np.abs(states[:, 0]) < B
     runs = iter(_real_runs(scenario, make_closed_loop_diagram, states[on], lockstep=lockstep,
-                           duration=duration, period=scenario.controller.period, half_width=B))
+                           duration=duration, period=scenario.controller.period,
+                           failed=OffRunway(B)))
     out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
     for x, on_runway in zip(states, on):
         if not on_runway:                       # already off the runway
@@ -152,7 +154,7 @@ def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, state
     states = np.asarray(states, float)
     runs = iter(_real_runs(scenario, make_closed_loop_diagram,
                            states[np.abs(states[:, 0]) < B], lockstep=lockstep,
-                           duration=horizon + extend, period=period, half_width=B))
+                           duration=horizon + extend, period=period, failed=OffRunway(B)))
     out = {"failed": np.zeros(len(states), bool), "failure_time": np.full(len(states), np.nan),
            "left_box": np.zeros(len(states), bool), "max_abs_theta": np.zeros(len(states)),
            "ticks": np.zeros(len(states), int),
@@ -255,7 +257,7 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
     out = {name: [] for name in names}
     states = np.asarray(states, float)
     runs = iter(_real_runs(loop, make, states[np.abs(states[:, 0]) < B], lockstep=lockstep,
-                           period=period, half_width=B,
+                           period=period, failed=OffRunway(B),
                            duration=duration * (mission_limit or 1.0),
                            stop_when=(None if mission_limit is None else
                                       lambda i: mission_done(goal, nominal, period, duration))))
@@ -336,7 +338,7 @@ def score_paths(scenario, duration: float, states, *, lockstep=None) -> dict:
     states = np.asarray(states, float)
     runs = iter(_real_runs(scenario, make_watched_loop, states[np.abs(states[:, 0]) < B],
                            lockstep=lockstep, duration=duration, period=period,
-                           half_width=B))
+                           failed=OffRunway(B)))
     out = {"state": np.full((len(states), length, 3), np.nan),
            "score": np.full((len(states), length), np.nan), "ticks": np.zeros(len(states), int)}
     for i, x in enumerate(states):

@@ -13,6 +13,8 @@ from reachwatch.diagrams.plots import plot_guarded_run
 from reachwatch.diagrams.replay import meshcat_replay_html
 from reachwatch.systems.files import atomic_write_bytes
 
+from .dynamics import OffRunway
+
 
 def starting_at(scenario: Scenario, start) -> Scenario:
     """A copy of ``scenario`` starting at ``start`` ([px m, py m, theta rad])."""
@@ -33,7 +35,7 @@ def simulate_guarded(scenario: Scenario, out: Path, *, meshcat_html=True):
         raise ValueError("monitor.detector: the guarded loop needs a detector checkpoint")
     diagrams = make_closed_loop_diagram(scenario), make_guarded_diagram(scenario)  # inputs load
     nominal, guarded = (simulate(d, initial_state=x0, duration=scenario.duration,
-                                 period=scenario.controller.period, half_width=B)
+                                 period=scenario.controller.period, failed=OffRunway(B))
                         for d in diagrams)
     fallback = scenario.monitor.fallback.name
     name = f"{scenario.environment.name}_{fallback.replace('+', '_')}"

@@ -14,6 +14,7 @@ from reachwatch.diagrams.guarded import add_monitor_signals
 from reachwatch.reach.outcomes import map_states
 from reachwatch.systems import DetectorConfig, resize_for_detector
 
+from .dynamics import OffRunway
 from .fidelity import _loop, export_watching_detector, watching, without_monitor
 
 #: The exported ports of `make_recording_loop` beside ``state`` and ``estimate``.
@@ -71,7 +72,7 @@ def record_runs(scenario, duration: float, height: int, width: int, states, *,
             out["failed"][i], out["failure_time"][i] = True, 0.0
             continue
         run = simulate(diagram, initial_state=x, duration=duration, period=period,
-                       half_width=B, context=context,
+                       failed=OffRunway(B), context=context,
                        record={FRAME_PORT: frame, SIGNALS_PORT: np.copy})
         n = min(len(run.time), length)
         out["frames"][i, :n] = run.records[FRAME_PORT][:n]

@@ -10,6 +10,7 @@ from reachwatch.diagrams import (StateRenderer, load_taxinet, make_closed_loop_d
                                  simulate)
 from reachwatch.systems import CameraConfig, TaxiNet
 
+from .dynamics import OffRunway
 from .taxinet_data import render_states, sample_states, targets
 
 
@@ -61,7 +62,7 @@ def closed_loop_failure_rate(scenario, *, starts: int, seed: int, duration: floa
         if abs(x[0]) >= B:
             failed.append(True)
             continue
-        failed.append(simulate(diagram, initial_state=x, duration=duration, half_width=B,
+        failed.append(simulate(diagram, initial_state=x, duration=duration, failed=OffRunway(B),
                                period=scenario.controller.period,
                                context=context).failed)
     failed = np.array(failed)

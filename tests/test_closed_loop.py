@@ -7,6 +7,7 @@ from reachwatch.pipeline.cli import main
 from reachwatch.taxi.taxinet_train import TaxiNetTrainConfig, train_taxinet
 from reachwatch.diagrams import load_taxinet
 from reachwatch.systems import CameraConfig
+from reachwatch.taxi import OffRunway
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +39,7 @@ def test_closed_loop_structure(nominal_loop):
 def test_centreline_start_stays_on_runway_nominal(nominal_loop):
     scenario, diagram = nominal_loop
     trajectory = simulate(diagram, initial_state=[0.0, 110.0, 0.0], duration=3.0, period=0.05,
-                          half_width=10.0)
+                          failed=OffRunway(10.0))
     assert not trajectory.failed
     assert np.abs(trajectory.state[:, 0]).max() < 4.0
     assert len(trajectory.time) == 61                        # one log per 0.05 s tick
@@ -51,7 +52,7 @@ def test_steering_is_held_between_ticks(nominal_loop):
     at the constant rate tan(phi) of the steering sampled at the tick's start."""
     _, diagram = nominal_loop
     trajectory = simulate(diagram, initial_state=[4.0, 110.0, 0.0], duration=0.1, period=0.05,
-                          half_width=10.0)
+                          failed=OffRunway(10.0))
     phi0 = np.deg2rad(-0.74 * trajectory.estimate[0, 0] - 0.44 * trajectory.estimate[0, 1])
     assert trajectory.state[1, 2] == pytest.approx(0.05 * np.tan(phi0), rel=1e-4, abs=1e-7)
 
@@ -59,9 +60,31 @@ def test_steering_is_held_between_ticks(nominal_loop):
 def test_failure_stops_the_run(nominal_loop):
     _, diagram = nominal_loop
     trajectory = simulate(diagram, initial_state=[9.9, 110.0, np.deg2rad(28.0)],
-                          duration=8.0, period=0.05, half_width=10.0)
+                          duration=8.0, period=0.05, failed=OffRunway(10.0))
     assert trajectory.failed and trajectory.failure_time < 1.0
-    assert trajectory.time[-1] < 1.0
+
+def test_any_failure_rule_stops_the_run(nominal_loop):
+    """`simulate` knows no runway: its ``failed`` is any function of the plant states.
+    A rule on py (not the taxi's px) ends the run once py passes 111 m (about 5 m/s
+    from 110); not stopping, the run logs every tick and fails at the first tick past
+    it; without a rule it never fails."""
+    _, diagram = nominal_loop
+    past = lambda states: np.asarray(states)[:, 1] >= 111.0      # noqa: E731
+    logged = simulate(diagram, initial_state=[0.0, 110.0, 0.0], duration=1.0, period=0.05,
+                      failed=past, stop_on_failure=False)
+    first = logged.time[np.argmax(logged.state[:, 1] >= 111.0)]
+    assert logged.failed and len(logged.time) == 21 and 0.15 < first < 0.35
+    assert logged.failure_time == first
+    stopped = simulate(diagram, initial_state=[0.0, 110.0, 0.0], duration=1.0, period=0.05,
+                       failed=past)
+    assert stopped.failed and first - 0.05 < stopped.failure_time <= first + 1e-9
+    assert stopped.time[-1] <= first + 1e-9
+    never = simulate(diagram, initial_state=[0.0, 110.0, 0.0], duration=1.0, period=0.05)
+    assert not never.failed and np.isnan(never.failure_time) and len(never.time) == 21
+    with pytest.raises(ValueError, match="failed must be a function of the plant states .*"
+                                         "got float"):
+        simulate(diagram, initial_state=[0.0, 110.0, 0.0], duration=1.0, period=0.05,
+                 failed=10.0)
 
 
 def test_missing_controller_checkpoint_named():
@@ -101,7 +124,7 @@ def test_runs_of_one_diagram_without_a_context_share_its_own(nominal_loop, monke
     scenario, diagram = nominal_loop
     used, start = [], closed_loop.Simulator
     monkeypatch.setattr(closed_loop, "Simulator", lambda d, c: (used.append(c), start(d, c))[1])
-    settings = dict(duration=0.3, period=0.05, half_width=10.0)
+    settings = dict(duration=0.3, period=0.05, failed=OffRunway(10.0))
     runs = [simulate(diagram, initial_state=x, **settings)
             for x in ([2.0, 110.0, 0.0], [-3.0, 140.0, 0.1], [2.0, 110.0, 0.0])]
     assert used[0] is used[1] is used[2] is closed_loop.loop_context(diagram)

@@ -12,6 +12,7 @@ import pytest
 from reachwatch.diagrams import ControllerConfig, ControllerProbe, check_controller, make_controller
 from reachwatch.pipeline.cli import main
 from reachwatch.pipeline.spec import dump_run_spec, load_run_spec
+from reachwatch.taxi import OffRunway
 
 ROOT = Path(__file__).resolve().parents[1]
 GRASS = ROOT / "examples" / "grass_follower"
@@ -151,9 +152,9 @@ def test_speed_car_through_sweep_brt_labels_detector_and_switch(tmp_path):
         guarded = dc_replace(config, monitor=MonitorConfig(detector=str(tmp_path / "detector.pt"),
                                                            threshold=threshold))
         runs[name] = simulate(car.make_car_loop(guarded), initial_state=x0, duration=1.0,
-                              period=0.05, half_width=B)
+                              period=0.05, failed=OffRunway(B))
     alone = simulate(car.make_car_loop(config), initial_state=x0, duration=1.0, period=0.05,
-                     half_width=B)
+                     failed=OffRunway(B))
     assert runs["always"].anomaly.all() and runs["always"].speed[-1] < 5.0
     assert runs["always"].state[-1, 3] < runs["always"].state[0, 3] - 0.05
     assert not runs["never"].anomaly.any()

@@ -19,7 +19,7 @@ from reachwatch.pipeline.run import run_pipeline
 from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.pipeline.brt_stages import sweep_rate
 from reachwatch.reach import InlineExecutor, Probe, default_executor, sweep
-from reachwatch.taxi import paper_grid
+from reachwatch.taxi import OffRunway, paper_grid
 from tiny_run import TINY
 
 TESTS = Path(__file__).resolve().parent
@@ -261,7 +261,7 @@ def test_bad_run_files_are_named_and_exit_2(tmp_path, edit, message):
 def test_simulate_rejects_bad_start_states(state):
     diagram = make_state_feedback_diagram(load_scenario(data=""))
     with pytest.raises(ValueError, match="initial state must be a vector of finite numbers|has 3 continuous states .*, the initial state 2"):
-        simulate(diagram, initial_state=state, duration=1.0, period=0.05, half_width=10.0)
+        simulate(diagram, initial_state=state, duration=1.0, period=0.05, failed=OffRunway(10.0))
 
 
 @pytest.mark.parametrize("argv, message", [

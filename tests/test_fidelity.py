@@ -8,7 +8,7 @@ import pytest
 
 from reachwatch.diagrams import load_scenario, make_state_feedback_diagram, simulate
 from reachwatch.reach import compare_verdicts, left_box, select_map, wilson_interval
-from reachwatch.taxi import on_runway_starts, paper_grid
+from reachwatch.taxi import OffRunway, on_runway_starts, paper_grid
 
 
 def test_wilson_interval_known_values():
@@ -75,16 +75,16 @@ def test_a_loop_turning_beyond_the_box_is_reported():
     grid = paper_grid(10.0, (5, 3, 5))
     turning = load_scenario(data="controller: {px_gain: 0.0, theta_gain: 2.0}\n")
     run = simulate(make_state_feedback_diagram(turning), initial_state=[0.0, 120.0, 0.05],
-                   duration=1.2, period=0.05, half_width=1e3, stop_on_failure=False)
+                   duration=1.2, period=0.05)
     assert np.max(np.abs(run.state[:, 2])) > np.deg2rad(28.0)
     with pytest.raises(ValueError, match="'steering_angle' is .* rad at t = 1.[0-9]* s; a "
                                          "wheel angle lies within"):
         simulate(make_state_feedback_diagram(turning), initial_state=[0.0, 120.0, 0.05],
-                 duration=8.0, period=0.05, half_width=1e3, stop_on_failure=False)
+                 duration=8.0, period=0.05)
     assert left_box(run.state, grid, axes=(1, 2))
     steady = simulate(make_state_feedback_diagram(load_scenario(data="")),
                       initial_state=[0.0, 120.0, 0.05], duration=8.0, period=0.05,
-                      half_width=10.0)
+                      failed=OffRunway(10.0))
     assert not left_box(steady.state, grid, axes=(1, 2))
 
 

@@ -5,7 +5,7 @@ from reachwatch.diagrams import (CONTROL_PORT, DETECTOR, SWITCH, load_scenario, 
                                  make_guarded_diagram, simulate)
 from reachwatch.pipeline.cli import main
 from reachwatch.reach import InlineExecutor
-from reachwatch.taxi import dynamics_for, taxi_guarded_rollouts, paper_grid, sweep_guarded
+from reachwatch.taxi import OffRunway, dynamics_for, taxi_guarded_rollouts, paper_grid, sweep_guarded
 from reachwatch.systems import FallbackSwitch, next_speed
 
 def _switch_ticks(flags, **kwargs):
@@ -113,9 +113,9 @@ def test_guarded_run_survives_where_nominal_fails(detector_path, tmp_path):
     assert np.all(guarded.stopped[saved])           # braking at 4 m/s^2: every save is a stop
     x0 = grid.states([saved[len(saved) // 2]])[0]
     nominal = simulate(make_closed_loop_diagram(scenario), initial_state=x0, duration=8.0, period=0.05,
-                       half_width=10.0)
+                       failed=OffRunway(10.0))
     guarded = simulate(make_guarded_diagram(scenario), initial_state=x0, duration=8.0, period=0.05,
-                       half_width=10.0)
+                       failed=OffRunway(10.0))
     assert nominal.failed and not guarded.failed
     assert guarded.anomaly.min() == 1.0 and guarded.speed[-1] == 0.0
 
@@ -124,16 +124,16 @@ def test_never_flagging_pipeline_equals_taxinet_alone(detector_path):
     scenario = _scenario(detector_path, 1.0)           # threshold 1: nothing flagged
     x0 = [2.0, 120.0, np.deg2rad(-10.0)]
     a = simulate(make_closed_loop_diagram(scenario), initial_state=x0, duration=2.0, period=0.05,
-                 half_width=10.0)
+                 failed=OffRunway(10.0))
     b = simulate(make_guarded_diagram(scenario), initial_state=x0, duration=2.0, period=0.05,
-                 half_width=10.0)
+                 failed=OffRunway(10.0))
     np.testing.assert_allclose(a.state, b.state, atol=1e-9)
     assert np.all(b.speed == 5.0)
     # The loop alone watched by the detector (added through make_closed_loop_diagram's
     # prebuild_callback): the same run, and the guarded loop's score at every tick.
     from reachwatch.taxi.fidelity import make_watched_loop
     c = simulate(make_watched_loop(scenario), initial_state=x0, duration=2.0, period=0.05,
-                 half_width=10.0)
+                 failed=OffRunway(10.0))
     np.testing.assert_allclose(c.state, a.state, atol=1e-9)
     assert a.score is None and c.score.shape == (len(c.time),)
     np.testing.assert_allclose(c.score, b.score, rtol=1e-6)

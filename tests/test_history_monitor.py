@@ -10,6 +10,7 @@ import torch
 from reachwatch.diagrams import load_scenario, save_checkpoint, simulate
 from reachwatch.diagrams.checkpoints import CheckpointError, checkpoint_kind, load_history_monitor
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel, platt
+from reachwatch.taxi import OffRunway
 from reachwatch.taxi.fidelity import make_watched_loop
 from reachwatch.taxi.history import record_runs
 
@@ -43,7 +44,7 @@ def test_online_risk_is_the_offline_function_of_the_recorded_run(tmp_path, tempo
 
     diagram = make_watched_loop(scenario)
     run = simulate(diagram, initial_state=start[0], duration=0.6, period=0.05,
-                   half_width=scenario.environment.half_width)
+                   failed=OffRunway(scenario.environment.half_width))
     np.testing.assert_allclose(run.state, recorded["state"][0, :ticks])
     model, loaded_config, metadata = load_history_monitor(path)
     offline = model.risk_sequence(recorded["frames"][0, :ticks],

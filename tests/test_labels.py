@@ -10,6 +10,7 @@ from reachwatch.diagrams import make_closed_loop_diagram, simulate
 from reachwatch.training.dataset import DatasetSpec, build_dataset, load_dataset
 from reachwatch.training.labels import (SOURCE_BRT, SOURCE_ROLLOUT, LabelSpec, audited_band,
                                         assign_labels)
+from reachwatch.taxi import OffRunway
 
 
 class FakeLoop:
@@ -132,7 +133,7 @@ def test_rollout_labels_equal_direct_simulation_of_the_real_loop(tmp_path, kmwh_
     assert data.manifest["labels"]["rollouts"] == 10
     diagram = make_closed_loop_diagram(scenario)
     for x, label in zip(data.states, data.labels):
-        run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, half_width=B)
+        run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, failed=OffRunway(B))
         assert bool(label) == run.failed
     assert 0 < data.labels.sum() < 10
 

@@ -13,7 +13,7 @@ from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram,
 from reachwatch.diagrams.closed_loop import start_simulator
 from reachwatch.diagrams.lockstep import batch_systems, loop_copies, simulate_lockstep
 from reachwatch.systems import PreprocessConfig, TaxiNet, TaxiNetConfig, build_taxinet
-from reachwatch.taxi import fidelity
+from reachwatch.taxi import OffRunway, fidelity
 from reachwatch.taxi.grid import paper_grid
 
 #: Starts on the runway; the third leaves it within a few ticks, so its copy of the
@@ -44,7 +44,7 @@ def _same(a, b):
 def test_lockstep_runs_equal_one_at_a_time_and_the_controller_sees_batches(
         tiny_scenario, monkeypatch):
     B = tiny_scenario.environment.half_width
-    settings = dict(duration=0.4, period=0.05, half_width=B)
+    settings = dict(duration=0.4, period=0.05, failed=OffRunway(B))
     diagram = make_closed_loop_diagram(tiny_scenario)
     alone = [simulate(diagram, initial_state=x, **settings) for x in STARTS]
     batches, singles = [], []
@@ -100,7 +100,7 @@ def test_a_loop_without_batch_entry_points_runs_one_system_at_a_time(tiny_scenar
     B = tiny_scenario.environment.half_width
     loops = loop_copies(lambda: make_state_feedback_diagram(tiny_scenario), 2)
     assert batch_systems(loops[0][0]) == []
-    settings = dict(duration=1.0, period=0.05, half_width=B)
+    settings = dict(duration=1.0, period=0.05, failed=OffRunway(B))
     together = simulate_lockstep(loops, initial_states=STARTS, **settings)
     alone = [simulate(loops[0][0], initial_state=x, **settings) for x in STARTS]
     assert len(together) == len(STARTS)
@@ -147,7 +147,7 @@ def test_a_reused_context_starts_afresh_but_keeps_its_render_engine(tiny_scenari
     geometry removed in the Context is still gone after the start (resetting the
     SceneGraph too cloned the render engine for every run)."""
     B = tiny_scenario.environment.half_width
-    settings = dict(duration=0.3, period=0.05, half_width=B)
+    settings = dict(duration=0.3, period=0.05, failed=OffRunway(B))
     diagram = make_closed_loop_diagram(tiny_scenario)
     context = diagram.CreateDefaultContext()
     fresh = simulate(diagram, initial_state=STARTS[0], **settings)

@@ -8,7 +8,7 @@ import pytest
 
 from reachwatch.diagrams import load_scenario, make_closed_loop_diagram, simulate
 from reachwatch.reach.outcomes import outcomes_key, run_outcomes
-from reachwatch.taxi import paper_grid
+from reachwatch.taxi import OffRunway, paper_grid
 from reachwatch.taxi.fidelity import real_missions, real_outcomes
 
 CALLS = []
@@ -62,7 +62,7 @@ def test_real_outcomes_equal_direct_simulation(tmp_path):
     diagram = make_closed_loop_diagram(scenario)
     for i, x in enumerate(starts[:2]):
         run = simulate(diagram, initial_state=x, duration=1.5, period=0.05,
-                       half_width=scenario.environment.half_width)
+                       failed=OffRunway(scenario.environment.half_width))
         assert outcomes.failed[i] == run.failed
         np.testing.assert_equal(outcomes["failure_time"][i], run.failure_time)
         assert outcomes["ticks"][i] == len(run.time)

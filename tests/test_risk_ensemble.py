@@ -13,6 +13,7 @@ from reachwatch.systems import (GroupedEncoder, HistoryMonitor, HistoryMonitorCo
                                 HistoryRiskEnsemble, HistoryRiskModel, check_members,
                                 grouped_gru, platt)
 from reachwatch.systems.detector import inference_model
+from reachwatch.taxi import OffRunway
 from reachwatch.taxi.fidelity import make_watched_loop
 from reachwatch.taxi.history import record_runs
 
@@ -55,7 +56,7 @@ def test_online_the_ensemble_outputs_the_calibrated_mean_of_its_members(tmp_path
     names = {s.get_name() for s in diagram.GetSystems()}
     assert DETECTOR in names and not any("member" in name for name in names)
     run = simulate(diagram, initial_state=start[0], duration=0.6, period=0.05,
-                   half_width=scenario.environment.half_width)
+                   failed=OffRunway(scenario.environment.half_width))
     frames, signals = recorded["frames"][0, :ticks], recorded["signals"][0, :ticks]
     each = [m.risk_sequence(frames, signals) for m in members]
     offline = model.risk_sequence(frames, signals, calibration=lambda q: platt(q, 0.6, 0.2))
@@ -180,7 +181,7 @@ def test_the_guarded_loop_confirms_the_ensembles_flags_and_brakes(tmp_path):
     names = {s.get_name() for s in diagram.GetSystems()}
     assert {DETECTOR, "flag_filter", "fallback_switch"} <= names
     run = simulate(diagram, initial_state=np.array([0.0, 120.0, 0.0]), duration=2.5,
-                   period=0.05, half_width=scenario.environment.half_width)
+                   period=0.05, failed=OffRunway(scenario.environment.half_width))
     assert run.anomaly[0] == 0 and run.anomaly[1] == 1 and run.anomaly[-1] == 1
     assert run.speed[-1] == 0.0
 

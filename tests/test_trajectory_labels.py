@@ -13,6 +13,7 @@ from reachwatch.training.dataset import (PATHS_STREAM, DatasetSpec, build_datase
                                         load_dataset)
 from reachwatch.training.labels import (NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
                                         LabelSpec, trajectory_samples)
+from reachwatch.taxi import OffRunway
 
 
 def test_path_labels_tick_by_tick():
@@ -152,7 +153,7 @@ def test_trajectory_labels_equal_direct_simulation_of_the_real_loop(tmp_path, km
     assert np.all(data.states[10:, 1] > data.states[data.runs[10:], 1])
     diagram = make_closed_loop_diagram(scenario)
     for x, label in zip(data.states, data.labels):
-        run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, half_width=B)
+        run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, failed=OffRunway(B))
         assert bool(label) == run.failed
     assert 0 < data.labels[along].sum() < along.sum()      # both kinds among the added states
     assert info["frames_per_label"] < 20                     # a rollout per label: 21 frames
@@ -248,7 +249,7 @@ def test_brt_labels_with_paths_add_true_labels_along_real_runs(tmp_path, kmwh_da
         np.testing.assert_allclose(data.states[along][data.runs[along] == run][0], starts[run])
     diagram = make_closed_loop_diagram(scenario)
     for x, label in zip(data.states[along], data.labels[along]):
-        run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, half_width=B)
+        run = simulate(diagram, initial_state=x, duration=1.0, period=0.05, failed=OffRunway(B))
         assert bool(label) == run.failed
 
 
