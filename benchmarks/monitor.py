@@ -21,6 +21,7 @@ from pathlib import Path
 from reachwatch.diagrams import load_scenario
 from reachwatch.pipeline.executor_option import add_executor_argument
 from reachwatch.pipeline.executors import make_executor
+from reachwatch.pipeline.memory import return_large_blocks
 from reachwatch.pipeline.monitor_sections import markdown_tables
 from reachwatch.pipeline.monitor_study import MonitorStudySpec, run_monitor_study
 from reachwatch.systems import INPUT_NORMS, Environment, RandomEnvironments
@@ -94,6 +95,7 @@ def main():
     p.add_argument("--cache", default="/tmp/reachwatch-monitor-cache")
     p.add_argument("--out", default="/tmp/reachwatch-monitor")
     args = p.parse_args()
+    return_large_blocks()         # as the command line: glibc gives freed frames back
     spec = dc.replace(
         defaults, kind="history", family=RandomEnvironments(seed=args.seed), train=args.train,
         calibrate=args.calibrate, held_out=args.held_out, runs=args.runs,

@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 
+from .memory import return_large_blocks
 from .overlays import add_overlay_arguments
 from . import (commands, console, evaluate_commands, graph_commands, guard_commands,
                reach_commands, run_commands, simulate_commands, taxinet_commands)
@@ -132,6 +133,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     console.setup(-1 if args.quiet else (1 if args.verbose else 0))
     import reachwatch.systems  # noqa: F401  (first: process-wide settings before torch loads)
+    return_large_blocks()         # glibc gives freed frames back (`pipeline.memory`)
     commands.check_run_file_flags(parser, args)     # a flag as its run-file key is bounded
     commands.fill_run_file_defaults(args)
     signals = (signal.SIGTERM, signal.SIGINT)
