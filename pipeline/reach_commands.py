@@ -108,7 +108,9 @@ def sweep_command(args):
     import numpy as np
 
     from reachwatch.diagrams import CONTROL_PORT, ESTIMATE_PORT
+    from reachwatch.reach.solver import check_controls
     from reachwatch.systems.files import atomic_write_bytes
+    from reachwatch.taxi import dynamics_for
     scenario, grid, table, seconds = _sweep(args)
     buffer = io.BytesIO()
     estimate = {"estimate": table[ESTIMATE_PORT]} if ESTIMATE_PORT in table.tables else {}
@@ -119,6 +121,11 @@ def sweep_command(args):
             else "all cached")
     log.info(f"{grid.size} states ({table.computed} rendered) in {seconds:.1f} s ({rate}); "
              f"wrote {path}")
+    try:        # written all the same: the table is what the controller did
+        check_controls(grid, dynamics_for(scenario), table[CONTROL_PORT],
+                       where=f"{scenario.environment.name}: {CONTROL_PORT}")
+    except ValueError as e:
+        log.warning(f"warning: {e}; `reachwatch brt` refuses this table")
 
 
 def brt_command(args):

@@ -210,3 +210,26 @@ def test_a_worker_process_error_is_traced_to_the_users_code(tmp_path):
     error = raised_here_by(remote((str(path), 7, "refuse"), (ours, 20, "check")))
     assert user_code.user_frame(error) is None      # raised in reachwatch, called by the user
     assert user_code.user_frame(raised_here_by(None)) == (str(path.resolve()), 3, "calc")
+
+
+def test_a_swept_table_the_solve_would_refuse_is_written_with_a_warning(tmp_path, capsys):
+    """Before: `reachwatch sweep` wrote a table of steering past +-pi/2 rad (degrees, say)
+    without a word, and only `brt` refused it. Now the table is still written (it is
+    what the controller did), and the warning names the first state and says `brt` will
+    refuse it."""
+    folder = tmp_path / "controller"
+    folder.mkdir()
+    (folder / "constant.py").write_text(FACTORY)
+    scenario = tmp_path / "s.yaml"
+    scenario.write_text(f"camera: {{width: 64, height: 36}}\n"
+                        f"controller: {{factory: '{folder / 'constant.py'}:make', "
+                        f"parameters: {{steering: 10.0}}}}\n")
+    argv = ["sweep", "--scenario", str(scenario), "--shape", "3", "3", "3", "--executor",
+            "inline", "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "out")]
+    assert cli.main(argv) == 0
+    captured = capsys.readouterr()
+    assert len(list((tmp_path / "out").glob("sweep_*.npz"))) == 1
+    assert ("warning: KMWH_9h_clear: controller.steering_angle: the swept control is outside "
+            "the plant's controls (-1.5708 < u0 < 1.5708) at 27 of 27 grid states, the first ["
+            ) in captured.err, captured.err
+    assert "`reachwatch brt` refuses this table" in captured.err
