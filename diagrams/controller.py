@@ -133,6 +133,7 @@ def make_controller(config) -> System:
         if not config.factory:
             raise
         raise user_code.call_failure(config.factory, e, module) from e
+    user_code.warn_unkeyed_reads(config.factory, module, keyed=[config.checkpoint])
     return check_controller(system, where)
 
 

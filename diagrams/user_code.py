@@ -15,12 +15,14 @@ import importlib.metadata
 import importlib.util
 import inspect
 import json
+import multiprocessing
 import os
 import re
 import sys
 import sysconfig
 import threading
 import traceback
+import warnings
 from pathlib import Path
 
 from reachwatch.systems.checks import clip, is_file
@@ -143,17 +145,61 @@ class _FolderFinder(importlib.abc.MetaPathFinder):
         return None
 
 
+#: Per thread: the `_UserCode` whose code runs now (`_UserCode.importable`), innermost last.
+_RUNNING = threading.local()
+
+
+def _record_reads(event: str, args):
+    """An audit hook (`sys.addaudithook`): a file opened for reading by Python (``open``,
+    ``os.open``: numpy, torch, pickle and PIL read so) inside the folder of the user's
+    code that runs now, its ``.py`` files and ``__pycache__`` aside, is added to that
+    code's `_UserCode.read`. Never raises; returns at once when no user code runs."""
+    if event != "open":
+        return
+    running = getattr(_RUNNING, "codes", None)
+    if not running:
+        return
+    try:
+        path, mode, flags = args
+        if path is None or isinstance(path, int):
+            return
+        if mode is not None:
+            if any(c in mode for c in "wax+"):
+                return
+        elif flags & (os.O_WRONLY | os.O_RDWR):
+            return
+        path = os.path.abspath(os.fsdecode(path))
+        if path.endswith((".py", ".pyc")) or f"{os.sep}__pycache__{os.sep}" in path:
+            return
+        for code in running:
+            if path.startswith(code.prefix):
+                code.read.add(path)
+    except Exception:       # noqa: BLE001  (a hook must not break the open it watches)
+        pass
+
+
+_HOOK = []          # [True] once `_record_reads` is installed (hooks cannot be removed)
+
+
 class _UserCode:
     """A factory file's folder, the digest of its code, and the modules imported from
     it, kept out of ``sys.modules`` (two controllers may each have a ``helpers.py``; an
-    edited one is imported afresh) except while the factory is imported or called."""
+    edited one is imported afresh) except while the factory is imported or called;
+    ``read``: the data files in its folder its code opened meanwhile (`_record_reads`)."""
 
     def __init__(self, folder: Path, digest: str):
         self.folder, self.digest, self.modules = folder, digest, {}
+        self.prefix = os.path.join(os.path.abspath(folder), "")
+        self.read = set()
 
     @contextlib.contextmanager
     def importable(self):
         with _LOCK:
+            if not _HOOK:
+                sys.addaudithook(_record_reads)
+                _HOOK.append(True)
+            running = _RUNNING.__dict__.setdefault("codes", [])
+            running.append(self)
             finder = _FolderFinder(self.folder)
             shown = {n: m for n, m in self.modules.items() if n not in sys.modules}
             sys.modules.update(shown)
@@ -163,6 +209,7 @@ class _UserCode:
             try:
                 yield
             finally:
+                running.remove(self)
                 meta.remove(finder)
                 for name in finder.found | set(shown):
                     if name in sys.modules:
@@ -176,6 +223,29 @@ def importable(module):
     importable (a no-op for any other module)."""
     user = _USER_CODE.get(getattr(module, "__name__", None))
     return user.importable() if user else contextlib.nullcontext()
+
+
+_WARNED = set()     # (factory, file) pairs `warn_unkeyed_reads` has warned of
+
+
+def warn_unkeyed_reads(spec: str, module, keyed=()):
+    """A warning, once per process for each file, naming a data file in the folder of
+    the factory file ``module`` that its code opened (at import or when called) and
+    that no key covers (``keyed``: the paths whose content is keyed, the
+    controller's checkpoint): an edit to it would be answered from the caches."""
+    user = _USER_CODE.get(getattr(module, "__name__", None))
+    if user is None or multiprocessing.parent_process() is not None:
+        return                  # a worker process: the driver that started it says it
+    keyed = {os.path.abspath(p) for p in keyed if p}
+    for path in sorted(user.read - keyed):
+        if (spec, path) not in _WARNED:
+            _WARNED.add((spec, path))
+            warnings.warn(f"controller.factory '{clip(spec, 200)}' read "
+                          f"{clip(os.path.relpath(path, user.folder), 200)} from its folder: "
+                          f"not its code, so no key covers it, and a sweep or run after an "
+                          f"edit to it is answered from the caches; name the controller's data "
+                          f"file in controller.checkpoint, whose content is keyed",
+                          UserWarning, stacklevel=3)
 
 
 def call_failure(spec: str, error: BaseException, module=None,

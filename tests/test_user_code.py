@@ -227,3 +227,39 @@ def test_a_worker_refuses_a_checkpoint_rewritten_after_the_driver_keyed_it(tmp_p
             pool.submit(load_checkpoint, str(other), kind="taxinet").result()
     finally:
         stop_executor(pool)
+
+
+def test_a_data_file_the_factory_reads_unkeyed_is_warned_of_once(tmp_path):
+    """Before: a factory that read a data file from its folder (weights, a table) was
+    keyed by its .py files alone, so a sweep after an edit to that file came from the
+    cache without a word. Now building the controller warns, naming the file and
+    `controller.checkpoint`; a file read at import counts too, the declared checkpoint
+    does not, nor do the neighbours it imports, and each file is said once."""
+    factory = _controller(tmp_path, "0.5")
+    folder = tmp_path / "mine"
+    (folder / "gain.txt").write_text("2.0\n")
+    (folder / "weights.npy").write_bytes(b"")
+    (folder / "table.csv").write_text("1\n")
+    (folder / "follower.py").write_text(
+        'from pathlib import Path\n'
+        'TABLE = Path(__file__).with_name("table.csv").read_text()\n' + FACTORY.replace(
+            "def make(config):\n",
+            "def make(config):\n"
+            "    with open(Path(__file__).with_name('gain.txt')) as f:\n"
+            "        float(f.read())\n"
+            "    if config.checkpoint:\n"
+            "        open(config.checkpoint, 'rb').close()\n"
+            "    open(Path(__file__).with_name('written.log'), 'w').close()\n"))
+    config = ControllerConfig(factory=factory, checkpoint=str(folder / "weights.npy"))
+    with pytest.warns(UserWarning) as caught:
+        make_controller(config)
+    said = sorted(str(w.message) for w in caught if w.category is UserWarning)
+    assert len(said) == 2, said
+    assert said[0].startswith(f"controller.factory '{factory}' read gain.txt from its folder: "
+                              f"not its code, so no key covers it")
+    assert said[1].startswith(f"controller.factory '{factory}' read table.csv from its folder")
+    assert all("name the controller's data file in controller.checkpoint" in m for m in said)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        make_controller(config)                       # said once
