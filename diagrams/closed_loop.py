@@ -200,8 +200,8 @@ def start_simulator(diagram: Diagram, *, initial_state, failed=None,
     the monitor fires."""
     x0 = np.asarray(initial_state, float)
     if x0.ndim != 1 or not np.all(np.isfinite(x0)):
-        raise ValueError(f"initial state must be a vector of finite numbers (the taxi's: "
-                         f"[px m, py m, theta rad]), got {np.asarray(initial_state).tolist()}")
+        raise ValueError(f"initial state must be a vector of finite numbers (the plant's "
+                         f"state), got {np.asarray(initial_state).tolist()}")
     failed = _checked_rule(failed)
     state = _output(diagram, "state", required=True)
     simulator = Simulator(diagram, loop_context(diagram) if context is None else context)
