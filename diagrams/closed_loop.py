@@ -175,7 +175,7 @@ def loop_context(diagram: Diagram):
 def _checked_rule(failed):
     """``failed`` checked: None (a run never fails) or a function of states ``(n, d)``
     returning ``(n,)`` bools, as `reachwatch.reach.Application.failed` of one scenario
-    (the taxi's: `reachwatch.taxi.off_runway`); a ValueError naming what was given
+    (the taxi's: `reachwatch.taxi.OffRunway`); a ValueError naming what was given
     otherwise."""
     if failed is not None and not callable(failed):
         raise ValueError(f"failed must be a function of the plant states (n, d) returning n "
@@ -183,9 +183,22 @@ def _checked_rule(failed):
     return failed
 
 
-def _state_failed(failed, x) -> bool:
-    """``failed`` (`_checked_rule`) of one state ``x``."""
-    return failed is not None and bool(np.asarray(failed(np.asarray(x, float)[None]))[0])
+def failed_at(failed, states) -> np.ndarray:
+    """The failure rule ``failed`` (`_checked_rule`; None: never) of the states
+    ``(n, d)``: ``(n,)`` bools, or a ValueError when the rule gives another shape."""
+    states = np.asarray(states, float)
+    if failed is None:
+        return np.zeros(len(states), bool)
+    out = np.asarray(failed(states), bool)
+    if out.shape != (len(states),):
+        raise ValueError(f"failed gave shape {out.shape} for {len(states)} states; a failure "
+                         f"rule maps states (n, d) to n bools")
+    return out
+
+
+def state_failed(failed, x) -> bool:
+    """The failure rule ``failed`` (`failed_at`) of one state ``x``."""
+    return bool(failed_at(failed, np.asarray(x, float)[None])[0])
 
 
 def start_simulator(diagram: Diagram, *, initial_state, failed=None,
@@ -216,12 +229,13 @@ def start_simulator(diagram: Diagram, *, initial_state, failed=None,
     failure = {}
 
     def monitor(root_context):
-        if stop_on_failure and _state_failed(failed, state.Eval(root_context)):
+        if state_failed(failed, state.Eval(root_context)):
             failure["t"] = root_context.get_time()
             return EventStatus.ReachedTermination(diagram, "failed")
         return EventStatus.DidNothing()
 
-    simulator.set_monitor(monitor)
+    if stop_on_failure and failed is not None:
+        simulator.set_monitor(monitor)
     simulator.Initialize()
     return simulator, failure
 
@@ -247,7 +261,7 @@ class LoopRun:
                  stop_when=None, record=None):
         self.times = tick_times(duration, period)
         self.duration, self.stop_when = duration, stop_when
-        self.failed = _checked_rule(failed)
+        self.rule = _checked_rule(failed)
         self.simulator, self.failure = start_simulator(
             diagram, initial_state=initial_state, failed=failed,
             stop_on_failure=stop_on_failure, context=context)
@@ -293,8 +307,7 @@ class LoopRun:
         rows, times = self.rows, self.times
         n = len(rows["state"])
         x = np.array(rows["state"]).reshape(n, -1)
-        at = (np.zeros(n, bool) if self.failed is None or n == 0
-              else np.asarray(self.failed(x), bool).reshape(n))
+        at = failed_at(self.rule, x) if n else np.zeros(0, bool)
         failed = bool(np.any(at)) or "t" in self.failure
         t_fail = self.failure.get("t", float("nan"))
         if failed and np.isnan(t_fail):

@@ -168,7 +168,7 @@ def _record_reads(event: str, args):
                 return
         elif flags & (os.O_WRONLY | os.O_RDWR):
             return
-        path = os.path.abspath(os.fsdecode(path))
+        path = os.path.realpath(os.fsdecode(path))      # the folder is a real path too
         if path.endswith((".py", ".pyc")) or f"{os.sep}__pycache__{os.sep}" in path:
             return
         for code in running:
@@ -189,7 +189,7 @@ class _UserCode:
 
     def __init__(self, folder: Path, digest: str):
         self.folder, self.digest, self.modules = folder, digest, {}
-        self.prefix = os.path.join(os.path.abspath(folder), "")
+        self.prefix = os.path.join(os.path.realpath(folder), "")
         self.read = set()
 
     @contextlib.contextmanager
@@ -199,13 +199,13 @@ class _UserCode:
                 sys.addaudithook(_record_reads)
                 _HOOK.append(True)
             running = _RUNNING.__dict__.setdefault("codes", [])
-            running.append(self)
             finder = _FolderFinder(self.folder)
             shown = {n: m for n, m in self.modules.items() if n not in sys.modules}
             sys.modules.update(shown)
             meta = sys.meta_path
             meta.insert(meta.index(importlib.machinery.PathFinder)
                         if importlib.machinery.PathFinder in meta else len(meta), finder)
+            running.append(self)
             try:
                 yield
             finally:
@@ -225,7 +225,22 @@ def importable(module):
     return user.importable() if user else contextlib.nullcontext()
 
 
-_WARNED = set()     # (factory, file) pairs `warn_unkeyed_reads` has warned of
+_WARNED = set()     # the files `warn_unkeyed_reads` has warned of (real paths)
+
+
+def _data_file(path: str, folder: str) -> bool:
+    """Whether ``path``, read from the controller's ``folder``, is one of its data files:
+    a file that still exists, outside hidden folders, ``__pycache__``, virtual
+    environments and installed packages' metadata."""
+    parts = Path(os.path.relpath(path, folder)).parts[:-1]
+    below = Path(folder)
+    for part in parts:
+        below = below / part
+        if (part.startswith(".") or part in ("__pycache__", "site-packages")
+                or part.endswith((".dist-info", ".egg-info"))
+                or (below / "pyvenv.cfg").exists()):
+            return False
+    return os.path.isfile(path)
 
 
 def warn_unkeyed_reads(spec: str, module, keyed=()):
@@ -236,16 +251,16 @@ def warn_unkeyed_reads(spec: str, module, keyed=()):
     user = _USER_CODE.get(getattr(module, "__name__", None))
     if user is None or multiprocessing.parent_process() is not None:
         return                  # a worker process: the driver that started it says it
-    keyed = {os.path.abspath(p) for p in keyed if p}
-    for path in sorted(user.read - keyed):
-        if (spec, path) not in _WARNED:
-            _WARNED.add((spec, path))
-            warnings.warn(f"controller.factory '{clip(spec, 200)}' read "
-                          f"{clip(os.path.relpath(path, user.folder), 200)} from its folder: "
-                          f"not its code, so no key covers it, and a sweep or run after an "
-                          f"edit to it is answered from the caches; name the controller's data "
-                          f"file in controller.checkpoint, whose content is keyed",
-                          UserWarning, stacklevel=3)
+    keyed = {os.path.realpath(p) for p in keyed if p}
+    with _LOCK:
+        new = sorted(p for p in user.read - keyed - _WARNED if _data_file(p, user.prefix))
+        _WARNED.update(new)
+    for path in new:
+        warnings.warn(f"controller.factory '{clip(spec, 200)}' read "
+                      f"{clip(os.path.relpath(path, user.prefix), 200)} from its folder: not "
+                      f"its code, so no key covers it, and a sweep or run after an edit to it "
+                      f"is answered from the caches; name the controller's data file in "
+                      f"controller.checkpoint, whose content is keyed", UserWarning, stacklevel=3)
 
 
 def call_failure(spec: str, error: BaseException, module=None,

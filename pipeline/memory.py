@@ -11,7 +11,6 @@ environment, for the worker processes it starts; a threshold the user set in the
 environment is left as it is."""
 
 import ctypes
-import ctypes.util
 import os
 
 #: The fixed mmap threshold (bytes).
@@ -23,9 +22,8 @@ _M_MMAP_THRESHOLD = -3                   # mallopt's parameter number (malloc.h)
 
 def _glibc():
     """glibc, loaded; None elsewhere (musl, macOS, Windows)."""
-    name = ctypes.util.find_library("c")
     try:
-        libc = ctypes.CDLL(name)
+        libc = ctypes.CDLL(None)                # this process's C library
         libc.gnu_get_libc_version.restype = ctypes.c_char_p
         libc.gnu_get_libc_version()
         return libc
@@ -35,9 +33,11 @@ def _glibc():
 
 def return_large_blocks() -> bool:
     """Fixes glibc's mmap threshold at `MMAP_THRESHOLD` in this process and in the ones
-    it starts, unless ``MALLOC_MMAP_THRESHOLD_`` is set already (the user's value, which
-    this process's allocator has read). True when this call set it."""
-    if ENVIRONMENT_VARIABLE in os.environ:
+    it starts (through ``os.environ``, which it changes for good), unless the user set
+    a threshold (``MALLOC_MMAP_THRESHOLD_``, or ``glibc.malloc.mmap_threshold`` in
+    ``GLIBC_TUNABLES``). True when this call set it."""
+    if (ENVIRONMENT_VARIABLE in os.environ
+            or "glibc.malloc.mmap_threshold" in os.environ.get("GLIBC_TUNABLES", "")):
         return False
     libc = _glibc()
     if libc is None or libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD) != 1:

@@ -10,6 +10,7 @@ holds."""
 
 import copy
 import dataclasses as dc
+import functools
 
 import numpy as np
 
@@ -36,8 +37,10 @@ def _thread_loop(ref, scenario, guarded: bool = False):
 
 
 def failure_rule(application, scenario):
-    """``failed(x) -> bool`` of one state: `Application.failed` of ``scenario``."""
-    return lambda x: bool(application.failed(scenario, np.asarray(x, float)[None])[0])
+    """``failed(x) -> bool`` of one state: `Application.failed` of ``scenario``
+    (`reachwatch.diagrams.closed_loop.state_failed`)."""
+    from reachwatch.diagrams.closed_loop import state_failed
+    return functools.partial(state_failed, functools.partial(application.failed, scenario))
 
 
 def run_until_failed(diagram, scenario, failed, start, duration: float, *, context=None,

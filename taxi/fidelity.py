@@ -115,12 +115,12 @@ def taxi_rollouts(scenario, duration: float, grid, states, *, lockstep=None) -> 
     `real_outcomes`, which caches it; ``functools.partial(taxi_rollouts, scenario,
     duration, grid)`` is a picklable rollout function for `run_outcomes`. ``lockstep``:
     runs advanced together (default `LOCKSTEP`; the results do not depend on it)."""
-    B = scenario.environment.half_width
+    off = OffRunway(scenario.environment.half_width)
     states = np.asarray(states, float)
-    on = np.abs(states[:, 0]) < B
+    on = ~off(states)
     runs = iter(_real_runs(scenario, make_closed_loop_diagram, states[on], lockstep=lockstep,
                            duration=duration, period=scenario.controller.period,
-                           failed=OffRunway(B)))
+                           failed=off))
     out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
     for x, on_runway in zip(states, on):
         if not on_runway:                       # already off the runway
@@ -149,19 +149,19 @@ def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, state
     `taxi_rollouts`."""
     diagram, _ = _loop(scenario, make_closed_loop_diagram)
     check_memoryless(diagram.GetSubsystemByName(CONTROLLER))
-    B, period = scenario.environment.half_width, scenario.controller.period
+    off, period = OffRunway(scenario.environment.half_width), scenario.controller.period
     points = path_points(horizon, extend, stride, period)
     states = np.asarray(states, float)
     runs = iter(_real_runs(scenario, make_closed_loop_diagram,
-                           states[np.abs(states[:, 0]) < B], lockstep=lockstep,
-                           duration=horizon + extend, period=period, failed=OffRunway(B)))
+                           states[~off(states)], lockstep=lockstep,
+                           duration=horizon + extend, period=period, failed=off))
     out = {"failed": np.zeros(len(states), bool), "failure_time": np.full(len(states), np.nan),
            "left_box": np.zeros(len(states), bool), "max_abs_theta": np.zeros(len(states)),
            "ticks": np.zeros(len(states), int),
            "path_state": np.full((len(states), len(points), states.shape[1]), np.nan),
            "path_label": np.full((len(states), len(points)), -1, np.int8)}
     for i, x in enumerate(states):
-        if abs(x[0]) >= B:                      # already off the runway
+        if off.at(x):                           # already off the runway
             out["failed"][i], out["failure_time"][i] = True, 0.0
             out["max_abs_theta"][i] = abs(x[2])
             out["path_state"][i, 0], out["path_label"][i, 0] = x, 1
@@ -250,19 +250,19 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
     if fallback is not None:
         loop, make = copy.deepcopy(scenario), make_guarded_diagram
         loop.monitor.strategy, loop.monitor.steering = fallback_parts(fallback)
-    B, period = scenario.environment.half_width, scenario.controller.period
+    off, period = OffRunway(scenario.environment.half_width), scenario.controller.period
     nominal = scenario.controller.speed
     goal = nominal * duration
     names = MISSION_FIELDS + (SAME_DISTANCE_FIELDS if mission_limit is not None else ())
     out = {name: [] for name in names}
     states = np.asarray(states, float)
-    runs = iter(_real_runs(loop, make, states[np.abs(states[:, 0]) < B], lockstep=lockstep,
-                           period=period, failed=OffRunway(B),
+    runs = iter(_real_runs(loop, make, states[~off(states)], lockstep=lockstep,
+                           period=period, failed=off,
                            duration=duration * (mission_limit or 1.0),
                            stop_when=(None if mission_limit is None else
                                       lambda i: mission_done(goal, nominal, period, duration))))
     for x in states:
-        if abs(x[0]) >= B:                      # already off the runway
+        if off.at(x):                           # already off the runway
             row = (True, False, False, 0.0, 0, 0, True, False)
         else:
             run = next(runs)
@@ -333,16 +333,16 @@ def score_paths(scenario, duration: float, states, *, lockstep=None) -> dict:
     ``functools.partial(score_paths, scenario, duration)`` is a picklable rollout
     function for `map_states`. ``lockstep`` as in `taxi_rollouts`."""
     scenario = resolved(scenario)
-    period, B = scenario.controller.period, scenario.environment.half_width
+    period, off = scenario.controller.period, OffRunway(scenario.environment.half_width)
     length = int(np.floor(duration / period + 1e-9)) + 2
     states = np.asarray(states, float)
-    runs = iter(_real_runs(scenario, make_watched_loop, states[np.abs(states[:, 0]) < B],
+    runs = iter(_real_runs(scenario, make_watched_loop, states[~off(states)],
                            lockstep=lockstep, duration=duration, period=period,
-                           failed=OffRunway(B)))
+                           failed=off))
     out = {"state": np.full((len(states), length, 3), np.nan),
            "score": np.full((len(states), length), np.nan), "ticks": np.zeros(len(states), int)}
     for i, x in enumerate(states):
-        if abs(x[0]) >= B:                      # already off the runway: no path
+        if off.at(x):                           # already off the runway: no path
             continue
         run = next(runs)
         n = min(len(run.time), length)

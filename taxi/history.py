@@ -56,7 +56,7 @@ def record_runs(scenario, duration: float, height: int, width: int, states, *,
     diagram, context = _loop(scenario, make_scored_recording_loop if scored
                              else make_recording_loop)
     size = DetectorConfig(height=height, width=width)
-    period, B = scenario.controller.period, scenario.environment.half_width
+    period, off = scenario.controller.period, OffRunway(scenario.environment.half_width)
     length = int(np.floor(duration / period + 1e-9)) + 1
     states = np.asarray(states, float)
     m = diagram.GetOutputPort(SIGNALS_PORT).size()
@@ -68,11 +68,11 @@ def record_runs(scenario, duration: float, height: int, width: int, states, *,
            **({"score": np.full((len(states), length), np.nan)} if scored else {})}
     frame = functools.partial(_resized, size)
     for i, x in enumerate(states):
-        if abs(x[0]) >= B:                       # already off the runway: no run
+        if off.at(x):                            # already off the runway: no run
             out["failed"][i], out["failure_time"][i] = True, 0.0
             continue
         run = simulate(diagram, initial_state=x, duration=duration, period=period,
-                       failed=OffRunway(B), context=context,
+                       failed=off, context=context,
                        record={FRAME_PORT: frame, SIGNALS_PORT: np.copy})
         n = min(len(run.time), length)
         out["frames"][i, :n] = run.records[FRAME_PORT][:n]

@@ -39,7 +39,7 @@ def estimation_errors_in(environment, *, checkpoint, camera: CameraConfig, sampl
     taxinet = TaxiNet(model=model, preprocess_config=preprocess_config)
     rng = np.random.default_rng(seed)
     states = sample_states(samples, rng, paper_box(environment.half_width))
-    inside = np.abs(states[:, 0]) < environment.half_width
+    inside = ~OffRunway(environment.half_width)(states)
     images = render_states(StateRenderer(environment=environment, camera=camera), states)
     err = np.abs(taxinet.estimate(images) - targets(states))[inside]
     return {"px_mean_m": float(err[:, 0].mean()), "px_p95_m": float(np.percentile(err[:, 0], 95)),
@@ -53,16 +53,17 @@ def closed_loop_failure_rate(scenario, *, starts: int, seed: int, duration: floa
     closed loop leaves the runway within ``duration`` s; also returns the states and
     the per-start outcome."""
     B = scenario.environment.half_width
+    off = OffRunway(B)
     rng = np.random.default_rng(seed)
     states = sample_states(starts, rng, paper_box(B))
     diagram = make_closed_loop_diagram(scenario)
     context = diagram.CreateDefaultContext()
     failed = []
     for x in (progress(states) if progress else states):
-        if abs(x[0]) >= B:
+        if off.at(x):
             failed.append(True)
             continue
-        failed.append(simulate(diagram, initial_state=x, duration=duration, failed=OffRunway(B),
+        failed.append(simulate(diagram, initial_state=x, duration=duration, failed=off,
                                period=scenario.controller.period,
                                context=context).failed)
     failed = np.array(failed)

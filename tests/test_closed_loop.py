@@ -62,6 +62,8 @@ def test_failure_stops_the_run(nominal_loop):
     trajectory = simulate(diagram, initial_state=[9.9, 110.0, np.deg2rad(28.0)],
                           duration=8.0, period=0.05, failed=OffRunway(10.0))
     assert trajectory.failed and trajectory.failure_time < 1.0
+    assert trajectory.time[-1] < 1.0
+
 
 def test_any_failure_rule_stops_the_run(nominal_loop):
     """`simulate` knows no runway: its ``failed`` is any function of the plant states.
@@ -85,6 +87,11 @@ def test_any_failure_rule_stops_the_run(nominal_loop):
                                          "got float"):
         simulate(diagram, initial_state=[0.0, 110.0, 0.0], duration=1.0, period=0.05,
                  failed=10.0)
+    one_state = lambda x: bool(np.asarray(x).ravel()[1] >= 111.0)     # noqa: E731
+    with pytest.raises(ValueError, match=r"failed gave shape \(\) for 1 states; a failure rule "
+                                         r"maps states \(n, d\) to n bools"):
+        simulate(diagram, initial_state=[0.0, 110.0, 0.0], duration=1.0, period=0.05,
+                 failed=one_state)
 
 
 def test_missing_controller_checkpoint_named():

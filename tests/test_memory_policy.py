@@ -50,3 +50,5 @@ def test_a_freed_large_block_is_not_kept_for_the_next():
     assert _probe("set") == ["True", "True", str(memory.MMAP_THRESHOLD)]
     # the user's own value stands (and glibc read it at start: 2 MB, so heap again)
     assert _probe("set", MALLOC_MMAP_THRESHOLD_="2000000") == ["False", "False", "2000000"]
+    assert _probe("set", GLIBC_TUNABLES="glibc.malloc.mmap_threshold=2000000") == [
+        "False", "False", "None"]

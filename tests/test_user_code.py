@@ -233,13 +233,18 @@ def test_a_data_file_the_factory_reads_unkeyed_is_warned_of_once(tmp_path):
     """Before: a factory that read a data file from its folder (weights, a table) was
     keyed by its .py files alone, so a sweep after an edit to that file came from the
     cache without a word. Now building the controller warns, naming the file and
-    `controller.checkpoint`; a file read at import counts too, the declared checkpoint
-    does not, nor do the neighbours it imports, and each file is said once."""
+    `controller.checkpoint`; a file read at import counts too; the declared checkpoint
+    (named through a link here) does not, nor do the neighbours it imports, a file it
+    writes, one it failed to open or one of a virtual environment; each is said once."""
     factory = _controller(tmp_path, "0.5")
     folder = tmp_path / "mine"
     (folder / "gain.txt").write_text("2.0\n")
     (folder / "weights.npy").write_bytes(b"")
     (folder / "table.csv").write_text("1\n")
+    (folder / ".venv").mkdir()
+    (folder / ".venv" / "pyvenv.cfg").write_text("")
+    linked = tmp_path / "linked"                      # the checkpoint named through a link
+    linked.symlink_to(folder)
     (folder / "follower.py").write_text(
         'from pathlib import Path\n'
         'TABLE = Path(__file__).with_name("table.csv").read_text()\n' + FACTORY.replace(
@@ -249,8 +254,13 @@ def test_a_data_file_the_factory_reads_unkeyed_is_warned_of_once(tmp_path):
             "        float(f.read())\n"
             "    if config.checkpoint:\n"
             "        open(config.checkpoint, 'rb').close()\n"
-            "    open(Path(__file__).with_name('written.log'), 'w').close()\n"))
-    config = ControllerConfig(factory=factory, checkpoint=str(folder / "weights.npy"))
+            "    open(Path(__file__).with_name('written.log'), 'w').close()\n"
+            "    open(Path(__file__).parent / '.venv' / 'pyvenv.cfg').close()\n"
+            "    try:\n"
+            "        open(Path(__file__).with_name('missing.json'))\n"
+            "    except FileNotFoundError:\n"
+            "        pass\n"))
+    config = ControllerConfig(factory=factory, checkpoint=str(linked / "weights.npy"))
     with pytest.warns(UserWarning) as caught:
         make_controller(config)
     said = sorted(str(w.message) for w in caught if w.category is UserWarning)
