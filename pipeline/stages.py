@@ -58,7 +58,15 @@ def _check_same_run(spec_path: Path, name: str):
                          f"{spec_path.parent} holds is unknown: give another --out, or "
                          f"delete {spec_path} to reuse the directory") from None
     other = recorded.get("name") if isinstance(recorded, dict) else None
-    if isinstance(other, str) and other != name:
+    if not isinstance(other, str):
+        # not a run file a run wrote (every one names its run): harmless in an empty
+        # directory, but beside stage records whose run they are is unknown
+        if any((spec_path.parent / "stages").glob("*.json")):
+            raise ValueError(f"{spec_path} names no run, so whose run {spec_path.parent} "
+                             f"holds is unknown: give another --out, or delete {spec_path} "
+                             f"to reuse the directory")
+        return
+    if other != name:
         raise ValueError(f"{spec_path.parent} holds the run {short(other)}, not "
                          f"{short(name)}: give another --out, or delete {spec_path} to "
                          f"reuse the directory")

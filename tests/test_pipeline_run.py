@@ -484,6 +484,21 @@ def test_a_directory_holding_another_run_is_refused_and_kept(tmp_path):
                                              r".* holds is unknown: give another --out"):
             Run(other, tmp_path / "run")
         assert (tmp_path / "run" / "run.yaml").read_bytes() == broken
+    # nor does one that names no run (empty, or without a name) beside stage records;
+    # in a directory without them it is taken over
+    (tmp_path / "run" / "stages").mkdir(exist_ok=True)
+    (tmp_path / "run" / "stages" / "sweep_x.json").write_text("{}")
+    for nameless in (b"", b"grid: [3, 3, 3]\n", b"- a list\n"):
+        (tmp_path / "run" / "run.yaml").write_bytes(nameless)
+        with pytest.raises(ValueError, match=r"run.yaml names no run, so whose run .* holds "
+                                             r"is unknown: give another --out"):
+            Run(other, tmp_path / "run")
+        assert (tmp_path / "run" / "run.yaml").read_bytes() == nameless
+    (tmp_path / "fresh").mkdir()
+    (tmp_path / "fresh" / "run.yaml").write_bytes(b"")
+    Run(other, tmp_path / "fresh")
+    assert b"name: other" in (tmp_path / "fresh" / "run.yaml").read_bytes()
+    (tmp_path / "run" / "stages" / "sweep_x.json").unlink()
     (tmp_path / "run" / "run.yaml").write_bytes(recorded)
     lines = []
     Run(load_run_spec(data=TINY.replace("horizon: 4.0", "horizon: 3.0")), tmp_path / "run",
