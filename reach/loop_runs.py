@@ -16,7 +16,7 @@ import numpy as np
 
 from .application import build_loop
 from .fingerprint import fingerprint
-from .outcomes import check_memoryless, path_labels, path_points
+from .outcomes import check_memoryless, path_labels, path_points, put_recording, recording_fields
 from .thread_kept import KEPT_DIAGRAMS, ThreadKept
 
 #: Per worker thread: (spec, scenario) -> (application, diagram, context), the
@@ -128,18 +128,15 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     length = int(np.floor(duration / period + 1e-9)) + 1
     states = np.asarray(states, float)
     m = sum(port.size() for _, port in signals)
-    out = {"frames": np.zeros((len(states), length, height, width, 3), np.uint8),
-           "signals": np.full((len(states), length, m), np.nan),
-           "state": np.full((len(states), length, states.shape[1]), np.nan),
-           "ticks": np.zeros(len(states), int), "failed": np.zeros(len(states), bool),
-           "failure_time": np.full(len(states), np.nan),
-           **({"score": np.full((len(states), length), np.nan),
-               "engaged": np.zeros(len(states), bool)} if scored else {})}
+    out = recording_fields(len(states), length, height, width, m, states.shape[1],
+                           scored=scored)
+    if scored:
+        out["engaged"] = np.zeros(len(states), bool)
     failed = failure_rule(application, scenario)
     read = lambda system, port, root: port.Eval(system.GetMyContextFromRoot(root))  # noqa: E731
     for i, x in enumerate(states):
         if failed(x):                                   # already failed: no run
-            out["failed"][i], out["failure_time"][i] = True, 0.0
+            put_recording(out, i, failed=True, failure_time=0.0)
             continue
         trajectory, rows = run_reading(
             diagram, scenario, failed, x, duration, context=context, read=lambda root: (
@@ -148,15 +145,14 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
                                 for s, p in signals]),
                 float(np.ravel(read(*score, root))[0]) if scored else None))
         n = min(len(trajectory.time), length)
-        out["frames"][i, :n] = np.stack([row[0] for row in rows])[:n, ..., :3]
-        out["signals"][i, :n] = np.stack([row[1] for row in rows])[:n]
         if scored:
-            out["score"][i, :n] = [row[2] for row in rows[:n]]
             out["engaged"][i] = _engaged(trajectory, scenario.controller.speed)
-        out["state"][i, :n] = trajectory.state[:n]
-        out["ticks"][i] = n
-        out["failed"][i] = end = failed(trajectory.state[n - 1])
-        out["failure_time"][i] = float(trajectory.time[n - 1]) if end else np.nan
+        end = failed(trajectory.state[n - 1])
+        put_recording(out, i, frames=np.stack([row[0] for row in rows])[:n, ..., :3],
+                      signals=np.stack([row[1] for row in rows])[:n],
+                      state=trajectory.state[:n],
+                      score=[row[2] for row in rows[:n]] if scored else None,
+                      failed=end, failure_time=float(trajectory.time[n - 1]))
     return out
 
 

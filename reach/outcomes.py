@@ -166,6 +166,39 @@ def run_outcomes(rollout, states, *, cache_dir, chunk_size: int = None, executor
     return Outcomes(fields=fields, key=key, computed=computed)
 
 
+def recording_fields(count: int, length: int, height: int, width: int, signals: int,
+                     state_dim: int, *, scored: bool = False) -> dict:
+    """The fields of ``count`` recorded runs of ``length`` control ticks, empty: ``frames``
+    uint8 ``(count, length, height, width, 3)``, ``signals`` ``(count, length, signals)``
+    and ``state`` ``(count, length, state_dim)`` (NaN), ``ticks``, ``failed``,
+    ``failure_time`` (NaN); ``scored``: ``score`` ``(count, length)`` (NaN) too. Every
+    real-loop recorder fills these (`put_recording`), so a monitor reads one layout."""
+    return {"frames": np.zeros((count, length, height, width, 3), np.uint8),
+            "signals": np.full((count, length, signals), np.nan),
+            "state": np.full((count, length, state_dim), np.nan),
+            "ticks": np.zeros(count, int), "failed": np.zeros(count, bool),
+            "failure_time": np.full(count, np.nan),
+            **({"score": np.full((count, length), np.nan)} if scored else {})}
+
+
+def put_recording(out: dict, i: int, *, frames=None, signals=None, state=None, score=None,
+                  failed: bool, failure_time: float):
+    """Run ``i`` into `recording_fields` ``out``: its first ``n`` ticks (``n``: the rows
+    of ``state``, at most the fields' length; none for a start that had already failed,
+    whose failure time is then 0) and its outcome (``failure_time`` kept only if it
+    failed)."""
+    n = 0 if state is None else min(len(state), out["state"].shape[1])
+    if n:
+        out["frames"][i, :n] = np.asarray(frames)[:n]
+        out["signals"][i, :n] = np.asarray(signals)[:n]
+        out["state"][i, :n] = np.asarray(state)[:n]
+        if score is not None:
+            out["score"][i, :n] = np.asarray(score, float)[:n]
+    out["ticks"][i] = n
+    out["failed"][i] = bool(failed)
+    out["failure_time"][i] = failure_time if failed else np.nan
+
+
 def time_to_failure(time, failure_time: float, duration: float):
     """How long each state a run passes through (at its ticks ``time``, s from 0) has
     until the run fails: ``(ttf s, observed)``. For a run that failed (at

@@ -11,7 +11,7 @@ import numpy as np
 from reachwatch.diagrams import CONTROLLER, make_closed_loop_diagram, simulate
 from reachwatch.diagrams.controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
 from reachwatch.diagrams.guarded import add_monitor_signals
-from reachwatch.reach.outcomes import map_states
+from reachwatch.reach.outcomes import map_states, put_recording, recording_fields
 from reachwatch.systems import DetectorConfig, resize_for_detector
 
 from .dynamics import OffRunway
@@ -59,30 +59,21 @@ def record_runs(scenario, duration: float, height: int, width: int, states, *,
     period, off = scenario.controller.period, OffRunway(scenario.environment.half_width)
     length = int(np.floor(duration / period + 1e-9)) + 1
     states = np.asarray(states, float)
-    m = diagram.GetOutputPort(SIGNALS_PORT).size()
-    out = {"frames": np.zeros((len(states), length, height, width, 3), np.uint8),
-           "signals": np.full((len(states), length, m), np.nan),
-           "state": np.full((len(states), length, states.shape[1]), np.nan),
-           "ticks": np.zeros(len(states), int), "failed": np.zeros(len(states), bool),
-           "failure_time": np.full(len(states), np.nan),
-           **({"score": np.full((len(states), length), np.nan)} if scored else {})}
+    out = recording_fields(len(states), length, height, width,
+                           diagram.GetOutputPort(SIGNALS_PORT).size(), states.shape[1],
+                           scored=scored)
     frame = functools.partial(_resized, size)
     for i, x in enumerate(states):
         if off.at(x):                            # already off the runway: no run
-            out["failed"][i], out["failure_time"][i] = True, 0.0
+            put_recording(out, i, failed=True, failure_time=0.0)
             continue
         run = simulate(diagram, initial_state=x, duration=duration, period=period,
                        failed=off, context=context,
                        record={FRAME_PORT: frame, SIGNALS_PORT: np.copy})
-        n = min(len(run.time), length)
-        out["frames"][i, :n] = run.records[FRAME_PORT][:n]
-        out["signals"][i, :n] = run.records[SIGNALS_PORT][:n]
-        out["state"][i, :n] = run.state[:n]
-        if scored:
-            out["score"][i, :n] = np.asarray(run.score, float)[:n]
-        out["ticks"][i] = n
-        out["failed"][i] = run.failed
-        out["failure_time"][i] = run.failure_time if run.failed else np.nan
+        put_recording(out, i, frames=run.records[FRAME_PORT],
+                      signals=run.records[SIGNALS_PORT], state=run.state,
+                      score=run.score if scored else None, failed=run.failed,
+                      failure_time=run.failure_time)
     return out
 
 
