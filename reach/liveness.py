@@ -250,6 +250,33 @@ def travelled(time, speed, failure_time=None):
     return distance
 
 
+#: `mission_row` of a start that had already failed (no run).
+FAILED_AT_START = (True, False, False, 0.0, 0, 0, True, False)
+
+
+def mission_row(time, speed, anomaly, *, failed: bool, failure_time, nominal: float,
+                duration: float, goal: float) -> tuple:
+    """One run's `MISSION_FIELDS` then `SAME_DISTANCE_FIELDS` (the caller keeps those it
+    asked for), from its logged ``time``, ``speed`` (None: ``nominal`` throughout; a
+    tick's speed applies since the previous one) and ``anomaly`` flags (None: none),
+    whether it ``failed`` and when (``failure_time``, s, may lie between ticks). Ticks
+    past ``duration`` (a mission-limited run's) count only for the same-distance
+    fields: whether it failed at all, and whether it fell short of ``goal`` m."""
+    time = np.asarray(time, float)
+    speed = (np.full(len(time), nominal) if speed is None
+             else np.asarray(speed, float).reshape(-1))
+    k = int(np.sum(time <= duration + 1e-9))                # the ticks within the horizon
+    within = bool(failed) and failure_time <= duration + 1e-9
+    distance = travelled(time[:k], speed[:k], failure_time if within else None)
+    acting = time[:k] < duration - 1e-9
+    flags = (np.zeros(k, bool) if anomaly is None
+             else np.asarray(anomaly, float).reshape(-1)[:k] >= 0.5)
+    whole = travelled(time, speed, failure_time if failed else None)
+    return (within, not within and speed[k - 1] <= 0, bool(np.any(speed[1:k] <= 0)),
+            distance, int(np.sum(flags & acting)), int(np.sum(acting)), bool(failed),
+            not failed and whole < goal * (1 - 1e-9))
+
+
 def mission_done(goal: float, nominal: float, period: float, horizon: float):
     """A real run's ``stop_when`` (`reachwatch.diagrams.simulate`) for a mission: true
     once the run has covered ``goal`` m, or, past ``horizon`` s, once it has stood

@@ -171,8 +171,8 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
     ``mission_limit * duration`` s, and the same-distance fields are returned too; the
     others are read from its first ``duration`` s, as without it."""
     from reachwatch.systems import fallback_parts
-    from .liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, check_mission_limit,
-                           mission_done, travelled)
+    from .liveness import (FAILED_AT_START, MISSION_FIELDS, SAME_DISTANCE_FIELDS,
+                           check_mission_limit, mission_done, mission_row)
     if mission_limit is not None:
         mission_limit = check_mission_limit(mission_limit)
     if fallback is not None:
@@ -186,7 +186,7 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
     out = {name: [] for name in names}
     for x in np.asarray(states, float):
         if failed(x):                                   # already failed
-            row = (True, False, False, 0.0, 0, 0, True, False)
+            row = FAILED_AT_START
         else:
             done = (None if mission_limit is None else
                     mission_done(goal, nominal, period, duration))
@@ -198,17 +198,10 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
                                  f"exports no 'speed' and 'anomaly' "
                                  f"(reachwatch.diagrams.export_loop_ports), which its real "
                                  f"runs are judged by")
-            speed = (np.full(len(run.time), nominal) if run.speed is None
-                     else np.asarray(run.speed, float).reshape(-1))
-            k = int(np.sum(run.time <= duration + 1e-9))      # the ticks within the horizon
-            within = end and run.time[-1] <= duration + 1e-9
-            acting = run.time[:k] < duration - 1e-9
-            flags = (np.zeros(k, bool) if run.anomaly is None
-                     else np.asarray(run.anomaly, float).reshape(-1)[:k] >= 0.5)
-            row = (within, not within and speed[k - 1] <= 0, bool(np.any(speed[1:k] <= 0)),
-                   travelled(run.time[:k], speed[:k]), int(np.sum(flags & acting)),
-                   int(np.sum(acting)), end,
-                   not end and travelled(run.time, speed) < goal * (1 - 1e-9))
+            # failed at the tick the run stopped on (the generic runs stop at ticks)
+            row = mission_row(run.time, run.speed, run.anomaly, failed=end,
+                              failure_time=float(run.time[-1]), nominal=nominal,
+                              duration=duration, goal=goal)
         for name, value in zip(names, row):
             out[name].append(value)
     return {name: np.asarray(value) for name, value in out.items()}

@@ -16,8 +16,9 @@ from reachwatch.diagrams.lockstep import loop_copies, simulate_lockstep
 from reachwatch.diagrams.render_stack import BUILD_LOCK
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
 from reachwatch.reach.fingerprint import fingerprint
-from reachwatch.reach.liveness import (MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes,
-                                       check_mission_limit, mission_done, travelled)
+from reachwatch.reach.liveness import (FAILED_AT_START, MISSION_FIELDS, SAME_DISTANCE_FIELDS,
+                                       MissionOutcomes, check_mission_limit, mission_done,
+                                       mission_row)
 from reachwatch.reach.outcomes import (Outcomes, check_memoryless, map_states, path_labels,
                                        path_points, run_outcomes)
 from reachwatch.reach.score_noise import fit_score_noise_on_runs
@@ -263,21 +264,12 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
                                       lambda i: mission_done(goal, nominal, period, duration))))
     for x in states:
         if off.at(x):                           # already off the runway
-            row = (True, False, False, 0.0, 0, 0, True, False)
+            row = FAILED_AT_START
         else:
             run = next(runs)
-            speed = (np.full(len(run.time), nominal) if run.speed is None
-                     else np.asarray(run.speed, float).reshape(-1))
-            k = int(np.sum(run.time <= duration + 1e-9))      # the ticks within the horizon
-            failed = run.failed and run.failure_time <= duration + 1e-9
-            distance = travelled(run.time[:k], speed[:k], run.failure_time if failed else None)
-            acting = run.time[:k] < duration - 1e-9
-            flags = (np.zeros(k, bool) if run.anomaly is None
-                     else np.asarray(run.anomaly, float).reshape(-1)[:k] >= 0.5)
-            whole = travelled(run.time, speed, run.failure_time if run.failed else None)
-            row = (failed, not failed and speed[k - 1] <= 0, bool(np.any(speed[1:k] <= 0)),
-                   distance, int(np.sum(flags & acting)), int(np.sum(acting)),
-                   run.failed, not run.failed and whole < goal * (1 - 1e-9))
+            row = mission_row(run.time, run.speed, run.anomaly, failed=run.failed,
+                              failure_time=run.failure_time, nominal=nominal,
+                              duration=duration, goal=goal)
         for name, value in zip(names, row):
             out[name].append(value)
     return {name: np.asarray(value) for name, value in out.items()}
