@@ -16,7 +16,8 @@ import numpy as np
 
 from .application import build_loop
 from .fingerprint import fingerprint
-from .outcomes import check_memoryless, path_labels, path_points, put_recording, recording_fields
+from .outcomes import (check_memoryless, path_fields, path_points, put_path, put_recording,
+                       recording_fields)
 from .thread_kept import KEPT_DIAGRAMS, ThreadKept
 
 #: Per worker thread: (spec, scenario) -> (application, diagram, context), the
@@ -286,26 +287,14 @@ def loop_paths(ref, scenario, horizon: float, extend: float, stride: int, grid,
     period, duration = scenario.controller.period, horizon + extend
     points = path_points(horizon, extend, stride, period)
     states = np.asarray(states, float)
-    n = len(states)
-    out = {"failed": np.zeros(n, bool), "failure_time": np.full(n, np.nan),
-           "left_box": np.zeros(n, bool), "max_abs_theta": np.full(n, np.nan),
-           "ticks": np.zeros(n, int),
-           "path_state": np.full((n, len(points), states.shape[1]), np.nan),
-           "path_label": np.full((n, len(points)), -1, np.int8)}
+    out = path_fields(len(states), points, states.shape[1])
     for i, x in enumerate(states):
         if failed(x):                                   # already failed: no run
-            out["failed"][i], out["failure_time"][i] = True, 0.0
-            out["path_state"][i, 0], out["path_label"][i, 0] = x, 1
+            put_path(out, i, x)
             continue
         run, end = run_until_failed(diagram, scenario, failed, x, duration, context=context)
-        failure_time = float(run.time[-1]) if end else None
-        labels = path_labels(run.time, failure_time, duration, horizon)
-        within = run.time <= horizon + 1e-9
-        kept = points[points < len(run.time)]
-        out["failed"][i] = labels[0] == 1
-        out["failure_time"][i] = np.nan if failure_time is None else failure_time
+        within = put_path(out, i, x, time=run.time, state=run.state,
+                          failure_time=float(run.time[-1]) if end else None,
+                          duration=duration, horizon=horizon, points=points)
         out["left_box"][i] = left_box(run.state[within], grid, axes=application.open_axes)
-        out["ticks"][i] = len(run.time)
-        out["path_state"][i, :len(kept)] = run.state[kept]
-        out["path_label"][i, :len(kept)] = labels[kept]
     return out

@@ -254,6 +254,41 @@ def path_points(horizon: float, extend: float, stride: int, period: float) -> np
     return np.arange(int(np.floor(extend / (stride * period) + 1e-9)) + 1) * int(stride)
 
 
+def path_fields(count: int, points, state_dim: int) -> dict:
+    """The fields of `Application.real_paths` for ``count`` starts, empty (see
+    `put_path`): ``failed``, ``failure_time`` (NaN), ``left_box``, ``max_abs_theta``
+    (NaN), ``ticks``, ``path_state`` ``(count, len(points), state_dim)`` (NaN) and
+    ``path_label`` ``(count, len(points))`` (-1). Every real-loop path runner fills
+    these, so the labels read one layout."""
+    return {"failed": np.zeros(count, bool), "failure_time": np.full(count, np.nan),
+            "left_box": np.zeros(count, bool), "max_abs_theta": np.full(count, np.nan),
+            "ticks": np.zeros(count, int),
+            "path_state": np.full((count, len(points), state_dim), np.nan),
+            "path_label": np.full((count, len(points)), -1, np.int8)}
+
+
+def put_path(out: dict, i: int, start, *, time=None, state=None, failure_time=None,
+             duration: float = 0.0, horizon: float = 0.0, points=()) -> np.ndarray:
+    """Start ``i`` into `path_fields` ``out``: a run from ``start`` logged at ``time``
+    with ``state`` over ``duration`` s, failed at ``failure_time`` (None: not), its
+    states at ``points`` labelled by `path_labels` (``failed`` is the start's own label,
+    within ``horizon``); no ``time``: a start that had already failed (labelled 1, at
+    time 0). Returns the mask of the run's ticks within ``horizon`` (none for a start
+    that had failed), over which the caller reads ``left_box`` and ``max_abs_theta``."""
+    if time is None:
+        out["failed"][i], out["failure_time"][i] = True, 0.0
+        out["path_state"][i, 0], out["path_label"][i, 0] = start, 1
+        return np.zeros(0, bool)
+    labels = path_labels(time, failure_time, duration, horizon)
+    kept = np.asarray(points)[np.asarray(points) < len(time)]
+    out["failed"][i] = labels[0] == 1
+    out["failure_time"][i] = np.nan if failure_time is None else failure_time
+    out["ticks"][i] = len(time)
+    out["path_state"][i, :len(kept)] = np.asarray(state)[kept]
+    out["path_label"][i, :len(kept)] = labels[kept]
+    return np.asarray(time) <= horizon + 1e-9
+
+
 def check_memoryless(controller):
     """Raise ValueError when the loop's ``controller`` (a Drake System) keeps state of
     its own (a filter, a frame history): then the run from a state a longer run passed

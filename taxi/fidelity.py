@@ -19,8 +19,8 @@ from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.liveness import (FAILED_AT_START, MISSION_FIELDS, SAME_DISTANCE_FIELDS,
                                        MissionOutcomes, check_mission_limit, mission_done,
                                        mission_row)
-from reachwatch.reach.outcomes import (Outcomes, check_memoryless, map_states, path_labels,
-                                       path_points, run_outcomes)
+from reachwatch.reach.outcomes import (Outcomes, check_memoryless, map_states, path_fields,
+                                       path_points, put_path, run_outcomes)
 from reachwatch.reach.score_noise import fit_score_noise_on_runs
 from reachwatch.reach.thread_kept import KEPT_DIAGRAMS, ThreadKept
 from reachwatch.systems import fallback_parts
@@ -156,29 +156,18 @@ def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, state
     runs = iter(_real_runs(scenario, make_closed_loop_diagram,
                            states[~off(states)], lockstep=lockstep,
                            duration=horizon + extend, period=period, failed=off))
-    out = {"failed": np.zeros(len(states), bool), "failure_time": np.full(len(states), np.nan),
-           "left_box": np.zeros(len(states), bool), "max_abs_theta": np.zeros(len(states)),
-           "ticks": np.zeros(len(states), int),
-           "path_state": np.full((len(states), len(points), states.shape[1]), np.nan),
-           "path_label": np.full((len(states), len(points)), -1, np.int8)}
+    out = path_fields(len(states), points, states.shape[1])
     for i, x in enumerate(states):
         if off.at(x):                           # already off the runway
-            out["failed"][i], out["failure_time"][i] = True, 0.0
+            put_path(out, i, x)
             out["max_abs_theta"][i] = abs(x[2])
-            out["path_state"][i, 0], out["path_label"][i, 0] = x, 1
             continue
         run = next(runs)
-        labels = path_labels(run.time, run.failure_time if run.failed else None,
-                             horizon + extend, horizon)
-        within = run.time <= horizon + 1e-9
-        kept = points[points < len(run.time)]
-        out["failed"][i] = labels[0] == 1
-        out["failure_time"][i] = run.failure_time if run.failed else np.nan
+        within = put_path(out, i, x, time=run.time, state=run.state,
+                          failure_time=run.failure_time if run.failed else None,
+                          duration=horizon + extend, horizon=horizon, points=points)
         out["left_box"][i] = left_box(run.state[within], grid, axes=OPEN_AXES)
         out["max_abs_theta"][i] = float(np.max(np.abs(run.state[within, 2])))
-        out["ticks"][i] = len(run.time)
-        out["path_state"][i, :len(kept)] = run.state[kept]
-        out["path_label"][i, :len(kept)] = labels[kept]
     return out
 
 
