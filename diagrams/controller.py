@@ -27,6 +27,7 @@ from reachwatch.systems import ProportionalController, TaxiNet
 from reachwatch.systems.checks import clip
 
 from . import user_code
+from .user_errors import call_failure
 from .checkpoints import REFERENCE_TAXINET, load_taxinet
 
 IMAGE_INPUT = "color_image"
@@ -132,7 +133,7 @@ def make_controller(config) -> System:
     except (Exception, SystemExit) as e:      # sys.exit(): was a silent exit
         if not config.factory:
             raise
-        raise user_code.call_failure(config.factory, e, module) from e
+        raise call_failure(config.factory, e, module) from e
     user_code.warn_unkeyed_reads(config.factory, module, keyed=[config.checkpoint])
     return check_controller(system, where)
 

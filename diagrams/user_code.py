@@ -15,18 +15,16 @@ import importlib.metadata
 import importlib.util
 import inspect
 import json
-import multiprocessing
 import os
-import re
 import sys
-import sysconfig
 import threading
-import traceback
-import warnings
 from pathlib import Path
 
 from reachwatch.systems.checks import clip, is_file
 from reachwatch.systems.files import check_keyed, local_copy, remember_keyed
+
+from .data_reads import FolderReads, warn_unkeyed
+from .user_errors import factory_failure, is_installed
 
 
 #: Bounds on the folder of a controller's files, all of whose ``.py`` files are read
@@ -145,71 +143,29 @@ class _FolderFinder(importlib.abc.MetaPathFinder):
         return None
 
 
-#: Per thread: the `_UserCode` whose code runs now (`_UserCode.importable`), innermost last.
-_RUNNING = threading.local()
-
-
-def _record_reads(event: str, args):
-    """An audit hook (`sys.addaudithook`): a file opened for reading by Python (``open``,
-    ``os.open``: numpy, torch, pickle and PIL read so) inside the folder of the user's
-    code that runs now, its ``.py`` files and ``__pycache__`` aside, is added to that
-    code's `_UserCode.read`. Never raises; returns at once when no user code runs."""
-    if event != "open":
-        return
-    running = getattr(_RUNNING, "codes", None)
-    if not running:
-        return
-    try:
-        path, mode, flags = args
-        if path is None or isinstance(path, int):
-            return
-        if mode is not None:
-            if any(c in mode for c in "wax+"):
-                return
-        elif flags & (os.O_WRONLY | os.O_RDWR):
-            return
-        path = os.path.realpath(os.fsdecode(path))      # the folder is a real path too
-        if path.endswith((".py", ".pyc")) or f"{os.sep}__pycache__{os.sep}" in path:
-            return
-        for code in running:
-            if path.startswith(code.prefix):
-                code.read.add(path)
-    except Exception:       # noqa: BLE001  (a hook must not break the open it watches)
-        pass
-
-
-_HOOK = []          # [True] once `_record_reads` is installed (hooks cannot be removed)
-
-
 class _UserCode:
     """A factory file's folder, the digest of its code, and the modules imported from
     it, kept out of ``sys.modules`` (two controllers may each have a ``helpers.py``; an
     edited one is imported afresh) except while the factory is imported or called;
-    ``read``: the data files in its folder its code opened meanwhile (`_record_reads`)."""
+    ``reads``: the files of its folder its code opened meanwhile (`data_reads`)."""
 
     def __init__(self, folder: Path, digest: str):
         self.folder, self.digest, self.modules = folder, digest, {}
-        self.prefix = os.path.join(os.path.realpath(folder), "")
-        self.read = set()
+        self.reads = FolderReads(folder)
 
     @contextlib.contextmanager
     def importable(self):
         with _LOCK:
-            if not _HOOK:
-                sys.addaudithook(_record_reads)
-                _HOOK.append(True)
-            running = _RUNNING.__dict__.setdefault("codes", [])
             finder = _FolderFinder(self.folder)
             shown = {n: m for n, m in self.modules.items() if n not in sys.modules}
             sys.modules.update(shown)
             meta = sys.meta_path
             meta.insert(meta.index(importlib.machinery.PathFinder)
                         if importlib.machinery.PathFinder in meta else len(meta), finder)
-            running.append(self)
             try:
-                yield
+                with self.reads.recording():
+                    yield
             finally:
-                running.remove(self)
                 meta.remove(finder)
                 for name in finder.found | set(shown):
                     if name in sys.modules:
@@ -225,113 +181,12 @@ def importable(module):
     return user.importable() if user else contextlib.nullcontext()
 
 
-_WARNED = set()     # the files `warn_unkeyed_reads` has warned of (real paths)
-
-
-def _data_file(path: str, folder: str) -> bool:
-    """Whether ``path``, read from the controller's ``folder``, is one of its data files:
-    a file that still exists, outside hidden folders, ``__pycache__``, virtual
-    environments and installed packages' metadata."""
-    parts = Path(os.path.relpath(path, folder)).parts[:-1]
-    below = Path(folder)
-    for part in parts:
-        below = below / part
-        if (part.startswith(".") or part in ("__pycache__", "site-packages")
-                or part.endswith((".dist-info", ".egg-info"))
-                or (below / "pyvenv.cfg").exists()):
-            return False
-    return os.path.isfile(path)
-
-
 def warn_unkeyed_reads(spec: str, module, keyed=()):
-    """A warning, once per process for each file, naming a data file in the folder of
-    the factory file ``module`` that its code opened (at import or when called) and
-    that no key covers (``keyed``: the paths whose content is keyed, the
-    controller's checkpoint): an edit to it would be answered from the caches."""
+    """`data_reads.warn_unkeyed` of the folder the factory file ``module`` was loaded
+    from (a no-op for any other module)."""
     user = _USER_CODE.get(getattr(module, "__name__", None))
-    if user is None or multiprocessing.parent_process() is not None:
-        return                  # a worker process: the driver that started it says it
-    keyed = {os.path.realpath(p) for p in keyed if p}
-    with _LOCK:
-        new = sorted(p for p in user.read - keyed - _WARNED if _data_file(p, user.prefix))
-        _WARNED.update(new)
-    for path in new:
-        warnings.warn(f"controller.factory '{clip(spec, 200)}' read "
-                      f"{clip(os.path.relpath(path, user.prefix), 200)} from its folder: not "
-                      f"its code, so no key covers it, and a sweep or run after an edit to it "
-                      f"is answered from the caches; name the controller's data file in "
-                      f"controller.checkpoint, whose content is keyed", UserWarning, stacklevel=3)
-
-
-def call_failure(spec: str, error: BaseException, module=None,
-                 where="controller.factory") -> ValueError:
-    """One line for a user's factory that raised when called: the factory, the error and
-    where in the file of ``module`` (the factory's, when it has a file) it arose."""
-    file = getattr(module, "__file__", None)
-    return _failure(spec, error, Path(file).parent if file else None, where,
-                    doing="calling it")
-
-
-def _frames(error: BaseException) -> list:
-    """``(file, line, function)`` of ``error``'s traceback, outermost first; raised in a
-    worker process (its cause a ``_RemoteTraceback``: the worker's traceback as text),
-    the worker's frames of the error itself (not of the exceptions it was raised while
-    handling) come after the ones here, innermost last."""
-    frames = [(f.filename, f.lineno, f.name) for f in traceback.extract_tb(error.__traceback__)]
-    cause = error.__cause__
-    if cause is not None and type(cause).__name__ == "_RemoteTraceback":
-        text = re.split(r"\n(?:The above exception was the direct cause of the following "
-                        r"exception|During handling of the above exception, another "
-                        r"exception occurred):", str(cause))[-1]
-        frames += [(f, int(n), name) for f, n, name in
-                   re.findall(r'File "([^"]+)", line (\d+), in (\S+)', text)]
-    return frames
-
-
-def _ours(path: Path) -> bool:
-    """Whether ``path`` is a file of reachwatch's own (of a loaded reachwatch module's
-    folder; the user's modules that reachwatch loads are named ``reachwatch_user_*``)."""
-    folders = {Path(m.__file__).resolve().parent for name, m in list(sys.modules.items())
-               if name.startswith("reachwatch.") and getattr(m, "__file__", None)}
-    return path.parent in folders
-
-
-def user_frame(error: BaseException, folder=None):
-    """``(file, line, function)`` where the user's code raised ``error``: the innermost
-    frame of its traceback (`_frames`) in ``folder`` (the user's factory's), or, without
-    one, the innermost that is neither Python's nor installed (`_installed`), when it is
-    not reachwatch's own (an error raised inside reachwatch is reachwatch's to show with
-    its traceback, even when the user's code called it). None when there is none."""
-    for filename, line, function in reversed(_frames(error)):
-        path = Path(filename)
-        if not path.is_file():
-            continue                                   # <string>, frozen modules
-        path = path.resolve()
-        if folder is not None:
-            if path.is_relative_to(Path(folder).resolve()):
-                return str(path), line, function
-            continue
-        if _installed(path):
-            continue
-        return None if _ours(path) else (str(path), line, function)
-    return None
-
-
-def _failure(spec: str, error: BaseException, folder=None, where="controller.factory",
-             doing="importing it") -> ValueError:
-    """One line naming the factory, the error and where in the user's code it arose."""
-    # without the factory's folder (a package's module): its innermost frame in any file
-    frame = user_frame(error, folder if folder is not None else Path("/"))
-    place = f" at {clip(frame[0], 200)}:{frame[1]}" if frame else ""
-    if isinstance(error, SyntaxError) and error.filename:
-        place = f" at {clip(error.filename, 200)}:{error.lineno}"
-    message = error.msg if isinstance(error, SyntaxError) else error
-    if isinstance(error, SystemExit):
-        message = f"it called sys.exit({'' if error.code is None else repr(error.code)})"
-    hint = (f"; a module it imports must be installed or in {clip(folder, 200)}"
-            if isinstance(error, ImportError) and folder is not None else "")
-    return ValueError(f"{where} '{clip(spec, 200)}': {doing} failed: "
-                      f"{type(error).__name__}: {clip(message, 300)}{place}{hint}")
+    if user is not None:
+        warn_unkeyed(spec, user.reads, keyed)
 
 
 def _load_file(spec: str, target: str, where="controller.factory", named=None):
@@ -355,23 +210,12 @@ def _load_file(spec: str, target: str, where="controller.factory", named=None):
                     module_spec.loader.exec_module(module)
             except (Exception, SystemExit) as e:    # sys.exit() at import: exited silently
                 del sys.modules[name]
-                raise _failure(spec, e, path.parent, where) from e
+                raise factory_failure(spec, e, path.parent, where) from e
             except BaseException:
                 del sys.modules[name]
                 raise
             _USER_CODE[name] = user
         return sys.modules[name]
-
-
-def _installed(location) -> bool:
-    """Whether ``location`` (a module's file or folder) is part of Python or of an
-    installed distribution rather than a user's source tree."""
-    path = Path(location).resolve()
-    if {"site-packages", "dist-packages"} & set(path.parts):
-        return True
-    paths = sysconfig.get_paths()
-    return any(path.is_relative_to(Path(paths[k]).resolve())
-               for k in ("stdlib", "platstdlib") if k in paths)
 
 
 def _package_root(target: str):
@@ -380,7 +224,7 @@ def _package_root(target: str):
     code is versioned by `reachwatch.reach.fingerprint.FORMAT`) nor installed; else None."""
     top = target.partition(".")[0]
     file = getattr(sys.modules.get(target), "__file__", None)
-    if top == "reachwatch" or not file or not os.path.isfile(file) or _installed(file):
+    if top == "reachwatch" or not file or not os.path.isfile(file) or is_installed(file):
         return None
     node = Path(file).resolve()
     node = node.parent if node.name == "__init__.py" else node
@@ -416,7 +260,7 @@ def _module(spec: str, target: str, where="controller.factory"):
                          f"install the package or name a file as 'path/to/file.py:function'"
                          ) from None
     except (Exception, SystemExit) as e:
-        raise _failure(spec, e, where=where) from e
+        raise factory_failure(spec, e, where=where) from e
     _package_digest(spec, target, where)
     return module
 

@@ -113,8 +113,8 @@ def _clip_message(error: BaseException) -> str:
 
 
 def user_frame(error: BaseException):
-    """Where the user's own code raised ``error`` (`diagrams.user_code.user_frame`)."""
-    from reachwatch.diagrams.user_code import user_frame as frame
+    """Where the user's own code raised ``error`` (`diagrams.user_errors.user_frame`)."""
+    from reachwatch.diagrams.user_errors import user_frame as frame
     return frame(error)
 
 

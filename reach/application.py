@@ -728,6 +728,7 @@ def load_application(spec: str = "") -> Application:
     line when it cannot be loaded or is not an application."""
     spec = str(spec or "")
     from reachwatch.diagrams import user_code
+    from reachwatch.diagrams.user_errors import call_failure
     if spec:
         code = user_code.factory_code_hash(spec, where="application")
         module, factory = user_code.resolve(spec, where="application")
@@ -750,7 +751,7 @@ def load_application(spec: str = "") -> Application:
     except (Exception, SystemExit) as e:      # sys.exit(): was a silent exit
         if not spec:
             raise
-        raise user_code.call_failure(spec, e, module, where="application") from e
+        raise call_failure(spec, e, module, where="application") from e
     if not isinstance(application, Application):
         raise ValueError(f"application '{spec}': it returned a {type(application).__name__}, "
                          f"not a reachwatch.reach.application.Application")

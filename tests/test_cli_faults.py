@@ -183,7 +183,7 @@ def test_a_worker_process_error_is_traced_to_the_users_code(tmp_path):
     when the user's code called it."""
     from concurrent.futures.process import _RemoteTraceback
 
-    from reachwatch.diagrams import user_code
+    from reachwatch.diagrams import user_code, user_errors
     path, module = _user_module(tmp_path)
     ours = user_code.__file__
 
@@ -203,13 +203,13 @@ def test_a_worker_process_error_is_traced_to_the_users_code(tmp_path):
             return e
 
     error = raised_here_by(remote((ours, 10, "main"), (str(path), 7, "refuse")))
-    assert user_code.user_frame(error) == (str(path.resolve()), 7, "refuse")
+    assert user_errors.user_frame(error) == (str(path.resolve()), 7, "refuse")
     error = raised_here_by(remote((ours, 10, "main"), (ours, 20, "check"),
                                   handled=[(str(path), 3, "calc")]))
-    assert user_code.user_frame(error) is None      # reachwatch's, raised while handling
+    assert user_errors.user_frame(error) is None      # reachwatch's, raised while handling
     error = raised_here_by(remote((str(path), 7, "refuse"), (ours, 20, "check")))
-    assert user_code.user_frame(error) is None      # raised in reachwatch, called by the user
-    assert user_code.user_frame(raised_here_by(None)) == (str(path.resolve()), 3, "calc")
+    assert user_errors.user_frame(error) is None      # raised in reachwatch, called by the user
+    assert user_errors.user_frame(raised_here_by(None)) == (str(path.resolve()), 3, "calc")
 
 
 def test_a_swept_table_the_solve_would_refuse_is_written_with_a_warning(tmp_path, capsys):
