@@ -22,10 +22,6 @@ class OffRunway:
     def __call__(self, states) -> np.ndarray:
         return np.abs(np.asarray(states, float)[:, 0]) >= self.half_width
 
-    def at(self, state) -> bool:
-        """The rule of one state."""
-        return bool(self(np.asarray(state, float)[None])[0])
-
     def __repr__(self):
         return f"OffRunway(half_width={self.half_width:g})"
 

@@ -153,12 +153,13 @@ def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, state
     off, period = OffRunway(scenario.environment.half_width), scenario.controller.period
     points = path_points(horizon, extend, stride, period)
     states = np.asarray(states, float)
+    gone = off(states)                           # already off the runway
     runs = iter(_real_runs(scenario, make_closed_loop_diagram,
-                           states[~off(states)], lockstep=lockstep,
+                           states[~gone], lockstep=lockstep,
                            duration=horizon + extend, period=period, failed=off))
     out = path_fields(len(states), points, states.shape[1])
     for i, x in enumerate(states):
-        if off.at(x):                           # already off the runway
+        if gone[i]:
             put_path(out, i, x)
             out["max_abs_theta"][i] = abs(x[2])
             continue
@@ -246,13 +247,14 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
     names = MISSION_FIELDS + (SAME_DISTANCE_FIELDS if mission_limit is not None else ())
     out = {name: [] for name in names}
     states = np.asarray(states, float)
-    runs = iter(_real_runs(loop, make, states[~off(states)], lockstep=lockstep,
+    gone = off(states)                           # already off the runway
+    runs = iter(_real_runs(loop, make, states[~gone], lockstep=lockstep,
                            period=period, failed=off,
                            duration=duration * (mission_limit or 1.0),
                            stop_when=(None if mission_limit is None else
                                       lambda i: mission_done(goal, nominal, period, duration))))
-    for x in states:
-        if off.at(x):                           # already off the runway
+    for at_start in gone:
+        if at_start:
             row = FAILED_AT_START
         else:
             run = next(runs)
@@ -317,13 +319,14 @@ def score_paths(scenario, duration: float, states, *, lockstep=None) -> dict:
     period, off = scenario.controller.period, OffRunway(scenario.environment.half_width)
     length = int(np.floor(duration / period + 1e-9)) + 2
     states = np.asarray(states, float)
-    runs = iter(_real_runs(scenario, make_watched_loop, states[~off(states)],
+    gone = off(states)                           # already off the runway: no path
+    runs = iter(_real_runs(scenario, make_watched_loop, states[~gone],
                            lockstep=lockstep, duration=duration, period=period,
                            failed=off))
     out = {"state": np.full((len(states), length, 3), np.nan),
            "score": np.full((len(states), length), np.nan), "ticks": np.zeros(len(states), int)}
-    for i, x in enumerate(states):
-        if off.at(x):                           # already off the runway: no path
+    for i in range(len(states)):
+        if gone[i]:
             continue
         run = next(runs)
         n = min(len(run.time), length)

@@ -63,8 +63,9 @@ def record_runs(scenario, duration: float, height: int, width: int, states, *,
                            diagram.GetOutputPort(SIGNALS_PORT).size(), states.shape[1],
                            scored=scored)
     frame = functools.partial(_resized, size)
+    gone = off(states)
     for i, x in enumerate(states):
-        if off.at(x):                            # already off the runway: no run
+        if gone[i]:                              # already off the runway: no run
             put_recording(out, i, failed=True, failure_time=0.0)
             continue
         run = simulate(diagram, initial_state=x, duration=duration, period=period,

@@ -59,8 +59,9 @@ def closed_loop_failure_rate(scenario, *, starts: int, seed: int, duration: floa
     diagram = make_closed_loop_diagram(scenario)
     context = diagram.CreateDefaultContext()
     failed = []
-    for x in (progress(states) if progress else states):
-        if off.at(x):
+    gone = off(states)
+    for x, at_start in zip((progress(states) if progress else states), gone):
+        if at_start:
             failed.append(True)
             continue
         failed.append(simulate(diagram, initial_state=x, duration=duration, failed=off,
