@@ -157,16 +157,20 @@ def scenario_from_args(args, schema=None, root="scenario", *, controller=False):
     return loaded
 
 
-def check_detector(scenario, path) -> None:
-    """Raise a ValueError when ``scenario`` (from the file ``path``; None: the built-in
-    defaults) names no detector checkpoint for the guarded loop, or a file that is not
-    one; cheap, so commands call it before their work."""
+def check_detector(scenario, where, key="monitor.detector") -> None:
+    """Raise a ValueError when ``scenario`` names no detector checkpoint for the guarded
+    loop (at ``key`` of the file ``where`` names), or a file that is not one; cheap, so
+    commands call it before their work."""
     from reachwatch.diagrams.checkpoints import checkpoint_kind
     if not scenario.monitor.detector:
-        raise ValueError(f"{f'--scenario {path}' if path else 'the built-in scenario'}: "
-                         f"monitor.detector is not set; the guarded loop needs a detector "
-                         f"checkpoint (train one with 'reachwatch evaluate')")
+        raise ValueError(f"{where}: {key} is not set; the guarded loop needs a detector "
+                         f"checkpoint (train one with 'reachwatch evaluate'; --set {key}=PATH)")
     checkpoint_kind(scenario.monitor.detector)
+
+
+def scenario_words(path) -> str:
+    """How errors name a ``--scenario`` file ``path`` (None: the built-in defaults)."""
+    return f"--scenario {path}" if path else "the built-in scenario"
 
 
 def output_folder(path) -> Path:
@@ -205,3 +209,77 @@ def render(args):
                           shadows=scenario.shadows).render(state)
     log.info(write_png(out / f"{scenario.environment.name}.png", image))
 
+
+def add_loop_source_arguments(parser):
+    """``--scenario`` (a scenario or a run file) or ``--run`` (a run file), their
+    overlays, and ``--env`` (a run file's environment): the loop of a command that
+    reads it with `loop_scenario`."""
+    from .overlays import add_overlay_arguments
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--scenario", help="scenario YAML, or a run file (read as one when "
+                        "it has a run file's keys, e.g. grid or train); default: built-in "
+                        "defaults")
+    source.add_argument("--run", metavar="RUN_FILE", help="run file (as 'reachwatch run "
+                        "--scenario' takes): its application's loop and scenario, in its "
+                        "first held-out environment (--env picks another)")
+    add_overlay_arguments(parser, "scenario or run")
+    parser.add_argument("--env", metavar="NAME", help="with a run file: the environment (as "
+                        "the report names it, e.g. KSFO_21h_overcast)")
+
+
+def loop_scenario(args, *, controller: bool = True):
+    """``(scenario, application, where, key)`` of a command that takes ``--scenario`` (a
+    scenario or a run file) or ``--run`` (a run file) with ``--env``: the `Scenario` of
+    the loop (a run file's in its environment), the application it is a loop of (its
+    spec; "" = the taxi), how errors name the file, and the key of its detector.
+    ``controller``: the command builds the controller, so import its factory now."""
+    path = args.run or args.scenario
+    if args.run or (args.scenario and is_run_file(args.scenario)):
+        from .spec import RunSpec
+        spec = scenario_from_args(argparse.Namespace(scenario=path, overlays=args.overlays),
+                                  schema=RunSpec, root="run", controller=controller)
+        return (run_scenario(spec, args.env, path), spec.application, f"run file {path}",
+                "scenario.monitor.detector")
+    if args.env:
+        raise ValueError("--env picks one of a run file's environments; a scenario names its "
+                         "own (set it with --set environment.runway=KSFO, or give a run file "
+                         "with --run)")
+    scenario = scenario_from_args(args, controller=controller)
+    return scenario, "", scenario_words(path), "monitor.detector"
+
+
+def run_scenario(spec, env_name, path):
+    """The run file ``spec``'s scenario in the environment named ``env_name`` (None: its
+    first held-out one, whose loops the report draws), as its stages build it."""
+    envs = spec.all_environments()
+    if env_name is None:
+        env = (spec.held_out_environments() or envs)[0]
+    else:
+        named = [e for e in envs if e.name == env_name]
+        if not named:
+            from reachwatch.systems.checks import clip
+            raise ValueError(clip(f"--env {env_name}: the run file {path} has no such "
+                                  f"environment; its environments: "
+                                  f"{', '.join(e.name for e in envs)}", 400))
+        env = named[0]
+    scenario = copy.deepcopy(spec.scenario)
+    scenario.environment = env
+    return scenario
+
+
+def is_run_file(path) -> bool:
+    """Whether the YAML file ``path`` is a run file: a mapping with a key only a run file
+    has (``name``, ``scenario``, ``train``, ``grid``, ...). A file that cannot be read is
+    not: loading it as a scenario says why."""
+    import dataclasses as dc
+
+    from reachwatch.diagrams import Scenario
+    from reachwatch.diagrams.scenario import ScenarioError, read_text_file, read_yaml
+
+    from .spec import RunSpec
+    try:
+        raw = read_yaml(read_text_file(path), str(path), drake=False)
+    except ScenarioError:
+        return False
+    run_only = {f.name for f in dc.fields(RunSpec)} - {f.name for f in dc.fields(Scenario)}
+    return isinstance(raw, dict) and any(k in run_only for k in raw)

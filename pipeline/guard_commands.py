@@ -7,7 +7,7 @@ import time
 
 from .commands import (RunFileDefault, check_detector, count, grid_nodes, horizon_seconds,
                        mission_multiple, open_share, output_folder, positive_int,
-                       scenario_from_args, seed_number)
+                       scenario_from_args, scenario_words, seed_number)
 from .console import log
 from .executor_option import add_executor_argument
 from .overlays import add_overlay_arguments
@@ -128,7 +128,7 @@ def guard_command(args):
     from .online_stages import guard_figures, guard_plots
 
     scenario = scenario_from_args(args, controller=True)
-    check_detector(scenario, args.scenario)      # before the sweep, not after it
+    check_detector(scenario, scenario_words(args.scenario))   # before the sweep, not after it
     scenario.monitor = scenario.monitor.with_checkpoint_defaults()  # what the log shows
     spec = guard_spec(args, scenario)
     fallbacks = spec.guard.strategies

@@ -1,74 +1,99 @@
-"""``reachwatch simulate``: one run of the closed loop (or of it and the guarded loop)
-from the scenario's start state."""
+"""``reachwatch simulate``: one run of a closed loop (or of it and the guarded loop) from
+one start: the taxi's from a scenario file's start state, or any application's, in an
+environment of a run file, from ``--start`` or the application's own start."""
 
 import io
 
-from .commands import check_detector, output_folder, scenario_from_args
+from .commands import (add_loop_source_arguments, check_detector, loop_scenario, number_type,
+                       output_folder)
 from .console import log
-from .overlays import add_overlay_arguments
+
+#: A state's component: any finite number.
+finite = number_type(float, -float("inf"), False, "a finite number")
 
 
 def add_parsers(sub):
-    sim = sub.add_parser("simulate", help="run the closed loop from the scenario's start "
-                         "state; write the trajectory (CSV, NPZ) and a top-view plot")
-    sim.add_argument("--scenario", help="scenario YAML (default: built-in defaults)")
-    add_overlay_arguments(sim)
+    sim = sub.add_parser("simulate", help="run the closed loop of a scenario or run file "
+                         "from one start; write the trajectory (CSV, NPZ) and a plot")
+    add_loop_source_arguments(sim)
+    sim.add_argument("--start", type=finite, nargs="+", metavar="X",
+                     help="the start state, one value per axis of the application's state "
+                     "(the taxi's: px m, py m, theta rad); default: the scenario's "
+                     "initial_state for the taxi, the application's start_state otherwise")
     sim.add_argument("--out", required=True, help="output folder")
     sim.add_argument("--loop", choices=["nominal", "guarded"], default="nominal",
                      help="guarded: also run the loop guarded by the detector and fallback "
-                          "switch (needs monitor.detector in the scenario); writes a Fig.-6 "
-                          "plot and a Meshcat replay (.html)")
+                          "switch (needs monitor.detector in the scenario); writes their "
+                          "plot (the taxi: Fig. 6, and a Meshcat replay, .html)")
     sim.add_argument("--no-meshcat", action="store_true", help="skip the HTML replay")
     sim.set_defaults(func=simulate_command)
 
 
-def _columns(trajectory):
+def trajectory_columns(application, trajectory):
+    """``(names, columns)`` of a run's table: the time, each state axis with its unit
+    (an angle in rad written in degrees) and the controller's estimate
+    (`Application.estimate_columns`)."""
     import numpy as np
-    names = ["t_s", "px_m", "py_m", "theta_deg"]
-    columns = [trajectory.time, trajectory.state[:, 0], trajectory.state[:, 1],
-               np.rad2deg(trajectory.state[:, 2])]
+    units = list(application.axis_units) + [""] * len(application.axes)
+    names, columns = ["t_s"], [trajectory.time]
+    for j, (axis, unit) in enumerate(zip(application.axes, units)):
+        in_degrees = unit == "rad"
+        names.append(f"{axis}_deg" if in_degrees else f"{axis}_{unit}" if unit else axis)
+        columns.append(np.rad2deg(trajectory.state[:, j]) if in_degrees
+                       else trajectory.state[:, j])
     k = trajectory.estimate.shape[1]
-    names += ["px_hat_m", "theta_hat_deg"] if k == 2 else [f"estimate_{i}" for i in range(k)]
+    estimate = list(application.estimate_columns)
+    names += estimate if len(estimate) == k else [f"estimate_{i}" for i in range(k)]
     columns += list(trajectory.estimate.T)
     return names, np.column_stack(columns)
+
+
+def start_of(application, scenario, start, where):
+    """The run's start: ``start`` (``--start``), checked against the application's
+    axes, or the application's `start_state`."""
+    import numpy as np
+    if start is None:
+        return np.asarray(application.start_state(scenario), float)
+    if len(start) != len(application.axes):
+        raise ValueError(f"--start: {len(start)} value{'s' * (len(start) != 1)} for "
+                         f"{where}, whose '{application.name}' state has "
+                         f"{len(application.axes)} ({', '.join(application.axes)})")
+    return np.asarray(start, float)
 
 
 def simulate_command(args):
     import numpy as np
 
-    from reachwatch.diagrams import initial_state_vector, make_closed_loop_diagram, simulate
-    from reachwatch.diagrams.plots import plot_runway_top_view
+    from reachwatch.reach.application import load_application
     from reachwatch.systems.files import atomic_write_bytes
-    from reachwatch.taxi import OffRunway, simulate_guarded
-    scenario = scenario_from_args(args, controller=True)
+    scenario, spec, where, key = loop_scenario(args)
+    application = load_application(spec)
     if args.loop == "guarded":
-        check_detector(scenario, args.scenario)
+        check_detector(scenario, where, key)
+    start = start_of(application, scenario, args.start, where)
     out = output_folder(args.out)
     if args.loop == "guarded":
-        nominal, guarded, paths = simulate_guarded(scenario, out,
-                                                   meshcat_html=not args.no_meshcat)
-        log.info(f"alone: {'failed' if nominal.failed else 'stayed on the runway'}; "
-                 f"guarded: {'failed' if guarded.failed else 'stayed on the runway'} "
-                 f"(min speed {guarded.speed.min():.2f} m/s, {int(guarded.anomaly.sum())} "
-                 f"flagged ticks); wrote {', '.join(map(str, paths))}")
+        alone, guarded, paths = application.simulate_guarded(
+            scenario, start, out, meshcat_html=not args.no_meshcat)
+        flags = "" if guarded.anomaly is None else f", {int(np.sum(guarded.anomaly))} flagged ticks"
+        speed = "" if guarded.speed is None else f" (min speed {np.min(guarded.speed):.2f} m/s{flags})"
+        log.info(f"alone: {'failed' if alone.failed else 'did not fail'}; guarded: "
+                 f"{'failed' if guarded.failed else 'did not fail'}{speed}; wrote "
+                 f"{', '.join(map(str, paths))}")
         return
-    diagram = make_closed_loop_diagram(scenario)
-    trajectory = simulate(diagram, initial_state=initial_state_vector(scenario.initial_state),
-                          duration=scenario.duration, period=scenario.controller.period,
-                          failed=OffRunway(scenario.environment.half_width))
+    trajectory, failed = application.run_from(scenario, start, scenario.duration)
     name = scenario.environment.name
-    header, columns = _columns(trajectory)
+    header, columns = trajectory_columns(application, trajectory)
     text = io.StringIO()
     np.savetxt(text, columns, delimiter=",", fmt="%.6f", header=",".join(header), comments="")
     atomic_write_bytes(out / f"{name}_trajectory.csv", text.getvalue().encode())
     buffer = io.BytesIO()
     np.savez(buffer, time=trajectory.time, state=trajectory.state,
-             estimate=trajectory.estimate, half_width=scenario.environment.half_width,
-             failed=trajectory.failed, failure_time=trajectory.failure_time)
+             estimate=trajectory.estimate, axes=np.array(application.axes, dtype=str),
+             failed=failed, failure_time=trajectory.failure_time)
     atomic_write_bytes(out / f"{name}_trajectory.npz", buffer.getvalue())
-    verdict = (f"FAILED at {trajectory.failure_time:.2f} s" if trajectory.failed
-               else "stayed on the runway")
-    plot = plot_runway_top_view([(trajectory, "closed loop")],
-                                half_width=scenario.environment.half_width,
-                                path=out / f"{name}_trajectory.png", title=f"{name}: {verdict}")
+    verdict = (f"FAILED at {trajectory.failure_time:.2f} s" if failed
+               else f"did not fail in {scenario.duration:g} s")
+    plot = application.draw_runs([(trajectory, "closed loop")], scenario=scenario,
+                                 path=out / f"{name}_trajectory.png", title=f"{name}: {verdict}")
     log.info(f"{verdict}; wrote {out / (name + '_trajectory.csv')}, .npz and {plot}")

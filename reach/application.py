@@ -354,6 +354,11 @@ class Application(abc.ABC):
         grid = self.grid(scenario, (3,) * len(self.axes))
         return (np.asarray(grid.lo, float) + np.asarray(grid.hi, float)) / 2
 
+    def start_state(self, scenario) -> np.ndarray:
+        """The state ``reachwatch simulate`` starts the loop from when it is given none:
+        default `view_state` (the taxi's: the scenario's ``initial_state``)."""
+        return self.view_state(scenario)
+
     def timing_starts(self, scenario, grid) -> np.ndarray:
         """The starts the guard stage times the loop alone and guarded from (the online
         tick rates), one per round in turn. Default: 5 seeded `starts` in ``grid``'s box."""
@@ -424,6 +429,10 @@ class Application(abc.ABC):
     #: ``(k,)`` the units the controller's estimation errors are measured in (the
     #: prediction-error and ensemble baselines divide by them); empty: 1 each.
     estimate_scale = ()
+    #: How a table of a run (``reachwatch simulate``'s ``.csv``) heads the controller's
+    #: estimate's components, with their units (the taxi's: ``("px_hat_m",
+    #: "theta_hat_deg")``); () = ``estimate_0``, ``estimate_1``, ...
+    estimate_columns = ()
     #: ``carry_estimate(estimate, steering, speed, period) -> estimate`` (a
     #: staticmethod): an estimate carried forward by the plant's kinematics over a period
     #: (the ``dead_reckoning`` steering); None: that steering is refused.
@@ -586,15 +595,13 @@ class Application(abc.ABC):
         draws nothing, against time (`reachwatch.diagrams.plots.plot_runs_over_time`);
         ``meshcat_html`` (a replay) is the taxi's."""
         from pathlib import Path
-        from reachwatch.diagrams.plots import plot_runs_over_time
         from .loop_runs import failure_rule, run_until_failed
         rule = failure_rule(self, scenario)
         runs = []
         for loop, guarded in ((self.without_monitor(scenario), False),
                               (self.resolved(scenario), True)):
-            run, failed = run_until_failed(self.loop_diagram(loop, guarded=guarded), loop, rule,
-                                           start, scenario.duration)
-            runs.append(dc.replace(run, failed=bool(failed)))
+            runs.append(run_until_failed(self.loop_diagram(loop, guarded=guarded), loop, rule,
+                                         start, scenario.duration)[0])
         alone, guarded = runs
         if guarded.speed is None or guarded.anomaly is None:
             raise ValueError(f"the application '{self.name}': its guarded loop exports no "
@@ -603,13 +610,9 @@ class Application(abc.ABC):
         name = f"guarded_{scenario.environment.name}"
         labelled = [(alone, "controller alone"),
                     (guarded, f"guarded ({scenario.monitor.fallback.name})")]
-        path = Path(folder) / f"{name}.png"
         title = f"{scenario.environment.name}: from {np.round(np.asarray(start, float), 2)}"
-        drawn = self.plot_runs(labelled, scenario=scenario, path=path, title=title)
-        if drawn is None:
-            drawn = plot_runs_over_time(labelled, axes=self.axes, units=self.axis_units,
-                                        path=path, title=title)
-        return alone, guarded, [drawn]
+        return alone, guarded, [self.draw_runs(labelled, scenario=scenario,
+                                               path=Path(folder) / f"{name}.png", title=title)]
 
     # --- incremental training (the incremental stage) ----------------------------------
     #: How reports and figures name the controller whose estimator is fine-tuned (the
@@ -658,6 +661,17 @@ class Application(abc.ABC):
         """A figure of ``runs`` (``[(Trajectory, label)]``) from one start; its path, or
         None (the default: no figure)."""
         return None
+
+    def draw_runs(self, runs, *, scenario, path, title=""):
+        """`plot_runs`' figure of ``runs``, or where it draws none each state axis (and
+        the speed and flags, where logged) against time
+        (`reachwatch.diagrams.plots.plot_runs_over_time`); its path."""
+        drawn = self.plot_runs(runs, scenario=scenario, path=path, title=title)
+        if drawn is None:
+            from reachwatch.diagrams.plots import plot_runs_over_time
+            drawn = plot_runs_over_time(runs, axes=self.axes, units=self.axis_units,
+                                        path=path, title=title)
+        return drawn
 
     # --- identity -------------------------------------------------------------------------
     def key(self):

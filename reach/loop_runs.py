@@ -11,6 +11,7 @@ holds."""
 import copy
 import dataclasses as dc
 import functools
+import math
 
 import numpy as np
 
@@ -48,13 +49,16 @@ def run_until_failed(diagram, scenario, failed, start, duration: float, *, conte
                      done=None):
     """``(trajectory, failed)``: the loop ``diagram`` of ``scenario`` from the state
     ``start`` for ``duration`` s, stopped at the first control tick where ``failed``
-    (`failure_rule`) holds, or where ``done(rows)`` says so; ``context``: a reused one."""
+    (`failure_rule`) holds, or where ``done(rows)`` says so; ``context``: a reused one.
+    The trajectory's ``failed`` and ``failure_time`` (that tick's time) say the same."""
     from reachwatch.diagrams import simulate
     run = simulate(diagram, initial_state=start, duration=duration,
                    period=scenario.controller.period, context=context,
                    stop_when=lambda rows: failed(rows["state"][-1]) or
                    (done is not None and done(rows)))
-    return run, failed(run.state[-1])
+    end = bool(failed(run.state[-1]))
+    return (dc.replace(run, failed=end, failure_time=float(run.time[-1]) if end else math.nan),
+            end)
 
 
 def run_reading(diagram, scenario, failed, start, duration: float, read, *, context=None):
@@ -257,7 +261,7 @@ def loop_rollouts(ref, scenario, duration: float, grid, states) -> dict:
         else:
             run, end = run_until_failed(diagram, scenario, failed, x, duration,
                                         context=context)
-            row = (end, float(run.time[-1]) if end else np.nan,
+            row = (end, run.failure_time,
                    left_box(run.state, grid, axes=application.open_axes), np.nan, len(run.time))
         for k, v in zip(out, row):
             out[k].append(v)

@@ -8,7 +8,8 @@ import dataclasses as dc
 
 import numpy as np
 
-from reachwatch.diagrams import StateRenderer, load_taxinet, make_closed_loop_diagram, make_guarded_diagram
+from reachwatch.diagrams import (StateRenderer, initial_state_vector, load_taxinet,
+                                 make_closed_loop_diagram, make_guarded_diagram)
 from reachwatch.reach.application import Application
 from reachwatch.systems import Environment, RandomEnvironments, TaxiNet
 
@@ -173,6 +174,9 @@ class TaxiApplication(RunwayEnvironments, Application):
     def view_state(self, scenario):
         return np.array([0.0, 150.0, 0.0])      # where the environments figure looked
 
+    def start_state(self, scenario):
+        return initial_state_vector(scenario.initial_state)
+
     def ensemble_estimator(self, checkpoint):
         model, preprocess, _ = load_taxinet(checkpoint)
         return TaxiNet(model=model, preprocess_config=preprocess).estimate
@@ -195,6 +199,7 @@ class TaxiApplication(RunwayEnvironments, Application):
     # the generic table rollouts (`Application.fallback_rollouts`) with the taxi's hooks
     true_estimate = staticmethod(guarded.true_estimate)
     estimate_scale = (10.0, 30.0)          # TaxiNet's output scales (m, deg)
+    estimate_columns = ("px_hat_m", "theta_hat_deg")
     carry_estimate = staticmethod(guarded.carry_estimate)
 
     def fallback_policy(self, scenario):

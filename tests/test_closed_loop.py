@@ -120,7 +120,12 @@ def test_cli_simulate_writes_trajectory_and_plot(tmp_path):
     assert rows.shape == (21, 6) and rows[0, 1] == pytest.approx(2.0)
     assert (tmp_path / "KMWH_9h_clear_trajectory.png").stat().st_size > 1000
     data = np.load(tmp_path / "KMWH_9h_clear_trajectory.npz")
-    assert data["state"].shape == (21, 3)
+    assert data["state"].shape == (21, 3) and list(data["axes"]) == ["px", "py", "theta"]
+    header = (tmp_path / "KMWH_9h_clear_trajectory.csv").read_text().splitlines()[0]
+    assert header == "t_s,px_m,py_m,theta_deg,px_hat_m,theta_hat_deg"
+    assert np.allclose(rows[:, 3], np.rad2deg(data["state"][:, 2]), atol=1e-6)
+    assert np.allclose(rows[:, 4:], data["estimate"], atol=1e-6)
+    assert not data["failed"] and np.isnan(data["failure_time"])
 
 
 def test_runs_of_one_diagram_without_a_context_share_its_own(nominal_loop, monkeypatch):

@@ -219,6 +219,14 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     speed = np.asarray(guarded.speed).ravel()
     assert speed[0] == shown.controller.speed and speed[-1] < speed[1] < speed[0]
     assert [p.name for p in paths] == ["guarded_KMWH_21h_clear.png"] and paths[0].is_file()
+    # the same from the command line, on the run file with the run's detector
+    assert main(["simulate", "--run", str(ROOT / "examples" / "cart" / "run.yaml"),
+                 "--loop", "guarded", "--start", "0.1", "0.0", "--out", str(tmp_path / "cli"),
+                 "--set", f"scenario.monitor.detector={out / trained['detector']}",
+                 "--set", "scenario.monitor.threshold=0.0", "--set", "scenario.duration=1.0",
+                 "--set", "scenario.monitor.strategy=brake", "--set", "scenario.camera.height=24",
+                 "--set", "scenario.camera.width=48"]) == 0
+    assert (tmp_path / "cli" / "guarded_KMWH_21h_clear.png").is_file()
     # the generic score-noise fit runs on a copy: the caller's monitor stays as it was
     before = copy.deepcopy(shown.monitor)
     grid = cart.grid(shown, (5, 5))
@@ -229,6 +237,33 @@ def test_cart_through_reachwatch_run(tmp_path, monkeypatch):
     assert shown.monitor == before and fit["left_out"] == 0
     assert 1 <= fit["runs"] <= 3 and fit["runs"] + fit["cut_at_box"] >= 3, fit
     assert 10 <= fit["ticks"] <= 33 and np.isfinite(fitted.sigma)
+
+
+def test_any_applications_loop_runs_through_reachwatch_simulate(tmp_path, monkeypatch, capsys):
+    """``reachwatch simulate --run``: the cart's loop (a run file's application) from a
+    start of its own state, stopped where it fails, its table headed by the cart's axes."""
+    monkeypatch.chdir(ROOT)                    # the run file's paths are relative
+    run = ["simulate", "--run", "examples/cart/run.yaml", "--set", "scenario.duration=1.0"]
+    assert main(run + ["--start", "0.4", "0.69", "--out", str(tmp_path)]) == 0
+    data = np.load(tmp_path / "KMWH_21h_clear_trajectory.npz")
+    assert list(data["axes"]) == ["y", "theta"] and data["state"].shape[1] == 2
+    assert data["failed"] and data["failure_time"] == data["time"][-1] < 1.0
+    assert np.abs(data["state"][-1, 0]) >= 0.5 > np.abs(data["state"][-2, 0])  # a rail
+    table = np.loadtxt(tmp_path / "KMWH_21h_clear_trajectory.csv", delimiter=",", skiprows=1)
+    assert (tmp_path / "KMWH_21h_clear_trajectory.csv").read_text().startswith("t_s,y_m,theta_deg\n")
+    assert np.allclose(table[:, 2], np.rad2deg(data["state"][:, 1]), atol=1e-6)
+    assert (tmp_path / "KMWH_21h_clear_trajectory.png").stat().st_size > 1000
+    # another environment of the run file, from the application's own start
+    assert main(run + ["--env", "KMWH_9h_clear", "--out", str(tmp_path / "a")]) == 0
+    data = np.load(tmp_path / "a" / "KMWH_9h_clear_trajectory.npz")
+    assert not data["failed"] and len(data["time"]) == 11
+    assert np.allclose(data["state"][0], [0.0, 0.0])        # the middle of the cart's box
+    capsys.readouterr()
+    assert main(run + ["--start", "0.1", "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert "--start: 1 value for run file examples/cart/run.yaml, whose 'cart' state has " \
+           "2 (y, theta)" in err and err.count("\n") == 1
+    assert not (tmp_path / "b").exists()                 # refused before any output
 
 
 TUNED_CART = '''
