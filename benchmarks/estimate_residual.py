@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reachwatch.reach.chunks import is_chunk_file, read_chunk_file
+from reachwatch.reach.chunk_files import is_chunk_file, read_chunk_file
 from reachwatch.systems.dead_reckoning import propagate_estimate
 from reachwatch.training.monitor_eval import tick_auroc
 

@@ -20,7 +20,7 @@ import threading
 from pathlib import Path
 from typing import Callable
 
-from reachwatch.reach.chunks import is_chunk_file
+from reachwatch.reach.chunk_files import is_chunk_file
 from reachwatch.systems.files import (atomic_write_bytes, cache_join, cache_root, get_location,
                                       is_url, list_location, put_location)
 

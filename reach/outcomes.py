@@ -22,7 +22,8 @@ import numpy as np
 from tqdm import tqdm
 
 from reachwatch.systems.files import cache_join, make_folder
-from .chunks import FolderStore, run_chunks, split
+from .chunk_files import FolderStore, split
+from .chunks import run_chunks
 from .executors import InlineExecutor
 from .fingerprint import fingerprint
 

@@ -26,10 +26,8 @@ from tqdm import tqdm
 
 from reachwatch.systems.files import cache_join, cache_location, make_folder, read_location, write_location
 
-# (also re-exported: where they lived before `reach.chunks` ran every chunked job)
-from .chunks import (CHECKSUM, FolderStore, checksum_ok, chunk_checksum,  # noqa: F401
-                     chunk_path, read_chunk_file, row_done, run_chunks, set_row_hook, split,
-                     store_chunk_file)
+from .chunk_files import FolderStore, checksum_ok, chunk_checksum, chunk_path, read_chunk_file, split
+from .chunks import row_done, run_chunks, set_row_hook
 from .executors import (RESPAWNS, InlineExecutor, RespawningPool,  # noqa: F401
                         executor_threads, in_flight, stop_executor)
 from .fingerprint import Unfingerprintable, fingerprint, loop_code_digest

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reachwatch.reach.chunks import (FolderStore, ordered_log, read_chunk_file, run_chunks,
-                                     run_together, split)
+from reachwatch.reach.chunk_files import FolderStore, read_chunk_file, split
+from reachwatch.reach.chunks import ordered_log, run_chunks, run_together
 from reachwatch.reach.executors import InlineExecutor, in_flight
 
 

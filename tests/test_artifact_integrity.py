@@ -250,7 +250,7 @@ def test_map_states_keeps_every_chunks_numbers_and_refuses_unlike_chunks(tmp_pat
 def _rewrite_chunk(path, change):
     """Rewrite a chunk file with ``change(arrays)`` and a checksum that matches (a table
     made elsewhere, or edited by a tool that knows the format)."""
-    from reachwatch.reach.sweep import CHECKSUM, store_chunk_file
+    from reachwatch.reach.chunk_files import CHECKSUM, store_chunk_file
     with np.load(path) as data:
         arrays = {k: data[k] for k in data.files if k != CHECKSUM}
     change(arrays)

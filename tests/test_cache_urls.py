@@ -13,7 +13,7 @@ import pytest
 
 from reachwatch.diagrams import load_scenario, make_state_feedback_diagram
 from reachwatch.reach import InlineExecutor, Probe, sweep, sweep_key
-from reachwatch.reach.chunks import chunk_path
+from reachwatch.reach.chunk_files import chunk_path
 from reachwatch.reach.outcomes import map_states
 from reachwatch.reach.sweep import cached_table_digest
 from reachwatch.systems.files import cache_join, cache_location

@@ -16,8 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from reachwatch.reach.chunks import (FolderStore, chunk_path, read_chunk_file, row_done,
-                                     run_chunks, split, store_chunk_file)
+from reachwatch.reach.chunk_files import (FolderStore, chunk_path, read_chunk_file, split,
+                                          store_chunk_file)
+from reachwatch.reach.chunks import row_done, run_chunks
 from reachwatch.reach.executors import RESPAWNS, InlineExecutor, RespawningPool, stop_executor
 from reachwatch.reach.sweep import default_executor
 

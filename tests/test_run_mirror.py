@@ -15,7 +15,8 @@ import pytest
 from reachwatch.pipeline import run_mirror
 from reachwatch.pipeline.cli import main
 from reachwatch.pipeline.run_mirror import PUSHED, RunMirror
-from reachwatch.reach.chunks import FolderStore, is_chunk_file, run_chunks, split
+from reachwatch.reach.chunk_files import FolderStore, is_chunk_file, split
+from reachwatch.reach.chunks import run_chunks
 from reachwatch.systems.files import list_location, read_location
 from tiny_run import TINY
 

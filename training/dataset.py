@@ -34,7 +34,8 @@ from tqdm import tqdm
 
 from reachwatch.diagrams import file_hash, make_controller
 from reachwatch.reach.application import ApplicationRef, load_application
-from reachwatch.reach.chunks import run_chunks, split
+from reachwatch.reach.chunk_files import split
+from reachwatch.reach.chunks import run_chunks
 from reachwatch.reach.executors import InlineExecutor
 from reachwatch.reach.fingerprint import fingerprint, modules_source_digest
 from reachwatch.systems import DetectorConfig
