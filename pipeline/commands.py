@@ -45,6 +45,8 @@ solved_theta = number_type(float, 28.0, False, "a number of degrees in [28, 180]
 solved_py = number_type(float, 250.0, False, "a finite number of metres >= 250",
                         most=10_000.0)
 mission_multiple = number_type(float, 1.0, False, "a multiple of the horizon in [1, 100]", most=100.0)
+#: A state's component (``simulate --start``): any finite number.
+finite = number_type(float, -math.inf, False, "a finite number")
 
 
 class RunFileDefault:

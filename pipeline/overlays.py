@@ -80,6 +80,13 @@ def text_argument(flag: str):
     return parse
 
 
+#: ``--set``'s example in the help of a command reading a scenario file, a run file, or
+#: either.
+SET_EXAMPLES = {"scenario": "controller.speed=3.0", "run": "grid=[5,3,5]",
+                "scenario or run": "controller.speed=3.0 (in a run file: "
+                                   "scenario.controller.speed=3.0)"}
+
+
 def add_overlay_arguments(parser, what="scenario"):
     """``--set`` and ``--scenario-text`` (spelt ``--scenario_text`` too, as Drake's
     tools do; for a run file, ``what`` "run" or "scenario or run", also ``--run-text``),
@@ -89,9 +96,8 @@ def add_overlay_arguments(parser, what="scenario"):
     parser.add_argument("--set", dest="overlays", action="append", type=set_argument,
                         metavar="KEY=VALUE",
                         help=f"change one field of the {what} file, e.g. --set "
-                             f"{'grid=[5,3,5]' if what == 'run' else 'controller.speed=3.0'} "
-                             f"(dotted keys, list items by index, VALUE read as YAML; "
-                             f"repeatable; checked as the file is)")
+                             f"{SET_EXAMPLES[what]} (dotted keys, list items by index, VALUE "
+                             f"read as YAML; repeatable; checked as the file is)")
     example = ("{guard: {check_starts: 0}}" if what == "run" else "{controller: {speed: 3.0}}")
     parser.add_argument("--scenario-text", "--scenario_text", dest="overlays",
                         action="append", type=text_argument("--scenario-text"),

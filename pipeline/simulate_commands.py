@@ -4,12 +4,9 @@ environment of a run file, from ``--start`` or the application's own start."""
 
 import io
 
-from .commands import (add_loop_source_arguments, check_detector, loop_scenario, number_type,
+from .commands import (add_loop_source_arguments, check_detector, finite, loop_scenario,
                        output_folder)
 from .console import log
-
-#: A state's component: any finite number.
-finite = number_type(float, -float("inf"), False, "a finite number")
 
 
 def add_parsers(sub):
@@ -22,9 +19,10 @@ def add_parsers(sub):
                      "initial_state for the taxi, the application's start_state otherwise")
     sim.add_argument("--out", required=True, help="output folder")
     sim.add_argument("--loop", choices=["nominal", "guarded"], default="nominal",
-                     help="guarded: also run the loop guarded by the detector and fallback "
-                          "switch (needs monitor.detector in the scenario); writes their "
-                          "plot (the taxi: Fig. 6, and a Meshcat replay, .html)")
+                     help="guarded: run the loop alone and guarded by the detector and "
+                          "fallback switch (needs the scenario's monitor.detector; in a run "
+                          "file scenario.monitor.detector); writes their plot instead of the "
+                          "trajectory files (the taxi: Fig. 6, .npz and a Meshcat replay)")
     sim.add_argument("--no-meshcat", action="store_true", help="skip the HTML replay")
     sim.set_defaults(func=simulate_command)
 
@@ -49,16 +47,17 @@ def trajectory_columns(application, trajectory):
 
 
 def start_of(application, scenario, start, where):
-    """The run's start: ``start`` (``--start``), checked against the application's
-    axes, or the application's `start_state`."""
+    """The run's start: ``start`` (``--start``) or the application's `start_state`,
+    checked against the application's axes."""
     import numpy as np
-    if start is None:
-        return np.asarray(application.start_state(scenario), float)
-    if len(start) != len(application.axes):
-        raise ValueError(f"--start: {len(start)} value{'s' * (len(start) != 1)} for "
-                         f"{where}, whose '{application.name}' state has "
-                         f"{len(application.axes)} ({', '.join(application.axes)})")
-    return np.asarray(start, float)
+    given = "--start" if start is not None else "the application's start_state"
+    start = np.asarray(application.start_state(scenario) if start is None else start, float)
+    if start.shape != (len(application.axes),) or not np.all(np.isfinite(start)):
+        n = start.size
+        raise ValueError(f"{given}: {n} value{'s' * (n != 1)} for {where}, whose "
+                         f"'{application.name}' state has {len(application.axes)} "
+                         f"({', '.join(application.axes)}), each finite")
+    return start
 
 
 def simulate_command(args):
@@ -77,9 +76,10 @@ def simulate_command(args):
             scenario, start, out, meshcat_html=not args.no_meshcat)
         flags = "" if guarded.anomaly is None else f", {int(np.sum(guarded.anomaly))} flagged ticks"
         speed = "" if guarded.speed is None else f" (min speed {np.min(guarded.speed):.2f} m/s{flags})"
-        log.info(f"alone: {'failed' if alone.failed else 'did not fail'}; guarded: "
-                 f"{'failed' if guarded.failed else 'did not fail'}{speed}; wrote "
-                 f"{', '.join(map(str, paths))}")
+        verdict = {True: application.failure_words,
+                   False: f"did not {application.fail_words}"}
+        log.info(f"alone: {verdict[bool(alone.failed)]}; guarded: "
+                 f"{verdict[bool(guarded.failed)]}{speed}; wrote {', '.join(map(str, paths))}")
         return
     trajectory, failed = application.run_from(scenario, start, scenario.duration)
     name = scenario.environment.name
@@ -92,8 +92,8 @@ def simulate_command(args):
              estimate=trajectory.estimate, axes=np.array(application.axes, dtype=str),
              failed=failed, failure_time=trajectory.failure_time)
     atomic_write_bytes(out / f"{name}_trajectory.npz", buffer.getvalue())
-    verdict = (f"FAILED at {trajectory.failure_time:.2f} s" if failed
-               else f"did not fail in {scenario.duration:g} s")
+    verdict = (f"{application.failure_words} at {trajectory.failure_time:.2f} s"
+               if failed else f"did not {application.fail_words} in {scenario.duration:g} s")
     plot = application.draw_runs([(trajectory, "closed loop")], scenario=scenario,
                                  path=out / f"{name}_trajectory.png", title=f"{name}: {verdict}")
     log.info(f"{verdict}; wrote {out / (name + '_trajectory.csv')}, .npz and {plot}")

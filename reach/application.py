@@ -597,16 +597,14 @@ class Application(abc.ABC):
         from pathlib import Path
         from .loop_runs import failure_rule, run_until_failed
         rule = failure_rule(self, scenario)
-        runs = []
-        for loop, guarded in ((self.without_monitor(scenario), False),
-                              (self.resolved(scenario), True)):
-            runs.append(run_until_failed(self.loop_diagram(loop, guarded=guarded), loop, rule,
-                                         start, scenario.duration)[0])
-        alone, guarded = runs
-        if guarded.speed is None or guarded.anomaly is None:
+        loops = [(self.without_monitor(scenario), False), (self.resolved(scenario), True)]
+        diagrams = [self.loop_diagram(loop, guarded=guarded) for loop, guarded in loops]
+        if not all(diagrams[1].HasOutputPort(port) for port in ("speed", "anomaly")):
             raise ValueError(f"the application '{self.name}': its guarded loop exports no "
                              f"'speed' and 'anomaly' (reachwatch.diagrams.export_loop_ports), "
-                             f"which the showcase run reads; set guard.candidates: 0")
+                             f"which a guarded run's figure reads")
+        alone, guarded = (run_until_failed(diagram, loop, rule, start, scenario.duration)[0]
+                          for diagram, (loop, _) in zip(diagrams, loops))
         name = f"guarded_{scenario.environment.name}"
         labelled = [(alone, "controller alone"),
                     (guarded, f"guarded ({scenario.monitor.fallback.name})")]
@@ -650,9 +648,10 @@ class Application(abc.ABC):
 
     def run_from(self, scenario, start, duration: float):
         """``(trajectory, failed)``: the loop of ``scenario`` from the state ``start`` for
-        ``duration`` s, stopped at the first control tick where `failed` holds (the
-        incremental stage's runs from its starred start). ``trajectory``: a
-        `reachwatch.diagrams.Trajectory`."""
+        ``duration`` s, stopped at the first control tick where `failed` holds (``reachwatch
+        simulate``'s run, and the incremental stage's runs from its starred start).
+        ``trajectory``: a `reachwatch.diagrams.Trajectory`, its ``failed`` and
+        ``failure_time`` set."""
         from .loop_runs import failure_rule, run_until_failed
         return run_until_failed(self.loop_diagram(scenario), scenario,
                                 failure_rule(self, scenario), start, duration)

@@ -62,9 +62,10 @@ def run_until_failed(diagram, scenario, failed, start, duration: float, *, conte
 
 
 def run_reading(diagram, scenario, failed, start, duration: float, read, *, context=None):
-    """``(trajectory, readings)``: like `run_until_failed`, with ``read(root_context)``
-    called at every control tick the run logs (inside the loop, before the tick's row
-    is read), its results listed in order."""
+    """``(trajectory, readings)``: the run `run_until_failed` makes (its trajectory's
+    ``failed`` left unset), with ``read(root_context)`` called at every control tick the
+    run logs (inside the loop, before the tick's row is read), its results listed in
+    order."""
     from reachwatch.diagrams.closed_loop import LoopRun
     run = LoopRun(diagram, initial_state=start, duration=duration,
                   period=scenario.controller.period, context=context,
@@ -205,7 +206,7 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
                                  f"runs are judged by")
             # failed at the tick the run stopped on (the generic runs stop at ticks)
             row = mission_row(run.time, run.speed, run.anomaly, failed=end,
-                              failure_time=float(run.time[-1]), nominal=nominal,
+                              failure_time=run.failure_time, nominal=nominal,
                               duration=duration, goal=goal)
         for name, value in zip(names, row):
             out[name].append(value)
@@ -298,7 +299,7 @@ def loop_paths(ref, scenario, horizon: float, extend: float, stride: int, grid,
             continue
         run, end = run_until_failed(diagram, scenario, failed, x, duration, context=context)
         within = put_path(out, i, x, time=run.time, state=run.state,
-                          failure_time=float(run.time[-1]) if end else None,
+                          failure_time=run.failure_time if end else None,
                           duration=duration, horizon=horizon, points=points)
         out["left_box"][i] = left_box(run.state[within], grid, axes=application.open_axes)
     return out

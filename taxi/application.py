@@ -175,6 +175,8 @@ class TaxiApplication(RunwayEnvironments, Application):
         return np.array([0.0, 150.0, 0.0])      # where the environments figure looked
 
     def start_state(self, scenario):
+        if not self.own_loop:
+            return super().start_state(scenario)
         return initial_state_vector(scenario.initial_state)
 
     def ensemble_estimator(self, checkpoint):
@@ -233,8 +235,9 @@ class TaxiApplication(RunwayEnvironments, Application):
     def simulate_guarded(self, scenario, start, folder, *, meshcat_html=True):
         if not self.own_loop:
             return super().simulate_guarded(scenario, start, folder, meshcat_html=meshcat_html)
-        return guarded_run.simulate_guarded(guarded_run.starting_at(scenario, start), folder,
-                                            meshcat_html=meshcat_html)
+        if not np.array_equal(start, initial_state_vector(scenario.initial_state)):
+            scenario = guarded_run.starting_at(scenario, start)
+        return guarded_run.simulate_guarded(scenario, folder, meshcat_html=meshcat_html)
 
     # --- incremental training (the incremental stage) ----------------------------------
     controller_words = "TaxiNet"
@@ -251,6 +254,8 @@ class TaxiApplication(RunwayEnvironments, Application):
 
     def run_from(self, scenario, start, duration):
         """The taxi's run, stopped where it crosses the runway's edge."""
+        if not self.own_loop:
+            return super().run_from(scenario, start, duration)
         from reachwatch.diagrams import simulate
         run = simulate(self.loop_diagram(scenario), initial_state=start,
                        period=scenario.controller.period, duration=duration,

@@ -206,6 +206,21 @@ def test_the_generic_real_loop_judges_the_failure_rule_at_the_ticks(tmp_path):
     assert abs(int(mine["ticks"][1]) - int(taxi["ticks"][1])) <= 1
 
 
+def test_a_taxi_subclass_with_its_own_loop_runs_and_starts_by_its_own_rules(tmp_path):
+    """`run_from` and `start_state` of a taxi subclass that builds its own loop are the
+    generic ones (its failure rule; the middle of its box), as its real-loop runs are:
+    not the taxi's runway edge and scenario start."""
+    scenario = load_scenario(data="initial_state: {px: 2.0, py: 120.0}\n")
+    app = load_application(f"{_user_app(tmp_path, edge=1.0)}:Rebuilt")
+    run, failed = app.run_from(scenario, [1.5, 150.0, 0.0], 0.2)    # past its 1 m edge
+    assert failed and run.failed and run.failure_time == 0.0 and len(run.time) == 1
+    run, failed = load_application().run_from(scenario, [1.5, 150.0, 0.0], 0.2)
+    assert not failed and len(run.time) == 5                       # on the runway
+    np.testing.assert_array_equal(app.start_state(scenario), app.view_state(scenario))
+    np.testing.assert_array_equal(load_application().start_state(scenario),
+                                  [2.0, 120.0, 0.0])
+
+
 def test_an_applications_ensemble_folder_is_keyed_by_its_code(tmp_path):
     """The ensemble baseline's folder: the default application's key is the config, the
     seeds and the software stack, another application's also its code (its

@@ -377,3 +377,12 @@ def test_a_guarded_loop_without_speed_and_flags_is_refused_not_read_as_never_fla
     with pytest.raises(ValueError, match=r"^the application 'cart': its guarded loop exports "
                                          r"no 'speed' and 'anomaly' .*judged by$"):
         blind.mission_rollouts(scenario, "brake", 0.3, np.array([[0.1, 0.0]]))
+    # the guarded showcase (and `reachwatch simulate --loop guarded`) refuses it before
+    # either loop runs
+    from reachwatch.reach import loop_runs
+    ran = []
+    monkeypatch.setattr(loop_runs, "run_until_failed", lambda *a, **k: ran.append(a))
+    with pytest.raises(ValueError, match=r"^the application 'cart': its guarded loop exports "
+                                         r"no 'speed' and 'anomaly' .*figure reads$"):
+        blind.simulate_guarded(scenario, [0.1, 0.0], tmp_path)
+    assert not ran and not list(tmp_path.glob("*.png"))
