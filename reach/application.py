@@ -591,7 +591,7 @@ class Application(abc.ABC):
         (and files) written to ``folder``: ``(alone, guarded, paths)``, two
         `reachwatch.diagrams.Trajectory` (``guarded`` with ``speed`` and ``anomaly``),
         each ``failed`` by `failed`. By default both loops (`loop_diagram`) run until
-        the first control tick where `failed` holds, drawn by `plot_runs` or, where that
+        the integrator step where `failed` holds, drawn by `plot_runs` or, where that
         draws nothing, against time (`reachwatch.diagrams.plots.plot_runs_over_time`);
         ``meshcat_html`` (a replay) is the taxi's."""
         from pathlib import Path
@@ -648,7 +648,7 @@ class Application(abc.ABC):
 
     def run_from(self, scenario, start, duration: float):
         """``(trajectory, failed)``: the loop of ``scenario`` from the state ``start`` for
-        ``duration`` s, stopped at the first control tick where `failed` holds (``reachwatch
+        ``duration`` s, stopped at the integrator step where `failed` holds (``reachwatch
         simulate``'s run, and the incremental stage's runs from its starred start).
         ``trajectory``: a `reachwatch.diagrams.Trajectory`, its ``failed`` and
         ``failure_time`` set."""

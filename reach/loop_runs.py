@@ -5,13 +5,12 @@ loop the application builds (an application may bring faster ones of its own). E
 takes ``ref`` (an `ApplicationRef`: picklable, a
 worker loads the application again), the scenario and the run's settings, then the
 ``states`` of one chunk, and returns that chunk's fields (`reach.outcomes.map_states`).
-Every control tick renders; a run stops at the first tick where `Application.failed`
-holds."""
+Every control tick renders; a run stops at the integrator step where
+`Application.failed` holds (between ticks or on one), as the taxi's runs do."""
 
 import copy
 import dataclasses as dc
 import functools
-import math
 
 import numpy as np
 
@@ -39,37 +38,39 @@ def _thread_loop(ref, scenario, guarded: bool = False):
 
 
 def failure_rule(application, scenario):
-    """``failed(x) -> bool`` of one state: `Application.failed` of ``scenario``
-    (`reachwatch.diagrams.closed_loop.state_failed`)."""
-    from reachwatch.diagrams.closed_loop import state_failed
-    return functools.partial(state_failed, functools.partial(application.failed, scenario))
+    """``failed(states) -> bools``: `Application.failed` of ``scenario``, the failure
+    rule `reachwatch.diagrams.simulate` checks at every integrator step."""
+    return functools.partial(application.failed, scenario)
+
+
+def already_failed(failed, states) -> np.ndarray:
+    """Which of the starts ``states`` the rule ``failed`` (`failure_rule`) says have
+    failed already: they are not run."""
+    from reachwatch.diagrams.closed_loop import failed_at
+    return failed_at(failed, np.asarray(states, float))
 
 
 def run_until_failed(diagram, scenario, failed, start, duration: float, *, context=None,
                      done=None):
     """``(trajectory, failed)``: the loop ``diagram`` of ``scenario`` from the state
-    ``start`` for ``duration`` s, stopped at the first control tick where ``failed``
-    (`failure_rule`) holds, or where ``done(rows)`` says so; ``context``: a reused one.
-    The trajectory's ``failed`` and ``failure_time`` (that tick's time) say the same."""
+    ``start`` for ``duration`` s, stopped at the integrator step where ``failed``
+    (`failure_rule`) holds (as the taxi's runs stop), or at the first control tick where
+    ``done(rows)`` says so; ``context``: a reused one. The trajectory's ``failed`` and
+    ``failure_time`` (the step's time, between ticks or on one) say when."""
     from reachwatch.diagrams import simulate
     run = simulate(diagram, initial_state=start, duration=duration,
-                   period=scenario.controller.period, context=context,
-                   stop_when=lambda rows: failed(rows["state"][-1]) or
-                   (done is not None and done(rows)))
-    end = bool(failed(run.state[-1]))
-    return (dc.replace(run, failed=end, failure_time=float(run.time[-1]) if end else math.nan),
-            end)
+                   period=scenario.controller.period, context=context, failed=failed,
+                   stop_when=done)
+    return run, run.failed
 
 
 def run_reading(diagram, scenario, failed, start, duration: float, read, *, context=None):
-    """``(trajectory, readings)``: the run `run_until_failed` makes (its trajectory's
-    ``failed`` left unset), with ``read(root_context)`` called at every control tick the
-    run logs (inside the loop, before the tick's row is read), its results listed in
-    order."""
+    """``(trajectory, readings)``: the run `run_until_failed` makes, with
+    ``read(root_context)`` called at every control tick the run logs (inside the loop,
+    before the tick's row is read), its results listed in order."""
     from reachwatch.diagrams.closed_loop import LoopRun
     run = LoopRun(diagram, initial_state=start, duration=duration,
-                  period=scenario.controller.period, context=context,
-                  stop_when=lambda rows: failed(rows["state"][-1]))
+                  period=scenario.controller.period, context=context, failed=failed)
     readings = []
     while run.advance():
         readings.append(read(run.context))
@@ -112,8 +113,8 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     ``ref``'s application from each start, the camera's image (`Application.camera_port`)
     resized to ``height`` x ``width`` and the online signals (the controller's
     ``estimate`` when it has one, then its steering: `Application.probe`'s control port)
-    read inside the loop at every control tick, stopping at the first tick where
-    `Application.failed` holds. ``scored``: the guarded loop whose monitor never
+    read inside the loop at every control tick, stopping where `Application.failed`
+    holds. ``scored``: the guarded loop whose monitor never
     engages (as `loop_scores`), the detector's ``score`` (`Application.score_port`)
     read at every tick too, with ``engaged`` per run."""
     from reachwatch.diagrams.controller import ESTIMATE_OUTPUT
@@ -139,9 +140,10 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     if scored:
         out["engaged"] = np.zeros(len(states), bool)
     failed = failure_rule(application, scenario)
+    gone = already_failed(failed, states)
     read = lambda system, port, root: port.Eval(system.GetMyContextFromRoot(root))  # noqa: E731
     for i, x in enumerate(states):
-        if failed(x):                                   # already failed: no run
+        if gone[i]:                                     # already failed: no run
             put_recording(out, i, failed=True, failure_time=0.0)
             continue
         trajectory, rows = run_reading(
@@ -153,12 +155,11 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
         n = min(len(trajectory.time), length)
         if scored:
             out["engaged"][i] = _engaged(trajectory, scenario.controller.speed)
-        end = failed(trajectory.state[n - 1])
         put_recording(out, i, frames=np.stack([row[0] for row in rows])[:n, ..., :3],
                       signals=np.stack([row[1] for row in rows])[:n],
                       state=trajectory.state[:n],
                       score=[row[2] for row in rows[:n]] if scored else None,
-                      failed=end, failure_time=float(trajectory.time[n - 1]))
+                      failed=trajectory.failed, failure_time=trajectory.failure_time)
     return out
 
 
@@ -167,7 +168,7 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
     """The `reach.liveness.MissionOutcomes` fields of `Application.missions`: the loop of
     ``ref``'s application (guarded by ``scenario.monitor`` with the fallback named
     ``fallback``, or the controller alone for None) from each start for ``duration`` s,
-    stopping at the first control tick where `Application.failed` holds. The speed
+    stopping where `Application.failed` holds. The speed
     logged at a tick (the guarded loop's exported ``speed``, else the controller's) is
     the speed applied since the previous one.
 
@@ -190,8 +191,9 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
     goal = nominal * duration
     names = MISSION_FIELDS + (SAME_DISTANCE_FIELDS if mission_limit is not None else ())
     out = {name: [] for name in names}
-    for x in np.asarray(states, float):
-        if failed(x):                                   # already failed
+    states = np.asarray(states, float)
+    for x, gone in zip(states, already_failed(failed, states)):
+        if gone:                                        # already failed
             row = FAILED_AT_START
         else:
             done = (None if mission_limit is None else
@@ -204,7 +206,6 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
                                  f"exports no 'speed' and 'anomaly' "
                                  f"(reachwatch.diagrams.export_loop_ports), which its real "
                                  f"runs are judged by")
-            # failed at the tick the run stopped on (the generic runs stop at ticks)
             row = mission_row(run.time, run.speed, run.anomaly, failed=end,
                               failure_time=run.failure_time, nominal=nominal,
                               duration=duration, goal=goal)
@@ -217,8 +218,8 @@ def loop_scores(ref, scenario, duration: float, states) -> dict:
     """The detector's score along the controller alone's runs, for
     `Application.real_score_noise`: ``ref``'s guarded loop, whose monitor never engages
     its fallback (``scenario.monitor``'s threshold at 1 and the longest k-of-n window),
-    from each start for ``duration`` s, stopping at the first control tick where
-    `Application.failed` holds; at every tick the state and the detector's score
+    from each start for ``duration`` s, stopping where `Application.failed` holds; at
+    every tick the state and the detector's score
     (`Application.score_port`). Per start: ``state`` ``(T, d)`` and ``score`` ``(T,)``
     (NaN after the run ends), ``ticks``, and ``engaged``: whether the speed still left
     the nominal one at some tick (such a run is not the controller alone's)."""
@@ -233,8 +234,9 @@ def loop_scores(ref, scenario, duration: float, states) -> dict:
     out = {"state": np.full((len(states), length, states.shape[1]), np.nan),
            "score": np.full((len(states), length), np.nan),
            "ticks": np.zeros(len(states), int), "engaged": np.zeros(len(states), bool)}
+    gone = already_failed(failed, states)
     for i, x in enumerate(states):
-        if failed(x):                                   # already failed: no run
+        if gone[i]:                                     # already failed: no run
             continue
         trajectory, scores = run_reading(
             diagram, scenario, failed, x, duration, context=context,
@@ -249,15 +251,16 @@ def loop_scores(ref, scenario, duration: float, states) -> dict:
 
 def loop_rollouts(ref, scenario, duration: float, grid, states) -> dict:
     """The real loop of ``ref``'s application from each start for ``duration`` s,
-    stopping at the first control tick where its `Application.failed` holds: the
-    fields of `Application.real_outcomes`. One diagram and Context per worker thread
+    stopping where its `Application.failed` holds: the fields of
+    `Application.real_outcomes`. One diagram and Context per worker thread
     (a Context, and a render context, never crosses threads)."""
     from .fidelity import left_box
     application, diagram, context = _thread_loop(ref, scenario)
     failed = failure_rule(application, scenario)
     out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
-    for x in np.asarray(states, float):
-        if failed(x):                                   # already failed
+    states = np.asarray(states, float)
+    for x, gone in zip(states, already_failed(failed, states)):
+        if gone:                                        # already failed
             row = (True, 0.0, False, np.nan, 0)
         else:
             run, end = run_until_failed(diagram, scenario, failed, x, duration,
@@ -293,8 +296,9 @@ def loop_paths(ref, scenario, horizon: float, extend: float, stride: int, grid,
     points = path_points(horizon, extend, stride, period)
     states = np.asarray(states, float)
     out = path_fields(len(states), points, states.shape[1])
+    gone = already_failed(failed, states)
     for i, x in enumerate(states):
-        if failed(x):                                   # already failed: no run
+        if gone[i]:                                     # already failed: no run
             put_path(out, i, x)
             continue
         run, end = run_until_failed(diagram, scenario, failed, x, duration, context=context)

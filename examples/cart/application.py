@@ -13,7 +13,7 @@ plant for the solver (`dynamics`: its ``target`` > 0 is the safe set), the failu
 (`failed`), the box states are labelled and checked on (`grid`), where starts are
 drawn (`starts`), how images are made (`renderer`) and how the state space is drawn
 (`plot_slices`). The real-loop check uses the generic `real_outcomes` (the cart's loop,
-judged by `failed` at every control tick), and the monitor study (``monitor: {kind:
+judged by `failed` at every integrator step), and the monitor study (``monitor: {kind:
 history}``) the generic `recorded_runs` and `missions`, which read the loop's camera
 (`camera_port`) and the controller's steering (`probe`'s control port). The guard stage
 rolls the fallbacks out in the guarded sweep's tables by the generic

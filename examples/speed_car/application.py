@@ -1,8 +1,8 @@
 """The speed car (speed_car.py) as an application of ``reachwatch run``: a 4-state
 plant ([px m, py m, theta rad, v m/s], its speed lagging the command) under the wing
 camera on a catalog runway, steered by the run file's controller. It fails where it
-leaves the runway (|px| >= half-width), judged at the control ticks in its real loop
-(the generic one). Its dynamics take the speed command a fallback sets (the car's
+leaves the runway (|px| >= half-width), judged at every integrator step in its real
+loop (the generic one). Its dynamics take the speed command a fallback sets (the car's
 speed lags it), so the guard stage rolls the speed fallbacks out in the guarded
 sweep's tables and checks them in the car's real loop; like the real loop's, the
 guard's distances and stops count the commanded speed.
