@@ -249,8 +249,8 @@ class Application(abc.ABC):
         box), ``max_abs_theta`` (rad: the taxi's heading; NaN for a plant without one,
         which may also leave it out) and ``ticks`` (frames rendered); cached by content
         under ``cache_dir``. Default:
-        `loop_rollouts`, which judges `failed` at the control ticks (the taxi's own
-        stops at the crossing itself)."""
+        `loop_rollouts`, which stops where `failed` holds, at the integrator step (as
+        the taxi's own does)."""
         from .loop_runs import loop_rollouts
         from .outcomes import run_outcomes
         rollout = functools.partial(loop_rollouts, ApplicationRef(self._loaded_as()),
@@ -275,7 +275,7 @@ class Application(abc.ABC):
         and ``engaged`` (as there), keyed by the detector but not its threshold or
         fallback: one run gives a monitor's frames and the detector's scores. Default:
         `loop_recordings`, which reads `camera_port` and `probe`'s control port (and
-        `score_port`) inside `loop_diagram` and judges `failed` at the control ticks."""
+        `score_port`) inside `loop_diagram` and stops where `failed` holds."""
         from .loop_runs import loop_recordings
         from .outcomes import map_states
         scenario = self._watching(scenario) if scored else self.without_monitor(scenario)
@@ -295,7 +295,7 @@ class Application(abc.ABC):
         guarded (`loop_diagram` with ``guarded``) by ``scenario.monitor``'s detector with
         the fallback named ``fallback`` (e.g. ``"brake"``). Cached by content under
         ``cache_dir``; the controller alone's runs are keyed without the monitor. Default:
-        `loop_missions`, which judges `failed` at the control ticks and reads the
+        `loop_missions`, which stops where `failed` holds and reads the
         guarded loop's exported ``speed`` and ``anomaly``. ``mission_limit`` (the guard's
         check; None: none): the runs also go on past the horizon, for up to that many
         horizons, until they cover the distance the controller alone covers within it,
