@@ -5,7 +5,7 @@ the same frames alone, measured in the same run, with an identity check of the r
 Every round times each mode once, in an order that rotates from round to round (a
 shared VM's speed drifts): the camera alone (its colour port, one reused Context)
 rendering the states the loop visits, the runs from every start one at a time
-(`simulate` on one reused copy of the loop, as taxi_rollouts did before lockstep), and
+(`simulate` on one reused copy of the loop, as the real-loop rollouts did before lockstep), and
 the same runs N at a time for each N. A tick is one rendered frame (one logged row of a
 run), and a mode's rate counts every second of its runs, their starts included. Ratios
 are to the render rate of the same round, and "x one" to the first one-at-a-time mode's

@@ -1,6 +1,6 @@
 """Real-loop runs per wall second on a local pool of workers (one per core by default),
 each worker thread advancing its chunk's runs one at a time or N at a time in lockstep
-(`reachwatch.taxi.fidelity.taxi_rollouts`'s ``lockstep``): whether lockstep pays where
+(`reachwatch.reach.loop_runs.loop_rollouts`'s ``lockstep``, on the taxi's loop): whether lockstep pays where
 it is used, on a machine whose cores the pool's workers fill. The sizes take turns
 within each round (a shared VM's speed drifts); each ratio is to lockstep 1 in the same
 round, the median over the rounds after a warm-up round (diagram builds); every size's
@@ -21,9 +21,10 @@ import numpy as np
 
 from reachwatch.diagrams import load_scenario
 from reachwatch.reach import default_executor, stop_executor
+from reachwatch.reach.application import ApplicationRef
+from reachwatch.reach.loop_runs import loop_rollouts
 from reachwatch.reach.outcomes import run_outcomes
 from reachwatch.taxi import on_runway_starts, paper_grid
-from reachwatch.taxi.fidelity import taxi_rollouts
 
 
 def main():
@@ -47,8 +48,8 @@ def main():
             for round_ in range(args.rounds + 1):
                 turn = round_ % len(args.sizes)
                 for n in args.sizes[turn:] + args.sizes[:turn]:
-                    rollout = functools.partial(taxi_rollouts, scenario, args.duration, grid,
-                                                lockstep=n)
+                    rollout = functools.partial(loop_rollouts, ApplicationRef(""), scenario,
+                                                args.duration, grid, lockstep=n)
                     t = time.perf_counter()
                     out = run_outcomes(rollout, starts, cache_dir=Path(folder) / f"{round_}_{n}",
                                        executor=pool, progress=False, chunk_size=8)

@@ -2,7 +2,7 @@
 the labels read along longer runs are what the loop does when started at those states.
 
 From ``--starts`` seeded uniform on-runway starts of the paper's box, the real Drake
-loop (rendering every tick) runs ``horizon + --extend`` s (`taxi.fidelity.taxi_paths`);
+loop (rendering every tick) runs ``horizon + --extend`` s (`taxi.fidelity.real_paths`);
 every ``--stride``-th tick within the first ``--extend`` s is a labelled state. Then
 ``--checks`` of those states (the starts themselves left out, drawn with ``--seed + 1``)
 are run again from scratch for the horizon (`taxi.fidelity.real_outcomes`), and their

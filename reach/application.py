@@ -67,6 +67,10 @@ class Application(abc.ABC):
     #: The axes along which a run may leave the grid's box without failing (its
     #: ``left_box`` counts the runs that did, where the swept table is clamped).
     open_axes = ()
+    #: The axis of the plant's heading (rad), whose largest ``|value|`` along each
+    #: real run the real-loop check reports (``max_abs_theta``; the taxi's: 2); None:
+    #: none reported.
+    heading_axis = None
     #: Set by `load_application`: the string the application was loaded from ("" for
     #: the default). Workers load it again from this.
     spec = ""
@@ -246,15 +250,15 @@ class Application(abc.ABC):
         """`reach.outcomes.Outcomes` of the real loop (`loop_diagram`, rendering at
         every tick) from each start for ``duration`` s: per start ``failed``,
         ``failure_time`` (s, NaN if none), ``left_box`` (along `open_axes` of ``grid``'s
-        box), ``max_abs_theta`` (rad: the taxi's heading; NaN for a plant without one,
-        which may also leave it out) and ``ticks`` (frames rendered); cached by content
-        under ``cache_dir``. Default:
-        `loop_rollouts`, which stops where `failed` holds, at the integrator step (as
-        the taxi's own does)."""
+        box), ``max_abs_theta`` (rad: the largest ``|heading|``, `heading_axis`; NaN
+        without one) and ``ticks`` (frames rendered); cached by content under
+        ``cache_dir``, keyed without the monitor (`without_monitor`). Default:
+        `loop_rollouts`, which stops where `failed` holds, at the integrator step, and
+        advances several runs together (`reach.loop_runs.LOCKSTEP`)."""
         from .loop_runs import loop_rollouts
         from .outcomes import run_outcomes
         rollout = functools.partial(loop_rollouts, ApplicationRef(self._loaded_as()),
-                                    self.resolved(scenario), float(duration), grid)
+                                    self.without_monitor(scenario), float(duration), grid)
         return run_outcomes(rollout, starts, cache_dir=cache_dir, executor=executor,
                             progress=progress, label=scenario.environment.name)
 

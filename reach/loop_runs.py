@@ -14,27 +14,95 @@ import functools
 
 import numpy as np
 
+from reachwatch.diagrams.lockstep import loop_copies, simulate_lockstep
+from reachwatch.diagrams.render_stack import BUILD_LOCK
+from reachwatch.systems.torch_threads import torch_threads
+
 from .application import build_loop
 from .fingerprint import fingerprint
 from .outcomes import (check_memoryless, path_fields, path_points, put_path, put_recording,
                        recording_fields)
 from .thread_kept import KEPT_DIAGRAMS, ThreadKept
 
-#: Per worker thread: (spec, scenario) -> (application, diagram, context), the
-#: `KEPT_DIAGRAMS` most recently used (a Context, and a render context, never crosses
-#: threads).
+#: Per worker *thread*: (spec, scenario, guarded) -> copies of the loop, each
+#: ``(diagram, context)``, for the `KEPT_DIAGRAMS` most recently used loops, built by
+#: the thread that runs them. Two threads never share a Context (a Simulator on it would
+#: see the other's time) nor a VTK/EGL render context (it renders only on the thread
+#: that created it).
 _LOOPS = ThreadKept(KEPT_DIAGRAMS)
+
+#: Real-loop runs a worker thread advances together, tick by tick
+#: (`reachwatch.diagrams.lockstep`): their frames render one after another and the
+#: systems with a batch entry point (TaxiNet) see them as one batch. The runs are
+#: identical to one at a time (tests/test_lockstep.py); each needs its own copy of the
+#: loop (about 70 MB at the taxi's 200x360), built on the thread's first batch. 1: one
+#: run at a time.
+LOCKSTEP = 4
+
+#: torch's threads while real-loop runs go on (restored after; 0: torch's own setting).
+#: TaxiNet's tensors are small: a second thread saves little, and on a loaded two-core
+#: machine each of its ops waits for that thread to be scheduled (measured there at
+#: 200x360, one run at a time: TaxiNet 33-74 ms per tick on two threads, 3.1-4.7 ms on
+#: one; benchmarks/lockstep.py). The estimates are the same bits either way (measured).
+LOOP_TORCH_THREADS = 1
+
+
+def thread_copies(key, build, count: int = 1) -> list:
+    """``count`` copies ``(diagram, context)`` of the loop ``build()`` makes, known by
+    ``key``: built once per worker thread and kept while among its most recently used
+    loops. A thread keeps the extra copies of one loop only: asking for several of one
+    drops those of the others (their first copies stay)."""
+    copies = _LOOPS.get(key, list)
+    with BUILD_LOCK:                        # one build at a time per process, as get's
+        if count > 1:
+            for other, kept in _LOOPS.kept().items():
+                if other != key:
+                    del kept[1:]
+        if len(copies) < count:
+            copies.extend(loop_copies(build, count - len(copies)))
+    return copies[:max(1, count)]
+
+
+def thread_loops(ref, scenario, guarded: bool = False, count: int = 1) -> list:
+    """`thread_copies` of ``ref``'s loop of ``scenario`` (guarded or not)."""
+    return thread_copies(fingerprint(ref, scenario, "guarded" if guarded else "alone"),
+                         lambda: build_loop(ref, scenario, guarded), count)
 
 
 def _thread_loop(ref, scenario, guarded: bool = False):
-    """``(application, diagram, context)`` of ``ref``'s loop of ``scenario``, built once
-    per worker thread and kept while it is among the thread's most recently used."""
-    key = fingerprint(ref, scenario) if not guarded else fingerprint(ref, scenario, "guarded")
+    """``(application, diagram, context)``: ``ref``'s application and the first of
+    `thread_loops`."""
+    return (ref.load(), *thread_loops(ref, scenario, guarded)[0])
 
-    def build():
-        diagram = build_loop(ref, scenario, guarded)
-        return ref.load(), diagram, diagram.CreateDefaultContext()
-    return _LOOPS.get(key, build)
+
+def lockstep_count(lockstep) -> int:
+    """``lockstep`` (None: `LOCKSTEP`), checked: runs advanced together."""
+    count = LOCKSTEP if lockstep is None else lockstep
+    if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
+        raise ValueError(f"lockstep must be a whole number >= 1 (runs advanced together), "
+                         f"got {count!r}")
+    return int(count)
+
+
+def lockstep_runs(loops, states, *, lockstep=None, **settings) -> list:
+    """`reachwatch.diagrams.simulate` of a loop from each of ``states``, `LOCKSTEP` runs
+    (or ``lockstep``) at a time on this thread's copies of it (``loops(count)``: e.g.
+    `thread_loops` with its loop given), on `LOOP_TORCH_THREADS` torch threads;
+    ``settings``: `simulate_lockstep`'s."""
+    if len(states) == 0:
+        return []
+    copies = loops(min(lockstep_count(lockstep), len(states)))
+    with torch_threads(LOOP_TORCH_THREADS):
+        return simulate_lockstep(copies, initial_states=states, **settings)
+
+
+def largest_heading(application, states) -> float:
+    """The largest ``|heading|`` of ``states`` (the application's `heading_axis`), NaN
+    for a plant without one."""
+    axis = application.heading_axis
+    if axis is None or len(states) == 0:
+        return float("nan")
+    return float(np.max(np.abs(np.asarray(states, float)[:, axis])))
 
 
 def failure_rule(application, scenario):
@@ -249,44 +317,51 @@ def loop_scores(ref, scenario, duration: float, states) -> dict:
     return out
 
 
-def loop_rollouts(ref, scenario, duration: float, grid, states) -> dict:
+def loop_rollouts(ref, scenario, duration: float, grid, states, *, lockstep=None) -> dict:
     """The real loop of ``ref``'s application from each start for ``duration`` s,
     stopping where its `Application.failed` holds: the fields of
-    `Application.real_outcomes`. One diagram and Context per worker thread
-    (a Context, and a render context, never crosses threads)."""
+    `Application.real_outcomes`. Per start ``failed``, ``failure_time`` (s, NaN if
+    none), ``left_box`` (the run left ``grid``'s box along `Application.open_axes`),
+    ``max_abs_theta`` (`largest_heading`) and ``ticks`` (frames rendered). Runs
+    `lockstep_runs` (``lockstep``: runs advanced together; the results do not depend
+    on it)."""
     from .fidelity import left_box
-    application, diagram, context = _thread_loop(ref, scenario)
+    application = ref.load()
     failed = failure_rule(application, scenario)
-    out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
     states = np.asarray(states, float)
-    for x, gone in zip(states, already_failed(failed, states)):
-        if gone:                                        # already failed
-            row = (True, 0.0, False, np.nan, 0)
+    gone = already_failed(failed, states)
+    runs = iter(lockstep_runs(functools.partial(thread_loops, ref, scenario, False),
+                              states[~gone], lockstep=lockstep, duration=duration,
+                              period=scenario.controller.period, failed=failed))
+    out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
+    for x, failed_already in zip(states, gone):
+        if failed_already:                              # no run
+            row = (True, 0.0, False, largest_heading(application, x[None]), 0)
         else:
-            run, end = run_until_failed(diagram, scenario, failed, x, duration,
-                                        context=context)
-            row = (end, run.failure_time,
-                   left_box(run.state, grid, axes=application.open_axes), np.nan, len(run.time))
+            run = next(runs)
+            row = (run.failed, run.failure_time,
+                   left_box(run.state, grid, axes=application.open_axes),
+                   largest_heading(application, run.state), len(run.time))
         for k, v in zip(out, row):
             out[k].append(v)
     return {k: np.asarray(v) for k, v in out.items()}
 
 
 def loop_paths(ref, scenario, horizon: float, extend: float, stride: int, grid,
-               states) -> dict:
+               states, *, lockstep=None) -> dict:
     """The fields of `Application.real_paths`: like `loop_rollouts`, but each run lasts
     ``horizon + extend`` s (stopping at failure), and the states it passes through at
     the ticks `path_points` keeps are labelled by the same run
     (`reach.outcomes.path_labels`). Per start: ``failed`` (within ``horizon``),
-    ``failure_time`` (s, NaN if none within the whole run), ``left_box`` (within
-    ``horizon``), ``max_abs_theta`` (NaN: no heading is known here), ``ticks``,
-    ``path_state`` ``(m, n)`` (NaN where the run had ended) and ``path_label`` ``(m,)``
-    (1 anomalous, 0 safe, -1 unknown); row 0 of both is the start itself. Exact when the
-    plant's state is all the loop remembers between control ticks: the controller (the
-    system of `Application.probe`'s control port) must keep no state of its own
-    (`check_memoryless`)."""
+    ``failure_time`` (s, NaN if none within the whole run), ``left_box`` and
+    ``max_abs_theta`` (within ``horizon``), ``ticks``, ``path_state`` ``(m, n)`` (NaN
+    where the run had ended) and ``path_label`` ``(m,)`` (1 anomalous, 0 safe, -1
+    unknown); row 0 of both is the start itself. Exact when the plant's state is all the
+    loop remembers between control ticks: the controller (the system of
+    `Application.probe`'s control port) must keep no state of its own
+    (`check_memoryless`). ``lockstep`` as in `loop_rollouts`."""
     from .fidelity import left_box
-    application, diagram, context = _thread_loop(ref, scenario)
+    application, diagram, _ = _thread_loop(ref, scenario)
     controller, _ = _subsystem_port(application, diagram,
                                     application.probe(scenario).control_port,
                                     "probe's control_port")
@@ -295,15 +370,20 @@ def loop_paths(ref, scenario, horizon: float, extend: float, stride: int, grid,
     period, duration = scenario.controller.period, horizon + extend
     points = path_points(horizon, extend, stride, period)
     states = np.asarray(states, float)
-    out = path_fields(len(states), points, states.shape[1])
     gone = already_failed(failed, states)
+    runs = iter(lockstep_runs(functools.partial(thread_loops, ref, scenario, False),
+                              states[~gone], lockstep=lockstep, duration=duration,
+                              period=period, failed=failed))
+    out = path_fields(len(states), points, states.shape[1])
     for i, x in enumerate(states):
         if gone[i]:                                     # already failed: no run
             put_path(out, i, x)
+            out["max_abs_theta"][i] = largest_heading(application, x[None])
             continue
-        run, end = run_until_failed(diagram, scenario, failed, x, duration, context=context)
+        run = next(runs)
         within = put_path(out, i, x, time=run.time, state=run.state,
-                          failure_time=run.failure_time if end else None,
+                          failure_time=run.failure_time if run.failed else None,
                           duration=duration, horizon=horizon, points=points)
         out["left_box"][i] = left_box(run.state[within], grid, axes=application.open_axes)
+        out["max_abs_theta"][i] = largest_heading(application, run.state[within])
     return out

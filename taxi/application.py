@@ -63,6 +63,7 @@ class TaxiApplication(RunwayEnvironments, Application):
     axis_units = ("m", "m", "rad")
     open_axes = fidelity.OPEN_AXES
     estimated_state = (0, 2)            # TaxiNet's cross-track error and heading
+    heading_axis = 2
 
     start_word = "on-runway"
     failure_words = "left the runway"
@@ -125,25 +126,6 @@ class TaxiApplication(RunwayEnvironments, Application):
     def starts(self, scenario, box, count, seed):
         return fidelity.on_runway_starts(box, count, seed,
                                          half_width=scenario.environment.half_width)
-
-    def real_outcomes(self, scenario, starts, *, grid, duration, cache_dir, executor=None,
-                      progress=True):
-        if not self.own_loop:
-            return super().real_outcomes(scenario, starts, grid=grid, duration=duration,
-                                         cache_dir=cache_dir, executor=executor,
-                                         progress=progress)
-        return fidelity.real_outcomes(scenario, starts, grid=grid, duration=duration,
-                                      cache_dir=cache_dir, executor=executor, progress=progress)
-
-    def real_paths(self, scenario, starts, *, grid, horizon, extend, stride, cache_dir,
-                   executor=None, progress=True):
-        if not self.own_loop:
-            return super().real_paths(scenario, starts, grid=grid, horizon=horizon,
-                                      extend=extend, stride=stride, cache_dir=cache_dir,
-                                      executor=executor, progress=progress)
-        return fidelity.real_paths(scenario, starts, grid=grid, horizon=horizon, extend=extend,
-                                   stride=stride, cache_dir=cache_dir, executor=executor,
-                                   progress=progress)
 
     def recorded_runs(self, scenario, starts, *, duration, height, width, cache_dir,
                       executor=None, progress=True, scored=False):

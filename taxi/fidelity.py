@@ -12,19 +12,15 @@ import numpy as np
 from reachwatch.diagrams import (CONTROLLER, MonitorConfig, add_detector, make_closed_loop_diagram,
                                  make_guarded_diagram)
 from reachwatch.diagrams.controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
-from reachwatch.diagrams.lockstep import loop_copies, simulate_lockstep
-from reachwatch.diagrams.render_stack import BUILD_LOCK
-from reachwatch.reach.fidelity import Fidelity, compare_verdicts, left_box
+from reachwatch.reach.fidelity import Fidelity, compare_verdicts
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.liveness import (FAILED_AT_START, MISSION_FIELDS, SAME_DISTANCE_FIELDS,
                                        MissionOutcomes, check_mission_limit, mission_done,
                                        mission_row)
-from reachwatch.reach.outcomes import (Outcomes, check_memoryless, map_states, path_fields,
-                                       path_points, put_path, run_outcomes)
+from reachwatch.reach.loop_runs import lockstep_runs, thread_copies
+from reachwatch.reach.outcomes import Outcomes, map_states
 from reachwatch.reach.score_noise import fit_score_noise_on_runs
-from reachwatch.reach.thread_kept import KEPT_DIAGRAMS, ThreadKept
 from reachwatch.systems import fallback_parts
-from reachwatch.systems.torch_threads import torch_threads
 
 from .dynamics import OffRunway
 from .sweeps import resolved
@@ -32,27 +28,6 @@ from .sweeps import resolved
 #: The taxi grid axes where leaving the box is not a failure (py, theta): past |px| = B
 #: the run has failed, and it stops there.
 OPEN_AXES = (1, 2)
-
-#: Per worker *thread*: (make, scenario fingerprint) -> copies of the loop, each
-#: ``(diagram, context)``, for the `KEPT_DIAGRAMS` most recently used loops, built by the
-#: thread that runs them. Two threads never share a Context (a Simulator on it would see
-#: the other's time) nor a VTK/EGL render context (it renders only on the thread that
-#: created it).
-_LOOPS = ThreadKept(KEPT_DIAGRAMS)
-
-#: Real-loop runs a worker thread advances together, tick by tick
-#: (`reachwatch.diagrams.lockstep`): their frames render one after another and the
-#: controller sees them as one batch. The runs are identical to one at a time
-#: (tests/test_lockstep.py); each needs its own copy of the loop (about 70 MB at
-#: 200x360), built on the thread's first batch. 1: one run at a time.
-LOCKSTEP = 4
-
-#: torch's threads while real-loop runs go on (restored after; 0: torch's own setting).
-#: TaxiNet's tensors are small: a second thread saves little, and on a loaded two-core
-#: machine each of its ops waits for that thread to be scheduled (measured there at
-#: 200x360, one run at a time: TaxiNet 33-74 ms per tick on two threads, 3.1-4.7 ms on
-#: one; benchmarks/lockstep.py). The estimates are the same bits either way (measured).
-LOOP_TORCH_THREADS = 1
 
 
 def on_runway_starts(box, count: int, seed, *, half_width: float) -> np.ndarray:
@@ -67,21 +42,9 @@ def on_runway_starts(box, count: int, seed, *, half_width: float) -> np.ndarray:
 
 
 def _loops(scenario, make, count: int = 1) -> list:
-    """``count`` copies ``(diagram, context)`` of the loop ``make(scenario)``, built once
-    per thread (a Dask worker runs tasks on several threads of one process) and kept
-    while among its most recently used loops. A thread keeps the extra copies of one
-    loop only: asking for several of one drops those of the others (their first copies
-    stay, as before lockstep)."""
-    key = (make.__name__, fingerprint(scenario))
-    copies = _LOOPS.get(key, list)
-    with BUILD_LOCK:                        # one build at a time per process, as get's
-        if count > 1:
-            for other, kept in _LOOPS.kept().items():
-                if other != key:
-                    del kept[1:]
-        if len(copies) < count:
-            copies.extend(loop_copies(lambda: make(scenario), count - len(copies)))
-    return copies[:max(1, count)]
+    """``count`` copies ``(diagram, context)`` of the loop ``make(scenario)``, kept per
+    worker thread (`reach.loop_runs.thread_copies`)."""
+    return thread_copies((make.__name__, fingerprint(scenario)), lambda: make(scenario), count)
 
 
 def _loop(scenario, make):
@@ -89,98 +52,11 @@ def _loop(scenario, make):
     return _loops(scenario, make)[0]
 
 
-def _lockstep(lockstep) -> int:
-    count = LOCKSTEP if lockstep is None else lockstep
-    if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
-        raise ValueError(f"lockstep must be a whole number >= 1 (runs advanced together), "
-                         f"got {count!r}")
-    return int(count)
-
-
 def _real_runs(scenario, make, states, *, lockstep=None, **settings) -> list:
-    """`simulate` of the loop ``make(scenario)`` from each of ``states``, `LOCKSTEP` runs
-    (or ``lockstep``) at a time on this thread's copies of the loop (`_loops`), on
-    `LOOP_TORCH_THREADS` torch threads."""
-    if len(states) == 0:
-        return []
-    copies = _loops(scenario, make, min(_lockstep(lockstep), len(states)))
-    with torch_threads(LOOP_TORCH_THREADS):
-        return simulate_lockstep(copies, initial_states=states, **settings)
-
-
-def taxi_rollouts(scenario, duration: float, grid, states, *, lockstep=None) -> dict:
-    """Runs the real closed loop of ``scenario`` from each start for ``duration`` s
-    (stopping at failure, |px| >= B). Returns per start ``failed``, ``failure_time``
-    (s, NaN if none), ``left_box`` (the run left ``grid``'s box in py or theta),
-    ``max_abs_theta`` (rad) and ``ticks`` (frames rendered). Use it through
-    `real_outcomes`, which caches it; ``functools.partial(taxi_rollouts, scenario,
-    duration, grid)`` is a picklable rollout function for `run_outcomes`. ``lockstep``:
-    runs advanced together (default `LOCKSTEP`; the results do not depend on it)."""
-    off = OffRunway(scenario.environment.half_width)
-    states = np.asarray(states, float)
-    on = ~off(states)
-    runs = iter(_real_runs(scenario, make_closed_loop_diagram, states[on], lockstep=lockstep,
-                           duration=duration, period=scenario.controller.period,
-                           failed=off))
-    out = {k: [] for k in ("failed", "failure_time", "left_box", "max_abs_theta", "ticks")}
-    for x, on_runway in zip(states, on):
-        if not on_runway:                       # already off the runway
-            row = (True, 0.0, False, abs(x[2]), 0)
-        else:
-            run = next(runs)
-            row = (run.failed, run.failure_time, left_box(run.state, grid, axes=OPEN_AXES),
-                   float(np.max(np.abs(run.state[:, 2]))),
-                   len(run.time))
-        for k, v in zip(out, row):
-            out[k].append(v)
-    return {k: np.asarray(v) for k, v in out.items()}
-
-
-def taxi_paths(scenario, horizon: float, extend: float, stride: int, grid, states, *,
-               lockstep=None) -> dict:
-    """Like `taxi_rollouts`, but each run lasts ``horizon + extend`` s (stopping at
-    failure), and the states it passes through at the ticks `path_points` keeps are
-    labelled by the same run (`reach.outcomes.path_labels`). Per start: ``failed``
-    (within ``horizon``, as `taxi_rollouts`), ``failure_time`` (s, NaN if none within
-    the whole run), ``left_box`` and ``max_abs_theta`` (within ``horizon``), ``ticks``
-    (frames rendered), ``path_state`` ``(m, 3)`` (NaN where the run had ended) and
-    ``path_label`` ``(m,)`` (1 anomalous, 0 safe, -1 unknown); row 0 of both is the
-    start itself. Exact for the taxi's loop: TaxiNet and the P-controller keep no state,
-    and the steering hold is reset at every control tick. ``lockstep`` as in
-    `taxi_rollouts`."""
-    diagram, _ = _loop(scenario, make_closed_loop_diagram)
-    check_memoryless(diagram.GetSubsystemByName(CONTROLLER))
-    off, period = OffRunway(scenario.environment.half_width), scenario.controller.period
-    points = path_points(horizon, extend, stride, period)
-    states = np.asarray(states, float)
-    gone = off(states)                           # already off the runway
-    runs = iter(_real_runs(scenario, make_closed_loop_diagram,
-                           states[~gone], lockstep=lockstep,
-                           duration=horizon + extend, period=period, failed=off))
-    out = path_fields(len(states), points, states.shape[1])
-    for i, x in enumerate(states):
-        if gone[i]:
-            put_path(out, i, x)
-            out["max_abs_theta"][i] = abs(x[2])
-            continue
-        run = next(runs)
-        within = put_path(out, i, x, time=run.time, state=run.state,
-                          failure_time=run.failure_time if run.failed else None,
-                          duration=horizon + extend, horizon=horizon, points=points)
-        out["left_box"][i] = left_box(run.state[within], grid, axes=OPEN_AXES)
-        out["max_abs_theta"][i] = float(np.max(np.abs(run.state[within, 2])))
-    return out
-
-
-def real_paths(scenario, starts, *, grid, horizon: float, extend: float, stride: int,
-               cache_dir, executor=None, progress=True) -> Outcomes:
-    """`taxi_paths` from every start, cached by content under ``cache_dir`` like
-    `real_outcomes`."""
-    scenario = without_monitor(scenario)
-    rollout = functools.partial(taxi_paths, scenario, float(horizon), float(extend),
-                                int(stride), grid)
-    return run_outcomes(rollout, starts, cache_dir=cache_dir, executor=executor,
-                        progress=progress, label=f"{scenario.environment.name} paths")
+    """`simulate` of the loop ``make(scenario)`` from each of ``states``, runs advanced
+    together on this thread's copies of it (`reach.loop_runs.lockstep_runs`)."""
+    return lockstep_runs(functools.partial(_loops, scenario, make), states,
+                         lockstep=lockstep, **settings)
 
 
 def without_monitor(scenario):
@@ -200,13 +76,25 @@ def watching(scenario):
 
 def real_outcomes(scenario, starts, *, grid, duration: float, cache_dir, executor=None,
                   progress=True) -> Outcomes:
-    """`taxi_rollouts` from every start, cached under ``cache_dir`` by content (the
-    scenario, the horizon, ``grid``'s box and the starts): a killed batch resumes, a
-    repeated one costs nothing. The monitor is not part of the key (`without_monitor`)."""
-    scenario = without_monitor(scenario)
-    rollout = functools.partial(taxi_rollouts, scenario, float(duration), grid)
-    return run_outcomes(rollout, starts, cache_dir=cache_dir, executor=executor,
-                        progress=progress, label=scenario.environment.name)
+    """The taxi's real loop from every start (`TaxiApplication.real_outcomes`: the generic
+    `reach.loop_runs.loop_rollouts`, stopping where it leaves the runway), cached under
+    ``cache_dir`` by content (the scenario without its monitor, the horizon, ``grid``'s
+    box and the starts): a killed batch resumes, a repeated one costs nothing."""
+    from .application import TaxiApplication
+    return TaxiApplication().real_outcomes(scenario, starts, grid=grid, duration=duration,
+                                           cache_dir=cache_dir, executor=executor,
+                                           progress=progress)
+
+
+def real_paths(scenario, starts, *, grid, horizon: float, extend: float, stride: int,
+               cache_dir, executor=None, progress=True) -> Outcomes:
+    """The taxi's runs from every start with the states they pass through and their
+    labels (`TaxiApplication.real_paths`: the generic `reach.loop_runs.loop_paths`),
+    cached by content under ``cache_dir`` like `real_outcomes`."""
+    from .application import TaxiApplication
+    return TaxiApplication().real_paths(scenario, starts, grid=grid, horizon=horizon,
+                                        extend=extend, stride=stride, cache_dir=cache_dir,
+                                        executor=executor, progress=progress)
 
 
 def real_loop_fidelity(scenario, value_function, starts, *, cache_dir, duration=None,
@@ -234,7 +122,7 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
     ``duration``), fails, stands still for `reach.liveness.PARKED_SECONDS` or reaches
     ``mission_limit * duration`` s, and the same-distance fields are returned too; the
     others are read from its first ``duration`` s, as without it. ``lockstep`` as in
-    `taxi_rollouts`."""
+    `reach.loop_runs.loop_rollouts`."""
     if mission_limit is not None:
         mission_limit = check_mission_limit(mission_limit)
     loop, make = scenario, make_closed_loop_diagram
@@ -314,7 +202,7 @@ def score_paths(scenario, duration: float, states, *, lockstep=None) -> dict:
     tick (``scenario.monitor.detector``, `make_watched_loop`): ``state`` ``(n, T, 3)``
     and ``score`` ``(n, T)``, NaN after a run ends; ``ticks`` ``(n,)``.
     ``functools.partial(score_paths, scenario, duration)`` is a picklable rollout
-    function for `map_states`. ``lockstep`` as in `taxi_rollouts`."""
+    function for `map_states`. ``lockstep`` as in `reach.loop_runs.loop_rollouts`."""
     scenario = resolved(scenario)
     period, off = scenario.controller.period, OffRunway(scenario.environment.half_width)
     length = int(np.floor(duration / period + 1e-9)) + 2

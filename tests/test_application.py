@@ -139,11 +139,13 @@ def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tm
         type(app)().sweep_key(scenario, grid)
     with pytest.raises(ValueError, match="load it with load_application"):
         type(app)().key()
-    # its own loop: labels along runs come from the generic runner on that loop (judged by
-    # its failure rule, no heading read), not from the taxi's runs behind its back
+    # its own loop: labels along runs come from the generic runner on that loop, judged by
+    # its failure rule (3 m from the centreline, not the runway's edge); the heading is
+    # the taxi's axis, which it inherits
     paths = app.real_paths(scenario, states, grid=grid, horizon=0.1, extend=0.1, stride=1,
                            cache_dir=tmp_path, progress=False).fields
-    assert paths["failed"].tolist() == [False, True] and np.isnan(paths["max_abs_theta"]).all()
+    assert paths["failed"].tolist() == [False, True] and app.heading_axis == 2
+    assert paths["max_abs_theta"][1] == 0.0 and 0 < paths["max_abs_theta"][0] < 0.1
     assert paths["path_label"][1].tolist() == [1, -1, -1]
     # editing a helper file (not the one named) re-keys its sweeps and its results
     _user_app(tmp_path, edge=4.0)

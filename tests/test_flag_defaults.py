@@ -20,6 +20,7 @@ SCHEMA = run_file_schema(load_application(""))
 #: Flags whose names are run-file fields' but which set something else, and what.
 NOT_THE_RUN_FILES = {
     "--scenario": "the file itself",
+    "simulate --start": "the one run's start state (a runway's start is where it begins)",
     "sweep --chunk-size": "grid states per sweep chunk (dataset.chunk_size is images)",
     "brt --chunk-size": "grid states per sweep chunk (dataset.chunk_size is images)",
     "evaluate --train": "the paper's 12 environments, where a run file lists its own",

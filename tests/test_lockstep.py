@@ -13,6 +13,8 @@ from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram,
 from reachwatch.diagrams.closed_loop import start_simulator
 from reachwatch.diagrams.lockstep import batch_systems, loop_copies, simulate_lockstep
 from reachwatch.systems import PreprocessConfig, TaxiNet, TaxiNetConfig, build_taxinet
+from reachwatch.reach import loop_runs
+from reachwatch.reach.application import ApplicationRef
 from reachwatch.taxi import OffRunway, fidelity
 from reachwatch.taxi.grid import paper_grid
 
@@ -111,9 +113,10 @@ def test_a_loop_without_batch_entry_points_runs_one_system_at_a_time(tiny_scenar
 
 
 def test_real_loop_runs_do_not_depend_on_lockstep_nor_torch_threads(tiny_scenario, monkeypatch):
-    """taxi_rollouts, taxi_paths and the missions (their stop test keeps state per run)
-    give the same arrays one run at a time on torch's threads and two at a time on
-    `LOOP_TORCH_THREADS` (1, restored after); a start off the runway is skipped."""
+    """The real-loop rollouts and paths (`reach.loop_runs`, here the taxi's) and the
+    taxi's missions (their stop test keeps state per run) give the same arrays one run at
+    a time on torch's threads and two at a time on `LOOP_TORCH_THREADS` (1, restored
+    after); a start off the runway is skipped."""
     scenario = dc.replace(tiny_scenario)
     B = scenario.environment.half_width
     grid = paper_grid(B, (3, 3, 3))
@@ -122,12 +125,12 @@ def test_real_loop_runs_do_not_depend_on_lockstep_nor_torch_threads(tiny_scenari
     prepare = TaxiNet.prepare_batch
     monkeypatch.setattr(TaxiNet, "prepare_batch", lambda self, pairs: (
         seen.append(torch.get_num_threads()), prepare(self, pairs))[1])
-    runs = {}
+    runs, taxi = {}, ApplicationRef("")
     for lockstep, threads in ((1, 0), (2, 1)):
-        monkeypatch.setattr(fidelity, "LOOP_TORCH_THREADS", threads)
+        monkeypatch.setattr(loop_runs, "LOOP_TORCH_THREADS", threads)
         runs[lockstep] = (
-            fidelity.taxi_rollouts(scenario, 0.3, grid, starts, lockstep=lockstep),
-            fidelity.taxi_paths(scenario, 0.2, 0.1, 2, grid, starts, lockstep=lockstep),
+            loop_runs.loop_rollouts(taxi, scenario, 0.3, grid, starts, lockstep=lockstep),
+            loop_runs.loop_paths(taxi, scenario, 0.2, 0.1, 2, grid, starts, lockstep=lockstep),
             fidelity.mission_rollouts(scenario, None, 0.2, starts, mission_limit=1.5,
                                       lockstep=lockstep))
     assert seen and set(seen) == {1} and torch.get_num_threads() == before
@@ -138,7 +141,7 @@ def test_real_loop_runs_do_not_depend_on_lockstep_nor_torch_threads(tiny_scenari
     ticks = runs[1][0]["ticks"]
     assert ticks[0] == 7 and 0 < ticks[1] < 7 and ticks[-1] == 0
     with pytest.raises(ValueError, match="lockstep must be a whole number"):
-        fidelity.taxi_rollouts(scenario, 0.3, grid, starts, lockstep=0)
+        loop_runs.loop_rollouts(taxi, scenario, 0.3, grid, starts, lockstep=0)
 
 
 def test_a_reused_context_starts_afresh_but_keeps_its_render_engine(tiny_scenario):

@@ -390,7 +390,7 @@ def trajectory_samples(starts, labels: LabelSpec, run_paths, inside):
 
 
 def read_along(out, inside, *, first: int = 0):
-    """The states runs passed through (``out``: `taxi_paths`'s ``path_state`` and
+    """The states runs passed through (``out``: `reach.loop_runs.loop_paths`'s ``path_state`` and
     ``path_label``), from path point ``first`` on (1 leaves the starts out), whose label
     the run settled and that ``inside(states)`` keeps. Returns ``(states, anomalous
     (bool), how many settled states inside left out, the run of each state (its row in
