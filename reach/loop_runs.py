@@ -232,49 +232,56 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
 
 
 def loop_missions(ref, scenario, fallback, duration: float, states,
-                  mission_limit=None) -> dict:
+                  mission_limit=None, *, lockstep=None) -> dict:
     """The `reach.liveness.MissionOutcomes` fields of `Application.missions`: the loop of
     ``ref``'s application (guarded by ``scenario.monitor`` with the fallback named
     ``fallback``, or the controller alone for None) from each start for ``duration`` s,
-    stopping where `Application.failed` holds. The speed
-    logged at a tick (the guarded loop's exported ``speed``, else the controller's) is
-    the speed applied since the previous one.
+    stopping where `Application.failed` holds. The speed logged at a tick (the guarded
+    loop's exported ``speed``, else the controller's) is the speed applied since the
+    previous one; ticks are the control ticks before the horizon.
 
     With ``mission_limit`` (a number >= 1) a run goes on past the horizon until it has
     covered the distance the controller alone covers within it (its speed x
     ``duration``), fails, stands still for `reach.liveness.PARKED_SECONDS` or reaches
     ``mission_limit * duration`` s, and the same-distance fields are returned too; the
-    others are read from its first ``duration`` s, as without it."""
+    others are read from its first ``duration`` s, as without it. ``lockstep`` as in
+    `loop_rollouts`."""
     from reachwatch.systems import fallback_parts
     from .liveness import (FAILED_AT_START, MISSION_FIELDS, SAME_DISTANCE_FIELDS,
                            check_mission_limit, mission_done, mission_row)
     if mission_limit is not None:
         mission_limit = check_mission_limit(mission_limit)
-    if fallback is not None:
+    guarded = fallback is not None
+    if guarded:
         scenario = copy.deepcopy(scenario)
         scenario.monitor.strategy, scenario.monitor.steering = fallback_parts(fallback)
-    application, diagram, context = _thread_loop(ref, scenario, fallback is not None)
+    application = ref.load()
+    if guarded:
+        diagram = thread_loops(ref, scenario, True)[0][0]
+        if not all(diagram.HasOutputPort(port) for port in ("speed", "anomaly")):
+            raise ValueError(f"the application '{application.name}': its guarded loop "
+                             f"exports no 'speed' and 'anomaly' "
+                             f"(reachwatch.diagrams.export_loop_ports), which its real "
+                             f"runs are judged by")
     failed = failure_rule(application, scenario)
     period, nominal = scenario.controller.period, scenario.controller.speed
     goal = nominal * duration
     names = MISSION_FIELDS + (SAME_DISTANCE_FIELDS if mission_limit is not None else ())
-    out = {name: [] for name in names}
     states = np.asarray(states, float)
-    for x, gone in zip(states, already_failed(failed, states)):
-        if gone:                                        # already failed
+    gone = already_failed(failed, states)
+    runs = iter(lockstep_runs(
+        functools.partial(thread_loops, ref, scenario, guarded), states[~gone],
+        lockstep=lockstep, period=period, failed=failed,
+        duration=duration * (mission_limit or 1.0),
+        stop_when=(None if mission_limit is None else
+                   lambda i: mission_done(goal, nominal, period, duration))))
+    out = {name: [] for name in names}
+    for failed_already in gone:
+        if failed_already:
             row = FAILED_AT_START
         else:
-            done = (None if mission_limit is None else
-                    mission_done(goal, nominal, period, duration))
-            run, end = run_until_failed(diagram, scenario, failed, x,
-                                        duration * (mission_limit or 1.0), context=context,
-                                        done=done)
-            if fallback is not None and (run.speed is None or run.anomaly is None):
-                raise ValueError(f"the application '{application.name}': its guarded loop "
-                                 f"exports no 'speed' and 'anomaly' "
-                                 f"(reachwatch.diagrams.export_loop_ports), which its real "
-                                 f"runs are judged by")
-            row = mission_row(run.time, run.speed, run.anomaly, failed=end,
+            run = next(runs)
+            row = mission_row(run.time, run.speed, run.anomaly, failed=run.failed,
                               failure_time=run.failure_time, nominal=nominal,
                               duration=duration, goal=goal)
         for name, value in zip(names, row):

@@ -137,16 +137,6 @@ class TaxiApplication(RunwayEnvironments, Application):
                                      width=width, cache_dir=cache_dir, executor=executor,
                                      progress=progress, scored=scored)
 
-    def missions(self, scenario, starts, *, fallback=None, duration, cache_dir, executor=None,
-                 progress=True, mission_limit=None):
-        if not self.own_loop:
-            return super().missions(scenario, starts, fallback=fallback, duration=duration,
-                                    cache_dir=cache_dir, executor=executor, progress=progress,
-                                    mission_limit=mission_limit)
-        return fidelity.real_missions(scenario, starts, fallback=fallback, duration=duration,
-                                      cache_dir=cache_dir, executor=executor, progress=progress,
-                                      mission_limit=mission_limit)
-
     def renderer(self, scenario):
         if not self.own_loop:
             return super().renderer(scenario)
@@ -206,13 +196,6 @@ class TaxiApplication(RunwayEnvironments, Application):
         return fidelity.real_score_noise(scenario, grid, score_table, starts, duration=duration,
                                          cache_dir=cache_dir, executor=executor,
                                          progress=progress)
-
-    def mission_rollouts(self, scenario, fallback, duration, states, *, mission_limit=None):
-        if not self.own_loop:
-            return super().mission_rollouts(scenario, fallback, duration, states,
-                                            mission_limit=mission_limit)
-        return fidelity.mission_rollouts(scenario, fallback, duration, states,
-                                         mission_limit=mission_limit)
 
     def simulate_guarded(self, scenario, start, folder, *, meshcat_html=True):
         if not self.own_loop:

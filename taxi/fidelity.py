@@ -3,24 +3,20 @@ the rollout functions behind rollout and trajectory labels and every fidelity ch
 (failure and liveness) of the loop alone and guarded by each fallback, and the
 detector's score along real runs (what the guard's tables miss between nodes)."""
 
-import copy
 import dataclasses as dc
 import functools
 
 import numpy as np
 
-from reachwatch.diagrams import (CONTROLLER, MonitorConfig, add_detector, make_closed_loop_diagram,
-                                 make_guarded_diagram)
+from reachwatch.diagrams import CONTROLLER, MonitorConfig, add_detector, make_closed_loop_diagram
 from reachwatch.diagrams.controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts
 from reachwatch.reach.fingerprint import fingerprint
-from reachwatch.reach.liveness import (FAILED_AT_START, MISSION_FIELDS, SAME_DISTANCE_FIELDS,
-                                       MissionOutcomes, check_mission_limit, mission_done,
-                                       mission_row)
-from reachwatch.reach.loop_runs import lockstep_runs, thread_copies
+from reachwatch.reach.liveness import MissionOutcomes
+from reachwatch.reach.application import ApplicationRef
+from reachwatch.reach.loop_runs import lockstep_runs, loop_missions, thread_copies
 from reachwatch.reach.outcomes import Outcomes, map_states
 from reachwatch.reach.score_noise import fit_score_noise_on_runs
-from reachwatch.systems import fallback_parts
 
 from .dynamics import OffRunway
 from .sweeps import resolved
@@ -110,67 +106,22 @@ def real_loop_fidelity(scenario, value_function, starts, *, cache_dir, duration=
 
 def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=None, *,
                      lockstep=None) -> dict:
-    """Runs the real loop of ``scenario`` from each start for ``duration`` s, stopping
-    at failure: the controller alone (``fallback=None``) or guarded by the detector of
-    ``scenario.monitor`` with the fallback named ``fallback`` (e.g. ``"brake"``,
-    ``"slow_down+dead_reckoning"``). Returns the `MissionOutcomes` fields per start:
-    the speed logged at a tick is the speed applied since the previous one, and ticks
-    are the control ticks before the horizon.
-
-    With ``mission_limit`` (a number >= 1) a run goes on past the horizon until it has
-    covered the distance the controller alone covers within it (its speed x
-    ``duration``), fails, stands still for `reach.liveness.PARKED_SECONDS` or reaches
-    ``mission_limit * duration`` s, and the same-distance fields are returned too; the
-    others are read from its first ``duration`` s, as without it. ``lockstep`` as in
-    `reach.loop_runs.loop_rollouts`."""
-    if mission_limit is not None:
-        mission_limit = check_mission_limit(mission_limit)
-    loop, make = scenario, make_closed_loop_diagram
-    if fallback is not None:
-        loop, make = copy.deepcopy(scenario), make_guarded_diagram
-        loop.monitor.strategy, loop.monitor.steering = fallback_parts(fallback)
-    off, period = OffRunway(scenario.environment.half_width), scenario.controller.period
-    nominal = scenario.controller.speed
-    goal = nominal * duration
-    names = MISSION_FIELDS + (SAME_DISTANCE_FIELDS if mission_limit is not None else ())
-    out = {name: [] for name in names}
-    states = np.asarray(states, float)
-    gone = off(states)                           # already off the runway
-    runs = iter(_real_runs(loop, make, states[~gone], lockstep=lockstep,
-                           period=period, failed=off,
-                           duration=duration * (mission_limit or 1.0),
-                           stop_when=(None if mission_limit is None else
-                                      lambda i: mission_done(goal, nominal, period, duration))))
-    for at_start in gone:
-        if at_start:
-            row = FAILED_AT_START
-        else:
-            run = next(runs)
-            row = mission_row(run.time, run.speed, run.anomaly, failed=run.failed,
-                              failure_time=run.failure_time, nominal=nominal,
-                              duration=duration, goal=goal)
-        for name, value in zip(names, row):
-            out[name].append(value)
-    return {name: np.asarray(value) for name, value in out.items()}
+    """The taxi's missions from each start, run here and not cached: the generic
+    `reach.loop_runs.loop_missions` on the taxi's loop (``scenario`` as given), alone
+    (``fallback=None``) or guarded by the fallback named ``fallback``."""
+    return loop_missions(ApplicationRef(""), scenario, fallback, duration, states,
+                         mission_limit, lockstep=lockstep)
 
 
 def real_missions(scenario, starts, *, fallback=None, duration: float, cache_dir,
                   mission_limit=None, executor=None, progress=True) -> MissionOutcomes:
-    """`mission_rollouts` from every start, cached by content under ``cache_dir`` like
-    `real_outcomes` (a killed batch resumes, a repeated one costs nothing). The
-    controller alone's runs (``fallback=None``) are keyed without the monitor
-    (`without_monitor`), so they are shared by every detector and fallback setting."""
-    scenario = resolved(scenario) if fallback else without_monitor(scenario)
-    rollout = functools.partial(mission_rollouts, scenario, fallback, float(duration),
-                                **({} if mission_limit is None
-                                   else {"mission_limit": float(mission_limit)}))
-    fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
-                              progress=progress, unit="run",
-                              required=MISSION_FIELDS + (SAME_DISTANCE_FIELDS
-                                                         if mission_limit is not None else ()),
-                              label=f"real loop {scenario.environment.name} "
-                                    f"{fallback or 'alone'}")
-    return MissionOutcomes.from_fields(fields)
+    """The taxi's missions from every start (`TaxiApplication.missions`: the generic
+    `reach.loop_runs.loop_missions`), cached by content under ``cache_dir``; the
+    controller alone's runs are keyed without the monitor."""
+    from .application import TaxiApplication
+    return TaxiApplication().missions(scenario, starts, fallback=fallback, duration=duration,
+                                      cache_dir=cache_dir, mission_limit=mission_limit,
+                                      executor=executor, progress=progress)
 
 
 def make_watched_loop(scenario):
