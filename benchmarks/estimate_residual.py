@@ -11,8 +11,8 @@ could compute online from the signals alone, without the image:
 - ``|estimate|``: the estimated cross-track error's size;
 - ``|steering|, 1 s``: the mean size of the steering over the last second.
 
-Reads the recorded runs a study cached (``CACHE/runs/record_runs_*``, one folder an
-environment and run count) and renders nothing.
+Reads the recorded runs a study cached (``CACHE/runs/loop_recordings_*``, or
+``record_runs_*`` before 2026-12-07: one folder an environment and run count) and renders nothing.
 
     python benchmarks/estimate_residual.py --cache /path/to/study/cache
 """
@@ -68,13 +68,15 @@ def environment_aurocs(folder: Path, *, speed: float, period: float, duration: f
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cache", type=Path, required=True,
-                        help="a monitor study's cache (its runs/record_runs_* folders)")
+                        help="a monitor study's cache (its runs/loop_recordings_* folders, or "
+                        "record_runs_* of a study before 2026-12-07)")
     parser.add_argument("--speed", type=float, default=5.0, help="taxi speed, m/s")
     parser.add_argument("--period", type=float, default=0.05, help="control period, s")
     parser.add_argument("--duration", type=float, default=8.0, help="recorded run length, s")
     parser.add_argument("--within", type=float, default=4.0)
     args = parser.parse_args()
-    folders = sorted((args.cache / "runs").glob("record_runs_*"))
+    folders = sorted([*(args.cache / "runs").glob("loop_recordings_*"),
+                      *(args.cache / "runs").glob("record_runs_*")])
     if not folders:
         parser.error(f"--cache: no recorded runs under {args.cache / 'runs'}")
     rows = []

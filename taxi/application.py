@@ -13,7 +13,7 @@ from reachwatch.diagrams import (StateRenderer, initial_state_vector, load_taxin
 from reachwatch.reach.application import Application
 from reachwatch.systems import Environment, RandomEnvironments, TaxiNet
 
-from . import fidelity, guarded, guarded_run, history, plots, sweeps
+from . import fidelity, guarded, guarded_run, plots, sweeps
 from .dynamics import OffRunway, dynamics_for
 from .grid import AXES, paper_grid
 from .taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
@@ -126,16 +126,6 @@ class TaxiApplication(RunwayEnvironments, Application):
     def starts(self, scenario, box, count, seed):
         return fidelity.on_runway_starts(box, count, seed,
                                          half_width=scenario.environment.half_width)
-
-    def recorded_runs(self, scenario, starts, *, duration, height, width, cache_dir,
-                      executor=None, progress=True, scored=False):
-        if not self.own_loop:
-            return super().recorded_runs(scenario, starts, duration=duration, height=height,
-                                         width=width, cache_dir=cache_dir, executor=executor,
-                                         progress=progress, scored=scored)
-        return history.recorded_runs(scenario, starts, duration=duration, height=height,
-                                     width=width, cache_dir=cache_dir, executor=executor,
-                                     progress=progress, scored=scored)
 
     def renderer(self, scenario):
         if not self.own_loop:
