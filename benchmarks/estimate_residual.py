@@ -75,8 +75,10 @@ def main():
     parser.add_argument("--duration", type=float, default=8.0, help="recorded run length, s")
     parser.add_argument("--within", type=float, default=4.0)
     args = parser.parse_args()
-    folders = sorted([*(args.cache / "runs").glob("loop_recordings_*"),
-                      *(args.cache / "runs").glob("record_runs_*")])
+    # the runs of this version, else those a study cached before 2026-12-07 (not both:
+    # a cache used before and after holds each environment under both names)
+    folders = (sorted((args.cache / "runs").glob("loop_recordings_*"))
+               or sorted((args.cache / "runs").glob("record_runs_*")))
     if not folders:
         parser.error(f"--cache: no recorded runs under {args.cache / 'runs'}")
     rows = []

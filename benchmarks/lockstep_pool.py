@@ -1,6 +1,6 @@
 """Real-loop runs per wall second on a local pool of workers (one per core by default),
 each worker thread advancing its chunk's runs one at a time or N at a time in lockstep
-(`reachwatch.reach.loop_runs.loop_rollouts`'s ``lockstep``, on the taxi's loop): whether lockstep pays where
+(`reach.loop_runs.loop_rollouts`'s ``lockstep``, on the taxi's loop): whether lockstep pays where
 it is used, on a machine whose cores the pool's workers fill. The sizes take turns
 within each round (a shared VM's speed drifts); each ratio is to lockstep 1 in the same
 round, the median over the rounds after a warm-up round (diagram builds); every size's

@@ -81,7 +81,7 @@ def fidelity_section(page, spec, results: dict, made: dict, roles: dict):
               f"its table; 'left the box': runs leaving the solved box"
               f"{f' in {open_axes}' if open_axes else ''}, where the "
               f"table is clamped to its edge. Every rate in % with its 95 % Wilson interval.")
-    # the real runs' largest |theta|: the taxi's heading (NaN for a plant without one)
+    # the real runs' largest |heading| (Application.heading_axis; NaN without one)
     theta = any(np.isfinite(v) for r in results.values() for v in r["real_max_abs_theta_deg"])
     page.table(["environment", "role", "starts", "real failures", "BRT agreement",
                 "false-safe", "false-unsafe", "table rollouts = real", "BRT = table rollouts",

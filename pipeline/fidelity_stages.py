@@ -116,8 +116,8 @@ def fidelity_env(run: Run, env) -> dict:
 
 def heading_percentiles(outcomes: dict, runs: int) -> list:
     """The 50th, 90th and 100th percentiles (deg, one decimal) of the real runs' largest
-    heading ``max_abs_theta`` (rad, the taxi's); NaN where a plant's own
-    `real_outcomes` leaves it out or has none."""
+    heading ``max_abs_theta`` (rad, along `Application.heading_axis`); NaN where a
+    plant's own `real_outcomes` leaves it out or has none."""
     heading = outcomes.get("max_abs_theta", np.full(runs, np.nan))
     return np.percentile(np.rad2deg(heading), [50, 90, 100]).round(1).tolist()
 

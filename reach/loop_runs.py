@@ -1,12 +1,13 @@
 """The generic real loop of an application, run from given starts: the runners behind
 `Application.real_outcomes`, `real_paths`, `recorded_runs`, `missions` and
 `real_score_noise` for any
-loop the application builds (an application may bring faster ones of its own). Each
+loop the application builds, the taxi's included (an application may bring its own).
+Each
 takes ``ref`` (an `ApplicationRef`: picklable, a
 worker loads the application again), the scenario and the run's settings, then the
 ``states`` of one chunk, and returns that chunk's fields (`reach.outcomes.map_states`).
 Every control tick renders; a run stops at the integrator step where
-`Application.failed` holds (between ticks or on one), as the taxi's runs do."""
+`Application.failed` holds (between ticks or on one)."""
 
 import copy
 import dataclasses as dc
@@ -122,7 +123,7 @@ def run_until_failed(diagram, scenario, failed, start, duration: float, *, conte
                      done=None):
     """``(trajectory, failed)``: the loop ``diagram`` of ``scenario`` from the state
     ``start`` for ``duration`` s, stopped at the integrator step where ``failed``
-    (`failure_rule`) holds (as the taxi's runs stop), or at the first control tick where
+    (`failure_rule`) holds, or at the first control tick where
     ``done(rows)`` says so; ``context``: a reused one. The trajectory's ``failed`` and
     ``failure_time`` (the step's time, between ticks or on one) say when."""
     from reachwatch.diagrams import simulate
@@ -256,19 +257,19 @@ def loop_missions(ref, scenario, fallback, duration: float, states,
         scenario = copy.deepcopy(scenario)
         scenario.monitor.strategy, scenario.monitor.steering = fallback_parts(fallback)
     application = ref.load()
-    if guarded:
-        diagram = thread_loops(ref, scenario, True)[0][0]
-        if not all(diagram.HasOutputPort(port) for port in ("speed", "anomaly")):
-            raise ValueError(f"the application '{application.name}': its guarded loop "
-                             f"exports no 'speed' and 'anomaly' "
-                             f"(reachwatch.diagrams.export_loop_ports), which its real "
-                             f"runs are judged by")
     failed = failure_rule(application, scenario)
     period, nominal = scenario.controller.period, scenario.controller.speed
     goal = nominal * duration
     names = MISSION_FIELDS + (SAME_DISTANCE_FIELDS if mission_limit is not None else ())
     states = np.asarray(states, float)
     gone = already_failed(failed, states)
+    if guarded and not gone.all():          # the first copy the runs take: built once
+        diagram = thread_loops(ref, scenario, True)[0][0]
+        if not all(diagram.HasOutputPort(port) for port in ("speed", "anomaly")):
+            raise ValueError(f"the application '{application.name}': its guarded loop "
+                             f"exports no 'speed' and 'anomaly' "
+                             f"(reachwatch.diagrams.export_loop_ports), which its real "
+                             f"runs are judged by")
     runs = iter(lockstep_runs(
         functools.partial(thread_loops, ref, scenario, guarded), states[~gone],
         lockstep=lockstep, period=period, failed=failed,

@@ -54,7 +54,8 @@ class Environment:
     def half_width(self) -> float:
         """B (m): the aircraft fails when ``|px| >= B``. Read without `spec`'s copy: a
         failure rule reads it at every integrator step (the copy took 0.3 ms)."""
-        return (self.runway_spec if self.runway_spec is not None else RUNWAYS[self.runway]).half_width
+        spec = self.runway_spec if self.runway_spec is not None else RUNWAYS[self.runway]
+        return spec.half_width
 
 
 def hour_text(hour: float) -> str:

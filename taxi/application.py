@@ -1,8 +1,11 @@
 """The taxi as an `Application`: the default closed loop of ``reachwatch run``. Any
 controller steers the taxiing aircraft (`reachwatch.systems.TaxiPlant`) on the runway
 of ``scenario.environment``, seen by the wing camera; it fails when it leaves the
-runway (``|px| >= half_width``). Every method hands over to the taxi's own modules,
-so sweeps, runs and datasets keep the cache keys they had before applications."""
+runway (``|px| >= half_width``). Its sweeps and datasets are the taxi's own modules
+(they keep the cache keys they had before applications); its real-loop runs (the
+check, path labels, missions and recorded runs) are the generic ones of
+`reachwatch.reach.loop_runs`, but for the detector's score along runs
+(`fidelity.score_runs`)."""
 
 import dataclasses as dc
 
@@ -81,7 +84,7 @@ class TaxiApplication(RunwayEnvironments, Application):
     @property
     def own_loop(self) -> bool:
         """Whether the loop is the taxi's own (a subclass may build another, and then
-        gets the generic sweeps and no taxi real-loop runs)."""
+        gets the generic sweeps, renderer, score runs, start, run and showcase)."""
         return type(self).loop_diagram is TaxiApplication.loop_diagram
 
     def loop_factory(self, scenario, *, guarded=False):

@@ -1,7 +1,9 @@
-"""The taxi's real Drake closed loop (rendering at every tick) run from given starts:
-the rollout functions behind rollout and trajectory labels and every fidelity check, the missions
-(failure and liveness) of the loop alone and guarded by each fallback, and the
-detector's score along real runs (what the guard's tables miss between nodes)."""
+"""The taxi's real Drake closed loop (rendering at every tick) run from given starts.
+The real-loop check, path labels and missions are the generic runners of
+`reachwatch.reach.loop_runs` on the taxi's loop (`real_outcomes`, `real_paths`,
+`mission_rollouts` and `real_missions` here call them); the detector's score along
+real runs (what the guard's tables miss between nodes: `score_paths`, `score_runs`)
+is the taxi's own."""
 
 import dataclasses as dc
 import functools
