@@ -567,18 +567,23 @@ class Application(abc.ABC):
         score along real runs of the controller alone from ``starts`` (cached under
         ``cache_dir``) departs from ``score_table`` (the sweep's `score_port` on ``grid``)
         at the same states; ``(noise, {"runs", "ticks", "cut_at_box"})``. A ValueError
-        when it cannot be fitted. Default: the runs of `reach.loop_runs.loop_scores` (the guarded loop,
-        whose fallback never engages), the distance travelled taken as the nominal speed
-        times the time, as the table rollouts move the noise; a run whose fallback
-        engaged all the same is left out (``{"left_out"}`` counts them)."""
+        when it cannot be fitted. Default: the runs of `score_runs` (the guarded loop,
+        whose fallback never engages), along the distance `travelled_along`; a run whose
+        fallback engaged all the same is left out (``{"left_out"}`` counts them)."""
         from .score_noise import fit_score_noise_on_runs
         fields = self.score_runs(scenario, starts, duration=duration, cache_dir=cache_dir,
                                  executor=executor, progress=progress)
-        step = scenario.controller.speed * scenario.controller.period
         noise, fit = fit_score_noise_on_runs(
             grid, score_table, fields["state"], fields["score"], fields["ticks"],
-            lambda path: step * np.arange(len(path)), left_out=fields["engaged"])
+            functools.partial(self.travelled_along, scenario), left_out=fields["engaged"])
         return noise, {**fit, "left_out": int(np.sum(fields["engaged"]))}
+
+    def travelled_along(self, scenario, path) -> np.ndarray:
+        """The distance (m) a run has travelled at each of its ticks' states ``path``
+        ``(T, n)``, along which `real_score_noise` moves the detector's variation. Default:
+        the nominal speed times the time (the taxi's: the distance on the ground)."""
+        step = scenario.controller.speed * scenario.controller.period
+        return step * np.arange(len(path))
 
     def mission_rollouts(self, scenario, fallback, duration: float, states, *,
                          mission_limit=None) -> dict:

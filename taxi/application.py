@@ -3,9 +3,8 @@ controller steers the taxiing aircraft (`reachwatch.systems.TaxiPlant`) on the r
 of ``scenario.environment``, seen by the wing camera; it fails when it leaves the
 runway (``|px| >= half_width``). Its sweeps and datasets are the taxi's own modules
 (they keep the cache keys they had before applications); its real-loop runs (the
-check, path labels, missions and recorded runs) are the generic ones of
-`reachwatch.reach.loop_runs`, but for the detector's score along runs
-(`fidelity.score_runs`)."""
+check, path labels, missions, recorded runs and the detector's score along runs) are
+the generic ones of `reachwatch.reach.loop_runs`."""
 
 import dataclasses as dc
 
@@ -84,7 +83,7 @@ class TaxiApplication(RunwayEnvironments, Application):
     @property
     def own_loop(self) -> bool:
         """Whether the loop is the taxi's own (a subclass may build another, and then
-        gets the generic sweeps, renderer, score runs, start, run and showcase)."""
+        gets the generic sweeps, renderer, start, run and showcase)."""
         return type(self).loop_diagram is TaxiApplication.loop_diagram
 
     def loop_factory(self, scenario, *, guarded=False):
@@ -172,23 +171,11 @@ class TaxiApplication(RunwayEnvironments, Application):
     def fallback_policy(self, scenario):
         return guarded.p_controller_policy(scenario.controller)
 
-    def score_runs(self, scenario, starts, *, duration, cache_dir, executor=None,
-                   progress=True):
-        if not self.own_loop:
-            return super().score_runs(scenario, starts, duration=duration, cache_dir=cache_dir,
-                                      executor=executor, progress=progress)
-        return fidelity.score_runs(scenario, starts, duration=duration, cache_dir=cache_dir,
-                                   executor=executor, progress=progress)
-
-    def real_score_noise(self, scenario, grid, score_table, starts, *, duration, cache_dir,
-                         executor=None, progress=True):
-        if not self.own_loop:
-            return super().real_score_noise(scenario, grid, score_table, starts,
-                                            duration=duration, cache_dir=cache_dir,
-                                            executor=executor, progress=progress)
-        return fidelity.real_score_noise(scenario, grid, score_table, starts, duration=duration,
-                                         cache_dir=cache_dir, executor=executor,
-                                         progress=progress)
+    def travelled_along(self, scenario, path):
+        """The distance on the ground (px, py) up to each state of ``path``."""
+        path = np.asarray(path, float)
+        return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path[:, :2], axis=0),
+                                                               axis=1))])
 
     def simulate_guarded(self, scenario, start, folder, *, meshcat_html=True):
         if not self.own_loop:

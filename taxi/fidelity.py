@@ -1,26 +1,23 @@
-"""The taxi's real Drake closed loop (rendering at every tick) run from given starts.
-The real-loop check, path labels and missions are the generic runners of
-`reachwatch.reach.loop_runs` on the taxi's loop (`real_outcomes`, `real_paths`,
-`mission_rollouts` and `real_missions` here call them); the detector's score along
-real runs (what the guard's tables miss between nodes: `score_paths`, `score_runs`)
-is the taxi's own."""
+"""The taxi's real Drake closed loop (rendering at every tick) run from given starts:
+the generic runners of `reachwatch.reach.loop_runs` on the taxi's loop, by the names
+the taxi's callers know (`real_outcomes`, `real_paths`, `mission_rollouts`,
+`real_missions`, `score_runs`, `real_score_noise`), the start distribution of its
+checks (`on_runway_starts`), the BRT's fidelity to the real loop
+(`real_loop_fidelity`), and the loop with the detector watching
+(`make_watched_loop`)."""
 
 import dataclasses as dc
-import functools
 
 import numpy as np
 
 from reachwatch.diagrams import CONTROLLER, MonitorConfig, add_detector, make_closed_loop_diagram
 from reachwatch.diagrams.controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts
-from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.liveness import MissionOutcomes
 from reachwatch.reach.application import ApplicationRef
-from reachwatch.reach.loop_runs import lockstep_runs, loop_missions, thread_copies
-from reachwatch.reach.outcomes import Outcomes, map_states
-from reachwatch.reach.score_noise import fit_score_noise_on_runs
+from reachwatch.reach.loop_runs import loop_missions
+from reachwatch.reach.outcomes import Outcomes
 
-from .dynamics import OffRunway
 from .sweeps import resolved
 
 #: The taxi grid axes where leaving the box is not a failure (py, theta): past |px| = B
@@ -37,24 +34,6 @@ def on_runway_starts(box, count: int, seed, *, half_width: float) -> np.ndarray:
     lo[0], hi[0] = max(lo[0], -half_width), min(hi[0], half_width)
     rng = np.random.default_rng(seed)
     return lo + rng.uniform(size=(count, len(lo))) * (hi - lo)
-
-
-def _loops(scenario, make, count: int = 1) -> list:
-    """``count`` copies ``(diagram, context)`` of the loop ``make(scenario)``, kept per
-    worker thread (`reach.loop_runs.thread_copies`)."""
-    return thread_copies((make.__name__, fingerprint(scenario)), lambda: make(scenario), count)
-
-
-def _loop(scenario, make):
-    """The diagram ``make(scenario)`` and a context for it, built once per thread."""
-    return _loops(scenario, make)[0]
-
-
-def _real_runs(scenario, make, states, *, lockstep=None, **settings) -> list:
-    """`simulate` of the loop ``make(scenario)`` from each of ``states``, runs advanced
-    together on this thread's copies of it (`reach.loop_runs.lockstep_runs`)."""
-    return lockstep_runs(functools.partial(_loops, scenario, make), states,
-                         lockstep=lockstep, **settings)
 
 
 def without_monitor(scenario):
@@ -149,59 +128,24 @@ def export_watching_detector(builder, world, scenario):
     builder.ExportOutput(detector.get_score_output_port(), "score")
 
 
-def score_paths(scenario, duration: float, states, *, lockstep=None) -> dict:
-    """From each start, the real closed loop of the controller alone for ``duration``
-    s (stopping at failure), and the detector's score of the image at every logged
-    tick (``scenario.monitor.detector``, `make_watched_loop`): ``state`` ``(n, T, 3)``
-    and ``score`` ``(n, T)``, NaN after a run ends; ``ticks`` ``(n,)``.
-    ``functools.partial(score_paths, scenario, duration)`` is a picklable rollout
-    function for `map_states`. ``lockstep`` as in `reach.loop_runs.loop_rollouts`."""
-    scenario = resolved(scenario)
-    period, off = scenario.controller.period, OffRunway(scenario.environment.half_width)
-    length = int(np.floor(duration / period + 1e-9)) + 2
-    states = np.asarray(states, float)
-    gone = off(states)                           # already off the runway: no path
-    runs = iter(_real_runs(scenario, make_watched_loop, states[~gone],
-                           lockstep=lockstep, duration=duration, period=period,
-                           failed=off))
-    out = {"state": np.full((len(states), length, 3), np.nan),
-           "score": np.full((len(states), length), np.nan), "ticks": np.zeros(len(states), int)}
-    for i in range(len(states)):
-        if gone[i]:
-            continue
-        run = next(runs)
-        n = min(len(run.time), length)
-        out["state"][i, :n] = np.asarray(run.state, float)[:n]
-        out["score"][i, :n] = np.asarray(run.score, float)[:n]
-        out["ticks"][i] = n
-    return out
-
-
 def score_runs(scenario, starts, *, duration: float, cache_dir, executor=None,
                progress=True) -> dict:
-    """`score_paths` from every start, cached by content under ``cache_dir`` like
-    `real_outcomes`, keyed by the detector but not by the monitor's threshold and
-    fallback settings: the controller alone and the detector's score do not depend on
-    them. Every run is the controller alone's (``engaged`` all False)."""
-    scenario = watching(scenario)
-    rollout = functools.partial(score_paths, scenario, float(duration))
-    fields, _, _ = map_states(rollout, starts, cache_dir=cache_dir, executor=executor,
-                              progress=progress, unit="run", required=("score", "state"),
-                              label=f"detector score along real runs {scenario.environment.name}")
-    return {**fields, "engaged": np.zeros(len(fields["ticks"]), bool)}
+    """The detector's score along the taxi's loop alone from every start
+    (`TaxiApplication.score_runs`: the generic `reach.loop_runs.loop_scores`), cached by
+    content under ``cache_dir``, keyed by the detector but not by the monitor's threshold
+    and fallback settings."""
+    from .application import TaxiApplication
+    return TaxiApplication().score_runs(scenario, starts, duration=duration,
+                                        cache_dir=cache_dir, executor=executor,
+                                        progress=progress)
 
 
 def real_score_noise(scenario, grid, score_table, starts, *, duration: float, cache_dir,
                      executor=None, progress=True):
-    """`reach.score_noise.ScoreNoise` fitted (`fit_score_noise`) to how the detector's real score along
-    runs of the controller alone from ``starts`` departs from ``score_table``
-    (the guarded sweep's score on ``grid``) interpolated at the same states. Runs are
-    cached like `real_outcomes`, under a key without the monitor's threshold and fallback
-    settings: the controller alone and the detector's score do not depend on them.
-    Returns ``(noise, {"runs", "ticks"})``."""
-    fields = score_runs(scenario, starts, duration=duration, cache_dir=cache_dir,
-                        executor=executor, progress=progress)
-    return fit_score_noise_on_runs(       # distance along the path on the ground (px, py)
-        grid, score_table, fields["state"], fields["score"], fields["ticks"],
-        lambda path: np.concatenate([[0.0], np.cumsum(np.linalg.norm(
-            np.diff(path[:, :2], axis=0), axis=1))]))
+    """`TaxiApplication.real_score_noise`: the detector's variation between the guarded
+    sweep's nodes, fitted on the taxi's runs from ``starts`` along the distance on the
+    ground. Returns ``(noise, fit)``."""
+    from .application import TaxiApplication
+    return TaxiApplication().real_score_noise(scenario, grid, score_table, starts,
+                                              duration=duration, cache_dir=cache_dir,
+                                              executor=executor, progress=progress)

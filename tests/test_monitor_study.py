@@ -193,14 +193,14 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
         import dataclasses as dc
         from reachwatch.diagrams import MonitorConfig
         from reachwatch.reach.application import load_application
-        from reachwatch.taxi.fidelity import score_paths
         taxi, env = load_application(), spec.environments()["held_out"][0]
         here = dc.replace(scenario, environment=env,
                           monitor=MonitorConfig(detector=str(detector_path)))
         box = taxi.grid(here, (3, 3, 3))
         first = taxi.starts(here, (box.lo, box.hi), spec.judged_runs,
                             starts_seed(spec, spec.train + spec.calibrate))[:1]
-        online = score_paths(here, spec.duration, first)
+        online = taxi.score_runs(here, first, duration=spec.duration,
+                                 cache_dir=tmp_path / "scores", progress=False)
         np.testing.assert_allclose(saved[f"{DETECTOR_ROW}/held_out/risk"][:ticks[0]],
                                    online["score"][0, :ticks[0]], rtol=1e-6)
     # a rerun renders nothing new, trains nothing new (its encoder and every head read

@@ -116,15 +116,17 @@ def test_score_along_real_runs_and_the_fit_from_them(detector_path, tmp_path):
     fit of real against swept scores runs end to end on them."""
     from reachwatch.reach import InlineExecutor
     from reachwatch.taxi import sweep_guarded
-    from reachwatch.taxi.fidelity import real_score_noise, score_paths
+    from reachwatch.taxi.fidelity import real_score_noise, score_runs
     from reachwatch.taxi.guarded import SCORE_PORT
     scenario = load_scenario(data=f"monitor: {{detector: {detector_path}, threshold: 0.5}}\n")
     grid = paper_grid(scenario.environment.half_width, (3, 3, 3))
     tables = sweep_guarded(scenario, grid, cache_dir=tmp_path / "sweeps",
                            executor=InlineExecutor(), progress=False)
     nodes = grid.states([13, 10])
-    out = score_paths(scenario, 1.0, np.vstack([nodes, [[30.0, 100.0, 0.0]]]))
-    assert out["score"].shape == (3, 22) and out["state"].shape == (3, 22, 3)
+    out = score_runs(scenario, np.vstack([nodes, [[30.0, 100.0, 0.0]]]), duration=1.0,
+                     cache_dir=tmp_path / "scores", progress=False)
+    assert out["score"].shape == (3, 21) and out["state"].shape == (3, 21, 3)
+    assert not out["engaged"].any()
     np.testing.assert_allclose(out["score"][:2, 0], np.asarray(tables[SCORE_PORT]).ravel()[[13, 10]],
                                rtol=1e-5, atol=1e-6)
     assert out["ticks"].tolist()[2] == 0 and np.isnan(out["score"][2]).all()
@@ -134,7 +136,7 @@ def test_score_along_real_runs_and_the_fit_from_them(detector_path, tmp_path):
     starts = grid.states([13, 12, 14])
     noise, fit = real_score_noise(scenario, grid, tables[SCORE_PORT], starts, duration=1.0,
                                   cache_dir=tmp_path / "outcomes", progress=False)
-    assert fit == {"runs": 3, "ticks": 3 * 21, "cut_at_box": 0}
+    assert fit == {"runs": 3, "ticks": 3 * 21, "cut_at_box": 0, "left_out": 0}
     assert noise.sigma > 0 and noise.length > 0
     # the runs do not depend on what the monitor does with the score: another threshold
     # and fallback read the same cached runs (one cache folder) and fit the same noise
