@@ -743,6 +743,20 @@ def build_loop(ref: ApplicationRef, scenario, guarded: bool):
 _LOADED = {}
 
 
+def _check_axes(application: Application, spec: str):
+    """A ValueError in one line when the application's `open_axes` or `heading_axis`
+    names an axis its state does not have (the runs would fail in a worker, late)."""
+    n = len(application.axes)
+    named = {"open_axes": tuple(application.open_axes),
+             "heading_axis": () if application.heading_axis is None
+             else (application.heading_axis,)}
+    for what, indices in named.items():
+        for i in indices:
+            if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= i < n:
+                raise ValueError(f"application '{spec or application.name}': {what} names axis "
+                                 f"{i!r}, but its state has {n} ({', '.join(application.axes)})")
+
+
 def load_application(spec: str = "") -> Application:
     """The application ``spec`` names (``package.module:name`` or
     ``path/to/file.py:name``: an `Application` subclass, or a function of no arguments
@@ -777,6 +791,7 @@ def load_application(spec: str = "") -> Application:
     if not isinstance(application, Application):
         raise ValueError(f"application '{spec}': it returned a {type(application).__name__}, "
                          f"not a reachwatch.reach.application.Application")
+    _check_axes(application, spec)
     application.spec = spec
     _LOADED[spec, code] = application
     return application

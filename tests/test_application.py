@@ -44,6 +44,14 @@ class FourAxes(Rebuilt):
     axes = ("px", "py", "theta", "v")
 
 
+class TwoAxes(Rebuilt):
+    axes, open_axes = ("px", "theta"), (1,)    # the taxi's heading_axis 2 is not one of them
+
+
+class OpenPast(Rebuilt):
+    open_axes = (1, 3)
+
+
 def not_one():
     return 42
 """
@@ -164,6 +172,8 @@ def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tm
     (":Missing", "application: '.*loop.py' has no function 'Missing'"),
     (":not_one", "it returned a int, not a reachwatch.reach.application.Application"),
     ("nowhere.py:Rebuilt", "application: file not found: nowhere.py"),
+    (":TwoAxes", r"heading_axis names axis 2, but its state has 2 \(px, theta\)$"),
+    (":OpenPast", r"open_axes names axis 3, but its state has 3 \(px, py, theta\)$"),
 ])
 def test_a_bad_application_is_one_line_naming_the_key(tmp_path, name, why):
     path = _user_app(tmp_path)
