@@ -197,16 +197,6 @@ class TaxiApplication(RunwayEnvironments, Application):
     def fine_tuned_metadata(self, path):
         return load_taxinet(path)[2]
 
-    def run_from(self, scenario, start, duration):
-        """The taxi's run, stopped where it crosses the runway's edge."""
-        if not self.own_loop:
-            return super().run_from(scenario, start, duration)
-        from reachwatch.diagrams import simulate
-        run = simulate(self.loop_diagram(scenario), initial_state=start,
-                       period=scenario.controller.period, duration=duration,
-                       failed=OffRunway(scenario.environment.half_width))
-        return run, run.failed
-
     def plot_runs(self, runs, *, scenario, path, title=""):
         from reachwatch.diagrams.plots import plot_runway_top_view
         return plot_runway_top_view(runs, half_width=scenario.environment.half_width,
