@@ -13,6 +13,7 @@ import numpy as np
 
 from reachwatch.reach import (compare_verdicts, min_target_along_rollouts, select_map,
                              sign_agreement, solve_brt)
+from reachwatch.reach.fingerprint import modules_source_digest
 from reachwatch.reach.robust import control_bounds
 from reachwatch.reach.sweep import cached_table_digest
 from reachwatch.systems.checks import device_kind
@@ -141,6 +142,11 @@ def select_map_by_runs(run: Run, env, scenario, levels, solve):
     return record, vf, level.table, spread
 
 
+#: The source in a solve record's key: this module, which sets up and writes each solve
+#: (its grid, refinement, map selection and plots).
+SOLVE_CODE = ("reachwatch.pipeline.brt_stages",)
+
+
 def sweep_stage_key(run: Run, env) -> str:
     """The key of ``env``'s sweep record: its sweep's content key (no rendering)."""
     return run.application.sweep_key(run.scenario_for(env), run.solved_grid_for(env))
@@ -149,15 +155,16 @@ def sweep_stage_key(run: Run, env) -> str:
 def solve_stage_key(run: Run, env, *, sweep: bool = False) -> str:
     """The key of ``env``'s solve record: the content of the table it solves, its sweep
     as cached now (`cached_table_digest`; None when a chunk is missing or fails its
-    checksum, and with ``sweep`` those are swept again first), and the solve's settings.
-    An edited table is solved again; without ``sweep`` nothing is rendered to find out."""
+    checksum, and with ``sweep`` those are swept again first), the solve's settings, and
+    `SOLVE_CODE` (the solver itself, in reach/, is loop code: in the sweep's key). An
+    edited table is solved again; without ``sweep`` nothing is rendered to find out."""
     spec, size, sweep_key = run.spec, run.solved_grid_for(env).size, sweep_stage_key(run, env)
     table = cached_table_digest(run.sweep_cache, sweep_key, size)
     if table is None and sweep:
         sweep_env(run, env)
         table = cached_table_digest(run.sweep_cache, sweep_key, size)
     return digest(sweep_key, table, spec.horizon, spec.accuracy, spec.periods_per_step,
-                  spec.slice_py,
+                  spec.slice_py, {"code": modules_source_digest(*SOLVE_CODE)},
                   device_kind(),            # the solve's device: CUDA where present
                   *([spec.refine] if spec.refine.levels else []),
                   *([spec.robust] if spec.robust.enabled else []),

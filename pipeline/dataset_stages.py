@@ -6,9 +6,12 @@ import functools
 
 from reachwatch.reach import ValueFunction
 from reachwatch.reach.application import application_key, load_application
-from reachwatch.reach.fingerprint import fingerprint
+from reachwatch.reach.fingerprint import fingerprint, modules_source_digest
+from reachwatch.training.dataset import DATASET_CODE
+from reachwatch.training.dataset import FORMAT as DATASET_FORMAT
 from reachwatch.training.dataset import build_dataset, dataset_folder, label_summary, load_dataset
 
+from .spec import digest
 from .stages import Run
 from .together import each_environment
 
@@ -73,6 +76,22 @@ def dataset_folder_for(run: Run, env, value_path, ensemble) -> str:
                             ensemble=[str(p) for p in ensemble], box=_label_box(run, env),
                             application=run.application)
     return run.rel(folder)
+
+
+def dataset_key(run: Run) -> str:
+    """The dataset stage's key: each solved BRT by path and content, each environment's
+    dataset spec by name (which environments get a dataset, and the labels each gets:
+    ``held_out_labels`` for the held-out ones, so that swapped roles label again), the
+    ensemble baseline's settings, the camera, and the dataset code."""
+    spec = run.spec
+    return digest(
+        {n: r["value"] for n, r in run.outputs["solve"].items()},
+        {n: run.content_key(f"solve_{n}") for n in run.outputs["solve"]},
+        {e.name: spec.dataset_spec_for(e).key()
+         for e in spec.training_environments() + spec.held_out_environments()},
+        spec.ensemble, spec.scenario.camera,
+        {"format": DATASET_FORMAT, "code": modules_source_digest(
+            *DATASET_CODE, "reachwatch.pipeline.dataset_stages")})
 
 
 def stage_dataset(run: Run) -> dict:

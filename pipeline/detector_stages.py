@@ -10,7 +10,7 @@ import numpy as np
 from reachwatch.diagrams import load_detector
 from reachwatch.reach.fingerprint import modules_source_digest
 from reachwatch.systems.checks import device_kind
-from reachwatch.systems.files import atomic_write_bytes
+from reachwatch.systems.files import atomic_write_bytes, file_hash
 from reachwatch.training.baselines import estimate_error_of
 from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH, label_source, labels_name
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
@@ -24,6 +24,22 @@ from reachwatch.training.metrics import best_threshold
 
 from .spec import digest
 from .stages import Run
+
+
+#: The source a trained detector's weights and operating threshold come from: its
+#: network, its training loop and the threshold rules. In its checkpoint's name
+#: (`detector_weights`), so that a training edited since is trained again, not read
+#: back from the old file.
+WEIGHTS_CODE = ("reachwatch.systems.detector", "reachwatch.training.detector_train",
+                "reachwatch.training.metrics")
+
+#: The source in the train and evaluate stages' keys: `WEIGHTS_CODE`, this module, and
+#: every module of training/ they import (a test walks the imports), so that an edit
+#: there trains and scores again instead of reporting the old figures.
+DETECTOR_CODE = WEIGHTS_CODE + ("reachwatch.pipeline.detector_stages",
+                                "reachwatch.training.baselines",
+                                "reachwatch.training.evaluation", "reachwatch.training.figures",
+                                "reachwatch.training.labels")
 
 
 def controller_name(scenario) -> str:
@@ -49,11 +65,38 @@ def estimate_error(run: Run):
 def detector_weights(config) -> dict:
     """What a detector's trained weights depend on, which names its checkpoint file: its
     training settings, not how its threshold is chosen (that changes neither the weights
-    nor the file), and the kind of device that trains it ("" resolved: CUDA when
-    present; another kind trains other weights)."""
+    nor the file); the content of its pretrained weights, not only their path (a file
+    replaced in place trains again); the kind of device that trains it ("" resolved:
+    CUDA when present; another kind trains other weights); and its code
+    (`WEIGHTS_CODE`)."""
     weights = {k: v for k, v in dc.asdict(config).items() if k not in THRESHOLD_CHOICE}
     weights["device"] = device_kind(config.device)
+    if config.pretrained_path:
+        weights["pretrained_content"] = file_hash(config.pretrained_path)
+    weights["code"] = modules_source_digest(*WEIGHTS_CODE)
     return weights
+
+
+def train_key(run: Run) -> str:
+    """The train stage's key: the datasets' content, which of them it trains on (their
+    environments' names: the same datasets with the roles swapped train another
+    detector), the weights' inputs (`detector_weights`), the threshold's settings, and
+    `DETECTOR_CODE`."""
+    spec = run.spec
+    return digest(run.content_key("dataset"), spec.detector, detector_weights(spec.detector),
+                  [e.name for e in spec.training_environments()],
+                  {"code": modules_source_digest(*DETECTOR_CODE)})
+
+
+def evaluate_key(run: Run) -> str:
+    """The evaluate stage's key: what it scores (the trained detectors, the datasets,
+    each held-out environment's BRT by content), the slice its figures draw, the
+    scoring device's kind, and `DETECTOR_CODE`."""
+    spec = run.spec
+    return digest(run.content_key("train"), run.content_key("dataset"), spec.slice_py,
+                  device_kind(spec.detector.device),
+                  {e.name: run.content_key(f"solve_{e.name}") for e in spec.held_out_environments()},
+                  {"code": modules_source_digest(*DETECTOR_CODE)})
 
 
 def stage_train(run: Run) -> dict:

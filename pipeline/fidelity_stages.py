@@ -13,7 +13,8 @@ import numpy as np
 
 from reachwatch.reach import compare_verdicts, min_target_along_rollouts
 from reachwatch.reach.application import load_application
-from reachwatch.training.dataset import load_dataset
+from reachwatch.reach.fingerprint import modules_source_digest
+from reachwatch.training.dataset import DATASET_CODE, load_dataset
 from reachwatch.training.labels import SOURCE_PATH, label_verdicts
 
 from .spec import RunSpec, digest
@@ -145,14 +146,21 @@ def check_path_labels(run: Run, env, count: int) -> dict:
             "frames": int(np.sum(outcomes["ticks"]))}
 
 
+#: The source in a fidelity record's key: this module and the dataset code it reads
+#: labels with (a test walks its imports of training/).
+FIDELITY_CODE = ("reachwatch.pipeline.fidelity_stages", *DATASET_CODE)
+
+
 def fidelity_stage_key(run: Run, solve: dict, folder) -> str:
     """The key of an environment's fidelity record: the content of what it checks, its
     solve record's (key, and the hash of every file it names: the value function and
     table) and its dataset's arrays (the ``.npy`` files of ``folder``, None without a
-    dataset; its manifest names the run directory), and the check's settings. A BRT or
-    dataset made again with other bytes is checked again."""
+    dataset; its manifest names the run directory), the check's settings, and
+    `FIDELITY_CODE`. A BRT or dataset made again with other bytes is checked again.
+    (The real-loop runs it compares with are cached under the loop's own key.)"""
     arrays = folder and {k: v for k, v in run.output_files(folder).items() if k.endswith(".npy")}
-    return digest(solve["key"], solve["files"], run.spec.fidelity.key(), folder, arrays)
+    return digest(solve["key"], solve["files"], run.spec.fidelity.key(), folder, arrays,
+                  {"code": modules_source_digest(*FIDELITY_CODE)})
 
 
 def stage_fidelity(run: Run) -> dict:

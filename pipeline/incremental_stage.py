@@ -10,6 +10,7 @@ from pathlib import Path
 from reachwatch.diagrams import file_hash
 from reachwatch.reach import ValueFunction
 from reachwatch.reach.application import Application, application_key
+from reachwatch.reach.fingerprint import loop_code_digest, modules_source_digest
 from reachwatch.systems.files import atomic_write_bytes
 
 from .brt_stages import solve_env, sweep_env
@@ -28,7 +29,10 @@ def incremental(run: Run) -> dict:
     progress = run.bar()
     base = application.resolved(run.scenario_for(env)).controller.checkpoint
     own = application_key(application)          # None for the default (the taxi)
+    # the training environments' names: the datasets it fine-tunes on; the loop's code:
+    # the default application's fine-tuning lives there (another's is in ``own``)
     name = digest(config, run.outputs["dataset"], file_hash(base) if base else "",
+                  [e.name for e in spec.training_environments()], loop_code_digest(),
                   *([own] if own is not None else []))
     path = run.path(f"incremental/{application.fine_tuned_name}_{name}.pt")
     seconds = None
@@ -87,6 +91,11 @@ def incremental(run: Run) -> dict:
     return result
 
 
+#: The source in the incremental record's key: this module and the stages it calls.
+INCREMENTAL_CODE = ("reachwatch.pipeline.incremental_stage", "reachwatch.pipeline.brt_stages",
+                    "reachwatch.pipeline.online_stages")
+
+
 def stage_incremental(run: Run) -> dict:
     config = run.spec.incremental
     if not config.enabled:
@@ -94,5 +103,7 @@ def stage_incremental(run: Run) -> dict:
     own = application_key(run.application)         # None for the default (the taxi)
     key = digest(config, run.content_key("dataset"),
                  run.content_key(f"solve_{config.environment.name}"),
+                 [e.name for e in run.spec.training_environments()],
+                 {"code": modules_source_digest(*INCREMENTAL_CODE)},
                  *([own] if own is not None else []))
     return run.stage("incremental", key, lambda: incremental(run))

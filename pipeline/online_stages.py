@@ -13,6 +13,7 @@ from scipy.ndimage import uniform_filter
 
 from reachwatch.diagrams import check_per_state_monitor, paired_rates
 from reachwatch.reach.application import application_key, load_application
+from reachwatch.reach.fingerprint import modules_source_digest
 from reachwatch.reach.guard import perfect_detector_scores, plot_tradeoff, tradeoff_row
 from reachwatch.reach.liveness import UNGUARDED, liveness_figures
 from reachwatch.reach.score_noise import ScoreNoise
@@ -341,6 +342,11 @@ def guard_environment(run: Run, env) -> dict:
 GUARD_FORMAT = 3
 
 
+#: The source in a guard record's key: this module (the guard's rollouts and figures
+#: in reach/ are loop code, in its BRT's key already).
+GUARD_CODE = ("reachwatch.pipeline.online_stages",)
+
+
 def stage_guard(run: Run) -> dict:
     out = {}
     if not run.application.rolls_out_fallbacks(run.application.resolved(run.spec.scenario)):
@@ -355,7 +361,8 @@ def stage_guard(run: Run) -> dict:
         # content keys: a detector or BRT rebuilt with other bytes guards again
         key = digest(run.content_key("train"), run.content_key(f"solve_{env.name}"),
                      run.spec.guard, run.spec.scenario.monitor, run.spec.horizon,
-                     {"guard_format": GUARD_FORMAT}, *([own] if own is not None else []))
+                     {"guard_format": GUARD_FORMAT, "code": modules_source_digest(*GUARD_CODE)},
+                     *([own] if own is not None else []))
         out[env.name] = run.stage(f"guard_{env.name}", key,
                                   lambda env=env: guard_environment(run, env))
     return out

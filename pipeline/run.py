@@ -8,9 +8,7 @@ and resumes its chunked work when it was killed."""
 
 from reachwatch.reach.application import load_application
 from reachwatch.reach.fingerprint import LIBRARY, modules_source_digest
-from reachwatch.systems.checks import device_kind, short
-from reachwatch.training.dataset import DATASET_CODE
-from reachwatch.training.dataset import FORMAT as DATASET_FORMAT
+from reachwatch.systems.checks import short
 
 from .checked_page import write_checked_page
 from .console import log
@@ -20,9 +18,9 @@ from .online_stages import stage_guard
 from .report import write_report
 from .spec import RunSpec, digest
 from .brt_stages import stage_solve, stage_sweep
-from .dataset_stages import stage_dataset
+from .dataset_stages import dataset_key, stage_dataset
 from .monitor_study import stage_monitor
-from .detector_stages import baseline_code, stage_evaluate, stage_train
+from .detector_stages import evaluate_key, stage_evaluate, stage_train, train_key
 from .stages import Run
 
 STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "monitor",
@@ -62,28 +60,12 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     steps = {
         "sweep": lambda: stage_sweep(run),
         "solve": lambda: stage_solve(run),
-        "dataset": lambda: run.stage("dataset", digest(
-            {n: r["value"] for n, r in run.outputs["solve"].items()},
-            {n: run.content_key(f"solve_{n}") for n in run.outputs["solve"]}, spec.dataset.key(),
-            spec.ensemble, spec.scenario.camera,
-            {"format": DATASET_FORMAT, "code": modules_source_digest(
-                *DATASET_CODE, "reachwatch.pipeline.dataset_stages")},
-            # only when set, so that runs without it keep their keys
-            *([spec.held_out_labels.key()] if spec.held_out_labels is not None else [])),
-            lambda: stage_dataset(run)),
+        "dataset": lambda: run.stage("dataset", dataset_key(run), lambda: stage_dataset(run)),
         "fidelity": lambda: stage_fidelity(run),
         # the device that trains and scores (CUDA where present, unless told): another
         # device trains other weights and scores in other last digits
-        "train": lambda: run.stage("train", digest(run.content_key("dataset"), spec.detector,
-                                                   device_kind(spec.detector.device),
-                                                   {"baselines": baseline_code()}),
-                                   lambda: stage_train(run)),
-        "evaluate": lambda: run.stage("evaluate", digest(
-            run.content_key("train"), run.content_key("dataset"), spec.slice_py,
-            device_kind(spec.detector.device),
-            {e.name: run.content_key(f"solve_{e.name}") for e in spec.held_out_environments()},
-            {"baselines": baseline_code()}),
-            lambda: stage_evaluate(run)),
+        "train": lambda: run.stage("train", train_key(run), lambda: stage_train(run)),
+        "evaluate": lambda: run.stage("evaluate", evaluate_key(run), lambda: stage_evaluate(run)),
         "guard": lambda: stage_guard(run),
         "monitor": lambda: stage_monitor(run),
         "incremental": lambda: stage_incremental(run),

@@ -154,3 +154,53 @@ def test_the_monitor_study_key_covers_the_training_code_it_imports():
     missing = sorted(seen - code - set(OUTSIDE_STUDY_KEY))
     assert not missing, f"add to pipeline.monitor_study.STUDY_CODE: {missing}"
     assert set(OUTSIDE_STUDY_KEY) <= seen, "OUTSIDE_STUDY_KEY names a module no longer used"
+
+
+def _walked(code) -> set:
+    """The modules of training/ and the pipeline's stage modules (``*_stage``,
+    ``*_stages``) that the modules ``code`` import, directly or through each other."""
+    seen, todo = set(), sorted(code)
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        package, module = name.split(".")
+        for _, to, what in imports(package, ROOT / package / f"{module}.py"):
+            if what and (to == "training" or (to == "pipeline" and what.endswith(
+                    ("_stage", "_stages")))):
+                todo.append(f"{to}.{what}")
+    return seen
+
+
+def _stage_codes():
+    from reachwatch.pipeline.brt_stages import SOLVE_CODE
+    from reachwatch.pipeline.detector_stages import DETECTOR_CODE, WEIGHTS_CODE
+    from reachwatch.pipeline.fidelity_stages import FIDELITY_CODE
+    from reachwatch.pipeline.incremental_stage import INCREMENTAL_CODE
+    from reachwatch.pipeline.online_stages import GUARD_CODE
+    return {"SOLVE_CODE": SOLVE_CODE, "DETECTOR_CODE": DETECTOR_CODE,
+            "WEIGHTS_CODE": WEIGHTS_CODE, "FIDELITY_CODE": FIDELITY_CODE,
+            "INCREMENTAL_CODE": INCREMENTAL_CODE, "GUARD_CODE": GUARD_CODE}
+
+
+def test_every_stage_key_covers_the_training_and_stage_code_it_imports():
+    """Each stage's code tuple (the source in its key) names every module of training/
+    and every stage module of the pipeline that its modules import, directly or through
+    each other, so that an edit there runs the stage again instead of keeping figures
+    of the old code. reach/, systems/ and diagrams/ are not walked: they are loop code,
+    in every BRT's key."""
+    missing = {name: sorted(_walked({m.removeprefix("reachwatch.") for m in code})
+                            - {m.removeprefix("reachwatch.") for m in code})
+               for name, code in _stage_codes().items()}
+    assert not any(missing.values()), f"add to the stage's code tuple: {missing}"
+
+
+def test_the_stage_walk_finds_what_a_tuple_misses():
+    """The walk itself: `pipeline.detector_stages` alone reaches the training modules
+    `DETECTOR_CODE` lists beside it, and the incremental stage reaches the stages it
+    calls."""
+    assert {"training.detector_train", "training.metrics", "training.evaluation"} <= \
+        _walked({"pipeline.detector_stages"})
+    assert {"pipeline.brt_stages", "pipeline.online_stages"} <= \
+        _walked({"pipeline.incremental_stage"})
