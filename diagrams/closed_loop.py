@@ -280,8 +280,13 @@ class LoopRun:
 
     def advance(self) -> bool:
         """Steps to the next tick; False (and `done`) when the run has ended: every tick
-        logged, stopped after the last sample, or stopped between ticks (failure)."""
+        logged, stopped after the last sample, or stopped between ticks (failure). After
+        the last tick, a duration that is not a whole number of periods is simulated to
+        its end (no tick falls there, so nothing is sampled), so that a failure in that
+        last part of a period counts, as it does in the BRT and the table rollouts."""
         if self.done or self.tick >= len(self.times):
+            if not self.done and self.times[-1] < self.duration - 1e-9 * max(1.0, self.duration):
+                self.simulator.AdvanceTo(self.duration)
             self.done = True
             return False
         t = self.times[self.tick]

@@ -1,0 +1,92 @@
+"""Control periods that do not divide the horizon or the rollouts' step: the real loop
+simulates the last part of a period (a failure there counts, as in the BRT), and the
+table rollouts take any period (1/30 s, 0.025 s)."""
+
+import numpy as np
+import pytest
+import torch
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import ConstantVectorSource
+
+from reachwatch.diagrams import simulate
+from reachwatch.diagrams.closed_loop import export_loop_ports
+from reachwatch.reach import Dynamics, Grid, min_target_along_rollouts
+from reachwatch.reach.rollouts import rollout_steps
+
+
+class _Drift(LeafSystem):
+    """p' = u, its state exported."""
+
+    def __init__(self):
+        super().__init__()
+        self.DeclareContinuousState(1)
+        self._u = self.DeclareVectorInputPort("u", 1)
+        self.DeclareVectorOutputPort("state", 1, lambda context, out: out.SetFromVector(
+            context.get_continuous_state_vector().CopyToVector()))
+
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        derivatives.get_mutable_vector().SetFromVector(self._u.Eval(context))
+
+
+def _drift_loop(speed):
+    builder = DiagramBuilder()
+    plant = builder.AddNamedSystem("plant", _Drift())
+    source = builder.AddNamedSystem("controller", ConstantVectorSource([speed]))
+    builder.Connect(source.get_output_port(), plant.get_input_port(0))
+    export_loop_ports(builder, state=plant.GetOutputPort("state"))
+    return builder.Build()
+
+
+def test_a_failure_after_the_last_tick_counts():
+    """Period 0.3 s over 1 s: ticks at 0, 0.3, 0.6 and 0.9 s; the loop crosses 0.95 at
+    0.95 s, after the last tick, and the run fails then (at the integrator's step that
+    finds it)."""
+    run = simulate(_drift_loop(1.0), initial_state=[0.0], duration=1.0, period=0.3,
+                   failed=lambda x: np.asarray(x)[:, 0] >= 0.95)
+    assert np.allclose(run.time, [0.0, 0.3, 0.6, 0.9])
+    assert run.failed and 0.9 < run.failure_time <= 1.0
+    safe = simulate(_drift_loop(1.0), initial_state=[0.0], duration=1.0, period=0.3,
+                    failed=lambda x: np.asarray(x)[:, 0] >= 1.5)
+    assert not safe.failed and np.allclose(safe.time, [0.0, 0.3, 0.6, 0.9])
+
+
+@pytest.mark.parametrize("horizon, hold, samples", [
+    (1.0, 0.025, 40), (1.0, 1 / 30, 30), (1.0, 0.3, 4), (1.0, 0.07, 15), (0.505, None, 0)])
+def test_rollout_steps_cover_the_horizon_and_sample_on_ticks(horizon, hold, samples):
+    steps = rollout_steps(horizon, 0.01, hold)
+    sizes = np.array([size for size, _ in steps])
+    starts = np.concatenate([[0.0], np.cumsum(sizes)[:-1]])
+    sampled = starts[[sample for _, sample in steps]]
+    assert sizes.sum() == pytest.approx(horizon, abs=1e-12) and sizes.max() <= 0.01 + 1e-12
+    assert len(sampled) == samples
+    if hold is not None:
+        assert np.allclose(sampled, np.arange(samples) * hold, atol=1e-9)
+
+
+def test_rollout_steps_of_dt_where_the_period_allows():
+    """Where the horizon and the period are whole numbers of ``dt`` the steps are ``dt``
+    itself, as they always were (the same figures, bit for bit)."""
+    assert rollout_steps(8.0, 0.01, 0.05) == [(0.01, k % 5 == 0) for k in range(800)]
+    assert rollout_steps(2.0, 0.01) == [(0.01, False)] * 200
+
+
+class _Falling(Dynamics):
+    """p' = v, v' = u; target 1 - |p|."""
+    state_dim, control_dim = 2, 1
+
+    def vector_field(self, x, u):
+        return torch.stack([x[..., 1], u[..., 0]], dim=-1)
+
+    def target(self, x):
+        return 1.0 - x[..., 0].abs()
+
+
+def test_table_rollouts_take_a_period_that_is_no_multiple_of_their_step():
+    """A constant control of 1 from rest: p(t) = t^2 / 2, which RK4 integrates exactly,
+    so the lowest target over 1 s is 0.5 whatever the period."""
+    grid = Grid(lo=[-2.0, -2.0], hi=[2.0, 2.0], shape=[5, 5], names=("p", "v"))
+    table = np.ones(grid.shape)
+    for hold in (1 / 30, 0.025, None):
+        lowest = min_target_along_rollouts(grid, _Falling(), table, [[0.0, 0.0]], horizon=1.0,
+                                           hold=hold)
+        assert lowest[0] == pytest.approx(0.5, abs=1e-12)
