@@ -20,7 +20,7 @@ from .spec import RunSpec, digest
 from .brt_stages import stage_solve, stage_sweep
 from .dataset_stages import dataset_key, stage_dataset
 from .monitor_study import stage_monitor
-from .detector_stages import evaluate_key, stage_evaluate, stage_train, train_key
+from .detector_stages import controller_name, evaluate_key, stage_evaluate, stage_train, train_key
 from .stages import Run
 
 STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "monitor",
@@ -51,7 +51,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
         check_slice(spec, only, until)
     if STAGES.index(until) >= STAGES.index("fidelity"):
         check_downtrack_room(spec)
-    check_controller_builds(spec)
+    check_controller_builds(spec, log=log)
     run = Run(spec, out, executor=executor, progress=progress, log=log, sweep_cache=sweep_cache,
               only=only)
     if only is not None:
@@ -94,14 +94,40 @@ def report_key(run) -> str:
                   modules_source_digest(*LIBRARY))
 
 
-def check_controller_builds(spec: RunSpec):
+def check_controller_builds(spec: RunSpec, log=log.info):
     """Build a user's controller (``scenario.controller.factory``) once before anything is
     written, so that a parameter its factory does not take (or lacks) is said in one line
     before the run directory or a sweep changes, not inside the first sweep."""
     controller = spec.scenario.controller
     if controller.factory:
         from reachwatch.diagrams import make_controller
-        make_controller(load_application(spec.application).resolved(spec.scenario).controller)
+        built = make_controller(load_application(spec.application).resolved(spec.scenario).controller)
+        fit_guard_to_controller(spec, built, log)
+
+
+def fit_guard_to_controller(spec: RunSpec, controller, log=log.info) -> None:
+    """A controller without an ``estimate`` output cannot be dead-reckoned from: the
+    default ``guard.strategies`` then lose the fallbacks that steer by dead reckoning
+    (said in one line), and strategies the run file names that do are refused in one
+    line naming them, before anything is swept (not after the guarded sweep)."""
+    from reachwatch.diagrams.controller import has_estimate
+    from reachwatch.systems import DEFAULT_FALLBACKS, Fallback
+    if has_estimate(controller) or not spec.guard_environments():
+        return
+    needing = [i for i, name in enumerate(spec.guard.strategies)
+               if Fallback.parse(name).steering == "dead_reckoning"]
+    if not needing:
+        return
+    if spec.guard.strategies == [Fallback.parse(name).name for name in DEFAULT_FALLBACKS]:
+        left_out = [spec.guard.strategies[i] for i in needing]
+        spec.guard.strategies = [n for i, n in enumerate(spec.guard.strategies) if i not in needing]
+        log(f"guard.strategies: the default without {', '.join(left_out)}: the controller "
+            f"has no estimate output to dead-reckon from")
+        return
+    i = needing[0]
+    raise ValueError(f"guard.strategies[{i}]: '{spec.guard.strategies[i]}' dead-reckons from "
+                     f"the controller's estimate, and the controller "
+                     f"'{controller_name(spec.scenario)}' has no estimate output; leave it out")
 
 
 def check_slice(spec: RunSpec, only, until: str):
