@@ -392,8 +392,12 @@ class Application(abc.ABC):
     def plot_slices(self, value_functions, *, scenario, at, path, title="", points=None):
         """One panel per (label, `ValueFunction`) of a 2-D slice of the state space
         through ``at`` (the run file's ``slice_py`` for the taxi); ``points``: optional
-        (label, states, matplotlib style) overlays. Returns the figure's path."""
-        raise ValueError(f"the application '{self.name}' draws no state slices")
+        (label, states, matplotlib style) overlays. Returns the figure's path. The
+        default (`reach.slices.plot_value_slices`) draws the grid's first two axes, the
+        others at the box's centre, and does not read ``at``: define it for a slice of
+        your own."""
+        from .slices import plot_value_slices
+        return plot_value_slices(value_functions, path=path, title=title, points=points)
 
     def plot_failure_sets(self, failures, grid, horizon, *, scenario, at, path, title=""):
         """`plot_slices` of failure sets (``{label: bool per grid node}``)."""
