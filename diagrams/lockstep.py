@@ -17,8 +17,9 @@ A system's batch entry point is a method ``prepare_batch(pairs)``. ``pairs`` lis
 the loop, with its Context there. It computes the outputs those Contexts will be asked
 for, so that each run's own evaluation returns them instead of computing again
 (`reachwatch.systems.TaxiNet` has one); it must return exactly what one run at a time
-computes. A system without one computes one run at a time when its ports are
-evaluated. Every run's `Trajectory` equals the one `simulate` returns from the same
+computes. When the runs end (or fail), it is called once more with every Context None:
+drop what was prepared, compute nothing. A system without one computes one run at a
+time when its ports are evaluated. Every run's `Trajectory` equals the one `simulate` returns from the same
 start."""
 
 from typing import Callable, Optional, Sequence
