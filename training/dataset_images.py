@@ -19,12 +19,23 @@ from reachwatch.systems import resize_for_detector
 def estimator(controller):
     """A function ``(N, H, W, 3) images -> (N, k)`` estimates of ``controller`` (one batch
     when it offers ``estimate(images)``, as TaxiNet's does; else image by image through
-    its ``estimate`` port), and k."""
+    its ``estimate`` port), and k. A batch of another shape is refused in one line: a
+    method ``estimate`` that takes one image would else be broadcast into every row."""
     size = estimate_size(controller)
     if not size:
         return (lambda images: np.zeros((len(images), 0))), 0
     if callable(getattr(controller, "estimate", None)):
-        return controller.estimate, size
+        batch = controller.estimate
+
+        def checked(images):
+            out = np.asarray(batch(images))
+            if out.shape != (len(images), size):
+                raise ValueError(f"the controller's estimate(images) returned shape "
+                                 f"{out.shape} for {len(images)} images: a batch estimate "
+                                 f"returns ({len(images)}, {size}), one row per image of "
+                                 f"its estimate port's size")
+            return out
+        return checked, size
     probe = ControllerProbe(controller)
     return (lambda images: np.stack([probe.outputs(image)[1] for image in images])), size
 
