@@ -6,6 +6,7 @@ import math
 from typing import List, Optional
 
 from reachwatch.diagrams import MonitorConfig
+from reachwatch.reach.application import NoRandomEnvironments
 from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW
 from reachwatch.diagrams.schemas import (ApplicationEnvironment, ApplicationRandomEnvironments,
                                          slot_field)
@@ -291,6 +292,11 @@ class MonitorStudySpec:
             raise ValueError(f"{where}.calibrate: {self.calibrate} environments cannot bound the "
                              f"miss rate at alpha {self.alpha:g} (the bound is at least "
                              f"1/(calibrate+1)); use at least {math.ceil(1 / self.alpha - 1)}")
+        if self.enabled and isinstance(self.family, NoRandomEnvironments):
+            raise ValueError(f"{where}: the study trains, calibrates and judges on "
+                             f"environments drawn from the application's random family, and "
+                             f"this application draws none (give it a "
+                             f"random_environments_type to run the study)")
         self.family.validate(f"{where}.family")
         count = self.train + self.calibrate + self.held_out
         if self.family.count not in (0, count):

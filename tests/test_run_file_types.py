@@ -115,6 +115,9 @@ def test_a_run_files_environments_are_the_applications_type(lab):
     ("train: [{name: a, brightness: 2.0}]", r"train\[0\]: brightness must be in \[0, 1\], got 2.0"),
     ("train_random: {count: 2}", r"train_random.count: this application draws no random "
                                  r"environments; list its environments instead"),
+    ("monitor: {kind: history}", r"monitor: the study trains, calibrates and judges on "
+                                 r"environments drawn from the application's random family, "
+                                 r"and this application draws none"),
     ("test: [{name: bright, brightness: 0.1}]", r"train\[0\] and test\[0\] are both named "
                                                 r"'bright' but differ; give one of them "
                                                 r"another name"),
