@@ -246,6 +246,11 @@ class RunSpec:
                 raise ValueError(f"incremental.environment {short(name)} is a training "
                                  f"environment; the fine-tuned controller is judged on a "
                                  f"held-out one: name another")
+        targets = self.monitor.state_targets
+        if self.monitor.enabled and targets and max(targets) >= len(application.axes):
+            raise ValueError(f"monitor.state_targets: {max(targets)} is no axis of the state, "
+                             f"which has {len(application.axes)} "
+                             f"({', '.join(application.axes)})")
         if self.monitor.enabled and self.monitor.compare_detector:
             seen = sorted({e.name for role, envs in self.monitor.environments().items()
                            if role != "train" for e in envs

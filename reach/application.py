@@ -748,12 +748,14 @@ _LOADED = {}
 
 
 def _check_axes(application: Application, spec: str):
-    """A ValueError in one line when the application's `open_axes` or `heading_axis`
-    names an axis its state does not have (the runs would fail in a worker, late)."""
+    """A ValueError in one line when the application's `open_axes`, `heading_axis` or
+    `estimated_state` names an axis its state does not have (the runs would fail in a
+    worker, or a monitor's training after its runs, late)."""
     n = len(application.axes)
     named = {"open_axes": tuple(application.open_axes),
              "heading_axis": () if application.heading_axis is None
-             else (application.heading_axis,)}
+             else (application.heading_axis,),
+             "estimated_state": tuple(application.estimated_state)}
     for what, indices in named.items():
         for i in indices:
             if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= i < n:

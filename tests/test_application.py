@@ -52,6 +52,10 @@ class OpenPast(Rebuilt):
     open_axes = (1, 3)
 
 
+class EstimatesPast(Rebuilt):
+    estimated_state = (0, 3)
+
+
 def not_one():
     return 42
 """
@@ -174,6 +178,7 @@ def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tm
     ("nowhere.py:Rebuilt", "application: file not found: nowhere.py"),
     (":TwoAxes", r"heading_axis names axis 2, but its state has 2 \(px, theta\)$"),
     (":OpenPast", r"open_axes names axis 3, but its state has 3 \(px, py, theta\)$"),
+    (":EstimatesPast", r"estimated_state names axis 3, but its state has 3 \(px, py, theta\)$"),
 ])
 def test_a_bad_application_is_one_line_naming_the_key(tmp_path, name, why):
     path = _user_app(tmp_path)
@@ -181,6 +186,17 @@ def test_a_bad_application_is_one_line_naming_the_key(tmp_path, name, why):
     with pytest.raises(ValueError, match=why) as error:
         load_run_spec(data=RUN + f"application: '{spec}'\n")
     assert "\n" not in str(error.value)
+
+
+def test_monitor_state_targets_name_axes_of_the_state(tmp_path):
+    """``monitor.state_targets`` past the state's axes is refused when the run file
+    loads, not in the monitor's training after its runs are recorded."""
+    spec = f"{_user_app(tmp_path)}:Rebuilt"
+    monitor = "monitor: {kind: history, state_targets: [%s]}\n"
+    with pytest.raises(ValueError, match=r"monitor.state_targets: 3 is no axis of the state, "
+                                         r"which has 3 \(px, py, theta\)$"):
+        load_run_spec(data=RUN + f"application: '{spec}'\n" + monitor % "0, 3")
+    load_run_spec(data=RUN + f"application: '{spec}'\n" + monitor % "0, 2")
 
 
 def test_the_generic_sweep_of_a_user_application_is_the_taxis_table(tmp_path):
