@@ -192,7 +192,8 @@ def check_box_exits(results: dict, max_box_exits: float):
                and r["brt"]["box_exits_rate"] > max_box_exits}
     if crowded:
         raise BoxExitError(
-            "the real loop leaves the solved box (py or theta) within the horizon in " +
+            "the real loop leaves the solved box (along an open axis of the state) within "
+            "the horizon in " +
             ", ".join(f"{n}: {100 * r:.0f} % of runs" for n, r in crowded.items()) +
             f" (fidelity.max_box_exits {100 * max_box_exits:.0f} %): there the swept "
             f"table is clamped to its edge and BRT labels are guesses. Label with "
