@@ -152,16 +152,32 @@ class _UserCode:
     def __init__(self, folder: Path, digest: str):
         self.folder, self.digest, self.modules = folder, digest, {}
         self.reads = FolderReads(folder)
+        # the top-level names its folder's files and packages take, next to a script
+        self.provides = {p.stem for p in folder.glob("*.py")} | {
+            p.parent.name for p in folder.glob("*/__init__.py")}
+
+    def _elsewhere(self, module) -> bool:
+        """Whether ``module`` was loaded from outside this folder."""
+        file = getattr(module, "__file__", None)
+        return not file or not Path(file).resolve().is_relative_to(self.folder)
 
     @contextlib.contextmanager
     def importable(self):
+        """Its folder's modules importable, as next to a script: a module of the same
+        name that another factory's folder shows meanwhile (an application's
+        ``utils.py`` while the controller's own ``utils.py`` is imported) is hidden until
+        the block ends, so each folder's code imports its own."""
         with _LOCK:
             finder = _FolderFinder(self.folder)
+            hidden = {n: m for n, m in list(sys.modules.items())
+                      if n.partition(".")[0] in self.provides and self._elsewhere(m)}
+            for name in hidden:
+                del sys.modules[name]
             shown = {n: m for n, m in self.modules.items() if n not in sys.modules}
             sys.modules.update(shown)
-            meta = sys.meta_path
-            meta.insert(meta.index(importlib.machinery.PathFinder)
-                        if importlib.machinery.PathFinder in meta else len(meta), finder)
+            meta = sys.meta_path         # before the path and any other folder's finder
+            meta.insert(next((i for i, f in enumerate(meta) if isinstance(f, _FolderFinder)
+                              or f is importlib.machinery.PathFinder), len(meta)), finder)
             try:
                 with self.reads.recording():
                     yield
@@ -170,6 +186,7 @@ class _UserCode:
                 for name in finder.found | set(shown):
                     if name in sys.modules:
                         self.modules[name] = sys.modules.pop(name)
+                sys.modules.update(hidden)
 
 
 _USER_CODE = {}     # module name of a loaded factory file -> its _UserCode

@@ -57,6 +57,26 @@ def test_two_folders_with_the_same_helper_name_keep_their_own(tmp_path):
     assert _steering(make_controller(ControllerConfig(factory=two))) == 2.0
 
 
+def test_a_controller_built_inside_another_folders_code_imports_its_own_helper(tmp_path):
+    """An application's folder and a controller's each have a ``lane_vision.py``: the
+    controller, first loaded while the application's code is importable (as a sweep
+    worker builds the loop), imports its own, and the application's is shown again
+    after."""
+    from reachwatch.diagrams import user_code
+    app = tmp_path / "app"
+    app.mkdir()
+    (app / "lane_vision.py").write_text("OFFSET = -5.0\n")
+    (app / "application.py").write_text("import lane_vision\n\ndef make():\n"
+                                        "    return lane_vision.OFFSET\n")
+    module, make = user_code.resolve(f"{app / 'application.py'}:make", "application")
+    factory = _controller(tmp_path / "ctrl", "0.5")
+    with user_code.importable(module):
+        assert make() == -5.0
+        assert _steering(make_controller(ControllerConfig(factory=factory))) == 0.5
+        import lane_vision
+        assert lane_vision.OFFSET == -5.0
+
+
 def test_the_fingerprint_covers_the_helper_and_nothing_outside_the_folder(tmp_path):
     (tmp_path / "unrelated.py").write_text("X = 1\n")
     factory = _controller(tmp_path)
