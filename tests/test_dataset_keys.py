@@ -76,3 +76,18 @@ def test_a_datasets_states_draw_from_streams_no_environment_or_study_start_uses(
     ours = {state([0, *PATHS_STREAM]), state([0, *STATES_STREAM])}
     assert len(others) == 2 * MAX_COUNT and len(ours) == 2 and not ours & others
     assert {state([0, 1]), state(0)} <= others      # the streams of before: environments 1, 0
+
+
+def test_real_loop_labels_key_the_brts_horizon_and_grid(tmp_path, value_function):
+    """A converged BRT solved for a longer horizon can hold the same values; labels the
+    real loop gives, run for that horizon, are other labels: another folder. BRT labels
+    read the values alone and keep theirs."""
+    from reachwatch.training.labels import LabelSpec
+    longer = ValueFunction(value_function.grid, value_function.values, 4.0, "test")
+    scenario = load_scenario(data="")
+    for source in ("rollout", "hybrid"):
+        spec = DatasetSpec(labels=LabelSpec(source))
+        assert dataset_folder(tmp_path, scenario, value_function, spec) != \
+            dataset_folder(tmp_path, scenario, longer, spec)
+    assert dataset_folder(tmp_path, scenario, value_function, DatasetSpec()) == \
+        dataset_folder(tmp_path, scenario, longer, DatasetSpec())

@@ -137,6 +137,11 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
         parts["application"] = application.key()
     if spec.labels.reads_along:
         parts["runs"] = 1       # runs.npy, which datasets of read-along states before it lacked
+    if spec.labels.source != "brt" or spec.labels.paths:
+        # real-loop labels run for the BRT's horizon over its grid: a longer horizon whose
+        # converged values are the same bits labels otherwise (BRT labels read the values)
+        parts["real_loop"] = {"horizon": float(value_function.horizon),
+                              "grid": value_function.grid.key()}
     digest = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
     return Path(root) / f"{scenario.environment.name}_{spec.samples}_{digest}"
 
