@@ -15,13 +15,15 @@ import importlib.metadata
 import importlib.util
 import inspect
 import json
+import multiprocessing
 import os
 import sys
 import threading
+import warnings
 from pathlib import Path
 
 from reachwatch.systems.checks import clip, is_file
-from reachwatch.systems.files import check_keyed, local_copy, remember_keyed
+from reachwatch.systems.files import check_keyed, file_hash, local_copy, remember_keyed
 
 from .data_reads import FolderReads, warn_unkeyed
 from .user_errors import factory_failure, is_installed
@@ -155,6 +157,20 @@ class _UserCode:
         # the top-level names its folder's files and packages take, next to a script
         self.provides = {p.stem for p in folder.glob("*.py")} | {
             p.parent.name for p in folder.glob("*/__init__.py")}
+        # modules its code imported from a user's source tree outside the folder (through
+        # sys.path: the working directory, PYTHONPATH): {name: file}
+        self.outside, self.keyed_outside = {}, {}
+
+    def _note_outside(self, names):
+        """Records which of the modules ``names`` (new while its code ran) came from a
+        user's source outside its folder: not reachwatch, not a factory file, not
+        installed."""
+        for name in names:
+            file = getattr(sys.modules.get(name), "__file__", None)
+            if (file and name.partition(".")[0] != "reachwatch"
+                    and not name.startswith("reachwatch_user_") and self._elsewhere(
+                        sys.modules[name]) and not is_installed(file)):
+                self.outside[name] = str(Path(file).resolve())
 
     def _elsewhere(self, module) -> bool:
         """Whether ``module`` was loaded from outside this folder."""
@@ -169,6 +185,7 @@ class _UserCode:
         the block ends, so each folder's code imports its own."""
         with _LOCK:
             finder = _FolderFinder(self.folder)
+            before = set(sys.modules)
             hidden = {n: m for n, m in list(sys.modules.items())
                       if n.partition(".")[0] in self.provides and self._elsewhere(m)}
             for name in hidden:
@@ -183,6 +200,7 @@ class _UserCode:
                     yield
             finally:
                 meta.remove(finder)
+                self._note_outside(set(sys.modules) - before - finder.found)
                 for name in finder.found | set(shown):
                     if name in sys.modules:
                         self.modules[name] = sys.modules.pop(name)
@@ -200,10 +218,28 @@ def importable(module):
 
 def warn_unkeyed_reads(spec: str, module, keyed=()):
     """`data_reads.warn_unkeyed` of the folder the factory file ``module`` was loaded
-    from (a no-op for any other module)."""
+    from (a no-op for any other module); and a warning, once per process for each, of a
+    module its code imported from a user's source outside that folder after the key
+    was taken (inside the factory's call): an edit there is answered from the caches."""
     user = _USER_CODE.get(getattr(module, "__name__", None))
-    if user is not None:
-        warn_unkeyed(spec, user.reads, keyed)
+    if user is None:
+        return
+    warn_unkeyed(spec, user.reads, keyed)
+    if multiprocessing.parent_process() is not None:
+        return
+    with _LOCK:
+        new = sorted(n for n in user.outside if n not in user.keyed_outside
+                     and (spec, n) not in _WARNED_OUTSIDE)
+        _WARNED_OUTSIDE.update((spec, n) for n in new)
+    for name in new:
+        warnings.warn(f"controller.factory '{clip(spec, 200)}' imported {name} from "
+                      f"{clip(user.outside[name], 200)}, outside its folder, after its code "
+                      f"was keyed: an edit there is answered from the caches; import it at "
+                      f"the top of the factory's file, or move it into its folder",
+                      UserWarning, stacklevel=3)
+
+
+_WARNED_OUTSIDE = set()     # (factory, module) pairs warned of
 
 
 def _load_file(spec: str, target: str, where="controller.factory", named=None):
@@ -323,8 +359,12 @@ def factory_code_hash(spec: str, where="controller.factory") -> str:
     target, _ = _split(spec, where)
     module, function = resolve(spec, where)
     if target.endswith(".py"):                                     # the code loaded
-        content = {"folder": remember_keyed(f"code:{target}",
-                                            _USER_CODE[module.__name__].digest)}
+        user = _USER_CODE[module.__name__]
+        content = {"folder": remember_keyed(f"code:{target}", user.digest)}
+        if user.outside:        # what its code imported from a source tree outside it
+            user.keyed_outside = dict(user.outside)
+            content["outside"] = {name: file_hash(file)
+                                  for name, file in sorted(user.outside.items())}
     else:
         digest = _package_digest(spec, target, where)
         if digest is not None:

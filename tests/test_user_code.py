@@ -77,6 +77,34 @@ def test_a_controller_built_inside_another_folders_code_imports_its_own_helper(t
         assert lane_vision.OFFSET == -5.0
 
 
+def test_code_imported_from_outside_the_folder_is_keyed_or_warned_of(tmp_path, monkeypatch):
+    """A factory file that imports a module of a user's source tree outside its folder
+    (found through sys.path: the working directory, PYTHONPATH) is keyed by that file's
+    content too; one imported only when the factory is called, after the key was taken,
+    is warned of once."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    (shared / "tuning_at_top.py").write_text("GAIN = 1.0\n")
+    (shared / "tuning_in_call.py").write_text("GAIN = 2.0\n")
+    monkeypatch.syspath_prepend(str(shared))
+    folder = tmp_path / "ctrl"
+    folder.mkdir()
+    (folder / "steer.py").write_text(
+        "import tuning_at_top\nfrom lane_follower_factory import make as _make\n"
+        "def make(config):\n    import tuning_in_call\n    return _make(config)\n")
+    (folder / "lane_follower_factory.py").write_text(FACTORY)
+    (folder / "lane_vision.py").write_text("OFFSET = 0.0\n")
+    factory = f"{folder / 'steer.py'}:make"
+    before = factory_code_hash(factory)
+    (shared / "tuning_at_top.py").write_text("GAIN = 3.0\n")
+    assert factory_code_hash(factory) != before
+    with pytest.warns(UserWarning, match=r"imported tuning_in_call from .*shared/tuning_in_call"
+                                         r".py, outside its folder, after its code was keyed"):
+        make_controller(ControllerConfig(factory=factory))
+    for name in ("tuning_at_top", "tuning_in_call"):
+        sys.modules.pop(name, None)
+
+
 def test_the_fingerprint_covers_the_helper_and_nothing_outside_the_folder(tmp_path):
     (tmp_path / "unrelated.py").write_text("X = 1\n")
     factory = _controller(tmp_path)
