@@ -312,7 +312,10 @@ STUDY_CODE = ("reachwatch.systems.detector", "reachwatch.systems.history_model",
               "reachwatch.reach.fidelity", "reachwatch.reach.liveness", "reachwatch.reach.chunks",
               "reachwatch.pipeline.monitor_study", "reachwatch.pipeline.monitor_saved",
               "reachwatch.pipeline.monitor_guarded", "reachwatch.pipeline.monitor_judge",
-              "reachwatch.pipeline.monitor_runs")
+              "reachwatch.pipeline.monitor_runs",
+              # its values enter the key, but its properties (the environments drawn
+              # from the family and their roles, the runs judged) are code
+              "reachwatch.pipeline.monitor_spec")
 
 
 #: The modules whose code trains a monitor's encoder and heads: part of the key of a

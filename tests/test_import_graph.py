@@ -124,7 +124,6 @@ def test_the_reader_sees_what_it_must(tmp_path):
 #: Modules the monitor study's code imports that stay out of its key, and why.
 OUTSIDE_STUDY_KEY = {
     "pipeline.monitor_sections": "the study uses its rate_text in log lines only",
-    "pipeline.monitor_spec": "the spec's values enter the key (dataclasses.asdict)",
     "reach.application": "the application's code has its own part of the key",
     "reach.fingerprint": "it computes the key",
 }
