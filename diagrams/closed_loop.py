@@ -249,6 +249,17 @@ def tick_times(duration: float, period: float) -> np.ndarray:
     return np.arange(int(np.floor(duration / period + 1e-9)) + 1) * period
 
 
+def _holds(diagram: Diagram) -> list:
+    """The `ZeroOrderHold` systems of ``diagram``, its sub-diagrams' included."""
+    found = []
+    for system in diagram.GetSystems():
+        if isinstance(system, Diagram):
+            found += _holds(system)
+        elif isinstance(system, ZeroOrderHold):
+            found.append(system)
+    return found
+
+
 class LoopRun:
     """One run of `simulate`, advanced a control tick at a time: `advance` steps the
     Simulator to the next tick, `sample` reads the exported ports there, `trajectory`
@@ -275,6 +286,7 @@ class LoopRun:
                                  f"port '{name}'")
         self.recorded = {name: [] for name in self.record}
         self.record_ports = {name: diagram.GetOutputPort(name) for name in self.record}
+        self.holds = _holds(diagram)     # checked before each step (`_check_derivatives`)
         self.tick = 0                    # the index in ``times`` of the next tick
         self.done = False
 
@@ -291,11 +303,35 @@ class LoopRun:
             return False
         t = self.times[self.tick]
         if t > 0:
+            self._check_derivatives()
             self.simulator.AdvanceTo(min(t, self.duration))
         if "t" in self.failure and self.context.get_time() < t - 1e-12:
             self.done = True             # stopped between ticks: no sample at t
             return False
         return True
+
+    def _check_derivatives(self):
+        """A ValueError in one line when what the loop integrates next is not finite:
+        the value a zero-order hold latches at this tick (the controller's new command,
+        which the next step applies first), or the state derivative (a controller that
+        feeds the plant directly). Drake's error-controlled integrator would step
+        forever on NaN (RobotLocomotion/drake#12647) in a plant that does not check its
+        inputs. Both are evaluated as the step would evaluate them (cached there)."""
+        loop = self.simulator.get_system()
+        name = f" '{loop.get_name()}'" if loop.get_name() else ""
+        for hold in self.holds:
+            value = hold.get_input_port().Eval(hold.GetMyContextFromRoot(self.context))
+            if isinstance(value, np.ndarray) and not np.all(np.isfinite(value)):
+                raise ValueError(
+                    f"the loop{name}: its hold '{hold.get_name()}' would take "
+                    f"{value.tolist()} at t = {self.context.get_time():.3f} s, not finite: "
+                    f"does the controller output NaN or inf there?")
+        derivative = loop.EvalTimeDerivatives(self.context).CopyToVector()
+        if not np.all(np.isfinite(derivative)):
+            raise ValueError(
+                f"the loop{name}: its state derivative is "
+                f"{derivative.tolist()} at t = {self.context.get_time():.3f} s, not finite: "
+                f"does the controller output NaN or inf there?")
 
     def sample(self):
         """Reads the exported ports (and ``record``) at the tick `advance` reached."""

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
-from pydrake.systems.primitives import ConstantVectorSource
+from pydrake.systems.primitives import ConstantVectorSource, ZeroOrderHold
 
 from reachwatch.diagrams import simulate
 from reachwatch.diagrams.closed_loop import export_loop_ports
@@ -28,11 +28,17 @@ class _Drift(LeafSystem):
         derivatives.get_mutable_vector().SetFromVector(self._u.Eval(context))
 
 
-def _drift_loop(speed):
+def _drift_loop(speed, hold=None):
+    """``speed`` into the drift, held by a zero-order hold of period ``hold`` if given."""
     builder = DiagramBuilder()
     plant = builder.AddNamedSystem("plant", _Drift())
     source = builder.AddNamedSystem("controller", ConstantVectorSource([speed]))
-    builder.Connect(source.get_output_port(), plant.get_input_port(0))
+    if hold is None:
+        builder.Connect(source.get_output_port(), plant.get_input_port(0))
+    else:
+        held = builder.AddNamedSystem("hold", ZeroOrderHold(hold, 1))
+        builder.Connect(source.get_output_port(), held.get_input_port())
+        builder.Connect(held.get_output_port(), plant.get_input_port(0))
     export_loop_ports(builder, state=plant.GetOutputPort("state"))
     return builder.Build()
 
@@ -90,3 +96,35 @@ def test_table_rollouts_take_a_period_that_is_no_multiple_of_their_step():
         lowest = min_target_along_rollouts(grid, _Falling(), table, [[0.0, 0.0]], horizon=1.0,
                                            hold=hold)
         assert lowest[0] == pytest.approx(0.5, abs=1e-12)
+
+
+NAN_LOOP = """
+import sys
+sys.path.insert(0, {tests!r})
+from test_control_periods import _drift_loop
+from reachwatch.diagrams import simulate
+for hold in (None, 0.05):
+    try:
+        simulate(_drift_loop(float("nan"), hold), initial_state=[0.0], duration=0.2,
+                 period=0.05)
+    except ValueError as e:
+        print("refused:", e)
+"""
+
+
+def test_a_controller_that_outputs_nan_is_refused_not_stepped_forever():
+    """A NaN command into a plant that does not check its inputs: Drake's
+    error-controlled integrator would take zero-length steps forever; the run stops at
+    the tick with one line instead. (In a process of its own, so that a regression
+    fails in a minute rather than hanging the suite.)"""
+    import subprocess
+    import sys
+    from pathlib import Path
+    done = subprocess.run([sys.executable, "-c", NAN_LOOP.format(tests=str(Path(__file__).parent))],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    feedthrough, held = done.stdout.splitlines()
+    assert feedthrough.startswith("refused: the loop: its state derivative is [nan] at "
+                                  "t = 0.000 s, not finite")
+    assert held.startswith("refused: the loop: its hold 'hold' would take [nan] at "
+                           "t = 0.000 s, not finite")
