@@ -31,3 +31,21 @@ def test_a_single_image_estimate_method_is_refused():
     estimate, _ = estimator(_Estimating(rows=False))
     with pytest.raises(ValueError, match=r"returned shape \(2,\) for 3 images.*\(3, 2\)"):
         estimate(np.zeros((3, 8, 8, 3), np.uint8))
+
+
+def test_an_ensemble_member_of_another_width_is_refused_in_one_line():
+    """The ensemble baseline takes two numbers per image (`ensemble_estimator`'s
+    contract); a member returning three is refused naming it, not broadcast."""
+    from reachwatch.training.dataset_images import ImageTools, render_chunk
+
+    class _Renderer:
+        def render(self, state):
+            return np.zeros((8, 8, 4), np.uint8)
+
+    class _Source:
+        height, width = 4, 4
+        tools = ImageTools(_Renderer(), lambda images: np.zeros((len(images), 0)), 0,
+                           [lambda images: np.zeros((len(images), 3))])
+    with pytest.raises(ValueError, match=r"ensemble member 0: .* returned shape \(2, 3\) for "
+                                         r"2 images; the ensemble baseline takes \(2, 2\)"):
+        render_chunk(_Source(), np.zeros((2, 3)))

@@ -101,7 +101,12 @@ def render_chunk(source: ImageSource, states) -> dict:
     full = np.stack([tools.renderer.render(x) for x in states])
     ensemble = np.empty((len(full), len(tools.ensemble), 2))
     for j, estimate_member in enumerate(tools.ensemble):
-        ensemble[:, j] = estimate_member(full)
+        out = np.asarray(estimate_member(full))
+        if out.shape != (len(full), 2):     # the ensemble baseline's contract: 2 numbers
+            raise ValueError(f"ensemble member {j}: the application's ensemble_estimator "
+                             f"returned shape {out.shape} for {len(full)} images; the "
+                             f"ensemble baseline takes ({len(full)}, 2)")
+        ensemble[:, j] = out
     estimates = np.empty((len(full), tools.estimate_size))
     estimates[:] = tools.estimate(full)
     return {"images": resize_for_detector(full, source),       # as the detector system does
