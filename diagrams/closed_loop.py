@@ -286,7 +286,11 @@ class LoopRun:
                                  f"port '{name}'")
         self.recorded = {name: [] for name in self.record}
         self.record_ports = {name: diagram.GetOutputPort(name) for name in self.record}
-        self.holds = _holds(diagram)     # checked before each step (`_check_derivatives`)
+        # the holds that latch at the control ticks, checked before each step
+        # (`_check_derivatives`); and whether a failure between ticks is watched for
+        self.holds = [h for h in _holds(diagram) if abs(h.period() - period) <= 1e-12
+                      and abs(h.offset()) <= 1e-12]
+        self.watched = stop_on_failure and failed is not None
         self.tick = 0                    # the index in ``times`` of the next tick
         self.done = False
 
@@ -294,10 +298,13 @@ class LoopRun:
         """Steps to the next tick; False (and `done`) when the run has ended: every tick
         logged, stopped after the last sample, or stopped between ticks (failure). After
         the last tick, a duration that is not a whole number of periods is simulated to
-        its end (no tick falls there, so nothing is sampled), so that a failure in that
+        its end when failures are watched between ticks (``stop_on_failure`` with a
+        rule; no tick falls there, so nothing is sampled), so that a failure in that
         last part of a period counts, as it does in the BRT and the table rollouts."""
         if self.done or self.tick >= len(self.times):
-            if not self.done and self.times[-1] < self.duration - 1e-9 * max(1.0, self.duration):
+            if (not self.done and self.watched
+                    and self.times[-1] < self.duration - 1e-9 * max(1.0, self.duration)):
+                self._check_derivatives()
                 self.simulator.AdvanceTo(self.duration)
             self.done = True
             return False
@@ -311,12 +318,14 @@ class LoopRun:
         return True
 
     def _check_derivatives(self):
-        """A ValueError in one line when what the loop integrates next is not finite:
-        the value a zero-order hold latches at this tick (the controller's new command,
-        which the next step applies first), or the state derivative (a controller that
-        feeds the plant directly). Drake's error-controlled integrator would step
-        forever on NaN (RobotLocomotion/drake#12647) in a plant that does not check its
-        inputs. Both are evaluated as the step would evaluate them (cached there)."""
+        """A ValueError in one line when the loop is about to integrate NaN or inf: the
+        value a zero-order hold of the control period latches at this tick (the
+        controller's new command, which the next step applies first; the step reads the
+        same cached port), or the state derivative now (a controller that feeds the
+        plant directly). Drake's error-controlled integrator would step forever on a
+        NaN derivative (RobotLocomotion/drake#12647) in a plant that does not check its
+        inputs. Not caught: a finite command that makes the plant's own derivative NaN
+        (the derivative is evaluated before the hold latches)."""
         loop = self.simulator.get_system()
         name = f" '{loop.get_name()}'" if loop.get_name() else ""
         for hold in self.holds:

@@ -103,10 +103,10 @@ import sys
 sys.path.insert(0, {tests!r})
 from test_control_periods import _drift_loop
 from reachwatch.diagrams import simulate
-for hold in (None, 0.05):
-    try:
-        simulate(_drift_loop(float("nan"), hold), initial_state=[0.0], duration=0.2,
-                 period=0.05)
+for hold, duration in ((None, 0.2), (0.05, 0.2), (0.05, 0.03)):
+    try:            # the last: shorter than a period, all of it after the only tick
+        simulate(_drift_loop(float("nan"), hold), initial_state=[0.0], duration=duration,
+                 period=0.05, failed=lambda x: abs(x[:, 0]) > 10)
     except ValueError as e:
         print("refused:", e)
 """
@@ -123,8 +123,9 @@ def test_a_controller_that_outputs_nan_is_refused_not_stepped_forever():
     done = subprocess.run([sys.executable, "-c", NAN_LOOP.format(tests=str(Path(__file__).parent))],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
-    feedthrough, held = done.stdout.splitlines()
+    feedthrough, held, short = done.stdout.splitlines()
     assert feedthrough.startswith("refused: the loop: its state derivative is [nan] at "
                                   "t = 0.000 s, not finite")
-    assert held.startswith("refused: the loop: its hold 'hold' would take [nan] at "
-                           "t = 0.000 s, not finite")
+    for line in (held, short):
+        assert line.startswith("refused: the loop: its hold 'hold' would take [nan] at "
+                               "t = 0.000 s, not finite")
