@@ -5,6 +5,7 @@ while the factory runs (in any process, nothing left in ``sys.path`` or
 which covers every ``.py`` file of that folder, or of a user's package, so an edit
 anywhere in the controller's code changes the key of its sweeps."""
 
+import ast
 import contextlib
 import functools
 import hashlib
@@ -15,11 +16,9 @@ import importlib.metadata
 import importlib.util
 import inspect
 import json
-import multiprocessing
 import os
 import sys
 import threading
-import warnings
 from pathlib import Path
 
 from reachwatch.systems.checks import clip, is_file
@@ -157,37 +156,58 @@ class _UserCode:
         # the top-level names its folder's files and packages take, next to a script
         self.provides = {p.stem for p in folder.glob("*.py")} | {
             p.parent.name for p in folder.glob("*/__init__.py")}
-        # modules its code imported from a user's source tree outside the folder (through
-        # sys.path: the working directory, PYTHONPATH): {name: file}
-        self.outside, self.keyed_outside = {}, {}
+        _FOLDERS.add(folder)
+        self._outside = None
 
-    def _note_outside(self, names):
-        """Records which of the modules ``names`` (new while its code ran) came from a
-        user's source outside its folder: not reachwatch, not a factory file, not
-        installed."""
-        for name in names:
-            file = getattr(sys.modules.get(name), "__file__", None)
-            if (file and name.partition(".")[0] != "reachwatch"
-                    and not name.startswith("reachwatch_user_") and self._elsewhere(
-                        sys.modules[name]) and not is_installed(file)):
-                self.outside[name] = str(Path(file).resolve())
+    def outside(self) -> dict:
+        """``{name: digest}`` of the top-level modules its folder's code imports (any
+        ``import`` statement of its ``.py`` files, those inside functions too) that
+        Python finds in a user's source tree outside the folder (through the working
+        directory or ``PYTHONPATH``; not installed, not reachwatch): a module file by
+        its content, a package by every ``.py`` file of it. Found without importing
+        (`importlib.util.find_spec` of top-level names), once, so that its factory's
+        key does not depend on what the process imported first."""
+        if self._outside is None:
+            found = {}
+            for name in sorted(_imported_names(self.folder) - self.provides):
+                if name == "reachwatch" or name in sys.builtin_module_names:
+                    continue
+                try:
+                    spec = importlib.util.find_spec(name)
+                except (ImportError, ValueError):
+                    continue
+                origin = getattr(spec, "origin", None)
+                if not origin or not os.path.isfile(origin) or is_installed(origin):
+                    continue
+                path = Path(origin).resolve()
+                if path.is_relative_to(self.folder):
+                    continue
+                found[name] = (source_digest(path.parent) if path.name == "__init__.py"
+                               else file_hash(path))
+            self._outside = found
+        return self._outside
 
-    def _elsewhere(self, module) -> bool:
-        """Whether ``module`` was loaded from outside this folder."""
+    def _other_folders(self, module) -> bool:
+        """Whether ``module`` was loaded from another user folder's code (not from this
+        folder, Python's, an installed package or anywhere else)."""
         file = getattr(module, "__file__", None)
-        return not file or not Path(file).resolve().is_relative_to(self.folder)
+        if not file:
+            return False
+        path = Path(file).resolve()
+        return (not path.is_relative_to(self.folder)
+                and any(path.is_relative_to(f) for f in _FOLDERS if f != self.folder))
 
     @contextlib.contextmanager
     def importable(self):
         """Its folder's modules importable, as next to a script: a module of the same
         name that another factory's folder shows meanwhile (an application's
         ``utils.py`` while the controller's own ``utils.py`` is imported) is hidden until
-        the block ends, so each folder's code imports its own."""
+        the block ends, so each folder's code imports its own. (Python's modules and
+        installed ones are never hidden.)"""
         with _LOCK:
             finder = _FolderFinder(self.folder)
-            before = set(sys.modules)
             hidden = {n: m for n, m in list(sys.modules.items())
-                      if n.partition(".")[0] in self.provides and self._elsewhere(m)}
+                      if n.partition(".")[0] in self.provides and self._other_folders(m)}
             for name in hidden:
                 del sys.modules[name]
             shown = {n: m for n, m in self.modules.items() if n not in sys.modules}
@@ -200,7 +220,6 @@ class _UserCode:
                     yield
             finally:
                 meta.remove(finder)
-                self._note_outside(set(sys.modules) - before - finder.found)
                 for name in finder.found | set(shown):
                     if name in sys.modules:
                         self.modules[name] = sys.modules.pop(name)
@@ -208,6 +227,7 @@ class _UserCode:
 
 
 _USER_CODE = {}     # module name of a loaded factory file -> its _UserCode
+_FOLDERS = set()    # the folders of every factory file loaded (or loading)
 
 def importable(module):
     """A context in which the folder of the factory file ``module`` was loaded from is
@@ -218,28 +238,27 @@ def importable(module):
 
 def warn_unkeyed_reads(spec: str, module, keyed=()):
     """`data_reads.warn_unkeyed` of the folder the factory file ``module`` was loaded
-    from (a no-op for any other module); and a warning, once per process for each, of a
-    module its code imported from a user's source outside that folder after the key
-    was taken (inside the factory's call): an edit there is answered from the caches."""
+    from (a no-op for any other module)."""
     user = _USER_CODE.get(getattr(module, "__name__", None))
-    if user is None:
-        return
-    warn_unkeyed(spec, user.reads, keyed)
-    if multiprocessing.parent_process() is not None:
-        return
-    with _LOCK:
-        new = sorted(n for n in user.outside if n not in user.keyed_outside
-                     and (spec, n) not in _WARNED_OUTSIDE)
-        _WARNED_OUTSIDE.update((spec, n) for n in new)
-    for name in new:
-        warnings.warn(f"controller.factory '{clip(spec, 200)}' imported {name} from "
-                      f"{clip(user.outside[name], 200)}, outside its folder, after its code "
-                      f"was keyed: an edit there is answered from the caches; import it at "
-                      f"the top of the factory's file, or move it into its folder",
-                      UserWarning, stacklevel=3)
+    if user is not None:
+        warn_unkeyed(spec, user.reads, keyed)
 
 
-_WARNED_OUTSIDE = set()     # (factory, module) pairs warned of
+def _imported_names(folder: Path) -> set:
+    """The top-level names every ``import`` statement of the ``.py`` files in ``folder``
+    and below it imports (relative imports aside)."""
+    names = set()
+    for _, path in _source_files(folder, "controller.factory"):
+        try:
+            tree = ast.parse(path.read_bytes())
+        except (SyntaxError, ValueError, OSError):
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names.update(alias.name.partition(".")[0] for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names.add(node.module.partition(".")[0])
+    return names
 
 
 def _load_file(spec: str, target: str, where="controller.factory", named=None):
@@ -361,10 +380,8 @@ def factory_code_hash(spec: str, where="controller.factory") -> str:
     if target.endswith(".py"):                                     # the code loaded
         user = _USER_CODE[module.__name__]
         content = {"folder": remember_keyed(f"code:{target}", user.digest)}
-        if user.outside:        # what its code imported from a source tree outside it
-            user.keyed_outside = dict(user.outside)
-            content["outside"] = {name: file_hash(file)
-                                  for name, file in sorted(user.outside.items())}
+        if user.outside():      # what its code imports from a source tree outside it
+            content["outside"] = user.outside()
     else:
         digest = _package_digest(spec, target, where)
         if digest is not None:

@@ -77,32 +77,57 @@ def test_a_controller_built_inside_another_folders_code_imports_its_own_helper(t
         assert lane_vision.OFFSET == -5.0
 
 
-def test_code_imported_from_outside_the_folder_is_keyed_or_warned_of(tmp_path, monkeypatch):
-    """A factory file that imports a module of a user's source tree outside its folder
-    (found through sys.path: the working directory, PYTHONPATH) is keyed by that file's
-    content too; one imported only when the factory is called, after the key was taken,
-    is warned of once."""
+def test_pythons_own_modules_are_never_hidden_by_a_folders_file(tmp_path):
+    """A folder with a ``json.py`` of its own: while its code is importable, the json
+    module the process already has stays (what Python's modules import meanwhile is
+    Python's); only another user folder's modules give way."""
+    import json
+    from reachwatch.diagrams import user_code
+    folder = tmp_path / "shadow"
+    folder.mkdir()
+    (folder / "json.py").write_text("MINE = True\n")
+    (folder / "factory.py").write_text("import json\n\ndef make():\n    return json\n")
+    module, make = user_code.resolve(f"{folder / 'factory.py'}:make", "application")
+    with user_code.importable(module):
+        assert sys.modules["json"] is json and make() is json
+
+
+def test_code_imported_from_outside_the_folder_is_keyed(tmp_path):
+    """A factory file whose code imports modules of a user's source tree outside its
+    folder (found through sys.path: here PYTHONPATH), at its top or inside the factory,
+    is keyed by their content too, whatever the process imported first; Python's own
+    and installed modules are not."""
+    import subprocess
     shared = tmp_path / "shared"
     shared.mkdir()
     (shared / "tuning_at_top.py").write_text("GAIN = 1.0\n")
     (shared / "tuning_in_call.py").write_text("GAIN = 2.0\n")
-    monkeypatch.syspath_prepend(str(shared))
     folder = tmp_path / "ctrl"
     folder.mkdir()
     (folder / "steer.py").write_text(
-        "import tuning_at_top\nfrom lane_follower_factory import make as _make\n"
+        "import json\nimport numpy\nimport tuning_at_top\n"
+        "from lane_follower_factory import make as _make\n"
         "def make(config):\n    import tuning_in_call\n    return _make(config)\n")
     (folder / "lane_follower_factory.py").write_text(FACTORY)
     (folder / "lane_vision.py").write_text("OFFSET = 0.0\n")
     factory = f"{folder / 'steer.py'}:make"
-    before = factory_code_hash(factory)
-    (shared / "tuning_at_top.py").write_text("GAIN = 3.0\n")
-    assert factory_code_hash(factory) != before
-    with pytest.warns(UserWarning, match=r"imported tuning_in_call from .*shared/tuning_in_call"
-                                         r".py, outside its folder, after its code was keyed"):
-        make_controller(ControllerConfig(factory=factory))
-    for name in ("tuning_at_top", "tuning_in_call"):
-        sys.modules.pop(name, None)
+    probe = ("from reachwatch.diagrams.user_code import _USER_CODE, factory_code_hash\n"
+             f"print(factory_code_hash({factory!r}))\n"
+             "print(sorted(next(iter(_USER_CODE.values())).outside()))\n")
+    env = {**os.environ, "PYTHONPATH": str(shared)}
+
+    def key():
+        done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                              env=env, timeout=120)
+        assert done.returncode == 0, done.stderr[-2000:]
+        return done.stdout.splitlines()
+    first = key()
+    assert first[1] == "['tuning_at_top', 'tuning_in_call']"
+    (shared / "tuning_in_call.py").write_text("GAIN = 3.0\n")
+    second = key()
+    assert second[0] != first[0]
+    (shared / "tuning_in_call.py").write_text("GAIN = 2.0\n")
+    assert key()[0] == first[0]
 
 
 def test_the_fingerprint_covers_the_helper_and_nothing_outside_the_folder(tmp_path):
