@@ -6,6 +6,10 @@ same key (a digest of its inputs: the settings it reads and, for the stages befo
 outputs it reads, `Run.content_key`: their keys and the content of every file they wrote),
 and resumes its chunked work when it was killed."""
 
+import fcntl
+import os
+from pathlib import Path
+
 from reachwatch.reach.application import load_application
 from reachwatch.reach.fingerprint import LIBRARY, modules_source_digest
 from reachwatch.systems.checks import short
@@ -52,38 +56,42 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     if STAGES.index(until) >= STAGES.index("fidelity"):
         check_downtrack_room(spec)
     check_controller_builds(spec, log=log)
-    run = Run(spec, out, executor=executor, progress=progress, log=log, sweep_cache=sweep_cache,
-              only=only)
-    if only is not None:
-        log(f"a slice of {len(run.environments())} of the run's {len(spec.all_environments())} "
-            f"environments, up to {until}: {', '.join(e.name for e in run.environments())}")
-    steps = {
-        "sweep": lambda: stage_sweep(run),
-        "solve": lambda: stage_solve(run),
-        "dataset": lambda: run.stage("dataset", dataset_key(run), lambda: stage_dataset(run)),
-        "fidelity": lambda: stage_fidelity(run),
-        # the device that trains and scores (CUDA where present, unless told): another
-        # device trains other weights and scores in other last digits
-        "train": lambda: run.stage("train", train_key(run), lambda: stage_train(run)),
-        "evaluate": lambda: run.stage("evaluate", evaluate_key(run), lambda: stage_evaluate(run)),
-        "guard": lambda: stage_guard(run),
-        "monitor": lambda: stage_monitor(run),
-        "incremental": lambda: stage_incremental(run),
-        "report": lambda: run.stage("report", report_key(run), lambda: write_report(run)),
-    }
-    for name in STAGES[:STAGES.index(until) + 1]:
-        run.outputs[name] = steps[name]()
-        if after_stage is not None:
-            after_stage(name)
-    if only is not None and until == SLICE_UNTIL and spec.fidelity.starts:
-        page = write_checked_page(run)
-        log(f"checked so far: {len(page['checks'])} of the run's "
-            f"{len(spec.all_environments())} environments"
-            + (f" ({len(page['stale'])} on record for other inputs)" if page["stale"] else "")
-            + (f", labels meeting the target in {len(page['labels_meet_target'])} of "
-               f"{len(page['labelled'])}" if page["labelled"] else "")
-            + f"; {run.path(page['html'])} (and {page['md']})")
-    return run
+    held = hold_run_folder(out)
+    try:
+        run = Run(spec, out, executor=executor, progress=progress, log=log, sweep_cache=sweep_cache,
+                  only=only)
+        if only is not None:
+            log(f"a slice of {len(run.environments())} of the run's {len(spec.all_environments())} "
+                f"environments, up to {until}: {', '.join(e.name for e in run.environments())}")
+        steps = {
+            "sweep": lambda: stage_sweep(run),
+            "solve": lambda: stage_solve(run),
+            "dataset": lambda: run.stage("dataset", dataset_key(run), lambda: stage_dataset(run)),
+            "fidelity": lambda: stage_fidelity(run),
+            # the device that trains and scores (CUDA where present, unless told): another
+            # device trains other weights and scores in other last digits
+            "train": lambda: run.stage("train", train_key(run), lambda: stage_train(run)),
+            "evaluate": lambda: run.stage("evaluate", evaluate_key(run), lambda: stage_evaluate(run)),
+            "guard": lambda: stage_guard(run),
+            "monitor": lambda: stage_monitor(run),
+            "incremental": lambda: stage_incremental(run),
+            "report": lambda: run.stage("report", report_key(run), lambda: write_report(run)),
+        }
+        for name in STAGES[:STAGES.index(until) + 1]:
+            run.outputs[name] = steps[name]()
+            if after_stage is not None:
+                after_stage(name)
+        if only is not None and until == SLICE_UNTIL and spec.fidelity.starts:
+            page = write_checked_page(run)
+            log(f"checked so far: {len(page['checks'])} of the run's "
+                f"{len(spec.all_environments())} environments"
+                + (f" ({len(page['stale'])} on record for other inputs)" if page["stale"] else "")
+                + (f", labels meeting the target in {len(page['labels_meet_target'])} of "
+                   f"{len(page['labelled'])}" if page["labelled"] else "")
+                + f"; {run.path(page['html'])} (and {page['md']})")
+        return run
+    finally:
+        release_run_folder(held)
 
 
 def report_key(run) -> str:
@@ -92,6 +100,41 @@ def report_key(run) -> str:
     seconds, and a resumed run whose report code changed writes it anew."""
     return digest(REPORT_FORMAT, {k: run.content_key(k) for k in run.records},
                   modules_source_digest(*LIBRARY))
+
+
+#: The lock file a run holds in its run directory while it runs (`hold_run_folder`).
+LOCK_NAME = ".reachwatch.lock"
+
+
+def hold_run_folder(out):
+    """An exclusive lock (``fcntl.flock``) on the run directory ``out`` for this process,
+    or a ValueError in one line when another process holds it: two runs on one folder
+    would write the same files (a dataset's images truncated under the other's feet).
+    None where the folder cannot hold one (read-only: such a run writes nothing)."""
+    root = Path(out)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        fd = os.open(root / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+        os.close(fd)
+        raise ValueError(f"{out} is in use by another reachwatch run"
+                         f"{f' (pid {holder})' if holder.isdigit() else ''}: wait for it to "
+                         f"end, or give another --out") from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, str(os.getpid()).encode(), 0)
+    return fd
+
+
+def release_run_folder(fd) -> None:
+    """Lets go of `hold_run_folder`'s lock (the file stays: removing it would race)."""
+    if fd is not None:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
 
 
 def check_controller_builds(spec: RunSpec, log=log.info):

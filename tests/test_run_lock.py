@@ -1,0 +1,34 @@
+"""One run at a time in a run directory: a second `run_pipeline` on a folder another
+process is running in is refused in one line before it writes anything (two runs would
+write the same files: a dataset's images truncated under the other's feet)."""
+
+import os
+
+import pytest
+
+from reachwatch.pipeline.run import hold_run_folder, release_run_folder, run_pipeline
+from reachwatch.pipeline.spec import load_run_spec
+from tiny_run import TINY
+
+
+def test_a_second_run_on_a_folder_in_use_is_refused_and_writes_nothing(tmp_path):
+    out = tmp_path / "study"
+    held = hold_run_folder(out)                  # as the other run holds it
+    try:
+        with pytest.raises(ValueError, match=rf"{out} is in use by another reachwatch run "
+                                             rf"\(pid {os.getpid()}\): wait for it to end"):
+            run_pipeline(load_run_spec(data=TINY), out, progress=False, log=lambda m: None,
+                         until="sweep")
+        assert sorted(p.name for p in out.iterdir()) == [".reachwatch.lock"]
+    finally:
+        release_run_folder(held)
+    again = hold_run_folder(out)                 # let go: the folder is free again
+    release_run_folder(again)
+
+
+def test_a_folder_that_cannot_hold_a_lock_is_left_to_the_runs_own_checks(tmp_path):
+    fresh = hold_run_folder(tmp_path / "new" / "below")       # made, and held
+    assert fresh is not None
+    release_run_folder(fresh)
+    (tmp_path / "plain").write_text("")
+    assert hold_run_folder(tmp_path / "plain" / "below") is None
