@@ -154,6 +154,10 @@ def _process_start_ns() -> int:
 PROCESS_START_NS = _process_start_ns()
 
 
+#: Source files dated in the future, ``{path: (mtime_ns, size)}`` when first seen.
+_FUTURE_DATED = {}
+
+
 def check_source_unchanged(*names):
     """Raise `SourceChanged`, in one line, when a module of ``names`` (dotted names; a
     package stands for its submodules) that this process has imported has a file
@@ -168,10 +172,18 @@ def check_source_unchanged(*names):
         if not path:
             continue
         try:
-            modified = os.stat(path).st_mtime_ns
+            stat = os.stat(path)
         except OSError:
             continue
+        modified = stat.st_mtime_ns
         if modified > PROCESS_START_NS:
+            if modified > time.time_ns():
+                # dated in the future (a checkout from a machine whose clock runs ahead):
+                # its time says nothing; it is taken as imported the first time it is
+                # seen, and any later change of its time or size is a change
+                if _FUTURE_DATED.setdefault(path, (modified, stat.st_size)) == (
+                        modified, stat.st_size):
+                    continue
             raise SourceChanged(
                 f"{module_name} ({path}) changed on disk after this process started: its "
                 f"results would be keyed with code it does not run; start it again (a "
