@@ -42,7 +42,8 @@ from reachwatch.systems import DetectorConfig
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
 
 from .dataset_files import (FILLED, LABELLED, ImageStore, array_hashes, changed_arrays, clear,
-                            finished, open_array, read_manifest, write_manifest)
+                            finished, open_array, read_manifest, reserved_memmap,
+                            write_manifest)
 from .dataset_images import ImageSource, ImageTools, estimator, render_chunk
 
 from .labels import (FALLBACK_FIELDS, NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
@@ -291,12 +292,11 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
         np.save(folder / "sources.npy", sources)
         if spec.labels.reads_along:
             np.save(folder / "runs.npy", np.asarray(runs, np.int64))
-        open_mm = np.lib.format.open_memmap
-        arrays = {"images": open_mm(folder / "images.npy", "w+", np.uint8,
-                                    (n, spec.height, spec.width, 3)),
-                  "estimates": open_mm(folder / "estimates.npy", "w+", np.float64, (n, k)),
-                  "ensemble": open_mm(folder / "ensemble.npy", "w+", np.float64,
-                                      (n, len(ensemble), 2))}
+        arrays = {"images": reserved_memmap(folder / "images.npy", np.uint8,
+                                            (n, spec.height, spec.width, 3)),
+                  "estimates": reserved_memmap(folder / "estimates.npy", np.float64, (n, k)),
+                  "ensemble": reserved_memmap(folder / "ensemble.npy", np.float64,
+                                              (n, len(ensemble), 2))}
         manifest = {"format": FORMAT, "environment": scenario.environment.name,
                     "environment_spec": dc.asdict(scenario.environment),
                     "grid": grid.key(), "brt_hash": _value_hash(value_function),

@@ -2,7 +2,9 @@
 arrays, checked against the hashes the manifest recorded; and `ImageStore`, which
 writes each finished chunk of images into them (`reach.chunks` runs the chunks)."""
 
+import errno
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -105,3 +107,24 @@ class ImageStore:
             manifest["hashes"] = {**manifest.get("hashes", {}),
                                   **array_hashes(self.folder, FILLED)}
         write_manifest(self.folder, manifest)
+
+
+def reserved_memmap(path: Path, dtype, shape) -> np.memmap:
+    """A new ``.npy`` array of ``shape`` mapped from ``path`` (``open_memmap``, ``w+``)
+    with its bytes reserved on disk at once (``posix_fallocate``): a sparse file's
+    pages are allocated only as rows are written, and a full disk then kills the
+    process with SIGBUS, which no handler catches. Here it is an `OSError` naming the
+    file and its size before any row is rendered. Where the file system cannot reserve
+    (no support), the array stays sparse."""
+    array = np.lib.format.open_memmap(path, "w+", dtype, shape)
+    size = os.path.getsize(path)
+    try:
+        with open(path, "r+b") as f:
+            os.posix_fallocate(f.fileno(), 0, size)
+    except OSError as e:
+        if e.errno in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+            return array
+        del array
+        raise OSError(e.errno, f"{e.strerror}: cannot reserve {size / 2**20:.1f} MiB for "
+                               f"the dataset array", str(path)) from None
+    return array

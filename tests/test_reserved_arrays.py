@@ -1,0 +1,30 @@
+"""A dataset's arrays are reserved on disk when they are made: a full disk is an
+OSError naming the file, not a SIGBUS in the middle of a rendered chunk."""
+
+import errno
+import os
+
+import numpy as np
+import pytest
+
+from reachwatch.training.dataset_files import reserved_memmap
+
+
+def test_the_arrays_bytes_are_reserved_at_once(tmp_path):
+    path = tmp_path / "images.npy"
+    array = reserved_memmap(path, np.uint8, (64, 48, 80, 3))
+    assert array.shape == (64, 48, 80, 3)
+    stat = os.stat(path)
+    assert stat.st_blocks * 512 >= stat.st_size          # allocated, not sparse
+    array[3] = 7
+    array.flush()
+    assert np.load(path, mmap_mode="r")[3].max() == 7
+
+
+def test_no_room_is_one_oserror_naming_the_file(tmp_path, monkeypatch):
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    with pytest.raises(OSError, match=r"No space left on device: cannot reserve .* MiB for "
+                                      r"the dataset array: '.*images\.npy'"):
+        reserved_memmap(tmp_path / "images.npy", np.uint8, (64, 48, 80, 3))
