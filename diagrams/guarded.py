@@ -73,6 +73,13 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
         model, config, metadata = load_history_monitor(monitor.detector)
         if period is None:
             raise ValueError("monitor.detector: a history monitor needs the control period")
+        trained = metadata.get("period_s")
+        if trained is not None and abs(float(trained) - period) > 1e-9:
+            raise ValueError(f"monitor.detector: the history monitor was trained on frames "
+                             f"every {float(trained):g} s and this loop ticks every "
+                             f"{period:g} s: its history, flag rule and threshold count "
+                             f"ticks, so they would span other times; train it at this "
+                             f"period")
         system = builder.AddNamedSystem(DETECTOR, HistoryMonitor(
             model=model, threshold=monitor.threshold, period=period,
             calibration=metadata.get("calibration", (1.0, 0.0))))

@@ -5,6 +5,9 @@ signals, for both temporal models; its checkpoint drives the guarded loop."""
 
 import numpy as np
 import pytest
+from pydrake.common.value import AbstractValue
+from pydrake.systems.primitives import ConstantValueSource
+from pydrake.systems.sensors import ImageRgba8U
 import torch
 
 from reachwatch.diagrams import load_scenario, save_checkpoint, simulate
@@ -121,6 +124,24 @@ def test_a_monitor_with_signals_refuses_a_loop_offering_other_signals(tmp_path):
     with pytest.raises(ValueError, match="reads 5 online signals, this loop offers none"):
         add_detector(DiagramBuilder(), image_port=None, period=0.05,
                      monitor=MonitorConfig(detector=str(path)))
+
+
+def test_a_monitor_trained_at_another_control_period_is_refused(tmp_path):
+    """Its history, k-of-n rule and threshold count ticks: at another period they span
+    other times, so the loop refuses it (a checkpoint that names no period loads)."""
+    from pydrake.systems.framework import DiagramBuilder
+    from reachwatch.diagrams import MonitorConfig, add_detector
+    config = HistoryMonitorConfig(frames=2, height=24, width=40, channels=[4], features=4,
+                                  hidden=4)
+    path = _checkpoint(tmp_path / "m.pt", config, period_s=0.05)
+    with pytest.raises(ValueError, match=r"trained on frames every 0.05 s and this loop ticks "
+                                         r"every 0.1 s"):
+        add_detector(DiagramBuilder(), image_port=None, period=0.1,
+                     monitor=MonitorConfig(detector=str(path)))
+    builder = DiagramBuilder()
+    image = builder.AddSystem(ConstantValueSource(AbstractValue.Make(ImageRgba8U(40, 24))))
+    add_detector(builder, image_port=image.get_output_port(), period=0.05,
+                 monitor=MonitorConfig(detector=str(path)))
 
 
 def test_config_and_checkpoint_errors(tmp_path):
