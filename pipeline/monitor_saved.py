@@ -129,7 +129,8 @@ def check_run_length(saved, *, period: float, duration: float):
     lengths = {int(n) for split in ("calibrate", "held_out", "also_held_out")
                if f"{split}/ticks" in saved.files
                for n in saved[f"{split}/ticks"][~np.isfinite(saved[f"{split}/failure_time"])]}
-    if lengths and lengths != {round(duration / period) + 1}:
+    ticks = int(np.floor(duration / period + 1e-9)) + 1       # as the recordings count
+    if lengths and lengths != {ticks}:
         raise ValueError(f"runs that did not fail have {sorted(lengths)} ticks, not "
-                         f"{round(duration / period) + 1}: give the study's period and "
+                         f"{ticks}: give the study's period and "
                          f"duration (now {period:g} s and {duration:g} s)")

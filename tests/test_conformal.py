@@ -81,6 +81,12 @@ def test_given_failures_bounds_the_miss_rate_where_runs_fail():
                             given_failures=True)
 
 
+def test_a_calibration_without_failing_runs_says_its_bound_says_nothing_where_runs_fail():
+    chosen = conformal_threshold([np.array([])] * 10, 0.1)
+    assert chosen.failing_environments == 0
+    assert "it says nothing of an environment where runs fail" in chosen.statement(1.7)
+
+
 def test_the_largest_threshold_is_kept_and_impossible_targets_refused():
     scores = [np.array([0.2, 0.6, 0.8]), np.array([0.7, 0.9]), np.array([]),
               np.array([0.5, 0.95])] * 3

@@ -71,6 +71,8 @@ def test_studies_of_other_runs_are_refused(tmp_path):
         mean.check_same_runs({f: np.load(f / "risks.npz") for f in (one, longer)}, mean.SPLITS)
     # runs that did not fail last the study's duration: 5 ticks of 0.1 s is 0.4 s
     mean.check_run_length(np.load(one / "risks.npz"), period=0.1, duration=0.4)
+    # a duration that is no whole number of periods: ticks at 0, ..., 4 x 0.088 s
+    mean.check_run_length(np.load(one / "risks.npz"), period=0.088, duration=0.4)
     with pytest.raises(ValueError, match=r"runs that did not fail have \[5\] ticks, not 9: "
                                          r"give the study's period and duration"):
         mean.check_run_length(np.load(one / "risks.npz"), period=0.05, duration=0.4)

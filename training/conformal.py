@@ -125,6 +125,10 @@ class ConformalThreshold:
                     f"none {how}. On an environment where some run fails that is about "
                     f"{100 * min(1.0, implied):.1f} % (alpha over the calibration share of "
                     f"environments with failures).")
+        if self.failing_environments == 0:
+            return (f"{head}, {what} {how}. No calibration environment had a warnable "
+                    f"failing run, so the bound is met by missing none where none fail: it "
+                    f"says nothing of an environment where runs fail.")
         return f"{head}, {what} {how}."
 
 
