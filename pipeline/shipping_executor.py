@@ -7,6 +7,7 @@ import threading
 from distributed.cfexecutor import ClientExecutor
 
 from reachwatch.diagrams.shipping import Packer, run_shipped
+from reachwatch.reach.executors import WorkerLost
 from reachwatch.systems.files import keyed_by_driver, keyed_digests
 
 from .executors import describe_identity, process_identity
@@ -24,7 +25,7 @@ def run_on_worker(expected: dict, keyed, shipment, fn, /, *args, **kwargs):
     `keyed_digests`: `keyed_by_driver`), not a file shipped after an edit."""
     mine = process_identity()
     if mine != expected:
-        raise RuntimeError(f"this worker has {describe_identity(mine)}, the driver "
+        raise WorkerLost(f"this worker has {describe_identity(mine)}, the driver "
                            f"{describe_identity(expected)}: it joined with another install; "
                            f"stop it, or install the same reachwatch, versions and GL driver there")
     with keyed_by_driver(keyed):

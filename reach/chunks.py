@@ -23,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 
-from .executors import InlineExecutor, Window, stop_executor
+from .executors import InlineExecutor, Window, WorkerLost, stop_executor
 
 _log = logging.getLogger(__name__)
 
@@ -49,6 +49,21 @@ def set_row_hook(hook):
 
 
 # --- several jobs at once --------------------------------------------------------------
+
+#: What a cluster raises for a task it lost (Dask's: its workers kept dying on it, or
+#: the scheduler went away), by class name, so that no cluster package is imported here.
+LOST_TASK_ERRORS = ("KilledWorker", "FutureCancelledError", "CommClosedError")
+
+
+def _lost(error: BaseException, caller: str, chunk) -> BaseException:
+    """``error``, or a `WorkerLost` saying so in one line when a cluster lost the task."""
+    if type(error).__name__ not in LOST_TASK_ERRORS:
+        return error
+    lost = WorkerLost(f"the cluster lost {caller} chunk {chunk.index} ({type(error).__name__}: "
+                      f"{str(error)[:200]}); finished chunks are kept and a re-run resumes")
+    lost.__cause__ = error
+    return lost
+
 
 class Stopped(RuntimeError):
     """What a job of `run_together` raises at its next chunk once another job failed
@@ -304,7 +319,7 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
             try:
                 arrays = future.result()
             except BaseException as e:           # raised once the others done are stored
-                error = error or e
+                error = error or _lost(e, caller, chunk)
                 continue
             store.store(chunk, arrays)
             if counter is None and not hooked:
@@ -374,7 +389,7 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
         if owned:
             stop_executor(executor, abort=True)
             owned = False
-        raise RuntimeError(
+        raise WorkerLost(
             f"a {caller} worker process died (killed, out of memory, or a crash in native "
             f"code); finished chunks are kept and a re-run resumes. A script calling "
             f"{caller} without `if __name__ == '__main__':` dies so too: workers are spawned "

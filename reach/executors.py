@@ -92,6 +92,13 @@ class RespawningPool(cf.Executor):
         self.close().shutdown(wait=wait, cancel_futures=cancel_futures)
 
 
+class WorkerLost(RuntimeError):
+    """A chunk a worker could not finish for reasons outside the work itself: the worker
+    died (killed, out of memory, a crash in native code), ran other code than the
+    driver's, or the cluster lost it. Finished chunks are kept and a re-run resumes; the
+    command line says it in one line."""
+
+
 def same_loop_code(expected: str, keyed, fn, /, *args, **kwargs):
     """``fn(*args, **kwargs)`` in a pool worker whose loop code (`loop_code_digest`) is
     ``expected``, the driver's; else one line, before any result. A checkpoint or a
@@ -100,7 +107,7 @@ def same_loop_code(expected: str, keyed, fn, /, *args, **kwargs):
     from .fingerprint import loop_code_digest
     mine = loop_code_digest()
     if mine != expected:
-        raise RuntimeError(f"this worker's reachwatch source (loop code {mine[:12]}) is not the "
+        raise WorkerLost(f"this worker's reachwatch source (loop code {mine[:12]}) is not the "
                            f"driver's ({expected[:12]}): it was edited after the driver "
                            f"started; start the run again (it resumes from its caches)")
     with keyed_by_driver(keyed):

@@ -24,7 +24,7 @@ from tqdm import tqdm
 from reachwatch.systems.files import cache_join, make_folder
 from .chunk_files import FolderStore, split
 from .chunks import run_chunks
-from .executors import InlineExecutor
+from .executors import InlineExecutor, WorkerLost
 from .fingerprint import fingerprint
 
 
@@ -128,7 +128,9 @@ def map_states(fn, states, *, cache_dir, chunk_size: int = None, executor=None,
     for chunk in chunks:
         arrays = store.read(chunk)
         if arrays is None:
-            raise RuntimeError(f"chunk {chunk.index} of {key} did not finish")
+            raise WorkerLost(f"chunk {chunk.index} of {key} did not finish (its file is "
+                             f"missing or damaged after its worker stored it); a re-run "
+                             f"computes it again")
         if fields is None:
             fields = {k: np.empty((len(states),) + a.shape[1:], a.dtype) for k, a in arrays.items()}
         _check_chunk_fields(fields, arrays, chunk, key)

@@ -29,7 +29,7 @@ from reachwatch.systems.files import cache_join, cache_location, make_folder, re
 from .chunk_files import FolderStore, checksum_ok, chunk_checksum, chunk_path, read_chunk_file, split
 from .chunks import row_done, run_chunks, set_row_hook
 from .executors import (RESPAWNS, InlineExecutor, RespawningPool,  # noqa: F401
-                        executor_threads, in_flight, stop_executor)
+                        executor_threads, in_flight, stop_executor, WorkerLost)
 from .fingerprint import Unfingerprintable, fingerprint, loop_code_digest
 from .grid import Grid
 from .thread_kept import KEPT_DIAGRAMS, ThreadKept
@@ -375,7 +375,9 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
     for chunk in chunks:
         kept = store.read(chunk)        # checked again: another writer may have replaced it
         if kept is None:
-            raise RuntimeError(f"chunk {chunk.index} of {key} did not finish")
+            raise WorkerLost(f"chunk {chunk.index} of {key} did not finish (its file is "
+                             f"missing or damaged after its worker stored it); a re-run "
+                             f"computes it again")
         arrays = [kept[name] for name in names]
         if tables is None:
             tables = [np.empty((grid.size, a.shape[1])) for a in arrays]

@@ -294,3 +294,39 @@ def test_a_pool_task_runs_only_on_a_worker_with_the_drivers_loop_code(tmp_path):
     finally:
         stop_executor(same)
         stop_executor(other)
+
+
+class KilledWorker(Exception):
+    """Named as Dask's: its workers kept dying on the task."""
+
+
+def _lost_on_the_cluster(start, stop):
+    if start == 3:
+        raise KilledWorker(f"task at {start}: its workers died 3 times")
+    return _squares(start, stop)
+
+
+def test_a_task_the_cluster_lost_is_one_worker_lost_line_and_the_rest_is_kept(tmp_path):
+    from reachwatch.reach.executors import WorkerLost
+    store = FolderStore(tmp_path, keep=True)
+    with cf.ThreadPoolExecutor(1) as pool, pytest.raises(
+            WorkerLost, match=r"^the cluster lost my_job chunk 1 \(KilledWorker: task at 3: its "
+                              r"workers died 3 times\); finished chunks are kept"):
+        run_chunks(_lost_on_the_cluster, split(10, 3), store, executor=pool,
+                   args=lambda chunk: (chunk.start, chunk.stop), caller="my_job")
+    assert store.valid(split(10, 3)[0])
+
+
+def test_the_command_line_says_a_lost_worker_in_one_line(monkeypatch, capsys, tmp_path):
+    from reachwatch.pipeline import cli, reach_commands
+    from reachwatch.reach.executors import WorkerLost
+
+    def lost(args):
+        raise WorkerLost("a sweep worker process died (killed, out of memory, or a crash in "
+                         "native code); finished chunks are kept and a re-run resumes")
+    monkeypatch.setattr(reach_commands, "sweep_command", lost)
+    assert cli.main(["sweep", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert err.strip().splitlines() == ["reachwatch sweep: error: a sweep worker process died "
+                                        "(killed, out of memory, or a crash in native code); "
+                                        "finished chunks are kept and a re-run resumes"]
