@@ -97,12 +97,21 @@ def file_hash(path, length: int = 16) -> str:
 @contextlib.contextmanager
 def _replacing(path: Path):
     """A temporary file's name beside ``path``, which replaces ``path`` (with a new
-    file's mode, not mkstemp's 0600) when the block ends without an error."""
+    file's mode, not mkstemp's 0600) when the block ends without an error, its bytes on
+    disk first (``fsync``: after a power loss the name holds the whole new file or the
+    old one, not an empty one). A write that fails (a full disk) names ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
     try:
-        yield tmp
+        try:
+            yield tmp
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
+        except OSError as e:
+            if e.filename is None and e.errno is not None:
+                raise OSError(e.errno, e.strerror, str(path)) from e
+            raise
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)

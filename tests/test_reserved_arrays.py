@@ -28,3 +28,17 @@ def test_no_room_is_one_oserror_naming_the_file(tmp_path, monkeypatch):
     with pytest.raises(OSError, match=r"No space left on device: cannot reserve .* MiB for "
                                       r"the dataset array: '.*images\.npy'"):
         reserved_memmap(tmp_path / "images.npy", np.uint8, (64, 48, 80, 3))
+
+
+def test_a_failed_atomic_write_names_its_file_and_keeps_the_old_one(tmp_path, monkeypatch):
+    from reachwatch.systems.files import atomic_write_bytes
+    path = atomic_write_bytes(tmp_path / "record.json", b"old")
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(OSError) as e:
+        atomic_write_bytes(path, b"new")
+    assert e.value.filename == str(path) and e.value.errno == errno.ENOSPC
+    assert path.read_bytes() == b"old" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "record.json"]
