@@ -14,7 +14,8 @@ from reachwatch.systems.files import atomic_write_bytes, file_hash
 from reachwatch.training.baselines import estimate_error_of
 from reachwatch.training.labels import SOURCE_BRT, SOURCE_PATH, label_source, labels_name
 from reachwatch.training.detector_train import (THRESHOLD_CHOICE, held_out_operating_threshold,
-                                                operating_threshold, train_detector)
+                                                operating_threshold, train_detector,
+                                                trained_detector)
 from reachwatch.training.evaluation import (NOT_FAILED, READ_ALONG, UNIFORM_STARTS, Detector,
                                             csv_table, evaluate_environment, markdown_table,
                                             worst_mistakes)
@@ -110,9 +111,11 @@ def stage_train(run: Run) -> dict:
     tag = digest(weights, {e.name: folders[e.name] for e in spec.training_environments()})
     brt_path = run.path(f"detectors/detector_brt_{tag}.pt")
     seconds = None
-    if not brt_path.exists():
+
+    def train():
+        nonlocal seconds
         seconds = train_detector(data, config, brt_path, progress=progress)["train_seconds"]
-    model, _, meta = load_detector(brt_path)
+    model, _, meta = trained_detector(brt_path, train)
     out = {"detector": run.rel(brt_path), "validation": meta.get("validation", {}),
            "train_seconds": seconds}
 
@@ -151,8 +154,8 @@ def stage_train(run: Run) -> dict:
     labelling = [list(error.scale), float(error_threshold), baseline_code()]
     labelling_key = digest(*labelling)[:8]
     error_path = run.path(f"detectors/detector_prediction_error_{tag}_{labelling_key}.pt")
-    if not error_path.exists():
-        train_detector(data, config, error_path, progress=progress, labels=labels)
+    trained_detector(error_path, lambda: train_detector(data, config, error_path,
+                                                       progress=progress, labels=labels))
     out.update({"prediction_error_detector": run.rel(error_path),
                 "prediction_error_threshold": float(error_threshold)})
     if config.threshold_folds:          # the baseline's threshold is chosen the same way

@@ -192,3 +192,27 @@ def test_class_balance_weights_each_class_to_half_the_loss(tmp_path):
     train_labels = np.delete(data[0].labels, val)
     assert meta["class_weights"] == pytest.approx(
         class_weights(train_labels, config).tolist())
+
+
+def test_an_unreadable_checkpoint_is_trained_again_not_refused(tmp_path, caplog):
+    """A checkpoint that cannot be read where a detector would be reused (a damaged
+    file) is trained again, said in one line."""
+    from reachwatch.training.detector_train import trained_detector
+    path = tmp_path / "detector.pt"
+    path.write_bytes(b"not a checkpoint")
+    trained = []
+
+    def train():
+        trained.append(1)
+        from reachwatch.diagrams import save_checkpoint
+        from reachwatch.systems import DetectorConfig, build_detector
+        config = DetectorConfig(height=24, width=40, channels=[4, 8])
+        save_checkpoint(path, kind="detector", model=build_detector(config),
+                        model_config=config, preprocess_config=None,
+                        metadata={"image_size": [24, 40], "threshold": 0.5})
+    with caplog.at_level("WARNING", logger="reachwatch"):
+        model, config, meta = trained_detector(path, train)
+    assert trained == [1] and meta["threshold"] == 0.5
+    assert "training it again" in caplog.text
+    trained_detector(path, train)                 # readable now: not trained again
+    assert trained == [1]

@@ -1,13 +1,16 @@
 """Train the anomaly detector on BRT-labelled datasets (cross-entropy, Adam 3e-4)."""
 
 import dataclasses as dc
+import logging
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
 from reachwatch.diagrams import load_detector, save_checkpoint
+from reachwatch.diagrams.checkpoints import CheckpointError
 from reachwatch.systems import DetectorConfig, build_detector, detector_input
 from reachwatch.systems.bounds import bounded, check_bounds, seed_field
 from reachwatch.systems.checks import check_torch_device, clip, is_file, short, torch_device
@@ -284,13 +287,28 @@ def held_out_operating_threshold(datasets, config: DetectorTrainConfig, checkpoi
     for group in groups:
         names = [datasets[i].manifest["environment"] for i in group]
         path = checkpoint_for(names)
-        if not path.exists():
-            kept = [i for i in range(len(datasets)) if i not in group]
-            train_detector([datasets[i] for i in kept], config, path, progress=progress,
-                           labels=None if labels is None else [labels[i] for i in kept])
-        model, detector_config, _ = load_detector(path)
+        kept = [i for i in range(len(datasets)) if i not in group]
+        model, detector_config, _ = trained_detector(path, lambda: train_detector(
+            [datasets[i] for i in kept], config, path, progress=progress,
+            labels=None if labels is None else [labels[i] for i in kept]))
         group_labels = np.concatenate([labels_of(i) for i in group])
         scores = np.concatenate([detector_scores(model, detector_config, datasets[i].images,
                                                  device=config.device) for i in group])
         scored["+".join(names)] = (group_labels, scores)
     return held_out_threshold(scored, config.target_recall, rule=config.threshold_rule)
+
+
+def trained_detector(path, train):
+    """`load_detector` of the checkpoint at ``path``, trained first by ``train()`` when
+    there is none, or when the one there cannot be read (a run killed as it wrote it
+    before atomic writes, a damaged disk): trained again, said in one line, instead of
+    stopping the run."""
+    path = Path(path)
+    if path.exists():
+        try:
+            return load_detector(path)
+        except CheckpointError as e:
+            logging.getLogger("reachwatch").warning(f"{e}; training it again")
+            path.unlink()
+    train()
+    return load_detector(path)
