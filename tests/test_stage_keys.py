@@ -86,3 +86,23 @@ def test_a_stages_key_holds_its_code(tiny_run, monkeypatch, module, key):
     monkeypatch.setattr(module, "modules_source_digest",
                         lambda *names: real(*names) + "edited")
     assert key(run) != before
+
+
+def test_a_record_of_a_newer_reachwatch_is_refused_not_overwritten(tiny_run, tmp_path):
+    """A run directory a newer reachwatch wrote (a record format above this one's) is
+    refused in one line, not run again over it; an older one's records run again."""
+    import shutil
+    from reachwatch.pipeline.stages import RECORD_FORMAT
+    folder, _ = tiny_run
+    copy = tmp_path / "run"
+    shutil.copytree(folder / "stages", copy / "stages")
+    record_path = copy / "stages" / "dataset.json"
+    record = json.loads(record_path.read_text())
+    run = Run(load_run_spec(data=TINY), copy, progress=False, log=lambda m: None)
+    record_path.write_text(json.dumps({**record, "format": RECORD_FORMAT + 1}))
+    with pytest.raises(ValueError, match=r"dataset.json was written by a newer reachwatch "
+                                         r"\(record format"):
+        run.stage("dataset", record["key"], lambda: pytest.fail("ran over a newer record"))
+    record_path.write_text(json.dumps({**record, "format": RECORD_FORMAT - 1}))
+    assert run._read_record(record_path)[1] == f"record {record_path} has format " \
+                                                f"{RECORD_FORMAT - 1}"
