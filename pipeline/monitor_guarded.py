@@ -29,7 +29,7 @@ from reachwatch.reach.liveness import MissionOutcomes
 from reachwatch.training.monitor_eval import oracle_risks, rate
 
 from .monitor_judge import fails_after
-from .monitor_runs import alone_from_recordings, each_named
+from .monitor_runs import alone_from_recordings, continues_from_recordings, each_named
 from .monitor_sections import rate_text
 from .monitor_spec import ORACLE
 
@@ -94,7 +94,13 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
             f"the {counts['failing_after']} runs failing within {spec.within:g} s after the "
             f"window; {rendered} runs rendered, the others never reaching the threshold along "
             f"their recording")
-    if checkpoints:
+    # the oracle goes on from recorded states: only a controller that keeps no state of
+    # its own is the same loop there (else its row would fail after the others, or be wrong)
+    if checkpoints and held_out and not continues_from_recordings(
+            application, dc.replace(scenario, environment=held_out[0]["environment"])):
+        log(f"monitor: guarded real loop, {ORACLE}: left out: it goes on from recorded "
+            f"states, and this controller keeps state of its own across ticks")
+    elif checkpoints:
         rows[ORACLE] = _oracle_guarded(spec, application, scenario, held_out, alone_runs,
                                        after, next(iter(checkpoints.values())), lead=lead,
                                        cache_dir=cache_dir, executor=executor,
