@@ -42,3 +42,14 @@ def test_a_failed_atomic_write_names_its_file_and_keeps_the_old_one(tmp_path, mo
     assert e.value.filename == str(path) and e.value.errno == errno.ENOSPC
     assert path.read_bytes() == b"old" and sorted(p.name for p in tmp_path.iterdir()) == [
         "record.json"]
+
+
+@pytest.mark.parametrize("manifest", ['{"format": "reachwatch.dataset/4"}', "[1, 2]",
+                                      '{"format": "x", "samples": "40", "estimate_size": 2, '
+                                      '"chunks_done": [], "spec": {}, "labels": {}}'])
+def test_a_damaged_manifest_is_one_line_naming_the_dataset(tmp_path, manifest):
+    from reachwatch.training.dataset_files import read_manifest
+    (tmp_path / "manifest.json").write_text(manifest)
+    with pytest.raises(ValueError, match=rf"^{tmp_path} is not a readable reachwatch dataset "
+                                         rf"\(its manifest has .*\); delete it to rebuild"):
+        read_manifest(tmp_path)

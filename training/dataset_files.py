@@ -32,12 +32,27 @@ def open_array(folder: Path, name: str, rows_shape: tuple, mmap_mode=None) -> np
     return array
 
 
+#: What every dataset manifest holds, and of which type (the rest is checked where read).
+MANIFEST_FIELDS = {"format": str, "samples": int, "estimate_size": int, "chunks_done": list,
+                   "spec": dict, "labels": dict}
+
+
 def read_manifest(folder: Path) -> dict:
+    """The dataset manifest of ``folder``; a ValueError in one line when it cannot be
+    read or lacks what every manifest holds (`MANIFEST_FIELDS`)."""
     try:
-        return json.loads((folder / "manifest.json").read_text())
+        manifest = json.loads((folder / "manifest.json").read_text())
     except (OSError, ValueError) as e:
         raise ValueError(f"{folder} is not a readable reachwatch dataset ({type(e).__name__}: "
                          f"{e}); delete it to rebuild the dataset") from None
+    bad = ([] if not isinstance(manifest, dict) else
+           [k for k, t in MANIFEST_FIELDS.items()
+            if not isinstance(manifest.get(k), t) or isinstance(manifest.get(k), bool)])
+    if not isinstance(manifest, dict) or bad:
+        what = "not an object" if not isinstance(manifest, dict) else f"bad or no {', '.join(bad)}"
+        raise ValueError(f"{folder} is not a readable reachwatch dataset (its manifest has "
+                         f"{what}); delete it to rebuild the dataset")
+    return manifest
 
 
 def write_manifest(folder, manifest):
