@@ -19,6 +19,7 @@ The loop is the application's (`reachwatch.reach.application.Application`): its
 the run file's (`reachwatch.pipeline.spec`)."""
 
 import dataclasses as dc
+import math
 import time
 from pathlib import Path
 
@@ -85,8 +86,11 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                              f"trainings and checkpoints back as files), got {where}")
     application = load_application() if application is None else application
     started = time.time()
-    period, speed = scenario.controller.period, scenario.controller.speed
-    lead = speed / spec.brake_deceleration
+    period = scenario.controller.period
+    lead = float(application.stopping_time(scenario, spec.brake_deceleration))
+    if not (math.isfinite(lead) and lead > 0):
+        raise ValueError(f"the application '{application.name}': stopping_time must be a "
+                         f"number of seconds > 0, got {lead!r}")
     split = spec.environments()
     first = {"train": 0, "calibrate": spec.train, "held_out": spec.train + spec.calibrate,
              "also_held_out": spec.train + spec.calibrate + spec.held_out}

@@ -446,6 +446,14 @@ class Application(abc.ABC):
     #: (the ``dead_reckoning`` steering); None: that steering is refused.
     carry_estimate = None
 
+    def stopping_time(self, scenario, deceleration: float) -> float:
+        """Seconds braking at ``deceleration`` m/s^2 takes to stop the plant: how long
+        ahead of a failure a monitor must warn for the braking fallback to prevent it
+        (the monitor study's lead). Default: the controller's speed over the
+        deceleration, for a plant whose speed follows its command at once; a plant whose
+        speed lags its command, or that may run faster, says its own."""
+        return scenario.controller.speed / deceleration
+
     def fallback_policy(self, scenario):
         """What a fallback that takes over the steering (``oracle``, ``dead_reckoning``)
         steers with: a function of ``(n, k)`` estimates to steering (rad); None (the

@@ -282,3 +282,23 @@ def test_an_applications_ensemble_folder_is_keyed_by_its_code(tmp_path):
     assert len({folder(None), folder({"code": "a"}), folder({"code": "b"})}) == 3
     assert folder({"code": "a"}) == folder({"code": "a"})
     assert folder({"code": "a"}, seeds=()) is None
+
+
+def test_the_stopping_time_is_the_applications():
+    """The monitor study's lead: the controller's speed over the deceleration by
+    default; the speed car's speed lags its command and may start at 6 m/s."""
+    import re
+    from pathlib import Path
+    scenario = load_scenario(data="controller: {speed: 5.0}\n")
+    assert load_application().stopping_time(scenario, 3.0) == pytest.approx(5.0 / 3.0)
+    root = Path(__file__).resolve().parents[1]
+    spec = re.search(r"^application: *(\S+)", (root / "examples/speed_car/run.yaml").read_text(),
+                     re.M).group(1)
+    import os
+    here = os.getcwd()
+    os.chdir(root)
+    try:
+        car = load_application(spec)
+    finally:
+        os.chdir(here)
+    assert car.stopping_time(scenario, 3.0) == pytest.approx(6.0 / 3.0 + 1.0)

@@ -48,6 +48,11 @@ class SpeedCar(RunwayEnvironments, Application):
         return LagCarDynamics(half_width=scenario.environment.half_width,
                               speed=scenario.controller.speed, time_constant=TIME_CONSTANT)
 
+    def stopping_time(self, scenario, deceleration):
+        """From the box's top speed (6 m/s, as fast as a start may go), the speed
+        command braked at ``deceleration``, and the speed one time constant behind it."""
+        return max(6.0, scenario.controller.speed) / deceleration + TIME_CONSTANT
+
     def grid(self, scenario, shape, **widen):
         """px across the runway, py 100-250 m, theta +-28 deg, v 0-6 m/s (the run file's
         widening of the taxi's box does not apply)."""
