@@ -28,7 +28,8 @@ from reachwatch.systems.files import (atomic_write_bytes, cache_join, cache_root
 #: ``{relative: [size, mtime_ns, inode]}``).
 PUSHED = ".pushed.json"
 
-#: How many files `RunMirror.push` puts between two saves of `PUSHED`.
+#: How many files `RunMirror.push` puts, or `RunMirror.pull` fetches, between two saves
+#: of `PUSHED`.
 SAVE_EVERY = 200
 
 #: Files always fetched again by `RunMirror.pull` (small; they say what is valid).
@@ -84,19 +85,23 @@ class RunMirror:
             raise ValueError(f"--out {self.url}: cannot list it ({type(e).__name__}: "
                              f"{e})") from None
         pushed, fetched = self._pushed(), 0
-        for relative, size in sorted(remote.items()):
-            target = self.local / relative
-            if os.path.basename(relative).startswith("."):
-                continue                          # a temporary file a killed put left
-            if target.is_file() and pushed.get(relative) != self._signature(relative):
-                continue                          # work here not put yet: it is newer
-            if not (_is_record(relative) or not target.is_file()
-                    or target.stat().st_size != size):
-                continue
-            get_location(cache_join(self.url, relative), target)
-            pushed[relative] = self._signature(relative)
-            fetched += 1
-        self._save(pushed)
+        try:
+            for relative, size in sorted(remote.items()):
+                target = self.local / relative
+                if os.path.basename(relative).startswith("."):
+                    continue                      # a temporary file a killed put left
+                if target.is_file() and pushed.get(relative) != self._signature(relative):
+                    continue                      # work here not put yet: it is newer
+                if not (_is_record(relative) or not target.is_file()
+                        or target.stat().st_size != size):
+                    continue
+                get_location(cache_join(self.url, relative), target)
+                pushed[relative] = self._signature(relative)
+                fetched += 1
+                if fetched % SAVE_EVERY == 0:     # a pull killed later keeps what it fetched
+                    self._save(pushed)
+        finally:            # interrupted too: what was fetched counts as put, not as work here
+            self._save(pushed)
         return fetched
 
     def push(self, only: Callable[[str], bool] = None, stop: threading.Event = None) -> int:

@@ -67,6 +67,29 @@ def test_push_puts_what_changed_records_last_and_pull_fetches_it_elsewhere(
     assert RunMirror(url + "_other", work).push() == 3
 
 
+def test_a_pull_interrupted_keeps_what_it_fetched_as_put(tmp_path, url, monkeypatch):
+    """A pull stopped half-way (Ctrl-C, a lost connection) records the files it fetched
+    as put, so the next push does not put them back as work of its own."""
+    work = tmp_path / "work"
+    (work / "sweeps").mkdir(parents=True)
+    for i in range(4):
+        (work / "sweeps" / f"chunk_{i:06d}.npz").write_bytes(b"x" * (i + 1))
+    RunMirror(url, work).push()
+    get, calls = run_mirror.get_location, []
+
+    def flaky(location, target):
+        calls.append(location)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        get(location, target)
+    monkeypatch.setattr(run_mirror, "get_location", flaky)
+    elsewhere = RunMirror(url, tmp_path / "elsewhere")
+    with pytest.raises(KeyboardInterrupt):
+        elsewhere.pull()
+    monkeypatch.setattr(run_mirror, "get_location", get)
+    assert elsewhere.push() == 0                 # the two fetched count as put
+
+
 def test_a_url_that_cannot_be_a_mirror_is_one_line(tmp_path):
     with pytest.raises(ValueError, match="not an fsspec URL"):
         RunMirror(str(tmp_path / "plain"), tmp_path / "work")
