@@ -30,6 +30,11 @@ class CheckpointError(ValueError):
     """A checkpoint file that is missing, corrupt, or not what was asked for."""
 
 
+class UnreadableCheckpoint(CheckpointError):
+    """A checkpoint file whose bytes torch cannot read: empty, truncated, or not a
+    checkpoint at all (what may be written again; not one of another version or kind)."""
+
+
 def save_checkpoint(path, *, kind: str, model: torch.nn.Module, model_config,
                     preprocess_config, metadata: dict) -> Path:
     """Write a checkpoint of ``kind`` (e.g. ``taxinet``) atomically; returns the path.
@@ -65,7 +70,7 @@ def load_checkpoint(path, *, kind) -> dict:
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
     if path.stat().st_size == 0:
-        raise CheckpointError(f"{path} is empty, not a checkpoint")
+        raise UnreadableCheckpoint(f"{path} is empty, not a checkpoint")
     if keyed_check_active():            # hashed only in a task that brought its keys
         try:
             check_keyed(named, file_hash(path, 64), f"the checkpoint {named}")
@@ -73,12 +78,14 @@ def load_checkpoint(path, *, kind) -> dict:
             raise CheckpointError(str(e)) from None
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
+    except OSError:         # the system refused (permissions, an I/O error): as it said
+        raise
     except Exception as e:  # torch raises several types for truncated/foreign files
         # its first line, less its advice on loading files one trusts
         first = ("it holds Python objects that a weights-only load refuses"
                  if "Weights only load failed" in str(e) else
                  re.sub(r"\x1b\[[0-9;]*m", "", (str(e).strip().splitlines() or [""])[0]))
-        raise CheckpointError(f"{path} is not a readable checkpoint (corrupt, truncated or "
+        raise UnreadableCheckpoint(f"{path} is not a readable checkpoint (corrupt, truncated or "
                               f"not written by reachwatch): {type(e).__name__}: "
                               f"{first[:200]}") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:

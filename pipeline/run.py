@@ -6,6 +6,7 @@ same key (a digest of its inputs: the settings it reads and, for the stages befo
 outputs it reads, `Run.content_key`: their keys and the content of every file they wrote),
 and resumes its chunked work when it was killed."""
 
+import errno
 import fcntl
 import os
 from pathlib import Path
@@ -106,33 +107,54 @@ def report_key(run) -> str:
 LOCK_NAME = ".reachwatch.lock"
 
 
+#: The run directories this process holds: {resolved path: [fd, holds]}.
+_HELD = {}
+
+
 def hold_run_folder(out):
-    """An exclusive lock (``fcntl.flock``) on the run directory ``out`` for this process,
-    or a ValueError in one line when another process holds it: two runs on one folder
-    would write the same files (a dataset's images truncated under the other's feet).
-    None where the folder cannot hold one (read-only: such a run writes nothing)."""
+    """An exclusive lock (``fcntl.flock``) on the run directory ``out`` for this process
+    (held again by the same process, it counts), or a ValueError in one line when
+    another process holds it: two runs on one folder would write the same files (a
+    dataset's images truncated under the other's feet). None where the folder cannot
+    hold one (read-only: such a run writes nothing; a file system without ``flock``:
+    said in one line). It guards the folder on this machine: two machines working on
+    one ``--out`` URL each in a folder of their own are not held apart."""
     root = Path(out)
     try:
         root.mkdir(parents=True, exist_ok=True)
+        key = root.resolve()
+        if key in _HELD:
+            _HELD[key][1] += 1
+            return key
         fd = os.open(root / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
     except OSError:
         return None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    except OSError as e:
         holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
         os.close(fd)
+        if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+            log.warning(f"{out}: cannot lock it ({e.strerror}); running without the lock "
+                        f"that keeps a second run out")
+            return None
         raise ValueError(f"{out} is in use by another reachwatch run"
                          f"{f' (pid {holder})' if holder.isdigit() else ''}: wait for it to "
                          f"end, or give another --out") from None
     os.ftruncate(fd, 0)
     os.pwrite(fd, str(os.getpid()).encode(), 0)
-    return fd
+    _HELD[key] = [fd, 1]
+    return key
 
 
-def release_run_folder(fd) -> None:
-    """Lets go of `hold_run_folder`'s lock (the file stays: removing it would race)."""
-    if fd is not None:
+def release_run_folder(held) -> None:
+    """Lets go of a `hold_run_folder` hold (the lock file stays: removing it would
+    race); the lock itself when the last hold goes."""
+    if held is None or held not in _HELD:
+        return
+    _HELD[held][1] -= 1
+    if _HELD[held][1] == 0:
+        fd, _ = _HELD.pop(held)
         fcntl.flock(fd, fcntl.LOCK_UN)
         os.close(fd)
 

@@ -60,7 +60,7 @@ def run_command(args):
     from .commands import scenario_from_args
     from .console import log, progress_enabled
     from .executors import open_executor
-    from .run import run_pipeline
+    from .run import hold_run_folder, release_run_folder, run_pipeline
     from .run_mirror import RunMirror
     from .spec import RunSpec
     if not (args.push_every == 0 or 1 <= args.push_every <= MAX_PUSH_EVERY):
@@ -81,10 +81,16 @@ def run_command(args):
     def stamp(message):
         log.info(f"{time.time() - started:7.1f} s  {message}")
 
-    mirror, out = None, args.out
+    mirror, out, held = None, args.out, None
     if is_url(args.out):
         mirror = RunMirror(args.out, getattr(args, "work_dir", None))
-        stamp(f"{args.out}: working in {mirror.local}; fetched {mirror.pull()} files")
+        # the working directory is held before anything is fetched into it or put from it
+        held = hold_run_folder(mirror.local)
+        try:
+            stamp(f"{args.out}: working in {mirror.local}; fetched {mirror.pull()} files")
+        except BaseException:
+            release_run_folder(held)
+            raise
         out = mirror.local
 
     def push(stage):
@@ -92,22 +98,25 @@ def run_command(args):
             stamp(f"[{stage}] {mirror.push()} files put to {mirror.url}")
 
     try:
-        pushing = (mirror.pushing_every(args.push_every, stamp, log.warning)
-                   if mirror is not None else contextlib.nullcontext())
-        with open_executor(args.executor) as executor, pushing:
-            run = run_pipeline(spec, out, executor=executor, until=until,
-                               sweep_cache=args.sweep_cache, only=args.only,
-                               progress=progress_enabled(), log=stamp, after_stage=push)
-    except BaseException:  # what finished before an error or an interrupt is put there too
         try:
-            push("end")
-        except Exception as e:     # the run's own error is the one to see
-            log.warning(f"could not put the working directory to {args.out}: "
-                        f"{type(e).__name__}: {e}")
-        raise
-    push("end")
-    log.info(f"run '{spec.name}' up to {until} finished in {time.time() - started:.0f} s")
-    if "report" in run.outputs and run.outputs["report"]:
-        log.info(f"report: {run.path(run.outputs['report']['html'])} "
-                 f"(and {run.path(run.outputs['report']['md'])})"
-                 + (f", put to {mirror.url}" if mirror is not None else ""))
+            pushing = (mirror.pushing_every(args.push_every, stamp, log.warning)
+                       if mirror is not None else contextlib.nullcontext())
+            with open_executor(args.executor) as executor, pushing:
+                run = run_pipeline(spec, out, executor=executor, until=until,
+                                   sweep_cache=args.sweep_cache, only=args.only,
+                                   progress=progress_enabled(), log=stamp, after_stage=push)
+        except BaseException:  # what finished before an error or an interrupt is put there too
+            try:
+                push("end")
+            except Exception as e:     # the run's own error is the one to see
+                log.warning(f"could not put the working directory to {args.out}: "
+                            f"{type(e).__name__}: {e}")
+            raise
+        push("end")
+        log.info(f"run '{spec.name}' up to {until} finished in {time.time() - started:.0f} s")
+        if "report" in run.outputs and run.outputs["report"]:
+            log.info(f"report: {run.path(run.outputs['report']['html'])} "
+                     f"(and {run.path(run.outputs['report']['md'])})"
+                     + (f", put to {mirror.url}" if mirror is not None else ""))
+    finally:
+        release_run_folder(held)

@@ -166,10 +166,14 @@ class Run:
         if not isinstance(record, dict) or any(not isinstance(record.get(k), t)
                                                for k, t in needed.items()):
             return None, f"record {record_path} is corrupt (not a stage record)"
+        if record["format"] > RECORD_FORMAT and record.get("check") != record_check(record):
+            return None, (f"record {record_path} is corrupt (format {record['format']}, above "
+                          f"this reachwatch's, and its check does not match)")
         if record["format"] > RECORD_FORMAT:
             raise ValueError(f"{record_path} was written by a newer reachwatch (record format "
                              f"{record['format']}, this one reads {RECORD_FORMAT}): run it "
-                             f"with that version, or give another --out")
+                             f"with that version, or give another --out (or delete the "
+                             f"record to run its stage again here)")
         if record["format"] != RECORD_FORMAT:
             return None, f"record {record_path} has format {record['format']}"
         # A record written before records carried a check has none: it gets one when reused.

@@ -177,13 +177,15 @@ def check_source_unchanged(*names):
             continue
         modified = stat.st_mtime_ns
         if modified > PROCESS_START_NS:
-            if modified > time.time_ns():
+            seen = _FUTURE_DATED.get(path)
+            if seen is None and modified > time.time_ns():
                 # dated in the future (a checkout from a machine whose clock runs ahead):
                 # its time says nothing; it is taken as imported the first time it is
-                # seen, and any later change of its time or size is a change
-                if _FUTURE_DATED.setdefault(path, (modified, stat.st_size)) == (
-                        modified, stat.st_size):
-                    continue
+                # seen (and so after the clock passes its date), and any later change of
+                # its time or size is a change
+                seen = _FUTURE_DATED.setdefault(path, (modified, stat.st_size))
+            if seen == (modified, stat.st_size):
+                continue
             raise SourceChanged(
                 f"{module_name} ({path}) changed on disk after this process started: its "
                 f"results would be keyed with code it does not run; start it again (a "

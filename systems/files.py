@@ -3,6 +3,7 @@ the copies of files that came with a task (`local_copy`)."""
 
 import contextlib
 import contextvars
+import errno
 import hashlib
 import os
 import shutil
@@ -99,19 +100,13 @@ def _replacing(path: Path):
     """A temporary file's name beside ``path``, which replaces ``path`` (with a new
     file's mode, not mkstemp's 0600) when the block ends without an error, its bytes on
     disk first (``fsync``: after a power loss the name holds the whole new file or the
-    old one, not an empty one). A write that fails (a full disk) names ``path``."""
+    old one, not an empty one; a file system that cannot sync is let be)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
     try:
-        try:
-            yield tmp
-            with open(tmp, "rb+") as f:
-                os.fsync(f.fileno())
-        except OSError as e:
-            if e.filename is None and e.errno is not None:
-                raise OSError(e.errno, e.strerror, str(path)) from e
-            raise
+        yield tmp
+        _synced(tmp, path)
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
@@ -121,12 +116,31 @@ def _replacing(path: Path):
         raise
 
 
+def _synced(tmp, path: Path) -> None:
+    """``fsync`` of the file ``tmp`` (about to replace ``path``); an error names
+    ``path``, except that a file system without ``fsync`` is let be."""
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError as e:
+        if e.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EROFS):
+            raise OSError(e.errno, e.strerror, str(path)) from e
+    finally:
+        os.close(fd)
+
+
 def atomic_write_bytes(path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` via a temporary file in the same folder + rename."""
+    """Write ``data`` to ``path`` via a temporary file in the same folder + rename; a
+    write that fails (a full disk) names ``path``."""
     path = Path(path)
     with _replacing(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(data)
+        try:
+            with open(tmp, "wb") as f:
+                f.write(data)
+        except OSError as e:
+            if e.filename is None and e.errno is not None:
+                raise OSError(e.errno, e.strerror, str(path)) from e
+            raise
     return path
 
 

@@ -329,4 +329,5 @@ def test_the_command_line_says_a_lost_worker_in_one_line(monkeypatch, capsys, tm
     err = capsys.readouterr().err
     assert err.strip().splitlines() == ["reachwatch sweep: error: a sweep worker process died "
                                         "(killed, out of memory, or a crash in native code); "
-                                        "finished chunks are kept and a re-run resumes"]
+                                        "finished chunks are kept and a re-run resumes; -v "
+                                        "shows the traceback"]

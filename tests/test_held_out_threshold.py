@@ -216,3 +216,17 @@ def test_an_unreadable_checkpoint_is_trained_again_not_refused(tmp_path, caplog)
     assert "training it again" in caplog.text
     trained_detector(path, train)                 # readable now: not trained again
     assert trained == [1]
+
+
+def test_a_checkpoint_of_another_version_is_refused_not_trained_over(tmp_path):
+    """Only a file torch cannot read is trained again; one a newer reachwatch wrote is
+    refused as it is, and kept."""
+    import torch
+    from reachwatch.diagrams.checkpoints import CheckpointError, UnreadableCheckpoint
+    from reachwatch.training.detector_train import trained_detector
+    path = tmp_path / "detector.pt"
+    from reachwatch.diagrams import checkpoints
+    torch.save({"format": checkpoints.FORMAT, "version": 10**6}, path)
+    with pytest.raises(CheckpointError) as e:
+        trained_detector(path, lambda: pytest.fail("trained over a newer checkpoint"))
+    assert not isinstance(e.value, UnreadableCheckpoint) and path.is_file()

@@ -28,6 +28,7 @@ def test_no_room_is_one_oserror_naming_the_file(tmp_path, monkeypatch):
     with pytest.raises(OSError, match=r"No space left on device: cannot reserve .* MiB for "
                                       r"the dataset array: '.*images\.npy'"):
         reserved_memmap(tmp_path / "images.npy", np.uint8, (64, 48, 80, 3))
+    assert not (tmp_path / "images.npy").exists()          # what was reserved given back
 
 
 def test_a_failed_atomic_write_names_its_file_and_keeps_the_old_one(tmp_path, monkeypatch):

@@ -2,7 +2,8 @@
 process is running in is refused in one line before it writes anything (two runs would
 write the same files: a dataset's images truncated under the other's feet)."""
 
-import os
+import subprocess
+import sys
 
 import pytest
 
@@ -11,19 +12,34 @@ from reachwatch.pipeline.spec import load_run_spec
 from tiny_run import TINY
 
 
+HOLDER = """
+import sys, time
+from reachwatch.pipeline.run import hold_run_folder
+hold_run_folder(sys.argv[1])
+print("held", flush=True)
+time.sleep(60)
+"""
+
+
 def test_a_second_run_on_a_folder_in_use_is_refused_and_writes_nothing(tmp_path):
     out = tmp_path / "study"
-    held = hold_run_folder(out)                  # as the other run holds it
+    other = subprocess.Popen([sys.executable, "-c", HOLDER, str(out)], stdout=subprocess.PIPE,
+                             text=True)                  # the other run, holding the folder
     try:
+        assert other.stdout.readline().strip() == "held"
         with pytest.raises(ValueError, match=rf"{out} is in use by another reachwatch run "
-                                             rf"\(pid {os.getpid()}\): wait for it to end"):
+                                             rf"\(pid {other.pid}\): wait for it to end"):
             run_pipeline(load_run_spec(data=TINY), out, progress=False, log=lambda m: None,
                          until="sweep")
         assert sorted(p.name for p in out.iterdir()) == [".reachwatch.lock"]
     finally:
-        release_run_folder(held)
-    again = hold_run_folder(out)                 # let go: the folder is free again
+        other.kill()
+        other.wait()
+    held = hold_run_folder(out)                  # let go with its process: free again
+    assert held is not None
+    again = hold_run_folder(out)                 # this process may hold it again (nested)
     release_run_folder(again)
+    release_run_folder(held)
 
 
 def test_a_folder_that_cannot_hold_a_lock_is_left_to_the_runs_own_checks(tmp_path):

@@ -99,10 +99,15 @@ def test_a_record_of_a_newer_reachwatch_is_refused_not_overwritten(tiny_run, tmp
     record_path = copy / "stages" / "dataset.json"
     record = json.loads(record_path.read_text())
     run = Run(load_run_spec(data=TINY), copy, progress=False, log=lambda m: None)
-    record_path.write_text(json.dumps({**record, "format": RECORD_FORMAT + 1}))
+    from reachwatch.pipeline.stages import record_check
+    newer = {**record, "format": RECORD_FORMAT + 1}
+    record_path.write_text(json.dumps({**newer, "check": record_check(newer)}))
     with pytest.raises(ValueError, match=r"dataset.json was written by a newer reachwatch "
                                          r"\(record format"):
         run.stage("dataset", record["key"], lambda: pytest.fail("ran over a newer record"))
+    # a format damaged by hand (its check no longer matches) is a corrupt record: run again
+    record_path.write_text(json.dumps(newer))
+    assert "is corrupt" in run._read_record(record_path)[1]
     record_path.write_text(json.dumps({**record, "format": RECORD_FORMAT - 1}))
     assert run._read_record(record_path)[1] == f"record {record_path} has format " \
                                                 f"{RECORD_FORMAT - 1}"

@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from reachwatch.diagrams import load_detector, save_checkpoint
-from reachwatch.diagrams.checkpoints import CheckpointError
+from reachwatch.diagrams.checkpoints import UnreadableCheckpoint
 from reachwatch.systems import DetectorConfig, build_detector, detector_input
 from reachwatch.systems.bounds import bounded, check_bounds, seed_field
 from reachwatch.systems.checks import check_torch_device, clip, is_file, short, torch_device
@@ -300,14 +300,15 @@ def held_out_operating_threshold(datasets, config: DetectorTrainConfig, checkpoi
 
 def trained_detector(path, train):
     """`load_detector` of the checkpoint at ``path``, trained first by ``train()`` when
-    there is none, or when the one there cannot be read (a run killed as it wrote it
-    before atomic writes, a damaged disk): trained again, said in one line, instead of
-    stopping the run."""
+    there is none, or when torch cannot read the one there (empty, truncated: a run
+    killed as it wrote it before atomic writes, a damaged disk): trained again, said in
+    one line, instead of stopping the run. One of another version or kind, or with
+    weights that are not finite, is refused as `load_detector` says (not deleted)."""
     path = Path(path)
     if path.exists():
         try:
             return load_detector(path)
-        except CheckpointError as e:
+        except UnreadableCheckpoint as e:
             logging.getLogger("reachwatch").warning(f"{e}; training it again")
             path.unlink()
     train()
