@@ -4,14 +4,14 @@ table rollouts take any period (1/30 s, 0.025 s)."""
 
 import numpy as np
 import pytest
-import torch
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource, ZeroOrderHold
 
 from reachwatch.diagrams import simulate
 from reachwatch.diagrams.closed_loop import export_loop_ports
-from reachwatch.reach import Dynamics, Grid, min_target_along_rollouts
+from reachwatch.reach import Grid, min_target_along_rollouts
 from reachwatch.reach.rollouts import rollout_steps
+from test_reach_nd import DoubleIntegrator          # p' = v, v' = u; target 1 - |p|
 
 
 class _Drift(LeafSystem):
@@ -76,24 +76,13 @@ def test_rollout_steps_of_dt_where_the_period_allows():
     assert rollout_steps(2.0, 0.01) == [(0.01, False)] * 200
 
 
-class _Falling(Dynamics):
-    """p' = v, v' = u; target 1 - |p|."""
-    state_dim, control_dim = 2, 1
-
-    def vector_field(self, x, u):
-        return torch.stack([x[..., 1], u[..., 0]], dim=-1)
-
-    def target(self, x):
-        return 1.0 - x[..., 0].abs()
-
-
 def test_table_rollouts_take_a_period_that_is_no_multiple_of_their_step():
     """A constant control of 1 from rest: p(t) = t^2 / 2, which RK4 integrates exactly,
     so the lowest target over 1 s is 0.5 whatever the period."""
     grid = Grid(lo=[-2.0, -2.0], hi=[2.0, 2.0], shape=[5, 5], names=("p", "v"))
     table = np.ones(grid.shape)
     for hold in (1 / 30, 0.025, None):
-        lowest = min_target_along_rollouts(grid, _Falling(), table, [[0.0, 0.0]], horizon=1.0,
+        lowest = min_target_along_rollouts(grid, DoubleIntegrator(), table, [[0.0, 0.0]], horizon=1.0,
                                            hold=hold)
         assert lowest[0] == pytest.approx(0.5, abs=1e-12)
 

@@ -138,26 +138,19 @@ def test_the_monitor_study_key_covers_the_training_code_it_imports():
     time-to-failure labels, were). systems/ and diagrams/ are not walked."""
     from reachwatch.pipeline.monitor_study import STUDY_CODE
     code = {name.removeprefix("reachwatch.") for name in STUDY_CODE}
-    seen, todo = set(), sorted(code)
-    while todo:
-        name = todo.pop()
-        if name in seen:
-            continue
-        seen.add(name)
-        package, module = name.split(".")
-        for _, to, what in imports(package, ROOT / package / f"{module}.py"):
-            if what and (to == "training" or (to == "pipeline" and what.startswith("monitor"))):
-                todo.append(f"{to}.{what}")
-            elif what and to == "reach" and package != "reach":
-                seen.add(f"{to}.{what}")
+    seen = _walked(code, lambda to, what: to == "training" or (
+        to == "pipeline" and what.startswith("monitor")), reach_once=True)
     missing = sorted(seen - code - set(OUTSIDE_STUDY_KEY))
     assert not missing, f"add to pipeline.monitor_study.STUDY_CODE: {missing}"
     assert set(OUTSIDE_STUDY_KEY) <= seen, "OUTSIDE_STUDY_KEY names a module no longer used"
 
 
-def _walked(code) -> set:
-    """The modules of training/ and the pipeline's stage modules (``*_stage``,
-    ``*_stages``) that the modules ``code`` import, directly or through each other."""
+def _walked(code, follows=lambda to, what: to == "training" or (
+        to == "pipeline" and what.endswith(("_stage", "_stages"))), reach_once=False) -> set:
+    """The modules ``code`` import, directly or through each other, where ``follows(to,
+    module)`` (default: training/ and the pipeline's stage modules, ``*_stage``,
+    ``*_stages``); with ``reach_once``, also each reach/ module those outside reach/
+    import, not followed further (reach/ reaches the whole loop, keyed apart)."""
     seen, todo = set(), sorted(code)
     while todo:
         name = todo.pop()
@@ -166,9 +159,10 @@ def _walked(code) -> set:
         seen.add(name)
         package, module = name.split(".")
         for _, to, what in imports(package, ROOT / package / f"{module}.py"):
-            if what and (to == "training" or (to == "pipeline" and what.endswith(
-                    ("_stage", "_stages")))):
+            if what and follows(to, what):
                 todo.append(f"{to}.{what}")
+            elif what and reach_once and to == "reach" and package != "reach":
+                seen.add(f"{to}.{what}")
     return seen
 
 
