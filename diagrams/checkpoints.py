@@ -5,6 +5,7 @@ only tensors and plain Python values. Written atomically.
 """
 
 import dataclasses as dc
+import errno
 import io
 import json
 import math
@@ -78,8 +79,12 @@ def load_checkpoint(path, *, kind) -> dict:
             raise CheckpointError(str(e)) from None
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except OSError:         # the system refused (permissions, an I/O error): as it said
-        raise
+    except OSError as e:
+        if e.errno in (errno.EACCES, errno.EPERM, errno.EIO):
+            raise           # the system refused (permissions, an I/O error): as it said
+        raise UnreadableCheckpoint(f"{path} is not a readable checkpoint (corrupt, truncated "
+                                   f"or not written by reachwatch): {type(e).__name__}: "
+                                   f"{str(e)[:200]}") from None
     except Exception as e:  # torch raises several types for truncated/foreign files
         # its first line, less its advice on loading files one trusts
         first = ("it holds Python objects that a weights-only load refuses"

@@ -140,8 +140,7 @@ def reserved_memmap(path: Path, dtype, shape) -> np.memmap:
     except OSError as e:
         if e.errno in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
             return array
-        del array
-        path.unlink(missing_ok=True)
+        path.unlink(missing_ok=True)     # (its mapping, let go with this frame, frees it)
         raise OSError(e.errno, f"{e.strerror}: cannot reserve {size / 2**20:.1f} MiB for "
                                f"the dataset array", str(path)) from None
     return array
