@@ -80,8 +80,8 @@ def load_checkpoint(path, *, kind) -> dict:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except OSError as e:
-        if e.errno in (errno.EACCES, errno.EPERM, errno.EIO):
-            raise           # the system refused (permissions, an I/O error): as it said
+        if e.errno not in (None, errno.EINVAL):     # torch's error for a truncated file
+            raise CheckpointError(f"{path}: cannot read it ({e.strerror or e})") from None
         raise UnreadableCheckpoint(f"{path} is not a readable checkpoint (corrupt, truncated "
                                    f"or not written by reachwatch): {type(e).__name__}: "
                                    f"{str(e)[:200]}") from None

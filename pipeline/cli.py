@@ -176,8 +176,8 @@ def main(argv=None) -> int:
         if type(e).__name__ == "WorkerLost" and not args.verbose:
             # (`reach.executors.WorkerLost`, by name: the parser imports no torch) a worker
             # died, ran other code, or the cluster lost a task: what, and what is kept
-            print(_clip(f"reachwatch {name}: error: {e}") + "; -v shows the traceback",
-                  file=sys.stderr)
+            print(_clip(f"reachwatch {name}: error: {_clip_message(e)}; -v shows the "
+                        f"traceback"), file=sys.stderr)
             return 1
         # raised inside the user's own code (a controller's calc): where, in one line;
         # anything else (a bug of reachwatch's) keeps its traceback, as does -v

@@ -130,7 +130,8 @@ class MonitorStudySpec:
     fallback: the default suits braking's 1.67 s from 5 m/s at 3 m/s^2.
 
     ``brake_deceleration``: the fallback's braking, m/s^2; a warning counts when it
-    comes at least speed / deceleration s before the failure.
+    comes at least the application's stopping time before the failure
+    (`Application.stopping_time`; by default speed / deceleration s).
 
     ``alpha``: the threshold bounds the expected miss rate of a new environment of the
     family at alpha, an environment where no run fails counting as missing none (so

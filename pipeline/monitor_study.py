@@ -87,10 +87,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     application = load_application() if application is None else application
     started = time.time()
     period = scenario.controller.period
-    lead = float(application.stopping_time(scenario, spec.brake_deceleration))
-    if not (math.isfinite(lead) and lead > 0):
-        raise ValueError(f"the application '{application.name}': stopping_time must be a "
-                         f"number of seconds > 0, got {lead!r}")
+    lead = study_lead(spec, application, scenario)
     split = spec.environments()
     first = {"train": 0, "calibrate": spec.train, "held_out": spec.train + spec.calibrate,
              "also_held_out": spec.train + spec.calibrate + spec.held_out}
@@ -353,17 +350,30 @@ def member_settings(spec: MonitorStudySpec, application=None) -> list:
     return [dc.replace(settings, seed=k * settings.seed + m) for m in range(k)]
 
 
+def study_lead(spec: MonitorStudySpec, application, scenario) -> float:
+    """How far ahead of a failure a warning must come: the application's
+    `stopping_time` under the study's braking, checked (a one-line error else)."""
+    lead = application.stopping_time(scenario, spec.brake_deceleration)
+    if isinstance(lead, bool) or not isinstance(lead, (int, float, np.floating, np.integer)) \
+            or not (math.isfinite(lead) and lead > 0):
+        raise ValueError(f"the application '{application.name}': stopping_time must be a "
+                         f"number of seconds > 0, got {lead!r}")
+    return float(lead)
+
+
 def study_key(spec: MonitorStudySpec, application, scenario, detector=None) -> str:
     """The monitor stage's key: the study's settings and every training setting
     (`train_settings`), the scenario's content (checkpoints and controller code
     included), the application's code unless it is the default, the source of
-    `STUDY_CODE`, and the content of the ``detector`` judged beside (when one is)."""
+    `STUDY_CODE`, the lead (`study_lead`), and the content of the ``detector`` judged
+    beside (when one is)."""
     from reachwatch.reach.fingerprint import fingerprint, modules_source_digest
     from .spec import digest
     own = application_key(application)          # None for the default (the taxi)
     return digest(dc.asdict(spec), dc.asdict(train_settings(spec, application)),
                   fingerprint(application.without_monitor(scenario)), *([own] if own else []),
-                  {"study": STUDY_FORMAT, "code": modules_source_digest(*STUDY_CODE)},
+                  {"study": STUDY_FORMAT, "code": modules_source_digest(*STUDY_CODE),
+                   "lead_s": study_lead(spec, application, scenario)},
                   *([file_hash(detector)] if detector is not None else []))
 
 

@@ -38,7 +38,8 @@ SLICE_UNTIL = "fidelity"
 
 
 def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=True,
-                 log=log.info, sweep_cache=None, only=None, after_stage=None) -> Run:
+                 log=log.info, sweep_cache=None, only=None, after_stage=None,
+                 folder_held: bool = False) -> Run:
     """Run (or resume) every stage up to ``until``; returns the `Run` with its records.
 
     ``only`` (environment names) runs a slice: the per-environment stages (sweep,
@@ -48,7 +49,8 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     figures be read as they come: a slice up to fidelity writes ``checked.html`` (and
     ``.md``), the fidelity section over every environment checked so far in ``out``
     (`write_checked_page`). ``after_stage(name)`` is called after each stage (a
-    `RunMirror` pushes the run directory to its URL there)."""
+    `RunMirror` pushes the run directory to its URL there). The run holds ``out``
+    while it runs (`hold_run_folder`), unless the caller does (``folder_held``)."""
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got '{until}'")
     spec.validate()
@@ -57,7 +59,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     if STAGES.index(until) >= STAGES.index("fidelity"):
         check_downtrack_room(spec)
     check_controller_builds(spec, log=log)
-    held = hold_run_folder(out)
+    held = None if folder_held else hold_run_folder(out)
     try:
         run = Run(spec, out, executor=executor, progress=progress, log=log, sweep_cache=sweep_cache,
                   only=only)
@@ -107,25 +109,17 @@ def report_key(run) -> str:
 LOCK_NAME = ".reachwatch.lock"
 
 
-#: The run directories this process holds: {resolved path: [fd, holds]}.
-_HELD = {}
-
-
 def hold_run_folder(out):
-    """An exclusive lock (``fcntl.flock``) on the run directory ``out`` for this process
-    (held again by the same process, it counts), or a ValueError in one line when
-    another process holds it: two runs on one folder would write the same files (a
-    dataset's images truncated under the other's feet). None where the folder cannot
+    """An exclusive lock (``fcntl.flock``) on the run directory ``out``, its file
+    descriptor, or a ValueError in one line when another run holds it (another process,
+    or another thread of this one): two runs on one folder would write the same files
+    (a dataset's images truncated under the other's feet). None where the folder cannot
     hold one (read-only: such a run writes nothing; a file system without ``flock``:
     said in one line). It guards the folder on this machine: two machines working on
     one ``--out`` URL each in a folder of their own are not held apart."""
     root = Path(out)
     try:
         root.mkdir(parents=True, exist_ok=True)
-        key = root.resolve()
-        if key in _HELD:
-            _HELD[key][1] += 1
-            return key
         fd = os.open(root / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
     except OSError:
         return None
@@ -143,18 +137,13 @@ def hold_run_folder(out):
                          f"end, or give another --out") from None
     os.ftruncate(fd, 0)
     os.pwrite(fd, str(os.getpid()).encode(), 0)
-    _HELD[key] = [fd, 1]
-    return key
+    return fd
 
 
-def release_run_folder(held) -> None:
-    """Lets go of a `hold_run_folder` hold (the lock file stays: removing it would
-    race); the lock itself when the last hold goes."""
-    if held is None or held not in _HELD:
-        return
-    _HELD[held][1] -= 1
-    if _HELD[held][1] == 0:
-        fd, _ = _HELD.pop(held)
+def release_run_folder(fd) -> None:
+    """Lets go of `hold_run_folder`'s lock (the lock file stays: removing it would
+    race)."""
+    if fd is not None:
         fcntl.flock(fd, fcntl.LOCK_UN)
         os.close(fd)
 

@@ -104,7 +104,8 @@ def run_command(args):
             with open_executor(args.executor) as executor, pushing:
                 run = run_pipeline(spec, out, executor=executor, until=until,
                                    sweep_cache=args.sweep_cache, only=args.only,
-                                   progress=progress_enabled(), log=stamp, after_stage=push)
+                                   progress=progress_enabled(), log=stamp, after_stage=push,
+                                   folder_held=mirror is not None)
         except BaseException:  # what finished before an error or an interrupt is put there too
             try:
                 push("end")

@@ -166,10 +166,7 @@ class Run:
         if not isinstance(record, dict) or any(not isinstance(record.get(k), t)
                                                for k, t in needed.items()):
             return None, f"record {record_path} is corrupt (not a stage record)"
-        if record["format"] > RECORD_FORMAT and record.get("check") != record_check(record):
-            return None, (f"record {record_path} is corrupt (format {record['format']}, above "
-                          f"this reachwatch's, and its check does not match)")
-        if record["format"] > RECORD_FORMAT:
+        if record["format"] > RECORD_FORMAT:   # (its check may be a newer one's too)
             raise ValueError(f"{record_path} was written by a newer reachwatch (record format "
                              f"{record['format']}, this one reads {RECORD_FORMAT}): run it "
                              f"with that version, or give another --out (or delete the "

@@ -37,9 +37,23 @@ def test_a_second_run_on_a_folder_in_use_is_refused_and_writes_nothing(tmp_path)
         other.wait()
     held = hold_run_folder(out)                  # let go with its process: free again
     assert held is not None
-    again = hold_run_folder(out)                 # this process may hold it again (nested)
-    release_run_folder(again)
-    release_run_folder(held)
+    try:                                         # a second hold, this process's too: refused
+        with pytest.raises(ValueError, match="is in use by another reachwatch run"):
+            hold_run_folder(out)
+    finally:
+        release_run_folder(held)
+
+
+def test_a_file_system_without_flock_runs_unlocked_said_once(tmp_path, monkeypatch, caplog):
+    import errno
+    import fcntl
+
+    def no_locks(fd, operation):
+        raise OSError(errno.ENOLCK, "No locks available")
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with caplog.at_level("WARNING", logger="reachwatch"):
+        assert hold_run_folder(tmp_path / "nfs") is None
+    assert "cannot lock it (No locks available); running without the lock" in caplog.text
 
 
 def test_a_folder_that_cannot_hold_a_lock_is_left_to_the_runs_own_checks(tmp_path):

@@ -129,8 +129,8 @@ def reserved_memmap(path: Path, dtype, shape) -> np.memmap:
     with its bytes reserved on disk at once (``posix_fallocate``): a sparse file's
     pages are allocated only as rows are written, and a full disk then kills the
     process with SIGBUS, which no handler catches. Here it is an `OSError` naming the
-    file and its size before any row is rendered (the file removed, so that what was
-    reserved is given back). Where the file system cannot reserve, glibc writes the
+    file and its size before any row is rendered (the file removed: what was reserved
+    is given back once the caller lets go of the error). Where the file system cannot reserve, glibc writes the
     zeros instead, or (no support at all) the array stays sparse."""
     array = np.lib.format.open_memmap(path, "w+", dtype, shape)
     size = os.path.getsize(path)
@@ -140,7 +140,7 @@ def reserved_memmap(path: Path, dtype, shape) -> np.memmap:
     except OSError as e:
         if e.errno in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
             return array
-        path.unlink(missing_ok=True)     # (its mapping, let go with this frame, frees it)
+        path.unlink(missing_ok=True)     # (its blocks freed once the mapping is let go)
         raise OSError(e.errno, f"{e.strerror}: cannot reserve {size / 2**20:.1f} MiB for "
                                f"the dataset array", str(path)) from None
     return array
