@@ -123,10 +123,20 @@ def simulate_lockstep(loops: Sequence, *, initial_states, duration: float, perio
                 getattr(column[0], BATCH_ENTRY)(pairs)
             for slot in ready:
                 slots[slot][1].sample()
-    finally:
-        for column in columns:                  # nothing prepared outlives the runs
-            getattr(column[0], BATCH_ENTRY)([(system, None) for system in column])
+    except BaseException:
+        try:                # nothing prepared outlives the runs; the runs' error is the one
+            _release(columns)
+        except Exception:   # noqa: BLE001 (a hook failing on its release hides no error)
+            pass
+        raise
+    _release(columns)
     return results
+
+
+def _release(columns) -> None:
+    """Every batch entry point called with every Context None: drop what it prepared."""
+    for column in columns:
+        getattr(column[0], BATCH_ENTRY)([(system, None) for system in column])
 
 
 __all__ = ["BATCH_ENTRY", "Trajectory", "batch_systems", "loop_copies", "simulate_lockstep"]

@@ -169,3 +169,33 @@ def test_a_reused_context_starts_afresh_but_keeps_its_render_engine(tiny_scenari
     scene_graph.RemoveGeometry(context=scene_context, source_id=source, geometry_id=first)
     start_simulator(diagram, initial_state=STARTS[0], context=context)
     assert len(geometries().GetAllGeometryIds()) == count - 1
+
+
+def test_a_runs_error_is_not_hidden_by_a_batch_hook_failing_on_its_release():
+    """The runs end with every batch entry point called with Contexts None; a hook that
+    fails there does not replace the error that ended the runs."""
+    from pydrake.systems.framework import DiagramBuilder, LeafSystem
+    from reachwatch.diagrams.closed_loop import export_loop_ports
+
+    class Batched(LeafSystem):
+        def __init__(self):
+            super().__init__()
+            self.DeclareContinuousState(1)
+            self.DeclareVectorOutputPort("state", 1, lambda c, o: o.SetFromVector(
+                c.get_continuous_state_vector().CopyToVector()))
+
+        def prepare_batch(self, pairs):
+            for _, context in pairs:
+                context.get_time()            # a hook written without the None case
+
+    def loop():
+        builder = DiagramBuilder()
+        plant = builder.AddNamedSystem("plant", Batched())
+        export_loop_ports(builder, state=plant.GetOutputPort("state"))
+        return builder.Build()
+
+    def broken_rule(states):
+        raise RuntimeError("the failure rule broke")
+    with pytest.raises(RuntimeError, match="the failure rule broke"):
+        simulate_lockstep(loop_copies(loop, 2), initial_states=[[0.0], [1.0]], duration=0.2,
+                          period=0.05, failed=broken_rule)
