@@ -19,6 +19,7 @@ import contextvars
 import functools
 import logging
 import threading
+import time
 from typing import Callable
 
 import numpy as np
@@ -63,6 +64,11 @@ def _lost(error: BaseException, caller: str, chunk) -> BaseException:
                       f"{str(error)[:200]}); finished chunks are kept and a re-run resumes")
     lost.__cause__ = error
     return lost
+
+
+#: Seconds a chunk may be in flight before `run_chunks` warns that its worker may be
+#: stuck (once per chunk; it waits on).
+STALL_WARNING_S = 1800.0
 
 
 class Stopped(RuntimeError):
@@ -306,7 +312,7 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
     counted = counter.value if counter is not None else 0
     hooked = per_row and isinstance(executor, InlineExecutor) and job is None
     previous_hook = set_row_hook(functools.partial(bar.update, 1)) if hooked else None
-    pending = {}
+    pending, submitted, stalled = {}, {}, set()
 
     def show():
         if counter is not None:
@@ -316,6 +322,8 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
         error = None
         for future in done:
             chunk = pending.pop(future)
+            submitted.pop(future, None)
+            stalled.discard(future)
             try:
                 arrays = future.result()
             except BaseException as e:           # raised once the others done are stored
@@ -334,11 +342,28 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
             if not future.cancel() and future.done() and future.exception() is None:
                 store.store(chunk, future.result())
         pending.clear()
+        submitted.clear()
+        stalled.clear()
 
     def wait():
         if shared is not None:
             shared.check()
         finish(cf.wait(pending, timeout=0.25, return_when=cf.FIRST_COMPLETED).done)
+        warn_stalled()
+
+    def warn_stalled():
+        """A warning, once per chunk, for a chunk in flight longer than
+        `STALL_WARNING_S` (a worker stuck in a GL driver or on a stalled mount would
+        else wait for ever without a word)."""
+        now = time.monotonic()
+        for future, chunk in list(pending.items()):
+            waited = now - submitted.get(future, now)
+            if waited > STALL_WARNING_S and future not in stalled and not future.done():
+                stalled.add(future)
+                _log.warning("%s: chunk %d has been in flight for %.0f min; a worker may be "
+                             "stuck (a GL driver, a stalled mount). Finished chunks are "
+                             "kept: Ctrl-C stops the run, and a re-run resumes",
+                             caller, chunk.index, waited / 60)
 
     def submit(chunk):
         if shared is not None:    # a slot of the window the jobs run together share
@@ -357,6 +382,7 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
         if shared is not None:
             future.add_done_callback(shared.give)
         pending[future] = chunk
+        submitted[future] = time.monotonic()
 
     respawn = getattr(executor, "respawn", None)
     try:   # a bounded window of chunks in flight: progress shows, an abort stops soon

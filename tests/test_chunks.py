@@ -331,3 +331,21 @@ def test_the_command_line_says_a_lost_worker_in_one_line(monkeypatch, capsys, tm
                                         "(killed, out of memory, or a crash in native code); "
                                         "finished chunks are kept and a re-run resumes; -v "
                                         "shows the traceback"]
+
+
+def _one_slow_chunk(start, stop):
+    import time
+    time.sleep(0.6 if start == 3 else 0.0)
+    return _squares(start, stop)
+
+
+def test_a_chunk_in_flight_too_long_is_warned_of_once(tmp_path, monkeypatch, caplog):
+    from reachwatch.reach import chunks
+    monkeypatch.setattr(chunks, "STALL_WARNING_S", 0.3)
+    store = FolderStore(tmp_path, keep=True)
+    with cf.ThreadPoolExecutor(2) as pool, caplog.at_level("WARNING"):
+        run_chunks(_one_slow_chunk, split(10, 3), store, executor=pool,
+                   args=lambda chunk: (chunk.start, chunk.stop), caller="my_job")
+    said = [r.getMessage() for r in caplog.records if "in flight for" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("my_job: chunk 1 has been in flight for")
+    assert all(store.valid(c) for c in split(10, 3))
