@@ -6,7 +6,7 @@ import math
 import numpy as np
 import torch
 
-from .dynamics import positive, rk4_step
+from .dynamics import positive, rk4_step, split_horizon
 from .grid import check_states
 from .interpolate import GridInterpolator
 
@@ -33,11 +33,10 @@ def rollout_steps(horizon: float, dt: float, hold=None) -> list:
         return [length / n] * n
     if hold is None:
         return [(size, False) for size in split(horizon)]
-    periods = math.floor(horizon / hold + 1e-9)
+    periods, tail = split_horizon(horizon, hold)         # as the solver splits it
     steps = [(size, k == 0) for _ in range(periods) for k, size in enumerate(split(hold))]
-    rest = horizon - periods * hold
-    if rest > 1e-9 * max(1.0, horizon):
-        steps += [(size, k == 0) for k, size in enumerate(split(rest))]
+    if tail:
+        steps += [(size, k == 0) for k, size in enumerate(split(tail))]
     return steps
 
 
