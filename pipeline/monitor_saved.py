@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reachwatch.diagrams import tick_times
 from reachwatch.systems.files import atomic_write_bytes
 
 from .monitor_judge import fails_after
@@ -129,7 +130,7 @@ def check_run_length(saved, *, period: float, duration: float):
     lengths = {int(n) for split in ("calibrate", "held_out", "also_held_out")
                if f"{split}/ticks" in saved.files
                for n in saved[f"{split}/ticks"][~np.isfinite(saved[f"{split}/failure_time"])]}
-    ticks = int(np.floor(duration / period + 1e-9)) + 1       # as the recordings count
+    ticks = len(tick_times(duration, period))                 # as the recordings count
     if lengths and lengths != {ticks}:
         raise ValueError(f"runs that did not fail have {sorted(lengths)} ticks, not "
                          f"{ticks}: give the study's period and "
