@@ -6,6 +6,7 @@ same key (a digest of its inputs: the settings it reads and, for the stages befo
 outputs it reads, `Run.content_key`: their keys and the content of every file they wrote),
 and resumes its chunked work when it was killed."""
 
+import contextlib
 import errno
 import fcntl
 import os
@@ -50,7 +51,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     ``.md``), the fidelity section over every environment checked so far in ``out``
     (`write_checked_page`). ``after_stage(name)`` is called after each stage (a
     `RunMirror` pushes the run directory to its URL there). The run holds ``out``
-    while it runs (`hold_run_folder`), unless the caller does (``folder_held``)."""
+    while it runs (`run_folder_held`), unless the caller does (``folder_held``)."""
     if until not in STAGES:
         raise ValueError(f"until must be one of {STAGES}, got '{until}'")
     spec.validate()
@@ -59,8 +60,7 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
     if STAGES.index(until) >= STAGES.index("fidelity"):
         check_downtrack_room(spec)
     check_controller_builds(spec, log=log)
-    held = None if folder_held else hold_run_folder(out)
-    try:
+    with contextlib.nullcontext() if folder_held else run_folder_held(out):
         run = Run(spec, out, executor=executor, progress=progress, log=log, sweep_cache=sweep_cache,
                   only=only)
         if only is not None:
@@ -93,8 +93,6 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
                    f"{len(page['labelled'])}" if page["labelled"] else "")
                 + f"; {run.path(page['html'])} (and {page['md']})")
         return run
-    finally:
-        release_run_folder(held)
 
 
 def report_key(run) -> str:
@@ -105,18 +103,32 @@ def report_key(run) -> str:
                   modules_source_digest(*LIBRARY))
 
 
-#: The lock file a run holds in its run directory while it runs (`hold_run_folder`).
+#: The lock file a run holds in its run directory while it runs (`run_folder_held`).
 LOCK_NAME = ".reachwatch.lock"
 
 
-def hold_run_folder(out):
-    """An exclusive lock (``fcntl.flock``) on the run directory ``out``, its file
-    descriptor, or a ValueError in one line when another run holds it (another process,
-    or another thread of this one): two runs on one folder would write the same files
-    (a dataset's images truncated under the other's feet). None where the folder cannot
-    hold one (read-only: such a run writes nothing; a file system without ``flock``:
-    said in one line). It guards the folder on this machine: two machines working on
-    one ``--out`` URL each in a folder of their own are not held apart."""
+@contextlib.contextmanager
+def run_folder_held(out):
+    """Holds an exclusive lock (``fcntl.flock``) on the run directory ``out`` for the
+    block, or raises a ValueError in one line when another run holds it (another
+    process, or another thread of this one): two runs on one folder would write the
+    same files (a dataset's images truncated under the other's feet). The block runs
+    unlocked where the folder cannot hold one (read-only: such a run writes nothing; a
+    file system without ``flock``: said in one line). It guards the folder on this
+    machine: two machines working on one ``--out`` URL each in a folder of their own are
+    not held apart. The lock file stays when the block ends (removing it would race)."""
+    fd = _locked(out)
+    try:
+        yield
+    finally:
+        if fd is not None:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
+
+
+def _locked(out):
+    """`run_folder_held`'s lock: its file descriptor, None where the folder cannot hold
+    one, or the one-line ValueError when another run holds it."""
     root = Path(out)
     try:
         root.mkdir(parents=True, exist_ok=True)
@@ -138,14 +150,6 @@ def hold_run_folder(out):
     os.ftruncate(fd, 0)
     os.pwrite(fd, str(os.getpid()).encode(), 0)
     return fd
-
-
-def release_run_folder(fd) -> None:
-    """Lets go of `hold_run_folder`'s lock (the lock file stays: removing it would
-    race)."""
-    if fd is not None:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        os.close(fd)
 
 
 def check_controller_builds(spec: RunSpec, log=log.info):

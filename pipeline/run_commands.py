@@ -60,7 +60,7 @@ def run_command(args):
     from .commands import scenario_from_args
     from .console import log, progress_enabled
     from .executors import open_executor
-    from .run import hold_run_folder, release_run_folder, run_pipeline
+    from .run import run_folder_held, run_pipeline
     from .run_mirror import RunMirror
     from .spec import RunSpec
     if not (args.push_every == 0 or 1 <= args.push_every <= MAX_PUSH_EVERY):
@@ -81,23 +81,18 @@ def run_command(args):
     def stamp(message):
         log.info(f"{time.time() - started:7.1f} s  {message}")
 
-    mirror, out, held = None, args.out, None
-    if is_url(args.out):
-        mirror = RunMirror(args.out, getattr(args, "work_dir", None))
-        # the working directory is held before anything is fetched into it or put from it
-        held = hold_run_folder(mirror.local)
-        try:
-            stamp(f"{args.out}: working in {mirror.local}; fetched {mirror.pull()} files")
-        except BaseException:
-            release_run_folder(held)
-            raise
-        out = mirror.local
-
-    def push(stage):
+    mirror = RunMirror(args.out, getattr(args, "work_dir", None)) if is_url(args.out) else None
+    # a URL's working directory is held before anything is fetched into it or put from it
+    with run_folder_held(mirror.local) if mirror is not None else contextlib.nullcontext():
+        out = args.out
         if mirror is not None:
-            stamp(f"[{stage}] {mirror.push()} files put to {mirror.url}")
+            stamp(f"{args.out}: working in {mirror.local}; fetched {mirror.pull()} files")
+            out = mirror.local
 
-    try:
+        def push(stage):
+            if mirror is not None:
+                stamp(f"[{stage}] {mirror.push()} files put to {mirror.url}")
+
         try:
             pushing = (mirror.pushing_every(args.push_every, stamp, log.warning)
                        if mirror is not None else contextlib.nullcontext())
@@ -119,5 +114,3 @@ def run_command(args):
             log.info(f"report: {run.path(run.outputs['report']['html'])} "
                      f"(and {run.path(run.outputs['report']['md'])})"
                      + (f", put to {mirror.url}" if mirror is not None else ""))
-    finally:
-        release_run_folder(held)

@@ -2,22 +2,23 @@
 process is running in is refused in one line before it writes anything (two runs would
 write the same files: a dataset's images truncated under the other's feet)."""
 
+import os
 import subprocess
 import sys
 
 import pytest
 
-from reachwatch.pipeline.run import hold_run_folder, release_run_folder, run_pipeline
+from reachwatch.pipeline.run import run_folder_held, run_pipeline
 from reachwatch.pipeline.spec import load_run_spec
 from tiny_run import TINY
 
 
 HOLDER = """
 import sys, time
-from reachwatch.pipeline.run import hold_run_folder
-hold_run_folder(sys.argv[1])
-print("held", flush=True)
-time.sleep(60)
+from reachwatch.pipeline.run import run_folder_held
+with run_folder_held(sys.argv[1]):
+    print("held", flush=True)
+    time.sleep(60)
 """
 
 
@@ -35,13 +36,12 @@ def test_a_second_run_on_a_folder_in_use_is_refused_and_writes_nothing(tmp_path)
     finally:
         other.kill()
         other.wait()
-    held = hold_run_folder(out)                  # let go with its process: free again
-    assert held is not None
-    try:                                         # a second hold, this process's too: refused
+    with run_folder_held(out):                   # let go with its process: free again
         with pytest.raises(ValueError, match="is in use by another reachwatch run"):
-            hold_run_folder(out)
-    finally:
-        release_run_folder(held)
+            with run_folder_held(out):           # a second hold, this process's too: refused
+                pass
+    with run_folder_held(out):                   # and let go when the block ends
+        pass
 
 
 def test_a_file_system_without_flock_runs_unlocked_said_once(tmp_path, monkeypatch, caplog):
@@ -51,14 +51,24 @@ def test_a_file_system_without_flock_runs_unlocked_said_once(tmp_path, monkeypat
     def no_locks(fd, operation):
         raise OSError(errno.ENOLCK, "No locks available")
     monkeypatch.setattr(fcntl, "flock", no_locks)
-    with caplog.at_level("WARNING", logger="reachwatch"):
-        assert hold_run_folder(tmp_path / "nfs") is None
-    assert "cannot lock it (No locks available); running without the lock" in caplog.text
+    ran = []
+    with caplog.at_level("WARNING", logger="reachwatch"), run_folder_held(tmp_path / "nfs"):
+        ran.append(True)
+    assert ran and "cannot lock it (No locks available); running without the lock" in caplog.text
 
 
 def test_a_folder_that_cannot_hold_a_lock_is_left_to_the_runs_own_checks(tmp_path):
-    fresh = hold_run_folder(tmp_path / "new" / "below")       # made, and held
-    assert fresh is not None
-    release_run_folder(fresh)
+    with run_folder_held(tmp_path / "new" / "below"):          # made, and held
+        assert (tmp_path / "new" / "below" / ".reachwatch.lock").read_text() == str(os.getpid())
     (tmp_path / "plain").write_text("")
-    assert hold_run_folder(tmp_path / "plain" / "below") is None
+    with run_folder_held(tmp_path / "plain" / "below"):        # cannot be made: runs unlocked
+        pass
+
+
+def test_an_error_in_the_block_is_the_one_raised_and_the_lock_let_go(tmp_path):
+    with pytest.raises(RuntimeError, match="the run's own") as raised:
+        with run_folder_held(tmp_path):
+            raise RuntimeError("the run's own")
+    assert raised.value.__context__ is None
+    with run_folder_held(tmp_path):
+        pass

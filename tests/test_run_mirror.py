@@ -114,6 +114,21 @@ def test_a_run_at_a_url_resumes_in_another_working_directory(tmp_path, url, seed
         assert (second / name).read_bytes() == data
 
 
+def test_a_run_at_a_url_whose_working_directory_is_in_use_fetches_nothing(tmp_path, url,
+                                                                           monkeypatch, capsys):
+    from reachwatch.pipeline.run import run_folder_held
+    scenario = tmp_path / "tiny.yaml"
+    scenario.write_text(TINY)
+    pulled = []
+    monkeypatch.setattr(RunMirror, "pull", lambda self: pulled.append(True) or 0)
+    work = tmp_path / "work"
+    with run_folder_held(work):                              # another run works there
+        assert main(["run", "--scenario", str(scenario), "--out", url, "--until", "sweep",
+                     "--executor", "inline", "--work-dir", str(work)]) == 2
+    assert "is in use by another reachwatch run" in capsys.readouterr().err
+    assert not pulled and sorted(p.name for p in work.iterdir()) == [".reachwatch.lock"]
+
+
 def _rows(chunk, ran, fail_at=None):
     """A chunk's task: its rows' indices squared; ``ran`` lists the chunks it ran."""
     if chunk.index == fail_at:
