@@ -49,7 +49,7 @@ import numpy as np
 
 from reachwatch.pipeline.monitor_sections import read_study_result
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
-from reachwatch.pipeline.monitor_saved import saved_risks
+from reachwatch.pipeline.monitor_saved import open_saved_risks, saved_risks, study_script
 from reachwatch.training.conformal import NoConformalThreshold, conformal_threshold, miss_rate
 from reachwatch.training.monitor_eval import decisive_scores, k_of_n_risks
 
@@ -201,7 +201,7 @@ def rule_candidates(folder, rules, *, period: float) -> dict:
     gives them, in that order (the first variant's first rule first)."""
     result = read_study_result(Path(folder) / "monitor.json")
     out = {}
-    with np.load(Path(folder) / "risks.npz") as saved:
+    with open_saved_risks(Path(folder) / "risks.npz") as saved:
         for variant in result["variants"]:
             if variant == DETECTOR_ROW:
                 continue
@@ -323,4 +323,4 @@ def _choice_table(args):
 
 
 if __name__ == "__main__":
-    main()
+    study_script(main)

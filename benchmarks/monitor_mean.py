@@ -33,7 +33,8 @@ from monitor_bound import alpha_value, draw_figures, environment_scores
 from reachwatch.pipeline.monitor_judge import watch_s
 from reachwatch.pipeline.monitor_sections import read_study_result
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
-from reachwatch.pipeline.monitor_saved import check_run_length, check_same_runs, saved_risks
+from reachwatch.pipeline.monitor_saved import (check_run_length, check_same_runs, open_saved_risks,
+                                              saved_risks, study_script)
 from reachwatch.training.monitor_eval import tick_auroc
 
 SPLITS = ("calibrate", "held_out")
@@ -112,7 +113,7 @@ def main():
         for key in ("alpha", "lead_s", "within_s"):
             if results[f][key] != first[key]:
                 p.error(f"{f}: {key} {results[f][key]}, {folders[0]}: {first[key]}")
-    saved = {f: np.load(f / "risks.npz") for f in folders}
+    saved = {f: open_saved_risks(f / "risks.npz") for f in folders}
     try:
         check_same_runs(saved, SPLITS)
         for f in folders:
@@ -147,4 +148,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    study_script(main)

@@ -30,7 +30,7 @@ import numpy as np
 
 from reachwatch.pipeline.monitor_sections import read_study_result
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
-from reachwatch.pipeline.monitor_saved import saved_risks
+from reachwatch.pipeline.monitor_saved import open_saved_risks, saved_risks, study_script
 from reachwatch.training.conformal import conformal_threshold, warning_scores
 from reachwatch.training.monitor_eval import (flag_outcomes, k_of_n_risks, run_times,
                                               system_figures)
@@ -82,7 +82,7 @@ def main():
     result = read_study_result(folder / "monitor.json")
     lead = result["lead_s"]
     rows, chosen = [], {}
-    with np.load(folder / "risks.npz") as saved:
+    with open_saved_risks(folder / "risks.npz") as saved:
         splits = [s for s in ("calibrate", "held_out", "also_held_out")
                   if f"{s}/ticks" in saved.files]
         for variant in result["variants"]:
@@ -128,4 +128,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    study_script(main)

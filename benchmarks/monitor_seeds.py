@@ -34,7 +34,8 @@ import numpy as np
 from reachwatch.pipeline.monitor_sections import read_study_result, run_ranking
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
 from reachwatch.pipeline.monitor_judge import fails_after
-from reachwatch.pipeline.monitor_saved import check_run_length, check_same_runs, saved_groups
+from reachwatch.pipeline.monitor_saved import (check_run_length, check_same_runs, open_saved_risks,
+                                              saved_groups, study_script)
 from reachwatch.pipeline.monitor_study import choose_flag_rule, judge_environments
 from reachwatch.training.monitor_eval import decisive_scores, rate, tick_auroc
 
@@ -86,7 +87,7 @@ def main():
                    help="the study's --flag-rules (its default: 1/1)")
     args = p.parse_args()
     studies = [read_study_result(f"{out}/monitor.json") for out in args.outs]
-    saved = [np.load(f"{out}/risks.npz", allow_pickle=True) for out in args.outs]
+    saved = [open_saved_risks(f"{out}/risks.npz") for out in args.outs]
     first = studies[0]
     lead, within = first["lead_s"], first["within_s"]
     for out, study in zip(args.outs[1:], studies[1:]):
@@ -147,4 +148,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    study_script(main)

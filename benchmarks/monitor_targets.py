@@ -23,6 +23,7 @@ from monitor_bound import draw_figures, family_environments
 from reachwatch.pipeline.monitor_guarded import ORACLE
 from reachwatch.pipeline.monitor_sections import (bounded_miss_rates, rate_text,
                                                   read_study_result, same_needless)
+from reachwatch.pipeline.monitor_saved import study_script
 from reachwatch.pipeline.monitor_spec import DETECTOR_ROW
 
 #: The targets' numbers: prevented >= 0.85 of the oracle's; needless stops <= 10 % (upper
@@ -193,4 +194,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    study_script(main)

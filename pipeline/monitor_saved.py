@@ -8,6 +8,8 @@ that what they are given matches the study (`check_same_runs`, `check_run_length
 import io
 import json
 import re
+import sys
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +18,40 @@ from reachwatch.diagrams import tick_times
 from reachwatch.systems.files import atomic_write_bytes
 
 from .monitor_judge import fails_after
+
+
+class StudyFileError(ValueError):
+    """A finished study's file (``monitor.json``, ``risks.npz``) that is missing, damaged
+    or not one: said in one line naming the file."""
+
+
+def open_saved_risks(path):
+    """The ``risks.npz`` at ``path`` (`save_risks`'s), open (``np.load``: close it, or use
+    it in a ``with``), or a `StudyFileError` naming the file."""
+    try:
+        saved = np.load(path, allow_pickle=False)
+    except OSError as e:
+        raise StudyFileError(f"{path}: cannot read a study's saved risks "
+                             f"({e.strerror or e}); give a finished study's folder") from None
+    except (ValueError, zipfile.BadZipFile, EOFError) as e:
+        why = e if zipfile.is_zipfile(path) else "not an .npz archive"
+        raise StudyFileError(f"{path}: not a study's saved risks ({why})") from None
+    if not isinstance(saved, np.lib.npyio.NpzFile):
+        raise StudyFileError(f"{path}: not a study's saved risks (not an .npz archive)")
+    if not any(name.endswith("/ticks") for name in saved.files):
+        saved.close()
+        raise StudyFileError(f"{path}: not a study's saved risks (no runs' ticks in it)")
+    return saved
+
+
+def study_script(main):
+    """Runs ``main``, a script that reads finished studies (the monitor benchmarks): a
+    `StudyFileError` is one line on stderr and exit status 2, not a traceback."""
+    try:
+        return main()
+    except StudyFileError as e:
+        print(f"{Path(sys.argv[0]).name}: error: {e}", file=sys.stderr)
+        sys.exit(2)
 
 
 def checkpoint_file(variant: str, taken=()) -> str:

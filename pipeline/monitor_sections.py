@@ -12,6 +12,7 @@ from reachwatch.training.conformal import NoConformalThreshold, conformal_thresh
 from reachwatch.training.metrics import auroc
 from reachwatch.training.monitor_eval import rate
 
+from .monitor_saved import StudyFileError
 from .monitor_spec import DETECTOR_ROW, ORACLE
 
 
@@ -20,15 +21,31 @@ def _number(value) -> str:
     return f"{value:.3f}" if value is not None and np.isfinite(value) else "-"
 
 
+#: What every monitor study's result holds (`pipeline.monitor_study`'s ``result``).
+STUDY_RESULT_KEYS = ("lead_s", "within_s", "alpha", "variants")
+
+
 def read_study_result(path) -> dict:
     """A monitor study's ``monitor.json`` as the study returned it: the study writes a
     number that is not finite as null (strict JSON, `systems.files.strict_json`). A null
     is read back as NaN (a rate of no runs), except in a ``warning`` or ``safe_max``
     list of scores, where it is -inf: a warnable run no flag rule can warn in time
     (missed at every threshold, and ranked below every run), or a safe run with no tick
-    (never flagged)."""
-    return nan_for_null(json.loads(Path(path).read_text()),
-                        lists={"warning": -np.inf, "safe_max": -np.inf})
+    (never flagged). A file that is missing, damaged or not a study's result is a
+    `StudyFileError` naming it."""
+    try:
+        result = json.loads(Path(path).read_text())
+    except OSError as e:
+        raise StudyFileError(f"{path}: cannot read a monitor study's result "
+                             f"({e.strerror or e}); give a finished study's monitor.json") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise StudyFileError(f"{path}: not a monitor study's result (not JSON: {e})") from None
+    missing = ([key for key in STUDY_RESULT_KEYS if key not in result]
+               if isinstance(result, dict) else list(STUDY_RESULT_KEYS))
+    if missing:
+        raise StudyFileError(f"{path}: not a monitor study's result (it has no "
+                             f"{', '.join(missing)})")
+    return nan_for_null(result, lists={"warning": -np.inf, "safe_max": -np.inf})
 
 
 def bounded_miss_rates(environments):

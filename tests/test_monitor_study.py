@@ -446,7 +446,8 @@ def test_strict_json_writes_non_finite_numbers_as_null_and_reads_them_back(tmp_p
     back = nan_for_null(json.loads(text))
     assert np.isnan(back["rate"]) and np.isnan(back["scores"][1:3]).all()
     assert back["scores"][0] == 0.5 and back["count"] == 3 and back["name"] == "x"
-    study = {"variants": {"v": {"scores": {"calibrate": [{"warning": [0.3, -np.inf],
+    study = {"lead_s": 1.6, "within_s": 4.0, "alpha": 0.1,
+             "variants": {"v": {"scores": {"calibrate": [{"warning": [0.3, -np.inf],
                                                           "safe_max": [0.2]}]},
                                 "held_out": {"pooled": {"miss": {"rate": float("nan")}}}}}}
     (tmp_path / "monitor.json").write_text(strict_json(study))
@@ -563,7 +564,8 @@ def test_a_safe_run_with_no_tick_reads_back_as_never_flagged(tmp_path):
     from reachwatch.pipeline.monitor_sections import read_study_result
     from reachwatch.systems.files import strict_json
     path = tmp_path / "monitor.json"
-    path.write_text(strict_json({"scores": {"warning": [-np.inf, 0.5], "safe_max": [-np.inf, 0.2]},
+    path.write_text(strict_json({"lead_s": 1.6, "within_s": 4.0, "alpha": 0.1, "variants": {},
+                                 "scores": {"warning": [-np.inf, 0.5], "safe_max": [-np.inf, 0.2]},
                                  "rate": np.nan}))
     back = read_study_result(path)
     assert back["scores"] == {"warning": [-np.inf, 0.5], "safe_max": [-np.inf, 0.2]}
