@@ -13,6 +13,7 @@ already, so a killed job resumes and a repeated one costs nothing. A bounded win
 of chunks is in flight (progress shows, an abort stops soon). A store's folder may be
 an fsspec URL (`reachwatch.systems.files.cache_location`): only this process reads it."""
 
+import collections
 import concurrent.futures as cf
 import concurrent.futures.process  # noqa: F401  (BrokenProcessPool)
 import contextvars
@@ -52,8 +53,14 @@ def set_row_hook(hook):
 # --- several jobs at once --------------------------------------------------------------
 
 #: What a cluster raises for a task it lost (Dask's: its workers kept dying on it, or
-#: the scheduler went away), by class name, so that no cluster package is imported here.
-LOST_TASK_ERRORS = ("KilledWorker", "FutureCancelledError", "CommClosedError")
+#: the scheduler went away), by class name, so that no cluster package is imported here;
+#: ``CancelledError``: a task the cluster cancelled more than `CANCELLED_RETRIES` times.
+LOST_TASK_ERRORS = ("KilledWorker", "FutureCancelledError", "CommClosedError", "CancelledError")
+
+#: How many times `run_chunks` submits again a chunk the cluster cancelled (Dask cancels
+#: the tasks whose input it lost with a worker: the files scattered to it), before it is
+#: a `WorkerLost`.
+CANCELLED_RETRIES = 3
 
 
 def _lost(error: BaseException, caller: str, chunk) -> BaseException:
@@ -287,7 +294,9 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
     ``progress_counter`` (see `reach.sweep.default_executor`) by its counter. When a
     worker dies, a `RespawningPool` is replaced and the chunks lost with it run again
     (a warning says so); on any other pool, or with no respawn left, it is a one-line
-    RuntimeError naming ``caller``; finished chunks are kept.
+    RuntimeError naming ``caller``; finished chunks are kept. A chunk a cluster cancelled
+    (it lost the worker holding the task's input) is submitted again, up to
+    `CANCELLED_RETRIES` times, a warning saying so each time.
 
     In a job of `run_together` on ``executor``, the chunks in flight also count against
     the window all its jobs share, the bar is drawn at the job's line and moves per
@@ -313,6 +322,7 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
     hooked = per_row and isinstance(executor, InlineExecutor) and job is None
     previous_hook = set_row_hook(functools.partial(bar.update, 1)) if hooked else None
     pending, submitted, stalled = {}, {}, set()
+    cancelled, retries = [], collections.Counter()     # chunks the cluster cancelled
 
     def show():
         if counter is not None:
@@ -326,6 +336,16 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
             stalled.discard(future)
             try:
                 arrays = future.result()
+            except cf.CancelledError as e:       # not by this call: it cancels none it keeps
+                if retries[chunk.index] < CANCELLED_RETRIES and error is None:
+                    retries[chunk.index] += 1
+                    cancelled.append(chunk)
+                    _log.warning("%s: the cluster cancelled chunk %d (it lost the worker "
+                                 "running it or holding its input); it is submitted again",
+                                 caller, chunk.index)
+                else:
+                    error = error or _lost(e, caller, chunk)
+                continue
             except BaseException as e:           # raised once the others done are stored
                 error = error or _lost(e, caller, chunk)
                 continue
@@ -397,7 +417,9 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
                         wait()
                 while pending:
                     wait()
-                break
+                if not cancelled:
+                    break
+                left, cancelled[:] = list(cancelled), []
             except cf.process.BrokenProcessPool:
                 keep_finished()
                 if shared is not None:
@@ -405,16 +427,19 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
                 if respawn is None or not respawn(generation):
                     raise
                 left = [c for c in todo if not store.valid(c)]
+                cancelled.clear()
                 if counter is not None:     # the lost chunks' rows count again
                     counted = counter.value - (computed - sum(c.rows for c in left))
                 _log.warning("%s: a worker process died (killed, out of memory, or a crash "
                              "in native code); the pool was started again, and the %d "
                              "chunk(s) not stored yet run on it", caller, len(left))
     except cf.process.BrokenProcessPool as e:
-        keep_finished()
-        if owned:
-            stop_executor(executor, abort=True)
-            owned = False
+        try:
+            keep_finished()
+        finally:                            # a chunk that cannot be stored stops the rest
+            if owned:
+                stop_executor(executor, abort=True)
+                owned = False
         raise WorkerLost(
             f"a {caller} worker process died (killed, out of memory, or a crash in native "
             f"code); finished chunks are kept and a re-run resumes. A script calling "
@@ -422,10 +447,12 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
             f"(or pass executor=InlineExecutor())"
         ) from e
     except BaseException:
-        keep_finished()
-        if owned:
-            stop_executor(executor, abort=True)
-            owned = False
+        try:
+            keep_finished()
+        finally:                            # a chunk that cannot be stored stops the rest
+            if owned:
+                stop_executor(executor, abort=True)
+                owned = False
         raise
     finally:
         if hooked:

@@ -317,6 +317,87 @@ def test_a_task_the_cluster_lost_is_one_worker_lost_line_and_the_rest_is_kept(tm
     assert store.valid(split(10, 3)[0])
 
 
+class CancellingCluster(cf.ThreadPoolExecutor):
+    """A cluster's executor that cancels the task of each chunk starting at a row of
+    ``lost``, ``times`` times, as Dask's does when it lost the worker holding the task's
+    input (`distributed.cfexecutor`: the future it returns is cancelled)."""
+
+    def __init__(self, lost, times):
+        super().__init__(1)
+        self.left = {start: times for start in lost}
+        self.calls = []
+
+    def submit(self, fn, /, *args, **kwargs):
+        self.calls.append(args[0])
+        if self.left.get(args[0], 0) > 0:
+            self.left[args[0]] -= 1
+            future = cf.Future()
+            future.cancel()
+            future.set_running_or_notify_cancel()
+            return future
+        return super().submit(fn, *args, **kwargs)
+
+
+def test_a_chunk_the_cluster_cancelled_is_submitted_again_and_said(tmp_path, caplog):
+    store = FolderStore(tmp_path, keep=True)
+    chunks = split(10, 3)
+    with CancellingCluster(lost=[3, 6], times=2) as cluster, \
+            caplog.at_level("WARNING", logger="reachwatch"):
+        ran = run_chunks(_squares, chunks, store, executor=cluster,
+                         args=lambda chunk: (chunk.start, chunk.stop), caller="my_job")
+    assert len(ran) == 4 and all(store.valid(c) for c in chunks)
+    assert sorted(cluster.calls) == [0, 3, 3, 3, 6, 6, 6, 9]
+    assert caplog.text.count("my_job: the cluster cancelled chunk 1 (it lost the worker") == 2
+    for chunk in chunks:
+        assert store.read(chunk)["y"].tolist() == [i * i for i in range(chunk.start, chunk.stop)]
+
+
+def test_a_chunk_cancelled_past_its_retries_is_one_worker_lost_line(tmp_path):
+    from reachwatch.reach.chunks import CANCELLED_RETRIES
+    from reachwatch.reach.executors import WorkerLost
+    store = FolderStore(tmp_path, keep=True)
+    with CancellingCluster(lost=[3], times=CANCELLED_RETRIES + 1) as cluster, pytest.raises(
+            WorkerLost, match=r"^the cluster lost my_job chunk 1 \(CancelledError"):
+        run_chunks(_squares, split(10, 3), store, executor=cluster,
+                   args=lambda chunk: (chunk.start, chunk.stop), caller="my_job")
+    assert cluster.calls.count(3) == CANCELLED_RETRIES + 1
+    assert store.valid(split(10, 3)[0])
+
+
+class RecordingExecutor(cf.Executor):
+    """Runs tasks three at a time, when the third is submitted (so that several finish
+    together), and records how it was shut down."""
+    shutdowns = []
+
+    def __init__(self):
+        self.waiting = []
+
+    def submit(self, fn, /, *args, **kwargs):
+        future = cf.Future()
+        self.waiting.append((future, fn, args))
+        if len(self.waiting) == 3:
+            for waiting, fn, args in self.waiting:
+                waiting.set_result(fn(*args))
+            self.waiting.clear()
+        return future
+
+    def shutdown(self, wait=True, *, cancel_futures=False):
+        RecordingExecutor.shutdowns.append(cancel_futures)
+
+
+class FullDisk(FolderStore):
+    def store(self, chunk, arrays):
+        raise OSError(28, "No space left on device")
+
+
+def test_a_chunk_that_cannot_be_stored_stops_the_pool_at_once(tmp_path):
+    RecordingExecutor.shutdowns.clear()
+    with pytest.raises(OSError, match="No space left on device"):
+        run_chunks(_squares, split(10, 2), FullDisk(tmp_path), default=RecordingExecutor,
+                   max_in_flight=4, args=lambda chunk: (chunk.start, chunk.stop))
+    assert RecordingExecutor.shutdowns == [True]     # queued work cancelled, not waited for
+
+
 def test_the_command_line_says_a_lost_worker_in_one_line(monkeypatch, capsys, tmp_path):
     from reachwatch.pipeline import cli, reach_commands
     from reachwatch.reach.executors import WorkerLost
