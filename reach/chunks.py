@@ -192,6 +192,11 @@ def _named(error: BaseException, prefix: str) -> BaseException:
     return error
 
 
+#: Seconds an interrupted `run_together` waits for its jobs to store their finished
+#: chunks and stop before it raises the interrupt.
+JOBS_STOP_S = 10.0
+
+
 def run_together(jobs, executor, *, what: str = "job", bar: Callable = None) -> list:
     """``[fn() for name, fn in jobs]``, the jobs run at once, each in a thread of this
     process, when ``executor`` is a pool (`together`): every `run_chunks` call of a job
@@ -205,8 +210,10 @@ def run_together(jobs, executor, *, what: str = "job", bar: Callable = None) -> 
     with ``"{what} {name}: "`` before its message, its type kept; with several, the
     first to fail. Lines logged through `ordered_log` come in the jobs' order. ``bar``:
     a tqdm-like factory of a bar counting the jobs done (below theirs). On an
-    interrupt the jobs are told to stop and the interrupt is raised at once (their
-    threads are daemons; stopping the executor ends their chunks)."""
+    interrupt the jobs are told to stop, and the interrupt is raised once they have
+    stored their finished chunks and stopped (within 0.25 s of their chunk loop), or
+    after `JOBS_STOP_S` (their threads are daemons; stopping the executor ends their
+    chunks)."""
     jobs = list(jobs)
     count = bar(total=len(jobs), **({"position": len(jobs)} if together(executor, len(jobs))
                                     else {})) if bar is not None else None
@@ -253,6 +260,10 @@ def _run_threads(jobs, executor, what, count) -> list:
                 count.update(len(done))
     except BaseException:                 # an interrupt: the jobs stop at their next chunk
         shared.fail(-1, "interrupted")
+        # and store what finished before it is raised: what the caller does next (a
+        # push of the run directory) must not race their writes (a dataset's rows
+        # written after its arrays were put, its manifest naming them after)
+        cf.wait(futures, timeout=JOBS_STOP_S)
         raise
     finally:
         shared.finished(None)             # lines still held (a failure, an interrupt)

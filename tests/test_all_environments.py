@@ -123,6 +123,46 @@ def test_a_failing_job_names_itself_and_stops_the_others_queued_chunks(tmp_path)
     assert calls == ["a"]
 
 
+class _SlowStore(FolderStore):
+    """A store that takes its time to write a chunk (a dataset's rows and manifest)."""
+
+    def store(self, chunk, arrays):
+        time.sleep(0.3)
+        super().store(chunk, arrays)
+
+
+class _InterruptedBar:
+    """A jobs' bar whose first update is Ctrl-C in the thread that runs the jobs."""
+
+    def __init__(self, **kwargs):
+        pass
+
+    def update(self, n):
+        raise KeyboardInterrupt
+
+    def close(self):
+        pass
+
+
+def test_an_interrupt_is_raised_once_the_jobs_have_stored_what_finished(tmp_path):
+    """Ctrl-C while a job is storing a chunk: raised once that job has stopped, its
+    finished chunks stored, so that what the caller does next (a push of the run
+    directory to its URL) sees no file still being written."""
+    def quick():
+        time.sleep(0.2)              # the slow job is storing its first chunks by then
+        return 1
+
+    def slow():
+        run_chunks(_rows, split(8, 1), _SlowStore(tmp_path / "slow"), executor=pool,
+                   args=lambda c: (c.start, c.stop, 0.05))
+    with cf.ThreadPoolExecutor(2) as pool:
+        with pytest.raises(KeyboardInterrupt):
+            run_together([("slow", slow), ("quick", quick)], pool, bar=_InterruptedBar)
+        assert not [t for t in threading.enumerate() if t.name.startswith("together-")]
+    stored = sorted((tmp_path / "slow").iterdir())
+    assert 1 <= len(stored) < 8
+
+
 TWO = """
 name: two
 train: [{runway: KMWH, hour: 9.0, sky: clear}]
