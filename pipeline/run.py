@@ -155,37 +155,43 @@ def _locked(out):
 def check_controller_builds(spec: RunSpec, log=log.info):
     """Build a user's controller (``scenario.controller.factory``) once before anything is
     written, so that a parameter its factory does not take (or lacks) is said in one line
-    before the run directory or a sweep changes, not inside the first sweep."""
-    controller = spec.scenario.controller
+    before the run directory or a sweep changes, not inside the first sweep; then fit the
+    guard's strategies to the application and the controller (`fit_guard`)."""
+    controller, built = spec.scenario.controller, None
     if controller.factory:
         from reachwatch.diagrams import make_controller
         built = make_controller(load_application(spec.application).resolved(spec.scenario).controller)
-        fit_guard_to_controller(spec, built, log)
+    fit_guard(spec, built, log)
 
 
-def fit_guard_to_controller(spec: RunSpec, controller, log=log.info) -> None:
-    """A controller without an ``estimate`` output cannot be dead-reckoned from: the
-    default ``guard.strategies`` then lose the fallbacks that steer by dead reckoning
-    (said in one line), and strategies the run file names that do are refused in one
-    line naming them, before anything is swept (not after the guarded sweep)."""
+def fit_guard(spec: RunSpec, controller=None, log=log.info) -> None:
+    """The guard's fallbacks the application or the ``controller`` (a built user's
+    controller; None: the built-in one) cannot run, before anything is swept: the
+    default ``guard.strategies`` lose them (said in one line), and one the run file names
+    is refused in one line naming its key. The application's: a steering fallback
+    without its hooks (`Application.guard_refusals`); the controller's: a fallback that
+    dead-reckons from its estimate when it has no ``estimate`` output."""
     from reachwatch.diagrams.controller import has_estimate
-    from reachwatch.systems import DEFAULT_FALLBACKS, Fallback
-    if has_estimate(controller) or not spec.guard_environments():
+    from reachwatch.systems import Fallback
+    if not spec.guard_environments():
         return
-    needing = [i for i, name in enumerate(spec.guard.strategies)
-               if Fallback.parse(name).steering == "dead_reckoning"]
-    if not needing:
+    strategies = spec.guard.strategies
+    refusals = load_application(spec.application).guard_refusals(spec.scenario, strategies)
+    if controller is not None and not has_estimate(controller):
+        for i, name in enumerate(strategies):
+            if Fallback.parse(name).steering == "dead_reckoning":
+                refusals.setdefault(i, f"dead-reckons from the controller's estimate, and the "
+                                       f"controller '{controller_name(spec.scenario)}' has no "
+                                       f"estimate output")
+    if not refusals:
         return
-    if spec.guard.strategies == [Fallback.parse(name).name for name in DEFAULT_FALLBACKS]:
-        left_out = [spec.guard.strategies[i] for i in needing]
-        spec.guard.strategies = [n for i, n in enumerate(spec.guard.strategies) if i not in needing]
-        log(f"guard.strategies: the default without {', '.join(left_out)}: the controller "
-            f"has no estimate output to dead-reckon from")
+    if spec.default_strategies():
+        spec.guard.strategies = [n for i, n in enumerate(strategies) if i not in refusals]
+        log("guard.strategies: the default without "
+            + "; ".join(f"{strategies[i]} (it {why})" for i, why in sorted(refusals.items())))
         return
-    i = needing[0]
-    raise ValueError(f"guard.strategies[{i}]: '{spec.guard.strategies[i]}' dead-reckons from "
-                     f"the controller's estimate, and the controller "
-                     f"'{controller_name(spec.scenario)}' has no estimate output; leave it out")
+    i = min(refusals)
+    raise ValueError(f"guard.strategies[{i}]: '{strategies[i]}' {refusals[i]}; leave it out")
 
 
 def check_slice(spec: RunSpec, only, until: str):

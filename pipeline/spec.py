@@ -236,7 +236,9 @@ class RunSpec:
                 env.validate()
             except ValueError as e:
                 raise ValueError(f"guard.environments[{i}]: {e}") from None
-        if self.guard_environments():
+        if self.guard_environments() and not self.default_strategies():
+            # the default is fitted to the application and controller when a run
+            # starts (`pipeline.run.fit_guard`)
             application.check_guard(self.scenario, self.guard.strategies)
         self.incremental.validate()
         if self.incremental.enabled:
@@ -314,6 +316,12 @@ class RunSpec:
                 e.name for e in self.held_out_environments()}:
             return self.dataset
         return dc.replace(self.dataset, labels=self.held_out_labels)
+
+    def default_strategies(self) -> bool:
+        """Whether ``guard.strategies`` are the default (`systems.DEFAULT_FALLBACKS`), not
+        a list the run file names: those a run fits to its application and controller."""
+        from reachwatch.systems import DEFAULT_FALLBACKS
+        return self.guard.strategies == [Fallback.parse(name).name for name in DEFAULT_FALLBACKS]
 
     def guard_environments(self) -> List[ApplicationEnvironment]:
         return self.guard.environments or self.held_out_environments()[:1]

@@ -491,29 +491,40 @@ class Application(abc.ABC):
         return (type(self).fallback_rollouts is not Application.fallback_rollouts
                 or takes_speed(self.dynamics(scenario)))
 
+    def guard_refusals(self, scenario, strategies) -> dict:
+        """``{index: why}`` for each of ``strategies`` (fallback names) that the guard
+        stage would ask the application for what it does not have (a steering fallback
+        without its hooks); empty when it cannot roll fallbacks out at all
+        (`rolls_out_fallbacks`: the stage is skipped)."""
+        from reachwatch.systems import Fallback
+        if (not self.rolls_out_fallbacks(scenario)
+                or type(self).fallback_rollouts is not Application.fallback_rollouts):
+            return {}
+        needs = {"oracle": ("fallback_policy", "true_estimate"),
+                 "dead_reckoning": ("fallback_policy", "carry_estimate")}
+        refusals = {}
+        for i, name in enumerate(strategies):
+            missing = [hook for hook in needs.get(Fallback.parse(name).steering, ())
+                       if (self.fallback_policy(scenario) if hook == "fallback_policy"
+                           else getattr(self, hook)) is None]
+            if missing:
+                refusals[i] = (f"needs the application's {' and '.join(missing)}, and "
+                               f"'{self.name}' defines none")
+        return refusals
+
     def check_guard(self, scenario, strategies, *, skipped: bool = True):
         """Before anything is swept: a ValueError in one line naming the run-file key when
-        the guard stage would ask the application for what it does not have (a steering
-        fallback without its hooks). When it cannot roll fallbacks out at all
+        the guard stage would ask the application for what it does not have
+        (`guard_refusals`). When it cannot roll fallbacks out at all
         (`rolls_out_fallbacks`), nothing if the stage is then ``skipped``, else the
         reason."""
-        from reachwatch.systems import Fallback
         from .guarded_rollouts import check_takes_speed
         if not self.rolls_out_fallbacks(scenario):
             if not skipped:
                 check_takes_speed(self.dynamics(scenario))
             return
-        if type(self).fallback_rollouts is Application.fallback_rollouts:
-            needs = {"oracle": ("fallback_policy", "true_estimate"),
-                     "dead_reckoning": ("fallback_policy", "carry_estimate")}
-            for i, name in enumerate(strategies):
-                missing = [hook for hook in needs.get(Fallback.parse(name).steering, ())
-                           if (self.fallback_policy(scenario) if hook == "fallback_policy"
-                               else getattr(self, hook)) is None]
-                if missing:
-                    raise ValueError(f"guard.strategies[{i}]: '{name}' needs the application's "
-                                     f"{' and '.join(missing)}, and '{self.name}' defines "
-                                     f"none; leave it out")
+        for i, why in self.guard_refusals(scenario, strategies).items():
+            raise ValueError(f"guard.strategies[{i}]: '{strategies[i]}' {why}; leave it out")
 
     def _table_rollouts(self, scenario, grid, tables, horizon):
         """`fallback_rollouts` of these tables: the ``rollouts`` of `reach.guard`."""

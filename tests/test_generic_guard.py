@@ -165,3 +165,22 @@ def test_a_run_file_asking_the_cart_for_a_steering_fallback_is_refused(monkeypat
                                          "application's fallback_policy and true_estimate"):
         load_run_spec(data=text.replace("strategies: [slow_down, brake]",
                                         "strategies: [slow_down, slow_down+oracle]"))
+
+
+def test_the_cart_without_guard_strategies_runs_the_defaults_it_can(monkeypatch):
+    """A run file that leaves ``guard.strategies`` out: the default loses the steering
+    fallbacks the application has no hooks for, in one line, before anything is swept
+    (it was refused naming ``guard.strategies[2]``, a key the file never wrote)."""
+    from pathlib import Path
+    from reachwatch.pipeline.run import fit_guard
+    from reachwatch.pipeline.spec import load_run_spec
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)                         # the run file's paths are relative
+    text = (root / "examples" / "cart" / "run.yaml").read_text()
+    spec, said = load_run_spec(data=text.replace("strategies: [slow_down, brake], ", "")), []
+    fit_guard(spec, None, said.append)
+    assert spec.guard.strategies == ["slow_down", "brake"]
+    assert said == ["guard.strategies: the default without slow_down+dead_reckoning (it needs "
+                    "the application's fallback_policy and carry_estimate, and 'cart' defines "
+                    "none); slow_down+oracle (it needs the application's fallback_policy and "
+                    "true_estimate, and 'cart' defines none)"]

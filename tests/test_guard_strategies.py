@@ -7,7 +7,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import ImageRgba8U
 
-from reachwatch.pipeline.run import fit_guard_to_controller
+from reachwatch.pipeline.run import fit_guard
 from reachwatch.pipeline.spec import load_run_spec
 from tiny_run import TINY
 
@@ -25,7 +25,7 @@ def test_the_default_strategies_leave_out_dead_reckoning_without_an_estimate():
     spec, said = load_run_spec(data=TINY), []
     before = list(spec.guard.strategies)
     assert any("dead_reckoning" in name for name in before)
-    fit_guard_to_controller(spec, _SteeringOnly(estimate=False), said.append)
+    fit_guard(spec, _SteeringOnly(estimate=False), said.append)
     assert spec.guard.strategies == [n for n in before if "dead_reckoning" not in n]
     assert len(said) == 1 and "no estimate output" in said[0]
 
@@ -36,11 +36,11 @@ def test_a_named_dead_reckoning_fallback_is_refused_without_an_estimate():
                              "guard: {", "guard: {strategies: [brake, slow_down+dead_reckoning], "))
     with pytest.raises(ValueError, match=r"guard.strategies\[1\]: 'slow_down\+dead_reckoning'.*"
                                          r"no estimate output; leave it out"):
-        fit_guard_to_controller(spec, _SteeringOnly(estimate=False), lambda m: None)
+        fit_guard(spec, _SteeringOnly(estimate=False), lambda m: None)
 
 
 def test_a_controller_with_an_estimate_keeps_every_strategy():
     spec = load_run_spec(data=TINY)
     before = list(spec.guard.strategies)
-    fit_guard_to_controller(spec, _SteeringOnly(estimate=True), lambda m: None)
+    fit_guard(spec, _SteeringOnly(estimate=True), lambda m: None)
     assert spec.guard.strategies == before
