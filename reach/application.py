@@ -368,6 +368,12 @@ class Application(abc.ABC):
         tick rates), one per round in turn. Default: 5 seeded `starts` in ``grid``'s box."""
         return self.starts(scenario, grid, 5, 0)
 
+    def has_ensemble(self) -> bool:
+        """Whether the application trains an ensemble baseline (it defines
+        `ensemble_config`); without one, the run file's default ``ensemble.seeds`` are none,
+        and seeds it names are refused before anything runs."""
+        return type(self).ensemble_config is not Application.ensemble_config
+
     def ensemble_estimator(self, checkpoint):
         """A function ``(N, H, W, 3) images -> (N, 2)`` estimates of one member of the
         ensemble baseline (a checkpoint of the controller's estimator)."""

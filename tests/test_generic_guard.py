@@ -184,3 +184,25 @@ def test_the_cart_without_guard_strategies_runs_the_defaults_it_can(monkeypatch)
                     "the application's fallback_policy and carry_estimate, and 'cart' defines "
                     "none); slow_down+oracle (it needs the application's fallback_policy and "
                     "true_estimate, and 'cart' defines none)"]
+
+
+def test_an_application_without_an_ensemble_has_none_by_default_and_refuses_seeds(monkeypatch):
+    """The run file's default ``ensemble.seeds`` ([1..5]) ask an application without an
+    ensemble baseline for none; seeds a run file names are refused when it is loaded, not
+    after the sweeps and solves (when the dataset stage computed its key)."""
+    from pathlib import Path
+    from reachwatch.pipeline.spec import load_run_spec
+    from reachwatch.reach.application import load_application
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)                         # the run file's paths are relative
+    text = (root / "examples" / "cart" / "run.yaml").read_text()
+    assert "ensemble: {seeds: []}" in text
+    assert load_run_spec(data=text.replace("ensemble: {seeds: []}", "")).ensemble.seeds == []
+    with pytest.raises(ValueError, match=r"ensemble.seeds: the application 'cart' has no "
+                                         r"ensemble baseline \(it defines no ensemble_config\); "
+                                         r"set ensemble.seeds: \[\]$"):
+        load_run_spec(data=text.replace("ensemble: {seeds: []}", "ensemble: {seeds: [1, 2]}"))
+    taxi = ("name: t\ntrain: [{runway: KMWH, hour: 9.0, sky: clear}]\n"
+            "test: [{runway: KSFO, hour: 17.0, sky: clear}]\n")
+    assert load_application("").has_ensemble()
+    assert load_run_spec(data=taxi).ensemble.seeds == [1, 2, 3, 4, 5]
