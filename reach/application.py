@@ -346,8 +346,10 @@ class Application(abc.ABC):
         """An object whose ``render(state)`` is the camera's RGB image ``(H, W, 3)``
         uint8 at one state (what datasets store). Default: the loop's camera, set by
         `render_at_states` through `probe`'s plant and `camera_port`."""
-        return _LoopRenderer(self.loop_diagram(scenario), self.probe(scenario).plant,
-                             self.camera_port)
+        from .loop_runs import subsystem_port
+        diagram = self.loop_diagram(scenario)
+        subsystem_port(self, diagram, self.camera_port, "camera_port")   # one line if none
+        return _LoopRenderer(diagram, self.probe(scenario).plant, self.camera_port)
 
     #: The loop's camera image port (``"system.port"``), for the default `renderer`.
     camera_port = "wing_camera.color_image"

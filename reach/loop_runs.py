@@ -147,7 +147,7 @@ def run_reading(diagram, scenario, failed, start, duration: float, read, *, cont
     return run.trajectory(), readings
 
 
-def _subsystem_port(application, diagram, name: str, what: str):
+def subsystem_port(application, diagram, name: str, what: str):
     """The output port ``name`` (``"system.port"``) of a subsystem of ``diagram``; a
     ValueError naming the application's attribute ``what`` when there is none."""
     system, _, port = str(name).partition(".")
@@ -191,13 +191,13 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     if scored:
         scenario = _never_engaging(scenario)
     application, diagram, context = _thread_loop(ref, scenario, scored)
-    camera = _subsystem_port(application, diagram, application.camera_port, "camera_port")
-    controller, steering = _subsystem_port(application, diagram,
+    camera = subsystem_port(application, diagram, application.camera_port, "camera_port")
+    controller, steering = subsystem_port(application, diagram,
                                            application.probe(scenario).control_port,
                                            "probe's control_port")
     signals = ([(controller, controller.GetOutputPort(ESTIMATE_OUTPUT))]
                if controller.HasOutputPort(ESTIMATE_OUTPUT) else []) + [(controller, steering)]
-    score = (_subsystem_port(application, diagram, application.score_port, "score_port")
+    score = (subsystem_port(application, diagram, application.score_port, "score_port")
              if scored else None)
     size = DetectorConfig(height=height, width=width)
     period = scenario.controller.period
@@ -301,7 +301,7 @@ def loop_scores(ref, scenario, duration: float, states) -> dict:
     the nominal one at some tick (such a run is not the controller alone's)."""
     scenario = _never_engaging(scenario)
     application, diagram, context = _thread_loop(ref, scenario, True)
-    detector, score = _subsystem_port(application, diagram, application.score_port,
+    detector, score = subsystem_port(application, diagram, application.score_port,
                                       "score_port")
     failed = failure_rule(application, scenario)
     period, nominal = scenario.controller.period, scenario.controller.speed
@@ -370,7 +370,7 @@ def loop_paths(ref, scenario, horizon: float, extend: float, stride: int, grid,
     (`check_memoryless`). ``lockstep`` as in `loop_rollouts`."""
     from .fidelity import left_box
     application, diagram, _ = _thread_loop(ref, scenario)
-    controller, _ = _subsystem_port(application, diagram,
+    controller, _ = subsystem_port(application, diagram,
                                     application.probe(scenario).control_port,
                                     "probe's control_port")
     check_memoryless(controller)

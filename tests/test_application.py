@@ -302,3 +302,19 @@ def test_the_stopping_time_is_the_applications():
     finally:
         os.chdir(here)
     assert car.stopping_time(scenario, 3.0) == pytest.approx(6.0 / 3.0 + 1.0)
+
+
+def test_a_camera_port_the_loop_lacks_is_one_line_naming_the_attribute(monkeypatch):
+    """The default renderer (datasets' images) reads the loop's ``camera_port``: one the
+    loop lacks is one line naming the attribute, not Drake's error inside a worker."""
+    import copy
+    from pathlib import Path
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    car = load_application("examples/speed_car/application.py:SpeedCar")
+    assert type(car).renderer is Application.renderer
+    application = copy.copy(car)
+    application.camera_port = "nose_camera.color_image"
+    with pytest.raises(ValueError, match=r"^the application 'speed_car': its loop has no output "
+                                         r"port 'nose_camera.color_image' \(its camera_port\); "
+                                         r"set camera_port to the loop's 'system.port'$"):
+        application.renderer(load_scenario(data=""))
