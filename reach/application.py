@@ -777,8 +777,12 @@ _LOADED = {}
 def _check_axes(application: Application, spec: str):
     """A ValueError in one line when the application's `open_axes`, `heading_axis` or
     `estimated_state` names an axis its state does not have (the runs would fail in a
-    worker, or a monitor's training after its runs, late)."""
+    worker, or a monitor's training after its runs, late), or names no axes at all."""
     n = len(application.axes)
+    if n == 0 or not all(isinstance(name, str) and name for name in application.axes):
+        raise ValueError(f"application '{spec or application.name}': axes must name each axis "
+                         f"of its state (a tuple of names: ('x', 'y', 'heading')), got "
+                         f"{application.axes!r}")
     named = {"open_axes": tuple(application.open_axes),
              "heading_axis": () if application.heading_axis is None
              else (application.heading_axis,),

@@ -52,6 +52,10 @@ class OpenPast(Rebuilt):
     open_axes = (1, 3)
 
 
+class NoAxes(Rebuilt):
+    axes, open_axes, heading_axis = (), (), None
+
+
 class EstimatesPast(Rebuilt):
     estimated_state = (0, 3)
 
@@ -179,6 +183,8 @@ def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tm
     (":TwoAxes", r"heading_axis names axis 2, but its state has 2 \(px, theta\)$"),
     (":OpenPast", r"open_axes names axis 3, but its state has 3 \(px, py, theta\)$"),
     (":EstimatesPast", r"estimated_state names axis 3, but its state has 3 \(px, py, theta\)$"),
+    (":NoAxes", r"axes must name each axis of its state \(a tuple of names: \('x', 'y', "
+                r"'heading'\)\), got \(\)$"),
 ])
 def test_a_bad_application_is_one_line_naming_the_key(tmp_path, name, why):
     path = _user_app(tmp_path)
