@@ -75,6 +75,8 @@ class RunSpec:
     goes on past it within the horizon).
 
     ``slice_py``: the along-runway position, m, of the figures' slices through the grid.
+    These three are the taxi's; an application that does not read one (its
+    ``reads_keys``) refuses a run file that sets it.
 
     ``dataset``: the detector's data set per environment (`DatasetSpec`).
 
@@ -180,6 +182,10 @@ class RunSpec:
             raise ValueError(f"map_selection.seed {self.map_selection.seed} equals "
                              f"fidelity.seed: the check would judge the map on the runs that "
                              f"chose it; give the selection another seed")
+        for key in ("solved_theta_deg", "solved_py_max", "slice_py"):
+            if key not in application.reads_keys and getattr(self, key) != getattr(RunSpec, key):
+                raise ValueError(f"{key}: the application '{application.name}' does not read "
+                                 f"it (its reads_keys); leave it out")
         if not self.slice_py <= self.solved_py_max:
             raise ValueError(f"slice_py must be a number of metres in [0, solved_py_max "
                              f"{self.solved_py_max:g}], got {self.slice_py!r}")

@@ -429,6 +429,11 @@ class Application(abc.ABC):
     #: Where `plot_slices` cuts the state space, formatted with ``at`` (the taxi's:
     #: "slices at py = {at:g} m"); "" = the report says nothing.
     slice_words = ""
+    #: The run file's keys of the solved box and the slices that this application reads:
+    #: ``solved_theta_deg`` and ``solved_py_max`` (its `grid` and `box_exit_share` take
+    #: them as ``theta_deg`` and ``py_max``) and ``slice_py`` (its `plot_slices`'
+    #: ``at``). A run file that sets one it does not read is refused in one line.
+    reads_keys: tuple = ()
 
     def starts_text(self, noun="starts") -> str:
         """``noun`` qualified by `start_word` (``"on-runway starts"``)."""

@@ -73,6 +73,7 @@ class TaxiApplication(RunwayEnvironments, Application):
     starts_note = "|px| < B; starts already off the runway agree with any BRT"
     box_words = "the paper's box"
     slice_words = "slices at py = {at:g} m"
+    reads_keys = ("solved_theta_deg", "solved_py_max", "slice_py")
 
     def loop_diagram(self, scenario, *, guarded=False):
         return (make_guarded_diagram if guarded else make_closed_loop_diagram)(scenario)

@@ -206,3 +206,18 @@ def test_an_application_without_an_ensemble_has_none_by_default_and_refuses_seed
             "test: [{runway: KSFO, hour: 17.0, sky: clear}]\n")
     assert load_application("").has_ensemble()
     assert load_run_spec(data=taxi).ensemble.seeds == [1, 2, 3, 4, 5]
+
+
+@pytest.mark.parametrize("key, value", [("solved_theta_deg", 60), ("solved_py_max", 400),
+                                        ("slice_py", 100)])
+def test_a_taxi_box_key_the_application_does_not_read_is_refused(monkeypatch, key, value):
+    """The cart's grid takes no widening and its slices no ``at``: a run file setting the
+    taxi's box or slice keys for it is refused in one line (they were ignored)."""
+    from pathlib import Path
+    from reachwatch.pipeline.spec import load_run_spec
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)                         # the run file's paths are relative
+    text = (root / "examples" / "cart" / "run.yaml").read_text()
+    with pytest.raises(ValueError, match=rf"{key}: the application 'cart' does not read it "
+                                         rf"\(its reads_keys\); leave it out$"):
+        load_run_spec(data=text + f"{key}: {value}\n")
