@@ -324,3 +324,24 @@ def test_a_camera_port_the_loop_lacks_is_one_line_naming_the_attribute(monkeypat
                                          r"port 'nose_camera.color_image' \(its camera_port\); "
                                          r"set camera_port to the loop's 'system.port'$"):
         application.renderer(load_scenario(data=""))
+
+
+def test_a_loop_that_renders_another_size_than_scenario_camera_is_one_line(monkeypatch):
+    """The speed car builds its camera without ``scenario.camera``: a run file that sets
+    another size gets one line at its dataset's first chunk, not a detector recorded as
+    trained at a size its loop never renders (refused by every guarded sweep after)."""
+    import dataclasses as dc
+    from pathlib import Path
+    from reachwatch.training.dataset_images import ImageSource, ImageTools, render_chunk
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    car = load_application("examples/speed_car/application.py:SpeedCar")
+    scenario = car.resolved(load_scenario(data=""))
+    state = car.view_state(scenario)[None]
+    tools = ImageTools.build(car, scenario)
+    source = ImageSource(None, scenario, (), 48, 80, "key", tools)
+    assert render_chunk(source, state)["images"].shape == (1, 48, 80, 3)
+    other = dc.replace(scenario, camera=dc.replace(scenario.camera, height=100, width=180))
+    with pytest.raises(ValueError, match=r"^the application's loop renders 200x360 frames, and "
+                                         r"scenario.camera is 100x180: build the loop's camera "
+                                         r"from scenario.camera"):
+        render_chunk(dc.replace(source, scenario=other), state)

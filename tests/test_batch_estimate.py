@@ -43,7 +43,7 @@ def test_an_ensemble_member_of_another_width_is_refused_in_one_line():
             return np.zeros((8, 8, 4), np.uint8)
 
     class _Source:
-        height, width = 4, 4
+        height, width, scenario = 4, 4, None
         tools = ImageTools(_Renderer(), lambda images: np.zeros((len(images), 0)), 0,
                            [lambda images: np.zeros((len(images), 3))])
     with pytest.raises(ValueError, match=r"ensemble member 0: .* returned shape \(2, 3\) for "
