@@ -71,6 +71,15 @@ def imports(package: str, path: Path):
                     out += [(node.lineno, *t) for t in _target(package, node.module)]
                 else:
                     out += [(node.lineno, *t) for t in _target(package, "", names)]
+            elif node.level == 2 or node.module == "reachwatch":
+                # ``from ..taxi import x`` / ``from reachwatch import taxi``: the package
+                # named first, or each package named
+                parts = (node.module or "").split(".") if node.level == 2 else []
+                if parts and parts[0] in LAYERS:
+                    out += [(node.lineno, *t) for t in _target(parts[0], ".".join(parts[1:]),
+                                                              names)]
+                elif not parts:
+                    out += [(node.lineno, name, None) for name in names if name in LAYERS]
             elif node.module and node.module.split(".")[0] == "reachwatch":
                 parts = node.module.split(".")
                 if len(parts) > 1 and parts[1] in LAYERS:
@@ -79,10 +88,18 @@ def imports(package: str, path: Path):
     return out
 
 
+#: The modules of diagrams/ that build the taxi's diagrams (its world, camera, TaxiNet,
+#: the built-in scenario) or read its checkpoints; the rest of diagrams/ is generic.
+TAXI_DIAGRAMS = {"checkpoints", "closed_loop", "contact_sheet", "controller", "guarded",
+                 "render", "scenario", "world"}
+
+
 def _generic(package: str, module: str) -> bool:
     """Whether a module belongs to the generic core that must not know the taxi."""
     if package == "systems":
         return module not in TAXI_SYSTEMS and module != "__init__"
+    if package == "diagrams":
+        return module not in TAXI_DIAGRAMS and module != "__init__"
     if package in ("reach", "training"):
         return True
     return package == "pipeline" and module not in FRONT_ENDS
@@ -115,10 +132,15 @@ def test_the_reader_sees_what_it_must(tmp_path):
     path = tmp_path / "probe.py"
     path.write_text("from reachwatch.systems import TaxiPlant, checks\n"
                     "from .stages import Run\n"
-                    "def f():\n    import reachwatch.taxi.fidelity\n")
+                    "def f():\n    import reachwatch.taxi.fidelity\n"
+                    "from ..taxi import paper_grid\n"
+                    "from ..systems.runway import RUNWAYS\n"
+                    "from reachwatch import taxi, training\n")
     found = {(to, what) for _, to, what in imports("pipeline", path)}
     assert found == {("systems", "plant"), ("systems", "checks"), ("pipeline", "stages"),
-                     ("taxi", "fidelity")}
+                     ("taxi", "fidelity"), ("taxi", "grid"), ("systems", "runway"),
+                     ("taxi", None), ("training", None)}
+    assert all(_taxi(to, what) for to, what in [("taxi", None), ("taxi", "grid")])
 
 
 #: Modules the monitor study's code imports that stay out of its key, and why.
