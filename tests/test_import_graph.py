@@ -1,8 +1,9 @@
 """The import graph, read from the source (every import statement, those inside
 functions too): the layers systems -> diagrams -> reach -> training -> pipeline only
 import downwards, and the generic core knows nothing about the taxi: no module of
-reach/, training/, the generic parts of systems/ or the pipeline's stage engine
-imports `reachwatch.taxi` or a taxi-specific module of systems/. What the taxi needs
+reach/, training/, the generic parts of systems/ and diagrams/ or the pipeline's
+stage engine imports `reachwatch.taxi` or a taxi-specific module of systems/ (in any
+form: absolute, relative, ``from reachwatch import taxi``). What the taxi needs
 there goes through its application (`reachwatch.reach.application`)."""
 
 import ast
