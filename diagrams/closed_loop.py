@@ -288,8 +288,15 @@ class LoopRun:
         self.record_ports = {name: diagram.GetOutputPort(name) for name in self.record}
         # the holds that latch at the control ticks, checked before each step
         # (`_check_derivatives`); and whether a failure between ticks is watched for
-        self.holds = [h for h in _holds(diagram) if abs(h.period() - period) <= 1e-12
+        holds = _holds(diagram)
+        self.holds = [h for h in holds if abs(h.period() - period) <= 1e-12
                       and abs(h.offset()) <= 1e-12]
+        if holds and not self.holds:     # the sweeps, the BRT and the rollouts take `period`
+            raise ValueError(f"the loop '{diagram.get_name()}' holds its commands every "
+                             f"{', '.join(sorted({f'{h.period():g}' for h in holds}))} s, and "
+                             f"the control period (scenario.controller.period) is {period:g} "
+                             f"s, which its tables and BRT are computed at: build the loop's "
+                             f"holds from it")
         self.watched = stop_on_failure and failed is not None
         self.tick = 0                    # the index in ``times`` of the next tick
         self.done = False

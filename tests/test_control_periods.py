@@ -118,3 +118,15 @@ def test_a_controller_that_outputs_nan_is_refused_not_stepped_forever():
     for line in (held, short):
         assert line.startswith("refused: the loop: its hold 'hold' would take [nan] at "
                                "t = 0.000 s, not finite")
+
+
+def test_a_loop_holding_at_another_period_than_the_control_period_is_refused():
+    """A loop whose holds latch every 0.1 s run at a control period of 0.05 s: the tables
+    and BRT take 0.05 s, the loop acts every 0.1 s; refused in one line, not judged at
+    a period it does not run at. A loop without holds, or with one at the period, runs."""
+    with pytest.raises(ValueError, match=r"^the loop '.*' holds its commands every 0.1 s, and "
+                                         r"the control period \(scenario.controller.period\) "
+                                         r"is 0.05 s"):
+        simulate(_drift_loop(1.0, hold=0.1), initial_state=[0.0], duration=0.5, period=0.05)
+    simulate(_drift_loop(1.0, hold=0.05), initial_state=[0.0], duration=0.5, period=0.05)
+    simulate(_drift_loop(1.0), initial_state=[0.0], duration=0.5, period=0.05)
