@@ -24,8 +24,9 @@ from reachwatch.reach.chunk_files import is_chunk_file
 from reachwatch.systems.files import (atomic_write_bytes, cache_join, cache_root, get_location,
                                       is_url, list_location, put_location)
 
-#: The working directory's own record of what it put to its URL (the URL, and
-#: ``{relative: [size, mtime_ns, inode]}``).
+#: The working directory's own record of what it put to its URL (the URL,
+#: ``{relative: [size, mtime_ns, inode]}`` of the files here, and ``{relative: version}``
+#: of them at the URL: `systems.files.list_location`'s versions).
 PUSHED = ".pushed.json"
 
 #: How many files `RunMirror.push` puts, or `RunMirror.pull` fetches, between two saves
@@ -64,44 +65,56 @@ class RunMirror:
     def _pushed(self) -> dict:
         """What this working directory last put to (or fetched from) this URL; nothing
         for another URL (a working directory reused for a second run is put whole)."""
+        return self._saved("files")
+
+    def _versions(self) -> dict:
+        """The URL's versions of the files this working directory last put or fetched."""
+        return self._saved("remote")
+
+    def _saved(self, part: str) -> dict:
         try:
             saved = json.loads((self.local / PUSHED).read_text())
         except (OSError, ValueError):
             return {}
-        return saved.get("files", {}) if saved.get("url") == self.url else {}
+        return saved.get(part, {}) if saved.get("url") == self.url else {}
 
     def _signature(self, relative: str):
         stat = (self.local / relative).stat()      # an atomic rewrite is a new inode
         return [stat.st_size, stat.st_mtime_ns, stat.st_ino]
 
     def pull(self) -> int:
-        """Fetch each file at the URL the working directory lacks or holds at another
-        size, and every record, but never over a file changed here and not put yet (it
-        is newer) nor a hidden one (a temporary file a killed put left); returns how
-        many were fetched. A file fetched counts as put."""
+        """Fetch each file at the URL the working directory lacks, holds at another size,
+        or last put or fetched at another version there (written again since, by a run
+        elsewhere: an array filled in place keeps its size), and every record, but never
+        over a file changed here and not put yet (it is newer) nor a hidden one (a
+        temporary file a killed put left); returns how many were fetched. A file fetched
+        counts as put."""
         try:
-            remote = list_location(self.url)
+            remote = list_location(self.url, versions=True)
         except OSError as e:
             raise ValueError(f"--out {self.url}: cannot list it ({type(e).__name__}: "
                              f"{e})") from None
-        pushed, fetched = self._pushed(), 0
+        pushed, versions, fetched = self._pushed(), self._versions(), 0
         try:
-            for relative, size in sorted(remote.items()):
+            for relative, (size, version) in sorted(remote.items()):
                 target = self.local / relative
                 if os.path.basename(relative).startswith("."):
                     continue                      # a temporary file a killed put left
                 if target.is_file() and pushed.get(relative) != self._signature(relative):
                     continue                      # work here not put yet: it is newer
+                known = versions.get(relative)    # None: put or fetched before versions
                 if not (_is_record(relative) or not target.is_file()
-                        or target.stat().st_size != size):
+                        or target.stat().st_size != size
+                        or (known is not None and known != version)):
+                    versions[relative] = version
                     continue
                 get_location(cache_join(self.url, relative), target)
-                pushed[relative] = self._signature(relative)
+                pushed[relative], versions[relative] = self._signature(relative), version
                 fetched += 1
                 if fetched % SAVE_EVERY == 0:     # a pull killed later keeps what it fetched
-                    self._save(pushed)
+                    self._save(pushed, versions)
         finally:            # interrupted too: what was fetched counts as put, not as work here
-            self._save(pushed)
+            self._save(pushed, versions)
         return fetched
 
     def push(self, only: Callable[[str], bool] = None, stop: threading.Event = None) -> int:
@@ -111,7 +124,7 @@ class RunMirror:
         the listing and its put is left to the next push, as is every file left when
         ``stop`` is set."""
         with self._pushing:
-            pushed = self._pushed()
+            pushed, versions = self._pushed(), self._versions()
             changed = []
             for path in sorted(self.local.rglob("*")):
                 relative = path.relative_to(self.local).as_posix()
@@ -125,7 +138,7 @@ class RunMirror:
                     continue
                 changed.append(relative)
             changed.sort(key=_is_record)            # records after what they name
-            put = 0
+            put, done, listed_from = 0, [], 0     # how many put, which; the first not listed
             try:
                 for relative in changed:
                     if stop is not None and stop.is_set():
@@ -139,12 +152,27 @@ class RunMirror:
                         continue                      # removed since the listing
                     pushed[relative] = signature
                     put += 1
+                    done.append(relative)
                     if put % SAVE_EVERY == 0:         # a kill re-puts at most these
-                        self._save(pushed)
+                        self._save(pushed, self._put_versions(versions, done[listed_from:]))
+                        listed_from = len(done)
             finally:
                 if put:
-                    self._save(pushed)
+                    self._save(pushed, self._put_versions(versions, done[listed_from:]))
             return put
+
+    def _put_versions(self, versions: dict, relatives) -> dict:
+        """``versions`` with the URL's versions of the files ``relatives`` just put (one
+        listing of the URL; a file it cannot list is left without)."""
+        try:
+            listed = list_location(self.url, versions=True)
+        except OSError:
+            listed = {}
+        for relative in relatives:
+            versions.pop(relative, None)
+            if relative in listed:
+                versions[relative] = listed[relative][1]
+        return versions
 
     @contextlib.contextmanager
     def pushing_every(self, seconds: float, log=None, warn=None):
@@ -185,6 +213,6 @@ class RunMirror:
             stop.set()
             thread.join()
 
-    def _save(self, pushed: dict):
+    def _save(self, pushed: dict, versions: dict):
         atomic_write_bytes(self.local / PUSHED, json.dumps(
-            {"url": self.url, "files": pushed}, sort_keys=True).encode())
+            {"url": self.url, "files": pushed, "remote": versions}, sort_keys=True).encode())

@@ -211,22 +211,39 @@ def read_location(location) -> bytes:
     return fs.cat_file(path)
 
 
-def list_location(location) -> dict:
+#: The fields of an fsspec listing that change when an object is written again, most
+#: telling first: object stores' content tags and generations, then modification or
+#: creation times (`list_location`'s versions).
+VERSION_FIELDS = ("ETag", "etag", "md5Hash", "crc32c", "generation", "version_id",
+                  "LastModified", "last_modified", "updated", "mtime", "created")
+
+
+def _version(info: dict) -> str:
+    """What of an fsspec listing's ``info`` changes when the file is written again."""
+    return "|".join(f"{key}={info[key]}" for key in VERSION_FIELDS if info.get(key) is not None)
+
+
+def list_location(location, versions: bool = False) -> dict:
     """``{relative path: size in bytes}`` of every file under the folder ``location``
-    (local or an fsspec URL); empty when there is none."""
+    (local or an fsspec URL); empty when there is none. With ``versions``, ``{relative
+    path: [size, version]}``, the version a string that changes when the file is
+    written again (its store's tag or generation, or its modification or creation
+    time: `VERSION_FIELDS`), "" where the listing says none."""
     location = cache_location(location)
     if isinstance(location, Path):
         if not location.is_dir():
             return {}
-        return {p.relative_to(location).as_posix(): p.stat().st_size
-                for p in location.rglob("*") if p.is_file()}
+        return {p.relative_to(location).as_posix(): [stat.st_size, f"mtime={stat.st_mtime_ns}"]
+                if versions else stat.st_size
+                for p in location.rglob("*") if p.is_file() for stat in [p.stat()]}
     fs, root = _url_fs(location)
     try:
         found = fs.find(root, detail=True)
     except FileNotFoundError:
         return {}
     root = root.rstrip("/")
-    return {path[len(root):].lstrip("/"): int(info.get("size") or 0)
+    return {path[len(root):].lstrip("/"): [int(info.get("size") or 0), _version(info)]
+            if versions else int(info.get("size") or 0)
             for path, info in found.items() if info.get("type") == "file"
             and path.startswith(root + "/")}
 

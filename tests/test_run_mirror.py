@@ -129,6 +129,24 @@ def test_a_run_at_a_url_whose_working_directory_is_in_use_fetches_nothing(tmp_pa
     assert not pulled and sorted(p.name for p in work.iterdir()) == [".reachwatch.lock"]
 
 
+def test_a_file_written_again_at_the_url_at_its_size_is_fetched_again(tmp_path, url):
+    """Machine A puts a half-filled array and later pulls again; meanwhile B filled it
+    and put it at the same size. A fetches B's (its listing's version changed), where it
+    kept its own stale copy (same size); a file unchanged at the URL is not fetched."""
+    a, b = RunMirror(url, tmp_path / "a"), RunMirror(url, tmp_path / "b")
+    (a.local / "data").mkdir()
+    (a.local / "data" / "images.npy").write_bytes(b"half" + bytes(4))
+    (a.local / "data" / "labels.npy").write_bytes(b"labels")
+    assert a.push() == 2
+    assert b.pull() == 2
+    time.sleep(0.01)                                 # a later creation time at the URL
+    (b.local / "data" / "images.npy").write_bytes(b"whole!!!")
+    assert b.push() == 1
+    assert a.pull() == 1                             # images.npy, not labels.npy
+    assert (a.local / "data" / "images.npy").read_bytes() == b"whole!!!"
+    assert a.pull() == 0 and a.push() == 0           # nothing new either way
+
+
 def _rows(chunk, ran, fail_at=None):
     """A chunk's task: its rows' indices squared; ``ran`` lists the chunks it ran."""
     if chunk.index == fail_at:
