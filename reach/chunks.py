@@ -444,26 +444,19 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
                 _log.warning("%s: a worker process died (killed, out of memory, or a crash "
                              "in native code); the pool was started again, and the %d "
                              "chunk(s) not stored yet run on it", caller, len(left))
-    except cf.process.BrokenProcessPool as e:
+    except BaseException as e:
         try:
             keep_finished()
         finally:                            # a chunk that cannot be stored stops the rest
             if owned:
                 stop_executor(executor, abort=True)
                 owned = False
-        raise WorkerLost(
-            f"a {caller} worker process died (killed, out of memory, or a crash in native "
-            f"code); finished chunks are kept and a re-run resumes. A script calling "
-            f"{caller} without `if __name__ == '__main__':` dies so too: workers are spawned "
-            f"(or pass executor=InlineExecutor())"
-        ) from e
-    except BaseException:
-        try:
-            keep_finished()
-        finally:                            # a chunk that cannot be stored stops the rest
-            if owned:
-                stop_executor(executor, abort=True)
-                owned = False
+        if isinstance(e, cf.process.BrokenProcessPool):
+            raise WorkerLost(
+                f"a {caller} worker process died (killed, out of memory, or a crash in "
+                f"native code); finished chunks are kept and a re-run resumes. A script "
+                f"calling {caller} without `if __name__ == '__main__':` dies so too: workers "
+                f"are spawned (or pass executor=InlineExecutor())") from e
         raise
     finally:
         if hooked:
