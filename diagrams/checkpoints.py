@@ -10,6 +10,7 @@ import io
 import json
 import math
 import re
+import zipfile
 from pathlib import Path
 
 import torch
@@ -77,6 +78,9 @@ def load_checkpoint(path, *, kind) -> dict:
             check_keyed(named, file_hash(path, 64), f"the checkpoint {named}")
         except ValueError as e:
             raise CheckpointError(str(e)) from None
+    if not zipfile.is_zipfile(path):    # torch.save's format; a truncated one loses its end
+        raise UnreadableCheckpoint(f"{path} is not a readable checkpoint (corrupt, truncated "
+                                   f"or not written by reachwatch): not a torch.save archive")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except OSError as e:

@@ -1,3 +1,4 @@
+import io
 import pickle
 
 import numpy as np
@@ -115,15 +116,22 @@ def test_bad_checkpoints_fail_clearly(tmp_path):
         load_taxinet(tmp_path / "empty.pt")
     (tmp_path / "pickled.pt").write_bytes(pickle.dumps(object(), protocol=2))
     with pytest.raises(CheckpointError, match=r"pickled.pt is not a readable checkpoint .*: "
+                                              r"not a torch.save archive$"):
+        load_taxinet(tmp_path / "pickled.pt")
+    pickled = io.BytesIO()                       # an archive holding a pickled object
+    torch.save({"model": object()}, pickled)
+    (tmp_path / "objects.pt").write_bytes(pickled.getvalue())
+    with pytest.raises(CheckpointError, match=r"objects.pt is not a readable checkpoint .*: "
                                               r"UnpicklingError: it holds Python objects that "
                                               r"a weights-only load refuses$"):
-        load_taxinet(tmp_path / "pickled.pt")
+        load_taxinet(tmp_path / "objects.pt")
     good = _save(tmp_path / "good.pt", _model()).read_bytes()
     (tmp_path / "truncated.pt").write_bytes(good[: len(good) // 2])
     with pytest.raises(CheckpointError, match="not a readable checkpoint"):
         load_taxinet(tmp_path / "truncated.pt")
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint at all")
-    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+    with pytest.raises(CheckpointError, match="not a readable checkpoint .*: not a torch.save "
+                                              "archive$"):
         load_taxinet(tmp_path / "junk.pt")
     torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.pt")
     with pytest.raises(CheckpointError, match="not a reachwatch checkpoint"):
