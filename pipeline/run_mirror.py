@@ -22,7 +22,7 @@ from typing import Callable
 
 from reachwatch.reach.chunk_files import is_chunk_file
 from reachwatch.systems.files import (atomic_write_bytes, cache_join, cache_root, get_location,
-                                      is_url, list_location, put_location)
+                                      is_url, list_location, put_location, url_filesystem)
 
 #: The working directory's own record of what it put to its URL (the URL,
 #: ``{relative: [size, mtime_ns, inode]}`` of the files here, and ``{relative: version}``
@@ -54,6 +54,7 @@ class RunMirror:
         if not is_url(url):
             raise ValueError(f"not an fsspec URL: {url!r}")
         self.url = url.rstrip("/")
+        url_filesystem(self.url)               # an unknown protocol: one line, nothing made
         self.local = Path(local) if local else default_work_dir(self.url)
         try:
             self.local.mkdir(parents=True, exist_ok=True)

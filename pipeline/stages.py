@@ -105,7 +105,10 @@ class Run:
         try:
             self.root.mkdir(parents=True, exist_ok=True)
         except OSError as e:
-            raise ValueError(f"cannot create the run directory {self.root}: {e.strerror}") from None
+            blocked = isinstance(e, (FileExistsError, NotADirectoryError))
+            raise ValueError(f"cannot create the run directory {self.root}: {e.strerror}"
+                             + (" (a file stands where a folder is needed)" if blocked
+                                else "")) from None
         if not os.access(self.root, os.W_OK | os.X_OK):
             raise ValueError(f"the run directory {self.root} is not writable, and the run "
                              f"needs it {why}")

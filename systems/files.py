@@ -178,7 +178,7 @@ def cache_join(base, *parts):
     return "/".join([base.rstrip("/"), *parts])
 
 
-def _url_fs(url):
+def url_filesystem(url):
     """``(filesystem, path)`` of a URL; a ValueError in one line when its protocol is
     unknown or needs a package that is not installed (s3fs for ``s3://``)."""
     import fsspec                     # only for a URL: a local cache never imports it
@@ -197,7 +197,7 @@ def make_folder(location):
     if isinstance(location, Path):
         location.mkdir(parents=True, exist_ok=True)
     else:                             # a no-op on object stores, which have no folders
-        fs, path = _url_fs(location)
+        fs, path = url_filesystem(location)
         fs.makedirs(path, exist_ok=True)
 
 
@@ -207,7 +207,7 @@ def read_location(location) -> bytes:
     location = cache_location(location)
     if isinstance(location, Path):
         return location.read_bytes()
-    fs, path = _url_fs(location)
+    fs, path = url_filesystem(location)
     return fs.cat_file(path)
 
 
@@ -236,7 +236,7 @@ def list_location(location, versions: bool = False) -> dict:
         return {p.relative_to(location).as_posix(): [stat.st_size, f"mtime={stat.st_mtime_ns}"]
                 if versions else stat.st_size
                 for p in location.rglob("*") if p.is_file() for stat in [p.stat()]}
-    fs, root = _url_fs(location)
+    fs, root = url_filesystem(location)
     try:
         found = fs.find(root, detail=True)
     except FileNotFoundError:
@@ -257,7 +257,7 @@ def put_location(path, location):
         with _replacing(location) as tmp:
             shutil.copyfile(path, tmp)
         return location
-    fs, remote = _url_fs(location)
+    fs, remote = url_filesystem(location)
     fs.put_file(os.fspath(path), remote)
     return location
 
@@ -269,7 +269,7 @@ def get_location(location, path):
         if isinstance(source, Path):
             shutil.copyfile(source, tmp)
         else:
-            fs, remote = _url_fs(source)
+            fs, remote = url_filesystem(source)
             fs.get_file(remote, tmp)
     return Path(path)
 
@@ -284,7 +284,7 @@ def write_location(location, data: bytes):
     # writing all the bytes is atomic there; a temporary object and a rename would be
     # a copy and a delete, not atomic. (A filesystem without that guarantee, say SFTP,
     # could leave a partial file; chunks carry a checksum, so one is computed again.)
-    fs, path = _url_fs(location)
+    fs, path = url_filesystem(location)
     fs.pipe_file(path, data)
     return location
 

@@ -275,6 +275,14 @@ def test_out_naming_a_file_is_one_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "cannot write" in err and "a file stands where a folder is needed" in err
     assert err.count("\n") == 1 and (tmp_path / "taken").read_text() == "a file"
+    run = tmp_path / "run.yaml"                  # the run command says it as render does
+    run.write_text("name: t\ntrain: [{runway: KMWH, hour: 9.0, sky: clear}]\n"
+                   "test: [{runway: KSFO, hour: 17.0, sky: clear}]\n")
+    assert cli.main(["run", "--scenario", str(run), "--out", str(tmp_path / "taken"),
+                     "--until", "sweep"]) == 2
+    err = capsys.readouterr().err
+    assert "taken: File exists (a file stands where a folder is needed)" in err
+    assert err.count("\n") == 1 and (tmp_path / "taken").read_text() == "a file"
 
 
 def test_taxinet_train_never_writes_the_shipped_checkpoint(capsys):

@@ -93,6 +93,9 @@ def test_a_pull_interrupted_keeps_what_it_fetched_as_put(tmp_path, url, monkeypa
 def test_a_url_that_cannot_be_a_mirror_is_one_line(tmp_path):
     with pytest.raises(ValueError, match="not an fsspec URL"):
         RunMirror(str(tmp_path / "plain"), tmp_path / "work")
+    with pytest.raises(ValueError, match="^bogus://bucket/x: Protocol not known: bogus$"):
+        RunMirror("bogus://bucket/x", tmp_path / "work")
+    assert not (tmp_path / "work").exists()          # nothing made for it
 
 
 def test_a_run_at_a_url_resumes_in_another_working_directory(tmp_path, url, seed_caches):
