@@ -5,6 +5,8 @@ import dataclasses as dc
 import math
 from typing import List, Optional
 
+import numpy as np
+
 from reachwatch.diagrams import MonitorConfig
 from reachwatch.reach.application import NoRandomEnvironments
 from reachwatch.diagrams.scenario import MAX_FLAG_WINDOW
@@ -368,3 +370,37 @@ class MonitorStudySpec:
                 "calibrate": envs[self.train:self.train + self.calibrate],
                 "held_out": envs[self.train + self.calibrate:],
                 "also_held_out": list(self.also_held_out)}
+
+
+def study_lead(spec: MonitorStudySpec, application, scenario, where="monitor") -> float:
+    """How far ahead of a failure a warning must come: the application's
+    `stopping_time` under the study's braking, checked against the study's timing
+    (`check_study_timing`; a one-line error else)."""
+    lead = application.stopping_time(scenario, spec.brake_deceleration)
+    if isinstance(lead, bool) or not isinstance(lead, (int, float, np.floating, np.integer)) \
+            or not (math.isfinite(lead) and lead > 0):
+        raise ValueError(f"the application '{application.name}': stopping_time must be a "
+                         f"number of seconds > 0, got {lead!r}")
+    check_study_timing(spec, float(lead), scenario.controller.period, where)
+    return float(lead)
+
+
+def check_study_timing(spec: MonitorStudySpec, lead: float, period: float, where="monitor"):
+    """A ValueError in one line, before any run is recorded, when no failure within the
+    study's runs could be warned of ``lead`` s ahead: the lead is not shorter than a
+    run, or a k-of-n rule cannot flag before then (its k-th flag comes k - 1 control
+    periods into a run at the earliest)."""
+    brake = f"braking at {where}.brake_deceleration {spec.brake_deceleration:g} m/s^2"
+    if lead >= spec.duration:
+        raise ValueError(f"{where}.duration ({spec.duration:g} s) is not longer than the "
+                         f"fallback's lead ({lead:g} s: the application's stopping time "
+                         f"{brake}): no failure within a run can be warned of in time; "
+                         f"lengthen the runs or brake harder")
+    for k, n in (tuple(rule) for rule in spec.flag_rules):
+        earliest = (k - 1) * period
+        if earliest >= spec.duration - lead:
+            raise ValueError(f"{where}.flag_rules: [{k}, {n}] flags {k - 1} control periods "
+                             f"({earliest:g} s at scenario.controller.period {period:g} s) "
+                             f"into a run at the earliest, and a warning must come {lead:g} s "
+                             f"before a failure within {where}.duration ({spec.duration:g} "
+                             f"s): no run could be warned of; ask fewer flags")

@@ -44,7 +44,7 @@ from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_named,  #
 from .monitor_saved import checkpoint_file, clear_previous_result, save_risks, study_outputs
 from .monitor_sections import rate_text
 from .monitor_spec import (DETECTOR_ROW, MONITOR_KINDS, MonitorStudySpec,  # noqa: F401
-                           MonitorVariant, default_variants)
+                           MonitorVariant, default_variants, study_lead)
 
 __all__ = ["DETECTOR_ROW", "MONITOR_KINDS", "MonitorStudySpec", "MonitorVariant", "checkpoint_file",
            "choose_flag_rule", "default_variants", "judge_environments", "run_monitor_study",
@@ -348,17 +348,6 @@ def member_settings(spec: MonitorStudySpec, application=None) -> list:
     ensemble of one is the training of ``spec.seed``)."""
     settings, k = train_settings(spec, application), spec.ensemble
     return [dc.replace(settings, seed=k * settings.seed + m) for m in range(k)]
-
-
-def study_lead(spec: MonitorStudySpec, application, scenario) -> float:
-    """How far ahead of a failure a warning must come: the application's
-    `stopping_time` under the study's braking, checked (a one-line error else)."""
-    lead = application.stopping_time(scenario, spec.brake_deceleration)
-    if isinstance(lead, bool) or not isinstance(lead, (int, float, np.floating, np.integer)) \
-            or not (math.isfinite(lead) and lead > 0):
-        raise ValueError(f"the application '{application.name}': stopping_time must be a "
-                         f"number of seconds > 0, got {lead!r}")
-    return float(lead)
 
 
 def study_key(spec: MonitorStudySpec, application, scenario, detector=None) -> str:

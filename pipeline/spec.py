@@ -21,7 +21,8 @@ from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.labels import LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
 
-from .monitor_spec import MONITOR_KINDS, MonitorStudySpec, MonitorVariant, default_variants  # noqa: F401
+from .monitor_spec import (MONITOR_KINDS, MonitorStudySpec, MonitorVariant,  # noqa: F401
+                           default_variants, study_lead)
 from .section_specs import (MAX_GRID, MAX_HORIZON, MAX_STARTS, EnsembleSpec,  # noqa: F401
                             FidelitySpec, GuardSpec, IncrementalConfig, MapSelectionSpec,
                             RefineSpec, RobustSpec)
@@ -260,6 +261,8 @@ class RunSpec:
                 raise ValueError(f"incremental.environment {short(name)} is a training "
                                  f"environment; the fine-tuned controller is judged on a "
                                  f"held-out one: name another")
+        if self.monitor.enabled:       # its lead and flag rules can warn within its runs
+            study_lead(self.monitor, application, application.resolved(self.scenario))
         targets = self.monitor.state_targets
         if self.monitor.enabled and targets and max(targets) >= len(application.axes):
             raise ValueError(f"monitor.state_targets: {max(targets)} is no axis of the state, "

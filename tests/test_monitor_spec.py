@@ -55,6 +55,17 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
                           (("alpha: 0.5", "alpha: 0.1"), "monitor.calibrate: 1 environments "
                                                          "cannot bound"),
                           (("within: 1.0", "within: 2.0"), "monitor.within (2 s) must be shorter"),
+                          # the taxi's lead at 3 m/s^2 is 5/3 s: not shorter than 1.5 s runs
+                          (("duration: 2.0", "duration: 1.5"), "monitor.duration (1.5 s) is "
+                           "not longer than the fallback's lead (1.66667 s: the application's "
+                           "stopping time braking at monitor.brake_deceleration 3 m/s^2): no "
+                           "failure within a run can be warned of in time"),
+                          # 8 flags come 0.35 s in at 0.05 s; a warning 5/3 s before 2 s
+                          (("runs: 6", "runs: 6\n  flag_rules: [[8, 9]]"),
+                           "monitor.flag_rules: .8, 9. flags 7 control periods (0.35 s at "
+                           "scenario.controller.period 0.05 s) into a run at the earliest, and "
+                           "a warning must come 1.66667 s before a failure within "
+                           "monitor.duration (2 s): no run could be warned of"),
                           (("{name: one frame}", "{name: GRU 3 + signals}"),
                            "monitor.variants must list"),
                           (("{name: one frame}", "{name: single-image detector}"),
@@ -86,7 +97,8 @@ def test_the_study_spec_loads_round_trips_and_names_its_errors():
                           (("guarded_runs: 2", "guarded_runs: 7"),
                            "monitor.guarded_runs (7) must be at most the runs recorded per "
                            "held-out environment (6: monitor.held_out_runs, or monitor.runs")):
-        with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")
+                           .replace("^", r"\^")):
             load_run_spec(data=TINY + MONITOR_STUDY.replace(*edit))
 
 
