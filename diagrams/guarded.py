@@ -82,7 +82,8 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
                              f"period")
         system = builder.AddNamedSystem(DETECTOR, HistoryMonitor(
             model=model, threshold=monitor.threshold, period=period,
-            calibration=metadata.get("calibration", (1.0, 0.0))))
+            calibration=metadata.get("calibration", (1.0, 0.0)),
+            image_size=metadata.get("image_size")))
         if config.signals:
             signals_port = (None if steering_port is None else add_monitor_signals(
                 builder, steering_port=steering_port, estimate_port=estimate_port))

@@ -201,6 +201,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                         metadata={"calibration": [platt.a, platt.b], "threshold": threshold,
                                   "within_s": spec.within, "lead_s": lead, "variant": name,
                                   "period_s": scenario.controller.period,
+                                  **camera_size(scenario),
                                   **({"flag_rule": rule} if rule != [1, 1] else {})})
         checkpoints[name] = str(path)
     read_alone = spec.guarded_runs > 0 and alone_reads_recordings(
@@ -348,6 +349,14 @@ def member_settings(spec: MonitorStudySpec, application=None) -> list:
     ensemble of one is the training of ``spec.seed``)."""
     settings, k = train_settings(spec, application), spec.ensemble
     return [dc.replace(settings, seed=k * settings.seed + m) for m in range(k)]
+
+
+def camera_size(scenario) -> dict:
+    """``{"image_size": [height, width]}`` of the frames the study's loop renders (its
+    ``scenario.camera``), which a history monitor's checkpoint enforces online; nothing
+    for a scenario without a camera."""
+    camera = getattr(scenario, "camera", None)
+    return {} if camera is None else {"image_size": [camera.height, camera.width]}
 
 
 def study_key(spec: MonitorStudySpec, application, scenario, detector=None) -> str:

@@ -64,10 +64,14 @@ class HistoryMonitor(LeafSystem):
     begun from zero at its first tick; a tick advances the ``frames`` windows that
     hold it by one step, together, instead of re-running a window of ``frames`` steps.
     Either way ``score`` is the offline `HistoryRiskModel.risk_sequence` of the run
-    (the same function, up to float rounding)."""
+    (the same function, up to float rounding). ``image_size = (height, width)`` of the
+    camera frames it was trained on, when given, is enforced (each frame is resized to
+    the model's size, so a camera of another size or shape would pass unseen)."""
 
-    def __init__(self, *, model, threshold: float, period: float, calibration=(1.0, 0.0)):
+    def __init__(self, *, model, threshold: float, period: float, calibration=(1.0, 0.0),
+                 image_size=None):
         super().__init__()
+        self._image_size = tuple(image_size) if image_size is not None else None
         if not 0.0 <= threshold <= 1.0:
             raise ValueError(f"HistoryMonitor: threshold must be in [0, 1], got {threshold}")
         if not (np.isfinite(period) and period > 0):
@@ -139,6 +143,11 @@ class HistoryMonitor(LeafSystem):
 
     def _calc_row(self, context, row):
         rgba = self._image_port.Eval(context).data
+        if self._image_size is not None and rgba.shape[:2] != self._image_size:
+            raise ValueError(
+                f"HistoryMonitor: input port 'color_image' got a {rgba.shape[0]}x"
+                f"{rgba.shape[1]} image, but this monitor was trained on "
+                f"{self._image_size[0]}x{self._image_size[1]} (height x width)")
         image = resize_for_detector(rgba[None], self._config.image_config)
         with one_torch_thread():
             if self._grouped is None:

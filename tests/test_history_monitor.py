@@ -144,6 +144,34 @@ def test_a_monitor_trained_at_another_control_period_is_refused(tmp_path):
                  monitor=MonitorConfig(detector=str(path)))
 
 
+def test_a_monitor_trained_on_another_camera_size_is_refused_at_its_first_frame(tmp_path):
+    """Each frame is resized to the model's size, so a camera of another size or shape
+    would pass unseen: the checkpoint's ``image_size`` (the study's camera) is enforced,
+    as the image detector's is; a checkpoint that names none takes any frame."""
+    from pydrake.systems.framework import DiagramBuilder
+    from reachwatch.diagrams import MonitorConfig, add_detector
+    config = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4,
+                                  hidden=4)
+    for metadata, frame, refused in (({"image_size": [24, 40]}, (40, 24), False),
+                                     ({"image_size": [24, 40]}, (64, 24), True),
+                                     ({}, (64, 24), False)):
+        path = _checkpoint(tmp_path / "m.pt", config, **metadata)
+        builder = DiagramBuilder()
+        image = builder.AddSystem(ConstantValueSource(AbstractValue.Make(ImageRgba8U(*frame))))
+        system = add_detector(builder, image_port=image.get_output_port(), period=0.05,
+                              monitor=MonitorConfig(detector=str(path)))
+        builder.ExportOutput(system.GetOutputPort("score"), "score")
+        diagram = builder.Build()
+        score = diagram.GetOutputPort("score")
+        if refused:
+            with pytest.raises(ValueError, match=r"HistoryMonitor: input port 'color_image' "
+                                                 r"got a 24x64 image, but this monitor was "
+                                                 r"trained on 24x40"):
+                score.Eval(diagram.CreateDefaultContext())
+        else:
+            assert np.isfinite(score.Eval(diagram.CreateDefaultContext())[0])
+
+
 def test_config_and_checkpoint_errors(tmp_path):
     with pytest.raises(ValueError, match="temporal must be one of"):
         HistoryMonitorConfig(temporal="lstm").validate()

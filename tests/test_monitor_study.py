@@ -160,6 +160,7 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
         model, config, meta = load_history_monitor(tmp_path / "out" / file)
         assert meta["variant"] == name and meta["threshold"] == result["variants"][name]["threshold"]
         assert file == checkpoint_file(name)
+        assert meta["image_size"] == [scenario.camera.height, scenario.camera.width]  # enforced online
     # the guarded real loop ran from the held-out starts, for each saved monitor and the
     # oracle, which stops no safe run and covers a safe run's whole distance
     assert set(result["guarded"]) == set(result["checkpoints"]) | {ORACLE, DETECTOR_ROW}
