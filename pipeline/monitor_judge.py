@@ -9,9 +9,10 @@ import numpy as np
 from reachwatch.diagrams import make_controller
 from reachwatch.diagrams.controller import estimate_size
 from reachwatch.training.baselines import estimate_error_of
-from reachwatch.training.conformal import (PlattCalibration, brier_score, conformal_threshold,
-                                           expected_calibration_error, per_environment_bound,
-                                           reliability_curve, warning_scores)
+from reachwatch.training.conformal import (NoConformalThreshold, PlattCalibration, brier_score,
+                                           conformal_threshold, expected_calibration_error,
+                                           per_environment_bound, reliability_curve,
+                                           warning_scores)
 from reachwatch.training.monitor_eval import (decisive_scores, flag_outcomes, k_of_n_risks,
                                               labelled_ticks, run_times, system_figures,
                                               tick_auroc)
@@ -58,6 +59,30 @@ def judge_environments(groups, risks, *, threshold, period, lead, watch, flags=N
                                                period=period, duration=watch, within=4.0)})
     return per_env, system_figures({k: np.concatenate(v) if v else np.zeros(0, bool)
                                     for k, v in pooled.items()})
+
+
+def check_calibration_bounds(spec, calibrate, *, period, lead):
+    """Before any training: a `NoConformalThreshold` in one line when no k-of-n rule of
+    ``spec.flag_rules`` can reach ``spec.alpha`` whatever the monitor's risks, from the
+    recorded calibration runs ``calibrate`` alone: too few environments with a warnable
+    failing run (with ``given_failures``), or too many runs failing before any warning
+    can help. A risk of 1 at every tick flags as early as any monitor can, so its
+    conformal bound at threshold 0 is every monitor's (`choose_flag_rule` would refuse
+    the same after the trainings)."""
+    refused = None
+    for k, n in spec.flag_rules:
+        ones = [[np.ones(int(t)) for t in g["ticks"]] for g in calibrate]
+        env_scores = [warning_scores(r, run_times(g["ticks"], period), g["failure_time"],
+                                     lead=lead)
+                      for r, g in zip((k_of_n_risks(group, k, n) for group in ones), calibrate)]
+        try:
+            conformal_threshold(env_scores, spec.alpha, given_failures=spec.given_failures)
+            return
+        except NoConformalThreshold as e:
+            refused = refused or NoConformalThreshold(
+                f"monitor: the recorded calibration runs cannot bound the miss rate, whatever "
+                f"the monitor (flag rule [{k}, {n}]): {e}")
+    raise refused
 
 
 def choose_flag_rule(spec, calibrate, risks, *, period, lead):

@@ -36,8 +36,8 @@ from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, 
 from reachwatch.training.monitor_eval import oracle_risks
 
 from .monitor_guarded import guarded_rows
-from .monitor_judge import (_judge_monitor, choose_flag_rule, judge_environments,  # noqa: F401
-                            prediction_error_aurocs, watch_s)
+from .monitor_judge import (_judge_monitor, check_calibration_bounds, choose_flag_rule,  # noqa: F401
+                            judge_environments, prediction_error_aurocs, watch_s)
 from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_named,  # noqa: F401
                            merged_runs, record_split, record_splits, recorded_frames,
                            starts_seed)
@@ -108,6 +108,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         f"{lead:.2f} s, risk of failing within {spec.within:g} s")
     failing = {k: {g["name"]: [int(np.isfinite(g["failure_time"]).sum()), len(g["ticks"])]
                    for g in groups} for k, groups in data.items()}
+    check_calibration_bounds(spec, data["calibrate"], period=period, lead=lead)
 
     detector_raw = (None if detector is None else
                     {k: [[np.asarray(g["score"][i, :int(n)], float)

@@ -571,3 +571,22 @@ def test_a_safe_run_with_no_tick_reads_back_as_never_flagged(tmp_path):
     back = read_study_result(path)
     assert back["scores"] == {"warning": [-np.inf, 0.5], "safe_max": [-np.inf, 0.2]}
     assert np.isnan(back["rate"])
+
+
+def test_calibration_runs_that_cannot_bound_the_miss_rate_are_refused_before_training():
+    """Known from the recorded calibration runs alone, before any training: with
+    ``given_failures``, no calibration environment with a warnable failing run (its
+    run failed 0.1 s in, under the 1 s lead) cannot bound the miss rate, whatever the
+    monitor; one warnable failing run can, at alpha 0.5."""
+    from types import SimpleNamespace
+    from reachwatch.pipeline.monitor_judge import check_calibration_bounds
+    from reachwatch.training.conformal import NoConformalThreshold
+    spec = SimpleNamespace(flag_rules=[[1, 1], [2, 3]], alpha=0.5, given_failures=True)
+    early = [{"ticks": np.array([2, 40]), "failure_time": np.array([0.1, np.nan])}]
+    with pytest.raises(NoConformalThreshold, match=r"^monitor: the recorded calibration runs "
+                                                   r"cannot bound the miss rate, whatever the "
+                                                   r"monitor \(flag rule \[1, 1\]\): 0 "
+                                                   r"calibration environments with a warnable"):
+        check_calibration_bounds(spec, early, period=0.05, lead=1.0)
+    later = [{"ticks": np.array([40, 40]), "failure_time": np.array([1.98, np.nan])}]
+    check_calibration_bounds(spec, later, period=0.05, lead=1.0)
