@@ -108,7 +108,11 @@ def make_cart_loop(scenario, monitor: MonitorConfig = None):
     if monitor is not None:
         guard = add_monitor(builder, image_port=camera.color_image_output_port(),
                             steering_port=steering, monitor=monitor,
-                            controller=scenario.controller)
+                            controller=scenario.controller,
+                            # a history monitor trained with signals reads the estimate
+                            # too, where the controller has one, as the recordings did
+                            estimate_port=(controller.GetOutputPort("estimate")
+                                           if controller.HasOutputPort("estimate") else None))
         steering, speed = (guard.switch.get_steering_angle_output_port(),
                            guard.switch.get_speed_output_port())
         extra = {"speed": speed, "anomaly": guard.anomaly}
