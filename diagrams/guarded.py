@@ -1,6 +1,7 @@
 """The guarded loop: the closed loop under test watched by the anomaly detector, with
 the fallback switch between the controller and the plant."""
 
+import logging
 from typing import NamedTuple
 
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem, OutputPort
@@ -10,7 +11,7 @@ from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, 
                                 HistoryMonitor, ProportionalController, TrueStateEstimator,
                                 fallback_name)
 
-from .checkpoints import checkpoint_kind, load_detector, load_history_monitor
+from .checkpoints import checkpoint_kind, checkpoint_metadata, load_detector, load_history_monitor
 from .closed_loop import add_controller, export_loop_ports
 from .controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
 from .world import add_world, initial_state_vector
@@ -57,6 +58,33 @@ def check_per_state_monitor(monitor) -> None:
                          f"{config.frames} frames; the guard's tables hold one score per "
                          f"state, from one frame, not what it outputs along a run: judge it "
                          f"in the guarded real loop (a run file's monitor: {{kind: history}})")
+
+
+#: The (checkpoint, fallback) pairs `warn_other_fallback` has warned of in this process.
+_WARNED = set()
+
+
+def warn_other_fallback(monitor, metadata) -> None:
+    """A warning, once per checkpoint and fallback in a process, when a history monitor
+    whose threshold a study fixed for braking at ``brake_deceleration`` (its metadata's)
+    guards a loop whose fallback is not braking as hard: its warnings come the study's
+    lead ahead, which such a fallback may not stop within, so the study's miss-rate
+    bound does not speak of it."""
+    braking = metadata.get("brake_deceleration")
+    if braking is None or (monitor.strategy == "brake"
+                           and monitor.brake_deceleration >= float(braking)):
+        return
+    seen = (str(monitor.detector), monitor.strategy, monitor.brake_deceleration)
+    if seen in _WARNED:
+        return
+    _WARNED.add(seen)
+    this = (f"braking at {monitor.brake_deceleration:g} m/s^2" if monitor.strategy == "brake"
+            else f"'{monitor.strategy}'")
+    logging.getLogger("reachwatch").warning(
+        f"monitor.detector: its threshold was fixed for a fallback braking at "
+        f"{float(braking):g} m/s^2, warning {float(metadata.get('lead_s', 0)):g} s ahead; "
+        f"this loop's fallback is {this}, which may need longer: the study's miss-rate "
+        f"bound does not speak of it")
 
 
 def add_detector(builder, *, image_port, monitor, period=None, steering_port=None,
@@ -113,6 +141,8 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller,
     monitor reads the controller's ``estimate_port`` (when given) and steering. A null
     threshold or k-of-n rule is the checkpoint's own (`MonitorConfig.with_checkpoint_defaults`)."""
     monitor = monitor.with_checkpoint_defaults()
+    if monitor.threshold < 1.0 and checkpoint_kind(monitor.detector) == "history_monitor":
+        warn_other_fallback(monitor, checkpoint_metadata(monitor.detector))   # it acts
     detector = add_detector(builder, image_port=image_port, monitor=monitor,
                             period=controller.period, steering_port=steering_port,
                             estimate_port=estimate_port)

@@ -172,6 +172,41 @@ def test_a_monitor_trained_on_another_camera_size_is_refused_at_its_first_frame(
             assert np.isfinite(score.Eval(diagram.CreateDefaultContext())[0])
 
 
+def test_a_monitor_guarding_a_gentler_fallback_than_its_study_braked_is_warned_once(
+        tmp_path, caplog):
+    """A study fixes the threshold for warnings its lead ahead, braking at its
+    deceleration: a loop whose fallback slows down or brakes more gently is warned of
+    (once per checkpoint and fallback), not refused; one braking as hard, or one that
+    only watches (threshold 1), is not."""
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.primitives import ConstantVectorSource
+    from reachwatch.diagrams import ControllerConfig, MonitorConfig, add_monitor
+    config = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4,
+                                  hidden=4)
+    path = str(_checkpoint(tmp_path / "m.pt", config, threshold=0.4, brake_deceleration=3.0,
+                           lead_s=1.67))
+
+    def build(**monitor):
+        builder = DiagramBuilder()
+        image = builder.AddSystem(ConstantValueSource(AbstractValue.Make(ImageRgba8U(24, 16))))
+        steering = builder.AddSystem(ConstantVectorSource([0.0]))
+        add_monitor(builder, image_port=image.get_output_port(),
+                    steering_port=steering.get_output_port(),
+                    monitor=MonitorConfig(detector=path, **monitor),
+                    controller=ControllerConfig())
+    with caplog.at_level("WARNING", logger="reachwatch"):
+        build(strategy="brake", brake_deceleration=3.0)
+        build(threshold=1.0)                              # watching only
+        assert not caplog.text
+        build(strategy="slow_down")
+        build(strategy="slow_down")                       # said once
+        build(strategy="brake", brake_deceleration=1.0)
+    assert caplog.text.count("its threshold was fixed for a fallback braking at 3 m/s^2, "
+                             "warning 1.67 s ahead; this loop's fallback is") == 2
+    assert "is 'slow_down', which may need longer" in caplog.text
+    assert "is braking at 1 m/s^2, which may need longer" in caplog.text
+
+
 def test_config_and_checkpoint_errors(tmp_path):
     with pytest.raises(ValueError, match="temporal must be one of"):
         HistoryMonitorConfig(temporal="lstm").validate()
