@@ -19,7 +19,6 @@ The loop is the application's (`reachwatch.reach.application.Application`): its
 the run file's (`reachwatch.pipeline.spec`)."""
 
 import dataclasses as dc
-import math
 import time
 from pathlib import Path
 
