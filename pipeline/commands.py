@@ -60,8 +60,10 @@ class RunFileDefault:
         self.paths = (path,) if isinstance(path, str) else tuple(path)
         self.convert = convert
 
-    def __str__(self):
-        return f"the run file's {' and '.join(self.paths)}"
+    def __str__(self):          # only when --help is shown: the schema is imported then
+        value = self.value()
+        shown = " ".join(map(str, value)) if isinstance(value, (list, tuple)) else value
+        return f"{shown}, as {' and '.join(self.paths)} in a run file"
 
     __repr__ = __str__
 

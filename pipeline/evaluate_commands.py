@@ -55,17 +55,21 @@ def label_source_name(text: str) -> str:
 DISTRUSTED_CHOICES = ("rollout", "trajectory")
 
 
-def parse_environment(text: str):
-    """``RUNWAY:HOUR:SKY`` (e.g. ``KSFO:17:overcast``) -> a validated `Environment`."""
+def parse_environment(text: str, flag: str = "environment"):
+    """``RUNWAY:HOUR:SKY`` (e.g. ``KSFO:17:overcast``) -> a validated `Environment`; a
+    ValueError in one line naming ``flag`` (the option that gave it) and ``text``."""
     from reachwatch.systems import Environment
     parts = text.split(":")
     if len(parts) != 3:
-        raise ValueError(f"environment '{text}' must read RUNWAY:HOUR:SKY, e.g. KMWH:9:clear")
+        raise ValueError(f"{flag} '{text}' must read RUNWAY:HOUR:SKY, e.g. KMWH:9:clear")
     try:
         hour = float(parts[1])
     except ValueError:
-        raise ValueError(f"environment '{text}': hour '{parts[1]}' is not a number") from None
-    return Environment(parts[0], hour, parts[2]).validate()
+        raise ValueError(f"{flag} '{text}': hour '{parts[1]}' is not a number") from None
+    try:
+        return Environment(parts[0], hour, parts[2]).validate()
+    except ValueError as e:
+        raise ValueError(f"{flag} '{text}': {e}") from None
 
 
 def _names(envs):
@@ -180,8 +184,10 @@ def evaluate_spec(args):
     detector = DetectorConfig(arch=args.arch, height=height, width=width)
     spec = RunSpec(
         name="evaluate", scenario=scenario_from_args(args, controller=True),
-        train=[parse_environment(t) for t in args.train or _names(training_environments())],
-        test=[parse_environment(t) for t in args.test or _names(test_environments())],
+        train=[parse_environment(t, "--train")
+               for t in args.train or _names(training_environments())],
+        test=[parse_environment(t, "--test")
+              for t in args.test or _names(test_environments())],
         grid=list(args.shape), solved_theta_deg=args.solved_theta_deg,
         solved_py_max=args.solved_py_max,
         dataset=DatasetSpec(samples=args.samples, seed=args.seed, height=height, width=width,

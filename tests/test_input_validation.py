@@ -395,3 +395,13 @@ def test_an_unknown_only_name_is_shown_short_and_the_runs_names_kept():
     message = str(e.value)
     assert len(message) < 300 and "\n" not in message
     assert message.endswith("its environments are: KMWH_9h_clear, KSFO_17h_clear, KMWH_17h_clear")
+
+
+def test_an_environment_flag_names_itself_and_the_value():
+    from reachwatch.pipeline.evaluate_commands import parse_environment
+    with pytest.raises(ValueError, match=r"^--test 'BOGUS:25:clear': environment.runway: unknown "
+                                         r"runway 'BOGUS'"):
+        parse_environment("BOGUS:25:clear", "--test")
+    with pytest.raises(ValueError, match=r"^--train 'KMWH:9' must read RUNWAY:HOUR:SKY"):
+        parse_environment("KMWH:9", "--train")
+    assert parse_environment("KSFO:17:overcast", "--test").runway == "KSFO"
