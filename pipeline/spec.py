@@ -222,14 +222,14 @@ class RunSpec:
             raise ValueError(f"dataset image size {[self.dataset.height, self.dataset.width]} "
                              f"must equal the detector input size "
                              f"{[self.detector.detector.height, self.detector.detector.width]}")
-        if len(self.ensemble.seeds) == 1:
-            raise ValueError("ensemble.seeds: an ensemble needs >= 2 seeds (or [] for none)")
         if self.ensemble.seeds and not application.has_ensemble():
             if self.ensemble.seeds != EnsembleSpec().seeds:
                 raise ValueError(f"ensemble.seeds: the application '{application.name}' has no "
                                  f"ensemble baseline (it defines no ensemble_config); set "
                                  f"ensemble.seeds: []")
             self.ensemble.seeds = []     # the default: none where the application has none
+        if len(self.ensemble.seeds) == 1:
+            raise ValueError("ensemble.seeds: an ensemble needs >= 2 seeds (or [] for none)")
         # one name per fallback ('slow_down', 'slow_down+controller', 'slow_down+taxinet'
         # are one), so that one fallback has one key, one report row and one set of runs
         named, strategies = list(self.guard.strategies), []

@@ -221,3 +221,15 @@ def test_a_taxi_box_key_the_application_does_not_read_is_refused(monkeypatch, ke
     with pytest.raises(ValueError, match=rf"{key}: the application 'cart' does not read it "
                                          rf"\(its reads_keys\); leave it out$"):
         load_run_spec(data=text + f"{key}: {value}\n")
+
+
+def test_the_speed_car_reads_slice_py_and_takes_it(monkeypatch):
+    from pathlib import Path
+    from reachwatch.pipeline.spec import load_run_spec
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)
+    text = (root / "examples" / "speed_car" / "run.yaml").read_text()
+    assert load_run_spec(data=text + "slice_py: 200\n").slice_py == 200
+    with pytest.raises(ValueError, match="solved_py_max: the application 'speed_car' does not "
+                                         "read it"):
+        load_run_spec(data=text + "solved_py_max: 300\n")

@@ -72,14 +72,15 @@ def imports(package: str, path: Path):
                     out += [(node.lineno, *t) for t in _target(package, node.module)]
                 else:
                     out += [(node.lineno, *t) for t in _target(package, "", names)]
-            elif node.level == 2 or node.module == "reachwatch":
-                # ``from ..taxi import x`` / ``from reachwatch import taxi``: the package
-                # named first, or each package named
-                parts = (node.module or "").split(".") if node.level == 2 else []
+            elif node.level >= 2 or node.module == "reachwatch":
+                # ``from ..taxi import x`` / ``from .. import taxi`` / ``from reachwatch
+                # import taxi``: the package named first, or each package named (a level
+                # above 2 is outside the package: nothing of it)
+                parts = node.module.split(".") if node.level == 2 and node.module else []
                 if parts and parts[0] in LAYERS:
                     out += [(node.lineno, *t) for t in _target(parts[0], ".".join(parts[1:]),
                                                               names)]
-                elif not parts:
+                elif not parts and node.level <= 2:
                     out += [(node.lineno, name, None) for name in names if name in LAYERS]
             elif node.module and node.module.split(".")[0] == "reachwatch":
                 parts = node.module.split(".")
@@ -136,11 +137,12 @@ def test_the_reader_sees_what_it_must(tmp_path):
                     "def f():\n    import reachwatch.taxi.fidelity\n"
                     "from ..taxi import paper_grid\n"
                     "from ..systems.runway import RUNWAYS\n"
-                    "from reachwatch import taxi, training\n")
+                    "from reachwatch import taxi, training\n"
+                    "from .. import reach\n")
     found = {(to, what) for _, to, what in imports("pipeline", path)}
     assert found == {("systems", "plant"), ("systems", "checks"), ("pipeline", "stages"),
                      ("taxi", "fidelity"), ("taxi", "grid"), ("systems", "runway"),
-                     ("taxi", None), ("training", None)}
+                     ("taxi", None), ("training", None), ("reach", None)}
     assert all(_taxi(to, what) for to, what in [("taxi", None), ("taxi", "grid")])
 
 

@@ -31,6 +31,7 @@ TIME_CONSTANT = 1.0
 class SpeedCar(RunwayEnvironments, Application):
     """On the taxi's runways, with its environments (`RunwayEnvironments`)."""
     name = "speed_car"
+    reads_keys = ("slice_py",)      # its slices' py; its box is its own (no widening)
     axes = ("px", "py", "theta", "v")
     open_axes = (1, 2, 3)
 
