@@ -73,6 +73,13 @@ def _lost(error: BaseException, caller: str, chunk) -> BaseException:
     return lost
 
 
+def _scheduler_lost(executor) -> bool:
+    """Whether ``executor`` is a cluster client (Dask's) no longer connected to its
+    scheduler: it cancels every task then, and nothing is submitted again."""
+    status = getattr(getattr(executor, "_client", None), "status", "running")
+    return status != "running"
+
+
 #: Seconds a chunk may be in flight before `run_chunks` warns that its worker may be
 #: stuck (once per chunk; it waits on).
 STALL_WARNING_S = 1800.0
@@ -348,7 +355,8 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
             try:
                 arrays = future.result()
             except cf.CancelledError as e:       # not by this call: it cancels none it keeps
-                if retries[chunk.index] < CANCELLED_RETRIES and error is None:
+                if (retries[chunk.index] < CANCELLED_RETRIES and error is None
+                        and not _scheduler_lost(executor)):
                     retries[chunk.index] += 1
                     cancelled.append(chunk)
                     _log.warning("%s: the cluster cancelled chunk %d (it lost the worker "

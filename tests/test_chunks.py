@@ -352,6 +352,20 @@ def test_a_chunk_the_cluster_cancelled_is_submitted_again_and_said(tmp_path, cap
         assert store.read(chunk)["y"].tolist() == [i * i for i in range(chunk.start, chunk.stop)]
 
 
+def test_chunks_cancelled_with_the_scheduler_gone_are_not_submitted_again(tmp_path):
+    """A client that lost its scheduler cancels every task: one WorkerLost line, not a
+    resubmission to a client that is reconnecting or closed."""
+    from types import SimpleNamespace
+    from reachwatch.reach.executors import WorkerLost
+    store = FolderStore(tmp_path, keep=True)
+    with CancellingCluster(lost=[3], times=1) as cluster, pytest.raises(
+            WorkerLost, match=r"^the cluster lost my_job chunk 1 \(CancelledError"):
+        cluster._client = SimpleNamespace(status="connecting")
+        run_chunks(_squares, split(10, 3), store, executor=cluster,
+                   args=lambda chunk: (chunk.start, chunk.stop), caller="my_job")
+    assert cluster.calls.count(3) == 1
+
+
 def test_a_chunk_cancelled_past_its_retries_is_one_worker_lost_line(tmp_path):
     from reachwatch.reach.chunks import CANCELLED_RETRIES
     from reachwatch.reach.executors import WorkerLost
