@@ -12,7 +12,7 @@ import dataclasses as dc
 import numpy as np
 from pydrake.geometry import SceneGraph
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
+from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus, PortDataType
 from pydrake.systems.primitives import ConstantVectorSource, ZeroOrderHold
 
 from reachwatch.systems import ProportionalController, TaxiPlant, TrueStateEstimator
@@ -291,12 +291,19 @@ class LoopRun:
         holds = _holds(diagram)
         self.holds = [h for h in holds if abs(h.period() - period) <= 1e-12
                       and abs(h.offset()) <= 1e-12]
-        if holds and not self.holds:     # the sweeps, the BRT and the rollouts take `period`
+        # a loop whose commands are all held at another period runs at that period,
+        # where its tables, BRT and rollouts take `period` (holds of images, such as a
+        # discrete camera's, are no commands)
+        commands = [h for h in holds
+                    if h.get_input_port().get_data_type() == PortDataType.kVectorValued]
+        if commands and not [h for h in commands if h in self.holds]:
+            latched = sorted({f"{h.period():g} s" + (f" from {h.offset():g} s" if h.offset()
+                                                       else "") for h in commands})
             raise ValueError(f"the loop '{diagram.get_name()}' holds its commands every "
-                             f"{', '.join(sorted({f'{h.period():g}' for h in holds}))} s, and "
-                             f"the control period (scenario.controller.period) is {period:g} "
-                             f"s, which its tables and BRT are computed at: build the loop's "
-                             f"holds from it")
+                             f"{', '.join(latched)}, and the control period "
+                             f"(scenario.controller.period) is {period:g} s from 0 s, which "
+                             f"its tables and BRT are computed at: build the loop's holds "
+                             f"from it")
         self.watched = stop_on_failure and failed is not None
         self.tick = 0                    # the index in ``times`` of the next tick
         self.done = False

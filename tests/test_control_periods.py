@@ -28,15 +28,16 @@ class _Drift(LeafSystem):
         derivatives.get_mutable_vector().SetFromVector(self._u.Eval(context))
 
 
-def _drift_loop(speed, hold=None):
-    """``speed`` into the drift, held by a zero-order hold of period ``hold`` if given."""
+def _drift_loop(speed, hold=None, offset=0.0):
+    """``speed`` into the drift, held by a zero-order hold of period ``hold`` (from
+    ``offset``) if given."""
     builder = DiagramBuilder()
     plant = builder.AddNamedSystem("plant", _Drift())
     source = builder.AddNamedSystem("controller", ConstantVectorSource([speed]))
     if hold is None:
         builder.Connect(source.get_output_port(), plant.get_input_port(0))
     else:
-        held = builder.AddNamedSystem("hold", ZeroOrderHold(hold, 1))
+        held = builder.AddNamedSystem("hold", ZeroOrderHold(hold, 1, offset))
         builder.Connect(source.get_output_port(), held.get_input_port())
         builder.Connect(held.get_output_port(), plant.get_input_port(0))
     export_loop_ports(builder, state=plant.GetOutputPort("state"))
@@ -130,3 +131,23 @@ def test_a_loop_holding_at_another_period_than_the_control_period_is_refused():
         simulate(_drift_loop(1.0, hold=0.1), initial_state=[0.0], duration=0.5, period=0.05)
     simulate(_drift_loop(1.0, hold=0.05), initial_state=[0.0], duration=0.5, period=0.05)
     simulate(_drift_loop(1.0), initial_state=[0.0], duration=0.5, period=0.05)
+    with pytest.raises(ValueError, match=r"holds its commands every 0.05 s from 0.01 s, and the "
+                                         r"control period .* is 0.05 s from 0 s"):
+        simulate(_drift_loop(1.0, hold=0.05, offset=0.01), initial_state=[0.0],
+                 duration=0.5, period=0.05)
+    # a hold of images at another period (a discrete camera's) is no command hold
+    from pydrake.common.value import AbstractValue
+    from pydrake.systems.sensors import ImageRgba8U
+    from pydrake.systems.primitives import ConstantValueSource
+
+    def with_image_hold(hold, images):
+        builder = DiagramBuilder()
+        loop = builder.AddSystem(_drift_loop(1.0, hold=hold))
+        frames = builder.AddSystem(ZeroOrderHold(images, AbstractValue.Make(ImageRgba8U())))
+        camera = builder.AddSystem(ConstantValueSource(AbstractValue.Make(ImageRgba8U(4, 4))))
+        builder.Connect(camera.get_output_port(), frames.get_input_port())
+        export_loop_ports(builder, state=loop.GetOutputPort("state"))
+        return builder.Build()
+    simulate(with_image_hold(0.05, 0.1), initial_state=[0.0], duration=0.5, period=0.05)
+    with pytest.raises(ValueError, match=r"holds its commands every 0.1 s"):  # all the same
+        simulate(with_image_hold(0.1, 0.05), initial_state=[0.0], duration=0.5, period=0.05)
