@@ -30,13 +30,21 @@ _KEYED_LOCK = threading.Lock()
 _DRIVER_KEYED = contextvars.ContextVar("reachwatch_driver_keyed", default=None)
 
 
-def _keyed_name(name) -> str:
-    """``name`` as keyed: a path made absolute (``./m.pt`` and its absolute path are one
-    file), behind its ``code:`` prefix when it has one; a URL as it is."""
+#: The key of `keyed_digests` that holds the driver's working directory, against which
+#: a task resolves the relative paths it names (a worker's own may be another).
+DRIVER_CWD = "cwd:"
+
+
+def _keyed_name(name, cwd=None) -> str:
+    """``name`` as keyed: a path made absolute against ``cwd`` (default: this process's
+    working directory; ``./m.pt`` and its absolute path are one file), behind its
+    ``code:`` prefix when it has one; a URL as it is."""
     text = os.fspath(name)
     prefix = "code:" if text.startswith("code:") else ""
     path = text[len(prefix):]
-    return prefix + (path if is_url(path) else os.path.abspath(path))
+    if is_url(path):
+        return prefix + path
+    return prefix + os.path.normpath(os.path.join(cwd or os.getcwd(), path))
 
 
 def remember_keyed(name: str, digest: str) -> str:
@@ -48,9 +56,11 @@ def remember_keyed(name: str, digest: str) -> str:
 
 
 def keyed_digests() -> dict:
-    """``{name: digests}`` this process keyed work with: what a task it sends takes."""
+    """``{name: digests}`` this process keyed work with, and its working directory
+    (`DRIVER_CWD`): what a task it sends takes."""
     with _KEYED_LOCK:
-        return {name: frozenset(digests) for name, digests in _KEYED.items()}
+        keyed = {name: frozenset(digests) for name, digests in _KEYED.items()}
+    return {**keyed, DRIVER_CWD: frozenset([os.getcwd()])} if keyed else {}
 
 
 @contextlib.contextmanager
@@ -79,7 +89,8 @@ def check_keyed(name, digest: str, what: str) -> None:
     keyed = _DRIVER_KEYED.get()
     if keyed is None:
         return
-    digests = keyed.get(_keyed_name(name))
+    cwd = next(iter(keyed.get(DRIVER_CWD, ())), None)     # the driver's, where it sent it
+    digests = keyed.get(_keyed_name(name, cwd))
     if digests is not None and digest not in digests:
         raise ValueError(f"{what} changed after this run keyed its results with it; start "
                          f"the run again (it resumes from its caches)")

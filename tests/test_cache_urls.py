@@ -170,3 +170,22 @@ def test_a_closure_under_a_given_key_never_runs_another_sweeps_diagram():
     assert first.startswith("mine_") and second.startswith("mine_") and first != second
     shared = functools.partial(make_state_feedback_diagram, scenario)
     assert probe_key(shared, FEEDBACK, "mine") == probe_key(shared, FEEDBACK) != first
+
+
+def test_a_task_checks_a_relative_path_against_the_drivers_working_directory(tmp_path,
+                                                                             monkeypatch):
+    """A task names files as its driver does, relative paths included; a worker whose
+    working directory is another (a Dask worker's) resolves them against the driver's,
+    so that a checkpoint edited after the driver keyed it is still refused there."""
+    from reachwatch.systems.files import (check_keyed, keyed_by_driver, keyed_digests,
+                                          remember_keyed)
+    (tmp_path / "driver").mkdir()
+    (tmp_path / "worker").mkdir()
+    monkeypatch.chdir(tmp_path / "driver")
+    remember_keyed("models/relative_check.pt", "keyed-digest")
+    keyed = keyed_digests()
+    monkeypatch.chdir(tmp_path / "worker")
+    with keyed_by_driver(keyed):
+        check_keyed("models/relative_check.pt", "keyed-digest", "the checkpoint")
+        with pytest.raises(ValueError, match="^the checkpoint changed after this run keyed"):
+            check_keyed("models/relative_check.pt", "edited-digest", "the checkpoint")
