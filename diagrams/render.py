@@ -56,6 +56,20 @@ class StateRenderer:
         return image.data[..., :3].copy()
 
 
+def check_frame_size(frame_shape, scenario) -> None:
+    """A ValueError in one line when a frame the loop rendered (``frame_shape``, height
+    first) is not ``scenario.camera``'s size: what a dataset records as the size its
+    detector is trained at, and what a monitor's checkpoint enforces online (a loop that
+    builds its camera without ``scenario.camera`` would else be judged at a size it
+    never renders). Nothing for a scenario without a camera."""
+    camera = getattr(scenario, "camera", None)
+    if camera is not None and tuple(frame_shape[:2]) != (camera.height, camera.width):
+        raise ValueError(f"the application's loop renders {frame_shape[0]}x{frame_shape[1]} "
+                         f"frames, and scenario.camera is {camera.height}x{camera.width}: "
+                         f"build the loop's camera from scenario.camera, or set it to the "
+                         f"frames' size")
+
+
 def render_at_states(diagram, *, plant: str, image_port: str, states,
                      context=None) -> np.ndarray:
     """RGB images ``(N, H, W, 3)`` uint8 of any diagram's camera at ``states``: sets the

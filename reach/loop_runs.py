@@ -187,6 +187,7 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     engages (as `loop_scores`), the detector's ``score`` (`Application.score_port`)
     read at every tick too, with ``engaged`` per run."""
     from reachwatch.diagrams.controller import ESTIMATE_OUTPUT
+    from reachwatch.diagrams.render import check_frame_size
     from reachwatch.systems import DetectorConfig, resize_for_detector
     if scored:
         scenario = _never_engaging(scenario)
@@ -211,13 +212,18 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     failed = failure_rule(application, scenario)
     gone = already_failed(failed, states)
     read = lambda system, port, root: port.Eval(system.GetMyContextFromRoot(root))  # noqa: E731
+
+    def frame(root):
+        image = read(*camera, root).data
+        check_frame_size(image.shape, scenario)     # a monitor's checkpoint records it
+        return image
     for i, x in enumerate(states):
         if gone[i]:                                     # already failed: no run
             put_recording(out, i, failed=True, failure_time=0.0)
             continue
         trajectory, rows = run_reading(
             diagram, scenario, failed, x, duration, context=context, read=lambda root: (
-                resize_for_detector(read(*camera, root).data[None], size)[0],
+                resize_for_detector(frame(root)[None], size)[0],
                 np.concatenate([np.asarray(read(s, p, root), float).ravel()
                                 for s, p in signals]),
                 float(np.ravel(read(*score, root))[0]) if scored else None))

@@ -326,7 +326,8 @@ def test_a_camera_port_the_loop_lacks_is_one_line_naming_the_attribute(monkeypat
         application.renderer(load_scenario(data=""))
 
 
-def test_a_loop_that_renders_another_size_than_scenario_camera_is_one_line(monkeypatch):
+def test_a_loop_that_renders_another_size_than_scenario_camera_is_one_line(monkeypatch,
+                                                                             tmp_path):
     """The speed car builds its camera without ``scenario.camera``: a run file that sets
     another size gets one line at its dataset's first chunk, not a detector recorded as
     trained at a size its loop never renders (refused by every guarded sweep after)."""
@@ -345,3 +346,8 @@ def test_a_loop_that_renders_another_size_than_scenario_camera_is_one_line(monke
                                          r"scenario.camera is 100x180: build the loop's camera "
                                          r"from scenario.camera"):
         render_chunk(dc.replace(source, scenario=other), state)
+    # and a monitor study's recordings of it, at their first frame
+    with pytest.raises(ValueError, match=r"renders 200x360 frames, and scenario.camera is "
+                                         r"100x180"):
+        car.recorded_runs(other, state, duration=0.1, height=16, width=24,
+                          cache_dir=tmp_path / "rec", progress=False)

@@ -11,6 +11,7 @@ import numpy as np
 
 from reachwatch.diagrams import ControllerProbe, make_controller, user_code
 from reachwatch.diagrams.controller import estimate_size
+from reachwatch.diagrams.render import check_frame_size
 from reachwatch.reach.application import ApplicationRef
 from reachwatch.reach.thread_kept import ThreadKept
 from reachwatch.systems import resize_for_detector
@@ -99,14 +100,7 @@ def render_chunk(source: ImageSource, states) -> dict:
     and the ensemble's (``ensemble`` ``(n, K, 2)``)."""
     tools = source.tools or _thread_tools(source)
     full = np.stack([tools.renderer.render(x) for x in states])
-    camera = getattr(source.scenario, "camera", None)
-    if camera is not None and full.shape[1:3] != (camera.height, camera.width):
-        # the dataset records scenario.camera as the size its detector is trained at,
-        # and the guarded loop checks the detector's input against it
-        raise ValueError(f"the application's loop renders {full.shape[1]}x{full.shape[2]} "
-                         f"frames, and scenario.camera is {camera.height}x{camera.width}: "
-                         f"build the loop's camera from scenario.camera, or set it to the "
-                         f"frames' size")
+    check_frame_size(full.shape[1:], source.scenario)
     ensemble = np.empty((len(full), len(tools.ensemble), 2))
     for j, estimate_member in enumerate(tools.ensemble):
         out = np.asarray(estimate_member(full))
