@@ -158,9 +158,13 @@ def check_controller_builds(spec: RunSpec, log=log.info):
     before the run directory or a sweep changes, not inside the first sweep; then fit the
     guard's strategies to the application and the controller (`fit_guard`)."""
     controller, built = spec.scenario.controller, None
+    application = load_application(spec.application)
     if controller.factory:
         from reachwatch.diagrams import make_controller
-        built = make_controller(load_application(spec.application).resolved(spec.scenario).controller)
+        built = make_controller(application.resolved(spec.scenario).controller)
+    elif spec.application:
+        log(f"scenario.controller.factory is not set: the built-in TaxiNet steers "
+            f"'{application.name}' (name your controller's factory to run another)")
     fit_guard(spec, built, log)
 
 

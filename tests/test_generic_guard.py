@@ -233,3 +233,21 @@ def test_the_speed_car_reads_slice_py_and_takes_it(monkeypatch):
     with pytest.raises(ValueError, match="solved_py_max: the application 'speed_car' does not "
                                          "read it"):
         load_run_spec(data=text + "solved_py_max: 300\n")
+
+
+def test_an_application_steered_by_the_built_in_taxinet_is_told_so(monkeypatch):
+    from pathlib import Path
+    from reachwatch.pipeline.run import check_controller_builds
+    from reachwatch.pipeline.spec import load_run_spec
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)
+    said = []
+    check_controller_builds(load_run_spec(
+        data=(root / "examples" / "speed_car" / "run.yaml").read_text()), said.append)
+    assert said == ["scenario.controller.factory is not set: the built-in TaxiNet steers "
+                    "'speed_car' (name your controller's factory to run another)"]
+    said.clear()                                  # the taxi's own: nothing to say
+    check_controller_builds(load_run_spec(data="name: t\ntrain: [{runway: KMWH, hour: 9.0, "
+                                               "sky: clear}]\ntest: [{runway: KSFO, hour: "
+                                               "17.0, sky: clear}]\n"), said.append)
+    assert said == []
