@@ -164,15 +164,14 @@ class RunMirror:
 
     def _put_versions(self, versions: dict, relatives) -> dict:
         """``versions`` with the URL's versions of the files ``relatives`` just put (one
-        listing of the URL; a file it cannot list is left without)."""
+        listing of the URL). A file it cannot list gets the version "", which no version
+        at the URL equals: the next `pull` fetches it again rather than trust it."""
         try:
             listed = list_location(self.url, versions=True)
         except OSError:
             listed = {}
         for relative in relatives:
-            versions.pop(relative, None)
-            if relative in listed:
-                versions[relative] = listed[relative][1]
+            versions[relative] = listed[relative][1] if relative in listed else ""
         return versions
 
     @contextlib.contextmanager

@@ -132,7 +132,8 @@ def test_a_run_at_a_url_whose_working_directory_is_in_use_fetches_nothing(tmp_pa
     assert not pulled and sorted(p.name for p in work.iterdir()) == [".reachwatch.lock"]
 
 
-def test_a_file_written_again_at_the_url_at_its_size_is_fetched_again(tmp_path, url):
+def test_a_file_written_again_at_the_url_at_its_size_is_fetched_again(tmp_path, url,
+                                                                     monkeypatch):
     """Machine A puts a half-filled array and later pulls again; meanwhile B filled it
     and put it at the same size. A fetches B's (its listing's version changed), where it
     kept its own stale copy (same size); a file unchanged at the URL is not fetched."""
@@ -148,6 +149,18 @@ def test_a_file_written_again_at_the_url_at_its_size_is_fetched_again(tmp_path, 
     assert a.pull() == 1                             # images.npy, not labels.npy
     assert (a.local / "data" / "images.npy").read_bytes() == b"whole!!!"
     assert a.pull() == 0 and a.push() == 0           # nothing new either way
+    # a put whose listing failed: its versions unknown, fetched again at the next pull
+    (a.local / "data" / "labels.npy").write_bytes(b"LABELS")
+    listing = run_mirror.list_location
+
+    def failing(location, versions=False):
+        if versions:
+            raise OSError("listing refused")
+        return listing(location)
+    with monkeypatch.context() as patched:
+        patched.setattr(run_mirror, "list_location", failing)
+        assert a.push() == 1
+    assert a.pull() == 1 and a.pull() == 0
 
 
 def _rows(chunk, ran, fail_at=None):
