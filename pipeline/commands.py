@@ -60,10 +60,8 @@ class RunFileDefault:
         self.paths = (path,) if isinstance(path, str) else tuple(path)
         self.convert = convert
 
-    def __str__(self):          # only when --help is shown: the schema is imported then
-        value = self.value()
-        shown = " ".join(map(str, value)) if isinstance(value, (list, tuple)) else value
-        return f"{shown}, as {' and '.join(self.paths)} in a run file"
+    def __str__(self):          # --help imports no schema (nor Drake, nor torch)
+        return f"as {' and '.join(self.paths)} in a run file's defaults"
 
     __repr__ = __str__
 
