@@ -162,9 +162,10 @@ def check_controller_builds(spec: RunSpec, log=log.info):
     if controller.factory:
         from reachwatch.diagrams import make_controller
         built = make_controller(application.resolved(spec.scenario).controller)
-    elif spec.application:
-        log(f"scenario.controller.factory is not set: the built-in TaxiNet steers "
-            f"'{application.name}' (name your controller's factory to run another)")
+    elif type(application) is not type(load_application()):
+        log(f"scenario.controller.factory is not set: a loop of '{application.name}' that "
+            f"builds scenario.controller is steered by the built-in TaxiNet (name your "
+            f"controller's factory to run another)")
     fit_guard(spec, built, log)
 
 

@@ -29,6 +29,10 @@ from reachwatch.systems.files import (atomic_write_bytes, cache_join, cache_root
 #: of them at the URL: `systems.files.list_location`'s versions).
 PUSHED = ".pushed.json"
 
+#: The version recorded for a file put when the URL could not be listed after it
+#: (`systems.files.list_location`'s versions are "" or ``field=value`` pairs: never this).
+UNKNOWN_VERSION = "?"
+
 #: How many files `RunMirror.push` puts, or `RunMirror.pull` fetches, between two saves
 #: of `PUSHED`.
 SAVE_EVERY = 200
@@ -164,14 +168,16 @@ class RunMirror:
 
     def _put_versions(self, versions: dict, relatives) -> dict:
         """``versions`` with the URL's versions of the files ``relatives`` just put (one
-        listing of the URL). A file it cannot list gets the version "", which no version
-        at the URL equals: the next `pull` fetches it again rather than trust it."""
+        listing of the URL). A file it cannot list gets the version `UNKNOWN_VERSION`,
+        which no version at the URL equals: the next `pull` fetches it again rather than
+        trust it."""
         try:
             listed = list_location(self.url, versions=True)
         except OSError:
             listed = {}
         for relative in relatives:
-            versions[relative] = listed[relative][1] if relative in listed else ""
+            versions[relative] = (listed[relative][1] if relative in listed
+                                  else UNKNOWN_VERSION)
         return versions
 
     @contextlib.contextmanager

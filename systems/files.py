@@ -42,8 +42,10 @@ def _keyed_name(name, cwd=None) -> str:
     text = os.fspath(name)
     prefix = "code:" if text.startswith("code:") else ""
     path = text[len(prefix):]
-    if is_url(path):
+    if is_url(path) or not path:
         return prefix + path
+    if os.path.isabs(path):
+        return prefix + os.path.normpath(path)
     return prefix + os.path.normpath(os.path.join(cwd or os.getcwd(), path))
 
 
@@ -60,7 +62,11 @@ def keyed_digests() -> dict:
     (`DRIVER_CWD`): what a task it sends takes."""
     with _KEYED_LOCK:
         keyed = {name: frozenset(digests) for name, digests in _KEYED.items()}
-    return {**keyed, DRIVER_CWD: frozenset([os.getcwd()])} if keyed else {}
+    try:
+        here = {DRIVER_CWD: frozenset([os.getcwd()])} if keyed else {}
+    except OSError:                   # the working directory is gone: absolute names only
+        here = {}
+    return {**keyed, **here}
 
 
 @contextlib.contextmanager

@@ -149,5 +149,6 @@ def test_a_loop_holding_at_another_period_than_the_control_period_is_refused():
         export_loop_ports(builder, state=loop.GetOutputPort("state"))
         return builder.Build()
     simulate(with_image_hold(0.05, 0.1), initial_state=[0.0], duration=0.5, period=0.05)
+    simulate(with_image_hold(None, 0.1), initial_state=[0.0], duration=0.5, period=0.05)
     with pytest.raises(ValueError, match=r"holds its commands every 0.1 s"):  # all the same
         simulate(with_image_hold(0.1, 0.05), initial_state=[0.0], duration=0.5, period=0.05)

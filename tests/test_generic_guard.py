@@ -244,8 +244,9 @@ def test_an_application_steered_by_the_built_in_taxinet_is_told_so(monkeypatch):
     said = []
     check_controller_builds(load_run_spec(
         data=(root / "examples" / "speed_car" / "run.yaml").read_text()), said.append)
-    assert said == ["scenario.controller.factory is not set: the built-in TaxiNet steers "
-                    "'speed_car' (name your controller's factory to run another)"]
+    assert said == ["scenario.controller.factory is not set: a loop of 'speed_car' that "
+                    "builds scenario.controller is steered by the built-in TaxiNet (name your "
+                    "controller's factory to run another)"]
     said.clear()                                  # the taxi's own: nothing to say
     check_controller_builds(load_run_spec(data="name: t\ntrain: [{runway: KMWH, hour: 9.0, "
                                                "sky: clear}]\ntest: [{runway: KSFO, hour: "
