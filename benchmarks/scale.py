@@ -37,7 +37,7 @@ stopped on the way out.
 With ``--together N`` it measures this alone instead: N environments' sweeps (grid
 ``--shape``, chunks ``--chunk``) on one pool (``--together-executor``, default
 ``local:2``), one after another (each a batch of chunks of its own, as the sweep and
-fidelity stages ran before) and together (`reachwatch.reach.chunks.run_together`, as
+fidelity stages ran before) and together (`reachwatch.reach.chunk_jobs.run_together`, as
 they run now: every environment's chunks in one window), the two taking turns in each
 round; it prints the median walls, the median per-round ratio of one after another to
 together (above 1: together is faster) and whether every table is identical to the
@@ -70,7 +70,7 @@ from reachwatch.diagrams.render_stack import render_stack
 from reachwatch.pipeline.executors import (SATURATION, SATURATION_VARIABLE, make_executor,
                                            scheduler_saturation)
 from reachwatch.reach import InlineExecutor
-from reachwatch.reach.chunks import run_together
+from reachwatch.reach.chunk_jobs import run_together
 from reachwatch.reach.executors import executor_threads
 from reachwatch.reach.outcomes import default_chunk_size, map_states
 from reachwatch.taxi import on_runway_starts, paper_grid, sweep_closed_loop

@@ -9,7 +9,7 @@ import functools
 import numpy as np
 
 from reachwatch.diagrams import MonitorConfig
-from reachwatch.reach.chunks import run_together
+from reachwatch.reach.chunk_jobs import run_together
 
 from .monitor_judge import watch_s
 
@@ -44,7 +44,7 @@ def record_splits(spec, application, scenario, splits: dict, *, cache_dir, execu
                   progress, frames_read_back=()) -> dict:
     """`record_split` of each split, ``{name: (environments, first, runs, detector)}`` ->
     ``{name: [group per environment]}``. On a pool every split's environments' chunks
-    are in flight together (`reachwatch.reach.chunks.run_together`); the groups come in
+    are in flight together (`reachwatch.reach.chunk_jobs.run_together`); the groups come in
     the environments' order either way.
 
     The groups of the splits named in ``frames_read_back`` hold no ``frames``: each
@@ -115,7 +115,7 @@ def recorded_frames(group) -> np.ndarray:
 
 def each_named(named, fn, *, executor, what: str) -> list:
     """``[fn(i, item)]`` for ``named``, ``[(environment name, item)]``: on a pool every
-    environment's chunks in flight together (`reachwatch.reach.chunks.run_together`,
+    environment's chunks in flight together (`reachwatch.reach.chunk_jobs.run_together`,
     an error raised with ``"{what} {name}: "`` before it), inline one after another;
     results in ``named``'s order either way."""
     return run_together([(name, lambda i=i, item=item: fn(i, item))

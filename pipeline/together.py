@@ -1,12 +1,12 @@
 """A stage's per-environment work, every environment at once on the run's executor
-(`reachwatch.reach.chunks.run_together`): the sweep, dataset and fidelity stages feed
+(`reachwatch.reach.chunk_jobs.run_together`): the sweep, dataset and fidelity stages feed
 all their environments' chunks to one window sized to the executor, so a cluster
 larger than one environment's chunks is kept busy and no environment's tail leaves
 workers idle. Inline, one environment after another, as before."""
 
 import copy
 
-from reachwatch.reach.chunks import ordered_log, run_together, together
+from reachwatch.reach.chunk_jobs import ordered_log, run_together, together
 
 from .stages import Run
 

@@ -1,4 +1,4 @@
-"""Every environment's chunks at once (issue 56): `reach.chunks.run_together` runs a
+"""Every environment's chunks at once (issue 56): `reach.chunk_jobs.run_together` runs a
 stage's per-environment jobs together on one executor, their chunks in one window
 sized to it; results, chunk files and log lines are those of one job after another;
 a failing job names itself and stops the others' queued chunks, their finished ones
@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from reachwatch.reach.chunk_files import FolderStore, read_chunk_file, split
-from reachwatch.reach.chunks import ordered_log, run_chunks, run_together
+from reachwatch.reach.chunk_jobs import ordered_log, run_together
+from reachwatch.reach.chunks import run_chunks
 from reachwatch.reach.executors import InlineExecutor, in_flight
 
 
