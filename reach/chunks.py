@@ -119,10 +119,10 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
     (it lost the worker holding the task's input) is submitted again, up to
     `CANCELLED_RETRIES` times, a warning saying so each time.
 
-    In a job of `run_together` on ``executor``, the chunks in flight also count against
-    the window all its jobs share, the bar is drawn at the job's line and moves per
-    chunk (a pool's counter counts every job's rows), and once another job failed the
-    call stops at its next chunk (`Stopped`)."""
+    In a job of `reach.chunk_jobs.run_together` on ``executor``, the chunks in flight
+    also count against the window all its jobs share, the bar is drawn at the job's line
+    and moves per chunk (a pool's counter counts every job's rows), and once another
+    job failed the call stops at its next chunk (`reach.chunk_jobs.Stopped`)."""
     if max_in_flight is not None and (isinstance(max_in_flight, bool) or not isinstance(
             max_in_flight, (int, np.integer)) or max_in_flight < 1):
         raise ValueError(f"{caller}: max_in_flight must be a whole number >= 1 (or None: "
