@@ -64,6 +64,16 @@ def resize_for_detector(images: np.ndarray, config: DetectorConfig) -> np.ndarra
     return np.stack([one(im) for im in images])
 
 
+def check_trained_size(rgba, image_size, system: str, what: str) -> None:
+    """A ValueError in one line when the camera frame ``rgba`` (height first) is not
+    ``image_size``, the size the monitor ``system`` (a ``what``) was trained on; None:
+    any size."""
+    if image_size is not None and rgba.shape[:2] != tuple(image_size):
+        raise ValueError(f"{system}: input port 'color_image' got a {rgba.shape[0]}x"
+                         f"{rgba.shape[1]} image, but this {what} was trained on "
+                         f"{image_size[0]}x{image_size[1]} (height x width)")
+
+
 def detector_input(images: torch.Tensor, config: DetectorConfig) -> torch.Tensor:
     """uint8 ``(N, H, W, 3)`` RGB -> float ``(N, 3, height, width)``, normalised with
     mean = std = 0.5 (the authors' transform)."""
@@ -221,11 +231,7 @@ class AnomalyDetector(LeafSystem):
 
     def _calc_score(self, context, output):
         rgba = self._image_port.Eval(context).data
-        if self._image_size is not None and rgba.shape[:2] != self._image_size:
-            raise ValueError(
-                f"AnomalyDetector: input port 'color_image' got a {rgba.shape[0]}x"
-                f"{rgba.shape[1]} image, but this detector was trained on "
-                f"{self._image_size[0]}x{self._image_size[1]} (height x width)")
+        check_trained_size(rgba, self._image_size, "AnomalyDetector", "detector")
         output.SetAtIndex(0, self.scores(rgba[None])[0])
 
     def _calc_anomaly(self, context, output):

@@ -15,7 +15,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 from pydrake.systems.sensors import ImageRgba8U
 
-from .detector import inference_model, resize_for_detector
+from .detector import check_trained_size, inference_model, resize_for_detector
 from .history_model import HistoryRiskModel, platt
 from .ports import weak_callback
 from .risk_ensemble import GroupedEncoder, HistoryRiskEnsemble, grouped_gru
@@ -143,11 +143,7 @@ class HistoryMonitor(LeafSystem):
 
     def _calc_row(self, context, row):
         rgba = self._image_port.Eval(context).data
-        if self._image_size is not None and rgba.shape[:2] != self._image_size:
-            raise ValueError(
-                f"HistoryMonitor: input port 'color_image' got a {rgba.shape[0]}x"
-                f"{rgba.shape[1]} image, but this monitor was trained on "
-                f"{self._image_size[0]}x{self._image_size[1]} (height x width)")
+        check_trained_size(rgba, self._image_size, "HistoryMonitor", "monitor")
         image = resize_for_detector(rgba[None], self._config.image_config)
         with one_torch_thread():
             if self._grouped is None:
