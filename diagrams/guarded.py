@@ -11,7 +11,7 @@ from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, 
                                 HistoryMonitor, ProportionalController, TrueStateEstimator,
                                 fallback_name)
 
-from .checkpoints import checkpoint_kind, checkpoint_metadata, load_detector, load_history_monitor
+from .checkpoints import checkpoint_kind, load_detector, load_history_monitor
 from .closed_loop import add_controller, export_loop_ports
 from .controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
 from .world import add_world, initial_state_vector
@@ -108,6 +108,8 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
                              f"{period:g} s: its history, flag rule and threshold count "
                              f"ticks, so they would span other times; train it at this "
                              f"period")
+        if monitor.threshold < 1.0:     # it may act (threshold 1: it only watches)
+            warn_other_fallback(monitor, metadata)
         system = builder.AddNamedSystem(DETECTOR, HistoryMonitor(
             model=model, threshold=monitor.threshold, period=period,
             calibration=metadata.get("calibration", (1.0, 0.0)),
@@ -141,8 +143,6 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller,
     monitor reads the controller's ``estimate_port`` (when given) and steering. A null
     threshold or k-of-n rule is the checkpoint's own (`MonitorConfig.with_checkpoint_defaults`)."""
     monitor = monitor.with_checkpoint_defaults()
-    if monitor.threshold < 1.0 and checkpoint_kind(monitor.detector) == "history_monitor":
-        warn_other_fallback(monitor, checkpoint_metadata(monitor.detector))   # it acts
     detector = add_detector(builder, image_port=image_port, monitor=monitor,
                             period=controller.period, steering_port=steering_port,
                             estimate_port=estimate_port)
