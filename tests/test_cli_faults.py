@@ -171,7 +171,7 @@ def test_an_error_raised_in_the_users_code_names_its_file_and_line(tmp_path, cap
     # raised in reachwatch's own code (here: `user_frame` given a Namespace): a bug of
     # ours, whose traceback stays
     monkeypatch.setattr(commands, "render", cli.user_frame)      # given a Namespace
-    with pytest.raises(AttributeError):
+    with pytest.raises(AttributeError, match="'Namespace' object has no attribute '__traceback__'"):
         cli.main(["render", "--out", str(tmp_path / "out")])
 
 

@@ -138,10 +138,11 @@ def test_a_monitor_trained_at_another_control_period_is_refused(tmp_path):
                                          r"every 0.1 s"):
         add_detector(DiagramBuilder(), image_port=None, period=0.1,
                      monitor=MonitorConfig(detector=str(path)))
-    builder = DiagramBuilder()
-    image = builder.AddSystem(ConstantValueSource(AbstractValue.Make(ImageRgba8U(40, 24))))
-    add_detector(builder, image_port=image.get_output_port(), period=0.05,
-                 monitor=MonitorConfig(detector=str(path)))
+    for checkpoint, period in [(path, 0.05), (_checkpoint(tmp_path / "any.pt", config), 0.1)]:
+        builder = DiagramBuilder()
+        image = builder.AddSystem(ConstantValueSource(AbstractValue.Make(ImageRgba8U(40, 24))))
+        add_detector(builder, image_port=image.get_output_port(), period=period,
+                     monitor=MonitorConfig(detector=str(checkpoint)))
 
 
 def test_a_monitor_trained_on_another_camera_size_is_refused_at_its_first_frame(tmp_path):

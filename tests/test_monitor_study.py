@@ -46,6 +46,7 @@ def test_threshold_tradeoff_leaves_a_blank_row_only_where_no_threshold_exists():
     assert threshold_tradeoff(row, (0.45,))[0][1] != threshold_tradeoff(
         {**row, "given_failures": False}, (0.45,))[0][1]
 
+
 def test_run_ranking_pools_environments_and_sets_the_least_needless_threshold():
     from reachwatch.pipeline.monitor_sections import run_ranking
     row = {"scores": {"held_out": [{"warning": [0.9, 0.3], "safe_max": [0.1, 0.5]},
@@ -256,11 +257,6 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
         "meets" if guarded["prevented"] >= 0.85 * prevented else "misses")
     assert rows["calibration error"][3] in ("meets", "misses")
     assert "out/reliability.png" in md
-
-
-def test_the_threshold_is_the_conformal_one_of_the_calibration_scores():
-    scores = [np.array([0.3, 0.7]), np.array([0.9])]
-    assert conformal_threshold(scores, 0.5).threshold == pytest.approx(0.7)
 
 
 def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):

@@ -9,8 +9,8 @@ from pydrake.systems.framework import LeafSystem
 from reachwatch.diagrams import make_closed_loop_diagram, simulate
 from reachwatch.reach.outcomes import check_memoryless, path_labels, path_points
 from reachwatch.taxi.fidelity import on_runway_starts
-from reachwatch.training.dataset import (PATHS_STREAM, DatasetSpec, build_dataset, dataset_folder,
-                                        load_dataset)
+from reachwatch.training.dataset import (PATHS_STREAM, STATES_STREAM, DatasetSpec, build_dataset,
+                                        dataset_folder, load_dataset)
 from reachwatch.training.labels import (NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
                                         LabelSpec, trajectory_samples)
 from reachwatch.taxi import OffRunway
@@ -221,10 +221,12 @@ fidelity: {starts: 3, max_box_exits: 1.0}
 
 def test_path_starts_are_on_the_runway_and_apart_from_the_samples():
     lo, hi = np.array([-12.0, 100.0, -0.5]), np.array([12.0, 250.0, 0.5])
-    starts = on_runway_starts((lo, hi), 200, [3, 1], half_width=10.0)    # as build_dataset
+    assert PATHS_STREAM != STATES_STREAM           # build_dataset's two streams of seed 3:
+    starts = on_runway_starts((lo, hi), 200, [3, *PATHS_STREAM], half_width=10.0)
     assert np.all(np.abs(starts[:, 0]) < 10.0) and np.all((starts >= lo) & (starts <= hi))
-    np.testing.assert_array_equal(starts, on_runway_starts((lo, hi), 200, [3, 1], half_width=10.0))
-    samples = lo + np.random.default_rng(3).uniform(size=(200, 3)) * (hi - lo)
+    np.testing.assert_array_equal(starts, on_runway_starts((lo, hi), 200, [3, *PATHS_STREAM],
+                                                           half_width=10.0))
+    samples = lo + np.random.default_rng([3, *STATES_STREAM]).uniform(size=(200, 3)) * (hi - lo)
     assert not np.isin(starts, samples).any()
 
 
