@@ -140,23 +140,25 @@ def _default(field) -> str:
 
 def _classes(root, path):
     """``(class, [paths])`` for ``root`` and every dataclass below it, depth first, in
-    field order; a class met again gains a path instead of a second section."""
+    field order; a class met again gains a path instead of a second section, and so do
+    the classes below it."""
     order, paths = [], {}
 
-    def visit(cls, where):
-        if cls in paths:
-            paths[cls].append(where)
+    def visit(cls, where, above):
+        if cls not in paths:
+            paths[cls] = []
+            order.append(cls)
+        paths[cls].append(where)
+        if cls in above:                      # a schema that holds itself: once
             return
-        paths[cls] = [where]
-        order.append(cls)
         hints = typing.get_type_hints(cls)
         for field in dc.fields(cls):
             annotation = hints[field.name]
             listed = typing.get_origin(annotation) in (list, typing.List)
             for inner in _dataclasses_in(annotation):
-                visit(inner, f"{where}.{field.name}" + ("[]" if listed else ""))
+                visit(inner, f"{where}.{field.name}" + ("[]" if listed else ""), above | {cls})
 
-    visit(root, path)
+    visit(root, path, frozenset())
     return [(cls, paths[cls]) for cls in order]
 
 

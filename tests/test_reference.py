@@ -23,6 +23,10 @@ def test_reference_names_every_section_and_key(tmp_path):
         assert section in text
     assert "| `flag_budget` | float \\| null | null |" in text
     assert "`run.train[]`" in text and "`run.scenario.environment`" in text
+    # a class below one met again is found at every path too
+    assert ("Where: `run.train_random.runway`, `run.test_random.runway`, "
+            "`run.monitor.family.runway`." in text)
+    assert "`run.test[].runway_spec.surface`" in text.split("## SurfaceSpec")[1].split("\n")[2]
     assert main([]) == 2
 
 
