@@ -5,6 +5,7 @@ taxi's runways are only the default application's."""
 
 import dataclasses as dc
 import pickle
+import re
 import textwrap
 
 import pytest
@@ -224,49 +225,14 @@ def test_typed_schema_replaces_slots_and_nothing_else():
     assert typed_schema(Inner, (), _ksfo) is Inner     # nothing to replace: the class itself
 
 
-ROOM_CART = '''
-import dataclasses as dc
-
-from reachwatch.reach.application import Application, load_application
-from reachwatch.systems import Environment
-
-CartApplication = type(load_application("examples/cart/application.py:CartApplication"))
+def _guide_code(name: str) -> str:
+    """The Python block of the own-plant guide that defines ``name``: the test runs the
+    code the guide shows."""
+    text = (ROOT / "docs" / "guides" / "own-plant.md").read_text()
+    return next(b for b in re.findall(r"```python\n(.*?)```", text, re.S) if name in b)
 
 
-@dc.dataclass
-class Room:
-    """Where the cart runs: the hour and sky at its windows; no runway."""
-    name: str = "room"
-    hour: float = 9.0
-    sky: str = "clear"
-
-    def validate(self):
-        if self.sky not in ("clear", "overcast"):
-            raise ValueError(f"sky must be clear or overcast, got {self.sky!r}")
-        return self
-
-
-class RoomCart(CartApplication):
-    """The cart in rooms, lit as the track is at the room's hour and sky."""
-    environment_type = Room
-    random_environments_type = None
-
-    # the generic defaults (the cart's are the taxi's, for its runways)
-    default_environment = Application.default_environment
-    default_random_environments = Application.default_random_environments
-    same_environment = Application.same_environment
-
-    @staticmethod
-    def _lit(scenario):
-        room = scenario.environment
-        return dc.replace(scenario, environment=Environment("KMWH", room.hour, room.sky))
-
-    def loop_diagram(self, scenario, *, guarded=False):
-        return super().loop_diagram(self._lit(scenario), guarded=guarded)
-
-    def renderer(self, scenario):
-        return super().renderer(self._lit(scenario))
-'''
+ROOM_CART = _guide_code("class RoomCart(")
 
 
 def test_an_application_with_environments_of_its_own_runs_to_a_report(tmp_path, monkeypatch):
