@@ -22,12 +22,12 @@ from .fidelity_stages import check_downtrack_room, stage_fidelity
 from .incremental_stage import stage_incremental
 from .online_stages import stage_guard
 from .report import write_report
-from .spec import RunSpec, digest
+from .spec import RunSpec, digest, dump_run_spec
 from .brt_stages import stage_solve, stage_sweep
 from .dataset_stages import dataset_key, stage_dataset
 from .monitor_study import stage_monitor
 from .detector_stages import controller_name, evaluate_key, stage_evaluate, stage_train, train_key
-from .stages import Run
+from .stages import Run, record_check
 
 STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "monitor",
           "incremental", "report")
@@ -96,10 +96,14 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
 
 
 def report_key(run) -> str:
-    """The report stage's key: the keys and outputs of every stage before it, and the
-    source of all of reachwatch (`reach.fingerprint.LIBRARY`): the report costs
-    seconds, and a resumed run whose report code changed writes it anew."""
-    return digest(REPORT_FORMAT, {k: run.content_key(k) for k in run.records},
+    """The report stage's key: everything the report prints, which is the run file as
+    recorded (its configuration block), every stage's record before it whole (its key,
+    files, figures and timings: `record_check`), and the source of all of reachwatch
+    (`reach.fingerprint.LIBRARY`). The report costs seconds: a stage run again for the
+    same bytes (new timings), a run-file edit no stage reads, or a resumed run whose
+    report code changed writes it anew."""
+    return digest(REPORT_FORMAT, dump_run_spec(run.spec),
+                  {k: record_check(record) for k, record in run.records.items()},
                   modules_source_digest(*LIBRARY))
 
 

@@ -464,6 +464,24 @@ def test_the_report_is_written_anew_when_reachwatch_code_changes(tmp_path, monke
     assert LIBRARY[0] == "reachwatch.systems" and LIBRARY[-1] == "reachwatch.pipeline"
 
 
+def test_the_report_is_written_anew_when_what_it_prints_changes(tmp_path):
+    """The report prints the run file and each stage's figures and timings: a stage run
+    again for the same files (new timings) or a run-file key no stage reads changes its
+    key; the same records and file keep it."""
+    import copy
+    import reachwatch.pipeline.run as run_module
+    run = Run(load_run_spec(data=TINY), tmp_path / "run")
+    run.records = {"sweep": {"stage": "sweep", "key": "k", "files": {},
+                             "outputs": {"seconds": 1.0}}}
+    before = run_module.report_key(run)
+    assert run_module.report_key(copy.deepcopy(run)) == before
+    run.records["sweep"]["outputs"]["seconds"] = 2.0
+    assert run_module.report_key(run) != before
+    run.records["sweep"]["outputs"]["seconds"] = 1.0
+    run.spec.scenario.duration += 1.0
+    assert run_module.report_key(run) != before
+
+
 
 def test_a_directory_holding_another_run_is_refused_and_kept(tmp_path):
     """Another run's directory (its recorded run file names another run) is refused in
