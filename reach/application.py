@@ -307,7 +307,8 @@ class Application(abc.ABC):
         from .liveness import MISSION_FIELDS, SAME_DISTANCE_FIELDS, MissionOutcomes
         from .loop_runs import loop_missions
         from .outcomes import map_states
-        scenario = self.resolved(scenario) if fallback else self.without_monitor(scenario)
+        scenario = (without_run_settings(self.resolved(scenario)) if fallback
+                    else self.without_monitor(scenario))
         limit = None if mission_limit is None else float(mission_limit)
         rollout = functools.partial(loop_missions, ApplicationRef(self._loaded_as()),
                                     scenario, fallback, float(duration), mission_limit=limit)
@@ -320,10 +321,11 @@ class Application(abc.ABC):
         return MissionOutcomes.from_fields(fields)
 
     def without_monitor(self, scenario):
-        """`resolved` ``scenario`` with the default monitor: the controller alone's
-        loop never reads it, so its cached runs are keyed without it."""
+        """`resolved` ``scenario`` with the default monitor and no run settings
+        (`without_run_settings`): the controller alone's loop never reads them, so its
+        cached runs are keyed without them."""
         from reachwatch.diagrams import MonitorConfig
-        return dc.replace(self.resolved(scenario), monitor=MonitorConfig())
+        return without_run_settings(dc.replace(self.resolved(scenario), monitor=MonitorConfig()))
 
     def real_paths(self, scenario, starts, *, grid, horizon: float, extend: float,
                    stride: int, cache_dir, executor=None, progress: bool = True):
@@ -592,9 +594,10 @@ class Application(abc.ABC):
     def _watching(self, scenario):
         """`resolved` ``scenario`` with a monitor of its detector alone
         (`MonitorConfig.watching`): what runs that read the detector's score along the
-        loop alone are keyed by. A copy: `resolved` may return the caller's scenario."""
-        return dc.replace(self.resolved(scenario),
-                          monitor=type(scenario.monitor).watching(scenario.monitor.detector))
+        loop alone are keyed by, without run settings (`without_run_settings`)."""
+        return without_run_settings(dc.replace(
+            self.resolved(scenario),
+            monitor=type(scenario.monitor).watching(scenario.monitor.detector)))
 
     def real_score_noise(self, scenario, grid, score_table, starts, *, duration: float,
                          cache_dir, executor=None, progress: bool = True):
@@ -626,7 +629,8 @@ class Application(abc.ABC):
         """The fields of `missions` from ``states``, run here and not cached (the guard
         stage's showcase tries a few candidate starts)."""
         from .loop_runs import loop_missions
-        scenario = self.resolved(scenario) if fallback else self.without_monitor(scenario)
+        scenario = (without_run_settings(self.resolved(scenario)) if fallback
+                    else self.without_monitor(scenario))
         return loop_missions(ApplicationRef(self._loaded_as()), scenario, fallback,
                              float(duration), states, mission_limit=mission_limit)
 
@@ -754,15 +758,23 @@ class ApplicationRef:
         return load_application(self.spec)
 
 
-def sweep_scenario(scenario, guarded: bool = False):
-    """What a swept table of ``scenario``'s loop depends on, and nothing else: a copy
-    whose start state, duration, seed and fallback settings are the defaults (a sweep
-    sets the state and reads ports that do not depend on them; a guarded one keeps the
-    monitor's detector), so a run that changes them reuses its sweeps."""
+def without_run_settings(scenario):
+    """A copy of ``scenario`` whose start state, duration and seed are the defaults: a
+    sweep sets the state, and a batch of real-loop runs its starts and duration, so
+    neither reads them, and a run file that changes them reuses their caches."""
     scenario = copy.deepcopy(scenario)
     defaults = type(scenario)()
     scenario.initial_state, scenario.duration, scenario.seed = (
         defaults.initial_state, defaults.duration, defaults.seed)
+    return scenario
+
+
+def sweep_scenario(scenario, guarded: bool = False):
+    """What a swept table of ``scenario``'s loop depends on, and nothing else: a copy
+    without run settings (`without_run_settings`) and with the default fallback settings
+    (a sweep reads ports that do not depend on them; a guarded one keeps the monitor's
+    detector), so a run that changes them reuses its sweeps."""
+    scenario = without_run_settings(scenario)
     scenario.monitor = type(scenario.monitor).watching(
         scenario.monitor.detector if guarded else "")
     return scenario

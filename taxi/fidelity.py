@@ -6,11 +6,9 @@ checks (`on_runway_starts`), the BRT's fidelity to the real loop
 (`real_loop_fidelity`), and the loop with the detector watching
 (`make_watched_loop`)."""
 
-import dataclasses as dc
-
 import numpy as np
 
-from reachwatch.diagrams import CONTROLLER, MonitorConfig, add_detector, make_closed_loop_diagram
+from reachwatch.diagrams import CONTROLLER, add_detector, make_closed_loop_diagram
 from reachwatch.diagrams.controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, has_estimate
 from reachwatch.reach.fidelity import Fidelity, compare_verdicts
 from reachwatch.reach.liveness import MissionOutcomes
@@ -18,7 +16,6 @@ from reachwatch.reach.application import ApplicationRef
 from reachwatch.reach.loop_runs import loop_missions
 from reachwatch.reach.outcomes import Outcomes
 
-from .sweeps import resolved
 
 #: The taxi grid axes where leaving the box is not a failure (py, theta): past |px| = B
 #: the run has failed, and it stops there.
@@ -34,21 +31,6 @@ def on_runway_starts(box, count: int, seed, *, half_width: float) -> np.ndarray:
     lo[0], hi[0] = max(lo[0], -half_width), min(hi[0], half_width)
     rng = np.random.default_rng(seed)
     return lo + rng.uniform(size=(count, len(lo))) * (hi - lo)
-
-
-def without_monitor(scenario):
-    """``scenario`` with the default monitor. The controller alone's loop never reads
-    the monitor (detector, threshold, fallback), so its cached runs are keyed without
-    it: a run with another detector or fallback setting reuses them."""
-    return dc.replace(resolved(scenario), monitor=MonitorConfig())
-
-
-def watching(scenario):
-    """``scenario`` with a monitor of its detector alone (`MonitorConfig.watching`): runs
-    that read the detector's score along the controller alone are keyed by it, not by
-    the threshold or fallback. A copy: `resolved` may return the caller's scenario."""
-    return dc.replace(resolved(scenario),
-                      monitor=MonitorConfig.watching(scenario.monitor.detector))
 
 
 def real_outcomes(scenario, starts, *, grid, duration: float, cache_dir, executor=None,

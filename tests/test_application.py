@@ -351,3 +351,20 @@ def test_a_loop_that_renders_another_size_than_scenario_camera_is_one_line(monke
                                          r"100x180"):
         car.recorded_runs(other, state, duration=0.1, height=16, width=24,
                           cache_dir=tmp_path / "rec", progress=False)
+
+
+def test_real_loop_runs_are_keyed_without_the_scenarios_start_duration_and_seed():
+    """Runs of the loop alone or watched set their own starts and duration: a run file
+    that changes ``scenario.duration``, ``initial_state`` or ``seed`` reuses their
+    caches (as sweeps do), and one that changes the loop does not."""
+    from reachwatch.reach.application import sweep_scenario
+    from reachwatch.reach.fingerprint import fingerprint
+    taxi = load_application("")
+    plain = load_scenario(data="")
+    other = load_scenario(data="duration: 3.0\nseed: 7\n"
+                               "initial_state: {px: 1.0, py: 120.0, theta_deg: 2.0}\n")
+    for keyed in (taxi.without_monitor, taxi._watching, sweep_scenario):
+        assert fingerprint(keyed(plain)) == fingerprint(keyed(other))
+    assert (other.duration, other.seed) == (3.0, 7)            # the caller's, untouched
+    slower = load_scenario(data="controller: {period: 0.1}\n")
+    assert fingerprint(taxi.without_monitor(plain)) != fingerprint(taxi.without_monitor(slower))
