@@ -629,8 +629,7 @@ class Application(abc.ABC):
         """The fields of `missions` from ``states``, run here and not cached (the guard
         stage's showcase tries a few candidate starts)."""
         from .loop_runs import loop_missions
-        scenario = (without_run_settings(self.resolved(scenario)) if fallback
-                    else self.without_monitor(scenario))
+        scenario = self.resolved(scenario) if fallback else self.without_monitor(scenario)
         return loop_missions(ApplicationRef(self._loaded_as()), scenario, fallback,
                              float(duration), states, mission_limit=mission_limit)
 

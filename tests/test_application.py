@@ -353,7 +353,8 @@ def test_a_loop_that_renders_another_size_than_scenario_camera_is_one_line(monke
                           cache_dir=tmp_path / "rec", progress=False)
 
 
-def test_real_loop_runs_are_keyed_without_the_scenarios_start_duration_and_seed():
+def test_real_loop_runs_are_keyed_without_the_scenarios_start_duration_and_seed(tmp_path,
+                                                                                monkeypatch):
     """Runs of the loop alone or watched set their own starts and duration: a run file
     that changes ``scenario.duration``, ``initial_state`` or ``seed`` reuses their
     caches (as sweeps do), and one that changes the loop does not."""
@@ -366,5 +367,18 @@ def test_real_loop_runs_are_keyed_without_the_scenarios_start_duration_and_seed(
     for keyed in (taxi.without_monitor, taxi._watching, sweep_scenario):
         assert fingerprint(keyed(plain)) == fingerprint(keyed(other))
     assert (other.duration, other.seed) == (3.0, 7)            # the caller's, untouched
+    # and the guarded runs with a fallback: the scenario their rollouts are keyed by
+    import reachwatch.reach.outcomes as outcomes
+    keyed = []
+
+    def stand_in(rollout, starts, **kwargs):
+        keyed.append(fingerprint(rollout))
+        raise StopIteration
+    monkeypatch.setattr(outcomes, "map_states", stand_in)
+    for scenario in (plain, other):
+        with pytest.raises(StopIteration):
+            taxi.missions(scenario, np.zeros((1, 3)), fallback="brake", duration=1.0,
+                          cache_dir=tmp_path)
+    assert len(keyed) == 2 and keyed[0] == keyed[1]
     slower = load_scenario(data="controller: {period: 0.1}\n")
     assert fingerprint(taxi.without_monitor(plain)) != fingerprint(taxi.without_monitor(slower))

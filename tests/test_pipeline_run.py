@@ -470,6 +470,16 @@ def test_the_report_is_written_anew_when_what_it_prints_changes(tmp_path):
     key; the same records and file keep it."""
     import copy
     import reachwatch.pipeline.run as run_module
+
+    def written():                        # a stage's outputs: a file, a float, a NaN
+        (tmp_path / "run" / "f.txt").write_text("hello")
+        return {"file": "f.txt", "x": 0.1 + 0.2, "n": float("nan")}
+    # a run directory opened again, its stage skipped: the same key
+    first = Run(load_run_spec(data=TINY), tmp_path / "run", log=lambda m: None)
+    first.stage("sweep", "k", written)
+    again = Run(load_run_spec(data=TINY), tmp_path / "run", log=lambda m: None)
+    again.stage("sweep", "k", lambda: pytest.fail("the stage ran again"))
+    assert run_module.report_key(again) == run_module.report_key(first)
     run = Run(load_run_spec(data=TINY), tmp_path / "run")
     run.records = {"sweep": {"stage": "sweep", "key": "k", "files": {},
                              "outputs": {"seconds": 1.0}}}

@@ -203,8 +203,11 @@ fidelity: {starts: 3, max_box_exits: 1.0}
     assert subsets["all"] == len(data.labels) and subsets["uniform states"] == 10
     assert subsets["read along runs"] == len(data.labels) - 10
     assert {r["states"] for r in rows if r["labels"] == "brt"} == set(subsets)   # and the map's
-    # the one extra run of `paths: 1` is run 10, after the 10 starts' own runs
+    # the one extra run of `paths: 1` is run 10, after the 10 starts' own runs, from a
+    # start of its own stream: none of the uniform samples
     assert data.runs.max() == 10 and data.manifest["labels"]["paths"]["runs"] == 1
+    start = data.states[data.runs == 10][0]
+    assert not np.isclose(data.states[:10], start).all(axis=1).any()
     assert ("besides them, the states that 1 more real run per environment pass through "
             "(from uniform on-runway states, 0.5 s past the horizon, every 5th tick)"
             in labels_paragraph(run.spec, run.outputs))
