@@ -64,6 +64,14 @@ def resize_for_detector(images: np.ndarray, config: DetectorConfig) -> np.ndarra
     return np.stack([one(im) for im in images])
 
 
+def flag_of(score: float, threshold: float) -> float:
+    """A monitor's ``anomaly`` output: 1.0 when ``score >= threshold``, and when the
+    score is not a number (a NaN signal or weight, which compares false with every
+    threshold and would never flag: a monitor that cannot tell hands control over),
+    else 0.0."""
+    return 0.0 if score < threshold else 1.0
+
+
 def check_trained_size(rgba, image_size, system: str, what: str) -> None:
     """A ValueError in one line when the camera frame ``rgba`` (height first) is not
     ``image_size``, the size the monitor ``system`` (a ``what``) was trained on; None:
@@ -186,8 +194,8 @@ class AnomalyDetector(LeafSystem):
         - score
 
     ``score`` is the probability of class 1 (anomalous); ``anomaly`` is 1.0 when
-    ``score >= threshold``, else 0.0. ``image_size = (height, width)``, when given, is
-    enforced.
+    ``score >= threshold`` or the score is NaN (`flag_of`), else 0.0.
+    ``image_size = (height, width)``, when given, is enforced.
     """
 
     def __init__(self, *, model: nn.Module, config: DetectorConfig, threshold: float = 0.5,
@@ -235,5 +243,4 @@ class AnomalyDetector(LeafSystem):
         output.SetAtIndex(0, self.scores(rgba[None])[0])
 
     def _calc_anomaly(self, context, output):
-        score = self._score_port.Eval(context)[0]
-        output.SetAtIndex(0, 1.0 if score >= self._threshold else 0.0)
+        output.SetAtIndex(0, flag_of(self._score_port.Eval(context)[0], self._threshold))

@@ -15,7 +15,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 from pydrake.systems.sensors import ImageRgba8U
 
-from .detector import check_trained_size, inference_model, resize_for_detector
+from .detector import check_trained_size, flag_of, inference_model, resize_for_detector
 from .history_model import HistoryRiskModel, platt
 from .ports import weak_callback
 from .risk_ensemble import GroupedEncoder, HistoryRiskEnsemble, grouped_gru
@@ -55,8 +55,9 @@ class HistoryMonitor(LeafSystem):
     kept state and the current frame (so the fallback switch, updated at the same tick,
     sees this tick's frame; ``calibration`` None: the raw risk, whose ``anomaly`` is then
     no operating flag: the threshold is on the calibrated scale); ``anomaly`` is 1.0
-    when ``score >= threshold``. Ports are named as `AnomalyDetector`'s (connect them by
-    name or getter: their indices differ), so either monitors a guarded loop.
+    when ``score >= threshold``, or when it is NaN (a signal that is: `flag_of`). Ports
+    are named as `AnomalyDetector`'s (connect them by name or getter: their indices
+    differ), so either monitors a guarded loop.
 
     What the state keeps depends on the temporal model (for each member). ``stack``: the
     rows of the last ``(frames - 1) * stride`` ticks. ``gru``: the GRU's hidden state in each window
@@ -235,4 +236,4 @@ class HistoryMonitor(LeafSystem):
         output.SetAtIndex(0, risk if self._platt is None else float(platt(risk, *self._platt)))
 
     def _calc_anomaly(self, context, output):
-        output.SetAtIndex(0, 1.0 if self._score_port.Eval(context)[0] >= self._threshold else 0.0)
+        output.SetAtIndex(0, flag_of(self._score_port.Eval(context)[0], self._threshold))

@@ -274,7 +274,8 @@ def _step_monitor(monitor, frames, signals, on_tick=None):
         if monitor.get_signals_input_port() is not None:
             monitor.get_signals_input_port().FixValue(context, signals[t])
         scores.append(monitor.get_score_output_port().Eval(context)[0])
-        assert monitor.get_anomaly_output_port().Eval(context)[0] == float(scores[-1] >= 0.5)
+        assert monitor.get_anomaly_output_port().Eval(context)[0] == float(
+            not scores[-1] < 0.5)                    # NaN flags (`flag_of`)
         if context.get_discrete_state_vector().size() > 1:      # history kept
             context.SetDiscreteState(monitor.EvalUniquePeriodicDiscreteUpdate(context))
         if on_tick is not None:
@@ -379,3 +380,21 @@ def test_the_guards_tables_refuse_a_monitor_over_several_frames(tmp_path):
     single = _checkpoint(tmp_path / "s.pt", HistoryMonitorConfig(frames=1, **small))
     check_per_state_monitor(MonitorConfig(detector=str(single)))
     check_per_state_monitor(MonitorConfig())
+
+
+def test_a_risk_that_is_not_a_number_flags():
+    """A NaN signal (a controller's estimate gone bad) makes the risk NaN, which compares
+    false with every threshold: the monitor flags it, for as long as the history holds
+    it, rather than never flagging."""
+    from reachwatch.systems import HistoryMonitor
+    config = HistoryMonitorConfig(frames=2, stride=1, height=16, width=24, channels=[4],
+                                  features=5, signals=1, hidden=6)
+    monitor = HistoryMonitor(model=HistoryRiskModel(config).eval(), threshold=0.5, period=0.05)
+    signals = np.array([[0.0], [np.nan], [0.0], [0.0]])
+    scores = _step_monitor(monitor, np.zeros((4, 20, 30, 4), np.uint8), signals)
+    assert np.isnan(scores).tolist() == [False, True, True, False]
+
+
+def test_flag_of_flags_at_and_above_the_threshold_and_on_nan():
+    from reachwatch.systems.detector import flag_of
+    assert [flag_of(s, 0.5) for s in (0.49, 0.5, 0.9, float("nan"))] == [0.0, 1.0, 1.0, 1.0]
