@@ -299,3 +299,18 @@ def test_weight_averaging_returns_the_mean_of_the_last_epochs_weights(monkeypatc
         torch.testing.assert_close(got, torch.stack(seen).mean(dim=0))
     with pytest.raises(ValueError, match=r"weight_average must be a finite number in \[0, 1\)"):
         HistoryTrainConfig(weight_average=1.0)
+
+
+def test_signals_that_are_not_finite_are_refused_before_training():
+    """A NaN signal within a run (a controller's "no estimate") would make every risk
+    NaN: one line naming the column; past a run's last tick the padding is not read."""
+    from reachwatch.training.history_train import signal_statistics
+    signals = np.zeros((2, 4, 3))
+    signals[1, 3, 0] = np.nan                  # after run 1's 3 ticks: padding
+    runs = {"signals": signals, "ticks": np.array([4, 3])}
+    mean, std = signal_statistics(runs, 3)
+    assert mean == [0.0, 0.0, 0.0] and std == [1e-6] * 3
+    signals[0, 2, 1] = np.inf
+    with pytest.raises(ValueError, match=r"^the recorded online signals are not all finite "
+                                         r"\(1 NaN or inf, in column 1 of 3"):
+        signal_statistics(runs, 3)

@@ -253,10 +253,19 @@ def encode_runs(encoder: HistoryRiskModel, runs: dict) -> np.ndarray:
 
 
 def signal_statistics(runs: dict, count: int):
-    """``(mean, std)`` of the first ``count`` online signals over the runs' ticks."""
+    """``(mean, std)`` of the first ``count`` online signals over the runs' ticks; a
+    ValueError in one line when one of them is not finite (a controller that outputs
+    NaN for "no estimate", say), which would make every risk of the monitor NaN."""
     signals = np.asarray(runs["signals"], float)[..., :count]
     valid = np.arange(signals.shape[1])[None, :] < np.asarray(runs["ticks"])[:, None]
     values = signals[valid]
+    bad = ~np.isfinite(values)
+    if bad.any():
+        columns = ", ".join(str(c) for c in np.flatnonzero(bad.any(axis=0)))
+        raise ValueError(f"the recorded online signals are not all finite ({int(bad.sum())} "
+                         f"NaN or inf, in column {columns} of {count}: the controller's "
+                         f"estimate, then its command): a monitor that reads them cannot be "
+                         f"trained; drop the variants with signals: true")
     return values.mean(axis=0).tolist(), np.maximum(values.std(axis=0), 1e-6).tolist()
 
 
