@@ -314,3 +314,17 @@ def test_signals_that_are_not_finite_are_refused_before_training():
     with pytest.raises(ValueError, match=r"^the recorded online signals are not all finite "
                                          r"\(1 NaN or inf, in column 1 of 3"):
         signal_statistics(runs, 3)
+
+
+def test_a_monitor_with_signals_is_not_judged_on_signals_that_are_not_finite():
+    """Calibration or held-out runs whose signals hold a NaN would give NaN risks that
+    no threshold judges: refused as training is; a monitor without signals reads none."""
+    from reachwatch.systems.history_model import HistoryRiskModel
+    runs = {"signals": np.zeros((1, 3, 2)), "ticks": np.array([3])}
+    runs["signals"][0, 1, 0] = np.nan
+    features = np.zeros((1, 3, 4), np.float32)
+    small = dict(frames=1, height=16, width=24, channels=[4], features=4, hidden=4)
+    with pytest.raises(ValueError, match=r"^the recorded online signals are not all finite"):
+        run_risks(HistoryRiskModel(HistoryMonitorConfig(signals=2, **small)), features, runs)
+    risks = run_risks(HistoryRiskModel(HistoryMonitorConfig(**small)), features, runs)
+    assert len(risks) == 1 and np.all(np.isfinite(risks[0]))

@@ -252,10 +252,11 @@ def encode_runs(encoder: HistoryRiskModel, runs: dict) -> np.ndarray:
     return out
 
 
-def signal_statistics(runs: dict, count: int):
-    """``(mean, std)`` of the first ``count`` online signals over the runs' ticks; a
-    ValueError in one line when one of them is not finite (a controller that outputs
-    NaN for "no estimate", say), which would make every risk of the monitor NaN."""
+def finite_signals(runs: dict, count: int) -> np.ndarray:
+    """The first ``count`` online signals at every tick of the runs, ``(ticks, count)``;
+    a ValueError in one line when one is not finite (a controller that outputs NaN for
+    "no estimate", say): a monitor that reads it has a NaN risk there, which no
+    threshold judges (online such a risk flags: `reachwatch.systems.detector.flag_of`)."""
     signals = np.asarray(runs["signals"], float)[..., :count]
     valid = np.arange(signals.shape[1])[None, :] < np.asarray(runs["ticks"])[:, None]
     values = signals[valid]
@@ -264,8 +265,15 @@ def signal_statistics(runs: dict, count: int):
         columns = ", ".join(str(c) for c in np.flatnonzero(bad.any(axis=0)))
         raise ValueError(f"the recorded online signals are not all finite ({int(bad.sum())} "
                          f"NaN or inf, in column {columns} of {count}: the controller's "
-                         f"estimate, then its command): a monitor that reads them cannot be "
-                         f"trained; drop the variants with signals: true")
+                         f"estimate, then its command): a monitor that reads them can be "
+                         f"neither trained nor judged; drop the variants with signals: true")
+    return values
+
+
+def signal_statistics(runs: dict, count: int):
+    """``(mean, std)`` of the first ``count`` online signals over the runs' ticks
+    (`finite_signals`)."""
+    values = finite_signals(runs, count)
     return values.mean(axis=0).tolist(), np.maximum(values.std(axis=0), 1e-6).tolist()
 
 
@@ -326,7 +334,10 @@ def train_head(encoder: HistoryRiskModel, features: np.ndarray, runs: dict,
 def run_risks(model: HistoryRiskModel, features: np.ndarray, runs: dict,
               calibration=None) -> list:
     """The risk at every tick of each run (a list of 1-d arrays, one per run, as long
-    as the run), from its encoded frames."""
+    as the run), from its encoded frames (and its online signals, which must be finite:
+    `finite_signals`)."""
+    if model.config.signals:
+        finite_signals(runs, model.config.signals)
     out = []
     for r in range(len(features)):
         n = int(runs["ticks"][r])
