@@ -212,7 +212,8 @@ class MonitorStudySpec:
     advance](../results/monitor/2026-12-06.md#the-kept-monitor-fixed-in-advance-2026-12-06)).
 
     ``flag_rules``: the k-of-n rules, ``[flags_needed, flag_window]`` each (the guard's
-    `FlagFilter`: flag when at least k of the last n ticks reached the threshold). With
+    `FlagFilter`: flag when at least k of the last n ticks reached the threshold or were
+    NaN). With
     ``keep: choose`` each variant keeps the rule with the fewest needless flags on the
     calibration environments, its threshold fixed there too, and its guarded runs use
     it; otherwise list one rule, which every variant uses."""

@@ -172,6 +172,10 @@ def test_flag_outcomes_count_misses_among_warnable_runs_only():
     oracle = flag_outcomes(oracle_risks(ticks, failures, period=0.05, lead=0.2), ticks,
                            failures, period=0.05, threshold=0.5, lead=0.2)
     assert system_figures(oracle)["miss"]["count"] == 0 and not oracle["flagged"][2:].any()
+    # a NaN risk flags, as the monitor's anomaly port does online (`flag_of`)
+    nan = flag_outcomes(risks[:2] + [np.r_[np.zeros(4), np.nan, np.zeros(5)], risks[3]], ticks,
+                        failures, period=0.05, threshold=0.5, lead=0.2)
+    assert nan["flagged"].tolist() == [True, True, True, True]
 
 
 def test_a_run_failing_after_its_recording_is_neither_safe_nor_needless():

@@ -97,3 +97,6 @@ def test_table_rollouts_liveness_and_dead_reckoning():
     confirmed = taxi_guarded_rollouts(grid, dynamics, steer, always, flags_needed=3, flag_window=3,
                                  **kw)
     assert (confirmed.flagged_ticks == confirmed.ticks - 2).all()
+    # a score table of NaN flags every tick, as the monitor's anomaly port does online
+    unknown = taxi_guarded_rollouts(grid, dynamics, steer, np.full_like(score, np.nan), **kw)
+    assert (unknown.flagged_ticks == unknown.ticks).all()

@@ -78,9 +78,10 @@ def flag_outcomes(risks, ticks, failure_times, *, period: float, threshold: floa
     """Per run (bool arrays): ``failed``; ``warnable`` (failed, with a tick at least
     ``lead`` s before the failure: a monitor could have warned it in time); ``warned``
     (warnable, with a flag at least ``lead`` s before the failure); ``flagged`` (any
-    tick with risk >= ``threshold``); ``failing_after``: survived its recording but
-    fails soon after it (``fails_after``, per run, from a longer watch of the loop;
-    None: none known), so it is censored, not safe, and a flag of it is not needless."""
+    tick with risk >= ``threshold``, or NaN: `reachwatch.systems.detector.flag_of`);
+    ``failing_after``: survived its recording but fails soon after it (``fails_after``,
+    per run, from a longer watch of the loop; None: none known), so it is censored, not
+    safe, and a flag of it is not needless."""
     failure_times = np.asarray(failure_times, float)
     failed = np.isfinite(failure_times)
     times = run_times(ticks, period)
@@ -90,8 +91,9 @@ def flag_outcomes(risks, ticks, failure_times, *, period: float, threshold: floa
     # ticks, and a run it cannot warn there is a miss, not unwarnable
     warnable[failed] = [bool(np.any(t <= f - lead + 1e-9))
                         for t, f in zip(times, failure_times) if np.isfinite(f)]
-    warned[failed] = scores >= threshold
-    flagged = np.array([bool(len(r)) and bool(np.max(r) >= threshold) for r in risks])
+    # a NaN risk flags, as online (`reachwatch.systems.detector.flag_of`)
+    warned[failed] = ~(scores < threshold)
+    flagged = np.array([bool(len(r)) and not np.all(np.asarray(r) < threshold) for r in risks])
     return {"failed": failed, "warnable": warnable, "warned": warned, "flagged": flagged,
             "failing_after": _failing_after(fails_after, failed)}
 
