@@ -29,8 +29,8 @@ class MonitorConfig:
     (``resume_acceleration`` m/s^2; 0 = at once, the paper's rule), and the k-of-n rule
     that confirms flags: the loop counts a tick as flagged when at least ``flags_needed``
     of the last ``flag_window`` control ticks had a score at or above the threshold, or
-    NaN (`flag_of`; 1 of 1: every raw flag). Left null, the threshold and the k-of-n rule are those the
-    checkpoint records (its metadata's ``threshold`` and ``flag_rule``, else 1 of 1): a
+    NaN (`flags_at`; 1 of 1: every raw flag). Left null, the threshold and the k-of-n
+    rule are those the checkpoint records (its metadata's ``threshold`` and ``flag_rule``, else 1 of 1): a
     monitor study's checkpoint holds its conformal threshold and rule; a detector
     trained by a run holds the threshold its training chose on its validation split,
     which a run's train stage may replace (``detector.threshold_folds``): name that one

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from reachwatch.systems import Fallback, check_k_of_n, confirmed_flags
+from reachwatch.systems.detector import flags_at
 
 from .dynamics import positive, rk4_step, split_horizon
 from .grid import check_states
@@ -138,8 +139,8 @@ def guarded_rollouts(grid, dynamics, steering_table, score_table=None, *, thresh
             if score_noise is not None:          # stepped for every start: the same draws
                 noise = score_noise.step(noise, moved, rng)
                 score_now[rows] = score_noise.apply(score_now[rows], noise[rows])
-            # a NaN score flags, as online (`reachwatch.systems.detector.flag_of`)
-            flagged, history = confirmed_flags(~(score_now < threshold), history, flags_needed)
+            flagged, history = confirmed_flags(flags_at(score_now, threshold), history,
+                                               flags_needed)
         if score is not None:
             v = fallback.next_speed(v, flagged, nominal=nominal, period=period)
             taken = None                 # the fallback's steering mode's angle

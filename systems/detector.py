@@ -64,12 +64,19 @@ def resize_for_detector(images: np.ndarray, config: DetectorConfig) -> np.ndarra
     return np.stack([one(im) for im in images])
 
 
+def flags_at(scores, threshold: float) -> np.ndarray:
+    """Where a monitor flags (bools, ``scores``' shape): ``score >= threshold``, and
+    where the score is not a number (a NaN signal or weight, which compares false with
+    every threshold and would never flag: a monitor that cannot tell hands control
+    over). The online port (`flag_of`), the guard's table rollouts and the offline
+    judgement all flag by it."""
+    return ~(np.asarray(scores, float) < threshold)
+
+
 def flag_of(score: float, threshold: float) -> float:
-    """A monitor's ``anomaly`` output: 1.0 when ``score >= threshold``, and when the
-    score is not a number (a NaN signal or weight, which compares false with every
-    threshold and would never flag: a monitor that cannot tell hands control over),
+    """A monitor's ``anomaly`` output of one score: 1.0 where it flags (`flags_at`),
     else 0.0."""
-    return 0.0 if score < threshold else 1.0
+    return 1.0 if flags_at(score, threshold) else 0.0
 
 
 def check_trained_size(rgba, image_size, system: str, what: str) -> None:

@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from reachwatch.reach.fidelity import wilson_interval
+from reachwatch.systems.detector import flags_at
 from reachwatch.systems.flag_filter import check_k_of_n
 from reachwatch.reach.outcomes import fails_within, time_to_failure
 
@@ -78,7 +79,7 @@ def flag_outcomes(risks, ticks, failure_times, *, period: float, threshold: floa
     """Per run (bool arrays): ``failed``; ``warnable`` (failed, with a tick at least
     ``lead`` s before the failure: a monitor could have warned it in time); ``warned``
     (warnable, with a flag at least ``lead`` s before the failure); ``flagged`` (any
-    tick with risk >= ``threshold``, or NaN: `reachwatch.systems.detector.flag_of`);
+    tick with risk >= ``threshold``, or NaN: `reachwatch.systems.detector.flags_at`);
     ``failing_after``: survived its recording but fails soon after it (``fails_after``,
     per run, from a longer watch of the loop; None: none known), so it is censored, not
     safe, and a flag of it is not needless."""
@@ -91,9 +92,8 @@ def flag_outcomes(risks, ticks, failure_times, *, period: float, threshold: floa
     # ticks, and a run it cannot warn there is a miss, not unwarnable
     warnable[failed] = [bool(np.any(t <= f - lead + 1e-9))
                         for t, f in zip(times, failure_times) if np.isfinite(f)]
-    # a NaN risk flags, as online (`reachwatch.systems.detector.flag_of`)
-    warned[failed] = ~(scores < threshold)
-    flagged = np.array([bool(len(r)) and not np.all(np.asarray(r) < threshold) for r in risks])
+    warned[failed] = flags_at(scores, threshold)
+    flagged = np.array([bool(flags_at(r, threshold).any()) for r in risks])
     return {"failed": failed, "warnable": warnable, "warned": warned, "flagged": flagged,
             "failing_after": _failing_after(fails_after, failed)}
 
