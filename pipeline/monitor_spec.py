@@ -85,12 +85,16 @@ class MonitorStudySpec:
 
     Keys:
 
-    ``kind``: ``detector`` (the single-image detector of ``detector:`` and ``guard:``
-    guards the loop; this study is off) or ``history`` (this study).
+    ``kind``: ``detector`` (this study is off) or ``history`` (this study, which
+    writes its monitors' checkpoints to ``OUT/monitor/``). Either way the ``guard:``
+    stage guards with the single-image detector of ``detector:``.
 
     ``family``: the application's random family the environments are drawn from (the
     taxi's: a ``seed``, hours, skies and runways); its ``count`` is ``train +
-    calibrate + held_out``: leave it out.
+    calibrate + held_out``: leave it out. Left out whole, it is the application's
+    default family (the taxi's: seed 11, the family the study's defaults were chosen
+    on, so its figures are optimistic: give another ``seed`` for a verdict of your
+    own).
 
     ``train``: environments the monitors train on.
 
@@ -171,7 +175,8 @@ class MonitorStudySpec:
     ``ensemble``: each variant is that many trainings (seeds ``K * seed`` to ``K * seed
     + K - 1``: studies with other seeds share no member), their raw risks averaged at
     every tick before one calibration and threshold; online one `HistoryMonitor` runs
-    the members' encoders as one grouped network, at about K times one member's cost.
+    the members' encoders as one grouped network (measured: a second member added
+    0.6-0.7 ms a tick to the first's 1.5-1.6 ms, docs/results/monitor/2026-12-06.md).
 
     ``lr_schedule``: ``constant``, or ``cosine`` (each training stage's learning rate
     decays to zero over its steps).
@@ -198,12 +203,14 @@ class MonitorStudySpec:
     on its own labels) beside the variants on the same runs (its score at every tick,
     from runs of the loop alone from the same starts: one more render of every judged
     run), its threshold and flag rule fixed on the calibration environments the same
-    way, and guard the loop with it beside them.
+    way, and guard the loop with it beside them. A run file whose family shares an
+    environment with the detector's training ones is refused (give ``family`` another
+    ``seed``).
 
     ``variants``: the monitors to train (`MonitorVariant`), each judged in the report.
 
-    ``keep``: the monitor kept (its checkpoint guards the loop; the bound is stated for
-    it): null, the first of ``variants``; a variant's name, that one; ``choose``, the
+    ``keep``: the monitor kept (its checkpoint is written to ``OUT/monitor/`` and,
+    with ``guarded_runs``, guards the loop; the bound is stated for it): null, the first of ``variants``; a variant's name, that one; ``choose``, the
     variant and flag rule with the fewest needless flags on the calibration
     environments at their own thresholds. The conformal bound speaks of a monitor fixed
     before the calibration environments are seen, not of one chosen among several on
