@@ -104,8 +104,8 @@ class RunSpec:
 
     ``incremental``: the incremental stage (`IncrementalConfig`).
 
-    ``monitor``: which monitor guards the loop, and the monitor study
-    (`MonitorStudySpec`)."""
+    ``monitor``: the monitor study over the image history (`MonitorStudySpec`; the
+    guard stage guards with ``detector:``'s single-image detector)."""
     name: str = "run"
     application: str = ""
     scenario: Scenario = dc.field(default_factory=Scenario)

@@ -105,3 +105,28 @@ def test_readme_links_resolve():
         if "://" in target:
             continue
         assert (ROOT / target).exists(), f"README.md links to a missing {target}"
+
+
+def run_file_fragments(path):
+    """``(run file, fragment)`` of each ```yaml block right after a
+    ``<!-- appended to RUNFILE -->`` line."""
+    return re.findall(r"<!-- appended to ([\w./-]+) -->\n```yaml\n(.*?)```", path.read_text(),
+                      re.S)
+
+
+@pytest.mark.parametrize("page, run_file, fragment",
+                         [(g.name, f, b) for g in GUIDES for f, b in run_file_fragments(g)])
+def test_run_file_fragments_validate_appended_to_their_run_file(page, run_file, fragment):
+    from reachwatch.pipeline.spec import load_run_spec
+    text = (ROOT / run_file).read_text() + "\n" + fragment
+    spec = load_run_spec(data=text)               # validates: refused in one line if not
+    import yaml
+    for key, value in yaml.safe_load(fragment).items():      # the fragment's keys took
+        for field, given in (value.items() if isinstance(value, dict) else [(None, value)]):
+            got = getattr(spec, key) if field is None else getattr(getattr(spec, key), field)
+            if not isinstance(given, dict):
+                assert got == given, f"{page}: {key}.{field} is {got!r}, the guide gives {given!r}"
+
+
+def test_guides_show_a_run_file_fragment():
+    assert any(run_file_fragments(g) for g in GUIDES)
