@@ -91,7 +91,12 @@ def _taxi_default(slot, role):
 
 @dc.dataclass
 class Scenario:
-    """One run: environment, camera, start state, controller, duration (s), seed."""
+    """One run: environment, camera, start state, controller, duration (s), seed.
+
+    ``initial_state``, ``duration`` and ``seed`` are a single run's (``reachwatch
+    simulate``); sweeps and batches of real-loop runs set their own starts and
+    durations and build the loop with these three at their defaults. No loop of the
+    library reads ``seed``."""
     environment: ApplicationEnvironment = slot_field("scenario", default_factory=Environment)
     camera: CameraConfig = dc.field(default_factory=CameraConfig)
     initial_state: InitialState = dc.field(default_factory=InitialState)

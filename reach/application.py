@@ -152,7 +152,12 @@ class Application(abc.ABC):
         """The closed-loop Drake diagram of ``scenario``: the plant, its camera, the
         controller (``reachwatch.diagrams.make_controller(scenario.controller)``);
         ``guarded``: with the monitor and fallback of ``scenario.monitor`` too. It
-        exports ``state`` (the plant's state) as the loops of `reachwatch.diagrams` do."""
+        exports ``state`` (the plant's state) as the loops of `reachwatch.diagrams` do.
+        Sweeps and batches of real-loop runs set each run's start state and duration
+        themselves: they build the loop from ``scenario`` with its ``initial_state``,
+        ``duration`` and ``seed`` at their defaults (`without_run_settings`) and key their
+        caches without them, so the loop must not read them (randomness of its own:
+        seed it from a field of its controller's or environment's settings)."""
 
     @abc.abstractmethod
     def probe(self, scenario, *, guarded: bool = False):
@@ -627,9 +632,11 @@ class Application(abc.ABC):
     def mission_rollouts(self, scenario, fallback, duration: float, states, *,
                          mission_limit=None) -> dict:
         """The fields of `missions` from ``states``, run here and not cached (the guard
-        stage's showcase tries a few candidate starts)."""
+        stage's showcase tries a few candidate starts): the loop built as `missions`
+        builds it, without run settings (`without_run_settings`)."""
         from .loop_runs import loop_missions
-        scenario = self.resolved(scenario) if fallback else self.without_monitor(scenario)
+        scenario = (without_run_settings(self.resolved(scenario)) if fallback
+                    else self.without_monitor(scenario))
         return loop_missions(ApplicationRef(self._loaded_as()), scenario, fallback,
                              float(duration), states, mission_limit=mission_limit)
 

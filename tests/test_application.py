@@ -382,3 +382,36 @@ def test_real_loop_runs_are_keyed_without_the_scenarios_start_duration_and_seed(
     assert len(keyed) == 2 and keyed[0] == keyed[1]
     slower = load_scenario(data="controller: {period: 0.1}\n")
     assert fingerprint(taxi.without_monitor(plain)) != fingerprint(taxi.without_monitor(slower))
+
+
+def test_the_guard_showcase_builds_the_loop_as_the_cached_missions_do(monkeypatch, tmp_path):
+    """`mission_rollouts` (the showcase, not cached) and `missions` (cached) run the same
+    loop: both without the scenario's run settings, so the showcase and the check
+    cannot differ by them."""
+    import reachwatch.reach.loop_runs as loop_runs
+    import reachwatch.reach.outcomes as outcomes
+    showcase, cached = [], []
+
+    def run_here(ref, scenario, fallback, duration, states, mission_limit=None):
+        showcase.append(scenario)
+        raise RuntimeError("captured")
+
+    def cache(rollout, starts, **kwargs):
+        cached.append(rollout.args[1])            # the scenario the runs would build
+        raise RuntimeError("captured")
+    monkeypatch.setattr(loop_runs, "loop_missions", run_here)
+    monkeypatch.setattr(outcomes, "map_states", cache)
+    taxi = load_application("")
+    scenario = load_scenario(data="duration: 3.0\nseed: 7\n"
+                                  "initial_state: {px: 1.0, py: 120.0, theta_deg: 2.0}\n")
+    for fallback in ("brake", None):
+        for call in (lambda: taxi.mission_rollouts(scenario, fallback, 1.0, np.zeros((1, 3))),
+                     lambda: taxi.missions(scenario, np.zeros((1, 3)), duration=1.0,
+                                           fallback=fallback, cache_dir=tmp_path,
+                                           progress=False)):
+            with pytest.raises(RuntimeError, match="captured"):
+                call()
+    assert len(showcase) == len(cached) == 2
+    for a, b in zip(showcase, cached):
+        assert (a.duration, a.seed, a.initial_state) == (b.duration, b.seed, b.initial_state)
+        assert (a.duration, a.seed) == (10.0, 0)
