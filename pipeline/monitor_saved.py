@@ -71,7 +71,9 @@ def clear_previous_result(out_dir: Path) -> None:
     writes (its guarded runs take hours) then leaves no result beside files of other
     settings, and no checkpoint of a variant the new study does not keep stays behind to
     be deployed. ``monitor.json`` is written last, so its absence marks a study that
-    did not finish."""
+    did not finish; the checkpoints such a study wrote (`checkpoint_file`'s names, a
+    study's checkpoints by their metadata) are removed too, which no ``monitor.json``
+    names."""
     previous = Path(out_dir) / "monitor.json"
     try:
         old = json.loads(previous.read_text())
@@ -82,6 +84,20 @@ def clear_previous_result(out_dir: Path) -> None:
     for name in named:
         if isinstance(name, str) and name and Path(name).name == name:
             (Path(out_dir) / name).unlink(missing_ok=True)
+    for path in Path(out_dir).glob("monitor_*.pt"):
+        if _saved_by_a_study(path):
+            path.unlink(missing_ok=True)
+
+
+def _saved_by_a_study(path: Path) -> bool:
+    """Whether ``path`` is a history monitor's checkpoint a study saved (its metadata
+    names the variant and the study's lead), not another file of that name."""
+    from reachwatch.diagrams.checkpoints import CheckpointError, checkpoint_metadata
+    try:
+        metadata = checkpoint_metadata(path, kinds=("history_monitor",))
+    except (CheckpointError, OSError, ValueError):
+        return False
+    return "variant" in metadata and "lead_s" in metadata
 
 
 def study_outputs(result: dict, folder: str = "monitor") -> dict:

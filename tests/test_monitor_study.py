@@ -9,7 +9,7 @@ from dataclasses import replace as dc_replace
 import numpy as np
 import pytest
 
-from reachwatch.diagrams import load_scenario
+from reachwatch.diagrams import load_scenario, save_checkpoint
 from reachwatch.diagrams.checkpoints import load_history_monitor
 from reachwatch.pipeline.monitor_sections import markdown_tables
 from reachwatch.pipeline.monitor_guarded import ORACLE
@@ -477,6 +477,28 @@ def test_a_study_clears_the_previous_result_before_it_writes_its_own(tmp_path):
     clear_previous_result(tmp_path)
     clear_previous_result(tmp_path / "missing")                   # nothing there: nothing to do
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "risks.npz"]
+
+
+def test_a_killed_studys_checkpoints_go_before_the_next_study_writes(tmp_path):
+    """A study killed after it saved its checkpoints (before its guarded runs) wrote no
+    ``monitor.json`` to name them: the next study removes them all the same, so none
+    stays beside its results to be deployed; a file of that name a study did not save
+    stays."""
+    from reachwatch.systems import HistoryMonitorConfig, HistoryRiskModel
+    config = HistoryMonitorConfig(frames=1, height=16, width=16, channels=[4], features=4,
+                                  hidden=4)
+    save_checkpoint(tmp_path / "monitor_old-variant.pt", kind="history_monitor",
+                    model=HistoryRiskModel(config), model_config=config,
+                    preprocess_config=None, metadata={"calibration": [1.0, 0.0],
+                                                      "threshold": 0.5, "lead_s": 1.0,
+                                                      "variant": "old variant"})
+    save_checkpoint(tmp_path / "monitor_mine.pt", kind="history_monitor",
+                    model=HistoryRiskModel(config), model_config=config,
+                    preprocess_config=None, metadata={"threshold": 0.5})
+    (tmp_path / "monitor_notes.pt").write_bytes(b"not a checkpoint")
+    clear_previous_result(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["monitor_mine.pt",
+                                                          "monitor_notes.pt"]
 
 
 def test_the_study_refuses_a_cache_url_before_it_records_anything(tmp_path):
