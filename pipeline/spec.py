@@ -383,7 +383,24 @@ def dump_run_spec(spec: RunSpec) -> str:
 
 
 def digest(*parts) -> str:
-    """A short content key of JSON-able parts (dataclasses are expanded)."""
+    """A short content key of JSON-able parts (dataclasses are expanded; numpy values
+    by their content, `_keyed_value`)."""
     plain = [dc.asdict(p) if dc.is_dataclass(p) else p for p in parts]
-    return hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()
+    return hashlib.sha256(json.dumps(plain, sort_keys=True, default=_keyed_value).encode()
                           ).hexdigest()[:16]
+
+
+def _keyed_value(value):
+    """What `digest` keys a value JSON cannot hold by: a numpy array by its type, shape
+    and every byte (its text abbreviates one of more than 1,000 numbers, so two arrays
+    could share a key), a numpy scalar by its value, anything else by its text."""
+    import numpy as np
+    if isinstance(value, np.ndarray) and value.dtype.hasobject:
+        return {"ndarray": "object", "shape": list(value.shape), "items": value.tolist()}
+    if isinstance(value, np.ndarray):
+        data = np.ascontiguousarray(value)
+        return {"ndarray": str(data.dtype), "shape": list(data.shape),
+                "sha256": hashlib.sha256(memoryview(data).cast("B")).hexdigest()}
+    if isinstance(value, np.generic):
+        return value.item()
+    return str(value)

@@ -349,3 +349,21 @@ def test_a_monitor_checkpoint_that_would_answer_nan_is_refused(tmp_path, nan_wei
         with pytest.raises(CheckpointError, match=message) as e:
             read(bad)
         assert "\n" not in str(e.value) and len(str(e.value)) < 300
+
+
+def test_a_key_holds_every_number_of_an_array_not_its_abbreviated_text():
+    """`digest` (the key of stages and studies) of a run file whose application keeps
+    numpy values: two arrays of more than 1,000 numbers that differ only inside the
+    part numpy's text elides get different keys; equal ones, equal keys."""
+    import numpy as np
+    from reachwatch.pipeline.spec import digest
+    a = np.zeros(2000)
+    b = a.copy()
+    b[1000] = 1.0
+    assert str(a) == str(b)                        # what the key read before
+    assert digest({"x": a}) != digest({"x": b})
+    assert digest({"x": a}) == digest({"x": a.copy()})
+    assert digest({"x": a}) != digest({"x": a.astype(np.float32)})
+    assert digest({"x": np.float64(0.5)}) == digest({"x": 0.5})
+    assert digest({"x": np.array([None, 1], dtype=object)}) != digest(
+        {"x": np.array([None, 2], dtype=object)})
