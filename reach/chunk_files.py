@@ -99,7 +99,8 @@ class FolderStore:
     its file says which (`ROWS`), and ``fits(chunk, arrays)`` (default: always);
     ``rows``: write `ROWS` into each chunk file, so that a chunk written with another
     chunk size is run again rather than read into the wrong rows (for a job whose key
-    does not hold its chunk size); ``keep``: hold the arrays read or stored, for `read`."""
+    does not hold its chunk size), and take no file that does not say its rows;
+    ``keep``: hold the arrays read or stored, for `read`."""
 
     def __init__(self, folder, fits: Callable = None, keep: bool = False, rows: bool = False):
         self.folder, self.fits, self.rows = cache_location(folder), fits, rows
@@ -119,6 +120,8 @@ class FolderStore:
                 return None
             arrays.pop(CHECKSUM, None)
             covered = arrays.pop(ROWS, None)
+            if covered is None and self.rows:   # which rows it holds, unsaid: run it again
+                return None
             if covered is not None and covered.tolist() != [chunk.start, chunk.stop]:
                 return None
             if self.fits is not None and not self.fits(chunk, arrays):

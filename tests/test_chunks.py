@@ -444,3 +444,17 @@ def test_a_chunk_in_flight_too_long_is_warned_of_once(tmp_path, monkeypatch, cap
     said = [r.getMessage() for r in caplog.records if "in flight for" in r.getMessage()]
     assert len(said) == 1 and said[0].startswith("my_job: chunk 1 has been in flight for")
     assert all(store.valid(c) for c in split(10, 3))
+
+
+def test_a_store_that_keeps_rows_takes_no_chunk_file_silent_on_its_rows(tmp_path):
+    """A `FolderStore` made with ``rows`` (a job whose key does not hold its chunk size)
+    runs again a chunk whose file does not say which rows it holds (written without
+    them), rather than read it into rows of the same count it may not be."""
+    from reachwatch.reach.chunk_files import Chunk
+    chunk = Chunk(index=2, start=4, stop=6)
+    FolderStore(tmp_path).store(chunk, {"x": np.array([8.0, 9.0])})    # rows unsaid
+    assert FolderStore(tmp_path).read(chunk) is not None
+    assert FolderStore(tmp_path, rows=True).read(chunk) is None
+    FolderStore(tmp_path, rows=True).store(chunk, {"x": np.array([4.0, 5.0])})
+    np.testing.assert_array_equal(FolderStore(tmp_path, rows=True).read(chunk)["x"], [4, 5])
+    assert FolderStore(tmp_path, rows=True).read(Chunk(index=2, start=8, stop=10)) is None
