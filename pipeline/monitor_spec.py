@@ -2,6 +2,7 @@
 loop, and the study that trains and judges monitors over the image history)."""
 
 import dataclasses as dc
+import logging
 import math
 from typing import List, Optional
 
@@ -59,6 +60,26 @@ class MonitorVariant:
     stride: int = bounded_as(1, HistoryMonitorConfig, "stride")
     temporal: str = "stack"
     signals: bool = False
+
+
+#: The unused study keys already warned of in this process (one warning each).
+_WARNED_UNUSED = set()
+
+
+def warn_unused_study_keys(spec, where: str) -> None:
+    """A one-line warning (once per process and set of keys) when ``spec``, a study that
+    is off (``kind`` not ``history``), sets keys of the study other than ``family``: they
+    do nothing, which a run file that meant to run the study would not see. Not an
+    error: ``kind: detector`` is how a run file switches a study it keeps off."""
+    defaults = type(spec)()
+    given = tuple(f.name for f in dc.fields(spec) if f.name not in ("kind", "family")
+                  and getattr(spec, f.name) != getattr(defaults, f.name))
+    if given and (where, given) not in _WARNED_UNUSED:
+        _WARNED_UNUSED.add((where, given))
+        logging.getLogger("reachwatch").warning(
+            f"{where}.kind is {short(spec.kind)}, so the monitor study does not run and "
+            f"{short(list(given))} set in {where} do nothing (set {where}.kind: history to "
+            f"run it)")
 
 
 def default_variants() -> List[MonitorVariant]:
@@ -303,6 +324,8 @@ class MonitorStudySpec:
             raise ValueError(f"{where}.calibrate: {self.calibrate} environments cannot bound the "
                              f"miss rate at alpha {self.alpha:g} (the bound is at least "
                              f"1/(calibrate+1)); use at least {math.ceil(1 / self.alpha - 1)}")
+        if not self.enabled:
+            warn_unused_study_keys(self, where)
         if self.enabled and isinstance(self.family, NoRandomEnvironments):
             raise ValueError(f"{where}: the study trains, calibrates and judges on "
                              f"environments drawn from the application's random family, and "

@@ -159,6 +159,12 @@ class RunSpec:
         names = [e.name for e in self.training_environments() + self.held_out_environments()]
         if len(set(names)) != len(names):
             twice = sorted({n for n in names if names.count(n) > 1})
+            seeds = [getattr(f, "seed", None) for f in (self.train_random, self.test_random)]
+            if (self.train_random.count and self.test_random.count and seeds[0] is not None
+                    and seeds[0] == seeds[1]):
+                raise ValueError(f"test_random.seed is train_random.seed ({seeds[0]}): one "
+                                 f"seed draws the same environments, so the held-out ones "
+                                 f"would be trained on; give test_random a seed of its own")
             raise ValueError(f"train/test: an environment is listed twice: {short(twice)}")
         # one under another name (a family drawn again under another prefix)
         trained = self._trained_contents(application)

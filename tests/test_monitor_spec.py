@@ -198,3 +198,32 @@ def test_the_study_key_holds_the_compared_detectors_content(tmp_path):
         keys.append(study.study_key(spec.monitor, taxi, spec.scenario, path))
     alone = study.study_key(spec.monitor, taxi, spec.scenario)
     assert len({alone, *keys}) == 3
+
+
+def test_keys_that_do_nothing_are_warned_of_and_a_family_drawn_twice_refused(caplog):
+    """A ``monitor:`` block that sets the study's keys without ``kind: history`` (the
+    study does not run) is warned of in one line, once; ``test_random`` drawn from
+    ``train_random``'s seed (the held-out environments would be trained on) and
+    ``incremental.anomalies: 0`` (the stage fine-tunes on none, and failed hours later)
+    are refused in one line naming the key."""
+    import logging
+    with caplog.at_level(logging.WARNING, logger="reachwatch"):
+        off = load_run_spec(data=TINY + "monitor: {train: 3, runs: 7}\n").monitor
+        off.validate()
+    assert not off.enabled
+    said = [r.getMessage() for r in caplog.records if "does not run" in r.getMessage()]
+    assert said == ["monitor.kind is 'detector', so the monitor study does not run and "
+                    "['train', 'runs'] set in monitor do nothing (set monitor.kind: history "
+                    "to run it)"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="reachwatch"):
+        load_run_spec(data=TINY + "monitor: {kind: detector}\n")
+        load_run_spec(data=TINY + MONITOR_STUDY)
+    assert not caplog.records
+    with pytest.raises(ValueError, match=r"test_random.seed is train_random.seed \(4\)"):
+        load_run_spec(data=TINY + "train_random: {count: 1, seed: 4}\n"
+                                  "test_random: {count: 1, seed: 4}\n")
+    load_run_spec(data=TINY + "train_random: {count: 1, seed: 4}\n"
+                              "test_random: {count: 1, seed: 5}\n")
+    with pytest.raises(ValueError, match=r"incremental.anomalies"):
+        load_run_spec(data=TINY.replace("anomalies: 20", "anomalies: 0"))
