@@ -227,3 +227,4 @@ def test_keys_that_do_nothing_are_warned_of_and_a_family_drawn_twice_refused(cap
                               "test_random: {count: 1, seed: 5}\n")
     with pytest.raises(ValueError, match=r"incremental.anomalies"):
         load_run_spec(data=TINY.replace("anomalies: 20", "anomalies: 0"))
+

@@ -16,6 +16,7 @@ from reachwatch.pipeline.spec import RunSpec, dump_run_spec, load_run_spec
 from reachwatch.systems import Environment, RandomEnvironments
 
 from test_examples import ROOT, _run_to_report, _tiny
+from tiny_run import TINY
 
 LAB = '''
 import dataclasses as dc
@@ -261,3 +262,14 @@ def test_an_application_with_environments_of_its_own_runs_to_a_report(tmp_path, 
     report = (out / "report.md").read_text()
     assert "| evening | test | 5x5 | 25 |" in report and "KMWH" not in report
     assert (out / "stages" / "guard_evening.json").is_file()
+
+
+def test_a_factory_that_names_nothing_is_said_before_incremental_trainings_refusal():
+    """With incremental training on (TaxiNet's), a controller factory that names no
+    function is said first: the typo, not the stage to switch off."""
+    bad = TINY + "scenario: {controller: {factory: 'nonexist_mod_r1:foo'}}\n"
+    with pytest.raises(ValueError, match=r"cannot import 'nonexist_mod_r1'"):
+        load_run_spec(data=bad)
+    with pytest.raises(ValueError, match=r"incremental training fine-tunes TaxiNet"):
+        load_run_spec(data=TINY + "scenario: {controller: {factory: "
+                                  "'examples/cart/cart.py:rail_follower'}}\n")
