@@ -6,6 +6,7 @@ import dataclasses as dc
 import functools
 import hashlib
 import json
+import re
 from typing import Dict, List, Optional
 
 from reachwatch.diagrams import Scenario, load_scenario
@@ -137,7 +138,10 @@ class RunSpec:
 
     def validate(self):
         """Raise ValueError naming the first bad field; return self."""
-        self.scenario.validate()
+        try:
+            self.scenario.validate()
+        except ValueError as e:     # its fields' paths from the run file's top: a run
+            raise ValueError(scenario_path(e)) from None    # file has a monitor: too
         check_label("name", self.name)
         check_bounds(self)
         application = load_application(self.application)    # a bad name fails before any work
@@ -386,6 +390,17 @@ def load_run_spec(filename=None, *, data=None) -> RunSpec:
 def dump_run_spec(spec: RunSpec) -> str:
     """YAML text of ``spec`` (round-trips through `load_run_spec`)."""
     return dump_scenario(spec)      # as `RunSpec.schema_for` its application
+
+
+def scenario_path(error: ValueError) -> str:
+    """A scenario's validation message as a run file's: a field path it begins with
+    (``monitor.threshold ...``) from the run file's top (``scenario.monitor.threshold
+    ...``), anything else after ``scenario: ``."""
+    text = str(error)
+    first = re.match(r"[A-Za-z_]+", text)
+    if first and first.group() in {f.name for f in dc.fields(Scenario)}:
+        return f"scenario.{text}"
+    return f"scenario: {text}"
 
 
 def digest(*parts) -> str:

@@ -273,3 +273,16 @@ def test_a_factory_that_names_nothing_is_said_before_incremental_trainings_refus
     with pytest.raises(ValueError, match=r"incremental training fine-tunes TaxiNet"):
         load_run_spec(data=TINY + "scenario: {controller: {factory: "
                                   "'examples/cart/cart.py:rail_follower'}}\n")
+
+
+@pytest.mark.parametrize("scenario, said", [
+    ("{monitor: {threshold: 1.5}}", r"^<yaml>: scenario\.monitor\.threshold must be"),
+    ("{camera: {width: -3}}", r"^<yaml>: scenario\.camera\.width must be"),
+    ("{duration: -1}", r"^<yaml>: scenario\.duration must be"),
+])
+def test_a_run_files_scenario_errors_name_the_key_from_the_files_top(scenario, said):
+    """A run file has a ``monitor:`` of its own (the study) beside
+    ``scenario.monitor`` (the guard's): a scenario's error names its key from the
+    run file's top, so the reader looks in the right block."""
+    with pytest.raises(ValueError, match=said):
+        load_run_spec(data=TINY + f"scenario: {scenario}\n")
