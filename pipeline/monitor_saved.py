@@ -90,14 +90,19 @@ def clear_previous_result(out_dir: Path) -> None:
 
 
 def _saved_by_a_study(path: Path) -> bool:
-    """Whether ``path`` is a history monitor's checkpoint a study saved (its metadata
-    names the variant and the study's lead), not another file of that name."""
+    """Whether ``path`` is a history monitor's checkpoint a study saved under the name
+    it gives (its metadata names the variant and the study's lead, and the file is
+    `checkpoint_file`'s name for that variant), not another file of that form (a copy
+    renamed to be kept)."""
     from reachwatch.diagrams.checkpoints import CheckpointError, checkpoint_metadata
     try:
         metadata = checkpoint_metadata(path, kinds=("history_monitor",))
     except (CheckpointError, OSError, ValueError):
         return False
-    return "variant" in metadata and "lead_s" in metadata
+    if "lead_s" not in metadata or not isinstance(metadata.get("variant"), str):
+        return False
+    named = checkpoint_file(metadata["variant"])[:-len(".pt")]
+    return re.fullmatch(re.escape(named) + r"(-\d+)?\.pt", path.name) is not None
 
 
 def study_outputs(result: dict, folder: str = "monitor") -> dict:

@@ -1,5 +1,6 @@
-"""`MonitorStudySpec`: the run file's ``monitor:`` section (which monitor guards the
-loop, and the study that trains and judges monitors over the image history)."""
+"""`MonitorStudySpec`: the run file's ``monitor:`` section, the study that trains and
+judges monitors over the image history (the guard stage guards with ``detector:``'s
+single-image detector)."""
 
 import dataclasses as dc
 import logging
@@ -69,8 +70,9 @@ _WARNED_UNUSED = set()
 def warn_unused_study_keys(spec, where: str) -> None:
     """A one-line warning (once per process and set of keys) when ``spec``, a study that
     is off (``kind`` not ``history``), sets keys of the study other than ``family``: they
-    do nothing, which a run file that meant to run the study would not see. Not an
-    error: ``kind: detector`` is how a run file switches a study it keeps off."""
+    do nothing, which a run file that meant to run the study would not see. A warning,
+    not an error: ``kind: detector`` is also how a run file switches a study it keeps
+    off, and then the line says what is off."""
     defaults = type(spec)()
     given = tuple(f.name for f in dc.fields(spec) if f.name not in ("kind", "family")
                   and getattr(spec, f.name) != getattr(defaults, f.name))

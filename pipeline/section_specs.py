@@ -36,9 +36,9 @@ class IncrementalConfig:
     enabled: bool = True
     environment: ApplicationEnvironment = slot_field(
         "incremental", application_default(ApplicationEnvironment, "incremental"))
-    #: At most this many mined states (spread over datasets); at least one: the stage
-    #: fine-tunes on them.
-    anomalies: int = bounded(2000, 1, 1_000_000, whole=True)
+    #: At most this many mined states (spread over datasets); at least one where the
+    #: stage runs: it fine-tunes on them.
+    anomalies: int = bounded(2000, 0, 1_000_000, whole=True)
     #: Nominal-condition (KMWH 9 h clear) frames replayed.
     replay: int = bounded(2000, 0, 1_000_000, whole=True)
     epochs: int = bounded(60, 1, 100_000, whole=True)
@@ -48,7 +48,12 @@ class IncrementalConfig:
 
     def validate(self):
         self.environment.validate()
-        return check_bounds(self, "incremental.")
+        check_bounds(self, "incremental.")
+        if self.enabled and self.anomalies < 1:
+            raise ValueError("incremental.anomalies must be at least 1 while the stage "
+                             "runs (it fine-tunes on the states it mines), got 0; or set "
+                             "incremental: {enabled: false}")
+        return self
 
 
 @dc.dataclass

@@ -140,8 +140,9 @@ class RunSpec:
         """Raise ValueError naming the first bad field; return self."""
         try:
             self.scenario.validate()
-        except ValueError as e:     # its fields' paths from the run file's top: a run
-            raise ValueError(scenario_path(e)) from None    # file has a monitor: too
+        except ValueError as e:     # its fields' paths from the run file's top (a run
+            e.args = (scenario_path(e),)    # file has a monitor: too); its type kept
+            raise
         check_label("name", self.name)
         check_bounds(self)
         application = load_application(self.application)    # a bad name fails before any work
@@ -164,8 +165,9 @@ class RunSpec:
         if len(set(names)) != len(names):
             twice = sorted({n for n in names if names.count(n) > 1})
             seeds = [getattr(f, "seed", None) for f in (self.train_random, self.test_random)]
-            if (self.train_random.count and self.test_random.count and seeds[0] is not None
-                    and seeds[0] == seeds[1]):
+            drawn = {e.name for e in self.train_random.environments()} & {
+                e.name for e in self.test_random.environments()}
+            if drawn and seeds[0] is not None and seeds[0] == seeds[1]:
                 raise ValueError(f"test_random.seed is train_random.seed ({seeds[0]}): one "
                                  f"seed draws the same environments, so the held-out ones "
                                  f"would be trained on; give test_random a seed of its own")
@@ -414,14 +416,17 @@ def digest(*parts) -> str:
 def _keyed_value(value):
     """What `digest` keys a value JSON cannot hold by: a numpy array by its type, shape
     and every byte (its text abbreviates one of more than 1,000 numbers, so two arrays
-    could share a key), a numpy scalar by its value, anything else by its text."""
+    could share a key; a masked one with its mask), a numpy scalar by its value,
+    anything else by its text."""
     import numpy as np
+    if isinstance(value, np.ma.MaskedArray):
+        return {"masked": _keyed_value(np.asarray(value.data)),
+                "mask": _keyed_value(np.ma.getmaskarray(value))}
     if isinstance(value, np.ndarray) and value.dtype.hasobject:
         return {"ndarray": "object", "shape": list(value.shape), "items": value.tolist()}
     if isinstance(value, np.ndarray):
-        data = np.ascontiguousarray(value)
-        return {"ndarray": str(data.dtype), "shape": list(data.shape),
-                "sha256": hashlib.sha256(memoryview(data).cast("B")).hexdigest()}
+        return {"ndarray": str(value.dtype), "shape": list(value.shape),
+                "sha256": hashlib.sha256(value.tobytes()).hexdigest()}
     if isinstance(value, np.generic):
         return value.item()
     return str(value)

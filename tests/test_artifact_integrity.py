@@ -367,3 +367,8 @@ def test_a_key_holds_every_number_of_an_array_not_its_abbreviated_text():
     assert digest({"x": np.float64(0.5)}) == digest({"x": 0.5})
     assert digest({"x": np.array([None, 1], dtype=object)}) != digest(
         {"x": np.array([None, 2], dtype=object)})
+    assert digest({"x": np.zeros((2, 0))}) != digest({"x": np.zeros((0, 2))})   # empty
+    assert digest({"x": np.array(["2026-12-07"], dtype="datetime64[D]")}) != digest(
+        {"x": np.array(["2026-12-08"], dtype="datetime64[D]")})
+    masked = np.ma.masked_array([0.0, 1.0], mask=[False, True])
+    assert digest({"x": masked}) != digest({"x": np.ma.masked_array([0.0, 1.0])})

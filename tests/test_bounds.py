@@ -27,6 +27,8 @@ from tiny_run import TINY
 SAME = object()
 COMPANIONS = {
     ("run.scenario.camera.near", "high"): {"run.scenario.camera.far": 1e5},
+    # no states mined: only with the stage off
+    ("run.incremental.anomalies", "low"): {"run.incremental.enabled": False},
     # the k-of-n rule is set whole or left to the checkpoint
     ("run.scenario.monitor.flags_needed", "low"): {"run.scenario.monitor.flag_window": 1},
     ("run.scenario.monitor.flags_needed", "high"): {"run.scenario.monitor.flag_window": 1000},

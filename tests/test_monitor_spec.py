@@ -200,13 +200,16 @@ def test_the_study_key_holds_the_compared_detectors_content(tmp_path):
     assert len({alone, *keys}) == 3
 
 
-def test_keys_that_do_nothing_are_warned_of_and_a_family_drawn_twice_refused(caplog):
+def test_keys_that_do_nothing_are_warned_of_and_a_family_drawn_twice_refused(caplog,
+                                                                              monkeypatch):
     """A ``monitor:`` block that sets the study's keys without ``kind: history`` (the
     study does not run) is warned of in one line, once; ``test_random`` drawn from
     ``train_random``'s seed (the held-out environments would be trained on) and
     ``incremental.anomalies: 0`` (the stage fine-tunes on none, and failed hours later)
     are refused in one line naming the key."""
     import logging
+    import reachwatch.pipeline.monitor_spec as monitor_spec
+    monkeypatch.setattr(monitor_spec, "_WARNED_UNUSED", set())     # none said before
     with caplog.at_level(logging.WARNING, logger="reachwatch"):
         off = load_run_spec(data=TINY + "monitor: {train: 3, runs: 7}\n").monitor
         off.validate()
@@ -225,6 +228,8 @@ def test_keys_that_do_nothing_are_warned_of_and_a_family_drawn_twice_refused(cap
                                   "test_random: {count: 1, seed: 4}\n")
     load_run_spec(data=TINY + "train_random: {count: 1, seed: 4}\n"
                               "test_random: {count: 1, seed: 5}\n")
-    with pytest.raises(ValueError, match=r"incremental.anomalies"):
+    with pytest.raises(ValueError, match=r"incremental.anomalies must be at least 1 while "
+                                         r"the stage runs"):
         load_run_spec(data=TINY.replace("anomalies: 20", "anomalies: 0"))
+    load_run_spec(data=TINY.replace("anomalies: 20", "anomalies: 0\n  enabled: false"))
 

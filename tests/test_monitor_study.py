@@ -496,8 +496,12 @@ def test_a_killed_studys_checkpoints_go_before_the_next_study_writes(tmp_path):
                     model=HistoryRiskModel(config), model_config=config,
                     preprocess_config=None, metadata={"threshold": 0.5})
     (tmp_path / "monitor_notes.pt").write_bytes(b"not a checkpoint")
+    kept = (tmp_path / "monitor_old-variant.pt").read_bytes()
+    (tmp_path / "monitor_keep-v1.pt").write_bytes(kept)          # a copy renamed to keep
+    (tmp_path / "monitor_old-variant-2.pt").write_bytes(kept)    # the second of that name
     clear_previous_result(tmp_path)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["monitor_mine.pt",
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["monitor_keep-v1.pt",
+                                                          "monitor_mine.pt",
                                                           "monitor_notes.pt"]
 
 

@@ -264,17 +264,6 @@ def test_an_application_with_environments_of_its_own_runs_to_a_report(tmp_path, 
     assert (out / "stages" / "guard_evening.json").is_file()
 
 
-def test_a_factory_that_names_nothing_is_said_before_incremental_trainings_refusal():
-    """With incremental training on (TaxiNet's), a controller factory that names no
-    function is said first: the typo, not the stage to switch off."""
-    bad = TINY + "scenario: {controller: {factory: 'nonexist_mod_r1:foo'}}\n"
-    with pytest.raises(ValueError, match=r"cannot import 'nonexist_mod_r1'"):
-        load_run_spec(data=bad)
-    with pytest.raises(ValueError, match=r"incremental training fine-tunes TaxiNet"):
-        load_run_spec(data=TINY + "scenario: {controller: {factory: "
-                                  "'examples/cart/cart.py:rail_follower'}}\n")
-
-
 @pytest.mark.parametrize("scenario, said", [
     ("{monitor: {threshold: 1.5}}", r"^<yaml>: scenario\.monitor\.threshold must be"),
     ("{camera: {width: -3}}", r"^<yaml>: scenario\.camera\.width must be"),
