@@ -12,8 +12,14 @@ and the ratio is the median over rounds of guarded ticks/s over alone ticks/s. T
 first row times TaxiNet alone against a second copy of itself: the method's noise floor
 (its ratio should read 1.00; on this VM it reads 0.97-1.05).
 
-    python benchmarks/online.py [--detector PATH] [--monitors all|detector|history]
+    python benchmarks/online.py [--detector PATH [PATH ...]] [--monitors all|detector|history]
                                 [--duration 4] [--rounds 15] [--ensemble 5] [--breakdown]
+                                [--interleave]
+
+``--interleave`` times the rows round by round (each round one start, every row's pair
+in turn, the order reversed every other round) instead of row after row, so that a
+drift of the machine's speed over minutes falls on every row alike; give one checkpoint
+twice (two paths) to see how far two identical monitors read apart.
 
 ``--breakdown`` (with a history monitor's ``--detector``) splits the guarded loop's extra
 cost: a row with the monitor's frame work (its resize and encoder) skipped, which leaves
@@ -121,9 +127,30 @@ def breakdown(nominal, scenario, args):
               f"{outside[key]:.2f} ms outside it (the same frame, 200 times)")
 
 
+def timed_rows(nominal, loops, args):
+    """``[(alone, guarded)]`` rates of each of ``loops`` against ``nominal``
+    (`paired_rates`), ``args.rounds`` rounds each: row after row, or with
+    ``args.interleave`` round by round (every row's pair in turn, from the round's one
+    start, the order reversed every other round)."""
+    if not args.interleave:
+        return [paired_rates(nominal, loop, rounds=args.rounds, duration=args.duration,
+                             period=0.05, starts=NEAR_CENTRELINE) for loop in loops]
+    rates = [([], []) for _ in loops]
+    for k in range(args.rounds):
+        order = list(range(len(loops)))[::1 if k % 2 == 0 else -1]
+        start = [NEAR_CENTRELINE[k % len(NEAR_CENTRELINE)]]
+        for i in order:
+            alone, guard = paired_rates(nominal, loops[i], rounds=1, duration=args.duration,
+                                        period=0.05, starts=start)
+            rates[i][0].append(alone[0])
+            rates[i][1].append(guard[0])
+    return [(np.array(a), np.array(g)) for a, g in rates]
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--detector", help="a trained detector or history-monitor checkpoint")
+    parser.add_argument("--detector", nargs="+", default=[],
+                        help="trained detector or history-monitor checkpoints (a row each)")
     parser.add_argument("--monitors", choices=("all", "detector", "history"), default="all",
                         help="which untrained monitors to time (without --detector)")
     parser.add_argument("--duration", type=float, default=4.0, help="seconds simulated per round")
@@ -133,14 +160,16 @@ def main():
     parser.add_argument("--torch-threads", type=int, default=0,
                         help="torch.set_num_threads for the run (0: torch's default); a "
                              "history monitor runs its network on one thread whatever this says")
+    parser.add_argument("--interleave", action="store_true",
+                        help="time the rows round by round instead of row after row")
     parser.add_argument("--breakdown", action="store_true",
                         help="with a history monitor's --detector: its frame work skipped, "
                              "and its and TaxiNet's cost inside and outside the loop")
     args = parser.parse_args()
-    if args.breakdown and (not args.detector or
-                           checkpoint_kind(args.detector) != "history_monitor"):
+    if args.breakdown and (len(args.detector) != 1 or
+                           checkpoint_kind(args.detector[0]) != "history_monitor"):
         parser.error("--breakdown times a given history monitor: pass --detector with "
-                     "a history monitor's checkpoint")
+                     "one history monitor's checkpoint")
     if not 2 <= args.ensemble <= MAX_MEMBERS:
         parser.error(f"--ensemble takes 2 to {MAX_MEMBERS} members, got {args.ensemble}")
     if args.torch_threads:
@@ -152,7 +181,8 @@ def main():
     print(f"{'detector':<38} {'alone /s':>10} {'guarded /s':>12} {'+ms/tick':>9} {'ratio':>6} "
           f"{'range':>9}")
     with tempfile.TemporaryDirectory() as folder:
-        configs = [("given", args.detector)] if args.detector else []
+        configs = ([("given", args.detector[0])] if len(args.detector) == 1 else
+                   [(f"given {i + 1}: {Path(p).name}", p) for i, p in enumerate(args.detector)])
         for name, config in [] if args.monitors == "history" else [("small_cnn 96x160 (default)", DetectorConfig()),
                              ("small_cnn 96x160 stem_stride 2", DetectorConfig(stem_stride=2)),
                              ("small_cnn 48x80", DetectorConfig(height=48, width=80)),
@@ -184,20 +214,19 @@ def main():
         nominal = make_closed_loop_diagram(load_scenario(data=""))
         # First row: TaxiNet alone against a second copy of itself, the method's noise floor.
         candidates = [("TaxiNet alone again (noise floor)", None)] + configs
-        for name, path in candidates:
-            guarded = make_closed_loop_diagram(load_scenario(data="")) if path is None else \
-                make_guarded_diagram(load_scenario(
-                    data=f"monitor: {{detector: {path}, threshold: 1.0}}\n"))
-            alone, guard = paired_rates(nominal, guarded, rounds=args.rounds,
-                                        duration=args.duration, period=0.05,
-                                        starts=NEAR_CENTRELINE)
+        loops = [(name, make_closed_loop_diagram(load_scenario(data="")) if path is None else
+                  make_guarded_diagram(load_scenario(
+                      data=f"monitor: {{detector: {path}, threshold: 1.0}}\n")))
+                 for name, path in candidates]
+        for name, (alone, guard) in zip([n for n, _ in loops],
+                                        timed_rows(nominal, [g for _, g in loops], args)):
             ratio = guard / alone
             extra_ms = float(np.median(1e3 / guard - 1e3 / alone))
             print(f"{name:<38} {np.median(alone):10.1f} {np.median(guard):12.1f} "
                   f"{extra_ms:9.2f} {np.median(ratio):6.2f} {ratio.min():5.2f}-{ratio.max():.2f}")
         if args.breakdown:
             breakdown(nominal, load_scenario(
-                data=f"monitor: {{detector: {args.detector}, threshold: 1.0}}\n"), args)
+                data=f"monitor: {{detector: {args.detector[0]}, threshold: 1.0}}\n"), args)
 
 
 if __name__ == "__main__":
