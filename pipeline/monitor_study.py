@@ -299,9 +299,10 @@ class _Trainings:
 #: Bumped when the study's results change for the same inputs (2: the oracle's and the
 #: nights' guarded rows; 3: the encoder trains on colour-jittered frames; 4: the starts
 #: have a random stream of their own, `STARTS_STREAM`; 5: runs are judged, and labelled,
-#: on the loop alone watched ``within`` s past the recordings, `watched_failure_times`),
+#: on the loop alone watched ``within`` s past the recordings, `watched_failure_times`;
+#: 6: risks are float64 sigmoids, calibrated without a 1e-7 clip, `history_model.platt`),
 #: so that a run's monitor stage is run again.
-STUDY_FORMAT = 5
+STUDY_FORMAT = 6
 
 #: The modules whose code trains and judges the study's monitors (the recorded runs
 #: and guarded missions have keys of their own): part of the monitor stage's key. A

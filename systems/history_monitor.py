@@ -223,7 +223,7 @@ class HistoryMonitor(LeafSystem):
             with one_torch_thread():
                 for m, member in enumerate(self._members):
                     logit = member.head(complete[m:m + 1]).squeeze(-1)
-                    risks.append(float(torch.sigmoid(logit)[0]))
+                    risks.append(float(torch.sigmoid(logit.double())[0]))
         else:
             rows = self._rows(context)[::-1][::c.stride][::-1]   # every stride-th, newest last
             x = torch.from_numpy(rows.astype(np.float32))[None]
@@ -231,7 +231,7 @@ class HistoryMonitor(LeafSystem):
             with one_torch_thread():
                 for m, member in enumerate(self._members):
                     logit = member.head_logits(x[..., m * f:(m + 1) * f], x[..., self._encoded:])
-                    risks.append(float(torch.sigmoid(logit)[0]))
+                    risks.append(float(torch.sigmoid(logit.double())[0]))
         risk = sum(risks) / len(risks)          # one member: its risk, bit for bit
         output.SetAtIndex(0, risk if self._platt is None else float(platt(risk, *self._platt)))
 

@@ -144,6 +144,27 @@ def test_platt_scaling_recovers_a_known_miscalibration():
     assert counts.sum() == y.size and np.all(np.abs(mean_p - freq) < 0.03)
 
 
+def test_platt_scaling_keeps_the_order_of_risks_far_below_one_in_a_million():
+    """A confident monitor's raw risks on safe ticks lie far below 1e-7; clipped there
+    before their logit (as they were), most of an environment's ticks came out of
+    calibration as one risk, and the ties pulled its AUROC down (0.895 -> 0.831 on the
+    fourth protocol run's worst environment). The order is kept, and with it the AUROC
+    of the raw risks."""
+    from reachwatch.training.metrics import auroc
+    rng = np.random.default_rng(2)
+    logits = np.concatenate([rng.normal(-30.0, 6.0, 4000), rng.normal(-18.0, 6.0, 400),
+                             rng.normal(2.0, 2.0, 400)])
+    y = np.r_[np.zeros(4000), np.ones(400), np.ones(400)].astype(bool)
+    raw = 1 / (1 + np.exp(-logits))                    # as the monitor's float64 sigmoid
+    assert np.mean(raw < 1e-7) > 0.8                   # what the old clip made one value
+    fit = PlattCalibration.fit(raw, y)
+    calibrated = fit(raw)
+    assert fit.a > 0 and np.all(np.diff(calibrated[np.argsort(raw)]) >= 0)
+    assert len(np.unique(calibrated)) == len(np.unique(raw))
+    assert auroc(y, calibrated) == pytest.approx(auroc(y, raw), abs=1e-12)
+    assert auroc(y, raw) - auroc(y, np.clip(raw, 1e-7, 1)) > 0.02   # the ties it cost
+
+
 def test_platt_scaling_never_reverses_a_backward_model():
     """Raw risks that rank the labels backwards get slope 0 (the base rate for every
     input), not a negative slope that would turn the risks round."""

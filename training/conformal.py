@@ -41,8 +41,9 @@ from typing import Sequence
 
 import numpy as np
 from scipy.optimize import minimize
+from scipy.special import expit
 
-from reachwatch.systems.history_model import platt
+from reachwatch.systems.history_model import logit_of, platt
 
 
 def warning_scores(risks, times, failure_times, *, lead: float,
@@ -219,21 +220,21 @@ class PlattCalibration:
 
     @classmethod
     def fit(cls, q, labels) -> "PlattCalibration":
-        q = np.clip(np.asarray(q, float), 1e-7, 1 - 1e-7)
+        q = np.asarray(q, float)
         y = np.asarray(labels, float)
         if q.shape != y.shape or q.ndim != 1 or len(q) == 0:
             raise ValueError(f"Platt scaling needs 1-d probabilities and labels of one "
                              f"length, got {q.shape} and {y.shape}")
         if y.min() == y.max():
             raise ValueError("Platt scaling needs labels of both classes")
-        z = np.log(q / (1 - q))
+        z = logit_of(q)
 
         def nll(p):
             s = p[0] * z + p[1]
             return float(np.sum(np.logaddexp(0, s) - y * s))
 
         def grad(p):
-            r = 1 / (1 + np.exp(-(p[0] * z + p[1]))) - y
+            r = expit(p[0] * z + p[1]) - y
             return np.array([np.sum(r * z), np.sum(r)])
 
         a, b = minimize(nll, np.array([1.0, 0.0]), jac=grad, method="L-BFGS-B",
