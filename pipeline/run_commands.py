@@ -86,12 +86,14 @@ def run_command(args):
     with run_folder_held(mirror.local) if mirror is not None else contextlib.nullcontext():
         out = args.out
         if mirror is not None:
-            stamp(f"{args.out}: working in {mirror.local}; fetched {mirror.pull()} files")
+            fetched = mirror.pull(progress=progress_enabled())
+            stamp(f"{args.out}: working in {mirror.local}; fetched {fetched} files")
             out = mirror.local
 
         def push(stage):
             if mirror is not None:
-                stamp(f"[{stage}] {mirror.push()} files put to {mirror.url}")
+                put = mirror.push(progress=progress_enabled())
+                stamp(f"[{stage}] {put} files put to {mirror.url}")
 
         try:
             pushing = (mirror.pushing_every(args.push_every, stamp, log.warning)

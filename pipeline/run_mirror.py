@@ -50,6 +50,13 @@ def _is_record(relative: str) -> bool:
     return relative == RECORDS[0] or relative.startswith(RECORDS[1])
 
 
+def _bytes_bar(total: int, what: str, shown: bool):
+    """A tqdm bar of ``total`` bytes (``what``: its text), hidden unless ``shown``."""
+    from tqdm import tqdm
+    return tqdm(total=total, unit="B", unit_scale=True, unit_divisor=1024, desc=what,
+                disable=not shown, leave=False)
+
+
 class RunMirror:
     """The run directory at ``url`` and its working directory ``local`` (default
     `default_work_dir`)."""
@@ -87,47 +94,55 @@ class RunMirror:
         stat = (self.local / relative).stat()      # an atomic rewrite is a new inode
         return [stat.st_size, stat.st_mtime_ns, stat.st_ino]
 
-    def pull(self) -> int:
+    def pull(self, progress: bool = False) -> int:
         """Fetch each file at the URL the working directory lacks, holds at another size,
         or last put or fetched at another version there (written again since, by a run
         elsewhere: an array filled in place keeps its size), and every record, but never
         over a file changed here and not put yet (it is newer) nor a hidden one (a
         temporary file a killed put left); returns how many were fetched. A file fetched
-        counts as put."""
+        counts as put. ``progress``: a bar of the bytes fetched."""
         try:
             remote = list_location(self.url, versions=True)
         except OSError as e:
             raise ValueError(f"--out {self.url}: cannot list it ({type(e).__name__}: "
                              f"{e})") from None
         pushed, versions, fetched = self._pushed(), self._versions(), 0
+        wanted = []
+        for relative, (size, version) in sorted(remote.items()):
+            target = self.local / relative
+            if os.path.basename(relative).startswith("."):
+                continue                          # a temporary file a killed put left
+            if target.is_file() and pushed.get(relative) != self._signature(relative):
+                continue                          # work here not put yet: it is newer
+            known = versions.get(relative)        # None: put or fetched before versions
+            if not (_is_record(relative) or not target.is_file()
+                    or target.stat().st_size != size
+                    or (known is not None and known != version)):
+                versions[relative] = version
+                continue
+            wanted.append((relative, size, version))
         try:
-            for relative, (size, version) in sorted(remote.items()):
-                target = self.local / relative
-                if os.path.basename(relative).startswith("."):
-                    continue                      # a temporary file a killed put left
-                if target.is_file() and pushed.get(relative) != self._signature(relative):
-                    continue                      # work here not put yet: it is newer
-                known = versions.get(relative)    # None: put or fetched before versions
-                if not (_is_record(relative) or not target.is_file()
-                        or target.stat().st_size != size
-                        or (known is not None and known != version)):
-                    versions[relative] = version
-                    continue
-                get_location(cache_join(self.url, relative), target)
-                pushed[relative], versions[relative] = self._signature(relative), version
-                fetched += 1
-                if fetched % SAVE_EVERY == 0:     # a pull killed later keeps what it fetched
-                    self._save(pushed, versions)
+            with _bytes_bar(sum(w[1] or 0 for w in wanted), f"fetched from {self.url}",
+                            progress) as bar:
+                for relative, size, version in wanted:
+                    target = self.local / relative
+                    get_location(cache_join(self.url, relative), target)
+                    pushed[relative], versions[relative] = self._signature(relative), version
+                    fetched += 1
+                    bar.update(size or 0)
+                    if fetched % SAVE_EVERY == 0:     # a pull killed later keeps them
+                        self._save(pushed, versions)
         finally:            # interrupted too: what was fetched counts as put, not as work here
             self._save(pushed, versions)
         return fetched
 
-    def push(self, only: Callable[[str], bool] = None, stop: threading.Event = None) -> int:
+    def push(self, only: Callable[[str], bool] = None, stop: threading.Event = None,
+             progress: bool = False) -> int:
         """Put every file of the working directory added or changed since it was last
         pushed (or pulled), the records last, or those alone whose name ``only(name)``
         accepts; returns how many were put. One push at a time; a file removed between
         the listing and its put is left to the next push, as is every file left when
-        ``stop`` is set."""
+        ``stop`` is set. ``progress``: a bar of the bytes put."""
         with self._pushing:
             pushed, versions = self._pushed(), self._versions()
             changed = []
@@ -144,6 +159,9 @@ class RunMirror:
                 changed.append(relative)
             changed.sort(key=_is_record)            # records after what they name
             put, done, listed_from = 0, [], 0     # how many put, which; the first not listed
+            bar = _bytes_bar(sum(signature[0] for signature in (
+                self._signature_or_none(r) for r in changed) if signature),
+                f"put to {self.url}", progress)
             try:
                 for relative in changed:
                     if stop is not None and stop.is_set():
@@ -155,6 +173,7 @@ class RunMirror:
                         if (self.local / relative).exists():
                             raise                     # the URL's side: not ours to skip
                         continue                      # removed since the listing
+                    bar.update(signature[0])
                     pushed[relative] = signature
                     put += 1
                     done.append(relative)
@@ -162,9 +181,16 @@ class RunMirror:
                         self._save(pushed, self._put_versions(versions, done[listed_from:]))
                         listed_from = len(done)
             finally:
+                bar.close()
                 if put:
                     self._save(pushed, self._put_versions(versions, done[listed_from:]))
             return put
+
+    def _signature_or_none(self, relative: str):
+        try:
+            return self._signature(relative)
+        except FileNotFoundError:                 # removed since the listing
+            return None
 
     def _put_versions(self, versions: dict, relatives) -> dict:
         """``versions`` with the URL's versions of the files ``relatives`` just put (one

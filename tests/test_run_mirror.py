@@ -67,6 +67,22 @@ def test_push_puts_what_changed_records_last_and_pull_fetches_it_elsewhere(
     assert RunMirror(url + "_other", work).push() == 3
 
 
+def test_a_push_and_a_pull_show_the_bytes_they_move(tmp_path, url, capsys):
+    """Gigabytes of datasets can move at the start and end of a run at a URL: with
+    ``progress`` each shows a bar of its bytes, without it nothing."""
+    work = tmp_path / "work"
+    (work / "sweeps").mkdir(parents=True)
+    (work / "sweeps" / "chunk_000000.npz").write_bytes(b"x" * 3000)
+    (work / "run.yaml").write_text("name: a\n")
+    assert RunMirror(url, work).push(progress=True) == 2
+    shown = capsys.readouterr().err
+    assert f"put to {url}" in shown and "2.94k" in shown.replace("K", "k")    # 3008 bytes
+    assert RunMirror(url, tmp_path / "elsewhere").pull(progress=True) == 2
+    assert f"fetched from {url}" in capsys.readouterr().err
+    (work / "run.yaml").write_text("name: b\n")
+    assert RunMirror(url, work).push() == 1 and capsys.readouterr().err == ""
+
+
 def test_a_pull_interrupted_keeps_what_it_fetched_as_put(tmp_path, url, monkeypatch):
     """A pull stopped half-way (Ctrl-C, a lost connection) records the files it fetched
     as put, so the next push does not put them back as work of its own."""
