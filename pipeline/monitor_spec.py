@@ -3,7 +3,6 @@ judges monitors over the image history (the guard stage guards with ``detector:`
 single-image detector)."""
 
 import dataclasses as dc
-import logging
 import math
 from typing import List, Optional
 
@@ -17,7 +16,7 @@ from reachwatch.diagrams.schemas import (ApplicationEnvironment, ApplicationRand
 from reachwatch.systems import MAX_MEMBERS, TEMPORAL_MODELS, HistoryMonitorConfig
 from reachwatch.systems.history_model import check_input_norm, check_pool
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
-from reachwatch.systems.checks import check_label, short
+from reachwatch.systems.checks import check_label, short, warn_once
 from reachwatch.systems.flag_filter import check_k_of_n
 from reachwatch.training.history_train import (LR_SCHEDULES, HistoryTrainConfig,
                                                check_state_targets)
@@ -63,10 +62,6 @@ class MonitorVariant:
     signals: bool = False
 
 
-#: The unused study keys already warned of in this process (one warning each).
-_WARNED_UNUSED = set()
-
-
 def warn_unused_study_keys(spec, where: str) -> None:
     """A one-line warning (once per process and set of keys) when ``spec``, a study that
     is off (``kind`` not ``history``), sets keys of the study other than ``family``: they
@@ -76,12 +71,10 @@ def warn_unused_study_keys(spec, where: str) -> None:
     defaults = type(spec)()
     given = tuple(f.name for f in dc.fields(spec) if f.name not in ("kind", "family")
                   and getattr(spec, f.name) != getattr(defaults, f.name))
-    if given and (where, given) not in _WARNED_UNUSED:
-        _WARNED_UNUSED.add((where, given))
-        logging.getLogger("reachwatch").warning(
-            f"{where}.kind is {short(spec.kind)}, so the monitor study does not run and "
-            f"{short(list(given))} set in {where} do nothing (set {where}.kind: history to "
-            f"run it)")
+    if given:
+        warn_once(f"{where}.kind is {short(spec.kind)}, so the monitor study does not run "
+                  f"and {short(list(given))} set in {where} do nothing (set {where}.kind: "
+                  f"history to run it)")
 
 
 def default_variants() -> List[MonitorVariant]:

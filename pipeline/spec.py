@@ -17,7 +17,7 @@ from reachwatch.reach import ACCURACIES
 from reachwatch.reach.application import load_application
 from reachwatch.systems import Fallback
 from reachwatch.systems.bounds import bounded, check_bounds
-from reachwatch.systems.checks import check_label, short
+from reachwatch.systems.checks import check_label, short, warn_once
 from reachwatch.training.dataset import DatasetSpec
 from reachwatch.training.labels import LabelSpec
 from reachwatch.training.detector_train import DetectorTrainConfig
@@ -256,7 +256,12 @@ class RunSpec:
         if self.guard.flag_budget is not None and not self.guard.strategies:
             raise ValueError("guard.flag_budget: the budget is set on the first of "
                              "guard.strategies, and there are none")
+        trained_names = {e.name for e in self.training_environments()}
         for i, env in enumerate(self.guard.environments):
+            if env.name in trained_names:
+                warn_once(f"guard.environments[{i}]: {short(env.name)} is a training "
+                          f"environment: the detector has seen its images, so the guard's "
+                          f"figures there are better than on a held-out one")
             try:
                 env.validate()
             except ValueError as e:

@@ -1,6 +1,8 @@
 """Checks of user input shared by the schemas: short reprs of offending values (an
-error message never prints a whole value) and names that become file names."""
+error message never prints a whole value), names that become file names, and
+one-line warnings given once (`warn_once`)."""
 
+import logging
 import re
 import reprlib
 
@@ -18,6 +20,18 @@ def short(value, limit: int = SHORT) -> str:
     repr of a huge value)."""
     text = _repr.repr(value)
     return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+#: The warnings `warn_once` has given in this process.
+WARNED = set()
+
+
+def warn_once(message: str) -> None:
+    """``message`` as a one-line warning on the ``reachwatch`` logger, once a process (a
+    run file is validated more than once: one warning, not one a validation)."""
+    if message not in WARNED:
+        WARNED.add(message)
+        logging.getLogger("reachwatch").warning(message)
 
 
 def clip(message, limit: int = 600) -> str:

@@ -208,8 +208,8 @@ def test_keys_that_do_nothing_are_warned_of_and_a_family_drawn_twice_refused(cap
     ``incremental.anomalies: 0`` (the stage fine-tunes on none, and failed hours later)
     are refused in one line naming the key."""
     import logging
-    import reachwatch.pipeline.monitor_spec as monitor_spec
-    monkeypatch.setattr(monitor_spec, "_WARNED_UNUSED", set())     # none said before
+    import reachwatch.systems.checks as checks
+    monkeypatch.setattr(checks, "WARNED", set())                   # none said before
     with caplog.at_level(logging.WARNING, logger="reachwatch"):
         off = load_run_spec(data=TINY + "monitor: {train: 3, runs: 7}\n").monitor
         off.validate()
@@ -232,4 +232,26 @@ def test_keys_that_do_nothing_are_warned_of_and_a_family_drawn_twice_refused(cap
                                          r"the stage runs"):
         load_run_spec(data=TINY.replace("anomalies: 20", "anomalies: 0"))
     load_run_spec(data=TINY.replace("anomalies: 20", "anomalies: 0\n  enabled: false"))
+
+
+def test_a_guard_environment_that_is_a_training_one_is_warned_of(caplog, monkeypatch):
+    """The guard's figures on an environment whose images the detector trained on are
+    better than on a held-out one: a one-line warning names it (the incremental stage
+    refuses one; the guard may be asked on purpose)."""
+    import logging
+    import reachwatch.systems.checks as checks
+    monkeypatch.setattr(checks, "WARNED", set())
+    text = TINY.replace("guard: {candidates: 2,", "guard: {environments: [{runway: KMWH, "
+                        "hour: 9.0, sky: clear}], candidates: 2,")
+    with caplog.at_level(logging.WARNING, logger="reachwatch"):
+        load_run_spec(data=text)
+        load_run_spec(data=text)                                  # said once
+    said = [r.getMessage() for r in caplog.records]
+    assert said == ["guard.environments[0]: 'KMWH_9h_clear' is a training environment: "
+                    "the detector has seen its images, so the guard's figures there are "
+                    "better than on a held-out one"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="reachwatch"):
+        load_run_spec(data=TINY)                           # the first test one: nothing
+    assert not caplog.records
 
