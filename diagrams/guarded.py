@@ -1,7 +1,6 @@
 """The guarded loop: the closed loop under test watched by the anomaly detector, with
 the fallback switch between the controller and the plant."""
 
-import logging
 from typing import NamedTuple
 
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem, OutputPort
@@ -10,6 +9,7 @@ from pydrake.systems.primitives import Multiplexer, ZeroOrderHold
 from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, FlagFilter,
                                 HistoryMonitor, ProportionalController, TrueStateEstimator,
                                 fallback_name)
+from reachwatch.systems.checks import warn_once
 
 from .checkpoints import checkpoint_kind, load_detector, load_history_monitor
 from .closed_loop import add_controller, export_loop_ports
@@ -60,10 +60,6 @@ def check_per_state_monitor(monitor) -> None:
                          f"in the guarded real loop (a run file's monitor: {{kind: history}})")
 
 
-#: The (checkpoint, fallback) pairs `warn_other_fallback` has warned of in this process.
-_WARNED = set()
-
-
 def warn_other_fallback(monitor, metadata) -> None:
     """A warning, once per checkpoint and fallback in a process, when a history monitor
     whose threshold a study fixed for braking at ``brake_deceleration`` (its metadata's)
@@ -74,17 +70,14 @@ def warn_other_fallback(monitor, metadata) -> None:
     if braking is None or (monitor.strategy == "brake"
                            and monitor.brake_deceleration >= float(braking)):
         return
-    seen = (str(monitor.detector), monitor.strategy, monitor.brake_deceleration)
-    if seen in _WARNED:
-        return
-    _WARNED.add(seen)
     this = (f"braking at {monitor.brake_deceleration:g} m/s^2" if monitor.strategy == "brake"
             else f"'{monitor.strategy}'")
-    logging.getLogger("reachwatch").warning(
-        f"monitor.detector: its threshold was fixed for a fallback braking at "
-        f"{float(braking):g} m/s^2, warning {float(metadata.get('lead_s', 0)):g} s ahead; "
-        f"this loop's fallback is {this}, which may need longer: the study's miss-rate "
-        f"bound does not speak of it")
+    warn_once(f"monitor.detector: its threshold was fixed for a fallback braking at "
+              f"{float(braking):g} m/s^2, warning {float(metadata.get('lead_s', 0)):g} s "
+              f"ahead; this loop's fallback is {this}, which may need longer: the study's "
+              f"miss-rate bound does not speak of it",
+              key=("other fallback", str(monitor.detector), monitor.strategy,
+                   monitor.brake_deceleration))
 
 
 def add_detector(builder, *, image_port, monitor, period=None, steering_port=None,

@@ -226,8 +226,8 @@ class MonitorStudySpec:
     ``variants``: the monitors to train (`MonitorVariant`), each judged in the report.
 
     ``keep``: the monitor kept (its checkpoint is written to ``OUT/monitor/`` and,
-    with ``guarded_runs``, guards the loop; the bound is stated for it): null, the first of ``variants``; a variant's name, that one; ``choose``, the
-    variant and flag rule with the fewest needless flags on the calibration
+    with ``guarded_runs``, guards the loop; the bound is stated for it): null, the first
+    of ``variants``; a variant's name, that one; ``choose``, the variant and flag rule with the fewest needless flags on the calibration
     environments at their own thresholds. The conformal bound speaks of a monitor fixed
     before the calibration environments are seen, not of one chosen among several on
     them: the choice favours whichever those environments happened to flatter, and its

@@ -421,17 +421,17 @@ def digest(*parts) -> str:
 def _keyed_value(value):
     """What `digest` keys a value JSON cannot hold by: a numpy array by its type, shape
     and every byte (its text abbreviates one of more than 1,000 numbers, so two arrays
-    could share a key; a masked one with its mask), a numpy scalar by its value,
-    anything else by its text."""
+    could share a key; a masked one with its mask; as `reach.fingerprint.canonical`
+    keys them), a numpy scalar by its value, anything else by its text."""
     import numpy as np
+    from reachwatch.reach.fingerprint import canonical
     if isinstance(value, np.ma.MaskedArray):
         return {"masked": _keyed_value(np.asarray(value.data)),
                 "mask": _keyed_value(np.ma.getmaskarray(value))}
-    if isinstance(value, np.ndarray) and value.dtype.hasobject:
+    if isinstance(value, np.ndarray) and value.dtype.hasobject:     # bytes: pointers
         return {"ndarray": "object", "shape": list(value.shape), "items": value.tolist()}
-    if isinstance(value, np.ndarray):
-        return {"ndarray": str(value.dtype), "shape": list(value.shape),
-                "sha256": hashlib.sha256(value.tobytes()).hexdigest()}
+    if isinstance(value, (np.ndarray, np.integer, np.floating, np.bool_)):
+        return canonical(value)
     if isinstance(value, np.generic):
         return value.item()
     return str(value)

@@ -26,11 +26,13 @@ def short(value, limit: int = SHORT) -> str:
 WARNED = set()
 
 
-def warn_once(message: str) -> None:
-    """``message`` as a one-line warning on the ``reachwatch`` logger, once a process (a
-    run file is validated more than once: one warning, not one a validation)."""
-    if message not in WARNED:
-        WARNED.add(message)
+def warn_once(message: str, key=None) -> None:
+    """``message`` as a one-line warning on the ``reachwatch`` logger, once a process per
+    ``key`` (None: the message itself), e.g. a run file validated more than once: one
+    warning, not one a validation."""
+    key = message if key is None else key
+    if key not in WARNED:
+        WARNED.add(key)
         logging.getLogger("reachwatch").warning(message)
 
 
