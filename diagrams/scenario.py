@@ -75,6 +75,11 @@ class ControllerConfig:
             target, _ = _split(self.factory)
             if target.endswith(".py") and not is_file(target):
                 raise ValueError(f"controller.factory: file not found: {clip(target, 200)}")
+        if self.parameters and not self.factory:
+            raise ValueError(f"controller.parameters: only a controller.factory reads them, "
+                             f"and none is given (the default TaxiNet takes none): set "
+                             f"controller.factory, or remove "
+                             f"{short(', '.join(map(str, self.parameters)))}")
         for name, value in self.parameters.items():
             if not math.isfinite(value):
                 raise ValueError(f"controller.parameters.{short(name)} must be finite, got {value}")
@@ -105,6 +110,17 @@ class Scenario:
     duration: float = bounded(10.0, 0.0, MAX_DURATION, low_open=True, unit="s")
     seed: int = seed_field()
     shadows: bool = False
+
+    #: The fields of a single run alone (``reachwatch simulate``), unread by sweeps and
+    #: batches of real-loop runs.
+    SINGLE_RUN_FIELDS = ("initial_state", "duration", "seed")
+
+    def single_run_settings(self) -> List[str]:
+        """The names of `SINGLE_RUN_FIELDS` set to other than their defaults (a run
+        file's stages do not read them: worth a word to whoever set them)."""
+        defaults = type(self)()
+        return [name for name in self.SINGLE_RUN_FIELDS
+                if getattr(self, name) != getattr(defaults, name)]
 
     @classmethod
     def schema_for(cls, raw) -> type:

@@ -147,13 +147,24 @@ def test_a_float_written_as_text_is_read_as_the_number():
     spec = load_run_spec(data=TINY.replace("epochs: 1\n", "epochs: 1\n  learning_rate: 1e-4\n"))
     assert spec.detector.learning_rate == 1e-4 and isinstance(spec.detector.learning_rate, float)
     assert spec.detector.epochs == 1 and spec.grid == [5, 3, 5]            # the rest as written
-    s = load_scenario(data="controller: {parameters: {gain: -2E-1}, speed: '+5e0'}\n")
+    s = load_scenario(data="controller: {factory: 'mine.control:make', "
+                           "parameters: {gain: -2E-1}, speed: '+5e0'}\n")
     assert s.controller.parameters == {"gain": -0.2} and s.controller.speed == 5.0
     for text, where in [("controller: {speed: 5e0x}", "scenario.controller.speed: expected float"),
                         ("camera: {width: 1e3}", "scenario.camera.width: expected int"),
                         ("controller: {checkpoint: 1e-4}", "controller.checkpoint: file not found")]:
         with pytest.raises(ScenarioError, match=re.escape(where)):
             load_scenario(data=text)
+
+
+def test_controller_parameters_without_a_factory_are_refused_not_ignored():
+    """Before: loaded, and silently unread by the default TaxiNet + P-controller."""
+    with pytest.raises(ScenarioError, match=re.escape(
+            "controller.parameters: only a controller.factory reads them")) as info:
+        load_scenario(data="controller: {parameters: {gain_deg: 10.0}}\n")
+    assert "gain_deg" in str(info.value) and len(str(info.value)) < 300
+    with pytest.raises(ValueError, match=re.escape("scenario.controller.parameters: only")):
+        load_run_spec(data=TINY + "scenario:\n  controller: {parameters: {gain: 1.0}}\n")
 
 
 BOMB = "".join(f"{c}: &{c} [{', '.join([f'*{p}'] * 9)}]\n" for p, c in zip("abcdefgh", "bcdefghi"))
