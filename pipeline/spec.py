@@ -143,6 +143,11 @@ class RunSpec:
         except ValueError as e:     # its fields' paths from the run file's top (a run
             e.args = (scenario_path(e),)    # file has a monitor: too); its type kept
             raise
+        unread = self.scenario.single_run_settings()
+        if unread:
+            warn_once(f"scenario.{', scenario.'.join(unread)}: a single run's (reachwatch "
+                      f"simulate); a run's stages set their own starts, durations and seeds "
+                      f"and do not read {'it' if len(unread) == 1 else 'them'}")
         check_label("name", self.name)
         check_bounds(self)
         application = load_application(self.application)    # a bad name fails before any work

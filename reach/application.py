@@ -768,10 +768,9 @@ def without_run_settings(scenario):
     """A copy of ``scenario`` whose start state, duration and seed are the defaults: a
     sweep sets the state, and a batch of real-loop runs its starts and duration, so
     neither reads them, and a run file that changes them reuses their caches."""
-    scenario = copy.deepcopy(scenario)
-    defaults = type(scenario)()
-    scenario.initial_state, scenario.duration, scenario.seed = (
-        defaults.initial_state, defaults.duration, defaults.seed)
+    scenario, defaults = copy.deepcopy(scenario), type(scenario)()
+    for name in scenario.SINGLE_RUN_FIELDS:
+        setattr(scenario, name, getattr(defaults, name))
     return scenario
 
 

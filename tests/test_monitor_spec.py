@@ -255,3 +255,24 @@ def test_a_guard_environment_that_is_a_training_one_is_warned_of(caplog, monkeyp
         load_run_spec(data=TINY)                           # the first test one: nothing
     assert not caplog.records
 
+
+
+def test_a_run_files_single_run_settings_are_warned_of_not_silently_unread(caplog, monkeypatch):
+    """scenario.initial_state, duration and seed are `reachwatch simulate`'s: a run's
+    stages set their own (`without_run_settings`). Before, a run file setting them was
+    run without a word."""
+    import logging
+    import reachwatch.systems.checks as checks
+    monkeypatch.setattr(checks, "WARNED", set())
+    text = TINY + "scenario:\n  duration: 20.0\n  initial_state: {px: 3.0}\n"
+    with caplog.at_level(logging.WARNING, logger="reachwatch"):
+        spec = load_run_spec(data=text)
+        load_run_spec(data=text)                                  # said once
+    assert [r.getMessage() for r in caplog.records] == [
+        "scenario.initial_state, scenario.duration: a single run's (reachwatch simulate); a "
+        "run's stages set their own starts, durations and seeds and do not read them"]
+    assert spec.scenario.duration == 20.0             # kept as written: simulate reads it
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="reachwatch"):
+        load_run_spec(data=TINY + "scenario:\n  duration: 10.0\n")   # the default: nothing
+    assert not caplog.records
