@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from reachwatch.diagrams import load_detector
-from reachwatch.pipeline.spec import digest, load_run_spec
+from reachwatch.pipeline.keys import digest
+from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.pipeline.stages import Run
 from reachwatch.reach.value_function import ValueFunction
 from reachwatch.reach.outcomes import path_points

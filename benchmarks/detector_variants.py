@@ -35,7 +35,8 @@ import numpy as np
 import torch
 
 from reachwatch.diagrams import load_detector
-from reachwatch.pipeline.spec import digest, load_run_spec
+from reachwatch.pipeline.keys import digest
+from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.systems.detector import detector_input
 from reachwatch.taxi import TaxiApplication, dynamics_for
 from reachwatch.training.baselines import estimate_error_of

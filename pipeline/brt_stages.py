@@ -19,7 +19,7 @@ from reachwatch.reach.sweep import cached_table_digest
 from reachwatch.systems.checks import device_kind
 from reachwatch.systems.files import atomic_write_bytes
 
-from .spec import digest
+from .keys import digest
 from .stages import Run
 from .together import each_environment
 

@@ -11,7 +11,7 @@ from reachwatch.training.dataset import DATASET_CODE
 from reachwatch.training.dataset import FORMAT as DATASET_FORMAT
 from reachwatch.training.dataset import build_dataset, dataset_folder, label_summary, load_dataset
 
-from .spec import digest
+from .keys import digest
 from .stages import Run
 from .together import each_environment
 

@@ -23,7 +23,7 @@ from reachwatch.training.figures import (plot_error_vs_margin, plot_examples, pl
                                          plot_roc)
 from reachwatch.training.metrics import best_threshold
 
-from .spec import digest
+from .keys import digest
 from .stages import Run
 
 

@@ -17,7 +17,8 @@ from reachwatch.reach.fingerprint import modules_source_digest
 from reachwatch.training.dataset import DATASET_CODE, load_dataset
 from reachwatch.training.labels import SOURCE_PATH, label_verdicts
 
-from .spec import RunSpec, digest
+from .keys import digest
+from .spec import RunSpec
 from .stages import Run
 from .together import each_environment
 

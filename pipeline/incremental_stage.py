@@ -15,7 +15,7 @@ from reachwatch.systems.files import atomic_write_bytes
 
 from .brt_stages import solve_env, sweep_env
 from .online_stages import robust_starts
-from .spec import digest
+from .keys import digest
 from .stages import Run
 
 

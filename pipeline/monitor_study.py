@@ -278,7 +278,7 @@ class _Trainings:
         settings, and the keys of models this one was trained from), trained or read
         back, and its key."""
         from reachwatch.diagrams.checkpoints import CheckpointError, load_history_monitor
-        from .spec import digest
+        from .keys import digest
         key = digest(*self.base, *[p if isinstance(p, str) else dc.asdict(p) for p in parts])
         path = self.folder / f"{key}.pt"
         model = None
@@ -369,7 +369,7 @@ def study_key(spec: MonitorStudySpec, application, scenario, detector=None) -> s
     `STUDY_CODE`, the lead (`study_lead`), and the content of the ``detector`` judged
     beside (when one is)."""
     from reachwatch.reach.fingerprint import fingerprint, modules_source_digest
-    from .spec import digest
+    from .keys import digest
     own = application_key(application)          # None for the default (the taxi)
     return digest(dc.asdict(spec), dc.asdict(train_settings(spec, application)),
                   fingerprint(application.without_monitor(scenario)), *([own] if own else []),

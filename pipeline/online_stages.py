@@ -19,7 +19,7 @@ from reachwatch.reach.liveness import UNGUARDED, liveness_figures
 from reachwatch.reach.score_noise import ScoreNoise
 from reachwatch.systems import fallback_parts
 
-from .spec import digest
+from .keys import digest
 from .stages import Run
 
 

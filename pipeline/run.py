@@ -22,7 +22,8 @@ from .fidelity_stages import check_downtrack_room, stage_fidelity
 from .incremental_stage import stage_incremental
 from .online_stages import stage_guard
 from .report import write_report
-from .spec import RunSpec, digest, dump_run_spec
+from .keys import digest
+from .spec import RunSpec, dump_run_spec
 from .brt_stages import stage_solve, stage_sweep
 from .dataset_stages import dataset_key, stage_dataset
 from .monitor_study import stage_monitor

@@ -6,8 +6,9 @@ import dataclasses as dc
 from typing import List, Optional
 
 from reachwatch.diagrams.schemas import ApplicationEnvironment, slot_field
-from reachwatch.systems import DEFAULT_FALLBACKS
+from reachwatch.systems import DEFAULT_FALLBACKS, Fallback
 from reachwatch.systems.bounds import MAX_INT, bounded, check_bounds, seed_field
+from reachwatch.systems.checks import short, warn_once
 
 from .slot_defaults import application_default
 
@@ -117,6 +118,36 @@ class GuardSpec:
     flag_budget: Optional[float] = bounded(None, 0.0, 1.0, low_open=True, high_open=True)
     flag_budget_starts: int = bounded(600, 1, MAX_STARTS, whole=True)
     flag_budget_seed: int = seed_field(7000)
+
+    def validate(self, trained_names=frozenset()):
+        """Raise ValueError naming the first bad field; ``strategies`` rewritten to one
+        name per fallback; a guard environment among ``trained_names`` (the run's
+        training environments) warned of. Returns self."""
+        check_bounds(self, "guard.")
+        # one name per fallback ('slow_down', 'slow_down+controller', 'slow_down+taxinet'
+        # are one), so that one fallback has one key, one report row and one set of runs
+        named, strategies = list(self.strategies), []
+        for i, name in enumerate(named):
+            try:
+                strategies.append(Fallback.parse(name).name)
+            except ValueError as e:
+                raise ValueError(f"guard.strategies[{i}]: {e}") from None
+        self.strategies = strategies
+        if len(set(self.strategies)) != len(self.strategies):
+            raise ValueError(f"guard.strategies: each fallback once, got {named}")
+        if self.flag_budget is not None and not self.strategies:
+            raise ValueError("guard.flag_budget: the budget is set on the first of "
+                             "guard.strategies, and there are none")
+        for i, env in enumerate(self.environments):
+            if env.name in trained_names:
+                warn_once(f"guard.environments[{i}]: {short(env.name)} is a training "
+                          f"environment: the detector has seen its images, so the guard's "
+                          f"figures there are better than on a held-out one")
+            try:
+                env.validate()
+            except ValueError as e:
+                raise ValueError(f"guard.environments[{i}]: {e}") from None
+        return self
 
 
 @dc.dataclass

@@ -4,8 +4,6 @@ e.g. ``run.detector.epoch: unknown field``)."""
 
 import dataclasses as dc
 import functools
-import hashlib
-import json
 import re
 from typing import Dict, List, Optional
 
@@ -220,7 +218,6 @@ class RunSpec:
         if len(set(self.ensemble.seeds)) != len(self.ensemble.seeds):
             raise ValueError(f"ensemble.seeds must list different seeds, got "
                              f"{short(self.ensemble.seeds)}")
-        check_bounds(self.guard, "guard.")
         check_bounds(self.fidelity, "fidelity.")
         period = self.scenario.controller.period
         for where, seconds in (("horizon", self.horizon),
@@ -247,30 +244,7 @@ class RunSpec:
             self.ensemble.seeds = []     # the default: none where the application has none
         if len(self.ensemble.seeds) == 1:
             raise ValueError("ensemble.seeds: an ensemble needs >= 2 seeds (or [] for none)")
-        # one name per fallback ('slow_down', 'slow_down+controller', 'slow_down+taxinet'
-        # are one), so that one fallback has one key, one report row and one set of runs
-        named, strategies = list(self.guard.strategies), []
-        for i, name in enumerate(named):
-            try:
-                strategies.append(Fallback.parse(name).name)
-            except ValueError as e:
-                raise ValueError(f"guard.strategies[{i}]: {e}") from None
-        self.guard.strategies = strategies
-        if len(set(self.guard.strategies)) != len(self.guard.strategies):
-            raise ValueError(f"guard.strategies: each fallback once, got {named}")
-        if self.guard.flag_budget is not None and not self.guard.strategies:
-            raise ValueError("guard.flag_budget: the budget is set on the first of "
-                             "guard.strategies, and there are none")
-        trained_names = {e.name for e in self.training_environments()}
-        for i, env in enumerate(self.guard.environments):
-            if env.name in trained_names:
-                warn_once(f"guard.environments[{i}]: {short(env.name)} is a training "
-                          f"environment: the detector has seen its images, so the guard's "
-                          f"figures there are better than on a held-out one")
-            try:
-                env.validate()
-            except ValueError as e:
-                raise ValueError(f"guard.environments[{i}]: {e}") from None
+        self.guard.validate({e.name for e in self.training_environments()})
         if self.guard_environments() and not self.default_strategies():
             # the default is fitted to the application and controller when a run
             # starts (`pipeline.run.fit_guard`)
@@ -375,7 +349,6 @@ class RunSpec:
                 envs.append(env)
         return envs
 
-
     @classmethod
     def schema_for(cls, raw) -> type:
         """The schema a run file's data ``raw`` is loaded with: this one with the
@@ -413,30 +386,3 @@ def scenario_path(error: ValueError) -> str:
     if first and first.group() in {f.name for f in dc.fields(Scenario)}:
         return f"scenario.{text}"
     return f"scenario: {text}"
-
-
-def digest(*parts) -> str:
-    """A short content key of JSON-able parts (dataclasses are expanded; numpy values
-    by their content, `_keyed_value`)."""
-    plain = [dc.asdict(p) if dc.is_dataclass(p) else p for p in parts]
-    return hashlib.sha256(json.dumps(plain, sort_keys=True, default=_keyed_value).encode()
-                          ).hexdigest()[:16]
-
-
-def _keyed_value(value):
-    """What `digest` keys a value JSON cannot hold by: a numpy array by its type, shape
-    and every byte (its text abbreviates one of more than 1,000 numbers, so two arrays
-    could share a key; a masked one with its mask; as `reach.fingerprint.canonical`
-    keys them), a numpy scalar by its value, anything else by its text."""
-    import numpy as np
-    from reachwatch.reach.fingerprint import canonical
-    if isinstance(value, np.ma.MaskedArray):
-        return {"masked": _keyed_value(np.asarray(value.data)),
-                "mask": _keyed_value(np.ma.getmaskarray(value))}
-    if isinstance(value, np.ndarray) and value.dtype.hasobject:     # bytes: pointers
-        return {"ndarray": "object", "shape": list(value.shape), "items": value.tolist()}
-    if isinstance(value, (np.ndarray, np.integer, np.floating, np.bool_)):
-        return canonical(value)
-    if isinstance(value, np.generic):
-        return value.item()
-    return str(value)

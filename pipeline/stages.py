@@ -24,7 +24,8 @@ from reachwatch.systems.checks import short
 from reachwatch.systems.files import atomic_write_bytes, cache_location
 from reachwatch.training.dataset import load_dataset
 
-from .spec import RunSpec, digest, dump_run_spec
+from .keys import digest
+from .spec import RunSpec, dump_run_spec
 
 
 def _plain(value):

@@ -356,7 +356,7 @@ def test_a_key_holds_every_number_of_an_array_not_its_abbreviated_text():
     numpy values: two arrays of more than 1,000 numbers that differ only inside the
     part numpy's text elides get different keys; equal ones, equal keys."""
     import numpy as np
-    from reachwatch.pipeline.spec import digest
+    from reachwatch.pipeline.keys import digest
     a = np.zeros(2000)
     b = a.copy()
     b[1000] = 1.0

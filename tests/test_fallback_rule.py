@@ -15,7 +15,7 @@ from reachwatch.reach import Grid
 from reachwatch.reach.dynamics import rk4_step
 from reachwatch.reach.fingerprint import fingerprint
 from reachwatch.reach.interpolate import GridInterpolator
-from reachwatch.pipeline.spec import digest
+from reachwatch.pipeline.keys import digest
 from reachwatch.systems import STEERING, STRATEGIES, Fallback, FallbackSwitch, fallback_parts
 from reachwatch.taxi import dynamics_for, taxi_guarded_rollouts
 

@@ -208,7 +208,8 @@ def test_the_check_extends_to_more_starts_only_where_its_first_runs_find_a_wrong
     import types
 
     from reachwatch.pipeline import fidelity_stages
-    from reachwatch.pipeline.spec import FidelitySpec, digest, load_run_spec
+    from reachwatch.pipeline.keys import digest
+    from reachwatch.pipeline.spec import FidelitySpec, load_run_spec
     from reachwatch.reach.outcomes import Outcomes
     from reachwatch.taxi.application import TaxiApplication
 
