@@ -52,10 +52,16 @@ def _pruned(name: str) -> bool:
 
 def _source_files(root: Path, where: str):
     """``(relative path, path)`` of every ``.py`` file under ``root`` an import from it
-    can reach, sorted; folders that no import can name (hidden, ``__pycache__``, not
-    identifiers) and virtual environments are skipped."""
-    found, entries, size = [], 0, 0
-    for folder, dirs, files in os.walk(root):
+    can reach, sorted, through linked folders too; folders that no import can name
+    (hidden, ``__pycache__``, not identifiers) and virtual environments are skipped."""
+    found, entries, size, walked = [], 0, 0, set()
+    # a linked folder is followed (an import reaches through it), each folder once
+    for folder, dirs, files in os.walk(root, followlinks=True):
+        real = os.path.realpath(folder)
+        if real in walked:
+            dirs[:] = []
+            continue
+        walked.add(real)
         entries += len(dirs) + len(files)
         if entries > MAX_SOURCE_ENTRIES:
             raise ValueError(f"{where}: the folder {clip(root, 200)} holds more than "
@@ -168,24 +174,58 @@ class _UserCode:
         (`importlib.util.find_spec` of top-level names), once, so that its factory's
         key does not depend on what the process imported first."""
         if self._outside is None:
-            found = {}
-            for name in sorted(_imported_names(self.folder) - self.provides):
-                if name == "reachwatch" or name in sys.builtin_module_names:
-                    continue
-                try:
-                    spec = importlib.util.find_spec(name)
-                except (ImportError, ValueError):
-                    continue
-                origin = getattr(spec, "origin", None)
-                if not origin or not os.path.isfile(origin) or is_installed(origin):
-                    continue
-                path = Path(origin).resolve()
-                if path.is_relative_to(self.folder):
-                    continue
-                found[name] = (source_digest(path.parent) if path.name == "__init__.py"
-                               else file_hash(path))
-            self._outside = found
+            found, seen = {}, set(self.provides)
+            waiting = _imported_names(p for _, p in _source_files(self.folder,
+                                                                   "controller.factory"))
+            while waiting - seen:
+                name = min(waiting - seen)
+                seen.add(name)
+                files = self._outside_files(name)
+                if files is not None:
+                    found[name] = files_digest((r, _read(p, "controller.factory"))
+                                               for r, p in files)
+                    waiting |= _imported_names(p for _, p in files)   # and what they import
+            self._outside = dict(sorted(found.items()))
         return self._outside
+
+    def _outside_files(self, name: str):
+        """``[(relative path, path)]`` of the top-level module ``name`` when Python finds
+        it in a user's source tree outside the folder (a module file; a package's, or a
+        namespace package's, every ``.py`` file), else None (not found, Python's own,
+        installed, reachwatch, or in the folder)."""
+        if name == "reachwatch" or name in sys.builtin_module_names:
+            return None
+        try:
+            spec = importlib.util.find_spec(name)
+        except (ImportError, ValueError):
+            return None
+        origin = getattr(spec, "origin", None)
+        if origin and os.path.isfile(origin):
+            roots = [Path(origin)]
+        elif not origin and getattr(spec, "submodule_search_locations", None):
+            roots = [Path(p) for p in spec.submodule_search_locations]  # a namespace package
+        else:
+            return None
+        files = []
+        for root in roots:
+            path = root.resolve()
+            if is_installed(str(path)) or path.is_relative_to(self.folder):
+                return None
+            if path.name == "__init__.py":
+                files += [(f"{name}/{r}", p) for r, p in _source_files(path.parent,
+                                                                       "controller.factory")]
+            elif path.is_dir():
+                try:
+                    files += [(f"{name}/{r}", p) for r, p in _source_files(path, "")]
+                except ValueError:
+                    raise ValueError(f"controller.factory: its code imports {name}, a folder "
+                                     f"without __init__.py outside the factory's folder "
+                                     f"({clip(path, 200)}) with too many files to key; give "
+                                     f"the module another name, or the folder an "
+                                     f"__init__.py") from None
+            else:
+                files.append((path.name, path))
+        return files
 
     def _other_folders(self, module) -> bool:
         """Whether ``module`` was loaded from another user folder's code (not from this
@@ -244,11 +284,11 @@ def warn_unkeyed_reads(spec: str, module, keyed=()):
         warn_unkeyed(spec, user.reads, keyed)
 
 
-def _imported_names(folder: Path) -> set:
-    """The top-level names every ``import`` statement of the ``.py`` files in ``folder``
-    and below it imports (relative imports aside)."""
+def _imported_names(paths) -> set:
+    """The top-level names every ``import`` statement of the ``.py`` files ``paths``
+    imports (relative imports aside)."""
     names = set()
-    for _, path in _source_files(folder, "controller.factory"):
+    for path in paths:
         try:
             tree = ast.parse(path.read_bytes())
         except (SyntaxError, ValueError, OSError):

@@ -128,6 +128,19 @@ def test_code_imported_from_outside_the_folder_is_keyed(tmp_path):
     assert second[0] != first[0]
     (shared / "tuning_in_call.py").write_text("GAIN = 2.0\n")
     assert key()[0] == first[0]
+    # what those modules import in turn, and a namespace package (a folder without
+    # __init__.py): before, neither was keyed
+    (shared / "tuning_at_top.py").write_text("import table_of_gains\nGAIN = 1.0\n")
+    (shared / "table_of_gains.py").write_text("ROWS = [1]\n")
+    (shared / "gains_pkg").mkdir()
+    (shared / "gains_pkg" / "values.py").write_text("K = 1\n")
+    (shared / "tuning_in_call.py").write_text("from gains_pkg import values\nGAIN = 2.0\n")
+    third = key()
+    assert third[1] == "['gains_pkg', 'table_of_gains', 'tuning_at_top', 'tuning_in_call']"
+    for edited, text in (("table_of_gains.py", "ROWS = [2]\n"), ("gains_pkg/values.py", "K = 2\n")):
+        before = key()[0]
+        (shared / edited).write_text(text)
+        assert key()[0] != before, edited
 
 
 def test_the_fingerprint_covers_the_helper_and_nothing_outside_the_folder(tmp_path):
@@ -346,3 +359,22 @@ def test_a_data_file_the_factory_reads_unkeyed_is_warned_of_once(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         make_controller(config)                       # said once
+
+
+def test_a_linked_folder_of_the_factorys_code_is_keyed(tmp_path):
+    """A helper package linked into the factory's folder is imported through the link;
+    before, the walk did not follow it, so an edit to it was answered from the caches.
+    A link back up the tree is walked once."""
+    from reachwatch.diagrams.user_code import source_digest
+    shared = tmp_path / "shared" / "helpers"
+    shared.mkdir(parents=True)
+    (shared / "__init__.py").write_text("")
+    (shared / "gains.py").write_text("K = 1\n")
+    folder = tmp_path / "ctrl"
+    folder.mkdir()
+    (folder / "steer.py").write_text("from helpers import gains\n")
+    (folder / "helpers").symlink_to(shared)
+    (shared / "loop").symlink_to(tmp_path / "shared")          # a cycle through the link
+    before = source_digest(folder)
+    (shared / "gains.py").write_text("K = 2\n")
+    assert source_digest(folder) != before
