@@ -126,9 +126,9 @@ def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
     y, q = _labelled(data["calibrate"], raw["calibrate"], period=period, watch=watch,
                      within=spec.within)
     try:
-        platt = PlattCalibration.fit(q, y == 1)
+        platt, fitted = PlattCalibration.fit(q, y == 1), True
     except ValueError:                      # one class among the calibration ticks
-        platt = PlattCalibration()
+        platt, fitted = PlattCalibration(), False
     probabilities = {k: [[platt(r) for r in group] for group in v] for k, v in raw.items()}
     risks = probabilities if calibrated else raw
     rule, flags, chosen, calibration = choose_flag_rule(
@@ -142,7 +142,7 @@ def _judge_monitor(spec, data, raw, *, period, lead, calibrated=True):
                 if c["miss"]["of"] or not chosen.given_failures], 0.1),
            "calibration_needless": sum(n["count"] for n in needless) / max(
                1, sum(n["of"] for n in needless)),
-           "platt": [platt.a, platt.b], "flag_rule": rule}
+           "platt": [platt.a, platt.b], "platt_fitted": fitted, "flag_rule": rule}
     for k in ("held_out", "also_held_out"):
         per_env, pooled = judge_environments(
             data[k], risks[k], threshold=chosen.threshold, period=period, lead=lead,

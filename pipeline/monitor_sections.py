@@ -120,7 +120,9 @@ def run_ranking(row: dict, group: str, miss: float = 0.1) -> dict:
     risk (NaN without both); ``needless``, the share of runs that did not fail flagged
     at the highest threshold that still warns all but ``miss`` of the warnable failing
     runs, that threshold set on these runs themselves: the fewest needless flags any
-    threshold gives at that miss rate (None without runs of both kinds)."""
+    threshold gives at that miss rate (None without runs of both kinds, or when more
+    than ``miss`` of them score ``-inf``: a k-of-n rule that cannot flag them before
+    the lead, so no threshold warns them)."""
     warning, safe = pooled_scores(row["scores"][group])
     warning = np.sort(warning)
     if not len(warning) or not len(safe):
@@ -128,7 +130,8 @@ def run_ranking(row: dict, group: str, miss: float = 0.1) -> dict:
     tau = warning[int(np.floor(miss * len(warning) + 1e-9))]   # misses: warning < tau
     labels = np.r_[np.ones(len(warning), bool), np.zeros(len(safe), bool)]
     return {"auroc": float(auroc(labels, np.r_[warning, safe])),
-            "needless": rate(int(np.sum(safe >= tau)), len(safe))}
+            "needless": rate(int(np.sum(safe >= tau)), len(safe)) if np.isfinite(tau)
+            else None}
 
 
 def same_needless(result: dict, group: str = "held_out") -> list:
@@ -174,6 +177,39 @@ def rendered_text(rows: dict) -> str:
             "along its recording never reached the threshold is the loop alone's; rendered: "
             + ", ".join(counts) + " (the rest never reached it; the first such run of each "
             "environment was rendered and came out as the loop alone's).")
+
+
+def per_environment_text(kept: dict) -> str:
+    """The kept monitor's estimate for one new environment, as a sentence: the
+    calibration environments' conformal quantile at 90 % of their miss rates, and how
+    many of them had no warnable failing run (counted as missing none)."""
+    calibrate = kept.get("scores", {}).get("calibrate")
+    without = (sum(not len(e["warning"]) for e in calibrate)
+               if calibrate is not None and not kept.get("given_failures") else 0)
+    if calibrate is not None and without == len(calibrate):
+        return ("For one new environment: no calibration environment had a warnable "
+                "failing run, so their miss rates say nothing of one where runs fail.")
+    note = (f" {without} of the {len(calibrate)} had no warnable failing run and count as "
+            f"missing none." if without else "")
+    return (f"For one new environment, an estimate, not a guarantee: the calibration "
+            f"environments' miss rates at this threshold put nine in ten environments at "
+            f"or below {100 * kept['per_environment_bound_90']:.1f} % (their conformal "
+            f"quantile at 90 %; exchangeable environments).{note} The threshold was "
+            f"fitted on those same environments, so it is optimistic.")
+
+
+def uncalibrated_text(result: dict) -> str:
+    """A sentence naming the variants whose Platt scaling could not be fitted (their
+    calibration ticks all of one class), or empty."""
+    names = [name for name, row in result["variants"].items()
+             if not row.get("platt_fitted", True)]
+    if not names:
+        return ""
+    return (f"Not calibrated: {', '.join(names)}. The calibration environments' ticks "
+            f"were all of one class (no run failed within {result['within_s']:g} s of "
+            f"one, or every one did), so Platt scaling could not be fitted: "
+            f"{'its' if len(names) == 1 else 'their'} risks, ECE and Brier score are the "
+            f"raw ones.")
 
 
 def kept_text(result: dict) -> str:
@@ -227,12 +263,9 @@ def study_blocks(result: dict) -> list:
                                f"fallback (the ceiling; the oracle warns them all). Miss rates "
                                f"below are over those warnable runs."))
     blocks += [("text", kept["statement"] + kept_text(result)),
-               ("text", f"For one new environment, an estimate, not a guarantee: the "
-                        f"calibration environments' miss rates at this threshold put nine "
-                        f"in ten environments at or below "
-                        f"{100 * kept['per_environment_bound_90']:.1f} % (their conformal "
-                        f"quantile at 90 %; exchangeable environments). The threshold was "
-                        f"fitted on those same environments, so it is optimistic.")]
+               ("text", per_environment_text(kept))]
+    if uncalibrated_text(result):
+        blocks.append(("text", uncalibrated_text(result)))
     observed = bounded_miss_rates(kept["held_out"]["environments"])
     if observed is not None:
         blocks.append(("text", observed_bound_text(observed, kept, result["alpha"])))

@@ -58,7 +58,17 @@ def _member_mean(per_member):
 
 def _judged(name, spec, data, raw, **kwargs):
     """`_judge_monitor` of the row ``name``; where no threshold reaches alpha, the error
-    says whose."""
+    says whose. A risk that is not a finite number refuses the row in one line, naming
+    where: it would flag or not depending on the figure computed (the online flag, the
+    calibration fit, the AUROC and the ECE each read it differently)."""
+    for split, groups in raw.items():
+        for env, runs in zip(data[split], groups):
+            bad = sum(int(np.sum(~np.isfinite(np.asarray(r, float)))) for r in runs)
+            if bad:
+                raise ValueError(f"monitor: {name}: {bad} of the risks along the runs of "
+                                 f"{env['name']} ({split}) are not finite numbers (a network "
+                                 f"that diverged, or a score that is NaN): no figure of it "
+                                 f"would mean what it says")
     try:
         return _judge_monitor(spec, data, raw, **kwargs)
     except NoConformalThreshold as e:

@@ -62,6 +62,11 @@ def test_run_ranking_pools_environments_and_sets_the_least_needless_threshold():
     assert run_ranking(row, "held_out", miss=1 / 3)["needless"]["count"] == 1
     cal = run_ranking(row, "calibrate")                 # no failing run: nothing to rank
     assert np.isnan(cal["auroc"]) and cal["needless"] is None
+    # two of three warnable runs cannot be flagged before the lead (-inf under a k-of-n
+    # rule): no threshold misses only 10 %; before, -inf flagged every safe run
+    row["scores"]["held_out"][0]["warning"] = [0.9, -np.inf]
+    row["scores"]["held_out"][1]["warning"] = [-np.inf]
+    assert run_ranking(row, "held_out")["needless"] is None
 
 
 def test_a_variant_meets_the_detector_at_its_own_needless_flags():
@@ -612,3 +617,47 @@ def test_calibration_runs_that_cannot_bound_the_miss_rate_are_refused_before_tra
         check_calibration_bounds(spec, early, period=0.05, lead=1.0)
     later = [{"ticks": np.array([40, 40]), "failure_time": np.array([1.98, np.nan])}]
     check_calibration_bounds(spec, later, period=0.05, lead=1.0)
+
+
+def test_a_risk_that_is_not_a_number_refuses_the_row_naming_where():
+    """Before: a NaN risk flagged in one figure and not in another (the needless-flag
+    tables read it as never flagged, the AUROC dropped the environment, Platt scaling
+    silently kept its start point)."""
+    from reachwatch.pipeline.monitor_study import _judged
+    data = {"calibrate": [{"name": "A"}], "held_out": [{"name": "B"}]}
+    raw = {"calibrate": [[np.array([0.1, 0.2])]],
+           "held_out": [[np.array([0.3]), np.array([np.nan, 0.5, np.inf])]]}
+    with pytest.raises(ValueError, match=r"monitor: single frame: 2 of the risks along the "
+                                         r"runs of B \(held_out\) are not finite"):
+        _judged("single frame", None, data, raw, period=0.05, lead=1.0)
+
+
+def test_the_estimate_for_one_environment_says_how_many_had_nothing_to_miss():
+    from reachwatch.pipeline.monitor_sections import per_environment_text
+    kept = {"per_environment_bound_90": 0.0, "given_failures": False,
+            "scores": {"calibrate": [{"warning": [0.5, 0.1]}, {"warning": []},
+                                     {"warning": []}]}}
+    text = per_environment_text(kept)
+    assert "at or below 0.0 %" in text and "2 of the 3 had no warnable failing run" in text
+    for e in kept["scores"]["calibrate"]:
+        e["warning"] = []
+    assert per_environment_text(kept) == (
+        "For one new environment: no calibration environment had a warnable failing run, "
+        "so their miss rates say nothing of one where runs fail.")
+    # given failures, environments without any are left out of the rates: nothing to say
+    kept["given_failures"] = True
+    kept["scores"]["calibrate"][0]["warning"] = [0.4]
+    assert "had no warnable" not in per_environment_text(kept)
+
+
+def test_a_variant_whose_calibration_could_not_be_fitted_is_named():
+    """Before: the identity was used without a word, and its ECE read as a calibrated
+    risk's."""
+    from reachwatch.pipeline.monitor_sections import uncalibrated_text
+    result = {"within_s": 4.0, "variants": {"single frame": {"platt_fitted": False},
+                                            "GRU": {"platt_fitted": True}, "old": {}}}
+    assert uncalibrated_text(result).startswith(
+        "Not calibrated: single frame. The calibration environments' ticks were all of "
+        "one class (no run failed within 4 s of one")
+    result["variants"]["single frame"]["platt_fitted"] = True
+    assert uncalibrated_text(result) == ""
