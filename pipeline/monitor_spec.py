@@ -53,8 +53,8 @@ class MonitorVariant:
     ``temporal``: how it combines them (`reachwatch.systems.TEMPORAL_MODELS`): ``stack``
     (the frames' features side by side) or ``gru`` (a recurrent network over them).
 
-    ``signals``: it also reads the loop's online signals (the controller's estimate
-    and steering)."""
+    ``signals``: it also reads the loop's online signals (the controller's estimate,
+    where it has one, and its steering; without an estimate, the steering alone)."""
     name: str = "single frame"
     frames: int = bounded_as(1, HistoryMonitorConfig, "frames")
     stride: int = bounded_as(1, HistoryMonitorConfig, "stride")
