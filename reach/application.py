@@ -22,6 +22,7 @@ import functools
 import importlib
 import inspect
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -74,6 +75,12 @@ class Application(abc.ABC):
     #: Set by `load_application`: the string the application was loaded from ("" for
     #: the default). Workers load it again from this.
     spec = ""
+    #: Files the loop reads that are not Python (a model of the plant, a mesh, a table
+    #: of parameters): their contents are part of every key of this application, as its
+    #: ``.py`` files are, so that a result is never answered from the caches after an
+    #: edit to one (`data_digest`). Paths absolute, or relative to the folder of the
+    #: module that defines the application.
+    data_files = ()
 
     # --- the run file's environments -------------------------------------------------
     #: The dataclass a run file's environments are loaded as (``train``, ``test``,
@@ -728,6 +735,22 @@ class Application(abc.ABC):
         return drawn
 
     # --- identity -------------------------------------------------------------------------
+    def data_digest(self) -> dict:
+        """``{path as given in data_files: SHA-256 of its content}``; a one-line
+        ValueError naming a file that cannot be read."""
+        from reachwatch.diagrams import file_hash
+        module = sys.modules.get(type(self).__module__)
+        folder = Path(getattr(module, "__file__", None) or ".").resolve().parent
+        digests = {}
+        for given in self.data_files:
+            path = folder / str(given)
+            try:
+                digests[str(given)] = file_hash(path)
+            except OSError as e:
+                raise ValueError(f"application '{self._loaded_as() or self.name}': data_files: "
+                                 f"cannot read {clip(path, 200)} ({e.strerror})") from None
+        return digests
+
     def key(self):
         """What the application adds to the keys of cached results: None for the
         default (so the taxi's keys are those of before applications), else its spec
@@ -757,8 +780,10 @@ class ApplicationRef:
 
     def __fingerprint__(self):
         from reachwatch.diagrams.user_code import factory_code_hash
-        return {"spec": self.spec,
-                "code": factory_code_hash(self.spec, where="application") if self.spec else ""}
+        if not self.spec:
+            return {"spec": "", "code": ""}
+        return {"spec": self.spec, "code": factory_code_hash(self.spec, where="application"),
+                "data": load_application(self.spec).data_digest()}
 
     def load(self) -> Application:
         return load_application(self.spec)
@@ -852,6 +877,7 @@ def load_application(spec: str = "") -> Application:
                          f"not a reachwatch.reach.application.Application")
     _check_axes(application, spec)
     application.spec = spec
+    application.data_digest()                   # a data file it names is there, or one line
     _LOADED[spec, code] = application
     return application
 

@@ -60,6 +60,14 @@ class EstimatesPast(Rebuilt):
     estimated_state = (0, 3)
 
 
+class WithData(Rebuilt):
+    data_files = ("plant.sdf",)
+
+
+class MissingData(Rebuilt):
+    data_files = ("nowhere.sdf",)
+
+
 def not_one():
     return 42
 """
@@ -183,6 +191,8 @@ def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tm
     (":TwoAxes", r"heading_axis names axis 2, but its state has 2 \(px, theta\)$"),
     (":OpenPast", r"open_axes names axis 3, but its state has 3 \(px, py, theta\)$"),
     (":EstimatesPast", r"estimated_state names axis 3, but its state has 3 \(px, py, theta\)$"),
+    (":MissingData", r"application '.*loop.py:MissingData': data_files: cannot read "
+                     r".*nowhere.sdf \(No such file or directory\)$"),
     (":NoAxes", r"axes must name each axis of its state \(a tuple of names: \('x', 'y', "
                 r"'heading'\)\), got \(\)$"),
 ])
@@ -415,3 +425,19 @@ def test_the_guard_showcase_builds_the_loop_as_the_cached_missions_do(monkeypatc
     for a, b in zip(showcase, cached):
         assert (a.duration, a.seed, a.initial_state) == (b.duration, b.seed, b.initial_state)
         assert (a.duration, a.seed) == (10.0, 0)
+
+
+def test_an_applications_data_files_are_keyed_by_their_content(tmp_path):
+    """A file the loop reads that is not Python (a plant model, a mesh) and that the
+    application names in data_files: before, no key covered an edit to it."""
+    spec = f"{_user_app(tmp_path)}:WithData"
+    sdf = tmp_path / "app" / "plant.sdf"
+    sdf.write_text("<sdf mass='1.0'/>")
+    app = load_application(spec)
+    scenario = load_scenario(data="")
+    grid = app.grid(scenario, (3, 3, 3))
+    key, sweep_key = app.key(), app.sweep_key(scenario, grid)
+    sdf.write_text("<sdf mass='2.0'/>")
+    assert app.key() != key and app.sweep_key(scenario, grid) != sweep_key
+    sdf.write_text("<sdf mass='1.0'/>")
+    assert app.key() == key
