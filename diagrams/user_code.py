@@ -22,7 +22,7 @@ import threading
 from pathlib import Path
 
 from reachwatch.systems.checks import clip, is_file
-from reachwatch.systems.files import check_keyed, file_hash, local_copy, remember_keyed
+from reachwatch.systems.files import check_keyed, local_copy, remember_keyed
 
 from .data_reads import FolderReads, warn_unkeyed
 from .user_errors import factory_failure, is_installed
