@@ -134,7 +134,8 @@ def make_controller(config) -> System:
         if not config.factory:
             raise
         raise call_failure(config.factory, e, module) from e
-    user_code.warn_unkeyed_reads(config.factory, module, keyed=[config.checkpoint])
+    user_code.warn_unkeyed_reads(config.factory, module,
+                                 keyed=[config.checkpoint, *config.data_files])
     return check_controller(system, where)
 
 

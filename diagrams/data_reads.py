@@ -100,5 +100,7 @@ def warn_unkeyed(spec: str, reads: FolderReads, keyed=()):
         warnings.warn(f"controller.factory '{clip(spec, 200)}' read "
                       f"{clip(os.path.relpath(path, reads.prefix), 200)} from its folder: not "
                       f"its code, so no key covers it, and a sweep or run after an edit to it "
-                      f"is answered from the caches; name the controller's data file in "
-                      f"controller.checkpoint, whose content is keyed", UserWarning, stacklevel=4)
+                      f"is answered from the caches; name the controller's data files in "
+                      f"controller.data_files (or its network's weights in "
+                      f"controller.checkpoint), whose content is keyed", UserWarning,
+                      stacklevel=4)

@@ -47,7 +47,9 @@ class ControllerConfig:
     """The controller under test and how it is run. ``factory``: the function that
     builds it (``"package.module:function"`` or ``"path/to/file.py:function"``, given
     this config; empty = TaxiNet + P-controller, see `reachwatch.diagrams.controller`);
-    ``parameters``: numbers for that function. ``checkpoint`` empty = the shipped
+    ``parameters``: numbers for that function; ``data_files``: files it reads (a table
+    of gains, a second network), keyed by their content as ``checkpoint`` is, which the
+    factory finds in ``config.data_files``. ``checkpoint`` empty = the shipped
     reference TaxiNet; gains in deg per m and deg per deg (TaxiNet's P-controller and
     the privileged oracle); ``period`` s (the steering is held that long); ``speed`` m/s.
     A factory is code: the commands that build the controller (simulate, sweep, brt,
@@ -56,6 +58,7 @@ class ControllerConfig:
     check its form alone and run none of it."""
     factory: str = ""
     parameters: Dict[str, float] = dc.field(default_factory=dict)
+    data_files: List[str] = dc.field(default_factory=list)
     checkpoint: str = ""
     px_gain: float = bounded(-0.74, -1000.0, 1000.0, unit="deg/m")
     theta_gain: float = bounded(-0.44, -1000.0, 1000.0, unit="deg/deg")
@@ -80,6 +83,12 @@ class ControllerConfig:
                              f"and none is given (the default TaxiNet takes none): set "
                              f"controller.factory, or remove "
                              f"{short(', '.join(map(str, self.parameters)))}")
+        if self.data_files and not self.factory:
+            raise ValueError("controller.data_files: only a controller.factory reads them, "
+                             "and none is given")
+        for i, path in enumerate(self.data_files):
+            if not is_file(path):
+                raise ValueError(f"controller.data_files[{i}]: file not found: {clip(path, 200)}")
         for name, value in self.parameters.items():
             if not math.isfinite(value):
                 raise ValueError(f"controller.parameters.{short(name)} must be finite, got {value}")

@@ -354,7 +354,7 @@ def test_a_data_file_the_factory_reads_unkeyed_is_warned_of_once(tmp_path):
     assert said[0].startswith(f"controller.factory '{factory}' read gain.txt from its folder: "
                               f"not its code, so no key covers it")
     assert said[1].startswith(f"controller.factory '{factory}' read table.csv from its folder")
-    assert all("name the controller's data file in controller.checkpoint" in m for m in said)
+    assert all("name the controller's data files in controller.data_files" in m for m in said)
     import warnings
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -378,3 +378,29 @@ def test_a_linked_folder_of_the_factorys_code_is_keyed(tmp_path):
     before = source_digest(folder)
     (shared / "gains.py").write_text("K = 2\n")
     assert source_digest(folder) != before
+
+
+def test_controller_data_files_are_keyed_by_content_and_not_warned_of(tmp_path):
+    """A controller reading a second data file (a table of gains beside its weights):
+    before, only controller.checkpoint was keyed, so one of the two could not be."""
+    import warnings
+    from reachwatch.reach.fingerprint import canonical
+    factory = _controller(tmp_path, "0.5")
+    folder = tmp_path / "mine"
+    (folder / "gains.yaml").write_text("k: 1\n")
+    (folder / "follower.py").write_text(FACTORY.replace(
+        "def make(config):\n",
+        "def make(config):\n"
+        "    for path in config.data_files:\n"
+        "        open(path).close()\n"))
+    config = ControllerConfig(factory=factory, data_files=[str(folder / "gains.yaml")])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                  # keyed: no warning
+        make_controller(config)
+    key = canonical(config)
+    (folder / "gains.yaml").write_text("k: 2\n")
+    assert canonical(config) != key
+    with pytest.raises(ValueError, match=r"controller.data_files\[0\]: file not found"):
+        ControllerConfig(factory=factory, data_files=[str(folder / "no.yaml")]).validate()
+    with pytest.raises(ValueError, match="controller.data_files: only a controller.factory"):
+        ControllerConfig(data_files=[str(folder / "gains.yaml")]).validate()
