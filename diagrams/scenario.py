@@ -66,11 +66,16 @@ class ControllerConfig:
     speed: float = bounded(5.0, 0.0, MAX_SPEED, unit="m/s")
 
     def __fingerprint__(self):
-        """What a sweep of this controller depends on: every field, plus the source
-        file of a user factory (an edited controller never reuses a stale table)."""
+        """What a sweep of this controller depends on: every field, plus the code of a
+        user factory (an edited controller never reuses a stale table). A factory file
+        is keyed by its name and function, its folder's code by content: a moved or
+        cloned project reuses its caches, as a moved checkpoint does."""
         from .user_code import factory_code_hash
-        return {**{f.name: getattr(self, f.name) for f in dc.fields(self)},
-                "factory_code": factory_code_hash(self.factory)}
+        fields = {f.name: getattr(self, f.name) for f in dc.fields(self)}
+        target, _, function = self.factory.rpartition(":")
+        if target.endswith(".py"):
+            fields["factory"] = f"{os.path.basename(target)}:{function}"
+        return {**fields, "factory_code": factory_code_hash(self.factory)}
 
     def validate(self):
         if self.factory:        # its form only: the factory is imported when it is built

@@ -404,3 +404,19 @@ def test_controller_data_files_are_keyed_by_content_and_not_warned_of(tmp_path):
         ControllerConfig(factory=factory, data_files=[str(folder / "no.yaml")]).validate()
     with pytest.raises(ValueError, match="controller.data_files: only a controller.factory"):
         ControllerConfig(data_files=[str(folder / "gains.yaml")]).validate()
+
+
+def test_a_moved_controller_folder_keeps_its_key_and_another_file_in_it_does_not(tmp_path):
+    """The key holds the factory file's name and its folder's code by content, not its
+    path: before, the taxi's resolved (absolute) path was in every sweep key, so a moved
+    or cloned project swept again."""
+    import shutil
+    from reachwatch.reach.fingerprint import canonical
+    factory = _controller(tmp_path / "here", "0.5")
+    moved = tmp_path / "there" / "mine"
+    shutil.copytree(tmp_path / "here" / "mine", moved)
+    (moved / "other.py").write_text("from follower import make\n")
+    (tmp_path / "here" / "mine" / "other.py").write_text("from follower import make\n")
+    key = canonical(ControllerConfig(factory=factory))
+    assert canonical(ControllerConfig(factory=f"{moved / 'follower.py'}:make")) == key
+    assert canonical(ControllerConfig(factory=f"{moved / 'other.py'}:make")) != key
