@@ -126,6 +126,20 @@ def check_controls(grid: Grid, dynamics, table: np.ndarray, *, where: str = ""):
                              f"there")
 
 
+def check_plant(grid: Grid, dynamics, bad, what: str, *, where: str = ""):
+    """A ValueError, naming how many nodes and the first one (and ``where``), where
+    ``bad`` (a boolean tensor or array of ``grid.shape``) holds: the plant's ``what``
+    is NaN or infinite from there. Left alone, a NaN value reads as safe (``V <= 0``
+    is false) and a NaN foot indexes the grid at random."""
+    bad = np.asarray(bad.cpu() if isinstance(bad, torch.Tensor) else bad, bool).reshape(-1)
+    if np.any(bad):
+        first = int(np.argmax(bad))
+        state = ", ".join(f"{n}={v:.4g}" for n, v in zip(grid.names, grid.states([first])[0]))
+        raise ValueError(f"{where + ': ' if where else ''}{type(dynamics).__name__}.{what} is "
+                         f"NaN or infinite from {int(bad.sum())} of {grid.size} grid states, "
+                         f"the first [{state}]: look at the plant's dynamics there")
+
+
 def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
               accuracy: str = "semi_lagrangian", period: float = 0.05,
               periods_per_step: int = 4, cfl: float = 0.75, exit_fails=(),
@@ -184,6 +198,7 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
     u = as_t(table.reshape(grid.shape + (-1,)))
     controls = [u] + [as_t(c) for c in corners]
     target = dynamics.target(x)
+    check_plant(grid, dynamics, ~torch.isfinite(target), "target", where=where)
     values = target.clone()
     scheme, order = ACCURACIES[accuracy]
     if scheme is None:
@@ -199,6 +214,9 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
             for control in controls:       # the nominal table, then any bounds' corners
                 foot, path_target = _sampled_flow(grid, dynamics, x, control, target, periods,
                                                   period, tail_s, exit_fails)
+                check_plant(grid, dynamics, ~torch.isfinite(foot).all(-1)
+                            | ~torch.isfinite(path_target),
+                            "vector_field (or target along the flow)", where=where)
                 maps[periods, tail_s].append((path_target, GridInterpolator(grid, foot)))
         steps = len(schedule)
         for k in (progress(range(steps)) if progress else range(steps)):
@@ -213,6 +231,7 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
                     if corners else 0.0}
     else:
         field = dynamics.vector_field(x, u).movedim(-1, 0)                # (n, *shape)
+        check_plant(grid, dynamics, ~torch.isfinite(field).all(0), "vector_field", where=where)
         spacing = grid.spacing
         rate_bound = sum(field[k].abs().max().item() / spacing[k] for k in range(grid.ndim))
         dt = cfl / max(rate_bound, 1e-12)

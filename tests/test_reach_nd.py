@@ -2,6 +2,7 @@
 (swept as a Drake diagram) and a 4-D unicycle with speed as a state."""
 
 import functools
+import re
 
 import numpy as np
 import pytest
@@ -222,3 +223,37 @@ def test_local_range_known_answer():
             local_range(g, table, size=size)
     lo, hi = local_range(g, table, size=5)          # the whole 5-node grid from the middle
     np.testing.assert_array_equal(hi, [1, 1, 1, 1, 1])
+
+
+class NanBeyond(DoubleIntegrator):
+    """The double integrator whose target, or whose flow, is NaN past p = 0.5."""
+
+    def __init__(self, part):
+        self.part = part
+
+    def vector_field(self, x, u):
+        f = super().vector_field(x, u)
+        if self.part == "flow":
+            f = torch.where((x[..., :1] > 0.5), torch.full_like(f, float("nan")), f)
+        return f
+
+    def target(self, x):
+        t = super().target(x)
+        return torch.where(x[..., 0] > 0.5, torch.full_like(t, float("nan")), t) \
+            if self.part == "target" else t
+
+
+@pytest.mark.parametrize("part, what", [("target", "target"),
+                                        ("flow", "vector_field (or target along the flow)")])
+@pytest.mark.parametrize("accuracy", ["semi_lagrangian", "low"])
+def test_a_plant_that_is_nan_somewhere_is_refused_naming_the_state(part, what, accuracy):
+    """Before: a NaN target read as safe (V <= 0 is false), and a NaN foot point indexed
+    the grid at INT64_MIN (an IndexError with a traceback)."""
+    if accuracy == "low" and part == "flow":
+        what = "vector_field"
+    g = Grid(lo=[-1.0, -1.0], hi=[1.0, 1.0], shape=[9, 5], names=("p", "v"))
+    with pytest.raises(ValueError, match=rf"KSFO: NanBeyond.{re.escape(what)} is NaN or "
+                                         rf"infinite from \d+ of 45 grid states, the first "
+                                         rf"\[p=0.\d+, v=-?[\d.]+\]: look at the plant"):
+        solve_brt(g, NanBeyond(part), np.zeros(g.shape), horizon=0.2, accuracy=accuracy,
+                  period=0.05, where="KSFO")
