@@ -192,6 +192,16 @@ def main(argv=None) -> int:
         what = "terminated" if isinstance(e, Terminated) else "interrupted"
         print(f"reachwatch {name}: {what}; {KEPT}", file=sys.stderr)
         return 143 if isinstance(e, Terminated) else 130
+    except SystemExit as e:
+        # sys.exit() in the user's code while it runs (a controller's calc at a tick):
+        # was the process ending at once, unfinished, with its status (0 too) and no word
+        where = user_frame(e)
+        if where is None:
+            raise
+        print(_clip(f"reachwatch {name}: error: the user's code called sys.exit({e.code!r}) "
+                    f"at {where[0]}:{where[1]} (in {where[2]}), so the command stopped "
+                    f"unfinished; {KEPT}"), file=sys.stderr)
+        return 1
     finally:
         if threading.current_thread() is threading.main_thread():
             for s, handler in zip(signals, previous):

@@ -1,6 +1,8 @@
 """Fault cases a probe of the command line found: each is one line, exit 2, and writes
 nothing."""
 
+import sys
+
 import pytest
 
 from reachwatch.pipeline import cli
@@ -135,6 +137,11 @@ def calc(args):
 
 def refuse(args):
     raise ValueError("too dark")
+
+
+def leave(args):
+    import sys
+    sys.exit(0)             # a user's controller ending the process at some tick
 '''
 
 
@@ -172,6 +179,24 @@ def test_an_error_raised_in_the_users_code_names_its_file_and_line(tmp_path, cap
     # ours, whose traceback stays
     monkeypatch.setattr(commands, "render", cli.user_frame)      # given a Namespace
     with pytest.raises(AttributeError, match="'Namespace' object has no attribute '__traceback__'"):
+        cli.main(["render", "--out", str(tmp_path / "out")])
+
+
+def test_sys_exit_in_the_users_code_is_an_error_naming_where_not_a_silent_success(
+        tmp_path, capsys, monkeypatch):
+    """Before: the command ended at once with status 0, unfinished, without a word.
+    reachwatch's own exits (argparse's) are left as they are."""
+    from reachwatch.pipeline import commands
+    path, module = _user_module(tmp_path)
+    monkeypatch.setattr(commands, "render", module.leave)
+    assert cli.main(["render", "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert (f"reachwatch render: error: the user's code called sys.exit(0) at "
+            f"{path.resolve()}:12 (in leave), so the command stopped unfinished; finished "
+            f"work is kept") in err
+    monkeypatch.setattr(commands, "render", sys.exit)     # no frame of the user's
+    with pytest.raises(SystemExit):
         cli.main(["render", "--out", str(tmp_path / "out")])
 
 
