@@ -5,6 +5,9 @@ runs at once, and how it is stopped."""
 
 import concurrent.futures as cf
 import concurrent.futures.process  # noqa: F401  (ProcessPoolExecutor)
+import functools
+import importlib
+import pickle
 import threading
 import time
 from typing import Callable
@@ -110,8 +113,38 @@ def same_loop_code(expected: str, keyed, fn, /, *args, **kwargs):
         raise WorkerLost(f"this worker's reachwatch source (loop code {mine[:12]}) is not the "
                            f"driver's ({expected[:12]}): it was edited after the driver "
                            f"started; start the run again (it resumes from its caches)")
-    with keyed_by_driver(keyed):
-        return fn(*args, **kwargs)
+    try:
+        with keyed_by_driver(keyed):
+            return fn(*args, **kwargs)
+    except Exception as e:
+        portable = portable_error(e)
+        if portable is e:
+            raise
+        raise portable from e       # the worker's traceback text keeps the original's frames
+
+
+def portable_error(error: Exception) -> Exception:
+    """``error`` when the driver can read it back (its class importable by name there,
+    and pickled and unpickled whole); else an instance of its first built-in base
+    class (`ValueError`, `KeyError`, ...) saying ``Type: message``. A user's exception
+    of a helper module the driver never imports, or whose ``__init__`` takes other
+    arguments than it passes on, would fail to unpickle in the driver: the pool then
+    reads as broken (a dead worker), the chunk runs again on a fresh one, and the
+    user's message is lost."""
+    cls = type(error)
+    try:
+        module = importlib.import_module(cls.__module__)
+        same = functools.reduce(getattr, cls.__qualname__.split("."), module) is cls
+        if same and type(pickle.loads(pickle.dumps(error))) is cls:
+            return error
+    except Exception:       # noqa: BLE001 (any failure to read it back is the answer)
+        pass
+    base = next(b for b in cls.__mro__ if b.__module__ == "builtins")
+    try:
+        text = f"{cls.__name__}: {error}" if str(error) else cls.__name__
+    except Exception:       # noqa: BLE001 (a __str__ that fails)
+        text = cls.__name__
+    return base(text)
 
 
 def stop_executor(executor, *, abort: bool = False):

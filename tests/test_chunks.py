@@ -458,3 +458,41 @@ def test_a_store_that_keeps_rows_takes_no_chunk_file_silent_on_its_rows(tmp_path
     FolderStore(tmp_path, rows=True).store(chunk, {"x": np.array([4.0, 5.0])})
     np.testing.assert_array_equal(FolderStore(tmp_path, rows=True).read(chunk)["x"], [4, 5])
     assert FolderStore(tmp_path, rows=True).read(Chunk(index=2, start=8, stop=10)) is None
+
+
+class DarkFrame(ValueError):
+    """A user's exception whose __init__ takes other arguments than it passes on: it
+    pickles, and fails to unpickle in the driver."""
+
+    def __init__(self, tick, why):
+        super().__init__(f"tick {tick}: {why}")
+
+
+def _raises_dark_frame(start, stop):
+    raise DarkFrame(7, "too dark")
+
+
+def test_a_users_exception_the_driver_cannot_unpickle_is_its_message_not_a_dead_worker(
+        tmp_path):
+    """Before: the pool read as broken, the chunk ran 4 times (every respawn spent) and
+    the error said a worker died; the user's message was lost."""
+    from reachwatch.reach.fingerprint import loop_code_digest
+    spawn = multiprocessing.get_context("spawn")
+    pool = RespawningPool(functools.partial(cf.ProcessPoolExecutor, 1, mp_context=spawn),
+                          respawns=2, code=loop_code_digest())
+    try:
+        with pytest.raises(ValueError, match=r"^DarkFrame: tick 7: too dark$") as info:
+            run_chunks(_raises_dark_frame, split(4, 2), FolderStore(tmp_path / "out"),
+                       args=lambda c: (c.start, c.stop), executor=pool, caller="my_job")
+        assert pool.respawns_left == 2                         # no worker was thought dead
+        assert "_raises_dark_frame" in str(info.value.__cause__)   # the worker's frames
+    finally:
+        pool.shutdown()
+
+
+def test_an_error_the_driver_can_read_back_is_kept_and_another_made_portable():
+    from reachwatch.reach.executors import portable_error
+    kept = KeyError("x")
+    assert portable_error(kept) is kept
+    made = portable_error(DarkFrame(7, "too dark"))
+    assert type(made) is ValueError and str(made) == "DarkFrame: tick 7: too dark"
