@@ -7,7 +7,7 @@ import threading
 from distributed.cfexecutor import ClientExecutor
 
 from reachwatch.diagrams.shipping import Packer, run_shipped
-from reachwatch.reach.executors import WorkerLost
+from reachwatch.reach.executors import WorkerLost, run_portably
 from reachwatch.systems.files import keyed_by_driver, keyed_digests
 
 from .executors import describe_identity, process_identity
@@ -30,8 +30,8 @@ def run_on_worker(expected: dict, keyed, shipment, fn, /, *args, **kwargs):
                            f"stop it, or install the same reachwatch, versions and GL driver there")
     with keyed_by_driver(keyed):
         if shipment is None:
-            return fn(*args, **kwargs)
-        return run_shipped(shipment, fn, *args, **kwargs)
+            return run_portably(fn, *args, **kwargs)
+        return run_portably(run_shipped, shipment, fn, *args, **kwargs)
 
 
 class ShippingExecutor(ClientExecutor):

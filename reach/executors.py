@@ -113,14 +113,21 @@ def same_loop_code(expected: str, keyed, fn, /, *args, **kwargs):
         raise WorkerLost(f"this worker's reachwatch source (loop code {mine[:12]}) is not the "
                            f"driver's ({expected[:12]}): it was edited after the driver "
                            f"started; start the run again (it resumes from its caches)")
+    with keyed_by_driver(keyed):
+        return run_portably(fn, *args, **kwargs)
+
+
+def run_portably(fn, /, *args, **kwargs):
+    """``fn(*args, **kwargs)`` in a worker, an exception it raises made one the driver
+    can read back (`portable_error`), the original its cause (a process pool's traceback
+    text keeps the original's frames)."""
     try:
-        with keyed_by_driver(keyed):
-            return fn(*args, **kwargs)
+        return fn(*args, **kwargs)
     except Exception as e:
         portable = portable_error(e)
         if portable is e:
             raise
-        raise portable from e       # the worker's traceback text keeps the original's frames
+        raise portable from e
 
 
 def portable_error(error: Exception) -> Exception:
