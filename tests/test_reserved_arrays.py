@@ -54,3 +54,21 @@ def test_a_damaged_manifest_is_one_line_naming_the_dataset(tmp_path, manifest):
     with pytest.raises(ValueError, match=rf"^{tmp_path} is not a readable reachwatch dataset "
                                          rf"\(its manifest has .*\); delete it to rebuild"):
         read_manifest(tmp_path)
+
+
+def test_a_datasets_small_arrays_are_saved_whole_and_a_full_disk_names_them(tmp_path,
+                                                                             monkeypatch):
+    """Before: np.save's OSError on a full disk named no file ("error: No space left on
+    device"), and left a half-written one."""
+    from reachwatch.training.dataset_files import save_array
+    states = np.arange(12.0).reshape(4, 3)
+    save_array(tmp_path / "states.npy", states)
+    np.testing.assert_array_equal(np.load(tmp_path / "states.npy"), states)
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(OSError) as e:
+        save_array(tmp_path / "labels.npy", np.zeros(4, np.uint8))
+    assert e.value.filename == str(tmp_path / "labels.npy")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["states.npy"]

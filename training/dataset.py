@@ -42,7 +42,7 @@ from reachwatch.systems import DetectorConfig
 from reachwatch.systems.bounds import bounded, bounded_as, check_bounds, seed_field
 
 from .dataset_files import (FILLED, LABELLED, ImageStore, array_hashes, changed_arrays, clear,
-                            finished, open_array, read_manifest, reserved_memmap,
+                            finished, open_array, read_manifest, reserved_memmap, save_array,
                             write_manifest)
 from .dataset_images import ImageSource, ImageTools, estimator, render_chunk
 
@@ -286,12 +286,12 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
         if inline:      # renders here: built once, for the estimate size and the images
             tools = ImageTools.build(application, scenario, ensemble)
         k = tools.estimate_size if tools else estimator(make_controller(scenario.controller))[1]
-        np.save(folder / "states.npy", states)
-        np.save(folder / "values.npy", values)
-        np.save(folder / "labels.npy", labels)
-        np.save(folder / "sources.npy", sources)
+        save_array(folder / "states.npy", states)
+        save_array(folder / "values.npy", values)
+        save_array(folder / "labels.npy", labels)
+        save_array(folder / "sources.npy", sources)
         if spec.labels.reads_along:
-            np.save(folder / "runs.npy", np.asarray(runs, np.int64))
+            save_array(folder / "runs.npy", np.asarray(runs, np.int64))
         arrays = {"images": reserved_memmap(folder / "images.npy", np.uint8,
                                             (n, spec.height, spec.width, 3)),
                   "estimates": reserved_memmap(folder / "estimates.npy", np.float64, (n, k)),

@@ -3,6 +3,7 @@ arrays, checked against the hashes the manifest recorded; and `ImageStore`, whic
 writes each finished chunk of images into them (`reach.chunks` runs the chunks)."""
 
 import errno
+import io
 import json
 import os
 from pathlib import Path
@@ -53,6 +54,14 @@ def read_manifest(folder: Path) -> dict:
         raise ValueError(f"{folder} is not a readable reachwatch dataset (its manifest has "
                          f"{what}); delete it to rebuild the dataset")
     return manifest
+
+
+def save_array(path: Path, array) -> None:
+    """``array`` as the ``.npy`` file ``path``, replaced whole (`atomic_write_bytes`: a
+    full disk is an error naming the file, and leaves no half-written one)."""
+    buffer = io.BytesIO()
+    np.save(buffer, np.asarray(array))
+    atomic_write_bytes(path, buffer.getvalue())
 
 
 def write_manifest(folder, manifest):
