@@ -7,6 +7,7 @@ import numpy as np
 from pydrake.systems.framework import DiagramBuilder
 
 from reachwatch.systems import CameraConfig, Environment
+from reachwatch.systems.checks import warn_once
 from reachwatch.systems.files import atomic_write_bytes
 
 from .world import add_world
@@ -68,6 +69,19 @@ def check_frame_size(frame_shape, scenario) -> None:
                          f"frames, and scenario.camera is {camera.height}x{camera.width}: "
                          f"build the loop's camera from scenario.camera, or set it to the "
                          f"frames' size")
+
+
+def warn_blank_frames(frames, where: str) -> None:
+    """A one-line warning, once a process for ``where``, when frames ``(N, H, W, 3|4)``
+    a loop rendered include some of one colour: a renderer that fails (a GL driver, a
+    render from another thread) gives such frames without an error, and a table,
+    dataset or recording made of them is wrong without a word."""
+    rgb = np.asarray(frames)[..., :3].reshape(len(frames), -1, 3)
+    blank = int(np.sum(np.all(rgb.max(axis=1) == rgb.min(axis=1), axis=1))) if rgb.size else 0
+    if blank:
+        warn_once(f"{where}: {blank} of {len(rgb)} frames the camera rendered are of one "
+                  f"colour: a renderer that fails gives such frames without an error; look "
+                  f"at one with 'reachwatch render'", key=("blank frames", where))
 
 
 def render_at_states(diagram, *, plant: str, image_port: str, states,

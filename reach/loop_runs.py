@@ -187,7 +187,7 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     engages (as `loop_scores`), the detector's ``score`` (`Application.score_port`)
     read at every tick too, with ``engaged`` per run."""
     from reachwatch.diagrams.controller import ESTIMATE_OUTPUT
-    from reachwatch.diagrams.render import check_frame_size
+    from reachwatch.diagrams.render import check_frame_size, warn_blank_frames
     from reachwatch.systems import DetectorConfig, resize_for_detector
     if scored:
         scenario = _never_engaging(scenario)
@@ -216,6 +216,7 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     def frame(root):
         image = read(*camera, root).data
         check_frame_size(image.shape, scenario)     # a monitor's checkpoint records it
+        warn_blank_frames(image[None], f"the recorded runs of {scenario.environment.name}")
         return image
     for i, x in enumerate(states):
         if gone[i]:                                     # already failed: no run

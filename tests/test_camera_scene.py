@@ -191,3 +191,24 @@ def test_a_generated_texture_is_named_after_the_code_that_made_it(monkeypatch):
     monkeypatch.setattr(textures, "GENERATOR", ("edited", textures.GENERATOR[1]))
     again = textures.texture_png("grass", (0.2, 0.5, 0.2), 0.5, seed=3, size=8)
     assert again != first and Path(again).is_file()
+
+
+def test_frames_of_one_colour_are_warned_of_once(caplog, monkeypatch):
+    """A renderer that fails gives blank frames without an error: a table, dataset or
+    recording of them is wrong without a word. A frame with anything in it is not."""
+    import logging
+    import numpy as np
+    import reachwatch.systems.checks as checks
+    from reachwatch.diagrams.render import warn_blank_frames
+    monkeypatch.setattr(checks, "WARNED", set())
+    frames = np.zeros((3, 4, 5, 4), np.uint8)
+    frames[..., 3] = 255                                    # alpha aside
+    frames[1, 0, 0, 1] = 9                                  # one frame with a detail
+    with caplog.at_level(logging.WARNING, logger="reachwatch"):
+        warn_blank_frames(frames, "the dataset of KSFO_21h_clear")
+        warn_blank_frames(frames, "the dataset of KSFO_21h_clear")          # said once
+        warn_blank_frames(frames[1:2], "the dataset of KEWR_21h_clear")      # nothing
+    assert [r.getMessage() for r in caplog.records] == [
+        "the dataset of KSFO_21h_clear: 2 of 3 frames the camera rendered are of one "
+        "colour: a renderer that fails gives such frames without an error; look at one "
+        "with 'reachwatch render'"]

@@ -11,7 +11,7 @@ import numpy as np
 
 from reachwatch.diagrams import ControllerProbe, make_controller, user_code
 from reachwatch.diagrams.controller import estimate_size
-from reachwatch.diagrams.render import check_frame_size
+from reachwatch.diagrams.render import check_frame_size, warn_blank_frames
 from reachwatch.reach.application import ApplicationRef
 from reachwatch.reach.thread_kept import ThreadKept
 from reachwatch.systems import resize_for_detector
@@ -101,6 +101,7 @@ def render_chunk(source: ImageSource, states) -> dict:
     tools = source.tools or _thread_tools(source)
     full = np.stack([tools.renderer.render(x) for x in states])
     check_frame_size(full.shape[1:], source.scenario)
+    warn_blank_frames(full, f"the dataset of {source.scenario.environment.name}")
     ensemble = np.empty((len(full), len(tools.ensemble), 2))
     for j, estimate_member in enumerate(tools.ensemble):
         out = np.asarray(estimate_member(full))
