@@ -218,6 +218,7 @@ class RunSpec:
         if len(set(self.ensemble.seeds)) != len(self.ensemble.seeds):
             raise ValueError(f"ensemble.seeds must list different seeds, got "
                              f"{short(self.ensemble.seeds)}")
+        self.guard.validate({e.name for e in self.training_environments()})
         check_bounds(self.fidelity, "fidelity.")
         period = self.scenario.controller.period
         for where, seconds in (("horizon", self.horizon),
@@ -244,7 +245,6 @@ class RunSpec:
             self.ensemble.seeds = []     # the default: none where the application has none
         if len(self.ensemble.seeds) == 1:
             raise ValueError("ensemble.seeds: an ensemble needs >= 2 seeds (or [] for none)")
-        self.guard.validate({e.name for e in self.training_environments()})
         if self.guard_environments() and not self.default_strategies():
             # the default is fitted to the application and controller when a run
             # starts (`pipeline.run.fit_guard`)
