@@ -32,9 +32,13 @@ def tradeoff_curves(rollouts, scores, fallbacks, points: int, *, alone=None,
     ``settings``, also the same-distance figures). ``alone``: the controller alone's
     outcomes when already computed, reused (they do not depend on the threshold).
     ``settings`` go to every ``rollouts`` call (e.g. the score noise and its seed: the
-    same draw at every threshold)."""
+    same draw at every threshold). The quantiles are of the finite scores: a node whose
+    score is NaN flags at every threshold (`flags_at`), and made every quantile NaN, the
+    curve one row at threshold NaN; with none finite there is no curve."""
     scores = np.asarray(scores, float).ravel()
-    thresholds = np.unique(np.quantile(scores, np.linspace(0.0, 1.0, max(points, 2))))
+    finite = scores[np.isfinite(scores)]
+    thresholds = (np.unique(np.quantile(finite, np.linspace(0.0, 1.0, max(points, 2))))
+                  if finite.size else np.zeros(0))
     curves = {name: [] for name in fallbacks}
     for threshold in thresholds:
         runs = rollouts(fallbacks, threshold=float(threshold), alone=alone, **settings)

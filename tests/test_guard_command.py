@@ -113,3 +113,19 @@ def test_the_generic_trade_off_reads_the_applications_rollouts():
     chosen = fake.flag_budget_threshold(None, None, {"s.score": scores}, 1.0, "stop", 0.5,
                                         starts=np.zeros((5, 1)))
     assert chosen["flagged_ticks"] <= 0.5 and 0.5 < chosen["threshold"] <= 0.75
+
+
+def test_a_nan_score_at_a_node_leaves_the_curves_thresholds_finite():
+    """Before: one NaN made every quantile NaN: one row at threshold NaN, flagging all."""
+    from reachwatch.reach.guard import tradeoff_curves
+    seen = []
+
+    def rollouts(fallbacks, *, threshold, alone, **settings):
+        seen.append(threshold)
+        raise StopIteration          # the thresholds are what is asked here
+    try:
+        tradeoff_curves(rollouts, [0.1, 0.5, float("nan"), 0.9], ["brake"], 3)
+    except StopIteration:
+        pass
+    assert seen == [0.1]             # the first of 0.1, 0.5, 0.9: finite
+    assert tradeoff_curves(rollouts, [float("nan")], ["brake"], 3) == {"brake": []}
