@@ -12,6 +12,8 @@ import fcntl
 import os
 from pathlib import Path
 
+import numpy as np
+
 from reachwatch.reach.application import load_application
 from reachwatch.reach.fingerprint import LIBRARY, modules_source_digest
 from reachwatch.systems.checks import short
@@ -180,19 +182,30 @@ def fit_guard(spec: RunSpec, controller=None, log=log.info) -> None:
     default ``guard.strategies`` lose them (said in one line), and one the run file names
     is refused in one line naming its key. The application's: a steering fallback
     without its hooks (`Application.guard_refusals`); the controller's: a fallback that
-    dead-reckons from its estimate when it has no ``estimate`` output."""
-    from reachwatch.diagrams.controller import has_estimate
+    dead-reckons from its estimate when it has no ``estimate`` output, or one of another
+    size than the application carries (its ``true_estimate``'s)."""
+    from reachwatch.diagrams.controller import estimate_size, has_estimate
     from reachwatch.systems import Fallback
     if not spec.guard_environments():
         return
     strategies = spec.guard.strategies
-    refusals = load_application(spec.application).guard_refusals(spec.scenario, strategies)
-    if controller is not None and not has_estimate(controller):
-        for i, name in enumerate(strategies):
-            if Fallback.parse(name).steering == "dead_reckoning":
-                refusals.setdefault(i, f"dead-reckons from the controller's estimate, and the "
-                                       f"controller '{controller_name(spec.scenario)}' has no "
-                                       f"estimate output")
+    application = load_application(spec.application)
+    refusals = application.guard_refusals(spec.scenario, strategies)
+    carried = None                  # how many numbers the application's dead reckoning carries
+    if application.true_estimate is not None:
+        carried = np.shape(application.true_estimate(np.zeros((1, len(application.axes)))))[-1]
+    for i, name in enumerate(strategies):
+        if controller is None or Fallback.parse(name).steering != "dead_reckoning":
+            continue
+        if not has_estimate(controller):
+            refusals.setdefault(i, f"dead-reckons from the controller's estimate, and the "
+                                   f"controller '{controller_name(spec.scenario)}' has no "
+                                   f"estimate output")
+        elif carried is not None and estimate_size(controller) != carried:
+            refusals.setdefault(i, f"dead-reckons from an estimate of {carried} numbers (the "
+                                   f"application's true_estimate), and the controller "
+                                   f"'{controller_name(spec.scenario)}' estimates "
+                                   f"{estimate_size(controller)}")
     if not refusals:
         return
     if spec.default_strategies():
