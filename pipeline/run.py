@@ -190,6 +190,7 @@ def fit_guard(spec: RunSpec, controller=None, log=log.info) -> None:
         return
     strategies = spec.guard.strategies
     application = load_application(spec.application)
+    application.check_guard_speed(application.resolved(spec.scenario))
     refusals = application.guard_refusals(spec.scenario, strategies)
     carried = None                  # how many numbers the application's dead reckoning carries
     if application.true_estimate is not None:

@@ -542,7 +542,8 @@ class Application(abc.ABC):
     def check_guard(self, scenario, strategies, *, skipped: bool = True):
         """Before anything is swept: a ValueError in one line naming the run-file key when
         the guard stage would ask the application for what it does not have
-        (`guard_refusals`). When it cannot roll fallbacks out at all
+        (`guard_refusals`), or when its `dynamics` roll out at another speed than
+        ``scenario.controller.speed``, the real loop's. When it cannot roll fallbacks out at all
         (`rolls_out_fallbacks`), nothing if the stage is then ``skipped``, else the
         reason."""
         from .guarded_rollouts import check_takes_speed
@@ -552,6 +553,22 @@ class Application(abc.ABC):
             return
         for i, why in self.guard_refusals(scenario, strategies).items():
             raise ValueError(f"guard.strategies[{i}]: '{strategies[i]}' {why}; leave it out")
+        self.check_guard_speed(scenario)
+
+    def check_guard_speed(self, scenario):
+        """A ValueError in one line when the `dynamics` the guard's tables roll out
+        (``dynamics(scenario).speed``) go at another speed than the real loop
+        (``scenario.controller.speed``): the table's and the real loop's rows would
+        disagree without a word."""
+        if not self.rolls_out_fallbacks(scenario):
+            return
+        nominal = getattr(self.dynamics(scenario), "speed", None)
+        if nominal is not None and not np.isclose(nominal, scenario.controller.speed):
+            raise ValueError(f"the application '{self.spec or self.name}': its "
+                             f"dynamics(scenario).speed is {nominal:g}, and "
+                             f"scenario.controller.speed {scenario.controller.speed:g}: the "
+                             f"guard's tables would roll out at one speed and its real loop "
+                             f"at the other; build the dynamics from scenario.controller.speed")
 
     def _table_rollouts(self, scenario, grid, tables, horizon):
         """`fallback_rollouts` of these tables: the ``rollouts`` of `reach.guard`."""

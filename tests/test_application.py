@@ -441,3 +441,19 @@ def test_an_applications_data_files_are_keyed_by_their_content(tmp_path):
     assert app.key() != key and app.sweep_key(scenario, grid) != sweep_key
     sdf.write_text("<sdf mass='1.0'/>")
     assert app.key() == key
+
+
+def test_dynamics_at_another_speed_than_the_controllers_are_refused_by_the_guard_tables(
+        tmp_path):
+    """Before: the guard's tables rolled out at the dynamics' speed, its real loop at
+    scenario.controller.speed, and their rows disagreed without a word."""
+    from reachwatch.taxi.dynamics import TaxiDynamics
+
+    class Slower(TaxiApplication):
+        def dynamics(self, scenario):
+            return TaxiDynamics(half_width=scenario.environment.half_width, speed=3.0)
+    scenario = load_scenario(data="controller: {speed: 5.0}\n")
+    with pytest.raises(ValueError, match=r"its dynamics\(scenario\).speed is 3, and "
+                                         r"scenario.controller.speed 5: the guard's tables"):
+        Slower().check_guard(scenario, ["brake"])
+    TaxiApplication().check_guard(scenario, ["brake"])

@@ -136,7 +136,7 @@ def test_the_guard_is_checked_before_anything_is_swept():
     """`Application.check_guard`: what the guard stage would ask of an application that
     lacks it is refused in one line naming the run-file key; the taxi has it all."""
     from reachwatch.reach.application import load_application
-    scenario = load_scenario(data="")
+    scenario = load_scenario(data="controller: {speed: 2.0}\n")    # the toy's dynamics' speed
     toy = Toy(Unicycle())
     toy.check_guard(scenario, ["slow_down", "brake"])
     for strategies, key, hooks in ((["slow_down+oracle"], r"guard.strategies\[0\]",
