@@ -20,6 +20,7 @@ import copy
 import dataclasses as dc
 import functools
 import importlib
+import importlib.util
 import inspect
 import sys
 from pathlib import Path
@@ -79,7 +80,7 @@ class Application(abc.ABC):
     #: of parameters): their contents are part of every key of this application, as its
     #: ``.py`` files are, so that a result is never answered from the caches after an
     #: edit to one (`data_digest`). Paths absolute, or relative to the folder of the
-    #: module that defines the application.
+    #: file the application is loaded from (the run file's ``application``).
     data_files = ()
 
     # --- the run file's environments -------------------------------------------------
@@ -752,12 +753,27 @@ class Application(abc.ABC):
         return drawn
 
     # --- identity -------------------------------------------------------------------------
+    def _data_folder(self) -> Path:
+        """The folder `data_files` are relative to: that of the file the application was
+        loaded from (its spec's ``path/to/file.py``, or its ``package.module``'s file);
+        for one not loaded by name, that of its class's module, else the working
+        directory."""
+        target = self.spec.rpartition(":")[0]
+        origin = None
+        if target.endswith(".py"):
+            origin = target
+        elif target:
+            found = importlib.util.find_spec(target)
+            origin = getattr(found, "origin", None)
+        if origin is None:
+            origin = getattr(sys.modules.get(type(self).__module__), "__file__", None)
+        return Path(origin).resolve().parent if origin else Path.cwd()
+
     def data_digest(self) -> dict:
-        """``{path as given in data_files: SHA-256 of its content}``; a one-line
-        ValueError naming a file that cannot be read."""
+        """``{path as given in data_files: digest of its content}`` (`file_hash`); a
+        one-line ValueError naming a file that cannot be read."""
         from reachwatch.diagrams import file_hash
-        module = sys.modules.get(type(self).__module__)
-        folder = Path(getattr(module, "__file__", None) or ".").resolve().parent
+        folder = self._data_folder()
         digests = {}
         for given in self.data_files:
             path = folder / str(given)

@@ -457,3 +457,20 @@ def test_dynamics_at_another_speed_than_the_controllers_are_refused_by_the_guard
                                          r"scenario.controller.speed 5: the guard's tables"):
         Slower().check_guard(scenario, ["brake"])
     TaxiApplication().check_guard(scenario, ["brake"])
+
+
+def test_data_files_are_found_beside_the_file_the_application_is_loaded_from(tmp_path):
+    """An application class in a helper module of its folder: the helper is out of
+    sys.modules once loaded, and its data files were looked for in the wrong folder."""
+    folder = tmp_path / "plant_app"
+    folder.mkdir()
+    (folder / "plant.py").write_text(
+        "from reachwatch.taxi.application import TaxiApplication\n\n\n"
+        "class WithModel(TaxiApplication):\n    data_files = ('model.sdf',)\n")
+    (folder / "app.py").write_text("from plant import WithModel\n\n\n"
+                                   "def make():\n    return WithModel()\n")
+    (folder / "model.sdf").write_text("<sdf/>")
+    app = load_application(f"{folder / 'app.py'}:make")
+    key = app.key()
+    (folder / "model.sdf").write_text("<sdf mass='2'/>")
+    assert app.key() != key
