@@ -127,7 +127,8 @@ def run_portably(fn, /, *args, **kwargs):
         portable = portable_error(e)
         if portable is e:
             raise
-        raise portable from e
+        # the original's frames, the user's among them, are the new one's too
+        raise portable.with_traceback(e.__traceback__) from e
 
 
 def portable_error(error: Exception) -> Exception:
@@ -146,12 +147,17 @@ def portable_error(error: Exception) -> Exception:
             return error
     except Exception:       # noqa: BLE001 (any failure to read it back is the answer)
         pass
-    base = next(b for b in cls.__mro__ if b.__module__ == "builtins")
     try:
         text = f"{cls.__name__}: {error}" if str(error) else cls.__name__
     except Exception:       # noqa: BLE001 (a __str__ that fails)
         text = cls.__name__
-    return base(text)
+    for base in cls.__mro__:                    # the first built-in made from one message
+        if base.__module__ == "builtins":
+            try:
+                return base(text)
+            except Exception:   # noqa: BLE001 (UnicodeDecodeError takes five arguments)
+                continue
+    return Exception(text)
 
 
 def stop_executor(executor, *, abort: bool = False):

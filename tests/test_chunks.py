@@ -11,6 +11,7 @@ import logging
 import multiprocessing
 import os
 import signal
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -491,8 +492,26 @@ def test_a_users_exception_the_driver_cannot_unpickle_is_its_message_not_a_dead_
 
 
 def test_an_error_the_driver_can_read_back_is_kept_and_another_made_portable():
-    from reachwatch.reach.executors import portable_error
+    """(A class the driver cannot import by name is made portable in any process; one
+    whose __init__ takes other arguments only where no exception pickler is installed:
+    Dask's tblib reads it back, and the spawned pool above checks that case.)"""
+    from reachwatch.reach.executors import portable_error, run_portably
     kept = KeyError("x")
     assert portable_error(kept) is kept
-    made = portable_error(DarkFrame(7, "too dark"))
-    assert type(made) is ValueError and str(made) == "DarkFrame: tick 7: too dark"
+
+    class Local(LookupError):                 # its name leads nowhere: <locals>
+        pass
+    made = portable_error(Local("too dark"))
+    assert type(made) is LookupError and str(made) == "Local: too dark"
+
+    class Decoding(UnicodeDecodeError):       # a built-in base of five arguments
+        pass
+    made = portable_error(Decoding("utf-8", b"\xff", 0, 1, "bad"))
+    assert type(made) is UnicodeError and str(made).startswith("Decoding: ")
+
+    def calc():
+        raise Local("too dark")
+    with pytest.raises(LookupError) as info:
+        run_portably(calc)
+    # the user's frame stays in the traceback of what the driver gets
+    assert any(frame.name == "calc" for frame in traceback.extract_tb(info.value.__traceback__))
