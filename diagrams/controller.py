@@ -17,6 +17,7 @@ it. The function takes the `ControllerConfig` and returns the System. An empty
 A factory file may import the modules next to it, and its fingerprint covers every file
 of its folder (`reachwatch.diagrams.user_code`)."""
 
+import dataclasses as dc
 import re
 
 from pydrake.common.value import AbstractValue
@@ -25,6 +26,7 @@ from pydrake.systems.sensors import ImageRgba8U
 
 from reachwatch.systems import ProportionalController, TaxiNet
 from reachwatch.systems.checks import clip
+from reachwatch.systems.files import local_copy
 
 from . import user_code
 from .user_errors import call_failure
@@ -115,10 +117,14 @@ def check_controller(system, where="controller") -> System:
 
 
 def make_controller(config) -> System:
-    """The controller ``config`` (a `ControllerConfig`) names, built and checked."""
+    """The controller ``config`` (a `ControllerConfig`) names, built and checked. The
+    factory is handed ``config.data_files`` as paths it can open where it runs (on a
+    cluster's worker, the copies that came with the task: `local_copy`)."""
     where = f"controller.factory '{config.factory or 'TaxiNet'}'"
     module, factory = (user_code.resolve(config.factory) if config.factory
                        else (None, make_taxinet_controller))
+    if config.data_files:       # on a cluster's worker, the copies that came with the task
+        config = dc.replace(config, data_files=[local_copy(p) for p in config.data_files])
     try:
         with user_code.importable(module):
             system = factory(config)

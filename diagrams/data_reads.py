@@ -87,7 +87,7 @@ def _data_file(path: str, folder: str) -> bool:
 def warn_unkeyed(spec: str, reads: FolderReads, keyed=()):
     """A warning, once per process for each file, naming a data file of ``reads`` (the
     folder of the controller factory ``spec``) that no key covers (``keyed``: the paths
-    whose content is keyed, the controller's checkpoint): an edit to it would be
+    whose content is keyed, the controller's checkpoint and data files): an edit to it would be
     answered from the caches. Said by the driver, not by the worker processes it
     starts."""
     if multiprocessing.parent_process() is not None:

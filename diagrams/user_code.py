@@ -169,8 +169,9 @@ class _UserCode:
         """``{name: digest}`` of the top-level modules its folder's code imports (any
         ``import`` statement of its ``.py`` files, those inside functions too) that
         Python finds in a user's source tree outside the folder (through the working
-        directory or ``PYTHONPATH``; not installed, not reachwatch): a module file by
-        its content, a package by every ``.py`` file of it. Found without importing
+        directory or ``PYTHONPATH``; not installed, not reachwatch), and of those these
+        import in turn: a module file by its content, a package (a namespace one too)
+        by every ``.py`` file of it. Found without importing
         (`importlib.util.find_spec` of top-level names), once, so that its factory's
         key does not depend on what the process imported first."""
         if self._outside is None:
@@ -268,6 +269,7 @@ class _UserCode:
 
 _USER_CODE = {}     # module name of a loaded factory file -> its _UserCode
 _FOLDERS = set()    # the folders of every factory file loaded (or loading)
+
 
 def importable(module):
     """A context in which the folder of the factory file ``module`` was loaded from is

@@ -400,6 +400,21 @@ def test_controller_data_files_are_keyed_by_content_and_not_warned_of(tmp_path):
     key = canonical(config)
     (folder / "gains.yaml").write_text("k: 2\n")
     assert canonical(config) != key
+    # on a cluster's worker the factory is handed the copy that came with the task
+    from reachwatch.systems.files import shipped_copies
+    copy = tmp_path / "shipped_gains.yaml"
+    copy.write_text("k: 2\n")
+    (folder / "follower.py").write_text(FACTORY.replace(
+        "def make(config):\n",
+        "OPENED = []\n\n\ndef make(config):\n"
+        "    OPENED.extend(config.data_files)\n"))
+    fresh = ControllerConfig(factory=f"{folder / 'follower.py'}:make",
+                             data_files=[str(folder / "gains.yaml")])
+    from reachwatch.diagrams import user_code
+    with shipped_copies({str(folder / "gains.yaml"): str(copy)}):
+        make_controller(fresh)
+    module, _ = user_code.resolve(fresh.factory)
+    assert module.OPENED == [str(copy)]
     with pytest.raises(ValueError, match=r"controller.data_files\[0\]: file not found"):
         ControllerConfig(factory=factory, data_files=[str(folder / "no.yaml")]).validate()
     with pytest.raises(ValueError, match="controller.data_files: only a controller.factory"):
