@@ -129,8 +129,9 @@ def check_controls(grid: Grid, dynamics, table: np.ndarray, *, where: str = ""):
 def check_plant(grid: Grid, dynamics, bad, what: str, *, where: str = ""):
     """A ValueError, naming how many nodes and the first one (and ``where``), where
     ``bad`` (a boolean tensor or array of ``grid.shape``) holds: the plant's ``what``
-    is NaN or infinite from there. Left alone, a NaN value reads as safe (``V <= 0``
-    is false) and a NaN foot indexes the grid at random."""
+    is NaN (or, for a flow, infinite) from there. Left alone, a NaN value reads as safe
+    (``V <= 0`` is false) and a NaN foot indexes the grid at random. An infinite target
+    is a state that never fails (or always has): not refused."""
     bad = np.asarray(bad.cpu() if isinstance(bad, torch.Tensor) else bad, bool).reshape(-1)
     if np.any(bad):
         first = int(np.argmax(bad))
@@ -198,7 +199,7 @@ def solve_brt(grid: Grid, dynamics, control_table, *, horizon: float = 8.0,
     u = as_t(table.reshape(grid.shape + (-1,)))
     controls = [u] + [as_t(c) for c in corners]
     target = dynamics.target(x)
-    check_plant(grid, dynamics, ~torch.isfinite(target), "target", where=where)
+    check_plant(grid, dynamics, torch.isnan(target), "target", where=where)
     values = target.clone()
     scheme, order = ACCURACIES[accuracy]
     if scheme is None:
