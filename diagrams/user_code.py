@@ -52,10 +52,12 @@ def _pruned(name: str) -> bool:
 
 def _source_files(root: Path, where: str):
     """``(relative path, path)`` of every ``.py`` file under ``root`` an import from it
-    can reach, sorted, through linked folders too; folders that no import can name
-    (hidden, ``__pycache__``, not identifiers) and virtual environments are skipped."""
+    can reach, sorted, through linked packages too (a link to a folder with an
+    ``__init__.py``; a link to anything else, a folder of data say, is not walked);
+    folders that no import can name (hidden, ``__pycache__``, not identifiers) and
+    virtual environments are skipped."""
     found, entries, size, walked = [], 0, 0, set()
-    # a linked folder is followed (an import reaches through it), each folder once
+    # a linked package is followed (an import reaches through it), each folder once
     for folder, dirs, files in os.walk(root, followlinks=True):
         real = os.path.realpath(folder)
         if real in walked:
@@ -68,7 +70,9 @@ def _source_files(root: Path, where: str):
                              f"{MAX_SOURCE_ENTRIES} files; put the controller's files in a "
                              f"folder of their own")
         dirs[:] = sorted(d for d in dirs if not _pruned(d)
-                         and not os.path.exists(os.path.join(folder, d, "pyvenv.cfg")))
+                         and not os.path.exists(os.path.join(folder, d, "pyvenv.cfg"))
+                         and (not os.path.islink(os.path.join(folder, d))
+                              or os.path.isfile(os.path.join(folder, d, "__init__.py"))))
         for name in files:
             path = Path(folder, name)
             if name.endswith(".py") and path.is_file():

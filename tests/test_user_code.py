@@ -375,9 +375,16 @@ def test_a_linked_folder_of_the_factorys_code_is_keyed(tmp_path):
     (folder / "steer.py").write_text("from helpers import gains\n")
     (folder / "helpers").symlink_to(shared)
     (shared / "loop").symlink_to(tmp_path / "shared")          # a cycle through the link
+    data = tmp_path / "big_data"                               # a link to data: not walked
+    data.mkdir()
+    (data / "table.py").write_text("ROWS = 1\n")
+    (folder / "data").symlink_to(data)
     before = source_digest(folder)
     (shared / "gains.py").write_text("K = 2\n")
     assert source_digest(folder) != before
+    before = source_digest(folder)
+    (data / "table.py").write_text("ROWS = 2\n")
+    assert source_digest(folder) == before
 
 
 def test_controller_data_files_are_keyed_by_content_and_not_warned_of(tmp_path):
