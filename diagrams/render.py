@@ -79,9 +79,11 @@ def warn_blank_frames(frames, where: str) -> None:
     rgb = np.asarray(frames)[..., :3].reshape(len(frames), -1, 3)
     blank = int(np.sum(np.all(rgb.max(axis=1) == rgb.min(axis=1), axis=1))) if rgb.size else 0
     if blank:
-        warn_once(f"{where}: {blank} of {len(rgb)} frames the camera rendered are of one "
-                  f"colour: a renderer that fails gives such frames without an error; look "
-                  f"at one with 'reachwatch render'", key=("blank frames", where))
+        what = ("a frame the camera rendered is" if len(rgb) == 1 else
+                f"{blank} of {len(rgb)} frames the camera rendered are")
+        warn_once(f"{where}: {what} of one colour: a renderer that fails gives such frames "
+                  f"without an error; look at one with 'reachwatch render'",
+                  key=("blank frames", where))
 
 
 def render_at_states(diagram, *, plant: str, image_port: str, states,
