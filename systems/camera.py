@@ -122,7 +122,11 @@ def make_wing_camera(*, frame_id, config: CameraConfig, renderer_name: str) -> R
     core = RenderCameraCore(renderer_name,
                             CameraInfo(config.width, config.height, config.fov_y_rad),
                             ClippingRange(config.near, config.far), RigidTransform())
-    depth = DepthRenderCamera(core, DepthRange(config.near + 0.01, 60.0))
+    # the depth port is never rendered here, but its range must lie inside the clipping
+    # range whatever near and far are (60 m deep from 0.51 m with the defaults)
+    nearest = config.near + min(0.01, (config.far - config.near) / 4)
+    depth = DepthRenderCamera(core, DepthRange(
+        nearest, min(config.far, max(60.0, nearest + 1.0))))
     sensor = RgbdSensor(frame_id, config.X_BC(), ColorRenderCamera(core, False), depth)
     sensor.set_name("wing_camera")
     return sensor

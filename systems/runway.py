@@ -34,9 +34,9 @@ class SurfaceSpec:
 class MarkingsSpec:
     """White paint (downtrack positions in m from the threshold, py = 0)."""
     edge_lines: bool = True
-    edge_line_width: float = bounded(0.9, 0.0, 10.0, unit="m")
+    edge_line_width: float = bounded(0.9, 0.0, 10.0, low_open=True, unit="m")
     centreline: bool = True
-    centreline_width: float = bounded(0.9, 0.0, 10.0, unit="m")
+    centreline_width: float = bounded(0.9, 0.0, 10.0, low_open=True, unit="m")
     dash_length: float = bounded(36.0, 1.0, MAX_LENGTH, unit="m")
     dash_gap: float = bounded(24.0, 0.0, MAX_LENGTH, unit="m")
     threshold_stripes: int = bounded(8, 0, 40, whole=True)   # piano keys at py in [6, 36]
@@ -62,7 +62,7 @@ class TaxiwayLine:
     side: int = bounded(1, -1, 1, whole=True, note="+1 or -1")   # +1 exits to the left (+px)
     radius: float = bounded(60.0, 0.0, 1000.0, low_open=True, unit="m")   # turn radius
     turn_deg: float = bounded(60.0, -360.0, 360.0, unit="deg")   # total turn, then straight
-    width: float = bounded(0.5, 0.0, 10.0, unit="m")
+    width: float = bounded(0.5, 0.0, 10.0, low_open=True, unit="m")
 
 
 @dc.dataclass
@@ -92,6 +92,11 @@ class RunwaySpec:
                              f"{short(self.surface.kind)}")
         for part in ("surface", "markings", "lights"):
             check_bounds(getattr(self, part), f"{where}{part}.")
+        marks = self.markings
+        if marks.threshold_stripes and 2 * self.half_width - 2 * marks.edge_line_width <= 3.0:
+            raise ValueError(f"{where}half_width {self.half_width:g} m leaves no room for the "
+                             f"threshold stripes (2 x half_width - 2 x markings.edge_line_width "
+                             f"must exceed 3 m): widen it, or set markings.threshold_stripes: 0")
         for i, line in enumerate(self.taxiway_lines):
             check_bounds(line, f"{where}taxiway_lines[{i}].")
             if line.side not in (-1, 1):

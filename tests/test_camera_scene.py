@@ -212,3 +212,27 @@ def test_frames_of_one_colour_are_warned_of_once(caplog, monkeypatch):
         "the dataset of KSFO_21h_clear: 2 of 3 frames the camera rendered are of one "
         "colour: a renderer that fails gives such frames without an error; look at one "
         "with 'reachwatch render'"]
+
+
+def test_runways_and_cameras_the_scene_cannot_build_are_refused_naming_the_field():
+    """Before: each validated, then Drake failed building the scene or the camera with a
+    message naming no field (a box of negative depth; a depth range past its end)."""
+    import pytest
+    from pydrake.geometry import SceneGraph
+    from reachwatch.systems import CameraConfig, MarkingsSpec, RunwaySpec, TaxiwayLine
+    from reachwatch.systems.camera import make_wing_camera
+    for spec, message in [
+            (RunwaySpec(half_width=2.0), r"runway_spec.half_width 2 m leaves no room for the "
+                                         r"threshold stripes"),
+            (RunwaySpec(markings=MarkingsSpec(edge_line_width=0.0)),
+             r"runway_spec.markings.edge_line_width must be"),
+            (RunwaySpec(markings=MarkingsSpec(centreline_width=0.0)),
+             r"runway_spec.markings.centreline_width must be"),
+            (RunwaySpec(taxiway_lines=[TaxiwayLine(width=0.0)]),
+             r"runway_spec.taxiway_lines\[0\].width must be")]:
+        with pytest.raises(ValueError, match=message):
+            spec.validate()
+    RunwaySpec(half_width=2.0, markings=MarkingsSpec(threshold_stripes=0)).validate()
+    for config in (CameraConfig(near=60.0), CameraConfig(near=0.5, far=50.0)):
+        make_wing_camera(frame_id=SceneGraph().world_frame_id(), config=config,
+                         renderer_name="renderer")
