@@ -28,6 +28,10 @@ def _range_of(lo, hi) -> dict:
     return dict(low=lo, high=hi, each=True, items=(2, 2), note="low <= high")
 
 
+#: The widest edge line a random runway draws (m).
+MAX_EDGE_LINE = 1.2
+
+
 @dc.dataclass
 class RandomRunwayRanges:
     """What a random runway may look like. ``half_width`` (m, B of the failure set),
@@ -57,6 +61,11 @@ class RandomRunwayRanges:
 
     def validate(self, where="runway"):
         _check_ranges(self, where)
+        if self.threshold_stripes[1] > 0 and 2 * self.half_width[0] - 2 * MAX_EDGE_LINE <= 3.0:
+            raise ValueError(f"{where}.half_width from {self.half_width[0]:g} m leaves no room "
+                             f"for threshold stripes between edge lines of up to "
+                             f"{MAX_EDGE_LINE:g} m: start it at {1.5 + MAX_EDGE_LINE + 0.1:g} m "
+                             f"or more, or set {where}.threshold_stripes: [0, 0]")
         if not self.surfaces or any(s not in SURFACES for s in self.surfaces):
             raise ValueError(f"{where}.surfaces must list some of {SURFACES}, got "
                              f"{short(self.surfaces)}")
@@ -83,9 +92,10 @@ class RandomEnvironments:
         if not self.skies or any(s not in SKIES for s in self.skies):
             raise ValueError(f"{where}.skies must list some of {SKIES}, got {short(self.skies)}")
         if not (isinstance(self.prefix, str) and self.prefix.isascii() and self.prefix.isalnum()
-                and len(self.prefix) <= 16):
-            raise ValueError(f"{where}.prefix must be letters and digits (1 to 16, ASCII), got "
-                             f"{short(self.prefix)}")
+                and len(self.prefix) <= 16 and not self.prefix[-1].isdigit()):
+            raise ValueError(f"{where}.prefix must be letters and digits (1 to 16, ASCII) "
+                             f"ending in a letter (the seed follows it: RND1 with seed 1 and "
+                             f"RND with seed 11 would name alike), got {short(self.prefix)}")
         self.runway.validate(f"{where}.runway")
         return self
 
@@ -112,7 +122,7 @@ def random_runway(rng: np.random.Generator, ranges: RandomRunwayRanges, name: st
     tone = [float(np.clip(grey + t, 0.0, 1.0)) for t in tint]
     grass = [u([0.22, 0.55]), u([0.32, 0.55]), u([0.15, 0.45])]
     markings = MarkingsSpec(
-        edge_lines=bool(rng.random() < 0.9), edge_line_width=u([0.6, 1.2]),
+        edge_lines=bool(rng.random() < 0.9), edge_line_width=u([0.6, MAX_EDGE_LINE]),
         centreline_width=u([0.6, 1.2]), dash_length=u([25.0, 45.0]), dash_gap=u([15.0, 35.0]),
         threshold_stripes=whole(ranges.threshold_stripes),
         touchdown_zone=[150.0 * (k + 1) for k in range(int(rng.integers(0, 5)))],

@@ -98,3 +98,25 @@ def test_a_random_runway_renders(small_camera):
     env = RandomEnvironments(count=1, seed=5, hours=[21.0, 21.0], runway=ranges).environments()[0]
     image = StateRenderer(environment=env, camera=small_camera).render([0.0, 120.0, 0.0])
     assert image.shape[2] == 3 and image.std() > 1.0
+
+
+def test_a_prefix_ending_in_a_digit_is_refused():
+    """RND1 with seed 1 and RND with seed 11 named their environments alike."""
+    import pytest
+    from reachwatch.systems import RandomEnvironments
+    with pytest.raises(ValueError, match=r"test_random.prefix must be letters and digits "
+                                         r"\(1 to 16, ASCII\) ending in a letter"):
+        RandomEnvironments(count=1, seed=1, prefix="RND1").validate("test_random")
+    RandomEnvironments(count=1, seed=1, prefix="RND1A").validate("test_random")
+
+
+def test_a_family_whose_narrowest_runway_has_no_room_for_its_stripes_is_refused():
+    """Before: validated, then a drawn runway of 1.5 m failed the scene build."""
+    import pytest
+    from reachwatch.systems import RandomEnvironments, RandomRunwayRanges
+    with pytest.raises(ValueError, match=r"train_random.runway.half_width from 1 m leaves no "
+                                         r"room for threshold stripes"):
+        RandomEnvironments(count=1, runway=RandomRunwayRanges(half_width=[1.0, 3.0])).validate(
+            "train_random")
+    RandomEnvironments(count=1, runway=RandomRunwayRanges(
+        half_width=[1.0, 3.0], threshold_stripes=[0, 0])).validate("train_random")
