@@ -6,7 +6,7 @@ import math
 from typing import Optional
 
 from .bounds import bounded, check_bounds
-from .checks import short
+from .checks import short, warn_once
 from .runway import RUNWAYS, RunwaySpec
 
 SKIES = ("clear", "overcast")
@@ -33,6 +33,10 @@ class Environment:
                 f"{sorted(RUNWAYS)}, or describe your own under environment.runway_spec")
         if self.runway_spec is not None:
             self.runway_spec.validate("environment.runway_spec")
+            if self.runway not in (self.runway_spec.name, Environment.runway):
+                warn_once(f"environment.runway {short(self.runway)} is not read beside "
+                          f"runway_spec: the environment is named by runway_spec.name "
+                          f"({short(self.runway_spec.name)}); set that to name it")
         check_bounds(self, "environment.")
         if self.sky not in SKIES:
             raise ValueError(f"environment.sky must be one of {SKIES}, got {short(self.sky)}")

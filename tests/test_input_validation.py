@@ -416,3 +416,18 @@ def test_an_environment_flag_names_itself_and_the_value():
     with pytest.raises(ValueError, match=r"^--train 'KMWH:9' must read RUNWAY:HOUR:SKY"):
         parse_environment("KMWH:9", "--train")
     assert parse_environment("KSFO:17:overcast", "--test").runway == "KSFO"
+
+
+def test_a_runway_name_beside_a_runway_spec_is_warned_of_as_unread(caplog, monkeypatch):
+    """{runway: A, runway_spec: {...}} was named CUSTOM_..., A silently unread."""
+    import logging
+    import reachwatch.systems.checks as checks
+    monkeypatch.setattr(checks, "WARNED", set())
+    with caplog.at_level(logging.WARNING, logger="reachwatch"):
+        env = Environment("A", 9.0, "clear", RunwaySpec(half_width=12.0)).validate()
+        Environment("MINE", 9.0, "clear", RunwaySpec(name="MINE")).validate()   # the same
+        Environment(runway_spec=RunwaySpec(name="MINE")).validate()           # left out
+    assert env.name == "CUSTOM_9h_clear"
+    assert [r.getMessage() for r in caplog.records] == [
+        "environment.runway 'A' is not read beside runway_spec: the environment is named by "
+        "runway_spec.name ('CUSTOM'); set that to name it"]
