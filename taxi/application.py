@@ -14,6 +14,7 @@ from reachwatch.diagrams import (StateRenderer, initial_state_vector, load_taxin
                                  make_closed_loop_diagram, make_guarded_diagram)
 from reachwatch.reach.application import Application
 from reachwatch.systems import Environment, RandomEnvironments, TaxiNet
+from reachwatch.systems.scene import GROUND_X
 
 from . import fidelity, guarded, guarded_run, plots, sweeps
 from .dynamics import OffRunway, dynamics_for
@@ -102,7 +103,14 @@ class TaxiApplication(RunwayEnvironments, Application):
         return OffRunway(scenario.environment.half_width)(states)
 
     def grid(self, scenario, shape, *, theta_deg=28.0, py_max=250.0):
-        return paper_grid(scenario.environment.half_width, tuple(shape), theta_deg=float(theta_deg),
+        env = scenario.environment
+        end = min(env.spec().length, GROUND_X[1])
+        if float(py_max) >= end:
+            raise ValueError(f"solved_py_max {float(py_max):g} m lies past the end of "
+                             f"{env.name}'s runway as rendered ({end:g} m: its length, or the "
+                             f"scene's ground): the camera there sees no runway; lower "
+                             f"solved_py_max, or lengthen the runway")
+        return paper_grid(env.half_width, tuple(shape), theta_deg=float(theta_deg),
                           py_max=float(py_max))
 
     def box_exit_share(self, scenario, horizon, *, theta_deg=28.0, py_max=250.0):

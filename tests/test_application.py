@@ -474,3 +474,16 @@ def test_data_files_are_found_beside_the_file_the_application_is_loaded_from(tmp
     key = app.key()
     (folder / "model.sdf").write_text("<sdf mass='2'/>")
     assert app.key() != key
+
+
+def test_a_solved_box_past_the_rendered_runway_is_refused():
+    """Before: states beyond the runway's end, or the scene's ground (3,000 m), rendered
+    grass or sky and were labelled as on the runway."""
+    app = TaxiApplication()
+    short = load_scenario(data="environment: {runway_spec: {length: 400.0}}\n")
+    with pytest.raises(ValueError, match=r"solved_py_max 500 m lies past the end of "
+                                         r"CUSTOM_9h_clear's runway as rendered \(400 m"):
+        app.grid(short, (3, 3, 3), py_max=500.0)
+    app.grid(short, (3, 3, 3), py_max=290.0)
+    with pytest.raises(ValueError, match=r"as rendered \(3000 m"):
+        app.grid(load_scenario(data="environment: {runway: PAEI}\n"), (3, 3, 3), py_max=3300.0)
