@@ -221,6 +221,9 @@ def threshold_for_flag_budget(flagged_share, budget: float, *, low: float = 0.0,
         return 0.0 if value is None else float(value)     # no ticks: nothing flagged
 
     if share(low) <= budget:
+        if steps[-1][1] is None:
+            raise ValueError("the flag budget cannot be met or missed: the loop runs no "
+                             "control tick from these starts (every one has failed already)")
         return float(low), steps[-1][1], steps
     top = share(high)
     if top > budget:

@@ -90,3 +90,10 @@ def test_flag_budget_threshold_of_a_saturated_detector():
     with pytest.raises(ValueError, match=r"even at threshold 0.9999999 the brake loop flags "
                                          r"100.0 % of its ticks, over the flag budget of 30 %"):
         flag_budget_threshold(scenario, grid, tables, 4.0, "brake", 0.3, starts=starts)
+
+
+def test_a_loop_without_any_tick_has_no_flag_budget_threshold():
+    """Every start failed before its first tick: the share is unknown, which read as 0
+    and returned the lowest threshold, whose share the report then failed to format."""
+    with pytest.raises(ValueError, match="the loop runs no control tick from these starts"):
+        threshold_for_flag_budget(lambda t: None, 0.1)
