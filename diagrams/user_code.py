@@ -50,10 +50,19 @@ def _pruned(name: str) -> bool:
     return name.startswith(".") or name == "__pycache__" or not name.isidentifier()
 
 
+def _holds_code(folder: str) -> bool:
+    """Whether ``folder`` holds a ``.py`` file of its own (a package, or a namespace
+    package an import reaches through a link), not only data."""
+    try:
+        return any(name.endswith(".py") for name in os.listdir(folder))
+    except OSError:
+        return False
+
+
 def _source_files(root: Path, where: str):
     """``(relative path, path)`` of every ``.py`` file under ``root`` an import from it
-    can reach, sorted, through linked packages too (a link to a folder with an
-    ``__init__.py``; a link to anything else, a folder of data say, is not walked);
+    can reach, sorted, through linked packages too (a link to a folder holding a ``.py``
+    file; a link to a folder of data alone is not walked);
     folders that no import can name (hidden, ``__pycache__``, not identifiers) and
     virtual environments are skipped."""
     found, entries, size, walked = [], 0, 0, set()
@@ -72,7 +81,7 @@ def _source_files(root: Path, where: str):
         dirs[:] = sorted(d for d in dirs if not _pruned(d)
                          and not os.path.exists(os.path.join(folder, d, "pyvenv.cfg"))
                          and (not os.path.islink(os.path.join(folder, d))
-                              or os.path.isfile(os.path.join(folder, d, "__init__.py"))))
+                              or _holds_code(os.path.join(folder, d))))
         for name in files:
             path = Path(folder, name)
             if name.endswith(".py") and path.is_file():

@@ -376,14 +376,21 @@ def test_a_linked_folder_of_the_factorys_code_is_keyed(tmp_path):
     (folder / "helpers").symlink_to(shared)
     (shared / "loop").symlink_to(tmp_path / "shared")          # a cycle through the link
     data = tmp_path / "big_data"                               # a link to data: not walked
-    data.mkdir()
-    (data / "table.py").write_text("ROWS = 1\n")
+    (data / "tables").mkdir(parents=True)
+    (data / "tables" / "table.py").write_text("ROWS = 1\n")
     (folder / "data").symlink_to(data)
+    spaced = tmp_path / "shared" / "spaced"       # a namespace package through a link: walked
+    spaced.mkdir()
+    (spaced / "util.py").write_text("U = 1\n")
+    (folder / "spaced").symlink_to(spaced)
+    with_namespace = source_digest(folder)
+    (spaced / "util.py").write_text("U = 2\n")
+    assert source_digest(folder) != with_namespace
     before = source_digest(folder)
     (shared / "gains.py").write_text("K = 2\n")
     assert source_digest(folder) != before
     before = source_digest(folder)
-    (data / "table.py").write_text("ROWS = 2\n")
+    (data / "tables" / "table.py").write_text("ROWS = 2\n")
     assert source_digest(folder) == before
 
 
