@@ -104,7 +104,7 @@ class TaxiApplication(RunwayEnvironments, Application):
 
     def grid(self, scenario, shape, *, theta_deg=28.0, py_max=250.0):
         env = scenario.environment
-        end = min(env.spec().length, GROUND_X[1])
+        end = min(env.spec().length, GROUND_X[1]) if isinstance(env, Environment) else np.inf
         if float(py_max) >= end:
             raise ValueError(f"solved_py_max {float(py_max):g} m lies past the end of "
                              f"{env.name}'s runway as rendered ({end:g} m: its length, or the "
