@@ -101,7 +101,8 @@ def render_chunk(source: ImageSource, states) -> dict:
     tools = source.tools or _thread_tools(source)
     full = np.stack([tools.renderer.render(x) for x in states])
     check_frame_size(full.shape[1:], source.scenario)
-    warn_blank_frames(full, f"the dataset of {source.scenario.environment.name}")
+    env = getattr(source.scenario, "environment", None)
+    warn_blank_frames(full, f"the dataset of {env.name}" if env is not None else "a dataset")
     ensemble = np.empty((len(full), len(tools.ensemble), 2))
     for j, estimate_member in enumerate(tools.ensemble):
         out = np.asarray(estimate_member(full))
