@@ -27,6 +27,13 @@ from tiny_run import TINY
 SAME = object()
 COMPANIONS = {
     ("run.scenario.camera.near", "high"): {"run.scenario.camera.far": 1e5},
+    # a runway holds its threshold stripes between its edge lines
+    ("run.scenario.environment.runway_spec.half_width", "low"): {
+        "run.scenario.environment.runway_spec.markings.threshold_stripes": 0},
+    ("run.scenario.environment.runway_spec.markings.edge_line_width", "high"): {
+        "run.scenario.environment.runway_spec.half_width": 20.0},
+    ("run.train_random.runway.half_width", "low"): {
+        "run.train_random.runway.threshold_stripes": [0, 0]},
     # no states mined: only with the stage off
     ("run.incremental.anomalies", "low"): {"run.incremental.enabled": False},
     # the k-of-n rule is set whole or left to the checkpoint

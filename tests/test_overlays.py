@@ -66,7 +66,8 @@ def test_keys_are_dotted_paths_with_list_indices():
 
 def test_set_and_text_overlays_change_the_scenario_in_the_order_given(tmp_path):
     path = tmp_path / "s.yaml"
-    path.write_text("controller: {speed: 4.0, parameters: {a: 1.0}}\ncamera: {width: 64}\n")
+    path.write_text("controller: {speed: 4.0, factory: 'mine.steer:make', parameters: {a: 1.0}}"
+                    "\ncamera: {width: 64}\n")
     scenario = _scenario(["render", "--scenario", str(path), "--out", "o",
                           "--set", "controller.parameters.b=2",
                           "--scenario_text", "{controller: {speed: 3.0}, camera: {height: 36}}",
