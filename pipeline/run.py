@@ -69,6 +69,8 @@ def run_pipeline(spec: RunSpec, out, *, executor=None, until="report", progress=
         if only is not None:
             log(f"a slice of {len(run.environments())} of the run's {len(spec.all_environments())} "
                 f"environments, up to {until}: {', '.join(e.name for e in run.environments())}")
+        for env in run.environments():      # a box the application refuses, before any work
+            run.solved_grid_for(env)
         steps = {
             "sweep": lambda: stage_sweep(run),
             "solve": lambda: stage_solve(run),

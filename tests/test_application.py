@@ -487,3 +487,15 @@ def test_a_solved_box_past_the_rendered_runway_is_refused():
     app.grid(short, (3, 3, 3), py_max=290.0)
     with pytest.raises(ValueError, match=r"as rendered \(3000 m"):
         app.grid(load_scenario(data="environment: {runway: PAEI}\n"), (3, 3, 3), py_max=3300.0)
+
+
+def test_a_run_whose_solved_box_passes_an_environments_runway_stops_before_any_stage(tmp_path):
+    from reachwatch.pipeline.run import run_pipeline
+    spec = load_run_spec(data=RUN.replace(
+        "test: [{runway: KSFO, hour: 21.0, sky: clear}]",
+        "test: [{runway: X, hour: 21.0, sky: clear, runway_spec: {name: SHORT, length: 400.0}}]"
+    ) + "solved_py_max: 450.0\n")
+    with pytest.raises(ValueError, match=r"solved_py_max 450 m lies past the end of "
+                                         r"SHORT_21h_clear's runway as rendered"):
+        run_pipeline(spec, tmp_path / "out", until="sweep", progress=False, log=lambda m: None)
+    assert not list((tmp_path / "out").glob("sweeps/*"))
