@@ -60,12 +60,20 @@ def check_per_state_monitor(monitor) -> None:
                          f"in the guarded real loop (a run file's monitor: {{kind: history}})")
 
 
-def warn_other_fallback(monitor, metadata) -> None:
+def warn_other_fallback(monitor, metadata, speed=None) -> None:
     """A warning, once per checkpoint and fallback in a process, when a history monitor
-    whose threshold a study fixed for braking at ``brake_deceleration`` (its metadata's)
-    guards a loop whose fallback is not braking as hard: its warnings come the study's
-    lead ahead, which such a fallback may not stop within, so the study's miss-rate
+    whose threshold a study fixed for braking at ``brake_deceleration`` from
+    ``speed_mps`` (its metadata's) guards a loop whose fallback is not braking as hard,
+    or that runs faster (``speed``, m/s: the controller's): its warnings come the
+    study's lead ahead, which such a loop may not stop within, so the study's miss-rate
     bound does not speak of it."""
+    trained = metadata.get("speed_mps")
+    if speed is not None and trained is not None and speed > float(trained) * (1 + 1e-9):
+        warn_once(f"monitor.detector: its threshold was fixed for a loop at "
+                  f"{float(trained):g} m/s, warning {float(metadata.get('lead_s', 0)):g} s "
+                  f"ahead; this loop runs at {speed:g} m/s, and braking from it takes "
+                  f"longer: the study's miss-rate bound does not speak of it",
+                  key=("faster loop", str(monitor.detector), float(speed)))
     braking = metadata.get("brake_deceleration")
     if braking is None or (monitor.strategy == "brake"
                            and monitor.brake_deceleration >= float(braking)):
@@ -81,14 +89,15 @@ def warn_other_fallback(monitor, metadata) -> None:
 
 
 def add_detector(builder, *, image_port, monitor, period=None, steering_port=None,
-                 estimate_port=None):
+                 estimate_port=None, speed=None):
     """Adds the monitor of ``monitor`` (a `MonitorConfig`: its checkpoint and threshold),
     named ``anomaly_detector``, on ``image_port``; returns it. The checkpoint is an
     image `AnomalyDetector`'s or a `HistoryMonitor`'s (of one model or an ensemble's
     members), which ticks every ``period`` s and, when trained with signals, reads the
     controller's ``estimate_port`` and ``steering_port`` through `add_monitor_signals`. Alone (no switch) it watches a
     loop without acting on it. A null threshold is the checkpoint's own
-    (`MonitorConfig.with_checkpoint_defaults`)."""
+    (`MonitorConfig.with_checkpoint_defaults`). ``speed`` (m/s), the loop's, is compared
+    with the one a study fixed the threshold at (`warn_other_fallback`)."""
     monitor = monitor.with_checkpoint_defaults()
     if checkpoint_kind(monitor.detector) == "history_monitor":
         model, config, metadata = load_history_monitor(monitor.detector)
@@ -102,7 +111,7 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
                              f"ticks, so they would span other times; train it at this "
                              f"period")
         if monitor.threshold < 1.0:     # it may act (threshold 1: it only watches)
-            warn_other_fallback(monitor, metadata)
+            warn_other_fallback(monitor, metadata, speed)
         system = builder.AddNamedSystem(DETECTOR, HistoryMonitor(
             model=model, threshold=monitor.threshold, period=period,
             calibration=metadata.get("calibration", (1.0, 0.0)),
@@ -138,7 +147,7 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller,
     monitor = monitor.with_checkpoint_defaults()
     detector = add_detector(builder, image_port=image_port, monitor=monitor,
                             period=controller.period, steering_port=steering_port,
-                            estimate_port=estimate_port)
+                            estimate_port=estimate_port, speed=controller.speed)
     switch = builder.AddNamedSystem(SWITCH, FallbackSwitch(
         fallback=monitor.fallback, nominal_speed=controller.speed, period=controller.period))
     builder.Connect(steering_port, switch.get_steering_angle_input_port())

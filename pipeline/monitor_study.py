@@ -211,6 +211,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
                         metadata={"calibration": [platt.a, platt.b], "threshold": threshold,
                                   "within_s": spec.within, "lead_s": lead, "variant": name,
                                   "period_s": scenario.controller.period,
+                                  "speed_mps": scenario.controller.speed,
                                   "brake_deceleration": spec.brake_deceleration,
                                   **camera_size(scenario),
                                   **({"flag_rule": rule} if rule != [1, 1] else {})})

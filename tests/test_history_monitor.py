@@ -208,6 +208,36 @@ def test_a_monitor_guarding_a_gentler_fallback_than_its_study_braked_is_warned_o
     assert "is braking at 1 m/s^2, which may need longer" in caplog.text
 
 
+def test_a_monitor_guarding_a_faster_loop_than_its_study_ran_is_warned_once(tmp_path, caplog):
+    """The same braking from a higher speed takes longer than the study's lead: before,
+    nothing was said (the checkpoint did not record the speed)."""
+    from pydrake.systems.framework import DiagramBuilder
+    from pydrake.systems.primitives import ConstantVectorSource
+    from reachwatch.diagrams import ControllerConfig, MonitorConfig, add_monitor
+    config = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4,
+                                  hidden=4)
+    path = str(_checkpoint(tmp_path / "m.pt", config, threshold=0.4, brake_deceleration=3.0,
+                           lead_s=1.67, speed_mps=5.0))
+
+    def build(speed):
+        builder = DiagramBuilder()
+        image = builder.AddSystem(ConstantValueSource(AbstractValue.Make(ImageRgba8U(24, 16))))
+        steering = builder.AddSystem(ConstantVectorSource([0.0]))
+        add_monitor(builder, image_port=image.get_output_port(),
+                    steering_port=steering.get_output_port(),
+                    monitor=MonitorConfig(detector=path, strategy="brake",
+                                          brake_deceleration=3.0),
+                    controller=ControllerConfig(speed=speed))
+    with caplog.at_level("WARNING", logger="reachwatch"):
+        build(5.0)
+        build(4.0)                                       # slower: stops sooner
+        assert not caplog.text
+        build(8.0)
+        build(8.0)                                       # said once
+    assert caplog.text.count("its threshold was fixed for a loop at 5 m/s, warning 1.67 s "
+                             "ahead; this loop runs at 8 m/s") == 1
+
+
 def test_config_and_checkpoint_errors(tmp_path):
     with pytest.raises(ValueError, match="temporal must be one of"):
         HistoryMonitorConfig(temporal="lstm").validate()
