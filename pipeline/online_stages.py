@@ -18,6 +18,7 @@ from reachwatch.reach.guard import perfect_detector_scores, plot_tradeoff, trade
 from reachwatch.reach.liveness import UNGUARDED, liveness_figures
 from reachwatch.reach.score_noise import ScoreNoise
 from reachwatch.systems import fallback_parts
+from reachwatch.systems.checks import warn_once
 
 from .keys import digest
 from .stages import Run
@@ -295,6 +296,12 @@ def guard_plots(application, scenario, grid, spec, figures, folder):
 def guard_environment(run: Run, env) -> dict:
     spec, trained, application = run.spec, run.outputs["train"], run.application
     scenario = run.scenario_for(env)
+    if scenario.monitor.detector or scenario.monitor.threshold is not None:
+        warn_once("scenario.monitor.detector and threshold: the guard stage guards with the "
+                  "detector this run trains, at its threshold, not the run file's (which "
+                  "'reachwatch guard', 'simulate --loop guarded' and 'graph --loop guarded' "
+                  "read); its fallback and flag rule are the run file's",
+                  key="guard stage's own detector")
     scenario.monitor.detector = str(run.path(trained["detector"]))
     scenario.monitor.threshold = float(trained["threshold"])
     scenario.duration = spec.horizon

@@ -129,3 +129,42 @@ def test_a_nan_score_at_a_node_leaves_the_curves_thresholds_finite():
         pass
     assert seen == [0.1]             # the first of 0.1, 0.5, 0.9: finite
     assert tradeoff_curves(rollouts, [float("nan")], ["brake"], 3) == {"brake": []}
+
+
+def test_the_guard_stage_says_it_guards_with_its_own_detector_not_the_run_files(
+        monkeypatch, caplog):
+    """A run file's scenario.monitor.detector and threshold were replaced by the run's
+    trained detector without a word."""
+    import logging
+    import types
+    import reachwatch.systems.checks as checks
+    from reachwatch.pipeline import online_stages
+    monkeypatch.setattr(checks, "WARNED", set())
+
+    class Reached(Exception):
+        pass
+
+    def stop(*args, **kwargs):
+        raise Reached
+    monkeypatch.setattr(online_stages, "guard_figures", stop)
+    for text, said in (("monitor: {detector: mine.pt, threshold: 0.3}\n", True), ("", False)):
+        run = types.SimpleNamespace(
+            spec=types.SimpleNamespace(horizon=4.0, guard=types.SimpleNamespace(strategies=[])),
+            outputs={"train": {"detector": "detectors/d.pt", "threshold": 0.5}},
+            application=types.SimpleNamespace(resolved=lambda s: s),
+            scenario_for=lambda env, text=text: _scenario_without_checks(text),
+            path=lambda p: p, grid_for=lambda env: None, sweep_cache=None, executor=None,
+            progress=False, log=lambda m: None)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="reachwatch"), pytest.raises(Reached):
+            online_stages.guard_environment(run, None)
+        assert ("the guard stage guards with the detector this run trains" in caplog.text) == said
+
+
+def _scenario_without_checks(text):
+    """A scenario whose monitor names a checkpoint that need not exist (not validated)."""
+    from reachwatch.diagrams import load_scenario
+    scenario = load_scenario(data="")
+    if text:
+        scenario.monitor.detector, scenario.monitor.threshold = "mine.pt", 0.3
+    return scenario
