@@ -6,7 +6,7 @@ import dataclasses as dc
 from typing import Optional
 
 from reachwatch.systems.bounds import bounded, check_bounds
-from reachwatch.systems.checks import clip, is_file
+from reachwatch.systems.checks import clip, is_file, warn_once
 
 MAX_FLAG_WINDOW = 1000      # control ticks of the k-of-n rule
 
@@ -96,6 +96,17 @@ class MonitorConfig:
             threshold = float(metadata["threshold"])
         k, n = ((self.flags_needed, self.flag_window) if self.flag_window is not None
                 else tuple(metadata.get("flag_rule", (1, 1))))
+        own = [int(v) for v in metadata.get("flag_rule", (1, 1))]
+        mixed = ((self.threshold is not None and self.flag_window is None and own != [1, 1])
+                 or (self.threshold is None and self.flag_window is not None
+                     and [int(k), int(n)] != own))
+        if self.detector and isinstance(metadata.get("threshold"), (int, float)) and mixed:
+            warn_once(f"monitor: {clip(self.detector, 120)} fixed its threshold "
+                      f"{float(metadata['threshold']):.4g} together with its rule {own[0]} of "
+                      f"{own[1]}; this loop flags at {threshold:.4g} with {int(k)} of {int(n)} "
+                      f"(one of the pair set, the other the checkpoint's), a pair nothing "
+                      f"judged: set both, or neither",
+                      key=("monitor pair", self.detector, threshold, int(k), int(n)))
         full = dc.replace(self, threshold=threshold, flags_needed=int(k), flag_window=int(n))
         check_bounds(full, "monitor.")      # a checkpoint's own values, checked as a file's
         return full

@@ -69,6 +69,23 @@ def test_a_scenario_runs_a_checkpoint_at_its_own_threshold_and_flag_rule(tmp_pat
     assert (monitor.threshold, monitor.flags_needed, monitor.flag_window) == (None, None, None)
     full = monitor.with_checkpoint_defaults()
     assert (full.threshold, full.flags_needed, full.flag_window) == (0.37, 2, 3)
+    # one of the pair set, the other the checkpoint's: a pair nothing judged, said once
+    import logging
+    import reachwatch.systems.checks as checks
+    checks.WARNED.clear()
+    for half in ("threshold: 0.6", "flags_needed: 1, flag_window: 1"):
+        logger = logging.getLogger("reachwatch")
+        seen = []
+        handler = logging.Handler()
+        handler.emit = lambda record: seen.append(record.getMessage())
+        logger.addHandler(handler)
+        try:
+            mixed = load_scenario(data=f"monitor: {{detector: {path}, {half}}}\n").monitor
+            mixed.with_checkpoint_defaults()
+        finally:
+            logger.removeHandler(handler)
+        assert any("fixed its threshold 0.37 together with its rule 2 of 3" in m and
+                   "a pair nothing judged" in m for m in seen), (half, seen)
     own = load_scenario(data=f"monitor: {{detector: {path}, threshold: 0.6, flags_needed: 1, "
                              f"flag_window: 1}}\n").monitor.with_checkpoint_defaults()
     assert (own.threshold, own.flags_needed, own.flag_window) == (0.6, 1, 1)
