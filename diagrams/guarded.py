@@ -9,7 +9,7 @@ from pydrake.systems.primitives import Multiplexer, ZeroOrderHold
 from reachwatch.systems import (AnomalyDetector, DeadReckoning, FallbackSwitch, FlagFilter,
                                 HistoryMonitor, ProportionalController, TrueStateEstimator,
                                 fallback_name)
-from reachwatch.systems.checks import warn_once
+from reachwatch.systems.checks import clip, warn_once
 
 from .checkpoints import checkpoint_kind, load_detector, load_history_monitor
 from .closed_loop import add_controller, export_loop_ports
@@ -103,6 +103,12 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
         model, config, metadata = load_history_monitor(monitor.detector)
         if period is None:
             raise ValueError("monitor.detector: a history monitor needs the control period")
+        missing = [key for key in ("period_s", "image_size") if key not in metadata]
+        if "lead_s" in metadata and missing:     # a study's, saved before they were recorded
+            warn_once(f"monitor.detector: {clip(monitor.detector, 120)} is a study's monitor "
+                      f"saved before its {' and '.join(missing)} were recorded, so this loop's "
+                      f"are not checked against the ones it was trained at; run the study "
+                      f"again to have them checked", key=("unrecorded", str(monitor.detector)))
         trained = metadata.get("period_s")
         if trained is not None and abs(float(trained) - period) > 1e-9:
             raise ValueError(f"monitor.detector: the history monitor was trained on frames "

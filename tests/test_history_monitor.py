@@ -445,3 +445,22 @@ def test_a_risk_that_is_not_a_number_flags():
 def test_flag_of_flags_at_and_above_the_threshold_and_on_nan():
     from reachwatch.systems.detector import flag_of
     assert [flag_of(s, 0.5) for s in (0.49, 0.5, 0.9, float("nan"))] == [0.0, 1.0, 1.0, 1.0]
+
+
+def test_a_studys_monitor_saved_before_its_period_and_frame_size_were_recorded_is_said(
+        tmp_path, caplog):
+    """Such a checkpoint ran at any period and camera size without a word."""
+    from pydrake.systems.framework import DiagramBuilder
+    from reachwatch.diagrams import MonitorConfig, add_detector
+    config = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4)
+    old = str(_checkpoint(tmp_path / "old.pt", config, lead_s=1.67))
+    new = str(_checkpoint(tmp_path / "new.pt", config, lead_s=1.67, period_s=0.05,
+                          image_size=[16, 24]))
+    with caplog.at_level("WARNING", logger="reachwatch"):
+        for path in (new, old):
+            builder = DiagramBuilder()
+            image = builder.AddSystem(ConstantValueSource(AbstractValue.Make(ImageRgba8U(24, 16))))
+            add_detector(builder, image_port=image.get_output_port(), period=0.05,
+                         monitor=MonitorConfig(detector=path, threshold=1.0))
+    assert caplog.text.count("is a study's monitor saved before its period_s and image_size "
+                             "were recorded") == 1 and "old.pt" in caplog.text
