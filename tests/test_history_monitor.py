@@ -202,7 +202,7 @@ def test_a_monitor_guarding_a_gentler_fallback_than_its_study_braked_is_warned_o
     config = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4,
                                   hidden=4)
     path = str(_checkpoint(tmp_path / "m.pt", config, threshold=0.4, brake_deceleration=3.0,
-                           lead_s=1.67))
+                           lead_s=1.67, period_s=0.05, image_size=[16, 24]))
 
     def build(**monitor):
         builder = DiagramBuilder()
@@ -234,7 +234,7 @@ def test_a_monitor_guarding_a_faster_loop_than_its_study_ran_is_warned_once(tmp_
     config = HistoryMonitorConfig(frames=1, height=16, width=24, channels=[4], features=4,
                                   hidden=4)
     path = str(_checkpoint(tmp_path / "m.pt", config, threshold=0.4, brake_deceleration=3.0,
-                           lead_s=1.67, speed_mps=5.0))
+                           lead_s=1.67, speed_mps=5.0, period_s=0.05, image_size=[16, 24]))
 
     def build(speed):
         builder = DiagramBuilder()
