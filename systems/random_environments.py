@@ -15,7 +15,8 @@ import numpy as np
 from .bounds import bounded, check_bounds, seed_field
 from .checks import short
 from .environment import SKIES, Environment
-from .runway import SURFACES, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, TaxiwayLine
+from .runway import (SURFACES, LightsSpec, MarkingsSpec, RunwaySpec, SurfaceSpec, TaxiwayLine,
+                     stripe_room)
 
 
 #: The most environments one family may hold (each is swept, solved and labelled).
@@ -61,7 +62,7 @@ class RandomRunwayRanges:
 
     def validate(self, where="runway"):
         _check_ranges(self, where)
-        if self.threshold_stripes[1] > 0 and 2 * self.half_width[0] - 2 * MAX_EDGE_LINE <= 3.0:
+        if self.threshold_stripes[1] > 0 and stripe_room(self.half_width[0], MAX_EDGE_LINE) <= 0:
             raise ValueError(f"{where}.half_width from {self.half_width[0]:g} m leaves no room "
                              f"for threshold stripes between edge lines of up to "
                              f"{MAX_EDGE_LINE:g} m: start it at {1.5 + MAX_EDGE_LINE + 0.1:g} m "

@@ -65,6 +65,13 @@ class TaxiwayLine:
     width: float = bounded(0.5, 0.0, 10.0, low_open=True, unit="m")
 
 
+def stripe_room(half_width: float, edge_line_width: float) -> float:
+    """The width (m) the threshold stripes share across a runway: its width less its
+    edge lines and 1.5 m beside each (the scene spaces the stripes over it); a runway
+    with threshold stripes needs it > 0."""
+    return 2.0 * half_width - 2.0 * edge_line_width - 3.0
+
+
 @dc.dataclass
 class RunwaySpec:
     """A procedural runway. ``half_width`` is B of the failure set ``|px| >= B``."""
@@ -93,7 +100,7 @@ class RunwaySpec:
         for part in ("surface", "markings", "lights"):
             check_bounds(getattr(self, part), f"{where}{part}.")
         marks = self.markings
-        if marks.threshold_stripes and 2 * self.half_width - 2 * marks.edge_line_width <= 3.0:
+        if marks.threshold_stripes and stripe_room(self.half_width, marks.edge_line_width) <= 0:
             raise ValueError(f"{where}half_width {self.half_width:g} m leaves no room for the "
                              f"threshold stripes (2 x half_width - 2 x markings.edge_line_width "
                              f"must exceed 3 m): widen it, or set markings.threshold_stripes: 0")

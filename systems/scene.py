@@ -8,6 +8,7 @@ from pydrake.geometry import (Box, GeometryInstance, Mesh, PerceptionProperties,
                               RenderLabel, Rgba, SceneGraph)
 from pydrake.math import RigidTransform, RotationMatrix
 
+from .runway import stripe_room
 from .textures import texture_png, tiled_quad_obj
 
 #: How far the scene reaches (m): behind the threshold, sideways, and ahead.
@@ -96,7 +97,7 @@ def add_runway_scene(scene_graph: SceneGraph, spec, *, lamps_lit: bool = False,
             x += marks.dash_length + marks.dash_gap
     if marks.threshold_stripes:
         n = marks.threshold_stripes
-        usable = 2.0 * B - 2.0 * marks.edge_line_width - 3.0
+        usable = stripe_room(B, marks.edge_line_width)
         pitch = usable / (n + 1)
         for k in range(n):
             y = -usable / 2 + pitch * (k + 0.5 + (k >= n // 2))   # gap at the centre
