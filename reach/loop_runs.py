@@ -216,7 +216,6 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
     def frame(root):
         image = read(*camera, root).data
         check_frame_size(image.shape, scenario)     # a monitor's checkpoint records it
-        warn_blank_frames(image[None], f"the recorded runs of {scenario.environment.name}")
         return image
     for i, x in enumerate(states):
         if gone[i]:                                     # already failed: no run
@@ -231,7 +230,9 @@ def loop_recordings(ref, scenario, duration: float, height: int, width: int,
         n = min(len(trajectory.time), length)
         if scored:
             out["engaged"][i] = _engaged(trajectory, scenario.controller.speed)
-        put_recording(out, i, frames=np.stack([row[0] for row in rows])[:n, ..., :3],
+        frames = np.stack([row[0] for row in rows])[:n, ..., :3]
+        warn_blank_frames(frames, f"the recorded runs of {scenario.environment.name}")
+        put_recording(out, i, frames=frames,
                       signals=np.stack([row[1] for row in rows])[:n],
                       state=trajectory.state[:n],
                       score=[row[2] for row in rows[:n]] if scored else None,
