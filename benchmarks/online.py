@@ -14,12 +14,16 @@ first row times TaxiNet alone against a second copy of itself: the method's nois
 
     python benchmarks/online.py [--detector PATH [PATH ...]] [--monitors all|detector|history]
                                 [--duration 4] [--rounds 15] [--ensemble 5] [--breakdown]
-                                [--interleave]
+                                [--interleave] [--encoder-process]
 
 ``--interleave`` times the rows round by round (each round one start, every row's pair
 in turn, the order reversed every other round) instead of row after row, so that a
 drift of the machine's speed over minutes falls on every row alike; give one checkpoint
 twice (two paths) to see how far two identical monitors read apart.
+
+``--encoder-process`` adds, after each history monitor's row, the same monitor with its
+frame work in a process of its own (``monitor.encoder_process``: `FrameWorker`), begun
+when the tick's frame is rendered, beside TaxiNet.
 
 ``--breakdown`` (with a history monitor's ``--detector``) splits the guarded loop's extra
 cost: a row with the monitor's frame work (its resize and encoder) skipped, which leaves
@@ -162,6 +166,9 @@ def main():
                              "history monitor runs its network on one thread whatever this says")
     parser.add_argument("--interleave", action="store_true",
                         help="time the rows round by round instead of row after row")
+    parser.add_argument("--encoder-process", action="store_true",
+                        help="after each history monitor's row, the same with its frame work "
+                             "in a process of its own (monitor.encoder_process)")
     parser.add_argument("--breakdown", action="store_true",
                         help="with a history monitor's --detector: its frame work skipped, "
                              "and its and TaxiNet's cost inside and outside the loop")
@@ -213,11 +220,16 @@ def main():
             configs.append((name, path))
         nominal = make_closed_loop_diagram(load_scenario(data=""))
         # First row: TaxiNet alone against a second copy of itself, the method's noise floor.
-        candidates = [("TaxiNet alone again (noise floor)", None)] + configs
+        candidates = [("TaxiNet alone again (noise floor)", None, False)]
+        for name, path in configs:
+            candidates.append((name, path, False))
+            if args.encoder_process and checkpoint_kind(path) == "history_monitor":
+                candidates.append((f"{name[:23]}, own process", path, True))
         loops = [(name, make_closed_loop_diagram(load_scenario(data="")) if path is None else
                   make_guarded_diagram(load_scenario(
-                      data=f"monitor: {{detector: {path}, threshold: 1.0}}\n")))
-                 for name, path in candidates]
+                      data=f"monitor: {{detector: {path}, threshold: 1.0, "
+                           f"encoder_process: {str(own).lower()}}}\n")))
+                 for name, path, own in candidates]
         for name, (alone, guard) in zip([n for n, _ in loops],
                                         timed_rows(nominal, [g for _, g in loops], args)):
             ratio = guard / alone

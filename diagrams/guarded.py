@@ -121,7 +121,7 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
         system = builder.AddNamedSystem(DETECTOR, HistoryMonitor(
             model=model, threshold=monitor.threshold, period=period,
             calibration=metadata.get("calibration", (1.0, 0.0)),
-            image_size=metadata.get("image_size")))
+            image_size=metadata.get("image_size"), encoder_process=monitor.encoder_process))
         if config.signals:
             signals_port = (None if steering_port is None else add_monitor_signals(
                 builder, steering_port=steering_port, estimate_port=estimate_port))
@@ -132,6 +132,9 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
             builder.Connect(signals_port, system.get_signals_input_port())
         builder.Connect(image_port, system.get_color_image_input_port())
         return system
+    if monitor.encoder_process:
+        raise ValueError("monitor.encoder_process: only a history monitor's frame work runs "
+                         "in a process of its own; this checkpoint is a single-image detector's")
     model, config, metadata = load_detector(monitor.detector)
     detector = builder.AddNamedSystem(DETECTOR, AnomalyDetector(
         model=model, config=config, threshold=monitor.threshold,
@@ -151,11 +154,13 @@ def add_monitor(builder, *, image_port, steering_port, monitor, controller,
     monitor reads the controller's ``estimate_port`` (when given) and steering. A null
     threshold or k-of-n rule is the checkpoint's own (`MonitorConfig.with_checkpoint_defaults`)."""
     monitor = monitor.with_checkpoint_defaults()
+    # the switch before the monitor: its tick's update, which asks the controller's
+    # steering before the flag, then comes first (`HistoryMonitor` ``encoder_process``)
+    switch = builder.AddNamedSystem(SWITCH, FallbackSwitch(
+        fallback=monitor.fallback, nominal_speed=controller.speed, period=controller.period))
     detector = add_detector(builder, image_port=image_port, monitor=monitor,
                             period=controller.period, steering_port=steering_port,
                             estimate_port=estimate_port, speed=controller.speed)
-    switch = builder.AddNamedSystem(SWITCH, FallbackSwitch(
-        fallback=monitor.fallback, nominal_speed=controller.speed, period=controller.period))
     builder.Connect(steering_port, switch.get_steering_angle_input_port())
     anomaly = detector.get_anomaly_output_port()
     if monitor.flag_window > 1:

@@ -34,7 +34,10 @@ class MonitorConfig:
     monitor study's checkpoint holds its conformal threshold and rule; a detector
     trained by a run holds the threshold its training chose on its validation split,
     which a run's train stage may replace (``detector.threshold_folds``): name that one
-    here to use it. `with_checkpoint_defaults` fills them in."""
+    here to use it. `with_checkpoint_defaults` fills them in. ``encoder_process: true``
+    runs a history monitor's frame work (its resize and encoder) in a process of its
+    own, beside the controller's at each tick: the same flags, a faster tick where a
+    core is free (`systems.HistoryMonitor`)."""
     detector: str = ""
     threshold: Optional[float] = bounded(None, 0.0, 1.0)
     strategy: str = "slow_down"
@@ -44,6 +47,7 @@ class MonitorConfig:
     flags_needed: Optional[int] = bounded(None, 1, MAX_FLAG_WINDOW, whole=True,
                                           note="<= flag_window; both set or both null")
     flag_window: Optional[int] = bounded(None, 1, MAX_FLAG_WINDOW, whole=True, unit="ticks")
+    encoder_process: bool = False
 
     @property
     def fallback(self):

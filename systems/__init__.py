@@ -32,7 +32,8 @@ from .history_model import (INPUT_NORMS, TEMPORAL_MODELS, HistoryMonitorConfig,
                             HistoryRiskModel, platt)
 from .risk_ensemble import (MAX_MEMBERS, GroupedEncoder, HistoryRiskEnsemble, check_members,
                             grouped_gru)
-from .history_monitor import HistoryMonitor
+from .frame_worker import FrameWorker
+from .history_monitor import FrameEncoder, HistoryMonitor
 from .flag_filter import FlagFilter, check_k_of_n, confirmed_flags
 from .ports import weak_callback
 from .switch import (DEFAULT_FALLBACKS, STEERING, STEERING_ALIASES, STRATEGIES,
@@ -42,7 +43,8 @@ from .taxinet import (PX_GAIN_DEG_PER_M, THETA_GAIN, ProportionalController, Tax
                       TrueStateEstimator)
 
 __all__ = [
-    "INPUT_NORMS", "TEMPORAL_MODELS", "HistoryMonitor", "HistoryMonitorConfig", "HistoryRiskModel", "platt",
+    "INPUT_NORMS", "TEMPORAL_MODELS", "FrameEncoder", "FrameWorker", "HistoryMonitor",
+    "HistoryMonitorConfig", "HistoryRiskModel", "platt",
     "MAX_MEMBERS", "GroupedEncoder", "HistoryRiskEnsemble", "check_members", "grouped_gru",
     "FlagFilter", "check_k_of_n", "confirmed_flags", "weak_callback",
     "RandomEnvironments", "RandomRunwayRanges", "random_runway",

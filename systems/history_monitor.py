@@ -16,6 +16,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 from pydrake.systems.sensors import ImageRgba8U
 
 from .detector import check_trained_size, flag_of, inference_model, resize_for_detector
+from .frame_worker import FrameWorker
 from .history_model import HistoryRiskModel, platt
 from .ports import weak_callback
 from .risk_ensemble import GroupedEncoder, HistoryRiskEnsemble, grouped_gru
@@ -31,6 +32,25 @@ def one_torch_thread():
     scheduled."""
     with torch_threads(1), torch.inference_mode():
         yield
+
+
+class FrameEncoder:
+    """A `HistoryMonitor`'s frame work, picklable (`FrameWorker` runs it in a process of
+    its own): a camera frame, uint8 ``(H, W, 3|4)``, resized to the model's size, then
+    every member's features (one member's, or a `GroupedEncoder`'s of all), float32
+    ``(members * features,)``, on one torch thread."""
+
+    def __init__(self, members, image_config):
+        self._members = members
+        self._grouped = GroupedEncoder(members) if len(members) > 1 else None
+        self._image_config = image_config
+
+    def __call__(self, rgba: np.ndarray) -> np.ndarray:
+        image = torch.from_numpy(resize_for_detector(rgba[None], self._image_config))
+        with one_torch_thread():
+            if self._grouped is None:
+                return self._members[0].encode(image)[0].numpy()
+            return self._grouped.encode(image)[0].reshape(-1).numpy()
 
 
 class HistoryMonitor(LeafSystem):
@@ -67,10 +87,18 @@ class HistoryMonitor(LeafSystem):
     Either way ``score`` is the offline `HistoryRiskModel.risk_sequence` of the run
     (the same function, up to float rounding). ``image_size = (height, width)`` of the
     camera frames it was trained on, when given, is enforced (each frame is resized to
-    the model's size, so a camera of another size or shape would pass unseen)."""
+    the model's size, so a camera of another size or shape would pass unseen).
+
+    ``encoder_process=True`` runs the frame work (the resize and the members' encoders)
+    in a process of its own (`FrameWorker`), begun at each tick's publish event, when
+    the tick's frame is rendered, so that it runs on another core while the loop
+    evaluates its controller; the row then reads its answer for the same pixels (the
+    same numbers: the same code on one torch thread). It gains when the loop asks the
+    controller's output before the monitor's at each tick, as the guarded loop's
+    `FallbackSwitch` does, and the machine has a core to spare."""
 
     def __init__(self, *, model, threshold: float, period: float, calibration=(1.0, 0.0),
-                 image_size=None):
+                 image_size=None, encoder_process: bool = False):
         super().__init__()
         self._image_size = tuple(image_size) if image_size is not None else None
         if not 0.0 <= threshold <= 1.0:
@@ -84,8 +112,8 @@ class HistoryMonitor(LeafSystem):
                             f"HistoryRiskEnsemble, got {type(model).__name__}")
         # Conv-BN folded, channels-last; an ensemble's encoders as one network
         self._members = [inference_model(member) for member in members]
-        self._grouped = GroupedEncoder(self._members) if len(members) > 1 else None
         self._config = model.config
+        self._encode_frame = FrameEncoder(self._members, self._config.image_config)
         self._threshold = float(threshold)
         self._platt = None if calibration is None else tuple(float(v) for v in calibration)
         c = self._config
@@ -122,6 +150,10 @@ class HistoryMonitor(LeafSystem):
             self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         self._score_port = self.DeclareVectorOutputPort("score", 1, self._calc_score)
         self._anomaly_port = self.DeclareVectorOutputPort("anomaly", 1, self._calc_anomaly)
+        self._worker = None
+        if encoder_process:
+            self._worker = FrameWorker(self._encode_frame, name="HistoryMonitor")
+            self.DeclarePeriodicPublishEvent(period, 0.0, self._begin_frame_work)
 
     @property
     def threshold(self) -> float:
@@ -142,15 +174,20 @@ class HistoryMonitor(LeafSystem):
     def get_frame_features_output_port(self):
         return self._row_port
 
+    @property
+    def encoder_process(self):
+        """The `FrameWorker` of ``encoder_process=True``, else None."""
+        return self._worker
+
+    def _begin_frame_work(self, context):
+        self._worker.begin(self._image_port.Eval(context).data)
+
     def _calc_row(self, context, row):
         rgba = self._image_port.Eval(context).data
         check_trained_size(rgba, self._image_size, "HistoryMonitor", "monitor")
-        image = resize_for_detector(rgba[None], self._config.image_config)
-        with one_torch_thread():
-            if self._grouped is None:
-                features = self._members[0].encode(torch.from_numpy(image))[0].numpy()
-            else:
-                features = self._grouped.encode(torch.from_numpy(image))[0].reshape(-1).numpy()
+        features = None if self._worker is None else self._worker.result(rgba)
+        if features is None:
+            features = self._encode_frame(rgba)
         if self._signals_port is not None:
             features = np.concatenate([features, self._signals_port.Eval(context)])
         row.SetFromVector(features.astype(float))

@@ -285,12 +285,17 @@ class FallbackSwitch(LeafSystem):
         return self._anomaly_in.Eval(context)[0] >= 0.5
 
     def _update_speed(self, context, discrete_state):
+        # the controller's steering first (the loop needs it this tick anyway): a monitor
+        # whose frame work was begun in a process of its own at the render then works
+        # beside the controller (`HistoryMonitor` ``encoder_process``)
+        self._steering_in.Eval(context)
         speed = context.get_discrete_state(self._speed_index).GetAtIndex(0)
         discrete_state.get_mutable_vector(self._speed_index).SetAtIndex(0, float(
             self._fallback.next_speed(speed, self._flagged(context), nominal=self._nominal,
                                       period=self._period)))
 
     def _calc_steering(self, context, output):
+        steering = self._steering_in.Eval(context)     # before the flag, as `_update_speed`
         flagged = self._flagged(context)
         fallback = None
         if flagged and self._fallback.takes_over_steering:
@@ -299,4 +304,4 @@ class FallbackSwitch(LeafSystem):
                                  f"the 'fallback_steering_angle' input connected")
             fallback = self._fallback_in.Eval(context)
         output.SetFromVector(self._fallback.steering_angle(
-            flagged, self._steering_in.Eval(context), fallback))
+            flagged, steering, fallback))

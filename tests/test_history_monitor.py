@@ -369,7 +369,7 @@ def test_each_tick_encodes_its_frame_once_and_steps_the_gru_once(members):
     models = [HistoryRiskModel(config).eval() for _ in range(members)]
     monitor = HistoryMonitor(model=models[0] if members == 1 else
                              HistoryRiskEnsemble.of(models), threshold=0.5, period=0.05)
-    encoder = (monitor._members[0] if members == 1 else monitor._grouped).encoder
+    encoder = (monitor._members[0] if members == 1 else monitor._encode_frame._grouped).encoder
     calls = {"encode": [], "gru": []}
     encoder.register_forward_pre_hook(
         lambda m, args: calls["encode"].append(torch.get_num_threads()))

@@ -1,0 +1,115 @@
+"""`FrameWorker`: a frame's work in a process of its own gives the answer the work gives
+here, for exactly the pixels begun, and a process that fails or ends hands the work back
+to the caller, said once; a history monitor whose encoder runs so outputs the same
+scores, bit for bit, as one that encodes in the loop."""
+
+import functools
+import gc
+import logging
+
+import numpy as np
+import pytest
+
+from reachwatch.diagrams import load_scenario, make_guarded_diagram, simulate
+from reachwatch.systems import HistoryMonitorConfig
+from reachwatch.systems import checks
+from reachwatch.systems.frame_worker import FrameWorker
+from reachwatch.taxi import OffRunway
+from test_history_monitor import _checkpoint
+
+
+@pytest.fixture
+def said():
+    checks.WARNED.clear()
+    seen = []
+    handler = logging.Handler()
+    handler.emit = lambda record: seen.append(record.getMessage())
+    logger = logging.getLogger("reachwatch")
+    logger.addHandler(handler)
+    yield seen
+    logger.removeHandler(handler)
+
+
+def _frames(count, shape=(6, 10, 4), seed=0):
+    return np.random.default_rng(seed).integers(0, 256, (count, *shape), dtype=np.uint8)
+
+
+def test_the_answer_is_the_works_own_for_exactly_the_pixels_begun(said):
+    work = functools.partial(np.multiply, 0.5)
+    worker = FrameWorker(work, name="test")
+    try:
+        first, second = _frames(2)
+        assert worker.result(first) is None                      # nothing begun
+        worker.begin(first)
+        assert worker.result(second) is None                     # other pixels
+        answer = worker.result(first)
+        assert answer.dtype == np.float64
+        np.testing.assert_array_equal(answer, work(first))
+        assert worker.result(first) is None                      # answered once
+        worker.begin(first)
+        worker.begin(second)                 # the first's answer read and dropped
+        np.testing.assert_array_equal(worker.result(second), work(second))
+        larger = _frames(1, (8, 12, 4), seed=1)[0]                # another size: remapped
+        worker.begin(larger)
+        np.testing.assert_array_equal(worker.result(larger), work(larger))
+        assert worker.answered == 3 and worker.alive and not said
+    finally:
+        worker.close()
+    assert worker._process.poll() is not None                    # closed: ended
+    worker.begin(first)
+    assert worker.result(first) is None
+
+
+def test_a_work_that_fails_or_a_process_that_ends_hands_the_frames_back(said):
+    failing = FrameWorker(functools.partial(np.take, indices=10 ** 9), name="failing work")
+    frame = _frames(1)[0]
+    failing.begin(frame)
+    assert failing.result(frame) is None and not failing.alive
+    assert len(said) == 1 and said[0].startswith("failing work: its frame work failed in its "
+                                                 "own process (IndexError: ")
+    failing.begin(frame)                                          # asked no more, said once
+    assert failing.result(frame) is None and len(said) == 1
+    ended = FrameWorker(functools.partial(np.multiply, 2.0), name="killed")
+    ended._process.kill()
+    ended._process.wait()
+    ended.begin(frame)
+    assert ended.result(frame) is None and not ended.alive
+    assert any(m.startswith("killed: its frame work's own process ended (") for m in said)
+
+
+def test_a_history_monitor_encoding_in_its_own_process_gives_the_same_scores(tmp_path):
+    config = HistoryMonitorConfig(frames=3, stride=1, height=24, width=40, channels=[4, 8],
+                                  features=6)
+    path = _checkpoint(tmp_path / "monitor.pt", config)
+    scores = {}
+    for own in (False, True):
+        scenario = load_scenario(data=f"monitor: "
+                                      f"{{detector: {path}, threshold: 0.5, "
+                                      f"encoder_process: {str(own).lower()}}}\n")
+        diagram = make_guarded_diagram(scenario)
+        run = simulate(diagram, initial_state=[2.0, 120.0, 0.1], duration=0.6, period=0.05,
+                       failed=OffRunway(scenario.environment.half_width))
+        scores[own] = run.score
+        worker = diagram.GetSubsystemByName("anomaly_detector").encoder_process
+        assert (worker is None) == (not own)
+        if own:     # every tick's row came from the process (the last, after the run: not read)
+            assert worker.answered >= len(run.score) - 1 and worker.alive
+            process = worker._process
+    assert len(scores[True]) == 13 and np.ptp(scores[True]) > 1e-6
+    np.testing.assert_array_equal(scores[True], scores[False])
+    del diagram, worker, run                # the loop let go: its process ends with it
+    gc.collect()
+    assert process.wait(timeout=30) == 0
+
+
+def test_a_single_image_detector_is_refused_its_own_process(tmp_path):
+    from reachwatch.diagrams import save_checkpoint
+    from reachwatch.systems import DetectorConfig, build_detector
+    path = tmp_path / "detector.pt"
+    config = DetectorConfig(height=16, width=24)
+    save_checkpoint(path, kind="detector", model=build_detector(config), model_config=config,
+                    preprocess_config=None, metadata={"threshold": 0.5})
+    scenario = load_scenario(data=f"monitor: {{detector: {path}, encoder_process: true}}\n")
+    with pytest.raises(ValueError, match=r"^monitor.encoder_process: only a history monitor's "
+                                         r"frame work runs in a process of its own"):
+        make_guarded_diagram(scenario)
