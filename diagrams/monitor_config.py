@@ -37,7 +37,8 @@ class MonitorConfig:
     here to use it. `with_checkpoint_defaults` fills them in. ``encoder_process: true``
     runs a history monitor's frame work (its resize and encoder) in a process of its
     own, beside the controller's at each tick: the same flags, a faster tick where a
-    core is free (`systems.HistoryMonitor`)."""
+    core is free (`systems.HistoryMonitor`); a monitor study's guarded runs, which run
+    loops on every core already, encode in the loop."""
     detector: str = ""
     threshold: Optional[float] = bounded(None, 0.0, 1.0)
     strategy: str = "slow_down"

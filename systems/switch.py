@@ -288,7 +288,8 @@ class FallbackSwitch(LeafSystem):
         # the controller's steering first (the loop needs it this tick anyway): a monitor
         # whose frame work was begun in a process of its own at the render then works
         # beside the controller (`HistoryMonitor` ``encoder_process``)
-        self._steering_in.Eval(context)
+        if self._steering_in.HasValue(context):
+            self._steering_in.Eval(context)
         speed = context.get_discrete_state(self._speed_index).GetAtIndex(0)
         discrete_state.get_mutable_vector(self._speed_index).SetAtIndex(0, float(
             self._fallback.next_speed(speed, self._flagged(context), nominal=self._nominal,

@@ -40,6 +40,7 @@ def test_the_answer_is_the_works_own_for_exactly_the_pixels_begun(said):
     try:
         first, second = _frames(2)
         assert worker.result(first) is None                      # nothing begun
+        assert worker._process is None                           # nor started
         worker.begin(first)
         assert worker.result(second) is None                     # other pixels
         answer = worker.result(first)
@@ -67,14 +68,37 @@ def test_a_work_that_fails_or_a_process_that_ends_hands_the_frames_back(said):
     assert failing.result(frame) is None and not failing.alive
     assert len(said) == 1 and said[0].startswith("failing work: its frame work failed in its "
                                                  "own process (IndexError: ")
+    assert failing._process.wait(timeout=30) == 0                 # given up: ended
     failing.begin(frame)                                          # asked no more, said once
     assert failing.result(frame) is None and len(said) == 1
     ended = FrameWorker(functools.partial(np.multiply, 2.0), name="killed")
+    ended.begin(frame)
+    assert ended.result(frame) is not None
     ended._process.kill()
     ended._process.wait()
     ended.begin(frame)
     assert ended.result(frame) is None and not ended.alive
     assert any(m.startswith("killed: its frame work's own process ended (") for m in said)
+
+
+def test_an_interrupt_midway_ends_the_process_and_a_work_that_cannot_go_is_refused(said):
+    """An answer left on its way would put every later answer one frame behind: an
+    interrupt while one is read gives the process up, and the frames come back."""
+    worker = FrameWorker(functools.partial(np.multiply, 3.0), name="interrupted")
+    frame = _frames(1)[0]
+    worker.begin(frame)
+
+    def interrupted():
+        raise KeyboardInterrupt
+    worker._conn.recv = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        worker.result(frame)
+    assert not worker.alive and worker._process.wait(timeout=30) is not None
+    worker.begin(frame)
+    assert worker.result(frame) is None and not said         # the interrupt is the caller's
+    with pytest.raises(TypeError, match=r"^unpicklable: its frame work cannot go to a "
+                                        r"process of its own: "):
+        FrameWorker(lambda frame: frame, name="unpicklable")
 
 
 def test_a_history_monitor_encoding_in_its_own_process_gives_the_same_scores(tmp_path):
@@ -100,6 +124,25 @@ def test_a_history_monitor_encoding_in_its_own_process_gives_the_same_scores(tmp
     del diagram, worker, run                # the loop let go: its process ends with it
     gc.collect()
     assert process.wait(timeout=30) == 0
+
+
+def test_an_ensembles_encoders_give_the_same_features_in_their_own_process():
+    import torch
+    from reachwatch.systems import FrameEncoder, HistoryRiskModel
+    from reachwatch.systems.detector import inference_model
+    config = HistoryMonitorConfig(frames=1, height=24, width=40, channels=[4, 8], features=6)
+    torch.manual_seed(0)
+    encode = FrameEncoder([inference_model(HistoryRiskModel(config).eval()) for _ in range(2)],
+                          config.image_config)
+    worker = FrameWorker(encode, name="ensemble")
+    try:
+        for frame in _frames(3, (50, 90, 4)):
+            worker.begin(frame)
+            answer = worker.result(frame)
+            assert answer.shape == (12,)
+            np.testing.assert_array_equal(answer, encode(frame))
+    finally:
+        worker.close()
 
 
 def test_a_single_image_detector_is_refused_its_own_process(tmp_path):
