@@ -14,12 +14,17 @@ first row times TaxiNet alone against a second copy of itself: the method's nois
 
     python benchmarks/online.py [--detector PATH [PATH ...]] [--monitors all|detector|history]
                                 [--duration 4] [--rounds 15] [--ensemble 5] [--breakdown]
-                                [--interleave] [--encoder-process]
+                                [--interleave] [--both-ways] [--encoder-process]
 
 ``--interleave`` times the rows round by round (each round one start, every row's pair
 in turn, the order reversed every other round) instead of row after row, so that a
 drift of the machine's speed over minutes falls on every row alike; give one checkpoint
 twice (two paths) to see how far two identical monitors read apart.
+
+``--both-ways`` times each round's pair twice, TaxiNet alone as the reference and then
+as the candidate, and reports the two runs' mean rates: in runs of many rows the noise
+floor read 1.02-1.07 where two copies of TaxiNet alone timed both ways round read
+1.00 (docs/results/monitor/2026-12-07.md).
 
 ``--encoder-process`` adds, after each history monitor's row, the same monitor with its
 frame work in a process of its own (``monitor.encoder_process``: `FrameWorker`), begun
@@ -135,17 +140,26 @@ def timed_rows(nominal, loops, args):
     """``[(alone, guarded)]`` rates of each of ``loops`` against ``nominal``
     (`paired_rates`), ``args.rounds`` rounds each: row after row, or with
     ``args.interleave`` round by round (every row's pair in turn, from the round's one
-    start, the order reversed every other round)."""
+    start, the order reversed every other round). With ``args.both_ways`` each round
+    times its pair both ways round, ``nominal`` as the reference and then as the
+    candidate, and gives the two runs' mean rates."""
+    def pair(loop, starts, rounds):
+        alone, guard = paired_rates(nominal, loop, rounds=rounds, duration=args.duration,
+                                    period=0.05, starts=starts)
+        if args.both_ways:
+            guard_2, alone_2 = paired_rates(loop, nominal, rounds=rounds,
+                                            duration=args.duration, period=0.05,
+                                            starts=starts)
+            alone, guard = (alone + alone_2) / 2, (guard + guard_2) / 2
+        return alone, guard
     if not args.interleave:
-        return [paired_rates(nominal, loop, rounds=args.rounds, duration=args.duration,
-                             period=0.05, starts=NEAR_CENTRELINE) for loop in loops]
+        return [pair(loop, NEAR_CENTRELINE, args.rounds) for loop in loops]
     rates = [([], []) for _ in loops]
     for k in range(args.rounds):
         order = list(range(len(loops)))[::1 if k % 2 == 0 else -1]
         start = [NEAR_CENTRELINE[k % len(NEAR_CENTRELINE)]]
         for i in order:
-            alone, guard = paired_rates(nominal, loops[i], rounds=1, duration=args.duration,
-                                        period=0.05, starts=start)
+            alone, guard = pair(loops[i], start, 1)
             rates[i][0].append(alone[0])
             rates[i][1].append(guard[0])
     return [(np.array(a), np.array(g)) for a, g in rates]
@@ -166,6 +180,9 @@ def main():
                              "history monitor runs its network on one thread whatever this says")
     parser.add_argument("--interleave", action="store_true",
                         help="time the rows round by round instead of row after row")
+    parser.add_argument("--both-ways", action="store_true",
+                        help="time each pair both ways round (each loop as the reference "
+                             "in turn) and give the mean rates")
     parser.add_argument("--encoder-process", action="store_true",
                         help="after each history monitor's row, the same with its frame work "
                              "in a process of its own (monitor.encoder_process)")

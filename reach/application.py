@@ -825,10 +825,16 @@ class ApplicationRef:
 def without_run_settings(scenario):
     """A copy of ``scenario`` whose start state, duration and seed are the defaults: a
     sweep sets the state, and a batch of real-loop runs its starts and duration, so
-    neither reads them, and a run file that changes them reuses their caches."""
+    neither reads them, and a run file that changes them reuses their caches. Its
+    monitor encodes in the loop (``monitor.encoder_process`` off): a batch keeps every
+    core busy with loops of its own, and a process a loop would be one more for each
+    loop kept, for the same scores."""
     scenario, defaults = copy.deepcopy(scenario), type(scenario)()
     for name in scenario.SINGLE_RUN_FIELDS:
         setattr(scenario, name, getattr(defaults, name))
+    monitor = getattr(scenario, "monitor", None)
+    if getattr(monitor, "encoder_process", False):
+        scenario.monitor = dc.replace(monitor, encoder_process=False)
     return scenario
 
 

@@ -276,3 +276,15 @@ def test_a_run_files_single_run_settings_are_warned_of_not_silently_unread(caplo
     with caplog.at_level(logging.WARNING, logger="reachwatch"):
         load_run_spec(data=TINY + "scenario:\n  duration: 10.0\n")   # the default: nothing
     assert not caplog.records
+
+
+def test_a_batch_of_runs_encodes_in_the_loop_and_is_keyed_so():
+    """``monitor.encoder_process`` is a single loop's: a batch's loops (and their keys)
+    are those of a monitor encoding in the loop, the same scores without a process a loop."""
+    from reachwatch.diagrams import load_scenario
+    from reachwatch.reach.application import without_run_settings
+    from reachwatch.reach.fingerprint import fingerprint
+    own = load_scenario(data="monitor: {encoder_process: true}\nduration: 3.0\n")
+    batch = without_run_settings(own)
+    assert own.monitor.encoder_process and not batch.monitor.encoder_process
+    assert fingerprint(batch) == fingerprint(without_run_settings(load_scenario(data="")))
