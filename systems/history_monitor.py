@@ -185,11 +185,14 @@ class HistoryMonitor(LeafSystem):
     def _calc_row(self, context, row):
         rgba = self._image_port.Eval(context).data
         check_trained_size(rgba, self._image_size, "HistoryMonitor", "monitor")
+        # the signals first: they ask the controller, which works while the frame's
+        # process does (``encoder_process``)
+        signals = None if self._signals_port is None else self._signals_port.Eval(context)
         features = None if self._worker is None else self._worker.result(rgba)
         if features is None:
             features = self._encode_frame(rgba)
-        if self._signals_port is not None:
-            features = np.concatenate([features, self._signals_port.Eval(context)])
+        if signals is not None:
+            features = np.concatenate([features, signals])
         row.SetFromVector(features.astype(float))
 
     def _rows(self, context):

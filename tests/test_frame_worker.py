@@ -101,9 +101,13 @@ def test_an_interrupt_midway_ends_the_process_and_a_work_that_cannot_go_is_refus
         FrameWorker(lambda frame: frame, name="unpicklable")
 
 
-def test_a_history_monitor_encoding_in_its_own_process_gives_the_same_scores(tmp_path):
-    config = HistoryMonitorConfig(frames=3, stride=1, height=24, width=40, channels=[4, 8],
-                                  features=6)
+@pytest.mark.parametrize("temporal, frames, signals", [("stack", 3, 0), ("gru", 4, 3)])
+def test_a_history_monitor_encoding_in_its_own_process_gives_the_same_scores(
+        tmp_path, temporal, frames, signals):
+    config = HistoryMonitorConfig(frames=frames, stride=1, height=24, width=40,
+                                  channels=[4, 8], features=6, temporal=temporal, hidden=8,
+                                  signals=signals, signal_mean=[0.1] * signals,
+                                  signal_std=[2.0] * signals)
     path = _checkpoint(tmp_path / "monitor.pt", config)
     scores = {}
     for own in (False, True):
