@@ -247,6 +247,11 @@ def main():
                       data=f"monitor: {{detector: {path}, threshold: 1.0, "
                            f"encoder_process: {str(own).lower()}}}\n")))
                  for name, path, own in candidates]
+        for _, loop in loops:           # the own processes ready before any round
+            for system in leaf_systems(loop):
+                worker = getattr(system, "encoder_process", None)
+                if worker is not None and not worker.start(wait=120):
+                    raise SystemExit(f"{system.get_name()}: its encoder's process did not start")
         for name, (alone, guard) in zip([n for n, _ in loops],
                                         timed_rows(nominal, [g for _, g in loops], args)):
             ratio = guard / alone

@@ -17,6 +17,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 import weakref
 from multiprocessing.connection import Connection
 from multiprocessing.reduction import recv_handle, send_handle
@@ -25,8 +26,7 @@ import numpy as np
 
 from .checks import clip, warn_once
 
-#: Seconds `FrameWorker` waits for an answer (the first includes its process's start,
-#: which imports torch and Drake) before it gives the process up.
+#: Seconds `FrameWorker` waits for an answer to a frame before it gives the process up.
 ANSWER_TIMEOUT_S = 120.0
 
 _WORKERS = itertools.count()        # each worker's own key for what it says once
@@ -34,24 +34,26 @@ _WORKERS = itertools.count()        # each worker's own key for what it says onc
 
 class FrameWorker:
     """Runs ``work`` (a picklable callable: one frame, a uint8 array, -> a float array)
-    in a Python process of its own, on one thread (``OMP_NUM_THREADS=1``), started at
-    the first `begin`. `begin` hands it a frame (through memory both processes map: one
-    copy); `result` gives the work's answer for a frame of exactly those pixels
-    (compared byte for byte), or None: nothing begun for these pixels, the answer an
+    in a Python process of its own, on one thread (``OMP_NUM_THREADS=1``). `begin`
+    hands it a frame (through memory both processes map: one copy); `result` gives the
+    work's answer for a frame of exactly those pixels (compared byte for byte), or
+    None: nothing begun for these pixels, the process not ready yet, the answer an
     error, or the process gone; the caller then does the work itself, so an answer is
     always the one ``work(frame)`` gives in this process (the same code on the same
     pixels; the work must fix its own thread count, as `HistoryMonitor`'s does, for the
     same numbers).
 
-    It gains when one loop drives it (contexts of one diagram simulated in turn share
-    it: each `begin` waits for the other's answer) and the machine has a core to spare.
-    The process imports what the work's unpickling needs (for a monitor: torch and
-    Drake, about 0.34 GB of its own memory and 2 s before its first answer).
-    A process gone, an answer that is an error, or an exception (an interrupt) while a
-    frame or an answer is on its way ends the process; the first two are said once (the
-    ``reachwatch`` logger). The process ends too when the worker is closed or
-    collected, or with this one. ``name`` says whose work it is in what is said;
-    ``answered`` counts the frames the process answered."""
+    The process starts at the first `begin` (or `start`) and takes frames once it has
+    loaded the work: it imports what unpickling the work needs (for a monitor: torch and
+    Drake, about 2 s and 0.34 GB of its own memory); until then the caller works every
+    frame, and no tick waits for it. It gains when one loop drives it (contexts of one
+    diagram simulated in turn share it: each `begin` waits for the other's answer) and
+    the machine has a core to spare. A process gone or an answer that is an error is
+    said once (the ``reachwatch`` logger) and ends it; so does an exception (an
+    interrupt) while a frame or an answer is on its way, which would put the answers
+    one frame behind, unsaid. It ends too when the worker is closed or collected, or
+    with this process. ``name`` says whose work it is in what is said; ``answered``
+    counts the frames the process answered."""
 
     def __init__(self, work, *, name: str):
         try:
@@ -63,6 +65,7 @@ class FrameWorker:
         self._key = ("frame worker", next(_WORKERS))
         self._lock = threading.Lock()   # loops on threads of one process may share it
         self._process = self._conn = self._finalizer = None
+        self._ready = False             # the process has loaded the work
         self._pending = False           # the process works on the frame in `_shared`
         self._shared = None             # the last frame begun, in memory both map
         self._alive = True
@@ -73,9 +76,18 @@ class FrameWorker:
         """Whether the process (started or not yet) still takes frames."""
         return self._alive
 
+    def start(self, *, wait: float = 0.0) -> bool:
+        """Starts the process if it is not started, and waits up to ``wait`` s for it to
+        load the work; returns whether it takes frames now."""
+        with self._lock:
+            if self._alive:
+                self._guarded(self._start_and_wait, float(wait))
+            return self._alive and self._ready
+
     def begin(self, frame: np.ndarray) -> None:
         """Hands ``frame`` to the process (an answer still pending is read and dropped
-        first), starting the process the first time."""
+        first), starting the process the first time; a frame that comes before the
+        process is ready is left to the caller."""
         with self._lock:
             if self._alive:
                 self._guarded(self._begin, frame)
@@ -84,15 +96,13 @@ class FrameWorker:
         """The work's answer for ``frame`` when it is the frame begun last, else None."""
         with self._lock:
             if not (self._alive and self._pending and self._shared.shape == frame.shape
+                    and self._shared.dtype == frame.dtype
                     and np.array_equal(self._shared, frame)):
                 return None                     # a pending one is dropped at the next begin
             answer = self._guarded(self._receive)
-        if isinstance(answer, str):
-            self._give_up(f"its frame work failed in its own process ({clip(answer, 300)})")
-            return None
-        if answer is not None:
-            self.answered += 1
-        return answer
+            if answer is not None:
+                self.answered += 1
+            return answer
 
     def close(self) -> None:
         """Ends the process."""
@@ -102,26 +112,45 @@ class FrameWorker:
                 self._finalizer()
 
     def _guarded(self, step, *args):
-        """``step(*args)``, the process given up when it is lost on the way, and for
-        good when anything else (an interrupt) stops it half done: a frame or an answer
-        left on the way would put the answers one frame behind."""
+        """``step(*args)``; the process is given up when it is lost on the way, and at
+        once when anything else (an interrupt) stops the step half done."""
         try:
             return step(*args)
         except (OSError, EOFError, TimeoutError) as error:
             self._give_up(f"its frame work's own process ended ({type(error).__name__}: "
                           f"{clip(error, 200)})")
         except BaseException:
+            if self._process is not None:
+                self._process.kill()
             self._give_up(None)
             raise
+
+    def _start_and_wait(self, wait):
+        if self._process is None:
+            self._start()
+        deadline = time.monotonic() + wait
+        while not self._ready and self._alive:
+            if not self._conn.poll(max(0.0, deadline - time.monotonic())):
+                return
+            self._loaded(self._conn.recv())
 
     def _begin(self, frame):
         if self._process is None:
             self._start()
+        if not self._ready:
+            if not self._conn.poll(0):
+                return                          # still loading: the caller works this one
+            self._loaded(self._conn.recv())
+            if not self._alive:
+                return
         if self._pending:
             self._receive()                     # the process is done with `_shared`
+            if not self._alive:
+                return
         if self._shared is None or self._shared.shape != frame.shape or \
                 self._shared.dtype != frame.dtype:
-            self._shared, fd = _mapped_frame(frame.shape, frame.dtype)
+            raw, fd = _mapped(frame.nbytes)
+            self._shared = raw.view(frame.dtype).reshape(frame.shape)
             try:
                 self._conn.send(("map", frame.shape, frame.dtype.str))
                 send_handle(self._conn, fd, self._process.pid)
@@ -131,31 +160,45 @@ class FrameWorker:
         self._conn.send(("frame",))
         self._pending = True
 
+    def _loaded(self, message):
+        if message == "ready":
+            self._ready = True
+        else:
+            self._give_up(f"its frame work failed in its own process ({clip(message, 300)})")
+
     def _start(self):
+        """Starts the process (its own session: a terminal's Ctrl-C is this process's to
+        handle), handing it the work through a file it inherits."""
         ours, theirs = socket.socketpair()
+        work, fd = _mapped(len(self._work))
+        work[:] = np.frombuffer(self._work, np.uint8)
+        os.lseek(fd, 0, os.SEEK_SET)
         # this process's imports, and one thread for every library that makes its own
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p),
                    OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
         try:
             self._process = subprocess.Popen(
                 [sys.executable, "-c", "from reachwatch.systems.frame_worker import serve; "
-                 f"serve({theirs.fileno()})"], pass_fds=(theirs.fileno(),), env=env,
-                stdin=subprocess.DEVNULL)
+                 f"serve({theirs.fileno()}, {fd}, {len(self._work)})"],
+                pass_fds=(theirs.fileno(), fd), env=env, stdin=subprocess.DEVNULL,
+                start_new_session=True)
         except BaseException:
             ours.close()
             raise
         finally:
             theirs.close()
+            os.close(fd)
         self._conn = Connection(ours.detach())
         self._finalizer = weakref.finalize(self, _stop, self._conn, self._process)
-        self._conn.send_bytes(self._work)
 
     def _receive(self):
-        self._pending = None                    # half read, should this stop here
         if not self._conn.poll(ANSWER_TIMEOUT_S):
             raise TimeoutError(f"no answer in {ANSWER_TIMEOUT_S:g} s")
         answer = self._conn.recv()
         self._pending = False
+        if isinstance(answer, str):
+            self._give_up(f"its frame work failed in its own process ({clip(answer, 300)})")
+            return None
         return answer
 
     def _give_up(self, message):
@@ -167,55 +210,58 @@ class FrameWorker:
             self._finalizer()
 
 
-def _mapped_frame(shape, dtype):
-    """``(array, fd)``: a zeroed array of ``shape`` and ``dtype`` in memory mapped from
-    a file that is already removed (Linux's /dev/shm, else the temporary folder), and
-    an open descriptor of it to hand the worker's process (then close it): nothing is
-    left behind when both are done."""
+def _mapped(size: int):
+    """``(bytes, fd)``: ``size`` zeroed bytes (uint8) in memory mapped from a file that
+    is already removed (Linux's /dev/shm, else the temporary folder), and an open
+    descriptor of it to hand the worker's process (then close it): nothing is left
+    behind when both are done."""
     folder = "/dev/shm" if os.path.isdir("/dev/shm") else None
     fd, path = tempfile.mkstemp(prefix="reachwatch-frame-", dir=folder)
     try:
         os.unlink(path)
-        size = int(np.prod(shape)) * np.dtype(dtype).itemsize
-        os.ftruncate(fd, size)
-        return np.ndarray(shape, dtype, buffer=mmap.mmap(fd, size)), fd
+        os.ftruncate(fd, max(int(size), 1))
+        return np.frombuffer(mmap.mmap(fd, max(int(size), 1)), np.uint8), fd
     except BaseException:
         os.close(fd)
         raise
 
 
 def _stop(conn, process):
-    """Ends the process of a `FrameWorker` (no reference to it: a finalizer's)."""
+    """Ends the process of a `FrameWorker` (no reference to it: a finalizer's): told to
+    stop, then its end of the connection closed (it stops at either), then killed if it
+    has not within 10 s."""
     try:
         conn.send(None)
     except OSError:
         pass
+    conn.close()
     try:
         process.wait(timeout=10)
     except subprocess.TimeoutExpired:
         process.kill()
         process.wait()
-    conn.close()
 
 
-def serve(fd: int) -> None:
-    """The worker process's loop: the work, then frames until told to stop (None) or
-    the parent is gone; each answer is the work's float array, or an error's text (a
-    work that cannot be loaded answers every frame so). An interrupt is the parent's to
-    handle (a terminal's Ctrl-C reaches both)."""
+def serve(fd: int, work_fd: int, size: int) -> None:
+    """The worker process's loop: loads the work (``size`` bytes from ``work_fd``),
+    says it is ready (or why not, and stops), then answers frames until told to stop
+    (None) or the parent is gone; each answer is the work's float array, or an error's
+    text."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.basicConfig()
     conn = Connection(fd)
     try:
-        data = conn.recv_bytes()
-    except (EOFError, OSError):
-        return
-    try:
-        work, failed = pickle.loads(data), None
+        with os.fdopen(work_fd, "rb") as file:
+            work = pickle.loads(file.read(size))
     except Exception as error:
-        work, failed = None, f"loading the work: {type(error).__name__}: {error}"
+        try:
+            conn.send(f"loading the work: {type(error).__name__}: {error}")
+        except OSError:
+            pass
+        return
     frame = None
     try:
+        conn.send("ready")
         while True:
             message = conn.recv()
             if message is None:
@@ -229,7 +275,7 @@ def serve(fd: int) -> None:
                 os.close(shared)
                 continue
             try:
-                answer = failed if failed else np.asarray(work(frame))
+                answer = np.asarray(work(frame))
             except Exception as error:  # said by the parent, which then works the frames
                 answer = f"{type(error).__name__}: {error}"
             conn.send(answer)

@@ -41,6 +41,7 @@ def test_the_answer_is_the_works_own_for_exactly_the_pixels_begun(said):
         first, second = _frames(2)
         assert worker.result(first) is None                      # nothing begun
         assert worker._process is None                           # nor started
+        assert worker.start(wait=60)                             # loaded: takes frames
         worker.begin(first)
         assert worker.result(second) is None                     # other pixels
         answer = worker.result(first)
@@ -64,6 +65,7 @@ def test_the_answer_is_the_works_own_for_exactly_the_pixels_begun(said):
 def test_a_work_that_fails_or_a_process_that_ends_hands_the_frames_back(said):
     failing = FrameWorker(functools.partial(np.take, indices=10 ** 9), name="failing work")
     frame = _frames(1)[0]
+    assert failing.start(wait=60)
     failing.begin(frame)
     assert failing.result(frame) is None and not failing.alive
     assert len(said) == 1 and said[0].startswith("failing work: its frame work failed in its "
@@ -72,6 +74,7 @@ def test_a_work_that_fails_or_a_process_that_ends_hands_the_frames_back(said):
     failing.begin(frame)                                          # asked no more, said once
     assert failing.result(frame) is None and len(said) == 1
     ended = FrameWorker(functools.partial(np.multiply, 2.0), name="killed")
+    assert ended.start(wait=60)
     ended.begin(frame)
     assert ended.result(frame) is not None
     ended._process.kill()
@@ -86,6 +89,7 @@ def test_an_interrupt_midway_ends_the_process_and_a_work_that_cannot_go_is_refus
     interrupt while one is read gives the process up, and the frames come back."""
     worker = FrameWorker(functools.partial(np.multiply, 3.0), name="interrupted")
     frame = _frames(1)[0]
+    assert worker.start(wait=60)
     worker.begin(frame)
 
     def interrupted():
@@ -93,12 +97,39 @@ def test_an_interrupt_midway_ends_the_process_and_a_work_that_cannot_go_is_refus
     worker._conn.recv = interrupted
     with pytest.raises(KeyboardInterrupt):
         worker.result(frame)
-    assert not worker.alive and worker._process.wait(timeout=30) is not None
+    assert not worker.alive and worker._process.wait(timeout=5) is not None   # killed
     worker.begin(frame)
     assert worker.result(frame) is None and not said         # the interrupt is the caller's
     with pytest.raises(TypeError, match=r"^unpicklable: its frame work cannot go to a "
                                         r"process of its own: "):
         FrameWorker(lambda frame: frame, name="unpicklable")
+
+
+def _refuse():
+    raise RuntimeError("not in this process")
+
+
+class _Unloadable:
+    """Pickles here; unpickling it raises (in the worker's process)."""
+
+    def __reduce__(self):
+        return _refuse, ()
+
+
+def test_a_frame_before_the_process_is_ready_is_the_callers_and_a_work_it_cannot_load_is_said(
+        said):
+    worker = FrameWorker(functools.partial(np.multiply, 3.0), name="slow start")
+    frame = _frames(1)[0]
+    worker.begin(frame)                  # starts it; loading takes seconds: no tick waits
+    assert worker._process is not None and worker.result(frame) is None
+    assert worker.start(wait=60) and worker.answered == 0
+    worker.close()
+    unloadable = FrameWorker(_Unloadable(), name="unloadable")
+    assert not unloadable.start(wait=60) and not unloadable.alive
+    assert said == ["unloadable: its frame work failed in its own process (loading the work: "
+                    "RuntimeError: not in this process); frames are worked in the loop from "
+                    "now on"]
+    assert unloadable._process.wait(timeout=30) == 0
 
 
 @pytest.mark.parametrize("temporal, frames, signals", [("stack", 3, 0), ("gru", 4, 3)])
@@ -115,6 +146,8 @@ def test_a_history_monitor_encoding_in_its_own_process_gives_the_same_scores(
                                       f"{{detector: {path}, threshold: 0.5, "
                                       f"encoder_process: {str(own).lower()}}}\n")
         diagram = make_guarded_diagram(scenario)
+        if own:                                 # ready before the run's first frame
+            assert diagram.GetSubsystemByName("anomaly_detector").encoder_process.start(wait=60)
         run = simulate(diagram, initial_state=[2.0, 120.0, 0.1], duration=0.6, period=0.05,
                        failed=OffRunway(scenario.environment.half_width))
         scores[own] = run.score
@@ -139,6 +172,7 @@ def test_an_ensembles_encoders_give_the_same_features_in_their_own_process():
     encode = FrameEncoder([inference_model(HistoryRiskModel(config).eval()) for _ in range(2)],
                           config.image_config)
     worker = FrameWorker(encode, name="ensemble")
+    assert worker.start(wait=60)
     try:
         for frame in _frames(3, (50, 90, 4)):
             worker.begin(frame)
