@@ -14,17 +14,18 @@ first row times TaxiNet alone against a second copy of itself: the method's nois
 
     python benchmarks/online.py [--detector PATH [PATH ...]] [--monitors all|detector|history]
                                 [--duration 4] [--rounds 15] [--ensemble 5] [--breakdown]
-                                [--interleave] [--both-ways] [--encoder-process]
+                                [--interleave] [--one-way] [--encoder-process]
 
 ``--interleave`` times the rows round by round (each round one start, every row's pair
 in turn, the order reversed every other round) instead of row after row, so that a
 drift of the machine's speed over minutes falls on every row alike; give one checkpoint
 twice (two paths) to see how far two identical monitors read apart.
 
-``--both-ways`` times each round's pair twice, TaxiNet alone as the reference and then
-as the candidate, and reports the two runs' mean rates: in runs of many rows the noise
-floor read 1.02-1.07 where two copies of TaxiNet alone timed both ways round read
-1.00 (docs/results/monitor/2026-12-07.md).
+Each round times its pair twice, TaxiNet alone as the reference and then as the
+candidate, and reports the two runs' mean rates; ``--one-way`` times it once, TaxiNet
+alone the reference (half the time; the benchmark's way before 2026-12-07, whose noise
+floor read 1.02-1.07 in runs of many rows where two copies of TaxiNet alone timed both
+ways round read 1.00: docs/results/monitor/2026-12-07.md).
 
 ``--encoder-process`` adds, after each history monitor's row, the same monitor with its
 frame work in a process of its own (``monitor.encoder_process``: `FrameWorker`), begun
@@ -140,13 +141,13 @@ def timed_rows(nominal, loops, args):
     """``[(alone, guarded)]`` rates of each of ``loops`` against ``nominal``
     (`paired_rates`), ``args.rounds`` rounds each: row after row, or with
     ``args.interleave`` round by round (every row's pair in turn, from the round's one
-    start, the order reversed every other round). With ``args.both_ways`` each round
-    times its pair both ways round, ``nominal`` as the reference and then as the
-    candidate, and gives the two runs' mean rates."""
+    start, the order reversed every other round). Each round times its pair both ways
+    round, ``nominal`` as the reference and then as the candidate, and gives the two
+    runs' mean rates; with ``args.one_way``, once, ``nominal`` the reference."""
     def pair(loop, starts, rounds):
         alone, guard = paired_rates(nominal, loop, rounds=rounds, duration=args.duration,
                                     period=0.05, starts=starts)
-        if args.both_ways:
+        if not args.one_way:
             guard_2, alone_2 = paired_rates(loop, nominal, rounds=rounds,
                                             duration=args.duration, period=0.05,
                                             starts=starts)
@@ -180,9 +181,9 @@ def main():
                              "history monitor runs its network on one thread whatever this says")
     parser.add_argument("--interleave", action="store_true",
                         help="time the rows round by round instead of row after row")
-    parser.add_argument("--both-ways", action="store_true",
-                        help="time each pair both ways round (each loop as the reference "
-                             "in turn) and give the mean rates")
+    parser.add_argument("--one-way", action="store_true",
+                        help="time each pair once, TaxiNet alone the reference, instead of "
+                             "both ways round (each loop as the reference in turn)")
     parser.add_argument("--encoder-process", action="store_true",
                         help="after each history monitor's row, the same with its frame work "
                              "in a process of its own (monitor.encoder_process)")
