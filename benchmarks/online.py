@@ -250,8 +250,8 @@ def main():
                  for name, path, own in candidates]
         for _, loop in loops:           # the own processes ready before any round
             for system in leaf_systems(loop):
-                worker = getattr(system, "encoder_process", None)
-                if worker is not None and not worker.start(wait=120):
+                worker = getattr(system, "frame_worker", None)
+                if worker is not None and not worker.start(wait=300):
                     raise SystemExit(f"{system.get_name()}: its encoder's process did not start")
         for name, (alone, guard) in zip([n for n, _ in loops],
                                         timed_rows(nominal, [g for _, g in loops], args)):

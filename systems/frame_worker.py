@@ -44,9 +44,9 @@ class FrameWorker:
     same numbers).
 
     The process starts at the first `begin` (or `start`) and takes frames once it has
-    loaded the work: it imports what unpickling the work needs (for a monitor: torch and
-    Drake, about 2 s and 0.34 GB of its own memory); until then the caller works every
-    frame, and no tick waits for it. It gains when one loop drives it (contexts of one
+    loaded the work: it imports ``reachwatch.systems`` (torch and Drake: about 2 s and
+    0.34 GB of its own memory, measured for a monitor) and unpickles the work; until
+    then the caller works every frame, and no tick waits for it. It gains when one loop drives it (contexts of one
     diagram simulated in turn share it: each `begin` waits for the other's answer) and
     the machine has a core to spare. A process gone or an answer that is an error is
     said once (the ``reachwatch`` logger) and ends it; so does an exception (an
@@ -116,7 +116,9 @@ class FrameWorker:
         once when anything else (an interrupt) stops the step half done."""
         try:
             return step(*args)
-        except (OSError, EOFError, TimeoutError) as error:
+        except TimeoutError as error:
+            self._give_up(f"its frame work's own process did not answer ({error})")
+        except (OSError, EOFError) as error:
             self._give_up(f"its frame work's own process ended ({type(error).__name__}: "
                           f"{clip(error, 200)})")
         except BaseException:
@@ -219,8 +221,14 @@ def _mapped(size: int):
     fd, path = tempfile.mkstemp(prefix="reachwatch-frame-", dir=folder)
     try:
         os.unlink(path)
-        os.ftruncate(fd, max(int(size), 1))
-        return np.frombuffer(mmap.mmap(fd, max(int(size), 1)), np.uint8), fd
+        size = max(int(size), 1)
+        if hasattr(os, "posix_fallocate"):
+            # the blocks taken now: a full /dev/shm is an OSError here, not a SIGBUS
+            # when the memory is first written
+            os.posix_fallocate(fd, 0, size)
+        else:
+            os.ftruncate(fd, size)
+        return np.frombuffer(mmap.mmap(fd, size), np.uint8), fd
     except BaseException:
         os.close(fd)
         raise

@@ -175,7 +175,7 @@ class HistoryMonitor(LeafSystem):
         return self._row_port
 
     @property
-    def encoder_process(self):
+    def frame_worker(self):
         """The `FrameWorker` of ``encoder_process=True``, else None."""
         return self._worker
 
