@@ -27,9 +27,9 @@ alone the reference (half the time; the benchmark's way before 2026-12-07, whose
 floor read 1.02-1.07 in runs of many rows where two copies of TaxiNet alone timed both
 ways round read 1.00: docs/results/monitor/2026-12-07.md).
 
-``--encoder-process`` adds, after each history monitor's row, the same monitor with its
-frame work in a process of its own (``monitor.encoder_process``: `FrameWorker`), begun
-when the tick's frame is rendered, beside TaxiNet.
+``--encoder-process`` adds, after each monitor's row, the same monitor with its frame
+work in a process of its own (``monitor.encoder_process``: `FrameWorker`), begun when
+the tick's frame is rendered, beside TaxiNet.
 
 ``--breakdown`` (with a history monitor's ``--detector``) splits the guarded loop's extra
 cost: a row with the monitor's frame work (its resize and encoder) skipped, which leaves
@@ -185,8 +185,8 @@ def main():
                         help="time each pair once, TaxiNet alone the reference, instead of "
                              "both ways round (each loop as the reference in turn)")
     parser.add_argument("--encoder-process", action="store_true",
-                        help="after each history monitor's row, the same with its frame work "
-                             "in a process of its own (monitor.encoder_process)")
+                        help="after each monitor's row, the same with its frame work in a "
+                             "process of its own (monitor.encoder_process)")
     parser.add_argument("--breakdown", action="store_true",
                         help="with a history monitor's --detector: its frame work skipped, "
                              "and its and TaxiNet's cost inside and outside the loop")
@@ -241,7 +241,7 @@ def main():
         candidates = [("TaxiNet alone again (noise floor)", None, False)]
         for name, path in configs:
             candidates.append((name, path, False))
-            if args.encoder_process and checkpoint_kind(path) == "history_monitor":
+            if args.encoder_process:
                 candidates.append(("  the same, its encoder in own process", path, True))
         loops = [(name, make_closed_loop_diagram(load_scenario(data="")) if path is None else
                   make_guarded_diagram(load_scenario(

@@ -35,10 +35,11 @@ class MonitorConfig:
     trained by a run holds the threshold its training chose on its validation split,
     which a run's train stage may replace (``detector.threshold_folds``): name that one
     here to use it. `with_checkpoint_defaults` fills them in. ``encoder_process: true``
-    runs a history monitor's frame work (its resize and encoder) in a process of its
-    own, beside the controller's at each tick: the same flags, a faster tick where a
-    core is free (`systems.HistoryMonitor`); a monitor study's guarded runs, which run
-    loops on every core already, encode in the loop."""
+    runs the monitor's frame work (a history monitor's resize and encoder, a detector's
+    whole network) in a process of its own, beside the controller's at each tick: the
+    same flags, a faster tick where a core is free (`systems.HistoryMonitor`,
+    `systems.AnomalyDetector`); batches of runs, which keep every core busy already,
+    encode in the loop."""
     detector: str = ""
     threshold: Optional[float] = bounded(None, 0.0, 1.0)
     strategy: str = "slow_down"

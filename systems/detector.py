@@ -17,6 +17,8 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from .bounds import bounded, check_bounds
 from .checks import short
+from .frame_worker import FrameWorker
+from .torch_threads import one_torch_thread
 
 
 @dc.dataclass
@@ -188,6 +190,32 @@ def inference_model(model: nn.Module) -> nn.Module:
     return model.to(memory_format=torch.channels_last)
 
 
+def detector_scores(model: nn.Module, config: DetectorConfig, images_rgb: np.ndarray,
+                    batch: int = 64) -> np.ndarray:
+    """Anomaly probabilities (float64) of uint8 RGB ``(N, H, W, 3)`` or RGBA
+    ``(N, H, W, 4)`` images by ``model`` (`AnomalyDetector.scores`)."""
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(images_rgb), batch):
+            x = detector_input(torch.from_numpy(resize_for_detector(images_rgb[i:i + batch],
+                                                                     config)), config)
+            out.append(torch.softmax(model(x), dim=1)[:, 1].double().numpy())
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+class DetectorFrameScore:
+    """An `AnomalyDetector`'s work on one camera frame, picklable (`FrameWorker` runs it
+    in a process of its own): uint8 ``(H, W, 3|4)`` -> its score ``(1,)``, on one torch
+    thread, in this process as in that one (the same numbers)."""
+
+    def __init__(self, model: nn.Module, config: DetectorConfig):
+        self._model, self._config = model, config
+
+    def __call__(self, rgba: np.ndarray) -> np.ndarray:
+        with one_torch_thread():
+            return detector_scores(self._model, self._config, rgba[None])
+
+
 class AnomalyDetector(LeafSystem):
     """Flags camera images that lead to system failure.
 
@@ -202,11 +230,15 @@ class AnomalyDetector(LeafSystem):
 
     ``score`` is the probability of class 1 (anomalous); ``anomaly`` is 1.0 when
     ``score >= threshold`` or the score is NaN (`flag_of`), else 0.0.
-    ``image_size = (height, width)``, when given, is enforced.
+    ``image_size = (height, width)``, when given, is enforced. ``encoder_process=True``
+    scores each frame in a process of its own (`FrameWorker`), begun at each tick's
+    publish event (every ``period`` s, the control period) when the frame is rendered, beside the loop's controller, as
+    `HistoryMonitor`'s does; it scores on one torch thread then (in the loop too,
+    should the process not answer), where the loop otherwise scores on torch's count.
     """
 
     def __init__(self, *, model: nn.Module, config: DetectorConfig, threshold: float = 0.5,
-                 image_size=None):
+                 image_size=None, encoder_process: bool = False, period: float = None):
         super().__init__()
         if not 0.0 <= threshold <= 1.0:
             raise ValueError(f"AnomalyDetector: threshold must be in [0, 1], got {threshold}")
@@ -218,6 +250,14 @@ class AnomalyDetector(LeafSystem):
             "color_image", AbstractValue.Make(ImageRgba8U()))
         self._anomaly_port = self.DeclareVectorOutputPort("anomaly", 1, self._calc_anomaly)
         self._score_port = self.DeclareVectorOutputPort("score", 1, self._calc_score)
+        self._frame_score = self._worker = None
+        if encoder_process:
+            if period is None or not (np.isfinite(period) and period > 0):
+                raise ValueError(f"AnomalyDetector: encoder_process needs the control "
+                                 f"period > 0 s, got {period}")
+            self._frame_score = DetectorFrameScore(self._model, self._config)
+            self._worker = FrameWorker(self._frame_score, name="AnomalyDetector")
+            self.DeclarePeriodicPublishEvent(period, 0.0, self._begin_frame_work)
 
     @property
     def threshold(self) -> float:
@@ -232,22 +272,27 @@ class AnomalyDetector(LeafSystem):
     def get_score_output_port(self):
         return self._score_port
 
-    @torch.no_grad()
     def scores(self, images_rgb: np.ndarray, batch: int = 64) -> np.ndarray:
         """Anomaly probabilities of uint8 RGB ``(N, H, W, 3)`` or RGBA
-        ``(N, H, W, 4)`` images."""
-        out = []
-        for i in range(0, len(images_rgb), batch):
-            x = detector_input(torch.from_numpy(resize_for_detector(images_rgb[i:i + batch],
-                                                                     self._config)),
-                               self._config)
-            out.append(torch.softmax(self._model(x), dim=1)[:, 1].double().numpy())
-        return np.concatenate(out) if out else np.zeros(0)
+        ``(N, H, W, 4)`` images (`detector_scores`)."""
+        return detector_scores(self._model, self._config, images_rgb, batch)
+
+    @property
+    def frame_worker(self):
+        """The `FrameWorker` of ``encoder_process=True``, else None."""
+        return self._worker
+
+    def _begin_frame_work(self, context):
+        self._worker.begin(self._image_port.Eval(context).data)
 
     def _calc_score(self, context, output):
         rgba = self._image_port.Eval(context).data
         check_trained_size(rgba, self._image_size, "AnomalyDetector", "detector")
-        output.SetAtIndex(0, self.scores(rgba[None])[0])
+        if self._worker is None:
+            output.SetAtIndex(0, self.scores(rgba[None])[0])
+            return
+        score = self._worker.result(rgba)
+        output.SetAtIndex(0, (self._frame_score(rgba) if score is None else score)[0])
 
     def _calc_anomaly(self, context, output):
         output.SetAtIndex(0, flag_of(self._score_port.Eval(context)[0], self._threshold))

@@ -7,8 +7,6 @@ t - stride, t`` (ticks before the run's first repeat its first frame), so the sa
 function of a recorded run (`HistoryRiskModel.risk_sequence`) gives what the system
 outputs online, tick by tick."""
 
-import contextlib
-
 import numpy as np
 import torch
 from pydrake.common.value import AbstractValue
@@ -20,18 +18,7 @@ from .frame_worker import FrameWorker
 from .history_model import HistoryRiskModel, platt
 from .ports import weak_callback
 from .risk_ensemble import GroupedEncoder, HistoryRiskEnsemble, grouped_gru
-from .torch_threads import torch_threads
-
-
-@contextlib.contextmanager
-def one_torch_thread():
-    """Runs the block in torch's inference mode on one intra-op thread, then gives the
-    caller's thread count back (`torch_threads`). A monitor's per-frame network is a few
-    small layers: a second thread saves little there and costs a wake-up and a wait per
-    layer; on a loaded machine the wait runs to milliseconds when that thread is not
-    scheduled."""
-    with torch_threads(1), torch.inference_mode():
-        yield
+from .torch_threads import one_torch_thread
 
 
 class FrameEncoder:

@@ -36,3 +36,14 @@ def torch_threads(count: int):
             _HELD["blocks"] -= 1
             if _HELD["blocks"] == 0 and _HELD["before"] != _HELD["count"]:
                 torch.set_num_threads(_HELD["before"])
+
+
+@contextlib.contextmanager
+def one_torch_thread():
+    """Runs the block in torch's inference mode on one intra-op thread, then gives the
+    caller's thread count back (`torch_threads`). A monitor's per-frame network is a few
+    small layers: a second thread saves little there and costs a wake-up and a wait per
+    layer; on a loaded machine the wait runs to milliseconds when that thread is not
+    scheduled."""
+    with torch_threads(1), torch.inference_mode():
+        yield

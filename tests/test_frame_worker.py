@@ -1,7 +1,8 @@
 """`FrameWorker`: a frame's work in a process of its own gives the answer the work gives
 here, for exactly the pixels begun, and a process that fails or ends hands the work back
 to the caller, said once; a history monitor whose encoder runs so outputs the same
-scores, bit for bit, as one that encodes in the loop."""
+scores, bit for bit, as one that encodes in the loop, and so does a single-image
+detector."""
 
 import functools
 import gc
@@ -184,14 +185,35 @@ def test_an_ensembles_encoders_give_the_same_features_in_their_own_process():
         worker.close()
 
 
-def test_a_single_image_detector_is_refused_its_own_process(tmp_path):
+def test_a_single_image_detector_scores_the_same_in_its_own_process(tmp_path):
+    """Its own process scores on one thread, and so does the loop when the process does
+    not answer: the same numbers bit for bit; the loop without the option scores on
+    torch's count, the same up to rounding."""
+    import torch
     from reachwatch.diagrams import save_checkpoint
     from reachwatch.systems import DetectorConfig, build_detector
     path = tmp_path / "detector.pt"
-    config = DetectorConfig(height=16, width=24)
+    config = DetectorConfig(height=24, width=40)
+    torch.manual_seed(0)
     save_checkpoint(path, kind="detector", model=build_detector(config), model_config=config,
                     preprocess_config=None, metadata={"threshold": 0.5})
-    scenario = load_scenario(data=f"monitor: {{detector: {path}, encoder_process: true}}\n")
-    with pytest.raises(ValueError, match=r"^monitor.encoder_process: only a history monitor's "
-                                         r"frame work runs in a process of its own"):
-        make_guarded_diagram(scenario)
+    scores = {}
+    for case in ("own process", "its process closed", "in the loop"):
+        own = case != "in the loop"
+        scenario = load_scenario(data=f"monitor: {{detector: {path}, threshold: 1.0, "
+                                      f"encoder_process: {str(own).lower()}}}\n")
+        diagram = make_guarded_diagram(scenario)
+        worker = diagram.GetSubsystemByName("anomaly_detector").frame_worker
+        assert (worker is None) == (not own)
+        if case == "own process":
+            assert worker.start(wait=300)
+        elif own:
+            worker.close()
+        scores[case] = simulate(diagram, initial_state=[2.0, 120.0, 0.1], duration=0.3,
+                                period=0.05,
+                                failed=OffRunway(scenario.environment.half_width)).score
+        if case == "own process":
+            assert worker.answered >= len(scores[case]) - 1
+    assert len(scores["own process"]) == 7
+    np.testing.assert_array_equal(scores["own process"], scores["its process closed"])
+    np.testing.assert_allclose(scores["own process"], scores["in the loop"], rtol=1e-6)
