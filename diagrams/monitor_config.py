@@ -36,10 +36,11 @@ class MonitorConfig:
     which a run's train stage may replace (``detector.threshold_folds``): name that one
     here to use it. `with_checkpoint_defaults` fills them in. ``encoder_process: true``
     runs the monitor's frame work (a history monitor's resize and encoder, a detector's
-    whole network) in a process of its own, beside the controller's at each tick: the
-    same flags, a faster tick where a core is free (`systems.HistoryMonitor`,
-    `systems.AnomalyDetector`); batches of runs, which keep every core busy already,
-    encode in the loop."""
+    whole network) in a process of its own, on one thread, beside the controller's at
+    each tick: the same flags, and a faster tick where a core is free and that thread
+    keeps up with the controller (measure it: ``benchmarks/online.py --encoder-process``;
+    `systems.HistoryMonitor`, `systems.AnomalyDetector`); batches of runs, which keep
+    every core busy already, encode in the loop."""
     detector: str = ""
     threshold: Optional[float] = bounded(None, 0.0, 1.0)
     strategy: str = "slow_down"
