@@ -190,7 +190,7 @@ def inference_model(model: nn.Module) -> nn.Module:
     return model.to(memory_format=torch.channels_last)
 
 
-def detector_scores(model: nn.Module, config: DetectorConfig, images_rgb: np.ndarray,
+def anomaly_probabilities(model: nn.Module, config: DetectorConfig, images_rgb: np.ndarray,
                     batch: int = 64) -> np.ndarray:
     """Anomaly probabilities (float64) of uint8 RGB ``(N, H, W, 3)`` or RGBA
     ``(N, H, W, 4)`` images by ``model`` (`AnomalyDetector.scores`)."""
@@ -213,7 +213,7 @@ class DetectorFrameScore:
 
     def __call__(self, rgba: np.ndarray) -> np.ndarray:
         with one_torch_thread():
-            return detector_scores(self._model, self._config, rgba[None])
+            return anomaly_probabilities(self._model, self._config, rgba[None])
 
 
 class AnomalyDetector(LeafSystem):
@@ -232,9 +232,10 @@ class AnomalyDetector(LeafSystem):
     ``score >= threshold`` or the score is NaN (`flag_of`), else 0.0.
     ``image_size = (height, width)``, when given, is enforced. ``encoder_process=True``
     scores each frame in a process of its own (`FrameWorker`), begun at each tick's
-    publish event (every ``period`` s, the control period) when the frame is rendered, beside the loop's controller, as
-    `HistoryMonitor`'s does; it scores on one torch thread then (in the loop too,
-    should the process not answer), where the loop otherwise scores on torch's count.
+    publish event (every ``period`` s, the control period) when the frame is rendered,
+    beside the loop's controller, as `HistoryMonitor`'s does; it scores on one torch
+    thread then (in the loop too, should the process not answer), where the loop
+    otherwise scores on torch's count.
     """
 
     def __init__(self, *, model: nn.Module, config: DetectorConfig, threshold: float = 0.5,
@@ -274,8 +275,8 @@ class AnomalyDetector(LeafSystem):
 
     def scores(self, images_rgb: np.ndarray, batch: int = 64) -> np.ndarray:
         """Anomaly probabilities of uint8 RGB ``(N, H, W, 3)`` or RGBA
-        ``(N, H, W, 4)`` images (`detector_scores`)."""
-        return detector_scores(self._model, self._config, images_rgb, batch)
+        ``(N, H, W, 4)`` images (`anomaly_probabilities`)."""
+        return anomaly_probabilities(self._model, self._config, images_rgb, batch)
 
     @property
     def frame_worker(self):
