@@ -242,7 +242,7 @@ def main():
         for name, path in configs:
             candidates.append((name, path, False))
             if args.encoder_process:
-                candidates.append(("  the same, its frame work in own process", path, True))
+                candidates.append(("  the same, in its own process", path, True))
         loops = [(name, make_closed_loop_diagram(load_scenario(data="")) if path is None else
                   make_guarded_diagram(load_scenario(
                       data=f"monitor: {{detector: {path}, threshold: 1.0, "
