@@ -17,7 +17,7 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from .bounds import bounded, check_bounds
 from .checks import short
-from .frame_worker import FrameWorker
+from .frame_worker import add_frame_worker
 from .torch_threads import one_torch_thread
 
 
@@ -251,14 +251,14 @@ class AnomalyDetector(LeafSystem):
             "color_image", AbstractValue.Make(ImageRgba8U()))
         self._anomaly_port = self.DeclareVectorOutputPort("anomaly", 1, self._calc_anomaly)
         self._score_port = self.DeclareVectorOutputPort("score", 1, self._calc_score)
-        self._frame_score = self._worker = None
+        self._worker = None
         if encoder_process:
             if period is None or not (np.isfinite(period) and period > 0):
                 raise ValueError(f"AnomalyDetector: encoder_process needs the control "
                                  f"period > 0 s, got {period}")
-            self._frame_score = DetectorFrameScore(self._model, self._config)
-            self._worker = FrameWorker(self._frame_score, name="AnomalyDetector")
-            self.DeclarePeriodicPublishEvent(period, 0.0, self._begin_frame_work)
+            self._worker = add_frame_worker(
+                self, work=DetectorFrameScore(self._model, self._config),
+                image_port=self._image_port, period=period, name="AnomalyDetector")
 
     @property
     def threshold(self) -> float:
@@ -283,17 +283,11 @@ class AnomalyDetector(LeafSystem):
         """The `FrameWorker` of ``encoder_process=True``, else None."""
         return self._worker
 
-    def _begin_frame_work(self, context):
-        self._worker.begin(self._image_port.Eval(context).data)
-
     def _calc_score(self, context, output):
         rgba = self._image_port.Eval(context).data
         check_trained_size(rgba, self._image_size, "AnomalyDetector", "detector")
-        if self._worker is None:
-            output.SetAtIndex(0, self.scores(rgba[None])[0])
-            return
-        score = self._worker.result(rgba)
-        output.SetAtIndex(0, (self._frame_score(rgba) if score is None else score)[0])
+        output.SetAtIndex(0, (self.scores(rgba[None]) if self._worker is None
+                              else self._worker.work(rgba))[0])
 
     def _calc_anomaly(self, context, output):
         output.SetAtIndex(0, flag_of(self._score_port.Eval(context)[0], self._threshold))

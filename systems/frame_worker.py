@@ -38,7 +38,7 @@ class FrameWorker:
     hands it a frame (through memory both processes map: one copy); `result` gives the
     work's answer for a frame of exactly those pixels (compared byte for byte), or
     None: nothing begun for these pixels, the process not ready yet, the answer an
-    error, or the process gone; the caller then does the work itself, so an answer is
+    error, or the process gone; `work` then does the work here, so an answer is
     always the one ``work(frame)`` gives in this process (the same code on the same
     pixels; the work must fix its own thread count, as `HistoryMonitor`'s does, for the
     same numbers).
@@ -62,6 +62,7 @@ class FrameWorker:
             raise TypeError(f"{name}: its frame work cannot go to a process of its own: "
                             f"{type(error).__name__}: {clip(error, 200)}") from None
         self._name = name
+        self._local = work              # the same work, done here when no answer comes
         self._key = ("frame worker", next(_WORKERS))
         self._lock = threading.Lock()   # loops on threads of one process may share it
         self._process = self._conn = self._finalizer = None
@@ -103,6 +104,12 @@ class FrameWorker:
             if answer is not None:
                 self.answered += 1
             return answer
+
+    def work(self, frame: np.ndarray):
+        """The work's answer for ``frame``: the process's, when it answered for exactly
+        these pixels (`result`), else the work done here."""
+        answer = self.result(frame)
+        return self._local(frame) if answer is None else answer
 
     def close(self) -> None:
         """Ends the process."""
@@ -210,6 +217,16 @@ class FrameWorker:
                       key=self._key)
         if self._finalizer is not None:
             self._finalizer()
+
+
+def add_frame_worker(system, *, work, image_port, period: float, name: str) -> FrameWorker:
+    """A `FrameWorker` of ``work`` for ``system`` (a LeafSystem), which hands it the
+    frame on ``image_port`` at a publish event every ``period`` s (the control tick's,
+    when the frame is rendered); read the answer with `FrameWorker.work`."""
+    worker = FrameWorker(work, name=name)
+    system.DeclarePeriodicPublishEvent(
+        period, 0.0, lambda context: worker.begin(image_port.Eval(context).data))
+    return worker
 
 
 def _mapped(size: int):

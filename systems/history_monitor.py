@@ -14,7 +14,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 from pydrake.systems.sensors import ImageRgba8U
 
 from .detector import check_trained_size, flag_of, inference_model, resize_for_detector
-from .frame_worker import FrameWorker
+from .frame_worker import add_frame_worker
 from .history_model import HistoryRiskModel, platt
 from .ports import weak_callback
 from .risk_ensemble import GroupedEncoder, HistoryRiskEnsemble, grouped_gru
@@ -137,10 +137,9 @@ class HistoryMonitor(LeafSystem):
             self.DeclarePeriodicDiscreteUpdateEvent(period, 0.0, self._update)
         self._score_port = self.DeclareVectorOutputPort("score", 1, self._calc_score)
         self._anomaly_port = self.DeclareVectorOutputPort("anomaly", 1, self._calc_anomaly)
-        self._worker = None
-        if encoder_process:
-            self._worker = FrameWorker(self._encode_frame, name="HistoryMonitor")
-            self.DeclarePeriodicPublishEvent(period, 0.0, self._begin_frame_work)
+        self._worker = (add_frame_worker(self, work=self._encode_frame,
+                                         image_port=self._image_port, period=period,
+                                         name="HistoryMonitor") if encoder_process else None)
 
     @property
     def threshold(self) -> float:
@@ -166,18 +165,14 @@ class HistoryMonitor(LeafSystem):
         """The `FrameWorker` of ``encoder_process=True``, else None."""
         return self._worker
 
-    def _begin_frame_work(self, context):
-        self._worker.begin(self._image_port.Eval(context).data)
-
     def _calc_row(self, context, row):
         rgba = self._image_port.Eval(context).data
         check_trained_size(rgba, self._image_size, "HistoryMonitor", "monitor")
         # the signals first: they ask the controller, which works while the frame's
         # process does (``encoder_process``)
         signals = None if self._signals_port is None else self._signals_port.Eval(context)
-        features = None if self._worker is None else self._worker.result(rgba)
-        if features is None:
-            features = self._encode_frame(rgba)
+        features = (self._encode_frame(rgba) if self._worker is None
+                    else self._worker.work(rgba))
         if signals is not None:
             features = np.concatenate([features, signals])
         row.SetFromVector(features.astype(float))

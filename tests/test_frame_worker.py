@@ -205,11 +205,10 @@ def test_a_single_image_detector_scores_the_same_in_its_own_process(tmp_path):
         diagram = make_guarded_diagram(scenario)
         worker = diagram.GetSubsystemByName("anomaly_detector").frame_worker
         assert (worker is None) == (not own)
-        detector = diagram.GetSubsystemByName("anomaly_detector")
         in_loop = []                  # frames the loop scored itself (the process has its copy)
         if own:
-            score = detector._frame_score
-            detector._frame_score = lambda rgba: in_loop.append(1) or score(rgba)
+            score = worker._local
+            worker._local = lambda rgba: in_loop.append(1) or score(rgba)
         if case == "own process":
             assert worker.start(wait=300)
         elif own:
