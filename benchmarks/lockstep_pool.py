@@ -22,6 +22,7 @@ import numpy as np
 from reachwatch.diagrams import load_scenario
 from reachwatch.reach import default_executor, stop_executor
 from reachwatch.reach.application import ApplicationRef
+from reachwatch.taxi.application import TAXI_APPLICATION
 from reachwatch.reach.loop_runs import loop_rollouts
 from reachwatch.reach.outcomes import run_outcomes
 from reachwatch.taxi import on_runway_starts, paper_grid
@@ -48,8 +49,8 @@ def main():
             for round_ in range(args.rounds + 1):
                 turn = round_ % len(args.sizes)
                 for n in args.sizes[turn:] + args.sizes[:turn]:
-                    rollout = functools.partial(loop_rollouts, ApplicationRef(""), scenario,
-                                                args.duration, grid, lockstep=n)
+                    rollout = functools.partial(loop_rollouts, ApplicationRef(TAXI_APPLICATION),
+                                                scenario, args.duration, grid, lockstep=n)
                     t = time.perf_counter()
                     out = run_outcomes(rollout, starts, cache_dir=Path(folder) / f"{round_}_{n}",
                                        executor=pool, progress=False, chunk_size=8)

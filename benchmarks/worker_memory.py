@@ -15,6 +15,7 @@ import tempfile
 
 from reachwatch.diagrams import load_scenario
 from reachwatch.reach.application import load_application
+from reachwatch.taxi.application import TAXI_APPLICATION
 from reachwatch.reach.thread_kept import KEPT_DIAGRAMS
 from reachwatch.systems import RandomEnvironments
 
@@ -34,7 +35,7 @@ def main():
     p.add_argument("--duration", type=float, default=1.0, help="each run's length (s)")
     p.add_argument("--seed", type=int, default=5, help="the random family's seed")
     args = p.parse_args()
-    application, scenario = load_application(), load_scenario(data="")
+    application, scenario = load_application(TAXI_APPLICATION), load_scenario(data="")
     environments = RandomEnvironments(seed=args.seed, count=args.environments).environments()
     print(f"kept per thread: {KEPT_DIAGRAMS}; before any loop: {resident_mb():.0f} MB")
     with tempfile.TemporaryDirectory() as cache:

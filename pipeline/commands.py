@@ -88,8 +88,10 @@ def _declared_bound(path: str):
 
     from reachwatch.reach.application import load_application
 
+    from .slot_defaults import DEFAULT_APPLICATION
     from .spec import run_file_schema
-    schema, field = run_file_schema(load_application("")), None     # the taxi's environments
+    # the default application's environments
+    schema, field = run_file_schema(load_application(DEFAULT_APPLICATION)), None
     for part in path.split("."):
         fields = {f.name: f for f in dc.fields(schema)} if dc.is_dataclass(schema) else {}
         if part not in fields:
@@ -233,7 +235,8 @@ def loop_scenario(args, *, controller: bool = True):
     """``(scenario, application, where, key)`` of a command that takes ``--scenario`` (a
     scenario or a run file) or ``--run`` (a run file) with ``--env``: the `Scenario` of
     the loop (a run file's in its environment), the application it is a loop of (its
-    spec; "" = the taxi), how errors name the file, and the key of its detector.
+    spec; a scenario's: `DEFAULT_APPLICATION`), how errors name the file, and the key of
+    its detector.
     ``controller``: the command builds the controller, so import its factory now."""
     path = args.run or args.scenario
     if args.run or (args.scenario and is_run_file(args.scenario)):
@@ -246,8 +249,9 @@ def loop_scenario(args, *, controller: bool = True):
         raise ValueError("--env picks one of a run file's environments; a scenario names its "
                          "own (set it with --set environment.runway=KSFO, or give a run file "
                          "with --run)")
+    from .slot_defaults import DEFAULT_APPLICATION
     scenario = scenario_from_args(args, controller=controller)
-    return scenario, "", scenario_words(path), "monitor.detector"
+    return scenario, DEFAULT_APPLICATION, scenario_words(path), "monitor.detector"
 
 
 def run_scenario(spec, env_name, path):

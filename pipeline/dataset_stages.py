@@ -20,7 +20,8 @@ def _ensemble(run: Run):
     paths = ensemble_paths(run)
     if not all(p.exists() for p in paths):
         spec = run.spec.ensemble
-        run.application.train_ensemble(_ensemble_config(run), paths[0].parent, spec.seeds,
+        paths[0].parent.mkdir(parents=True, exist_ok=True)
+        run.application.train_ensemble(_ensemble_config(run), paths, list(spec.seeds),
                                        progress=run.bar())
     return paths
 
@@ -38,18 +39,18 @@ def ensemble_paths(run: Run) -> list:
     without seeds (an application without an ensemble baseline is not asked). Their
     folder is keyed by the training config, the seeds, the software and render stack
     (`reach.fingerprint.fingerprint`: members trained on another machine's renders, or
-    by another torch, are not reused) and, for an application other than the default,
-    its code (`application_key`: its `train_ensemble` trains them)."""
+    by another torch, are not reused) and the application's code (`application_key`:
+    its `train_ensemble` trains them)."""
     spec = run.spec.ensemble
     if not spec.seeds:
         return []
-    own = application_key(run.application)          # None for the default (the taxi)
+    own = application_key(run.application)
     key = fingerprint(_ensemble_config(run), list(spec.seeds), own)[:16]
     folder = run.path(f"ensemble/{key}")
-    return [folder / f"taxinet_seed{s}.pt" for s in spec.seeds]
+    return [folder / f"member_seed{s}.pt" for s in spec.seeds]
 
 
-def _build(root, scenario, value_path, spec, ensemble, progress, box=None, application="",
+def _build(root, scenario, value_path, spec, ensemble, progress, box, application: str,
            executor=None):
     """One dataset, built here with its image chunks and real-loop runs on ``executor``
     (their arrays come back here, where the dataset is written); a folder whose arrays

@@ -11,6 +11,7 @@ is simulated."""
 
 from .commands import add_loop_source_arguments, check_detector, count, loop_scenario
 from .console import log
+from .slot_defaults import DEFAULT_APPLICATION, TAXI_APPLICATION
 
 #: What ``--loop`` takes, and the file each is written to (in ``--out``).
 LOOPS = {"closed": "closed_loop", "guarded": "guarded_loop", "world": "world"}
@@ -48,14 +49,14 @@ def graph(args):
         log.info(path)
 
 
-def loop_diagram(scenario, loop: str, application: str = ""):
+def loop_diagram(scenario, loop: str, application: str = DEFAULT_APPLICATION):
     """The Drake diagram of ``loop`` ("closed", "guarded" or "world") of ``scenario``
-    in the application ``application`` (a run file's ``application``; "" = the taxi):
-    the loop is the application's ``loop_diagram``, built as a run's sweeps build it
-    (`reachwatch.reach.application.build_loop`)."""
+    in the application ``application`` (a run file's ``application``): the loop is the
+    application's ``loop_diagram``, built as a run's sweeps build it
+    (`reachwatch.reach.application.build_loop`); "world" is the taxi's alone."""
     from reachwatch.reach.application import ApplicationRef, build_loop
     if loop == "world":
-        if application:
+        if application != TAXI_APPLICATION:
             raise ValueError(f"--loop world draws the taxi's open-loop world; the "
                              f"application '{application}' has none (draw its closed "
                              f"loop: --loop closed)")

@@ -28,9 +28,9 @@ def incremental(run: Run) -> dict:
     env = config.environment
     progress = run.bar()
     base = application.resolved(run.scenario_for(env)).controller.checkpoint
-    own = application_key(application)          # None for the default (the taxi)
+    own = application_key(application)
     # the training environments' names: the datasets it fine-tunes on; the loop's code:
-    # the default application's fine-tuning lives there (another's is in ``own``)
+    # the built-in application's fine-tuning lives there (another's is in ``own``)
     name = digest(config, run.outputs["dataset"], file_hash(base) if base else "",
                   [e.name for e in spec.training_environments()], loop_code_digest(),
                   *([own] if own is not None else []))
@@ -100,7 +100,7 @@ def stage_incremental(run: Run) -> dict:
     config = run.spec.incremental
     if not config.enabled:
         return {}
-    own = application_key(run.application)         # None for the default (the taxi)
+    own = application_key(run.application)
     key = digest(config, run.content_key("dataset"),
                  run.content_key(f"solve_{config.environment.name}"),
                  [e.name for e in run.spec.training_environments()],

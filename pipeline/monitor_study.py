@@ -35,6 +35,7 @@ from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, 
 from reachwatch.training.monitor_eval import oracle_risks
 
 from .monitor_guarded import guarded_rows
+from .slot_defaults import DEFAULT_APPLICATION
 from .monitor_judge import (_judge_monitor, check_calibration_bounds, choose_flag_rule,  # noqa: F401
                             judge_environments, prediction_error_aurocs, watch_s)
 from .monitor_runs import (STARTS_STREAM, alone_reads_recordings, each_named,  # noqa: F401
@@ -93,7 +94,7 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
         if not isinstance(where, Path):
             raise ValueError(f"the monitor study's {what} must be a local folder (it reads its "
                              f"trainings and checkpoints back as files), got {where}")
-    application = load_application() if application is None else application
+    application = load_application(DEFAULT_APPLICATION) if application is None else application
     started = time.time()
     period = scenario.controller.period
     lead = study_lead(spec, application, scenario)
@@ -349,7 +350,8 @@ def train_settings(spec: MonitorStudySpec, application=None) -> HistoryTrainConf
     `HistoryTrainConfig`'s."""
     targets = spec.state_targets
     if targets is None:
-        targets = (load_application() if application is None else application).estimated_state
+        targets = (load_application(DEFAULT_APPLICATION) if application is None
+                   else application).estimated_state
     return HistoryTrainConfig(epochs=spec.epochs, head_epochs=spec.head_epochs,
                               augment=spec.augment, seed=spec.seed,
                               lr_schedule=spec.lr_schedule, state_targets=tuple(targets),
@@ -381,7 +383,7 @@ def study_key(spec: MonitorStudySpec, application, scenario, detector=None) -> s
     beside (when one is)."""
     from reachwatch.reach.fingerprint import fingerprint, modules_source_digest
     from .keys import digest
-    own = application_key(application)          # None for the default (the taxi)
+    own = application_key(application)
     return digest(dc.asdict(spec), dc.asdict(train_settings(spec, application)),
                   fingerprint(application.without_monitor(scenario)), *([own] if own else []),
                   {"study": STUDY_FORMAT, "code": modules_source_digest(*STUDY_CODE),

@@ -21,6 +21,7 @@ from reachwatch.systems import fallback_parts
 from reachwatch.systems.checks import warn_once
 
 from .keys import digest
+from .slot_defaults import DEFAULT_APPLICATION
 from .stages import Run
 
 
@@ -103,8 +104,9 @@ def showcase_run(run: Run, scenario, on_grid, grid, env) -> dict:
 
 
 def _or_default(application):
-    """``application``, or the default one (the taxi) for callers that name none."""
-    return application if application is not None else load_application("")
+    """``application``, or the default one (`DEFAULT_APPLICATION`) for callers that name
+    none."""
+    return application if application is not None else load_application(DEFAULT_APPLICATION)
 
 
 def fit_guard_noise(scenario, grid, tables, *, noise_starts: int, noise_seed: int,

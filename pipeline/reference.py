@@ -168,11 +168,12 @@ def _cell(text: str) -> str:
 
 def reference_markdown() -> str:
     """The reference page's Markdown, from the schema as it is now."""
+    from reachwatch.pipeline.slot_defaults import DEFAULT_APPLICATION
     from reachwatch.pipeline.spec import run_file_schema
     from reachwatch.reach.application import load_application
 
     lines = [HEADER]
-    for cls, paths in _classes(run_file_schema(load_application("")), "run"):
+    for cls, paths in _classes(run_file_schema(load_application(DEFAULT_APPLICATION)), "run"):
         lines.append(f"## {cls.__name__}\n")
         lines.append("Where: " + ", ".join(f"`{p}`" for p in paths)
                      + (" (the top level of a scenario file)" if cls.__name__ == "Scenario" else "")

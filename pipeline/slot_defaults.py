@@ -6,19 +6,23 @@ import dataclasses as dc
 
 from reachwatch.diagrams.schemas import ApplicationEnvironment, ApplicationRandomEnvironments
 from reachwatch.reach.application import Application, load_application
+from reachwatch.taxi.application import TAXI_APPLICATION
+
+#: The application a run file that names none (or names "") studies: the taxi.
+DEFAULT_APPLICATION = TAXI_APPLICATION
 
 
 @dc.dataclass(frozen=True)
 class SlotDefaults:
-    """``defaults(slot, role)`` of `typed_schema` for ``application`` (None: the
-    default application, loaded when a default is first made): a factory of the
+    """``defaults(slot, role)`` of `typed_schema` for ``application`` (None:
+    `DEFAULT_APPLICATION`, loaded when a default is first made): a factory of the
     application's environment (`Application.default_environment`) or random family
     (`Application.default_random_environments`) for ``role``."""
     application: Application = None
 
     def __call__(self, slot, role):
         def make():
-            application = self.application or load_application("")
+            application = self.application or load_application(DEFAULT_APPLICATION)
             environment, family = application.run_file_types()
             if slot is ApplicationEnvironment:
                 made, kind, how = (application.default_environment(role), environment,

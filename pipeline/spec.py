@@ -25,7 +25,7 @@ from .monitor_spec import (MONITOR_KINDS, MonitorStudySpec, MonitorVariant,  # n
 from .section_specs import (MAX_GRID, MAX_HORIZON, MAX_STARTS, EnsembleSpec,  # noqa: F401
                             FidelitySpec, GuardSpec, IncrementalConfig, MapSelectionSpec,
                             RefineSpec, RobustSpec)
-from .slot_defaults import SlotDefaults, application_default
+from .slot_defaults import DEFAULT_APPLICATION, SlotDefaults, application_default
 
 
 @dc.dataclass
@@ -39,8 +39,8 @@ class RunSpec:
 
     ``application``: the closed loop studied (`reachwatch.reach.application`), named
     like a controller factory (``package.module:name`` or ``path/to/file.py:name``: an
-    ``Application`` subclass or a function of no arguments returning one); empty: the
-    taxi (`reachwatch.taxi.application.TaxiApplication`).
+    ``Application`` subclass or a function of no arguments returning one); left out or
+    empty: the taxi (``reachwatch.taxi.application:TaxiApplication``).
 
     ``scenario``: camera, controller and fallback settings (its environment and start
     are ignored).
@@ -106,7 +106,7 @@ class RunSpec:
     ``monitor``: the monitor study over the image history (`MonitorStudySpec`; the
     guard stage guards with ``detector:``'s single-image detector)."""
     name: str = "run"
-    application: str = ""
+    application: str = DEFAULT_APPLICATION
     scenario: Scenario = dc.field(default_factory=Scenario)
     train: List[ApplicationEnvironment] = slot_field("", list)
     test: List[ApplicationEnvironment] = slot_field("", list)
@@ -148,6 +148,7 @@ class RunSpec:
                       f"and do not read {'it' if len(unread) == 1 else 'them'}")
         check_label("name", self.name)
         check_bounds(self)
+        self.application = self.application or DEFAULT_APPLICATION
         application = load_application(self.application)    # a bad name fails before any work
         self.train_random.validate("train_random")
         self.test_random.validate("test_random")
@@ -353,8 +354,9 @@ class RunSpec:
     def schema_for(cls, raw) -> type:
         """The schema a run file's data ``raw`` is loaded with: this one with the
         environments of the application it names (`run_file_schema`)."""
-        name = raw.get("application", "") if isinstance(raw, dict) else ""
-        return run_file_schema(load_application(name if isinstance(name, str) else ""))
+        name = raw.get("application") if isinstance(raw, dict) else None
+        return run_file_schema(load_application(name if isinstance(name, str) and name
+                                                else DEFAULT_APPLICATION))
 
 
 @functools.lru_cache(maxsize=None)

@@ -1,11 +1,13 @@
 """An application: one closed loop the pipeline studies, and what the generic core
 needs to know about it. The pipeline, training and the report call these methods and
-know nothing about the plant; the taxi (`reachwatch.taxi.application`) is the default
-implementation, and a run file names another as ``application: package.module:name``
-or ``application: path/to/file.py:name`` (a subclass of `Application`, or a function
-of no arguments returning one), loaded like a controller factory: its folder is
-importable in the driver and in every worker, and its fingerprint covers every
-``.py`` file of that folder or package (`reachwatch.diagrams.user_code`).
+know nothing about the plant. An application is named by a string,
+``package.module:name`` or ``path/to/file.py:name`` (a subclass of `Application`, or a
+function of no arguments returning one), and loaded like a controller factory
+(`load_application`): its folder is importable in the driver and in every worker, and
+its fingerprint covers every ``.py`` file of that folder or package
+(`reachwatch.diagrams.user_code`). Nothing here names one: which application a run
+file studies when it names none is the pipeline's choice (the taxi,
+`reachwatch.taxi.application`).
 
 It lives in ``reach`` because its methods speak reach's terms (a `Dynamics`, a
 `Grid`, a `Probe`, swept tables and `Outcomes`), and the layers above it (training,
@@ -19,7 +21,6 @@ import abc
 import copy
 import dataclasses as dc
 import functools
-import importlib
 import importlib.util
 import inspect
 import sys
@@ -31,10 +32,6 @@ from reachwatch.systems.checks import clip
 
 from .fingerprint import fingerprint
 from .sweep import sweep, sweep_key
-
-#: The application a run file without an ``application`` key studies.
-DEFAULT_APPLICATION = "reachwatch.taxi.application:TaxiApplication"
-
 
 @dc.dataclass
 class NoRandomEnvironments:
@@ -73,8 +70,10 @@ class Application(abc.ABC):
     #: real run the real-loop check reports (``max_abs_theta``; the taxi's: 2); None:
     #: none reported.
     heading_axis = None
-    #: Set by `load_application`: the string the application was loaded from ("" for
-    #: the default). Workers load it again from this.
+    #: The string the application is loaded from (`load_application` sets it), which
+    #: workers load it again by. An application of an importable package may name
+    #: itself here (``"package.module:name"``), so that an instance made directly runs
+    #: in workers too.
     spec = ""
     #: Files the loop reads that are not Python (a model of the plant, a mesh, a table
     #: of parameters): their contents are part of every key of this application, as its
@@ -180,10 +179,10 @@ class Application(abc.ABC):
 
     def _loaded_as(self) -> str:
         """`spec`, which workers load the application by; a ValueError for an instance
-        made directly rather than by `load_application` (the default's name would load
-        the taxi in its place)."""
+        made directly rather than by `load_application` whose class names no `spec`
+        of its own (one inherited would load the parent in workers)."""
         kind = f"{type(self).__module__}:{type(self).__qualname__}"
-        if not self.spec and kind != DEFAULT_APPLICATION:
+        if not self.spec or not ("spec" in vars(self) or "spec" in vars(type(self))):
             raise ValueError(f"application {kind}: load it with load_application("
                              f"'path/to/file.py:{type(self).__qualname__}') (or name it in the "
                              f"run file), so that workers and cache keys find its code")
@@ -400,14 +399,15 @@ class Application(abc.ABC):
     def ensemble_config(self, scenario, *, samples: int, epochs: int):
         """How the ensemble baseline's members are trained (the run file's ``ensemble``:
         ``samples`` labelled images, ``epochs``): a dataclass whose fields, with the
-        seeds, key the folder `train_ensemble` writes them to."""
+        seeds, key the folder of the checkpoints `train_ensemble` writes."""
         raise ValueError(f"the application '{self.name}' has no ensemble baseline: set "
                          f"ensemble.seeds: []")
 
-    def train_ensemble(self, config, folder, seeds, *, progress=None) -> list:
+    def train_ensemble(self, config, paths, seeds, *, progress=None):
         """Train one member of the ensemble baseline per seed of ``seeds`` from
-        ``config`` (`ensemble_config`), each written to ``folder/taxinet_seed{seed}.pt``
-        (the names the dataset stage looks for); returns their paths."""
+        ``config`` (`ensemble_config`), the member of ``seeds[i]`` written to
+        ``paths[i]`` (a checkpoint `ensemble_estimator` reads; the dataset stage names
+        them)."""
         raise ValueError(f"the application '{self.name}' has no ensemble baseline: set "
                          f"ensemble.seeds: []")
 
@@ -785,11 +785,9 @@ class Application(abc.ABC):
         return digests
 
     def key(self):
-        """What the application adds to the keys of cached results: None for the
-        default (so the taxi's keys are those of before applications), else its spec
-        and the fingerprint of its code."""
-        spec = self._loaded_as()
-        return None if not spec else ApplicationRef(spec).__fingerprint__()
+        """What the application adds to the keys of cached results: its spec, the
+        fingerprint of its code and that of its `data_files` (`ApplicationRef`)."""
+        return ApplicationRef(self._loaded_as()).__fingerprint__()
 
 
 class _LoopRenderer:
@@ -812,10 +810,7 @@ class ApplicationRef:
     spec: str
 
     def __fingerprint__(self):
-        from reachwatch.diagrams.user_code import factory_code_hash
-        if not self.spec:
-            return {"spec": "", "code": ""}
-        return {"spec": self.spec, "code": factory_code_hash(self.spec, where="application"),
+        return {"spec": self.spec, "code": application_code_hash(self.spec),
                 "data": load_application(self.spec).data_digest()}
 
     def load(self) -> Application:
@@ -880,22 +875,32 @@ def _check_axes(application: Application, spec: str):
                                  f"{i!r}, but its state has {n} ({', '.join(application.axes)})")
 
 
-def load_application(spec: str = "") -> Application:
+def application_code_hash(spec: str) -> str:
+    """The fingerprint of the code of the application ``spec`` names
+    (`reachwatch.diagrams.user_code.factory_code_hash`); "" for one in reachwatch's
+    own loop packages, whose source every fingerprint carries already
+    (`reach.fingerprint.LOOP_CODE`)."""
+    from reachwatch.diagrams import user_code
+    from .fingerprint import LOOP_CODE
+    module = spec.rpartition(":")[0]
+    if any(module == package or module.startswith(f"{package}.") for package in LOOP_CODE):
+        return ""
+    return user_code.factory_code_hash(spec, where="application")
+
+
+def load_application(spec: str) -> Application:
     """The application ``spec`` names (``package.module:name`` or
     ``path/to/file.py:name``: an `Application` subclass, or a function of no arguments
-    returning an instance); "" = the taxi (`DEFAULT_APPLICATION`). A ValueError in one
-    line when it cannot be loaded or is not an application."""
+    returning an instance). A ValueError in one line when it names none, cannot be
+    loaded or is not an application."""
     spec = str(spec or "")
+    if not spec:
+        raise ValueError("application: name one, as package.module:name or "
+                         "path/to/file.py:name")
     from reachwatch.diagrams import user_code
     from reachwatch.diagrams.user_errors import call_failure
-    if spec:
-        code = user_code.factory_code_hash(spec, where="application")
-        module, factory = user_code.resolve(spec, where="application")
-    else:
-        code = ""
-        target, _, name = DEFAULT_APPLICATION.partition(":")
-        module = importlib.import_module(target)
-        factory = getattr(module, name)
+    code = application_code_hash(spec)
+    module, factory = user_code.resolve(spec, where="application")
     if (spec, code) in _LOADED:
         return _LOADED[spec, code]
     try:
@@ -908,8 +913,6 @@ def load_application(spec: str = "") -> Application:
     except ValueError:
         raise                                   # the application's own one-line complaint
     except (Exception, SystemExit) as e:      # sys.exit(): was a silent exit
-        if not spec:
-            raise
         raise call_failure(spec, e, module, where="application") from e
     if not isinstance(application, Application):
         raise ValueError(f"application '{spec}': it returned a {type(application).__name__}, "
@@ -921,7 +924,6 @@ def load_application(spec: str = "") -> Application:
     return application
 
 
-def application_key(application: Application):
-    """`Application.key` as a short digest, or None for the default."""
-    key = application.key()
-    return None if key is None else fingerprint(key)[:16]
+def application_key(application: Application) -> str:
+    """`Application.key` as a short digest."""
+    return fingerprint(application.key())[:16]

@@ -81,7 +81,7 @@ LIBRARY = tuple(f"reachwatch.{name}" for name in
                 ("systems", "diagrams", "reach", "taxi", "training", "pipeline"))
 
 #: The packages every loop is built and run from: its systems, its diagrams, the
-#: real-loop runners and the default application. Their source is in every
+#: real-loop runners and the built-in application (the taxi). Their source is in every
 #: fingerprint: a factory's own module is not enough when the switch, a monitor or the
 #: plant it wires in changes.
 LOOP_CODE = LIBRARY[:4]

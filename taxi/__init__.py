@@ -7,11 +7,11 @@ from .fidelity import mission_rollouts, on_runway_starts, real_loop_fidelity, re
 from .grid import TaxiGridSpec, paper_grid
 from .guarded import UNGUARDED, taxi_fallback_rollouts, taxi_guarded_rollouts, p_controller_policy
 from .guarded_run import simulate_guarded
-from .application import TaxiApplication
+from .application import TAXI_APPLICATION, TaxiApplication
 from .sweeps import (refine_closed_loop, resolved, steering_bounds, taxi_probe, sweep_closed_loop,
                      sweep_guarded, taxi_sweep_key)
 
-__all__ = ["OffRunway", "TaxiApplication", "TaxiDynamics", "dynamics_for", "on_runway_starts", "real_loop_fidelity", "TaxiGridSpec", "paper_grid",
+__all__ = ["OffRunway", "TAXI_APPLICATION", "TaxiApplication", "TaxiDynamics", "dynamics_for", "on_runway_starts", "real_loop_fidelity", "TaxiGridSpec", "paper_grid",
            "UNGUARDED", "taxi_fallback_rollouts", "taxi_guarded_rollouts",
            "p_controller_policy", "mission_rollouts", "real_missions", "simulate_guarded", "refine_closed_loop", "resolved", "steering_bounds", "taxi_probe", "sweep_closed_loop",
            "sweep_guarded", "taxi_sweep_key"]

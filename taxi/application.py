@@ -1,4 +1,5 @@
-"""The taxi as an `Application`: the default closed loop of ``reachwatch run``. Any
+"""The taxi as an `Application` (`TAXI_APPLICATION`): the closed loop ``reachwatch run``
+studies when a run file names none. Any
 controller steers the taxiing aircraft (`reachwatch.systems.TaxiPlant`) on the runway
 of ``scenario.environment``, seen by the wing camera; it fails when it leaves the
 runway (``|px| >= half_width``). Its sweeps and datasets are the taxi's own modules
@@ -21,6 +22,9 @@ from .dynamics import OffRunway, dynamics_for
 from .grid import AXES, paper_grid
 from .taxinet_train import TaxiNetTrainConfig, train_taxinet_ensemble
 
+
+#: The string the taxi is loaded by (`reachwatch.reach.application.load_application`).
+TAXI_APPLICATION = "reachwatch.taxi.application:TaxiApplication"
 
 #: Where the guard stage times the taxi's loops: near the centreline, [px m, py m,
 #: theta rad] (runs that stay on the runway for the whole timing).
@@ -62,6 +66,7 @@ class TaxiApplication(RunwayEnvironments, Application):
     """The TaxiNet paper's taxiing aircraft (state [px m, py m, theta rad])."""
 
     name = "taxi"
+    spec = TAXI_APPLICATION
     axes = AXES
     axis_units = ("m", "m", "rad")
     open_axes = fidelity.OPEN_AXES
@@ -159,8 +164,8 @@ class TaxiApplication(RunwayEnvironments, Application):
     def ensemble_config(self, scenario, *, samples, epochs):
         return TaxiNetTrainConfig(camera=scenario.camera, samples=samples, epochs=epochs)
 
-    def train_ensemble(self, config, folder, seeds, *, progress=None):
-        return train_taxinet_ensemble(config, folder, seeds, progress=progress)
+    def train_ensemble(self, config, paths, seeds, *, progress=None):
+        train_taxinet_ensemble(config, paths, seeds, progress=progress)
 
     def plot_slices(self, value_functions, *, scenario, at, path, title="", points=None):
         return plots.plot_brt_slices(value_functions, py=at, path=path, title=title,

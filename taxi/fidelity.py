@@ -72,8 +72,9 @@ def mission_rollouts(scenario, fallback, duration: float, states, mission_limit=
     """The taxi's missions from each start, run here and not cached: the generic
     `reach.loop_runs.loop_missions` on the taxi's loop (``scenario`` as given), alone
     (``fallback=None``) or guarded by the fallback named ``fallback``."""
-    return loop_missions(ApplicationRef(""), scenario, fallback, duration, states,
-                         mission_limit, lockstep=lockstep)
+    from .application import TAXI_APPLICATION
+    return loop_missions(ApplicationRef(TAXI_APPLICATION), scenario, fallback, duration,
+                         states, mission_limit, lockstep=lockstep)
 
 
 def real_missions(scenario, starts, *, fallback=None, duration: float, cache_dir,

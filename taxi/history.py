@@ -19,5 +19,6 @@ def record_runs(scenario, duration: float, height: int, width: int, states, *,
     ``failure_time`` (s, NaN for none); ``T`` is the horizon's tick count. ``scored``:
     also ``score`` ``(T,)`` and ``engaged``, the detector of ``scenario.monitor`` along
     the same runs (`reach.loop_runs.loop_recordings`)."""
-    return loop_recordings(ApplicationRef(""), scenario, duration, height, width, states,
-                           scored=scored)
+    from .application import TAXI_APPLICATION
+    return loop_recordings(ApplicationRef(TAXI_APPLICATION), scenario, duration, height,
+                           width, states, scored=scored)

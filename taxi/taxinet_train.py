@@ -107,14 +107,11 @@ def train_taxinet(config: TaxiNetTrainConfig, out_path, progress=None) -> dict:
     return fit_taxinet(config, x, y, out_path, progress=progress, started=started)
 
 
-def train_taxinet_ensemble(config: TaxiNetTrainConfig, folder, seeds=(1, 2, 3, 4, 5),
-                           progress=None):
+def train_taxinet_ensemble(config: TaxiNetTrainConfig, paths, seeds, progress=None):
     """The ensemble baseline: TaxiNets differing only in their training seed (same
-    rendered data); returns the checkpoint paths."""
+    rendered data), the one of ``seeds[i]`` written to ``paths[i]``."""
+    if len(paths) != len(seeds):
+        raise ValueError(f"train_taxinet_ensemble: {len(paths)} paths for {len(seeds)} seeds")
     x, y = render_training_set(config, progress)
-    paths = []
-    for seed in seeds:
-        path = f"{folder}/taxinet_seed{seed}.pt"
+    for path, seed in zip(paths, seeds):
         fit_taxinet(config, x, y, path, seed=seed, progress=progress)
-        paths.append(path)
-    return paths

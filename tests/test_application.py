@@ -11,7 +11,8 @@ import pytest
 from reachwatch.diagrams import CONTROL_PORT, load_scenario
 from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.reach import InlineExecutor
-from reachwatch.reach.application import Application, load_application
+from reachwatch.reach.application import Application, application_key, load_application
+from reachwatch.taxi.application import TAXI_APPLICATION
 from reachwatch.taxi import on_runway_starts, paper_grid, sweep_closed_loop, taxi_sweep_key
 from reachwatch.taxi.application import TaxiApplication
 from reachwatch.training.dataset import DatasetSpec, dataset_folder
@@ -82,8 +83,20 @@ def _user_app(tmp_path, edge=3.0):
 
 
 def test_the_taxi_is_the_default_application_and_keeps_its_keys(tmp_path):
-    taxi = load_application("")
-    assert isinstance(taxi, TaxiApplication) and taxi.key() is None
+    taxi = load_application(TAXI_APPLICATION)
+    assert isinstance(taxi, TaxiApplication)
+    # a run file that names none, or names "", studies the taxi; the generic core names
+    # no default
+    from reachwatch.pipeline.spec import load_run_spec
+    from tiny_run import TINY
+    assert load_run_spec(data=TINY).application == TAXI_APPLICATION
+    assert load_run_spec(data=TINY + 'application: ""\n').application == TAXI_APPLICATION
+    with pytest.raises(ValueError, match="^application: name one, as package.module:name"):
+        load_application("")
+    # its code is in every fingerprint already (reachwatch's loop code): its key is its
+    # name; made directly, it still runs in workers
+    assert taxi.key() == {"spec": TAXI_APPLICATION, "code": "", "data": {}}
+    assert TaxiApplication()._loaded_as() == TAXI_APPLICATION
     scenario = load_scenario(data="")
     B = scenario.environment.half_width
     grid = taxi.grid(scenario, (5, 3, 5))
@@ -99,11 +112,6 @@ def test_the_taxi_is_the_default_application_and_keeps_its_keys(tmp_path):
     np.testing.assert_array_equal(taxi.failed(scenario, states), [False, True, True])
     # the generic failure rule (the dynamics' target) agrees with the taxi's own
     np.testing.assert_array_equal(Application.failed(taxi, scenario, states), [False, True, True])
-    # datasets: the default application adds nothing to their folder's key
-    from reachwatch.reach import ValueFunction
-    vf = ValueFunction(grid, np.ones(grid.shape), 1.0, "test")
-    assert dataset_folder(tmp_path, scenario, vf, DatasetSpec()) == dataset_folder(
-        tmp_path, scenario, vf, DatasetSpec(), application=taxi)
 
 
 def test_the_ensemble_baseline_is_the_applications(tmp_path, monkeypatch):
@@ -117,13 +125,14 @@ def test_the_ensemble_baseline_is_the_applications(tmp_path, monkeypatch):
     from reachwatch.pipeline.stages import Run
     from reachwatch.taxi.taxinet_train import TaxiNetTrainConfig
     scenario = load_scenario(data="camera: {width: 64, height: 32}\n")
-    taxi = load_application("")
+    taxi = load_application(TAXI_APPLICATION)
     config = taxi.ensemble_config(scenario, samples=48, epochs=2)
     assert config == TaxiNetTrainConfig(camera=scenario.camera, samples=48, epochs=2)
     run = Run(RunSpec(scenario=scenario, ensemble=EnsembleSpec(seeds=[3, 5], samples=48,
                                                                 epochs=2)), tmp_path / "run")
     paths = [p.relative_to(run.root).as_posix() for p in ensemble_paths(run)]
-    assert paths == [f"ensemble/{fingerprint(config, [3, 5], None)[:16]}/taxinet_seed{s}.pt"
+    own = application_key(taxi)
+    assert paths == [f"ensemble/{fingerprint(config, [3, 5], own)[:16]}/member_seed{s}.pt"
                      for s in (3, 5)]
     # members trained under another torch (or another render stack) are not reused
     monkeypatch.setitem(fingerprints.STACK, "torch", "0.0-elsewhere")
@@ -134,7 +143,7 @@ def test_the_ensemble_baseline_is_the_applications(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=none):         # the generic defaults
         Application.ensemble_config(taxi, scenario, samples=1, epochs=1)
     with pytest.raises(ValueError, match=none):
-        Application.train_ensemble(taxi, config, tmp_path, [1])
+        Application.train_ensemble(taxi, config, [tmp_path / "m.pt"], [1])
     run.application = None                      # not asked: nothing to train
     run.spec.ensemble.seeds = []
     assert ensemble_paths(run) == []
@@ -157,7 +166,7 @@ def test_a_user_application_is_loaded_from_its_folder_and_keyed_by_every_file(tm
     from reachwatch.reach import ValueFunction
     vf = ValueFunction(grid, np.ones(grid.shape), 1.0, "test")
     assert dataset_folder(tmp_path, scenario, vf, DatasetSpec(), application=app) != \
-        dataset_folder(tmp_path, scenario, vf, DatasetSpec())
+        dataset_folder(tmp_path, scenario, vf, DatasetSpec(), application=taxi_application())
     # made directly, not loaded by name: refused where workers or keys need its name
     with pytest.raises(ValueError, match="load it with load_application"):
         type(app)().sweep_key(scenario, grid)
@@ -242,7 +251,7 @@ def test_the_generic_real_loop_stops_where_the_failure_rule_holds_as_the_taxis(t
     starts = np.array([[0.0, 150.0, 0.0], [B - 0.5, 150.0, 0.4], [B + 1.0, 150.0, 0.0]])
     mine = app.real_outcomes(scenario, starts, grid=grid, duration=1.0,
                              cache_dir=tmp_path / "mine", progress=False)
-    taxi = load_application().real_outcomes(scenario, starts, grid=grid, duration=1.0,
+    taxi = load_application(TAXI_APPLICATION).real_outcomes(scenario, starts, grid=grid, duration=1.0,
                                             cache_dir=tmp_path / "taxi", progress=False)
     np.testing.assert_array_equal(mine.failed, [False, True, True])
     for field in ("failed", "failure_time", "left_box", "ticks"):
@@ -260,17 +269,16 @@ def test_a_taxi_subclass_with_its_own_loop_runs_and_starts_by_its_own_rules(tmp_
     app = load_application(f"{_user_app(tmp_path, edge=1.0)}:Rebuilt")
     run, failed = app.run_from(scenario, [1.5, 150.0, 0.0], 0.2)    # past its 1 m edge
     assert failed and run.failed and run.failure_time == 0.0 and len(run.time) == 1
-    run, failed = load_application().run_from(scenario, [1.5, 150.0, 0.0], 0.2)
+    run, failed = load_application(TAXI_APPLICATION).run_from(scenario, [1.5, 150.0, 0.0], 0.2)
     assert not failed and len(run.time) == 5                       # on the runway
     np.testing.assert_array_equal(app.start_state(scenario), app.view_state(scenario))
-    np.testing.assert_array_equal(load_application().start_state(scenario),
+    np.testing.assert_array_equal(load_application(TAXI_APPLICATION).start_state(scenario),
                                   [2.0, 120.0, 0.0])
 
 
 def test_an_applications_ensemble_folder_is_keyed_by_its_code(tmp_path):
-    """The ensemble baseline's folder: the default application's key is the config, the
-    seeds and the software stack, another application's also its code (its
-    `train_ensemble`)."""
+    """The ensemble baseline's folder is keyed by the config, the seeds, the software
+    stack and the application's key (its code: its `train_ensemble`)."""
     from types import SimpleNamespace
     from reachwatch.pipeline.dataset_stages import ensemble_paths
     from reachwatch.reach.fingerprint import fingerprint
@@ -293,9 +301,9 @@ def test_an_applications_ensemble_folder_is_keyed_by_its_code(tmp_path):
         assert len({p.parent for p in paths}) == min(len(seeds), 1) and len(paths) == len(seeds)
         return paths[0].parent if paths else None
 
-    assert folder(None) == tmp_path / "ensemble" / fingerprint(
-        {"samples": 8, "epochs": 1}, [0, 1], None)[:16]
-    assert len({folder(None), folder({"code": "a"}), folder({"code": "b"})}) == 3
+    assert folder({"code": "a"}) == tmp_path / "ensemble" / fingerprint(
+        {"samples": 8, "epochs": 1}, [0, 1], fingerprint({"code": "a"})[:16])[:16]
+    assert len({folder({"code": "a"}), folder({"code": "b"})}) == 2
     assert folder({"code": "a"}) == folder({"code": "a"})
     assert folder({"code": "a"}, seeds=()) is None
 
@@ -306,7 +314,7 @@ def test_the_stopping_time_is_the_applications():
     import re
     from pathlib import Path
     scenario = load_scenario(data="controller: {speed: 5.0}\n")
-    assert load_application().stopping_time(scenario, 3.0) == pytest.approx(5.0 / 3.0)
+    assert load_application(TAXI_APPLICATION).stopping_time(scenario, 3.0) == pytest.approx(5.0 / 3.0)
     root = Path(__file__).resolve().parents[1]
     spec = re.search(r"^application: *(\S+)", (root / "examples/speed_car/run.yaml").read_text(),
                      re.M).group(1)
@@ -370,7 +378,7 @@ def test_real_loop_runs_are_keyed_without_the_scenarios_start_duration_and_seed(
     caches (as sweeps do), and one that changes the loop does not."""
     from reachwatch.reach.application import sweep_scenario
     from reachwatch.reach.fingerprint import fingerprint
-    taxi = load_application("")
+    taxi = load_application(TAXI_APPLICATION)
     plain = load_scenario(data="")
     other = load_scenario(data="duration: 3.0\nseed: 7\n"
                                "initial_state: {px: 1.0, py: 120.0, theta_deg: 2.0}\n")
@@ -411,7 +419,7 @@ def test_the_guard_showcase_builds_the_loop_as_the_cached_missions_do(monkeypatc
         raise RuntimeError("captured")
     monkeypatch.setattr(loop_runs, "loop_missions", run_here)
     monkeypatch.setattr(outcomes, "map_states", cache)
-    taxi = load_application("")
+    taxi = load_application(TAXI_APPLICATION)
     scenario = load_scenario(data="duration: 3.0\nseed: 7\n"
                                   "initial_state: {px: 1.0, py: 120.0, theta_deg: 2.0}\n")
     for fallback in ("brake", None):
@@ -499,3 +507,10 @@ def test_a_run_whose_solved_box_passes_an_environments_runway_stops_before_any_s
                                          r"SHORT_21h_clear's runway as rendered"):
         run_pipeline(spec, tmp_path / "out", until="sweep", progress=False, log=lambda m: None)
     assert not list((tmp_path / "out").glob("sweeps/*"))
+
+
+def taxi_application():
+    """The taxi application, which the datasets of these tests are of."""
+    from reachwatch.reach.application import load_application
+    from reachwatch.taxi.application import TAXI_APPLICATION
+    return load_application(TAXI_APPLICATION)

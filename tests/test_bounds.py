@@ -18,6 +18,7 @@ from reachwatch.diagrams import ScenarioError, load_scenario
 from reachwatch.pipeline.reference import _classes
 from reachwatch.pipeline.spec import load_run_spec, run_file_schema
 from reachwatch.reach.application import load_application
+from reachwatch.taxi.application import TAXI_APPLICATION
 from reachwatch.systems.bounds import Bound, bounds, check_bounds
 from tiny_run import TINY
 
@@ -77,7 +78,7 @@ INSIDE_INSTEAD = {
 
 
 #: The run file's schema with the default application's (the taxi's) environments.
-SCHEMA = run_file_schema(load_application(""))
+SCHEMA = run_file_schema(load_application(TAXI_APPLICATION))
 
 
 def _cases():

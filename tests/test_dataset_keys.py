@@ -9,6 +9,7 @@ from reachwatch.diagrams import load_scenario
 from reachwatch.reach import ValueFunction
 from reachwatch.taxi import paper_grid
 from reachwatch.training.dataset import KEYED_VIEW, DatasetSpec, camera_view, dataset_folder
+from reachwatch.taxi.application import TAXI_APPLICATION
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +20,7 @@ def value_function():
 
 
 def _folder(tmp_path, value_function, text=""):
-    return dataset_folder(tmp_path, load_scenario(data=text), value_function, DatasetSpec())
+    return dataset_folder(tmp_path, load_scenario(data=text), value_function, DatasetSpec(), application=taxi_application())
 
 
 @pytest.mark.parametrize("text", [
@@ -49,7 +50,7 @@ def test_the_taxis_dataset_images_are_what_its_loops_camera_sees_shadows_include
     the closed loop's own camera (the generic renderer): shadows too, so that a
     detector trained on a run with ``shadows: true`` sees the shadows it will see."""
     from reachwatch.reach.application import Application, load_application
-    taxi = load_application()
+    taxi = load_application(TAXI_APPLICATION)
     scenario = taxi.resolved(load_scenario(data="camera: {width: 64, height: 32}\n"
                                                 "shadows: true\nenvironment: {hour: 17.0}\n"))
     state = np.array([1.0, 150.0, 0.1])
@@ -87,7 +88,14 @@ def test_real_loop_labels_key_the_brts_horizon_and_grid(tmp_path, value_function
     scenario = load_scenario(data="")
     for source in ("rollout", "hybrid"):
         spec = DatasetSpec(labels=LabelSpec(source))
-        assert dataset_folder(tmp_path, scenario, value_function, spec) != \
-            dataset_folder(tmp_path, scenario, longer, spec)
-    assert dataset_folder(tmp_path, scenario, value_function, DatasetSpec()) == \
-        dataset_folder(tmp_path, scenario, longer, DatasetSpec())
+        assert dataset_folder(tmp_path, scenario, value_function, spec, application=taxi_application()) != \
+            dataset_folder(tmp_path, scenario, longer, spec, application=taxi_application())
+    assert dataset_folder(tmp_path, scenario, value_function, DatasetSpec(), application=taxi_application()) == \
+        dataset_folder(tmp_path, scenario, longer, DatasetSpec(), application=taxi_application())
+
+
+def taxi_application():
+    """The taxi application, which the datasets of these tests are of."""
+    from reachwatch.reach.application import load_application
+    from reachwatch.taxi.application import TAXI_APPLICATION
+    return load_application(TAXI_APPLICATION)

@@ -147,7 +147,7 @@ def tiny_brt():
 def test_dataset_labels_follow_the_value_sign_and_resume(tmp_path, tiny_brt):
     scenario = load_scenario(data="")
     spec = DatasetSpec(samples=24, seed=3, height=20, width=36, chunk_size=10)
-    folder = build_dataset(tmp_path, scenario, tiny_brt, spec, progress=False)
+    folder = build_dataset(tmp_path, scenario, tiny_brt, spec, progress=False, application=taxi_application())
     data = load_dataset(folder)
     assert data.images.shape == (24, 20, 36, 3) and data.estimates.shape == (24, 2)
     np.testing.assert_array_equal(data.labels, tiny_brt.at(data.states) <= 0)
@@ -164,7 +164,7 @@ def test_dataset_labels_follow_the_value_sign_and_resume(tmp_path, tiny_brt):
     images[10:] = 0
     images.flush()
     del images
-    assert build_dataset(tmp_path, scenario, tiny_brt, spec, progress=False) == folder
+    assert build_dataset(tmp_path, scenario, tiny_brt, spec, progress=False, application=taxi_application()) == folder
     np.testing.assert_array_equal(load_dataset(folder).images, first)
 
 
@@ -395,3 +395,10 @@ def test_target_section_writes_the_target_rows_the_console_prints():
     # a fixed threshold (target_recall 0) is judged at 95 % recall
     assert "recall >= 95.00%" in target_text(rows, {"listed": ["A"]}, DetectorTrainConfig())
     assert target_text([], {"listed": ["A"]}, DetectorTrainConfig()) == ""
+
+
+def taxi_application():
+    """The taxi application, which the datasets of these tests are of."""
+    from reachwatch.reach.application import load_application
+    from reachwatch.taxi.application import TAXI_APPLICATION
+    return load_application(TAXI_APPLICATION)

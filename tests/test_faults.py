@@ -184,7 +184,7 @@ def test_stage_keys_do_not_depend_on_wall_time(tmp_path):
     vf = solve_brt(grid, TaxiDynamics(half_width=10.0),
                    np.deg2rad(-0.74 * px - 0.44 * np.rad2deg(th) + 8.0), horizon=2.0, device="cpu")
     spec = DatasetSpec(samples=16, height=24, width=40, chunk_size=16)
-    data = [load_dataset(build_dataset(tmp_path, load_scenario(data=""), vf, spec, progress=False))]
+    data = [load_dataset(build_dataset(tmp_path, load_scenario(data=""), vf, spec, progress=False, application=taxi_application()))]
     config = DetectorTrainConfig(detector=DetectorConfig(height=24, width=40, channels=[4, 8]),
                                  epochs=1, batch_size=8, device="cpu")
     first = train_detector(data, config, tmp_path / "a.pt")
@@ -203,13 +203,13 @@ def test_truncated_dataset_array_names_the_file(tmp_path):
     vf = solve_brt(grid, TaxiDynamics(half_width=10.0), np.zeros(grid.shape), horizon=1.0,
                    device="cpu")
     spec = DatasetSpec(samples=12, height=16, width=24, chunk_size=12)
-    folder = build_dataset(tmp_path, load_scenario(data=""), vf, spec, progress=False)
+    folder = build_dataset(tmp_path, load_scenario(data=""), vf, spec, progress=False, application=taxi_application())
     images = folder / "images.npy"
     images.write_bytes(images.read_bytes()[:500])
     with pytest.raises(ValueError, match=f"{images} is unreadable.*delete {folder}"):
         load_dataset(folder)
     with pytest.raises(ValueError, match=f"{images} is unreadable.*delete {folder}"):
-        build_dataset(tmp_path, load_scenario(data=""), vf, spec, progress=False)   # resuming
+        build_dataset(tmp_path, load_scenario(data=""), vf, spec, progress=False, application=taxi_application())   # resuming
     (folder / "manifest.json").write_text("{ torn")
     with pytest.raises(ValueError, match=f"{folder} is not a readable reachwatch dataset"):
         load_dataset(folder)
@@ -371,3 +371,10 @@ def test_bad_detector_never_opens_meshcat(tmp_path, monkeypatch):
         scenario = load_scenario(data=f"monitor: {{detector: {bad}}}\nduration: 0.2\n")
         guarded_run.simulate_guarded(scenario, tmp_path)
     assert opened == []
+
+
+def taxi_application():
+    """The taxi application, which the datasets of these tests are of."""
+    from reachwatch.reach.application import load_application
+    from reachwatch.taxi.application import TAXI_APPLICATION
+    return load_application(TAXI_APPLICATION)

@@ -13,9 +13,10 @@ from reachwatch.pipeline import cli
 from reachwatch.pipeline.commands import RunFileDefault, fill_run_file_defaults
 from reachwatch.pipeline.spec import run_file_schema
 from reachwatch.reach.application import load_application
+from reachwatch.taxi.application import TAXI_APPLICATION
 
 #: The run file's schema with the default application's (the taxi's) environments.
-SCHEMA = run_file_schema(load_application(""))
+SCHEMA = run_file_schema(load_application(TAXI_APPLICATION))
 
 #: Flags whose names are run-file fields' but which set something else, and what.
 NOT_THE_RUN_FILES = {

@@ -9,6 +9,7 @@ import torch
 from reachwatch.diagrams import MonitorConfig, load_scenario
 from reachwatch.reach import Dynamics, Grid, Probe
 from reachwatch.reach.application import Application
+from reachwatch.taxi.application import TAXI_APPLICATION
 from reachwatch.reach.guarded_rollouts import guarded_rollouts, takes_speed
 from reachwatch.reach.liveness import UNGUARDED
 from reachwatch.reach.sweep import SweepTable
@@ -151,7 +152,7 @@ def test_the_guard_is_checked_before_anything_is_swept():
     Toy(NoSpeed()).check_guard(scenario, ["slow_down+oracle"])
     with pytest.raises(ValueError, match="^NoSpeed cannot be rolled out"):
         Toy(NoSpeed()).check_guard(scenario, ["brake"], skipped=False)
-    load_application("").check_guard(scenario, ["slow_down+oracle", "slow_down+dead_reckoning"])
+    load_application(TAXI_APPLICATION).check_guard(scenario, ["slow_down+oracle", "slow_down+dead_reckoning"])
 
 
 def test_a_run_file_asking_the_cart_for_a_steering_fallback_is_refused(monkeypatch):
@@ -204,7 +205,7 @@ def test_an_application_without_an_ensemble_has_none_by_default_and_refuses_seed
         load_run_spec(data=text.replace("ensemble: {seeds: []}", "ensemble: {seeds: [1, 2]}"))
     taxi = ("name: t\ntrain: [{runway: KMWH, hour: 9.0, sky: clear}]\n"
             "test: [{runway: KSFO, hour: 17.0, sky: clear}]\n")
-    assert load_application("").has_ensemble()
+    assert load_application(TAXI_APPLICATION).has_ensemble()
     assert load_run_spec(data=taxi).ensemble.seeds == [1, 2, 3, 4, 5]
 
 

@@ -15,6 +15,7 @@ from reachwatch.pipeline.commands import fill_run_file_defaults
 from reachwatch.pipeline.guard_commands import guard_spec
 from reachwatch.pipeline.spec import RunSpec
 from reachwatch.reach.application import Application, load_application
+from reachwatch.taxi.application import TAXI_APPLICATION
 from reachwatch.taxi.guarded import SCORE_PORT
 
 
@@ -59,7 +60,7 @@ def test_the_guard_command_calls_the_stage_with_that_run_file(detector_path, tmp
                      "--fallbacks", "brake", "--check-starts", "2", "--cache",
                      str(tmp_path / "cache"), "--executor", "inline", "--out",
                      str(tmp_path / "out")]) == 130
-    taxi = load_application("")
+    taxi = load_application(TAXI_APPLICATION)
     assert seen["application"] is taxi and seen["scenario"].monitor.threshold == 0.3
     assert seen["grid"] == taxi.grid(seen["scenario"], (3, 3, 3))
     assert seen["spec"].guard.strategies == ["brake"] and seen["spec"].guard.check_starts == 2
@@ -68,7 +69,7 @@ def test_the_guard_command_calls_the_stage_with_that_run_file(detector_path, tmp
 
 
 def test_the_guard_needs_of_an_application_and_what_it_does_not_implement(tmp_path):
-    taxi = load_application("")
+    taxi = load_application(TAXI_APPLICATION)
     assert taxi.score_port == SCORE_PORT            # the taxi's guarded sweep's port
     scenario = load_scenario(data="")
     for call, name, key in (

@@ -128,7 +128,7 @@ def test_rollout_labels_equal_direct_simulation_of_the_real_loop(tmp_path, kmwh_
     B = scenario.environment.half_width
     spec = DatasetSpec(samples=10, seed=5, height=20, width=36, chunk_size=8,
                        labels=LabelSpec("rollout"))
-    data = load_dataset(build_dataset(tmp_path, scenario, vf, spec, progress=False))
+    data = load_dataset(build_dataset(tmp_path, scenario, vf, spec, progress=False, application=taxi_application()))
     assert np.all(data.sources == SOURCE_ROLLOUT)
     assert data.manifest["labels"]["rollouts"] == 10
     diagram = make_closed_loop_diagram(scenario)
@@ -221,3 +221,10 @@ def test_the_log_line_says_how_each_dataset_was_labelled():
         "1418 labels, 40593 frames (28.6 per label)")
     assert label_summary({"samples": 600, "labels": {"source": "brt"}}) == \
         "brt; 600 labels, 0 frames (0.0 per label)"
+
+
+def taxi_application():
+    """The taxi application, which the datasets of these tests are of."""
+    from reachwatch.reach.application import load_application
+    from reachwatch.taxi.application import TAXI_APPLICATION
+    return load_application(TAXI_APPLICATION)

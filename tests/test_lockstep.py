@@ -15,6 +15,7 @@ from reachwatch.diagrams.lockstep import batch_systems, loop_copies, simulate_lo
 from reachwatch.systems import PreprocessConfig, TaxiNet, TaxiNetConfig, build_taxinet
 from reachwatch.reach import loop_runs
 from reachwatch.reach.application import ApplicationRef
+from reachwatch.taxi.application import TAXI_APPLICATION
 from reachwatch.taxi import OffRunway, fidelity
 from reachwatch.taxi.grid import paper_grid
 
@@ -125,7 +126,7 @@ def test_real_loop_runs_do_not_depend_on_lockstep_nor_torch_threads(tiny_scenari
     prepare = TaxiNet.prepare_batch
     monkeypatch.setattr(TaxiNet, "prepare_batch", lambda self, pairs: (
         seen.append(torch.get_num_threads()), prepare(self, pairs))[1])
-    runs, taxi = {}, ApplicationRef("")
+    runs, taxi = {}, ApplicationRef(TAXI_APPLICATION)
     for lockstep, threads in ((1, 0), (2, 1)):
         monkeypatch.setattr(loop_runs, "LOOP_TORCH_THREADS", threads)
         runs[lockstep] = (

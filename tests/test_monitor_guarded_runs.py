@@ -9,6 +9,7 @@ import pytest
 
 from reachwatch.diagrams import load_scenario
 from reachwatch.pipeline.monitor_guarded import oracle_flag_ticks
+from reachwatch.taxi.application import TAXI_APPLICATION
 
 
 def test_the_oracle_goes_on_from_a_recorded_state_as_the_loop_alone_does(tmp_path):
@@ -18,7 +19,7 @@ def test_the_oracle_goes_on_from_a_recorded_state_as_the_loop_alone_does(tmp_pat
     before the failure; braking from its flag, flagged at every tick, saves the run."""
     from reachwatch.diagrams import MonitorConfig
     from reachwatch.reach.application import load_application
-    application = load_application()
+    application = load_application(TAXI_APPLICATION)
     scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
     period = scenario.controller.period
     B = scenario.environment.half_width
@@ -174,7 +175,7 @@ def test_the_watch_goes_on_from_the_last_recorded_state(tmp_path):
     from reachwatch.pipeline.monitor_runs import (continues_from_recordings,
                                                   watched_failure_times)
     from reachwatch.reach.application import load_application
-    application = load_application()
+    application = load_application(TAXI_APPLICATION)
     scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
     B = scenario.environment.half_width
     starts = np.array([[B - 3.0, 100.0, 0.6], [-(B - 5.0), 100.0, -0.8], [0.0, 100.0, 0.0]])
@@ -268,7 +269,7 @@ def test_recorded_runs_of_every_environment_are_in_flight_together(tmp_path):
             future.add_done_callback(lambda f: self.held.pop(f, None))
             return future
 
-    application, scenario = load_application(), load_scenario(data="")
+    application, scenario = load_application(TAXI_APPLICATION), load_scenario(data="")
     spec = SimpleNamespace(duration=0.5, within=0.5, height=16, width=24,
                            family=SimpleNamespace(seed=3))
     envs = [load_scenario(data=f"environment: {{runway: {r}, hour: 9.0, sky: clear}}\n"
@@ -304,7 +305,7 @@ def test_frames_read_back_are_the_recorded_ones_and_not_held(tmp_path, monkeypat
         return watch(*args, recorded=recorded, **kwargs)
     monkeypatch.setattr(monitor_runs, "watched_failure_times", watched)
     from reachwatch.reach.application import load_application
-    application, scenario = load_application(), load_scenario(data="")
+    application, scenario = load_application(TAXI_APPLICATION), load_scenario(data="")
     spec = SimpleNamespace(duration=0.5, within=0.5, height=16, width=24,
                            family=SimpleNamespace(seed=3))
     envs = [load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n"
@@ -343,7 +344,7 @@ def test_the_oracle_refuses_recordings_the_loop_alone_does_not_repeat(tmp_path):
     from types import SimpleNamespace
     from reachwatch.pipeline.monitor_guarded import _oracle_guarded
     from reachwatch.reach.application import load_application
-    application = load_application()
+    application = load_application(TAXI_APPLICATION)
     scenario = load_scenario(data="environment: {runway: KMWH, hour: 9.0, sky: clear}\n")
     period = scenario.controller.period
     group = {"ticks": np.array([40]), "failure_time": np.array([39 * period]),

@@ -10,6 +10,7 @@ import pytest
 from reachwatch.diagrams import load_scenario
 from reachwatch.pipeline.spec import MonitorVariant, dump_run_spec, load_run_spec
 from tiny_run import MONITOR_STUDY, TINY
+from reachwatch.taxi.application import TAXI_APPLICATION
 
 
 def test_the_study_spec_loads_round_trips_and_names_its_errors():
@@ -110,7 +111,7 @@ def test_the_starts_do_not_repeat_the_environments_random_numbers():
     from reachwatch.pipeline.monitor_study import starts_seed
     from reachwatch.reach.application import load_application
     spec = load_run_spec(data=TINY + MONITOR_STUDY).monitor
-    application, scenario = load_application(), load_scenario(data="")
+    application, scenario = load_application(TAXI_APPLICATION), load_scenario(data="")
     hours, offsets = [], []
     for i, environment in enumerate(dc_replace(spec.family, count=60).environments()):
         here = dc_replace(scenario, environment=environment)
@@ -130,7 +131,7 @@ def test_the_study_key_covers_every_training_setting_and_the_study_code(monkeypa
     import reachwatch.pipeline.monitor_study as study
     from reachwatch.reach.application import load_application
     spec = load_run_spec(data=TINY + MONITOR_STUDY)
-    taxi = load_application("")
+    taxi = load_application(TAXI_APPLICATION)
     key = lambda monitor: study.study_key(monitor, taxi, spec.scenario)  # noqa: E731
     before = key(spec.monitor)
     assert before == key(spec.monitor)
@@ -188,7 +189,7 @@ def test_the_study_key_holds_the_compared_detectors_content(tmp_path):
     from reachwatch.diagrams import save_checkpoint
     from reachwatch.reach.application import load_application
     from reachwatch.systems import DetectorConfig, build_detector
-    spec, taxi = load_run_spec(data=TINY + MONITOR_STUDY), load_application("")
+    spec, taxi = load_run_spec(data=TINY + MONITOR_STUDY), load_application(TAXI_APPLICATION)
     path, keys = tmp_path / "detector.pt", []
     for seed in (0, 1):
         torch.manual_seed(seed)

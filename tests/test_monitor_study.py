@@ -19,6 +19,7 @@ from reachwatch.pipeline.monitor_study import (DETECTOR_ROW, checkpoint_file,
 from reachwatch.pipeline.spec import MonitorVariant, load_run_spec
 from reachwatch.training.conformal import conformal_threshold
 from tiny_run import MONITOR_STUDY, TINY
+from reachwatch.taxi.application import TAXI_APPLICATION
 
 
 def test_threshold_tradeoff_leaves_a_blank_row_only_where_no_threshold_exists():
@@ -200,7 +201,7 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
         import dataclasses as dc
         from reachwatch.diagrams import MonitorConfig
         from reachwatch.reach.application import load_application
-        taxi, env = load_application(), spec.environments()["held_out"][0]
+        taxi, env = load_application(TAXI_APPLICATION), spec.environments()["held_out"][0]
         here = dc.replace(scenario, environment=env,
                           monitor=MonitorConfig(detector=str(detector_path)))
         box = taxi.grid(here, (3, 3, 3))
@@ -286,7 +287,7 @@ def test_an_ensemble_study_saves_every_member_and_judges_their_mean(tmp_path):
     assert {n for _, n in result["failing_runs"]["held_out"].values()} == {spec.runs + 1}
     assert {n for _, n in result["failing_runs"]["calibrate"].values()} == {spec.runs + 1}
     assert {n for _, n in result["failing_runs"]["train"].values()} == {spec.runs}
-    held_out = record_split(spec, load_application(), scenario, spec.environments()["held_out"],
+    held_out = record_split(spec, load_application(TAXI_APPLICATION), scenario, spec.environments()["held_out"],
                        spec.train + spec.calibrate, runs=spec.judged_runs,
                        cache_dir=tmp_path / "cache" / "runs", executor=None, progress=False)[0]
     calibration = lambda q: platt(q, *meta["calibration"])  # noqa: E731

@@ -65,7 +65,7 @@ def test_trajectory_samples_keeps_settled_states_inside_the_box():
 
 def test_trajectory_fields_leave_other_datasets_keys_alone(tmp_path, kmwh_day_brt):
     scenario, vf = kmwh_day_brt
-    key = lambda labels: dataset_folder(tmp_path, scenario, vf, DatasetSpec(labels=labels))  # noqa: E731
+    key = lambda labels: dataset_folder(tmp_path, scenario, vf, DatasetSpec(labels=labels), application=taxi_application())  # noqa: E731
     assert key(LabelSpec("rollout")) == key(LabelSpec("rollout", extend=3.0, stride=2))
     assert key(LabelSpec("trajectory")) != key(LabelSpec("trajectory", extend=3.0))
     assert key(LabelSpec("brt")) != key(LabelSpec("brt", paths=2))
@@ -141,7 +141,7 @@ def test_trajectory_labels_equal_direct_simulation_of_the_real_loop(tmp_path, km
     # their runs pass through are anomalous too
     spec = DatasetSpec(samples=10, seed=258, height=20, width=36, chunk_size=8,
                        labels=LabelSpec("trajectory", extend=1.0, stride=5))
-    data = load_dataset(build_dataset(tmp_path, scenario, vf, spec, progress=False))
+    data = load_dataset(build_dataset(tmp_path, scenario, vf, spec, progress=False, application=taxi_application()))
     info = data.manifest["labels"]
     along = data.sources == SOURCE_PATH
     assert data.sources[:10].tolist() == [SOURCE_ROLLOUT] * 10 and not along[:10].any()
@@ -241,7 +241,7 @@ def test_brt_labels_with_paths_add_true_labels_along_real_runs(tmp_path, kmwh_da
     B, grid = scenario.environment.half_width, vf.grid
     spec = DatasetSpec(samples=10, seed=5, height=20, width=36, chunk_size=8,
                        labels=LabelSpec("brt", paths=3, extend=1.0, stride=5))
-    data = load_dataset(build_dataset(tmp_path, scenario, vf, spec, progress=False))
+    data = load_dataset(build_dataset(tmp_path, scenario, vf, spec, progress=False, application=taxi_application()))
     along = data.sources == SOURCE_PATH
     assert data.sources[:10].tolist() == [SOURCE_BRT] * 10 and along[10:].all()
     np.testing.assert_array_equal(data.labels[:10], np.asarray(data.values[:10]) <= 0)
@@ -269,7 +269,7 @@ def test_hybrid_falls_back_to_trajectory_labels_where_its_audit_distrusts_the_ma
 
     def build(root, labels):
         spec = DatasetSpec(samples=10, seed=258, height=20, width=36, chunk_size=8, labels=labels)
-        return load_dataset(build_dataset(root, scenario, blind, spec, progress=False))
+        return load_dataset(build_dataset(root, scenario, blind, spec, progress=False, application=taxi_application()))
 
     want = build(tmp_path / "trajectory", LabelSpec("trajectory", extend=1.0, stride=5))
     got = build(tmp_path / "hybrid", LabelSpec("hybrid", audit=10, distrusted="trajectory",
@@ -301,3 +301,10 @@ def test_hybrid_falls_back_to_trajectory_labels_where_its_audit_distrusts_the_ma
     assert longer.manifest["labels"]["audit"]["batches"] == 1
     assert sorted(p.relative_to(cache) for p in cache.rglob("*.npz")) == chunks
     np.testing.assert_array_equal(longer.labels, got.labels)
+
+
+def taxi_application():
+    """The taxi application, which the datasets of these tests are of."""
+    from reachwatch.reach.application import load_application
+    from reachwatch.taxi.application import TAXI_APPLICATION
+    return load_application(TAXI_APPLICATION)

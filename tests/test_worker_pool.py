@@ -63,9 +63,9 @@ def test_a_dataset_rendered_by_workers_has_the_pixels_of_one_rendered_here(tmp_p
                     device="cpu")
     scenario, spec = load_scenario(data=""), DatasetSpec(samples=10, seed=5, height=24,
                                                           width=40, chunk_size=4)
-    here = load_dataset(build_dataset(tmp_path / "here", scenario, brt, spec, progress=False))
+    here = load_dataset(build_dataset(tmp_path / "here", scenario, brt, spec, progress=False, application=taxi_application()))
     there = load_dataset(build_dataset(tmp_path / "there", scenario, brt, spec,
-                                       progress=False, executor=pool), verify=True)
+                                       progress=False, executor=pool, application=taxi_application()), verify=True)
     assert here.folder.name == there.folder.name and here.manifest == there.manifest
     assert here.manifest["chunks_done"] == [0, 4, 8]
     for name in ("images", "estimates", "ensemble", "states", "labels"):
@@ -167,3 +167,10 @@ def test_workers_exit_soon_after_the_driver_is_killed_even_while_importing():
     for pid in left:                    # leave nothing behind, even when failing
         os.kill(pid, signal.SIGKILL)
     assert not left, f"workers {left} outlived their killed driver by 1.5 s"
+
+
+def taxi_application():
+    """The taxi application, which the datasets of these tests are of."""
+    from reachwatch.reach.application import load_application
+    from reachwatch.taxi.application import TAXI_APPLICATION
+    return load_application(TAXI_APPLICATION)

@@ -33,7 +33,7 @@ import numpy as np
 from tqdm import tqdm
 
 from reachwatch.diagrams import file_hash, make_controller
-from reachwatch.reach.application import ApplicationRef, load_application
+from reachwatch.reach.application import ApplicationRef
 from reachwatch.reach.chunk_files import split
 from reachwatch.reach.chunks import run_chunks
 from reachwatch.reach.executors import InlineExecutor
@@ -112,10 +112,9 @@ def camera_view(scenario) -> dict:
 
 
 def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(),
-                   box=None, application=None) -> Path:
+                   box=None, *, application) -> Path:
     """The content-addressed folder of a dataset under ``root`` (``application``: the
-    closed loop, `reachwatch.reach.application`; None = the default, the taxi)."""
-    application = application or load_application()
+    closed loop, a `reachwatch.reach.application.Application`)."""
     scenario = application.resolved(scenario)
     spec_parts = spec.key()
     if not spec.labels.reads_along:
@@ -205,21 +204,20 @@ def _real_paths(application, scenario, value_function, folder: Path, progress, e
 
 
 def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpec(), *,
-                  ensemble=(), progress=True, box=None, rebuild=False,
-                  application=None, executor=None) -> Path:
+                  application, ensemble=(), progress=True, box=None, rebuild=False,
+                  executor=None) -> Path:
     """Render, estimate and label ``spec.samples`` uniform states of ``box`` (``(lo,
     hi)``, inside the value function's grid; default: the whole grid) in
     ``scenario``'s environment, and with ``trajectory`` labels the states their runs
     pass through (`trajectory_samples`); returns the dataset folder (reused or resumed when it
     already exists). A folder whose arrays are not the ones its manifest recorded
     (edited, truncated or missing since) is a ValueError naming the file, or with
-    ``rebuild`` is built again from the start. ``application``: the closed loop
-    (`reachwatch.reach.application`; None = the default, the taxi): its failure rule,
-    start distribution, real loop and camera. ``executor``: where the image chunks
+    ``rebuild`` is built again from the start. ``application``: the closed loop (a
+    `reachwatch.reach.application.Application`): its failure rule, start distribution,
+    real loop and camera. ``executor``: where the image chunks
     (`dataset_images.render_chunk`) and the real loop's runs go (default: here, one
     after another); this process writes what comes back, so workers need no
     filesystem shared with it."""
-    application = application or load_application()
     scenario = application.resolved(scenario)
     grid = value_function.grid
     if box is not None:
@@ -230,7 +228,8 @@ def build_dataset(root, scenario, value_function, spec: DatasetSpec = DatasetSpe
                              f"non-empty box inside the BRT's grid {grid}")
     else:
         lo, hi = grid.lo, grid.hi
-    folder = dataset_folder(root, scenario, value_function, spec, ensemble, box, application)
+    folder = dataset_folder(root, scenario, value_function, spec, ensemble, box,
+                            application=application)
     folder.mkdir(parents=True, exist_ok=True)
     manifest_path = folder / "manifest.json"
     inline = executor is None or isinstance(executor, InlineExecutor)
