@@ -103,7 +103,13 @@ def run_command(args):
                                    sweep_cache=args.sweep_cache, only=args.only,
                                    progress=progress_enabled(), log=stamp, after_stage=push,
                                    folder_held=mirror is not None)
-        except BaseException:  # what finished before an error or an interrupt is put there too
+        except BaseException as error:  # what finished before an error or interrupt is put too
+            writing = getattr(error, "jobs_still_writing", None)
+            if writing:             # their files may change while they are put: a mixed copy
+                log.warning(f"not put to {args.out}: {len(writing)} jobs were still writing "
+                            f"when interrupted ({', '.join(writing[:3])}); run the command "
+                            f"again, which resumes here and puts the folder")
+                raise
             try:
                 push("end")
             except Exception as e:     # the run's own error is the one to see

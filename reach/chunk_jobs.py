@@ -6,6 +6,7 @@ come in the jobs' order (`ordered_log`)."""
 
 import concurrent.futures as cf
 import contextvars
+import sys
 import threading
 from typing import Callable
 
@@ -153,7 +154,8 @@ def run_together(jobs, executor, *, what: str = "job", bar: Callable = None) -> 
     interrupt the jobs are told to stop, and the interrupt is raised once they have
     stored their finished chunks and stopped (within 0.25 s of their chunk loop), or
     after `JOBS_STOP_S` (their threads are daemons; stopping the executor ends their
-    chunks)."""
+    chunks), with the names of those still running in its ``jobs_still_writing``: what
+    they write may still change, so the caller must not copy it elsewhere."""
     jobs = list(jobs)
     count = bar(total=len(jobs), **({"position": len(jobs)} if together(executor, len(jobs))
                                     else {})) if bar is not None else None
@@ -203,7 +205,10 @@ def _run_threads(jobs, executor, what, count) -> list:
         # and store what finished before it is raised: what the caller does next (a
         # push of the run directory) must not race their writes (a dataset's rows
         # written after its arrays were put, its manifest naming them after)
-        cf.wait(futures, timeout=JOBS_STOP_S)
+        still = cf.wait(futures, timeout=JOBS_STOP_S).not_done
+        if still:
+            error = sys.exc_info()[1]
+            error.jobs_still_writing = [jobs[futures.index(f)][0] for f in still]
         raise
     finally:
         shared.finished(None)             # lines still held (a failure, an interrupt)

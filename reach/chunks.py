@@ -23,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 
-from .chunk_jobs import current_job
+from .chunk_jobs import Stopped, current_job
 from .executors import InlineExecutor, Window, WorkerLost, stop_executor
 
 _log = logging.getLogger(__name__)
@@ -55,6 +55,11 @@ def set_row_hook(hook):
 #: the scheduler went away), by class name, so that no cluster package is imported here;
 #: ``CancelledError``: a task the cluster cancelled more than `CANCELLED_RETRIES` times.
 LOST_TASK_ERRORS = ("KilledWorker", "FutureCancelledError", "CommClosedError", "CancelledError")
+
+#: Seconds `run_chunks` waits for its chunks in flight to finish, to store them, when it
+#: stops because another job failed (`reach.chunk_jobs.Stopped`); an interrupt waits for
+#: none.
+STOPPED_GRACE_S = 2.0
 
 #: How many times `run_chunks` submits again a chunk the cluster cancelled (Dask cancels
 #: the tasks whose input it lost with a worker: the files scattered to it), before it is
@@ -178,11 +183,18 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
         if error is not None:
             raise error
 
-    def keep_finished():
-        """On an error: store the chunks that finished meanwhile, cancel the rest."""
+    def keep_finished(grace: float = 0.0):
+        """On an error: store the chunks that finished meanwhile (waiting up to ``grace``
+        s for those in flight), cancel the rest. Done ones are stored before anything is
+        cancelled: a cluster's future cancels even when its task has finished and only
+        its result is still on the way."""
+        if grace and pending:
+            cf.wait(pending, timeout=grace)
         for future, chunk in list(pending.items()):
-            if not future.cancel() and future.done() and future.exception() is None:
+            if future.done() and not future.cancelled() and future.exception() is None:
                 store.store(chunk, future.result())
+            else:
+                future.cancel()
         pending.clear()
         submitted.clear()
         stalled.clear()
@@ -256,8 +268,8 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
                              "in native code); the pool was started again, and the %d "
                              "chunk(s) not stored yet run on it", caller, len(left))
     except BaseException as e:
-        try:
-            keep_finished()
+        try:      # another job failed: what is in flight is worth its short wait
+            keep_finished(STOPPED_GRACE_S if isinstance(e, Stopped) else 0.0)
         finally:                            # a chunk that cannot be stored stops the rest
             if owned:
                 stop_executor(executor, abort=True)

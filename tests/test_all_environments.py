@@ -89,8 +89,9 @@ def test_jobs_together_share_one_window_and_log_in_their_order(tmp_path):
 
 
 def test_a_failing_job_names_itself_and_stops_the_others_queued_chunks(tmp_path):
-    """Job b fails once a has finished four chunks: a's finished chunks are stored, its
-    queued ones never run, and the error is b's, named, its type kept."""
+    """Job b fails once a has finished four chunks: a's finished chunks are stored (those
+    in flight then too, `STOPPED_GRACE_S`), its queued ones never run, and the error is
+    b's, named, its type kept."""
     ran, finished, gate = [], [], threading.Event()
 
     def slow(start, stop):
@@ -112,7 +113,8 @@ def test_a_failing_job_names_itself_and_stops_the_others_queued_chunks(tmp_path)
             pytest.raises(RuntimeError, match=r"^job b: chunk at 0 failed$"):
         run_together([("a", a), ("b", b)], pool, what="job")
     stored = {int(p.stem.split("_")[1]) for p in (tmp_path / "a").iterdir()}
-    assert set(finished[:3]) <= stored <= set(finished) and len(ran) < 20
+    # the chunks in flight when it stopped finished within its short wait: stored too
+    assert stored == set(finished) and len(finished) >= 4 and len(ran) < 20
     # inline: one after another, the failing job named the same way, those after it not run
     calls = []
 
@@ -163,6 +165,26 @@ def test_an_interrupt_is_raised_once_the_jobs_have_stored_what_finished(tmp_path
         time.sleep(0.7)                          # more than two chunks' stores
         assert sorted((tmp_path / "slow").iterdir()) == stored   # nothing written since
     assert 1 <= len(stored) < 8
+
+
+def test_an_interrupt_names_the_jobs_still_writing_after_the_wait(monkeypatch):
+    """A job that has not stopped within `JOBS_STOP_S` is named on the interrupt
+    (``jobs_still_writing``), so that the caller does not copy files it may still
+    change; one that stopped is not."""
+    from reachwatch.reach import chunk_jobs
+    monkeypatch.setattr(chunk_jobs, "JOBS_STOP_S", 0.3)
+
+    def stuck():
+        time.sleep(1.5)              # no chunk loop: it does not see the stop
+        return 1
+
+    def quick():
+        time.sleep(0.2)
+        return 1
+    with cf.ThreadPoolExecutor(2) as pool:
+        with pytest.raises(KeyboardInterrupt) as raised:
+            run_together([("stuck", stuck), ("quick", quick)], pool, bar=_InterruptedBar)
+    assert raised.value.jobs_still_writing == ["stuck"]
 
 
 TWO = """
