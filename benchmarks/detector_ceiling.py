@@ -164,7 +164,7 @@ def main():
             spec.dataset.labels, source="trajectory", paths=0, max_rollouts=0))
     started = time.time()
     data = load_dataset(build_dataset(work / "datasets", run.scenario_for(env), value_function,
-                                      dataset_spec, box=box))
+                                      dataset_spec, box=box, application=run.application))
     print(f"detector ceiling: {name}, {len(data.labels)} images "
           + (f"along {args.visited} real runs " if args.visited else "") +
           f"({100 * data.labels.mean():.1f} % anomalous), rendered or reused in "

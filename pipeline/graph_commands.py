@@ -11,7 +11,6 @@ is simulated."""
 
 from .commands import add_loop_source_arguments, check_detector, count, loop_scenario
 from .console import log
-from .slot_defaults import DEFAULT_APPLICATION, TAXI_APPLICATION
 
 #: What ``--loop`` takes, and the file each is written to (in ``--out``).
 LOOPS = {"closed": "closed_loop", "guarded": "guarded_loop", "world": "world"}
@@ -49,14 +48,17 @@ def graph(args):
         log.info(path)
 
 
-def loop_diagram(scenario, loop: str, application: str = DEFAULT_APPLICATION):
+def loop_diagram(scenario, loop: str, application: str = None):
     """The Drake diagram of ``loop`` ("closed", "guarded" or "world") of ``scenario``
-    in the application ``application`` (a run file's ``application``): the loop is the
-    application's ``loop_diagram``, built as a run's sweeps build it
-    (`reachwatch.reach.application.build_loop`); "world" is the taxi's alone."""
+    in the application ``application`` (a run file's ``application``; None: the
+    default, `DEFAULT_APPLICATION`): the loop is the application's ``loop_diagram``,
+    built as a run's sweeps build it (`reachwatch.reach.application.build_loop`);
+    "world" is the default's (the taxi's) alone."""
     from reachwatch.reach.application import ApplicationRef, build_loop
+    from .slot_defaults import DEFAULT_APPLICATION
+    application = application or DEFAULT_APPLICATION
     if loop == "world":
-        if application != TAXI_APPLICATION:
+        if application != DEFAULT_APPLICATION:
             raise ValueError(f"--loop world draws the taxi's open-loop world; the "
                              f"application '{application}' has none (draw its closed "
                              f"loop: --loop closed)")

@@ -32,8 +32,7 @@ def incremental(run: Run) -> dict:
     # the training environments' names: the datasets it fine-tunes on; the loop's code:
     # the built-in application's fine-tuning lives there (another's is in ``own``)
     name = digest(config, run.outputs["dataset"], file_hash(base) if base else "",
-                  [e.name for e in spec.training_environments()], loop_code_digest(),
-                  *([own] if own is not None else []))
+                  [e.name for e in spec.training_environments()], loop_code_digest(), own)
     path = run.path(f"incremental/{application.fine_tuned_name}_{name}.pt")
     seconds = None
     if not path.exists():
@@ -104,6 +103,5 @@ def stage_incremental(run: Run) -> dict:
     key = digest(config, run.content_key("dataset"),
                  run.content_key(f"solve_{config.environment.name}"),
                  [e.name for e in run.spec.training_environments()],
-                 {"code": modules_source_digest(*INCREMENTAL_CODE)},
-                 *([own] if own is not None else []))
+                 {"code": modules_source_digest(*INCREMENTAL_CODE)}, own)
     return run.stage("incremental", key, lambda: incremental(run))

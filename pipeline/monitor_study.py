@@ -385,7 +385,7 @@ def study_key(spec: MonitorStudySpec, application, scenario, detector=None) -> s
     from .keys import digest
     own = application_key(application)
     return digest(dc.asdict(spec), dc.asdict(train_settings(spec, application)),
-                  fingerprint(application.without_monitor(scenario)), *([own] if own else []),
+                  fingerprint(application.without_monitor(scenario)), own,
                   {"study": STUDY_FORMAT, "code": modules_source_digest(*STUDY_CODE),
                    "lead_s": study_lead(spec, application, scenario)},
                   *([file_hash(detector)] if detector is not None else []))

@@ -362,16 +362,16 @@ def stage_guard(run: Run) -> dict:
         run.log(f"[guard] skipped: the application '{run.application.name}' has no fallback "
                 f"rollouts")
         return out
-    # an application other than the default (the taxi) keys the stage by its code too:
-    # its dynamics drive the table rollouts at the fallback's speed, which the BRT
-    # (solved at the nominal speed) does not see
+    # the application keys the stage by its code too: its dynamics drive the table
+    # rollouts at the fallback's speed, which the BRT (solved at the nominal speed) does
+    # not see
     own = application_key(run.application)
     for env in run.spec.guard_environments():
         # content keys: a detector or BRT rebuilt with other bytes guards again
         key = digest(run.content_key("train"), run.content_key(f"solve_{env.name}"),
                      run.spec.guard, run.spec.scenario.monitor, run.spec.horizon,
                      {"guard_format": GUARD_FORMAT, "code": modules_source_digest(*GUARD_CODE)},
-                     *([own] if own is not None else []))
+                     own)
         out[env.name] = run.stage(f"guard_{env.name}", key,
                                   lambda env=env: guard_environment(run, env))
     return out

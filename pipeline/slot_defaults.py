@@ -6,10 +6,11 @@ import dataclasses as dc
 
 from reachwatch.diagrams.schemas import ApplicationEnvironment, ApplicationRandomEnvironments
 from reachwatch.reach.application import Application, load_application
-from reachwatch.taxi.application import TAXI_APPLICATION
 
-#: The application a run file that names none (or names "") studies: the taxi.
-DEFAULT_APPLICATION = TAXI_APPLICATION
+#: The application a run file that names none (or names "") studies: the taxi
+#: (`reachwatch.taxi.application.TAXI_APPLICATION`; named here, not imported, so that the
+#: generic pipeline imports no taxi code).
+DEFAULT_APPLICATION = "reachwatch.taxi.application:TaxiApplication"
 
 
 @dc.dataclass(frozen=True)

@@ -124,7 +124,7 @@ class GuardHooks:
             return
         nominal = getattr(self.dynamics(scenario), "speed", None)
         if nominal is not None and not np.isclose(nominal, scenario.controller.speed):
-            raise ValueError(f"the application '{self.spec or self.name}': its "
+            raise ValueError(f"the application '{self.name}': its "
                              f"dynamics(scenario).speed is {nominal:g}, and "
                              f"scenario.controller.speed {scenario.controller.speed:g}: the "
                              f"guard's tables would roll out at one speed and its real loop "

@@ -12,10 +12,10 @@ from reachwatch.diagrams import CONTROL_PORT, load_scenario
 from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.reach import InlineExecutor
 from reachwatch.reach.application import Application, application_key, load_application
-from reachwatch.taxi.application import TAXI_APPLICATION
 from reachwatch.taxi import on_runway_starts, paper_grid, sweep_closed_loop, taxi_sweep_key
-from reachwatch.taxi.application import TaxiApplication
+from reachwatch.taxi.application import TAXI_APPLICATION, TaxiApplication
 from reachwatch.training.dataset import DatasetSpec, dataset_folder
+from tiny_run import taxi_application
 
 RUN = """
 train: [{runway: KMWH, hour: 9.0, sky: clear}]
@@ -27,7 +27,7 @@ APP = """
 import numpy as np
 
 import helpers
-from reachwatch.taxi.application import TaxiApplication
+from reachwatch.taxi.application import TAXI_APPLICATION, TaxiApplication
 
 
 class Rebuilt(TaxiApplication):
@@ -82,13 +82,14 @@ def _user_app(tmp_path, edge=3.0):
     return str(folder / "loop.py")
 
 
-def test_the_taxi_is_the_default_application_and_keeps_its_keys(tmp_path):
+def test_the_taxi_is_the_default_application_and_keeps_its_sweep_keys(tmp_path):
     taxi = load_application(TAXI_APPLICATION)
     assert isinstance(taxi, TaxiApplication)
     # a run file that names none, or names "", studies the taxi; the generic core names
-    # no default
-    from reachwatch.pipeline.spec import load_run_spec
+    # no default, the pipeline's is the taxi's own name
+    from reachwatch.pipeline.slot_defaults import DEFAULT_APPLICATION
     from tiny_run import TINY
+    assert DEFAULT_APPLICATION == TAXI_APPLICATION
     assert load_run_spec(data=TINY).application == TAXI_APPLICATION
     assert load_run_spec(data=TINY + 'application: ""\n').application == TAXI_APPLICATION
     with pytest.raises(ValueError, match="^application: name one, as package.module:name"):
@@ -507,10 +508,3 @@ def test_a_run_whose_solved_box_passes_an_environments_runway_stops_before_any_s
                                          r"SHORT_21h_clear's runway as rendered"):
         run_pipeline(spec, tmp_path / "out", until="sweep", progress=False, log=lambda m: None)
     assert not list((tmp_path / "out").glob("sweeps/*"))
-
-
-def taxi_application():
-    """The taxi application, which the datasets of these tests are of."""
-    from reachwatch.reach.application import load_application
-    from reachwatch.taxi.application import TAXI_APPLICATION
-    return load_application(TAXI_APPLICATION)

@@ -10,6 +10,7 @@ from reachwatch.reach import ValueFunction
 from reachwatch.taxi import paper_grid
 from reachwatch.training.dataset import KEYED_VIEW, DatasetSpec, camera_view, dataset_folder
 from reachwatch.taxi.application import TAXI_APPLICATION
+from tiny_run import taxi_application
 
 
 @pytest.fixture(scope="module")
@@ -92,10 +93,3 @@ def test_real_loop_labels_key_the_brts_horizon_and_grid(tmp_path, value_function
             dataset_folder(tmp_path, scenario, longer, spec, application=taxi_application())
     assert dataset_folder(tmp_path, scenario, value_function, DatasetSpec(), application=taxi_application()) == \
         dataset_folder(tmp_path, scenario, longer, DatasetSpec(), application=taxi_application())
-
-
-def taxi_application():
-    """The taxi application, which the datasets of these tests are of."""
-    from reachwatch.reach.application import load_application
-    from reachwatch.taxi.application import TAXI_APPLICATION
-    return load_application(TAXI_APPLICATION)

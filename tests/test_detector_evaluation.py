@@ -15,6 +15,7 @@ from reachwatch.training.baselines import EstimateError, ensemble_variance, esti
 from reachwatch.training.dataset import DatasetSpec, LabelledData, build_dataset, load_dataset
 from reachwatch.training.evaluation import NOT_FAILED, evaluate_environment
 from reachwatch.training.metrics import auroc, best_threshold, binary_metrics
+from tiny_run import taxi_application
 
 TINY = DetectorConfig(height=24, width=40, channels=[4, 8])
 TAXINET_ERROR = estimate_error_of(TaxiApplication(), "TaxiNet")
@@ -395,10 +396,3 @@ def test_target_section_writes_the_target_rows_the_console_prints():
     # a fixed threshold (target_recall 0) is judged at 95 % recall
     assert "recall >= 95.00%" in target_text(rows, {"listed": ["A"]}, DetectorTrainConfig())
     assert target_text([], {"listed": ["A"]}, DetectorTrainConfig()) == ""
-
-
-def taxi_application():
-    """The taxi application, which the datasets of these tests are of."""
-    from reachwatch.reach.application import load_application
-    from reachwatch.taxi.application import TAXI_APPLICATION
-    return load_application(TAXI_APPLICATION)

@@ -20,7 +20,7 @@ from reachwatch.pipeline.spec import load_run_spec
 from reachwatch.pipeline.brt_stages import sweep_rate
 from reachwatch.reach import InlineExecutor, Probe, default_executor, sweep
 from reachwatch.taxi import OffRunway, paper_grid
-from tiny_run import TINY
+from tiny_run import TINY, taxi_application
 
 TESTS = Path(__file__).resolve().parent
 FEEDBACK = Probe(plant="taxi_plant", control_port="p_controller.steering_angle",
@@ -371,10 +371,3 @@ def test_bad_detector_never_opens_meshcat(tmp_path, monkeypatch):
         scenario = load_scenario(data=f"monitor: {{detector: {bad}}}\nduration: 0.2\n")
         guarded_run.simulate_guarded(scenario, tmp_path)
     assert opened == []
-
-
-def taxi_application():
-    """The taxi application, which the datasets of these tests are of."""
-    from reachwatch.reach.application import load_application
-    from reachwatch.taxi.application import TAXI_APPLICATION
-    return load_application(TAXI_APPLICATION)

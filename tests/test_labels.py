@@ -11,6 +11,7 @@ from reachwatch.training.dataset import DatasetSpec, build_dataset, load_dataset
 from reachwatch.training.labels import (SOURCE_BRT, SOURCE_ROLLOUT, LabelSpec, audited_band,
                                         assign_labels)
 from reachwatch.taxi import OffRunway
+from tiny_run import taxi_application
 
 
 class FakeLoop:
@@ -221,10 +222,3 @@ def test_the_log_line_says_how_each_dataset_was_labelled():
         "1418 labels, 40593 frames (28.6 per label)")
     assert label_summary({"samples": 600, "labels": {"source": "brt"}}) == \
         "brt; 600 labels, 0 frames (0.0 per label)"
-
-
-def taxi_application():
-    """The taxi application, which the datasets of these tests are of."""
-    from reachwatch.reach.application import load_application
-    from reachwatch.taxi.application import TAXI_APPLICATION
-    return load_application(TAXI_APPLICATION)

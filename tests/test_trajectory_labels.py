@@ -14,6 +14,7 @@ from reachwatch.training.dataset import (PATHS_STREAM, STATES_STREAM, DatasetSpe
 from reachwatch.training.labels import (NO_RUN, SOURCE_BRT, SOURCE_PATH, SOURCE_ROLLOUT,
                                         LabelSpec, trajectory_samples)
 from reachwatch.taxi import OffRunway
+from tiny_run import taxi_application
 
 
 def test_path_labels_tick_by_tick():
@@ -301,10 +302,3 @@ def test_hybrid_falls_back_to_trajectory_labels_where_its_audit_distrusts_the_ma
     assert longer.manifest["labels"]["audit"]["batches"] == 1
     assert sorted(p.relative_to(cache) for p in cache.rglob("*.npz")) == chunks
     np.testing.assert_array_equal(longer.labels, got.labels)
-
-
-def taxi_application():
-    """The taxi application, which the datasets of these tests are of."""
-    from reachwatch.reach.application import load_application
-    from reachwatch.taxi.application import TAXI_APPLICATION
-    return load_application(TAXI_APPLICATION)

@@ -16,6 +16,7 @@ from reachwatch.taxi import paper_grid
 
 from test_faults import FEEDBACK, _feedback_factory
 from test_outcomes import drift_rollout
+from tiny_run import taxi_application
 
 
 def _worker_threads(_):
@@ -167,10 +168,3 @@ def test_workers_exit_soon_after_the_driver_is_killed_even_while_importing():
     for pid in left:                    # leave nothing behind, even when failing
         os.kill(pid, signal.SIGKILL)
     assert not left, f"workers {left} outlived their killed driver by 1.5 s"
-
-
-def taxi_application():
-    """The taxi application, which the datasets of these tests are of."""
-    from reachwatch.reach.application import load_application
-    from reachwatch.taxi.application import TAXI_APPLICATION
-    return load_application(TAXI_APPLICATION)

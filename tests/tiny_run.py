@@ -46,3 +46,10 @@ monitor:
     - {name: one frame}
     - {name: GRU 3 + signals, frames: 3, stride: 2, temporal: gru, signals: true}
 """
+
+
+def taxi_application():
+    """The taxi application, which the datasets of the tests are of."""
+    from reachwatch.reach.application import load_application
+    from reachwatch.taxi.application import TAXI_APPLICATION
+    return load_application(TAXI_APPLICATION)

@@ -133,8 +133,7 @@ def dataset_folder(root, scenario, value_function, spec: DatasetSpec, ensemble=(
         parts["view"] = camera_view(scenario)
     if box is not None:
         parts["box"] = np.asarray(box, float).tolist()
-    if application.key() is not None:      # the default's keys are those of before
-        parts["application"] = application.key()
+    parts["application"] = application.key()
     if spec.labels.reads_along:
         parts["runs"] = 1       # runs.npy, which datasets of read-along states before it lacked
     if spec.labels.source != "brt" or spec.labels.paths:
