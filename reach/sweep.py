@@ -289,6 +289,22 @@ def cached_table_digest(cache_dir, key: str, size: int):
     return digest.hexdigest() if stop == size else None
 
 
+def cached_chunk_size(folder, size: int):
+    """The states per chunk of the sweep cached in ``folder`` (its first chunk's, when
+    it is a sweep's of ``size`` states, whole and checked), else None. A table does not
+    depend on how it was chunked, so a sweep asked for another chunk size goes on in the
+    cache's (files named by their index would otherwise hold other rows, and each
+    sweep would take the other's for damaged and compute them again)."""
+    try:
+        arrays = read_chunk_file(chunk_path(folder, 0))
+        start, stop = int(arrays["start"]), int(arrays["stop"])
+    except Exception:      # none yet, or damaged: computed again in the size asked
+        return None
+    if start != 0 or not 0 < stop <= size or not checksum_ok(arrays):
+        return None
+    return stop
+
+
 def sweep_key(factory: Callable, grid: Grid, probe: Probe, *, name: str = None) -> str:
     """The cache folder name of a sweep: ``name`` (default: the factory's function
     name), the grid shape, and the first 20 hex digits of the content fingerprint of
@@ -357,6 +373,7 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
     make_folder(folder)
     if checked:            # a derived key is the fingerprint; a given one must match it
         _check_fingerprint(folder, factory, grid, probe, key)
+    chunk_size = cached_chunk_size(folder, grid.size) or chunk_size
     chunks, nports = split(grid.size, chunk_size), len(probe.ports)
     # Local chunks are loaded again at the end (memory stays one table); a URL's are
     # kept as read or stored, so no object is downloaded twice.

@@ -210,6 +210,28 @@ def test_sweep_resumes_after_interruption(tmp_path):
     assert calls == []                                       # repeated sweep costs nothing
 
 
+def test_a_sweep_asked_for_another_chunk_size_goes_on_in_the_caches(tmp_path):
+    """A table does not depend on its chunking: a sweep of a cache filled in chunks of 8
+    asked for chunks of 5 reads them (and resumes a missing one in 8), where it would
+    have taken every file for damaged and computed the whole table again."""
+    g = paper_grid(B, (6, 3, 5))
+    kwargs = dict(key="k", probe=FEEDBACK, progress=False)
+    first = sweep(_feedback_factory(), g, cache_dir=tmp_path, executor=InlineExecutor(),
+                  chunk_size=8, **kwargs)
+    (tmp_path / "k" / "chunk_000002.npz").unlink()
+    calls = []
+
+    class Counting(InlineExecutor):
+        def submit(self, fn, *args):
+            calls.append((args[4], args[5]))
+            return super().submit(fn, *args)
+    again = sweep(_feedback_factory(), g, cache_dir=tmp_path, executor=Counting(),
+                  chunk_size=5, **kwargs)
+    assert calls == [(16, 24)]
+    for port in FEEDBACK.ports:
+        assert np.array_equal(again[port], first[port])
+
+
 def test_sweep_key_changes_with_checkpoint_grid_and_environment(tmp_path):
     torch.manual_seed(0)
     paths = []
