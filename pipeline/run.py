@@ -139,12 +139,21 @@ def run_folder_held(out):
 def _locked(out):
     """`run_folder_held`'s lock: its file descriptor, None where the folder cannot hold
     one, or the one-line ValueError when another run holds it."""
-    root = Path(out)
+    root, writable = Path(out), True
     try:
         root.mkdir(parents=True, exist_ok=True)
         fd = os.open(root / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError:
-        return None
+    except OSError as e:
+        if e.errno == errno.EROFS:              # a read-only folder: the run writes nothing
+            return None
+        try:            # another user's lock file: flock holds on a file opened to read
+            fd, writable = os.open(root / LOCK_NAME, os.O_RDONLY), False
+        except FileNotFoundError:               # none, and none can be made: read-only
+            return None
+        except OSError:
+            log.warning(f"{out}: cannot open its lock file ({e.strerror}); running without "
+                        f"the lock that keeps a second run out")
+            return None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as e:
@@ -157,8 +166,12 @@ def _locked(out):
         raise ValueError(f"{out} is in use by another reachwatch run"
                          f"{f' (pid {holder})' if holder.isdigit() else ''}: wait for it to "
                          f"end, or give another --out") from None
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, str(os.getpid()).encode(), 0)
+    if writable:                                # who holds it, for the other's message
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, str(os.getpid()).encode(), 0)
+        except OSError:
+            pass
     return fd
 
 

@@ -44,6 +44,29 @@ def test_a_second_run_on_a_folder_in_use_is_refused_and_writes_nothing(tmp_path)
         pass
 
 
+def test_a_lock_file_this_user_cannot_write_still_keeps_a_second_run_out(tmp_path,
+                                                                         monkeypatch):
+    """Another user's lock file (a shared, group-writable folder) opens only to read:
+    the lock holds all the same, where the run went on unlocked without a word."""
+    import errno
+    import os
+    from reachwatch.pipeline import run as run_module
+    out = tmp_path / "shared"
+    real_open = os.open
+
+    def not_mine(path, flags, *args):
+        if str(path).endswith(".reachwatch.lock") and flags & os.O_RDWR:
+            raise PermissionError(errno.EACCES, "Permission denied")
+        return real_open(path, flags, *args)
+    with run_folder_held(out):                   # its owner's run holds it
+        monkeypatch.setattr(run_module.os, "open", not_mine)
+        with pytest.raises(ValueError, match="is in use by another reachwatch run"):
+            with run_folder_held(out):
+                pass
+    with run_folder_held(out):                   # free again: held, read-only
+        pass
+
+
 def test_a_file_system_without_flock_runs_unlocked_said_once(tmp_path, monkeypatch, caplog):
     import errno
     import fcntl
