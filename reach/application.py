@@ -685,8 +685,8 @@ def load_application(spec: str) -> Application:
     _check_axes(application, spec)
     application.spec = spec
     application.data_digest()                   # a data file it names is there, or one line
-    _LOADED[spec, code] = application
-    return application
+    # two threads of a worker loading it at once both get the first one kept
+    return _LOADED.setdefault((spec, code), application)
 
 
 def application_key(application: Application) -> str:
