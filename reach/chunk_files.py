@@ -100,10 +100,15 @@ class FolderStore:
     ``rows``: write `ROWS` into each chunk file, so that a chunk written with another
     chunk size is run again rather than read into the wrong rows (for a job whose key
     does not hold its chunk size), and take no file that does not say its rows;
-    ``keep``: hold the arrays read or stored, for `read`."""
+    ``keep``: hold the arrays read or stored, for `read`; ``stamp``: ``{name: str}``
+    written into each chunk file and required the same in each file read (what the
+    folder's name does not key: a chunk another writer stored in the folder for other
+    work is run again, not read)."""
 
-    def __init__(self, folder, fits: Callable = None, keep: bool = False, rows: bool = False):
+    def __init__(self, folder, fits: Callable = None, keep: bool = False, rows: bool = False,
+                 stamp: dict = None):
         self.folder, self.fits, self.rows = cache_location(folder), fits, rows
+        self.stamp = {name: np.asarray(str(value)) for name, value in (stamp or {}).items()}
         self.kept = {} if keep else None
 
     def path(self, chunk: Chunk):
@@ -124,6 +129,9 @@ class FolderStore:
                 return None
             if covered is not None and covered.tolist() != [chunk.start, chunk.stop]:
                 return None
+            for name, value in self.stamp.items():
+                if str(arrays.pop(name, None)) != str(value):
+                    return None
             if self.fits is not None and not self.fits(chunk, arrays):
                 return None
         except Exception:   # missing, truncated, corrupt or lacking an array: run it again
@@ -136,7 +144,9 @@ class FolderStore:
         return self.read(chunk) is not None
 
     def store(self, chunk: Chunk, arrays: dict):
-        store_chunk_file(self.path(chunk), {**arrays, ROWS: np.array([chunk.start, chunk.stop])}
-                         if self.rows else arrays)
+        written = {**arrays, **self.stamp}
+        if self.rows:
+            written[ROWS] = np.array([chunk.start, chunk.stop])
+        store_chunk_file(self.path(chunk), written)
         if self.kept is not None:
             self.kept[chunk.index] = arrays

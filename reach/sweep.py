@@ -316,7 +316,7 @@ def sweep_key(factory: Callable, grid: Grid, probe: Probe, *, name: str = None) 
 
 def _check_fingerprint(folder, factory, grid, probe, key):
     """Records what a user-keyed cache folder was filled from, and refuses to reuse it
-    for anything else."""
+    for anything else; returns the fingerprint (None when it cannot be taken)."""
     try:
         mine = fingerprint(factory, grid.key(), probe)
     except Unfingerprintable as e:
@@ -341,6 +341,7 @@ def _check_fingerprint(folder, factory, grid, probe, key):
                              f"{mine[:12]}); use another key, or key=None to derive one")
     if mine is not None and recorded is None:
         write_location(path, json.dumps({"fingerprint": mine}).encode())
+    return mine
 
 
 def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = None,
@@ -371,13 +372,17 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
     local = isinstance(base, Path)
     folder = cache_join(base.absolute() if local else base, key)
     make_folder(folder)
+    stamp = None
     if checked:            # a derived key is the fingerprint; a given one must match it
-        _check_fingerprint(folder, factory, grid, probe, key)
+        mine = _check_fingerprint(folder, factory, grid, probe, key)
+        # in each chunk too: two sweeps given one key at once, both before either wrote
+        # fingerprint.json, would else each read the other's chunks
+        stamp = {"_fingerprint": mine} if mine is not None else None
     chunk_size = cached_chunk_size(folder, grid.size) or chunk_size
     chunks, nports = split(grid.size, chunk_size), len(probe.ports)
     # Local chunks are loaded again at the end (memory stays one table); a URL's are
     # kept as read or stored, so no object is downloaded twice.
-    store = FolderStore(folder, _fits(nports), keep=not local)
+    store = FolderStore(folder, _fits(nports), keep=not local, stamp=stamp)
     diagram_key = probe_key(factory, probe, key)
     ran = run_chunks(
         run_chunk, chunks, store,

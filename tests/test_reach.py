@@ -284,6 +284,13 @@ def test_a_user_key_is_checked_not_trusted(tmp_path):
                                   first[FEEDBACK.control_port])
     assert not np.array_equal(derived[0][FEEDBACK.control_port],
                               derived[1][FEEDBACK.control_port])
+    # two sweeps given the key at once, both before either wrote fingerprint.json: the
+    # second reads none of the first's chunks (each chunk carries its fingerprint)
+    (tmp_path / "mine" / "fingerprint.json").unlink()
+    other = sweep(_gain_factory(-2.0), g, key="mine", cache_dir=tmp_path, probe=FEEDBACK,
+                  executor=InlineExecutor(), progress=False)
+    np.testing.assert_array_equal(other[FEEDBACK.control_port],
+                                  derived[1][FEEDBACK.control_port])
     gain = -0.74
 
     def closure():
