@@ -229,10 +229,13 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
                     wait()
         try:
             future = executor.submit(task, *args(chunk))
-        except BaseException:
+        except BaseException as e:
             if shared is not None:
                 shared.give()
-            raise
+            lost = _lost(e, caller, chunk)     # a cluster gone while submitting: one line
+            if lost is e:
+                raise
+            raise lost from e
         if shared is not None:
             future.add_done_callback(shared.give)
         pending[future] = chunk

@@ -318,6 +318,31 @@ def test_a_task_the_cluster_lost_is_one_worker_lost_line_and_the_rest_is_kept(tm
     assert store.valid(split(10, 3)[0])
 
 
+class CommClosedError(OSError):
+    """Named as Dask's: the connection to the scheduler closed."""
+
+
+class ClosingCluster(cf.ThreadPoolExecutor):
+    """A cluster's executor whose connection closes before the chunk at row 6 is
+    submitted: ``submit`` itself raises."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        if args[0] == 6:
+            raise CommClosedError("in <TCP (closed)>: Stream is closed")
+        return super().submit(fn, *args, **kwargs)
+
+
+def test_a_cluster_gone_while_submitting_is_one_worker_lost_line(tmp_path):
+    from reachwatch.reach.executors import WorkerLost
+    store = FolderStore(tmp_path, keep=True)
+    with ClosingCluster(1) as cluster, pytest.raises(
+            WorkerLost, match=r"^the cluster lost my_job chunk 2 \(CommClosedError: in <TCP "
+                              r"\(closed\)>: Stream is closed\); finished chunks are kept"):
+        run_chunks(_squares, split(10, 3), store, executor=cluster,
+                   args=lambda chunk: (chunk.start, chunk.stop), caller="my_job")
+    assert store.valid(split(10, 3)[0])
+
+
 class CancellingCluster(cf.ThreadPoolExecutor):
     """A cluster's executor that cancels the task of each chunk starting at a row of
     ``lost``, ``times`` times, as Dask's does when it lost the worker holding the task's
