@@ -132,6 +132,10 @@ def run_folder_held(out):
         yield
     finally:
         if fd is not None:
+            try:            # no pid left behind for the next refusal to name
+                os.ftruncate(fd, 0)
+            except OSError:
+                pass        # opened to read: not ours to write
             fcntl.flock(fd, fcntl.LOCK_UN)
             os.close(fd)
 
@@ -157,8 +161,12 @@ def _locked(out):
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as e:
-        holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
-        os.close(fd)
+        try:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+        except OSError:
+            holder = ""
+        finally:
+            os.close(fd)
         if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
             log.warning(f"{out}: cannot lock it ({e.strerror}); running without the lock "
                         f"that keeps a second run out")

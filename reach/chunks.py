@@ -192,7 +192,12 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
             cf.wait(pending, timeout=grace)
         for future, chunk in list(pending.items()):
             if future.done() and not future.cancelled() and future.exception() is None:
-                store.store(chunk, future.result())
+                try:                # the error being raised is the one to see
+                    store.store(chunk, future.result())
+                except Exception as e:
+                    _log.warning("%s: chunk %d finished but could not be stored (%s: %s); "
+                                 "a re-run computes it again", caller, chunk.index,
+                                 type(e).__name__, e)
             else:
                 future.cancel()
         pending.clear()

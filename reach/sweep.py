@@ -11,6 +11,7 @@ import dataclasses as dc
 import functools
 import hashlib
 import json
+import logging
 import multiprocessing
 import os
 import signal
@@ -33,6 +34,8 @@ from .executors import (RESPAWNS, InlineExecutor, RespawningPool,  # noqa: F401
 from .fingerprint import Unfingerprintable, fingerprint, loop_code_digest
 from .grid import Grid
 from .thread_kept import KEPT_DIAGRAMS, ThreadKept
+
+_log = logging.getLogger(__name__)
 
 
 @dc.dataclass(frozen=True)
@@ -378,10 +381,15 @@ def sweep(factory: Callable, grid: Grid, *, probe: Probe, cache_dir, key: str = 
         # in each chunk too: two sweeps given one key at once, both before either wrote
         # fingerprint.json, would else each read the other's chunks
         stamp = {"_fingerprint": mine} if mine is not None else None
-    chunk_size = cached_chunk_size(folder, grid.size) or chunk_size
+    cached = cached_chunk_size(folder, grid.size)
+    if cached is not None and cached != chunk_size:
+        _log.info("sweep %s: its cache holds chunks of %d states; it goes on in them (asked: "
+                  "%d; delete the folder to chunk it otherwise)", key, cached, chunk_size)
+    chunk_size = cached or chunk_size
     chunks, nports = split(grid.size, chunk_size), len(probe.ports)
     # Local chunks are loaded again at the end (memory stays one table); a URL's are
-    # kept as read or stored, so no object is downloaded twice.
+    # kept as read or stored, so no object is downloaded twice (but the first, read once
+    # more above for its size).
     store = FolderStore(folder, _fits(nports), keep=not local, stamp=stamp)
     diagram_key = probe_key(factory, probe, key)
     ran = run_chunks(

@@ -324,12 +324,18 @@ class CommClosedError(OSError):
 
 class ClosingCluster(cf.ThreadPoolExecutor):
     """A cluster's executor whose connection closes before the chunk at row 6 is
-    submitted: ``submit`` itself raises."""
+    submitted, once the chunks before it have finished: ``submit`` itself raises."""
+
+    def __init__(self, workers):
+        super().__init__(workers)
+        self.futures = []
 
     def submit(self, fn, /, *args, **kwargs):
         if args[0] == 6:
+            cf.wait(self.futures)
             raise CommClosedError("in <TCP (closed)>: Stream is closed")
-        return super().submit(fn, *args, **kwargs)
+        self.futures.append(super().submit(fn, *args, **kwargs))
+        return self.futures[-1]
 
 
 def test_a_cluster_gone_while_submitting_is_one_worker_lost_line(tmp_path):

@@ -64,7 +64,9 @@ def test_a_lock_file_this_user_cannot_write_still_keeps_a_second_run_out(tmp_pat
             with run_folder_held(out):
                 pass
     with run_folder_held(out):                   # free again: held, read-only
-        pass
+        with pytest.raises(ValueError, match="is in use by another reachwatch run"):
+            with run_folder_held(out):
+                pass
 
 
 def test_a_file_system_without_flock_runs_unlocked_said_once(tmp_path, monkeypatch, caplog):
