@@ -147,9 +147,7 @@ def _locked(out):
     try:
         root.mkdir(parents=True, exist_ok=True)
         fd = os.open(root / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as e:
-        if e.errno == errno.EROFS:              # a read-only folder: the run writes nothing
-            return None
+    except PermissionError as e:
         try:            # another user's lock file: flock holds on a file opened to read
             fd, writable = os.open(root / LOCK_NAME, os.O_RDONLY), False
         except FileNotFoundError:               # none, and none can be made: read-only
@@ -158,6 +156,8 @@ def _locked(out):
             log.warning(f"{out}: cannot open its lock file ({e.strerror}); running without "
                         f"the lock that keeps a second run out")
             return None
+    except OSError:     # a read-only file system, a file where the folder goes: the run
+        return None     # writes nothing there, and says so where it tries
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as e:
