@@ -303,3 +303,30 @@ def test_a_push_told_to_stop_leaves_the_rest_to_the_next(tmp_path, url):
     stop.set()
     assert mirror.push(stop=stop) == 0 and list_location(url) == {}
     assert mirror.push() == 4
+
+
+@pytest.mark.parametrize("writing", [["dataset of environment KSFO_17h_clear"], None])
+def test_an_interrupt_with_jobs_still_writing_puts_nothing(tmp_path, url, monkeypatch,
+                                                           capsys, writing):
+    """Interrupted while a stage's jobs had not stopped (`run_together`'s
+    ``jobs_still_writing``): nothing is put, since their files may change while they
+    go (a dataset's manifest put naming rows its copy lacks); said in one line. An
+    interrupt whose jobs all stopped puts what the run wrote."""
+    from reachwatch.pipeline import run as run_module
+    scenario = tmp_path / "tiny.yaml"
+    scenario.write_text(TINY)
+
+    def interrupted(spec, out, **kwargs):
+        (out / "written.txt").write_text("a stage's file")
+        error = KeyboardInterrupt()
+        error.jobs_still_writing = writing
+        raise error
+    monkeypatch.setattr(run_module, "run_pipeline", interrupted)
+    assert main(["run", "--scenario", str(scenario), "--out", url, "--executor", "inline",
+                 "--work-dir", str(tmp_path / "work"), "--push-every", "0"]) == 130
+    put = "written.txt" in list_location(url)
+    err = capsys.readouterr().err
+    if writing:
+        assert not put and f"not put to {url}: 1 jobs were still writing" in err
+    else:
+        assert put and "not put" not in err
