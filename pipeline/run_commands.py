@@ -48,6 +48,20 @@ def add_parsers(sub):
     p.set_defaults(func=run_command)
 
 
+def _still_writing(error: BaseException):
+    """The jobs an interrupt found still writing (`reach.chunk_jobs.run_together`'s
+    ``jobs_still_writing``), on ``error`` or on one it was raised while handling (an
+    executor that failed to stop, say); None when none."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        writing = getattr(error, "jobs_still_writing", None)
+        if writing:
+            return writing
+        error = error.__cause__ or error.__context__
+    return None
+
+
 def run_command(args):
     """``reachwatch run``: the run file (with its overlays) to the stages up to
     ``--until``, in ``--out`` (a folder, or an fsspec URL through a `RunMirror`)."""
@@ -104,7 +118,7 @@ def run_command(args):
                                    progress=progress_enabled(), log=stamp, after_stage=push,
                                    folder_held=mirror is not None)
         except BaseException as error:  # what finished before an error or interrupt is put too
-            writing = getattr(error, "jobs_still_writing", None)
+            writing = _still_writing(error)
             if writing:             # their files may change while they are put: a mixed copy
                 log.warning(f"not put to {args.out}: {len(writing)} jobs were still writing "
                             f"when interrupted ({', '.join(writing[:3])}); run the command "

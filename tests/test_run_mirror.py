@@ -330,3 +330,25 @@ def test_an_interrupt_with_jobs_still_writing_puts_nothing(tmp_path, url, monkey
         assert not put and f"not put to {url}: 1 jobs were still writing" in err
     else:
         assert put and "not put" not in err
+
+
+def test_jobs_still_writing_are_seen_through_an_error_raised_while_stopping(tmp_path, url,
+                                                                           monkeypatch):
+    """The executor failing to stop after such an interrupt raises its own error: the
+    jobs still writing are seen through it, and nothing is put."""
+    from reachwatch.pipeline import run as run_module
+    scenario = tmp_path / "tiny.yaml"
+    scenario.write_text(TINY)
+
+    def interrupted(spec, out, **kwargs):
+        (out / "written.txt").write_text("a stage's file")
+        error = KeyboardInterrupt()
+        error.jobs_still_writing = ["dataset of environment KSFO_17h_clear"]
+        try:
+            raise error
+        except KeyboardInterrupt:
+            raise RuntimeError("the pool would not stop")
+    monkeypatch.setattr(run_module, "run_pipeline", interrupted)
+    assert main(["run", "--scenario", str(scenario), "--out", url, "--executor", "inline",
+                 "--work-dir", str(tmp_path / "work"), "--push-every", "0"]) != 0
+    assert "written.txt" not in list_location(url)
