@@ -151,7 +151,11 @@ class Run:
                         return
                 except OSError:
                     return
-                for f in ([path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())):
+                # a hidden file in a folder is another writer's temporary one (a killed
+                # write leaves it): not an output, as a run's URL copy never puts one
+                for f in ([path] if path.is_file() else sorted(
+                        p for p in path.rglob("*")
+                        if p.is_file() and not p.name.startswith("."))):
                     found[self.rel(f)] = {"bytes": f.stat().st_size, "hash": file_hash(f)}
 
         visit(outputs)

@@ -141,6 +141,25 @@ def test_a_downstream_key_follows_the_bytes_its_upstream_wrote(tmp_path):
     assert (tmp_path / "made/out.bin").read_bytes() == b"three"
 
 
+def test_a_temporary_file_a_killed_write_left_is_not_an_output(tmp_path):
+    """A hidden file in an output folder (`systems.files`' temporary name, left by a
+    write killed before its rename) is not recorded: its removal would else make the
+    stage run again, and its bytes would be hashed with the outputs."""
+    run = Run(load_run_spec(data=TEXT), tmp_path, progress=False, log=lambda m: None)
+
+    def build():
+        (tmp_path / "made/sub").mkdir(parents=True, exist_ok=True)
+        (tmp_path / "made/sub/out.bin").write_bytes(b"built")
+        (tmp_path / "made/sub/.chunk_000001.npz.x1y2.tmp").write_bytes(b"half a chunk")
+        return {"folder": "made/sub"}
+    run.stage("s", "k", build)
+    assert list(run.records["s"]["files"]) == ["made/sub/out.bin"]
+    (tmp_path / "made/sub/.chunk_000001.npz.x1y2.tmp").unlink()
+    ran = []
+    run.stage("s", "k", lambda: ran.append(1) or {"folder": "made/sub"})
+    assert ran == []                                        # up to date: not run again
+
+
 def test_an_edited_output_is_removed_before_its_stage_runs_again(tmp_path):
     run = Run(load_run_spec(data=TEXT), tmp_path, progress=False, log=lambda m: None)
     target = tmp_path / "made.bin"
