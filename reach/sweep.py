@@ -292,20 +292,27 @@ def cached_table_digest(cache_dir, key: str, size: int):
     return digest.hexdigest() if stop == size else None
 
 
-def cached_chunk_size(folder, size: int):
-    """The states per chunk of the sweep cached in ``folder`` (its first chunk's, when
-    it is a sweep's of ``size`` states, whole and checked), else None. A table does not
-    depend on how it was chunked, so a sweep asked for another chunk size goes on in the
-    cache's (files named by their index would otherwise hold other rows, and each
-    sweep would take the other's for damaged and compute them again)."""
-    try:
-        arrays = read_chunk_file(chunk_path(folder, 0))
-        start, stop = int(arrays["start"]), int(arrays["stop"])
-    except Exception:      # none yet, or damaged: computed again in the size asked
-        return None
-    if start != 0 or not 0 < stop <= size or not checksum_ok(arrays):
-        return None
-    return stop
+def cached_chunk_size(folder, size: int, tries: int = 3):
+    """The states per chunk of the sweep cached in ``folder``, read off the first whole,
+    checked chunk among its first ``tries`` (chunk ``i`` of ``n`` states starts at
+    ``i * n`` and, unless it is the last, holds ``n``), for a sweep of ``size`` states;
+    None when none says. A table does not depend on how it was chunked, so a sweep asked
+    for another chunk size goes on in the cache's (files named by their index would
+    otherwise hold other rows, and each sweep would take the other's for damaged and
+    compute them again)."""
+    for index in range(tries):
+        try:
+            arrays = read_chunk_file(chunk_path(folder, index))
+            start, stop = int(arrays["start"]), int(arrays["stop"])
+        except Exception:      # none, or damaged: the next may say
+            continue
+        if not (0 <= start < stop <= size and checksum_ok(arrays)):
+            continue
+        if index == 0:
+            return stop
+        if start % index == 0 and (stop - start == start // index or stop == size):
+            return start // index
+    return None
 
 
 def sweep_key(factory: Callable, grid: Grid, probe: Probe, *, name: str = None) -> str:

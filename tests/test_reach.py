@@ -230,6 +230,12 @@ def test_a_sweep_asked_for_another_chunk_size_goes_on_in_the_caches(tmp_path):
     assert calls == [(16, 24)]
     for port in FEEDBACK.ports:
         assert np.array_equal(again[port], first[port])
+    # its first chunk lost: the next one says the size
+    (tmp_path / "k" / "chunk_000000.npz").unlink()
+    calls.clear()
+    sweep(_feedback_factory(), g, cache_dir=tmp_path, executor=Counting(), chunk_size=5,
+          **kwargs)
+    assert calls == [(0, 8)]
 
 
 def test_sweep_key_changes_with_checkpoint_grid_and_environment(tmp_path):
