@@ -54,11 +54,12 @@ def loop_diagram(scenario, loop: str, application: str = None):
     default, `DEFAULT_APPLICATION`): the loop is the application's ``loop_diagram``,
     built as a run's sweeps build it (`reachwatch.reach.application.build_loop`);
     "world" is the default's (the taxi's) alone."""
-    from reachwatch.reach.application import ApplicationRef, build_loop
+    from reachwatch.reach.application import ApplicationRef, build_loop, load_application
     from .slot_defaults import DEFAULT_APPLICATION
     application = application or DEFAULT_APPLICATION
     if loop == "world":
-        if application != DEFAULT_APPLICATION:
+        if type(load_application(application)) is not type(
+                load_application(DEFAULT_APPLICATION)):
             raise ValueError(f"--loop world draws the taxi's open-loop world; the "
                              f"application '{application}' has none (draw its closed "
                              f"loop: --loop closed)")
