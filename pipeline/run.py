@@ -156,8 +156,13 @@ def _locked(out):
             log.warning(f"{out}: cannot open its lock file ({e.strerror}); running without "
                         f"the lock that keeps a second run out")
             return None
-    except OSError:     # a read-only file system, a file where the folder goes: the run
-        return None     # writes nothing there, and says so where it tries
+    except OSError as e:
+        # a read-only file system, or a file where the folder goes: the run writes
+        # nothing there, and says so where it tries
+        if e.errno not in (errno.EROFS, errno.ENOTDIR, errno.EEXIST):
+            log.warning(f"{out}: cannot open its lock file ({e.strerror}); running without "
+                        f"the lock that keeps a second run out")
+        return None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as e:
