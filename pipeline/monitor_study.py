@@ -376,15 +376,16 @@ def camera_size(scenario) -> dict:
 
 
 def study_key(spec: MonitorStudySpec, application, scenario, detector=None) -> str:
-    """The monitor stage's key: the study's settings and every training setting
-    (`train_settings`), the scenario's content (checkpoints and controller code
-    included), the application's code unless it is the default, the source of
-    `STUDY_CODE`, the lead (`study_lead`), and the content of the ``detector`` judged
-    beside (when one is)."""
+    """The monitor stage's key: the study's settings (by content: a file an environment
+    of ``also_held_out`` names is keyed by its bytes, `reach.fingerprint`) and every
+    training setting (`train_settings`), the scenario's content (checkpoints and
+    controller code included), the application's key, the source of `STUDY_CODE`, the
+    lead (`study_lead`), and the content of the ``detector`` judged beside (when one
+    is)."""
     from reachwatch.reach.fingerprint import fingerprint, modules_source_digest
     from .keys import digest
     own = application_key(application)
-    return digest(dc.asdict(spec), dc.asdict(train_settings(spec, application)),
+    return digest(fingerprint(dc.asdict(spec)), dc.asdict(train_settings(spec, application)),
                   fingerprint(application.without_monitor(scenario)), own,
                   {"study": STUDY_FORMAT, "code": modules_source_digest(*STUDY_CODE),
                    "lead_s": study_lead(spec, application, scenario)},

@@ -180,6 +180,25 @@ def test_the_study_key_covers_every_training_setting_and_the_study_code(monkeypa
     assert key(spec.monitor) != before
 
 
+def test_the_study_key_holds_the_content_of_a_file_its_environments_name(tmp_path):
+    """An environment of an application's own type may name a file (a map, a mesh):
+    the study's settings are keyed by content, so an edit of that file runs the study
+    again where its path alone kept it up to date."""
+    import dataclasses as dc
+
+    import reachwatch.pipeline.monitor_study as study
+    from reachwatch.reach.application import load_application
+    spec, taxi = load_run_spec(data=TINY + MONITOR_STUDY), load_application(TAXI_APPLICATION)
+    named = tmp_path / "scene.txt"
+    named.write_text("one scene")
+    env = dc.replace(spec.test[0], runway=str(named))     # a string naming a file
+    monitor = dc.replace(spec.monitor, also_held_out=[env])
+    before = study.study_key(monitor, taxi, spec.scenario)
+    assert study.study_key(monitor, taxi, spec.scenario) == before
+    named.write_text("another scene")
+    assert study.study_key(monitor, taxi, spec.scenario) != before
+
+
 def test_the_study_key_holds_the_compared_detectors_content(tmp_path):
     """A study that judges a detector beside its variants is keyed by the detector's
     bytes, not its path: another detector at the same path runs the study again."""
