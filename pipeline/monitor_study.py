@@ -30,8 +30,9 @@ from reachwatch.reach.application import application_key, load_application
 from reachwatch.systems import HistoryMonitorConfig, HistoryRiskEnsemble
 from reachwatch.systems.files import atomic_write_bytes, cache_location, file_hash, strict_json
 from reachwatch.training.conformal import NoConformalThreshold
-from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs, run_risks,
-                                               tick_labels, train_encoder, train_head)
+from reachwatch.training.history_train import (HistoryTrainConfig, encode_runs,
+                                               encoder_settings, run_risks, tick_labels,
+                                               train_encoder, train_head)
 from reachwatch.training.monitor_eval import oracle_risks
 
 from .monitor_guarded import guarded_rows
@@ -135,9 +136,12 @@ def run_monitor_study(spec: MonitorStudySpec, scenario, out_dir, *, cache_dir, e
     encoders, trainings = [], _Trainings(cache_dir / "trainings", train, labels, log)
     for m, settings in enumerate(member_settings(spec, application)):
         where = f"member {m + 1}/{spec.ensemble}: " if spec.ensemble > 1 else ""
+        # kept by, and trained with, what an encoder reads: the heads' settings do not
+        # train it again
+        reads = encoder_settings(settings)
         encoders.append((*trainings.kept(
-            f"{where}encoder", (base, settings), lambda where=where, settings=settings:
-            train_encoder(train, labels, base, settings, progress=(
+            f"{where}encoder", (base, reads), lambda where=where, reads=reads:
+            train_encoder(train, labels, base, reads, progress=(
                 lambda text: log(f"monitor: {where}{text}")) if progress else None)), settings))
     # every environment's frames encoded by every member, then let go: what follows
     # reads features, states and outcomes, for the hours of guarded runs

@@ -220,6 +220,13 @@ def test_the_study_runs_end_to_end_on_the_rendered_loop(tmp_path, detector_path)
     assert len(read_back) == 1 + len(spec.variants), read_back
     for part in ("variants", "guarded", "oracle"):           # NaN where a group is empty
         assert json.dumps(again[part], sort_keys=True) == json.dumps(result[part], sort_keys=True)
+    # the heads' training changed: the encoder is read back, only the heads train again
+    logged.clear()
+    run_monitor_study(dc.replace(spec, head_epochs=spec.head_epochs + 1), scenario,
+                      tmp_path / "heads", cache_dir=tmp_path / "cache", progress=False,
+                      log=logged.append, detector=detector_path)
+    read_back = [m for m in logged if "the trained model read back" in m]
+    assert len(read_back) == 1 and "encoder" in read_back[0], read_back
     # keep: choose, with k-of-n flag rules: each variant keeps the rule with the fewest
     # needless flags on the calibration environments (never more than 1-of-1's), its
     # guarded runs use it, and the kept variant is the one with the fewest of all

@@ -183,6 +183,18 @@ def _pos_weight(labels) -> torch.Tensor:
     return torch.tensor(min(50.0, np.sum(labels == 0) / positives))
 
 
+#: The settings only `train_head` reads: an encoder does not depend on them (`encoder_settings`).
+HEAD_SETTINGS = ("head_epochs", "head_learning_rate")
+
+
+def encoder_settings(train: HistoryTrainConfig) -> HistoryTrainConfig:
+    """``train`` with `HEAD_SETTINGS` at their defaults: what an encoder trained by
+    `train_encoder` depends on, and is kept by, so that a study that changes only its
+    heads' training trains no encoder again."""
+    defaults = HistoryTrainConfig()
+    return dc.replace(train, **{name: getattr(defaults, name) for name in HEAD_SETTINGS})
+
+
 def train_encoder(runs: dict, labels: np.ndarray, config: HistoryMonitorConfig,
                   train: HistoryTrainConfig, progress=None) -> HistoryRiskModel:
     """Stage 1: a single-frame monitor (``config`` with one frame, no signals) trained
