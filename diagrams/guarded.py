@@ -132,9 +132,6 @@ def add_detector(builder, *, image_port, monitor, period=None, steering_port=Non
             builder.Connect(signals_port, system.get_signals_input_port())
         builder.Connect(image_port, system.get_color_image_input_port())
         return system
-    if monitor.encoder_process and period is None:
-        raise ValueError("monitor.encoder_process: the detector's own process needs the "
-                         "control period")
     model, config, metadata = load_detector(monitor.detector)
     detector = builder.AddNamedSystem(DETECTOR, AnomalyDetector(
         model=model, config=config, threshold=monitor.threshold,

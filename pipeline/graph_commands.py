@@ -55,11 +55,10 @@ def loop_diagram(scenario, loop: str, application: str = None):
     built as a run's sweeps build it (`reachwatch.reach.application.build_loop`);
     "world" is the default's (the taxi's) alone."""
     from reachwatch.reach.application import ApplicationRef, build_loop, load_application
-    from .slot_defaults import DEFAULT_APPLICATION
+    from .slot_defaults import DEFAULT_APPLICATION, is_default_application
     application = application or DEFAULT_APPLICATION
     if loop == "world":
-        if type(load_application(application)) is not type(
-                load_application(DEFAULT_APPLICATION)):
+        if not is_default_application(load_application(application)):
             raise ValueError(f"--loop world draws the taxi's open-loop world; the "
                              f"application '{application}' has none (draw its closed "
                              f"loop: --loop closed)")

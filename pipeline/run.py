@@ -30,7 +30,7 @@ from .brt_stages import stage_solve, stage_sweep
 from .dataset_stages import dataset_key, stage_dataset
 from .monitor_study import stage_monitor
 from .detector_stages import controller_name, evaluate_key, stage_evaluate, stage_train, train_key
-from .slot_defaults import DEFAULT_APPLICATION
+from .slot_defaults import is_default_application
 from .stages import Run, record_check
 
 STAGES = ("sweep", "solve", "dataset", "fidelity", "train", "evaluate", "guard", "monitor",
@@ -198,7 +198,7 @@ def check_controller_builds(spec: RunSpec, log=log.info):
     if controller.factory:
         from reachwatch.diagrams import make_controller
         built = make_controller(application.resolved(spec.scenario).controller)
-    elif type(application) is not type(load_application(DEFAULT_APPLICATION)):
+    elif not is_default_application(application):
         log(f"scenario.controller.factory is not set: a loop of '{application.name}' that "
             f"builds scenario.controller is steered by the built-in TaxiNet (name your "
             f"controller's factory to run another)")

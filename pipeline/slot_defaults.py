@@ -13,6 +13,12 @@ from reachwatch.reach.application import Application, load_application
 DEFAULT_APPLICATION = "reachwatch.taxi.application:TaxiApplication"
 
 
+def is_default_application(application: Application) -> bool:
+    """Whether ``application`` is the one `DEFAULT_APPLICATION` names (however it was
+    named)."""
+    return type(application) is type(load_application(DEFAULT_APPLICATION))
+
+
 @dc.dataclass(frozen=True)
 class SlotDefaults:
     """``defaults(slot, role)`` of `typed_schema` for ``application`` (None:

@@ -1,6 +1,6 @@
 """Reachability for any closed loop: N-dimensional grids, sweeps of a closed-loop
 diagram, the HJB-VI solver, BRT queries and rollout validation. Nothing here knows
-about runways; the taxi application is `reachwatch.taxi`."""
+about runways: applications are built on it, outside it."""
 
 import reachwatch.systems  # noqa: F401  (first: process-wide settings before torch)
 

@@ -6,8 +6,8 @@ function of no arguments returning one), and loaded like a controller factory
 (`load_application`): its folder is importable in the driver and in every worker, and
 its fingerprint covers every ``.py`` file of that folder or package
 (`reachwatch.diagrams.user_code`). Nothing here names one: which application a run
-file studies when it names none is the pipeline's choice (the taxi,
-`reachwatch.taxi.application`).
+file studies when it names none is the pipeline's choice
+(`reachwatch.pipeline.slot_defaults.DEFAULT_APPLICATION`).
 
 It lives in ``reach`` because its methods speak reach's terms (a `Dynamics`, a
 `Grid`, a `Probe`, swept tables and `Outcomes`), and the layers above it (training,

@@ -191,7 +191,7 @@ def inference_model(model: nn.Module) -> nn.Module:
 
 
 def anomaly_probabilities(model: nn.Module, config: DetectorConfig, images_rgb: np.ndarray,
-                    batch: int = 64) -> np.ndarray:
+                          batch: int = 64) -> np.ndarray:
     """Anomaly probabilities (float64) of uint8 RGB ``(N, H, W, 3)`` or RGBA
     ``(N, H, W, 4)`` images by ``model`` (`AnomalyDetector.scores`)."""
     out = []
