@@ -18,6 +18,7 @@ from pydrake.systems.primitives import ConstantVectorSource, ZeroOrderHold
 from reachwatch.systems import ProportionalController, TaxiPlant, TrueStateEstimator
 
 from .controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, IMAGE_INPUT, has_estimate, make_controller
+from .finite_derivatives import check_finite_derivatives
 from .world import add_world, initial_state_vector
 
 #: Names the taxi sweeps use to find things in the closed-loop diagrams built here.
@@ -209,14 +210,16 @@ def start_simulator(diagram: Diagram, *, initial_state, failed=None,
     function of plant states; None: never) holds of the state, if asked.
     ``context``: the Context to run in (reset first); None: the diagram's own
     (`loop_context`), so runs of one diagram without one run one after another, not
-    interleaved. Returns ``(simulator, failure)``; ``failure`` gets ``"t"`` (s) when
-    the monitor fires."""
+    interleaved. Its Python plants refuse a state derivative that is not finite in one
+    line (`check_finite_derivatives`). Returns ``(simulator, failure)``; ``failure``
+    gets ``"t"`` (s) when the monitor fires."""
     x0 = np.asarray(initial_state, float)
     if x0.ndim != 1 or not np.all(np.isfinite(x0)):
         raise ValueError(f"initial state must be a vector of finite numbers (the plant's "
                          f"state), got {np.asarray(initial_state).tolist()}")
     failed = _checked_rule(failed)
     state = _output(diagram, "state", required=True)
+    check_finite_derivatives(diagram)           # a NaN one would hang the integrator
     simulator = Simulator(diagram, loop_context(diagram) if context is None else context)
     context = simulator.get_mutable_context()
     reset_context(diagram, context)           # a reused context starts afresh (holds, speed)
@@ -338,8 +341,8 @@ class LoopRun:
         same cached port), or the state derivative now (a controller that feeds the
         plant directly). Drake's error-controlled integrator would step forever on a
         NaN derivative (RobotLocomotion/drake#12647) in a plant that does not check its
-        inputs. Not caught: a finite command that makes the plant's own derivative NaN
-        (the derivative is evaluated before the hold latches)."""
+        inputs. A Python plant's derivative that turns NaN between ticks is refused
+        where it does (`check_finite_derivatives`); a C++ plant's is not seen."""
         loop = self.simulator.get_system()
         name = f" '{loop.get_name()}'" if loop.get_name() else ""
         for hold in self.holds:

@@ -2,6 +2,8 @@
 simulates the last part of a period (a failure there counts, as in the BRT), and the
 table rollouts take any period (1/30 s, 0.025 s)."""
 
+import re
+
 import numpy as np
 import pytest
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
@@ -114,11 +116,81 @@ def test_a_controller_that_outputs_nan_is_refused_not_stepped_forever():
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     feedthrough, held, short = done.stdout.splitlines()
-    assert feedthrough.startswith("refused: the loop: its state derivative is [nan] at "
-                                  "t = 0.000 s, not finite")
+    assert feedthrough == ("refused: the loop: its system 'plant' gave the state derivative "
+                           "[nan] at t = 0.000 s (state [0]), not finite: its input 'u' is "
+                           "[nan]: does the controller output NaN or inf there?")
     for line in (held, short):
         assert line.startswith("refused: the loop: its hold 'hold' would take [nan] at "
                                "t = 0.000 s, not finite")
+
+
+class _Root(LeafSystem):
+    """p' = u + sqrt(0.3 - p): finite from a finite command until p passes 0.3."""
+
+    def __init__(self):
+        super().__init__()
+        self.DeclareContinuousState(1)
+        self._u = self.DeclareVectorInputPort("u", 1)
+        self.DeclareVectorOutputPort("state", 1, lambda context, out: out.SetFromVector(
+            context.get_continuous_state_vector().CopyToVector()))
+
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        p = context.get_continuous_state_vector().GetAtIndex(0)
+        derivatives.get_mutable_vector().SetFromVector([self._u.Eval(context)[0]
+                                                        + np.sqrt(0.3 - p)])
+
+
+def _root_loop():
+    builder = DiagramBuilder()
+    plant = builder.AddNamedSystem("plant", _Root())
+    source = builder.AddNamedSystem("controller", ConstantVectorSource([1.0]))
+    held = builder.AddNamedSystem("hold", ZeroOrderHold(0.05, 1))
+    builder.Connect(source.get_output_port(), held.get_input_port())
+    builder.Connect(held.get_output_port(), plant.get_input_port(0))
+    export_loop_ports(builder, state=plant.GetOutputPort("state"))
+    diagram = builder.Build()
+    diagram.set_name("root")
+    return diagram
+
+
+ROOT_LOOP = """
+import gc, sys, weakref
+sys.path.insert(0, {tests!r})
+from test_control_periods import _root_loop
+from reachwatch.diagrams import simulate
+loop = _root_loop()
+try:
+    simulate(loop, initial_state=[0.0], duration=1.0, period=0.05,
+             failed=lambda x: abs(x[:, 0]) > 10)
+except ValueError as e:
+    print("refused:", e)
+plant = weakref.ref(loop.GetSubsystemByName("plant"))
+del loop
+gc.collect()
+print("freed:", plant() is None)
+"""
+
+
+def test_a_plant_whose_own_derivative_turns_nan_between_ticks_is_refused_not_stepped_forever():
+    """A finite command into a plant whose derivative turns NaN past a state, between
+    two control ticks (where the tick's check cannot see it): Drake's integrator would
+    step forever at that time; the run stops there with one line naming the loop, the
+    system, the time and the state, and the checked plant is freed with its loop. (In a
+    process of its own, so that a regression fails in a minute rather than hanging.)"""
+    import subprocess
+    import sys
+    from pathlib import Path
+    done = subprocess.run([sys.executable, "-c", ROOT_LOOP.format(tests=str(Path(__file__).parent))],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    refused, freed = done.stdout.splitlines()
+    assert re.fullmatch(r"refused: the loop 'root': its system 'plant' gave the state "
+                        r"derivative \[nan\] at t = 0\.2\d\d s \(state \[0\.3\d*\]\), not "
+                        r"finite, from finite inputs: Drake's integrator would step for ever "
+                        r"on it; raise a ValueError of the plant's own in its "
+                        r"DoCalcTimeDerivatives where its state or inputs leave what it can "
+                        r"integrate", refused), refused
+    assert freed == "freed: True"
 
 
 def test_a_loop_holding_at_another_period_than_the_control_period_is_refused():
