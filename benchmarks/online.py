@@ -46,11 +46,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from pydrake.systems.framework import Diagram
 
 from reachwatch.diagrams import (load_scenario, make_closed_loop_diagram, make_guarded_diagram,
                                  paired_rates, save_checkpoint, start_simulator)
 from reachwatch.diagrams.checkpoints import checkpoint_kind
+from reachwatch.diagrams.finite_derivatives import leaf_systems
 from reachwatch.systems import (MAX_MEMBERS, DetectorConfig, HistoryMonitor,
                                 HistoryMonitorConfig, HistoryRiskEnsemble, HistoryRiskModel,
                                 TaxiNet, build_detector)
@@ -86,12 +86,6 @@ def timed_after_image(spent, key):
             spent[key].append(time.perf_counter() - started)
         return calc
     return make
-
-
-def leaf_systems(diagram):
-    """Every leaf system of ``diagram``, its sub-diagrams' included."""
-    for system in diagram.GetSystems():
-        yield from (leaf_systems(system) if isinstance(system, Diagram) else [system])
 
 
 def breakdown(nominal, scenario, args):

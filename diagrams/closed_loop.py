@@ -18,7 +18,7 @@ from pydrake.systems.primitives import ConstantVectorSource, ZeroOrderHold
 from reachwatch.systems import ProportionalController, TaxiPlant, TrueStateEstimator
 
 from .controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, IMAGE_INPUT, has_estimate, make_controller
-from .finite_derivatives import check_finite_derivatives
+from .finite_derivatives import check_finite_derivatives, leaf_systems
 from .world import add_world, initial_state_vector
 
 #: Names the taxi sweeps use to find things in the closed-loop diagrams built here.
@@ -254,13 +254,7 @@ def tick_times(duration: float, period: float) -> np.ndarray:
 
 def _holds(diagram: Diagram) -> list:
     """The `ZeroOrderHold` systems of ``diagram``, its sub-diagrams' included."""
-    found = []
-    for system in diagram.GetSystems():
-        if isinstance(system, Diagram):
-            found += _holds(system)
-        elif isinstance(system, ZeroOrderHold):
-            found.append(system)
-    return found
+    return [system for system in leaf_systems(diagram) if isinstance(system, ZeroOrderHold)]
 
 
 class LoopRun:
