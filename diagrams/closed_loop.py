@@ -18,7 +18,7 @@ from pydrake.systems.primitives import ConstantVectorSource, ZeroOrderHold
 from reachwatch.systems import ProportionalController, TaxiPlant, TrueStateEstimator
 
 from .controller import CONTROL_OUTPUT, ESTIMATE_OUTPUT, IMAGE_INPUT, has_estimate, make_controller
-from .finite_derivatives import check_finite_derivatives, leaf_systems
+from .finite_derivatives import check_finite_derivatives, leaf_systems, non_finite_message
 from .world import add_world, initial_state_vector
 
 #: Names the taxi sweeps use to find things in the closed-loop diagrams built here.
@@ -210,16 +210,17 @@ def start_simulator(diagram: Diagram, *, initial_state, failed=None,
     function of plant states; None: never) holds of the state, if asked.
     ``context``: the Context to run in (reset first); None: the diagram's own
     (`loop_context`), so runs of one diagram without one run one after another, not
-    interleaved. Its Python plants refuse a state derivative that is not finite in one
-    line (`check_finite_derivatives`). Returns ``(simulator, failure)``; ``failure``
-    gets ``"t"`` (s) when the monitor fires."""
+    interleaved. Its Python plants refuse, in one line, a state derivative that stays
+    not finite however short the integrator's steps (`check_finite_derivatives`; the
+    monitor tells them each step). Returns ``(simulator, failure)``;
+    ``failure`` gets ``"t"`` (s) when the monitor fires."""
     x0 = np.asarray(initial_state, float)
     if x0.ndim != 1 or not np.all(np.isfinite(x0)):
         raise ValueError(f"initial state must be a vector of finite numbers (the plant's "
                          f"state), got {np.asarray(initial_state).tolist()}")
     failed = _checked_rule(failed)
     state = _output(diagram, "state", required=True)
-    check_finite_derivatives(diagram)           # a NaN one would hang the integrator
+    checks = check_finite_derivatives(diagram)      # a NaN one would hang the integrator
     simulator = Simulator(diagram, loop_context(diagram) if context is None else context)
     context = simulator.get_mutable_context()
     reset_context(diagram, context)           # a reused context starts afresh (holds, speed)
@@ -231,13 +232,17 @@ def start_simulator(diagram: Diagram, *, initial_state, failed=None,
     context.SetContinuousState(x0)
     failure = {}
 
-    def monitor(root_context):
-        if state_failed(failed, state.Eval(root_context)):
+    watched = stop_on_failure and failed is not None
+
+    def monitor(root_context):          # after each step the integrator accepted
+        checks.stepped(root_context)
+        if watched and state_failed(failed, state.Eval(root_context)):
             failure["t"] = root_context.get_time()
             return EventStatus.ReachedTermination(diagram, "failed")
         return EventStatus.DidNothing()
 
-    if stop_on_failure and failed is not None:
+    checks.start()
+    if watched or len(checks):
         simulator.set_monitor(monitor)
     simulator.Initialize()
     return simulator, failure
@@ -333,10 +338,12 @@ class LoopRun:
         value a zero-order hold of the control period latches at this tick (the
         controller's new command, which the next step applies first; the step reads the
         same cached port), or the state derivative now (a controller that feeds the
-        plant directly). Drake's error-controlled integrator would step forever on a
-        NaN derivative (RobotLocomotion/drake#12647) in a plant that does not check its
-        inputs. A Python plant's derivative that turns NaN between ticks is refused
-        where it does (`check_finite_derivatives`); a C++ plant's is not seen."""
+        plant directly), naming the system whose derivative it is
+        (`non_finite_message`). Drake's error-controlled integrator would step forever
+        on a NaN derivative (RobotLocomotion/drake#12647) in a plant that does not check
+        its inputs. A Python plant's derivative that turns NaN between ticks is refused
+        where the integrator cannot get past it (`check_finite_derivatives`); a C++
+        plant's is not seen there."""
         loop = self.simulator.get_system()
         name = f" '{loop.get_name()}'" if loop.get_name() else ""
         for hold in self.holds:
@@ -348,10 +355,10 @@ class LoopRun:
                     f"does the controller output NaN or inf there?")
         derivative = loop.EvalTimeDerivatives(self.context).CopyToVector()
         if not np.all(np.isfinite(derivative)):
-            raise ValueError(
+            raise ValueError(non_finite_message(loop, self.context) or (
                 f"the loop{name}: its state derivative is "
                 f"{derivative.tolist()} at t = {self.context.get_time():.3f} s, not finite: "
-                f"does the controller output NaN or inf there?")
+                f"does the controller output NaN or inf there?"))
 
     def sample(self):
         """Reads the exported ports (and ``record``) at the tick `advance` reached."""

@@ -1,23 +1,34 @@
-"""A loop's Python plants refuse a state derivative that is not finite, in one line.
+"""A loop whose state derivative is not finite is stopped in one line, not stepped for
+ever.
 
-Drake's error-controlled integrators step for ever on a NaN state derivative
-(RobotLocomotion/drake#12647): a run hangs at the time it turned NaN, with no word of
-where. `start_simulator` calls `check_finite_derivatives` on every loop it runs, so a
-derivative that turns NaN or inf between control ticks (a division by zero, a root of
-a negative number, at a state or an input the plant was not written for) stops the run
-at the integrator's trial step with a ValueError naming the loop, the system, the time
-and the state. A plant written in C++ (a pydrake class, such as ``MultibodyPlant``) is
-not seen: its derivative is computed where Python cannot look."""
+Drake's error-controlled integrators throw a trial step whose derivative is NaN away
+and try a shorter one; where every step from the current time meets a NaN one (a plant
+whose derivative turns NaN just past the state it is at), they try for ever
+(RobotLocomotion/drake#12647): a run hangs, with no word of where.
+`check_finite_derivatives` (which `start_simulator` calls on every loop it runs) makes
+each system written in Python count the non-finite derivatives it gives, and refuse in
+one line once `STUCK_EVALUATIONS` of them came without the integrator accepting a step
+to a later time (`DerivativeChecks.stepped`, which the simulator's monitor calls after
+each step: stuck, Drake takes steps of no length). A run the integrator gets through,
+a NaN trial step thrown away now and then, is unchanged.
+A system written in C++ (a pydrake class, such as ``MultibodyPlant``) is not seen
+between control ticks: its derivative is computed where Python cannot look.
+`non_finite_message` says which system's derivative is not finite at a time the caller
+evaluates it (the control ticks: `LoopRun`)."""
 
-import inspect
 import math
 import weakref
 
 import numpy as np
-from pydrake.systems.framework import Diagram, LeafSystem, PortDataType
+from pydrake.systems.framework import Diagram, PortDataType
 
-#: The systems `check_finite_derivatives` has wrapped (each once).
-_CHECKED = weakref.WeakSet()
+#: Non-finite derivatives one system may give without the integrator getting past the
+#: time of its last step before the run is refused: a step Drake throws away for a NaN
+#: is tried again a few times shorter (2 in a row at most in a stiff plant that
+#: recovered); a stuck one, for ever (hundreds a millisecond).
+STUCK_EVALUATIONS = 200
+
+_NAME = "DoCalcTimeDerivatives"
 
 
 def leaf_systems(diagram: Diagram) -> list:
@@ -28,50 +39,114 @@ def leaf_systems(diagram: Diagram) -> list:
     return found
 
 
-def check_finite_derivatives(diagram: Diagram) -> int:
+class _Count:
+    """One checked system's non-finite derivatives since the integrator's last step."""
+    __slots__ = ("bad", "since", "state")
+
+    def __init__(self):
+        self.bad, self.since, self.state = 0, -math.inf, None
+
+
+#: The checked systems, each with its `_Count` (wrapped once, held weakly).
+_COUNTS = weakref.WeakKeyDictionary()
+
+
+class DerivativeChecks:
+    """A loop's checked systems and their counts (`check_finite_derivatives`)."""
+
+    def __init__(self, checked):
+        self._checked = list(checked)       # (system, its _Count)
+
+    def __len__(self):
+        return len(self._checked)
+
+    def start(self):
+        """A run starts: nothing counted yet."""
+        for _, count in self._checked:
+            count.bad, count.since, count.state = 0, -math.inf, None
+
+    def stepped(self, root_context):
+        """The simulator took a step, to ``root_context``'s time. One that got past the
+        time of the last (a step of no length does not: stuck, Drake takes those,
+        thousands a second) makes the non-finite derivatives before it trial steps it
+        threw away; the state it reached is the one a refusal names."""
+        time = root_context.get_time()
+        for system, count in self._checked:
+            if time > count.since:
+                count.bad, count.since = 0, time
+                count.state = system.GetMyContextFromRoot(
+                    root_context).get_continuous_state_vector().CopyToVector()
+
+
+def check_finite_derivatives(diagram: Diagram) -> DerivativeChecks:
     """Makes each leaf system of ``diagram`` with continuous state whose
-    ``DoCalcTimeDerivatives`` is written in Python check what it computes, once per
-    system, and returns how many are checked. The check reads the derivative after the
-    system's own method (its class's, looked up at each call) and raises a ValueError
-    in one line when it is not finite. It holds its system weakly (a callback holding it
-    strongly would keep the whole diagram alive, `reachwatch.systems.ports.weak_callback`)."""
+    ``DoCalcTimeDerivatives`` is written in Python count the non-finite derivatives
+    it computes (once per system: the method its class has at each call, then the
+    check) and raise a ValueError in one line at the `STUCK_EVALUATIONS`-th since a
+    step got past the time of the one before (`DerivativeChecks`). Holds each system weakly (a callback holding it
+    strongly would keep the whole diagram alive,
+    `reachwatch.systems.ports.weak_callback`)."""
     loop = diagram.get_name()
-    checked = 0
+    counts = []
     for system in leaf_systems(diagram):
-        if not system.num_continuous_states():
-            continue
-        if not inspect.isfunction(getattr(type(system), "DoCalcTimeDerivatives", None)):
-            continue                # a C++ system's own: not seen
-        checked += 1
-        if system not in _CHECKED:
-            system.DoCalcTimeDerivatives = _checked_derivatives(system, loop)
-            _CHECKED.add(system)
-    return checked
+        if not system.num_continuous_states() or not callable(
+                getattr(type(system), _NAME, None)):
+            continue                # none, or a C++ system's own: not seen
+        count = _COUNTS.get(system)
+        if count is None:
+            count = _COUNTS[system] = _Count()
+            setattr(system, _NAME, _checked_derivatives(system, loop, count))
+        counts.append((system, count))
+    return DerivativeChecks(counts)
 
 
-def _checked_derivatives(system: LeafSystem, loop: str):
+def _checked_derivatives(system, loop: str, count: _Count):
     ref = weakref.ref(system)
 
     def calc(context, derivatives):
         me = ref()
-        type(me).DoCalcTimeDerivatives(me, context, derivatives)
+        getattr(type(me), _NAME)(me, context, derivatives)
         values = derivatives.CopyToVector()
-        # the sum first: a tenth of the cost of a tick of the cheapest loop (a plant on
-        # its true state) was the check; it is finite when every value is, and when it
-        # is not (an overflow of finite values too) every value is looked at
-        if not math.isfinite(values.sum()) and not np.all(np.isfinite(values)):
-            raise ValueError(not_finite_message(me, loop, context, values))
+        # the sum first (a tenth of a tick of the cheapest loop, a plant on its true
+        # state, was the check): finite when every value is; when it is not (finite
+        # values overflowing too) every value is looked at
+        if math.isfinite(values.sum()) or np.all(np.isfinite(values)):
+            return
+        count.bad += 1
+        if count.bad >= STUCK_EVALUATIONS:
+            count.bad = 0
+            raise ValueError(not_finite_message(
+                me, loop, context, values, state=count.state,
+                where=f"at every trial step of the integrator from t = {count.since:.4f} s"))
     return calc
 
 
-def not_finite_message(system, loop: str, context, values) -> str:
-    """The one line `check_finite_derivatives` raises: where, and the input that is not
-    finite when one is (the controller's command), else what the plant should do."""
+def non_finite_message(diagram: Diagram, root_context):
+    """The one-line message of the first leaf system of ``diagram`` whose state
+    derivative is not finite in ``root_context`` (any system with continuous state,
+    C++ ones too), or None when all are."""
+    for system in leaf_systems(diagram):
+        if not system.num_continuous_states():
+            continue
+        context = system.GetMyContextFromRoot(root_context)
+        values = system.EvalTimeDerivatives(context).CopyToVector()
+        if not np.all(np.isfinite(values)):
+            return not_finite_message(system, diagram.get_name(), context, values,
+                                      where=f"at t = {context.get_time():.3f} s")
+    return None
+
+
+def not_finite_message(system, loop: str, context, values, *, where: str,
+                       state=None) -> str:
+    """What is not finite, where: the system's state derivative ``values`` in
+    ``context`` ``where`` says, at ``state`` (default: the context's), and the input
+    that is not finite when one is (the controller's command), else what the plant
+    should do."""
     name = f" '{loop}'" if loop else ""
-    state = context.get_continuous_state_vector().CopyToVector()
-    head = (f"the loop{name}: its system '{system.get_name()}' gave the state derivative "
-            f"{_numbers(values)} at t = {context.get_time():.3f} s (state {_numbers(state)}), "
-            f"not finite")
+    if state is None:
+        state = context.get_continuous_state_vector().CopyToVector()
+    head = (f"the loop{name}: its system '{system.get_name()}' gives the state derivative "
+            f"{_numbers(values)} {where} (state {_numbers(state)}), not finite")
     for i in range(system.num_input_ports()):
         port = system.get_input_port(i)
         if port.get_data_type() != PortDataType.kVectorValued or not port.HasValue(context):
@@ -80,9 +155,8 @@ def not_finite_message(system, loop: str, context, values) -> str:
         if not np.all(np.isfinite(value)):
             return (f"{head}: its input '{port.get_name()}' is {_numbers(value)}: does the "
                     f"controller output NaN or inf there?")
-    return (f"{head}, from finite inputs: Drake's integrator would step for ever on it; "
-            f"raise a ValueError of the plant's own in its DoCalcTimeDerivatives where its "
-            f"state or inputs leave what it can integrate")
+    return (f"{head}, from finite inputs: raise a ValueError of the plant's own in its "
+            f"DoCalcTimeDerivatives where its state or inputs leave what it can integrate")
 
 
 def _numbers(values) -> str:

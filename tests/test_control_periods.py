@@ -116,7 +116,7 @@ def test_a_controller_that_outputs_nan_is_refused_not_stepped_forever():
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     feedthrough, held, short = done.stdout.splitlines()
-    assert feedthrough == ("refused: the loop: its system 'plant' gave the state derivative "
+    assert feedthrough == ("refused: the loop: its system 'plant' gives the state derivative "
                            "[nan] at t = 0.000 s (state [0]), not finite: its input 'u' is "
                            "[nan]: does the controller output NaN or inf there?")
     for line in (held, short):
@@ -184,13 +184,58 @@ def test_a_plant_whose_own_derivative_turns_nan_between_ticks_is_refused_not_ste
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     refused, freed = done.stdout.splitlines()
-    assert re.fullmatch(r"refused: the loop 'root': its system 'plant' gave the state "
-                        r"derivative \[nan\] at t = 0\.2\d\d s \(state \[0\.3\d*\]\), not "
-                        r"finite, from finite inputs: Drake's integrator would step for ever "
-                        r"on it; raise a ValueError of the plant's own in its "
+    assert re.fullmatch(r"refused: the loop 'root': its system 'plant' gives the state "
+                        r"derivative \[nan\] at every trial step of the integrator from "
+                        r"t = 0\.2\d+ s \(state \[0\.3\]\), not finite, from finite "
+                        r"inputs: raise a ValueError of the plant's own in its "
                         r"DoCalcTimeDerivatives where its state or inputs leave what it can "
                         r"integrate", refused), refused
     assert freed == "freed: True"
+
+
+class _Settle(LeafSystem):
+    """p' = -1000 (p - 0.5), NaN below p = 0.4999 (a root of p - 0.4999, times 0): the
+    run settles at 0.5 from 1, and a long trial step of the integrator overshoots into
+    the NaN, which Drake throws away and tries shorter."""
+
+    def __init__(self):
+        super().__init__()
+        self.DeclareContinuousState(1)
+        self.DeclareVectorOutputPort("state", 1, lambda context, out: out.SetFromVector(
+            context.get_continuous_state_vector().CopyToVector()))
+        self.not_finite = 0
+
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        p = context.get_continuous_state_vector().GetAtIndex(0)
+        with np.errstate(invalid="ignore"):
+            d = -1000.0 * (p - 0.5) + 0.0 * np.sqrt(p - 0.4999)
+        self.not_finite += not np.isfinite(d)
+        derivatives.get_mutable_vector().SetFromVector(np.array([d]))
+
+
+def test_nan_trial_steps_the_integrator_gets_past_run_as_drake_runs_them():
+    """The check counts a non-finite derivative against the run only where the
+    integrator cannot get past it: a stiff plant whose long trial steps land in NaN,
+    thrown away and tried shorter, runs to its end as Drake alone runs it, bit for bit."""
+    from pydrake.systems.analysis import Simulator
+
+    def loop():
+        builder = DiagramBuilder()
+        plant = builder.AddNamedSystem("plant", _Settle())
+        export_loop_ports(builder, state=plant.GetOutputPort("state"))
+        return builder.Build(), plant
+
+    alone, plant = loop()
+    simulator = Simulator(alone)
+    simulator.get_mutable_context().SetContinuousState([1.0])
+    simulator.Initialize()
+    for tick in range(1, 21):                        # as `simulate` steps: tick by tick
+        simulator.AdvanceTo(tick * 0.05)
+    assert plant.not_finite > 10                     # Drake met NaN, and went on
+    checked, plant = loop()
+    run = simulate(checked, initial_state=[1.0], duration=1.0, period=0.05)
+    assert plant.not_finite > 10 and len(run.time) == 21
+    assert run.state[-1, 0] == simulator.get_context().get_continuous_state_vector()[0]
 
 
 def test_a_loop_holding_at_another_period_than_the_control_period_is_refused():
