@@ -24,7 +24,7 @@ from typing import Callable
 import numpy as np
 
 from .chunk_jobs import Stopped, current_job
-from .executors import InlineExecutor, Window, WorkerLost, stop_executor
+from .executors import InlineExecutor, Window, WorkerLost, counter_value, stop_executor
 
 _log = logging.getLogger(__name__)
 
@@ -143,8 +143,11 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
     executor = executor or (default() if todo else None)
     shared = job[0] if job is not None and executor is job[0].executor else None
     window = Window(executor, least=least, fixed=max_in_flight)
-    counter = getattr(executor, "progress_counter", None) if per_row and shared is None else None
-    counted = counter.value if counter is not None else 0
+    def pool_counter():
+        return (getattr(executor, "progress_counter", None) if per_row and shared is None
+                else None)
+    counter = pool_counter()
+    counted = counter_value(counter) if counter is not None else 0
     hooked = per_row and isinstance(executor, InlineExecutor) and job is None
     previous_hook = set_row_hook(functools.partial(bar.update, 1)) if hooked else None
     pending, submitted, stalled = {}, {}, set()
@@ -152,7 +155,8 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
 
     def show():
         if counter is not None:
-            bar.update(min(counter.value - counted, computed) - (bar.n - (rows - computed)))
+            bar.update(min(counter_value(counter) - counted, computed)
+                       - (bar.n - (rows - computed)))
 
     def finish(done):
         error = None
@@ -270,8 +274,9 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
                     raise
                 left = [c for c in todo if not store.valid(c)]
                 cancelled.clear()
+                counter = pool_counter()    # the fresh pool's own
                 if counter is not None:     # the lost chunks' rows count again
-                    counted = counter.value - (computed - sum(c.rows for c in left))
+                    counted = counter_value(counter) - (computed - sum(c.rows for c in left))
                 _log.warning("%s: a worker process died (killed, out of memory, or a crash "
                              "in native code); the pool was started again, and the %d "
                              "chunk(s) not stored yet run on it", caller, len(left))

@@ -37,22 +37,31 @@ class RespawningPool(cf.Executor):
     for good, and every chunk in flight with it. `run_chunks` then calls `respawn` and
     runs the lost chunks again on the fresh pool (chunks are pure functions of their
     inputs, so the results are the same), at most ``respawns`` times over the pool's
-    life; after that a death is `run_chunks`' one-line error. ``progress_counter``,
-    when given, is the counter every pool's workers count into. ``code``, when given
+    life; after that a death is `run_chunks`' one-line error. ``new_counter``, when
+    given, makes the shared counter a pool's workers count into (`progress_counter`;
+    ``make(counter)`` then makes the pool): each pool gets its own, since a worker
+    killed while it held a counter's lock would hold it for good, and every later
+    worker and reader would wait on it. ``code``, when given
     (the driver's `reach.fingerprint.loop_code_digest`, which every key it computes
     carries), is checked by each task against its worker's own (`same_loop_code`): a
     worker started after the source was edited (a replacement, a later spawn) does not
     store results under keys of other code."""
 
-    def __init__(self, make: Callable, *, respawns: int = RESPAWNS, progress_counter=None,
-                 code: str = None):
-        self._make, self._code = make, code
+    def __init__(self, make: Callable, *, respawns: int = RESPAWNS,
+                 new_counter: Callable = None, code: str = None):
+        self._make, self._new_counter, self._code = make, new_counter, code
         self._lock = threading.Lock()
-        self.pool = make()
+        self.pool, self.progress_counter = self._new_pool()
         self.generation = 0             # how many times the pool was replaced
         self.respawns_left = int(respawns)
         self.closed = False             # shut down: never replaced again
-        self.progress_counter = progress_counter
+
+    def _new_pool(self):
+        """A fresh pool and the counter its workers count into (None without one)."""
+        if self._new_counter is None:
+            return self._make(), None
+        counter = self._new_counter()
+        return self._make(counter), counter
 
     @property
     def _max_workers(self) -> int:      # what `executor_threads` reads of a pool
@@ -80,7 +89,8 @@ class RespawningPool(cf.Executor):
             if self.respawns_left <= 0:
                 return False
             self.respawns_left -= 1
-            broken, self.pool = self.pool, self._make()
+            broken = self.pool
+            self.pool, self.progress_counter = self._new_pool()
             self.generation += 1
         stop_executor(broken, abort=True)
         return True
@@ -93,6 +103,14 @@ class RespawningPool(cf.Executor):
 
     def shutdown(self, wait=True, *, cancel_futures=False):
         self.close().shutdown(wait=wait, cancel_futures=cancel_futures)
+
+
+def counter_value(counter) -> int:
+    """A pool's shared counter (`RespawningPool.progress_counter`) read without its
+    lock, which a worker killed while holding it would hold for good: a progress bar
+    may read a count one row behind, never wait."""
+    raw = getattr(counter, "get_obj", None)
+    return int(raw().value if raw is not None else counter.value)
 
 
 class WorkerLost(RuntimeError):

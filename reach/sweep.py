@@ -147,14 +147,20 @@ def default_executor(max_workers: int = None) -> cf.Executor:
             or max_workers < 1:
         raise ValueError(f"max_workers must be a whole number >= 1, got {max_workers!r}")
     context = multiprocessing.get_context("spawn")
-    counter = context.Value("q", 0)
     threads = max(1, usable_cores() // int(max_workers))
     return RespawningPool(functools.partial(
-        cf.ProcessPoolExecutor, max_workers=int(max_workers), mp_context=context,
-        initializer=exec, initargs=(_WORKER_START, {"counter": counter, "threads": threads,
-                                                    "parent_pid": os.getpid(),
-                                                    "interval": 0.1})),
-        progress_counter=counter, code=loop_code_digest())
+        _spawned_pool, max_workers=int(max_workers), context=context, threads=threads,
+        parent_pid=os.getpid()), new_counter=functools.partial(context.Value, "q", 0),
+        code=loop_code_digest())
+
+
+def _spawned_pool(counter, *, max_workers: int, context, threads: int, parent_pid: int):
+    """`default_executor`'s process pool whose workers count their rows into
+    ``counter``."""
+    return cf.ProcessPoolExecutor(
+        max_workers=max_workers, mp_context=context, initializer=exec,
+        initargs=(_WORKER_START, {"counter": counter, "threads": threads,
+                                  "parent_pid": parent_pid, "interval": 0.1}))
 
 
 def _subsystem(diagram, name):

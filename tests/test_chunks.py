@@ -200,6 +200,73 @@ def test_a_worker_that_died_is_replaced_and_the_chunks_lost_with_it_run_again(tm
         pool.shutdown()
 
 
+def _dies_holding_the_count(folder, start, stop):
+    """`_squares`; the chunk at 3 takes its pool's row counter's lock and kills its
+    worker (once), as a worker killed while counting a row would."""
+    from reachwatch.reach import chunks
+    marker = Path(folder) / "died"
+    if start == 3 and not marker.exists():
+        marker.touch()
+        chunks._ON_ROW.args[0].get_lock().acquire()
+        os.kill(os.getpid(), signal.SIGKILL)
+    return _squares(start, stop)
+
+
+HOLDING_THE_COUNT = """
+import sys
+sys.path.insert(0, {tests!r})
+import functools
+from pathlib import Path
+from reachwatch.reach.chunk_files import FolderStore, split
+from reachwatch.reach.chunks import run_chunks
+from reachwatch.reach.sweep import default_executor
+from test_chunks import _dies_holding_the_count
+pool = default_executor(1)
+folder = Path({folder!r})
+try:
+    run_chunks(functools.partial(_dies_holding_the_count, str(folder)), split(12, 3),
+               FolderStore(folder / "out"), args=lambda c: (c.start, c.stop),
+               executor=pool, per_row=True, bar=functools.partial(_Bar), caller="my_job")
+finally:
+    pool.shutdown()
+print("done", pool.generation, pool.progress_counter.value)
+"""
+
+
+class _Bar:
+    """A bar that only counts."""
+
+    def __init__(self, initial=0, **kwargs):
+        self.n = initial
+
+    def update(self, n):
+        self.n += n
+
+    def close(self):
+        pass
+
+
+def test_a_worker_killed_holding_the_row_counts_lock_does_not_stop_the_pool(tmp_path):
+    """Before: the fresh pool's workers counted into the dead one's counter, whose lock
+    the dead worker held for good, and the workers and the driver's bar waited on it
+    for ever. Each pool now counts into a counter of its own, and the driver reads it
+    without its lock. (In a process of its own, so that a regression fails in two
+    minutes rather than hanging the suite.)"""
+    import subprocess
+    import sys
+    code = HOLDING_THE_COUNT.format(tests=str(Path(__file__).parent), folder=str(tmp_path))
+    code = code.replace("functools.partial(_Bar)", "functools.partial(__import__("
+                        "'test_chunks')._Bar)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    generation, counted = done.stdout.split()[1:]
+    assert generation == "1" and 0 < int(counted) <= 12
+    for chunk in split(12, 3):
+        got = read_chunk_file(chunk_path(tmp_path / "out", chunk.index))
+        np.testing.assert_array_equal(got["y"], np.arange(chunk.start, chunk.stop) ** 2)
+
+
 def test_a_worker_that_dies_every_time_ends_in_the_one_line_error(tmp_path):
     spawn = multiprocessing.get_context("spawn")
     pool = RespawningPool(functools.partial(cf.ProcessPoolExecutor, 1, mp_context=spawn),
