@@ -13,6 +13,7 @@ import math
 from reachwatch.reach import InlineExecutor, default_executor
 from reachwatch.reach.fingerprint import (DISTRIBUTIONS, STACK, library_code_digest,
                                           module_versions)
+from reachwatch.reach.executors import has_no_workers
 from reachwatch.reach.sweep import stop_executor
 from reachwatch.systems.checks import clip, short
 
@@ -250,17 +251,21 @@ def make_executor(spec: str, *, connect_timeout: float = 10.0):
             raise ValueError("--executor dask://... needs dask: pip install "
                              "'reachwatch[distributed]'") from None
         address = "tcp://" + dask_address(spec)
+        from .shipping_executor import ShippingExecutor
         client = _connect(Client, address, spec, connect_timeout)
         try:
             check_worker_versions(client, spec)
         except BaseException:
             client.close()
             raise
+        executor = ShippingExecutor(client)
+        if has_no_workers(executor):
+            _log.warning("--executor %s: the scheduler has no workers yet; the run's chunks "
+                         "wait until one joins (dask worker %s)", spec, address)
         advice = saturation_advice(scheduler_saturation(client))
         if advice:
             _log.warning("--executor %s: %s", spec, advice)
-        from .shipping_executor import ShippingExecutor
-        return ShippingExecutor(client), lambda abort=False: client.close()
+        return executor, lambda abort=False: client.close()
     raise AssertionError(spec)                  # check_executor knows no other form
 
 

@@ -24,7 +24,8 @@ from typing import Callable
 import numpy as np
 
 from .chunk_jobs import Stopped, current_job
-from .executors import InlineExecutor, Window, WorkerLost, counter_value, stop_executor
+from .executors import (InlineExecutor, Window, WorkerLost, counter_value, has_no_workers,
+                        stop_executor)
 
 _log = logging.getLogger(__name__)
 
@@ -87,6 +88,10 @@ def _scheduler_lost(executor) -> bool:
 #: Seconds a chunk may be in flight before `run_chunks` warns that its worker may be
 #: stuck (once per chunk; it waits on).
 STALL_WARNING_S = 1800.0
+
+#: Seconds between two questions to a cluster's scheduler, while chunks are in flight,
+#: whether it has any worker left (`has_no_workers`).
+NO_WORKERS_CHECK_S = 60.0
 
 
 # --- the runner -------------------------------------------------------------------------
@@ -212,7 +217,27 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
         if shared is not None:
             shared.check()
         finish(cf.wait(pending, timeout=0.25, return_when=cf.FIRST_COMPLETED).done)
+        warn_no_workers()
         warn_stalled()
+
+    no_workers = {"asked": time.monotonic(), "said": False}
+
+    def warn_no_workers():
+        """A warning, once while it lasts, when the cluster has no worker left (all
+        died or were stopped: its chunks wait for one to join, which Dask does for
+        ever), asked every `NO_WORKERS_CHECK_S` s."""
+        now = time.monotonic()
+        if not pending or now - no_workers["asked"] < NO_WORKERS_CHECK_S:
+            return
+        no_workers["asked"] = now
+        if not has_no_workers(executor):
+            no_workers["said"] = False
+        elif not no_workers["said"]:
+            no_workers["said"] = True
+            _log.warning("%s: the cluster has no workers now; %d chunk(s) in flight wait "
+                         "for one to join (start one with `dask worker`, or Ctrl-C: "
+                         "finished chunks are kept, and a re-run resumes)", caller,
+                         len(pending))
 
     def warn_stalled():
         """A warning, once per chunk, for a chunk in flight longer than

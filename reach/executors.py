@@ -202,8 +202,9 @@ ASK_TIMEOUT = 5.0
 
 
 def _threads_now(executor):
-    """How many chunks ``executor`` runs at once, or None when it cannot tell (a Dask
-    scheduler that did not answer within `ASK_TIMEOUT`)."""
+    """How many chunks ``executor`` runs at once (0: a Dask cluster with no workers
+    now), or None when it cannot tell (a Dask scheduler that did not answer within
+    `ASK_TIMEOUT`)."""
     if isinstance(executor, InlineExecutor) or executor is None:
         return 1
     workers = getattr(executor, "_max_workers", None)
@@ -212,10 +213,16 @@ def _threads_now(executor):
     client = getattr(executor, "_client", None)
     if client is not None:
         try:
-            return max(1, int(sum(client.nthreads(callback_timeout=ASK_TIMEOUT).values())))
+            return int(sum(client.nthreads(callback_timeout=ASK_TIMEOUT).values()))
         except Exception:            # a client that cannot say now
             return None
     return 1
+
+
+def has_no_workers(executor) -> bool:
+    """Whether ``executor`` is a cluster whose scheduler says it has no workers now
+    (its chunks wait for one to join)."""
+    return getattr(executor, "_client", None) is not None and _threads_now(executor) == 0
 
 
 def executor_threads(executor) -> int:

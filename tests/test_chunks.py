@@ -613,3 +613,38 @@ def test_an_error_the_driver_can_read_back_is_kept_and_another_made_portable():
         run_portably(calc)
     # the user's frame stays in the traceback of what the driver gets
     assert any(frame.name == "calc" for frame in traceback.extract_tb(info.value.__traceback__))
+
+
+def test_a_cluster_with_no_workers_is_said_and_its_chunks_run_once_one_joins(tmp_path, caplog,
+                                                                              monkeypatch):
+    """Before: chunks on a cluster whose workers had all gone waited for ever without a
+    word (Dask waits for a worker to join), and the 30-minute warning then blamed a stuck
+    worker. Waiting stays (clusters grow), but it is said, and the run goes on when a
+    worker joins."""
+    import threading
+    import time
+    distributed = pytest.importorskip("dask.distributed")
+    from reachwatch.reach import chunks
+    monkeypatch.setattr(chunks, "NO_WORKERS_CHECK_S", 0.2)
+    with distributed.LocalCluster(n_workers=0, processes=False,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client, \
+            caplog.at_level(logging.WARNING, logger="reachwatch.reach.chunks"):
+        done = []
+        runner = threading.Thread(target=lambda: done.append(run_chunks(
+            _squares, split(6, 3), FolderStore(tmp_path / "out"),
+            args=lambda c: (c.start, c.stop), executor=client.get_executor(),
+            caller="my_job")))
+        runner.start()
+        deadline = time.monotonic() + 30
+        while "no workers now" not in caplog.text and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert ("my_job: the cluster has no workers now; 2 chunk(s) in flight wait for one "
+                "to join") in caplog.text
+        assert not done
+        cluster.scale(1)
+        runner.join(60)
+        assert not runner.is_alive() and len(done[0]) == 2
+    for chunk in split(6, 3):
+        got = read_chunk_file(chunk_path(tmp_path / "out", chunk.index))
+        np.testing.assert_array_equal(got["y"], np.arange(chunk.start, chunk.stop) ** 2)

@@ -49,3 +49,18 @@ def test_saturation_advice_names_the_setting_only_where_chunks_would_queue():
         advice = saturation_advice(queues)
         assert "\n" not in advice and f"{SATURATION_VARIABLE}=1 " in advice
         assert f"worker-saturation {queues:g}" in advice
+
+
+def test_a_scheduler_without_workers_is_said_when_the_run_connects(caplog):
+    """Before: a run started before any worker joined waited with nothing on screen."""
+    import logging
+    distributed = pytest.importorskip("dask.distributed")
+    from reachwatch.pipeline.executors import make_executor
+    with distributed.LocalCluster(n_workers=0, processes=False, protocol="tcp",
+                                  host="127.0.0.1", dashboard_address=None) as cluster, \
+            caplog.at_level(logging.WARNING, logger="reachwatch"):
+        spec = "dask://" + cluster.scheduler_address.removeprefix("tcp://")
+        _, close = make_executor(spec, connect_timeout=5)
+        close()
+    assert (f"--executor {spec}: the scheduler has no workers yet; the run's chunks wait "
+            f"until one joins") in caplog.text
