@@ -30,11 +30,11 @@ class _Drift(LeafSystem):
         derivatives.get_mutable_vector().SetFromVector(self._u.Eval(context))
 
 
-def _drift_loop(speed, hold=None, offset=0.0):
-    """``speed`` into the drift, held by a zero-order hold of period ``hold`` (from
-    ``offset``) if given."""
+def _drift_loop(speed, hold=None, offset=0.0, plant=None):
+    """``speed`` into the drift (or ``plant``), held by a zero-order hold of period
+    ``hold`` (from ``offset``) if given."""
     builder = DiagramBuilder()
-    plant = builder.AddNamedSystem("plant", _Drift())
+    plant = builder.AddNamedSystem("plant", plant or _Drift())
     source = builder.AddNamedSystem("controller", ConstantVectorSource([speed]))
     if hold is None:
         builder.Connect(source.get_output_port(), plant.get_input_port(0))
@@ -124,15 +124,8 @@ def test_a_controller_that_outputs_nan_is_refused_not_stepped_forever():
                                "t = 0.000 s, not finite")
 
 
-class _Root(LeafSystem):
+class _Root(_Drift):
     """p' = u + sqrt(0.3 - p): finite from a finite command until p passes 0.3."""
-
-    def __init__(self):
-        super().__init__()
-        self.DeclareContinuousState(1)
-        self._u = self.DeclareVectorInputPort("u", 1)
-        self.DeclareVectorOutputPort("state", 1, lambda context, out: out.SetFromVector(
-            context.get_continuous_state_vector().CopyToVector()))
 
     def DoCalcTimeDerivatives(self, context, derivatives):
         p = context.get_continuous_state_vector().GetAtIndex(0)
@@ -141,14 +134,7 @@ class _Root(LeafSystem):
 
 
 def _root_loop():
-    builder = DiagramBuilder()
-    plant = builder.AddNamedSystem("plant", _Root())
-    source = builder.AddNamedSystem("controller", ConstantVectorSource([1.0]))
-    held = builder.AddNamedSystem("hold", ZeroOrderHold(0.05, 1))
-    builder.Connect(source.get_output_port(), held.get_input_port())
-    builder.Connect(held.get_output_port(), plant.get_input_port(0))
-    export_loop_ports(builder, state=plant.GetOutputPort("state"))
-    diagram = builder.Build()
+    diagram = _drift_loop(1.0, 0.05, plant=_Root())
     diagram.set_name("root")
     return diagram
 
