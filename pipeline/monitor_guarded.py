@@ -48,7 +48,7 @@ def guarded_rows(spec, application, scenario, held_out, models, checkpoints, *, 
     recordings (`monitor_runs.alone_from_recordings`), not rendered again."""
     def each(fn, what):              # every environment's runs together on a pool
         return each_named([(g["name"], g) for g in held_out], fn, executor=executor,
-                                what=what)
+                          what=what, progress=progress)
 
     # the loop alone once per environment: every monitor is judged against the same runs,
     # read off the recordings where they are the same runs
@@ -251,7 +251,7 @@ def _oracle_guarded(spec, application, scenario, held_out, alone_runs, after, de
 
     # every environment's runs together on a pool, in their order
     rows = each_named([(g["name"], g) for g in held_out], one, executor=executor,
-                            what="the oracle in")
+                      what="the oracle in", progress=progress)
     return _pooled([env for env, _ in rows], [d for _, d in rows])
 
 

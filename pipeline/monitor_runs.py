@@ -93,7 +93,8 @@ def record_splits(spec, application, scenario, splits: dict, *, cache_dir, execu
         return {**recorded, "watched_failure_time": watched, "starts": starts,
                 "name": environment.name, "environment": environment}
 
-    groups = iter(each_named(named, one, executor=executor, what="recorded runs"))
+    groups = iter(each_named(named, one, executor=executor, what="recorded runs",
+                             progress=progress))
     return {k: [next(groups) for _ in environments] for k, (environments, *_) in splits.items()}
 
 
@@ -113,13 +114,18 @@ def recorded_frames(group) -> np.ndarray:
     return group["frames"] if "frames" in group else group["read_frames"]()
 
 
-def each_named(named, fn, *, executor, what: str) -> list:
+def each_named(named, fn, *, executor, what: str, progress: bool = False) -> list:
     """``[fn(i, item)]`` for ``named``, ``[(environment name, item)]``: on a pool every
     environment's chunks in flight together (`reachwatch.reach.chunk_jobs.run_together`,
     an error raised with ``"{what} {name}: "`` before it), inline one after another;
-    results in ``named``'s order either way."""
+    results in ``named``'s order either way. ``progress``: on a pool, a bar of the runs
+    of every environment below theirs (its rate and time left the machine's)."""
+    from tqdm import tqdm
+    rows_bar = (functools.partial(tqdm, unit="run", desc=f"{what}, every environment")
+                if progress else None)
     return run_together([(name, lambda i=i, item=item: fn(i, item))
-                         for i, (name, item) in enumerate(named)], executor, what=what)
+                         for i, (name, item) in enumerate(named)], executor, what=what,
+                        rows_bar=rows_bar)
 
 
 def continues_from_recordings(application, scenario) -> bool:

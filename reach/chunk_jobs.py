@@ -42,7 +42,24 @@ class _Together:
         self.done = [False] * len(self.names)
         self.head = 0                       # the first job not finished: its lines go out
         self.held = [[] for _ in self.names]
+        self.rows = [0, 0]                  # [done, known] of all their run_chunks calls
         self.cond = threading.Condition()
+
+    def count_rows(self, *, known: int = 0, done: int = 0):
+        """A job's `run_chunks` call knows of ``known`` more rows, or has ``done`` more
+        (stored already, or a chunk stored now)."""
+        with self.cond:
+            self.rows[0] += done
+            self.rows[1] += known
+
+    def show_rows(self, bar):
+        """``bar`` (a tqdm-like bar) at the rows done of those known so far."""
+        with self.cond:
+            done, known = self.rows
+        if bar.total != known:
+            bar.total = known
+            bar.refresh()
+        bar.update(done - bar.n)
 
     def take(self, block: bool) -> bool:
         """A slot of the window for one chunk; without one, False (after up to 0.25 s
@@ -138,7 +155,8 @@ def _named(error: BaseException, prefix: str) -> BaseException:
 JOBS_STOP_S = 10.0
 
 
-def run_together(jobs, executor, *, what: str = "job", bar: Callable = None) -> list:
+def run_together(jobs, executor, *, what: str = "job", bar: Callable = None,
+                 rows_bar: Callable = None) -> list:
     """``[fn() for name, fn in jobs]``, the jobs run at once, each in a thread of this
     process, when ``executor`` is a pool (`together`): every `run_chunks` call of a job
     on ``executor`` shares one window of chunks in flight with the others' (a `Window`
@@ -150,17 +168,23 @@ def run_together(jobs, executor, *, what: str = "job", bar: Callable = None) -> 
     Results come in the jobs' order. A job's error is raised (once all have stopped)
     with ``"{what} {name}: "`` before its message, its type kept; with several, the
     first to fail. Lines logged through `ordered_log` come in the jobs' order. ``bar``:
-    a tqdm-like factory of a bar counting the jobs done (below theirs). On an
+    a tqdm-like factory of a bar counting the jobs done (below theirs). ``rows_bar``:
+    one of a bar counting the rows all the jobs' `run_chunks` calls have done, of those
+    they know of so far (below that), whose rate and time left are the whole machine's
+    where each job's bar reads its share; drawn when the jobs run at once. On an
     interrupt the jobs are told to stop, and the interrupt is raised once they have
     stored their finished chunks and stopped (within 0.25 s of their chunk loop), or
     after `JOBS_STOP_S` (their threads are daemons; stopping the executor ends their
     chunks), with the names of those still running in its ``jobs_still_writing``: what
     they write may still change, so the caller must not copy it elsewhere."""
     jobs = list(jobs)
-    count = bar(total=len(jobs), **({"position": len(jobs)} if together(executor, len(jobs))
+    at_once = together(executor, len(jobs))
+    count = bar(total=len(jobs), **({"position": len(jobs)} if at_once
                                     else {})) if bar is not None else None
+    rows = (rows_bar(total=0, position=len(jobs) + (count is not None))
+            if rows_bar is not None and at_once else None)
     try:
-        if not together(executor, len(jobs)):
+        if not at_once:
             results = []
             for name, fn in jobs:
                 try:
@@ -170,13 +194,14 @@ def run_together(jobs, executor, *, what: str = "job", bar: Callable = None) -> 
                 if count is not None:
                     count.update(1)
             return results
-        return _run_threads(jobs, executor, what, count)
+        return _run_threads(jobs, executor, what, count, rows)
     finally:
-        if count is not None:
-            count.close()
+        for drawn in (count, rows):
+            if drawn is not None:
+                drawn.close()
 
 
-def _run_threads(jobs, executor, what, count) -> list:
+def _run_threads(jobs, executor, what, count, rows) -> list:
     shared = _Together(executor, [name for name, _ in jobs])
     futures = [cf.Future() for _ in jobs]
 
@@ -200,6 +225,8 @@ def _run_threads(jobs, executor, what, count) -> list:
             done, waiting = cf.wait(waiting, timeout=0.25)
             if count is not None and done:
                 count.update(len(done))
+            if rows is not None:
+                shared.show_rows(rows)
     except BaseException:                 # an interrupt: the jobs stop at their next chunk
         shared.fail(-1, "interrupted")
         # and store what finished before it is raised: what the caller does next (a

@@ -147,6 +147,8 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
     owned = executor is None and bool(todo)
     executor = executor or (default() if todo else None)
     shared = job[0] if job is not None and executor is job[0].executor else None
+    if shared is not None:
+        shared.count_rows(known=rows, done=rows - computed)
     window = Window(executor, least=least, fixed=max_in_flight)
     def pool_counter():
         return (getattr(executor, "progress_counter", None) if per_row and shared is None
@@ -186,6 +188,8 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
                 error = error or _lost(e, caller, chunk)
                 continue
             store.store(chunk, arrays)
+            if shared is not None:
+                shared.count_rows(done=chunk.rows)
             if counter is None and not hooked:
                 bar.update(chunk.rows)
         show()

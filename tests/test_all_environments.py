@@ -147,6 +147,42 @@ class _InterruptedBar:
         pass
 
 
+class _RowsBar:
+    """A tqdm-like bar that keeps what it was shown."""
+    made = []
+
+    def __init__(self, total=0, position=None):
+        self.total, self.n, self.position, self.totals = total, 0, position, []
+        _RowsBar.made.append(self)
+
+    def refresh(self):
+        self.totals.append(self.total)
+
+    def update(self, n):
+        self.n += n
+
+    def close(self):
+        pass
+
+
+def test_a_bar_of_every_jobs_rows_counts_those_done_before_and_those_known_so_far(tmp_path):
+    """The jobs' bars each read their share of the machine (hours left for a job that
+    ends in minutes); the rows bar reads the whole: every job's rows, those stored by
+    an earlier run included, below the jobs' bars."""
+    lines, _RowsBar.made[:] = [], []
+    earlier = FolderStore(tmp_path / "b", keep=True)
+    for chunk in split(40, 1)[:10]:                   # b resumes: 10 of its rows stored
+        earlier.store(chunk, _tagged(chunk.start, chunk.stop, 0.0, "b"))
+    with _Counting(2) as pool:
+        jobs = [_job(tmp_path, pool, n, lines) for n in "ab"]
+        run_together(jobs, pool, what="job", rows_bar=_RowsBar)
+    [bar] = _RowsBar.made
+    assert bar.position == 2 and (bar.n, bar.total) == (80, 80) and bar.totals[-1] == 80
+    run_together([_job(tmp_path / "inline", InlineExecutor(), n, lines) for n in "ab"],
+                 InlineExecutor(), rows_bar=_RowsBar)
+    assert len(_RowsBar.made) == 1                    # one after another: the jobs' own
+
+
 def test_an_interrupt_is_raised_once_the_jobs_have_stored_what_finished(tmp_path):
     """Ctrl-C while a job is storing a chunk: raised once that job has stopped, its
     finished chunks stored, so that what the caller does next (a push of the run
