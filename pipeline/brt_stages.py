@@ -176,7 +176,7 @@ def stage_sweep(run: Run) -> dict:
     their chunks together on the run's executor (`each_environment`; inline, one
     after another)."""
     return each_environment(run, run.environments(), _sweep_record,
-                            what="sweep of environment")
+                            what="sweep of environment", unit="state")
 
 
 def _sweep_record(run: Run, env) -> dict:

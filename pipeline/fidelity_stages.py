@@ -173,7 +173,7 @@ def stage_fidelity(run: Run) -> dict:
     if check.starts == 0:
         return {}
     out = each_environment(run, run.environments(), _fidelity_record,
-                           what="fidelity check of environment")
+                           what="fidelity check of environment", unit="run")
     check_box_exits(out, check.max_box_exits)
     return out
 

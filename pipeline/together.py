@@ -5,6 +5,7 @@ larger than one environment's chunks is kept busy and no environment's tail leav
 workers idle. Inline, one environment after another, as before."""
 
 import copy
+import functools
 
 from reachwatch.reach.chunk_jobs import ordered_log, run_together, together
 
@@ -20,7 +21,7 @@ def _view(run: Run, log) -> Run:
     return view
 
 
-def each_environment(run: Run, envs, fn, *, what: str, bar=None) -> dict:
+def each_environment(run: Run, envs, fn, *, what: str, bar=None, unit: str = None) -> dict:
     """``{env.name: fn(run, env)}`` for ``envs``, in their order. On a pool each ``fn``
     runs in a thread of its own, all environments' chunks together on the run's
     executor; the records its `Run.stage` calls keep (``run.outputs`` and
@@ -28,8 +29,15 @@ def each_environment(run: Run, envs, fn, *, what: str, bar=None) -> dict:
     inline. An error in one environment stops the others' queued chunks (their
     finished chunks and stage records are kept) and is raised with ``"{what}
     {name}: "`` before its message. ``bar``: a tqdm-like factory counting the
-    environments done."""
+    environments done. ``unit`` (what a row of the stage's chunks is: ``"state"``,
+    ``"run"``): with the run's progress shown, a bar of the rows of every environment
+    below theirs, whose rate and time left are the machine's where each environment's
+    bar reads its share."""
     envs = list(envs)
+    rows_bar = None
+    if unit and run.progress:
+        from tqdm import tqdm
+        rows_bar = functools.partial(tqdm, unit=unit, desc=f"{unit}s of every environment")
     if not together(run.executor, len(envs)):
         return dict(zip([e.name for e in envs], run_together(
             [(e.name, lambda e=e: fn(run, e)) for e in envs], run.executor, what=what,
@@ -38,7 +46,7 @@ def each_environment(run: Run, envs, fn, *, what: str, bar=None) -> dict:
     views = [_view(run, log) for _ in envs]
     try:
         results = run_together([(e.name, lambda e=e, v=v: fn(v, e)) for e, v in zip(envs, views)],
-                               run.executor, what=what, bar=bar)
+                               run.executor, what=what, bar=bar, rows_bar=rows_bar)
     finally:              # what each environment's stages recorded, in their order
         for view in views:
             for mine, theirs in ((run.outputs, view.outputs), (run.records, view.records)):
