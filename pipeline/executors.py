@@ -260,8 +260,9 @@ def make_executor(spec: str, *, connect_timeout: float = 10.0):
             raise
         executor = ShippingExecutor(client)
         if has_no_workers(executor):
-            _log.warning("--executor %s: the scheduler has no workers yet; the run's chunks "
-                         "wait until one joins (dask worker %s)", spec, address)
+            _log.warning("--executor %s: the scheduler has no workers yet: the run's chunks "
+                         "wait until one joins (dask worker %s), and a stage that sends "
+                         "files to the cluster stops after Dask's timeout", spec, address)
         advice = saturation_advice(scheduler_saturation(client))
         if advice:
             _log.warning("--executor %s: %s", spec, advice)

@@ -54,7 +54,12 @@ class ShippingExecutor(ClientExecutor):
         with self._sending:
             sent = self._sent.pop(shipment.digest, None)
             if sent is None or sent.status != "finished":
-                sent = self._client.scatter(shipment, hash=False)
+                try:
+                    sent = self._client.scatter(shipment, hash=False)
+                except TimeoutError as e:       # Dask's, when the cluster has no workers
+                    raise WorkerLost(f"the files a task needs could not be sent to the "
+                                     f"cluster ({e}): it has no workers; start them, then "
+                                     f"run again (finished chunks are kept)") from e
             self._sent[shipment.digest] = sent
             while len(self._sent) > KEPT:            # the oldest first (dicts keep order)
                 self._sent.pop(next(iter(self._sent)))

@@ -42,24 +42,33 @@ class _Together:
         self.done = [False] * len(self.names)
         self.head = 0                       # the first job not finished: its lines go out
         self.held = [[] for _ in self.names]
-        self.rows = [0, 0]                  # [done, known] of all their run_chunks calls
+        # [done now, stored before, known] of all their run_chunks calls
+        self.rows = [0, 0, 0]
         self.cond = threading.Condition()
 
-    def count_rows(self, *, known: int = 0, done: int = 0):
-        """A job's `run_chunks` call knows of ``known`` more rows, or has ``done`` more
-        (stored already, or a chunk stored now)."""
+    def count_rows(self, *, known: int = 0, stored: int = 0, done: int = 0):
+        """A job's `run_chunks` call knows of ``known`` more rows, ``stored`` of them
+        already (by an earlier run), or has ``done`` more now."""
         with self.cond:
             self.rows[0] += done
-            self.rows[1] += known
+            self.rows[1] += stored
+            self.rows[2] += known
 
     def show_rows(self, bar):
-        """``bar`` (a tqdm-like bar) at the rows done of those known so far."""
+        """``bar`` (a tqdm-like bar) at the rows done of those known so far: those
+        stored before as its ``initial`` (not in its rate), those done now by
+        ``update``."""
         with self.cond:
-            done, known = self.rows
+            done, stored, known = self.rows
+        if stored != bar.initial:
+            more = stored - bar.initial
+            bar.initial += more
+            bar.n += more
+            bar.last_print_n = getattr(bar, "last_print_n", 0) + more
         if bar.total != known:
             bar.total = known
             bar.refresh()
-        bar.update(done - bar.n)
+        bar.update(done + stored - bar.n)
 
     def take(self, block: bool) -> bool:
         """A slot of the window for one chunk; without one, False (after up to 0.25 s

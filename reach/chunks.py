@@ -148,7 +148,7 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
     executor = executor or (default() if todo else None)
     shared = job[0] if job is not None and executor is job[0].executor else None
     if shared is not None:
-        shared.count_rows(known=rows, done=rows - computed)
+        shared.count_rows(known=rows, stored=rows - computed)
     window = Window(executor, least=least, fixed=max_in_flight)
     def pool_counter():
         return (getattr(executor, "progress_counter", None) if per_row and shared is None
@@ -207,6 +207,10 @@ def run_chunks(task: Callable, chunks, store, *, args: Callable, executor=None,
             if future.done() and not future.cancelled() and future.exception() is None:
                 try:                # the error being raised is the one to see
                     store.store(chunk, future.result())
+                    if shared is not None:
+                        shared.count_rows(done=chunk.rows)
+                    if counter is None and not hooked:
+                        bar.update(chunk.rows)
                 except Exception as e:
                     _log.warning("%s: chunk %d finished but could not be stored (%s: %s); "
                                  "a re-run computes it again", caller, chunk.index,

@@ -153,6 +153,7 @@ class _RowsBar:
 
     def __init__(self, total=0, position=None):
         self.total, self.n, self.position, self.totals = total, 0, position, []
+        self.initial, self.updated = 0, 0
         _RowsBar.made.append(self)
 
     def refresh(self):
@@ -160,6 +161,7 @@ class _RowsBar:
 
     def update(self, n):
         self.n += n
+        self.updated += n
 
     def close(self):
         pass
@@ -178,6 +180,8 @@ def test_a_bar_of_every_jobs_rows_counts_those_done_before_and_those_known_so_fa
         run_together(jobs, pool, what="job", rows_bar=_RowsBar)
     [bar] = _RowsBar.made
     assert bar.position == 2 and (bar.n, bar.total) == (80, 80) and bar.totals[-1] == 80
+    # the rows an earlier run stored are the bar's start, not in its rate
+    assert (bar.initial, bar.updated) == (10, 70)
     run_together([_job(tmp_path / "inline", InlineExecutor(), n, lines) for n in "ab"],
                  InlineExecutor(), rows_bar=_RowsBar)
     assert len(_RowsBar.made) == 1                    # one after another: the jobs' own

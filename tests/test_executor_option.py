@@ -62,5 +62,32 @@ def test_a_scheduler_without_workers_is_said_when_the_run_connects(caplog):
         spec = "dask://" + cluster.scheduler_address.removeprefix("tcp://")
         _, close = make_executor(spec, connect_timeout=5)
         close()
-    assert (f"--executor {spec}: the scheduler has no workers yet; the run's chunks wait "
+    assert (f"--executor {spec}: the scheduler has no workers yet: the run's chunks wait "
             f"until one joins") in caplog.text
+
+
+def _first_rows(path, start, stop):
+    import numpy as np
+    return {"y": np.arange(start, stop)}
+
+
+def test_files_for_a_cluster_without_workers_are_one_line(tmp_path):
+    """Before: Dask's own ``TimeoutError: No valid workers found`` from sending a task's
+    files to a cluster with no workers; now one line saying so."""
+    dask = pytest.importorskip("dask")
+    distributed = pytest.importorskip("dask.distributed")
+    from reachwatch.pipeline.shipping_executor import ShippingExecutor
+    from reachwatch.reach.chunk_files import FolderStore, split
+    from reachwatch.reach.chunks import run_chunks
+    from reachwatch.reach.executors import WorkerLost
+    data = tmp_path / "data.txt"
+    data.write_text("x")
+    with dask.config.set({"distributed.comm.timeouts.connect": "2s"}), \
+            distributed.LocalCluster(n_workers=0, processes=False,
+                                     dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        with pytest.raises(WorkerLost, match=r"^the files a task needs could not be sent to "
+                                             r"the cluster \(.*\): it has no workers"):
+            run_chunks(_first_rows, split(4, 2), FolderStore(tmp_path / "out"),
+                       args=lambda chunk: (data, chunk.start, chunk.stop),
+                       executor=ShippingExecutor(client), caller="job")
