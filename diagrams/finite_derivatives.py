@@ -83,8 +83,8 @@ def check_finite_derivatives(diagram: Diagram) -> DerivativeChecks:
     ``DoCalcTimeDerivatives`` is written in Python count the non-finite derivatives
     it computes (once per system: the method its class has at each call, then the
     check) and raise a ValueError in one line at the `STUCK_EVALUATIONS`-th since a
-    step got past the time of the one before (`DerivativeChecks`). Holds each system weakly (a callback holding it
-    strongly would keep the whole diagram alive,
+    step got past the time of the one before (`DerivativeChecks`). Holds each system
+    weakly (a callback holding it strongly would keep the whole diagram alive,
     `reachwatch.systems.ports.weak_callback`)."""
     loop = diagram.get_name()
     counts = []
