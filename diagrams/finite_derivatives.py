@@ -69,11 +69,13 @@ class DerivativeChecks:
         """The simulator took a step, to ``root_context``'s time. One that got past the
         time of the last (a step of no length does not: stuck, Drake takes those,
         thousands a second) makes the non-finite derivatives before it trial steps it
-        threw away; the state it reached is the one a refusal names."""
+        threw away; the state a step of no length stays at, after one, is the one a
+        refusal names (copied then alone, not at every step)."""
         time = root_context.get_time()
         for system, count in self._checked:
             if time > count.since:
-                count.bad, count.since = 0, time
+                count.bad, count.since, count.state = 0, time, None
+            elif count.bad and count.state is None:     # a step of no length: stuck here
                 count.state = system.GetMyContextFromRoot(
                     root_context).get_continuous_state_vector().CopyToVector()
 

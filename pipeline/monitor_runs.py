@@ -12,6 +12,7 @@ from reachwatch.diagrams import MonitorConfig
 from reachwatch.reach.chunk_jobs import run_together
 
 from .monitor_judge import watch_s
+from .together import every_environment_bar
 
 
 #: The starts' own random stream: environment ``i`` of the family is drawn from ``[seed,
@@ -120,9 +121,7 @@ def each_named(named, fn, *, executor, what: str, progress: bool = False) -> lis
     an error raised with ``"{what} {name}: "`` before it), inline one after another;
     results in ``named``'s order either way. ``progress``: on a pool, a bar of the runs
     of every environment below theirs (its rate and time left the machine's)."""
-    from tqdm import tqdm
-    rows_bar = (functools.partial(tqdm, unit="run", desc=f"{what}, every environment")
-                if progress else None)
+    rows_bar = every_environment_bar("run", f"{what}, every environment", shown=progress)
     return run_together([(name, lambda i=i, item=item: fn(i, item))
                          for i, (name, item) in enumerate(named)], executor, what=what,
                         rows_bar=rows_bar)

@@ -21,6 +21,15 @@ def _view(run: Run, log) -> Run:
     return view
 
 
+def every_environment_bar(unit: str, desc: str, *, shown: bool):
+    """The ``rows_bar`` of `run_together` for environments run at once (a tqdm bar of
+    ``unit`` rows, ``desc``), or None when progress is not ``shown``."""
+    if not shown:
+        return None
+    from tqdm import tqdm
+    return functools.partial(tqdm, unit=unit, desc=desc)
+
+
 def each_environment(run: Run, envs, fn, *, what: str, bar=None, unit: str = None) -> dict:
     """``{env.name: fn(run, env)}`` for ``envs``, in their order. On a pool each ``fn``
     runs in a thread of its own, all environments' chunks together on the run's
@@ -34,10 +43,8 @@ def each_environment(run: Run, envs, fn, *, what: str, bar=None, unit: str = Non
     below theirs, whose rate and time left are the machine's where each environment's
     bar reads its share."""
     envs = list(envs)
-    rows_bar = None
-    if unit and run.progress:
-        from tqdm import tqdm
-        rows_bar = functools.partial(tqdm, unit=unit, desc=f"{unit}s of every environment")
+    rows_bar = every_environment_bar(unit, f"{unit}s of every environment",
+                                     shown=bool(unit) and run.progress)
     if not together(run.executor, len(envs)):
         return dict(zip([e.name for e in envs], run_together(
             [(e.name, lambda e=e: fn(run, e)) for e in envs], run.executor, what=what,
